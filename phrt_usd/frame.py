@@ -129,6 +129,7 @@ class ReflectorMetrics:
     selected: bool
     visible: bool
     predicted_rays: float = 0.0
+    predicted_ms: float = 0.0
 
 
 class SelectionPolicy(Protocol):
