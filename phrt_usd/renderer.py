@@ -1,0 +1,262 @@
+"""One frame of the heuristic hybrid renderer, in the three modes.
+
+Per frame (``FrameRenderer.render``):
+
+1. ``set_time``   animated prims re-evaluated; rasterizer / Embree scene updated if moved.
+2. ``gbuffer``    raster G-buffer (pyrender) — or, in ``rt`` mode, primary rays (Embree).
+3. ``shade``      local shading of every covered pixel (shadow map in raster/hybrid,
+                  shadow rays in ``rt``); reflectors get the environment fallback.
+4. ``select`` + ``trace``  rounds of: the selection policy picks reflectors that fit the
+                  remaining budget, the tracer traces their pixels, the policy learns
+                  from what the rays hit. Skipped when no reflector is visible or known.
+5. ``composite``  traced radiance replaces the fallback in the traced pixels.
+
+Modes: ``raster`` (no tracing), ``hybrid`` (the heuristic chooses), ``rt`` (Embree for
+everything, all reflectors traced: the reference).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from phrt_usd.compositing import apply_traced, base_image, pixel_reflectivity
+from phrt_usd.errors import PhrtError
+from phrt_usd.frame import Budget, FrameStats, FrameView, GBuffer, ReflectorMetrics
+from phrt_usd.heuristic import make_policy
+from phrt_usd.scene import Scene
+from phrt_usd.shading import shade_local
+from phrt_usd.stage_reader import StageScene
+
+MODES = ("raster", "hybrid", "rt")
+HEURISTICS = ("heu1", "heu2", "all", "none")
+
+
+@dataclass
+class RenderOptions:
+    """How to render. ``None`` budgets are unbounded."""
+
+    mode: str = "hybrid"
+    heuristic: str = "heu1"
+    width: int = 320
+    height: int = 240
+    budget_ms: float | None = 10.0
+    budget_rays: int | None = None
+    bounce_limit: int = 5
+    selection_weight: float = 0.001
+    threads: int = 2
+
+    def __post_init__(self) -> None:
+        if self.mode not in MODES:
+            raise PhrtError(f"unknown mode {self.mode!r}; expected one of {', '.join(MODES)}")
+        if self.heuristic not in HEURISTICS:
+            raise PhrtError(
+                f"unknown heuristic {self.heuristic!r}; expected one of {', '.join(HEURISTICS)}"
+            )
+        if not (1 <= self.width <= 16384 and 1 <= self.height <= 16384):
+            raise PhrtError(f"resolution {self.width}x{self.height} out of range 1..16384")
+        if self.budget_ms is not None and not (self.budget_ms >= 0 and np.isfinite(self.budget_ms)):
+            raise PhrtError(f"--budget-ms must be a finite number >= 0, got {self.budget_ms}")
+        if self.budget_rays is not None and self.budget_rays < 0:
+            raise PhrtError(f"--budget-rays must be >= 0, got {self.budget_rays}")
+        if not 0 <= self.bounce_limit <= 16:
+            raise PhrtError(f"bounce limit must be in 0..16, got {self.bounce_limit}")
+        if not (self.selection_weight >= 0 and np.isfinite(self.selection_weight)):
+            raise PhrtError(f"selection weight I must be finite and >= 0: {self.selection_weight}")
+
+
+@dataclass
+class FrameOutput:
+    """A rendered frame: beauty (H, W, 3) float32 linear RGB, alpha (H, W) float32,
+    the G-buffer, traced_mask (H, W) bool and the frame's stats."""
+
+    beauty: np.ndarray
+    alpha: np.ndarray
+    gbuffer: GBuffer
+    traced_mask: np.ndarray
+    stats: FrameStats
+    rays_log: list = field(default_factory=list)
+
+
+class FrameRenderer:
+    """Renders frames of one stage with fixed options; keeps per-run state (the
+    rasterizer's uploaded geometry, the Embree scene, the policy's memory)."""
+
+    def __init__(self, stage_scene: StageScene, options: RenderOptions):
+        self.stage_scene = stage_scene
+        self.options = options
+        scene = stage_scene.scene
+        self._reflector_ids = scene.reflector_ids
+        self._rasterizer = None
+        self._tracer = None
+        if options.mode != "rt":
+            from phrt_usd.gbuffer import Rasterizer
+
+            self._rasterizer = Rasterizer(scene, options.width, options.height)
+        # Embree is only needed to trace (reflectors in hybrid, everything in rt).
+        if options.mode == "rt" or (
+            options.mode == "hybrid" and len(self._reflector_ids) and options.heuristic != "none"
+        ):
+            from phrt_usd.tracer import Tracer
+
+            self._tracer = Tracer(scene, threads=options.threads)
+        policy_name = "all" if options.mode == "rt" else options.heuristic
+        self.policy = make_policy(
+            policy_name,
+            selection_weight=options.selection_weight,
+            bounce_limit=options.bounce_limit,
+        )
+
+    @property
+    def scene(self) -> Scene:
+        return self.stage_scene.scene
+
+    def close(self) -> None:
+        if self._rasterizer is not None:
+            self._rasterizer.close()
+
+    def render(self, time_code: float) -> FrameOutput:
+        opts = self.options
+        phase: dict[str, float] = {}
+        passes: list[str] = []
+        t_frame = time.perf_counter()
+
+        t = time.perf_counter()
+        if self.stage_scene.set_time(time_code):
+            if self._rasterizer is not None:
+                self._rasterizer.update_geometry(self.scene)
+            if self._tracer is not None:
+                self._tracer.update_geometry(self.scene)
+        camera = self.stage_scene.camera(time_code)
+        phase["set_time"] = _ms(t)
+
+        scene = self.scene
+        t = time.perf_counter()
+        if opts.mode == "rt":
+            gb = self._tracer.primary_gbuffer(camera, opts.width, opts.height)
+            passes.append("primary_rays")
+        else:
+            gb = self._rasterizer.render(camera)
+            passes.append("gbuffer")
+        phase["gbuffer"] = _ms(t)
+
+        t = time.perf_counter()
+        local, shadow_pass = self._shade_local(gb)
+        if shadow_pass:
+            passes.append(shadow_pass)
+        reflectivity = pixel_reflectivity(gb, scene)
+        image = base_image(gb, scene, local, reflectivity)
+        phase["shade"] = _ms(t)
+
+        pixel_counts = np.bincount(gb.element_id[gb.covered], minlength=len(scene.elements))
+        visible_ids = [int(i) for i in self._reflector_ids if pixel_counts[i] > 0]
+        traced_mask = np.zeros(gb.shape, dtype=bool)
+        trace_ms = 0.0
+        select_ms = 0.0
+        rays = 0
+        metrics: dict[int, ReflectorMetrics] = {}
+        selected: list[int] = []
+        if self._tracer is not None and opts.mode != "raster":
+            view = FrameView(time_code, camera, opts.width, opts.height, pixel_counts)
+            t = time.perf_counter()
+            self.policy.begin_frame(view, scene)
+            select_ms += _ms(t)
+            while True:
+                budget = self._remaining(trace_ms, rays)
+                if (budget.ms is not None and budget.ms <= 0) or (
+                    budget.rays is not None and budget.rays <= 0
+                ):
+                    break
+                t = time.perf_counter()
+                ids = self.policy.next_round(budget)
+                select_ms += _ms(t)
+                # Only reflectors with pixels in this frame are traced from the G-buffer.
+                ids = [i for i in ids if pixel_counts[i] > 0 and i not in selected]
+                if not ids:
+                    break
+                t = time.perf_counter()
+                result = self._tracer.trace_reflections(gb, ids, opts.bounce_limit)
+                apply_traced(image, local, reflectivity, result, traced_mask)
+                trace_ms += _ms(t)
+                rays += result.rays
+                selected.extend(ids)
+                t = time.perf_counter()
+                self.policy.record(result.records, result.seconds)
+                select_ms += _ms(t)
+            t = time.perf_counter()
+            metrics = self.policy.end_frame()
+            select_ms += _ms(t)
+            if selected:
+                passes.append("trace")
+                if scene.materials.has_transmission:
+                    passes.append("refraction")
+        phase["select"] = select_ms
+        phase["trace"] = trace_ms
+
+        alpha = gb.covered.astype(np.float32)
+        frame_ms = _ms(t_frame)
+        paths = scene.elements
+        predicted = _predicted_ms(metrics, selected)
+        stats = FrameStats(
+            time=float(time_code),
+            phase_ms=phase,
+            frame_ms=frame_ms,
+            trace_ms=trace_ms,
+            predicted_trace_ms=predicted,
+            rays=rays,
+            visible=[paths[i].path for i in visible_ids],
+            selected=[paths[i].path for i in selected],
+            metrics={paths[i].path: m for i, m in metrics.items()},
+            passes=passes,
+        )
+        return FrameOutput(image, alpha, gb, traced_mask, stats)
+
+    def _remaining(self, trace_ms: float, rays: int) -> Budget:
+        opts = self.options
+        if self.options.mode == "rt":
+            return Budget()
+        return Budget(
+            ms=None if opts.budget_ms is None else opts.budget_ms - trace_ms,
+            rays=None if opts.budget_rays is None else opts.budget_rays - rays,
+        )
+
+    def _shade_local(self, gb: GBuffer) -> tuple[np.ndarray, str | None]:
+        """Local shading (H, W, 3) of covered pixels and the shadow pass used, if any."""
+        scene = self.scene
+        h, w = gb.shape
+        covered = gb.covered
+        local = np.zeros((h, w, 3), dtype=np.float32)
+        if not covered.any():
+            return local, None
+        pos = gb.position[covered]
+        nrm = gb.normal[covered]
+        lights = scene.lights
+        n_lights = len(lights.distant) + len(lights.local)
+        shadow_pass = None
+        if n_lights == 0:
+            visibility = np.ones((len(pos), 0), dtype=np.float32)
+        elif self.options.mode == "rt":
+            visibility = self._tracer.shadow_visibility(pos, nrm)
+            shadow_pass = "shadow_rays"
+        else:
+            visibility = np.ones((len(pos), n_lights), dtype=np.float32)
+            if lights.distant:
+                visibility[:, : len(lights.distant)] = self._rasterizer.shadow_visibility(pos, nrm)
+            shadow_pass = "shadow_map"
+        tri = gb.triangle_id[covered]
+        emissive = scene.materials.emissive[scene.geometry.tri_material[tri]]
+        local[covered] = shade_local(
+            pos, nrm, gb.albedo[covered], gb.view_dir[covered], emissive, lights, visibility
+        )
+        return local, shadow_pass
+
+
+def _predicted_ms(metrics: dict[int, ReflectorMetrics], selected: list[int]) -> float:
+    """Predicted trace time of the selected reflectors, from the policy's figures."""
+    return float(sum(getattr(metrics.get(i), "predicted_ms", 0.0) or 0.0 for i in selected))
+
+
+def _ms(t0: float) -> float:
+    return (time.perf_counter() - t0) * 1000.0
