@@ -164,8 +164,16 @@ def _run_info(job: RenderJob, scene: StageScene, times: list[float]) -> dict:
 
 
 # Options that must match between an interrupted run and its --resume.
-_RESUME_KEYS = ("stage", "mode", "heuristic", "budget_ms", "budget_rays", "bounce_limit",
-                "selection_weight", "resolution")
+_RESUME_KEYS = (
+    "stage",
+    "mode",
+    "heuristic",
+    "budget_ms",
+    "budget_rays",
+    "bounce_limit",
+    "selection_weight",
+    "resolution",
+)
 
 
 def _load_checkpoint(out: Path, run_info: dict) -> tuple[list[FrameStats], object | None]:
@@ -229,5 +237,3 @@ def _stop_on_signals(stop: threading.Event) -> Iterator[None]:
     finally:
         for s, h in previous.items():
             signal.signal(s, h)
-
-

@@ -18,15 +18,22 @@ everything, all reflectors traced: the reference).
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
 from phrt_usd.compositing import apply_traced, base_image, pixel_reflectivity
 from phrt_usd.errors import PhrtError
-from phrt_usd.frame import Budget, FrameStats, FrameView, GBuffer, ReflectorMetrics
+from phrt_usd.frame import (
+    Budget,
+    FrameStats,
+    FrameView,
+    GBuffer,
+    ReflectorMetrics,
+    SelectionPolicy,
+)
 from phrt_usd.heuristic import make_policy
-from phrt_usd.scene import Scene
+from phrt_usd.scene import CameraFrame, Scene
 from phrt_usd.shading import shade_local
 from phrt_usd.stage_reader import StageScene
 
@@ -68,6 +75,27 @@ class RenderOptions:
 
 
 @dataclass
+class PreparedFrame:
+    """A frame after G-buffer and local shading, before any tracing.
+
+    local: (H, W, 3) float32 local shading; reflectivity: (H, W) float32 F per pixel;
+    image: (H, W, 3) float32 the raster frame (environment fallback in reflectors);
+    pixel_counts: (E,) int64 pixels per element.
+    """
+
+    time: float
+    camera: CameraFrame
+    gbuffer: GBuffer
+    local: np.ndarray
+    reflectivity: np.ndarray
+    image: np.ndarray
+    pixel_counts: np.ndarray
+    phase_ms: dict[str, float]
+    passes: list[str]
+    prepare_ms: float
+
+
+@dataclass
 class FrameOutput:
     """A rendered frame: beauty (H, W, 3) float32 linear RGB, alpha (H, W) float32,
     the G-buffer, traced_mask (H, W) bool and the frame's stats."""
@@ -77,7 +105,6 @@ class FrameOutput:
     gbuffer: GBuffer
     traced_mask: np.ndarray
     stats: FrameStats
-    rays_log: list = field(default_factory=list)
 
 
 class FrameRenderer:
@@ -118,6 +145,11 @@ class FrameRenderer:
             self._rasterizer.close()
 
     def render(self, time_code: float) -> FrameOutput:
+        """Render one frame with this renderer's options and selection policy."""
+        return self.finish(self.prepare(time_code), self.policy, self.options)
+
+    def prepare(self, time_code: float) -> PreparedFrame:
+        """Phases 1–3: scene at ``time_code``, G-buffer, local shading, raster fallback."""
         opts = self.options
         phase: dict[str, float] = {}
         passes: list[str] = []
@@ -149,8 +181,34 @@ class FrameRenderer:
         reflectivity = pixel_reflectivity(gb, scene)
         image = base_image(gb, scene, local, reflectivity)
         phase["shade"] = _ms(t)
-
         pixel_counts = np.bincount(gb.element_id[gb.covered], minlength=len(scene.elements))
+        return PreparedFrame(
+            float(time_code),
+            camera,
+            gb,
+            local,
+            reflectivity,
+            image,
+            pixel_counts,
+            phase,
+            passes,
+            _ms(t_frame),
+        )
+
+    def finish(
+        self, prep: PreparedFrame, policy: SelectionPolicy, opts: RenderOptions
+    ) -> FrameOutput:
+        """Phases 4–5: selection rounds and tracing within ``opts``' budget, compositing.
+
+        Leaves ``prep`` untouched, so several policies / budgets can finish one frame.
+        """
+        scene = self.scene
+        t_finish = time.perf_counter()
+        image = prep.image.copy()
+        phase = dict(prep.phase_ms)
+        passes = list(prep.passes)
+        pixel_counts = prep.pixel_counts
+        gb = prep.gbuffer
         visible_ids = [int(i) for i in self._reflector_ids if pixel_counts[i] > 0]
         traced_mask = np.zeros(gb.shape, dtype=bool)
         trace_ms = 0.0
@@ -159,18 +217,18 @@ class FrameRenderer:
         metrics: dict[int, ReflectorMetrics] = {}
         selected: list[int] = []
         if self._tracer is not None and opts.mode != "raster":
-            view = FrameView(time_code, camera, opts.width, opts.height, pixel_counts)
+            view = FrameView(prep.time, prep.camera, opts.width, opts.height, pixel_counts)
             t = time.perf_counter()
-            self.policy.begin_frame(view, scene)
+            policy.begin_frame(view, scene)
             select_ms += _ms(t)
             while True:
-                budget = self._remaining(trace_ms, rays)
+                budget = _remaining(opts, trace_ms, rays)
                 if (budget.ms is not None and budget.ms <= 0) or (
                     budget.rays is not None and budget.rays <= 0
                 ):
                     break
                 t = time.perf_counter()
-                ids = self.policy.next_round(budget)
+                ids = policy.next_round(budget)
                 select_ms += _ms(t)
                 # Only reflectors with pixels in this frame are traced from the G-buffer.
                 ids = [i for i in ids if pixel_counts[i] > 0 and i not in selected]
@@ -178,15 +236,15 @@ class FrameRenderer:
                     break
                 t = time.perf_counter()
                 result = self._tracer.trace_reflections(gb, ids, opts.bounce_limit)
-                apply_traced(image, local, reflectivity, result, traced_mask)
+                apply_traced(image, prep.local, prep.reflectivity, result, traced_mask)
                 trace_ms += _ms(t)
                 rays += result.rays
                 selected.extend(ids)
                 t = time.perf_counter()
-                self.policy.record(result.records, result.seconds)
+                policy.record(result.records, result.seconds)
                 select_ms += _ms(t)
             t = time.perf_counter()
-            metrics = self.policy.end_frame()
+            metrics = policy.end_frame()
             select_ms += _ms(t)
             if selected:
                 passes.append("trace")
@@ -196,31 +254,21 @@ class FrameRenderer:
         phase["trace"] = trace_ms
 
         alpha = gb.covered.astype(np.float32)
-        frame_ms = _ms(t_frame)
-        paths = scene.elements
-        predicted = _predicted_ms(metrics, selected)
+        frame_ms = prep.prepare_ms + _ms(t_finish)
+        elements = scene.elements
         stats = FrameStats(
-            time=float(time_code),
+            time=prep.time,
             phase_ms=phase,
             frame_ms=frame_ms,
             trace_ms=trace_ms,
-            predicted_trace_ms=predicted,
+            predicted_trace_ms=sum(metrics[i].predicted_ms for i in selected if i in metrics),
             rays=rays,
-            visible=[paths[i].path for i in visible_ids],
-            selected=[paths[i].path for i in selected],
-            metrics={paths[i].path: m for i, m in metrics.items()},
+            visible=[elements[i].path for i in visible_ids],
+            selected=[elements[i].path for i in selected],
+            metrics={elements[i].path: m for i, m in metrics.items()},
             passes=passes,
         )
         return FrameOutput(image, alpha, gb, traced_mask, stats)
-
-    def _remaining(self, trace_ms: float, rays: int) -> Budget:
-        opts = self.options
-        if self.options.mode == "rt":
-            return Budget()
-        return Budget(
-            ms=None if opts.budget_ms is None else opts.budget_ms - trace_ms,
-            rays=None if opts.budget_rays is None else opts.budget_rays - rays,
-        )
 
     def _shade_local(self, gb: GBuffer) -> tuple[np.ndarray, str | None]:
         """Local shading (H, W, 3) of covered pixels and the shadow pass used, if any."""
@@ -253,9 +301,14 @@ class FrameRenderer:
         return local, shadow_pass
 
 
-def _predicted_ms(metrics: dict[int, ReflectorMetrics], selected: list[int]) -> float:
-    """Predicted trace time of the selected reflectors, from the policy's figures."""
-    return float(sum(getattr(metrics.get(i), "predicted_ms", 0.0) or 0.0 for i in selected))
+def _remaining(opts: RenderOptions, trace_ms: float, rays: int) -> Budget:
+    """Budget left after ``trace_ms`` and ``rays`` were spent (unbounded in ``rt``)."""
+    if opts.mode == "rt":
+        return Budget()
+    return Budget(
+        ms=None if opts.budget_ms is None else opts.budget_ms - trace_ms,
+        rays=None if opts.budget_rays is None else opts.budget_rays - rays,
+    )
 
 
 def _ms(t0: float) -> float:
