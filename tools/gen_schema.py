@@ -159,9 +159,7 @@ def generated_schema_text(path: Path) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument(
-        "--check", action="store_true", help="exit 1 if the plugin files are stale"
-    )
+    parser.add_argument("--check", action="store_true", help="exit 1 if the plugin files are stale")
     args = parser.parse_args(argv)
     _init_resolver()
     layer = Sdf.Layer.FindOrOpen(str(SCHEMA_SOURCE))
