@@ -1,0 +1,231 @@
+"""The run directory: where a render's files live, ``stats.json``, and atomic file writes.
+
+Layout of a render's output directory ``OUT``::
+
+    OUT/frames/NNNN.exr     one multi-channel EXR per rendered frame (see images.py)
+    OUT/frames/NNNN.png     8-bit sRGB preview of the same frame
+    OUT/stats.json          run settings + one row per rendered frame (this module)
+    OUT/selection.usda      the selection layer (see selection_layer.py)
+
+``NNNN`` is the frame's time code: integral time codes are zero-padded to 4 digits
+(``0012``, ``-003``), fractional ones keep 3 decimals (``0012.500``), so time codes are
+told apart to 1/1000 of a time code.
+
+Every file is written atomically: to a hidden temp file in the same directory (same
+extension, so OpenImageIO / USD pick the right format), then ``os.replace``'d over the
+final name. A reader never sees a half-written file and a crash leaves the old file whole.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import platform
+import secrets
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import asdict
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from phrt_usd import __version__
+from phrt_usd.errors import PhrtError
+from phrt_usd.frame import FrameStats
+
+FRAMES_DIR = "frames"
+STATS_FILE = "stats.json"
+SELECTION_LAYER_FILE = "selection.usda"
+
+#: Identifies stats.json files written by this module; bump the version on breaking change.
+STATS_FORMAT = "phrt-stats"
+STATS_VERSION = 1
+
+#: Time codes closer than this to an integer are named as that integer (``0012``).
+INTEGRAL_TIME_TOLERANCE = 1e-6
+
+
+# --- atomic writes ---------------------------------------------------------------------
+
+
+@contextmanager
+def atomic_path(final: Path) -> Iterator[Path]:
+    """Yield a temp path next to ``final``; on success move it over ``final``.
+
+    The temp name is ``.<name>.<pid>.<random>.tmp<ext>`` in ``final``'s directory (same
+    file system, so ``os.replace`` is atomic; same extension, so writers that choose a
+    format by extension work). If the body raises, the temp file is removed and ``final``
+    is left untouched.
+    """
+    final = Path(final)
+    final.parent.mkdir(parents=True, exist_ok=True)
+    stem, ext = _split_extension(final.name)
+    tmp = final.with_name(f".{stem}.{os.getpid()}.{secrets.token_hex(4)}.tmp{ext}")
+    try:
+        yield tmp
+        if not tmp.exists():
+            raise PhrtError(f"writing {final}: the writer produced no file")
+        os.replace(tmp, final)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+
+
+def _split_extension(name: str) -> tuple[str, str]:
+    """``"0012.500.exr"`` → ``("0012.500", ".exr")`` (only the last suffix is the format)."""
+    dot = name.rfind(".")
+    if dot <= 0:
+        return name, ""
+    return name[:dot], name[dot:]
+
+
+def write_text_atomic(path: Path, text: str) -> None:
+    """Write ``text`` (UTF-8) to ``path`` atomically."""
+    with atomic_path(path) as tmp:
+        tmp.write_text(text, encoding="utf-8")
+
+
+# --- layout ----------------------------------------------------------------------------
+
+
+def frame_name(time: float) -> str:
+    """File stem of the frame at time code ``time``: ``0012``, ``-003``, ``0012.500``."""
+    if not math.isfinite(time):
+        raise PhrtError(f"frame time code {time} is not finite")
+    nearest = round(time)
+    if abs(time - nearest) < INTEGRAL_TIME_TOLERANCE:
+        return f"{int(nearest):04d}"
+    return f"{time:08.3f}"
+
+
+def frame_image_paths(out: Path, time: float) -> tuple[Path, Path]:
+    """(EXR path, PNG path) of the frame at time code ``time`` in run directory ``out``."""
+    stem = frame_name(time)
+    frames = Path(out) / FRAMES_DIR
+    return frames / f"{stem}.exr", frames / f"{stem}.png"
+
+
+def stats_path(out: Path) -> Path:
+    return Path(out) / STATS_FILE
+
+
+def selection_layer_path(out: Path) -> Path:
+    """Default selection layer path of run directory ``out`` (``OUT/selection.usda``)."""
+    return Path(out) / SELECTION_LAYER_FILE
+
+
+# --- stats.json ------------------------------------------------------------------------
+
+
+def make_run_info(
+    *,
+    stage: str | None,
+    mode: str,
+    heuristic: str,
+    budget_ms: float | None,
+    budget_rays: int | None,
+    resolution: tuple[int, int],
+    bounce_limit: int,
+    selection_weight: float,
+    frame_range: tuple[float, float],
+    reflectors: list[str],
+    time_codes_per_second: float = 24.0,
+) -> dict[str, Any]:
+    """The ``run`` object of stats.json (and the selection layer's customLayerData).
+
+    ``budget_ms`` / ``budget_rays`` are ``None`` when that budget is not used;
+    ``resolution`` is (width, height) pixels; ``frame_range`` is (first, last) time code of
+    the render; ``reflectors`` are all reflector prim paths of the stage. Machine, date and
+    phrt version are filled in here.
+    """
+    return {
+        "stage": stage,
+        "mode": mode,
+        "heuristic": heuristic,
+        "budget_ms": budget_ms,
+        "budget_rays": budget_rays,
+        "resolution": [int(resolution[0]), int(resolution[1])],
+        "bounce_limit": int(bounce_limit),
+        "selection_weight": float(selection_weight),
+        "frame_range": [float(frame_range[0]), float(frame_range[1])],
+        "time_codes_per_second": float(time_codes_per_second),
+        "reflectors": list(reflectors),
+        "machine": {
+            "cores": os.cpu_count(),
+            "cpu": platform.processor() or platform.machine(),
+            "system": platform.system(),
+            "python": platform.python_version(),
+        },
+        "date": datetime.now(UTC).isoformat(timespec="seconds"),
+        "phrt_version": __version__,
+    }
+
+
+def to_json_value(value: Any) -> Any:
+    """``value`` with numpy scalars/arrays made plain and non-finite floats made ``None``.
+
+    JSON has no NaN/Inf; a non-finite figure (which the renderer should never produce) is
+    written as ``null`` rather than losing the whole file of a long render.
+    """
+    if isinstance(value, dict):
+        return {str(k): to_json_value(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [to_json_value(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return to_json_value(value.tolist())
+    if isinstance(value, bool | np.bool_):
+        return bool(value)
+    if isinstance(value, int | np.integer):
+        return int(value)
+    if isinstance(value, float | np.floating):
+        value = float(value)
+        return value if math.isfinite(value) else None
+    if isinstance(value, Path):
+        return str(value)
+    return value
+
+
+def frame_stats_row(frame: FrameStats) -> dict[str, Any]:
+    """One stats.json row: time, phase_ms, frame_ms, trace_ms, predicted_trace_ms, rays,
+    visible, selected, metrics (prim path → ReflectorMetrics fields), passes."""
+    return to_json_value(asdict(frame))
+
+
+def write_stats(out: Path, run_info: dict[str, Any], frames: list[FrameStats]) -> Path:
+    """Write ``OUT/stats.json`` atomically (rows sorted by time); returns its path.
+
+    Cheap enough to call after every frame, so an interrupted render keeps its stats.
+    """
+    document = {
+        "format": STATS_FORMAT,
+        "version": STATS_VERSION,
+        "run": to_json_value(run_info),
+        "frames": [frame_stats_row(f) for f in sorted(frames, key=lambda f: f.time)],
+    }
+    path = stats_path(out)
+    write_text_atomic(path, json.dumps(document, indent=1, allow_nan=False) + "\n")
+    return path
+
+
+def read_stats(out: Path) -> tuple[dict[str, Any], list[dict[str, Any]]]:
+    """(run_info, frame rows as dicts) from ``OUT/stats.json`` (``out`` may also be the
+    file itself). Raises PhrtError if it is missing or not a phrt stats file."""
+    path = Path(out)
+    if path.is_dir():
+        path = stats_path(path)
+    try:
+        document = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise PhrtError(f"{path}: no stats file") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
+        raise PhrtError(f"{path}: cannot read stats ({error})") from None
+    if not isinstance(document, dict) or document.get("format") != STATS_FORMAT:
+        raise PhrtError(f'{path}: not a phrt stats file (no "format": "{STATS_FORMAT}")')
+    if document.get("version") != STATS_VERSION:
+        raise PhrtError(
+            f"{path}: stats version {document.get('version')}, expected {STATS_VERSION}"
+        )
+    return document.get("run", {}), list(document.get("frames", []))
