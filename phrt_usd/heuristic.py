@@ -1,0 +1,524 @@
+"""Which reflectors to ray-trace each frame: the paper's HEU1, the HEU2 baseline, and the
+fixed policies ``all``, ``none`` and ``list`` (``phrt_usd.frame.SelectionPolicy``).
+
+Metrics (paper, Table 1; every interpretation is spelled out in ``docs/heuristic.md``):
+
+* ``A`` visible projected area: pixels of the element in the G-buffer / (W * H), in [0, 1].
+* ``P`` centrality of the bounding-box centre: ``1 - max(|ndc_x|, |ndc_y|)`` clamped to
+  [0, 1] (1 at the view centre, 0 on or outside the image border, 0 behind the camera).
+* ``D`` Euclidean distance from the eye to the bounding-box centre, metres, >= ``D_MIN``.
+* ``V = A * P / D`` (1 / metre).
+* ``Q = 1 + reflector-to-reflector bounces`` of the reflector's rays, learned from its
+  ``TraceRecord``s, remembered across frames, in [1, bounce limit].
+* ``O`` for a reflector ``i`` reflecting ``j``: 1 while |c_i - c_j| <= D_i, then +1 per
+  doubling: ``1 + floor(log2(|c_i - c_j| / D_i))``.
+* ``C_i = V_i * Q_i + sum_j V_j' * Q_j / O_ij`` over the reflectors ``j`` that ``i`` was
+  seen to reflect, with ``V_j' = max(V_j, V_i * f_ij)`` (``f_ij``: fraction of i's pixels
+  whose rays hit j), so a reflector seen only through ``i`` still adds to ``C_i``.
+* ``R = (S * I + V) * K``.
+
+Budget: ``C`` has no unit. What the budget is checked against is a calibrated prediction
+of the rays tracing a candidate costs (``pixels * rays per pixel * RAYS_SAFETY``) and of
+the time those rays take (``TraceTimeModel``). Both are learned online from the renderer's
+``record`` calls.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from phrt_usd.errors import PhrtError
+from phrt_usd.frame import Budget, FrameView, ReflectorMetrics, SelectionPolicy, TraceRecord
+from phrt_usd.scene import CameraFrame, Scene
+from phrt_usd.selection_graph import Node, SelectionGraph
+
+#: Smallest camera distance D in metres. D is a bounding-box-centre distance, so it can be
+#: ~0 when the eye is inside a large reflector's box; V = A*P/D then stays <= 1 / D_MIN.
+#: A micrometre is below any sensible camera near plane, so it never changes a real ranking.
+D_MIN = 1e-6
+
+#: K (phrt:priority) and I (phrt:selectionWeight) are clipped to [0, WEIGHT_MAX] (NaN → 0)
+#: so R = (S*I + V)*K <= ~1e24 stays finite in float64 whatever the stage says.
+WEIGHT_MAX = 1e12
+
+#: Predicted rays are multiplied by this: rays per pixel learned in earlier frames
+#: under-predict when a reflector starts reflecting more reflectors (deeper bounces).
+RAYS_SAFETY = 1.1
+
+#: Predicted trace milliseconds are multiplied by this: wall time jitters from round to
+#: round (caches, the OS, the other core). With RAYS_SAFETY the selection plans to use
+#: about 1 / 1.21 = 83 % of the time budget.
+TIME_SAFETY = 1.1
+
+#: Before anything was measured: 0.004 ms per ray (250k rays/s, slower than embreex plus
+#: numpy shading on one laptop core) and 0.5 ms fixed cost per tracing round.
+INITIAL_MS_PER_RAY = 0.004
+INITIAL_ROUND_MS = 0.5
+
+#: Lower bound of the learned ms per ray (1e10 rays/s): keeps ms → rays finite.
+MIN_MS_PER_RAY = 1e-7
+
+#: Weight of older rounds in the time model (exponential forgetting per round).
+TIME_MODEL_DECAY = 0.9
+
+#: Weight of the newest observation in a reflector's rays-per-pixel average.
+RAYS_PER_PIXEL_ALPHA = 0.5
+
+#: Fewest rays per traced pixel: the reflection ray itself.
+MIN_RAYS_PER_PIXEL = 1.0
+
+
+# --------------------------------------------------------------------------- metrics
+
+
+def visible_area(pixels: np.ndarray, width: int, height: int) -> np.ndarray:
+    """A: (n,) pixel counts → (n,) float64 fraction of the image, in [0, 1]."""
+    total = max(int(width) * int(height), 1)
+    return np.clip(np.asarray(pixels, dtype=np.float64) / total, 0.0, 1.0)
+
+
+def centrality(centers: np.ndarray, camera: CameraFrame, width: int, height: int) -> np.ndarray:
+    """P: (n, 3) world-metre points → (n,) float64 in [0, 1].
+
+    ``1 - max(|ndc_x|, |ndc_y|)``: 1 at the view centre, falling linearly to 0 on the
+    image border (a square falloff matching the rectangular view plane), 0 outside the
+    image and behind the camera.
+    """
+    centers = np.asarray(centers, dtype=np.float64).reshape(-1, 3)
+    if len(centers) == 0:
+        return np.zeros(0)
+    with np.errstate(over="ignore", invalid="ignore"):
+        projected = camera.project(centers, width, height)
+        ndc_x = projected[:, 0] / width * 2.0 - 1.0
+        ndc_y = 1.0 - projected[:, 1] / height * 2.0
+        p = 1.0 - np.maximum(np.abs(ndc_x), np.abs(ndc_y))
+    p = np.where(projected[:, 2] > 0.0, p, 0.0)  # behind the eye: not in view
+    # Points on the eye plane project to +-inf (or NaN for 0/0): they are not in view.
+    return np.clip(np.nan_to_num(p, nan=0.0, posinf=0.0, neginf=0.0), 0.0, 1.0)
+
+
+def camera_distance(centers: np.ndarray, eye: np.ndarray) -> np.ndarray:
+    """D: (n, 3) world-metre points, (3,) eye → (n,) float64 metres, >= D_MIN."""
+    centers = np.asarray(centers, dtype=np.float64).reshape(-1, 3)
+    d = np.linalg.norm(centers - np.asarray(eye, dtype=np.float64), axis=1)
+    return np.clip(np.nan_to_num(d, nan=D_MIN, posinf=np.finfo(np.float64).max), D_MIN, None)
+
+
+def visibility(A: np.ndarray, P: np.ndarray, D: np.ndarray) -> np.ndarray:
+    """V = A * P / D (paper eq. 1), float64, finite: D is clamped to >= D_MIN."""
+    A = np.clip(np.asarray(A, dtype=np.float64), 0.0, 1.0)
+    P = np.clip(np.asarray(P, dtype=np.float64), 0.0, 1.0)
+    D = np.clip(np.asarray(D, dtype=np.float64), D_MIN, None)
+    return A * P / D
+
+
+def distance_factor(separation: np.ndarray, D: np.ndarray | float) -> np.ndarray:
+    """O: 1 while ``separation <= D``, +1 each time it doubles: 1 + floor(log2(sep / D)).
+
+    separation: (n,) metres between the two reflectors' bounding-box centres;
+    D: the reflecting element's camera distance (metres, clamped >= D_MIN). Result (n,)
+    float64 >= 1, at most ~2100 even for 1e300 m / 1e-6 m.
+    """
+    D = np.clip(np.asarray(D, dtype=np.float64), D_MIN, None)
+    sep = np.nan_to_num(np.asarray(separation, dtype=np.float64), nan=0.0)
+    with np.errstate(over="ignore"):
+        ratio = np.maximum(sep / D, 1.0)  # <= D counts as 1 (no doubling yet)
+    ratio = np.minimum(ratio, np.finfo(np.float64).max)  # inf/huge → largest float
+    return 1.0 + np.floor(np.log2(ratio))
+
+
+def processing_cost(
+    V: float, Q: float, reflected_V: np.ndarray, reflected_Q: np.ndarray, reflected_O: np.ndarray
+) -> float:
+    """C = V*Q + sum_j V_j*Q_j/O_j (paper eq. 2) over the element and the (m,) reflectors
+    it reflects; all inputs finite and >= 0 (O >= 1), so C is finite and >= 0."""
+    rv = np.asarray(reflected_V, dtype=np.float64)
+    rq = np.asarray(reflected_Q, dtype=np.float64)
+    ro = np.maximum(np.asarray(reflected_O, dtype=np.float64), 1.0)
+    return float(V * Q + np.sum(rv * rq / ro))
+
+
+def relevance(S: np.ndarray, weight: float, V: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """R = (S * I + V) * K (paper eq. 3) with I = ``weight``; I and K clipped to
+    [0, WEIGHT_MAX]."""
+    I_ = clip_weight(weight)
+    K_ = clip_weight(K)
+    S_ = np.asarray(S, dtype=np.float64)
+    V_ = np.nan_to_num(np.asarray(V, dtype=np.float64), nan=0.0, posinf=1.0 / D_MIN)
+    return (S_ * I_ + V_) * K_
+
+
+def clip_weight(w: np.ndarray | float) -> np.ndarray:
+    """K or I as float64 in [0, WEIGHT_MAX]; NaN → 0 (see WEIGHT_MAX)."""
+    w = np.nan_to_num(np.asarray(w, dtype=np.float64), nan=0.0, posinf=WEIGHT_MAX)
+    return np.clip(w, 0.0, WEIGHT_MAX)
+
+
+# --------------------------------------------------------------------------- cost model
+
+
+class TraceTimeModel:
+    """Milliseconds of one tracing round: ``overhead_ms + ms_per_ray * rays``.
+
+    Fitted by exponentially weighted least squares over the rounds seen so far (older
+    rounds weigh ``TIME_MODEL_DECAY`` less per round). When the rounds' ray counts are too
+    alike to separate the two terms, or the fit is unphysical (negative overhead or slope),
+    all the time is put on the rays (``overhead 0, ms_per_ray = sum ms / sum rays``), which
+    is conservative for rounds larger than average.
+    """
+
+    def __init__(self) -> None:
+        self.overhead_ms = INITIAL_ROUND_MS
+        self.ms_per_ray = INITIAL_MS_PER_RAY
+        self.rounds = 0
+        # Weighted sums: weight, rays, ms, rays^2, rays*ms.
+        self._w = self._r = self._m = self._rr = self._rm = 0.0
+
+    def learn(self, rays: int, ms: float) -> None:
+        """One round: ``rays`` cast in ``ms`` wall-clock milliseconds."""
+        if rays <= 0 or not math.isfinite(ms) or ms < 0.0:
+            return
+        r, m = float(rays), float(ms)
+        k = TIME_MODEL_DECAY
+        self._w = k * self._w + 1.0
+        self._r = k * self._r + r
+        self._m = k * self._m + m
+        self._rr = k * self._rr + r * r
+        self._rm = k * self._rm + r * m
+        self.rounds += 1
+        spread = self._w * self._rr - self._r * self._r  # w^2 * variance of rays
+        slope = intercept = -1.0
+        if spread > 1e-6 * self._w * self._rr:  # ray counts differ enough to fit a line
+            slope = (self._w * self._rm - self._r * self._m) / spread
+            intercept = (self._m - slope * self._r) / self._w
+        if slope > 0.0 and intercept >= 0.0:
+            self.overhead_ms, self.ms_per_ray = intercept, slope
+        else:
+            self.overhead_ms, self.ms_per_ray = 0.0, self._m / self._r
+        self.ms_per_ray = max(self.ms_per_ray, MIN_MS_PER_RAY)
+
+    def predicted_ms(self, rays: float) -> float:
+        """Conservative milliseconds for a round of ``rays`` rays (TIME_SAFETY included)."""
+        return (self.overhead_ms + self.ms_per_ray * max(rays, 0.0)) * TIME_SAFETY
+
+    def rays_within(self, ms: float) -> float:
+        """Most rays a round may cast and still (conservatively) end within ``ms``."""
+        return max((ms / TIME_SAFETY - self.overhead_ms) / self.ms_per_ray, 0.0)
+
+
+# --------------------------------------------------------------------------- policies
+
+
+@dataclass
+class _FrameState:
+    """What a policy knows about the frame in progress (arrays indexed by element id)."""
+
+    view: FrameView
+    scene: Scene
+    pixels: np.ndarray  # (E,) int64 pixels per element (0 past the G-buffer's ids)
+    centers: np.ndarray  # (E, 3) float64 world metres, bounding-box centres
+    D: np.ndarray  # (E,) float64 metres
+    V: np.ndarray  # (E,) float64
+    K: np.ndarray  # (E,) float64 priorities (clipped)
+    traced: list[int] = field(default_factory=list)  # selected this frame, in order
+    predicted_rays: dict[int, float] = field(default_factory=dict)
+
+
+class BudgetedPolicy:
+    """What every policy shares: the per-frame metrics, the memory across frames (Q,
+    rays per pixel, which reflector reflects which, the previous selection) and the cost
+    model. Subclasses decide only which ids a round traces (``_choose``)."""
+
+    name = "base"
+
+    def __init__(self, *, selection_weight: float, bounce_limit: int) -> None:
+        if not (math.isfinite(selection_weight) and selection_weight >= 0.0):
+            raise PhrtError(
+                f"phrt:selectionWeight must be a finite number >= 0, got {selection_weight}"
+            )
+        if bounce_limit < 1:
+            raise PhrtError(f"phrt:bounceLimit must be >= 1, got {bounce_limit}")
+        self.selection_weight = float(clip_weight(selection_weight))
+        self.bounce_limit = int(bounce_limit)
+        self.time_model = TraceTimeModel()
+        # Memory across frames, keyed by element id.
+        self.Q: dict[int, float] = {}
+        self.rays_per_pixel: dict[int, float] = {}
+        self.reflects: dict[int, dict[int, float]] = {}  # source → {reflector: f}
+        self.discovered: set[int] = set()  # reflectors hit by secondary rays, ever
+        self.previous_selection: set[int] = set()
+        self._global_rays = 0.0  # decayed sums for the mean rays per pixel
+        self._global_pixels = 0.0
+        self._frame: _FrameState | None = None
+
+    # ---- SelectionPolicy
+
+    def begin_frame(self, view: FrameView, scene: Scene) -> None:
+        n = len(scene.elements)
+        pixels = np.zeros(n, dtype=np.int64)
+        counts = np.asarray(view.pixel_counts, dtype=np.int64).reshape(-1)[:n]
+        pixels[: len(counts)] = np.maximum(counts, 0)
+        centers = np.array([e.center for e in scene.elements], dtype=np.float64).reshape(n, 3)
+        reflector = np.array([e.is_reflector for e in scene.elements], dtype=bool)
+        pixels[~reflector] = 0  # only reflectors are candidates
+        A = visible_area(pixels, view.width, view.height)
+        P = centrality(centers, view.camera, view.width, view.height)
+        D = camera_distance(centers, view.camera.position)
+        K = clip_weight(np.array([e.priority for e in scene.elements], dtype=np.float64))
+        self._frame = _FrameState(
+            view=view, scene=scene, pixels=pixels, centers=centers, D=D,
+            V=visibility(A, P, D), K=K,
+        )  # fmt: skip
+
+    def next_round(self, budget: Budget) -> list[int]:
+        frame = self._require_frame()
+        ids = self._choose(budget)
+        for e in ids:
+            frame.predicted_rays[e] = self.predicted_rays(e)
+        frame.traced.extend(ids)
+        return ids
+
+    def record(self, records: list[TraceRecord], seconds: float) -> None:
+        frame = self._require_frame()
+        n = len(frame.scene.elements)
+        total_rays = 0
+        for rec in records:
+            total_rays += max(int(rec.rays), 0)
+            src = int(rec.source)
+            if not 0 <= src < n:
+                continue
+            bounces = max(int(rec.max_reflector_bounces), 0)
+            self.Q[src] = float(min(1 + bounces, self.bounce_limit))
+            if rec.pixels > 0 and rec.rays >= 0:
+                rpp = max(rec.rays / rec.pixels, MIN_RAYS_PER_PIXEL)
+                old = self.rays_per_pixel.get(src)
+                a = RAYS_PER_PIXEL_ALPHA
+                self.rays_per_pixel[src] = rpp if old is None else a * rpp + (1 - a) * old
+                self._global_rays = TIME_MODEL_DECAY * self._global_rays + rec.rays
+                self._global_pixels = TIME_MODEL_DECAY * self._global_pixels + rec.pixels
+            # The latest trace of a source replaces what it was seen to reflect before.
+            hits = {}
+            for j, count in rec.hits.items():
+                j = int(j)
+                if j != src and 0 <= j < n and frame.scene.elements[j].is_reflector:
+                    hits[j] = min(max(count, 0) / max(rec.pixels, 1), 1.0)
+            self.reflects[src] = hits
+            self.discovered.update(hits)
+        self.time_model.learn(total_rays, float(seconds) * 1000.0)
+
+    def end_frame(self) -> dict[int, ReflectorMetrics]:
+        frame = self._require_frame()
+        metrics = self.metrics()
+        self.previous_selection = set(frame.traced)
+        self._frame = None
+        return metrics
+
+    # ---- figures
+
+    def candidates(self) -> list[int]:
+        """Ascending element ids: reflectors visible in this frame, plus reflectors
+        discovered by secondary rays in this frame's earlier rounds or earlier frames."""
+        frame = self._require_frame()
+        visible = set(np.flatnonzero(frame.pixels > 0).tolist())
+        return sorted(visible | {e for e in self.discovered if e < len(frame.pixels)})
+
+    def q_of(self, element: int) -> float:
+        """Q of a reflector: learned from its last trace, 1 until it was traced."""
+        return self.Q.get(element, 1.0)
+
+    def cost_C(self, element: int) -> float:
+        """The paper's C for ``element`` in the current frame (see the module docstring)."""
+        frame = self._require_frame()
+        V_i = float(frame.V[element])
+        reflected = self.reflects.get(element, {})
+        js = np.array(sorted(reflected), dtype=np.int64)
+        if len(js) == 0:
+            return processing_cost(V_i, self.q_of(element), [], [], [])
+        f = np.array([reflected[j] for j in js], dtype=np.float64)
+        seen_V = np.maximum(frame.V[js], V_i * f)  # visible itself, or through element
+        sep = np.linalg.norm(frame.centers[js] - frame.centers[element], axis=1)
+        factor_O = distance_factor(sep, frame.D[element])
+        Qs = np.array([self.q_of(int(j)) for j in js])
+        return processing_cost(V_i, self.q_of(element), seen_V, Qs, factor_O)
+
+    def relevance_R(self, element: int) -> float:
+        frame = self._require_frame()
+        S = 1.0 if element in self.previous_selection else 0.0
+        return float(relevance(S, self.selection_weight, frame.V[element], frame.K[element]))
+
+    def predicted_rays(self, element: int) -> float:
+        """Conservative rays to trace ``element``'s pixels: pixels * rays per pixel *
+        RAYS_SAFETY. Rays per pixel: the element's own learned average; else the mean over
+        everything traced so far; else Q * (1 + number of lights) (one reflection ray plus
+        one shadow ray per light, per bounce)."""
+        frame = self._require_frame()
+        pixels = float(frame.pixels[element])
+        rpp = self.rays_per_pixel.get(element)
+        if rpp is None:
+            if self._global_pixels > 0.0:
+                rpp = self._global_rays / self._global_pixels
+            else:
+                lights = frame.scene.lights
+                rpp = self.q_of(element) * (1 + len(lights.distant) + len(lights.local))
+        return pixels * max(rpp, MIN_RAYS_PER_PIXEL) * RAYS_SAFETY
+
+    def ray_allowance(self, budget: Budget) -> float:
+        """The budget as a number of (predicted) rays: the smaller of ``budget.rays`` and
+        the rays the time model says fit in ``budget.ms``; ``inf`` when both are None."""
+        allowance = math.inf
+        if budget.rays is not None:
+            allowance = min(allowance, float(max(budget.rays, 0)))
+        if budget.ms is not None:
+            ms = 0.0 if math.isnan(budget.ms) else float(budget.ms)  # NaN: nothing is known
+            allowance = min(allowance, self.time_model.rays_within(ms))
+        return allowance
+
+    def metrics(self) -> dict[int, ReflectorMetrics]:
+        """Figures for every candidate as of now (after the last recorded round)."""
+        frame = self._require_frame()
+        traced = set(frame.traced)
+        out = {}
+        for e in self.candidates():
+            out[e] = ReflectorMetrics(
+                V=float(frame.V[e]),
+                C=self.cost_C(e),
+                R=self.relevance_R(e),
+                Q=self.q_of(e),
+                S=e in self.previous_selection,
+                selected=e in traced,
+                visible=bool(frame.pixels[e] > 0),
+                predicted_rays=frame.predicted_rays.get(e, self.predicted_rays(e)),
+            )
+        return out
+
+    # ---- for subclasses
+
+    def _untraced_visible(self) -> list[int]:
+        frame = self._require_frame()
+        done = set(frame.traced)
+        return [int(e) for e in np.flatnonzero(frame.pixels > 0) if int(e) not in done]
+
+    def _choose(self, budget: Budget) -> list[int]:
+        raise NotImplementedError
+
+    def _require_frame(self) -> _FrameState:
+        if self._frame is None:
+            raise RuntimeError(f"{type(self).__name__}: begin_frame() was not called")
+        return self._frame
+
+
+class Heu1Policy(BudgetedPolicy):
+    """The paper's heuristic: the most relevant (R) candidates whose predicted cost fits,
+    chosen on a Selection Graph rebuilt from the untraced candidates every round."""
+
+    name = "heu1"
+
+    def graph(self) -> SelectionGraph:
+        """The Selection Graph of the untraced candidates, as of now."""
+        frame = self._require_frame()
+        done = set(frame.traced)
+        nodes = [
+            Node(
+                element=e,
+                C=self.cost_C(e),
+                R=self.relevance_R(e),
+                cost=self.predicted_rays(e),
+                traceable=bool(frame.pixels[e] > 0),
+            )
+            for e in self.candidates()
+            if e not in done
+        ]
+        return SelectionGraph(nodes)
+
+    def _choose(self, budget: Budget) -> list[int]:
+        allowance = self.ray_allowance(budget)
+        if not allowance > 0.0:
+            return []
+        return self.graph().select(allowance)
+
+
+class Heu2Policy(BudgetedPolicy):
+    """The paper's distance baseline: the visible reflectors nearest the camera
+    (bounding-box centre distance, ties by id) that fit the budget, skipping any that
+    does not fit; no hysteresis (the previous selection plays no part)."""
+
+    name = "heu2"
+
+    def _choose(self, budget: Budget) -> list[int]:
+        frame = self._require_frame()
+        remaining = self.ray_allowance(budget)
+        chosen = []
+        for e in sorted(self._untraced_visible(), key=lambda e: (frame.D[e], e)):
+            cost = self.predicted_rays(e)
+            if cost <= remaining:
+                chosen.append(e)
+                remaining -= cost
+        return chosen
+
+
+class AllPolicy(BudgetedPolicy):
+    """Every visible reflector, in one round, whatever the budget (the reference)."""
+
+    name = "all"
+
+    def _choose(self, budget: Budget) -> list[int]:
+        return self._untraced_visible()
+
+
+class NonePolicy(BudgetedPolicy):
+    """Nothing is traced (raster only)."""
+
+    name = "none"
+
+    def _choose(self, budget: Budget) -> list[int]:
+        return []
+
+
+class ListPolicy(BudgetedPolicy):
+    """The given element ids that are visible reflectors, in one round, whatever the
+    budget."""
+
+    name = "list"
+
+    def __init__(self, explicit: list[int], *, selection_weight: float, bounce_limit: int):
+        super().__init__(selection_weight=selection_weight, bounce_limit=bounce_limit)
+        self.explicit = sorted({int(e) for e in explicit})
+
+    def _choose(self, budget: Budget) -> list[int]:
+        wanted = set(self.explicit)
+        return [e for e in self._untraced_visible() if e in wanted]
+
+
+POLICY_NAMES = ("heu1", "heu2", "all", "none", "list")
+
+
+def make_policy(
+    name: str,
+    *,
+    selection_weight: float,
+    bounce_limit: int,
+    explicit: list[int] | None = None,
+) -> SelectionPolicy:
+    """A fresh policy by name ("heu1", "heu2", "all", "none", "list"); ``explicit`` is
+    the element id list for "list". Raises ``PhrtError`` for an unknown name or bad
+    parameters."""
+    key = name.strip().lower()
+    common = {"selection_weight": selection_weight, "bounce_limit": bounce_limit}
+    if key == "heu1":
+        return Heu1Policy(**common)
+    if key == "heu2":
+        return Heu2Policy(**common)
+    if key == "all":
+        return AllPolicy(**common)
+    if key == "none":
+        return NonePolicy(**common)
+    if key == "list":
+        if explicit is None:
+            raise PhrtError("heuristic 'list' needs an explicit list of reflectors")
+        return ListPolicy(explicit, **common)
+    raise PhrtError(
+        f"unknown heuristic {name!r} (phrt:heuristic): expected one of {', '.join(POLICY_NAMES)}"
+    )

@@ -1,0 +1,132 @@
+"""The Selection Graph of the paper (§4.1–4.2): which candidate reflectors to ray-trace.
+
+One node per candidate reflector, holding the paper's processing cost ``C``, relevance
+``R`` and the calibrated ``cost`` the budget is checked against (predicted rays, see
+``phrt_usd.heuristic``). Two kinds of edges:
+
+* the **cost list**: every node points to the next cheaper node (``next_cheaper``); the
+  list starts at the most expensive node (``most_expensive``);
+* **relevance edges**: every node points to all nodes that are *more relevant* and cost no
+  more than it does (``more_relevant``).
+
+Ties are broken by element id so the graph, and therefore the selection, is a pure
+function of its nodes (the order in which nodes are given does not matter):
+
+* cost order: higher ``cost`` first; equal cost → lower element id first;
+* relevance order: higher ``R`` is more relevant; equal ``R`` → lower element id is more
+  relevant.
+
+Selection (``select``) walks the cost list from its head to the first node that fits the
+remaining budget (the *entry*); every node from the entry on fits. The most relevant node
+that fits is then the entry itself or one of its relevance edges, because every fitting
+node costs no more than the entry. That node is taken, its cost subtracted, and the walk
+continues from the entry (the remaining budget only shrinks, so nodes before it can never
+fit again). The result is "greedy by relevance among the nodes that fit", which is what
+the paper describes: the most relevant nodes whose cost fits the time left.
+
+The graph is small (tens of nodes): it is plain Python lists and dicts, with the relevance
+edges computed by one vectorised comparison.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Node:
+    """One candidate reflector.
+
+    element: element id (index into ``Scene.elements``).
+    C, R: the paper's processing cost and relevance (unitless, finite, >= 0).
+    cost: what the budget is measured in (predicted rays, >= 0).
+    traceable: False for candidates that cannot be traced on their own (no pixels in
+        this frame: reflectors only seen through another reflector). They stay in the
+        graph, and in its lists, but are never selected.
+    """
+
+    element: int
+    C: float
+    R: float
+    cost: float
+    traceable: bool = True
+
+
+class SelectionGraph:
+    """Cost list + relevance edges over a set of ``Node``s (see the module docstring)."""
+
+    def __init__(self, nodes: Iterable[Node]) -> None:
+        self.nodes: dict[int, Node] = {}
+        for node in nodes:
+            if node.element in self.nodes:
+                raise ValueError(f"duplicate node for element {node.element}")
+            self.nodes[node.element] = node
+
+        # Cost list: most expensive first, ties by ascending element id.
+        self.by_cost: list[int] = sorted(self.nodes, key=lambda e: (-self.nodes[e].cost, e))
+        self.most_expensive: int | None = self.by_cost[0] if self.by_cost else None
+        self.next_cheaper: dict[int, int | None] = {
+            e: (self.by_cost[k + 1] if k + 1 < len(self.by_cost) else None)
+            for k, e in enumerate(self.by_cost)
+        }
+
+        # Relevance edges, each list ordered most relevant first.
+        self.more_relevant: dict[int, list[int]] = self._relevance_edges()
+
+    def is_more_relevant(self, a: int, b: int) -> bool:
+        """True if node ``a`` is more relevant than node ``b`` (higher R, ties: lower id)."""
+        ra, rb = self.nodes[a].R, self.nodes[b].R
+        return ra > rb or (ra == rb and a < b)
+
+    def _relevance_edges(self) -> dict[int, list[int]]:
+        ids = np.array(sorted(self.nodes), dtype=np.int64)
+        if len(ids) == 0:
+            return {}
+        r = np.array([self.nodes[e].R for e in ids], dtype=np.float64)
+        cost = np.array([self.nodes[e].cost for e in ids], dtype=np.float64)
+        # edge[i, j]: node j is more relevant than node i and costs no more than node i.
+        more = (r[None, :] > r[:, None]) | (
+            (r[None, :] == r[:, None]) & (ids[None, :] < ids[:, None])
+        )
+        edge = more & (cost[None, :] <= cost[:, None])
+        # Order each node's targets most relevant first (R descending, then id).
+        relevance_rank = np.lexsort((ids, -r))  # positions, most relevant first
+        edges: dict[int, list[int]] = {}
+        for i, e in enumerate(ids):
+            targets = relevance_rank[edge[i, relevance_rank]]
+            edges[int(e)] = [int(ids[t]) for t in targets]
+        return edges
+
+    def select(self, budget: float) -> list[int]:
+        """Greedy by relevance among the traceable nodes that fit ``budget``.
+
+        ``budget`` is in the unit of ``Node.cost`` (``float('inf')`` = unbounded). Returns
+        element ids in the order they were taken (most relevant first); the sum of their
+        costs is <= ``budget``. A non-positive or NaN budget selects nothing.
+        """
+        if not budget > 0.0:  # also catches NaN
+            return []
+        remaining = float(budget)
+        taken: set[int] = set()
+        chosen: list[int] = []
+        entry = self.most_expensive
+        while entry is not None:
+            # Walk down the cost list to the most expensive node that can still be taken.
+            node = self.nodes[entry]
+            if entry in taken or not node.traceable or node.cost > remaining:
+                entry = self.next_cheaper[entry]
+                continue
+            # Every node that fits costs <= the entry: the best one is the entry or one of
+            # its relevance edges (the first available, as edges are ordered by relevance).
+            best = entry
+            for target in self.more_relevant[entry]:
+                if target not in taken and self.nodes[target].traceable:
+                    best = target
+                    break
+            taken.add(best)
+            chosen.append(best)
+            remaining -= self.nodes[best].cost
+        return chosen
