@@ -116,6 +116,8 @@ class FrameRenderer:
         self.options = options
         scene = stage_scene.scene
         self._reflector_ids = scene.reflector_ids
+        self._animated = any(e.animated for e in scene.elements)
+        self._geometry_time: float | None = None
         self._rasterizer = None
         self._tracer = None
         if options.mode != "rt":
@@ -156,7 +158,11 @@ class FrameRenderer:
         t_frame = time.perf_counter()
 
         t = time.perf_counter()
-        if self.stage_scene.set_time(time_code):
+        moved = self.stage_scene.set_time(time_code)
+        # Several renderers may share one StageScene: re-upload whenever this renderer's
+        # geometry is from another time and something in the scene is animated.
+        if moved or (self._animated and self._geometry_time != time_code):
+            self._geometry_time = time_code
             if self._rasterizer is not None:
                 self._rasterizer.update_geometry(self.scene)
             if self._tracer is not None:
