@@ -139,6 +139,11 @@ class FrameRenderer:
         )
 
     @property
+    def tracer(self):
+        """The Embree tracer, or None when this mode and scene need no tracing."""
+        return self._tracer
+
+    @property
     def scene(self) -> Scene:
         return self.stage_scene.scene
 
