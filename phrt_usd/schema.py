@@ -117,6 +117,12 @@ def _get(prim: Usd.Prim, name: str, default, time: Usd.TimeCode | float | None =
     return default if value is None else value
 
 
+def _f32(value) -> float:
+    """A float attribute value as the shortest Python float that reads back as the same
+    float32 (0.001, not 0.0010000000474974513); NaN/Inf pass through for validation."""
+    return float(np.format_float_positional(np.float32(value), unique=True, trim="0"))
+
+
 def _add_api(prim: Usd.Prim, api: str) -> None:
     """Apply ``api``; plain ``AddAppliedSchema`` when the plugin is not registered."""
     if api in prim.GetAppliedSchemas():
@@ -154,12 +160,12 @@ def is_reflector(prim: Usd.Prim) -> bool:
 
 def reflector_priority(prim: Usd.Prim) -> float:
     """K of a reflector (1 when unauthored)."""
-    return float(_get(prim, PRIORITY, DEFAULT_PRIORITY))
+    return _f32(_get(prim, PRIORITY, DEFAULT_PRIORITY))
 
 
 def reflector_reflectivity(prim: Usd.Prim) -> float:
     """F of a reflector (1 when unauthored)."""
-    return float(_get(prim, REFLECTIVITY, DEFAULT_REFLECTIVITY))
+    return _f32(_get(prim, REFLECTIVITY, DEFAULT_REFLECTIVITY))
 
 
 def find_reflectors(stage: Usd.Stage) -> list[Usd.Prim]:
@@ -333,8 +339,8 @@ def read_render_params(stage: Usd.Stage, settings_path: str | None = None) -> Re
     return RenderParams(
         heuristic=str(_get(prim, HEURISTIC, DEFAULT_HEURISTIC)),
         mode=str(_get(prim, MODE, DEFAULT_MODE)),
-        selection_weight=float(_get(prim, SELECTION_WEIGHT, DEFAULT_SELECTION_WEIGHT)),
-        budget_ms=float(_get(prim, BUDGET_MS, DEFAULT_BUDGET_MS)),
+        selection_weight=_f32(_get(prim, SELECTION_WEIGHT, DEFAULT_SELECTION_WEIGHT)),
+        budget_ms=_f32(_get(prim, BUDGET_MS, DEFAULT_BUDGET_MS)),
         budget_rays=None if rays < 0 else rays,
         bounce_limit=int(_get(prim, BOUNCE_LIMIT, DEFAULT_BOUNCE_LIMIT)),
         resolution=(int(res[0]), int(res[1])) if res is not None else DEFAULT_RESOLUTION,
