@@ -1,0 +1,665 @@
+"""Rasterized G-buffer with exact triangle ids, and shadow maps for distant lights.
+
+Pipeline, per phase:
+
+1. **Upload** (``Rasterizer.__init__``, ``update_geometry``). All triangles go into ONE
+   pyrender node (one mesh, one indexed primitive): pyrender costs several ms per node on
+   llvmpipe. Vertices are origin-relative (``Scene.origin`` subtracted in float64, then
+   cast to float32) so a stage 1e6 m from the world origin rasterizes as precisely as
+   one at the origin.
+2. **Id pass** (``Rasterizer.render``). pyrender's ``Renderer`` draws the node with
+   ``RenderFlags.FLAT``; its program cache points at ``phrt_usd/shaders``, whose
+   ``flat.frag`` writes ``gl_PrimitiveID + 1`` (= triangle index + 1, 0 = background)
+   as four exact bytes. pyrender's 4x multisampled framebuffer would blend ids at
+   triangle edges, so the renderer instance gets our single-sampled framebuffer
+   (RGBA8 + 32-bit float depth) instead. Read back: the id image only.
+3. **Derivation** (numpy, covered pixels only). The pixel ray (same pixel centres as
+   ``CameraFrame.pixel_rays``) is intersected with its triangle's plane in float64:
+   position (exact, not limited by depth-buffer precision), view depth, barycentrics →
+   interpolated shading normal and albedo (texture lookup when the material has one).
+4. **Shadow maps** (``Rasterizer.shadow_visibility``). One orthographic depth render per
+   DistantLight covering the scene's vertices, cached until ``update_geometry``; points
+   are projected into light space and compared with a slope-scaled bias, filtered with
+   bilinear 2x2 percentage-closer filtering.
+
+Coordinate spaces: "world" is ``Scene`` world metres (float64); "rel" is world minus
+``Scene.origin`` (what OpenGL sees, float32 on the GPU, float64 in numpy).
+
+Limits: opaque triangles only (transmission is a tracer concern); one OpenGL context per
+``Rasterizer``; triangle count must stay below 2**32 - 1 (id encoding).
+"""
+
+from __future__ import annotations
+
+import ctypes
+import os
+from dataclasses import dataclass
+
+import numpy as np
+
+from phrt_usd.errors import PhrtError
+from phrt_usd.frame import GBuffer
+from phrt_usd.scene import NO_HIT, CameraFrame, Scene
+
+os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
+
+import pyrender  # noqa: E402  (after the platform is chosen)
+from OpenGL import GL  # noqa: E402
+from pyrender.constants import RenderFlags  # noqa: E402
+from pyrender.platforms.osmesa import OSMesaPlatform  # noqa: E402
+from pyrender.shader_program import ShaderProgramCache  # noqa: E402
+
+#: Directory of our GLSL files (``flat.*``: id pass, ``depth.*``: shadow-map pass).
+SHADER_DIR = os.path.join(os.path.dirname(os.path.abspath(__file__)), "shaders")
+
+#: Smallest allowed near / far ratio of the perspective projection. A perspective depth
+#: buffer resolves roughly near / 2**24 of relative depth per step at the far plane over
+#: (far / near); as near → 0 the projection degenerates (every depth maps to 1 and all
+#: surfaces z-fight). 1e-6 keeps the matrix well conditioned while clipping only what is
+#: nearer than a millionth of the far distance (1 mm at far = 1 km).
+MIN_NEAR_OVER_FAR = 1e-6
+
+#: Near / far are also tightened to the scene's bounds (nothing exists outside them), and
+#: padded by this fraction of the scene extent so that bounding geometry is not clipped.
+CLIP_PADDING = 1e-3
+
+#: Shadow-map resolution (texels per side).
+SHADOW_MAP_SIZE = 2048
+
+#: Shadow bias: a point is lit when its light depth minus the bias is <= the map's depth.
+#: Constant part in shadow-map texel widths (covers depth-render rounding and the
+#: float32 vertex positions) ...
+SHADOW_BIAS_TEXELS = 1.0
+#: ... plus this many texel widths times tan(angle between normal and light): 2x2 PCF
+#: compares against texels up to ~1.5 texels away, where a sloped surface's own depth
+#: differs by up to that distance times its slope.
+SHADOW_SLOPE_BIAS_TEXELS = 2.0
+#: |cos| floor for the slope term (tan <= ~10): at grazing light the bias would grow
+#: without bound; such points get almost no direct light anyway (n.L ~ 0).
+SHADOW_MIN_COS = 0.1
+
+#: Denominator floor (relative to |face normal|) of the ray-plane intersection. A pixel
+#: is only covered by a triangle the rasterizer saw with non-zero screen area, so the ray
+#: is not parallel to its plane; the floor only guards against rounding, and the
+#: resulting distance is clamped to the near/far range the rasterizer used.
+GRAZING_EPS = 1e-12
+
+
+class _ExactPerspective(pyrender.camera.Camera):
+    """pyrender camera whose projection matrix is given explicitly (camera → clip)."""
+
+    def __init__(self) -> None:
+        super().__init__(znear=0.01, zfar=100.0)
+        self.matrix = np.eye(4)
+
+    def get_projection_matrix(self, width=None, height=None) -> np.ndarray:  # noqa: ARG002
+        return self.matrix
+
+
+def perspective_matrix(tan_x: float, tan_y: float, near: float, far: float) -> np.ndarray:
+    """OpenGL clip_from_camera (4, 4) float64 for a symmetric frustum with half-angle
+    tangents ``tan_x``/``tan_y`` (so that ``CameraFrame.project`` and the rasterizer put
+    a point on the same pixel) and clip planes ``near`` < ``far`` (metres)."""
+    p = np.zeros((4, 4))
+    p[0, 0] = 1.0 / tan_x
+    p[1, 1] = 1.0 / tan_y
+    p[2, 2] = (far + near) / (near - far)
+    p[2, 3] = 2.0 * far * near / (near - far)
+    p[3, 2] = -1.0
+    return p
+
+
+@dataclass
+class _ShadowMap:
+    """One distant light's orthographic depth map.
+
+    light_from_rel: (3, 3) float64 rows x, y, z of the light frame (z = towards light).
+    lo, texel: (2,) float64 lower corner (x, y) and texel size of the map, metres.
+    depth_lo, depth_span: depth = -z·p_rel spans [depth_lo, depth_lo + depth_span].
+    depth: (S, S) float32 map depth in metres along the light's travel direction,
+           row 0 at y = lo[1] (OpenGL's bottom-up order, not flipped).
+    """
+
+    direction: np.ndarray
+    light_from_rel: np.ndarray
+    lo: np.ndarray
+    texel: np.ndarray
+    depth_lo: float
+    depth_span: float
+    depth: np.ndarray
+
+
+class Rasterizer:
+    """Rasterizes a ``Scene`` into ``GBuffer`` s (one OpenGL context per instance).
+
+    Usage::
+
+        r = Rasterizer(scene, 320, 240)
+        g = r.render(camera_frame)                 # GBuffer, every field filled
+        vis = r.shadow_visibility(points, normals)  # (n, len(scene.lights.distant))
+        r.update_geometry(scene)                   # after animated prims moved
+        r.close()
+    """
+
+    def __init__(self, scene: Scene, width: int, height: int) -> None:
+        if width <= 0 or height <= 0:
+            raise PhrtError(f"image size {width}x{height} must be positive")
+        self.width = int(width)
+        self.height = int(height)
+        self._scene = scene
+        self._origin = np.asarray(scene.origin, dtype=np.float64).copy()
+        self._platform = OSMesaPlatform(self.width, self.height)
+        self._platform.init_context()
+        self._platform.make_current()
+        self._renderer = pyrender.Renderer(self.width, self.height)
+        self._renderer._program_cache = ShaderProgramCache(shader_dir=SHADER_DIR)
+        self._create_framebuffers()
+        # Our single-sampled framebuffer replaces pyrender's multisampled one.
+        self._renderer._configure_main_framebuffer = lambda: None
+        self._renderer._read_main_framebuffer = lambda _scene, _flags: self._read_ids()
+        self._ids = np.zeros((self.height, self.width, 4), dtype=np.uint8)  # readback
+        self._pcamera = _ExactPerspective()
+        self._pscene = pyrender.Scene(bg_color=[0.0, 0.0, 0.0, 0.0])
+        self._cam_node = self._pscene.add(self._pcamera, pose=np.eye(4))
+        self._mesh_node = None
+        self._uploaded: np.ndarray | None = None  # (V, 3) float32 rel, as on the GPU
+        self._dirs_key: tuple | None = None
+        self._dirs_cam: np.ndarray | None = None
+        self._shadow_maps: list[_ShadowMap] | None = None
+        self._closed = False
+        self._upload(scene)
+
+    # ------------------------------------------------------------------ geometry upload
+
+    def _upload(self, scene: Scene) -> None:
+        """Build the single mesh node and the per-triangle float64 tables (rel space)."""
+        geo = scene.geometry
+        if geo.triangle_count >= 2**32 - 1:
+            raise PhrtError(f"{geo.triangle_count} triangles exceed the id encoding")
+        rel = geo.vertices - self._origin
+        self._uploaded = np.ascontiguousarray(rel, dtype=np.float32)
+        if self._mesh_node is not None:
+            self._pscene.remove_node(self._mesh_node)
+            self._mesh_node = None
+        if geo.triangle_count > 0:
+            material = pyrender.MetallicRoughnessMaterial(doubleSided=True)
+            prim = pyrender.Primitive(
+                positions=self._uploaded,
+                indices=np.ascontiguousarray(geo.triangles, dtype=np.uint32),
+                material=material,
+            )
+            self._mesh_node = self._pscene.add(pyrender.Mesh([prim]))
+            self._primitive = prim
+        self._build_tables(scene)
+
+    def _build_tables(self, scene: Scene) -> None:
+        """Per-triangle float64 tables for the ray-plane intersection and barycentrics.
+
+        _a: (T, 3) first corner, rel metres; _e1, _e2: (T, 3) edges b - a, c - a;
+        _ng: (T, 3) unnormalised geometric normal e1 x e2;
+        _d00, _d01, _d11, _inv_den: (T,) Gram-matrix terms of the edges.
+        """
+        geo = scene.geometry
+        rel = geo.vertices - self._origin
+        tri = rel[geo.triangles]
+        self._a = tri[:, 0]
+        self._e1 = tri[:, 1] - tri[:, 0]
+        self._e2 = tri[:, 2] - tri[:, 0]
+        self._ng = np.cross(self._e1, self._e2)
+        self._d00 = np.einsum("ij,ij->i", self._e1, self._e1)
+        self._d01 = np.einsum("ij,ij->i", self._e1, self._e2)
+        self._d11 = np.einsum("ij,ij->i", self._e2, self._e2)
+        den = self._d00 * self._d11 - self._d01**2
+        # Degenerate (zero-area) triangles never cover a pixel; guard the division anyway.
+        self._inv_den = np.where(den > 0.0, 1.0 / np.where(den > 0.0, den, 1.0), 0.0)
+        if len(rel):
+            self._bounds_rel = np.stack([rel.min(axis=0), rel.max(axis=0)])
+        else:
+            self._bounds_rel = np.zeros((2, 3))
+        self._extent = scene.extent
+        self._scene = scene
+
+    def update_geometry(self, scene: Scene) -> None:
+        """Re-upload geometry after animated prims moved.
+
+        Same topology and origin: only the changed vertex range is re-sent
+        (``glBufferSubData``); otherwise the node is rebuilt. Shadow maps are invalidated.
+        """
+        self._check_open()
+        self._platform.make_current()
+        geo = scene.geometry
+        same_topology = (
+            self._mesh_node is not None
+            and np.array_equal(np.asarray(scene.origin, dtype=np.float64), self._origin)
+            and geo.vertices.shape == self._uploaded.shape
+            and geo.triangle_count == len(self._a)
+            and np.array_equal(geo.triangles, self._scene.geometry.triangles)
+        )
+        if not same_topology:
+            self._origin = np.asarray(scene.origin, dtype=np.float64).copy()
+            self._upload(scene)
+        else:
+            rel = np.ascontiguousarray(geo.vertices - self._origin, dtype=np.float32)
+            changed = np.flatnonzero(np.any(rel != self._uploaded, axis=1))
+            if len(changed):
+                first, last = int(changed[0]), int(changed[-1]) + 1
+                self._uploaded = rel
+                if self._primitive._vaid is not None:  # already on the GPU
+                    chunk = np.ascontiguousarray(rel[first:last])
+                    GL.glBindBuffer(GL.GL_ARRAY_BUFFER, self._primitive._buffers[0])
+                    GL.glBufferSubData(GL.GL_ARRAY_BUFFER, first * 12, chunk.nbytes, chunk)
+                    GL.glBindBuffer(GL.GL_ARRAY_BUFFER, 0)
+                self._primitive.positions = rel  # keeps pyrender's bounds consistent
+            self._build_tables(scene)
+        self._scene = scene
+        self._shadow_maps = None
+
+    # ------------------------------------------------------------------ framebuffers
+
+    def _create_framebuffers(self) -> None:
+        """Single-sampled id framebuffer (RGBA8 + float depth) at the image size, and a
+        depth-only framebuffer for shadow maps."""
+        self._id_rb = GL.glGenRenderbuffers(2)
+        GL.glBindRenderbuffer(GL.GL_RENDERBUFFER, self._id_rb[0])
+        GL.glRenderbufferStorage(GL.GL_RENDERBUFFER, GL.GL_RGBA8, self.width, self.height)
+        GL.glBindRenderbuffer(GL.GL_RENDERBUFFER, self._id_rb[1])
+        GL.glRenderbufferStorage(
+            GL.GL_RENDERBUFFER, GL.GL_DEPTH_COMPONENT32F, self.width, self.height
+        )
+        self._id_fb = GL.glGenFramebuffers(1)
+        GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, self._id_fb)
+        GL.glFramebufferRenderbuffer(
+            GL.GL_FRAMEBUFFER, GL.GL_COLOR_ATTACHMENT0, GL.GL_RENDERBUFFER, self._id_rb[0]
+        )
+        GL.glFramebufferRenderbuffer(
+            GL.GL_FRAMEBUFFER, GL.GL_DEPTH_ATTACHMENT, GL.GL_RENDERBUFFER, self._id_rb[1]
+        )
+        self._check_fb("id")
+        r = self._renderer
+        r._main_fb = r._main_fb_ms = self._id_fb
+        r._main_fb_dims = (self.width, self.height)
+
+        self._shadow_rb = GL.glGenRenderbuffers(1)
+        GL.glBindRenderbuffer(GL.GL_RENDERBUFFER, self._shadow_rb)
+        GL.glRenderbufferStorage(
+            GL.GL_RENDERBUFFER, GL.GL_DEPTH_COMPONENT32F, SHADOW_MAP_SIZE, SHADOW_MAP_SIZE
+        )
+        self._shadow_fb = GL.glGenFramebuffers(1)
+        GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, self._shadow_fb)
+        GL.glFramebufferRenderbuffer(
+            GL.GL_FRAMEBUFFER, GL.GL_DEPTH_ATTACHMENT, GL.GL_RENDERBUFFER, self._shadow_rb
+        )
+        GL.glDrawBuffer(GL.GL_NONE)
+        GL.glReadBuffer(GL.GL_NONE)
+        self._check_fb("shadow")
+        GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, 0)
+        GL.glBindRenderbuffer(GL.GL_RENDERBUFFER, 0)
+
+    @staticmethod
+    def _check_fb(name: str) -> None:
+        status = GL.glCheckFramebufferStatus(GL.GL_FRAMEBUFFER)
+        if status != GL.GL_FRAMEBUFFER_COMPLETE:
+            raise RuntimeError(f"OpenGL {name} framebuffer incomplete (status {status:#x})")
+
+    def _read_ids(self) -> np.ndarray:
+        """(H, W) uint32 id image (triangle index + 1, 0 = background), row 0 at top."""
+        GL.glBindFramebuffer(GL.GL_READ_FRAMEBUFFER, self._id_fb)
+        GL.glReadBuffer(GL.GL_COLOR_ATTACHMENT0)
+        GL.glPixelStorei(GL.GL_PACK_ALIGNMENT, 1)
+        GL.glReadPixels(0, 0, self.width, self.height, GL.GL_RGBA, GL.GL_UNSIGNED_BYTE, self._ids)
+        # Four bytes R, G, B, A read as one little-endian uint32 = R + 256 G + ...
+        ids = self._ids.view("<u4")[..., 0]
+        return ids[::-1].astype(np.uint32)
+
+    # ------------------------------------------------------------------ camera
+
+    def _clip_range(self, camera: CameraFrame, eye_rel: np.ndarray) -> tuple[float, float]:
+        """(near, far) metres: the camera's clipping range, tightened to the scene bounds
+        (padded by CLIP_PADDING * extent) and with near >= far * MIN_NEAR_OVER_FAR."""
+        lo, hi = self._bounds_rel
+        pad = CLIP_PADDING * self._extent
+        nearest = np.linalg.norm(np.maximum(0.0, np.maximum(lo - eye_rel, eye_rel - hi)))
+        corners = np.stack(np.meshgrid(*zip(lo, hi, strict=True), indexing="ij"), -1)
+        farthest = float(np.linalg.norm(corners.reshape(-1, 3) - eye_rel, axis=1).max())
+        far = min(float(camera.far), farthest + pad)
+        near = max(float(camera.near), float(nearest) - pad)
+        far = max(far, 2.0 * pad, 1e-9)  # a camera far from an empty/tiny scene
+        near = min(max(near, far * MIN_NEAR_OVER_FAR), far * 0.5)
+        return near, far
+
+    def _camera_dirs(self, camera: CameraFrame) -> np.ndarray:
+        """(H*W, 3) float64 unit camera-space directions through pixel centres, in the
+        order and with the formula of ``CameraFrame.pixel_rays`` (cached per fov)."""
+        tx, ty = camera.tan_half_fov(self.width, self.height)
+        key = (tx, ty)
+        if key != self._dirs_key:
+            xs = ((np.arange(self.width) + 0.5) / self.width * 2.0 - 1.0) * tx
+            ys = (1.0 - (np.arange(self.height) + 0.5) / self.height * 2.0) * ty
+            gx, gy = np.meshgrid(xs, ys)
+            d = np.stack([gx, gy, -np.ones_like(gx)], axis=-1).reshape(-1, 3)
+            self._dirs_cam = d
+            self._dirs_key = key
+        return self._dirs_cam
+
+    # ------------------------------------------------------------------ render
+
+    def render(self, camera: CameraFrame) -> GBuffer:
+        """Rasterize one frame. Returns a ``GBuffer`` with every field filled:
+        background pixels have ids -1, depth inf, position 0, normal = -view_dir,
+        albedo 0."""
+        self._check_open()
+        h, w = self.height, self.width
+        cam = np.asarray(camera.world_from_camera, dtype=np.float64)
+        rot = cam[:3, :3]
+        eye_rel = cam[:3, 3] - self._origin
+        tx, ty = camera.tan_half_fov(w, h)
+        near, far = self._clip_range(camera, eye_rel)
+
+        if self._mesh_node is not None:
+            pose = cam.copy()
+            pose[:3, 3] = eye_rel
+            self._pcamera.matrix = perspective_matrix(tx, ty, near, far)
+            self._pcamera.znear, self._pcamera.zfar = near, far
+            self._pscene.set_pose(self._cam_node, pose)
+            self._platform.make_current()
+            flags = RenderFlags.FLAT | RenderFlags.OFFSCREEN | RenderFlags.SKIP_CULL_FACES
+            ids = self._renderer.render(self._pscene, flags).reshape(-1)
+        else:
+            ids = np.zeros(h * w, dtype=np.uint32)
+
+        # Directions: rotate the cached camera-space rays, normalise (as pixel_rays does).
+        d = self._camera_dirs(camera) @ rot.T
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+
+        tri_count = len(self._a)
+        covered = np.flatnonzero((ids > 0) & (ids <= tri_count))
+        tid = (ids[covered].astype(np.int64)) - 1
+
+        triangle_id = np.full(h * w, NO_HIT, dtype=np.int32)
+        element_id = np.full(h * w, NO_HIT, dtype=np.int32)
+        depth = np.full(h * w, np.inf, dtype=np.float32)
+        position = np.zeros((h * w, 3), dtype=np.float64)
+        normal = (-d).astype(np.float32)
+        albedo = np.zeros((h * w, 3), dtype=np.float32)
+
+        if len(covered):
+            geo = self._scene.geometry
+            dc = d[covered]
+            ng = self._ng[tid]
+            a = self._a[tid]
+            # Ray-plane intersection in float64, rel space: t = n·(a - o) / n·d.
+            num = np.einsum("ij,ij->i", ng, a - eye_rel)
+            den = np.einsum("ij,ij->i", ng, dc)
+            floor = GRAZING_EPS * np.linalg.norm(ng, axis=1)
+            den = np.where(np.abs(den) < floor, np.where(den < 0, -floor, floor), den)
+            den = np.where(den == 0.0, 1.0, den)  # zero-area triangle: t clamped below
+            t = np.clip(num / den, near, far)
+            p_rel = eye_rel + t[:, None] * dc
+
+            # Barycentrics of p in its triangle (clamped onto it: pixel centres on an
+            # edge may lie a rounding error outside).
+            v2 = p_rel - a
+            d20 = np.einsum("ij,ij->i", v2, self._e1[tid])
+            d21 = np.einsum("ij,ij->i", v2, self._e2[tid])
+            inv = self._inv_den[tid]
+            bv = (self._d11[tid] * d20 - self._d01[tid] * d21) * inv
+            bw = (self._d00[tid] * d21 - self._d01[tid] * d20) * inv
+            bary = np.stack([1.0 - bv - bw, bv, bw], axis=1).clip(0.0, 1.0)
+            bary /= np.maximum(bary.sum(axis=1, keepdims=True), 1e-12)
+            bary32 = bary.astype(np.float32)
+
+            # Shading normal: interpolate, put it on the camera's side of the triangle;
+            # where it still faces away (or is degenerate), use the geometric normal.
+            n = np.einsum("ij,ijk->ik", bary32, geo.corner_normals[tid])
+            side = np.where(den > 0.0, -1.0, 1.0).astype(np.float32)  # n_g·d > 0: back
+            n *= side[:, None]
+            n_len = np.linalg.norm(n, axis=1)
+            ng_unit = (ng * side[:, None]) / np.maximum(
+                np.linalg.norm(ng, axis=1, keepdims=True), 1e-300
+            )
+            bad = (n_len < 1e-6) | (np.einsum("ij,ij->i", n, dc) >= 0.0)
+            n = np.where(bad[:, None], ng_unit, n / np.maximum(n_len, 1e-6)[:, None])
+            normal[covered] = n.astype(np.float32)
+
+            albedo[covered] = self._albedo(tid, bary32)
+            triangle_id[covered] = tid.astype(np.int32)
+            element_id[covered] = geo.tri_element[tid]
+            position[covered] = p_rel + self._origin
+            fwd = -rot[:, 2] / np.linalg.norm(rot[:, 2])
+            depth[covered] = (t * (dc @ fwd)).astype(np.float32)
+
+        return GBuffer(
+            element_id=element_id.reshape(h, w),
+            triangle_id=triangle_id.reshape(h, w),
+            depth=depth.reshape(h, w),
+            position=position.reshape(h, w, 3),
+            normal=normal.reshape(h, w, 3),
+            albedo=albedo.reshape(h, w, 3),
+            view_dir=d.astype(np.float32).reshape(h, w, 3),
+        )
+
+    def _albedo(self, tid: np.ndarray, bary: np.ndarray) -> np.ndarray:
+        """(n, 3) float32 linear RGB: interpolated corner albedo, replaced by a bilinear,
+        wrapping texture lookup where the triangle's material has a texture (image row
+        0 = top, so v = 0 is the bottom row; USD ``st`` convention)."""
+        geo = self._scene.geometry
+        out = np.einsum("ij,ijk->ik", bary, geo.corner_albedo[tid])
+        textures = self._scene.materials.textures
+        if geo.corner_uv is None or not any(tex is not None for tex in textures):
+            return out
+        mats = geo.tri_material[tid]
+        for m in np.unique(mats):
+            tex = textures[m] if 0 <= m < len(textures) else None
+            if tex is None:
+                continue
+            sel = np.flatnonzero(mats == m)
+            uv = np.einsum("ij,ijk->ik", bary[sel], geo.corner_uv[tid[sel]])
+            out[sel] = sample_bilinear_wrap(tex, uv)
+        return out
+
+    # ------------------------------------------------------------------ shadows
+
+    def _light_frame(self, direction: np.ndarray) -> np.ndarray:
+        """(3, 3) rows x, y, z of an orthonormal frame with z = unit ``direction``."""
+        z = np.asarray(direction, dtype=np.float64)
+        z = z / max(np.linalg.norm(z), 1e-300)
+        helper = np.array([0.0, 1.0, 0.0]) if abs(z[1]) < 0.9 else np.array([1.0, 0.0, 0.0])
+        x = np.cross(helper, z)
+        x /= np.linalg.norm(x)
+        y = np.cross(z, x)
+        return np.stack([x, y, z])
+
+    def _render_shadow_map(self, direction: np.ndarray) -> _ShadowMap:
+        """Orthographic depth render along -``direction`` covering every vertex."""
+        s = SHADOW_MAP_SIZE
+        frame = self._light_frame(direction)
+        rel = self._uploaded.astype(np.float64)
+        lp = rel @ frame.T if len(rel) else np.zeros((1, 3))
+        # Extents clamped away from 0 (flat or empty scenes) so the matrix is invertible.
+        min_span = 1e-6 * max(self._extent, 1e-9)
+        pad = 2.0 / s  # two texels of margin on each side
+        lo_xy, hi_xy = lp[:, :2].min(axis=0), lp[:, :2].max(axis=0)
+        span_xy = np.maximum(hi_xy - lo_xy, min_span)
+        lo_xy = lo_xy - pad * span_xy
+        span_xy = span_xy * (1.0 + 2.0 * pad)
+        dep = -lp[:, 2]  # distance along the light's travel direction
+        span_d = max(dep.max() - dep.min(), min_span)
+        lo_d = dep.min() - 0.01 * span_d
+        span_d *= 1.02
+
+        # clip = (2 (x - lo) / span - 1) per axis; window depth = (dep - lo_d) / span_d.
+        m = np.zeros((4, 4))
+        m[0, :3] = 2.0 * frame[0] / span_xy[0]
+        m[0, 3] = -2.0 * lo_xy[0] / span_xy[0] - 1.0
+        m[1, :3] = 2.0 * frame[1] / span_xy[1]
+        m[1, 3] = -2.0 * lo_xy[1] / span_xy[1] - 1.0
+        m[2, :3] = -2.0 * frame[2] / span_d
+        m[2, 3] = -2.0 * lo_d / span_d - 1.0
+        m[3, 3] = 1.0
+
+        depth01 = np.ones((s, s), dtype=np.float32)
+        if self._mesh_node is not None:
+            self._platform.make_current()
+            r = self._renderer
+            r._update_context(self._pscene, RenderFlags.FLAT)  # primitive on the GPU
+            GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, self._shadow_fb)
+            GL.glViewport(0, 0, s, s)
+            GL.glEnable(GL.GL_DEPTH_TEST)
+            GL.glDepthMask(GL.GL_TRUE)
+            GL.glDepthFunc(GL.GL_LESS)
+            GL.glDepthRange(0.0, 1.0)
+            GL.glDisable(GL.GL_CULL_FACE)  # double-sided casters
+            GL.glDisable(GL.GL_BLEND)
+            GL.glPolygonMode(GL.GL_FRONT_AND_BACK, GL.GL_FILL)
+            GL.glClearDepth(1.0)
+            GL.glClear(GL.GL_DEPTH_BUFFER_BIT)
+            program = r._program_cache.get_program("depth.vert", "depth.frag")
+            if not program._in_context():
+                program._add_to_context()
+            program._bind()
+            program.set_uniform("light_clip_from_world", m)
+            self._primitive._bind()
+            GL.glDrawElements(
+                GL.GL_TRIANGLES,
+                self._primitive.indices.size,
+                GL.GL_UNSIGNED_INT,
+                ctypes.c_void_p(0),
+            )
+            self._primitive._unbind()
+            program._unbind()
+            GL.glFinish()
+            GL.glPixelStorei(GL.GL_PACK_ALIGNMENT, 1)
+            GL.glReadPixels(0, 0, s, s, GL.GL_DEPTH_COMPONENT, GL.GL_FLOAT, depth01)
+            GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, 0)
+        depth_m = (lo_d + depth01.astype(np.float64) * span_d).astype(np.float32)
+        return _ShadowMap(
+            direction=np.asarray(direction, dtype=np.float64).copy(),
+            light_from_rel=frame,
+            lo=lo_xy,
+            texel=span_xy / s,
+            depth_lo=float(lo_d),
+            depth_span=float(span_d),
+            depth=depth_m,
+        )
+
+    def shadow_maps(self) -> list[_ShadowMap]:
+        """The cached shadow map of each DistantLight (rendered on first use, again after
+        ``update_geometry`` or when the lights' directions changed)."""
+        self._check_open()
+        lights = self._scene.lights.distant
+        maps = self._shadow_maps
+        if (
+            maps is None
+            or len(maps) != len(lights)
+            or any(
+                not np.array_equal(mp.direction, lt.direction)
+                for mp, lt in zip(maps, lights, strict=True)
+            )
+        ):
+            self._shadow_maps = [self._render_shadow_map(lt.direction) for lt in lights]
+        return self._shadow_maps
+
+    def shadow_visibility(self, positions: np.ndarray, normals: np.ndarray) -> np.ndarray:
+        """Fraction of each DistantLight reaching each point, by shadow mapping.
+
+        positions : (n, 3) float64 world metres
+        normals   : (n, 3) unit normals (either side; only |n·L| is used, for the bias)
+        Returns (n, len(scene.lights.distant)) float32 in [0, 1], 1 = lit. Points outside
+        a map's footprint are lit (nothing there can occlude them).
+        """
+        positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+        normals = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
+        maps = self.shadow_maps()
+        out = np.ones((len(positions), len(maps)), dtype=np.float32)
+        if len(positions) == 0:
+            return out
+        rel = positions - self._origin
+        s = SHADOW_MAP_SIZE
+        for k, mp in enumerate(maps):
+            lp = rel @ mp.light_from_rel.T
+            dep = -lp[:, 2]
+            texel = float(mp.texel.max())
+            cos = np.abs(normals @ mp.light_from_rel[2])
+            cos = np.clip(cos, SHADOW_MIN_COS, 1.0)
+            tan = np.sqrt(1.0 - cos**2) / cos
+            bias = texel * (SHADOW_BIAS_TEXELS + SHADOW_SLOPE_BIAS_TEXELS * tan)
+            test = dep - bias
+            # Bilinear PCF over the 2x2 texels around the point (texel centres at +0.5).
+            fx = (lp[:, 0] - mp.lo[0]) / mp.texel[0] - 0.5
+            fy = (lp[:, 1] - mp.lo[1]) / mp.texel[1] - 0.5
+            inside = (fx > -1.0) & (fx < s) & (fy > -1.0) & (fy < s) & np.isfinite(test)
+            fx = np.where(inside, fx, 0.0)
+            fy = np.where(inside, fy, 0.0)
+            x0 = np.floor(fx).astype(np.int64)
+            y0 = np.floor(fy).astype(np.int64)
+            wx = fx - x0
+            wy = fy - y0
+            vis = np.zeros(len(rel))
+            for dx, dy, wgt in (
+                (0, 0, (1 - wx) * (1 - wy)),
+                (1, 0, wx * (1 - wy)),
+                (0, 1, (1 - wx) * wy),
+                (1, 1, wx * wy),
+            ):
+                xi = np.clip(x0 + dx, 0, s - 1)
+                yi = np.clip(y0 + dy, 0, s - 1)
+                vis += wgt * (test <= mp.depth[yi, xi])
+            out[:, k] = np.where(inside, vis, 1.0).astype(np.float32)
+        return out
+
+    # ------------------------------------------------------------------ lifetime
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise RuntimeError("Rasterizer used after close()")
+
+    def close(self) -> None:
+        """Free the OpenGL resources and the context (idempotent)."""
+        if self._closed:
+            return
+        self._closed = True
+        self._platform.make_current()
+        r = self._renderer
+        r._main_fb = r._main_fb_ms = None
+        r._main_cb = r._main_cb_ms = r._main_db = r._main_db_ms = None
+        r.delete()
+        GL.glDeleteFramebuffers(2, [self._id_fb, self._shadow_fb])
+        GL.glDeleteRenderbuffers(3, [*self._id_rb, self._shadow_rb])
+        self._platform.delete_context()
+
+    def __enter__(self) -> Rasterizer:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def __del__(self) -> None:
+        try:
+            self.close()
+        except Exception:  # interpreter shutdown: GL may already be gone
+            pass
+
+
+def sample_bilinear_wrap(texture: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Bilinear texture lookup with wrap-around.
+
+    texture : (h, w, 3) float32 linear RGB, row 0 = top of the image
+    uv      : (n, 2) texture coordinates, (0, 0) = bottom-left, period 1
+    Returns (n, 3) float32.
+    """
+    th, tw = texture.shape[:2]
+    uv = np.nan_to_num(np.asarray(uv, dtype=np.float64), nan=0.0, posinf=0.0, neginf=0.0)
+    uv = uv - np.floor(uv)  # wrap first: keeps the integer texel indices small
+    fx = uv[:, 0] * tw - 0.5
+    fy = (1.0 - uv[:, 1]) * th - 0.5
+    x0 = np.floor(fx)
+    y0 = np.floor(fy)
+    wx = (fx - x0)[:, None]
+    wy = (fy - y0)[:, None]
+    x0 = x0.astype(np.int64) % tw
+    y0 = y0.astype(np.int64) % th
+    x1 = (x0 + 1) % tw
+    y1 = (y0 + 1) % th
+    top = texture[y0, x0] * (1 - wx) + texture[y0, x1] * wx
+    bottom = texture[y1, x0] * (1 - wx) + texture[y1, x1] * wx
+    return (top * (1 - wy) + bottom * wy).astype(np.float32)
