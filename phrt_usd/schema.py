@@ -5,7 +5,7 @@ The schemas themselves live in ``schemas/phrt/schema.usda`` (codeless plugin reg
 import these constants.
 
 Reads work with and without the plugin registered: applied schemas are detected through
-``prim.GetAppliedSchemas()`` and unauthored values fall back to the defaults below, which
+the composed apiSchemas (``has_api``) and unauthored values fall back to the defaults below, which
 match the schema fallbacks.
 """
 
@@ -125,7 +125,7 @@ def _f32(value) -> float:
 
 def _add_api(prim: Usd.Prim, api: str) -> None:
     """Apply ``api``; plain ``AddAppliedSchema`` when the plugin is not registered."""
-    if api in prim.GetAppliedSchemas():
+    if has_api(prim, api):
         return
     if Usd.SchemaRegistry().FindAppliedAPIPrimDefinition(api):
         prim.ApplyAPI(api)
@@ -153,9 +153,16 @@ def apply_reflector(
         _set(prim, REFLECTIVITY, float(reflectivity))
 
 
+def has_api(prim: Usd.Prim, api: str) -> bool:
+    """True when ``api`` is in the prim's composed apiSchemas. Unlike
+    ``prim.GetAppliedSchemas()``, which drops schemas unknown to the registry, this also
+    works in a process where the Phrt plugin is not registered."""
+    return bool(prim) and api in prim.GetPrimTypeInfo().GetAppliedAPISchemas()
+
+
 def is_reflector(prim: Usd.Prim) -> bool:
     """True when the prim has PhrtReflectorAPI applied (with or without the plugin)."""
-    return bool(prim) and REFLECTOR_API in prim.GetAppliedSchemas()
+    return has_api(prim, REFLECTOR_API)
 
 
 def reflector_priority(prim: Usd.Prim) -> float:

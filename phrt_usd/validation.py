@@ -322,7 +322,7 @@ def phrt_issues(stage: Usd.Stage) -> list[Issue]:
             issues.extend(_reflector_issues(prim))
         if prim.GetTypeName() == schema.CAMERA_PATH_TYPE:
             issues.extend(_camera_path_issues(stage, prim))
-        if prim.IsA(UsdRender.Settings) and schema.RENDER_SETTINGS_API in prim.GetAppliedSchemas():
+        if prim.IsA(UsdRender.Settings) and schema.has_api(prim, schema.RENDER_SETTINGS_API):
             issues.extend(_render_settings_issues(prim))
     return issues
 
