@@ -224,7 +224,9 @@ class _FrameState:
     V: np.ndarray  # (E,) float64
     K: np.ndarray  # (E,) float64 priorities (clipped)
     traced: list[int] = field(default_factory=list)  # selected this frame, in order
-    predicted_rays: dict[int, float] = field(default_factory=dict)
+    predicted_rays: dict[int, float] = field(default_factory=dict)  # at selection time
+    predicted_ms: dict[int, float] = field(default_factory=dict)  # at selection time
+    predicted_trace_ms: float = 0.0  # sum over rounds of the predicted round time
 
 
 class BudgetedPolicy:
@@ -253,6 +255,8 @@ class BudgetedPolicy:
         self._global_rays = 0.0  # decayed sums for the mean rays per pixel
         self._global_pixels = 0.0
         self._frame: _FrameState | None = None
+        #: Predicted trace time of the last finished frame (ms, TIME_SAFETY included).
+        self.last_predicted_trace_ms = 0.0
 
     # ---- SelectionPolicy
 
@@ -278,6 +282,10 @@ class BudgetedPolicy:
         ids = self._choose(budget)
         for e in ids:
             frame.predicted_rays[e] = self.predicted_rays(e)
+            frame.predicted_ms[e] = self.predicted_ms(frame.predicted_rays[e])
+        if ids:
+            rays = sum(frame.predicted_rays[e] for e in ids)
+            frame.predicted_trace_ms += self.time_model.predicted_ms(rays)
         frame.traced.extend(ids)
         return ids
 
@@ -313,6 +321,7 @@ class BudgetedPolicy:
         frame = self._require_frame()
         metrics = self.metrics()
         self.previous_selection = set(frame.traced)
+        self.last_predicted_trace_ms = frame.predicted_trace_ms
         self._frame = None
         return metrics
 
@@ -365,6 +374,11 @@ class BudgetedPolicy:
                 rpp = self.q_of(element) * (1 + len(lights.distant) + len(lights.local))
         return pixels * max(rpp, MIN_RAYS_PER_PIXEL) * RAYS_SAFETY
 
+    def predicted_ms(self, rays: float) -> float:
+        """Milliseconds a candidate's ``rays`` add to a round (TIME_SAFETY included; the
+        round's fixed overhead is not, see ``TraceTimeModel``)."""
+        return self.time_model.ms_per_ray * max(rays, 0.0) * TIME_SAFETY
+
     def ray_allowance(self, budget: Budget) -> float:
         """The budget as a number of (predicted) rays: the smaller of ``budget.rays`` and
         the rays the time model says fit in ``budget.ms``; ``inf`` when both are None."""
@@ -382,6 +396,7 @@ class BudgetedPolicy:
         traced = set(frame.traced)
         out = {}
         for e in self.candidates():
+            rays = frame.predicted_rays.get(e, self.predicted_rays(e))
             out[e] = ReflectorMetrics(
                 V=float(frame.V[e]),
                 C=self.cost_C(e),
@@ -390,7 +405,8 @@ class BudgetedPolicy:
                 S=e in self.previous_selection,
                 selected=e in traced,
                 visible=bool(frame.pixels[e] > 0),
-                predicted_rays=frame.predicted_rays.get(e, self.predicted_rays(e)),
+                predicted_rays=rays,
+                predicted_ms=frame.predicted_ms.get(e, self.predicted_ms(rays)),
             )
         return out
 

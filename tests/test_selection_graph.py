@@ -1,0 +1,133 @@
+"""Selection Graph invariants (paper §4.1–4.2): cost list, relevance edges, selection."""
+
+from __future__ import annotations
+
+import math
+import random
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from phrt_usd.selection_graph import Node, SelectionGraph
+
+# Few distinct values so that ties in cost and in R are common.
+costs = st.sampled_from([0.0, 1.0, 2.0, 3.0, 5.0, 8.0, 1e6])
+relevances = st.sampled_from([0.0, 0.5, 1.0, 2.0, 1e9, 1e18])
+
+
+@st.composite
+def node_lists(draw, max_size=12):
+    ids = draw(st.lists(st.integers(0, 200), unique=True, max_size=max_size))
+    return [
+        Node(element=e, C=draw(costs), R=draw(relevances), cost=draw(costs),
+             traceable=draw(st.booleans()) or draw(st.booleans()))
+        for e in ids
+    ]  # fmt: skip
+
+
+def reference_greedy(nodes: list[Node], budget: float) -> list[int]:
+    """The intended selection, by brute force: repeatedly take the most relevant
+    (R desc, id asc) traceable node that fits what is left of the budget."""
+    if not budget > 0:
+        return []
+    left = sorted((n for n in nodes if n.traceable), key=lambda n: (-n.R, n.element))
+    chosen = []
+    remaining = budget
+    while True:
+        fitting = [n for n in left if n.cost <= remaining]
+        if not fitting:
+            return chosen
+        best = fitting[0]
+        chosen.append(best.element)
+        remaining -= best.cost
+        left.remove(best)
+
+
+@given(node_lists())
+def test_cost_list_is_strictly_ordered_with_id_ties(nodes):
+    g = SelectionGraph(nodes)
+    assert sorted(g.by_cost) == sorted(n.element for n in nodes)
+    walk = []
+    e = g.most_expensive
+    while e is not None:
+        walk.append(e)
+        e = g.next_cheaper[e]
+    assert walk == g.by_cost
+    for a, b in zip(walk, walk[1:], strict=False):
+        ca, cb = g.nodes[a].cost, g.nodes[b].cost
+        assert ca > cb or (ca == cb and a < b)
+
+
+@given(node_lists())
+def test_relevance_edges_go_to_more_relevant_no_costlier_nodes_and_are_complete(nodes):
+    g = SelectionGraph(nodes)
+    for a in g.nodes:
+        targets = g.more_relevant[a]
+        expected = {
+            b
+            for b in g.nodes
+            if b != a
+            and (g.nodes[b].R > g.nodes[a].R or (g.nodes[b].R == g.nodes[a].R and b < a))
+            and g.nodes[b].cost <= g.nodes[a].cost
+        }
+        assert set(targets) == expected
+        for b in targets:
+            assert g.is_more_relevant(b, a)
+            assert g.nodes[b].cost <= g.nodes[a].cost
+        # Ordered most relevant first.
+        for x, y in zip(targets, targets[1:], strict=False):
+            assert g.is_more_relevant(x, y)
+
+
+@settings(max_examples=300)
+@given(node_lists(), st.sampled_from([0.0, 1.0, 2.5, 4.0, 9.0, 20.0, 1e7, math.inf]))
+def test_selection_fits_budget_and_is_greedy_by_relevance(nodes, budget):
+    g = SelectionGraph(nodes)
+    chosen = g.select(budget)
+    assert len(set(chosen)) == len(chosen)
+    assert all(g.nodes[e].traceable for e in chosen)
+    assert sum(g.nodes[e].cost for e in chosen) <= budget
+    assert chosen == reference_greedy(nodes, budget)
+
+
+@given(node_lists(), st.sampled_from([0.0, 3.0, 9.0, math.inf]), st.randoms())
+def test_selection_does_not_depend_on_node_order(nodes, budget, rnd: random.Random):
+    shuffled = list(nodes)
+    rnd.shuffle(shuffled)
+    assert SelectionGraph(nodes).select(budget) == SelectionGraph(shuffled).select(budget)
+
+
+def test_unbounded_selects_every_traceable_node_and_zero_budget_none():
+    nodes = [
+        Node(element=3, C=1.0, R=2.0, cost=10.0),
+        Node(element=1, C=1.0, R=5.0, cost=1.0),
+        Node(element=7, C=0.0, R=0.0, cost=0.0, traceable=False),
+    ]
+    g = SelectionGraph(nodes)
+    assert g.select(math.inf) == [1, 3]
+    assert g.select(0.0) == []
+    assert g.select(-1.0) == []
+    assert g.select(math.nan) == []
+
+
+def test_paper_figure_like_example():
+    # Expensive but most relevant node first if it fits; otherwise the cheaper relevant ones.
+    nodes = [
+        Node(element=0, C=9.0, R=9.0, cost=9.0),
+        Node(element=1, C=5.0, R=4.0, cost=5.0),
+        Node(element=2, C=3.0, R=6.0, cost=3.0),
+        Node(element=3, C=1.0, R=1.0, cost=1.0),
+    ]
+    g = SelectionGraph(nodes)
+    assert g.by_cost == [0, 1, 2, 3]
+    assert g.more_relevant[1] == [2]  # 2 is more relevant and cheaper than 1
+    assert g.more_relevant[3] == []
+    assert g.select(10.0) == [0, 3]
+    assert g.select(8.0) == [2, 1]
+    assert g.select(4.0) == [2, 3]
+
+
+def test_duplicate_elements_are_rejected():
+    with pytest.raises(ValueError):
+        SelectionGraph([Node(1, 0.0, 0.0, 0.0), Node(1, 1.0, 1.0, 1.0)])
