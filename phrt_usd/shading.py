@@ -1,0 +1,235 @@
+"""Local shading shared by the raster path and the ray tracer, so both agree exactly.
+
+Everything here is pure numpy on world-space arrays (metres, linear RGB float32, no tone
+mapping). The model, deliberately simple and the same everywhere:
+
+    colour = Σ_lights  visibility * E_light * (albedo * max(n·l, 0)
+                                               + SPECULAR_STRENGTH * max(n·h, 0)**SHININESS)
+             + albedo * ambient_radiance(lights) + emissive
+
+* ``E_light`` is the light's ``radiance`` for a DistantLight and ``radiance / d**2`` for a
+  LocalLight (d clamped to ``MIN_LIGHT_DISTANCE``).
+* Lambert without the 1/π factor (the preview-renderer convention): a white surface facing
+  a unit DistantLight shows 1.0.
+* ``h`` is the Blinn-Phong half vector between the light and the direction to the eye.
+* The ambient term is the mean environment radiance, unshadowed.
+
+Light order, wherever a per-light axis appears (``visibility`` (n, L), ``light_directions``):
+all ``lights.distant`` first, then all ``lights.local``, each in list order.
+
+Environment: a DomeLight's lat-long texture (times the dome colour), else the dome colour,
+else ``scene.DEFAULT_ENVIRONMENT``. The lat-long convention is UsdLux's (OpenEXR's), in the
+dome's own space (+Y up): pixel column 0 is longitude +π, the last column longitude -π,
+row 0 latitude +π/2; longitude 0 points to +Z and longitude +π/2 to +X.
+``DomeLight.world_from_light`` carries the dome's orientation (e.g. a Z-up stage's rotation).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from phrt_usd.scene import DEFAULT_ENVIRONMENT, DomeLight, Lights
+
+#: Smallest light-to-surface distance in metres used for the 1/d² fall-off of LocalLights.
+#: A surface point at (or numerically on) a point light would otherwise get Inf irradiance.
+MIN_LIGHT_DISTANCE = 1e-4
+
+#: Blinn-Phong exponent of the specular highlight (one value for every material).
+SHININESS = 64.0
+
+#: Weight of the white Blinn-Phong highlight relative to the diffuse term.
+SPECULAR_STRENGTH = 0.25
+
+#: Directions shorter than this are treated as zero-length (looked up as dome-space +Y)
+#: instead of being divided by ~0 into NaN/Inf.
+_MIN_DIRECTION_LENGTH = 1e-30
+
+#: Cache of ambient radiance per DomeLight texture: id(texture) -> (texture, mean (3,)).
+#: The texture object is kept so that a recycled id can never alias another array.
+_AMBIENT_CACHE: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+_AMBIENT_CACHE_SIZE = 8
+
+
+def _safe_normalize(v: np.ndarray, fallback: np.ndarray) -> np.ndarray:
+    """Rows of ``v`` (n, 3) scaled to unit length; rows of (near) zero length or
+    non-finite become ``fallback`` (3,). Returns float64 (n, 3)."""
+    v = np.asarray(v, dtype=np.float64)
+    finite = np.all(np.isfinite(v), axis=1)
+    v = np.where(finite[:, None], v, 0.0)
+    # Scale by the largest component first so huge vectors do not overflow when squared.
+    big = np.max(np.abs(v), axis=1)
+    ok = big > _MIN_DIRECTION_LENGTH
+    v = v / np.where(ok, big, 1.0)[:, None]
+    norm = np.linalg.norm(v, axis=1)
+    out = v / np.where(ok, norm, 1.0)[:, None]
+    out[~ok] = fallback
+    return out
+
+
+def sample_texture(texture: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Bilinear lookup of a (h, w, 3) float32 texture at (n, 2) USD texture coordinates.
+
+    USD's st origin is the bottom-left of the image (row h-1); coordinates wrap (repeat).
+    Non-finite coordinates read texel (0, 0). Returns (n, 3) float32.
+    """
+    h, w = texture.shape[:2]
+    uv = np.where(np.isfinite(uv), uv, 0.0).astype(np.float64)
+    x = (uv[:, 0] % 1.0) * w - 0.5
+    y = ((1.0 - uv[:, 1]) % 1.0) * h - 0.5
+    return _bilinear(texture, x, y, wrap_y=True)
+
+
+def _bilinear(texture: np.ndarray, x: np.ndarray, y: np.ndarray, wrap_y: bool) -> np.ndarray:
+    """Bilinear sample at continuous pixel coordinates (x: column, y: row; texel centres
+    at integer + 0.5 - 0.5 = integers). x always wraps; y wraps or clamps."""
+    h, w = texture.shape[:2]
+    x0 = np.floor(x)
+    y0 = np.floor(y)
+    fx = (x - x0)[:, None].astype(np.float32)
+    fy = (y - y0)[:, None].astype(np.float32)
+    x0 = x0.astype(np.int64)
+    y0 = y0.astype(np.int64)
+    c0 = x0 % w
+    c1 = (x0 + 1) % w
+    if wrap_y:
+        r0 = y0 % h
+        r1 = (y0 + 1) % h
+    else:
+        r0 = np.clip(y0, 0, h - 1)
+        r1 = np.clip(y0 + 1, 0, h - 1)
+    top = texture[r0, c0] * (1.0 - fx) + texture[r0, c1] * fx
+    bottom = texture[r1, c0] * (1.0 - fx) + texture[r1, c1] * fx
+    return (top * (1.0 - fy) + bottom * fy).astype(np.float32)
+
+
+def _dome_colour(dome: DomeLight) -> np.ndarray:
+    return np.asarray(dome.color, dtype=np.float32).reshape(3)
+
+
+def environment_radiance(lights: Lights, directions: np.ndarray) -> np.ndarray:
+    """Radiance arriving from the environment along world directions.
+
+    directions : (n, 3) world-space directions (any length; zero or non-finite ones look
+                 up the dome's +Y pole instead of producing NaN)
+    Returns (n, 3) float32 linear RGB.
+    """
+    directions = np.asarray(directions).reshape(-1, 3)
+    n = directions.shape[0]
+    dome = lights.dome
+    if dome is None:
+        return np.broadcast_to(DEFAULT_ENVIRONMENT.astype(np.float32), (n, 3)).copy()
+    colour = _dome_colour(dome)
+    if dome.texture is None:
+        return np.broadcast_to(colour, (n, 3)).copy()
+    # World → dome space: world_from_light is a rotation, so its inverse is its transpose;
+    # for row vectors d_light = d_world @ world_from_light.
+    d = _safe_normalize(directions, np.array([0.0, 1.0, 0.0]) @ dome.world_from_light.T)
+    d = d @ np.asarray(dome.world_from_light, dtype=np.float64)
+    latitude = np.arcsin(np.clip(d[:, 1], -1.0, 1.0))
+    longitude = np.arctan2(d[:, 0], d[:, 2])
+    h, w = dome.texture.shape[:2]
+    x = (np.pi - longitude) / (2.0 * np.pi) * w - 0.5
+    y = (0.5 * np.pi - latitude) / np.pi * h - 0.5
+    return _bilinear(dome.texture, x, y, wrap_y=False) * colour
+
+
+def ambient_radiance(lights: Lights) -> np.ndarray:
+    """(3,) float32 mean environment radiance over the sphere (solid-angle weighted),
+    used as the unshadowed ambient term. Cached per dome texture."""
+    dome = lights.dome
+    if dome is None:
+        return DEFAULT_ENVIRONMENT.astype(np.float32)
+    colour = _dome_colour(dome)
+    if dome.texture is None:
+        return colour.copy()
+    key = id(dome.texture)
+    cached = _AMBIENT_CACHE.get(key)
+    if cached is None or cached[0] is not dome.texture:
+        tex = np.asarray(dome.texture, dtype=np.float64)
+        h = tex.shape[0]
+        # Row r covers latitudes around (0.5 - (r + 0.5) / h) * π; its solid angle ∝ cos(lat).
+        weight = np.cos((0.5 - (np.arange(h) + 0.5) / h) * np.pi)
+        mean = np.einsum("r,rwc->c", weight, tex) / (weight.sum() * tex.shape[1])
+        if len(_AMBIENT_CACHE) >= _AMBIENT_CACHE_SIZE:
+            _AMBIENT_CACHE.clear()
+        cached = (dome.texture, mean.astype(np.float32))
+        _AMBIENT_CACHE[key] = cached
+    return cached[1] * colour
+
+
+def light_directions(lights: Lights, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unit directions from surface points towards every light, and how far to look.
+
+    positions : (n, 3) float64 world metres
+    Returns dirs (n, L, 3) float64 world unit vectors and max_distance (n, L) float64
+    metres: ``inf`` for DistantLights, the distance to the light centre (clamped to
+    ``MIN_LIGHT_DISTANCE``) for LocalLights. Light order: distant, then local.
+    """
+    positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+    n = positions.shape[0]
+    n_lights = len(lights.distant) + len(lights.local)
+    dirs = np.empty((n, n_lights, 3))
+    dist = np.empty((n, n_lights))
+    for j, light in enumerate(lights.distant):
+        d = np.asarray(light.direction, dtype=np.float64)
+        dirs[:, j] = d / max(np.linalg.norm(d), _MIN_DIRECTION_LENGTH)
+        dist[:, j] = np.inf
+    offset = len(lights.distant)
+    for k, light in enumerate(lights.local):
+        to_light = np.asarray(light.position, dtype=np.float64) - positions
+        d = np.maximum(np.linalg.norm(to_light, axis=1), MIN_LIGHT_DISTANCE)
+        dirs[:, offset + k] = to_light / d[:, None]
+        dist[:, offset + k] = d
+    return dirs, dist
+
+
+def shade_local(
+    positions: np.ndarray,
+    normals: np.ndarray,
+    albedo: np.ndarray,
+    view_dirs: np.ndarray,
+    emissive: np.ndarray,
+    lights: Lights,
+    visibility: np.ndarray | None,
+) -> np.ndarray:
+    """Direct + ambient + emitted radiance leaving surface points towards the viewer.
+
+    positions  : (n, 3) float64 world metres
+    normals    : (n, 3) world unit shading normals (facing the viewer)
+    albedo     : (n, 3) linear RGB
+    view_dirs  : (n, 3) world unit directions from the viewer (eye or previous bounce)
+                 to the point
+    emissive   : (n, 3) linear RGB, or (3,) for all points
+    visibility : (n, L) in [0, 1] (1 = lit), L = len(distant) + len(local) in that order;
+                 None means everything is lit
+    Returns (n, 3) float32 linear RGB.
+    """
+    positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+    n = positions.shape[0]
+    normals = np.asarray(normals, dtype=np.float32).reshape(n, 3)
+    albedo = np.asarray(albedo, dtype=np.float32).reshape(n, 3)
+    to_eye = -np.asarray(view_dirs, dtype=np.float32).reshape(n, 3)
+    colour = albedo * ambient_radiance(lights)[None, :]
+    colour += np.broadcast_to(np.asarray(emissive, dtype=np.float32), (n, 3))
+    if not lights.has_direct or n == 0:
+        return colour.astype(np.float32)
+    dirs, dist = light_directions(lights, positions)
+    dirs = dirs.astype(np.float32)
+    radiances = [np.asarray(li.radiance, dtype=np.float32) for li in lights.distant]
+    radiances += [np.asarray(li.radiance, dtype=np.float32) for li in lights.local]
+    n_distant = len(lights.distant)
+    for j, radiance in enumerate(radiances):
+        l_dir = dirs[:, j]
+        n_dot_l = np.einsum("ij,ij->i", normals, l_dir)
+        lit = np.maximum(n_dot_l, 0.0)
+        if visibility is not None:
+            lit = lit * visibility[:, j]
+        if j >= n_distant:
+            lit = lit / (dist[:, j] ** 2).astype(np.float32)
+        half = l_dir + to_eye
+        half_len = np.linalg.norm(half, axis=1)
+        # l and the eye direction exactly opposite: no meaningful half vector, no highlight.
+        n_dot_h = np.einsum("ij,ij->i", normals, half) / np.maximum(half_len, 1e-12)
+        spec = SPECULAR_STRENGTH * np.maximum(n_dot_h, 0.0) ** SHININESS
+        colour += (albedo + spec[:, None]) * (lit[:, None] * radiance[None, :])
+    return colour.astype(np.float32)

@@ -1,0 +1,407 @@
+"""Tests of the Embree tracer on small synthetic scenes built without USD."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+from embreex import rtcore_scene as rtcs
+from embreex.mesh_construction import TriangleMesh
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from phrt_usd.frame import GBuffer
+from phrt_usd.scene import (
+    DEFAULT_ENVIRONMENT,
+    CameraFrame,
+    DistantLight,
+    DomeLight,
+    Element,
+    Geometry,
+    Lights,
+    MaterialTable,
+    Scene,
+)
+from phrt_usd.tracer import Tracer
+
+SKY = np.array([0.2, 0.4, 0.8])
+
+
+# ---------------------------------------------------------------- scene builders
+
+
+def make_scene(parts: list[dict], lights: Lights | None = None) -> Scene:
+    """One element and one material per part. Part keys: mesh (trimesh), F (None = not
+    a reflector), albedo, emissive, opacity, ior, smooth (vertex normals)."""
+    verts, tris, tri_elem, corner_n, corner_a, elements = [], [], [], [], [], []
+    n_mat = len(parts)
+    diffuse = np.zeros((n_mat, 3), np.float32)
+    emissive = np.zeros((n_mat, 3), np.float32)
+    opacity = np.ones(n_mat, np.float32)
+    ior = np.full(n_mat, 1.5, np.float32)
+    offset = 0
+    for i, part in enumerate(parts):
+        mesh = part["mesh"]
+        v = np.asarray(mesh.vertices, dtype=np.float64)
+        f = np.asarray(mesh.faces, dtype=np.int64)
+        verts.append(v)
+        tris.append(f + offset)
+        offset += len(v)
+        tri_elem.append(np.full(len(f), i, np.int32))
+        if part.get("smooth"):
+            corner_n.append(np.asarray(mesh.vertex_normals, np.float32)[f])
+        else:
+            fn = np.asarray(mesh.face_normals, np.float32)
+            corner_n.append(np.repeat(fn[:, None], 3, axis=1))
+        albedo = np.asarray(part.get("albedo", (0.5, 0.5, 0.5)), np.float32)
+        corner_a.append(np.broadcast_to(albedo, (len(f), 3, 3)).copy())
+        diffuse[i] = albedo
+        emissive[i] = part.get("emissive", (0.0, 0.0, 0.0))
+        opacity[i] = part.get("opacity", 1.0)
+        ior[i] = part.get("ior", 1.5)
+        refl = part.get("F")
+        elements.append(
+            Element(
+                path=f"/World/part{i}",
+                is_reflector=refl is not None,
+                priority=1.0 if refl is not None else 0.0,
+                reflectivity=float(refl or 0.0),
+                bounds_min=v.min(axis=0),
+                bounds_max=v.max(axis=0),
+            )
+        )
+    all_v = np.concatenate(verts)
+    tri_elem_all = np.concatenate(tri_elem)
+    geometry = Geometry(
+        vertices=all_v,
+        triangles=np.concatenate(tris),
+        tri_element=tri_elem_all,
+        tri_material=tri_elem_all.copy(),
+        corner_normals=np.concatenate(corner_n),
+        corner_albedo=np.concatenate(corner_a),
+    )
+    materials = MaterialTable(
+        diffuse=diffuse,
+        metallic=np.zeros(n_mat, np.float32),
+        roughness=np.ones(n_mat, np.float32),
+        opacity=opacity,
+        ior=ior,
+        emissive=emissive,
+        textures=[None] * n_mat,
+    )
+    origin = 0.5 * (all_v.min(axis=0) + all_v.max(axis=0))
+    return Scene(elements, geometry, materials, lights or Lights(), origin)
+
+
+def look_at(eye, target, up=(0.0, 1.0, 0.0), focal: float = 35.0) -> CameraFrame:
+    eye = np.asarray(eye, dtype=np.float64)
+    fwd = np.asarray(target, dtype=np.float64) - eye
+    fwd /= np.linalg.norm(fwd)
+    right = np.cross(fwd, up)
+    right /= np.linalg.norm(right)
+    m = np.eye(4)
+    m[:3, 0] = right
+    m[:3, 1] = np.cross(right, fwd)
+    m[:3, 2] = -fwd
+    m[:3, 3] = eye
+    return CameraFrame(m, focal, 36.0, 1e-6, 1e9)
+
+
+def quad(size: float, center=(0.0, 0.0, 0.0), axis: str = "y") -> trimesh.Trimesh:
+    """Square of side ``size`` facing +axis (y: floor facing up, z: wall facing +z)."""
+    h = 0.5 * size
+    if axis == "y":
+        v = np.array([[-h, 0, -h], [h, 0, -h], [h, 0, h], [-h, 0, h]], dtype=np.float64)
+        f = np.array([[0, 2, 1], [0, 3, 2]])
+    else:
+        v = np.array([[-h, -h, 0], [h, -h, 0], [h, h, 0], [-h, h, 0]], dtype=np.float64)
+        f = np.array([[0, 1, 2], [0, 2, 3]])
+    return trimesh.Trimesh(v + np.asarray(center), f, process=False)
+
+
+def box(lo, hi) -> trimesh.Trimesh:
+    lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
+    mesh = trimesh.creation.box(extents=hi - lo)
+    mesh.apply_translation(0.5 * (lo + hi))
+    return mesh
+
+
+def sphere(center, radius: float, subdivisions: int = 4) -> trimesh.Trimesh:
+    mesh = trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
+    mesh.apply_translation(center)
+    return mesh
+
+
+def assert_rows(rows: np.ndarray, expected, atol: float) -> None:
+    """Every row of (n, 3) ``rows`` equals ``expected`` (3,) within ``atol``."""
+    np.testing.assert_allclose(rows, np.broadcast_to(expected, rows.shape), atol=atol)
+
+
+def ray_sphere_hit(origin, dirs, center, radius) -> np.ndarray:
+    """(n,) bool: rays from ``origin`` along unit ``dirs`` hit the analytic sphere."""
+    oc = np.asarray(origin) - np.asarray(center)
+    b = dirs @ oc
+    c = oc @ oc - radius**2
+    disc = b * b - c
+    return (disc >= 0) & (-b + np.sqrt(np.maximum(disc, 0)) > 0)
+
+
+# ---------------------------------------------------------------- (1) mirror physics
+
+
+def test_mirror_floor_reflects_sphere_where_mirrored_geometry_says():
+    center, radius = np.array([0.3, 1.0, -0.5]), 0.6
+    parts = [
+        dict(mesh=quad(60.0), F=1.0),
+        dict(mesh=sphere(center, radius, 5), albedo=(1, 0, 0), emissive=(1, 0, 0), smooth=True),
+    ]
+    scene = make_scene(parts)
+    tracer = Tracer(scene)
+    camera = look_at((0.0, 3.0, 6.0), (0.0, 0.0, 0.0))
+    gb = tracer.primary_gbuffer(camera, 160, 120)
+    res = tracer.trace_reflections(gb, [0], bounce_limit=5)
+    assert len(res.pixel_index) == int((gb.element_id == 0).sum())
+    dirs = gb.view_dir.reshape(-1, 3)[res.pixel_index].astype(np.float64)
+    mirrored = center * np.array([1.0, -1.0, 1.0])
+    expected = ray_sphere_hit(camera.position, dirs, mirrored, radius)
+    got = res.radiance[:, 0] > 0.5
+    assert expected.sum() > 200  # the reflection covers a real patch of the image
+    assert np.mean(expected == got) >= 0.99
+    # Reflected sphere pixels carry its colour (emissive red + ambient), the rest the sky.
+    assert_rows(res.radiance[got & expected], [1.05, 0.0, 0.0], atol=1e-5)
+    assert_rows(res.radiance[~got], DEFAULT_ENVIRONMENT, atol=1e-6)
+    rec = res.records[0]
+    assert rec.hits == {} and rec.max_reflector_bounces == 0 and rec.rays == res.rays
+
+
+# ---------------------------------------------------------------- (2) parallel mirrors
+
+
+@pytest.mark.parametrize("limit", [1, 3, 5])
+def test_parallel_mirrors_stop_at_bounce_limit(limit):
+    parts = [
+        dict(mesh=quad(2000.0, (0, 0, 0), "z"), F=1.0),
+        dict(mesh=quad(2000.0, (0, 0, 2.0), "z"), F=0.9),
+    ]
+    scene = make_scene(parts)
+    scene.geometry.triangles[2:] = scene.geometry.triangles[2:][:, ::-1]  # second faces -z
+    tracer = Tracer(scene)
+    camera = look_at((0.0, 0.0, 1.0), (0.05, 0.02, 0.0), focal=200.0)
+    gb = tracer.primary_gbuffer(camera, 40, 30)
+    assert np.all(gb.element_id == 0)
+    res = tracer.trace_reflections(gb, [0], bounce_limit=limit)
+    rec = res.records[0]
+    assert rec.max_reflector_bounces == limit
+    assert rec.mean_reflector_bounces == pytest.approx(limit)
+    assert rec.rays == limit * 1200  # one reflection ray per pixel per bounce, no lights
+    assert np.all(np.isfinite(res.radiance))
+    # Hits alternate B, A, B, ...: every ray of every bounce hit a reflector.
+    assert rec.hits.get(1, 0) == 1200 * ((limit + 1) // 2)
+    assert rec.hits.get(0, 0) == 1200 * (limit // 2)
+
+
+# ---------------------------------------------------------------- (3) precision
+
+
+#: (scene offset from the world origin in metres, scene scale): 1e6 m away, 1 mm small.
+FAR_AND_TINY = [(np.array([1e6, 0.0, -1e6]), 1.0), (np.zeros(3), 1e-3)]
+
+
+@pytest.mark.parametrize(("offset", "scale"), FAR_AND_TINY)
+def test_no_acne_no_leaks_far_from_origin_and_tiny(offset, scale):
+    lights = Lights(
+        distant=[DistantLight(np.array([0.6, 0.8, 0.0]), np.ones(3))],
+        dome=DomeLight(color=SKY),
+    )
+    floor = quad(20.0 * scale, offset)
+    cube = box(offset + scale * np.array([-1.0, 0.0, -1.0]), offset + scale * np.array([1, 2, 1]))
+    scene = make_scene([dict(mesh=floor, F=0.7), dict(mesh=cube)], lights)
+    tracer = Tracer(scene)
+    camera = look_at(
+        offset + scale * np.array([8.0, 6.0, 8.0]), offset + scale * np.array([3, 0, 3])
+    )
+    gb = tracer.primary_gbuffer(camera, 80, 60)
+    floor_px = gb.element_id == 0
+    assert floor_px.sum() > 1000
+    # Reflect only the pixels whose mirror ray sees the sky (away from the box).
+    pos = gb.position.reshape(-1, 3)
+    far_from_box = np.max(np.abs(pos - offset)[:, [0, 2]], axis=1) > 3.5 * scale
+    sky_px = floor_px.reshape(-1) & far_from_box
+    gb_sky = GBuffer(
+        np.where(sky_px, gb.element_id.reshape(-1), -1).reshape(gb.shape),
+        gb.triangle_id,
+        gb.depth,
+        gb.position,
+        gb.normal,
+        gb.albedo,
+        gb.view_dir,
+    )
+    res = tracer.trace_reflections(gb_sky, [0], bounce_limit=5)
+    assert res.records[0].hits == {}  # no floor ray re-hit the floor (acne)
+    assert_rows(res.radiance, SKY, atol=1e-6)
+    # Leaks: floor points in the box's shadow right at its foot (1e-3 of its size away).
+    xs = np.linspace(-0.9, 0.9, 50)
+    pts = offset + scale * np.stack([-1.0 - 1e-3 * np.ones_like(xs), 0 * xs, xs], axis=1)
+    vis = tracer.shadow_visibility(pts, np.tile([0.0, 1.0, 0.0], (len(xs), 1)))
+    assert np.all(vis == 0.0)
+    pts_lit = pts + scale * np.array([4.0, 0.0, 0.0])  # the lit side of the box
+    assert np.all(tracer.shadow_visibility(pts_lit, np.tile([0.0, 1.0, 0.0], (50, 1))) == 1)
+
+
+# ---------------------------------------------------------------- (4) shadows
+
+
+def test_shadow_rays_under_box_and_without_lights():
+    lights = Lights(distant=[DistantLight(np.array([0.0, 1.0, 0.0]), np.ones(3))])
+    parts = [dict(mesh=quad(20.0)), dict(mesh=box((-1, 1, -1), (1, 2, 1)))]
+    tracer = Tracer(make_scene(parts, lights))
+    pts = np.array([[0.0, 0.0, 0.0], [5.0, 0.0, 0.0], [0.9, 0.0, 0.9]])
+    vis = tracer.shadow_visibility(pts, np.tile([0.0, 1.0, 0.0], (3, 1)))
+    np.testing.assert_array_equal(vis[:, 0], [0.0, 1.0, 0.0])
+    assert tracer.rays_cast["shadow"] == 3
+    dark = make_scene(parts, Lights())
+    tracer = Tracer(dark)
+    assert tracer.shadow_visibility(pts, np.tile([0.0, 1.0, 0.0], (3, 1))).shape == (3, 0)
+    gb = tracer.primary_gbuffer(look_at((0, 5, 8), (0, 0, 0)), 40, 30)
+    tracer.trace_reflections(gb, [0], 3)
+    assert tracer.rays_cast["shadow"] == 0
+
+
+# ---------------------------------------------------------------- (5) refraction
+
+
+def test_glass_slab_shifts_ray_as_snell_says():
+    slab = box((-50, 0, -50), (50, 1.0, 50))
+    parts = [dict(mesh=slab, opacity=0.0, ior=1.5), dict(mesh=quad(400.0, (0, -3.0, 0)))]
+    tracer = Tracer(make_scene(parts))
+    tracer.record_rays = True
+    camera = look_at((-1.0, 2.0, 0.0), (0.0, 1.0, 0.0))  # 45° onto the slab's top at x=0
+    gb = tracer.primary_gbuffer(camera, 1, 1)
+    assert gb.element_id[0, 0] == 0
+    res = tracer.trace_refraction(gb, bounce_limit=5)
+    # Two rays: into the slab (hits its bottom), out of it (hits the opaque floor).
+    assert res.rays == 2 and np.all(np.isfinite(res.radiance))
+    origin = tracer.scene.origin
+    (_, o1, d1, _), (_, o2, d2, _) = tracer.last_rays
+    sin_t = np.sin(np.pi / 4) / 1.5
+    np.testing.assert_allclose(d1[0], [sin_t, -np.sqrt(1 - sin_t**2), 0.0], atol=1e-6)
+    # Leaving the slab's bottom: parallel to the incoming ray, shifted by tan(θt).
+    np.testing.assert_allclose(d2[0], [np.sqrt(0.5), -np.sqrt(0.5), 0.0], atol=1e-6)
+    exit_point = o2[0].astype(np.float64) + origin
+    # Tolerance: the two origin offsets (into and out of the slab) move the path by ~eps.
+    eps = tracer.offset_epsilon(exit_point[None])[0]
+    expected_exit = [sin_t / np.sqrt(1 - sin_t**2), 0.0, 0.0]
+    np.testing.assert_allclose(exit_point, expected_exit, atol=2.0 * eps)
+    assert tracer.rays_cast["refraction"] == 2
+    # The floor seen through the slab: its ambient-lit albedo, weighted by 1 - opacity = 1.
+    assert_rows(res.radiance, 0.5 * DEFAULT_ENVIRONMENT, atol=1e-6)
+
+
+def test_total_internal_reflection_and_no_refraction_work_when_opaque():
+    parts = [dict(mesh=quad(20.0), F=1.0), dict(mesh=sphere((0, 1, 0), 0.5))]
+    tracer = Tracer(make_scene(parts))
+    gb = tracer.primary_gbuffer(look_at((0, 3, 6), (0, 0, 0)), 40, 30)
+    res = tracer.trace_refraction(gb, bounce_limit=5)
+    assert res.rays == 0 and len(res.pixel_index) == 0
+    tracer.trace_reflections(gb, [0, 1], 5)
+    assert tracer.rays_cast["refraction"] == 0
+    # Snell at grazing incidence from inside glass: beyond the critical angle, mirror.
+    from phrt_usd.tracer import _refract
+
+    d = np.array([[np.sin(1.0), np.cos(1.0), 0.0]])  # 57° > 41.8° critical, leaving
+    out = _refract(d, np.array([[0.0, 1.0, 0.0]]), np.array([[0.0, 1.0, 0.0]]), np.array([1.5]))
+    np.testing.assert_allclose(out, [[np.sin(1.0), -np.cos(1.0), 0.0]], atol=1e-12)
+
+
+# ---------------------------------------------------------------- (6) environment
+
+
+def test_environment_up_reads_top_row():
+    from phrt_usd.shading import environment_radiance
+
+    tex = np.zeros((8, 16, 3), np.float32)
+    tex[:4] = (0, 0, 1)
+    tex[0] = (1, 0, 0)
+    lights = Lights(dome=DomeLight(color=np.ones(3), texture=tex))
+    got = environment_radiance(lights, np.array([[0.0, 1.0, 0.0], [0.0, -1.0, 0.0]]))
+    np.testing.assert_allclose(got, [[1, 0, 0], [0, 0, 0]], atol=1e-6)
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.floats(allow_nan=False, allow_infinity=True, width=64), min_size=3, max_size=3))
+def test_environment_lookup_never_nan(direction):
+    from phrt_usd.shading import environment_radiance
+
+    tex = np.random.default_rng(0).random((6, 12, 3)).astype(np.float32)
+    rot = np.array([[1.0, 0, 0], [0, 0, -1.0], [0, 1.0, 0]])  # a Z-up stage's dome
+    lights = Lights(dome=DomeLight(color=np.ones(3), texture=tex, world_from_light=rot))
+    got = environment_radiance(lights, np.array([direction, [0.0, 0.0, 0.0]]))
+    assert got.shape == (2, 3) and np.all(np.isfinite(got))
+    assert np.all(got >= tex.min() - 1e-6) and np.all(got <= tex.max() + 1e-6)
+
+
+# ---------------------------------------------------------------- (7) discovery
+
+
+def test_offscreen_reflector_discovered_through_mirror():
+    parts = [
+        dict(mesh=quad(60.0), F=1.0),
+        dict(mesh=sphere((0.0, 6.0, -4.0), 1.0), F=0.5),  # above the top of the frame
+    ]
+    tracer = Tracer(make_scene(parts))
+    camera = look_at((0.0, 3.0, 8.0), (0.0, 0.0, 0.0))
+    gb = tracer.primary_gbuffer(camera, 80, 60)
+    assert not np.any(gb.element_id == 1)  # off-screen
+    res = tracer.trace_reflections(gb, [0], bounce_limit=5)
+    rec = res.records[0]
+    assert rec.hits.get(1, 0) > 0
+    assert rec.max_reflector_bounces >= 1
+
+
+# ---------------------------------------------------------------- (8) primary rays
+
+
+def test_primary_gbuffer_matches_direct_embree():
+    lights = Lights(distant=[DistantLight(np.array([0.3, 0.9, 0.1]), np.ones(3))])
+    parts = [
+        dict(mesh=quad(20.0), F=0.5),
+        dict(mesh=sphere((0, 1, 0), 1.0, 3), albedo=(0.2, 0.8, 0.2), smooth=True),
+        dict(mesh=box((2, 0, -1), (3, 2, 1))),
+    ]
+    scene = make_scene(parts, lights)
+    tracer = Tracer(scene)
+    camera = look_at((4.0, 3.0, 6.0), (0.0, 0.5, 0.0))
+    gb = tracer.primary_gbuffer(camera, 64, 48)
+    direct = rtcs.EmbreeScene()
+    verts = (scene.geometry.vertices - scene.origin).astype(np.float32)
+    TriangleMesh(direct, verts, scene.geometry.triangles.astype(np.int32))
+    o, d = camera.pixel_rays(64, 48)
+    prim = direct.run((o - scene.origin).astype(np.float32), d.astype(np.float32))
+    expect = np.where(prim >= 0, scene.geometry.tri_element[prim], -1)
+    assert np.mean(expect == gb.element_id.reshape(-1)) >= 0.999
+    covered = gb.covered
+    assert np.all(np.isfinite(gb.position[covered])) and np.all(np.isinf(gb.depth[~covered]))
+    # Normals are unit and face the viewer; albedo is the element's.
+    n = gb.normal[covered]
+    np.testing.assert_allclose(np.linalg.norm(n, axis=1), 1.0, atol=1e-5)
+    assert np.all(np.einsum("ij,ij->i", n, gb.view_dir[covered]) <= 1e-6)
+    assert_rows(gb.albedo[gb.element_id == 1], [0.2, 0.8, 0.2], atol=1e-6)
+    # Depth is along the view direction: position = eye + view_dir * depth / cos.
+    cosine = gb.view_dir[covered] @ camera.forward
+    recon = camera.position + gb.view_dir[covered] * (gb.depth[covered] / cosine)[:, None]
+    np.testing.assert_allclose(recon, gb.position[covered], atol=1e-4)
+    # Lit scene: reflections cast shadow rays and count them per source.
+    res = tracer.trace_reflections(gb, [0], 5)
+    assert res.records[0].rays > res.records[0].pixels
+    assert tracer.rays_cast["primary"] == 64 * 48
+
+
+def test_replay_raw_uses_the_same_rays():
+    parts = [dict(mesh=quad(20.0), F=1.0), dict(mesh=sphere((0, 1, 0), 1.0, 3))]
+    lights = Lights(distant=[DistantLight(np.array([0.0, 1.0, 0.0]), np.ones(3))])
+    tracer = Tracer(make_scene(parts, lights))
+    gb = tracer.primary_gbuffer(look_at((0, 3, 6), (0, 0, 0)), 40, 30)
+    tracer.record_rays = True
+    res = tracer.trace_reflections(gb, [0], 5)
+    rays, seconds = tracer.replay_raw()
+    assert rays == res.rays and seconds > 0
