@@ -282,10 +282,16 @@ class BudgetedPolicy:
         ids = self._choose(budget)
         for e in ids:
             frame.predicted_rays[e] = self.predicted_rays(e)
-            frame.predicted_ms[e] = self.predicted_ms(frame.predicted_rays[e])
         if ids:
+            # The round's predicted time (fixed overhead included), shared among its
+            # reflectors by rays, so that summing predicted_ms over a frame's selection
+            # gives the frame's predicted trace time.
             rays = sum(frame.predicted_rays[e] for e in ids)
-            frame.predicted_trace_ms += self.time_model.predicted_ms(rays)
+            round_ms = self.time_model.predicted_ms(rays)
+            for e in ids:
+                share = frame.predicted_rays[e] / rays if rays > 0.0 else 1.0 / len(ids)
+                frame.predicted_ms[e] = round_ms * share
+            frame.predicted_trace_ms += round_ms
         frame.traced.extend(ids)
         return ids
 
@@ -376,7 +382,8 @@ class BudgetedPolicy:
 
     def predicted_ms(self, rays: float) -> float:
         """Milliseconds a candidate's ``rays`` add to a round (TIME_SAFETY included; the
-        round's fixed overhead is not, see ``TraceTimeModel``)."""
+        round's fixed overhead is not, see ``TraceTimeModel``). Used for the metrics of
+        candidates not selected; selected ones get their share of their round's time."""
         return self.time_model.ms_per_ray * max(rays, 0.0) * TIME_SAFETY
 
     def ray_allowance(self, budget: Budget) -> float:

@@ -440,7 +440,9 @@ def test_time_budget_holds_with_a_simulated_tracer(name):
             ms = (0.4 + 0.0015 * rays) * rng.lognormal(0.0, 0.05)
             elapsed += ms
             policy.record(records, ms / 1000.0)
-        policy.end_frame()
+        metrics = policy.end_frame()
+        predicted = sum(m.predicted_ms for m in metrics.values() if m.selected)
+        assert predicted == pytest.approx(policy.last_predicted_trace_ms)
         used.append(elapsed)
     used = np.array(used)
     assert np.mean(used <= 1.1 * T) >= 0.99
