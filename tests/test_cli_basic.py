@@ -1,0 +1,134 @@
+"""phrt validate / inspect / author through the CLI: exit codes, one-line errors, JSON."""
+
+import json
+import subprocess
+from pathlib import Path
+
+import pytest
+from pxr import Sdf, Usd, UsdGeom, UsdLux, UsdShade
+from typer.testing import CliRunner
+
+from phrt_usd.cli import app
+from tests.test_validation import clean_stage
+
+REPO = Path(__file__).resolve().parent.parent
+runner = CliRunner()
+
+
+@pytest.fixture()
+def good(tmp_path):
+    stage = clean_stage(tmp_path / "good.usda")
+    stage.GetRootLayer().Save()
+    return tmp_path / "good.usda"
+
+
+def run(*args):
+    result = runner.invoke(app, [str(a) for a in args])
+    assert "Traceback" not in result.output + (result.stderr or "")
+    assert result.exception is None or isinstance(result.exception, SystemExit)
+    return result
+
+
+def test_validate_clean_and_json(good):
+    assert run("validate", good).exit_code == 0
+    result = run("validate", good, "--json")
+    data = json.loads(result.stdout)
+    assert data == {"stage": str(good), "ok": True, "errors": [], "warnings": []}
+
+
+def test_validate_bad_stage_exit_1_one_line_per_problem(tmp_path, good):
+    stage = Usd.Stage.Open(str(good))
+    stage.GetPrimAtPath("/World/Mirror").GetAttribute("phrt:priority").Set(-3.0)
+    stage.GetPrimAtPath("/World/Render").GetAttribute("phrt:bounceLimit").Set(40)
+    stage.GetRootLayer().Save()
+    result = run("validate", good)
+    assert result.exit_code == 1
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 2
+    assert lines[0].startswith("ERROR /World/Mirror.phrt:priority:")
+    assert lines[1].startswith("ERROR /World/Render.phrt:bounceLimit:")
+    data = json.loads(run("validate", good, "--json").stdout)
+    assert data["ok"] is False and len(data["errors"]) == 2
+
+
+@pytest.mark.parametrize("name", ["missing.usda", ".", "junk.usda"])
+def test_unreadable_input_exit_2(tmp_path, name):
+    (tmp_path / "junk.usda").write_text("not usd at all")
+    for command in ("validate", "inspect"):
+        result = run(command, tmp_path / name)
+        assert result.exit_code == 2
+        assert result.stderr.startswith("error: ") and len(result.stderr.splitlines()) == 1
+
+
+def test_real_subprocess_nonexistent():
+    proc = subprocess.run(
+        ["uv", "run", "phrt", "validate", "/nonexistent"],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert proc.returncode == 2
+    assert "Traceback" not in proc.stderr
+    assert proc.stderr.strip().splitlines()[-1] == "error: /nonexistent: no such file"
+
+
+def test_inspect_json_and_passes(good):
+    stage = Usd.Stage.Open(str(good))
+    UsdLux.DistantLight.Define(stage, "/World/Sun")
+    UsdLux.DomeLight.Define(stage, "/World/Sky")
+    shader = UsdShade.Shader.Define(stage, "/World/Looks/Glass/Surface")
+    shader.CreateIdAttr("UsdPreviewSurface")
+    shader.CreateInput("opacity", Sdf.ValueTypeNames.Float).Set(0.3)
+    stage.GetRootLayer().Save()
+    data = json.loads(run("inspect", good, "--json").stdout)
+    (refl,) = data["reflectors"]
+    assert refl["path"] == "/World/Mirror" and refl["priority"] == 2.0
+    assert refl["reflectivity"] == 0.5 and refl["triangles"] == 2
+    assert refl["bounds"]["min"] == [0, 0, 0] and refl["bounds"]["max"] == [1, 1, 0]
+    (path,) = data["camera_paths"]
+    assert (path["camera"], path["start"], path["end"], path["control_points"]) == (
+        "/World/Cam",
+        1,
+        24,
+        2,
+    )
+    assert data["render_settings"]["settings_path"] == "/World/Render"
+    assert data["passes"] == ["gbuffer", "shadows", "reflections", "refraction", "environment"]
+    assert {(li["type"], li["path"]) for li in data["lights"]} == {
+        ("DistantLight", "/World/Sun"),
+        ("DomeLight", "/World/Sky"),
+    }
+    assert data["metadata"]["upAxis"] == "Y"
+
+
+def test_inspect_table_and_minimal_passes(tmp_path):
+    path = tmp_path / "plain.usda"
+    stage = Usd.Stage.CreateNew(str(path))
+    UsdGeom.Cube.Define(stage, "/Box")
+    stage.GetRootLayer().Save()
+    result = run("inspect", path)
+    assert result.exit_code == 0
+    assert "Passes: gbuffer" in result.stdout
+    assert json.loads(run("inspect", path, "--json").stdout)["passes"] == ["gbuffer"]
+
+
+def test_author_cli(good, tmp_path):
+    before = good.read_bytes()
+    stage = Usd.Stage.Open(str(good))
+    UsdGeom.Sphere.Define(stage, "/World/Ball")
+    stage.GetRootLayer().Save()
+    before = good.read_bytes()
+    result = run("author", good, "/World/Ball", "--priority", "8")
+    assert result.exit_code == 0, result.output
+    assert good.read_bytes() == before
+    overlay = tmp_path / "good.phrt.usda"
+    data = json.loads(run("inspect", overlay, "--json").stdout)
+    assert {r["path"]: r["priority"] for r in data["reflectors"]} == {
+        "/World/Mirror": 2.0,
+        "/World/Ball": 8.0,
+    }
+    bad = run("author", good, "/World/Cam", "--priority", "1", "--out", tmp_path / "x.usda")
+    assert bad.exit_code == 1 and bad.stderr.startswith("error: /World/Cam: is a Camera")
+    assert not (tmp_path / "x.usda").exists()
+    assert good.read_bytes() == before
