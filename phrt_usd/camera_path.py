@@ -1,0 +1,254 @@
+"""Camera paths: the ``PhrtCameraPath`` prim and look-at camera transforms.
+
+A ``PhrtCameraPath`` prim holds control points in **stage units, world space**:
+
+- ``point3d[] phrt:positions`` and ``point3d[] phrt:targets`` — eye and look-at point,
+- ``double[] phrt:keyTimes`` — time code of each control point, strictly increasing
+  (when unauthored, spread evenly over [startFrame, endFrame], or 0, 1, 2, ...),
+- ``token phrt:interpolation`` — ``"linear"`` or ``"catmullRom"`` (default),
+- ``double phrt:startFrame`` / ``double phrt:endFrame`` — the frame range to render
+  (default: first and last key time),
+- ``rel phrt:camera`` — the ``UsdGeomCamera`` it drives.
+
+Evaluation at a time code clamps to the first/last control point outside the key range.
+Catmull-Rom here is the cubic Hermite spline whose tangent at each key is the finite
+difference of its neighbours over their time span (``(p[i+1] - p[i-1]) / (t[i+1] -
+t[i-1])``, one-sided at the ends); it passes through every control point and handles
+uneven key spacing.
+
+The camera looks from position to target with the stage up axis as up. Two degenerate
+cases are handled without NaN: target == position (the camera keeps a fixed horizontal
+view direction, see ``_FALLBACK_FORWARD``) and a view direction parallel to up (the up
+hint falls back to the world axis least aligned with the view direction).
+
+Matrices returned here use the column-vector convention of ``phrt_usd.scene.CameraFrame``
+(``world_from_camera[:3, 3]`` is the eye), not USD's row-vector ``GfMatrix4d``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from pxr import Usd, UsdGeom
+
+from phrt_usd.errors import PhrtError
+
+#: Prim type name of the camera path schema.
+CAMERA_PATH_TYPE = "PhrtCameraPath"
+
+#: Accepted values of ``phrt:interpolation``.
+INTERPOLATIONS = ("linear", "catmullRom")
+
+#: Below this length (stage units) a view direction counts as zero: target == position.
+_DEGENERATE_LENGTH = 1e-12
+
+#: Below this sine of the angle between view direction and up, they count as parallel.
+_PARALLEL_SINE = 1e-9
+
+#: View direction used when target == position, per up axis: horizontal, "into the
+#: screen" of the default USD camera for Y-up (-Z) and its Z-up counterpart (+Y).
+_FALLBACK_FORWARD = {"Y": np.array([0.0, 0.0, -1.0]), "Z": np.array([0.0, 1.0, 0.0])}
+
+#: World up vector per stage up axis.
+UP_VECTORS = {"Y": np.array([0.0, 1.0, 0.0]), "Z": np.array([0.0, 0.0, 1.0])}
+
+
+def look_at(position: np.ndarray, target: np.ndarray, up: np.ndarray) -> np.ndarray:
+    """Camera-to-world matrix of a camera at ``position`` looking at ``target``.
+
+    position, target : (3,) float64, world space (any unit; the translation is
+    ``position`` unchanged). up : (3,) float64 world up hint (unit).
+
+    Returns (4, 4) float64, column-vector convention: camera space (looks down -Z,
+    +Y up, +X right) → world. The rotation is orthonormal and free of NaN for every
+    finite input.
+    """
+    up = np.asarray(up, dtype=np.float64)
+    forward = np.asarray(target, dtype=np.float64) - np.asarray(position, dtype=np.float64)
+    length = float(np.linalg.norm(forward))
+    if not np.isfinite(length) or length < _DEGENERATE_LENGTH:
+        # target == position: no view direction; keep a fixed horizontal one.
+        axis = "Z" if abs(up[2]) > abs(up[1]) else "Y"
+        forward = _FALLBACK_FORWARD[axis]
+    else:
+        forward = forward / length
+    right = np.cross(forward, up)
+    if np.linalg.norm(right) < _PARALLEL_SINE:
+        # Looking straight along up: any up perpendicular to forward will do; take the
+        # world axis least aligned with the view direction.
+        alt_up = np.eye(3)[int(np.argmin(np.abs(forward)))]
+        right = np.cross(forward, alt_up)
+    right /= np.linalg.norm(right)
+    cam_up = np.cross(right, forward)
+    m = np.eye(4)
+    m[:3, 0] = right
+    m[:3, 1] = cam_up
+    m[:3, 2] = -forward
+    m[:3, 3] = position
+    return m
+
+
+def _hermite_tangents(points: np.ndarray, times: np.ndarray) -> np.ndarray:
+    """(n, 3) Catmull-Rom tangents d(point)/d(time) at each key (finite differences)."""
+    n = len(points)
+    tangents = np.zeros_like(points)
+    if n < 2:
+        return tangents
+    tangents[1:-1] = (points[2:] - points[:-2]) / (times[2:] - times[:-2])[:, None]
+    tangents[0] = (points[1] - points[0]) / (times[1] - times[0])
+    tangents[-1] = (points[-1] - points[-2]) / (times[-1] - times[-2])
+    return tangents
+
+
+def interpolate(
+    points: np.ndarray, times: np.ndarray, t: np.ndarray | float, method: str
+) -> np.ndarray:
+    """Evaluate a key-framed curve.
+
+    points : (n, 3) float64 control points; times : (n,) strictly increasing key times;
+    t : scalar or (m,) evaluation times (clamped to [times[0], times[-1]]);
+    method : "linear" or "catmullRom".
+
+    Returns (3,) for a scalar ``t``, else (m, 3) float64.
+    """
+    scalar = np.ndim(t) == 0
+    tt = np.clip(np.atleast_1d(np.asarray(t, dtype=np.float64)), times[0], times[-1])
+    if len(points) == 1:
+        out = np.repeat(points[:1], len(tt), axis=0)
+        return out[0] if scalar else out
+    seg = np.clip(np.searchsorted(times, tt, side="right") - 1, 0, len(times) - 2)
+    t0, t1 = times[seg], times[seg + 1]
+    dt = t1 - t0
+    s = ((tt - t0) / dt)[:, None]
+    p0, p1 = points[seg], points[seg + 1]
+    if method == "linear":
+        out = p0 + s * (p1 - p0)
+    else:
+        m = _hermite_tangents(points, times)
+        m0, m1 = m[seg] * dt[:, None], m[seg + 1] * dt[:, None]
+        s2, s3 = s * s, s * s * s
+        out = (
+            (2 * s3 - 3 * s2 + 1) * p0
+            + (s3 - 2 * s2 + s) * m0
+            + (-2 * s3 + 3 * s2) * p1
+            + (s3 - s2) * m1
+        )
+    return out[0] if scalar else out
+
+
+@dataclass(frozen=True)
+class CameraPath:
+    """A camera path read from a ``PhrtCameraPath`` prim.
+
+    positions, targets : (n, 3) float64, stage units, world space
+    key_times          : (n,) float64 strictly increasing time codes
+    interpolation      : "linear" | "catmullRom"
+    start_frame, end_frame : frame range to render (time codes)
+    up_axis            : "Y" | "Z", the stage up axis
+    """
+
+    path: str
+    camera: str
+    positions: np.ndarray
+    targets: np.ndarray
+    key_times: np.ndarray
+    interpolation: str
+    start_frame: float
+    end_frame: float
+    up_axis: str = "Y"
+
+    def position_target(self, time: float) -> tuple[np.ndarray, np.ndarray]:
+        """Eye and target, (3,) float64 each in stage units, at ``time`` (clamped)."""
+        pos = interpolate(self.positions, self.key_times, time, self.interpolation)
+        tgt = interpolate(self.targets, self.key_times, time, self.interpolation)
+        return pos, tgt
+
+    def world_from_camera(self, time: float, meters_per_unit: float = 1.0) -> np.ndarray:
+        """(4, 4) float64 camera → world **metres** (column-vector convention)."""
+        pos, tgt = self.position_target(time)
+        return look_at(pos * meters_per_unit, tgt * meters_per_unit, UP_VECTORS[self.up_axis])
+
+
+def _read_points(prim: Usd.Prim, name: str, time: Usd.TimeCode) -> np.ndarray:
+    attr = prim.GetAttribute(name)
+    value = attr.Get(time) if attr else None
+    if value is None or len(value) == 0:
+        raise PhrtError(f"{prim.GetPath()}.{name}: camera path has no control points")
+    pts = np.asarray(value, dtype=np.float64).reshape(-1, 3)
+    if not np.all(np.isfinite(pts)):
+        raise PhrtError(f"{prim.GetPath()}.{name}: non-finite control point")
+    return pts
+
+
+def _read_double(prim: Usd.Prim, name: str) -> float | None:
+    attr = prim.GetAttribute(name)
+    if not attr or not attr.HasAuthoredValue():
+        return None
+    value = attr.Get()
+    if value is None or not np.isfinite(value):
+        raise PhrtError(f"{prim.GetPath()}.{name}: not a finite number")
+    return float(value)
+
+
+def read_camera_path(prim: Usd.Prim) -> CameraPath:
+    """Read and validate a ``PhrtCameraPath`` prim (raises ``PhrtError``, one line)."""
+    where = str(prim.GetPath())
+    default = Usd.TimeCode.Default()
+    positions = _read_points(prim, "phrt:positions", default)
+    targets = _read_points(prim, "phrt:targets", default)
+    if len(positions) != len(targets):
+        raise PhrtError(
+            f"{where}: phrt:positions has {len(positions)} points but phrt:targets "
+            f"has {len(targets)}"
+        )
+    n = len(positions)
+    start = _read_double(prim, "phrt:startFrame")
+    end = _read_double(prim, "phrt:endFrame")
+    key_attr = prim.GetAttribute("phrt:keyTimes")
+    keys = key_attr.Get() if key_attr else None
+    if keys is None or len(keys) == 0:
+        lo = 0.0 if start is None else start
+        hi = float(n - 1) if end is None else end
+        key_times = np.linspace(lo, hi, n) if n > 1 else np.array([lo])
+    else:
+        key_times = np.asarray(keys, dtype=np.float64)
+    if len(key_times) != n:
+        raise PhrtError(f"{where}.phrt:keyTimes: {len(key_times)} times for {n} control points")
+    if not np.all(np.isfinite(key_times)) or np.any(np.diff(key_times) <= 0):
+        raise PhrtError(f"{where}.phrt:keyTimes: times must be finite and strictly increasing")
+    interp_attr = prim.GetAttribute("phrt:interpolation")
+    interp = str(interp_attr.Get()) if interp_attr and interp_attr.Get() else "catmullRom"
+    if interp not in INTERPOLATIONS:
+        raise PhrtError(
+            f"{where}.phrt:interpolation: {interp!r} is not one of {', '.join(INTERPOLATIONS)}"
+        )
+    rel = prim.GetRelationship("phrt:camera")
+    targets_rel = rel.GetForwardedTargets() if rel else []
+    camera = str(targets_rel[0]) if targets_rel else ""
+    start = float(key_times[0]) if start is None else start
+    end = float(key_times[-1]) if end is None else end
+    if end < start:
+        raise PhrtError(f"{where}: phrt:endFrame {end} is before phrt:startFrame {start}")
+    return CameraPath(
+        path=where,
+        camera=camera,
+        positions=positions,
+        targets=targets,
+        key_times=key_times,
+        interpolation=interp,
+        start_frame=start,
+        end_frame=end,
+        up_axis=str(UsdGeom.GetStageUpAxis(prim.GetStage())),
+    )
+
+
+def find_camera_path(stage: Usd.Stage, camera: str) -> CameraPath | None:
+    """The first active ``PhrtCameraPath`` whose ``phrt:camera`` targets ``camera``."""
+    for prim in stage.Traverse():
+        if prim.GetTypeName() != CAMERA_PATH_TYPE:
+            continue
+        rel = prim.GetRelationship("phrt:camera")
+        if rel and any(str(t) == camera for t in rel.GetForwardedTargets()):
+            return read_camera_path(prim)
+    return None

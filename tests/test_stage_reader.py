@@ -1,0 +1,523 @@
+"""Reading USD stages into the Scene: triangulation, units, transforms, instancing,
+materials, visibility, animation, lights and errors. Stages are built in memory."""
+
+from __future__ import annotations
+
+import time as _time
+
+import numpy as np
+import OpenImageIO as oiio
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux, UsdRender, UsdShade, Vt
+
+from phrt_usd.errors import PhrtError
+from phrt_usd.stage_reader import _fan_corners, open_stage, read_stage, smooth_corner_normals
+
+
+def new_stage(up: str = "Y", mpu: float = 1.0) -> Usd.Stage:
+    stage = Usd.Stage.CreateInMemory()
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y if up == "Y" else UsdGeom.Tokens.z)
+    UsdGeom.SetStageMetersPerUnit(stage, mpu)
+    cam = UsdGeom.Camera.Define(stage, "/Cam")
+    cam.AddTranslateOp().Set(Gf.Vec3d(0, 0, 10))
+    return stage
+
+
+def quad_pentagon(stage: Usd.Stage, path: str = "/World/Mesh", left: bool = False):
+    """A unit quad and a regular pentagon in the z = 0 plane, counter-clockwise from +Z."""
+    ang = np.linspace(0, 2 * np.pi, 5, endpoint=False)
+    pent = np.stack([3 + np.cos(ang), np.sin(ang), np.zeros(5)], 1)
+    quad = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0.0]])
+    pts = np.concatenate([quad, pent])
+    mesh = UsdGeom.Mesh.Define(stage, path)
+    mesh.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(pts.astype(np.float32)))
+    mesh.CreateFaceVertexCountsAttr([4, 5])
+    idx = [0, 1, 2, 3] + [4, 5, 6, 7, 8]
+    if left:
+        idx = [0, 3, 2, 1] + [4, 8, 7, 6, 5]  # reversed winding...
+        mesh.CreateOrientationAttr(UsdGeom.Tokens.leftHanded)  # ...declared left-handed
+    mesh.CreateFaceVertexIndicesAttr(idx)
+    return mesh
+
+
+def tri_normals(geom) -> np.ndarray:
+    p = geom.vertices[geom.triangles]
+    n = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    return n / np.linalg.norm(n, axis=1, keepdims=True)
+
+
+# ---- triangulation -------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("left", [False, True])
+def test_quad_pentagon_triangulation_and_winding(left):
+    stage = new_stage()
+    quad_pentagon(stage, left=left)
+    scene = read_stage(stage).scene
+    g = scene.geometry
+    assert g.triangle_count == 2 + 3
+    # Right-handed CCW from +Z and left-handed CW-from-+Z both face +Z after reading.
+    np.testing.assert_allclose(tri_normals(g), np.tile([0, 0, 1.0], (5, 1)), atol=1e-9)
+    # Smooth computed normals of a flat mesh face +Z too, and agree with the winding.
+    np.testing.assert_allclose(
+        g.corner_normals.reshape(-1, 3), np.tile([0, 0, 1], (15, 1)), atol=1e-6
+    )
+    # Triangles cover the polygons' area exactly: 1 (quad) + pentagon area.
+    p = g.vertices[g.triangles]
+    area = 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1).sum()
+    assert area == pytest.approx(1 + 2.5 * np.sin(2 * np.pi / 5), rel=1e-6)
+
+
+@settings(max_examples=50, deadline=None)
+@given(st.lists(st.integers(min_value=0, max_value=12), min_size=0, max_size=40))
+def test_fan_triangle_count(counts):
+    corners, tri_face = _fan_corners(np.array(counts, dtype=np.int64))
+    assert len(corners) == sum(max(c - 2, 0) for c in counts)
+    # Every triangle's corners lie inside its own face's span of the face-vertex list.
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
+    if len(corners):
+        lo = starts[tri_face]
+        hi = lo + np.array(counts)[tri_face]
+        assert np.all(corners >= lo[:, None]) and np.all(corners < hi[:, None])
+        assert np.all(corners[:, 0] == lo)  # fan from the first vertex
+
+
+def test_meters_per_unit_scales_vertices_and_camera():
+    stage = new_stage(mpu=0.01)
+    quad_pentagon(stage)
+    ss = read_stage(stage)
+    g = ss.scene.geometry
+    assert g.vertices[:, 0].max() == pytest.approx(0.04)  # pentagon reaches x = 4 cm
+    cam = ss.camera(0)
+    np.testing.assert_allclose(cam.position, [0, 0, 0.1])
+    assert ss.scene.meters_per_unit == 0.01
+    near, far = UsdGeom.Camera(stage.GetPrimAtPath("/Cam")).GetClippingRangeAttr().Get()
+    assert cam.near == pytest.approx(near * 0.01) and cam.far == pytest.approx(far * 0.01)
+
+
+def test_z_up_stage_keeps_world_axes():
+    stage = new_stage(up="Z")
+    xf = UsdGeom.Xform.Define(stage, "/World")
+    xf.AddTranslateOp().Set(Gf.Vec3d(0, 0, 5))
+    quad_pentagon(stage)
+    ss = read_stage(stage)
+    assert ss.scene.up_axis == "Z"
+    np.testing.assert_allclose(ss.scene.geometry.vertices[:, 2], 5.0)
+    assert ss.scene.origin[2] == pytest.approx(5.0)
+
+
+# ---- instancing ----------------------------------------------------------------------
+
+
+def test_reference_and_instanceable_prims_one_element_per_instance():
+    stage = new_stage()
+    proto = UsdGeom.Xform.Define(stage, "/Proto")
+    proto.GetPrim().SetSpecifier(Sdf.SpecifierClass)  # abstract: not rendered itself
+    UsdGeom.Cube.Define(stage, "/Proto/Box").CreateSizeAttr(1.0)
+    offsets = [(0, 0, 0), (5, 0, 0), (0, 7, 0)]
+    for i, off in enumerate(offsets):
+        inst = UsdGeom.Xform.Define(stage, f"/World/Inst{i}")
+        inst.GetPrim().GetInherits().AddInherit("/Proto")
+        inst.GetPrim().SetInstanceable(True)
+        inst.AddTranslateOp().Set(Gf.Vec3d(*off))
+    ss = read_stage(stage)
+    paths = [e.path for e in ss.scene.elements]
+    assert paths == [f"/World/Inst{i}/Box" for i in range(3)]
+    for e, off in zip(ss.scene.elements, offsets, strict=True):
+        np.testing.assert_allclose(e.center, off, atol=1e-12)
+        np.testing.assert_allclose(e.bounds_max - e.bounds_min, [1, 1, 1])
+    assert ss.scene.geometry.triangle_count == 3 * 12
+
+
+def test_point_instancer_expansion_with_invisible_ids():
+    stage = new_stage()
+    pi = UsdGeom.PointInstancer.Define(stage, "/World/Trees")
+    pi.AddTranslateOp().Set(Gf.Vec3d(0, 0, -3))
+    a = UsdGeom.Cube.Define(stage, "/World/Trees/Protos/A")
+    a.CreateSizeAttr(1.0)
+    b = UsdGeom.Sphere.Define(stage, "/World/Trees/Protos/B")
+    b.CreateRadiusAttr(0.5)
+    pi.CreatePrototypesRel().SetTargets([a.GetPath(), b.GetPath()])
+    pi.CreateProtoIndicesAttr([0, 1, 0, 1])
+    pi.CreatePositionsAttr([(0, 0, 0), (10, 0, 0), (20, 0, 0), (30, 0, 0)])
+    pi.CreateScalesAttr([(1, 1, 1), (2, 2, 2), (1, 1, 1), (1, 1, 1)])
+    pi.CreateInvisibleIdsAttr([2])
+    ss = read_stage(stage)
+    els = {e.path: e for e in ss.scene.elements}
+    assert set(els) == {f"/World/Trees.instance[{i}]" for i in (0, 1, 3)}
+    np.testing.assert_allclose(els["/World/Trees.instance[1]"].center, [10, 0, -3], atol=1e-9)
+    # Instance 1 is a radius-0.5 sphere scaled by 2: 2 m across (tessellation inside).
+    size = els["/World/Trees.instance[1]"].bounds_max - els["/World/Trees.instance[1]"].bounds_min
+    assert np.all(size <= 2.0 + 1e-9) and np.all(size > 1.9)
+    np.testing.assert_allclose(els["/World/Trees.instance[0]"].bounds_min, [-0.5, -0.5, -3.5])
+
+
+# ---- materials and colours -----------------------------------------------------------
+
+
+def preview_material(stage, path, color):
+    mat = UsdShade.Material.Define(stage, path)
+    sh = UsdShade.Shader.Define(stage, f"{path}/PS")
+    sh.CreateIdAttr("UsdPreviewSurface")
+    sh.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).Set(Gf.Vec3f(*color))
+    sh.CreateInput("metallic", Sdf.ValueTypeNames.Float).Set(0.25)
+    mat.CreateSurfaceOutput().ConnectToSource(sh.ConnectableAPI(), "surface")
+    return mat, sh
+
+
+def test_geom_subset_materials_give_per_triangle_colours():
+    stage = new_stage()
+    mesh = quad_pentagon(stage)
+    red, _ = preview_material(stage, "/Looks/Red", (1, 0, 0))
+    blue, _ = preview_material(stage, "/Looks/Blue", (0, 0, 1))
+    UsdShade.MaterialBindingAPI.Apply(mesh.GetPrim()).Bind(red)
+    subset = UsdShade.MaterialBindingAPI(mesh.GetPrim()).CreateMaterialBindSubset(
+        "pent", Vt.IntArray([1])
+    )
+    UsdShade.MaterialBindingAPI.Apply(subset.GetPrim()).Bind(blue)
+    scene = read_stage(stage).scene
+    g = scene.geometry
+    albedo = g.corner_albedo[:, 0]
+    np.testing.assert_allclose(albedo[:2], [[1, 0, 0]] * 2)  # quad → red
+    np.testing.assert_allclose(albedo[2:], [[0, 0, 1]] * 3)  # pentagon → blue
+    assert len(scene.materials.diffuse) == 3  # none + red + blue, deduplicated
+    assert len(set(g.tri_material[:2])) == 1 and g.tri_material[0] != g.tri_material[2]
+    assert scene.materials.metallic[g.tri_material[0]] == pytest.approx(0.25)
+
+
+@pytest.mark.parametrize("interp", ["constant", "uniform", "vertex", "faceVarying"])
+def test_display_color_interpolations(interp):
+    stage = new_stage()
+    mesh = quad_pentagon(stage)
+    n = {"constant": 1, "uniform": 2, "vertex": 9, "faceVarying": 9}[interp]
+    colors = np.linspace(0, 1, n * 3).reshape(n, 3).astype(np.float32)
+    pv = mesh.CreateDisplayColorPrimvar(interp)
+    pv.Set(Vt.Vec3fArray.FromNumpy(colors))
+    g = read_stage(stage).scene.geometry
+    alb = g.corner_albedo
+    if interp == "constant":
+        np.testing.assert_allclose(alb.reshape(-1, 3), np.tile(colors[0], (15, 1)))
+    elif interp == "uniform":
+        np.testing.assert_allclose(alb[:2].reshape(-1, 3), np.tile(colors[0], (6, 1)))
+        np.testing.assert_allclose(alb[2:].reshape(-1, 3), np.tile(colors[1], (9, 1)))
+    elif interp == "vertex":
+        np.testing.assert_allclose(alb, colors[g.triangles], rtol=1e-6)
+    else:  # face-vertex order here equals point order (indices 0..8)
+        np.testing.assert_allclose(alb, colors[g.triangles], rtol=1e-6)
+        # Quad fan: (0,1,2), (0,2,3); pentagon fan from corner 4.
+        np.testing.assert_array_equal(g.triangles[:2], [[0, 1, 2], [0, 2, 3]])
+
+
+def test_no_color_is_mid_grey():
+    stage = new_stage()
+    quad_pentagon(stage)
+    np.testing.assert_allclose(read_stage(stage).scene.geometry.corner_albedo, 0.5)
+
+
+def test_texture_loaded_through_oiio(tmp_path):
+    h, w = 4, 2
+    img = np.zeros((h, w, 3), np.uint8)
+    img[: h // 2] = (255, 0, 0)  # top half red
+    img[h // 2 :] = (0, 0, 188)  # bottom half dark blue (sRGB 188 ≈ linear 0.5)
+    path = tmp_path / "tex.png"
+    out = oiio.ImageOutput.create(str(path))
+    out.open(str(path), oiio.ImageSpec(w, h, 3, "uint8"))
+    out.write_image(img)
+    out.close()
+    stage = new_stage()
+    mesh = quad_pentagon(stage)
+    st_pv = UsdGeom.PrimvarsAPI(mesh).CreatePrimvar(
+        "st", Sdf.ValueTypeNames.TexCoord2fArray, UsdGeom.Tokens.vertex
+    )
+    st_pv.Set(Vt.Vec2fArray([(x, y) for x, y in np.random.default_rng(0).random((9, 2))]))
+    mat = UsdShade.Material.Define(stage, "/Looks/Tex")
+    ps = UsdShade.Shader.Define(stage, "/Looks/Tex/PS")
+    ps.CreateIdAttr("UsdPreviewSurface")
+    tex = UsdShade.Shader.Define(stage, "/Looks/Tex/T")
+    tex.CreateIdAttr("UsdUVTexture")
+    tex.CreateInput("file", Sdf.ValueTypeNames.Asset).Set(str(path))
+    tex.CreateInput("sourceColorSpace", Sdf.ValueTypeNames.Token).Set("auto")
+    rgb = tex.CreateOutput("rgb", Sdf.ValueTypeNames.Float3)
+    ps.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).ConnectToSource(rgb)
+    mat.CreateSurfaceOutput().ConnectToSource(ps.ConnectableAPI(), "surface")
+    UsdShade.MaterialBindingAPI.Apply(mesh.GetPrim()).Bind(mat)
+    scene = read_stage(stage).scene
+    texture = scene.materials.textures[scene.geometry.tri_material[0]]
+    assert texture.shape == (h, w, 3) and texture.dtype == np.float32
+    np.testing.assert_allclose(texture[0, 0], [1, 0, 0], atol=1e-6)  # row 0 = top
+    assert texture[-1, 0, 2] == pytest.approx(0.5029, abs=2e-3)  # sRGB → linear
+    g = scene.geometry
+    assert g.corner_uv is not None and g.corner_uv.shape == (5, 3, 2)
+    uv = np.asarray(st_pv.Get())
+    np.testing.assert_allclose(g.corner_uv, uv[g.triangles], rtol=1e-6)
+
+
+# ---- visibility / purpose ------------------------------------------------------------
+
+
+def test_invisible_guide_and_inactive_prims_skipped():
+    stage = new_stage()
+    quad_pentagon(stage, "/World/Visible")
+    hidden = UsdGeom.Xform.Define(stage, "/World/Hidden")
+    hidden.MakeInvisible()
+    quad_pentagon(stage, "/World/Hidden/Mesh")
+    guide = UsdGeom.Xform.Define(stage, "/World/Guide")
+    guide.CreatePurposeAttr(UsdGeom.Tokens.guide)
+    quad_pentagon(stage, "/World/Guide/Mesh")
+    quad_pentagon(stage, "/World/Proxy").CreatePurposeAttr(UsdGeom.Tokens.proxy)
+    quad_pentagon(stage, "/World/Render").CreatePurposeAttr(UsdGeom.Tokens.render)
+    quad_pentagon(stage, "/World/Off").GetPrim().SetActive(False)
+    light = UsdLux.SphereLight.Define(stage, "/World/Hidden/Lamp")
+    light.CreateIntensityAttr(10.0)
+    ss = read_stage(stage)
+    assert [e.path for e in ss.scene.elements] == ["/World/Visible", "/World/Render"]
+    assert ss.scene.lights.local == []
+
+
+# ---- animation -----------------------------------------------------------------------
+
+
+def test_animated_translate_changes_only_animated_vertices():
+    stage = new_stage()
+    stage.SetStartTimeCode(0)
+    stage.SetEndTimeCode(10)
+    quad_pentagon(stage, "/World/Static")
+    mover = UsdGeom.Xform.Define(stage, "/World/Mover")
+    op = mover.AddTranslateOp()
+    op.Set(Gf.Vec3d(0, 0, 0), 0)
+    op.Set(Gf.Vec3d(10, 0, 0), 10)
+    quad_pentagon(stage, "/World/Mover/Mesh")
+    ss = read_stage(stage)
+    els = ss.scene.elements
+    assert [e.animated for e in els] == [False, True]
+    g = ss.scene.geometry
+    static_rows = slice(0, 9)
+    before_static = g.vertices[static_rows].copy()
+    before_moving = g.vertices[9:].copy()
+    assert ss.set_time(5.0) is True
+    np.testing.assert_allclose(g.vertices[9:] - before_moving, np.tile([5, 0, 0], (9, 1)))
+    np.testing.assert_array_equal(g.vertices[static_rows], before_static)
+    assert els[1].bounds_min[0] == pytest.approx(5.0)
+    assert ss.set_time(5.0) is False  # same time: nothing moved
+    # Nothing animated → set_time is cheap.
+    t0 = _time.perf_counter()
+    for _ in range(100):
+        ss.set_time(5.0)
+    assert (_time.perf_counter() - t0) / 100 < 5e-3
+
+
+def test_static_stage_set_time_reports_no_change():
+    stage = new_stage()
+    quad_pentagon(stage)
+    ss = read_stage(stage)
+    assert ss.set_time(3.0) is False
+
+
+def test_deforming_points_recomputed():
+    stage = new_stage()
+    mesh = quad_pentagon(stage)
+    pts = np.asarray(mesh.GetPointsAttr().Get())
+    mesh.GetPointsAttr().Set(Vt.Vec3fArray.FromNumpy(pts), 0)
+    mesh.GetPointsAttr().Set(Vt.Vec3fArray.FromNumpy(pts * 2), 10)
+    ss = read_stage(stage)
+    assert ss.scene.elements[0].animated
+    ss.set_time(10)
+    np.testing.assert_allclose(ss.scene.geometry.vertices, pts * 2, rtol=1e-6)
+
+
+# ---- lights --------------------------------------------------------------------------
+
+
+def test_lights_directions_and_radiance(tmp_path):
+    stage = new_stage()
+    sun = UsdLux.DistantLight.Define(stage, "/Lights/Sun")
+    sun.AddRotateXOp().Set(-90.0)  # -Z axis now points down (-Y): sun straight overhead
+    sun.CreateIntensityAttr(2.0)
+    sun.CreateExposureAttr(1.0)
+    sun.CreateColorAttr(Gf.Vec3f(1, 0.5, 0.25))
+    lamp = UsdLux.SphereLight.Define(stage, "/Lights/Lamp")
+    lamp.AddTranslateOp().Set(Gf.Vec3d(1, 2, 3))
+    lamp.CreateRadiusAttr(0.25)
+    lamp.CreateIntensityAttr(5.0)
+    rect = UsdLux.RectLight.Define(stage, "/Lights/Rect")
+    rect.CreateWidthAttr(2.0)
+    rect.CreateHeightAttr(3.0)
+    rect.CreateIntensityAttr(1.0)
+    env = np.full((4, 8, 3), 2.0, np.float32)
+    env_path = tmp_path / "env.exr"
+    out = oiio.ImageOutput.create(str(env_path))
+    out.open(str(env_path), oiio.ImageSpec(8, 4, 3, "float"))
+    out.write_image(env)
+    out.close()
+    dome = UsdLux.DomeLight.Define(stage, "/Lights/Dome")
+    dome.CreateTextureFileAttr(str(env_path))
+    dome.CreateIntensityAttr(0.5)
+    dome.AddRotateYOp().Set(90.0)
+    lights = read_stage(stage).scene.lights
+    (d,) = lights.distant
+    np.testing.assert_allclose(d.direction, [0, 1, 0], atol=1e-12)
+    np.testing.assert_allclose(d.radiance, [4, 2, 1])
+    local = {round(light.radius, 6): light for light in lights.local}
+    np.testing.assert_allclose(local[0.25].position, [1, 2, 3])
+    np.testing.assert_allclose(local[0.25].radiance, [5, 5, 5])
+    rect_light = local[round(0.5 * np.hypot(2, 3), 6)]
+    np.testing.assert_allclose(rect_light.radiance, [6, 6, 6])  # × area 2 × 3
+    assert lights.dome is not None
+    np.testing.assert_allclose(lights.dome.texture, env)
+    np.testing.assert_allclose(lights.dome.color, [0.5] * 3)
+    np.testing.assert_allclose(lights.dome.world_from_light @ [1, 0, 0], [0, 0, -1], atol=1e-12)
+
+
+# ---- reflectors and errors -----------------------------------------------------------
+
+
+def test_reflector_flags_and_clamp():
+    stage = new_stage()
+    m = quad_pentagon(stage, "/World/Mirror").GetPrim()
+    m.AddAppliedSchema("PhrtReflectorAPI")
+    m.CreateAttribute("phrt:reflectivity", Sdf.ValueTypeNames.Float).Set(3.0)
+    k = quad_pentagon(stage, "/World/Prio").GetPrim()
+    k.AddAppliedSchema("PhrtReflectorAPI")
+    k.CreateAttribute("phrt:priority", Sdf.ValueTypeNames.Float).Set(4.0)
+    quad_pentagon(stage, "/World/Plain")
+    els = read_stage(stage).scene.elements
+    assert [(e.is_reflector, e.priority, e.reflectivity) for e in els] == [
+        (True, 1.0, 1.0),
+        (True, 4.0, 1.0),
+        (False, 0.0, 0.0),
+    ]
+
+
+@pytest.mark.parametrize("reflector", [True, False])
+def test_nan_points_raise_naming_prim(reflector):
+    stage = new_stage()
+    mesh = quad_pentagon(stage, "/World/Bad")
+    if reflector:
+        mesh.GetPrim().AddAppliedSchema("PhrtReflectorAPI")
+    pts = np.array(mesh.GetPointsAttr().Get())
+    pts[3, 1] = np.nan
+    mesh.GetPointsAttr().Set(Vt.Vec3fArray.FromNumpy(pts))
+    with pytest.raises(PhrtError, match=r"/World/Bad\.points") as info:
+        read_stage(stage)
+    assert "\n" not in str(info.value)
+
+
+def test_out_of_range_index_raises():
+    stage = new_stage()
+    mesh = quad_pentagon(stage, "/World/Bad")
+    mesh.GetFaceVertexIndicesAttr().Set([0, 1, 2, 99, 4, 5, 6, 7, 8])
+    with pytest.raises(PhrtError, match=r"/World/Bad\.faceVertexIndices"):
+        read_stage(stage)
+
+
+def test_missing_file_and_no_camera(tmp_path):
+    with pytest.raises(PhrtError, match="no such stage file"):
+        open_stage(tmp_path / "nope.usda")
+    bad = tmp_path / "bad.usda"
+    bad.write_text('#usda 1.0\n def Xform "A" {{{ \n')
+    with pytest.raises(PhrtError, match="cannot open stage"):
+        open_stage(bad)
+    stage = Usd.Stage.CreateInMemory()
+    with pytest.raises(PhrtError, match="no UsdGeomCamera"):
+        read_stage(stage)
+    with pytest.raises(PhrtError, match="/Nope"):
+        read_stage(new_stage(), camera="/Nope")
+
+
+def test_camera_choice_render_settings_over_first_camera(tmp_path):
+    stage = new_stage()
+    UsdGeom.Camera.Define(stage, "/Other")
+    settings = UsdRender.Settings.Define(stage, "/Render/Settings")
+    settings.CreateCameraRel().SetTargets(["/Other"])
+    assert read_stage(stage).camera_path == "/Other"
+    assert read_stage(stage, camera="/Cam").camera_path == "/Cam"
+    path = tmp_path / "s.usda"
+    stage.GetRootLayer().Export(str(path))
+    assert open_stage(path).camera_path == "/Other"
+
+
+def test_implicit_gprims_are_closed_and_outward():
+    stage = new_stage()
+    for i, kind in enumerate(["Sphere", "Cube", "Cylinder", "Cone", "Capsule"]):
+        prim = stage.DefinePrim(f"/World/{kind}", kind)
+        UsdGeom.Xformable(prim).AddTranslateOp().Set(Gf.Vec3d(3 * i, 0, 0))
+        if kind != "Sphere" and kind != "Cube":
+            prim.GetAttribute("axis").Set("X")
+    scene = read_stage(stage).scene
+    g = scene.geometry
+    n = tri_normals_safe(g)
+    for e_id, e in enumerate(scene.elements):
+        sel = g.tri_element == e_id
+        p = g.vertices[g.triangles[sel]]
+        centroid = p.mean(axis=1) - e.center
+        nn = n[sel]
+        ok = np.linalg.norm(nn, axis=1) > 0
+        # Outward: geometric normals point away from the centre.
+        assert np.all(np.einsum("ij,ij->i", nn[ok], centroid[ok]) > 0), e.path
+        # Shading normals agree with the winding.
+        cn = g.corner_normals[sel].mean(axis=1)
+        assert np.all(np.einsum("ij,ij->i", cn[ok], nn[ok]) > 0), e.path
+        # Closed surface: signed volume matches the analytic shape within tessellation.
+        vol = (
+            np.einsum(
+                "ij,ij->i", p[:, 0] - e.center, np.cross(p[:, 1] - e.center, p[:, 2] - e.center)
+            ).sum()
+            / 6
+        )
+        expected = {
+            "Sphere": 4 / 3 * np.pi,
+            "Cube": 8.0,
+            "Cylinder": 2 * np.pi,
+            "Cone": 2 * np.pi / 3,
+            "Capsule": np.pi * 0.25 * 1 + 4 / 3 * np.pi * 0.125,
+        }[e.path.rsplit("/", 1)[1]]
+        assert vol == pytest.approx(expected, rel=0.03), e.path
+    # Axis X: the cylinder's long side runs along X.
+    cyl = scene.elements[2]
+    np.testing.assert_allclose(cyl.bounds_max - cyl.bounds_min, [2, 2, 2], atol=1e-9)
+    cone = scene.elements[3]
+    assert cone.bounds_max[0] - cone.bounds_min[0] == pytest.approx(2.0)
+
+
+def tri_normals_safe(geom) -> np.ndarray:
+    p = geom.vertices[geom.triangles]
+    n = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    length = np.linalg.norm(n, axis=1, keepdims=True)
+    return np.where(length > 1e-12, n / np.where(length > 0, length, 1), 0)
+
+
+def test_smooth_normals_area_weighted():
+    # A "roof": two faces meeting at the ridge; ridge vertex normal is the area-weighted
+    # average — the bigger face pulls harder.
+    pts = np.array([[0, 0, 0], [0, 0, 1], [1, 1, 0], [-3, 3, 0.0]])
+    tris = np.array([[0, 2, 1], [0, 1, 3]])
+    cn = smooth_corner_normals(pts, tris)
+    np.testing.assert_allclose(np.linalg.norm(cn, axis=2), 1.0)
+    a = np.cross(pts[2] - pts[0], pts[1] - pts[0])
+    b = np.cross(pts[1] - pts[0], pts[3] - pts[0])
+    expect = (a + b) / np.linalg.norm(a + b)
+    np.testing.assert_allclose(cn[0, 0], expect, atol=1e-12)
+
+
+def test_negative_scale_keeps_front_face_consistent():
+    stage = new_stage()
+    xf = UsdGeom.Xform.Define(stage, "/World")
+    xf.AddScaleOp().Set(Gf.Vec3f(-1, 1, 1))
+    quad_pentagon(stage)
+    g = read_stage(stage).scene.geometry
+    geo = tri_normals(g)
+    np.testing.assert_allclose((g.corner_normals.mean(axis=1) * geo).sum(axis=1), 1.0, atol=1e-6)
+
+
+def test_read_speed_many_prims():
+    stage = new_stage()
+    for i in range(300):
+        s = UsdGeom.Sphere.Define(stage, f"/World/S{i}")
+        s.AddTranslateOp().Set(Gf.Vec3d(i, 0, 0))
+    t0 = _time.perf_counter()
+    ss = read_stage(stage)
+    elapsed = _time.perf_counter() - t0
+    assert len(ss.scene.elements) == 300
+    assert elapsed < 2.0
