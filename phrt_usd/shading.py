@@ -225,7 +225,9 @@ def shade_local(
         if visibility is not None:
             lit = lit * visibility[:, j]
         if j >= n_distant:
-            lit = lit / (dist[:, j] ** 2).astype(np.float32)
+            # 1/d² in float64: d up to ~1e154 stays finite, and the float32 cast of a
+            # tiny fall-off underflows to 0 instead of overflowing d² to Inf.
+            lit = (lit / dist[:, j] ** 2).astype(np.float32)
         half = l_dir + to_eye
         half_len = np.linalg.norm(half, axis=1)
         # l and the eye direction exactly opposite: no meaningful half vector, no highlight.

@@ -1,0 +1,139 @@
+"""Tests of the shared local shading model (phrt_usd.shading)."""
+
+from __future__ import annotations
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from phrt_usd import shading
+from phrt_usd.scene import DEFAULT_ENVIRONMENT, DistantLight, DomeLight, Lights, LocalLight
+
+UP = np.array([[0.0, 1.0, 0.0]])
+DOWN = -UP
+
+
+def _shade(lights, albedo=(0.5, 0.5, 0.5), view=DOWN, normal=UP, pos=((0.0, 0.0, 0.0),), vis=None):
+    n_lights = len(lights.distant) + len(lights.local)
+    vis = np.ones((1, n_lights), np.float32) if vis is None else vis
+    return shading.shade_local(
+        np.array(pos, dtype=np.float64),
+        normal,
+        np.array([albedo], np.float32),
+        view,
+        np.zeros(3, np.float32),
+        lights,
+        vis,
+    )[0]
+
+
+def test_lambert_cosine_law_and_ambient():
+    dome = DomeLight(color=np.array([0.1, 0.1, 0.1]))
+    for angle in (0.0, 30.0, 60.0, 89.0):
+        a = np.radians(angle)
+        light = DistantLight(np.array([np.sin(a), np.cos(a), 0.0]), np.ones(3))
+        # View from the side so the highlight stays out of the measurement.
+        view = np.array([[np.sin(a), 0.0, np.cos(a)]])
+        got = _shade(Lights(distant=[light], dome=dome), view=-view)
+        spec = (
+            shading.SPECULAR_STRENGTH
+            * max(0.0, (light.direction + view[0])[1] / np.linalg.norm(light.direction + view[0]))
+            ** shading.SHININESS
+        )
+        expected = 0.5 * 0.1 + (0.5 + spec) * np.cos(a)
+        np.testing.assert_allclose(got, [expected] * 3, rtol=1e-5)
+
+
+def test_light_behind_surface_and_shadowed_give_ambient_only():
+    lights = Lights(distant=[DistantLight(np.array([0.0, -1.0, 0.0]), np.ones(3))])
+    ambient = 0.5 * DEFAULT_ENVIRONMENT
+    np.testing.assert_allclose(_shade(lights), ambient, rtol=1e-6)
+    lit_from_above = Lights(distant=[DistantLight(np.array([0.0, 1.0, 0.0]), np.ones(3))])
+    shadowed = _shade(lit_from_above, vis=np.zeros((1, 1), np.float32))
+    np.testing.assert_allclose(shadowed, ambient, rtol=1e-6)
+
+
+def test_local_light_inverse_square_and_finite_at_the_light():
+    def at(height):
+        light = LocalLight(np.array([0.0, height, 0.0]), np.full(3, 4.0))
+        return _shade(Lights(local=[light]), albedo=(1.0, 1.0, 1.0), view=np.array([[1.0, 0, 0]]))
+
+    ratio = (at(1.0) - DEFAULT_ENVIRONMENT) / (at(2.0) - DEFAULT_ENVIRONMENT)
+    np.testing.assert_allclose(ratio, 4.0, rtol=1e-4)
+    assert np.all(np.isfinite(at(0.0)))  # surface point exactly at the light
+
+
+def test_light_directions_order_and_distances():
+    lights = Lights(
+        distant=[DistantLight(np.array([0.0, 2.0, 0.0]), np.ones(3))],
+        local=[LocalLight(np.array([3.0, 4.0, 0.0]), np.ones(3))],
+    )
+    dirs, dist = shading.light_directions(lights, np.zeros((2, 3)))
+    assert dirs.shape == (2, 2, 3) and dist.shape == (2, 2)
+    np.testing.assert_allclose(dirs[0, 0], [0, 1, 0])
+    np.testing.assert_allclose(dirs[0, 1], [0.6, 0.8, 0])
+    assert np.isinf(dist[0, 0]) and dist[0, 1] == 5.0
+
+
+def test_environment_fallbacks_and_latlong_convention():
+    none = shading.environment_radiance(Lights(), UP)
+    np.testing.assert_allclose(none, [DEFAULT_ENVIRONMENT])
+    const = Lights(dome=DomeLight(color=np.array([0.3, 0.2, 0.1])))
+    np.testing.assert_allclose(shading.environment_radiance(const, DOWN), [[0.3, 0.2, 0.1]])
+    np.testing.assert_allclose(shading.ambient_radiance(const), [0.3, 0.2, 0.1])
+    # OpenEXR lat-long: column 0 is longitude +π (-Z), the middle column longitude 0 (+Z),
+    # a quarter from the right longitude +π/2 (+X).
+    w, h = 16, 8
+    tex = np.zeros((h, w, 3), np.float32)
+    tex[:, :, 0] = np.arange(w)[None, :] + 0.5  # red = continuous column coordinate
+    lights = Lights(dome=DomeLight(color=np.ones(3), texture=tex))
+    dirs = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [-1.0, 0.0, 0.0]])
+    col = shading.environment_radiance(lights, dirs)[:, 0]
+    np.testing.assert_allclose(col, [w / 2, w / 4, 3 * w / 4], atol=1e-4)
+    # world_from_light rotates the dome: a Z-up stage's dome has its pole along world +Z.
+    tex2 = np.zeros((h, w, 3), np.float32)
+    tex2[0] = 1.0
+    z_up = np.array([[1.0, 0, 0], [0, 0, -1.0], [0, 1.0, 0]])  # light +Y → world +Z
+    rotated = Lights(dome=DomeLight(color=np.ones(3), texture=tex2, world_from_light=z_up))
+    np.testing.assert_allclose(shading.environment_radiance(rotated, [[0, 0, 1.0]]), [[1, 1, 1]])
+
+
+def test_ambient_is_solid_angle_mean_and_cached():
+    h, w = 64, 128
+    lat = (0.5 - (np.arange(h) + 0.5) / h) * np.pi
+    tex = np.zeros((h, w, 3), np.float32)
+    tex[lat > 0] = 1.0  # bright upper hemisphere: half the sphere's solid angle
+    lights = Lights(dome=DomeLight(color=np.full(3, 2.0), texture=tex))
+    amb = shading.ambient_radiance(lights)
+    np.testing.assert_allclose(amb, [1.0, 1.0, 1.0], rtol=1e-3)
+    assert shading.ambient_radiance(lights) is not amb  # a fresh array every call
+    np.testing.assert_allclose(shading.ambient_radiance(lights), amb)
+
+
+@settings(max_examples=100, deadline=None)
+@given(
+    st.floats(min_value=-1e30, max_value=1e30, allow_nan=False),
+    st.floats(min_value=-1e30, max_value=1e30, allow_nan=False),
+)
+def test_shading_finite_for_extreme_positions(x, y):
+    lights = Lights(
+        distant=[DistantLight(np.array([0.0, 1.0, 0.0]), np.ones(3))],
+        local=[LocalLight(np.array([0.0, 0.0, 0.0]), np.ones(3))],
+    )
+    got = shading.shade_local(
+        np.array([[x, y, 0.0]]),
+        UP,
+        np.ones((1, 3)),
+        DOWN,
+        np.zeros(3),
+        lights,
+        np.ones((1, 2), np.float32),
+    )
+    assert np.all(np.isfinite(got))
+
+
+def test_sample_texture_st_origin_bottom_left():
+    tex = np.zeros((4, 4, 3), np.float32)
+    tex[3, 0] = 1.0  # bottom-left texel
+    got = shading.sample_texture(tex, np.array([[0.125, 0.125], [0.875, 0.875]]))
+    np.testing.assert_allclose(got, [[1, 1, 1], [0, 0, 0]])
