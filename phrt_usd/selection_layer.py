@@ -217,7 +217,7 @@ def _finite(value: Any) -> Any:
 def _write_stats_prim(layer: Sdf.Layer, frames: list[FrameStats]) -> None:
     prim = layer.GetPrimAtPath(STATS_PRIM_PATH) or Sdf.CreatePrimInLayer(layer, STATS_PRIM_PATH)
     for name, kind, value_of in STATS_ATTRIBUTES:
-        attribute = _attribute(prim, name, kind)
+        attribute = _attribute(prim, name, kind, custom=True)
         for frame in frames:
             value = value_of(frame)
             if isinstance(value, float) and not np.isfinite(value):
@@ -248,11 +248,15 @@ def _write_metadata(
     layer.customLayerData = data
 
 
-def _attribute(prim: Sdf.PrimSpec, name: str, kind: Any) -> Sdf.Path:
-    """Path of attribute ``name`` on ``prim``, creating a varying custom spec if needed."""
+def _attribute(prim: Sdf.PrimSpec, name: str, kind: Any, custom: bool = False) -> Sdf.Path:
+    """Path of attribute ``name`` on ``prim``, creating a varying spec if needed.
+
+    The reflector figures are declared by ``PhrtReflectorAPI`` (schemas/phrt/schema.usda),
+    so they are not ``custom``; the stats prim's attributes belong to no schema and are.
+    """
     spec = prim.attributes.get(name)
     if spec is None:
-        spec = Sdf.AttributeSpec(prim, name, kind, Sdf.VariabilityVarying, True)
+        spec = Sdf.AttributeSpec(prim, name, kind, Sdf.VariabilityVarying, custom)
     elif spec.typeName != kind:
         raise PhrtError(f"selection layer: {spec.path} has type {spec.typeName}, not {kind}")
     return spec.path
