@@ -1084,6 +1084,337 @@ def build_farm(out: Path) -> Path:
 
 
 # --------------------------------------------------------------------------------------
+# Sewer (built in a local Y-up metre frame, written Z-up in centimetres)
+# --------------------------------------------------------------------------------------
+
+#: Stage units per metre in the sewer (metersPerUnit = 0.01).
+SEWER_UNITS_PER_METRE = 100.0
+#: Local (Y-up, metres) -> sewer world (Z-up, cm): x' = x, y' = -z, z' = y (a rotation).
+SEWER_FROM_LOCAL = np.diag([1.0, 1.0, 1.0, 1.0])
+SEWER_FROM_LOCAL[:3, :3] = np.array([[1.0, 0, 0], [0, 0, -1.0], [0, 1.0, 0]]) * 100.0
+
+#: Main (wet) tunnel: along local x, centred on z = 0; walkways on both sides of a channel.
+MAIN_WIDTH, MAIN_WALL, CHANNEL_HALF = 4.0, 2.2, 0.8
+WATER_Y, CHANNEL_FLOOR_Y = -0.4, -0.9
+#: Dry service tunnels: width and wall height.
+DRY_WIDTH, DRY_WALL = 3.0, 2.2
+#: Chambers: centre x (local), half size, ceiling height.
+JUNCTION_X, SUMP_X, CHAMBER_HALF, CHAMBER_HEIGHT = 0.0, 28.0, 3.0, 5.0
+WEST_END_X, NORTH_END_Z, SOUTH_END_Z = -16.0, -24.0, 22.0
+#: Length of one tunnel subdivision along its axis (metres); sets the triangle count.
+TUNNEL_STEP = 0.125
+
+
+def sewer_mesh(mesh: Mesh) -> Mesh:
+    """Convert a local (Y-up, metres) mesh to sewer world space (Z-up, centimetres)."""
+    return mesh.transformed(SEWER_FROM_LOCAL)
+
+
+def sewer_point(p: Sequence[float]) -> tuple[float, float, float]:
+    q = SEWER_FROM_LOCAL[:3, :3] @ np.asarray(p, float)
+    return (float(q[0]), float(q[1]), float(q[2]))
+
+
+def chamber_walls(cx: float, openings: dict[str, float], wall_height_open: float) -> Mesh:
+    """Walls, floor slab and ceiling of a square chamber centred at (cx, 0, 0).
+
+    openings: side ("+x", "-x", "+z", "-z") -> opening width (m); openings are
+    ``wall_height_open`` high, the wall above them is solid (a lintel).
+    """
+    h, t, top = CHAMBER_HALF, 0.2, CHAMBER_HEIGHT
+    parts = [box((2 * h + 2 * t, t, 2 * h + 2 * t), (cx, top + t / 2, 0))]
+    for side in ("+x", "-x", "+z", "-z"):
+        sign = 1.0 if side[0] == "+" else -1.0
+        w = openings.get(side, 0.0)
+        along_x = side[1] == "z"  # wall runs along x when it closes a z side
+
+        def wall(a0: float, a1: float, y0: float, y1: float,
+                 sign: float = sign, along_x: bool = along_x) -> Mesh:
+            size_a, centre_a = a1 - a0, (a0 + a1) / 2
+            if along_x:
+                return box((size_a, y1 - y0, t), (cx + centre_a, (y0 + y1) / 2, sign * (h + t / 2)))
+            return box((t, y1 - y0, size_a), (cx + sign * (h + t / 2), (y0 + y1) / 2, centre_a))
+
+        lo = CHANNEL_FLOOR_Y
+        if w == 0.0:
+            parts.append(wall(-h - t, h + t, lo, top))
+        else:
+            parts += [wall(-h - t, -w / 2, lo, top), wall(w / 2, h + t, lo, top),
+                      wall(-w / 2, w / 2, wall_height_open, top)]
+    return merge(parts)
+
+
+def walkway_slabs(x0: float, x1: float) -> Mesh:
+    """Walkways on both sides of the channel (their inner faces are the channel walls)."""
+    depth = -CHANNEL_FLOOR_Y
+    width = MAIN_WIDTH / 2 - CHANNEL_HALF
+    zc = CHANNEL_HALF + width / 2
+    return merge([
+        box((x1 - x0, depth, width), ((x0 + x1) / 2, -depth / 2, zc)),
+        box((x1 - x0, depth, width), ((x0 + x1) / 2, -depth / 2, -zc)),
+        box((x1 - x0, 0.2, 2 * CHANNEL_HALF), ((x0 + x1) / 2, CHANNEL_FLOOR_Y - 0.1, 0.0)),
+    ])
+
+
+def railing(x0: float, x1: float, z: float) -> Mesh:
+    """Posts every 1.5 m and two rails along x at the walkway edge z."""
+    posts = [box((0.06, 1.0, 0.06), (x, 0.5, z)) for x in np.arange(x0 + 0.3, x1, 1.5)]
+    rails = [box((x1 - x0, 0.05, 0.05), ((x0 + x1) / 2, y, z)) for y in (0.55, 1.0)]
+    return merge(posts + rails)
+
+
+def grate(x: float, width: float = 1.0, bars: int = 12) -> Mesh:
+    """Bars across the channel (along z) just below the walkway level, centred at x."""
+    xs = x - width / 2 + (np.arange(bars) + 0.5) * width / bars
+    frame = [box((width, 0.08, 0.06), (x, -0.06, sz * (CHANNEL_HALF - 0.03))) for sz in (-1, 1)]
+    return merge([box((0.04, 0.08, 2 * CHANNEL_HALF), (bx, -0.06, 0.0)) for bx in xs] + frame)
+
+
+def pipe_mesh(x0: float, x1: float, y: float, z: float, radius: float, segments: int = 12,
+              ring_step: float = 0.5) -> Mesh:
+    """A pipe (closed cylinder) along x from x0 to x1 at height y, offset z."""
+    rings = max(1, int(round((x1 - x0) / ring_step)))
+    rot = np.eye(4)
+    rot[:3, :3] = [[0, 1.0, 0], [-1.0, 0, 0], [0, 0, 1.0]]  # +y axis -> +x axis
+    rot[:3, 3] = [x0, y, z]
+    return cylinder(radius, x1 - x0, segments, rings).transformed(rot)
+
+
+def swap_xz(mesh: Mesh, x_at: float) -> Mesh:
+    """Turn a mesh built along +x into one along +z (yaw -90 degrees) placed at x = x_at."""
+    return mesh.moved((x_at, 0.0, 0.0), yaw_deg=-90.0)
+
+
+def build_sewer_geometry(path: Path) -> None:
+    """Write sewer_geometry.usdc: tunnel shells, chambers, walkways, grates, dry pipes."""
+    stage = new_stage(path, "Z", 0.01, "Geometry")
+    parts: dict[str, list[Mesh]] = {"Shell": [], "Walkways": [], "Railings": [],
+                                    "Grates": [], "DryPipes": [], "Chambers": []}
+    ch = CHAMBER_HALF
+    # wet main tunnel: west arm and middle stretch, both along +x
+    for x0, x1 in ((WEST_END_X, JUNCTION_X - ch), (JUNCTION_X + ch, SUMP_X - ch)):
+        n = int(round((x1 - x0) / TUNNEL_STEP))
+        parts["Shell"].append(
+            tunnel_shell(MAIN_WIDTH, MAIN_WALL, x1 - x0, 16, n, 0.0).moved((x0, 0, 0))
+        )
+        parts["Walkways"].append(walkway_slabs(x0, x1))
+        for z in (CHANNEL_HALF + 0.05, -CHANNEL_HALF - 0.05):
+            parts["Railings"].append(railing(x0, x1, z))
+    # west end wall
+    parts["Shell"].append(box((0.2, 7.0, MAIN_WIDTH + 0.4), (WEST_END_X - 0.1, 2.5, 0)))
+    # dry tunnels along z: north of the junction (z < 0) and south of the sump (z > 0)
+    for x_at, z0, z1 in ((JUNCTION_X, NORTH_END_Z, -ch), (SUMP_X, ch, SOUTH_END_Z)):
+        n = int(round((z1 - z0) / TUNNEL_STEP))
+        shell = tunnel_shell(DRY_WIDTH, DRY_WALL, z1 - z0, 14, n, 0.0)
+        # built along +x from 0; rotate so it runs along +z from z0
+        parts["Shell"].append(shell.moved((x_at, 0.0, z0), yaw_deg=-90.0))
+        parts["Walkways"].append(box((DRY_WIDTH, 0.3, z1 - z0), (x_at, -0.15, (z0 + z1) / 2)))
+        for dx, y in ((-1.2, 1.4), (-1.2, 1.75)):
+            parts["DryPipes"].append(
+                pipe_mesh(0.0, z1 - z0, y, dx, 0.1, 12, 0.25).moved((x_at, 0, z0), yaw_deg=-90.0)
+            )
+        end_z = z0 if z0 < -ch else z1
+        parts["Shell"].append(box((DRY_WIDTH + 0.4, 6.0, 0.2), (x_at, 2.5, end_z)))
+    # chambers: junction (openings west, east, north) and sump (west, south)
+    parts["Chambers"].append(
+        chamber_walls(JUNCTION_X, {"-x": MAIN_WIDTH, "+x": MAIN_WIDTH, "-z": DRY_WIDTH}, MAIN_WALL)
+    )
+    parts["Chambers"].append(chamber_walls(SUMP_X, {"-x": MAIN_WIDTH, "+z": DRY_WIDTH}, MAIN_WALL))
+    # chamber floors: the junction continues the channel, the sump has a square pool
+    parts["Walkways"].append(walkway_slabs(JUNCTION_X - ch, JUNCTION_X + ch))
+    sump = SUMP_POOL_HALF
+    for dx, dz, sx, sz in ((0, ch - (ch - sump) / 2, 2 * ch, ch - sump),
+                           (0, -ch + (ch - sump) / 2, 2 * ch, ch - sump),
+                           (ch - (ch - sump) / 2, 0, ch - sump, 2 * sump),
+                           (-ch + (ch - sump) / 2, 0, ch - sump, 2 * sump)):
+        parts["Walkways"].append(box((sx, 0.9, sz), (SUMP_X + dx, -0.45, dz)))
+    parts["Walkways"].append(box((2 * sump, 0.2, 2 * sump), (SUMP_X, CHANNEL_FLOOR_Y - 0.1, 0)))
+    # grates at the chamber entrances
+    for x in (JUNCTION_X - ch - 0.6, JUNCTION_X + ch + 0.6, SUMP_X - ch - 0.6, -10.0, 12.0):
+        parts["Grates"].append(grate(x))
+
+    for name, meshes in parts.items():
+        author_mesh(stage, f"/Geometry/{name}", sewer_mesh(merge(meshes)))
+    # ladders in the chambers: implicit cubes (rails and rungs), Z-up centimetres
+    UsdGeom.Xform.Define(stage, "/Geometry/Ladder")
+    for k, (dx, size) in enumerate(((-0.25, (0.05, 0.05, 4.5)), (0.25, (0.05, 0.05, 4.5)))):
+        rail = UsdGeom.Cube.Define(stage, f"/Geometry/Ladder/Rail{k}")
+        rail.AddTranslateOp().Set(Gf.Vec3d(*sewer_point((JUNCTION_X + 1.5 + dx, 2.25, -2.9))))
+        rail.AddScaleOp().Set(Gf.Vec3f(*(np.array(size) * 100.0)))
+    for k in range(12):
+        rung = UsdGeom.Cube.Define(stage, f"/Geometry/Ladder/Rung{k:02d}")
+        rung.AddTranslateOp().Set(
+            Gf.Vec3d(*sewer_point((JUNCTION_X + 1.5, 0.3 + 0.35 * k, -2.9)))
+        )
+        rung.AddScaleOp().Set(Gf.Vec3f(55.0, 3.0, 3.0))
+    stage.GetRootLayer().Save()
+
+
+#: Half size (m) of the square sump pool in the sump chamber.
+SUMP_POOL_HALF = 1.5
+
+
+def sewer_route() -> np.ndarray:
+    """(w, 2) local (x, z) route: north dry tunnel -> junction -> east along the south
+    walkway -> sump chamber -> south dry tunnel."""
+    waypoints = np.array([
+        [JUNCTION_X, NORTH_END_Z + 1.5], [JUNCTION_X, -2.5], [JUNCTION_X + 1.0, 1.3],
+        [SUMP_X - 3.5, 1.3], [SUMP_X - 0.5, 1.0], [SUMP_X, 4.0], [SUMP_X, SOUTH_END_Z - 1.5],
+    ])
+    return smooth_polyline(waypoints, iterations=5)
+
+
+def sewer_camera_keys(n_keys: int = 37) -> tuple[np.ndarray, ...]:
+    """Control points (positions (k,3), targets (k,3) in sewer world cm, times (k,))."""
+    route = sewer_route()
+    pos_xz = resample_polyline(route, n_keys)
+    dense = resample_polyline(route, 8 * n_keys)
+    # look 6 m ahead along the route (a point further along the curve, clamped at the end)
+    step = float(np.linalg.norm(dense[1] - dense[0]))
+    ahead_idx = np.minimum(np.arange(n_keys) * 8 + int(round(6.0 / step)), len(dense) - 1)
+    tgt_xz = dense[ahead_idx]
+    last_dir = dense[-1] - dense[-8]
+    short = np.linalg.norm(tgt_xz - pos_xz, axis=1) < 3.0
+    tgt_xz[short] = pos_xz[short] + 6.0 * last_dir / np.linalg.norm(last_dir)
+    eye_y, tgt_y = 1.6, 1.1
+    pos = np.stack([pos_xz[:, 0], np.full(n_keys, eye_y), pos_xz[:, 1]], axis=1)
+    tgt = np.stack([tgt_xz[:, 0], np.full(n_keys, tgt_y), tgt_xz[:, 1]], axis=1)
+    to_world = SEWER_FROM_LOCAL[:3, :3]
+    return pos @ to_world.T, tgt @ to_world.T, np.linspace(START_FRAME, END_FRAME, n_keys)
+
+
+def build_sewer(out: Path) -> Path:
+    """Write stages/sewer.usda (+ sewer_geometry.usdc). Returns the root path."""
+    build_sewer_geometry(out / "sewer_geometry.usdc")
+    stage = new_stage(out / "sewer.usda", "Z", 0.01, "World")
+    set_time_range(stage, START_FRAME, END_FRAME)
+    stage.GetRootLayer().documentation = (
+        "phrt-usd example: sewer tunnel network, Z-up, centimetres, 33 reflectors "
+        "(PhrtReflectorAPI). Generated by tools/make_stages.py; do not edit by hand."
+    )
+    looks = "/World/Looks"
+    UsdGeom.Scope.Define(stage, looks)
+    mats = {
+        "Concrete": make_material(stage, f"{looks}/Concrete", (0.42, 0.40, 0.36), 0.9),
+        "Walkway": make_material(stage, f"{looks}/Walkway", (0.33, 0.31, 0.28), 0.9),
+        "Rail": make_material(stage, f"{looks}/Rail", (0.75, 0.55, 0.10), 0.5, 0.5),
+        "Grate": make_material(stage, f"{looks}/Grate", (0.15, 0.15, 0.16), 0.6, 1.0),
+        "Rust": make_material(stage, f"{looks}/Rust", (0.45, 0.22, 0.10), 0.8, 0.3),
+        "Water": make_material(stage, f"{looks}/Water", (0.10, 0.16, 0.10), 0.05),
+        "WetTile": make_material(stage, f"{looks}/WetTile", (0.20, 0.35, 0.35), 0.15),
+        "Copper": make_material(stage, f"{looks}/Copper", (0.80, 0.50, 0.35), 0.25, 1.0),
+    }
+    scenery = stage.DefinePrim("/World/Scenery", "Xform")
+    scenery.GetReferences().AddReference("./sewer_geometry.usdc")
+    for name, mat in (("Shell", "Concrete"), ("Chambers", "Concrete"), ("Walkways", "Walkway"),
+                      ("Railings", "Rail"), ("Grates", "Grate"), ("DryPipes", "Rust"),
+                      ("Ladder", "Rail")):
+        bind(stage.GetPrimAtPath(f"/World/Scenery/{name}"), mats[name == "Ladder" and "Rail"
+                                                                  or mat])
+
+    # ---- Reflectors (33) ----
+    ch = CHAMBER_HALF
+    UsdGeom.Xform.Define(stage, "/World/Water")
+    segments: list[tuple[float, float]] = []
+    for x0, x1, n in ((WEST_END_X, JUNCTION_X - ch, 4), (JUNCTION_X + ch, SUMP_X - ch, 6)):
+        edges = np.linspace(x0, x1, n + 1)
+        segments += list(zip(edges[:-1], edges[1:], strict=True))
+    segments.append((JUNCTION_X - ch, JUNCTION_X + ch))
+    for k, (x0, x1) in enumerate(segments):
+        seg = author_mesh(stage, f"/World/Water/Channel{k:02d}",
+                          sewer_mesh(quad(x1 - x0, 2 * CHANNEL_HALF, "+y")))
+        place(seg, sewer_point(((x0 + x1) / 2, WATER_Y, 0.0)))
+        bind(seg, mats["Water"])
+        make_reflector(seg, 0.5 + 0.5 * (k % 2), 0.6)
+    pool = author_mesh(stage, "/World/Water/SumpPool",
+                       sewer_mesh(quad(2 * SUMP_POOL_HALF, 2 * SUMP_POOL_HALF, "+y")))
+    place(pool, sewer_point((SUMP_X, WATER_Y, 0.0)))
+    bind(pool, mats["Water"])
+    make_reflector(pool, 1.0, 0.6)
+
+    UsdGeom.Xform.Define(stage, "/World/WetPanels")
+    panel_x = np.linspace(JUNCTION_X + ch + 2.0, SUMP_X - ch - 2.0, 6)
+    k = 0
+    for side, z, facing in (("S", MAIN_WIDTH / 2 - 0.03, "-z"), ("N", -MAIN_WIDTH / 2 + 0.03, "+z")):
+        for j, x in enumerate(panel_x + (0.0 if side == "S" else 0.8)):
+            p = author_mesh(stage, f"/World/WetPanels/Panel{side}{j}",
+                            sewer_mesh(quad(2.4, 1.2, facing)))
+            place(p, sewer_point((x, 0.9, z)))
+            bind(p, mats["WetTile"])
+            make_reflector(p, 1.0 + (j % 3), 0.45)
+            k += 1
+    for j, (cx, z, facing) in enumerate(((JUNCTION_X, ch - 0.03, "-z"),
+                                          (JUNCTION_X + 1.0, -ch + 0.03, "+z"),
+                                          (SUMP_X - 1.6, ch - 0.03, "-z"),
+                                          (SUMP_X + 1.6, -ch + 0.03, "+z"))):
+        p = author_mesh(stage, f"/World/WetPanels/ChamberPanel{j}",
+                        sewer_mesh(quad(2.0, 2.0, facing)))
+        place(p, sewer_point((cx - 1.0 if j == 0 else cx, 1.3, z)))
+        bind(p, mats["WetTile"])
+        make_reflector(p, 2.0, 0.5)
+
+    UsdGeom.Xform.Define(stage, "/World/Pipes")
+    length = SUMP_X - JUNCTION_X - 2 * ch
+    for j, (y, z) in enumerate(((1.8, 1.75), (2.05, 1.5), (1.8, -1.75), (2.05, -1.5),
+                                (0.15, -1.85))):
+        pipe = UsdGeom.Cylinder.Define(stage, f"/World/Pipes/Pipe{j}")
+        pipe.CreateAxisAttr("X")
+        pipe.CreateRadiusAttr(10.0 if j < 4 else 6.0)
+        pipe.CreateHeightAttr(float(length * SEWER_UNITS_PER_METRE))
+        place(pipe, sewer_point((JUNCTION_X + ch + length / 2, y, z)))
+        bind(pipe, mats["Copper"])
+        make_reflector(pipe, 1.0 + j % 3, 0.55)
+
+    # ---- Lights ----
+    UsdGeom.Xform.Define(stage, "/World/Lights")
+    lamp_spots = [(x, 0.0) for x in np.arange(WEST_END_X + 3.0, SUMP_X - ch, 7.0)]
+    lamp_spots += [(JUNCTION_X, z) for z in np.arange(NORTH_END_Z + 3.0, -ch, 7.0)]
+    lamp_spots += [(SUMP_X, z) for z in np.arange(ch + 3.0, SOUTH_END_Z, 7.0)]
+    for j, (x, z) in enumerate(lamp_spots):
+        lamp = UsdLux.SphereLight.Define(stage, f"/World/Lights/Lamp{j:02d}")
+        lamp.CreateRadiusAttr(8.0)
+        lamp.CreateIntensityAttr(3000.0)
+        lamp.CreateColorAttr(Gf.Vec3f(1.0, 0.85, 0.6))
+        top = (MAIN_WALL + MAIN_WIDTH / 2) if abs(z) < 0.5 else (DRY_WALL + DRY_WIDTH / 2)
+        place(lamp, sewer_point((x, top - 0.25, z)))
+    shaft = UsdLux.RectLight.Define(stage, "/World/Lights/ShaftLight")
+    shaft.CreateWidthAttr(100.0)
+    shaft.CreateHeightAttr(100.0)
+    shaft.CreateIntensityAttr(800.0)
+    shaft.CreateColorAttr(Gf.Vec3f(0.8, 0.9, 1.0))
+    place(shaft, sewer_point((JUNCTION_X, CHAMBER_HEIGHT - 0.05, 0.0)))  # emits along -Z (down)
+    ambient = UsdLux.DomeLight.Define(stage, "/World/Lights/Ambient")
+    ambient.CreateIntensityAttr(0.05)
+    ambient.CreateColorAttr(Gf.Vec3f(0.6, 0.7, 0.8))
+
+    # ---- Cameras ----
+    positions, targets, times = sewer_camera_keys()
+    up = (0.0, 0.0, 1.0)
+    make_camera(stage, "/World/Camera", 18.0, (5.0, 10000.0), positions[0], targets[0], up)
+    make_camera_path(stage, "/World/CameraPath", "/World/Camera", positions, targets, times)
+    inspect = UsdGeom.Camera.Define(stage, "/World/InspectionCam")
+    inspect.CreateFocalLengthAttr(24.0)
+    inspect.CreateHorizontalApertureAttr(HORIZONTAL_APERTURE_MM)
+    inspect.CreateVerticalApertureAttr(VERTICAL_APERTURE_MM)
+    inspect.CreateClippingRangeAttr(Gf.Vec2f(5.0, 10000.0))
+    translate = inspect.AddTranslateOp(UsdGeom.XformOp.PrecisionDouble)
+    rotate = inspect.AddRotateXYZOp()
+    frames = np.unique(np.append(np.arange(START_FRAME, END_FRAME + 1, 4.0), END_FRAME))
+    s = (frames - START_FRAME) / (END_FRAME - START_FRAME)
+    # walks east along the north walkway while panning from looking west to looking east;
+    # rotateXYZ = (90 + pitch, 0, yaw): X by 90 turns the camera's -Z view to +Y, Z yaws
+    xs = JUNCTION_X + ch + 1.0 + s * (length - 2.0)
+    yaw = 90.0 - 180.0 * (0.5 - 0.5 * np.cos(np.pi * s))  # +90: looking -X (west)
+    pitch = -12.0 + 6.0 * np.sin(2 * np.pi * s)
+    for f, x, yw, pt in zip(frames, xs, yaw, pitch, strict=True):
+        translate.Set(Gf.Vec3d(*sewer_point((x, 1.7, -1.4))), Usd.TimeCode(float(f)))
+        rotate.Set(Gf.Vec3f(90.0 + float(pt), 0.0, float(yw)), Usd.TimeCode(float(f)))
+    make_render_settings(stage, "/World/Camera")
+    stage.GetRootLayer().Save()
+    return out / "sewer.usda"
+
+
+# --------------------------------------------------------------------------------------
 # Checks and previews (used by main --preview and by tests/test_stages.py)
 # --------------------------------------------------------------------------------------
 
@@ -1198,7 +1529,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     args = parser.parse_args(argv)
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
-    for build in (build_farm,):
+    for build in (build_farm, build_sewer):
         root = build(out)
         stage = Usd.Stage.Open(str(root))
         tris, implicit = count_mesh_triangles(stage)
