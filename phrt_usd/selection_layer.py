@@ -105,9 +105,10 @@ def write_selection_layer(
     reflectors.extend(_reflector_paths_in(layer))
     reflectors = list(dict.fromkeys(reflectors))
 
+    membership = [(set(f.selected), set(f.visible)) for f in frames]
     with Sdf.ChangeBlock():
         for reflector in reflectors:
-            _write_reflector(layer, reflector, frames)
+            _write_reflector(layer, reflector, frames, membership)
         _write_stats_prim(layer, frames)
         _write_metadata(layer, stage_path, run_info, frames, tcps)
 
@@ -185,8 +186,16 @@ def read_selection_record(layer_path: Path) -> SelectionRecord:
 # --- writing ---------------------------------------------------------------------------
 
 
-def _write_reflector(layer: Sdf.Layer, reflector: str, frames: list[FrameStats]) -> None:
-    """Samples of one reflector at every frame of ``frames`` (creating its ``over``)."""
+def _write_reflector(
+    layer: Sdf.Layer,
+    reflector: str,
+    frames: list[FrameStats],
+    membership: list[tuple[set[str], set[str]]],
+) -> None:
+    """Samples of one reflector at every frame of ``frames`` (creating its ``over``).
+
+    membership: per frame, (selected paths, visible paths) as sets.
+    """
     try:
         prim_path = Sdf.Path(reflector)
     except Exception:  # noqa: BLE001 - Sdf raises Tf errors of varying types
@@ -197,9 +206,9 @@ def _write_reflector(layer: Sdf.Layer, reflector: str, frames: list[FrameStats])
     selected = _attribute(prim, SELECTED, Sdf.ValueTypeNames.Bool)
     visible = _attribute(prim, VISIBLE, Sdf.ValueTypeNames.Bool)
     figures = [(_attribute(prim, name, kind), key) for name, kind, key in FIGURE_ATTRIBUTES]
-    for frame in frames:
-        layer.SetTimeSample(selected, frame.time, reflector in set(frame.selected))
-        layer.SetTimeSample(visible, frame.time, reflector in set(frame.visible))
+    for frame, (selected_paths, visible_paths) in zip(frames, membership, strict=True):
+        layer.SetTimeSample(selected, frame.time, reflector in selected_paths)
+        layer.SetTimeSample(visible, frame.time, reflector in visible_paths)
         metrics: ReflectorMetrics | None = frame.metrics.get(reflector)
         for attribute, key in figures:
             value = Sdf.ValueBlock() if metrics is None else _finite(getattr(metrics, key))
