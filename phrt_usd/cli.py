@@ -170,3 +170,204 @@ def _print_summary(s: dict) -> None:
     lights = ", ".join(f"{li['type']} {li['path']}" for li in s["lights"]) or "none"
     console.print(f"Lights: {lights}")
     console.print(f"Passes: {', '.join(s['passes'])}")
+
+
+#: The demo stage rendered when `phrt render` is given no stage.
+DEMO_STAGE = Path(__file__).resolve().parent.parent / "stages" / "farm.usda"
+
+EXIT_INTERRUPTED = 130
+
+
+def _parse_resolution(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise PhrtError(f"--resolution {text!r}: expected WxH, e.g. 320x240") from None
+    return w, h
+
+
+def _unbounded(value: float | None) -> float | None:
+    """`inf` on the command line means an unbounded budget."""
+    return None if value is not None and value == float("inf") else value
+
+
+def _progress(enabled: bool):
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeRemainingColumn
+
+    return Progress(
+        "[progress.description]{task.description}",
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeRemainingColumn(),
+        console=Console(stderr=True),
+        disable=not enabled,
+    )
+
+
+@app.command()
+def render(
+    stage: Annotated[
+        Path | None, typer.Argument(help="USD stage (default: the demo stage farm.usda).")
+    ] = None,
+    out: Annotated[Path, typer.Option("--out", "-o", help="Output directory.")] = Path("out"),
+    frames: Annotated[
+        str | None, typer.Option(help="A:B[:STEP] in stage time codes, both ends included.")
+    ] = None,
+    mode: Annotated[str | None, typer.Option(help="raster | hybrid | rt.")] = None,
+    heuristic: Annotated[str | None, typer.Option(help="heu1 | heu2 | all | none.")] = None,
+    budget_ms: Annotated[
+        float | None, typer.Option(help="Trace budget T per frame in ms (inf: unbounded).")
+    ] = None,
+    budget_rays: Annotated[
+        int | None, typer.Option(help="Trace budget in rays per frame (deterministic).")
+    ] = None,
+    resolution: Annotated[str | None, typer.Option(help="WxH, e.g. 320x240.")] = None,
+    bounce_limit: Annotated[int | None, typer.Option(help="Reflection bounce limit.")] = None,
+    selection_weight: Annotated[
+        float | None, typer.Option(help="I, the weight of the previous selection.")
+    ] = None,
+    camera: Annotated[str | None, typer.Option(help="Camera prim path.")] = None,
+    selection_layer: Annotated[
+        Path | None, typer.Option(help="Selection layer (default OUT/selection.usda).")
+    ] = None,
+    resume: Annotated[bool, typer.Option(help="Continue an interrupted render in OUT.")] = False,
+    images: Annotated[bool, typer.Option(help="Write EXR + PNG per frame.")] = True,
+    json_out: JsonOpt = False,
+) -> None:
+    """Render the stage's camera path: images, stats.json and the selection layer."""
+    from phrt_usd.render_job import RenderInterrupted, RenderJob, run_render
+    from phrt_usd.renderer import RenderOptions
+    from phrt_usd.schema import read_render_params
+    from phrt_usd.stage_reader import read_stage
+
+    stage = stage or DEMO_STAGE
+    with user_errors():
+        usd_stage = open_input(stage)
+        params = read_render_params(usd_stage)
+        scene = read_stage(usd_stage, camera=camera)
+        width, height = _parse_resolution(resolution) if resolution else params.resolution
+        budget_ms = _unbounded(budget_ms)
+        if budget_ms is None and budget_rays is not None:
+            ms = None  # a rays budget alone is the deterministic budget
+        else:
+            ms = budget_ms if budget_ms is not None else params.budget_ms
+        rays = budget_rays if budget_rays is not None else params.budget_rays
+        options = RenderOptions(
+            mode=mode or params.mode,
+            heuristic=heuristic or params.heuristic,
+            width=width,
+            height=height,
+            budget_ms=ms,
+            budget_rays=rays,
+            bounce_limit=params.bounce_limit if bounce_limit is None else bounce_limit,
+            selection_weight=(
+                params.selection_weight if selection_weight is None else selection_weight
+            ),
+        )
+        job = RenderJob(
+            stage_path=stage,
+            out_dir=out,
+            options=options,
+            frames=frames,
+            camera=camera,
+            selection_layer=selection_layer,
+            resume=resume,
+            write_images=images,
+        )
+        progress = _progress(not json_out and sys.stderr.isatty())
+        with progress:
+            task = progress.add_task(f"render {stage.name}", total=None)
+
+            def on_frame(done: int, total: int, _stats) -> None:
+                progress.update(task, completed=done, total=total)
+
+            try:
+                summary = run_render(job, on_frame=on_frame, stage_scene=scene)
+            except RenderInterrupted as exc:
+                typer.echo(f"interrupted: {exc}", err=True)
+                raise typer.Exit(EXIT_INTERRUPTED) from None
+    if json_out:
+        print_json(summary)
+    else:
+        from phrt_usd.report import print_report
+
+        print_report(summary, Console())
+        typer.echo(f"wrote {summary['out']}")
+
+
+@app.command()
+def report(
+    run: Annotated[Path, typer.Argument(help="Run directory or selection layer.")],
+    vs: Annotated[Path | None, typer.Option(help="Another run to compare with.")] = None,
+    json_out: JsonOpt = False,
+) -> None:
+    """The paper's metrics (transitions, mean selected, fps, overruns) of a run."""
+    from phrt_usd.report import build_report, print_report
+
+    with user_errors():
+        result = build_report(run, vs)
+    if json_out:
+        print_json(result)
+    else:
+        print_report(result, Console())
+
+
+@app.command()
+def sweep(
+    stages: Annotated[list[Path], typer.Argument(help="USD stages.")],
+    heuristics: Annotated[str, typer.Option(help="Comma list of heu1, heu2.")] = "heu1,heu2",
+    budgets_ms: Annotated[
+        str | None, typer.Option(help="Comma list of trace budgets in ms (inf allowed).")
+    ] = None,
+    budgets_rays: Annotated[
+        str | None, typer.Option(help="Comma list of trace budgets in rays.")
+    ] = None,
+    frames: Annotated[str | None, typer.Option(help="A:B[:STEP] time codes.")] = None,
+    resolution: Annotated[str, typer.Option(help="WxH.")] = "320x240",
+    bounce_limit: Annotated[int, typer.Option(help="Reflection bounce limit.")] = 5,
+    selection_weight: Annotated[
+        float | None, typer.Option(help="I (default: the first stage's setting).")
+    ] = None,
+    out: Annotated[Path, typer.Option("--out", "-o", help="Output directory.")] = Path("sweep"),
+    json_out: JsonOpt = False,
+) -> None:
+    """Error against run time: every heuristic x budget against the `all` and `rt`
+    references; writes sweep.csv, summary.md, error_vs_time.png and report.html."""
+    from phrt_usd.schema import read_render_params
+    from phrt_usd.sweep import SweepSpec, parse_budget_list, run_sweep
+
+    with user_errors():
+        for path in stages:
+            open_input(path)  # every stage readable before the sweep starts
+        weight = selection_weight
+        if weight is None:
+            weight = read_render_params(open_input(stages[0])).selection_weight
+        width, height = _parse_resolution(resolution)
+        spec = SweepSpec(
+            stages=stages,
+            heuristics=[h.strip() for h in heuristics.split(",") if h.strip()],
+            budgets_ms=parse_budget_list(budgets_ms, float),
+            budgets_rays=parse_budget_list(budgets_rays, int),
+            frames=frames,
+            width=width,
+            height=height,
+            bounce_limit=bounce_limit,
+            selection_weight=weight,
+            out=out,
+        )
+        progress = _progress(not json_out and sys.stderr.isatty())
+        with progress:
+            tasks: dict[str, int] = {}
+
+            def on_frame(stage_name: str, done: int, total: int) -> None:
+                if stage_name not in tasks:
+                    tasks[stage_name] = progress.add_task(f"sweep {stage_name}", total=total)
+                progress.update(tasks[stage_name], completed=done)
+
+            summary = run_sweep(spec, on_frame=on_frame)
+    if json_out:
+        print_json(summary)
+    else:
+        typer.echo(f"wrote {summary['rows']} rows and the report to {summary['out']}")
+    if summary["interrupted"]:
+        raise typer.Exit(EXIT_INTERRUPTED)
