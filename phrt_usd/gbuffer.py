@@ -85,6 +85,23 @@ SHADOW_MIN_COS = 0.1
 GRAZING_EPS = 1e-12
 
 
+class _ProgramCache(ShaderProgramCache):
+    """pyrender's program cache over our shader directory, keyed by shader names and
+    defines only. pyrender keys by the current context too, but under OSMesa every
+    ``getContext()`` returns a new pointer object that never compares equal, so its
+    cache misses on every call and recompiles (and leaks) the program each frame. Each
+    ``Rasterizer`` owns its context and its cache, so the context is not needed here."""
+
+    def get_program(self, vertex_shader, fragment_shader, geometry_shader=None, defines=None):
+        defines = defines or {}
+        key = (vertex_shader, fragment_shader, geometry_shader, tuple(sorted(defines.items())))
+        if key not in self._program_cache:
+            self._program_cache[key] = super().get_program(
+                vertex_shader, fragment_shader, geometry_shader, defines
+            )
+        return self._program_cache[key]
+
+
 class _ExactPerspective(pyrender.camera.Camera):
     """pyrender camera whose projection matrix is given explicitly (camera → clip)."""
 
@@ -152,7 +169,7 @@ class Rasterizer:
         self._platform.init_context()
         self._platform.make_current()
         self._renderer = pyrender.Renderer(self.width, self.height)
-        self._renderer._program_cache = ShaderProgramCache(shader_dir=SHADER_DIR)
+        self._renderer._program_cache = _ProgramCache(shader_dir=SHADER_DIR)
         self._create_framebuffers()
         # Our single-sampled framebuffer replaces pyrender's multisampled one.
         self._renderer._configure_main_framebuffer = lambda: None
@@ -193,25 +210,55 @@ class Rasterizer:
         self._build_tables(scene)
 
     def _build_tables(self, scene: Scene) -> None:
-        """Per-triangle float64 tables for the ray-plane intersection and barycentrics.
+        """Per-triangle tables, packed so that each frame does one gather per table.
 
-        _a: (T, 3) first corner, rel metres; _e1, _e2: (T, 3) edges b - a, c - a;
-        _ng: (T, 3) unnormalised geometric normal e1 x e2;
-        _d00, _d01, _d11, _inv_den: (T,) Gram-matrix terms of the edges.
+        _tri64 : (T, 13) float64, rel space. Columns: g1 (3), c1, g2 (3), c2, n_g (3),
+                 h, |n_g|. n_g = e1 x e2 (unnormalised geometric normal, e1 = b - a,
+                 e2 = c - a), h = n_g·a. For a point p on the plane, the barycentric
+                 weights of b and c are v = p·g1 - c1 and w = p·g2 - c2 (g1, g2: the dual
+                 basis of e1, e2 within the plane).
+        _tri32 : (T, 6, 3) float32, the three corner normals then the three corner
+                 albedos (``Geometry.corner_normals`` / ``corner_albedo``).
+        _tri_textured : (T,) bool, True where the material has a texture and uvs exist.
         """
         geo = scene.geometry
         rel = geo.vertices - self._origin
         tri = rel[geo.triangles]
-        self._a = tri[:, 0]
-        self._e1 = tri[:, 1] - tri[:, 0]
-        self._e2 = tri[:, 2] - tri[:, 0]
-        self._ng = np.cross(self._e1, self._e2)
-        self._d00 = np.einsum("ij,ij->i", self._e1, self._e1)
-        self._d01 = np.einsum("ij,ij->i", self._e1, self._e2)
-        self._d11 = np.einsum("ij,ij->i", self._e2, self._e2)
-        den = self._d00 * self._d11 - self._d01**2
+        a = tri[:, 0]
+        e1 = tri[:, 1] - a
+        e2 = tri[:, 2] - a
+        ng = np.cross(e1, e2)
+        d00 = np.einsum("ij,ij->i", e1, e1)
+        d01 = np.einsum("ij,ij->i", e1, e2)
+        d11 = np.einsum("ij,ij->i", e2, e2)
+        den = d00 * d11 - d01**2
         # Degenerate (zero-area) triangles never cover a pixel; guard the division anyway.
-        self._inv_den = np.where(den > 0.0, 1.0 / np.where(den > 0.0, den, 1.0), 0.0)
+        inv = np.where(den > 0.0, 1.0 / np.where(den > 0.0, den, 1.0), 0.0)[:, None]
+        g1 = (d11[:, None] * e1 - d01[:, None] * e2) * inv
+        g2 = (d00[:, None] * e2 - d01[:, None] * e1) * inv
+        self._tri64 = np.concatenate(
+            [
+                g1,
+                np.einsum("ij,ij->i", a, g1)[:, None],
+                g2,
+                np.einsum("ij,ij->i", a, g2)[:, None],
+                ng,
+                np.einsum("ij,ij->i", a, ng)[:, None],
+                np.linalg.norm(ng, axis=1)[:, None],
+            ],
+            axis=1,
+        )
+        self._tri32 = np.ascontiguousarray(
+            np.concatenate([geo.corner_normals, geo.corner_albedo], axis=1), dtype=np.float32
+        )
+        textures = scene.materials.textures
+        has_tex = np.array([t is not None for t in textures] + [False], dtype=bool)
+        mat = np.where(
+            (geo.tri_material >= 0) & (geo.tri_material < len(textures)),
+            geo.tri_material,
+            len(textures),
+        )
+        self._tri_textured = has_tex[mat] & (geo.corner_uv is not None)
         if len(rel):
             self._bounds_rel = np.stack([rel.min(axis=0), rel.max(axis=0)])
         else:
@@ -232,7 +279,7 @@ class Rasterizer:
             self._mesh_node is not None
             and np.array_equal(np.asarray(scene.origin, dtype=np.float64), self._origin)
             and geo.vertices.shape == self._uploaded.shape
-            and geo.triangle_count == len(self._a)
+            and geo.triangle_count == len(self._tri64)
             and np.array_equal(geo.triangles, self._scene.geometry.triangles)
         )
         if not same_topology:
@@ -337,7 +384,7 @@ class Rasterizer:
             ys = (1.0 - (np.arange(self.height) + 0.5) / self.height * 2.0) * ty
             gx, gy = np.meshgrid(xs, ys)
             d = np.stack([gx, gy, -np.ones_like(gx)], axis=-1).reshape(-1, 3)
-            self._dirs_cam = d
+            self._dirs_cam = d / np.linalg.norm(d, axis=1, keepdims=True)
             self._dirs_key = key
         return self._dirs_cam
 
@@ -367,66 +414,69 @@ class Rasterizer:
         else:
             ids = np.zeros(h * w, dtype=np.uint32)
 
-        # Directions: rotate the cached camera-space rays, normalise (as pixel_rays does).
+        # Directions: rotate the cached unit camera-space rays (as pixel_rays does; a
+        # camera transform with scale or shear needs the normalisation again).
         d = self._camera_dirs(camera) @ rot.T
-        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        if not np.allclose(rot.T @ rot, np.eye(3), rtol=0.0, atol=1e-12):
+            d /= np.linalg.norm(d, axis=1, keepdims=True)
 
-        tri_count = len(self._a)
-        covered = np.flatnonzero((ids > 0) & (ids <= tri_count))
-        tid = (ids[covered].astype(np.int64)) - 1
+        covered = np.flatnonzero((ids > 0) & (ids <= len(self._tri64)))
+        tid = ids[covered].astype(np.int64) - 1
 
         triangle_id = np.full(h * w, NO_HIT, dtype=np.int32)
         element_id = np.full(h * w, NO_HIT, dtype=np.int32)
         depth = np.full(h * w, np.inf, dtype=np.float32)
         position = np.zeros((h * w, 3), dtype=np.float64)
-        normal = (-d).astype(np.float32)
+        view_dir = d.astype(np.float32)
+        normal = -view_dir
         albedo = np.zeros((h * w, 3), dtype=np.float32)
 
         if len(covered):
             geo = self._scene.geometry
             dc = d[covered]
-            ng = self._ng[tid]
-            a = self._a[tid]
-            # Ray-plane intersection in float64, rel space: t = n·(a - o) / n·d.
-            num = np.einsum("ij,ij->i", ng, a - eye_rel)
+            tab = self._tri64[tid]  # (n, 13), see _build_tables
+            ng = tab[:, 8:11]
+            # Ray-plane intersection in float64, rel space: t = (h - n·o) / n·d.
             den = np.einsum("ij,ij->i", ng, dc)
-            floor = GRAZING_EPS * np.linalg.norm(ng, axis=1)
+            floor = GRAZING_EPS * tab[:, 12]
             den = np.where(np.abs(den) < floor, np.where(den < 0, -floor, floor), den)
-            den = np.where(den == 0.0, 1.0, den)  # zero-area triangle: t clamped below
-            t = np.clip(num / den, near, far)
+            den[den == 0.0] = 1.0  # zero-area triangle: t is clamped just below
+            t = np.clip((tab[:, 11] - ng @ eye_rel) / den, near, far)
             p_rel = eye_rel + t[:, None] * dc
 
-            # Barycentrics of p in its triangle (clamped onto it: pixel centres on an
-            # edge may lie a rounding error outside).
-            v2 = p_rel - a
-            d20 = np.einsum("ij,ij->i", v2, self._e1[tid])
-            d21 = np.einsum("ij,ij->i", v2, self._e2[tid])
-            inv = self._inv_den[tid]
-            bv = (self._d11[tid] * d20 - self._d01[tid] * d21) * inv
-            bw = (self._d00[tid] * d21 - self._d01[tid] * d20) * inv
+            # Barycentrics of p, clamped onto the triangle (pixel centres on an edge may
+            # lie a rounding error outside).
+            bv = np.einsum("ij,ij->i", p_rel, tab[:, 0:3]) - tab[:, 3]
+            bw = np.einsum("ij,ij->i", p_rel, tab[:, 4:7]) - tab[:, 7]
             bary = np.stack([1.0 - bv - bw, bv, bw], axis=1).clip(0.0, 1.0)
             bary /= np.maximum(bary.sum(axis=1, keepdims=True), 1e-12)
-            bary32 = bary.astype(np.float32)
+            bary = bary.astype(np.float32)[:, :, None]  # (n, 3, 1)
 
-            # Shading normal: interpolate, put it on the camera's side of the triangle;
-            # where it still faces away (or is degenerate), use the geometric normal.
-            n = np.einsum("ij,ijk->ik", bary32, geo.corner_normals[tid])
-            side = np.where(den > 0.0, -1.0, 1.0).astype(np.float32)  # n_g·d > 0: back
-            n *= side[:, None]
+            corners = self._tri32[tid]  # (n, 6, 3): 3 normals, 3 albedos
+            n = (bary * corners[:, 0:3]).sum(axis=1)
+            col = (bary * corners[:, 3:6]).sum(axis=1)
+
+            # Shading normal on the camera's side of the triangle; where it still faces
+            # away (or is degenerate), use the geometric normal.
+            side = np.where(den > 0.0, -1.0, 1.0)  # n_g·d > 0: the back face is seen
+            n *= side[:, None].astype(np.float32)
             n_len = np.linalg.norm(n, axis=1)
-            ng_unit = (ng * side[:, None]) / np.maximum(
-                np.linalg.norm(ng, axis=1, keepdims=True), 1e-300
-            )
-            bad = (n_len < 1e-6) | (np.einsum("ij,ij->i", n, dc) >= 0.0)
-            n = np.where(bad[:, None], ng_unit, n / np.maximum(n_len, 1e-6)[:, None])
-            normal[covered] = n.astype(np.float32)
+            bad = (n_len < 1e-6) | (np.einsum("ij,ij->i", n, view_dir[covered]) >= 0.0)
+            n /= np.maximum(n_len, 1e-6)[:, None]
+            if bad.any():
+                g = ng[bad] * (side[bad] / np.maximum(tab[bad, 12], 1e-300))[:, None]
+                n[bad] = g.astype(np.float32)
+            normal[covered] = n
 
-            albedo[covered] = self._albedo(tid, bary32)
-            triangle_id[covered] = tid.astype(np.int32)
+            textured = self._tri_textured[tid]
+            if textured.any():
+                col[textured] = self._texture_albedo(tid[textured], bary[textured, :, 0])
+            albedo[covered] = col
+            triangle_id[covered] = tid
             element_id[covered] = geo.tri_element[tid]
             position[covered] = p_rel + self._origin
             fwd = -rot[:, 2] / np.linalg.norm(rot[:, 2])
-            depth[covered] = (t * (dc @ fwd)).astype(np.float32)
+            depth[covered] = t * (dc @ fwd)
 
         return GBuffer(
             element_id=element_id.reshape(h, w),
@@ -435,26 +485,24 @@ class Rasterizer:
             position=position.reshape(h, w, 3),
             normal=normal.reshape(h, w, 3),
             albedo=albedo.reshape(h, w, 3),
-            view_dir=d.astype(np.float32).reshape(h, w, 3),
+            view_dir=view_dir.reshape(h, w, 3),
         )
 
-    def _albedo(self, tid: np.ndarray, bary: np.ndarray) -> np.ndarray:
-        """(n, 3) float32 linear RGB: interpolated corner albedo, replaced by a bilinear,
-        wrapping texture lookup where the triangle's material has a texture (image row
-        0 = top, so v = 0 is the bottom row; USD ``st`` convention)."""
+    def _texture_albedo(self, tid: np.ndarray, bary: np.ndarray) -> np.ndarray:
+        """(n, 3) float32 linear RGB for pixels on textured triangles: bilinear, wrapping
+        lookup of the material's texture at the interpolated uv (image row 0 = top, so
+        v = 0 is the bottom row: the USD ``st`` convention).
+
+        tid : (n,) triangle ids, all textured; bary : (n, 3) float32 weights.
+        """
         geo = self._scene.geometry
-        out = np.einsum("ij,ijk->ik", bary, geo.corner_albedo[tid])
         textures = self._scene.materials.textures
-        if geo.corner_uv is None or not any(tex is not None for tex in textures):
-            return out
+        uv = (bary[:, :, None] * geo.corner_uv[tid]).sum(axis=1)
         mats = geo.tri_material[tid]
-        for m in np.unique(mats):
-            tex = textures[m] if 0 <= m < len(textures) else None
-            if tex is None:
-                continue
-            sel = np.flatnonzero(mats == m)
-            uv = np.einsum("ij,ijk->ik", bary[sel], geo.corner_uv[tid[sel]])
-            out[sel] = sample_bilinear_wrap(tex, uv)
+        out = np.zeros((len(tid), 3), dtype=np.float32)
+        for m in np.unique(mats):  # loop over the few textured materials in view
+            sel = mats == m
+            out[sel] = sample_bilinear_wrap(textures[m], uv[sel])
         return out
 
     # ------------------------------------------------------------------ shadows
