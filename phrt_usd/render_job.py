@@ -10,7 +10,6 @@ the policy exactly as it was, so the result equals an uninterrupted run.
 
 from __future__ import annotations
 
-import datetime
 import os
 import pickle
 import signal
@@ -22,13 +21,12 @@ from pathlib import Path
 
 import numpy as np
 
-from phrt_usd import __version__
 from phrt_usd.errors import PhrtError
 from phrt_usd.frame import FrameStats
 from phrt_usd.images import write_frame_exr, write_preview_png
 from phrt_usd.renderer import FrameRenderer, RenderOptions
 from phrt_usd.report import build_report
-from phrt_usd.run_files import frame_image_paths, write_stats
+from phrt_usd.run_files import frame_image_paths, make_run_info, write_stats
 from phrt_usd.selection_layer import write_selection_layer
 from phrt_usd.stage_reader import StageScene, open_stage
 
@@ -144,23 +142,21 @@ def run_render(
 
 def _run_info(job: RenderJob, scene: StageScene, times: list[float]) -> dict:
     opts = job.options
-    return {
-        "stage": str(job.stage_path),
-        "camera": scene.camera_path,
-        "mode": opts.mode,
-        "heuristic": "all" if opts.mode == "rt" else opts.heuristic,
-        "budget_ms": opts.budget_ms,
-        "budget_rays": opts.budget_rays,
-        "bounce_limit": opts.bounce_limit,
-        "selection_weight": opts.selection_weight,
-        "resolution": [opts.width, opts.height],
-        "frames": [times[0], times[-1]],
-        "reflectors": [scene.scene.elements[i].path for i in scene.scene.reflector_ids],
-        "time_codes_per_second": scene.time_codes_per_second,
-        "machine_cores": os.cpu_count(),
-        "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
-        "version": __version__,
-    }
+    info = make_run_info(
+        stage=str(job.stage_path),
+        mode=opts.mode,
+        heuristic="all" if opts.mode == "rt" else opts.heuristic,
+        budget_ms=opts.budget_ms,
+        budget_rays=opts.budget_rays,
+        resolution=(opts.width, opts.height),
+        bounce_limit=opts.bounce_limit,
+        selection_weight=opts.selection_weight,
+        frame_range=(times[0], times[-1]),
+        reflectors=[scene.scene.elements[i].path for i in scene.scene.reflector_ids],
+        time_codes_per_second=scene.time_codes_per_second,
+    )
+    info["camera"] = scene.camera_path
+    return info
 
 
 # Options that must match between an interrupted run and its --resume.
