@@ -55,6 +55,9 @@ SEWER_SEED = 33
 HORIZONTAL_APERTURE_MM = 36.0
 VERTICAL_APERTURE_MM = 27.0
 
+#: Timestamp written into image headers so that regenerated textures are byte-identical.
+FIXED_DATETIME = "2014:10:01 00:00:00"
+
 REFLECTOR_API = "PhrtReflectorAPI"
 RENDER_SETTINGS_API = "PhrtRenderSettingsAPI"
 
@@ -186,8 +189,11 @@ def lathe(profile: np.ndarray, segments: int) -> Mesh:
     m = len(rings)
     ang = np.linspace(0.0, 2 * np.pi, segments, endpoint=False)
     ring_pts = np.stack(
-        [np.outer(np.cos(ang), rings[:, 0]), np.broadcast_to(rings[:, 1], (segments, m)),
-         -np.outer(np.sin(ang), rings[:, 0])],
+        [
+            np.outer(np.cos(ang), rings[:, 0]),
+            np.broadcast_to(rings[:, 1], (segments, m)),
+            -np.outer(np.sin(ang), rings[:, 0]),
+        ],
         axis=-1,
     )  # (segments, m, 3), vertex index = u * m + v
     pts = [ring_pts.reshape(-1, 3)]
@@ -214,8 +220,11 @@ def lathe(profile: np.ndarray, segments: int) -> Mesh:
         top = np.stack([np.full(segments, n), u * m + m - 1, u1 * m + m - 1], axis=1)
         faces.append(top.ravel())
         face_counts.append(np.full(segments, 3, np.int32))
-    return Mesh(np.vstack(pts), np.concatenate(face_counts).astype(np.int32),
-                np.concatenate(faces).astype(np.int32))
+    return Mesh(
+        np.vstack(pts),
+        np.concatenate(face_counts).astype(np.int32),
+        np.concatenate(faces).astype(np.int32),
+    )
 
 
 def cylinder(radius: float, height: float, segments: int, rings: int = 1) -> Mesh:
@@ -269,15 +278,26 @@ def gable_roof(width: float, depth: float, rise: float, overhang: float, thickne
         slabs.append(slab.transformed(rot))
     gables = []
     for zsign in (-1.0, 1.0):
-        tri = np.array([[-width / 2, 0, zsign * depth / 2], [width / 2, 0, zsign * depth / 2],
-                        [0, rise * width / 2 / half, zsign * depth / 2]])
+        tri = np.array(
+            [
+                [-width / 2, 0, zsign * depth / 2],
+                [width / 2, 0, zsign * depth / 2],
+                [0, rise * width / 2 / half, zsign * depth / 2],
+            ]
+        )
         order = [0, 1, 2] if zsign > 0 else [2, 1, 0]
         gables.append(Mesh(tri, np.array([3], np.int32), np.array(order, np.int32)))
     return merge(slabs + gables)
 
 
-def tunnel_shell(width: float, wall_height: float, length: float, arc_segments: int,
-                 length_segments: int, floor_y: float) -> Mesh:
+def tunnel_shell(
+    width: float,
+    wall_height: float,
+    length: float,
+    arc_segments: int,
+    length_segments: int,
+    floor_y: float,
+) -> Mesh:
     """Inside of a tunnel along +x (walls + half-round arched ceiling), faces inward.
 
     The cross-section (y, z) goes from the floor at z = -width/2 up the wall, over the arch
@@ -327,8 +347,9 @@ def set_time_range(stage: Usd.Stage, start: float, end: float) -> None:
     stage.SetFramesPerSecond(FPS)
 
 
-def author_mesh(stage: Usd.Stage, path: str, mesh: Mesh,
-                color: Sequence[float] | None = None) -> UsdGeom.Mesh:
+def author_mesh(
+    stage: Usd.Stage, path: str, mesh: Mesh, color: Sequence[float] | None = None
+) -> UsdGeom.Mesh:
     """Define a UsdGeomMesh (subdivisionScheme none, extent, optional constant colour)."""
     prim = UsdGeom.Mesh.Define(stage, path)
     pts = mesh.points.astype(np.float32)
@@ -340,7 +361,9 @@ def author_mesh(stage: Usd.Stage, path: str, mesh: Mesh,
         finite = pts[np.isfinite(pts).all(axis=1)]
         if len(finite):
             prim.CreateExtentAttr(
-                Vt.Vec3fArray([Gf.Vec3f(*finite.min(0).tolist()), Gf.Vec3f(*finite.max(0).tolist())])
+                Vt.Vec3fArray(
+                    [Gf.Vec3f(*finite.min(0).tolist()), Gf.Vec3f(*finite.max(0).tolist())]
+                )
             )
     if color is not None:
         prim.CreateDisplayColorAttr(Vt.Vec3fArray([Gf.Vec3f(*color)]))
@@ -352,8 +375,13 @@ def author_mesh(stage: Usd.Stage, path: str, mesh: Mesh,
     return prim
 
 
-def place(prim: UsdGeom.Xformable, translate: Sequence[float], yaw_deg: float = 0.0,
-          scale: float = 1.0, yaw_axis: str = "Y") -> None:
+def place(
+    prim: UsdGeom.Xformable,
+    translate: Sequence[float],
+    yaw_deg: float = 0.0,
+    scale: float = 1.0,
+    yaw_axis: str = "Y",
+) -> None:
     """Author translate (double precision), rotate about the up axis, uniform scale."""
     prim.AddTranslateOp(UsdGeom.XformOp.PrecisionDouble).Set(Gf.Vec3d(*translate))
     if yaw_deg:
@@ -363,8 +391,14 @@ def place(prim: UsdGeom.Xformable, translate: Sequence[float], yaw_deg: float = 
         prim.AddScaleOp().Set(Gf.Vec3f(scale, scale, scale))
 
 
-def make_material(stage: Usd.Stage, path: str, diffuse: Sequence[float], roughness: float = 0.6,
-                  metallic: float = 0.0, texture: str | None = None) -> UsdShade.Material:
+def make_material(
+    stage: Usd.Stage,
+    path: str,
+    diffuse: Sequence[float],
+    roughness: float = 0.6,
+    metallic: float = 0.0,
+    texture: str | None = None,
+) -> UsdShade.Material:
     """A UsdPreviewSurface material; ``texture`` (asset path) drives diffuseColor via st."""
     mat = UsdShade.Material.Define(stage, path)
     shader = UsdShade.Shader.Define(stage, f"{path}/PreviewSurface")
@@ -397,8 +431,7 @@ def bind(prim: Usd.Prim | Usd.SchemaBase, material: UsdShade.Material) -> None:
     UsdShade.MaterialBindingAPI.Apply(target).Bind(material)
 
 
-def make_reflector(prim: Usd.Prim | Usd.SchemaBase, priority: float,
-                   reflectivity: float) -> None:
+def make_reflector(prim: Usd.Prim | Usd.SchemaBase, priority: float, reflectivity: float) -> None:
     """Apply PhrtReflectorAPI with K = ``priority`` and F = ``reflectivity``."""
     target = prim.GetPrim() if hasattr(prim, "GetPrim") else prim
     target.AddAppliedSchema(REFLECTOR_API)
@@ -406,8 +439,9 @@ def make_reflector(prim: Usd.Prim | Usd.SchemaBase, priority: float,
     target.CreateAttribute("phrt:reflectivity", Sdf.ValueTypeNames.Float).Set(float(reflectivity))
 
 
-def look_at_matrix(eye: Sequence[float], target: Sequence[float],
-                   up: Sequence[float]) -> Gf.Matrix4d:
+def look_at_matrix(
+    eye: Sequence[float], target: Sequence[float], up: Sequence[float]
+) -> Gf.Matrix4d:
     """Camera-to-world matrix (USD row-vector convention) looking down -Z at ``target``."""
     eye_v, tgt, up_v = (np.asarray(v, float) for v in (eye, target, up))
     fwd = tgt - eye_v
@@ -420,9 +454,15 @@ def look_at_matrix(eye: Sequence[float], target: Sequence[float],
     return Gf.Matrix4d(*m.ravel().tolist())
 
 
-def make_camera(stage: Usd.Stage, path: str, focal_mm: float, clip: tuple[float, float],
-                eye: Sequence[float], target: Sequence[float],
-                up: Sequence[float]) -> UsdGeom.Camera:
+def make_camera(
+    stage: Usd.Stage,
+    path: str,
+    focal_mm: float,
+    clip: tuple[float, float],
+    eye: Sequence[float],
+    target: Sequence[float],
+    up: Sequence[float],
+) -> UsdGeom.Camera:
     """A perspective camera with a static ``xformOp:transform`` looking at ``target``."""
     cam = UsdGeom.Camera.Define(stage, path)
     cam.CreateFocalLengthAttr(float(focal_mm))
@@ -434,9 +474,15 @@ def make_camera(stage: Usd.Stage, path: str, focal_mm: float, clip: tuple[float,
     return cam
 
 
-def make_camera_path(stage: Usd.Stage, path: str, camera_path: str, positions: np.ndarray,
-                     targets: np.ndarray, key_times: np.ndarray,
-                     interpolation: str = "catmullRom") -> Usd.Prim:
+def make_camera_path(
+    stage: Usd.Stage,
+    path: str,
+    camera_path: str,
+    positions: np.ndarray,
+    targets: np.ndarray,
+    key_times: np.ndarray,
+    interpolation: str = "catmullRom",
+) -> Usd.Prim:
     """Author a ``PhrtCameraPath`` prim (plain USD: typed prim + the schema's attributes)."""
     prim = stage.DefinePrim(path, "PhrtCameraPath")
     prim.CreateRelationship("phrt:camera").SetTargets([Sdf.Path(camera_path)])
@@ -471,15 +517,22 @@ def make_render_settings(stage: Usd.Stage, camera_path: str, **phrt: object) -> 
         "budgetRays": Sdf.ValueTypeNames.Int,
         "bounceLimit": Sdf.ValueTypeNames.Int,
     }
-    values = {"heuristic": "heu1", "mode": "hybrid", "selectionWeight": 0.001,
-              "budgetMs": 10.0, "bounceLimit": 5, **phrt}
+    values = {
+        "heuristic": "heu1",
+        "mode": "hybrid",
+        "selectionWeight": 0.001,
+        "budgetMs": 10.0,
+        "bounceLimit": 5,
+        **phrt,
+    }
     for name, value in values.items():
         prim.CreateAttribute(f"phrt:{name}", types[name]).Set(value)
     stage.SetMetadata("renderSettingsPrimPath", "/Render/Settings")
 
 
-def evaluate_camera_path(points: np.ndarray, key_times: np.ndarray, frames: np.ndarray,
-                         interpolation: str = "catmullRom") -> np.ndarray:
+def evaluate_camera_path(
+    points: np.ndarray, key_times: np.ndarray, frames: np.ndarray, interpolation: str = "catmullRom"
+) -> np.ndarray:
     """Evaluate a camera path's control points at ``frames``.
 
     points    : (k, 3) control points (positions or targets), stage units
@@ -501,7 +554,9 @@ def evaluate_camera_path(points: np.ndarray, key_times: np.ndarray, frames: np.n
     p0 = pts[np.maximum(seg - 1, 0)]
     p3 = pts[np.minimum(seg + 2, len(pts) - 1)]
     return 0.5 * (
-        2 * p1 + (-p0 + p2) * t + (2 * p0 - 5 * p1 + 4 * p2 - p3) * t**2
+        2 * p1
+        + (-p0 + p2) * t
+        + (2 * p0 - 5 * p1 + 4 * p2 - p3) * t**2
         + (-p0 + 3 * p1 - 3 * p2 + p3) * t**3
     )
 
@@ -526,13 +581,20 @@ def smooth_polyline(waypoints: np.ndarray, iterations: int = 3) -> np.ndarray:
     return pts
 
 
-def subsets_by_face(stage: Usd.Stage, mesh: UsdGeom.Mesh, groups: dict[str, np.ndarray],
-                    materials: dict[str, UsdShade.Material]) -> None:
+def subsets_by_face(
+    stage: Usd.Stage,
+    mesh: UsdGeom.Mesh,
+    groups: dict[str, np.ndarray],
+    materials: dict[str, UsdShade.Material],
+) -> None:
     """Author materialBind GeomSubsets (face index lists) and bind one material to each."""
     for name, faces in groups.items():
         subset = UsdGeom.Subset.CreateGeomSubset(
-            UsdGeom.Imageable(mesh), name, UsdGeom.Tokens.face,
-            Vt.IntArray.FromNumpy(np.asarray(faces, np.int32)), "materialBind",
+            UsdGeom.Imageable(mesh),
+            name,
+            UsdGeom.Tokens.face,
+            Vt.IntArray.FromNumpy(np.asarray(faces, np.int32)),
+            "materialBind",
             UsdGeom.Tokens.nonOverlapping,
         )
         bind(subset, materials[name])
@@ -589,6 +651,7 @@ def write_sky_exr(path: Path, sun_dir: np.ndarray, width: int = 256, height: int
     rgb = rgb + np.where(cos_sun[..., None] > sun_disc_cos, 40.0, 0.0) * np.array([1.0, 0.95, 0.85])
     rgb = rgb + (np.clip(cos_sun, 0, 1) ** 64)[..., None] * np.array([1.5, 1.3, 1.0])  # glow
     spec = oiio.ImageSpec(width, height, 3, "half")
+    spec.attribute("DateTime", FIXED_DATETIME)  # else OpenEXR stamps the current time
     out = oiio.ImageOutput.create(str(path))
     out.open(str(path), spec)
     out.write_image(rgb.astype(np.float32))
@@ -607,6 +670,7 @@ def write_planks_png(path: Path, size: int = 64) -> None:
     base[seam] *= 0.35
     img = np.clip(base * 255 + 0.5, 0, 255).astype(np.uint8)
     spec = oiio.ImageSpec(size, size, 3, "uint8")
+    spec.attribute("DateTime", FIXED_DATETIME)
     out = oiio.ImageOutput.create(str(path))
     out.open(str(path), spec)
     out.write_image(img)
@@ -626,9 +690,7 @@ FARM_PONDS = [("PondA", 22.0, 16.0, 7.0, 8.0, 0.7), ("PondB", 8.5, 28.0, 5.0, 6.
 FARM_EYE_HEIGHT = 3.5
 FARM_TARGET_HEIGHT = 1.2
 #: Waypoints (x, z) of the farm walk before smoothing; forward-only by construction.
-FARM_ROUTE = np.array(
-    [[-30.0, -45.0], [52.0, -45.0], [52.0, 48.0], [0.0, 48.0], [0.0, -22.0]]
-)
+FARM_ROUTE = np.array([[-30.0, -45.0], [52.0, -45.0], [52.0, 48.0], [0.0, 48.0], [0.0, -22.0]])
 
 
 def pond_radius(mean_radius: float, seed: int) -> Callable[[np.ndarray], np.ndarray]:
@@ -638,8 +700,10 @@ def pond_radius(mean_radius: float, seed: int) -> Callable[[np.ndarray], np.ndar
     phases = rng.uniform(0, 2 * np.pi, 3)
 
     def radius(angle: np.ndarray) -> np.ndarray:
-        wobble = sum(a * np.sin((k + 2) * angle + p) for k, (a, p) in
-                     enumerate(zip(amps, phases, strict=True)))
+        wobble = sum(
+            a * np.sin((k + 2) * angle + p)
+            for k, (a, p) in enumerate(zip(amps, phases, strict=True))
+        )
         return mean_radius * (1.0 + wobble)
 
     return radius
@@ -729,11 +793,13 @@ def write_farm_assets(out: Path) -> dict[str, str]:
     # Fence section: one post and two rails, 3 m long along +x.
     stage = asset_stage("fence_section")
     wood = make_material(stage, f"{looks}/Wood", (0.60, 0.48, 0.32), 0.8)
-    fence = merge([
-        box((0.18, 1.3, 0.18), (0, 0.65, 0)),
-        box((3.0, 0.12, 0.06), (1.5, 0.5, 0.0)),
-        box((3.0, 0.12, 0.06), (1.5, 1.0, 0.0)),
-    ])
+    fence = merge(
+        [
+            box((0.18, 1.3, 0.18), (0, 0.65, 0)),
+            box((3.0, 0.12, 0.06), (1.5, 0.5, 0.0)),
+            box((3.0, 0.12, 0.06), (1.5, 1.0, 0.0)),
+        ]
+    )
     bind(author_mesh(stage, "/Asset/Fence", fence), wood)
     stage.GetRootLayer().Save()
     return assets
@@ -741,13 +807,15 @@ def write_farm_assets(out: Path) -> dict[str, str]:
 
 def open_trough(length: float, width: float, height: float, wall: float) -> Mesh:
     """Open-topped box (bottom and four walls), base at y = 0."""
-    return merge([
-        box((length, wall, width), (0, wall / 2, 0)),
-        box((length, height, wall), (0, height / 2, (width - wall) / 2)),
-        box((length, height, wall), (0, height / 2, -(width - wall) / 2)),
-        box((wall, height, width), ((length - wall) / 2, height / 2, 0)),
-        box((wall, height, width), (-(length - wall) / 2, height / 2, 0)),
-    ])
+    return merge(
+        [
+            box((length, wall, width), (0, wall / 2, 0)),
+            box((length, height, wall), (0, height / 2, (width - wall) / 2)),
+            box((length, height, wall), (0, height / 2, -(width - wall) / 2)),
+            box((wall, height, width), ((length - wall) / 2, height / 2, 0)),
+            box((wall, height, width), (-(length - wall) / 2, height / 2, 0)),
+        ]
+    )
 
 
 def build_farm_geometry(path: Path, route_xz: np.ndarray) -> dict[str, str]:
@@ -773,20 +841,31 @@ def build_farm_geometry(path: Path, route_xz: np.ndarray) -> dict[str, str]:
     barn_prim = author_mesh(stage, "/Geometry/Barn/Body", barn.moved((-20.0, 0, -10.0)))
     UsdGeom.Xform.Define(stage, "/Geometry/Barn")
     n_wall_faces = len(walls.counts)
-    for name, faces in (("Walls", np.arange(n_wall_faces)),
-                        ("Trim", np.arange(n_wall_faces, len(barn.counts)))):
+    for name, faces in (
+        ("Walls", np.arange(n_wall_faces)),
+        ("Trim", np.arange(n_wall_faces, len(barn.counts))),
+    ):
         UsdGeom.Subset.CreateGeomSubset(
-            UsdGeom.Imageable(barn_prim), name, UsdGeom.Tokens.face,
-            Vt.IntArray.FromNumpy(faces.astype(np.int32)), "materialBind",
+            UsdGeom.Imageable(barn_prim),
+            name,
+            UsdGeom.Tokens.face,
+            Vt.IntArray.FromNumpy(faces.astype(np.int32)),
+            "materialBind",
         )
-    author_mesh(stage, "/Geometry/Barn/Roof",
-                gable_roof(12.0, 18.0, 4.0, 0.6, 0.25).moved((-20.0, 7.0, -10.0)))
+    author_mesh(
+        stage,
+        "/Geometry/Barn/Roof",
+        gable_roof(12.0, 18.0, 4.0, 0.6, 0.25).moved((-20.0, 7.0, -10.0)),
+    )
 
     # House: textured plank walls (uv), roof, chimney, door.
     UsdGeom.Xform.Define(stage, "/Geometry/House")
     author_mesh(stage, "/Geometry/House/Walls", box((10.0, 5.0, 8.0), (18.0, 2.5, -14.0), 0.5))
-    author_mesh(stage, "/Geometry/House/Roof",
-                gable_roof(10.0, 8.0, 3.0, 0.5, 0.2).moved((18.0, 5.0, -14.0)))
+    author_mesh(
+        stage,
+        "/Geometry/House/Roof",
+        gable_roof(10.0, 8.0, 3.0, 0.5, 0.2).moved((18.0, 5.0, -14.0)),
+    )
     author_mesh(stage, "/Geometry/House/Chimney", box((0.9, 3.0, 0.9), (21.0, 7.0, -15.0)))
     author_mesh(stage, "/Geometry/House/Door", box((1.2, 2.2, 0.1), (18.0, 1.1, -9.95)))
 
@@ -806,14 +885,23 @@ def build_farm_geometry(path: Path, route_xz: np.ndarray) -> dict[str, str]:
     shed.CreateSizeAttr(1.0)
     shed.AddTranslateOp().Set(Gf.Vec3d(-9.0, 1.75, -27.0))
     shed.AddScaleOp().Set(Gf.Vec3f(6.0, 3.5, 4.0))
-    author_mesh(stage, "/Geometry/TroughYardWall",
-                merge([box((12.0, 0.6, 0.4), (-5.5, 0.3, -0.5)),
-                       box((0.4, 0.6, 12.0), (-11.8, 0.3, 5.5))]))
+    author_mesh(
+        stage,
+        "/Geometry/TroughYardWall",
+        merge([box((12.0, 0.6, 0.4), (-5.5, 0.3, -0.5)), box((0.4, 0.6, 12.0), (-11.8, 0.3, 5.5))]),
+    )
 
     # Hay bales: implicit cylinders lying along x, in two stacks.
     UsdGeom.Xform.Define(stage, "/Geometry/HayBales")
-    bale_pos = [(-16.0, 0.75, -24.0), (-14.3, 0.75, -24.0), (-15.15, 2.2, -24.0),
-                (30.0, 0.75, 2.0), (30.0, 0.75, 3.7), (31.7, 0.75, 2.8), (12.0, 0.75, -26.0)]
+    bale_pos = [
+        (-16.0, 0.75, -24.0),
+        (-14.3, 0.75, -24.0),
+        (-15.15, 2.2, -24.0),
+        (30.0, 0.75, 2.0),
+        (30.0, 0.75, 3.7),
+        (31.7, 0.75, 2.8),
+        (12.0, 0.75, -26.0),
+    ]
     for k, pos in enumerate(bale_pos):
         bale = UsdGeom.Cylinder.Define(stage, f"/Geometry/HayBales/Bale{k:02d}")
         bale.CreateRadiusAttr(0.75)
@@ -829,8 +917,11 @@ def build_farm_geometry(path: Path, route_xz: np.ndarray) -> dict[str, str]:
             jitter = rng.uniform(-0.15, 0.15, 2)
             pos = (-40.0 + col * 1.6 + jitter[0], 0.2, 12.0 + row * 1.5 + jitter[1])
             heads.append(cabbage.moved(pos, yaw_deg=float(rng.uniform(0, 360))))
-            face_colors.append(np.tile(rng.uniform(0.8, 1.1) * np.array([0.45, 0.70, 0.30]),
-                                       (len(cabbage.counts), 1)))
+            face_colors.append(
+                np.tile(
+                    rng.uniform(0.8, 1.1) * np.array([0.45, 0.70, 0.30]), (len(cabbage.counts), 1)
+                )
+            )
     field = author_mesh(stage, "/Geometry/CabbageField", merge(heads))
     field.CreateDisplayColorPrimvar(UsdGeom.Tokens.uniform).Set(
         Vt.Vec3fArray.FromNumpy(np.concatenate(face_colors).astype(np.float32))
@@ -838,24 +929,33 @@ def build_farm_geometry(path: Path, route_xz: np.ndarray) -> dict[str, str]:
 
     # Trough bodies (the water surfaces are reflectors, authored in the root layer).
     for k, (x, z) in enumerate(FARM_TROUGHS):
-        author_mesh(stage, f"/Geometry/TroughBody{k}",
-                    open_trough(3.0, 1.0, 0.8, 0.08).moved((x, 0.0, z)), (0.45, 0.45, 0.47))
+        author_mesh(
+            stage,
+            f"/Geometry/TroughBody{k}",
+            open_trough(3.0, 1.0, 0.8, 0.08).moved((x, 0.0, z)),
+            (0.45, 0.45, 0.47),
+        )
 
     # Pond banks: mud rings around each pond.
     for k, (name, cx, cz, radius, _, _) in enumerate(FARM_PONDS):
         outline = pond_radius(radius, FARM_SEED + k)
         ang = np.linspace(0.0, 2 * np.pi, 40, endpoint=False)
         r_in, r_out = outline(ang) * 0.98, outline(ang) + 1.2
-        ring = np.concatenate([
-            np.stack([r_in * np.cos(ang), np.full(40, 0.0), -r_in * np.sin(ang)], axis=1),
-            np.stack([r_out * np.cos(ang), np.full(40, 0.05), -r_out * np.sin(ang)], axis=1),
-        ]) + [cx, 0.0, cz]
+        ring = np.concatenate(
+            [
+                np.stack([r_in * np.cos(ang), np.full(40, 0.0), -r_in * np.sin(ang)], axis=1),
+                np.stack([r_out * np.cos(ang), np.full(40, 0.05), -r_out * np.sin(ang)], axis=1),
+            ]
+        ) + [cx, 0.0, cz]
         i = np.arange(40)
         j = (i + 1) % 40
         faces = np.stack([i, 40 + i, 40 + j, j], axis=1).ravel()
-        author_mesh(stage, f"/Geometry/{name}Bank",
-                    Mesh(ring, np.full(40, 4, np.int32), faces.astype(np.int32)),
-                    (0.40, 0.32, 0.22))
+        author_mesh(
+            stage,
+            f"/Geometry/{name}Bank",
+            Mesh(ring, np.full(40, 4, np.int32), faces.astype(np.int32)),
+            (0.40, 0.32, 0.22),
+        )
     stage.GetRootLayer().Save()
     return {}
 
@@ -888,8 +988,16 @@ def fence_transforms() -> list[tuple[tuple[float, float, float], float]]:
 def tree_positions(route_xz: np.ndarray, count: int) -> list[tuple[float, float, int]]:
     """(x, z, kind) tree spots: outside the buildings, off the route, kind 0 pine 1 round."""
     rng = np.random.default_rng(FARM_SEED + 2)
-    keep_out = [(-20.0, -10.0, 12.0), (18.0, -14.0, 9.0), (-34.0, -22.0, 5.0),
-                (-6.0, 6.0, 9.0), (22.0, 16.0, 10.0), (8.5, 28.0, 8.0), (-9.0, -27.0, 5.0), (-23.0, 20.0, 20.0)]
+    keep_out = [
+        (-20.0, -10.0, 12.0),
+        (18.0, -14.0, 9.0),
+        (-34.0, -22.0, 5.0),
+        (-6.0, 6.0, 9.0),
+        (22.0, 16.0, 10.0),
+        (8.5, 28.0, 8.0),
+        (-9.0, -27.0, 5.0),
+        (-23.0, 20.0, 20.0),
+    ]
     spots: list[tuple[float, float, int]] = []
     while len(spots) < count:
         x, z = rng.uniform(-72.0, 72.0, 2)
@@ -930,8 +1038,9 @@ def farm_camera_keys(route_xz: np.ndarray, n_keys: int = 37) -> tuple[np.ndarray
     c, sn = np.cos(glance), np.sin(glance)
     # positive yaw turns the view to the right of travel (x, z) -> rotate toward -x when
     # travelling +z
-    look = np.stack([c * tangent[:, 0] - sn * tangent[:, 1],
-                     sn * tangent[:, 0] + c * tangent[:, 1]], axis=1)
+    look = np.stack(
+        [c * tangent[:, 0] - sn * tangent[:, 1], sn * tangent[:, 0] + c * tangent[:, 1]], axis=1
+    )
     positions = np.stack([pos_xz[:, 0], np.full(n_keys, FARM_EYE_HEIGHT), pos_xz[:, 1]], axis=1)
     tgt_xz = pos_xz + 12.0 * look
     targets = np.stack([tgt_xz[:, 0], np.full(n_keys, FARM_TARGET_HEIGHT), tgt_xz[:, 1]], axis=1)
@@ -961,8 +1070,9 @@ def build_farm(out: Path) -> Path:
         "BarnRed": make_material(stage, f"{looks}/BarnRed", (0.62, 0.12, 0.08), 0.8),
         "Trim": make_material(stage, f"{looks}/Trim", (0.92, 0.90, 0.85), 0.7),
         "Roof": make_material(stage, f"{looks}/Roof", (0.30, 0.22, 0.20), 0.9),
-        "Planks": make_material(stage, f"{looks}/Planks", (1.0, 1.0, 1.0), 0.8,
-                                texture="./textures/planks.png"),
+        "Planks": make_material(
+            stage, f"{looks}/Planks", (1.0, 1.0, 1.0), 0.8, texture="./textures/planks.png"
+        ),
         "Brick": make_material(stage, f"{looks}/Brick", (0.55, 0.25, 0.18), 0.9),
         "Door": make_material(stage, f"{looks}/Door", (0.25, 0.35, 0.55), 0.6),
         "Silo": make_material(stage, f"{looks}/Silo", (0.75, 0.75, 0.72), 0.4, 0.6),
@@ -979,10 +1089,18 @@ def build_farm(out: Path) -> Path:
     scenery = stage.DefinePrim("/World/Scenery", "Xform")
     scenery.GetReferences().AddReference("./farm_geometry.usdc")
     for prim_path, mat in [
-        ("Barn/Body/Walls", "BarnRed"), ("Barn/Body/Trim", "Trim"), ("Barn/Roof", "Roof"),
-        ("House/Walls", "Planks"), ("House/Roof", "Roof"), ("House/Chimney", "Brick"),
-        ("House/Door", "Door"), ("Silo/Tower", "Silo"), ("Silo/Dome", "Silo"),
-        ("Shed", "Shed"), ("TroughYardWall", "Stone"), ("HayBales", "Hay"),
+        ("Barn/Body/Walls", "BarnRed"),
+        ("Barn/Body/Trim", "Trim"),
+        ("Barn/Roof", "Roof"),
+        ("House/Walls", "Planks"),
+        ("House/Roof", "Roof"),
+        ("House/Chimney", "Brick"),
+        ("House/Door", "Door"),
+        ("Silo/Tower", "Silo"),
+        ("Silo/Dome", "Silo"),
+        ("Shed", "Shed"),
+        ("TroughYardWall", "Stone"),
+        ("HayBales", "Hay"),
     ]:
         bind(stage.GetPrimAtPath(f"/World/Scenery/{prim_path}"), mats[mat])
 
@@ -1007,8 +1125,9 @@ def build_farm(out: Path) -> Path:
     # ---- Reflectors (17) ----
     UsdGeom.Xform.Define(stage, "/World/Water")
     for k, (name, cx, cz, radius, priority, refl) in enumerate(FARM_PONDS):
-        pond = author_mesh(stage, f"/World/Water/{name}",
-                           disc(pond_radius(radius, FARM_SEED + k), 40))
+        pond = author_mesh(
+            stage, f"/World/Water/{name}", disc(pond_radius(radius, FARM_SEED + k), 40)
+        )
         place(pond, (cx, 0.02, cz))
         bind(pond, mats["Water"])
         make_reflector(pond, priority, refl)
@@ -1021,8 +1140,14 @@ def build_farm(out: Path) -> Path:
     cx, cz = FARM_PONDS[0][1], FARM_PONDS[0][2]
     for f in np.arange(START_FRAME, END_FRAME + 1, 4.0):
         phase = 2 * np.pi * (f - START_FRAME) / (END_FRAME - START_FRAME)
-        translate.Set(Gf.Vec3d(cx + 3.0 * math.cos(phase), 0.12 + 0.05 * math.sin(6 * phase),
-                               cz - 3.0 * math.sin(phase)), Usd.TimeCode(float(f)))
+        translate.Set(
+            Gf.Vec3d(
+                cx + 3.0 * math.cos(phase),
+                0.12 + 0.05 * math.sin(6 * phase),
+                cz - 3.0 * math.sin(phase),
+            ),
+            Usd.TimeCode(float(f)),
+        )
         spin.Set(float(math.degrees(phase) + 90.0), Usd.TimeCode(float(f)))
     bind(floater, mats["Metal"])
     make_reflector(floater, 1.0, 0.5)
@@ -1074,13 +1199,13 @@ def build_farm(out: Path) -> Path:
 
     # ---- Camera and its path ----
     positions, targets, times = farm_camera_keys(route)
-    make_camera(stage, "/World/Camera", 20.0, (0.1, 500.0), positions[0], targets[0],
-                (0.0, 1.0, 0.0))
+    make_camera(
+        stage, "/World/Camera", 20.0, (0.1, 500.0), positions[0], targets[0], (0.0, 1.0, 0.0)
+    )
     make_camera_path(stage, "/World/CameraPath", "/World/Camera", positions, targets, times)
     make_render_settings(stage, "/World/Camera")
     stage.GetRootLayer().Save()
     return out / "farm.usda"
-
 
 
 # --------------------------------------------------------------------------------------
@@ -1102,7 +1227,7 @@ DRY_WIDTH, DRY_WALL = 3.0, 2.2
 JUNCTION_X, SUMP_X, CHAMBER_HALF, CHAMBER_HEIGHT = 0.0, 28.0, 3.0, 5.0
 WEST_END_X, NORTH_END_Z, SOUTH_END_Z = -16.0, -24.0, 22.0
 #: Length of one tunnel subdivision along its axis (metres); sets the triangle count.
-TUNNEL_STEP = 0.125
+TUNNEL_STEP = 0.1
 
 
 def sewer_mesh(mesh: Mesh) -> Mesh:
@@ -1128,8 +1253,9 @@ def chamber_walls(cx: float, openings: dict[str, float], wall_height_open: float
         w = openings.get(side, 0.0)
         along_x = side[1] == "z"  # wall runs along x when it closes a z side
 
-        def wall(a0: float, a1: float, y0: float, y1: float,
-                 sign: float = sign, along_x: bool = along_x) -> Mesh:
+        def wall(
+            a0: float, a1: float, y0: float, y1: float, sign: float = sign, along_x: bool = along_x
+        ) -> Mesh:
             size_a, centre_a = a1 - a0, (a0 + a1) / 2
             if along_x:
                 return box((size_a, y1 - y0, t), (cx + centre_a, (y0 + y1) / 2, sign * (h + t / 2)))
@@ -1139,8 +1265,11 @@ def chamber_walls(cx: float, openings: dict[str, float], wall_height_open: float
         if w == 0.0:
             parts.append(wall(-h - t, h + t, lo, top))
         else:
-            parts += [wall(-h - t, -w / 2, lo, top), wall(w / 2, h + t, lo, top),
-                      wall(-w / 2, w / 2, wall_height_open, top)]
+            parts += [
+                wall(-h - t, -w / 2, lo, top),
+                wall(w / 2, h + t, lo, top),
+                wall(-w / 2, w / 2, wall_height_open, top),
+            ]
     return merge(parts)
 
 
@@ -1149,11 +1278,13 @@ def walkway_slabs(x0: float, x1: float) -> Mesh:
     depth = -CHANNEL_FLOOR_Y
     width = MAIN_WIDTH / 2 - CHANNEL_HALF
     zc = CHANNEL_HALF + width / 2
-    return merge([
-        box((x1 - x0, depth, width), ((x0 + x1) / 2, -depth / 2, zc)),
-        box((x1 - x0, depth, width), ((x0 + x1) / 2, -depth / 2, -zc)),
-        box((x1 - x0, 0.2, 2 * CHANNEL_HALF), ((x0 + x1) / 2, CHANNEL_FLOOR_Y - 0.1, 0.0)),
-    ])
+    return merge(
+        [
+            box((x1 - x0, depth, width), ((x0 + x1) / 2, -depth / 2, zc)),
+            box((x1 - x0, depth, width), ((x0 + x1) / 2, -depth / 2, -zc)),
+            box((x1 - x0, 0.2, 2 * CHANNEL_HALF), ((x0 + x1) / 2, CHANNEL_FLOOR_Y - 0.1, 0.0)),
+        ]
+    )
 
 
 def railing(x0: float, x1: float, z: float) -> Mesh:
@@ -1170,8 +1301,15 @@ def grate(x: float, width: float = 1.0, bars: int = 12) -> Mesh:
     return merge([box((0.04, 0.08, 2 * CHANNEL_HALF), (bx, -0.06, 0.0)) for bx in xs] + frame)
 
 
-def pipe_mesh(x0: float, x1: float, y: float, z: float, radius: float, segments: int = 12,
-              ring_step: float = 0.5) -> Mesh:
+def pipe_mesh(
+    x0: float,
+    x1: float,
+    y: float,
+    z: float,
+    radius: float,
+    segments: int = 12,
+    ring_step: float = 0.5,
+) -> Mesh:
     """A pipe (closed cylinder) along x from x0 to x1 at height y, offset z."""
     rings = max(1, int(round((x1 - x0) / ring_step)))
     rot = np.eye(4)
@@ -1188,8 +1326,14 @@ def swap_xz(mesh: Mesh, x_at: float) -> Mesh:
 def build_sewer_geometry(path: Path) -> None:
     """Write sewer_geometry.usdc: tunnel shells, chambers, walkways, grates, dry pipes."""
     stage = new_stage(path, "Z", 0.01, "Geometry")
-    parts: dict[str, list[Mesh]] = {"Shell": [], "Walkways": [], "Railings": [],
-                                    "Grates": [], "DryPipes": [], "Chambers": []}
+    parts: dict[str, list[Mesh]] = {
+        "Shell": [],
+        "Walkways": [],
+        "Railings": [],
+        "Grates": [],
+        "DryPipes": [],
+        "Chambers": [],
+    }
     ch = CHAMBER_HALF
     # wet main tunnel: west arm and middle stretch, both along +x
     for x0, x1 in ((WEST_END_X, JUNCTION_X - ch), (JUNCTION_X + ch, SUMP_X - ch)):
@@ -1223,10 +1367,12 @@ def build_sewer_geometry(path: Path) -> None:
     # chamber floors: the junction continues the channel, the sump has a square pool
     parts["Walkways"].append(walkway_slabs(JUNCTION_X - ch, JUNCTION_X + ch))
     sump = SUMP_POOL_HALF
-    for dx, dz, sx, sz in ((0, ch - (ch - sump) / 2, 2 * ch, ch - sump),
-                           (0, -ch + (ch - sump) / 2, 2 * ch, ch - sump),
-                           (ch - (ch - sump) / 2, 0, ch - sump, 2 * sump),
-                           (-ch + (ch - sump) / 2, 0, ch - sump, 2 * sump)):
+    for dx, dz, sx, sz in (
+        (0, ch - (ch - sump) / 2, 2 * ch, ch - sump),
+        (0, -ch + (ch - sump) / 2, 2 * ch, ch - sump),
+        (ch - (ch - sump) / 2, 0, ch - sump, 2 * sump),
+        (-ch + (ch - sump) / 2, 0, ch - sump, 2 * sump),
+    ):
         parts["Walkways"].append(box((sx, 0.9, sz), (SUMP_X + dx, -0.45, dz)))
     parts["Walkways"].append(box((2 * sump, 0.2, 2 * sump), (SUMP_X, CHANNEL_FLOOR_Y - 0.1, 0)))
     # grates at the chamber entrances
@@ -1243,9 +1389,7 @@ def build_sewer_geometry(path: Path) -> None:
         rail.AddScaleOp().Set(Gf.Vec3f(*(np.array(size) * 100.0)))
     for k in range(12):
         rung = UsdGeom.Cube.Define(stage, f"/Geometry/Ladder/Rung{k:02d}")
-        rung.AddTranslateOp().Set(
-            Gf.Vec3d(*sewer_point((JUNCTION_X + 1.5, 0.3 + 0.35 * k, -2.9)))
-        )
+        rung.AddTranslateOp().Set(Gf.Vec3d(*sewer_point((JUNCTION_X + 1.5, 0.3 + 0.35 * k, -2.9))))
         rung.AddScaleOp().Set(Gf.Vec3f(55.0, 3.0, 3.0))
     stage.GetRootLayer().Save()
 
@@ -1257,10 +1401,17 @@ SUMP_POOL_HALF = 1.5
 def sewer_route() -> np.ndarray:
     """(w, 2) local (x, z) route: north dry tunnel -> junction -> east along the south
     walkway -> sump chamber -> south dry tunnel."""
-    waypoints = np.array([
-        [JUNCTION_X, NORTH_END_Z + 1.5], [JUNCTION_X, -2.5], [JUNCTION_X + 1.0, 1.3],
-        [SUMP_X - 3.5, 1.3], [SUMP_X - 0.5, 1.0], [SUMP_X, 4.0], [SUMP_X, SOUTH_END_Z - 1.5],
-    ])
+    waypoints = np.array(
+        [
+            [JUNCTION_X, NORTH_END_Z + 1.5],
+            [JUNCTION_X, -2.5],
+            [JUNCTION_X + 1.0, 1.3],
+            [SUMP_X - 3.5, 1.3],
+            [SUMP_X - 0.5, 1.0],
+            [SUMP_X, 4.0],
+            [SUMP_X, SOUTH_END_Z - 1.5],
+        ]
+    )
     return smooth_polyline(waypoints, iterations=5)
 
 
@@ -1306,11 +1457,18 @@ def build_sewer(out: Path) -> Path:
     }
     scenery = stage.DefinePrim("/World/Scenery", "Xform")
     scenery.GetReferences().AddReference("./sewer_geometry.usdc")
-    for name, mat in (("Shell", "Concrete"), ("Chambers", "Concrete"), ("Walkways", "Walkway"),
-                      ("Railings", "Rail"), ("Grates", "Grate"), ("DryPipes", "Rust"),
-                      ("Ladder", "Rail")):
-        bind(stage.GetPrimAtPath(f"/World/Scenery/{name}"), mats[name == "Ladder" and "Rail"
-                                                                  or mat])
+    for name, mat in (
+        ("Shell", "Concrete"),
+        ("Chambers", "Concrete"),
+        ("Walkways", "Walkway"),
+        ("Railings", "Rail"),
+        ("Grates", "Grate"),
+        ("DryPipes", "Rust"),
+        ("Ladder", "Rail"),
+    ):
+        bind(
+            stage.GetPrimAtPath(f"/World/Scenery/{name}"), mats[name == "Ladder" and "Rail" or mat]
+        )
 
     # ---- Reflectors (33) ----
     ch = CHAMBER_HALF
@@ -1321,13 +1479,17 @@ def build_sewer(out: Path) -> Path:
         segments += list(zip(edges[:-1], edges[1:], strict=True))
     segments.append((JUNCTION_X - ch, JUNCTION_X + ch))
     for k, (x0, x1) in enumerate(segments):
-        seg = author_mesh(stage, f"/World/Water/Channel{k:02d}",
-                          sewer_mesh(quad(x1 - x0, 2 * CHANNEL_HALF, "+y")))
+        seg = author_mesh(
+            stage, f"/World/Water/Channel{k:02d}", sewer_mesh(quad(x1 - x0, 2 * CHANNEL_HALF, "+y"))
+        )
         place(seg, sewer_point(((x0 + x1) / 2, WATER_Y, 0.0)))
         bind(seg, mats["Water"])
         make_reflector(seg, 0.5 + 0.5 * (k % 2), 0.6)
-    pool = author_mesh(stage, "/World/Water/SumpPool",
-                       sewer_mesh(quad(2 * SUMP_POOL_HALF, 2 * SUMP_POOL_HALF, "+y")))
+    pool = author_mesh(
+        stage,
+        "/World/Water/SumpPool",
+        sewer_mesh(quad(2 * SUMP_POOL_HALF, 2 * SUMP_POOL_HALF, "+y")),
+    )
     place(pool, sewer_point((SUMP_X, WATER_Y, 0.0)))
     bind(pool, mats["Water"])
     make_reflector(pool, 1.0, 0.6)
@@ -1335,28 +1497,38 @@ def build_sewer(out: Path) -> Path:
     UsdGeom.Xform.Define(stage, "/World/WetPanels")
     panel_x = np.linspace(JUNCTION_X + ch + 2.0, SUMP_X - ch - 2.0, 6)
     k = 0
-    for side, z, facing in (("S", MAIN_WIDTH / 2 - 0.03, "-z"), ("N", -MAIN_WIDTH / 2 + 0.03, "+z")):
+    for side, z, facing in (
+        ("S", MAIN_WIDTH / 2 - 0.03, "-z"),
+        ("N", -MAIN_WIDTH / 2 + 0.03, "+z"),
+    ):
         for j, x in enumerate(panel_x + (0.0 if side == "S" else 0.8)):
-            p = author_mesh(stage, f"/World/WetPanels/Panel{side}{j}",
-                            sewer_mesh(quad(2.4, 1.2, facing)))
+            p = author_mesh(
+                stage, f"/World/WetPanels/Panel{side}{j}", sewer_mesh(quad(2.4, 1.2, facing))
+            )
             place(p, sewer_point((x, 0.9, z)))
             bind(p, mats["WetTile"])
             make_reflector(p, 1.0 + (j % 3), 0.45)
             k += 1
-    for j, (cx, z, facing) in enumerate(((JUNCTION_X, ch - 0.03, "-z"),
-                                          (JUNCTION_X + 1.0, -ch + 0.03, "+z"),
-                                          (SUMP_X - 1.6, ch - 0.03, "-z"),
-                                          (SUMP_X + 1.6, -ch + 0.03, "+z"))):
-        p = author_mesh(stage, f"/World/WetPanels/ChamberPanel{j}",
-                        sewer_mesh(quad(2.0, 2.0, facing)))
+    for j, (cx, z, facing) in enumerate(
+        (
+            (JUNCTION_X, ch - 0.03, "-z"),
+            (JUNCTION_X + 1.0, -ch + 0.03, "+z"),
+            (SUMP_X - 1.6, ch - 0.03, "-z"),
+            (SUMP_X + 1.6, -ch + 0.03, "+z"),
+        )
+    ):
+        p = author_mesh(
+            stage, f"/World/WetPanels/ChamberPanel{j}", sewer_mesh(quad(2.0, 2.0, facing))
+        )
         place(p, sewer_point((cx - 1.0 if j == 0 else cx, 1.3, z)))
         bind(p, mats["WetTile"])
         make_reflector(p, 2.0, 0.5)
 
     UsdGeom.Xform.Define(stage, "/World/Pipes")
     length = SUMP_X - JUNCTION_X - 2 * ch
-    for j, (y, z) in enumerate(((1.8, 1.75), (2.05, 1.5), (1.8, -1.75), (2.05, -1.5),
-                                (0.15, -1.85))):
+    for j, (y, z) in enumerate(
+        ((1.8, 1.75), (2.05, 1.5), (1.8, -1.75), (2.05, -1.5), (0.15, -1.85))
+    ):
         pipe = UsdGeom.Cylinder.Define(stage, f"/World/Pipes/Pipe{j}")
         pipe.CreateAxisAttr("X")
         pipe.CreateRadiusAttr(10.0 if j < 4 else 6.0)
@@ -1415,6 +1587,216 @@ def build_sewer(out: Path) -> Path:
 
 
 # --------------------------------------------------------------------------------------
+# Extreme stages (Y-up, metres unless said otherwise): small scenes for stiff cases
+# --------------------------------------------------------------------------------------
+
+#: Frame range of the extreme stages (static cameras; a few frames to exercise the loop).
+EXTREME_END_FRAME = 8.0
+
+
+def extreme_stage(
+    out: Path,
+    name: str,
+    doc: str,
+    eye: Sequence[float],
+    target: Sequence[float],
+    clip: tuple[float, float] = (0.01, 1000.0),
+    scale: float = 1.0,
+    offset: Sequence[float] = (0.0, 0.0, 0.0),
+) -> tuple[Usd.Stage, dict[str, UsdShade.Material]]:
+    """A stage with floor, DistantLight, static camera and render settings.
+
+    ``scale`` multiplies every length of the floor/camera; ``offset`` (metres, double)
+    translates them. Returns the stage and its materials (Grey, Mirror, Red).
+    """
+    stage = new_stage(out / "extreme" / f"{name}.usda", "Y", 1.0, "World")
+    set_time_range(stage, START_FRAME, EXTREME_END_FRAME)
+    stage.GetRootLayer().documentation = f"phrt-usd extreme case: {doc}"
+    looks = "/World/Looks"
+    UsdGeom.Scope.Define(stage, looks)
+    mats = {
+        "Grey": make_material(stage, f"{looks}/Grey", (0.6, 0.6, 0.6), 0.8),
+        "Mirror": make_material(stage, f"{looks}/Mirror", (0.9, 0.9, 0.9), 0.0, 1.0),
+        "Red": make_material(stage, f"{looks}/Red", (0.8, 0.1, 0.1), 0.5),
+    }
+    floor = author_mesh(stage, "/World/Floor", quad(6.0 * scale, 6.0 * scale, "+y"))
+    place(floor, offset)
+    bind(floor, mats["Grey"])
+    sun = UsdLux.DistantLight.Define(stage, "/World/Sun")
+    sun.CreateIntensityAttr(3.0)
+    sun.AddRotateXYZOp().Set(Gf.Vec3f(-50.0, 30.0, 0.0))
+    o = np.asarray(offset, float)
+    make_camera(
+        stage,
+        "/World/Camera",
+        20.0,
+        clip,
+        o + np.asarray(eye) * scale,
+        o + np.asarray(target) * scale,
+        (0.0, 1.0, 0.0),
+    )
+    make_render_settings(stage, "/World/Camera")
+    return stage, mats
+
+
+def mirror_and_sphere(
+    stage: Usd.Stage, mats: dict[str, UsdShade.Material], scale: float, offset: Sequence[float]
+) -> None:
+    """A 2 x 2 mirror at z = -1 facing +z and a red sphere in front of it."""
+    mirror = author_mesh(stage, "/World/Mirror", quad(2.0 * scale, 2.0 * scale, "+z"))
+    place(mirror, np.asarray(offset) + np.array([0.0, 1.0, -1.0]) * scale)
+    bind(mirror, mats["Mirror"])
+    make_reflector(mirror, 1.0, 1.0)
+    ball = UsdGeom.Sphere.Define(stage, "/World/Ball")
+    ball.CreateRadiusAttr(0.4 * scale)
+    place(ball, np.asarray(offset) + np.array([0.5, 0.4, 0.0]) * scale)
+    bind(ball, mats["Red"])
+
+
+#: name -> (what it exercises, planted problem "prim path.attribute" or None)
+EXTREME_CASES: dict[str, tuple[str, str | None]] = {
+    "parallel_mirrors": (
+        "two facing perfect mirrors, camera between them at an angle: "
+        "reflection rays bounce until the bounce limit",
+        None,
+    ),
+    "far_from_origin": (
+        "mirror + sphere scene translated to (1e6, 0, 1e6) m: float32 precision (render origin)",
+        None,
+    ),
+    "tiny_scale": (
+        "mirror + sphere scene 1e-3 m across (metersPerUnit 1): ray offsets "
+        "and clipping at tiny scale",
+        None,
+    ),
+    "camera_touching": ("camera 1e-6 m in front of a mirror looking at it: D -> 0", None),
+    "zero_area_reflector": (
+        "reflector whose points are collinear / coincident: zero area",
+        "/World/ZeroAreaMirror.points",
+    ),
+    "degenerate_reflector": (
+        "reflector with a faceVertexIndices entry out of range and a 2-vertex face",
+        "/World/BrokenMirror.faceVertexIndices",
+    ),
+    "nan_points": ("reflector with a NaN coordinate in its points", "/World/NanMirror.points"),
+    "priority_zero": ("reflector with K = 0 (valid: never worth tracing by R)", None),
+    "priority_huge": ("reflector with K = 1e9 (valid: R must stay finite)", None),
+    "negative_priority": ("reflector with K = -1", "/World/Mirror.phrt:priority"),
+}
+
+
+def build_extreme(out: Path) -> list[Path]:
+    """Write every stage of EXTREME_CASES under out/extreme/. Returns their paths."""
+    paths = []
+
+    def done(stage: Usd.Stage) -> None:
+        stage.GetRootLayer().Save()
+        paths.append(Path(stage.GetRootLayer().realPath))
+
+    doc = {name: text for name, (text, _) in EXTREME_CASES.items()}
+    eye, target = (0.0, 1.2, 3.0), (0.0, 0.8, -1.0)
+
+    stage, mats = extreme_stage(
+        out, "parallel_mirrors", doc["parallel_mirrors"], (0.0, 1.5, 1.2), (0.8, 1.3, -2.0)
+    )
+    for k, (z, facing) in enumerate(((-2.0, "+z"), (2.0, "-z"))):
+        m = author_mesh(stage, f"/World/Mirror{k}", quad(4.0, 3.0, facing))
+        place(m, (0.0, 1.5, z))
+        bind(m, mats["Mirror"])
+        if k == 0:
+            make_reflector(m, 1.0, 1.0)
+        else:  # API only, no attributes: the schema defaults (K = 1, F = 1) apply
+            m.GetPrim().AddAppliedSchema(REFLECTOR_API)
+    ball = UsdGeom.Sphere.Define(stage, "/World/Ball")
+    ball.CreateRadiusAttr(0.3)
+    place(ball, (0.8, 0.3, 0.0))
+    bind(ball, mats["Red"])
+    done(stage)
+
+    far = (1.0e6, 0.0, 1.0e6)
+    stage, mats = extreme_stage(
+        out, "far_from_origin", doc["far_from_origin"], eye, target, offset=far
+    )
+    mirror_and_sphere(stage, mats, 1.0, far)
+    done(stage)
+
+    tiny = 1.0e-3 / 6.0  # the floor (6 units) becomes 1e-3 m across
+    stage, mats = extreme_stage(
+        out, "tiny_scale", doc["tiny_scale"], eye, target, clip=(1.0e-6, 1.0), scale=tiny
+    )
+    mirror_and_sphere(stage, mats, tiny, (0.0, 0.0, 0.0))
+    done(stage)
+
+    stage, mats = extreme_stage(
+        out,
+        "camera_touching",
+        doc["camera_touching"],
+        (0.0, 1.0, -1.0 + 1.0e-6),
+        (0.0, 1.0, -2.0),
+        clip=(1.0e-7, 100.0),
+    )
+    mirror_and_sphere(stage, mats, 1.0, (0.0, 0.0, 0.0))
+    done(stage)
+
+    stage, mats = extreme_stage(out, "zero_area_reflector", doc["zero_area_reflector"], eye, target)
+    mirror_and_sphere(stage, mats, 1.0, (0.0, 0.0, 0.0))
+    flat = Mesh(
+        np.array(
+            [
+                [0.0, 0.5, 0.0],
+                [1.0, 0.5, 0.0],
+                [2.0, 0.5, 0.0],
+                [2.0, 0.5, 0.0],
+                [0.0, 0.5, 0.0],
+                [0.0, 0.5, 0.0],
+            ]
+        ),
+        np.array([4, 3], np.int32),
+        np.array([0, 1, 2, 3, 3, 4, 5], np.int32),
+    )
+    z = author_mesh(stage, "/World/ZeroAreaMirror", flat)
+    bind(z, mats["Mirror"])
+    make_reflector(z, 2.0, 1.0)
+    done(stage)
+
+    stage, mats = extreme_stage(
+        out, "degenerate_reflector", doc["degenerate_reflector"], eye, target
+    )
+    mirror_and_sphere(stage, mats, 1.0, (0.0, 0.0, 0.0))
+    broken = Mesh(
+        quad(1.0, 1.0, "+z").points + [-1.0, 1.0, 0.0],
+        np.array([4, 2, 3], np.int32),
+        np.array([0, 1, 2, 7, 0, 1, 0, 2, 3], np.int32),
+    )  # 7 is out of range
+    b = author_mesh(stage, "/World/BrokenMirror", broken)
+    bind(b, mats["Mirror"])
+    make_reflector(b, 2.0, 1.0)
+    done(stage)
+
+    stage, mats = extreme_stage(out, "nan_points", doc["nan_points"], eye, target)
+    mirror_and_sphere(stage, mats, 1.0, (0.0, 0.0, 0.0))
+    pts = quad(1.0, 1.0, "+z").points + [-1.0, 1.0, 0.0]
+    pts[2, 1] = np.nan
+    n = author_mesh(
+        stage, "/World/NanMirror", Mesh(pts, np.array([4], np.int32), np.arange(4, dtype=np.int32))
+    )
+    bind(n, mats["Mirror"])
+    make_reflector(n, 2.0, 1.0)
+    done(stage)
+
+    for name, priority in (
+        ("priority_zero", 0.0),
+        ("priority_huge", 1.0e9),
+        ("negative_priority", -1.0),
+    ):
+        stage, mats = extreme_stage(out, name, doc[name], eye, target)
+        mirror_and_sphere(stage, mats, 1.0, (0.0, 0.0, 0.0))
+        stage.GetPrimAtPath("/World/Mirror").GetAttribute("phrt:priority").Set(priority)
+        done(stage)
+    return paths
+
+
+# --------------------------------------------------------------------------------------
 # Checks and previews (used by main --preview and by tests/test_stages.py)
 # --------------------------------------------------------------------------------------
 
@@ -1433,8 +1815,9 @@ def reflector_prims(stage: Usd.Stage) -> list[Usd.Prim]:
     return [p for p in stage.Traverse() if is_reflector(p)]
 
 
-def camera_path_samples(stage: Usd.Stage, path: str = "/World/CameraPath"
-                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def camera_path_samples(
+    stage: Usd.Stage, path: str = "/World/CameraPath"
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(frames (n,), eyes (n, 3), targets (n, 3)) of a PhrtCameraPath, every frame."""
     prim = stage.GetPrimAtPath(path)
     positions = np.array(prim.GetAttribute("phrt:positions").Get(), float)
@@ -1444,13 +1827,22 @@ def camera_path_samples(stage: Usd.Stage, path: str = "/World/CameraPath"
     start = prim.GetAttribute("phrt:startFrame").Get()
     end = prim.GetAttribute("phrt:endFrame").Get()
     frames = np.arange(start, end + 1.0)
-    return (frames, evaluate_camera_path(positions, key_times, frames, interp),
-            evaluate_camera_path(targets, key_times, frames, interp))
+    return (
+        frames,
+        evaluate_camera_path(positions, key_times, frames, interp),
+        evaluate_camera_path(targets, key_times, frames, interp),
+    )
 
 
-def reflectors_in_view(stage: Usd.Stage, frames: np.ndarray, eyes: np.ndarray,
-                       targets: np.ndarray, up: np.ndarray, max_distance: float,
-                       focal_mm: float) -> np.ndarray:
+def reflectors_in_view(
+    stage: Usd.Stage,
+    frames: np.ndarray,
+    eyes: np.ndarray,
+    targets: np.ndarray,
+    up: np.ndarray,
+    max_distance: float,
+    focal_mm: float,
+) -> np.ndarray:
     """(n,) number of reflector bounding-box centres inside the view frustum per frame.
 
     A rough visibility figure: no occlusion, frustum cut at ``max_distance`` (stage units).
@@ -1479,8 +1871,14 @@ def reflectors_in_view(stage: Usd.Stage, frames: np.ndarray, eyes: np.ndarray,
     return counts
 
 
-def preview_map(stage: Usd.Stage, png: Path, axes: tuple[int, int], up: np.ndarray,
-                max_distance: float, focal_mm: float) -> np.ndarray:
+def preview_map(
+    stage: Usd.Stage,
+    png: Path,
+    axes: tuple[int, int],
+    up: np.ndarray,
+    max_distance: float,
+    focal_mm: float,
+) -> np.ndarray:
     """Top-down map (PNG) of the camera path, view directions and reflector positions.
 
     Returns the per-frame in-view reflector counts (see :func:`reflectors_in_view`).
@@ -1500,8 +1898,11 @@ def preview_map(stage: Usd.Stage, png: Path, axes: tuple[int, int], up: np.ndarr
             box3 = cache.ComputeWorldBound(prim).ComputeAlignedRange()
             lo, hi = np.array(box3.GetMin()), np.array(box3.GetMax())
             if np.all(np.isfinite(lo)) and (hi - lo)[a] < 100 * (1 if up[1] else 100):
-                ax.add_patch(plt.Rectangle((lo[a], lo[b]), (hi - lo)[a], (hi - lo)[b],
-                                           fill=False, color="0.6", lw=0.5))
+                ax.add_patch(
+                    plt.Rectangle(
+                        (lo[a], lo[b]), (hi - lo)[a], (hi - lo)[b], fill=False, color="0.6", lw=0.5
+                    )
+                )
     for prim in reflector_prims(stage):
         c = np.array(cache.ComputeWorldBound(prim).ComputeCentroid())
         ax.plot(c[a], c[b], "o", color="tab:blue")
@@ -1509,8 +1910,14 @@ def preview_map(stage: Usd.Stage, png: Path, axes: tuple[int, int], up: np.ndarr
     ax.plot(eyes[:, a], eyes[:, b], "-", color="tab:red")
     for i in range(0, len(frames), 24):
         d = targets[i] - eyes[i]
-        ax.arrow(eyes[i, a], eyes[i, b], d[a] * 0.4, d[b] * 0.4, color="tab:green",
-                 head_width=max_distance * 0.01)
+        ax.arrow(
+            eyes[i, a],
+            eyes[i, b],
+            d[a] * 0.4,
+            d[b] * 0.4,
+            color="tab:green",
+            head_width=max_distance * 0.01,
+        )
         ax.annotate(str(int(frames[i])), (eyes[i, a], eyes[i, b]), fontsize=6)
     ax.set_aspect("equal")
     ax.invert_yaxis() if up[1] else None
@@ -1524,18 +1931,22 @@ def preview_map(stage: Usd.Stage, png: Path, axes: tuple[int, int], up: np.ndarr
 
 def main(argv: Sequence[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("out", nargs="?", type=Path,
-                        default=Path(__file__).resolve().parent.parent / "stages")
+    parser.add_argument(
+        "out", nargs="?", type=Path, default=Path(__file__).resolve().parent.parent / "stages"
+    )
     args = parser.parse_args(argv)
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
+    for path in build_extreme(out):
+        print(f"extreme/{path.name}")
     for build in (build_farm, build_sewer):
         root = build(out)
         stage = Usd.Stage.Open(str(root))
         tris, implicit = count_mesh_triangles(stage)
         n_refl = len(reflector_prims(stage))
-        print(f"{root.name}: {tris} mesh triangles, {implicit} implicit gprims, "
-              f"{n_refl} reflectors")
+        print(
+            f"{root.name}: {tris} mesh triangles, {implicit} implicit gprims, {n_refl} reflectors"
+        )
 
 
 if __name__ == "__main__":
