@@ -1,0 +1,390 @@
+"""sweep_report: summary.md agrees with sweep.csv, plots are valid PNGs, report.html is
+self-contained (every referenced file exists, no external URL, no script, text escaped).
+
+The sweep directory is synthetic (``write_synthetic_sweep``, also used by the browser
+test): two stages, heuristics at two time budgets, a ray budget and unbounded, the
+``raster`` / ``all`` / ``rt`` baselines, random but consistent per-frame figures.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import statistics
+from html.parser import HTMLParser
+from pathlib import Path
+from urllib.parse import unquote, urlsplit
+
+import numpy as np
+import OpenImageIO as oiio
+import pytest
+
+from phrt_usd.errors import PhrtError
+from phrt_usd.sweep_report import (
+    PAPER_FIGURES,
+    summarize,
+    timeline_states,
+    write_sweep_report,
+)
+
+COLUMNS = [
+    "stage", "config", "heuristic", "mode", "budget_ms", "budget_rays", "frame", "frame_ms",
+    "gbuffer_ms", "shade_ms", "select_ms", "trace_ms", "predicted_trace_ms", "rays",
+    "visible", "selected", "transitions", "flip", "flip_reflectors", "psnr", "flip_rt",
+    "psnr_rt", "flip_temporal", "flip_temporal_reference",
+]  # fmt: skip
+
+#: (config, heuristic, mode, budget_ms, budget_rays), deliberately not in display order.
+CONFIGS = [
+    ("all", "all", "hybrid", "", ""),
+    ("heu1@8ms", "heu1", "hybrid", "8", ""),
+    ("rt", "all", "rt", "", ""),
+    ("heu2@4ms", "heu2", "hybrid", "4", ""),
+    ("heu1@inf", "heu1", "hybrid", "", ""),
+    ("raster", "none", "raster", "", ""),
+    ("heu1@20000rays", "heu1", "hybrid", "", "20000"),
+    ("heu1@4ms", "heu1", "hybrid", "4", ""),
+    ("heu2@8ms", "heu2", "hybrid", "8", ""),
+]
+EXPECTED_ORDER = [
+    "raster", "heu1@4ms", "heu2@4ms", "heu1@8ms", "heu2@8ms", "heu1@20000rays", "heu1@inf",
+    "all", "rt",
+]  # fmt: skip
+STAGES = {"farm": 5, "sewer": 7}  # stage → reflector count
+FRAMES = [1.0, 2.0, 3.0, 4.0, 5.0, 6.0]
+IMAGE_FRAME = "0003"
+IMAGE_SIZE = (12, 8)  # width, height of the synthetic preview PNGs
+
+
+def _write_png(path: Path, rgb: np.ndarray) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    height, width = rgb.shape[:2]
+    out = oiio.ImageOutput.create(str(path))
+    assert out.open(str(path), oiio.ImageSpec(width, height, 3, oiio.UINT8))
+    assert out.write_image(np.ascontiguousarray(rgb, dtype=np.uint8))
+    out.close()
+
+
+def write_synthetic_sweep(out: Path, seed: int = 7, configs=CONFIGS) -> Path:
+    """A small sweep output directory (csv, timeline.json, images) in ``out``."""
+    rng = np.random.default_rng(seed)
+    out.mkdir(parents=True, exist_ok=True)
+    rows, timeline = [], {}
+    for stage, n_reflectors in STAGES.items():
+        timeline[stage] = {}
+        visible = rng.random((len(FRAMES), n_reflectors)) < 0.7
+        for config, heuristic, mode, budget_ms, budget_rays in configs:
+            if heuristic == "all" and mode == "hybrid":
+                selected = visible.copy()
+            elif heuristic == "none" or mode == "raster":
+                selected = np.zeros_like(visible)
+            else:
+                selected = visible & (rng.random(visible.shape) < 0.5)
+            timeline[stage][config] = {
+                "reflectors": [f"/World/{stage}/mirror_{i}" for i in range(n_reflectors)],
+                "frames": FRAMES,
+                "selected": selected.tolist(),
+                "visible": visible.tolist(),
+            }
+            for f, frame in enumerate(FRAMES):
+                both = visible[f] & visible[f - 1] if f else np.zeros(n_reflectors, bool)
+                switched = both & (selected[f] != selected[f - 1])
+                is_ref = config == "all"
+                flip = 0.0 if is_ref else float(rng.uniform(0.001, 0.2))
+                rows.append(
+                    {
+                        "stage": stage,
+                        "config": config,
+                        "heuristic": heuristic,
+                        "mode": mode,
+                        "budget_ms": budget_ms,
+                        "budget_rays": budget_rays,
+                        "frame": frame,
+                        "frame_ms": float(rng.uniform(3.0, 60.0)),
+                        "gbuffer_ms": float(rng.uniform(1, 3)),
+                        "shade_ms": float(rng.uniform(1, 3)),
+                        "select_ms": float(rng.uniform(0, 1)),
+                        "trace_ms": float(rng.uniform(0.0, 20.0)),
+                        "predicted_trace_ms": float(rng.uniform(0.0, 20.0)),
+                        "rays": int(rng.integers(0, 50000)),
+                        "visible": int(visible[f].sum()),
+                        "selected": int(selected[f].sum()),
+                        "transitions": int(switched.sum()),
+                        "flip": flip,
+                        "flip_reflectors": 0.0 if is_ref else float(rng.uniform(0.0, 0.5)),
+                        "psnr": 100.0 if is_ref else float(rng.uniform(20, 45)),
+                        "flip_rt": float(rng.uniform(0, 0.1)),
+                        "psnr_rt": float(rng.uniform(20, 45)),
+                        "flip_temporal": "" if f == 0 else float(rng.uniform(0, 0.05)),
+                        "flip_temporal_reference": "" if f == 0 else float(rng.uniform(0, 0.05)),
+                    }
+                )
+            if config in ("raster", "heu1@4ms", "all", "rt"):
+                image_dir = out / "images" / stage / IMAGE_FRAME
+                shape = (IMAGE_SIZE[1], IMAGE_SIZE[0], 3)
+                _write_png(image_dir / f"{config}.png", rng.integers(0, 256, shape))
+                if config != "all":
+                    _write_png(image_dir / f"{config}_flip.png", rng.integers(0, 256, shape))
+    with (out / "sweep.csv").open("w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=COLUMNS)
+        writer.writeheader()
+        writer.writerows(rows)
+    (out / "timeline.json").write_text(json.dumps(timeline))
+    return out
+
+
+# --- reading the outputs back -----------------------------------------------------------
+
+
+def parse_summary_md(text: str) -> dict[str, list[dict[str, str]]]:
+    """{stage: [row dict by header]} from summary.md's tables."""
+    tables: dict[str, list[dict[str, str]]] = {}
+    stage, header = None, None
+    for line in text.splitlines():
+        if line.startswith("## Stage "):
+            stage, header = line.removeprefix("## Stage ").strip(), None
+            tables[stage] = []
+        elif line.startswith("|") and stage is not None:
+            cells = [c.strip() for c in line.strip().strip("|").split("|")]
+            if header is None:
+                header = cells
+            elif not set("".join(cells)) <= set("-:"):
+                tables[stage].append(dict(zip(header, cells, strict=True)))
+    return tables
+
+
+def expected_from_csv(path: Path) -> dict[tuple[str, str], dict[str, float | None]]:
+    """Independent recomputation of the summary's figures straight from the CSV."""
+    groups: dict[tuple[str, str], list[dict[str, str]]] = {}
+    with path.open(newline="") as handle:
+        for row in csv.DictReader(handle):
+            groups.setdefault((row["stage"], row["config"]), []).append(row)
+
+    def mean(rows, column):
+        values = [float(r[column]) for r in rows if r[column] != ""]
+        return sum(values) / len(values) if values else None
+
+    expected = {}
+    for key, rows in groups.items():
+        rows.sort(key=lambda r: float(r["frame"]))
+        frame_ms = [float(r["frame_ms"]) for r in rows]
+        transitions = sum(int(r["transitions"]) for r in rows)
+        chances = sum(int(r["visible"]) for r in rows[1:])
+        expected[key] = {
+            "frames": len(rows),
+            "mean frame ms": statistics.fmean(frame_ms),
+            "median frame ms": statistics.median(frame_ms),
+            "mean fps": 1000.0 / statistics.fmean(frame_ms),
+            "mean trace ms": mean(rows, "trace_ms"),
+            "mean FLIP": mean(rows, "flip"),
+            "mean FLIP reflectors": mean(rows, "flip_reflectors"),
+            "mean PSNR dB": mean(rows, "psnr"),
+            "transitions": transitions,
+            "transition rate": 100.0 * transitions / chances,
+            "mean selected": mean(rows, "selected"),
+            "temporal FLIP": mean(rows, "flip_temporal"),
+            "reference temporal FLIP": mean(rows, "flip_temporal_reference"),
+        }
+    return expected
+
+
+def assert_printed_close(text: str, value: float, what: str) -> None:
+    """``text`` is ``value`` rounded as printed: fixed decimals or 3 significant digits."""
+    number = text.removesuffix("%").strip()
+    printed = float(number)
+    mantissa = number.lstrip("-").split("e")[0]
+    decimals = len(mantissa.split(".")[1]) if "." in mantissa else 0
+    exponent = int(number.split("e")[1]) if "e" in number else 0
+    half_step = 0.5 * 10.0 ** (exponent - decimals)
+    assert abs(printed - value) <= half_step * 1.0001 + 1e-12, f"{what}: {text} vs {value}"
+    if printed != 0.0 and value > 1e-3 and "FLIP" in what:
+        # FLIP columns carry 3 significant digits.
+        assert abs(printed - value) / value < 5e-3, f"{what}: {text} vs {value}"
+
+
+class _Refs(HTMLParser):
+    def __init__(self):
+        super().__init__()
+        self.refs, self.tags, self.img_count = [], [], 0
+
+    def handle_starttag(self, tag, attrs):
+        self.tags.append(tag)
+        self.img_count += tag == "img"
+        for name, value in attrs:
+            if name in ("src", "href") and value is not None:
+                self.refs.append(value)
+
+
+# --- tests ------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def report_dir(tmp_path_factory) -> Path:
+    out = write_synthetic_sweep(tmp_path_factory.mktemp("sweep"))
+    write_sweep_report(out)
+    return out
+
+
+def test_summary_md_agrees_with_csv(report_dir):
+    tables = parse_summary_md((report_dir / "summary.md").read_text())
+    expected = expected_from_csv(report_dir / "sweep.csv")
+    assert list(tables) == list(STAGES)
+    for stage, table in tables.items():
+        assert [row["config"] for row in table] == EXPECTED_ORDER
+        for row in table:
+            want = expected[(stage, row["config"])]
+            for column, value in want.items():
+                cell = row[column]
+                if value is None:
+                    assert cell == "—", (stage, row["config"], column)
+                elif column in ("frames", "transitions"):
+                    assert int(cell) == value, (stage, row["config"], column)
+                else:
+                    assert_printed_close(cell, value, f"{stage} {row['config']} {column}")
+
+
+def test_summary_budgets_and_paper_line(report_dir):
+    text = (report_dir / "summary.md").read_text()
+    table = parse_summary_md(text)["farm"]
+    budgets = {row["config"]: row["budget"] for row in table}
+    assert budgets["heu1@4ms"] == "4 ms"
+    assert budgets["heu1@20000rays"] == "20000 rays"
+    assert budgets["heu1@inf"] == "unbounded"
+    assert budgets["raster"] == "—"
+    # Without paper.json the defaults from DESIGN.md are shown, once per stage.
+    assert text.count("fps HEU1 25.4 / HEU2 26.4") == 1
+    assert text.count("fps HEU1 21.8 / HEU2 23.3") == 1
+    assert "transitions HEU1/HEU2 3.8 %" in text
+    # Ours: at 4 ms and 8 ms both heuristics ran; the ratio is HEU1 / HEU2 transitions.
+    expected = expected_from_csv(report_dir / "sweep.csv")
+    t1, t2 = (
+        expected[("farm", "heu1@4ms")]["transitions"],
+        expected[("farm", "heu2@4ms")]["transitions"],
+    )
+    assert f"({t1} / {t2})" in text
+    assert text.count("This sweep at budget") == 2 * len(STAGES)
+
+
+def test_paper_json_overrides_defaults(tmp_path):
+    out = write_synthetic_sweep(tmp_path / "sweep", seed=3)
+    paper = {"farm": {"heu1_fps": 11.5, "heu2_fps": 12.5, "transitions_ratio": 0.5,
+                      "heu1_selected": 2, "heu2_selected": 3}}  # fmt: skip
+    (out / "paper.json").write_text(json.dumps(paper))
+    write_sweep_report(out)
+    text = (out / "summary.md").read_text()
+    assert "fps HEU1 11.5 / HEU2 12.5" in text
+    assert "transitions HEU1/HEU2 50.0 %" in text
+    assert "25.4" not in text
+    assert "no figures for stage 'sewer'" in text
+
+
+def test_plots_are_small_valid_pngs(report_dir):
+    for name in ("error_vs_time.png", "error_vs_time_farm.png", "error_vs_time_sewer.png"):
+        path = report_dir / name
+        assert path.stat().st_size < 150_000, name
+        image = oiio.ImageInput.open(str(path))
+        assert image is not None, oiio.geterror()
+        spec = image.spec()
+        pixels = image.read_image(oiio.UINT8)
+        image.close()
+        assert (spec.width, spec.height) == (800, 500), name
+        assert pixels.std() > 5.0, f"{name} looks blank"
+    for stage in STAGES:
+        image = oiio.ImageInput.open(str(report_dir / f"timeline_{stage}.png"))
+        assert image is not None
+        pixels = image.read_image(oiio.UINT8)
+        image.close()
+        # The traced colour (#d62728) must appear: some reflectors are traced.
+        red = (pixels[..., 0] == 0xD6) & (pixels[..., 1] == 0x27) & (pixels[..., 2] == 0x28)
+        assert red.any(), stage
+
+
+def test_report_html_references_only_existing_local_files(report_dir):
+    text = (report_dir / "report.html").read_text()
+    parser = _Refs()
+    parser.feed(text)
+    assert "script" not in parser.tags and "link" not in parser.tags
+    assert parser.refs, "report references no images"
+    for ref in parser.refs:
+        parts = urlsplit(ref)
+        assert not parts.scheme and not parts.netloc, f"external reference {ref}"
+        assert not ref.startswith("/"), f"absolute path {ref}"
+        assert (report_dir / unquote(parts.path)).is_file(), f"missing {ref}"
+    refs = {unquote(r) for r in parser.refs}
+    assert "error_vs_time.png" in refs
+    for stage in STAGES:
+        assert f"timeline_{stage}.png" in refs
+        for name in ("all", "raster", "heu1@4ms", "heu1@4ms_flip", "rt_flip"):
+            assert f"images/{stage}/{IMAGE_FRAME}/{name}.png" in refs
+    for config in EXPECTED_ORDER:
+        assert f"<td>{config}</td>" in text
+
+
+def test_text_is_escaped_in_html_and_markdown(tmp_path):
+    evil = "<script>alert(1)</script>|x&y"
+    configs = [("all", "all", "hybrid", "", ""), (evil, "heu1", "hybrid", "4", "")]
+    out = write_synthetic_sweep(tmp_path / "sweep", configs=configs)
+    write_sweep_report(out)
+    html_text = (out / "report.html").read_text()
+    assert "<script" not in html_text
+    assert "&lt;script&gt;alert(1)&lt;/script&gt;|x&amp;y" in html_text
+    table = parse_summary_md((out / "summary.md").read_text().replace("\\|", "¦"))["farm"]
+    assert [row["config"] for row in table] == [evil.replace("|", "¦"), "all"]
+
+
+def test_timeline_states():
+    selected = np.array([[True, False, False], [True, True, False]])
+    visible = np.array([[True, True, False], [False, True, False]])
+    states = timeline_states(selected, visible)
+    assert states.shape == (3, 2)  # reflectors x frames
+    assert states.tolist() == [[2, 3], [1, 2], [0, 0]]
+
+
+def _rows(**overrides):
+    row = {c: "1" for c in COLUMNS} | {"stage": "farm", "config": "heu1@4ms",
+                                       "heuristic": "heu1", "mode": "hybrid",
+                                       "budget_ms": "4", "budget_rays": ""}  # fmt: skip
+    return [row | overrides]
+
+
+def test_bad_inputs_raise_one_line_errors(tmp_path):
+    with pytest.raises(PhrtError, match="flip.*not a finite number"):
+        summarize(_rows(flip="abc"))
+    with pytest.raises(PhrtError, match="frame_ms"):
+        summarize(_rows(frame_ms="nan"))
+    varying = _rows() + _rows(frame="2", budget_ms="8")
+    with pytest.raises(PhrtError, match="budget_ms varies"):
+        summarize(varying)
+    with pytest.raises(PhrtError, match="not found"):
+        write_sweep_report(tmp_path / "nothing")
+    out = write_synthetic_sweep(tmp_path / "short")
+    rows = (out / "sweep.csv").read_text().splitlines()
+    (out / "sweep.csv").write_text(rows[0].replace(",flip,", ",flop,") + "\n" + rows[1] + "\n")
+    with pytest.raises(PhrtError, match="missing column.*flip"):
+        write_sweep_report(out)
+    out = write_synthetic_sweep(tmp_path / "badtimeline")
+    timeline = json.loads((out / "timeline.json").read_text())
+    timeline["farm"]["rt"]["selected"].pop()
+    (out / "timeline.json").write_text(json.dumps(timeline))
+    with pytest.raises(PhrtError, match="'farm' config 'rt': selected"):
+        write_sweep_report(out)
+
+
+def test_unbounded_and_missing_values_stay_finite():
+    rows = _rows(budget_ms="inf", flip_temporal="", flip_temporal_reference="", frame_ms="0")
+    (entry,) = summarize(rows)
+    assert entry["budget"] == "unbounded"
+    assert entry["mean_fps"] is None  # 0 ms mean frame time: no infinite fps
+    assert entry["mean_flip_temporal"] is None
+    assert entry["transition_rate"] is None  # a single frame has no chance to switch
+    assert all(
+        not (isinstance(v, float) and not math.isfinite(v))
+        for k, v in entry.items()
+        if k not in ("budget_ms", "budget_rays")
+    )
+
+
+def test_paper_defaults_match_design():
+    assert PAPER_FIGURES["farm"]["heu1_fps"] == 25.4
+    assert PAPER_FIGURES["sewer"]["transitions_ratio"] == 0.046
