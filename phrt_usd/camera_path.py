@@ -32,13 +32,8 @@ from dataclasses import dataclass
 import numpy as np
 from pxr import Usd, UsdGeom
 
+from phrt_usd import schema
 from phrt_usd.errors import PhrtError
-
-#: Prim type name of the camera path schema.
-CAMERA_PATH_TYPE = "PhrtCameraPath"
-
-#: Accepted values of ``phrt:interpolation``.
-INTERPOLATIONS = ("linear", "catmullRom")
 
 #: Below this length (stage units) a view direction counts as zero: target == position.
 _DEGENERATE_LENGTH = 1e-12
@@ -170,85 +165,68 @@ class CameraPath:
         return look_at(pos * meters_per_unit, tgt * meters_per_unit, UP_VECTORS[self.up_axis])
 
 
-def _read_points(prim: Usd.Prim, name: str, time: Usd.TimeCode) -> np.ndarray:
-    attr = prim.GetAttribute(name)
-    value = attr.Get(time) if attr else None
-    if value is None or len(value) == 0:
-        raise PhrtError(f"{prim.GetPath()}.{name}: camera path has no control points")
-    pts = np.asarray(value, dtype=np.float64).reshape(-1, 3)
-    if not np.all(np.isfinite(pts)):
-        raise PhrtError(f"{prim.GetPath()}.{name}: non-finite control point")
-    return pts
-
-
-def _read_double(prim: Usd.Prim, name: str) -> float | None:
-    attr = prim.GetAttribute(name)
-    if not attr or not attr.HasAuthoredValue():
-        return None
-    value = attr.Get()
-    if value is None or not np.isfinite(value):
-        raise PhrtError(f"{prim.GetPath()}.{name}: not a finite number")
-    return float(value)
-
-
 def read_camera_path(prim: Usd.Prim) -> CameraPath:
-    """Read and validate a ``PhrtCameraPath`` prim (raises ``PhrtError``, one line)."""
-    where = str(prim.GetPath())
-    default = Usd.TimeCode.Default()
-    positions = _read_points(prim, "phrt:positions", default)
-    targets = _read_points(prim, "phrt:targets", default)
-    if len(positions) != len(targets):
+    """Read (``phrt_usd.schema``) and validate a ``PhrtCameraPath`` prim.
+
+    Raises ``PhrtError`` (one line naming the prim and attribute) for missing or
+    non-finite control points, mismatched lengths, non-increasing key times, an unknown
+    interpolation or an end frame before the start frame.
+    """
+    data = schema.read_camera_path(prim)
+    where = data.path
+    for name, pts in ((schema.POSITIONS, data.positions), (schema.TARGETS, data.targets)):
+        if len(pts) == 0:
+            raise PhrtError(f"{where}.{name}: camera path has no control points")
+        if not np.all(np.isfinite(pts)):
+            raise PhrtError(f"{where}.{name}: non-finite control point")
+    n = len(data.positions)
+    if len(data.targets) != n:
         raise PhrtError(
-            f"{where}: phrt:positions has {len(positions)} points but phrt:targets "
-            f"has {len(targets)}"
+            f"{where}: {schema.POSITIONS} has {n} points but {schema.TARGETS} "
+            f"has {len(data.targets)}"
         )
-    n = len(positions)
-    start = _read_double(prim, "phrt:startFrame")
-    end = _read_double(prim, "phrt:endFrame")
-    key_attr = prim.GetAttribute("phrt:keyTimes")
-    keys = key_attr.Get() if key_attr else None
-    if keys is None or len(keys) == 0:
-        lo = 0.0 if start is None else start
-        hi = float(n - 1) if end is None else end
+    start_attr = prim.GetAttribute(schema.START_FRAME)
+    end_attr = prim.GetAttribute(schema.END_FRAME)
+    has_start = bool(start_attr) and start_attr.HasAuthoredValue()
+    has_end = bool(end_attr) and end_attr.HasAuthoredValue()
+    key_times = data.key_times
+    if len(key_times) == 0:
+        # Unauthored key times: spread the points evenly over the frame range.
+        lo = data.start if has_start else 0.0
+        hi = data.end if has_end else float(n - 1)
         key_times = np.linspace(lo, hi, n) if n > 1 else np.array([lo])
-    else:
-        key_times = np.asarray(keys, dtype=np.float64)
     if len(key_times) != n:
-        raise PhrtError(f"{where}.phrt:keyTimes: {len(key_times)} times for {n} control points")
-    if not np.all(np.isfinite(key_times)) or np.any(np.diff(key_times) <= 0):
-        raise PhrtError(f"{where}.phrt:keyTimes: times must be finite and strictly increasing")
-    interp_attr = prim.GetAttribute("phrt:interpolation")
-    interp = str(interp_attr.Get()) if interp_attr and interp_attr.Get() else "catmullRom"
-    if interp not in INTERPOLATIONS:
         raise PhrtError(
-            f"{where}.phrt:interpolation: {interp!r} is not one of {', '.join(INTERPOLATIONS)}"
+            f"{where}.{schema.KEY_TIMES}: {len(key_times)} times for {n} control points"
         )
-    rel = prim.GetRelationship("phrt:camera")
-    targets_rel = rel.GetForwardedTargets() if rel else []
-    camera = str(targets_rel[0]) if targets_rel else ""
-    start = float(key_times[0]) if start is None else start
-    end = float(key_times[-1]) if end is None else end
-    if end < start:
-        raise PhrtError(f"{where}: phrt:endFrame {end} is before phrt:startFrame {start}")
+    if not np.all(np.isfinite(key_times)) or np.any(np.diff(key_times) <= 0):
+        raise PhrtError(f"{where}.{schema.KEY_TIMES}: times must be finite and strictly increasing")
+    if data.interpolation not in schema.INTERPOLATIONS:
+        raise PhrtError(
+            f"{where}.{schema.INTERPOLATION}: {data.interpolation!r} is not one of "
+            f"{', '.join(schema.INTERPOLATIONS)}"
+        )
+    start = data.start if has_start else float(key_times[0])
+    end = data.end if has_end else float(key_times[-1])
+    if not (np.isfinite(start) and np.isfinite(end)) or end < start:
+        raise PhrtError(f"{where}: frame range [{start}, {end}] is empty or not finite")
     return CameraPath(
         path=where,
-        camera=camera,
-        positions=positions,
-        targets=targets,
-        key_times=key_times,
-        interpolation=interp,
-        start_frame=start,
-        end_frame=end,
+        camera=data.camera or "",
+        positions=data.positions,
+        targets=data.targets,
+        key_times=np.asarray(key_times, dtype=np.float64),
+        interpolation=data.interpolation,
+        start_frame=float(start),
+        end_frame=float(end),
         up_axis=str(UsdGeom.GetStageUpAxis(prim.GetStage())),
     )
 
 
 def find_camera_path(stage: Usd.Stage, camera: str) -> CameraPath | None:
     """The first active ``PhrtCameraPath`` whose ``phrt:camera`` targets ``camera``."""
-    for prim in stage.Traverse():
-        if prim.GetTypeName() != CAMERA_PATH_TYPE:
-            continue
-        rel = prim.GetRelationship("phrt:camera")
+    for prim in schema.find_camera_paths(stage):
+        rel = prim.GetRelationship(schema.CAMERA)
         if rel and any(str(t) == camera for t in rel.GetForwardedTargets()):
             return read_camera_path(prim)
     return None

@@ -69,6 +69,7 @@ import numpy as np
 import OpenImageIO as oiio
 from pxr import Sdf, Usd, UsdGeom, UsdLux, UsdRender, UsdShade
 
+from phrt_usd import schema
 from phrt_usd.camera_path import CameraPath, find_camera_path
 from phrt_usd.errors import PhrtError
 from phrt_usd.scene import (
@@ -98,9 +99,6 @@ IMPLICIT_RINGS = 16
 #: fallback direction instead of being divided by ~0.
 _MIN_NORMAL_LENGTH = 1e-30
 
-#: Name of the applied API marking reflectors.
-REFLECTOR_API = "PhrtReflectorAPI"
-
 #: Gprim types read as geometry.
 _IMPLICIT_TYPES = ("Sphere", "Cube", "Cylinder", "Cone", "Capsule", "Plane")
 
@@ -127,10 +125,16 @@ def _normal_matrix(m3: np.ndarray) -> np.ndarray:
     matrix times sign(det) so that a singular (zero-scale) transform gives finite normals
     instead of an exception.
     """
-    r0, r1, r2 = m3
-    cof = np.stack([np.cross(r1, r2), np.cross(r2, r0), np.cross(r0, r1)])
-    det = float(np.dot(r0, np.cross(r1, r2)))
-    return cof * (-1.0 if det < 0 else 1.0)
+    (a, b, c), (d, e, f), (g, h, i) = m3.tolist()
+    cof = np.array(
+        [
+            [e * i - f * h, f * g - d * i, d * h - e * g],  # r1 x r2
+            [h * c - i * b, i * a - g * c, g * b - h * a],  # r2 x r0
+            [b * f - c * e, c * d - a * f, a * e - b * d],  # r0 x r1
+        ]
+    )
+    det = a * (e * i - f * h) + b * (f * g - d * i) + c * (d * h - e * g)
+    return -cof if det < 0 else cof
 
 
 def _srgb_to_linear(c: np.ndarray) -> np.ndarray:
@@ -389,7 +393,7 @@ class _LocalMesh:
 
     points         : (n, 3) float64
     triangles      : (T, 3) int64 into points, counter-clockwise = front
-    corner_normals : (T, 3, 3) float64 unit normals, or None = smooth from the points
+    corner_normals : (T, 3, 3) float64 unit normals (authored, analytic, or smooth)
     corner_albedo  : (T, 3, 3) float32 linear RGB
     tri_material   : (T,) int32 MaterialTable rows
     corner_uv      : (T, 3, 2) float32, or None when the gprim has no texture
@@ -397,11 +401,11 @@ class _LocalMesh:
 
     points: np.ndarray
     triangles: np.ndarray
-    corner_normals: np.ndarray | None
+    corner_normals: np.ndarray
     corner_albedo: np.ndarray
     tri_material: np.ndarray
     corner_uv: np.ndarray | None = None
-    smooth: bool = False  # normals recomputed from points (deforming meshes too)
+    smooth: bool = False  # normals are smooth_corner_normals(points): redo on deformation
 
 
 def smooth_corner_normals(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
@@ -550,7 +554,7 @@ def _read_mesh(prim: Usd.Prim, time: Usd.TimeCode, bank: _MaterialBank) -> _Loca
     return _LocalMesh(
         points=points,
         triangles=triangles,
-        corner_normals=normals,
+        corner_normals=normals if normals is not None else smooth_corner_normals(points, triangles),
         corner_albedo=albedo,
         tri_material=tri_material.astype(np.int32),
         corner_uv=uv,
@@ -757,14 +761,14 @@ class _Part:
 
 def _element_flags(prim: Usd.Prim, path: str) -> tuple[bool, float, float]:
     """(is_reflector, K, F) of a gprim; K and F are 0 for non-reflectors."""
-    if REFLECTOR_API not in prim.GetAppliedSchemas():
+    if not schema.is_reflector(prim):
         return False, 0.0, 0.0
-    k = float(_attr(prim, "phrt:priority", Usd.TimeCode.Default(), 1.0))
-    f = float(_attr(prim, "phrt:reflectivity", Usd.TimeCode.Default(), 1.0))
+    k = schema.reflector_priority(prim)
+    f = schema.reflector_reflectivity(prim)
     if not np.isfinite(k) or k < 0:
-        raise PhrtError(f"{path}.phrt:priority: must be a finite number >= 0, got {k}")
+        raise PhrtError(f"{path}.{schema.PRIORITY}: must be a finite number >= 0, got {k}")
     if not np.isfinite(f):
-        raise PhrtError(f"{path}.phrt:reflectivity: must be finite, got {f}")
+        raise PhrtError(f"{path}.{schema.REFLECTIVITY}: must be finite, got {f}")
     return True, k, float(np.clip(f, 0.0, 1.0))  # F is a blend weight: clamp to [0, 1]
 
 
@@ -1170,17 +1174,15 @@ class StageScene:
                 return False
         if new_points is not None:
             mesh.points = new_points
+            if mesh.smooth:
+                mesh.corner_normals = smooth_corner_normals(new_points, mesh.triangles)
         p.matrix = m
         g = self.scene.geometry
         nv, nt = len(mesh.points), len(mesh.triangles)
         vs, ts = slice(p.v0, p.v0 + nv), slice(p.t0, p.t0 + nt)
         world = (mesh.points @ m[:3, :3] + m[3, :3]) * self.meters_per_unit
         g.vertices[vs] = world
-        if mesh.smooth:
-            local_n = smooth_corner_normals(mesh.points, mesh.triangles)
-        else:
-            local_n = mesh.corner_normals
-        n = local_n.reshape(-1, 3) @ _normal_matrix(m[:3, :3])
+        n = mesh.corner_normals.reshape(-1, 3) @ _normal_matrix(m[:3, :3])
         corner_n = _safe_normalize(n).reshape(-1, 3, 3)
         flipped = float(np.linalg.det(m[:3, :3])) < 0
         if flipped:
