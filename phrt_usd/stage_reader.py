@@ -27,7 +27,8 @@ Pipeline (``read_stage``):
    UsdPreviewSurface inputs (connections followed; ``diffuseColor`` may come from a
    ``UsdUVTexture``), deduplicated into one ``MaterialTable`` (row 0 = no material).
    Materials are read once (not animated).
-5. **Lights.** UsdLux Distant, Sphere, Rect, Disk and Dome lights.
+5. **Lights.** UsdLux Distant, Sphere, Rect, Disk, Cylinder and Dome lights, read once at
+   the start of the frame range (not animated; colour temperature ignored).
 
 Decisions where USD leaves room:
 
@@ -46,8 +47,8 @@ Decisions where USD leaves room:
 - Faces with fewer than 3 vertices are skipped (they have no area). Non-finite points,
   face counts that do not add up, and out-of-range indices raise ``PhrtError``.
 - SphereLight: ``radiance = color * intensity * 2**exposure`` used as an intensity with
-  1/d² fall-off. RectLight / DiskLight: the same times the light's area in m² (unless
-  ``inputs:normalize`` is on), placed at its centre. DomeLight: ``color`` holds
+  1/d² fall-off. Rect / Disk / Cylinder lights: the same times the light's (lateral)
+  area in m² (unless ``inputs:normalize`` is on), placed at its centre. DomeLight: ``color`` holds
   ``color * intensity * 2**exposure`` and ``texture`` the raw linear lat-long map; the
   environment radiance is ``texture * color``.
 - ``Scene.origin`` is the centre of all geometry bounds at the first time and is kept
@@ -852,6 +853,10 @@ def _rotation_columns(m_row: np.ndarray) -> np.ndarray:
     return np.stack([x, y, z], axis=1)
 
 
+#: UsdLux lights approximated as a point ``LocalLight`` at their centre.
+_LOCAL_LIGHT_TYPES = (UsdLux.SphereLight, UsdLux.RectLight, UsdLux.DiskLight, UsdLux.CylinderLight)
+
+
 def _read_light(prim: Usd.Prim, ctx: _TimeContext, mpu: float, lights: Lights) -> None:
     code = ctx.code
     m = ctx.world(prim)
@@ -861,7 +866,7 @@ def _read_light(prim: Usd.Prim, ctx: _TimeContext, mpu: float, lights: Lights) -
         towards = _safe_normalize(m[2, :3])
         angle = float(_attr(prim, "inputs:angle", code, 0.53))
         lights.distant.append(DistantLight(towards, _light_radiance(prim, code), angle))
-    elif prim.IsA(UsdLux.SphereLight) or prim.IsA(UsdLux.RectLight) or prim.IsA(UsdLux.DiskLight):
+    elif any(prim.IsA(t) for t in _LOCAL_LIGHT_TYPES):
         radiance = _light_radiance(prim, code)
         scale = np.linalg.norm(m[:3, :3], axis=1) * mpu  # metres per light-space unit
         normalize = bool(_attr(prim, "inputs:normalize", code, False))
@@ -873,11 +878,17 @@ def _read_light(prim: Usd.Prim, ctx: _TimeContext, mpu: float, lights: Lights) -
             radius = 0.5 * float(np.hypot(w, h))
             if not normalize:
                 radiance = radiance * w * h  # area light → point intensity
-        else:
+        elif prim.IsA(UsdLux.DiskLight):
             r = float(_attr(prim, "inputs:radius", code, 0.5))
             radius = r * float(max(scale[0], scale[1]))
             if not normalize:
                 radiance = radiance * np.pi * (r * scale[0]) * (r * scale[1])
+        else:  # CylinderLight: a tube along its local X axis
+            r = float(_attr(prim, "inputs:radius", code, 0.5)) * float(max(scale[1], scale[2]))
+            length = float(_attr(prim, "inputs:length", code, 1.0)) * scale[0]
+            radius = 0.5 * float(np.hypot(length, 2 * r))
+            if not normalize:
+                radiance = radiance * 2.0 * np.pi * r * length  # lateral area
         if not np.isfinite(radius):
             raise PhrtError(f"{path}: non-finite light size")
         lights.local.append(LocalLight(m[3, :3] * mpu, radiance, abs(radius)))
@@ -905,12 +916,9 @@ def _choose_camera(stage: Usd.Stage, camera: str | None) -> Usd.Prim:
         if not prim or not prim.IsA(UsdGeom.Camera):
             raise PhrtError(f"camera {camera!r}: no UsdGeomCamera prim at that path")
         return prim
-    settings = UsdRender.Settings.GetStageRenderSettings(stage)
-    if not settings:
-        settings = next(
-            (UsdRender.Settings(p) for p in stage.Traverse() if p.IsA(UsdRender.Settings)), None
-        )
-    if settings:
+    settings_prim = schema.find_render_settings(stage)
+    if settings_prim is not None:
+        settings = UsdRender.Settings(settings_prim)
         targets = settings.GetCameraRel().GetForwardedTargets()
         if targets:
             prim = stage.GetPrimAtPath(targets[0])
