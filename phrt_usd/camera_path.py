@@ -13,8 +13,10 @@ A ``PhrtCameraPath`` prim holds control points in **stage units, world space**:
 Evaluation at a time code clamps to the first/last control point outside the key range.
 Catmull-Rom here is the cubic Hermite spline whose tangent at each key is the finite
 difference of its neighbours over their time span (``(p[i+1] - p[i-1]) / (t[i+1] -
-t[i-1])``, one-sided at the ends); it passes through every control point and handles
-uneven key spacing.
+t[i-1])``; end points duplicated, i.e. half the one-sided difference at the ends). It
+passes through every control point, is C1 in time for uneven key spacing, and equals the
+uniform Catmull-Rom spline (``tools/make_stages.py: evaluate_camera_path``) for evenly
+spaced keys.
 
 The camera looks from position to target with the stage up axis as up. Two degenerate
 cases are handled without NaN: target == position (the camera keeps a fixed horizontal
@@ -91,8 +93,10 @@ def _hermite_tangents(points: np.ndarray, times: np.ndarray) -> np.ndarray:
     if n < 2:
         return tangents
     tangents[1:-1] = (points[2:] - points[:-2]) / (times[2:] - times[:-2])[:, None]
-    tangents[0] = (points[1] - points[0]) / (times[1] - times[0])
-    tangents[-1] = (points[-1] - points[-2]) / (times[-1] - times[-2])
+    # End points count twice (p[-1] = p[0]), the usual Catmull-Rom end condition: half
+    # the one-sided difference.
+    tangents[0] = 0.5 * (points[1] - points[0]) / (times[1] - times[0])
+    tangents[-1] = 0.5 * (points[-1] - points[-2]) / (times[-1] - times[-2])
     return tangents
 
 

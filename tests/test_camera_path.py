@@ -204,3 +204,22 @@ def test_bad_camera_attributes_raise():
     UsdGeom.Camera(stage.GetPrimAtPath("/Cam")).GetFocalLengthAttr().Set(0.0)
     with pytest.raises(PhrtError, match="focalLength"):
         read_stage(stage).camera(0)
+
+
+def test_catmull_rom_matches_uniform_spline_for_even_keys():
+    """Even key spacing: the classic uniform Catmull-Rom with duplicated end points."""
+    rng = np.random.default_rng(3)
+    pts = rng.normal(size=(6, 3))
+    keys = 2.0 + 5.0 * np.arange(6)
+    t = np.linspace(keys[0], keys[-1], 101)
+    seg = np.clip(((t - keys[0]) // 5).astype(int), 0, 4)
+    s = ((t - keys[seg]) / 5.0)[:, None]
+    p0, p1 = pts[np.maximum(seg - 1, 0)], pts[seg]
+    p2, p3 = pts[seg + 1], pts[np.minimum(seg + 2, 5)]
+    ref = 0.5 * (
+        2 * p1
+        + (p2 - p0) * s
+        + (2 * p0 - 5 * p1 + 4 * p2 - p3) * s**2
+        + (-p0 + 3 * p1 - 3 * p2 + p3) * s**3
+    )
+    np.testing.assert_allclose(interpolate(pts, keys, t, "catmullRom"), ref, atol=1e-12)
