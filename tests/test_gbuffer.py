@@ -32,6 +32,8 @@ W, H = 320, 240
 ID_AGREEMENT = 0.995
 #: Required share of floor pixels whose shadow-map verdict matches Embree shadow rays.
 SHADOW_AGREEMENT = 0.97
+#: Two hits closer than this times the scene size are one point (coincident surfaces).
+COINCIDENT = 1e-6
 #: Shadow-ray origin offset along the normal, metres (scene scale ~10 m).
 RAY_OFFSET = 1e-3
 
@@ -211,15 +213,34 @@ def save_ids(path: Path, ids: np.ndarray) -> None:
     out.close()
 
 
-def check_ids(scene, g: GBuffer, ref_tri: np.ndarray, tmp_path: Path, name: str) -> float:
-    """Element-id agreement over pixels covered in either image; writes PNGs on failure."""
+def check_ids(
+    scene,
+    g: GBuffer,
+    ref_tri: np.ndarray,
+    tmp_path: Path,
+    name: str,
+    ref_hit: np.ndarray | None = None,
+    save: bool = True,
+) -> float:
+    """Element-id agreement over pixels covered in either image; writes PNGs on failure.
+
+    With ``ref_hit`` (Embree's world hit points), a pixel where both found a surface at
+    the same point (coincident, z-fighting surfaces authored in the stage) counts as a
+    tie, not a disagreement: which of two coplanar faces wins is arbitrary in both.
+    """
     ref_el = np.where(ref_tri >= 0, scene.geometry.tri_element[np.maximum(ref_tri, 0)], -1)
     union = (ref_el >= 0) | (g.element_id >= 0)
-    agree = float(np.mean(ref_el[union] == g.element_id[union]))
-    if agree < ID_AGREEMENT:
+    same = ref_el == g.element_id
+    if ref_hit is not None:
+        both = (ref_el >= 0) & (g.element_id >= 0)
+        scale = np.linalg.norm(ref_hit - g.position, axis=-1)
+        dist = np.linalg.norm(ref_hit - scene.origin, axis=-1) + scene.extent
+        same |= both & (scale <= COINCIDENT * dist)
+    agree = float(np.mean(same[union]))
+    if agree < ID_AGREEMENT and save:
         save_ids(tmp_path / f"{name}_raster.png", g.element_id)
         save_ids(tmp_path / f"{name}_embree.png", ref_el)
-        save_ids(tmp_path / f"{name}_diff.png", np.where(ref_el != g.element_id, 1, -1))
+        save_ids(tmp_path / f"{name}_diff.png", np.where(same, -1, 1))
     return agree
 
 
@@ -432,18 +453,18 @@ def test_paper_stage_ids(name, tmp_path):
     except ImportError:
         pytest.skip("phrt_usd.stage_reader not there yet")
     stage = open_stage(str(path))
-    scene = stage.scene
-    times = getattr(stage, "times", None)
-    frames = list(times)[:: max(1, len(times) // 3)][:3] if times else [0.0]
-    with Rasterizer(scene, W, H) as r:
-        for t in frames:
-            if hasattr(stage, "set_time"):
-                stage.set_time(t)
+    t0, t1 = stage.frame_range
+    with Rasterizer(stage.scene, W, H) as r:
+        for t in np.linspace(t0, t1, 4):
+            if stage.set_time(float(t)):
                 r.update_geometry(stage.scene)
-            cam = stage.camera(t)
+            cam = stage.camera(float(t))
             g = r.render(cam)
-            ref_tri, _ = EmbreeReference(stage.scene).primary(cam)
-            agree = check_ids(stage.scene, g, ref_tri, tmp_path, f"{name}_{t:g}")
+            assert g.covered.mean() > 0.05, f"{name} t={t}: camera sees almost nothing"
+            ref_tri, ref_hit = EmbreeReference(stage.scene).primary(cam)
+            strict = check_ids(stage.scene, g, ref_tri, tmp_path, name, save=False)
+            agree = check_ids(stage.scene, g, ref_tri, tmp_path, f"{name}_{t:g}", ref_hit)
+            print(f"{name} t={t:.1f}: ids agree {strict:.4%} strict, {agree:.4%} with ties")
             assert agree >= ID_AGREEMENT, f"{name} t={t}: ids agree on {agree:.4%}"
 
 
