@@ -40,7 +40,7 @@ from embreex.mesh_construction import TriangleMesh
 
 from phrt_usd import shading
 from phrt_usd.frame import GBuffer, ReflectionResult, TraceRecord
-from phrt_usd.scene import NO_HIT, CameraFrame, Scene
+from phrt_usd.scene import NO_HIT, CameraFrame, Lights, LocalLight, Scene
 
 #: Ray-origin offset along the geometric normal, in two parts (the larger one wins)::
 #:
@@ -78,6 +78,9 @@ class _Hits:
 class Tracer:
     """Ray tracing against one ``Scene`` (one Embree BVH, rebuilt by ``update_geometry``).
 
+    Internally every position is *render-relative*: float64 metres relative to
+    ``scene.origin`` (world = relative + origin). Public arguments and results are world.
+
     rays_cast : cumulative counters by kind ("primary", "reflection", "refraction",
                 "shadow"); ``reset_counters()`` zeroes them.
     record_rays : when True, every Embree batch of the latest public call is kept in
@@ -111,34 +114,49 @@ class Tracer:
         self.origin = np.asarray(scene.origin, dtype=np.float64)
         self.extent = scene.extent
         tris = np.asarray(geo.triangles, dtype=np.int64).reshape(-1, 3)
-        verts = np.asarray(geo.vertices, dtype=np.float64).reshape(-1, 3)
-        # Per-triangle float64 tables (world metres) for exact hit points and normals.
-        self._v0 = verts[tris[:, 0]]
-        self._e1 = verts[tris[:, 1]] - self._v0
-        self._e2 = verts[tris[:, 2]] - self._v0
-        normal = np.cross(self._e1, self._e2)
+        verts = np.asarray(geo.vertices, dtype=np.float64).reshape(-1, 3) - self.origin
+        n_tri = len(tris)
+        # Packed per-triangle tables, so one fancy-index gather fetches all a hit needs.
+        # _tri_geom (T, 4, 3) float64 render-relative metres: v0, v1 - v0, v2 - v0, unit
+        # front-face normal (degenerate triangles, never hit by Embree, get +Y).
+        v0 = verts[tris[:, 0]]
+        e1 = verts[tris[:, 1]] - v0
+        e2 = verts[tris[:, 2]] - v0
+        normal = np.cross(e1, e2)
         length = np.linalg.norm(normal, axis=1, keepdims=True)
-        # Degenerate triangles are never hit by Embree; give them +Y to stay finite.
-        self._tri_normal = np.where(length > 0, normal / np.where(length > 0, length, 1), 0.0)
-        self._tri_normal[length[:, 0] == 0] = (0.0, 1.0, 0.0)
+        normal = np.where(length > 0, normal / np.where(length > 0, length, 1.0), (0.0, 1.0, 0.0))
+        self._tri_geom = np.ascontiguousarray(np.stack([v0, e1, e2, normal], axis=1))
+        # _tri_shade (T, 2, 3, 3) float32: corner shading normals, corner albedo.
+        self._tri_shade = np.ascontiguousarray(
+            np.stack(
+                [
+                    np.asarray(geo.corner_normals, np.float32).reshape(n_tri, 3, 3),
+                    np.asarray(geo.corner_albedo, np.float32).reshape(n_tri, 3, 3),
+                ],
+                axis=1,
+            )
+        )
         self._tri_element = np.asarray(geo.tri_element, dtype=np.int64)
         self._tri_material = np.asarray(geo.tri_material, dtype=np.int64)
-        self._corner_normals = np.asarray(geo.corner_normals, dtype=np.float32)
-        self._corner_albedo = np.asarray(geo.corner_albedo, dtype=np.float32)
         mats = scene.materials
-        self._reflectivity = scene.reflectivity.astype(np.float64)
-        self._is_reflector = np.array([e.is_reflector for e in scene.elements], dtype=bool)
+        reflectivity = np.clip(scene.reflectivity.astype(np.float64), 0.0, 1.0)
+        is_reflector = np.array([e.is_reflector for e in scene.elements], dtype=bool)
+        # Per triangle: reflector flag and F (0 for non-reflectors).
+        self._tri_reflector = is_reflector[self._tri_element] if n_tri else np.zeros(0, bool)
+        self._tri_f = np.where(self._tri_reflector, reflectivity[self._tri_element], 0.0)
         self._transmission = mats.has_transmission
         self._opacity = np.clip(np.asarray(mats.opacity, dtype=np.float64), 0.0, 1.0)
         # ior ≤ 0 is meaningless; clamp so Snell's law stays finite.
         self._ior = np.maximum(np.asarray(mats.ior, dtype=np.float64), 1e-3)
-        self._emissive = np.asarray(mats.emissive, dtype=np.float32).reshape(-1, 3)
+        emissive = np.asarray(mats.emissive, dtype=np.float32).reshape(-1, 3)
+        self._has_emission = bool(np.any(emissive != 0))
+        self._emissive = emissive
         self._textures = list(mats.textures) if geo.corner_uv is not None else []
         self._embree = rtcs.EmbreeScene()
-        if len(tris):
+        if n_tri:
             TriangleMesh(
                 self._embree,
-                np.ascontiguousarray(verts - self.origin, dtype=np.float32),
+                np.ascontiguousarray(verts, dtype=np.float32),
                 np.ascontiguousarray(tris, dtype=np.int32),
             )
             # Commit now (embreex commits lazily on the first run) so the build is timed
@@ -147,32 +165,41 @@ class Tracer:
             self._embree.run(probe, probe + np.float32(1.0))
         self.last_build_seconds = time.perf_counter() - start
 
+    def _relative_lights(self) -> Lights:
+        """The scene's lights with LocalLight positions render-relative (what shading
+        sees, since it is handed render-relative positions)."""
+        lights = self.scene.lights
+        if not lights.local:
+            return lights
+        local = [
+            LocalLight(np.asarray(li.position, np.float64) - self.origin, li.radiance, li.radius)
+            for li in lights.local
+        ]
+        return Lights(distant=lights.distant, local=local, dome=lights.dome)
+
     # ------------------------------------------------------------------ Embree calls
 
     def _run(self, query: str, origins: np.ndarray, dirs: np.ndarray, tfar=None):
-        """One Embree batch. origins (n, 3) float64 world metres, dirs (n, 3) world unit,
-        tfar (n,) metres or None. Returns Embree's dict (INTERSECT) or (n,) bool occluded.
-        The batch is split over the thread pool when large enough (embreex releases the
-        GIL inside ``run``)."""
-        o32 = np.ascontiguousarray(origins - self.origin, dtype=np.float32)
+        """One Embree batch. origins (n, 3) float64 render-relative metres, dirs (n, 3)
+        unit, tfar (n,) metres or None. Returns (primID, u, v) (INTERSECT) or (n,) bool
+        occluded. This is the only float64 → float32 cast of ray data."""
+        o32 = np.ascontiguousarray(origins, dtype=np.float32)
         d32 = np.ascontiguousarray(dirs, dtype=np.float32)
         t32 = None if tfar is None else np.ascontiguousarray(np.minimum(tfar, _FAR), np.float32)
         if self.record_rays:
-            self.last_rays.append((query, o32, d32, None if t32 is None else t32.copy()))
+            self.last_rays.append((query, o32, d32, t32))
         return self._run_raw(query, o32, d32, t32, self.threads)
 
     def _run_raw(self, query, o32, d32, t32, threads):
+        """Raw embreex on float32 arrays, split into ``threads`` chunks over the pool when
+        the batch is large enough (embreex releases the GIL inside ``run``)."""
         n = o32.shape[0]
-        output = 1 if query == "INTERSECT" else None
-        if n == 0 or len(self._v0) == 0:
-            if query == "OCCLUDED":
+        intersect = query == "INTERSECT"
+        if n == 0 or len(self._tri_geom) == 0:
+            if not intersect:
                 return np.zeros(n, dtype=bool)
-            return {
-                "primID": np.full(n, NO_HIT, np.int32),
-                "u": np.zeros(n, np.float32),
-                "v": np.zeros(n, np.float32),
-                "tfar": np.full(n, np.inf, np.float32),
-            }
+            return np.full(n, NO_HIT, np.int32), np.zeros(n, np.float32), np.zeros(n, np.float32)
+        output = 1 if intersect else None
         if threads > 1 and self._pool is not None and n >= PARALLEL_MIN_RAYS:
             bounds = np.linspace(0, n, min(threads, self.threads) + 1).astype(int)
             futures = [
@@ -180,33 +207,30 @@ class Tracer:
                     self._embree.run,
                     o32[a:b],
                     d32[a:b],
-                    None if t32 is None else t32[a:b].copy(),
+                    None if t32 is None else t32[a:b],
                     query,
                     output,
                 )
                 for a, b in zip(bounds[:-1], bounds[1:], strict=True)
             ]
             parts = [f.result() for f in futures]
-            if output:
-                out = {
-                    k: np.concatenate([p[k] for p in parts]) for k in ("primID", "u", "v", "tfar")
-                }
-            else:
-                out = np.concatenate(parts)
-        else:
-            out = self._embree.run(o32, d32, None if t32 is None else t32.copy(), query, output)
-        if output:
-            return out
+            if intersect:
+                return tuple(np.concatenate([p[k] for p in parts]) for k in ("primID", "u", "v"))
+            return np.concatenate(parts) != NO_HIT
+        # OCCLUDED reads but never writes ``dists``; INTERSECT gets None, so no copies.
+        out = self._embree.run(o32, d32, t32, query, output)
+        if intersect:
+            return out["primID"], out["u"], out["v"]
         return out != NO_HIT
 
     def _intersect(self, origins: np.ndarray, dirs: np.ndarray) -> _Hits:
-        res = self._run("INTERSECT", origins, dirs)
-        ray = np.flatnonzero(res["primID"] >= 0)
+        prim, u, v = self._run("INTERSECT", origins, dirs)
+        ray = np.flatnonzero(prim >= 0)
         return _Hits(
             ray=ray,
-            tri=res["primID"][ray].astype(np.int64),
-            u=res["u"][ray].astype(np.float64),
-            v=res["v"][ray].astype(np.float64),
+            tri=prim[ray].astype(np.int64),
+            u=u[ray].astype(np.float64),
+            v=v[ray].astype(np.float64),
         )
 
     def replay_raw(self, threads: int | None = None) -> tuple[int, float]:
@@ -225,71 +249,101 @@ class Tracer:
 
     def offset_epsilon(self, positions: np.ndarray) -> np.ndarray:
         """(n,) float64 metres: the ray-origin offset at world ``positions`` (n, 3)."""
-        rel = np.max(np.abs(positions - self.origin), axis=1)
-        return np.maximum(RAY_OFFSET_ABSOLUTE * self.extent, RAY_OFFSET_RELATIVE * rel)
+        return self._epsilon(np.asarray(positions, np.float64) - self.origin)
+
+    def _epsilon(self, rel: np.ndarray) -> np.ndarray:
+        """``offset_epsilon`` for render-relative positions (n, 3)."""
+        a = np.abs(rel)
+        # Column-wise maximum: numpy's reduction over a length-3 inner axis is ~5x slower.
+        largest = np.maximum(np.maximum(a[:, 0], a[:, 1]), a[:, 2])
+        return np.maximum(RAY_OFFSET_ABSOLUTE * self.extent, RAY_OFFSET_RELATIVE * largest)
+
+    def _offset(self, rel: np.ndarray, normals: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+        """Render-relative origins moved off the surface by the offset epsilon along
+        ``normals``, on the side the outgoing ``dirs`` leave to."""
+        side = np.where(np.einsum("ij,ij->i", dirs, normals) >= 0, 1.0, -1.0)
+        return rel + (side * self._epsilon(rel))[:, None] * normals
 
     def _surface(self, tri: np.ndarray, u: np.ndarray, v: np.ndarray, incoming: np.ndarray):
-        """Everything shading needs at hits: position (m, 3) float64, geometric normal and
-        shading normal (m, 3) both facing against ``incoming`` (m, 3), albedo (m, 3)
-        float32, emissive (m, 3) float32."""
-        pos = self._v0[tri] + u[:, None] * self._e1[tri] + v[:, None] * self._e2[tri]
-        ng = self._tri_normal[tri]
-        ng = np.where((np.einsum("ij,ij->i", ng, incoming) > 0)[:, None], -ng, ng)
-        w = np.stack([1.0 - u - v, u, v], axis=1).astype(np.float32)  # (m, 3) corner weights
-        ns = np.einsum("mc,mck->mk", w, self._corner_normals[tri]).astype(np.float64)
-        ns_len = np.linalg.norm(ns, axis=1, keepdims=True)
-        bad = ~(ns_len[:, 0] > 1e-12)  # zero / NaN interpolated normal: use the geometric one
-        ns = np.where(bad[:, None], ng, ns / np.where(bad[:, None], 1.0, ns_len))
-        ns = np.where((np.einsum("ij,ij->i", ns, incoming) > 0)[:, None], -ns, ns)
-        albedo = np.einsum("mc,mck->mk", w, self._corner_albedo[tri])
+        """Everything shading needs at hits on triangles ``tri`` (m,) with barycentrics u, v:
+        render-relative position (m, 3) float64; geometric and shading normals (m, 3),
+        both facing against ``incoming`` (m, 3); albedo and emissive (m, 3) float32."""
+        g = self._tri_geom[tri]
+        pos = g[:, 0] + u[:, None] * g[:, 1] + v[:, None] * g[:, 2]
+        ng = g[:, 3]
+        ng *= np.where(np.einsum("ij,ij->i", ng, incoming) > 0, -1.0, 1.0)[:, None]
+        s = self._tri_shade[tri]
+        w1 = u.astype(np.float32)[:, None]
+        w2 = v.astype(np.float32)[:, None]
+        w0 = 1.0 - w1 - w2
+        ns = (s[:, 0, 0] * w0 + s[:, 0, 1] * w1 + s[:, 0, 2] * w2).astype(np.float64)
+        albedo = s[:, 1, 0] * w0 + s[:, 1, 1] * w1 + s[:, 1, 2] * w2
+        ns_len = np.sqrt(np.einsum("ij,ij->i", ns, ns))
+        bad = ~(ns_len > 1e-12)  # zero / NaN interpolated normal: use the geometric one
+        ns /= np.where(bad, 1.0, ns_len)[:, None]
+        if bad.any():
+            ns[bad] = ng[bad]
+        ns *= np.where(np.einsum("ij,ij->i", ns, incoming) > 0, -1.0, 1.0)[:, None]
         mat = self._tri_material[tri]
         for m_id, texture in enumerate(self._textures):
             if texture is None:
                 continue
             sel = np.flatnonzero(mat == m_id)
             if len(sel):
-                uv = np.einsum("mc,mck->mk", w[sel], self.scene.geometry.corner_uv[tri[sel]])
+                uv_corner = self.scene.geometry.corner_uv[tri[sel]]
+                uv = (
+                    uv_corner[:, 0] * w0[sel]
+                    + uv_corner[:, 1] * w1[sel]
+                    + uv_corner[:, 2] * w2[sel]
+                )
                 albedo[sel] = shading.sample_texture(texture, uv)
-        emissive = self._emissive[mat] if len(self._emissive) else np.zeros((len(tri), 3))
-        return pos, ng, ns, albedo.astype(np.float32), emissive
+        if self._has_emission:
+            emissive = self._emissive[mat]
+        else:
+            emissive = np.zeros(3, np.float32)
+        return pos, ng, ns, albedo, emissive
 
-    def _snap_to_triangles(self, positions: np.ndarray, tri: np.ndarray) -> np.ndarray:
-        """Project (n, 3) positions (e.g. from a depth buffer) onto the plane of their
-        triangle (n,) (-1 = leave as is): removes depth-buffer error before offsetting."""
-        out = np.array(positions, dtype=np.float64, copy=True)
+    def _snap_to_triangles(self, rel: np.ndarray, tri: np.ndarray) -> np.ndarray:
+        """Project render-relative positions (n, 3) (e.g. from a depth buffer) onto the
+        plane of their triangle (n,) (-1 = leave as is): removes depth-buffer error before
+        offsetting."""
+        out = np.array(rel, dtype=np.float64, copy=True)
         ok = tri >= 0
-        t = tri[ok]
-        ng = self._tri_normal[t]
-        dist = np.einsum("ij,ij->i", out[ok] - self._v0[t], ng)
-        out[ok] -= dist[:, None] * ng
+        if not ok.all():
+            out_ok, t = out[ok], tri[ok]
+        else:
+            out_ok, t = out, tri
+        g = self._tri_geom[t]
+        dist = np.einsum("ij,ij->i", out_ok - g[:, 0], g[:, 3])
+        out_ok -= dist[:, None] * g[:, 3]
+        if not ok.all():
+            out[ok] = out_ok
         return out
 
     # ------------------------------------------------------------------ shadows
 
-    def _shadow(self, positions, offset_normals, shading_normals):
-        """(n, L) float32 visibility and (n,) int64 shadow rays cast per point.
+    def _shadow(self, rel, offset_normals, shading_normals, lights: Lights):
+        """(n, L) float32 visibility and (n,) int64 shadow rays cast per point, for
+        render-relative positions ``rel`` (n, 3) and render-relative ``lights``.
 
         Rays are cast only where the light is in front of the shading normal (elsewhere the
         Lambert term is 0 anyway and visibility is reported as 0)."""
-        lights = self.scene.lights
-        n = positions.shape[0]
+        n = rel.shape[0]
+        n_lights = len(lights.distant) + len(lights.local)
         if not lights.has_direct or n == 0:
-            n_lights = len(lights.distant) + len(lights.local)
             return np.ones((n, n_lights), np.float32), np.zeros(n, np.int64)
-        dirs, dist = shading.light_directions(lights, positions)
-        n_lights = dirs.shape[1]
+        dirs, dist = shading.light_directions(lights, rel)
         facing = np.einsum("nk,nlk->nl", shading_normals, dirs) > 0
         point, light = np.nonzero(facing)
         vis = np.zeros((n, n_lights), np.float32)
         if len(point):
             d = dirs[point, light]
-            ng = offset_normals[point]
-            side = np.where(np.einsum("ij,ij->i", d, ng) >= 0, 1.0, -1.0)
-            eps = self.offset_epsilon(positions[point])
-            origin = positions[point] + (side * eps)[:, None] * ng
+            origin = self._offset(rel[point], offset_normals[point], d)
+            eps = self._epsilon(rel[point])
             # Stop short of a LocalLight by the offset so the light's own position is free.
-            tfar = np.where(np.isfinite(dist[point, light]), dist[point, light] - eps, _FAR)
-            occluded = self._run("OCCLUDED", origin, d, np.maximum(tfar, 0.0))
+            dmax = dist[point, light]
+            tfar = np.where(np.isfinite(dmax), np.maximum(dmax - eps, 0.0), _FAR)
+            occluded = self._run("OCCLUDED", origin, d, tfar)
             vis[point, light] = np.where(occluded, 0.0, 1.0)
             self.rays_cast["shadow"] += len(point)
         return vis, facing.sum(axis=1)
@@ -308,11 +362,11 @@ class Tracer:
         (n, 0) and casts nothing. Points facing away from a light get 0 without a ray.
         """
         self.last_rays = []
-        positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+        rel = np.asarray(positions, dtype=np.float64).reshape(-1, 3) - self.origin
         normals = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
         if triangle_ids is not None:
-            positions = self._snap_to_triangles(positions, np.asarray(triangle_ids))
-        vis, _ = self._shadow(positions, normals, normals)
+            rel = self._snap_to_triangles(rel, np.asarray(triangle_ids, np.int64))
+        vis, _ = self._shadow(rel, normals, normals, self._relative_lights())
         return vis
 
     # ------------------------------------------------------------------ primary rays
@@ -323,7 +377,7 @@ class Tracer:
         self.last_rays = []
         origins, dirs = camera.pixel_rays(width, height)
         n = origins.shape[0]
-        hits = self._intersect(origins, dirs)
+        hits = self._intersect(origins - self.origin, dirs)
         self.rays_cast["primary"] += n
         element = np.full(n, NO_HIT, np.int32)
         triangle = np.full(n, NO_HIT, np.int32)
@@ -332,13 +386,13 @@ class Tracer:
         normal = np.zeros((n, 3), np.float32)
         albedo = np.zeros((n, 3), np.float32)
         r = hits.ray
-        pos, _, ns, alb, _ = self._surface(hits.tri, hits.u, hits.v, dirs[r])
+        rel, _, ns, alb, _ = self._surface(hits.tri, hits.u, hits.v, dirs[r])
         element[r] = self._tri_element[hits.tri]
         triangle[r] = hits.tri
-        position[r] = pos
+        position[r] = rel + self.origin
         normal[r] = ns
         albedo[r] = alb
-        depth[r] = (pos - camera.position) @ camera.forward
+        depth[r] = (rel - (camera.position - self.origin)) @ camera.forward
         shape = (height, width)
         return GBuffer(
             element_id=element.reshape(shape),
@@ -363,10 +417,10 @@ class Tracer:
         start = time.perf_counter()
         self.last_rays = []
         sources = [int(s) for s in sources]
-        pix, src, pos, ns, view = self._source_pixels(gbuffer, sources, None)
-        d = view - 2.0 * np.einsum("ij,ij->i", view, ns)[:, None] * ns
-        d = _unit(d)
-        origins = self._offset(pos, self._tri_normal_or(gbuffer, pix, ns), d)
+        pix, src, tri, rel, ns, view = self._source_pixels(gbuffer, sources, None)
+        d = _unit(view - 2.0 * np.einsum("ij,ij->i", view, ns)[:, None] * ns)
+        ng = np.where((tri >= 0)[:, None], self._tri_geom[np.maximum(tri, 0), 3], ns)
+        origins = self._offset(rel, ng, d)
         return self._paths(pix, src, origins, d, sources, bounce_limit, "reflection", start)
 
     def trace_refraction(
@@ -382,7 +436,8 @@ class Tracer:
         start = time.perf_counter()
         self.last_rays = []
         if not self._transmission:
-            return ReflectionResult(np.zeros(0, np.int64), np.zeros((0, 3), np.float32), [], 0, 0.0)
+            empty = np.zeros(0, np.int64)
+            return ReflectionResult(empty, np.zeros((0, 3), np.float32), [], 0, 0.0)
         tri_flat = gbuffer.triangle_id.reshape(-1)
         hit = tri_flat >= 0
         clear = np.zeros(len(tri_flat), dtype=bool)
@@ -390,70 +445,59 @@ class Tracer:
         elem_flat = gbuffer.element_id.reshape(-1)
         if elements is not None:
             clear &= np.isin(elem_flat, np.asarray(elements, dtype=np.int64))
-        sources = sorted({int(e) for e in np.unique(elem_flat[clear])})
-        pix, src, pos, ns, view = self._source_pixels(gbuffer, sources, clear)
-        tri = tri_flat[pix].astype(np.int64)
-        ng_raw = self._tri_normal[tri]
-        d = _refract(view, ns, ng_raw, self._ior[self._tri_material[tri]])
-        origins = self._offset(pos, ng_raw, d)
+        sources = [int(e) for e in np.unique(elem_flat[clear])]
+        pix, src, tri, rel, ns, view = self._source_pixels(gbuffer, sources, clear)
+        ng_front = self._tri_geom[tri, 3]
+        d = _refract(view, ns, ng_front, self._ior[self._tri_material[tri]])
+        origins = self._offset(rel, ng_front, d)
         return self._paths(pix, src, origins, d, sources, bounce_limit, "refraction", start)
 
     def _source_pixels(self, gbuffer: GBuffer, sources: list[int], mask):
-        """Pixels to start paths from: flat indices (n,), source index into ``sources``
-        (n,), snapped positions (n, 3) float64, unit shading normals facing the viewer
-        (n, 3) float64, unit view directions (n, 3) float64."""
+        """Pixels to start paths from: flat indices (n,), index into ``sources`` (n,),
+        triangle ids (n,), snapped render-relative positions (n, 3) float64, unit shading
+        normals facing the viewer (n, 3) float64, unit view directions (n, 3) float64."""
         elem = gbuffer.element_id.reshape(-1)
-        if mask is None:
-            mask = np.isin(elem, np.asarray(sources, dtype=np.int64)) & (elem >= 0)
-        pix = np.flatnonzero(mask)
-        lookup = {s: i for i, s in enumerate(sources)}
-        table = np.full(max(sources, default=-1) + 2, -1, np.int64)
-        for s, i in lookup.items():
-            if s >= 0:
-                table[s] = i
-        src = table[elem[pix]]
+        # Element id → index in ``sources`` (-1: not a source); the last slot serves id -1.
+        table = np.full(max(len(self.scene.elements), max(sources, default=0) + 1) + 1, -1)
+        table[[s for s in sources if s >= 0]] = [i for i, s in enumerate(sources) if s >= 0]
+        src_all = table[elem]
+        if mask is not None:
+            src_all = np.where(mask, src_all, -1)
+        pix = np.flatnonzero(src_all >= 0)
+        src = src_all[pix]
         tri = gbuffer.triangle_id.reshape(-1)[pix].astype(np.int64)
-        pos = self._snap_to_triangles(gbuffer.position.reshape(-1, 3)[pix], tri)
+        rel = self._snap_to_triangles(gbuffer.position.reshape(-1, 3)[pix] - self.origin, tri)
         view = _unit(gbuffer.view_dir.reshape(-1, 3)[pix].astype(np.float64))
         ns = _unit(gbuffer.normal.reshape(-1, 3)[pix].astype(np.float64))
-        ns = np.where((np.einsum("ij,ij->i", ns, view) > 0)[:, None], -ns, ns)
-        return pix, src, pos, ns, view
-
-    def _tri_normal_or(self, gbuffer: GBuffer, pix: np.ndarray, fallback: np.ndarray):
-        """Geometric normals (n, 3) of the pixels' triangles (shading normal where the
-        G-buffer has no triangle id)."""
-        tri = gbuffer.triangle_id.reshape(-1)[pix].astype(np.int64)
-        return np.where((tri >= 0)[:, None], self._tri_normal[np.maximum(tri, 0)], fallback)
-
-    def _offset(self, positions, normals, dirs):
-        """Origins moved off the surface by ``offset_epsilon`` along ``normals``, on the
-        side the outgoing ``dirs`` leave to."""
-        side = np.where(np.einsum("ij,ij->i", dirs, normals) >= 0, 1.0, -1.0)
-        return positions + (side * self.offset_epsilon(positions))[:, None] * normals
+        ns *= np.where(np.einsum("ij,ij->i", ns, view) > 0, -1.0, 1.0)[:, None]
+        return pix, src, tri, rel, ns, view
 
     def _paths(self, pix, src, origins, dirs, sources, bounce_limit, first_kind, start):
         """The bounce loop. pix (n,) flat pixel per starting ray, src (n,) source index,
-        origins (n, 3) float64 already offset, dirs (n, 3) unit. Returns the result."""
-        lights = self.scene.lights
+        origins (n, 3) render-relative float64 already offset, dirs (n, 3) unit."""
+        lights = self._relative_lights()
         n_pix, n_src = len(pix), len(sources)
+        # Without refraction every live ray has its own pixel slot, so plain fancy-index
+        # updates are exact; refraction splits paths and needs the unbuffered ``ufunc.at``.
+        split = self._transmission
         radiance = np.zeros((n_pix, 3))
         chain_pix = np.zeros(n_pix, np.int64)  # reflector hits along the longest path
         rays_src = np.zeros(n_src, np.int64)
-        hit_pairs: list[np.ndarray] = []  # keys source * E + element of reflector hits
+        hit_keys: list[np.ndarray] = []  # source * E + element, one per reflector hit
         n_elem = max(len(self.scene.elements), 1)
-        # Active ray state (k rays): pixel slot, source, origin, dir, weight, chain, kind.
+        # Live ray state (k rays): pixel slot, source, weight, reflector chain, kind.
         slot = np.arange(n_pix)
         r_src = src
         weight = np.ones(n_pix)
         chain = np.zeros(n_pix, np.int64)
-        kinds = np.full(n_pix, first_kind == "refraction")  # True = refraction ray
+        refracted = np.full(n_pix, first_kind == "refraction")
         if bounce_limit < 1:
             radiance += shading.environment_radiance(lights, dirs)
             slot = slot[:0]
         for depth in range(max(bounce_limit, 0)):
             if len(slot) == 0:
                 break
-            n_refr = int(kinds.sum())
+            n_refr = int(refracted.sum())
             self.rays_cast["refraction"] += n_refr
             self.rays_cast["reflection"] += len(slot) - n_refr
             rays_src += np.bincount(r_src, minlength=n_src)
@@ -462,109 +506,118 @@ class Tracer:
             miss[hits.ray] = False
             if miss.any():
                 env = shading.environment_radiance(lights, dirs[miss])
-                _accumulate(radiance, slot[miss], weight[miss, None] * env)
+                _add(radiance, slot[miss], weight[miss, None] * env, split)
             r = hits.ray
             if len(r) == 0:
                 break
             d_in = dirs[r]
-            pos, ng, ns, albedo, emissive = self._surface(hits.tri, hits.u, hits.v, d_in)
-            vis, shadow_rays = self._shadow(pos, ng, ns)
-            rays_src += np.bincount(r_src[r], weights=shadow_rays, minlength=n_src).astype(np.int64)
-            local = shading.shade_local(pos, ns, albedo, d_in, emissive, lights, vis)
-            elem = self._tri_element[hits.tri]
-            refl = self._is_reflector[elem]
-            f = np.where(refl, self._reflectivity[elem], 0.0)
-            if self._transmission:
+            rel, ng, ns, albedo, emissive = self._surface(hits.tri, hits.u, hits.v, d_in)
+            vis, shadow_rays = self._shadow(rel, ng, ns, lights)
+            if lights.has_direct:
+                rays_src += np.bincount(r_src[r], weights=shadow_rays, minlength=n_src).astype(
+                    np.int64
+                )
+            local = shading.shade_local(rel, ns, albedo, d_in, emissive, lights, vis)
+            refl = self._tri_reflector[hits.tri]
+            f = self._tri_f[hits.tri]
+            if split:
                 mat = self._tri_material[hits.tri]
                 alpha = self._opacity[mat]
             else:
-                alpha = np.ones(len(r))
+                alpha = 1.0
             w = weight[r]
-            _accumulate(radiance, slot[r], (w * alpha * (1.0 - f))[:, None] * local)
+            slot_r = slot[r]
+            _add(radiance, slot_r, (w * alpha * (1.0 - f))[:, None] * local, split)
             ch = chain[r] + refl
-            np.maximum.at(chain_pix, slot[r], ch)
+            if split:
+                np.maximum.at(chain_pix, slot_r, ch)
+            else:
+                chain_pix[slot_r] = ch  # chains only grow along a path
             if refl.any():
-                hit_pairs.append(r_src[r][refl] * n_elem + elem[refl])
+                hit_keys.append(r_src[r][refl] * n_elem + self._tri_element[hits.tri[refl]])
             # Children: reflected rays (weight w α F), refracted rays (weight w (1 - α)).
             d_refl = _unit(d_in - 2.0 * np.einsum("ij,ij->i", d_in, ns)[:, None] * ns)
             w_refl = w * alpha * f
-            go_refl = w_refl > 0
-            child_dirs = [d_refl[go_refl]]
-            child_idx = [np.flatnonzero(go_refl)]
-            child_w = [w_refl[go_refl]]
-            child_kind = [np.zeros(int(go_refl.sum()), dtype=bool)]
-            if self._transmission:
+            go = np.flatnonzero(w_refl > 0)
+            c_dir, c_idx, c_w = d_refl[go], go, w_refl[go]
+            c_refr = np.zeros(len(go), dtype=bool)
+            if split:
                 w_refr = w * (1.0 - alpha)
-                go_refr = w_refr > 0
-                if go_refr.any():
-                    gi = np.flatnonzero(go_refr)
+                gi = np.flatnonzero(w_refr > 0)
+                if len(gi):
                     tri_g = hits.tri[gi]
-                    d_refr = _refract(d_in[gi], ns[gi], self._tri_normal[tri_g], self._ior[mat[gi]])
-                    child_dirs.append(d_refr)
-                    child_idx.append(gi)
-                    child_w.append(w_refr[gi])
-                    child_kind.append(np.ones(len(gi), dtype=bool))
-            c_dir = np.concatenate(child_dirs)
-            c_idx = np.concatenate(child_idx)
-            c_w = np.concatenate(child_w)
+                    d_refr = _refract(
+                        d_in[gi], ns[gi], self._tri_geom[tri_g, 3], self._ior[mat[gi]]
+                    )
+                    c_dir = np.concatenate([c_dir, d_refr])
+                    c_idx = np.concatenate([c_idx, gi])
+                    c_w = np.concatenate([c_w, w_refr[gi]])
+                    c_refr = np.concatenate([c_refr, np.ones(len(gi), dtype=bool)])
             if depth + 1 >= bounce_limit:
                 if len(c_idx):
                     env = shading.environment_radiance(lights, c_dir)
-                    _accumulate(radiance, slot[r][c_idx], c_w[:, None] * env)
+                    _add(radiance, slot_r[c_idx], c_w[:, None] * env, split)
                 break
-            origins = self._offset(pos[c_idx], ng[c_idx], c_dir)
+            origins = self._offset(rel[c_idx], ng[c_idx], c_dir)
             dirs = c_dir
-            slot = slot[r][c_idx]
+            slot = slot_r[c_idx]
             r_src = r_src[r][c_idx]
             weight = c_w
             chain = ch[c_idx]
-            kinds = np.concatenate(child_kind)
+            refracted = c_refr
         seconds = time.perf_counter() - start
-        total = int(rays_src.sum())
-        counts: dict[tuple[int, int], int] = {}
-        if hit_pairs:
-            keys, cnt = np.unique(np.concatenate(hit_pairs), return_counts=True)
-            counts = {
-                (int(k // n_elem), int(k % n_elem)): int(c) for k, c in zip(keys, cnt, strict=True)
-            }
-        pixels_src = np.bincount(src, minlength=n_src) if n_src else np.zeros(0, np.int64)
-        chain_sum = np.bincount(src, weights=chain_pix, minlength=n_src) if n_src else []
-        chain_max = np.zeros(n_src, np.int64)
-        if n_pix:
-            np.maximum.at(chain_max, src, chain_pix)
-        records = []
-        for i, s in enumerate(sources):
-            hits_i = {e: c for (si, e), c in counts.items() if si == i}
-            records.append(
-                TraceRecord(
-                    source=s,
-                    pixels=int(pixels_src[i]),
-                    rays=int(rays_src[i]),
-                    hits=hits_i,
-                    max_reflector_bounces=int(min(chain_max[i], max(bounce_limit, 0))),
-                    mean_reflector_bounces=float(chain_sum[i] / max(pixels_src[i], 1)),
-                    seconds=seconds * float(rays_src[i]) / total if total else 0.0,
-                )
-            )
         return ReflectionResult(
             pixel_index=pix.astype(np.int64),
             radiance=radiance.astype(np.float32),
-            records=records,
-            rays=total,
+            records=self._records(
+                sources, src, chain_pix, rays_src, hit_keys, n_elem, bounce_limit, seconds
+            ),
+            rays=int(rays_src.sum()),
             seconds=seconds,
         )
+
+    @staticmethod
+    def _records(sources, src, chain_pix, rays_src, hit_keys, n_elem, bounce_limit, seconds):
+        """One TraceRecord per source (see ``frame.TraceRecord``); seconds are shared out
+        by each source's share of the rays."""
+        n_src = len(sources)
+        total = int(rays_src.sum())
+        per_source: list[dict[int, int]] = [{} for _ in range(n_src)]
+        if hit_keys:
+            keys, counts = np.unique(np.concatenate(hit_keys), return_counts=True)
+            for key, count in zip(keys.tolist(), counts.tolist(), strict=True):
+                per_source[key // n_elem][key % n_elem] = count
+        pixels = np.bincount(src, minlength=n_src)
+        chain_sum = np.bincount(src, weights=chain_pix, minlength=n_src)
+        chain_max = np.zeros(n_src, np.int64)
+        np.maximum.at(chain_max, src, chain_pix)
+        return [
+            TraceRecord(
+                source=s,
+                pixels=int(pixels[i]),
+                rays=int(rays_src[i]),
+                hits=per_source[i],
+                max_reflector_bounces=int(min(chain_max[i], max(bounce_limit, 0))),
+                mean_reflector_bounces=float(chain_sum[i] / max(pixels[i], 1)),
+                seconds=seconds * float(rays_src[i]) / total if total else 0.0,
+            )
+            for i, s in enumerate(sources)
+        ]
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
     """Rows of (n, 3) scaled to unit length (zero rows stay zero instead of NaN)."""
-    length = np.linalg.norm(v, axis=1, keepdims=True)
+    length = np.sqrt(np.einsum("ij,ij->i", v, v))[:, None]
     return v / np.where(length > 0, length, 1.0)
 
 
-def _accumulate(target: np.ndarray, index: np.ndarray, values: np.ndarray) -> None:
-    """target[index] += values, with repeated indices summed (refraction splits paths)."""
-    for c in range(3):
-        target[:, c] += np.bincount(index, weights=values[:, c], minlength=target.shape[0])
+def _add(target: np.ndarray, index: np.ndarray, values: np.ndarray, repeated: bool) -> None:
+    """target[index] += values. ``repeated``: indices may repeat (refraction splits paths)
+    and must all be summed, which the buffered fancy-index ``+=`` would not do."""
+    if repeated:
+        np.add.at(target, index, values)
+    else:
+        target[index] += values
 
 
 def _refract(d: np.ndarray, ns: np.ndarray, ng_raw: np.ndarray, ior: np.ndarray) -> np.ndarray:
