@@ -274,7 +274,7 @@ def gable_roof(width: float, depth: float, rise: float, overhang: float, thickne
         rot = np.eye(4)
         # rotate about z so the slab rises toward the ridge at x = 0
         rot[:2, :2] = [[c, side * s], [-side * s, c]]
-        rot[:3, 3] = [-side * half / 2, rise / 2, 0.0]
+        rot[:3, 3] = [side * half / 2, rise / 2, 0.0]
         slabs.append(slab.transformed(rot))
     gables = []
     for zsign in (-1.0, 1.0):
@@ -1545,14 +1545,14 @@ def build_sewer(out: Path) -> Path:
     for j, (x, z) in enumerate(lamp_spots):
         lamp = UsdLux.SphereLight.Define(stage, f"/World/Lights/Lamp{j:02d}")
         lamp.CreateRadiusAttr(8.0)
-        lamp.CreateIntensityAttr(3000.0)
+        lamp.CreateIntensityAttr(150.0)
         lamp.CreateColorAttr(Gf.Vec3f(1.0, 0.85, 0.6))
         top = (MAIN_WALL + MAIN_WIDTH / 2) if abs(z) < 0.5 else (DRY_WALL + DRY_WIDTH / 2)
         place(lamp, sewer_point((x, top - 0.25, z)))
     shaft = UsdLux.RectLight.Define(stage, "/World/Lights/ShaftLight")
     shaft.CreateWidthAttr(100.0)
     shaft.CreateHeightAttr(100.0)
-    shaft.CreateIntensityAttr(800.0)
+    shaft.CreateIntensityAttr(60.0)
     shaft.CreateColorAttr(Gf.Vec3f(0.8, 0.9, 1.0))
     place(shaft, sewer_point((JUNCTION_X, CHAMBER_HEIGHT - 0.05, 0.0)))  # emits along -Z (down)
     ambient = UsdLux.DomeLight.Define(stage, "/World/Lights/Ambient")
