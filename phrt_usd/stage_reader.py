@@ -273,6 +273,16 @@ def _asset_file(value, where: str) -> str:
     return path
 
 
+def material_key(material: UsdShade.Material | None) -> str:
+    """Identity of a material for deduplication: its path, or for a material reached
+    through an instance proxy the path of its prim in the prototype (all instances of a
+    prototype share one row). "" for no material."""
+    if not material:
+        return ""
+    prim = material.GetPrim()
+    return str(prim.GetPrimInPrototype().GetPath() if prim.IsInstanceProxy() else prim.GetPath())
+
+
 class _MaterialBank:
     """Deduplicates bound materials into table rows. Row 0 = no material bound."""
 
@@ -285,7 +295,7 @@ class _MaterialBank:
         self._textures: dict[tuple[str, str], np.ndarray] = {}
 
     def index(self, material: UsdShade.Material | None) -> int:
-        key = str(material.GetPath()) if material else ""
+        key = material_key(material)
         if key not in self._index:
             self._index[key] = len(self.rows)
             self.rows.append(self._read(material))
@@ -987,7 +997,7 @@ class StageScene:
             if prim.IsInstanceProxy():
                 mat = UsdShade.MaterialBindingAPI(prim).ComputeBoundMaterial()[0]
                 proto = prim.GetPrimInPrototype().GetPath()
-                key = (str(proto), str(mat.GetPath()) if mat else "")
+                key = (str(proto), material_key(mat))
                 if key in mesh_cache:
                     return mesh_cache[key]
             if kind == "Mesh":

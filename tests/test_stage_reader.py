@@ -115,7 +115,10 @@ def test_reference_and_instanceable_prims_one_element_per_instance():
     stage = new_stage()
     proto = UsdGeom.Xform.Define(stage, "/Proto")
     proto.GetPrim().SetSpecifier(Sdf.SpecifierClass)  # abstract: not rendered itself
-    UsdGeom.Cube.Define(stage, "/Proto/Box").CreateSizeAttr(1.0)
+    box = UsdGeom.Cube.Define(stage, "/Proto/Box")
+    box.CreateSizeAttr(1.0)
+    green, _ = preview_material(stage, "/Proto/Looks/Green", (0, 1, 0))
+    UsdShade.MaterialBindingAPI.Apply(box.GetPrim()).Bind(green)
     offsets = [(0, 0, 0), (5, 0, 0), (0, 7, 0)]
     for i, off in enumerate(offsets):
         inst = UsdGeom.Xform.Define(stage, f"/World/Inst{i}")
@@ -129,6 +132,9 @@ def test_reference_and_instanceable_prims_one_element_per_instance():
         np.testing.assert_allclose(e.center, off, atol=1e-12)
         np.testing.assert_allclose(e.bounds_max - e.bounds_min, [1, 1, 1])
     assert ss.scene.geometry.triangle_count == 3 * 12
+    # The prototype's material is one table row shared by all instances.
+    assert len(ss.scene.materials.diffuse) == 2
+    np.testing.assert_allclose(ss.scene.geometry.corner_albedo.reshape(-1, 3), [[0, 1, 0]] * 108)
 
 
 def test_point_instancer_expansion_with_invisible_ids():
