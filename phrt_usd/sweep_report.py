@@ -679,8 +679,8 @@ def plot_selection_timeline(
             len(grid) * row_inches / height,
         )
     )
-    cmap = ListedColormap([colour for _name, colour in TIMELINE_STATES])
-    cmap.set_bad("white")
+    # Masked cells (the gap rows between configs) are white.
+    cmap = ListedColormap([colour for _name, colour in TIMELINE_STATES], bad="white")
     norm = BoundaryNorm(np.arange(len(TIMELINE_STATES) + 1) - 0.5, cmap.N)
     ax.imshow(image, aspect="auto", interpolation="nearest", cmap=cmap, norm=norm)
     label_points = row_inches * 72.0 * TIMELINE_LABEL_FILL

@@ -1,0 +1,204 @@
+"""report.html in a real browser: headless Chromium (Debian's ``chromium`` package).
+
+Chromium is run as a command, no DevTools client (the environment has no WebSocket
+package):
+
+- ``--dump-dom`` prints the DOM after the page has loaded and ``--virtual-time-budget``
+  ms of (virtual) time have passed;
+- ``--enable-logging=stderr --v=0`` makes Chromium write every console message of the
+  page, uncaught exceptions included, to stderr as ``...:CONSOLE:<line>] "<message>"``
+  (the CONSOLE line format has changed between versions, hence the loose pattern);
+- whether each ``<img>`` loaded is not in the DOM, so a test-only wrapper page next to
+  the report loads it in an iframe and writes ``complete && naturalWidth > 0`` of every
+  image into its own DOM. file:// pages are cross-origin to each other unless
+  ``--allow-file-access-from-files`` is given, so the wrapper's Chromium gets that flag;
+- ``--host-resolver-rules`` maps every host name to nothing, so the page cannot reach
+  the network even if it tried (the report must not need it).
+
+``test_checks_detect_planted_faults`` proves both checks can fail.
+"""
+
+from __future__ import annotations
+
+import html
+import json
+import os
+import re
+import signal
+import subprocess
+from html.parser import HTMLParser
+from pathlib import Path
+
+import OpenImageIO as oiio
+import pytest
+from test_sweep_report import write_synthetic_sweep
+
+from phrt_usd.sweep_report import write_sweep_report
+
+CHROMIUM = Path("/usr/bin/chromium")
+
+pytestmark = pytest.mark.skipif(
+    not CHROMIUM.exists(),
+    reason="/usr/bin/chromium not installed (Debian packages: chromium chromium-driver)",
+)
+
+#: Flags for a quiet, offline, headless run as root in a container.
+CHROMIUM_FLAGS = (
+    "--headless",
+    "--no-sandbox",  # the test may run as root, where the sandbox refuses to start
+    "--disable-gpu",
+    "--disable-dev-shm-usage",  # containers often have a tiny /dev/shm
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--host-resolver-rules=MAP * ~NOTFOUND",
+    "--enable-logging=stderr",
+    "--v=0",
+)
+#: Virtual time the page gets after loading before the DOM is dumped (ms).
+VIRTUAL_TIME_BUDGET_MS = 5000
+#: Wall-clock limit of one Chromium run (s); a normal run takes about one second.
+CHROMIUM_TIMEOUT_S = 60
+#: Console messages as logged by Chromium to stderr with --enable-logging=stderr.
+CONSOLE_LINE = re.compile(r":CONSOLE[:(]\d*\)?\]\s*(.*)")
+WRAPPER_RESULT_ID = "phrt-img-check"
+
+#: Loads ``{page}`` in an iframe; once it (and therefore every image in it) has loaded,
+#: writes [{src, ok}] for every <img> into <pre id=WRAPPER_RESULT_ID>.
+WRAPPER_HTML = """<!DOCTYPE html>
+<html><head><meta charset="utf-8"><title>image check</title></head><body>
+<pre id="{result_id}">pending</pre>
+<iframe id="page" src="{page}" width="1200" height="800"></iframe>
+<script>
+const frame = document.getElementById("page");
+frame.addEventListener("load", () => {{
+  let result;
+  try {{
+    result = Array.from(frame.contentDocument.images).map(img => ({{
+      src: img.getAttribute("src"),
+      ok: img.complete && img.naturalWidth > 0,
+    }}));
+  }} catch (error) {{
+    result = {{error: String(error)}};
+  }}
+  document.getElementById("{result_id}").textContent = JSON.stringify(result);
+}});
+</script></body></html>
+"""
+
+
+def run_chromium(page: Path, profile: Path, *extra: str) -> tuple[str, list[str]]:
+    """Load ``page`` headless; return (dumped DOM, console messages)."""
+    command = [
+        str(CHROMIUM),
+        *CHROMIUM_FLAGS,
+        f"--user-data-dir={profile}",
+        f"--virtual-time-budget={VIRTUAL_TIME_BUDGET_MS}",
+        *extra,
+        "--dump-dom",
+        page.resolve().as_uri(),
+    ]
+    # Own process group, so that a hung run is ended with every helper process it started.
+    process = subprocess.Popen(
+        command,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
+    try:
+        dom, log = process.communicate(timeout=CHROMIUM_TIMEOUT_S)
+    except subprocess.TimeoutExpired:
+        os.killpg(process.pid, signal.SIGKILL)
+        process.communicate()
+        pytest.fail(f"chromium did not finish within {CHROMIUM_TIMEOUT_S} s: {command}")
+    assert process.returncode == 0, f"chromium exit {process.returncode}:\n{log[-3000:]}"
+    assert dom.strip(), f"chromium dumped no DOM:\n{log[-3000:]}"
+    messages = [m.group(1) for line in log.splitlines() if (m := CONSOLE_LINE.search(line))]
+    return dom, messages
+
+
+def image_load_states(page: Path, profile: Path) -> tuple[list[dict], list[str]]:
+    """[{src, ok}] of every <img> of ``page`` as loaded by Chromium, and console messages."""
+    wrapper = page.with_name(f"_image_check_{page.stem}.html")
+    wrapper.write_text(WRAPPER_HTML.format(result_id=WRAPPER_RESULT_ID, page=page.name))
+    dom, messages = run_chromium(wrapper, profile, "--allow-file-access-from-files")
+    found = re.search(rf'<pre id="{WRAPPER_RESULT_ID}">(.*?)</pre>', dom, re.S)
+    assert found, f"wrapper result missing from DOM:\n{dom[:2000]}"
+    text = html.unescape(found.group(1))
+    assert text != "pending", "the page in the iframe never finished loading"
+    result = json.loads(text)
+    assert isinstance(result, list), f"wrapper could not read the page: {result}"
+    return result, messages
+
+
+class _ImgCounter(HTMLParser):
+    def __init__(self):
+        super().__init__()
+        self.srcs = []
+
+    def handle_starttag(self, tag, attrs):
+        if tag == "img":
+            self.srcs.append(dict(attrs).get("src"))
+
+
+def _img_srcs(page: Path) -> list[str]:
+    counter = _ImgCounter()
+    counter.feed(page.read_text())
+    return counter.srcs
+
+
+@pytest.fixture(scope="module")
+def report(tmp_path_factory) -> Path:
+    out = write_synthetic_sweep(tmp_path_factory.mktemp("sweep"))
+    write_sweep_report(out)
+    return out / "report.html"
+
+
+def test_report_renders_without_console_errors(report, tmp_path):
+    screenshot = tmp_path / "report.png"
+    dom, messages = run_chromium(
+        report, tmp_path / "profile", "--window-size=1280,2000", f"--screenshot={screenshot}"
+    )
+    assert messages == [], f"console messages: {messages}"
+    assert "<title>phrt sweep: error against run time</title>" in dom
+    assert dom.count("<table>") == 2 and "heu1@20000rays" in dom
+    # The page was laid out and painted: the screenshot is the window size, not blank.
+    image = oiio.ImageInput.open(str(screenshot))
+    assert image is not None, f"no screenshot: {oiio.geterror()}"
+    spec, pixels = image.spec(), image.read_image(oiio.UINT8)
+    image.close()
+    assert (spec.width, spec.height) == (1280, 2000)
+    assert pixels.std() > 10.0, f"screenshot looks blank: {screenshot}"
+
+
+def test_every_report_image_loads(report, tmp_path):
+    states, messages = image_load_states(report, tmp_path / "profile")
+    assert messages == [], f"console messages: {messages}"
+    srcs = _img_srcs(report)
+    assert len(srcs) >= 10  # plots, timelines, previews, FLIP maps
+    assert [s["src"] for s in states] == srcs
+    failed = [s["src"] for s in states if not s["ok"]]
+    assert failed == [], f"images that did not load: {failed}"
+
+
+def test_checks_detect_planted_faults(report, tmp_path):
+    """A page with a console error, an uncaught exception and a missing image fails both."""
+    bad = report.with_name("planted_faults.html")
+    bad.write_text(
+        "<!DOCTYPE html><html><head><title>bad</title></head><body>"
+        '<img src="error_vs_time.png"><img src="no_such_image.png">'
+        '<script>console.error("planted console error"); '
+        'throw new Error("planted exception");</script></body></html>'
+    )
+    _dom, messages = run_chromium(bad, tmp_path / "profile")
+    assert any("planted console error" in m for m in messages), messages
+    assert any("planted exception" in m for m in messages), messages
+
+    states, _messages = image_load_states(bad, tmp_path / "profile")
+    assert {s["src"]: s["ok"] for s in states} == {
+        "error_vs_time.png": True,
+        "no_such_image.png": False,
+    }
