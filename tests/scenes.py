@@ -95,7 +95,7 @@ def mirror_gallery_stage(path: Path, frames: int = 40, width: int = 64, height: 
         ball.CreateRadiusAttr(0.4)
         ball.CreateDisplayColorAttr([(0.2 * i, 0.3, 1.0 - 0.2 * i)])
         UsdGeom.Xformable(ball).AddTranslateOp().Set(Gf.Vec3d(x + 1.0, 0.4, 0.0))
-    keys = np.array([1.0, frames / 2, frames])
+    keys = np.array([1.0, 1.0 + 0.5 * (frames - 1), frames])
     positions = [(-10.0, 1.6, 6.0), (0.0, 1.8, 5.0), (10.0, 1.6, 6.0)]
     targets = [(-6.0, 1.0, -3.0), (0.0, 1.0, -3.0), (6.0, 1.0, -3.0)]
     schema.define_camera_path(
@@ -120,4 +120,3 @@ def mirrored_sphere_pixels(camera, width: int, height: int) -> np.ndarray:
     b = np.sum(oc * dirs, axis=1)
     disc = b * b - (np.sum(oc * oc, axis=1) - SPHERE_RADIUS**2)
     return ((disc > 0) & (-b - np.sqrt(np.maximum(disc, 0)) > 0)).reshape(height, width)
-

@@ -6,13 +6,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from scenes import mirror_floor_stage, mirrored_sphere_pixels
 
 from phrt_usd.errors import PhrtError
 from phrt_usd.image_metrics import flip_map
 from phrt_usd.images import write_preview_png
 from phrt_usd.renderer import FrameRenderer, RenderOptions
 from phrt_usd.stage_reader import open_stage
-from scenes import mirror_floor_stage, mirrored_sphere_pixels
 
 STAGES = Path(__file__).resolve().parent.parent / "stages"
 #: Fraction of the analytically mirrored sphere's floor pixels that must show it red.
