@@ -62,6 +62,7 @@ transforms of PointInstancers are taken at the first time only.
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -762,7 +763,7 @@ class _Part:
     path: str
     mesh: _LocalMesh
     matrix_at: Callable[[_TimeContext], np.ndarray]  # (4, 4) row-vector, stage units
-    points_at: Callable[[Usd.TimeCode], np.ndarray] | None  # deforming points, or None
+    shape_at: _ShapeAt | None  # deforming points / normals, or None
     animated: bool
     v0: int = 0
     t0: int = 0
@@ -822,10 +823,22 @@ def _shape_kind(prim: Usd.Prim) -> str | None:
     return t if t in _SHAPE_ATTRS else None
 
 
-def _local_points_fn(kind: str, prim: Usd.Prim) -> Callable[[Usd.TimeCode], np.ndarray]:
-    if kind == "Mesh":
-        return lambda code: _read_mesh_points(prim, code)
-    return lambda code: _implicit_geometry(kind, prim, code)[0]
+#: Deformation reader: time → (local points (n, 3), corner normals (T, 3, 3) or None
+#: when the normals are analytic or smooth).
+_ShapeAt = Callable[[Usd.TimeCode], tuple[np.ndarray, np.ndarray | None]]
+
+
+def _local_shape_fn(kind: str, prim: Usd.Prim) -> _ShapeAt:
+    """Reader of a deforming gprim's points (and authored normals) at a time."""
+    if kind != "Mesh":
+        return lambda code: (_implicit_geometry(kind, prim, code)[0], None)
+
+    def mesh_at(code: Usd.TimeCode):
+        points = _read_mesh_points(prim, code)
+        corners, tri_face, triangles = _mesh_topology(prim, code, len(points))
+        return points, _mesh_normals(prim, code, corners, tri_face, triangles)
+
+    return mesh_at
 
 
 # --------------------------------------------------------------------------------------
@@ -1011,6 +1024,8 @@ class StageScene:
         def add(prim, path, kind, mesh, matrix_at, xform_animated):
             shape_animated = _varies(prim, _SHAPE_ATTRS[kind])
             refl, k, f = _element_flags(prim, path)
+            if shape_animated:
+                mesh = dataclasses.replace(mesh)  # deforms on its own, even if shared
             elements.append(Element(path, refl, k, f, np.zeros(3), np.zeros(3)))
             parts.append(
                 _Part(
@@ -1018,7 +1033,7 @@ class StageScene:
                     path=path,
                     mesh=mesh,
                     matrix_at=matrix_at,
-                    points_at=_local_points_fn(kind, prim) if shape_animated else None,
+                    shape_at=_local_shape_fn(kind, prim) if shape_animated else None,
                     animated=xform_animated or shape_animated,
                 )
             )
@@ -1178,21 +1193,25 @@ class StageScene:
         if not np.all(np.isfinite(m)):
             raise PhrtError(f"{p.path}: non-finite transform at time {ctx.time}")
         mesh = p.mesh
-        new_points = None
-        if p.points_at is not None:
-            new_points = p.points_at(ctx.code)
-            if len(new_points) != len(mesh.points):
-                raise PhrtError(
-                    f"{p.path}.points: point count changes at time {ctx.time} (not supported)"
-                )
-        if not force and new_points is None and np.array_equal(m, p.matrix):
-            return False
-        if not force and new_points is not None and np.array_equal(m, p.matrix):
-            if np.array_equal(new_points, mesh.points):
+        new_points = new_normals = None
+        if p.shape_at is not None:
+            new_points, new_normals = p.shape_at(ctx.code)
+            if len(new_points) != len(mesh.points) or (
+                new_normals is not None and len(new_normals) != len(mesh.triangles)
+            ):
+                raise PhrtError(f"{p.path}: topology changes at time {ctx.time} (not supported)")
+        same_xform = p.matrix is not None and np.array_equal(m, p.matrix)
+        if not force and same_xform:
+            if new_points is None or (
+                np.array_equal(new_points, mesh.points)
+                and (new_normals is None or np.array_equal(new_normals, mesh.corner_normals))
+            ):
                 return False
         if new_points is not None:
             mesh.points = new_points
-            if mesh.smooth:
+            if new_normals is not None:
+                mesh.corner_normals = new_normals
+            elif mesh.smooth:
                 mesh.corner_normals = smooth_corner_normals(new_points, mesh.triangles)
         p.matrix = m
         g = self.scene.geometry

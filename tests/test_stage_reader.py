@@ -527,3 +527,29 @@ def test_read_speed_many_prims():
     elapsed = _time.perf_counter() - t0
     assert len(ss.scene.elements) == 300
     assert elapsed < 2.0
+
+
+def test_deforming_instances_and_animated_normals():
+    """Instances of one deforming prototype each follow it; authored normals animate."""
+    stage = new_stage()
+    proto = UsdGeom.Xform.Define(stage, "/Proto")
+    proto.GetPrim().SetSpecifier(Sdf.SpecifierClass)
+    mesh = quad_pentagon(stage, "/Proto/Mesh")
+    pts = np.array(mesh.GetPointsAttr().Get())
+    mesh.GetPointsAttr().Set(Vt.Vec3fArray.FromNumpy(pts), 0)
+    mesh.GetPointsAttr().Set(Vt.Vec3fArray.FromNumpy(pts + [0, 0, 1]), 10)
+    normals = mesh.CreateNormalsAttr()
+    mesh.SetNormalsInterpolation(UsdGeom.Tokens.constant)
+    normals.Set([(0, 0, 1)], 0)
+    normals.Set([(0, 1, 0)], 10)
+    for i in range(2):
+        inst = UsdGeom.Xform.Define(stage, f"/World/I{i}")
+        inst.GetPrim().GetInherits().AddInherit("/Proto")
+        inst.GetPrim().SetInstanceable(True)
+        inst.AddTranslateOp().Set(Gf.Vec3d(10 * i, 0, 0))
+    ss = read_stage(stage)
+    assert all(e.animated for e in ss.scene.elements)
+    assert ss.set_time(10) is True
+    g = ss.scene.geometry
+    np.testing.assert_allclose(g.vertices[:, 2], 1.0, rtol=1e-6)  # both instances moved
+    np.testing.assert_allclose(g.corner_normals.reshape(-1, 3), [[0, 1, 0]] * 30, atol=1e-6)
