@@ -683,11 +683,31 @@ def _implicit_z(kind: str, prim: Usd.Prim, time: Usd.TimeCode):
         hi = _sphere_profile(r, hh, 0.0, np.pi / 2, half)
         prof = [np.concatenate([a, b]) for a, b in zip(lo, hi, strict=True)]
         return _grid_surface(*prof)
-    if kind == "Plane":
-        w, length = 0.5 * g("width", 2.0), 0.5 * g("length", 2.0)
-        pts = np.array([[-w, -length, 0], [w, -length, 0], [w, length, 0], [-w, length, 0.0]])
-        return pts, np.array([[0, 1, 2], [0, 2, 3]]), np.tile([0.0, 0.0, 1.0], (4, 1))
     raise AssertionError(kind)
+
+
+#: UsdGeomPlane: (width axis, length axis) for each value of ``axis`` (the normal).
+_PLANE_AXES = {"X": (2, 1), "Y": (0, 2), "Z": (0, 1)}
+
+
+def _plane(prim: Usd.Prim, time: Usd.TimeCode):
+    """A UsdGeomPlane as two triangles facing +axis: points, triangles, point normals.
+
+    Single-sided (front = +axis); ``doubleSided`` is left to the renderer's culling.
+    """
+    axis = str(_attr(prim, "axis", time, "Z"))
+    u, v = _PLANE_AXES.get(axis, _PLANE_AXES["Z"])
+    n = 3 - u - v
+    half_w = 0.5 * float(_attr(prim, "width", time, 2.0))
+    half_l = 0.5 * float(_attr(prim, "length", time, 2.0))
+    pts = np.zeros((4, 3))
+    pts[:, u] = [-half_w, half_w, half_w, -half_w]
+    pts[:, v] = [-half_l, -half_l, half_l, half_l]
+    normal = np.eye(3)[n]
+    tris = np.array([[0, 1, 2], [0, 2, 3]])
+    if np.dot(np.cross(pts[1] - pts[0], pts[2] - pts[0]), normal) < 0:
+        tris = tris[:, [0, 2, 1]]  # (u, v, n) is a left-handed frame for axis X
+    return pts, tris, np.tile(normal, (4, 1))
 
 
 #: Cyclic permutations (proper rotations, det +1) taking the +Z-built shape onto axis X
@@ -697,10 +717,13 @@ _AXIS_PERMUTATION = {"Z": [0, 1, 2], "X": [2, 0, 1], "Y": [1, 2, 0]}
 
 def _implicit_geometry(kind: str, prim: Usd.Prim, time: Usd.TimeCode):
     """Points (n, 3), triangles (T, 3), corner normals (T, 3, 3) in prim space."""
-    pts, tris, nrm = _implicit_z(kind, prim, time)
-    axis = str(_attr(prim, "axis", time, "Z")) if kind != "Sphere" and kind != "Cube" else "Z"
-    perm = _AXIS_PERMUTATION.get(axis, [0, 1, 2])
-    pts, nrm = pts[:, perm], nrm[:, perm]
+    if kind == "Plane":
+        pts, tris, nrm = _plane(prim, time)
+    else:
+        pts, tris, nrm = _implicit_z(kind, prim, time)
+        axis = str(_attr(prim, "axis", time, "Z")) if kind not in ("Sphere", "Cube") else "Z"
+        perm = _AXIS_PERMUTATION.get(axis, [0, 1, 2])
+        pts, nrm = pts[:, perm], nrm[:, perm]
     _check_points(pts, f"{prim.GetPath()} (size attributes)")
     return pts, tris.astype(np.int64), nrm[tris]
 

@@ -553,3 +553,21 @@ def test_deforming_instances_and_animated_normals():
     g = ss.scene.geometry
     np.testing.assert_allclose(g.vertices[:, 2], 1.0, rtol=1e-6)  # both instances moved
     np.testing.assert_allclose(g.corner_normals.reshape(-1, 3), [[0, 1, 0]] * 30, atol=1e-6)
+
+
+@pytest.mark.parametrize(
+    "axis, size, normal",
+    [("X", [0, 4, 2], [1, 0, 0]), ("Y", [2, 0, 4], [0, 1, 0]), ("Z", [2, 4, 0], [0, 0, 1])],
+)
+def test_plane_axes(axis, size, normal):
+    """UsdGeomPlane: width along z/x/x and length along y/z/y for axis X/Y/Z."""
+    stage = new_stage()
+    plane = UsdGeom.Plane.Define(stage, "/World/Plane")
+    plane.CreateAxisAttr(axis)
+    plane.CreateWidthAttr(2.0)
+    plane.CreateLengthAttr(4.0)
+    scene = read_stage(stage).scene
+    e = scene.elements[0]
+    np.testing.assert_allclose(e.bounds_max - e.bounds_min, size)
+    np.testing.assert_allclose(tri_normals(scene.geometry), [normal] * 2, atol=1e-12)
+    np.testing.assert_allclose(scene.geometry.corner_normals.reshape(-1, 3), [normal] * 6)
