@@ -48,10 +48,24 @@ WEIGHT_MAX = 1e12
 #: under-predict when a reflector starts reflecting more reflectors (deeper bounces).
 RAYS_SAFETY = 1.1
 
-#: Predicted trace milliseconds are multiplied by this: wall time jitters from round to
-#: round (caches, the OS, the other core). With RAYS_SAFETY the selection plans to use
-#: about 1 / 1.21 = 83 % of the time budget.
-TIME_SAFETY = 1.1
+#: Predicted trace milliseconds are multiplied by a time safety factor: wall time jitters
+#: from round to round (caches, the OS, other processes on the two cores). The factor is
+#: the JITTER_QUANTILE quantile of measured / modelled round time, tracked online, and
+#: never below TIME_SAFETY_MIN: on a quiet machine it settles near 1.1 (with RAYS_SAFETY
+#: the selection then plans to use ~1 / 1.2 = 83 % of the budget); on a loaded machine
+#: it grows so that rounds still end within the budget.
+TIME_SAFETY_MIN = 1.05
+TIME_SAFETY_INITIAL = 1.1
+TIME_SAFETY_MAX = 10.0
+JITTER_QUANTILE = 0.97
+#: Step of the online quantile tracker (ratio units): +STEP*q on a round slower than
+#: the factor predicts, -STEP*(1-q) otherwise, so ~3 % of rounds exceed it.
+JITTER_STEP = 0.2
+#: When the time budget lets nothing at all be traced in a frame, the safety factor is
+#: multiplied by this. Otherwise a noisy spell could raise it so far that nothing is ever
+#: traced again, and without rounds there is nothing to learn from: the factor creeps back
+#: until a round fits, and that round's measurement then corrects it.
+STARVED_RELAX = 0.97
 
 #: Before anything was measured: 0.004 ms per ray (250k rays/s, slower than embreex plus
 #: numpy shading on one laptop core) and 0.5 ms fixed cost per tracing round.
@@ -168,12 +182,17 @@ class TraceTimeModel:
     alike to separate the two terms, or the fit is unphysical (negative overhead or slope),
     all the time is put on the rays (``overhead 0, ms_per_ray = sum ms / sum rays``), which
     is conservative for rounds larger than average.
+
+    Predictions are multiplied by ``safety``, an online estimate of the JITTER_QUANTILE
+    quantile of (measured / modelled) round time, clamped to [TIME_SAFETY_MIN,
+    TIME_SAFETY_MAX].
     """
 
     def __init__(self) -> None:
         self.overhead_ms = INITIAL_ROUND_MS
         self.ms_per_ray = INITIAL_MS_PER_RAY
         self.rounds = 0
+        self.safety = TIME_SAFETY_INITIAL
         # Weighted sums: weight, rays, ms, rays^2, rays*ms.
         self._w = self._r = self._m = self._rr = self._rm = 0.0
 
@@ -182,6 +201,11 @@ class TraceTimeModel:
         if rays <= 0 or not math.isfinite(ms) or ms < 0.0:
             return
         r, m = float(rays), float(ms)
+        if self.rounds > 0:  # the first round only tells how wrong the initial guess was
+            ratio = m / (self.overhead_ms + self.ms_per_ray * r)
+            q = JITTER_QUANTILE
+            step = JITTER_STEP * (q if ratio > self.safety else -(1.0 - q))
+            self.safety = min(max(self.safety + step, TIME_SAFETY_MIN), TIME_SAFETY_MAX)
         k = TIME_MODEL_DECAY
         self._w = k * self._w + 1.0
         self._r = k * self._r + r
@@ -200,13 +224,17 @@ class TraceTimeModel:
             self.overhead_ms, self.ms_per_ray = 0.0, self._m / self._r
         self.ms_per_ray = max(self.ms_per_ray, MIN_MS_PER_RAY)
 
+    def relax(self) -> None:
+        """Nothing fitted the time budget this frame: lower the safety factor a little."""
+        self.safety = max(self.safety * STARVED_RELAX, TIME_SAFETY_MIN)
+
     def predicted_ms(self, rays: float) -> float:
-        """Conservative milliseconds for a round of ``rays`` rays (TIME_SAFETY included)."""
-        return (self.overhead_ms + self.ms_per_ray * max(rays, 0.0)) * TIME_SAFETY
+        """Conservative milliseconds for a round of ``rays`` rays (``safety`` included)."""
+        return (self.overhead_ms + self.ms_per_ray * max(rays, 0.0)) * self.safety
 
     def rays_within(self, ms: float) -> float:
         """Most rays a round may cast and still (conservatively) end within ``ms``."""
-        return max((ms / TIME_SAFETY - self.overhead_ms) / self.ms_per_ray, 0.0)
+        return max((ms / self.safety - self.overhead_ms) / self.ms_per_ray, 0.0)
 
 
 # --------------------------------------------------------------------------- policies
@@ -241,8 +269,8 @@ class BudgetedPolicy:
             raise PhrtError(
                 f"phrt:selectionWeight must be a finite number >= 0, got {selection_weight}"
             )
-        if bounce_limit < 1:
-            raise PhrtError(f"phrt:bounceLimit must be >= 1, got {bounce_limit}")
+        if bounce_limit < 0:
+            raise PhrtError(f"phrt:bounceLimit must be >= 0, got {bounce_limit}")
         self.selection_weight = float(clip_weight(selection_weight))
         self.bounce_limit = int(bounce_limit)
         self.time_model = TraceTimeModel()
@@ -255,7 +283,7 @@ class BudgetedPolicy:
         self._global_rays = 0.0  # decayed sums for the mean rays per pixel
         self._global_pixels = 0.0
         self._frame: _FrameState | None = None
-        #: Predicted trace time of the last finished frame (ms, TIME_SAFETY included).
+        #: Predicted trace time of the last finished frame (ms, time safety included).
         self.last_predicted_trace_ms = 0.0
 
     # ---- SelectionPolicy
@@ -280,6 +308,8 @@ class BudgetedPolicy:
     def next_round(self, budget: Budget) -> list[int]:
         frame = self._require_frame()
         ids = self._choose(budget)
+        if not ids and not frame.traced and self._starved_by_time(budget):
+            self.time_model.relax()
         for e in ids:
             frame.predicted_rays[e] = self.predicted_rays(e)
         if ids:
@@ -305,7 +335,8 @@ class BudgetedPolicy:
             if not 0 <= src < n:
                 continue
             bounces = max(int(rec.max_reflector_bounces), 0)
-            self.Q[src] = float(min(1 + bounces, self.bounce_limit))
+            # Q = 1 + bounces, capped at the bounce limit (Q >= 1 even for a limit of 0).
+            self.Q[src] = float(min(1 + bounces, max(self.bounce_limit, 1)))
             if rec.pixels > 0 and rec.rays >= 0:
                 rpp = max(rec.rays / rec.pixels, MIN_RAYS_PER_PIXEL)
                 old = self.rays_per_pixel.get(src)
@@ -381,10 +412,10 @@ class BudgetedPolicy:
         return pixels * max(rpp, MIN_RAYS_PER_PIXEL) * RAYS_SAFETY
 
     def predicted_ms(self, rays: float) -> float:
-        """Milliseconds a candidate's ``rays`` add to a round (TIME_SAFETY included; the
+        """Milliseconds a candidate's ``rays`` add to a round (time safety included; the
         round's fixed overhead is not, see ``TraceTimeModel``). Used for the metrics of
         candidates not selected; selected ones get their share of their round's time."""
-        return self.time_model.ms_per_ray * max(rays, 0.0) * TIME_SAFETY
+        return self.time_model.ms_per_ray * max(rays, 0.0) * self.time_model.safety
 
     def ray_allowance(self, budget: Budget) -> float:
         """The budget as a number of (predicted) rays: the smaller of ``budget.rays`` and
@@ -396,6 +427,14 @@ class BudgetedPolicy:
             ms = 0.0 if math.isnan(budget.ms) else float(budget.ms)  # NaN: nothing is known
             allowance = min(allowance, self.time_model.rays_within(ms))
         return allowance
+
+    def _starved_by_time(self, budget: Budget) -> bool:
+        """True if a visible candidate would fit the rays budget but not the time one."""
+        if budget.ms is None or not budget.ms > 0.0 or not self._untraced_visible():
+            return False
+        cheapest = min(self.predicted_rays(e) for e in self._untraced_visible())
+        rays_ok = budget.rays is None or cheapest <= budget.rays
+        return rays_ok and cheapest > self.time_model.rays_within(budget.ms)
 
     def metrics(self) -> dict[int, ReflectorMetrics]:
         """Figures for every candidate as of now (after the last recorded round)."""

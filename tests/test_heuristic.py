@@ -288,7 +288,7 @@ def test_make_policy_rejects_bad_input():
     with pytest.raises(PhrtError, match="selectionWeight"):
         policy_of("heu1", weight=-1.0)
     with pytest.raises(PhrtError, match="bounceLimit"):
-        make_policy("heu1", selection_weight=0.0, bounce_limit=0)
+        make_policy("heu1", selection_weight=0.0, bounce_limit=-1)
     with pytest.raises(PhrtError, match="list"):
         policy_of("list")
     assert isinstance(policy_of(" HEU1 "), Heu1Policy)
