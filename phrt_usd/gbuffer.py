@@ -445,22 +445,26 @@ class Rasterizer:
             p_rel = eye_rel + t[:, None] * dc
 
             # Barycentrics of p, clamped onto the triangle (pixel centres on an edge may
-            # lie a rounding error outside).
+            # lie a rounding error outside) and renormalised; float32 from here on.
             bv = np.einsum("ij,ij->i", p_rel, tab[:, 0:3]) - tab[:, 3]
             bw = np.einsum("ij,ij->i", p_rel, tab[:, 4:7]) - tab[:, 7]
-            bary = np.stack([1.0 - bv - bw, bv, bw], axis=1).clip(0.0, 1.0)
-            bary /= np.maximum(bary.sum(axis=1, keepdims=True), 1e-12)
-            bary = bary.astype(np.float32)[:, :, None]  # (n, 3, 1)
+            b0 = np.clip(1.0 - bv - bw, 0.0, 1.0)
+            b1 = np.clip(bv, 0.0, 1.0)
+            b2 = np.clip(bw, 0.0, 1.0)
+            inv_sum = 1.0 / np.maximum(b0 + b1 + b2, 1e-12)
+            bary = np.stack([b0 * inv_sum, b1 * inv_sum, b2 * inv_sum], axis=1)
+            bary = bary.astype(np.float32)  # (n, 3)
 
             corners = self._tri32[tid]  # (n, 6, 3): 3 normals, 3 albedos
-            n = (bary * corners[:, 0:3]).sum(axis=1)
-            col = (bary * corners[:, 3:6]).sum(axis=1)
+            w0, w1, w2 = bary[:, 0:1], bary[:, 1:2], bary[:, 2:3]
+            n = corners[:, 0] * w0 + corners[:, 1] * w1 + corners[:, 2] * w2
+            col = corners[:, 3] * w0 + corners[:, 4] * w1 + corners[:, 5] * w2
 
             # Shading normal on the camera's side of the triangle; where it still faces
             # away (or is degenerate), use the geometric normal.
             side = np.where(den > 0.0, -1.0, 1.0)  # n_g·d > 0: the back face is seen
             n *= side[:, None].astype(np.float32)
-            n_len = np.linalg.norm(n, axis=1)
+            n_len = np.sqrt(np.einsum("ij,ij->i", n, n))
             bad = (n_len < 1e-6) | (np.einsum("ij,ij->i", n, view_dir[covered]) >= 0.0)
             n /= np.maximum(n_len, 1e-6)[:, None]
             if bad.any():
@@ -470,7 +474,7 @@ class Rasterizer:
 
             textured = self._tri_textured[tid]
             if textured.any():
-                col[textured] = self._texture_albedo(tid[textured], bary[textured, :, 0])
+                col[textured] = self._texture_albedo(tid[textured], bary[textured])
             albedo[covered] = col
             triangle_id[covered] = tid
             element_id[covered] = geo.tri_element[tid]
