@@ -57,7 +57,11 @@ Decisions where USD leaves room:
 Limits: no subdivision (cage is rendered), no curves/points/volumes, no primvar
 inheritance from ancestors, implicit gprims take only a constant displayColor and no
 texture coordinates, nested PointInstancers are not expanded, prototype-internal
-transforms of PointInstancers are taken at the first time only.
+transforms of PointInstancers are taken at the first time only. Visibility, purpose,
+materials and lights are read once (first time code); topology (point, face and instance
+counts) must not change over time (``PhrtError`` if it does). ``doubleSided`` is not
+represented: front faces are counter-clockwise, culling is the renderer's choice. Only
+the first DomeLight is used, lat-long textures only; orthographic cameras are rejected.
 """
 
 from __future__ import annotations
