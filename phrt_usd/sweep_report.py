@@ -716,10 +716,11 @@ th, td { border: 1px solid #ccc; padding: 2px 6px; text-align: right; }
 th { background: #f0f0f0; }
 td:nth-child(-n+3), th:nth-child(-n+3) { text-align: left; }
 p.note { font-size: 0.85em; color: #555; max-width: 60em; }
-div.row { display: flex; flex-wrap: wrap; gap: 8px; margin-bottom: 10px; }
+div.frame { display: flex; flex-wrap: wrap; gap: 6px 28px; }
+div.row { display: flex; gap: 6px; margin-bottom: 8px; }
 figure { margin: 0; }
-figure img { width: 320px; image-rendering: pixelated; border: 1px solid #ccc; }
-figcaption { font-size: 0.75em; max-width: 320px; }
+figure img { width: 190px; image-rendering: pixelated; border: 1px solid #ccc; }
+figcaption { font-size: 0.7em; max-width: 190px; }
 img.plot { max-width: 100%; }
 """
 
@@ -748,7 +749,8 @@ def _frame_dirs(stage_dir: Path) -> list[Path]:
         except ValueError:
             return (1, 0.0, path.name)
 
-    return sorted((p for p in stage_dir.iterdir() if p.is_dir()), key=key)
+    dirs = (p for p in stage_dir.iterdir() if p.is_dir() and not p.name.startswith("."))
+    return sorted(dirs, key=key)
 
 
 def _frame_row(
@@ -787,13 +789,15 @@ def _images_section(
         return []
     parts = []
     for frame_dir in _frame_dirs(stage_dir):
-        pngs = {p.stem: p for p in frame_dir.glob("*.png")}
+        # Hidden files are temp files of interrupted atomic writes.
+        pngs = {p.stem: p for p in frame_dir.glob("*.png") if not p.name.startswith(".")}
         reference = pngs.get(REFERENCE_CONFIG)
         configs = [
             name for name in pngs if not name.endswith(FLIP_MAP_SUFFIX) and name != REFERENCE_CONFIG
         ]
         configs.sort(key=lambda c: (order.index(c) if c in order else len(order), c))
         parts.append(f"<h3>{_esc(stage)}, frame {_esc(frame_dir.name)}</h3>")
+        parts.append('<div class="frame">')
         for config in configs:
             row = _frame_row(rows, stage, config, frame_dir.name)
             figures_text = ""
@@ -820,6 +824,7 @@ def _images_section(
                 + _figure(out_dir, reference, "reference: all reflectors traced")
                 + "</div>"
             )
+        parts.append("</div>")
     return parts
 
 
