@@ -15,8 +15,10 @@ from phrt_usd.frame import Budget, FrameView, TraceRecord
 from phrt_usd.heuristic import (
     D_MIN,
     RAYS_SAFETY,
+    TIME_SAFETY_MIN,
     Heu1Policy,
     Heu2Policy,
+    TraceTimeModel,
     camera_distance,
     centrality,
     distance_factor,
@@ -447,3 +449,46 @@ def test_time_budget_holds_with_a_simulated_tracer(name):
     used = np.array(used)
     assert np.mean(used <= 1.1 * T) >= 0.99
     assert np.median(used) >= 0.6 * T  # conservative, but not idle
+
+
+def test_time_model_fits_overhead_and_per_ray_cost():
+    model = TraceTimeModel()
+    for k in range(60):
+        rays = 500 + 400 * (k % 7)
+        model.learn(rays, 0.5 + 0.002 * rays)
+    assert model.overhead_ms == pytest.approx(0.5, rel=1e-6)
+    assert model.ms_per_ray == pytest.approx(0.002, rel=1e-6)
+    assert model.safety == TIME_SAFETY_MIN  # exact predictions: the margin shrinks
+    assert model.rays_within(0.4 * TIME_SAFETY_MIN) == 0.0  # less than the overhead
+    assert model.rays_within(math.inf) == math.inf
+    # Bad measurements are ignored.
+    model.learn(0, 5.0)
+    model.learn(100, math.nan)
+    model.learn(100, -1.0)
+    assert model.ms_per_ray == pytest.approx(0.002, rel=1e-6)
+
+
+def test_time_safety_grows_with_jitter_and_relaxes_when_starved():
+    model = TraceTimeModel()
+    rng = np.random.default_rng(1)
+    for _ in range(200):  # one round in four takes 3x the usual time
+        rays = int(rng.integers(500, 3000))
+        model.learn(rays, (0.5 + 0.002 * rays) * (3.0 if rng.random() < 0.25 else 1.0))
+    assert model.safety > 1.5
+    high = model.safety
+    model.relax()
+    assert TIME_SAFETY_MIN <= model.safety < high
+    for _ in range(500):
+        model.relax()
+    assert model.safety == TIME_SAFETY_MIN
+
+
+def test_time_starved_policy_relaxes_its_safety():
+    sc = scene([element((0.0, 0.0, -5.0))])
+    policy = policy_of("heu1")
+    policy.time_model.safety = 5.0
+    before = policy.time_model.safety
+    policy.begin_frame(view([1000]), sc)
+    assert policy.next_round(Budget(ms=2.0)) == []  # 1100 rays * 0.004 ms * 5 > 2 ms
+    policy.end_frame()
+    assert policy.time_model.safety < before
