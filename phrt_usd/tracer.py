@@ -258,11 +258,12 @@ class Tracer:
         largest = np.maximum(np.maximum(a[:, 0], a[:, 1]), a[:, 2])
         return np.maximum(RAY_OFFSET_ABSOLUTE * self.extent, RAY_OFFSET_RELATIVE * largest)
 
-    def _offset(self, rel: np.ndarray, normals: np.ndarray, dirs: np.ndarray) -> np.ndarray:
-        """Render-relative origins moved off the surface by the offset epsilon along
-        ``normals``, on the side the outgoing ``dirs`` leave to."""
-        side = np.where(np.einsum("ij,ij->i", dirs, normals) >= 0, 1.0, -1.0)
-        return rel + (side * self._epsilon(rel))[:, None] * normals
+    def _offset(self, rel: np.ndarray, normals: np.ndarray, dirs: np.ndarray, eps=None):
+        """Render-relative origins moved off the surface by the offset epsilon (``eps``
+        (n,), computed when None) along ``normals``, on the side ``dirs`` leave to."""
+        eps = self._epsilon(rel) if eps is None else eps
+        side = np.where(np.einsum("ij,ij->i", dirs, normals) >= 0, eps, -eps)
+        return rel + side[:, None] * normals
 
     def _surface(self, tri: np.ndarray, u: np.ndarray, v: np.ndarray, incoming: np.ndarray):
         """Everything shading needs at hits on triangles ``tri`` (m,) with barycentrics u, v:
@@ -341,8 +342,9 @@ class Tracer:
         vis = np.zeros((n, n_lights), np.float32)
         if len(point):
             d = dirs[point, light]
-            origin = self._offset(rel[point], offset_normals[point], d)
-            eps = self._epsilon(rel[point])
+            rel_p = rel[point]
+            eps = self._epsilon(rel_p)
+            origin = self._offset(rel_p, offset_normals[point], d, eps)
             # Stop short of a LocalLight by the offset so the light's own position is free.
             dmax = dist[point, light]
             tfar = np.where(np.isfinite(dmax), np.maximum(dmax - eps, 0.0), _FAR)
@@ -541,7 +543,8 @@ class Tracer:
             if refl.any():
                 hit_keys.append(r_src[r][refl] * n_elem + self._tri_element[hits.tri[refl]])
             # Children: reflected rays (weight w α F), refracted rays (weight w (1 - α)).
-            d_refl = _unit(d_in - 2.0 * np.einsum("ij,ij->i", d_in, ns)[:, None] * ns)
+            # Mirror of a unit vector about a unit normal: unit already, no renormalising.
+            d_refl = d_in - (2.0 * np.einsum("ij,ij->i", d_in, ns))[:, None] * ns
             w_refl = w * alpha * f
             go = np.flatnonzero(w_refl > 0)
             c_dir, c_idx, c_w = d_refl[go], go, w_refl[go]
