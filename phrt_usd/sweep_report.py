@@ -29,10 +29,11 @@ Definitions used in the tables (all means are over the config's frames):
 
 - *mean fps* = 1000 / mean frame ms (frames per second of wall time over the whole path,
   not the mean of per-frame fps, which short frames would inflate).
-- *transition rate* = transitions / reflector-frames visible after the first frame: the
-  fraction of chances to switch (a visible reflector in a frame with a predecessor) that
-  did switch. The CSV gives per-frame visible counts, not "visible in both frames", so
-  the denominator slightly over-counts reflectors that just entered the view.
+- *transition rate* = transitions / chances to switch, a chance being a reflector visible
+  in two consecutive frames (as in ``phrt report``), counted from timeline.json. Without a
+  usable timeline (absent, or not the CSV's frame count) the chances are approximated
+  from the CSV's per-frame visible counts after the first frame, which also counts
+  reflectors that just entered the view; the summary says which was used.
 - *temporal FLIP* = mean FLIP between consecutive frames of the config; shown next to the
   reference's for the same frame pairs (camera motion alone gives the reference's value;
   flicker from selection changes shows as the excess).
@@ -169,6 +170,15 @@ HEURISTIC_ORDER = {"heu1": 0, "heu2": 1}
 
 MISSING = "—"
 
+#: How the tables' figures are defined; heads summary.md and report.html.
+DEFINITIONS = (
+    "FLIP and PSNR are measured against the `all` reference (every reflector ray-traced; "
+    "PSNR 100 dB = identical). Mean fps = 1000 / mean frame ms. Transition rate = "
+    "transitions / chances to switch (reflector visible in two consecutive frames). "
+    "Temporal FLIP: between consecutive frames of the config; the reference's for the "
+    "same frame pairs beside it (camera motion alone gives the reference's value)."
+)
+
 
 # --- reading ---------------------------------------------------------------------------
 
@@ -280,7 +290,9 @@ def _row_sort_key(entry: Mapping[str, Any]) -> tuple:
     )
 
 
-def summarize(rows: Iterable[Mapping[str, Any]]) -> list[dict[str, Any]]:
+def summarize(
+    rows: Iterable[Mapping[str, Any]], timeline: Mapping[str, Any] | None = None
+) -> list[dict[str, Any]]:
     """One dict per stage x config from sweep.csv rows, in display order.
 
     Stages keep their order of first appearance; within a stage: raster, heuristics by
@@ -290,9 +302,14 @@ def summarize(rows: Iterable[Mapping[str, Any]]) -> list[dict[str, Any]]:
     stage, config, heuristic, mode, kind (see ``config_kind``), budget_ms / budget_rays
     (float, None = not used, inf = unbounded), budget (label), frames (count),
     mean_frame_ms, median_frame_ms, mean_fps, mean_trace_ms, mean_flip,
-    mean_flip_reflectors, mean_psnr, transitions (sum, int), transition_rate (fraction or
-    None), mean_selected, mean_visible, mean_flip_temporal, mean_flip_temporal_reference.
-    Means skip empty cells and are None when every cell is empty.
+    mean_flip_reflectors, mean_psnr, transitions (sum, int), transition_chances (int),
+    transition_rate (transitions / chances, None without chances), chances_from
+    ("timeline" | "csv"), mean_selected, mean_visible, mean_flip_temporal,
+    mean_flip_temporal_reference. Means skip empty cells and are None when every cell is
+    empty.
+
+    timeline : timeline.json's object; when it has the config with as many frames as the
+               CSV, chances to switch are counted exactly from it (see module doc).
     """
     groups: dict[tuple[str, str], list[Mapping[str, Any]]] = {}
     for row in rows:
@@ -303,7 +320,15 @@ def summarize(rows: Iterable[Mapping[str, Any]]) -> list[dict[str, Any]]:
     stage_order = {stage: i for i, stage in enumerate(dict.fromkeys(s for s, _ in groups))}
     summary = []
     for (stage, config), group in groups.items():
-        summary.append(_summarize_config(stage, config, group))
+        entry = (timeline or {}).get(stage, {})
+        data = entry.get(config) if isinstance(entry, dict) else None
+        chances = None
+        if data is not None:
+            _reflectors, frames, _selected, visible = _timeline_arrays(stage, config, data)
+            if len(frames) == len(group):
+                # A chance to switch: visible in this frame and the one before.
+                chances = int(np.count_nonzero(visible[1:] & visible[:-1]))
+        summary.append(_summarize_config(stage, config, group, chances))
     summary.sort(key=lambda e: (stage_order[e["stage"]], _row_sort_key(e)))
     return summary
 
@@ -318,7 +343,10 @@ def _constant(group: list[Mapping[str, Any]], column: str, stage: str, config: s
     return values.pop()
 
 
-def _summarize_config(stage: str, config: str, group: list[Mapping[str, Any]]) -> dict:
+def _summarize_config(
+    stage: str, config: str, group: list[Mapping[str, Any]], chances: int | None
+) -> dict:
+    """Summary entry of one stage x config; ``chances`` from the timeline, or None."""
     heuristic = _constant(group, "heuristic", stage, config)
     mode = _constant(group, "mode", stage, config)
     kind = config_kind(heuristic, mode)
@@ -333,8 +361,11 @@ def _summarize_config(stage: str, config: str, group: list[Mapping[str, Any]]) -
         raise PhrtError(f"sweep.csv stage {stage!r} config {config!r}: empty frame_ms")
     mean_frame_ms = sum(frame_ms) / len(frame_ms)
     transitions = [_number(r, "transitions") or 0.0 for r in ordered]
-    # Chances to switch: reflectors visible in every frame that has a predecessor.
-    chances = sum(_number(r, "visible") or 0.0 for r in ordered[1:])
+    chances_from = "timeline"
+    if chances is None:
+        # Approximation: reflectors visible in every frame that has a predecessor.
+        chances = int(round(sum(_number(r, "visible") or 0.0 for r in ordered[1:])))
+        chances_from = "csv"
     total_transitions = int(round(sum(transitions)))
     return {
         "stage": stage,
@@ -355,7 +386,9 @@ def _summarize_config(stage: str, config: str, group: list[Mapping[str, Any]]) -
         "mean_flip_reflectors": _mean(_number(r, "flip_reflectors") for r in ordered),
         "mean_psnr": _mean(_number(r, "psnr") for r in ordered),
         "transitions": total_transitions,
+        "transition_chances": chances,
         "transition_rate": total_transitions / chances if chances > 0 else None,
+        "chances_from": chances_from,
         "mean_selected": _mean(_number(r, "selected") for r in ordered),
         "mean_visible": _mean(_number(r, "visible") for r in ordered),
         "mean_flip_temporal": _mean(_number(r, "flip_temporal") for r in ordered),
@@ -415,6 +448,19 @@ def table_cells(entry: Mapping[str, Any]) -> list[str]:
     return [fmt(entry[key]) for _header, key, fmt in TABLE_COLUMNS]
 
 
+def stage_notes(summary: list[Mapping[str, Any]], stage: str) -> list[str]:
+    """Caveats of one stage's table: configs whose transition rate is approximated."""
+    approximated = [
+        e["config"] for e in summary if e["stage"] == stage and e["chances_from"] == "csv"
+    ]
+    if not approximated:
+        return []
+    return [
+        "Transition rate approximated from per-frame visible counts (no matching "
+        f"timeline.json entry) for: {', '.join(approximated)}."
+    ]
+
+
 def paper_comparison(
     summary: list[Mapping[str, Any]], stage: str, paper: Mapping[str, Mapping[str, float]]
 ) -> list[str]:
@@ -472,10 +518,7 @@ def write_summary_md(
     lines = [
         "# phrt sweep: error against run time",
         "",
-        "FLIP and PSNR are measured against the `all` reference (every reflector traced). "
-        "Mean fps = 1000 / mean frame ms. Transition rate = transitions / reflector-frames "
-        "visible after the first frame. Temporal FLIP: between consecutive frames of the "
-        "config; the reference's for the same frame pairs beside it.",
+        DEFINITIONS,
         "",
     ]
     header = [h for h, _k, _f in TABLE_COLUMNS]
@@ -487,7 +530,8 @@ def write_summary_md(
             if entry["stage"] == stage:
                 lines.append("| " + " | ".join(_md_cell(c) for c in table_cells(entry)) + " |")
         lines.append("")
-        lines += [_md_cell(line) + "  " for line in paper_comparison(summary, stage, paper)]
+        notes = [*stage_notes(summary, stage), *paper_comparison(summary, stage, paper)]
+        lines += [_md_cell(line) + "  " for line in notes]
         lines.append("")
     write_text_atomic(Path(path), "\n".join(lines))
 
@@ -611,7 +655,11 @@ def timeline_states(selected: np.ndarray, visible: np.ndarray) -> np.ndarray:
     return states.T.astype(np.int8)
 
 
-def _timeline_arrays(stage: str, config: str, data: Any) -> tuple[list[str], list, np.ndarray]:
+def _timeline_arrays(
+    stage: str, config: str, data: Any
+) -> tuple[list[str], list, np.ndarray, np.ndarray]:
+    """(reflector paths, frame times, selected, visible) of one config in timeline.json;
+    selected / visible are (frames, reflectors) bool. PhrtError if the shapes disagree."""
     where = f"timeline.json stage {stage!r} config {config!r}"
     if not isinstance(data, dict):
         raise PhrtError(f"{where}: expected an object")
@@ -627,7 +675,7 @@ def _timeline_arrays(stage: str, config: str, data: Any) -> tuple[list[str], lis
                 f"{where}: {key} is not {shape[0]} frames x {shape[1]} reflectors"
             ) from error
         arrays.append(values)
-    return [str(r) for r in reflectors], list(frames), timeline_states(*arrays)
+    return [str(r) for r in reflectors], list(frames), arrays[0], arrays[1]
 
 
 def plot_selection_timeline(
@@ -643,7 +691,10 @@ def plot_selection_timeline(
     """
     order = order or []
     names = [c for c in order if c in configs] + [c for c in configs if c not in order]
-    blocks = [(name, *_timeline_arrays(stage, name, configs[name])) for name in names]
+    blocks = []
+    for name in names:
+        reflectors, frame_times, selected, visible = _timeline_arrays(stage, name, configs[name])
+        blocks.append((name, reflectors, frame_times, timeline_states(selected, visible)))
     blocks = [b for b in blocks if b[3].size > 0]
     if not blocks:
         raise PhrtError(f"timeline.json stage {stage!r}: no frames or reflectors to draw")
@@ -853,11 +904,7 @@ def write_report_html(
         "<title>phrt sweep: error against run time</title>",
         f"<style>{_CSS}</style></head><body>",
         "<h1>phrt sweep: error against run time</h1>",
-        '<p class="note">FLIP and PSNR against the <code>all</code> reference (every '
-        "reflector ray-traced). Mean fps = 1000 / mean frame ms. Transition rate = "
-        "transitions / reflector-frames visible after the first frame. Temporal FLIP is "
-        "between consecutive frames of a config; the reference's for the same frame pairs "
-        "is beside it.</p>",
+        f'<p class="note">{_esc(DEFINITIONS)}</p>',
     ]
     plot = out_dir / ERROR_VS_TIME_PNG
     if plot.is_file():
@@ -875,9 +922,8 @@ def write_report_html(
                 f'alt="{_esc(f"mean FLIP against mean frame time, {stage}")}">'
             )
         parts.append(_html_table(entries))
-        parts += [
-            f'<p class="note">{_esc(line)}</p>' for line in paper_comparison(summary, stage, paper)
-        ]
+        notes = [*stage_notes(summary, stage), *paper_comparison(summary, stage, paper)]
+        parts += [f'<p class="note">{_esc(line)}</p>' for line in notes]
         timeline = out_dir / timeline_plot_name(stage)
         if timeline.is_file():
             parts.append(f"<h3>Selection timeline, {_esc(stage)}</h3>")
@@ -893,11 +939,26 @@ def write_report_html(
 # --- all of it -------------------------------------------------------------------------
 
 
+def read_timeline(path: Path) -> dict[str, Any]:
+    """timeline.json as {stage: {config: {...}}}; {} if the file is absent."""
+    path = Path(path)
+    if not path.is_file():
+        return {}
+    try:
+        timeline = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as error:
+        raise PhrtError(f"{path}: cannot read ({error})") from error
+    if not isinstance(timeline, dict):
+        raise PhrtError(f"{path}: expected an object {{stage: {{config: ...}}}}")
+    return timeline
+
+
 def write_sweep_report(out_dir: Path) -> None:
     """Read the sweep's outputs in ``out_dir`` and write every human-readable output."""
     out_dir = Path(out_dir)
     rows = read_sweep_csv(out_dir / SWEEP_CSV)
-    summary = summarize(rows)
+    timeline = read_timeline(out_dir / TIMELINE_JSON)
+    summary = summarize(rows, timeline)
     paper = load_paper_figures(out_dir)
     write_summary_md(summary, out_dir / SUMMARY_MD, paper)
 
@@ -910,21 +971,10 @@ def write_sweep_report(out_dir: Path) -> None:
                 entries, out_dir / stage_plot_name(stage), title=f"Error against run time: {stage}"
             )
 
-    timeline_path = out_dir / TIMELINE_JSON
-    if timeline_path.is_file():
-        try:
-            timeline = json.loads(timeline_path.read_text(encoding="utf-8"))
-        except (OSError, ValueError) as error:
-            raise PhrtError(f"{timeline_path}: cannot read ({error})") from error
-        if not isinstance(timeline, dict):
-            raise PhrtError(f"{timeline_path}: expected an object {{stage: {{config: ...}}}}")
-        for stage, configs in timeline.items():
-            if not isinstance(configs, dict) or not configs:
-                continue
+    for stage, configs in timeline.items():
+        if isinstance(configs, dict) and configs:
             order = [e["config"] for e in summary if e["stage"] == stage]
             plot_selection_timeline(stage, configs, out_dir / timeline_plot_name(stage), order)
-    else:
-        timeline = {}
     # A timeline PNG left by an earlier sweep must not appear in this report.
     for stage in stages:
         if not timeline.get(stage):

@@ -154,8 +154,15 @@ def parse_summary_md(text: str) -> dict[str, list[dict[str, str]]]:
     return tables
 
 
-def expected_from_csv(path: Path) -> dict[tuple[str, str], dict[str, float | None]]:
-    """Independent recomputation of the summary's figures straight from the CSV."""
+def expected_from_csv(
+    path: Path, timeline_path: Path | None = None
+) -> dict[tuple[str, str], dict[str, float | None]]:
+    """Independent recomputation of the summary's figures straight from the CSV.
+
+    Chances to switch come from timeline.json (reflector visible in consecutive frames)
+    if given, else from the CSV's visible counts after the first frame.
+    """
+    timeline = json.loads(timeline_path.read_text()) if timeline_path else None
     groups: dict[tuple[str, str], list[dict[str, str]]] = {}
     with path.open(newline="") as handle:
         for row in csv.DictReader(handle):
@@ -170,7 +177,16 @@ def expected_from_csv(path: Path) -> dict[tuple[str, str], dict[str, float | Non
         rows.sort(key=lambda r: float(r["frame"]))
         frame_ms = [float(r["frame_ms"]) for r in rows]
         transitions = sum(int(r["transitions"]) for r in rows)
-        chances = sum(int(r["visible"]) for r in rows[1:])
+        if timeline is None:
+            chances = sum(int(r["visible"]) for r in rows[1:])
+        else:
+            visible = timeline[key[0]][key[1]]["visible"]
+            chances = sum(
+                1
+                for f in range(1, len(visible))
+                for i in range(len(visible[f]))
+                if visible[f][i] and visible[f - 1][i]
+            )
         expected[key] = {
             "frames": len(rows),
             "mean frame ms": statistics.fmean(frame_ms),
@@ -181,7 +197,7 @@ def expected_from_csv(path: Path) -> dict[tuple[str, str], dict[str, float | Non
             "mean FLIP reflectors": mean(rows, "flip_reflectors"),
             "mean PSNR dB": mean(rows, "psnr"),
             "transitions": transitions,
-            "transition rate": 100.0 * transitions / chances,
+            "transition rate": 100.0 * transitions / chances if chances else None,
             "mean selected": mean(rows, "selected"),
             "temporal FLIP": mean(rows, "flip_temporal"),
             "reference temporal FLIP": mean(rows, "flip_temporal_reference"),
@@ -227,8 +243,10 @@ def report_dir(tmp_path_factory) -> Path:
 
 
 def test_summary_md_agrees_with_csv(report_dir):
-    tables = parse_summary_md((report_dir / "summary.md").read_text())
-    expected = expected_from_csv(report_dir / "sweep.csv")
+    text = (report_dir / "summary.md").read_text()
+    tables = parse_summary_md(text)
+    expected = expected_from_csv(report_dir / "sweep.csv", report_dir / "timeline.json")
+    assert "approximated" not in text  # every config's chances came from the timeline
     assert list(tables) == list(STAGES)
     for stage, table in tables.items():
         assert [row["config"] for row in table] == EXPECTED_ORDER
@@ -264,6 +282,21 @@ def test_summary_budgets_and_paper_line(report_dir):
     )
     assert f"({t1} / {t2})" in text
     assert text.count("This sweep at budget") == 2 * len(STAGES)
+
+
+def test_without_timeline_rate_is_approximated_from_csv(tmp_path):
+    out = write_synthetic_sweep(tmp_path / "sweep", seed=5)
+    (out / "timeline.json").unlink()
+    write_sweep_report(out)
+    text = (out / "summary.md").read_text()
+    expected = expected_from_csv(out / "sweep.csv")
+    for stage, table in parse_summary_md(text).items():
+        for row in table:
+            value = expected[(stage, row["config"])]["transition rate"]
+            assert_printed_close(row["transition rate"], value, f"{stage} {row['config']}")
+    assert text.count("Transition rate approximated") == len(STAGES)
+    assert not list(out.glob("timeline_*.png"))
+    assert "timeline_" not in (out / "report.html").read_text()
 
 
 def test_paper_json_overrides_defaults(tmp_path):
