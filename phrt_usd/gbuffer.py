@@ -63,8 +63,11 @@ MIN_NEAR_OVER_FAR = 1e-6
 #: padded by this fraction of the scene extent so that bounding geometry is not clipped.
 CLIP_PADDING = 1e-3
 
-#: Shadow-map resolution (texels per side).
+#: Static shadow-map resolution (texels per side).
 SHADOW_MAP_SIZE = 2048
+#: Smallest side of the animated casters' shadow map (it is sized to their footprint at
+#: the static map's texel size, so that both maps resolve the same detail).
+MIN_DYNAMIC_MAP_SIZE = 16
 
 #: Shadow bias: a point is lit when its light depth minus the bias is <= the map's depth.
 #: Constant part in shadow-map texel widths (covers depth-render rounding and the
@@ -128,22 +131,52 @@ def perspective_matrix(tan_x: float, tan_y: float, near: float, far: float) -> n
 
 @dataclass
 class _ShadowMap:
-    """One distant light's orthographic depth map.
+    """One orthographic depth map of a set of casters for one distant light.
 
-    light_from_rel: (3, 3) float64 rows x, y, z of the light frame (z = towards light).
-    lo, texel: (2,) float64 lower corner (x, y) and texel size of the map, metres.
-    depth_lo, depth_span: depth = -z·p_rel spans [depth_lo, depth_lo + depth_span].
-    depth: (S, S) float32 map depth in metres along the light's travel direction,
-           row 0 at y = lo[1] (OpenGL's bottom-up order, not flipped).
+    light_from_rel : (3, 3) float64 rows x, y, z of the light frame (z = towards light)
+    lo, texel      : (2,) float64 lower corner (x, y) of the map and texel size, metres
+    depth          : (S, S) float32 caster depth in metres along the light's travel
+                     direction (-z), inf where no caster; row 0 at y = lo[1] (OpenGL's
+                     bottom-up order, not flipped)
     """
 
-    direction: np.ndarray
     light_from_rel: np.ndarray
     lo: np.ndarray
     texel: np.ndarray
-    depth_lo: float
-    depth_span: float
     depth: np.ndarray
+
+
+def _filtered_visibility(mp: _ShadowMap, rel: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """(n,) float64 visibility in [0, 1] of points ``rel`` (n, 3) (rel metres) with
+    ``normals`` (n, 3) against one map: slope-scaled bias, bilinear 2x2 PCF. Points
+    outside the map's footprint are lit (none of its casters is above them)."""
+    s = mp.depth.shape[0]
+    lp = rel @ mp.light_from_rel.T
+    texel = float(mp.texel.max())
+    cos = np.clip(np.abs(normals @ mp.light_from_rel[2]), SHADOW_MIN_COS, 1.0)
+    tan = np.sqrt(1.0 - cos**2) / cos
+    test = -lp[:, 2] - texel * (SHADOW_BIAS_TEXELS + SHADOW_SLOPE_BIAS_TEXELS * tan)
+    # Bilinear PCF over the 2x2 texels around the point (texel centres at +0.5).
+    fx = (lp[:, 0] - mp.lo[0]) / mp.texel[0] - 0.5
+    fy = (lp[:, 1] - mp.lo[1]) / mp.texel[1] - 0.5
+    inside = (fx > -1.0) & (fx < s) & (fy > -1.0) & (fy < s) & np.isfinite(test)
+    fx = np.where(inside, fx, 0.0)
+    fy = np.where(inside, fy, 0.0)
+    x0 = np.floor(fx).astype(np.int64)
+    y0 = np.floor(fy).astype(np.int64)
+    wx = fx - x0
+    wy = fy - y0
+    vis = np.zeros(len(rel))
+    for dx, dy, weight in (
+        (0, 0, (1 - wx) * (1 - wy)),
+        (1, 0, wx * (1 - wy)),
+        (0, 1, (1 - wx) * wy),
+        (1, 1, wx * wy),
+    ):
+        xi = np.clip(x0 + dx, 0, s - 1)
+        yi = np.clip(y0 + dy, 0, s - 1)
+        vis += weight * (test <= mp.depth[yi, xi])
+    return np.where(inside, vis, 1.0)
 
 
 class Rasterizer:
@@ -182,19 +215,24 @@ class Rasterizer:
         self._uploaded: np.ndarray | None = None  # (V, 3) float32 rel, as on the GPU
         self._dirs_key: tuple | None = None
         self._dirs_cam: np.ndarray | None = None
-        self._shadow_maps: list[_ShadowMap] | None = None
+        self._static_maps: list[_ShadowMap | None] | None = None
+        self._dynamic_maps: list[_ShadowMap | None] | None = None
+        self._batches: dict[str, tuple[int, int, int]] = {}  # name → (vao, ebo, count)
+        self._map_dirs: list[np.ndarray] = []
         self._closed = False
         self._upload(scene)
 
     # ------------------------------------------------------------------ geometry upload
 
     def _upload(self, scene: Scene) -> None:
-        """Build the single mesh node and the per-triangle float64 tables (rel space)."""
+        """Build the single mesh node and all per-triangle tables (rel space)."""
         geo = scene.geometry
         if geo.triangle_count >= 2**32 - 1:
             raise PhrtError(f"{geo.triangle_count} triangles exceed the id encoding")
         rel = geo.vertices - self._origin
         self._uploaded = np.ascontiguousarray(rel, dtype=np.float32)
+        self._triangles = np.array(geo.triangles, dtype=np.int64)
+        self._delete_shadow_batches()
         if self._mesh_node is not None:
             self._pscene.remove_node(self._mesh_node)
             self._mesh_node = None
@@ -207,10 +245,16 @@ class Rasterizer:
             )
             self._mesh_node = self._pscene.add(pyrender.Mesh([prim]))
             self._primitive = prim
-        self._build_tables(scene)
+        n = geo.triangle_count
+        self._tri64 = np.zeros((n, 13))
+        self._tri32 = np.zeros((n, 6, 3), dtype=np.float32)
+        self._fill_tables(scene, np.arange(n))
+        self._scene_changed(scene)
+        self._static_maps = self._dynamic_maps = None
 
-    def _build_tables(self, scene: Scene) -> None:
-        """Per-triangle tables, packed so that each frame does one gather per table.
+    def _fill_tables(self, scene: Scene, rows: np.ndarray) -> None:
+        """Recompute the per-triangle tables of triangles ``rows``; packed so that each
+        frame does one gather per table.
 
         _tri64 : (T, 13) float64, rel space. Columns: g1 (3), c1, g2 (3), c2, n_g (3),
                  h, |n_g|. n_g = e1 x e2 (unnormalised geometric normal, e1 = b - a,
@@ -219,11 +263,9 @@ class Rasterizer:
                  basis of e1, e2 within the plane).
         _tri32 : (T, 6, 3) float32, the three corner normals then the three corner
                  albedos (``Geometry.corner_normals`` / ``corner_albedo``).
-        _tri_textured : (T,) bool, True where the material has a texture and uvs exist.
         """
         geo = scene.geometry
-        rel = geo.vertices - self._origin
-        tri = rel[geo.triangles]
+        tri = geo.vertices[geo.triangles[rows]] - self._origin
         a = tri[:, 0]
         e1 = tri[:, 1] - a
         e2 = tri[:, 2] - a
@@ -236,7 +278,7 @@ class Rasterizer:
         inv = np.where(den > 0.0, 1.0 / np.where(den > 0.0, den, 1.0), 0.0)[:, None]
         g1 = (d11[:, None] * e1 - d01[:, None] * e2) * inv
         g2 = (d00[:, None] * e2 - d01[:, None] * e1) * inv
-        self._tri64 = np.concatenate(
+        self._tri64[rows] = np.concatenate(
             [
                 g1,
                 np.einsum("ij,ij->i", a, g1)[:, None],
@@ -248,9 +290,18 @@ class Rasterizer:
             ],
             axis=1,
         )
-        self._tri32 = np.ascontiguousarray(
-            np.concatenate([geo.corner_normals, geo.corner_albedo], axis=1), dtype=np.float32
+        self._tri32[rows] = np.concatenate(
+            [geo.corner_normals[rows], geo.corner_albedo[rows]], axis=1
         )
+
+    def _scene_changed(self, scene: Scene) -> None:
+        """Refresh what depends on the whole scene: bounds, texture flags, the
+        static / animated triangle split used by the shadow maps.
+
+        _tri_textured : (T,) bool, True where the material has a texture and uvs exist.
+        _animated_tri : (T,) bool, triangles of ``Element.animated`` elements.
+        """
+        geo = scene.geometry
         textures = scene.materials.textures
         has_tex = np.array([t is not None for t in textures] + [False], dtype=bool)
         mat = np.where(
@@ -259,8 +310,16 @@ class Rasterizer:
             len(textures),
         )
         self._tri_textured = has_tex[mat] & (geo.corner_uv is not None)
+        flags = np.array([e.animated for e in scene.elements] + [False], dtype=bool)
+        el = np.where(
+            (geo.tri_element >= 0) & (geo.tri_element < len(scene.elements)),
+            geo.tri_element,
+            len(scene.elements),
+        )
+        self._animated_tri = flags[el]
+        rel = self._uploaded
         if len(rel):
-            self._bounds_rel = np.stack([rel.min(axis=0), rel.max(axis=0)])
+            self._bounds_rel = np.stack([rel.min(axis=0), rel.max(axis=0)]).astype(np.float64)
         else:
             self._bounds_rel = np.zeros((2, 3))
         self._extent = scene.extent
@@ -270,7 +329,9 @@ class Rasterizer:
         """Re-upload geometry after animated prims moved.
 
         Same topology and origin: only the changed vertex range is re-sent
-        (``glBufferSubData``); otherwise the node is rebuilt. Shadow maps are invalidated.
+        (``glBufferSubData``) and only the changed triangles' tables are recomputed;
+        otherwise the node is rebuilt. The animated-geometry shadow maps are invalidated,
+        the static ones only if a non-animated triangle changed.
         """
         self._check_open()
         self._platform.make_current()
@@ -279,27 +340,37 @@ class Rasterizer:
             self._mesh_node is not None
             and np.array_equal(np.asarray(scene.origin, dtype=np.float64), self._origin)
             and geo.vertices.shape == self._uploaded.shape
-            and geo.triangle_count == len(self._tri64)
-            and np.array_equal(geo.triangles, self._scene.geometry.triangles)
+            and np.array_equal(geo.triangles, self._triangles)
+            and len(scene.elements) == len(self._scene.elements)
         )
         if not same_topology:
             self._origin = np.asarray(scene.origin, dtype=np.float64).copy()
             self._upload(scene)
-        else:
-            rel = np.ascontiguousarray(geo.vertices - self._origin, dtype=np.float32)
-            changed = np.flatnonzero(np.any(rel != self._uploaded, axis=1))
-            if len(changed):
-                first, last = int(changed[0]), int(changed[-1]) + 1
-                self._uploaded = rel
-                if self._primitive._vaid is not None:  # already on the GPU
-                    chunk = np.ascontiguousarray(rel[first:last])
-                    GL.glBindBuffer(GL.GL_ARRAY_BUFFER, self._primitive._buffers[0])
-                    GL.glBufferSubData(GL.GL_ARRAY_BUFFER, first * 12, chunk.nbytes, chunk)
-                    GL.glBindBuffer(GL.GL_ARRAY_BUFFER, 0)
-                self._primitive.positions = rel  # keeps pyrender's bounds consistent
-            self._build_tables(scene)
-        self._scene = scene
-        self._shadow_maps = None
+            return
+        rel = np.ascontiguousarray(geo.vertices - self._origin, dtype=np.float32)
+        moved = np.any(rel != self._uploaded, axis=1)
+        changed = np.flatnonzero(moved)
+        if len(changed):
+            first, last = int(changed[0]), int(changed[-1]) + 1
+            self._uploaded = rel
+            if self._primitive._vaid is not None:  # already on the GPU
+                chunk = np.ascontiguousarray(rel[first:last])
+                GL.glBindBuffer(GL.GL_ARRAY_BUFFER, self._primitive._buffers[0])
+                GL.glBufferSubData(GL.GL_ARRAY_BUFFER, first * 12, chunk.nbytes, chunk)
+                GL.glBindBuffer(GL.GL_ARRAY_BUFFER, 0)
+            self._primitive.positions = rel  # keeps pyrender's bounds consistent
+        shading = np.concatenate([geo.corner_normals, geo.corner_albedo], axis=1)
+        rows_mask = moved[self._triangles].any(axis=1)
+        rows_mask |= np.any(shading != self._tri32, axis=(1, 2))
+        rows = np.flatnonzero(rows_mask)
+        if len(rows):
+            self._fill_tables(scene, rows)
+        self._scene_changed(scene)
+        tri_moved = moved[self._triangles].any(axis=1)
+        if np.any(tri_moved & ~self._animated_tri):
+            self._static_maps = None
+        if np.any(tri_moved & self._animated_tri):
+            self._dynamic_maps = None
 
     # ------------------------------------------------------------------ framebuffers
 
@@ -511,7 +582,8 @@ class Rasterizer:
 
     # ------------------------------------------------------------------ shadows
 
-    def _light_frame(self, direction: np.ndarray) -> np.ndarray:
+    @staticmethod
+    def _light_frame(direction: np.ndarray) -> np.ndarray:
         """(3, 3) rows x, y, z of an orthonormal frame with z = unit ``direction``."""
         z = np.asarray(direction, dtype=np.float64)
         z = z / max(np.linalg.norm(z), 1e-300)
@@ -521,15 +593,51 @@ class Rasterizer:
         y = np.cross(z, x)
         return np.stack([x, y, z])
 
-    def _render_shadow_map(self, direction: np.ndarray) -> _ShadowMap:
-        """Orthographic depth render along -``direction`` covering every vertex."""
-        s = SHADOW_MAP_SIZE
-        frame = self._light_frame(direction)
-        rel = self._uploaded.astype(np.float64)
-        lp = rel @ frame.T if len(rel) else np.zeros((1, 3))
-        # Extents clamped away from 0 (flat or empty scenes) so the matrix is invertible.
+    def _batch(self, name: str) -> tuple[int, int, int]:
+        """(vao, ebo, index count) drawing the static (``name == "static"``) or animated
+        triangles from the mesh's own vertex buffer, for the shadow-map passes.
+
+        pyrender's VAO draws every triangle; these VAOs share its vertex buffer (so
+        ``update_geometry`` uploads reach them) with their own index buffers."""
+        if name not in self._batches:
+            r = self._renderer
+            r._update_context(self._pscene, RenderFlags.FLAT)  # vertex buffer on the GPU
+            mask = self._animated_tri if name == "dynamic" else ~self._animated_tri
+            idx = np.ascontiguousarray(self._triangles[mask], dtype=np.uint32)
+            vao = GL.glGenVertexArrays(1)
+            GL.glBindVertexArray(vao)
+            GL.glBindBuffer(GL.GL_ARRAY_BUFFER, self._primitive._buffers[0])
+            GL.glEnableVertexAttribArray(0)
+            GL.glVertexAttribPointer(0, 3, GL.GL_FLOAT, GL.GL_FALSE, 12, ctypes.c_void_p(0))
+            ebo = GL.glGenBuffers(1)
+            GL.glBindBuffer(GL.GL_ELEMENT_ARRAY_BUFFER, ebo)
+            if idx.size:
+                GL.glBufferData(GL.GL_ELEMENT_ARRAY_BUFFER, idx.nbytes, idx, GL.GL_STATIC_DRAW)
+            GL.glBindVertexArray(0)
+            GL.glBindBuffer(GL.GL_ARRAY_BUFFER, 0)
+            self._batches[name] = (int(vao), int(ebo), int(idx.size))
+        return self._batches[name]
+
+    def _delete_shadow_batches(self) -> None:
+        if self._batches:
+            self._platform.make_current()
+            for vao, ebo, _ in self._batches.values():
+                GL.glDeleteVertexArrays(1, [vao])
+                GL.glDeleteBuffers(1, [ebo])
+        self._batches = {}
+
+    def _render_shadow_map(self, frame: np.ndarray, name: str, size: int) -> _ShadowMap | None:
+        """Orthographic depth map of batch ``name`` ("static" / "dynamic") along -z of
+        the light ``frame`` (3, 3), ``size`` texels square, covering exactly that
+        batch's casters (plus a margin). None when the batch is empty."""
+        mask = self._animated_tri if name == "dynamic" else ~self._animated_tri
+        if self._mesh_node is None or not mask.any():
+            return None
+        used = np.unique(self._triangles[mask])
+        lp = self._uploaded[used].astype(np.float64) @ frame.T
+        # Extents clamped away from 0 (flat casters) so the matrix is invertible.
         min_span = 1e-6 * max(self._extent, 1e-9)
-        pad = 2.0 / s  # two texels of margin on each side
+        pad = 2.0 / size  # two texels of margin on each side
         lo_xy, hi_xy = lp[:, :2].min(axis=0), lp[:, :2].max(axis=0)
         span_xy = np.maximum(hi_xy - lo_xy, min_span)
         lo_xy = lo_xy - pad * span_xy
@@ -539,7 +647,7 @@ class Rasterizer:
         lo_d = dep.min() - 0.01 * span_d
         span_d *= 1.02
 
-        # clip = (2 (x - lo) / span - 1) per axis; window depth = (dep - lo_d) / span_d.
+        # clip = 2 (x - lo) / span - 1 per axis; window depth = (dep - lo_d) / span_d.
         m = np.zeros((4, 4))
         m[0, :3] = 2.0 * frame[0] / span_xy[0]
         m[0, 3] = -2.0 * lo_xy[0] / span_xy[0] - 1.0
@@ -549,75 +657,93 @@ class Rasterizer:
         m[2, 3] = -2.0 * lo_d / span_d - 1.0
         m[3, 3] = 1.0
 
-        depth01 = np.ones((s, s), dtype=np.float32)
-        if self._mesh_node is not None:
-            self._platform.make_current()
-            r = self._renderer
-            r._update_context(self._pscene, RenderFlags.FLAT)  # primitive on the GPU
-            GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, self._shadow_fb)
-            GL.glViewport(0, 0, s, s)
-            GL.glEnable(GL.GL_DEPTH_TEST)
-            GL.glDepthMask(GL.GL_TRUE)
-            GL.glDepthFunc(GL.GL_LESS)
-            GL.glDepthRange(0.0, 1.0)
-            GL.glDisable(GL.GL_CULL_FACE)  # double-sided casters
-            GL.glDisable(GL.GL_BLEND)
-            GL.glPolygonMode(GL.GL_FRONT_AND_BACK, GL.GL_FILL)
-            GL.glClearDepth(1.0)
-            GL.glClear(GL.GL_DEPTH_BUFFER_BIT)
-            program = r._program_cache.get_program("depth.vert", "depth.frag")
-            if not program._in_context():
-                program._add_to_context()
-            program._bind()
-            program.set_uniform("light_clip_from_world", m)
-            self._primitive._bind()
-            GL.glDrawElements(
-                GL.GL_TRIANGLES,
-                self._primitive.indices.size,
-                GL.GL_UNSIGNED_INT,
-                ctypes.c_void_p(0),
-            )
-            self._primitive._unbind()
-            program._unbind()
-            GL.glFinish()
-            GL.glPixelStorei(GL.GL_PACK_ALIGNMENT, 1)
-            GL.glReadPixels(0, 0, s, s, GL.GL_DEPTH_COMPONENT, GL.GL_FLOAT, depth01)
-            GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, 0)
-        depth_m = (lo_d + depth01.astype(np.float64) * span_d).astype(np.float32)
+        self._platform.make_current()
+        vao, _, count = self._batch(name)
+        depth01 = np.ones((size, size), dtype=np.float32)
+        GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, self._shadow_fb)
+        GL.glViewport(0, 0, size, size)
+        GL.glScissor(0, 0, size, size)
+        GL.glEnable(GL.GL_SCISSOR_TEST)  # clear only the part of the buffer in use
+        GL.glEnable(GL.GL_DEPTH_TEST)
+        GL.glDepthMask(GL.GL_TRUE)
+        GL.glDepthFunc(GL.GL_LESS)
+        GL.glDepthRange(0.0, 1.0)
+        GL.glDisable(GL.GL_CULL_FACE)  # double-sided casters
+        GL.glDisable(GL.GL_BLEND)
+        GL.glPolygonMode(GL.GL_FRONT_AND_BACK, GL.GL_FILL)
+        GL.glClearDepth(1.0)
+        GL.glClear(GL.GL_DEPTH_BUFFER_BIT)
+        program = self._renderer._program_cache.get_program("depth.vert", "depth.frag")
+        if not program._in_context():
+            program._add_to_context()
+        program._bind()
+        program.set_uniform("light_clip_from_world", m)
+        GL.glBindVertexArray(vao)
+        GL.glDrawElements(GL.GL_TRIANGLES, count, GL.GL_UNSIGNED_INT, ctypes.c_void_p(0))
+        GL.glBindVertexArray(0)
+        program._unbind()
+        GL.glDisable(GL.GL_SCISSOR_TEST)
+        GL.glPixelStorei(GL.GL_PACK_ALIGNMENT, 1)
+        GL.glReadPixels(0, 0, size, size, GL.GL_DEPTH_COMPONENT, GL.GL_FLOAT, depth01)
+        GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, 0)
+        # Texels no caster covered stay at the clear value: nothing there occludes.
+        depth_m = np.where(depth01 >= 1.0, np.inf, lo_d + depth01.astype(np.float64) * span_d)
         return _ShadowMap(
-            direction=np.asarray(direction, dtype=np.float64).copy(),
             light_from_rel=frame,
             lo=lo_xy,
-            texel=span_xy / s,
-            depth_lo=float(lo_d),
-            depth_span=float(span_d),
-            depth=depth_m,
+            texel=span_xy / size,
+            depth=depth_m.astype(np.float32),
         )
 
-    def shadow_maps(self) -> list[_ShadowMap]:
-        """The cached shadow map of each DistantLight (rendered on first use, again after
-        ``update_geometry`` or when the lights' directions changed)."""
+    def shadow_maps(self) -> list[tuple[_ShadowMap | None, _ShadowMap | None]]:
+        """(static map, animated-geometry map) per DistantLight, either None when it has
+        no casters. Static maps are rendered once (again only if static geometry or the
+        lights changed); animated maps again after ``update_geometry`` moved animated
+        prims, at the static map's texel size over the animated casters only."""
         self._check_open()
-        lights = self._scene.lights.distant
-        maps = self._shadow_maps
-        if (
-            maps is None
-            or len(maps) != len(lights)
-            or any(
-                not np.array_equal(mp.direction, lt.direction)
-                for mp, lt in zip(maps, lights, strict=True)
-            )
+        dirs = [np.asarray(lt.direction, dtype=np.float64) for lt in self._scene.lights.distant]
+        if self._static_maps is not None and (
+            len(dirs) != len(self._map_dirs)
+            or any(not np.array_equal(a, b) for a, b in zip(dirs, self._map_dirs, strict=False))
         ):
-            self._shadow_maps = [self._render_shadow_map(lt.direction) for lt in lights]
-        return self._shadow_maps
+            self._static_maps = self._dynamic_maps = None
+        self._map_dirs = dirs
+        frames = [self._light_frame(d) for d in dirs]
+        if self._static_maps is None:
+            self._static_maps = [
+                self._render_shadow_map(f, "static", SHADOW_MAP_SIZE) for f in frames
+            ]
+        if self._dynamic_maps is None:
+            self._dynamic_maps = []
+            for f, static in zip(frames, self._static_maps, strict=True):
+                texel = (
+                    float(static.texel.max())
+                    if static is not None
+                    else max(self._extent, 1e-9) / SHADOW_MAP_SIZE
+                )
+                self._dynamic_maps.append(
+                    self._render_shadow_map(f, "dynamic", self._dynamic_size(f, texel))
+                )
+        return list(zip(self._static_maps, self._dynamic_maps, strict=True))
+
+    def _dynamic_size(self, frame: np.ndarray, texel: float) -> int:
+        """Texels per side for the animated casters' map: their light-space footprint
+        at ``texel`` metres per texel, between MIN_DYNAMIC_MAP_SIZE and SHADOW_MAP_SIZE."""
+        if not self._animated_tri.any():
+            return MIN_DYNAMIC_MAP_SIZE
+        used = np.unique(self._triangles[self._animated_tri])
+        lp = self._uploaded[used].astype(np.float64) @ frame[:2].T
+        span = float((lp.max(axis=0) - lp.min(axis=0)).max())
+        size = int(np.ceil(span / max(texel, 1e-300))) + 4
+        return int(np.clip(size, MIN_DYNAMIC_MAP_SIZE, SHADOW_MAP_SIZE))
 
     def shadow_visibility(self, positions: np.ndarray, normals: np.ndarray) -> np.ndarray:
         """Fraction of each DistantLight reaching each point, by shadow mapping.
 
         positions : (n, 3) float64 world metres
         normals   : (n, 3) unit normals (either side; only |n·L| is used, for the bias)
-        Returns (n, len(scene.lights.distant)) float32 in [0, 1], 1 = lit. Points outside
-        a map's footprint are lit (nothing there can occlude them).
+        Returns (n, len(scene.lights.distant)) float32 in [0, 1], 1 = lit: the product of
+        the static and the animated casters' filtered visibilities.
         """
         positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
         normals = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
@@ -626,37 +752,10 @@ class Rasterizer:
         if len(positions) == 0:
             return out
         rel = positions - self._origin
-        s = SHADOW_MAP_SIZE
-        for k, mp in enumerate(maps):
-            lp = rel @ mp.light_from_rel.T
-            dep = -lp[:, 2]
-            texel = float(mp.texel.max())
-            cos = np.abs(normals @ mp.light_from_rel[2])
-            cos = np.clip(cos, SHADOW_MIN_COS, 1.0)
-            tan = np.sqrt(1.0 - cos**2) / cos
-            bias = texel * (SHADOW_BIAS_TEXELS + SHADOW_SLOPE_BIAS_TEXELS * tan)
-            test = dep - bias
-            # Bilinear PCF over the 2x2 texels around the point (texel centres at +0.5).
-            fx = (lp[:, 0] - mp.lo[0]) / mp.texel[0] - 0.5
-            fy = (lp[:, 1] - mp.lo[1]) / mp.texel[1] - 0.5
-            inside = (fx > -1.0) & (fx < s) & (fy > -1.0) & (fy < s) & np.isfinite(test)
-            fx = np.where(inside, fx, 0.0)
-            fy = np.where(inside, fy, 0.0)
-            x0 = np.floor(fx).astype(np.int64)
-            y0 = np.floor(fy).astype(np.int64)
-            wx = fx - x0
-            wy = fy - y0
-            vis = np.zeros(len(rel))
-            for dx, dy, wgt in (
-                (0, 0, (1 - wx) * (1 - wy)),
-                (1, 0, wx * (1 - wy)),
-                (0, 1, (1 - wx) * wy),
-                (1, 1, wx * wy),
-            ):
-                xi = np.clip(x0 + dx, 0, s - 1)
-                yi = np.clip(y0 + dy, 0, s - 1)
-                vis += wgt * (test <= mp.depth[yi, xi])
-            out[:, k] = np.where(inside, vis, 1.0).astype(np.float32)
+        for k, pair in enumerate(maps):
+            for mp in pair:
+                if mp is not None:
+                    out[:, k] *= _filtered_visibility(mp, rel, normals)
         return out
 
     # ------------------------------------------------------------------ lifetime
@@ -671,6 +770,7 @@ class Rasterizer:
             return
         self._closed = True
         self._platform.make_current()
+        self._delete_shadow_batches()
         r = self._renderer
         r._main_fb = r._main_fb_ms = None
         r._main_cb = r._main_cb_ms = r._main_db = r._main_db_ms = None

@@ -390,8 +390,9 @@ def test_shadow_map_matches_shadow_rays(tmp_path):
             assert vis.shape == (int(floor.sum()), 1) and vis.dtype == np.float32
             assert np.all((vis >= 0.0) & (vis <= 1.0))
             # Cached: a second query gives the same answer without re-rendering.
-            maps = r.shadow_maps()
-            assert r.shadow_maps() is maps
+            static, dynamic = r.shadow_maps()[0]
+            assert dynamic is None  # nothing animated here
+            assert r.shadow_maps()[0][0] is static
         occ = EmbreeReference(scene).occluded(g.position[floor], g.normal[floor], light_dir)
         lit_map = vis[:, 0] >= 0.5
         agree = float(np.mean(lit_map == ~occ))
@@ -404,25 +405,32 @@ def test_shadow_map_matches_shadow_rays(tmp_path):
         assert agree >= SHADOW_AGREEMENT, f"offset {offset}: shadow agreement {agree:.4%}"
 
 
-def test_update_geometry_moves_prims_and_invalidates_shadows(tmp_path):
+@pytest.mark.parametrize("animated", [False, True])
+def test_update_geometry_moves_prims_and_invalidates_shadows(animated, tmp_path):
+    """Moving a box re-rasterizes it and moves its shadow. Flagged animated, the box
+    casts into its own small map and the static map is kept."""
     light = DistantLight(direction=np.array([0.0, 1.0, 0.0]), radiance=np.ones(3))
     parts = [
         {"mesh": floor_mesh(size=12.0), "color": (0.6, 0.6, 0.6)},
         {"mesh": box((1.0, 1.0, 1.0), (-2.0, 1.5, 0.0)), "color": (0.8, 0.2, 0.2)},
+        {"mesh": box((1.0, 1.0, 1.0), (0.0, 1.5, -3.0)), "color": (0.2, 0.2, 0.8)},
     ]
     scene = build_scene(parts, lights=Lights(distant=[light]))
+    scene.elements[1].animated = animated
     cam = look_at([0.0, 6.0, 8.0], [0.0, 0.0, 0.0])
-    below = np.array([[-2.0, 0.0, 0.0], [2.0, 0.0, 0.0]])
-    up = np.array([[0.0, 1.0, 0.0]] * 2)
+    below = np.array([[-2.0, 0.0, 0.0], [2.0, 0.0, 0.0], [0.0, 0.0, -3.0]])
+    up = np.array([[0.0, 1.0, 0.0]] * 3)
     with Rasterizer(scene, W, H) as r:
         r.render(cam)
-        np.testing.assert_array_equal(r.shadow_visibility(below, up)[:, 0], [0.0, 1.0])
+        np.testing.assert_array_equal(r.shadow_visibility(below, up)[:, 0], [0, 1, 0])
+        static_before = r.shadow_maps()[0][0]
+        assert (r.shadow_maps()[0][1] is not None) == animated
         box_vertices = scene.geometry.triangles[scene.geometry.tri_element == 1].ravel()
-        moved = np.unique(box_vertices)
-        scene.geometry.vertices[moved] += np.array([4.0, 0.0, 0.0])
+        scene.geometry.vertices[np.unique(box_vertices)] += np.array([4.0, 0.0, 0.0])
         r.update_geometry(scene)
         g = r.render(cam)
-        np.testing.assert_array_equal(r.shadow_visibility(below, up)[:, 0], [1.0, 0.0])
+        np.testing.assert_array_equal(r.shadow_visibility(below, up)[:, 0], [1, 0, 0])
+        assert (r.shadow_maps()[0][0] is static_before) == animated
     ref_tri, _ = EmbreeReference(scene).primary(cam)
     agree = check_ids(scene, g, ref_tri, tmp_path, "moved")
     assert agree >= ID_AGREEMENT
