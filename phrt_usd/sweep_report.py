@@ -215,8 +215,12 @@ def load_paper_figures(out_dir: Path) -> dict[str, dict[str, float]]:
         if not isinstance(figures, dict):
             raise PhrtError(f"{path}: figures of stage {stage!r} are not an object")
         for key, value in figures.items():
-            if isinstance(value, bool) or not isinstance(value, int | float):
-                raise PhrtError(f"{path}: {stage}.{key} is not a number")
+            if (
+                isinstance(value, bool)
+                or not isinstance(value, int | float)
+                or not math.isfinite(value)
+            ):
+                raise PhrtError(f"{path}: {stage}.{key} is not a finite number")
         paper[str(stage)] = {str(k): float(v) for k, v in figures.items()}
     return paper
 
@@ -472,13 +476,16 @@ def paper_comparison(
     lines = []
     figures = paper.get(stage)
     if figures:
+
+        def figure(key: str, scale: float = 1.0, fmt: str = "g") -> str:
+            value = figures.get(key)
+            return MISSING if value is None else format(scale * value, fmt)
+
         lines.append(
             "Paper (GTX 760, OptiX): "
-            f"fps HEU1 {figures.get('heu1_fps', math.nan):g} / "
-            f"HEU2 {figures.get('heu2_fps', math.nan):g}; "
-            f"transitions HEU1/HEU2 {100.0 * figures.get('transitions_ratio', math.nan):.1f} %; "
-            f"mean selected HEU1 {figures.get('heu1_selected', math.nan):g} / "
-            f"HEU2 {figures.get('heu2_selected', math.nan):g}."
+            f"fps HEU1 {figure('heu1_fps')} / HEU2 {figure('heu2_fps')}; "
+            f"transitions HEU1/HEU2 {figure('transitions_ratio', 100.0, '.1f')} %; "
+            f"mean selected HEU1 {figure('heu1_selected')} / HEU2 {figure('heu2_selected')}."
         )
     else:
         lines.append(f"The paper has no figures for stage {stage!r}.")
