@@ -519,12 +519,6 @@ class Tracer:
                 break
             d_in = dirs[r]
             rel, ng, ns, albedo, emissive = self._surface(hits.tri, hits.u, hits.v, d_in)
-            vis, shadow_rays = self._shadow(rel, ng, ns, lights)
-            if lights.has_direct:
-                rays_src += np.bincount(r_src[r], weights=shadow_rays, minlength=n_src).astype(
-                    np.int64
-                )
-            local = shading.shade_local(rel, ns, albedo, d_in, emissive, lights, vis)
             refl = np.take(self._tri_reflector, hits.tri)
             f = np.take(self._tri_f, hits.tri)
             if split:
@@ -534,7 +528,25 @@ class Tracer:
                 alpha = 1.0
             w = weight[r]
             slot_r = slot[r]
-            _add(radiance, slot_r, (w * alpha * (1.0 - f))[:, None] * local, split)
+            # Local shading (and its shadow rays) only where it carries weight: a perfect
+            # mirror (F = 1) or clear glass (α = 0) shows none of its own surface.
+            w_local = w * alpha * (1.0 - f)
+            lit = np.flatnonzero(w_local > 0)
+            if len(lit) < len(r):
+                shade_at = (rel[lit], ng[lit], ns[lit], albedo[lit], d_in[lit])
+                em = emissive[lit] if emissive.ndim == 2 else emissive
+            else:
+                shade_at = (rel, ng, ns, albedo, d_in)
+                em = emissive
+            vis, shadow_rays = self._shadow(*shade_at[:3], lights)
+            if lights.has_direct:
+                rays_src += np.bincount(r_src[r[lit]], weights=shadow_rays, minlength=n_src).astype(
+                    np.int64
+                )
+            local = shading.shade_local(
+                shade_at[0], shade_at[2], shade_at[3], shade_at[4], em, lights, vis
+            )
+            _add(radiance, slot_r[lit], w_local[lit, None] * local, split)
             ch = chain[r] + refl
             if split:
                 np.maximum.at(chain_pix, slot_r, ch)
