@@ -24,6 +24,15 @@ at the limit. Refraction (Snell's law with the material's ior, total internal re
 ``scene.materials.has_transmission``, otherwise α = 1 everywhere and no refraction work is
 done. Shadow rays treat transmissive surfaces as opaque.
 
+Robustness: G-buffer positions (possibly from a depth buffer) are first projected onto
+their triangle's plane, then every ray origin is offset by ``RAY_OFFSET_*`` along the
+geometric normal, on the side the ray leaves to. Where a hit's local term has no weight
+(F = 1 mirrors, α = 0 glass) neither shading nor shadow rays are computed.
+
+Threads: embreex releases the GIL inside ``run``, so batches of ≥ ``PARALLEL_MIN_RAYS``
+rays are split over a two-thread pool (measured on this 2-core machine: 76.8k rays on an
+82k-triangle mesh, 8.3 → 13.6 Mray/s; smaller batches gain nothing).
+
 Limits: mirror reflections only (roughness is ignored), one geometry rebuild per
 ``update_geometry`` (embreex has no refit), shadows are hard (light size ignored).
 """
