@@ -523,11 +523,11 @@ class Rasterizer:
             b1 = np.clip(bv, 0.0, 1.0)
             b2 = np.clip(bw, 0.0, 1.0)
             inv_sum = 1.0 / np.maximum(b0 + b1 + b2, 1e-12)
-            bary = np.stack([b0 * inv_sum, b1 * inv_sum, b2 * inv_sum], axis=1)
-            bary = bary.astype(np.float32)  # (n, 3)
+            w0 = (b0 * inv_sum).astype(np.float32)[:, None]  # (n, 1) each
+            w1 = (b1 * inv_sum).astype(np.float32)[:, None]
+            w2 = (b2 * inv_sum).astype(np.float32)[:, None]
 
             corners = self._tri32[tid]  # (n, 6, 3): 3 normals, 3 albedos
-            w0, w1, w2 = bary[:, 0:1], bary[:, 1:2], bary[:, 2:3]
             n = corners[:, 0] * w0 + corners[:, 1] * w1 + corners[:, 2] * w2
             col = corners[:, 3] * w0 + corners[:, 4] * w1 + corners[:, 5] * w2
 
@@ -536,7 +536,7 @@ class Rasterizer:
             side = np.where(den > 0.0, -1.0, 1.0)  # n_g·d > 0: the back face is seen
             n *= side[:, None].astype(np.float32)
             n_len = np.sqrt(np.einsum("ij,ij->i", n, n))
-            bad = (n_len < 1e-6) | (np.einsum("ij,ij->i", n, view_dir[covered]) >= 0.0)
+            bad = (n_len < 1e-6) | (np.einsum("ij,ij->i", n, dc) >= 0.0)
             n /= np.maximum(n_len, 1e-6)[:, None]
             if bad.any():
                 g = ng[bad] * (side[bad] / np.maximum(tab[bad, 12], 1e-300))[:, None]
@@ -545,7 +545,8 @@ class Rasterizer:
 
             textured = self._tri_textured[tid]
             if textured.any():
-                col[textured] = self._texture_albedo(tid[textured], bary[textured])
+                bary = np.concatenate([w0[textured], w1[textured], w2[textured]], axis=1)
+                col[textured] = self._texture_albedo(tid[textured], bary)
             albedo[covered] = col
             triangle_id[covered] = tid
             element_id[covered] = geo.tri_element[tid]

@@ -478,6 +478,16 @@ def test_paper_stage_ids(name, tmp_path):
             agree = check_ids(stage.scene, g, ref_tri, tmp_path, f"{name}_{t:g}", ref_hit)
             print(f"{name} t={t:.1f}: ids agree {strict:.4%} strict, {agree:.4%} with ties")
             assert agree >= ID_AGREEMENT, f"{name} t={t}: ids agree on {agree:.4%}"
+            for k, light in enumerate(stage.scene.lights.distant):
+                # Pixels facing the light: the shadow map must agree with shadow rays.
+                facing = g.covered & (np.einsum("hwc,c->hw", g.normal, light.direction) > 0.05)
+                vis = r.shadow_visibility(g.position[facing], g.normal[facing])[:, k]
+                occ = EmbreeReference(stage.scene).occluded(
+                    g.position[facing], g.normal[facing], light.direction
+                )
+                shadow_agree = float(np.mean((vis >= 0.5) == ~occ))
+                print(f"{name} t={t:.1f} light {k}: shadows agree {shadow_agree:.4%}")
+                assert shadow_agree >= SHADOW_AGREEMENT
 
 
 if os.environ.get("PYOPENGL_PLATFORM", "osmesa") != "osmesa":  # pragma: no cover
