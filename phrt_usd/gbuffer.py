@@ -431,18 +431,29 @@ class Rasterizer:
 
     # ------------------------------------------------------------------ camera
 
-    def _clip_range(self, camera: CameraFrame, eye_rel: np.ndarray) -> tuple[float, float]:
-        """(near, far) metres: the camera's clipping range, tightened to the scene bounds
-        (padded by CLIP_PADDING * extent) and with near >= far * MIN_NEAR_OVER_FAR."""
+    def _clip_range(self, camera: CameraFrame, eye_rel: np.ndarray) -> tuple[float, float] | None:
+        """(near, far) view depths in metres for the projection, or None when the
+        camera's clipping range holds no geometry.
+
+        The camera's clipping range, tightened to the scene's bounds (nothing exists
+        outside them, and a tighter range means finer depth resolution): far to the
+        farthest bounds corner, near to the nearest bounds point's distance times the
+        frustum's smallest cos (a point that near may sit at the image corner, where
+        depth = distance * cos), both padded by CLIP_PADDING * extent. Then
+        near >= far * MIN_NEAR_OVER_FAR (see there).
+        """
         lo, hi = self._bounds_rel
         pad = CLIP_PADDING * self._extent
-        nearest = np.linalg.norm(np.maximum(0.0, np.maximum(lo - eye_rel, eye_rel - hi)))
+        nearest = float(np.linalg.norm(np.maximum(0.0, np.maximum(lo - eye_rel, eye_rel - hi))))
         corners = np.stack(np.meshgrid(*zip(lo, hi, strict=True), indexing="ij"), -1)
         farthest = float(np.linalg.norm(corners.reshape(-1, 3) - eye_rel, axis=1).max())
+        tx, ty = camera.tan_half_fov(self.width, self.height)
+        min_cos = 1.0 / np.sqrt(1.0 + tx * tx + ty * ty)
         far = min(float(camera.far), farthest + pad)
-        near = max(float(camera.near), float(nearest) - pad)
-        far = max(far, 2.0 * pad, 1e-9)  # a camera far from an empty/tiny scene
-        near = min(max(near, far * MIN_NEAR_OVER_FAR), far * 0.5)
+        near = max(float(camera.near), nearest * min_cos - pad)
+        if not far > near:  # also catches NaN clipping ranges
+            return None
+        near = max(near, far * MIN_NEAR_OVER_FAR)
         return near, far
 
     def _camera_dirs(self, camera: CameraFrame) -> np.ndarray:
@@ -471,9 +482,14 @@ class Rasterizer:
         rot = cam[:3, :3]
         eye_rel = cam[:3, 3] - self._origin
         tx, ty = camera.tan_half_fov(w, h)
-        near, far = self._clip_range(camera, eye_rel)
-
-        if self._mesh_node is not None:
+        if not (np.isfinite(tx) and np.isfinite(ty) and tx > 0.0 and ty > 0.0):
+            raise PhrtError(
+                f"camera: focal length {camera.focal_length} and horizontal aperture "
+                f"{camera.horizontal_aperture} give no field of view"
+            )
+        clip = self._clip_range(camera, eye_rel) if self._mesh_node is not None else None
+        if clip is not None:
+            near, far = clip
             pose = cam.copy()
             pose[:3, 3] = eye_rel
             self._pcamera.matrix = perspective_matrix(tx, ty, near, far)
@@ -482,7 +498,8 @@ class Rasterizer:
             self._platform.make_current()
             flags = RenderFlags.FLAT | RenderFlags.OFFSCREEN | RenderFlags.SKIP_CULL_FACES
             ids = self._renderer.render(self._pscene, flags).reshape(-1)
-        else:
+        else:  # no geometry, or none inside the camera's clipping range
+            near, far = 0.0, 0.0
             ids = np.zeros(h * w, dtype=np.uint32)
 
         # Directions: rotate the cached unit camera-space rays (as pixel_rays does; a

@@ -15,6 +15,7 @@ import pytest
 import trimesh
 from embreex import mesh_construction, rtcore_scene
 
+from phrt_usd.errors import PhrtError
 from phrt_usd.frame import GBuffer
 from phrt_usd.gbuffer import Rasterizer, sample_bilinear_wrap
 from phrt_usd.scene import (
@@ -448,6 +449,75 @@ def test_texture_lookup():
     np.testing.assert_array_equal(out[:4], tex.reshape(4, 3))
     np.testing.assert_array_equal(out[4], tex[0, 0])  # wrapped: (1.25, -0.25) ≡ (0.25, 0.75)
     assert np.all(np.isfinite(sample_bilinear_wrap(tex, np.array([[np.nan, 1e300]]))))
+
+
+def test_textured_albedo_follows_uv():
+    """A quad with a texture: the G-buffer albedo is the texture at the pixel's uv."""
+    rng = np.random.default_rng(5)
+    tex = rng.random((8, 8, 3)).astype(np.float32)
+    quad = trimesh.Trimesh(
+        [[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], [[0, 1, 2], [0, 2, 3]], process=False
+    )
+    scene = build_scene([{"mesh": quad, "color": (1, 1, 1)}])
+    geo = scene.geometry
+    geo.corner_uv = ((geo.vertices[geo.triangles][:, :, :2] + 1.0) / 2.0).astype(np.float32)
+    scene.materials.textures = [tex]
+    cam = look_at([0.1, 0.2, 3.0], [0.0, 0.0, 0.0])
+    with Rasterizer(scene, W, H) as r:
+        g = r.render(cam)
+    cov = g.covered
+    assert cov.mean() > 0.2
+    uv = (g.position[cov][:, :2] + 1.0) / 2.0
+    np.testing.assert_allclose(g.albedo[cov], sample_bilinear_wrap(tex, uv), atol=1e-4)
+
+
+@pytest.mark.parametrize(
+    "case", ["empty", "beyond_far", "inside_box", "near0_far_inf", "tiny_far_away"]
+)
+def test_extreme_inputs_stay_finite(case, tmp_path):
+    """No NaN/Inf (except background depth) and sane ids for degenerate set-ups."""
+    parts = [{"mesh": box((2.0, 2.0, 2.0), (0.0, 0.0, 0.0)), "color": (0.5, 0.5, 0.5)}]
+    offset = np.zeros(3)
+    cam = look_at([0.0, 1.0, 6.0], [0.0, 0.0, 0.0])
+    if case == "tiny_far_away":  # 1 mm box 1e6 m from the origin
+        offset = np.array([1e6, 1e6, -1e6])
+        parts = [{"mesh": box((1e-3,) * 3, (0.0, 0.0, 0.0)), "color": (0.5, 0.5, 0.5)}]
+        cam = look_at(offset + [0.0, 1e-3, 4e-3], offset)
+        cam.near = 1e-5
+    scene = build_scene(parts, offset=offset)
+    if case == "empty":
+        geo = scene.geometry
+        geo.vertices = np.zeros((0, 3))
+        geo.triangles = np.zeros((0, 3), np.int64)
+        geo.tri_element = geo.tri_material = np.zeros(0, np.int32)
+        geo.corner_normals = geo.corner_albedo = np.zeros((0, 3, 3), np.float32)
+    elif case == "beyond_far":
+        cam.far = 1.0  # the box is 5 m away
+    elif case == "inside_box":
+        cam = look_at([0.2, 0.1, 0.3], [1.0, 0.0, 0.0])
+    elif case == "near0_far_inf":
+        cam.near, cam.far = 0.0, np.inf
+    with Rasterizer(scene, W, H) as r:
+        g = r.render(cam)
+        vis = r.shadow_visibility(np.zeros((2, 3)), np.zeros((2, 3)))
+    assert vis.shape == (2, 0)
+    for arr in (g.position, g.normal, g.albedo, g.view_dir):
+        assert np.all(np.isfinite(arr))
+    assert np.all(np.isinf(g.depth[~g.covered])) and np.all(np.isfinite(g.depth[g.covered]))
+    if case in ("empty", "beyond_far"):
+        assert not g.covered.any()
+    else:
+        assert g.covered.mean() > (0.99 if case == "inside_box" else 0.01)
+        ref_tri, _ = EmbreeReference(scene).primary(cam)
+        assert check_ids(scene, g, ref_tri, tmp_path, case) >= ID_AGREEMENT
+
+
+def test_degenerate_camera_is_a_user_error(showcase):
+    _, r = showcase
+    cam = look_at([0.0, 1.0, 6.0], [0.0, 0.0, 0.0])
+    cam.horizontal_aperture = 0.0
+    with pytest.raises(PhrtError, match="field of view"):
+        r.render(cam)
 
 
 PAPER_STAGES = ["farm", "sewer"]
