@@ -17,10 +17,13 @@ Pipeline, per phase:
    ``CameraFrame.pixel_rays``) is intersected with its triangle's plane in float64:
    position (exact, not limited by depth-buffer precision), view depth, barycentrics →
    interpolated shading normal and albedo (texture lookup when the material has one).
-4. **Shadow maps** (``Rasterizer.shadow_visibility``). One orthographic depth render per
-   DistantLight covering the scene's vertices, cached until ``update_geometry``; points
-   are projected into light space and compared with a slope-scaled bias, filtered with
-   bilinear 2x2 percentage-closer filtering.
+4. **Shadow maps** (``Rasterizer.shadow_visibility``). Per DistantLight, orthographic
+   depth renders along the light: one of the static casters (SHADOW_MAP_SIZE², over
+   their light-space footprint, rendered once) and one of the animated casters
+   (``Element.animated``; same texel size, over their footprint only, re-rendered after
+   ``update_geometry`` moved them). Points are projected into light space, compared
+   with a slope-scaled bias and filtered with bilinear 2x2 percentage-closer
+   filtering; a point's visibility is the product over the two maps.
 
 Coordinate spaces: "world" is ``Scene`` world metres (float64); "rel" is world minus
 ``Scene.origin`` (what OpenGL sees, float32 on the GPU, float64 in numpy).
@@ -52,11 +55,13 @@ from pyrender.shader_program import ShaderProgramCache  # noqa: E402
 #: Directory of our GLSL files (``flat.*``: id pass, ``depth.*``: shadow-map pass).
 SHADER_DIR = os.path.join(os.path.dirname(os.path.abspath(__file__)), "shaders")
 
-#: Smallest allowed near / far ratio of the perspective projection. A perspective depth
-#: buffer resolves roughly near / 2**24 of relative depth per step at the far plane over
-#: (far / near); as near → 0 the projection degenerates (every depth maps to 1 and all
-#: surfaces z-fight). 1e-6 keeps the matrix well conditioned while clipping only what is
-#: nearer than a millionth of the far distance (1 mm at far = 1 km).
+#: Smallest allowed near / far ratio of the perspective projection. The depth buffer
+#: resolves view depth z to about z**2 / (near * 2**24); as near → 0 that diverges and
+#: the projection degenerates (every depth maps to 1, all surfaces z-fight). near / far
+#: is first tightened to the scene's bounds (``_clip_range``), so this clamp only acts
+#: for a camera inside or at the scene with a tiny clipping near: it then clips what is
+#: nearer than 1e-6 * far (1 mm at far = 1 km) and keeps depth resolution finite. Ids
+#: only need the depth order of surfaces; positions never come from the depth buffer.
 MIN_NEAR_OVER_FAR = 1e-6
 
 #: Near / far are also tightened to the scene's bounds (nothing exists outside them), and
