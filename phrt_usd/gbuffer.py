@@ -323,12 +323,30 @@ class Rasterizer:
         )
         self._animated_tri = flags[el]
         rel = self._uploaded
-        if len(rel):
-            self._bounds_rel = np.stack([rel.min(axis=0), rel.max(axis=0)]).astype(np.float64)
+        static_vertices = np.unique(self._triangles[~self._animated_tri])
+        if len(static_vertices):
+            sv = rel[static_vertices]
+            self._static_bounds = np.stack([sv.min(axis=0), sv.max(axis=0)]).astype(np.float64)
         else:
-            self._bounds_rel = np.zeros((2, 3))
-        self._extent = scene.extent
+            self._static_bounds = None
+        self._animated_vertices = np.unique(self._triangles[self._animated_tri])
+        self._update_bounds()
         self._scene = scene
+
+    def _update_bounds(self) -> None:
+        """_bounds_rel (2, 3) float64: rel bounds of all triangle vertices (static part
+        cached, animated part recomputed); _extent: their diagonal in metres (> 0)."""
+        boxes = [] if self._static_bounds is None else [self._static_bounds]
+        if len(self._animated_vertices):
+            av = self._uploaded[self._animated_vertices]
+            boxes.append(np.stack([av.min(axis=0), av.max(axis=0)]).astype(np.float64))
+        if boxes:
+            lo = np.min([b[0] for b in boxes], axis=0)
+            hi = np.max([b[1] for b in boxes], axis=0)
+        else:
+            lo = hi = np.zeros(3)
+        self._bounds_rel = np.stack([lo, hi])
+        self._extent = float(max(np.linalg.norm(hi - lo), 1e-12))
 
     def update_geometry(self, scene: Scene) -> None:
         """Re-upload geometry after animated prims moved.
@@ -353,8 +371,9 @@ class Rasterizer:
             self._upload(scene)
             return
         rel = np.ascontiguousarray(geo.vertices - self._origin, dtype=np.float32)
-        moved = np.any(rel != self._uploaded, axis=1)
-        changed = np.flatnonzero(moved)
+        changed = np.unique(np.flatnonzero(rel.reshape(-1) != self._uploaded.reshape(-1)) // 3)
+        moved = np.zeros(len(rel), dtype=bool)
+        moved[changed] = True
         if len(changed):
             first, last = int(changed[0]), int(changed[-1]) + 1
             self._uploaded = rel
@@ -363,19 +382,37 @@ class Rasterizer:
                 GL.glBindBuffer(GL.GL_ARRAY_BUFFER, self._primitive._buffers[0])
                 GL.glBufferSubData(GL.GL_ARRAY_BUFFER, first * 12, chunk.nbytes, chunk)
                 GL.glBindBuffer(GL.GL_ARRAY_BUFFER, 0)
-            self._primitive.positions = rel  # keeps pyrender's bounds consistent
-        shading = np.concatenate([geo.corner_normals, geo.corner_albedo], axis=1)
-        rows_mask = moved[self._triangles].any(axis=1)
-        rows_mask |= np.any(shading != self._tri32, axis=(1, 2))
-        rows = np.flatnonzero(rows_mask)
-        if len(rows):
-            self._fill_tables(scene, rows)
-        self._scene_changed(scene)
-        tri_moved = moved[self._triangles].any(axis=1)
+            self._primitive.positions = rel  # keeps pyrender's copy consistent
+        tri_moved = (
+            moved[self._triangles].any(axis=1)
+            if len(changed)
+            else np.zeros(len(self._triangles), dtype=bool)
+        )
+        # Shading (normals, albedo) is re-read for moved and animated triangles only:
+        # other elements' shading is static (materials are not animated).
+        check = np.flatnonzero(tri_moved | self._animated_tri)
+        if len(check):
+            shading = np.concatenate([geo.corner_normals[check], geo.corner_albedo[check]], axis=1)
+            differs = np.any(shading != self._tri32[check], axis=(1, 2))
+            rows = check[tri_moved[check] | differs]
+            if len(rows):
+                self._fill_tables(scene, rows)
+        self._scene = scene
+        if len(changed):
+            self._update_bounds()
         if np.any(tri_moved & ~self._animated_tri):
             self._static_maps = None
+            self._static_bounds_stale()
         if np.any(tri_moved & self._animated_tri):
             self._dynamic_maps = None
+
+    def _static_bounds_stale(self) -> None:
+        """A non-animated vertex moved (the caller animated a prim not flagged as
+        such): recompute the cached static bounds."""
+        static_vertices = np.unique(self._triangles[~self._animated_tri])
+        sv = self._uploaded[static_vertices]
+        self._static_bounds = np.stack([sv.min(axis=0), sv.max(axis=0)]).astype(np.float64)
+        self._update_bounds()
 
     # ------------------------------------------------------------------ framebuffers
 
