@@ -178,10 +178,12 @@ class TraceTimeModel:
     """Milliseconds of one tracing round: ``overhead_ms + ms_per_ray * rays``.
 
     Fitted by exponentially weighted least squares over the rounds seen so far (older
-    rounds weigh ``TIME_MODEL_DECAY`` less per round). When the rounds' ray counts are too
-    alike to separate the two terms, or the fit is unphysical (negative overhead or slope),
-    all the time is put on the rays (``overhead 0, ms_per_ray = sum ms / sum rays``), which
-    is conservative for rounds larger than average.
+    rounds weigh ``TIME_MODEL_DECAY`` less per round). When the fit gives a negative
+    overhead, the line goes through the origin instead (``ms_per_ray = sum ms / sum
+    rays``, conservative for rounds larger than average). When the rounds' ray counts are
+    too alike to separate the two terms, or time does not grow with rays (small rounds
+    dominated by noise), ``ms_per_ray`` keeps its previous value and the overhead absorbs
+    the mean time.
 
     Predictions are multiplied by ``safety``, an online estimate of the JITTER_QUANTILE
     quantile of (measured / modelled) round time, clamped to [TIME_SAFETY_MIN,
@@ -220,8 +222,12 @@ class TraceTimeModel:
             intercept = (self._m - slope * self._r) / self._w
         if slope > 0.0 and intercept >= 0.0:
             self.overhead_ms, self.ms_per_ray = intercept, slope
-        else:
+        elif slope > 0.0:  # negative overhead: a line through the origin instead
             self.overhead_ms, self.ms_per_ray = 0.0, self._m / self._r
+        else:
+            # No growth with rays visible (rounds too alike, or noise dominates): the rounds
+            # tell their mean time, not the per-ray cost, which keeps its previous value.
+            self.overhead_ms = max(self._m / self._w - self.ms_per_ray * self._r / self._w, 0.0)
         self.ms_per_ray = max(self.ms_per_ray, MIN_MS_PER_RAY)
 
     def relax(self) -> None:
