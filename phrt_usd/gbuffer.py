@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import ctypes
 import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -67,6 +68,10 @@ MIN_NEAR_OVER_FAR = 1e-6
 #: Near / far are also tightened to the scene's bounds (nothing exists outside them), and
 #: padded by this fraction of the scene extent so that bounding geometry is not clipped.
 CLIP_PADDING = 1e-3
+
+#: Worker threads deriving the G-buffer from the id image (numpy releases the GIL in
+#: its loops, so the covered pixels are split into this many chunks).
+DERIVE_THREADS = max(1, min(2, os.cpu_count() or 1))
 
 #: Static shadow-map resolution (texels per side).
 SHADOW_MAP_SIZE = 2048
@@ -135,6 +140,18 @@ def perspective_matrix(tan_x: float, tan_y: float, near: float, far: float) -> n
 
 
 @dataclass
+class _Outputs:
+    """The G-buffer arrays being filled, flat over pixels (H*W rows); see ``GBuffer``."""
+
+    triangle_id: np.ndarray
+    element_id: np.ndarray
+    depth: np.ndarray
+    position: np.ndarray
+    normal: np.ndarray
+    albedo: np.ndarray
+
+
+@dataclass
 class _ShadowMap:
     """One orthographic depth map of a set of casters for one distant light.
 
@@ -151,14 +168,23 @@ class _ShadowMap:
     depth: np.ndarray
 
 
+def _transform(v: np.ndarray, m: np.ndarray) -> np.ndarray:
+    """(n, k) = v (n, 3) times m (k, 3) transposed, i.e. each row of v mapped by m.
+
+    Written out per column instead of ``v @ m.T``: numpy hands such skinny products to
+    the multithreaded BLAS, whose spinning threads fight llvmpipe's render threads for
+    the two cores (seen: 12 ms instead of 0.2 ms for 76 800 rows)."""
+    return v[:, 0:1] * m[:, 0][None] + v[:, 1:2] * m[:, 1][None] + v[:, 2:3] * m[:, 2][None]
+
+
 def _filtered_visibility(mp: _ShadowMap, rel: np.ndarray, normals: np.ndarray) -> np.ndarray:
     """(n,) float64 visibility in [0, 1] of points ``rel`` (n, 3) (rel metres) with
     ``normals`` (n, 3) against one map: slope-scaled bias, bilinear 2x2 PCF. Points
     outside the map's footprint are lit (none of its casters is above them)."""
     s = mp.depth.shape[0]
-    lp = rel @ mp.light_from_rel.T
+    lp = _transform(rel, mp.light_from_rel)
     texel = float(mp.texel.max())
-    cos = np.clip(np.abs(normals @ mp.light_from_rel[2]), SHADOW_MIN_COS, 1.0)
+    cos = np.clip(np.abs(_transform(normals, mp.light_from_rel[2:3])[:, 0]), SHADOW_MIN_COS, 1.0)
     tan = np.sqrt(1.0 - cos**2) / cos
     test = -lp[:, 2] - texel * (SHADOW_BIAS_TEXELS + SHADOW_SLOPE_BIAS_TEXELS * tan)
     # Bilinear PCF over the 2x2 texels around the point (texel centres at +0.5).
@@ -224,6 +250,7 @@ class Rasterizer:
         self._dynamic_maps: list[_ShadowMap | None] | None = None
         self._batches: dict[str, tuple[int, int, int]] = {}  # name → (vao, ebo, count)
         self._map_dirs: list[np.ndarray] = []
+        self._pool = ThreadPoolExecutor(DERIVE_THREADS, thread_name_prefix="phrt-gbuffer")
         self._closed = False
         self._upload(scene)
 
@@ -546,7 +573,7 @@ class Rasterizer:
 
         # Directions: rotate the cached unit camera-space rays (as pixel_rays does; a
         # camera transform with scale or shear needs the normalisation again).
-        d = self._camera_dirs(camera) @ rot.T
+        d = _transform(self._camera_dirs(camera), rot)
         if not np.allclose(rot.T @ rot, np.eye(3), rtol=0.0, atol=1e-12):
             d /= np.linalg.norm(d, axis=1, keepdims=True)
 
@@ -561,57 +588,15 @@ class Rasterizer:
         normal = -view_dir
         albedo = np.zeros((h * w, 3), dtype=np.float32)
 
-        if len(covered):
-            geo = self._scene.geometry
-            dc = d[covered]
-            tab = self._tri64[tid]  # (n, 13), see _build_tables
-            ng = tab[:, 8:11]
-            # Ray-plane intersection in float64, rel space: t = (h - n·o) / n·d.
-            den = np.einsum("ij,ij->i", ng, dc)
-            floor = GRAZING_EPS * tab[:, 12]
-            den = np.where(np.abs(den) < floor, np.where(den < 0, -floor, floor), den)
-            den[den == 0.0] = 1.0  # zero-area triangle: t is clamped just below
-            t = np.clip((tab[:, 11] - ng @ eye_rel) / den, near, far)
-            p_rel = eye_rel + t[:, None] * dc
-
-            # Barycentrics of p, clamped onto the triangle (pixel centres on an edge may
-            # lie a rounding error outside) and renormalised; float32 from here on.
-            bv = np.einsum("ij,ij->i", p_rel, tab[:, 0:3]) - tab[:, 3]
-            bw = np.einsum("ij,ij->i", p_rel, tab[:, 4:7]) - tab[:, 7]
-            b0 = np.clip(1.0 - bv - bw, 0.0, 1.0)
-            b1 = np.clip(bv, 0.0, 1.0)
-            b2 = np.clip(bw, 0.0, 1.0)
-            inv_sum = 1.0 / np.maximum(b0 + b1 + b2, 1e-12)
-            w0 = (b0 * inv_sum).astype(np.float32)[:, None]  # (n, 1) each
-            w1 = (b1 * inv_sum).astype(np.float32)[:, None]
-            w2 = (b2 * inv_sum).astype(np.float32)[:, None]
-
-            corners = self._tri32[tid]  # (n, 6, 3): 3 normals, 3 albedos
-            n = corners[:, 0] * w0 + corners[:, 1] * w1 + corners[:, 2] * w2
-            col = corners[:, 3] * w0 + corners[:, 4] * w1 + corners[:, 5] * w2
-
-            # Shading normal on the camera's side of the triangle; where it still faces
-            # away (or is degenerate), use the geometric normal.
-            side = np.where(den > 0.0, -1.0, 1.0)  # n_g·d > 0: the back face is seen
-            n *= side[:, None].astype(np.float32)
-            n_len = np.sqrt(np.einsum("ij,ij->i", n, n))
-            bad = (n_len < 1e-6) | (np.einsum("ij,ij->i", n, dc) >= 0.0)
-            n /= np.maximum(n_len, 1e-6)[:, None]
-            if bad.any():
-                g = ng[bad] * (side[bad] / np.maximum(tab[bad, 12], 1e-300))[:, None]
-                n[bad] = g.astype(np.float32)
-            normal[covered] = n
-
-            textured = self._tri_textured[tid]
-            if textured.any():
-                bary = np.concatenate([w0[textured], w1[textured], w2[textured]], axis=1)
-                col[textured] = self._texture_albedo(tid[textured], bary)
-            albedo[covered] = col
-            triangle_id[covered] = tid
-            element_id[covered] = geo.tri_element[tid]
-            position[covered] = p_rel + self._origin
-            fwd = -rot[:, 2] / np.linalg.norm(rot[:, 2])
-            depth[covered] = t * (dc @ fwd)
+        out = _Outputs(triangle_id, element_id, depth, position, normal, albedo)
+        fwd = -rot[:, 2] / np.linalg.norm(rot[:, 2])
+        chunks = [c for c in np.array_split(np.arange(len(covered)), DERIVE_THREADS) if len(c)]
+        jobs = [
+            self._pool.submit(self._derive, covered[c], tid[c], d, eye_rel, near, far, fwd, out)
+            for c in chunks
+        ]
+        for job in jobs:
+            job.result()  # re-raises a worker's exception here
 
         return GBuffer(
             element_id=element_id.reshape(h, w),
@@ -622,6 +607,75 @@ class Rasterizer:
             albedo=albedo.reshape(h, w, 3),
             view_dir=view_dir.reshape(h, w, 3),
         )
+
+    def _derive(
+        self,
+        covered: np.ndarray,
+        tid: np.ndarray,
+        d: np.ndarray,
+        eye_rel: np.ndarray,
+        near: float,
+        far: float,
+        fwd: np.ndarray,
+        out: _Outputs,
+    ) -> None:
+        """Fill ``out`` at flat pixel indices ``covered`` (n,) from their triangle ids
+        ``tid`` (n,): ray-plane hit, barycentrics, interpolated normal and albedo.
+
+        d : (H*W, 3) float64 unit world directions; eye_rel : (3,) rel metres;
+        near, far : the projection's clip range; fwd : (3,) unit view direction.
+        Runs on chunks of pixels in worker threads (numpy releases the GIL), writing
+        disjoint pixels.
+        """
+        geo = self._scene.geometry
+        dc = d[covered]
+        tab = self._tri64[tid]  # (n, 13), see _build_tables
+        ng = tab[:, 8:11]
+        # Ray-plane intersection in float64, rel space: t = (h - n·o) / n·d.
+        den = np.einsum("ij,ij->i", ng, dc)
+        floor = GRAZING_EPS * tab[:, 12]
+        den = np.where(np.abs(den) < floor, np.where(den < 0, -floor, floor), den)
+        den[den == 0.0] = 1.0  # zero-area triangle: t is clamped just below
+        t = np.clip((tab[:, 11] - _transform(ng, eye_rel[None])[:, 0]) / den, near, far)
+        p_rel = eye_rel + t[:, None] * dc
+
+        # Barycentrics of p, clamped onto the triangle (pixel centres on an edge may
+        # lie a rounding error outside) and renormalised; float32 from here on.
+        bv = np.einsum("ij,ij->i", p_rel, tab[:, 0:3]) - tab[:, 3]
+        bw = np.einsum("ij,ij->i", p_rel, tab[:, 4:7]) - tab[:, 7]
+        b0 = np.clip(1.0 - bv - bw, 0.0, 1.0)
+        b1 = np.clip(bv, 0.0, 1.0)
+        b2 = np.clip(bw, 0.0, 1.0)
+        inv_sum = 1.0 / np.maximum(b0 + b1 + b2, 1e-12)
+        w0 = (b0 * inv_sum).astype(np.float32)[:, None]  # (n, 1) each
+        w1 = (b1 * inv_sum).astype(np.float32)[:, None]
+        w2 = (b2 * inv_sum).astype(np.float32)[:, None]
+
+        corners = self._tri32[tid]  # (n, 6, 3): 3 normals, 3 albedos
+        n = corners[:, 0] * w0 + corners[:, 1] * w1 + corners[:, 2] * w2
+        col = corners[:, 3] * w0 + corners[:, 4] * w1 + corners[:, 5] * w2
+
+        # Shading normal on the camera's side of the triangle; where it still faces
+        # away (or is degenerate), use the geometric normal.
+        side = np.where(den > 0.0, -1.0, 1.0)  # n_g·d > 0: the back face is seen
+        n *= side[:, None].astype(np.float32)
+        n_len = np.sqrt(np.einsum("ij,ij->i", n, n))
+        bad = (n_len < 1e-6) | (np.einsum("ij,ij->i", n, dc) >= 0.0)
+        n /= np.maximum(n_len, 1e-6)[:, None]
+        if bad.any():
+            g = ng[bad] * (side[bad] / np.maximum(tab[bad, 12], 1e-300))[:, None]
+            n[bad] = g.astype(np.float32)
+        out.normal[covered] = n
+
+        textured = self._tri_textured[tid]
+        if textured.any():
+            bary = np.concatenate([w0[textured], w1[textured], w2[textured]], axis=1)
+            col[textured] = self._texture_albedo(tid[textured], bary)
+        out.albedo[covered] = col
+        out.triangle_id[covered] = tid
+        out.element_id[covered] = geo.tri_element[tid]
+        out.position[covered] = p_rel + self._origin
+        out.depth[covered] = t * _transform(dc, fwd[None])[:, 0]
 
     def _texture_albedo(self, tid: np.ndarray, bary: np.ndarray) -> np.ndarray:
         """(n, 3) float32 linear RGB for pixels on textured triangles: bilinear, wrapping
@@ -694,7 +748,7 @@ class Rasterizer:
         if self._mesh_node is None or not mask.any():
             return None
         used = np.unique(self._triangles[mask])
-        lp = self._uploaded[used].astype(np.float64) @ frame.T
+        lp = _transform(self._uploaded[used].astype(np.float64), frame)
         # Extents clamped away from 0 (flat casters) so the matrix is invertible.
         min_span = 1e-6 * max(self._extent, 1e-9)
         pad = 2.0 / size  # two texels of margin on each side
@@ -792,7 +846,7 @@ class Rasterizer:
         if not self._animated_tri.any():
             return MIN_DYNAMIC_MAP_SIZE
         used = np.unique(self._triangles[self._animated_tri])
-        lp = self._uploaded[used].astype(np.float64) @ frame[:2].T
+        lp = _transform(self._uploaded[used].astype(np.float64), frame[:2])
         span = float((lp.max(axis=0) - lp.min(axis=0)).max())
         size = int(np.ceil(span / max(texel, 1e-300))) + 4
         return int(np.clip(size, MIN_DYNAMIC_MAP_SIZE, SHADOW_MAP_SIZE))
@@ -829,6 +883,7 @@ class Rasterizer:
         if self._closed:
             return
         self._closed = True
+        self._pool.shutdown(wait=True)
         self._platform.make_current()
         self._delete_shadow_batches()
         r = self._renderer
