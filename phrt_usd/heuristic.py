@@ -289,6 +289,7 @@ class BudgetedPolicy:
         self._global_rays = 0.0  # decayed sums for the mean rays per pixel
         self._global_pixels = 0.0
         self._frame: _FrameState | None = None
+        self._reflector_cache: tuple[tuple[int, int], np.ndarray] | None = None
         #: Predicted trace time of the last finished frame (ms, time safety included).
         self.last_predicted_trace_ms = 0.0
 
@@ -296,20 +297,32 @@ class BudgetedPolicy:
 
     def begin_frame(self, view: FrameView, scene: Scene) -> None:
         n = len(scene.elements)
+        refl = self._reflectors_of(scene)
         pixels = np.zeros(n, dtype=np.int64)
         counts = np.asarray(view.pixel_counts, dtype=np.int64).reshape(-1)[:n]
-        pixels[: len(counts)] = np.maximum(counts, 0)
-        centers = np.array([e.center for e in scene.elements], dtype=np.float64).reshape(n, 3)
-        reflector = np.array([e.is_reflector for e in scene.elements], dtype=bool)
-        pixels[~reflector] = 0  # only reflectors are candidates
+        pixels[refl[refl < len(counts)]] = np.maximum(counts[refl[refl < len(counts)]], 0)
+        # Per-element arrays, filled for reflectors only (scenes may hold many instances).
+        centers = np.zeros((n, 3))
+        centers[refl] = np.array([scene.elements[i].center for i in refl]).reshape(-1, 3)
+        K = np.zeros(n)
+        K[refl] = clip_weight(np.array([scene.elements[i].priority for i in refl]))
         A = visible_area(pixels, view.width, view.height)
-        P = centrality(centers, view.camera, view.width, view.height)
+        P = np.zeros(n)
+        P[refl] = centrality(centers[refl], view.camera, view.width, view.height)
         D = camera_distance(centers, view.camera.position)
-        K = clip_weight(np.array([e.priority for e in scene.elements], dtype=np.float64))
         self._frame = _FrameState(
             view=view, scene=scene, pixels=pixels, centers=centers, D=D,
             V=visibility(A, P, D), K=K,
         )  # fmt: skip
+
+    def _reflectors_of(self, scene: Scene) -> np.ndarray:
+        """(R,) int64 reflector element ids, computed once per scene object (the reflector
+        flags of a stage's elements do not change during a run)."""
+        key = (id(scene), len(scene.elements))
+        if self._reflector_cache is None or self._reflector_cache[0] != key:
+            ids = np.array([i for i, e in enumerate(scene.elements) if e.is_reflector])
+            self._reflector_cache = (key, ids.astype(np.int64).reshape(-1))
+        return self._reflector_cache[1]
 
     def next_round(self, budget: Budget) -> list[int]:
         frame = self._require_frame()

@@ -492,3 +492,17 @@ def test_time_starved_policy_relaxes_its_safety():
     assert policy.next_round(Budget(ms=2.0)) == []  # 1100 rays * 0.004 ms * 5 > 2 ms
     policy.end_frame()
     assert policy.time_model.safety < before
+
+
+def test_pickled_policy_continues_identically():
+    """Render jobs checkpoint the policy with pickle; a resumed run must select the same."""
+    import pickle
+
+    policy = policy_of("heu1")
+    for t in range(5):
+        run_frame(policy, oscillating_pair(t), view([1000, 1000]), 1500, hits={0: {1: 3}})
+    clone = pickle.loads(pickle.dumps(policy))
+    for t in range(5, 25):
+        a = run_frame(policy, oscillating_pair(t), view([1000, 1000]), 1500)[1]
+        b = run_frame(clone, oscillating_pair(t), view([1000, 1000]), 1500)[1]
+        assert a == b
