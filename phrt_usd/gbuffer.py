@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import ctypes
 import os
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -87,6 +88,10 @@ SHADOW_BIAS_TEXELS = 1.0
 #: compares against texels up to ~1.5 texels away, where a sloped surface's own depth
 #: differs by up to that distance times its slope.
 SHADOW_SLOPE_BIAS_TEXELS = 2.0
+#: Texel radius of the neighbourhood that decides whether a point is *uncertain* (see
+#: ``_ShadowMap``): 1 covers the PCF taps; 2 also catches casters thinner than a texel
+#: that the map sampled only every other texel along their length.
+SHADOW_REFINE_RADIUS = 2
 #: |cos| floor for the slope term (tan <= ~10): at grazing light the bias would grow
 #: without bound; such points get almost no direct light anyway (n.L ~ 0).
 SHADOW_MIN_COS = 0.1
@@ -160,12 +165,18 @@ class _ShadowMap:
     depth          : (S, S) float32 caster depth in metres along the light's travel
                      direction (-z), inf where no caster; row 0 at y = lo[1] (OpenGL's
                      bottom-up order, not flipped)
+    depth_min/max  : the same filtered to the min / max over a texel neighbourhood: a
+                     point is *uncertain* when its neighbourhood holds both occluding
+                     and non-occluding texels (a shadow edge, or a caster thinner than
+                     a texel that the map caught only in places)
     """
 
     light_from_rel: np.ndarray
     lo: np.ndarray
     texel: np.ndarray
     depth: np.ndarray
+    depth_min: np.ndarray  # (S, S) float32: min / max of depth over the
+    depth_max: np.ndarray  # (2 r + 1)^2 texels around, r = SHADOW_REFINE_RADIUS
 
 
 def _transform(v: np.ndarray, m: np.ndarray) -> np.ndarray:
@@ -177,10 +188,31 @@ def _transform(v: np.ndarray, m: np.ndarray) -> np.ndarray:
     return v[:, 0:1] * m[:, 0][None] + v[:, 1:2] * m[:, 1][None] + v[:, 2:3] * m[:, 2][None]
 
 
-def _filtered_visibility(mp: _ShadowMap, rel: np.ndarray, normals: np.ndarray) -> np.ndarray:
-    """(n,) float64 visibility in [0, 1] of points ``rel`` (n, 3) (rel metres) with
-    ``normals`` (n, 3) against one map: slope-scaled bias, bilinear 2x2 PCF. Points
-    outside the map's footprint are lit (none of its casters is above them)."""
+def _box_extremum(a: np.ndarray, r: int, op: np.ufunc) -> np.ndarray:
+    """``op`` (np.minimum / np.maximum) of 2D ``a`` over the (2 r + 1)^2 box around each
+    element, edges clamped: separable passes over shifted slices (much faster here than
+    scipy.ndimage's min / max filters)."""
+    rows = np.pad(a, [(r, r), (0, 0)], mode="edge")
+    n0, n1 = a.shape
+    acc = rows[0:n0].copy()
+    for k in range(1, 2 * r + 1):
+        op(acc, rows[k : k + n0], out=acc)
+    cols = np.pad(acc, [(0, 0), (r, r)], mode="edge")
+    out = cols[:, 0:n1].copy()
+    for k in range(1, 2 * r + 1):
+        op(out, cols[:, k : k + n1], out=out)
+    return out
+
+
+def _filtered_visibility(
+    mp: _ShadowMap, rel: np.ndarray, normals: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Visibility of points ``rel`` (n, 3) (rel metres) with ``normals`` (n, 3) against
+    one map: slope-scaled bias, bilinear 2x2 PCF. Points outside the map's footprint
+    are lit (none of its casters is above them).
+
+    Returns (n,) float64 visibility in [0, 1] and (n,) bool *uncertain* (see
+    ``_ShadowMap.depth_min``)."""
     s = mp.depth.shape[0]
     lp = _transform(rel, mp.light_from_rel)
     texel = float(mp.texel.max())
@@ -207,7 +239,10 @@ def _filtered_visibility(mp: _ShadowMap, rel: np.ndarray, normals: np.ndarray) -
         xi = np.clip(x0 + dx, 0, s - 1)
         yi = np.clip(y0 + dy, 0, s - 1)
         vis += weight * (test <= mp.depth[yi, xi])
-    return np.where(inside, vis, 1.0)
+    xn = np.clip(np.rint(fx).astype(np.int64), 0, s - 1)  # nearest texel
+    yn = np.clip(np.rint(fy).astype(np.int64), 0, s - 1)
+    uncertain = inside & (mp.depth_min[yn, xn] < test) & (mp.depth_max[yn, xn] >= test)
+    return np.where(inside, vis, 1.0), uncertain
 
 
 class Rasterizer:
@@ -250,6 +285,7 @@ class Rasterizer:
         self._dynamic_maps: list[_ShadowMap | None] | None = None
         self._batches: dict[str, tuple[int, int, int]] = {}  # name → (vao, ebo, count)
         self._map_dirs: list[np.ndarray] = []
+        self.last_refined = 0  # points handed to shadow_visibility's refine last call
         self._pool = ThreadPoolExecutor(DERIVE_THREADS, thread_name_prefix="phrt-gbuffer")
         self._closed = False
         self._upload(scene)
@@ -802,11 +838,14 @@ class Rasterizer:
         GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, 0)
         # Texels no caster covered stay at the clear value: nothing there occludes.
         depth_m = np.where(depth01 >= 1.0, np.inf, lo_d + depth01.astype(np.float64) * span_d)
+        depth_m = depth_m.astype(np.float32)
         return _ShadowMap(
             light_from_rel=frame,
             lo=lo_xy,
             texel=span_xy / size,
-            depth=depth_m.astype(np.float32),
+            depth=depth_m,
+            depth_min=_box_extremum(depth_m, SHADOW_REFINE_RADIUS, np.minimum),
+            depth_max=_box_extremum(depth_m, SHADOW_REFINE_RADIUS, np.maximum),
         )
 
     def shadow_maps(self) -> list[tuple[_ShadowMap | None, _ShadowMap | None]]:
@@ -851,25 +890,45 @@ class Rasterizer:
         size = int(np.ceil(span / max(texel, 1e-300))) + 4
         return int(np.clip(size, MIN_DYNAMIC_MAP_SIZE, SHADOW_MAP_SIZE))
 
-    def shadow_visibility(self, positions: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    def shadow_visibility(
+        self,
+        positions: np.ndarray,
+        normals: np.ndarray,
+        refine: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
+    ) -> np.ndarray:
         """Fraction of each DistantLight reaching each point, by shadow mapping.
 
         positions : (n, 3) float64 world metres
         normals   : (n, 3) unit normals (either side; only |n·L| is used, for the bias)
+        refine    : optional exact shadow test, ``refine(positions (m, 3), normals
+                    (m, 3)) -> (m, len(scene.lights.distant))`` visibility (e.g. Embree
+                    shadow rays). It is called once, on the *uncertain* points only
+                    (shadow edges and casters thinner than a texel, where a map's
+                    answer is unreliable), and its answer replaces the map's there.
         Returns (n, len(scene.lights.distant)) float32 in [0, 1], 1 = lit: the product of
-        the static and the animated casters' filtered visibilities.
+        the static and the animated casters' filtered visibilities. ``last_refined``
+        holds how many points were handed to ``refine``.
         """
         positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
         normals = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
         maps = self.shadow_maps()
         out = np.ones((len(positions), len(maps)), dtype=np.float32)
-        if len(positions) == 0:
+        self.last_refined = 0
+        if len(positions) == 0 or not maps:
             return out
         rel = positions - self._origin
+        uncertain = np.zeros(len(positions), dtype=bool)
         for k, pair in enumerate(maps):
             for mp in pair:
                 if mp is not None:
-                    out[:, k] *= _filtered_visibility(mp, rel, normals)
+                    vis, unsure = _filtered_visibility(mp, rel, normals)
+                    out[:, k] *= vis
+                    uncertain |= unsure
+        if refine is not None and uncertain.any():
+            idx = np.flatnonzero(uncertain)
+            exact = np.asarray(refine(positions[idx], normals[idx]), dtype=np.float32)
+            out[idx] = exact.reshape(len(idx), len(maps))
+            self.last_refined = len(idx)
         return out
 
     # ------------------------------------------------------------------ lifetime
