@@ -70,8 +70,9 @@ MIN_NEAR_OVER_FAR = 1e-6
 #: padded by this fraction of the scene extent so that bounding geometry is not clipped.
 CLIP_PADDING = 1e-3
 
-#: Worker threads deriving the G-buffer from the id image (numpy releases the GIL in
-#: its loops, so the covered pixels are split into this many chunks).
+#: Worker threads deriving the G-buffer from the id image and looking points up in the
+#: shadow maps (numpy releases the GIL in its loops, so the pixels / points are split
+#: into this many chunks).
 DERIVE_THREADS = max(1, min(2, os.cpu_count() or 1))
 
 #: Static shadow-map resolution (texels per side).
@@ -918,12 +919,23 @@ class Rasterizer:
             return out
         rel = positions - self._origin
         uncertain = np.zeros(len(positions), dtype=bool)
-        for k, pair in enumerate(maps):
-            for mp in pair:
-                if mp is not None:
-                    vis, unsure = _filtered_visibility(mp, rel, normals)
-                    out[:, k] *= vis
-                    uncertain |= unsure
+
+        def lookup(part: slice) -> None:  # one chunk of points, all maps (disjoint rows)
+            for k, pair in enumerate(maps):
+                for mp in pair:
+                    if mp is not None:
+                        vis, unsure = _filtered_visibility(mp, rel[part], normals[part])
+                        out[part, k] *= vis
+                        uncertain[part] |= unsure
+
+        bounds = np.linspace(0, len(positions), DERIVE_THREADS + 1).astype(int)
+        jobs = [
+            self._pool.submit(lookup, slice(a, b))
+            for a, b in zip(bounds[:-1], bounds[1:], strict=True)
+            if b > a
+        ]
+        for job in jobs:
+            job.result()
         if refine is not None and uncertain.any():
             idx = np.flatnonzero(uncertain)
             exact = np.asarray(refine(positions[idx], normals[idx]), dtype=np.float32)
