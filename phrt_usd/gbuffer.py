@@ -23,13 +23,20 @@ Pipeline, per phase:
    (``Element.animated``; same texel size, over their footprint only, re-rendered after
    ``update_geometry`` moved them). Points are projected into light space, compared
    with a slope-scaled bias and filtered with bilinear 2x2 percentage-closer
-   filtering; a point's visibility is the product over the two maps.
+   filtering; a point's visibility is the product over the two maps. Points whose
+   texel neighbourhood holds both occluding and clear depths (shadow edges, casters
+   thinner than a texel) are *uncertain*; given a ``refine`` callable (the tracer's
+   shadow rays) only those get an exact answer (~2-15 % of the points on the farm).
 
 Coordinate spaces: "world" is ``Scene`` world metres (float64); "rel" is world minus
 ``Scene.origin`` (what OpenGL sees, float32 on the GPU, float64 in numpy).
 
 Limits: opaque triangles only (transmission is a tracer concern); one OpenGL context per
-``Rasterizer``; triangle count must stay below 2**32 - 1 (id encoding).
+``Rasterizer``; triangle count must stay below 2**32 - 1 (id encoding). Element
+``animated`` flags and materials are read when the topology is uploaded (``__init__``,
+or ``update_geometry`` with a changed topology). Without ``refine``, casters much
+thinner than a shadow-map texel (scene extent / 2048) cast broken shadows. Coincident
+(coplanar, overlapping) surfaces z-fight here as they do in Embree: either may win.
 """
 
 from __future__ import annotations
