@@ -96,6 +96,8 @@ class FrameView:
     """What a selection policy sees of a frame before tracing.
 
     pixel_counts: (E,) int64 pixels per element id in the G-buffer (A * W * H).
+    screen_boxes: (E, 4) float64 pixel bounds (col_min, row_min, col_max, row_max) of
+        each reflector's visible pixels, NaN where it has none; None if not computed.
     """
 
     time: float
@@ -103,6 +105,7 @@ class FrameView:
     width: int
     height: int
     pixel_counts: np.ndarray
+    screen_boxes: np.ndarray | None = None
 
 
 @dataclass

@@ -114,6 +114,18 @@ def centrality(centers: np.ndarray, camera: CameraFrame, width: int, height: int
     return np.clip(np.nan_to_num(p, nan=0.0, posinf=0.0, neginf=0.0), 0.0, 1.0)
 
 
+def screen_centrality(boxes: np.ndarray, width: int, height: int) -> np.ndarray:
+    """P from screen-space boxes: (n, 4) pixel (col_min, row_min, col_max, row_max) →
+    (n,) float64 in [0, 1], the falloff of ``centrality`` at the box centre (pixel
+    centres at +0.5)."""
+    boxes = np.nan_to_num(np.asarray(boxes, dtype=np.float64).reshape(-1, 4), nan=-1e9)
+    cx = 0.5 * (boxes[:, 0] + boxes[:, 2]) + 0.5
+    cy = 0.5 * (boxes[:, 1] + boxes[:, 3]) + 0.5
+    ndc_x = cx / max(width, 1) * 2.0 - 1.0
+    ndc_y = 1.0 - cy / max(height, 1) * 2.0
+    return np.clip(1.0 - np.maximum(np.abs(ndc_x), np.abs(ndc_y)), 0.0, 1.0)
+
+
 def camera_distance(centers: np.ndarray, eye: np.ndarray) -> np.ndarray:
     """D: (n, 3) world-metre points, (3,) eye → (n,) float64 metres, >= D_MIN."""
     centers = np.asarray(centers, dtype=np.float64).reshape(-1, 3)
@@ -309,6 +321,13 @@ class BudgetedPolicy:
         A = visible_area(pixels, view.width, view.height)
         P = np.zeros(n)
         P[refl] = centrality(centers[refl], view.camera, view.width, view.height)
+        if view.screen_boxes is not None:
+            # A visible reflector's centrality follows the bounding box of its visible
+            # pixels: a pond whose 3D box centre is off-screen still counts as central
+            # when its visible part is (docs/heuristic.md, "P").
+            boxes = np.asarray(view.screen_boxes, dtype=np.float64)[refl]
+            seen = pixels[refl] > 0
+            P[refl[seen]] = screen_centrality(boxes[seen], view.width, view.height)
         D = camera_distance(centers, view.camera.position)
         self._frame = _FrameState(
             view=view, scene=scene, pixels=pixels, centers=centers, D=D,

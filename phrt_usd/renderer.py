@@ -34,6 +34,7 @@ from phrt_usd.frame import (
 )
 from phrt_usd.heuristic import make_policy
 from phrt_usd.scene import CameraFrame, Scene
+from phrt_usd.schema import DEFAULT_SELECTION_WEIGHT
 from phrt_usd.shading import shade_local
 from phrt_usd.stage_reader import StageScene
 
@@ -52,7 +53,7 @@ class RenderOptions:
     budget_ms: float | None = 10.0
     budget_rays: int | None = None
     bounce_limit: int = 5
-    selection_weight: float = 0.001
+    selection_weight: float = DEFAULT_SELECTION_WEIGHT
     threads: int = 2
 
     def __post_init__(self) -> None:
@@ -80,7 +81,7 @@ class PreparedFrame:
 
     local: (H, W, 3) float32 local shading; reflectivity: (H, W) float32 F per pixel;
     image: (H, W, 3) float32 the raster frame (environment fallback in reflectors);
-    pixel_counts: (E,) int64 pixels per element.
+    pixel_counts: (E,) int64 pixels per element; screen_boxes: (E, 4) see FrameView.
     """
 
     time: float
@@ -90,6 +91,7 @@ class PreparedFrame:
     reflectivity: np.ndarray
     image: np.ndarray
     pixel_counts: np.ndarray
+    screen_boxes: np.ndarray
     phase_ms: dict[str, float]
     passes: list[str]
     prepare_ms: float
@@ -193,6 +195,7 @@ class FrameRenderer:
         image = base_image(gb, scene, local, reflectivity)
         phase["shade"] = _ms(t)
         pixel_counts = np.bincount(gb.element_id[gb.covered], minlength=len(scene.elements))
+        screen_boxes = self._screen_boxes(gb)
         return PreparedFrame(
             float(time_code),
             camera,
@@ -201,6 +204,7 @@ class FrameRenderer:
             reflectivity,
             image,
             pixel_counts,
+            screen_boxes,
             phase,
             passes,
             _ms(t_frame),
@@ -228,7 +232,9 @@ class FrameRenderer:
         metrics: dict[int, ReflectorMetrics] = {}
         selected: list[int] = []
         if self._tracer is not None and opts.mode != "raster":
-            view = FrameView(prep.time, prep.camera, opts.width, opts.height, pixel_counts)
+            view = FrameView(
+                prep.time, prep.camera, opts.width, opts.height, pixel_counts, prep.screen_boxes
+            )
             t = time.perf_counter()
             policy.begin_frame(view, scene)
             select_ms += _ms(t)
@@ -248,11 +254,13 @@ class FrameRenderer:
                 t = time.perf_counter()
                 result = self._tracer.trace_reflections(gb, ids, opts.bounce_limit)
                 apply_traced(image, prep.local, prep.reflectivity, result, traced_mask)
-                trace_ms += _ms(t)
+                round_ms = _ms(t)
+                trace_ms += round_ms
                 rays += result.rays
                 selected.extend(ids)
                 t = time.perf_counter()
-                policy.record(result.records, result.seconds)
+                # The policy learns the time the budget is charged (trace + composite).
+                policy.record(result.records, round_ms / 1000.0)
                 select_ms += _ms(t)
             t = time.perf_counter()
             metrics = policy.end_frame()
@@ -280,6 +288,27 @@ class FrameRenderer:
             passes=passes,
         )
         return FrameOutput(image, alpha, gb, traced_mask, stats)
+
+    def _screen_boxes(self, gb: GBuffer) -> np.ndarray:
+        """(E, 4) pixel bounds (col_min, row_min, col_max, row_max) of every reflector's
+        visible pixels, NaN for elements without any (see FrameView.screen_boxes)."""
+        n = len(self.scene.elements)
+        boxes = np.full((n, 4), np.nan)
+        if len(self._reflector_ids) == 0:
+            return boxes
+        is_reflector = np.zeros(n + 1, dtype=bool)  # index -1 (background) → False
+        is_reflector[self._reflector_ids] = True
+        rows, cols = np.nonzero(is_reflector[gb.element_id])
+        if len(rows) == 0:
+            return boxes
+        ids = gb.element_id[rows, cols]
+        lo = np.full((n, 2), np.inf)
+        hi = np.full((n, 2), -np.inf)
+        np.minimum.at(lo, ids, np.stack([cols, rows], axis=1))
+        np.maximum.at(hi, ids, np.stack([cols, rows], axis=1))
+        seen = np.isfinite(lo[:, 0])
+        boxes[seen] = np.concatenate([lo[seen], hi[seen]], axis=1)
+        return boxes
 
     def _shade_local(self, gb: GBuffer) -> tuple[np.ndarray, str | None]:
         """Local shading (H, W, 3) of covered pixels and the shadow pass used, if any."""

@@ -40,6 +40,7 @@ from phrt_usd.image_metrics import flip_map, mean_over, psnr
 from phrt_usd.images import write_preview_png
 from phrt_usd.render_job import _stop_on_signals, parse_frames
 from phrt_usd.renderer import FrameOutput, FrameRenderer, RenderOptions
+from phrt_usd.schema import DEFAULT_SELECTION_WEIGHT
 from phrt_usd.stage_reader import open_stage
 
 CSV_COLUMNS = [
@@ -83,7 +84,7 @@ class SweepSpec:
     width: int = 320
     height: int = 240
     bounce_limit: int = 5
-    selection_weight: float = 0.001
+    selection_weight: float = DEFAULT_SELECTION_WEIGHT
     out: Path = Path("sweep")
 
 

@@ -46,7 +46,7 @@ def test_import_registers_schemas_with_fallbacks():
     settings = UsdRender.Settings.Define(stage, "/Render/Settings").GetPrim()
     assert settings.ApplyAPI(schema.RENDER_SETTINGS_API)
     assert settings.GetAttribute(schema.BUDGET_RAYS).Get() == -1
-    assert abs(settings.GetAttribute(schema.SELECTION_WEIGHT).Get() - 0.001) < 1e-9
+    assert abs(settings.GetAttribute(schema.SELECTION_WEIGHT).Get() - schema.DEFAULT_SELECTION_WEIGHT) < 1e-9
     # Re-registering is harmless.
     from pxr import Plug
 
@@ -163,7 +163,7 @@ def test_render_params_defaults_metadata_and_first_prim():
         "/Render/A",
         "heu2",
         4.0,
-        0.001,
+        schema.DEFAULT_SELECTION_WEIGHT,
     )
     stage.GetRootLayer().pseudoRoot.SetInfo("renderSettingsPrimPath", "/Render/B")
     b = schema.read_render_params(stage)

@@ -520,7 +520,7 @@ def make_render_settings(stage: Usd.Stage, camera_path: str, **phrt: object) -> 
     values = {
         "heuristic": "heu1",
         "mode": "hybrid",
-        "selectionWeight": 0.001,
+        "selectionWeight": 0.0001,
         "budgetMs": 10.0,
         "bounceLimit": 5,
         **phrt,
