@@ -38,6 +38,9 @@ import numpy as np
 import OpenImageIO as oiio
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux, UsdRender, UsdShade, Vt
 
+# Phrt attributes are schema properties (non-custom) whether or not the plugin is loaded,
+# so the generated files are the same either way.
+
 #: Frame range of every animated stage (time codes), at 24 time codes per second.
 START_FRAME = 1.0
 END_FRAME = 720.0
@@ -435,8 +438,12 @@ def make_reflector(prim: Usd.Prim | Usd.SchemaBase, priority: float, reflectivit
     """Apply PhrtReflectorAPI with K = ``priority`` and F = ``reflectivity``."""
     target = prim.GetPrim() if hasattr(prim, "GetPrim") else prim
     target.AddAppliedSchema(REFLECTOR_API)
-    target.CreateAttribute("phrt:priority", Sdf.ValueTypeNames.Float).Set(float(priority))
-    target.CreateAttribute("phrt:reflectivity", Sdf.ValueTypeNames.Float).Set(float(reflectivity))
+    target.CreateAttribute("phrt:priority", Sdf.ValueTypeNames.Float, custom=False).Set(
+        float(priority)
+    )
+    target.CreateAttribute("phrt:reflectivity", Sdf.ValueTypeNames.Float, custom=False).Set(
+        float(reflectivity)
+    )
 
 
 def look_at_matrix(
@@ -485,19 +492,25 @@ def make_camera_path(
 ) -> Usd.Prim:
     """Author a ``PhrtCameraPath`` prim (plain USD: typed prim + the schema's attributes)."""
     prim = stage.DefinePrim(path, "PhrtCameraPath")
-    prim.CreateRelationship("phrt:camera").SetTargets([Sdf.Path(camera_path)])
-    prim.CreateAttribute("phrt:positions", Sdf.ValueTypeNames.Point3dArray).Set(
+    prim.CreateRelationship("phrt:camera", custom=False).SetTargets([Sdf.Path(camera_path)])
+    prim.CreateAttribute("phrt:positions", Sdf.ValueTypeNames.Point3dArray, custom=False).Set(
         Vt.Vec3dArray.FromNumpy(np.asarray(positions, np.float64))
     )
-    prim.CreateAttribute("phrt:targets", Sdf.ValueTypeNames.Point3dArray).Set(
+    prim.CreateAttribute("phrt:targets", Sdf.ValueTypeNames.Point3dArray, custom=False).Set(
         Vt.Vec3dArray.FromNumpy(np.asarray(targets, np.float64))
     )
-    prim.CreateAttribute("phrt:keyTimes", Sdf.ValueTypeNames.DoubleArray).Set(
+    prim.CreateAttribute("phrt:keyTimes", Sdf.ValueTypeNames.DoubleArray, custom=False).Set(
         Vt.DoubleArray.FromNumpy(np.asarray(key_times, np.float64))
     )
-    prim.CreateAttribute("phrt:startFrame", Sdf.ValueTypeNames.Double).Set(float(key_times[0]))
-    prim.CreateAttribute("phrt:endFrame", Sdf.ValueTypeNames.Double).Set(float(key_times[-1]))
-    prim.CreateAttribute("phrt:interpolation", Sdf.ValueTypeNames.Token).Set(interpolation)
+    prim.CreateAttribute("phrt:startFrame", Sdf.ValueTypeNames.Double, custom=False).Set(
+        float(key_times[0])
+    )
+    prim.CreateAttribute("phrt:endFrame", Sdf.ValueTypeNames.Double, custom=False).Set(
+        float(key_times[-1])
+    )
+    prim.CreateAttribute("phrt:interpolation", Sdf.ValueTypeNames.Token, custom=False).Set(
+        interpolation
+    )
     return prim
 
 
@@ -526,7 +539,7 @@ def make_render_settings(stage: Usd.Stage, camera_path: str, **phrt: object) -> 
         **phrt,
     }
     for name, value in values.items():
-        prim.CreateAttribute(f"phrt:{name}", types[name]).Set(value)
+        prim.CreateAttribute(f"phrt:{name}", types[name], custom=False).Set(value)
     stage.SetMetadata("renderSettingsPrimPath", "/Render/Settings")
 
 
