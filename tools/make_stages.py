@@ -864,6 +864,7 @@ def build_farm_geometry(path: Path, route_xz: np.ndarray) -> dict[str, str]:
             UsdGeom.Tokens.face,
             Vt.IntArray.FromNumpy(faces.astype(np.int32)),
             "materialBind",
+            UsdGeom.Tokens.partition,  # walls + trim cover every face once
         )
     author_mesh(
         stage,
