@@ -1,0 +1,112 @@
+"""The paper's three tables (transitions HEU1/HEU2, mean selected, mean fps) for our
+stages, from full camera-path renders with HEU1 and HEU2 under the same budget.
+
+    uv run python tools/paper_tables.py stages/farm.usda stages/sewer.usda \
+        --budget-rays 20000 [--budget-ms 10] [--frames A:B:STEP] [--out runs/paper] \
+        [--append BENCHMARKS.md]
+
+Each stage × heuristic is one `phrt render` run (no images) into OUT/<stage>-<heu>;
+the tables come from `phrt report` on those runs (`build_report(..., vs=...)`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import os
+import sys
+from pathlib import Path
+
+from phrt_usd.render_job import RenderJob, run_render
+from phrt_usd.renderer import RenderOptions
+from phrt_usd.report import build_report
+from phrt_usd.schema import read_render_params
+from phrt_usd.stage_reader import open_stage
+
+#: The paper's Tables 2–4 (GTX 760, OptiX; HEU1 / HEU2).
+PAPER = {
+    "farm": {"transitions_pct": 3.8, "selected": (5, 4), "fps": (25.4, 26.4), "surfaces": 17},
+    "sewer": {"transitions_pct": 4.6, "selected": (15, 12), "fps": (21.8, 23.3), "surfaces": 33},
+}
+
+
+def run_pair(stage_path: Path, out: Path, args: argparse.Namespace) -> dict:
+    stage = open_stage(stage_path)
+    params = read_render_params(stage.stage)
+    runs = {}
+    for heuristic in ("heu1", "heu2"):
+        run_dir = out / f"{stage_path.stem}-{heuristic}"
+        options = RenderOptions(
+            mode="hybrid",
+            heuristic=heuristic,
+            width=args.width,
+            height=args.height,
+            budget_ms=args.budget_ms,
+            budget_rays=args.budget_rays,
+            selection_weight=params.selection_weight
+            if args.selection_weight is None
+            else args.selection_weight,
+        )
+        job = RenderJob(stage_path, run_dir, options, frames=args.frames, write_images=False)
+        run_render(job, stage_scene=stage)
+        runs[heuristic] = run_dir
+        print(f"done {stage_path.stem} {heuristic}", file=sys.stderr)
+    return build_report(runs["heu1"], runs["heu2"])
+
+
+def tables(reports: dict[str, dict]) -> str:
+    lines = [
+        "| stage | transitions HEU1 / HEU2 (ours) | paper | mean selected HEU1 / HEU2 (ours) "
+        "| paper | mean fps HEU1 / HEU2 (ours) | paper | reflectors | frames |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for name, r in reports.items():
+        b = r["vs"]
+        paper = PAPER.get(name, {})
+        ratio = r["transitions"] / b["transitions"] * 100 if b["transitions"] else float("nan")
+        lines.append(
+            f"| {name} | {r['transitions']} / {b['transitions']} = {ratio:.1f} % "
+            f"| {paper.get('transitions_pct', '–')} % "
+            f"| {r['mean_selected']:.2f} / {b['mean_selected']:.2f} "
+            f"| {' / '.join(str(v) for v in paper.get('selected', ()))} "
+            f"| {r['mean_fps']:.1f} / {b['mean_fps']:.1f} "
+            f"| {' / '.join(str(v) for v in paper.get('fps', ()))} "
+            f"| {r['reflectors']} | {r['frames']} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("stages", nargs="+", type=Path)
+    ap.add_argument("--budget-rays", type=int, default=None)
+    ap.add_argument("--budget-ms", type=float, default=None)
+    ap.add_argument("--selection-weight", type=float, default=None)
+    ap.add_argument("--frames", default=None)
+    ap.add_argument("--width", type=int, default=320)
+    ap.add_argument("--height", type=int, default=240)
+    ap.add_argument("--out", type=Path, default=Path("runs/paper"))
+    ap.add_argument("--append", type=Path, default=None)
+    args = ap.parse_args(argv)
+    reports = {s.stem: run_pair(s, args.out, args) for s in args.stages}
+    text = tables(reports)
+    for name, r in reports.items():
+        text += (
+            f"\n{name}: HEU1 transition rate {r['transition_rate']}, HEU2 "
+            f"{r['vs']['transition_rate']}; budget overruns HEU1 {r['budget_overruns']}, "
+            f"HEU2 {r['vs']['budget_overruns']} (within T+10 %: {r['budget_within_pct']} % / "
+            f"{r['vs']['budget_within_pct']} %)\n"
+        )
+    print(text)
+    if args.append:
+        command = "uv run python tools/paper_tables.py " + " ".join(argv or sys.argv[1:])
+        with open(args.append, "a") as fh:
+            fh.write(
+                f"\n### Paper tables, {datetime.date.today().isoformat()}, "
+                f"{os.cpu_count()} cores\n\n`{command}`\n\n{text}"
+            )
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
