@@ -43,6 +43,7 @@ from __future__ import annotations
 
 import ctypes
 import os
+import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -52,6 +53,7 @@ import numpy as np
 from phrt_usd.errors import PhrtError
 from phrt_usd.frame import GBuffer
 from phrt_usd.scene import NO_HIT, CameraFrame, Scene
+from phrt_usd.shading import light_ranges
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
 
@@ -103,6 +105,22 @@ SHADOW_REFINE_RADIUS = 2
 #: |cos| floor for the slope term (tan <= ~10): at grazing light the bias would grow
 #: without bound; such points get almost no direct light anyway (n.L ~ 0).
 SHADOW_MIN_COS = 0.1
+
+#: LocalLight cube shadow maps: texels per side of each of the 6 faces (512: 13 lights
+#: x 2 cubes... one static cube per light is 6 x 512² x 3 float32 arrays = 18 MB).
+CUBE_MAP_SIZE = 512
+#: Guard band of every cube face, in texels: a face is rendered over a slightly wider
+#: field than its 90° square, so the texel neighbourhood any lookup reads (PCF taps,
+#: the uncertainty box of radius SHADOW_REFINE_RADIUS) lies on the same face.
+CUBE_GUARD_TEXELS = SHADOW_REFINE_RADIUS + 2
+#: Near plane of the cube faces as a fraction of the far plane (the light's range, or
+#: the farthest scene point if nearer). The 32-bit float depth buffer then resolves
+#: forward distance w to about w**2 / (near * 2**24): 5 mm at w = 20 m for a 40 m
+#: range, well under the 1-texel bias (8 cm there). Casters nearer to the light than
+#: the near plane (4 mm for that light) are missed.
+CUBE_NEAR_FRACTION = 1e-4
+#: The two axes spanning a cube face, per major axis of the light-to-point vector.
+_CUBE_FACE_AXES = ((1, 2), (0, 2), (0, 1))
 
 #: Denominator floor (relative to |face normal|) of the ray-plane intersection. A pixel
 #: is only covered by a triangle the rasterizer saw with non-zero screen area, so the ray
@@ -185,6 +203,109 @@ class _ShadowMap:
     depth: np.ndarray
     depth_min: np.ndarray  # (S, S) float32: min / max of depth over the
     depth_max: np.ndarray  # (2 r + 1)^2 texels around, r = SHADOW_REFINE_RADIUS
+
+
+@dataclass
+class _CubeMap:
+    """Omnidirectional depth map of a set of casters around one LocalLight.
+
+    Face ``f = 2 * axis + (0 for +, 1 for -)`` looks along ±axis from the light; a point
+    at ``v = rel - light_rel`` with major axis ``a`` (|v_a| largest) lies on face
+    ``2 a + (v_a < 0)`` at forward distance ``w = |v_a|`` and face coordinates
+    ``(v_b / w, v_c / w)``, (b, c) = ``_CUBE_FACE_AXES[a]``, each in [-1, 1].
+
+    light_rel  : (3,) float64 rel metres; near, far : the faces' clip planes, metres
+    tan_half   : tangent of a face's half field of view (> 1: guard band)
+    depth      : (6, S, S) float32 caster forward distance w in metres, inf where no
+                 caster; [face, row (along c), column (along b)]
+    depth_min/max : the same, min / max over the (2 r + 1)² texels around
+                 (r = SHADOW_REFINE_RADIUS), for the *uncertain* test as in _ShadowMap
+    """
+
+    light_rel: np.ndarray
+    near: float
+    far: float
+    tan_half: float
+    depth: np.ndarray
+    depth_min: np.ndarray
+    depth_max: np.ndarray
+
+
+def _cube_visibility(
+    cube: _CubeMap, rel: np.ndarray, normals: np.ndarray, filtered: bool
+) -> tuple[np.ndarray, np.ndarray]:
+    """Visibility of points ``rel`` (m, 3) (rel metres, within the cube's far plane)
+    with ``normals`` (m, 3) against one cube map, slope-scaled bias as for distant maps.
+
+    The neighbourhood min / max decide most points exactly (all nearby casters beyond
+    the point: lit; all in front: shadowed); the rest are *uncertain*. ``filtered``:
+    uncertain points get bilinear 2x2 PCF, else 0.5 (a caller resolving them
+    otherwise). Returns (m,) float32 visibility and (m,) bool uncertain."""
+    size = cube.depth.shape[1]
+    v = rel - cube.light_rel
+    a = np.abs(v)
+    axis = np.where(
+        (a[:, 0] >= a[:, 1]) & (a[:, 0] >= a[:, 2]), 0, np.where(a[:, 1] >= a[:, 2], 1, 2)
+    )
+    rows = np.arange(len(v))
+    w = a[rows, axis]
+    face = 2 * axis + (v[rows, axis] < 0)
+    vb = np.where(axis == 0, v[:, 1], v[:, 0])
+    vc = np.where(axis == 2, v[:, 1], v[:, 2])
+    # w > 0 unless the point is at the light (no light reaches it then: n·l = 0).
+    inv_w = 1.0 / np.maximum(w, 1e-300)
+    texel = 2.0 * cube.tan_half * w / size  # texel width in metres at distance w
+    cos = np.abs(np.einsum("ij,ij->i", normals, v)) / np.maximum(
+        np.sqrt(np.einsum("ij,ij->i", v, v)), 1e-300
+    )
+    cos = np.clip(cos, SHADOW_MIN_COS, 1.0)
+    tan = np.sqrt(1.0 - cos**2) / cos
+    test = w - texel * (SHADOW_BIAS_TEXELS + SHADOW_SLOPE_BIAS_TEXELS * tan)
+    scale = 0.5 * size / cube.tan_half
+    fx = vb * inv_w * scale + (0.5 * size - 0.5)  # texel centres at integers
+    fy = vc * inv_w * scale + (0.5 * size - 0.5)
+    base = face * (size * size)
+    xn = np.clip(np.rint(fx).astype(np.int64), 0, size - 1)
+    yn = np.clip(np.rint(fy).astype(np.int64), 0, size - 1)
+    nearest = base + yn * size + xn
+    lo = cube.depth_min.reshape(-1)[nearest]
+    hi = cube.depth_max.reshape(-1)[nearest]
+    # Points nearer than the near plane: nothing was rendered in front of them.
+    inside = w > cube.near
+    vis = np.where(test <= lo, 1.0, 0.0).astype(np.float32)
+    uncertain = inside & (lo < test) & (hi >= test)
+    vis[~inside] = 1.0
+    if uncertain.any():
+        if filtered:
+            vis[uncertain] = _cube_pcf(
+                cube, base[uncertain], fx[uncertain], fy[uncertain], test[uncertain]
+            )
+        else:
+            vis[uncertain] = 0.5
+    return vis, uncertain
+
+
+def _cube_pcf(cube: _CubeMap, base, fx, fy, test) -> np.ndarray:
+    """Bilinear 2x2 percentage-closer filtering on one face each (guard band: the taps
+    never leave it). base (m,) flat offset of the face, fx / fy (m,) texel coordinates,
+    test (m,) biased forward distances. Returns (m,) float32."""
+    size = cube.depth.shape[1]
+    flat = cube.depth.reshape(-1)
+    x0 = np.floor(fx).astype(np.int64)
+    y0 = np.floor(fy).astype(np.int64)
+    wx = fx - x0
+    wy = fy - y0
+    vis = np.zeros(len(fx))
+    for dx, dy, weight in (
+        (0, 0, (1 - wx) * (1 - wy)),
+        (1, 0, wx * (1 - wy)),
+        (0, 1, (1 - wx) * wy),
+        (1, 1, wx * wy),
+    ):
+        xi = np.clip(x0 + dx, 0, size - 1)
+        yi = np.clip(y0 + dy, 0, size - 1)
+        vis += weight * (test <= flat[base + yi * size + xi])
+    return vis.astype(np.float32)
 
 
 def _transform(v: np.ndarray, m: np.ndarray) -> np.ndarray:
@@ -294,6 +415,12 @@ class Rasterizer:
         self._batches: dict[str, tuple[int, int, int]] = {}  # name → (vao, ebo, count)
         self._map_dirs: list[np.ndarray] = []
         self.last_refined = 0  # points handed to shadow_visibility's refine last call
+        self.last_refined_pairs = 0  # (point, light) pairs among them
+        self.last_cube_build_seconds = 0.0
+        self._cube_keys: list[tuple] = []  # per LocalLight: (rel position, range)
+        self._cube_static: list[_CubeMap | None] = []
+        self._cube_dynamic: list[_CubeMap | None] = []
+        self._cube_fresh: list[tuple[bool, bool]] = []  # (static, animated) map valid
         self._pool = ThreadPoolExecutor(DERIVE_THREADS, thread_name_prefix="phrt-gbuffer")
         self._closed = False
         self._upload(scene)
@@ -327,6 +454,7 @@ class Rasterizer:
         self._fill_tables(scene, np.arange(n))
         self._scene_changed(scene)
         self._static_maps = self._dynamic_maps = None
+        self._invalidate_cubes(static=True, dynamic=True)
 
     def _fill_tables(self, scene: Scene, rows: np.ndarray) -> None:
         """Recompute the per-triangle tables of triangles ``rows``; packed so that each
@@ -474,8 +602,10 @@ class Rasterizer:
         if np.any(tri_moved & ~self._animated_tri):
             self._static_maps = None
             self._static_bounds_stale()
+            self._invalidate_cubes(static=True, dynamic=False)
         if np.any(tri_moved & self._animated_tri):
             self._dynamic_maps = None
+            self._invalidate_cubes(static=False, dynamic=True)
 
     def _static_bounds_stale(self) -> None:
         """A non-animated vertex moved (the caller animated a prim not flagged as
@@ -784,6 +914,41 @@ class Rasterizer:
                 GL.glDeleteBuffers(1, [ebo])
         self._batches = {}
 
+    def _depth_render(self, clip_from_rel: np.ndarray, name: str, size: int) -> np.ndarray:
+        """Depth-only render of batch ``name`` ("static" / "dynamic") through the (4, 4)
+        ``clip_from_rel`` matrix, ``size`` texels square. Returns (size, size) float32
+        window depth in [0, 1] (1 = no caster), row 0 at the bottom (OpenGL order)."""
+        self._platform.make_current()
+        vao, _, count = self._batch(name)
+        depth01 = np.ones((size, size), dtype=np.float32)
+        GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, self._shadow_fb)
+        GL.glViewport(0, 0, size, size)
+        GL.glScissor(0, 0, size, size)
+        GL.glEnable(GL.GL_SCISSOR_TEST)  # clear only the part of the buffer in use
+        GL.glEnable(GL.GL_DEPTH_TEST)
+        GL.glDepthMask(GL.GL_TRUE)
+        GL.glDepthFunc(GL.GL_LESS)
+        GL.glDepthRange(0.0, 1.0)
+        GL.glDisable(GL.GL_CULL_FACE)  # double-sided casters
+        GL.glDisable(GL.GL_BLEND)
+        GL.glPolygonMode(GL.GL_FRONT_AND_BACK, GL.GL_FILL)
+        GL.glClearDepth(1.0)
+        GL.glClear(GL.GL_DEPTH_BUFFER_BIT)
+        program = self._renderer._program_cache.get_program("depth.vert", "depth.frag")
+        if not program._in_context():
+            program._add_to_context()
+        program._bind()
+        program.set_uniform("light_clip_from_world", clip_from_rel)
+        GL.glBindVertexArray(vao)
+        GL.glDrawElements(GL.GL_TRIANGLES, count, GL.GL_UNSIGNED_INT, ctypes.c_void_p(0))
+        GL.glBindVertexArray(0)
+        program._unbind()
+        GL.glDisable(GL.GL_SCISSOR_TEST)
+        GL.glPixelStorei(GL.GL_PACK_ALIGNMENT, 1)
+        GL.glReadPixels(0, 0, size, size, GL.GL_DEPTH_COMPONENT, GL.GL_FLOAT, depth01)
+        GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, 0)
+        return depth01
+
     def _render_shadow_map(self, frame: np.ndarray, name: str, size: int) -> _ShadowMap | None:
         """Orthographic depth map of batch ``name`` ("static" / "dynamic") along -z of
         the light ``frame`` (3, 3), ``size`` texels square, covering exactly that
@@ -815,35 +980,7 @@ class Rasterizer:
         m[2, 3] = -2.0 * lo_d / span_d - 1.0
         m[3, 3] = 1.0
 
-        self._platform.make_current()
-        vao, _, count = self._batch(name)
-        depth01 = np.ones((size, size), dtype=np.float32)
-        GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, self._shadow_fb)
-        GL.glViewport(0, 0, size, size)
-        GL.glScissor(0, 0, size, size)
-        GL.glEnable(GL.GL_SCISSOR_TEST)  # clear only the part of the buffer in use
-        GL.glEnable(GL.GL_DEPTH_TEST)
-        GL.glDepthMask(GL.GL_TRUE)
-        GL.glDepthFunc(GL.GL_LESS)
-        GL.glDepthRange(0.0, 1.0)
-        GL.glDisable(GL.GL_CULL_FACE)  # double-sided casters
-        GL.glDisable(GL.GL_BLEND)
-        GL.glPolygonMode(GL.GL_FRONT_AND_BACK, GL.GL_FILL)
-        GL.glClearDepth(1.0)
-        GL.glClear(GL.GL_DEPTH_BUFFER_BIT)
-        program = self._renderer._program_cache.get_program("depth.vert", "depth.frag")
-        if not program._in_context():
-            program._add_to_context()
-        program._bind()
-        program.set_uniform("light_clip_from_world", m)
-        GL.glBindVertexArray(vao)
-        GL.glDrawElements(GL.GL_TRIANGLES, count, GL.GL_UNSIGNED_INT, ctypes.c_void_p(0))
-        GL.glBindVertexArray(0)
-        program._unbind()
-        GL.glDisable(GL.GL_SCISSOR_TEST)
-        GL.glPixelStorei(GL.GL_PACK_ALIGNMENT, 1)
-        GL.glReadPixels(0, 0, size, size, GL.GL_DEPTH_COMPONENT, GL.GL_FLOAT, depth01)
-        GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, 0)
+        depth01 = self._depth_render(m, name, size)
         # Texels no caster covered stay at the clear value: nothing there occludes.
         depth_m = np.where(depth01 >= 1.0, np.inf, lo_d + depth01.astype(np.float64) * span_d)
         depth_m = depth_m.astype(np.float32)
@@ -898,42 +1035,161 @@ class Rasterizer:
         size = int(np.ceil(span / max(texel, 1e-300))) + 4
         return int(np.clip(size, MIN_DYNAMIC_MAP_SIZE, SHADOW_MAP_SIZE))
 
+    def _render_cube(self, light_rel: np.ndarray, light_range: float, name: str) -> _CubeMap | None:
+        """Cube depth map of batch ``name`` ("static" / "dynamic") around the light at
+        ``light_rel`` (3,) rel metres, out to ``light_range`` metres (or the farthest
+        scene point, if nearer). None when the batch is empty or nothing is in range."""
+        mask = self._animated_tri if name == "dynamic" else ~self._animated_tri
+        if self._mesh_node is None or not mask.any() or not light_range > 0.0:
+            return None
+        lo, hi = self._bounds_rel
+        corners = np.stack(np.meshgrid(*zip(lo, hi, strict=True), indexing="ij"), -1)
+        farthest = float(np.linalg.norm(corners.reshape(-1, 3) - light_rel, axis=1).max())
+        far = min(float(light_range), farthest + CLIP_PADDING * self._extent)
+        if not far > 0.0:
+            return None
+        near = CUBE_NEAR_FRACTION * far
+        size = CUBE_MAP_SIZE
+        tan_half = size / (size - 2.0 * CUBE_GUARD_TEXELS)
+        # Clip z = A w + B with w the forward distance: window depth 0 at near, 1 at far.
+        a_z = (far + near) / (far - near)
+        b_z = -2.0 * far * near / (far - near)
+        depth = np.empty((6, size, size), dtype=np.float32)
+        for axis in range(3):
+            b, c = _CUBE_FACE_AXES[axis]
+            for k, sign in enumerate((1.0, -1.0)):
+                m = np.zeros((4, 4))
+                m[0, b] = 1.0 / tan_half
+                m[0, 3] = -light_rel[b] / tan_half
+                m[1, c] = 1.0 / tan_half
+                m[1, 3] = -light_rel[c] / tan_half
+                m[3, axis] = sign
+                m[3, 3] = -sign * light_rel[axis]
+                m[2] = a_z * m[3]
+                m[2, 3] += b_z
+                d01 = self._depth_render(m, name, size).astype(np.float64)
+                w = b_z / np.minimum(2.0 * d01 - 1.0 - a_z, -1e-300)
+                depth[2 * axis + k] = np.where(d01 >= 1.0, np.inf, w)
+        depth_min = np.empty_like(depth)
+        depth_max = np.empty_like(depth)
+        for f in range(6):
+            depth_min[f] = _box_extremum(depth[f], SHADOW_REFINE_RADIUS, np.minimum)
+            depth_max[f] = _box_extremum(depth[f], SHADOW_REFINE_RADIUS, np.maximum)
+        return _CubeMap(
+            np.asarray(light_rel, np.float64).copy(),
+            near,
+            far,
+            tan_half,
+            depth,
+            depth_min,
+            depth_max,
+        )
+
+    def cube_maps(self) -> list[tuple[_CubeMap | None, _CubeMap | None]]:
+        """(static map, animated-geometry map) per LocalLight (cube maps, see
+        ``_CubeMap``), either None when it has no casters. Rendered when first needed
+        and again only for a light that moved or changed range, for static geometry
+        that moved (static maps) or after ``update_geometry`` moved animated prims
+        (animated maps). ``last_cube_build_seconds``: time the latest call spent
+        rendering cube maps."""
+        self._check_open()
+        start = time.perf_counter()
+        lights = self._scene.lights
+        ranges = light_ranges(lights)[len(lights.distant) :]
+        keys = [
+            (tuple(np.asarray(li.position, np.float64) - self._origin), float(r))
+            for li, r in zip(lights.local, ranges, strict=True)
+        ]
+        if len(keys) != len(self._cube_keys):
+            self._cube_static = [None] * len(keys)
+            self._cube_dynamic = [None] * len(keys)
+            self._cube_fresh = [(False, False)] * len(keys)
+        for i, key in enumerate(keys):
+            static_ok, dynamic_ok = self._cube_fresh[i]
+            if i < len(self._cube_keys) and self._cube_keys[i] != key:
+                static_ok = dynamic_ok = False
+            light_rel = np.array(key[0])
+            if not static_ok:
+                self._cube_static[i] = self._render_cube(light_rel, key[1], "static")
+            if not dynamic_ok:
+                self._cube_dynamic[i] = self._render_cube(light_rel, key[1], "dynamic")
+            self._cube_fresh[i] = (True, True)
+        self._cube_keys = keys
+        self.last_cube_build_seconds = time.perf_counter() - start
+        return list(zip(self._cube_static, self._cube_dynamic, strict=True))
+
+    def _invalidate_cubes(self, static: bool, dynamic: bool) -> None:
+        self._cube_fresh = [
+            (ok_s and not static, ok_d and not dynamic) for ok_s, ok_d in self._cube_fresh
+        ]
+
     def shadow_visibility(
         self,
         positions: np.ndarray,
         normals: np.ndarray,
-        refine: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
+        refine: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray] | None = None,
     ) -> np.ndarray:
-        """Fraction of each DistantLight reaching each point, by shadow mapping.
+        """Fraction of every light reaching each point, by shadow mapping.
 
         positions : (n, 3) float64 world metres
-        normals   : (n, 3) unit normals (either side; only |n·L| is used, for the bias)
+        normals   : (n, 3) unit shading normals facing the viewer (for DistantLights
+                    only |n·L| is used, for the bias; LocalLights also skip points
+                    facing away)
         refine    : optional exact shadow test, ``refine(positions (m, 3), normals
-                    (m, 3)) -> (m, len(scene.lights.distant))`` visibility (e.g. Embree
-                    shadow rays). It is called once, on the *uncertain* points only
-                    (shadow edges and casters thinner than a texel, where a map's
-                    answer is unreliable), and its answer replaces the map's there.
-        Returns (n, len(scene.lights.distant)) float32 in [0, 1], 1 = lit: the product of
-        the static and the animated casters' filtered visibilities. ``last_refined``
-        holds how many points were handed to ``refine``.
+                    (m, 3), pairs (m, L) bool) -> (m, L)`` visibility (e.g. Embree
+                    shadow rays), needed only at ``pairs``. It is called once, on the
+                    points with *uncertain* (point, light) pairs (shadow edges and
+                    casters thinner than a texel, where a map's answer is unreliable),
+                    and its answer replaces the maps' at those pairs.
+        Returns (n, L) float32 in [0, 1], 1 = lit, L = len(distant) + len(local) in that
+        order (``shading``'s light order). DistantLights: the product of the static and
+        the animated casters' filtered orthographic maps. LocalLights: cube maps, looked
+        up only for points within the light's range (``shading.light_ranges``) and
+        facing it; other pairs get 0 (the light contributes nothing there).
+        ``last_refined`` holds how many points were handed to ``refine``,
+        ``last_refined_pairs`` how many (point, light) pairs.
         """
         positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
         normals = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
-        maps = self.shadow_maps()
-        out = np.ones((len(positions), len(maps)), dtype=np.float32)
-        self.last_refined = 0
-        if len(positions) == 0 or not maps:
+        lights = self._scene.lights
+        n_distant = len(lights.distant)
+        maps = self.shadow_maps() if n_distant else []
+        cubes = self.cube_maps() if lights.local else []
+        n_lights = n_distant + len(cubes)
+        out = np.ones((len(positions), n_lights), dtype=np.float32)
+        self.last_refined = self.last_refined_pairs = 0
+        if len(positions) == 0 or n_lights == 0:
             return out
         rel = positions - self._origin
-        uncertain = np.zeros(len(positions), dtype=bool)
+        uncertain = np.zeros(out.shape, dtype=bool)
+        ranges = light_ranges(lights)
 
         def lookup(part: slice) -> None:  # one chunk of points, all maps (disjoint rows)
+            r, nr = rel[part], normals[part]
             for k, pair in enumerate(maps):
                 for mp in pair:
                     if mp is not None:
-                        vis, unsure = _filtered_visibility(mp, rel[part], normals[part])
+                        vis, unsure = _filtered_visibility(mp, r, nr)
                         out[part, k] *= vis
-                        uncertain[part] |= unsure
+                        uncertain[part, k] |= unsure
+            for k, (static, dynamic) in enumerate(cubes):
+                j = n_distant + k
+                to_light = np.asarray(self._cube_keys[k][0]) - r
+                reach = np.einsum("ij,ij->i", to_light, to_light) < ranges[j] ** 2
+                reach &= np.einsum("ij,ij->i", nr, to_light) > 0.0
+                idx = np.flatnonzero(reach)
+                vis = np.ones(len(idx), dtype=np.float32)
+                unsure = np.zeros(len(idx), dtype=bool)
+                for cube in (static, dynamic):
+                    if cube is not None:
+                        v, u = _cube_visibility(cube, r[idx], nr[idx], refine is None)
+                        # Uncertain in one map matters only where the other lets light by.
+                        unsure = (unsure & (v > 0)) | (u & (vis > 0))
+                        vis *= v
+                col = np.zeros(len(r), dtype=np.float32)
+                col[idx] = vis
+                out[part, j] = col
+                uncertain[part.start + idx, j] = unsure
 
         bounds = np.linspace(0, len(positions), DERIVE_THREADS + 1).astype(int)
         jobs = [
@@ -944,10 +1200,14 @@ class Rasterizer:
         for job in jobs:
             job.result()
         if refine is not None and uncertain.any():
-            idx = np.flatnonzero(uncertain)
-            exact = np.asarray(refine(positions[idx], normals[idx]), dtype=np.float32)
-            out[idx] = exact.reshape(len(idx), len(maps))
+            idx = np.flatnonzero(uncertain.any(axis=1))
+            pairs = uncertain[idx]
+            exact = np.asarray(refine(positions[idx], normals[idx], pairs), dtype=np.float32)
+            sub = out[idx]
+            sub[pairs] = exact.reshape(len(idx), n_lights)[pairs]
+            out[idx] = sub
             self.last_refined = len(idx)
+            self.last_refined_pairs = int(pairs.sum())
         return out
 
     # ------------------------------------------------------------------ lifetime

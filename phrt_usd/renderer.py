@@ -329,19 +329,15 @@ class FrameRenderer:
             visibility = self._tracer.shadow_visibility(pos, nrm)
             shadow_pass = "shadow_rays"
         else:
-            visibility = np.ones((len(pos), n_lights), dtype=np.float32)
-            n_distant = len(lights.distant)
             refine = None
             if self._tracer is not None:
-                # Hybrid: shadow-map texels the map cannot decide (edges, casters thinner
-                # than a texel) are resolved with shadow rays; raster mode keeps the map.
-                def refine(p: np.ndarray, n: np.ndarray) -> np.ndarray:
-                    return self._tracer.shadow_visibility(p, n)[:, :n_distant]
+                # Hybrid: shadow-map texels the maps cannot decide (edges, casters thinner
+                # than a texel) are resolved with shadow rays; raster mode keeps the maps.
+                def refine(p: np.ndarray, n: np.ndarray, pairs: np.ndarray) -> np.ndarray:
+                    return self._tracer.shadow_visibility(p, n, pairs=pairs)
 
-            if n_distant:
-                visibility[:, :n_distant] = self._rasterizer.shadow_visibility(
-                    pos, nrm, refine=refine
-                )
+            # All lights, distant then local (the order shade_local expects).
+            visibility = self._rasterizer.shadow_visibility(pos, nrm, refine=refine)
             shadow_pass = "shadow_map" if refine is None else "shadow_map+rays"
         tri = gb.triangle_id[covered]
         emissive = scene.materials.emissive[scene.geometry.tri_material[tri]]

@@ -7,8 +7,11 @@ mapping). The model, deliberately simple and the same everywhere:
                                                + SPECULAR_STRENGTH * max(n·h, 0)**SHININESS)
              + albedo * ambient_radiance(lights) + emissive
 
-* ``E_light`` is the light's ``radiance`` for a DistantLight and ``radiance / d**2`` for a
-  LocalLight (d clamped to ``MIN_LIGHT_DISTANCE``).
+* ``E_light`` is the light's ``radiance`` for a DistantLight and
+  ``radiance / d**2 * range_window(d, r)`` for a LocalLight (d clamped to
+  ``MIN_LIGHT_DISTANCE``): every LocalLight has a finite range ``r`` (``light_ranges``,
+  from ``LIGHT_CUTOFF_IRRADIANCE``) beyond which it contributes nothing, so neither its
+  shading nor its shadow rays / shadow-map lookups are computed there.
 * Lambert without the 1/π factor (the preview-renderer convention): a white surface facing
   a unit DistantLight shows 1.0.
 * ``h`` is the Blinn-Phong half vector between the light and the direction to the eye.
@@ -33,6 +36,15 @@ from phrt_usd.scene import DEFAULT_ENVIRONMENT, DomeLight, Lights
 #: Smallest light-to-surface distance in metres used for the 1/d² fall-off of LocalLights.
 #: A surface point at (or numerically on) a point light would otherwise get Inf irradiance.
 MIN_LIGHT_DISTANCE = 1e-4
+
+#: Irradiance (linear, same units as the shaded colour: a white surface facing a unit
+#: DistantLight shows 1.0) below which a LocalLight is cut off. A light of radiance ``I``
+#: (brightest channel) reaches ``LIGHT_CUTOFF_IRRADIANCE`` at distance
+#: ``r = sqrt(I / LIGHT_CUTOFF_IRRADIANCE)``, its *range*; ``range_window`` fades it to 0
+#: there smoothly. 0.02 is 2 % of display white (about the ambient level of a dim dome):
+#: the sewer's lamps (I = 30) reach 39 m, and the window still keeps > 97 % of the
+#: 1/d² light within a third of the range.
+LIGHT_CUTOFF_IRRADIANCE = 0.02
 
 #: Blinn-Phong exponent of the specular highlight (one value for every material).
 SHININESS = 64.0
@@ -183,6 +195,32 @@ def light_directions(lights: Lights, positions: np.ndarray) -> tuple[np.ndarray,
     return dirs, dist
 
 
+def light_ranges(lights: Lights) -> np.ndarray:
+    """(L,) float64 metres: how far each light reaches, light order distant (``inf``)
+    then local (``sqrt(max channel of radiance / LIGHT_CUTOFF_IRRADIANCE)``, 0 for a
+    black or negative light). Beyond it a light contributes nothing (``range_window``)."""
+    local = [
+        max(float(np.max(np.asarray(li.radiance, dtype=np.float64))), 0.0) for li in lights.local
+    ]
+    # A non-finite radiance (never authored, but clamp anyway) would give an infinite
+    # range: cap it at the largest finite float so the window stays well defined.
+    ranges = np.sqrt(
+        np.nan_to_num(np.asarray(local, np.float64), posinf=1e300) / LIGHT_CUTOFF_IRRADIANCE
+    )
+    return np.concatenate([np.full(len(lights.distant), np.inf), ranges])
+
+
+def range_window(distance: np.ndarray, light_range: float) -> np.ndarray:
+    """Smooth cut-off factor (n,) float64 in [0, 1] of a LocalLight at ``distance`` (n,)
+    metres: ``clamp(1 - (d / r)**4, 0, 1)**2`` (the Frostbite / Unreal window): 1 near
+    the light, falling to exactly 0 at and beyond ``light_range`` with zero slope there,
+    so no ring marks the range. ``light_range`` <= 0 gives 0 everywhere."""
+    if not light_range > 0.0:
+        return np.zeros(np.shape(distance))
+    x = (np.asarray(distance, dtype=np.float64) / light_range) ** 2
+    return np.clip(1.0 - x * x, 0.0, 1.0) ** 2
+
+
 def shade_local(
     positions: np.ndarray,
     normals: np.ndarray,
@@ -213,25 +251,52 @@ def shade_local(
     colour += np.broadcast_to(np.asarray(emissive, dtype=np.float32), (n, 3))
     if not lights.has_direct or n == 0:
         return colour.astype(np.float32)
-    dirs, dist = light_directions(lights, positions)
-    dirs = dirs.astype(np.float32)
-    radiances = [np.asarray(li.radiance, dtype=np.float32) for li in lights.distant]
-    radiances += [np.asarray(li.radiance, dtype=np.float32) for li in lights.local]
-    n_distant = len(lights.distant)
-    for j, radiance in enumerate(radiances):
-        l_dir = dirs[:, j]
-        n_dot_l = np.einsum("ij,ij->i", normals, l_dir)
-        lit = np.maximum(n_dot_l, 0.0)
+    for j, light in enumerate(lights.distant):
+        d = np.asarray(light.direction, dtype=np.float64)
+        l_dir = (d / max(np.linalg.norm(d), _MIN_DIRECTION_LENGTH)).astype(np.float32)
+        lit = np.maximum(normals @ l_dir, 0.0)
         if visibility is not None:
             lit = lit * visibility[:, j]
-        if j >= n_distant:
-            # 1/d² in float64: d up to ~1e154 stays finite, and the float32 cast of a
-            # tiny fall-off underflows to 0 instead of overflowing d² to Inf.
-            lit = (lit / dist[:, j] ** 2).astype(np.float32)
-        half = l_dir + to_eye
-        half_len = np.linalg.norm(half, axis=1)
-        # l and the eye direction exactly opposite: no meaningful half vector, no highlight.
-        n_dot_h = np.einsum("ij,ij->i", normals, half) / np.maximum(half_len, 1e-12)
-        spec = SPECULAR_STRENGTH * np.maximum(n_dot_h, 0.0) ** SHININESS
-        colour += (albedo + spec[:, None]) * (lit[:, None] * radiance[None, :])
+        radiance = np.asarray(light.radiance, dtype=np.float32)
+        _add_light(colour, None, normals, albedo, to_eye, l_dir[None, :], lit, radiance)
+    n_distant = len(lights.distant)
+    ranges = light_ranges(lights)
+    for k, light in enumerate(lights.local):
+        j = n_distant + k
+        to_light = np.asarray(light.position, dtype=np.float64) - positions
+        dist2 = np.einsum("ij,ij->i", to_light, to_light)
+        # Only points within the light's range (everything else gets exactly 0 from the
+        # window) and on the lit side of their normal are shaded.
+        near = np.flatnonzero(dist2 < ranges[j] ** 2)
+        dist = np.maximum(np.sqrt(dist2[near]), MIN_LIGHT_DISTANCE)
+        l_dir = (to_light[near] / dist[:, None]).astype(np.float32)
+        n_dot_l = np.einsum("ij,ij->i", normals[near], l_dir)
+        front = np.flatnonzero(n_dot_l > 0.0)
+        idx = near[front]
+        dist = dist[front]
+        # 1/d² in float64: d up to ~1e154 stays finite, and the float32 cast of a tiny
+        # fall-off underflows to 0 instead of overflowing d² to Inf.
+        lit = (n_dot_l[front] * range_window(dist, ranges[j]) / dist**2).astype(np.float32)
+        if visibility is not None:
+            lit = lit * visibility[idx, j]
+        radiance = np.asarray(light.radiance, dtype=np.float32)
+        _add_light(colour, idx, normals, albedo, to_eye, l_dir[front], lit, radiance)
     return colour.astype(np.float32)
+
+
+def _add_light(colour, idx, normals, albedo, to_eye, l_dir, lit, radiance) -> None:
+    """colour[idx] += (albedo + Blinn-Phong highlight) * lit * radiance, for the points
+    ``idx`` (m,) (None: all n). l_dir (m, 3) or (1, 3) float32 unit directions to the
+    light, lit (m,) the cosine times fall-off times visibility, radiance (3,)."""
+    if idx is not None:
+        normals, albedo, to_eye = normals[idx], albedo[idx], to_eye[idx]
+    half = l_dir + to_eye
+    half_len = np.sqrt(np.einsum("ij,ij->i", half, half))
+    # l and the eye direction exactly opposite: no meaningful half vector, no highlight.
+    n_dot_h = np.einsum("ij,ij->i", normals, half) / np.maximum(half_len, 1e-12)
+    spec = SPECULAR_STRENGTH * np.maximum(n_dot_h, 0.0) ** SHININESS
+    term = (albedo + spec[:, None]) * (lit[:, None] * radiance[None, :])
+    if idx is None:
+        colour += term
+    else:
+        colour[idx] += term  # idx has no repeats

@@ -67,6 +67,10 @@ RAY_OFFSET_RELATIVE = 1e-5
 #: Batches smaller than this run on one thread (splitting costs more than it saves).
 PARALLEL_MIN_RAYS = 8192
 
+#: Interpolated shading normals shorter than this are degenerate (the rasterizer's
+#: threshold, so both modes pick the geometric normal at the same pixels).
+_MIN_NORMAL_LENGTH = 1e-6
+
 #: Embree ray length for "infinite" rays (DistantLight shadow rays); finite in float32.
 _FAR = 1e30
 
@@ -281,22 +285,25 @@ class Tracer:
         emissive (m, 3) float32."""
         g = np.take(self._tri_geom, tri, axis=0)  # np.take: ~3x faster than g[tri]
         pos = g[:, 0] + u[:, None] * g[:, 1] + v[:, None] * g[:, 2]
-        ng = g[:, 3]
-        ng *= np.where(np.einsum("ij,ij->i", ng, incoming) > 0, -1.0, 1.0)[:, None]
+        # The rasterizer's rule (gbuffer.Rasterizer._derive), so both modes agree at
+        # grazing pixels: the geometric normal faces the incoming ray, the interpolated
+        # shading normal is flipped to that same side of the triangle, and where it then
+        # still faces along the ray (or is degenerate) the geometric normal replaces it.
+        side = np.where(np.einsum("ij,ij->i", g[:, 3], incoming) > 0, -1.0, 1.0)
+        ng = g[:, 3] * side[:, None]
         s = np.take(self._tri_shade, tri, axis=0)
         w1 = u.astype(np.float32)[:, None]
         w2 = v.astype(np.float32)[:, None]
         w0 = 1.0 - w1 - w2
         ns = s[:, 0, 0] * w0 + s[:, 0, 1] * w1 + s[:, 0, 2] * w2  # float32, like Embree's dirs
         albedo = s[:, 1, 0] * w0 + s[:, 1, 1] * w1 + s[:, 1, 2] * w2
+        ns *= side.astype(np.float32)[:, None]
         ns_len = np.sqrt(np.einsum("ij,ij->i", ns, ns))
-        bad = ~(ns_len > 1e-12)  # zero / NaN interpolated normal: use the geometric one
-        ns /= np.where(bad, 1.0, ns_len)[:, None]
+        # ``~(len >= ...)`` also catches a NaN interpolated normal.
+        bad = ~(ns_len >= _MIN_NORMAL_LENGTH) | (np.einsum("ij,ij->i", ns, incoming) >= 0.0)
+        ns /= np.maximum(ns_len, _MIN_NORMAL_LENGTH)[:, None]
         if bad.any():
             ns[bad] = ng[bad]
-        ns *= np.where(np.einsum("ij,ij->i", ns, incoming) > 0, -1.0, 1.0).astype(np.float32)[
-            :, None
-        ]
         mat = np.take(self._tri_material, tri)
         for m_id, texture in enumerate(self._textures):
             if texture is None:
@@ -335,45 +342,75 @@ class Tracer:
 
     # ------------------------------------------------------------------ shadows
 
-    def _shadow(self, rel, offset_normals, shading_normals, lights: Lights):
+    def _shadow(self, rel, offset_normals, shading_normals, lights: Lights, pairs=None):
         """(n, L) float32 visibility and (n,) int64 shadow rays cast per point, for
         render-relative positions ``rel`` (n, 3) and render-relative ``lights``.
 
-        Rays are cast only where the light is in front of the shading normal (elsewhere the
-        Lambert term is 0 anyway and visibility is reported as 0)."""
+        Rays are cast only where they can matter: the light in front of the shading
+        normal (elsewhere the Lambert term is 0) and, for LocalLights, the point within
+        the light's range (``shading.light_ranges``; beyond it the light contributes 0).
+        Such pairs, and pairs outside ``pairs`` ((n, L) bool, None = all), report 0."""
         n = rel.shape[0]
-        n_lights = len(lights.distant) + len(lights.local)
+        n_distant = len(lights.distant)
+        n_lights = n_distant + len(lights.local)
         if not lights.has_direct or n == 0:
             return np.ones((n, n_lights), np.float32), np.zeros(n, np.int64)
-        dirs, dist = shading.light_directions(lights, rel)
-        facing = np.einsum("nk,nlk->nl", shading_normals, dirs) > 0
-        point, light = np.nonzero(facing)
+        ranges = shading.light_ranges(lights)
+        shading_normals = np.asarray(shading_normals, np.float64)
+        every = np.arange(n)
+        point_parts, light_parts, dir_parts, dist_parts = [], [], [], []
+        for j in range(n_lights):
+            cand = every if pairs is None else np.flatnonzero(pairs[:, j])
+            if j < n_distant:
+                ld = np.asarray(lights.distant[j].direction, np.float64)
+                ld = ld / max(np.linalg.norm(ld), 1e-300)
+                cand = cand[shading_normals[cand] @ ld > 0.0]
+                d = np.broadcast_to(ld, (len(cand), 3))
+                dist = np.full(len(cand), np.inf)
+            else:
+                to_light = np.asarray(lights.local[j - n_distant].position) - rel[cand]
+                dist2 = np.einsum("ij,ij->i", to_light, to_light)
+                near = np.flatnonzero(dist2 < ranges[j] ** 2)
+                dist = np.maximum(np.sqrt(dist2[near]), shading.MIN_LIGHT_DISTANCE)
+                d = to_light[near] / dist[:, None]
+                front = np.einsum("ij,ij->i", shading_normals[cand[near]], d) > 0.0
+                cand, d, dist = cand[near[front]], d[front], dist[front]
+            point_parts.append(cand)
+            light_parts.append(np.full(len(cand), j))
+            dir_parts.append(d)
+            dist_parts.append(dist)
+        point = np.concatenate(point_parts)
+        light = np.concatenate(light_parts)
         vis = np.zeros((n, n_lights), np.float32)
         if len(point):
-            d = dirs[point, light]
+            d = np.concatenate(dir_parts)
+            dmax = np.concatenate(dist_parts)
             rel_p = rel[point]
             eps = self._epsilon(rel_p)
             origin = self._offset(rel_p, offset_normals[point], d, eps)
             # Stop short of a LocalLight by the offset so the light's own position is free.
-            dmax = dist[point, light]
             tfar = np.where(np.isfinite(dmax), np.maximum(dmax - eps, 0.0), _FAR)
             occluded = self._run("OCCLUDED", origin, d, tfar)
             vis[point, light] = np.where(occluded, 0.0, 1.0)
             self.rays_cast["shadow"] += len(point)
-        return vis, facing.sum(axis=1)
+        return vis, np.bincount(point, minlength=n).astype(np.int64)
 
     def shadow_visibility(
         self,
         positions: np.ndarray,
         normals: np.ndarray,
         triangle_ids: np.ndarray | None = None,
+        pairs: np.ndarray | None = None,
     ) -> np.ndarray:
         """Ray-traced shadows: (n, L) float32, 1 = lit, light order distant then local.
 
         positions : (n, 3) float64 world metres; normals : (n, 3) world unit shading
         normals (facing the viewer); triangle_ids : optional (n,) triangle of each point
-        (snaps depth-buffer positions onto their triangle first). No lights: returns
-        (n, 0) and casts nothing. Points facing away from a light get 0 without a ray.
+        (snaps depth-buffer positions onto their triangle first); pairs : optional (n, L)
+        bool, the (point, light) pairs wanted (e.g. a shadow map's uncertain ones), the
+        others are not traced and report 0. No lights: returns (n, 0) and casts nothing.
+        Points facing away from a light, or beyond a LocalLight's range
+        (``shading.light_ranges``), get 0 without a ray.
         """
         self.last_rays = []
         rel = np.asarray(positions, dtype=np.float64).reshape(-1, 3) - self.origin
@@ -381,7 +418,7 @@ class Tracer:
         if triangle_ids is not None:
             tri = np.asarray(triangle_ids, np.int64).reshape(-1)
             rel, _ = self._snap_to_triangles(rel, tri, normals)
-        vis, _ = self._shadow(rel, normals, normals, self._relative_lights())
+        vis, _ = self._shadow(rel, normals, normals, self._relative_lights(), pairs)
         return vis
 
     # ------------------------------------------------------------------ primary rays

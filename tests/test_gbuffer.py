@@ -416,7 +416,7 @@ def test_shadow_map_matches_shadow_rays(animated, tmp_path):
             r.render(cam)
             calls = []
 
-            def refine(p, n, ref=ref, calls=calls):
+            def refine(p, n, pairs, ref=ref, calls=calls):
                 calls.append(len(p))
                 return (~ref.occluded(p, n, light_dir)).astype(np.float32)[:, None]
 
@@ -590,7 +590,7 @@ def test_paper_stage_ids(name, tmp_path):
                 assert shadow_agree >= SHADOW_AGREEMENT, f"{name} t={t}: {shadow_agree:.4%}"
                 ref = EmbreeReference(stage.scene)
 
-                def refine(p, n, ref=ref, lights=stage.scene.lights.distant):
+                def refine(p, n, pairs, ref=ref, lights=stage.scene.lights.distant):
                     occluded = [ref.occluded(p, n, lt.direction) for lt in lights]
                     return (~np.stack(occluded, axis=1)).astype(np.float32)
 

@@ -58,9 +58,38 @@ def test_local_light_inverse_square_and_finite_at_the_light():
         light = LocalLight(np.array([0.0, height, 0.0]), np.full(3, 4.0))
         return _shade(Lights(local=[light]), albedo=(1.0, 1.0, 1.0), view=np.array([[1.0, 0, 0]]))
 
+    r = shading.light_ranges(Lights(local=[LocalLight(np.zeros(3), np.full(3, 4.0))]))[0]
+    window = shading.range_window(np.array([1.0, 2.0]), r)
     ratio = (at(1.0) - DEFAULT_ENVIRONMENT) / (at(2.0) - DEFAULT_ENVIRONMENT)
-    np.testing.assert_allclose(ratio, 4.0, rtol=1e-4)
+    np.testing.assert_allclose(ratio, 4.0 * window[0] / window[1], rtol=1e-4)
     assert np.all(np.isfinite(at(0.0)))  # surface point exactly at the light
+
+
+def test_local_light_range_cuts_off_smoothly():
+    """A LocalLight reaches exactly as far as LIGHT_CUTOFF_IRRADIANCE says, fades to 0
+    there without a step, and contributes nothing beyond."""
+    intensity = 8.0
+    r = shading.light_ranges(Lights(local=[LocalLight(np.zeros(3), np.full(3, intensity))]))[0]
+    assert np.isclose(intensity / r**2, shading.LIGHT_CUTOFF_IRRADIANCE)
+    d = np.linspace(0.0, 1.5 * r, 3001)
+    w = shading.range_window(d, r)
+    assert w[0] == 1.0 and np.all(w[d >= r] == 0.0) and np.all(np.diff(w) <= 0.0)
+    assert np.max(np.abs(np.diff(w))) < 5e-3  # no step anywhere (a ring in the image)
+
+    def at(height):
+        light = LocalLight(np.array([0.0, height, 0.0]), np.full(3, intensity))
+        return _shade(Lights(local=[light]), albedo=(1.0, 1.0, 1.0), view=np.array([[1.0, 0, 0]]))
+
+    ambient = DEFAULT_ENVIRONMENT.astype(np.float32)
+    np.testing.assert_allclose(at(1.01 * r), ambient, rtol=1e-6)
+    assert np.all(at(0.95 * r) > ambient) and np.all(at(0.5 * r) > at(0.95 * r))
+    ranges = shading.light_ranges(
+        Lights(
+            distant=[DistantLight(np.array([0.0, 1.0, 0.0]), np.ones(3))],
+            local=[LocalLight(np.zeros(3), np.zeros(3))],
+        )
+    )
+    assert ranges[0] == np.inf and ranges[1] == 0.0  # black light reaches nowhere
 
 
 def test_light_directions_order_and_distances():
