@@ -102,22 +102,10 @@ def run_render(
     try:
         with _stop_on_signals(stop):
             for t in todo:
-                output = renderer.render(t)
-                if job.write_images:
-                    exr, png = frame_image_paths(out, t)
-                    write_frame_exr(
-                        exr,
-                        output.beauty,
-                        output.alpha,
-                        output.gbuffer.depth,
-                        output.gbuffer.element_id,
-                        output.traced_mask,
-                    )
-                    write_preview_png(png, output.beauty)
-                done.append(output.stats)
+                done.append(render_frame(renderer, t, out if job.write_images else None))
                 since_checkpoint += 1
                 if on_frame is not None:
-                    on_frame(len(done), len(times), output.stats)
+                    on_frame(len(done), len(times), done[-1])
                 if stop.is_set():
                     break
                 if since_checkpoint >= job.checkpoint_every:
@@ -138,6 +126,24 @@ def run_render(
         passes=sorted({p for s in done for p in s.passes}),
     )
     return summary
+
+
+def render_frame(renderer: FrameRenderer, t: float, out: Path | None) -> FrameStats:
+    """Render frame ``t`` with ``renderer`` (its policy remembers the frame); with an
+    output directory ``out``, write the frame's EXR and PNG there (atomically)."""
+    output = renderer.render(t)
+    if out is not None:
+        exr, png = frame_image_paths(out, t)
+        write_frame_exr(
+            exr,
+            output.beauty,
+            output.alpha,
+            output.gbuffer.depth,
+            output.gbuffer.element_id,
+            output.traced_mask,
+        )
+        write_preview_png(png, output.beauty)
+    return output.stats
 
 
 def _run_info(job: RenderJob, scene: StageScene, times: list[float]) -> dict:

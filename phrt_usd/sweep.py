@@ -144,13 +144,7 @@ class _ConfigState:
 
 def run_sweep(spec: SweepSpec, on_frame: Callable[[str, int, int], None] | None = None) -> dict:
     """Run the sweep; returns a summary dict (rows written, output paths)."""
-    if not spec.heuristics:
-        raise PhrtError("--heuristics: give at least one of heu1, heu2")
-    for h in spec.heuristics:
-        if h not in ("heu1", "heu2"):
-            raise PhrtError(f"--heuristics: {h!r} is not heu1 or heu2")
-    if not spec.budgets_ms and not spec.budgets_rays:
-        raise PhrtError("give --budgets-ms or --budgets-rays")
+    check_spec(spec)
     out = spec.out
     out.mkdir(parents=True, exist_ok=True)
     rows: list[dict] = []
@@ -161,6 +155,25 @@ def run_sweep(spec: SweepSpec, on_frame: Callable[[str, int, int], None] | None 
             if stop.is_set():
                 break
             _sweep_stage(stage_path, spec, rows, timeline, stop, on_frame)
+    return finish_sweep(spec, rows, timeline, interrupted=stop.is_set())
+
+
+def check_spec(spec: SweepSpec) -> None:
+    """Raise PhrtError unless ``spec`` names heuristics and budgets the sweep knows."""
+    if not spec.heuristics:
+        raise PhrtError("--heuristics: give at least one of heu1, heu2")
+    for h in spec.heuristics:
+        if h not in ("heu1", "heu2"):
+            raise PhrtError(f"--heuristics: {h!r} is not heu1 or heu2")
+    if not spec.budgets_ms and not spec.budgets_rays:
+        raise PhrtError("give --budgets-ms or --budgets-rays")
+
+
+def finish_sweep(spec: SweepSpec, rows: list[dict], timeline: dict, interrupted: bool) -> dict:
+    """Write sweep.csv, timeline.json and the report into ``spec.out``; returns the
+    summary dict of ``run_sweep``."""
+    out = spec.out
+    _write_csv(out / "sweep.csv", rows)
     _write_json(out / "timeline.json", timeline)
     from phrt_usd.sweep_report import write_sweep_report
 
@@ -170,65 +183,103 @@ def run_sweep(spec: SweepSpec, on_frame: Callable[[str, int, int], None] | None 
         "rows": len(rows),
         "stages": [Path(s).stem for s in spec.stages],
         "configs": [c.label for c in sweep_configs(spec)] + ["all", "rt"],
-        "interrupted": stop.is_set(),
+        "interrupted": interrupted,
         "files": ["sweep.csv", "timeline.json", "summary.md", "error_vs_time.png", "report.html"],
     }
 
 
 def _sweep_stage(stage_path, spec, rows, timeline, stop, on_frame) -> None:
-    stage = open_stage(stage_path)
-    name = Path(stage_path).stem
-    times = parse_frames(spec.frames, stage.frame_range)
-    base = RenderOptions(
-        mode="hybrid", heuristic="all", width=spec.width, height=spec.height,
-        budget_ms=None, budget_rays=None, bounce_limit=spec.bounce_limit,
-        selection_weight=spec.selection_weight,
-    )  # fmt: skip
-    hybrid = FrameRenderer(stage, base)
-    rt = FrameRenderer(stage, replace(base, mode="rt"))
-    states = [_ConfigState(c, spec) for c in sweep_configs(spec)]
-    reference = _ConfigState(SweepConfig("all"), spec)
-    rt_state = _ConfigState(SweepConfig("all", mode="rt"), spec)
-    reflectors = [stage.scene.elements[i].path for i in stage.scene.reflector_ids]
-    report_frames = set(times[:: max(1, len(times) // REPORT_FRAMES)][:REPORT_FRAMES])
+    sweep = StageSweep(stage_path, spec)
     try:
-        for n, t in enumerate(times):
-            prep = hybrid.prepare(t)
-            ref_out = hybrid.finish(prep, reference.policy, reference.options)
-            rt_out = rt.render(t)
-            reflector_px = prep.reflectivity > 0
-            temporal_ref = (
-                None
-                if reference.previous_image is None
-                else mean_over(flip_map(reference.previous_image, ref_out.beauty))
-            )
-            outputs = [(s, hybrid.finish(prep, s.policy, s.options)) for s in states]
-            outputs += [(reference, ref_out), (rt_state, rt_out)]
-            for state, output in outputs:
-                error = flip_map(ref_out.beauty, output.beauty)
-                rows.append(
-                    _row(name, state, output, ref_out, error, rt_out, reflector_px, temporal_ref)
-                )
-                if t in report_frames:
-                    _write_report_images(spec.out, name, t, state.config.label, output, error)
-                _remember(state, output, reflectors)
+        for n, t in enumerate(sweep.times):
+            rows.extend(sweep.frame(t, record=True))
             _write_csv(spec.out / "sweep.csv", rows)
             if on_frame is not None:
-                on_frame(name, n + 1, len(times))
+                on_frame(sweep.name, n + 1, len(sweep.times))
             if stop.is_set():
                 break
     finally:
-        hybrid.close()
-        rt.close()
-    timeline[name] = {
-        s.config.label: {
-            "reflectors": reflectors,
-            "frames": times[: len(s.timeline_selected)],
-            "selected": s.timeline_selected,
-            "visible": s.timeline_visible,
+        sweep.close()
+    timeline[sweep.name] = sweep.timeline()
+
+
+class StageSweep:
+    """One stage's sweep, frame by frame: the shared renderers and every configuration's
+    memory (policy, previous image and selection). ``frame(t, record=False)`` renders a
+    warm-up frame: every memory advances but no row, timeline entry or image is kept, so a
+    chunk of frames can start mid-path (``phrt_usd.cluster``)."""
+
+    def __init__(self, stage_path: Path | str, spec: SweepSpec):
+        self.stage = open_stage(stage_path)
+        self.spec = spec
+        self.name = Path(stage_path).stem
+        #: Every time code of this stage's sweep (the chunk's frames are a slice of it).
+        self.times = parse_frames(spec.frames, self.stage.frame_range)
+        base = RenderOptions(
+            mode="hybrid", heuristic="all", width=spec.width, height=spec.height,
+            budget_ms=None, budget_rays=None, bounce_limit=spec.bounce_limit,
+            selection_weight=spec.selection_weight,
+        )  # fmt: skip
+        self.hybrid = FrameRenderer(self.stage, base)
+        self.rt = FrameRenderer(self.stage, replace(base, mode="rt"))
+        self.states = [_ConfigState(c, spec) for c in sweep_configs(spec)]
+        self.reference = _ConfigState(SweepConfig("all"), spec)
+        self.rt_state = _ConfigState(SweepConfig("all", mode="rt"), spec)
+        self.reflectors = [
+            self.stage.scene.elements[i].path for i in self.stage.scene.reflector_ids
+        ]
+        times = self.times
+        self.report_frames = set(times[:: max(1, len(times) // REPORT_FRAMES)][:REPORT_FRAMES])
+        self.recorded: list[float] = []
+
+    def close(self) -> None:
+        self.hybrid.close()
+        self.rt.close()
+
+    def frame(self, t: float, record: bool = True) -> list[dict]:
+        """Render frame ``t`` for every configuration and both references; returns its CSV
+        rows (none for a warm-up frame, ``record=False``)."""
+        reference, rt_state = self.reference, self.rt_state
+        prep = self.hybrid.prepare(t)
+        ref_out = self.hybrid.finish(prep, reference.policy, reference.options)
+        rt_out = self.rt.render(t)
+        reflector_px = prep.reflectivity > 0
+        temporal_ref = (
+            None
+            if reference.previous_image is None
+            else mean_over(flip_map(reference.previous_image, ref_out.beauty))
+        )
+        outputs = [(s, self.hybrid.finish(prep, s.policy, s.options)) for s in self.states]
+        outputs += [(reference, ref_out), (rt_state, rt_out)]
+        rows = []
+        for state, output in outputs:
+            if record:
+                error = flip_map(ref_out.beauty, output.beauty)
+                rows.append(
+                    _row(
+                        self.name, state, output, ref_out, error, rt_out, reflector_px, temporal_ref
+                    )
+                )
+                if t in self.report_frames:
+                    label = state.config.label
+                    _write_report_images(self.spec.out, self.name, t, label, output, error)
+            _remember(state, output, self.reflectors, record)
+        if record:
+            self.recorded.append(t)
+        return rows
+
+    def timeline(self) -> dict:
+        """timeline.json's entry of this stage: per configuration label, the recorded
+        frames and which reflectors each selected / saw."""
+        return {
+            s.config.label: {
+                "reflectors": self.reflectors,
+                "frames": list(self.recorded),
+                "selected": s.timeline_selected,
+                "visible": s.timeline_visible,
+            }
+            for s in [*self.states, self.reference, self.rt_state]
         }
-        for s in [*states, reference, rt_state]
-    }
 
 
 def _row(
@@ -288,13 +339,16 @@ def _blank(value):
     return "" if value is None else value
 
 
-def _remember(state: _ConfigState, output: FrameOutput, reflectors: list[str]) -> None:
+def _remember(
+    state: _ConfigState, output: FrameOutput, reflectors: list[str], record: bool = True
+) -> None:
     st = output.stats
     visible, selected = set(st.visible), set(st.selected)
     state.previous = (visible, selected)
     state.previous_image = output.beauty
-    state.timeline_selected.append([p in selected for p in reflectors])
-    state.timeline_visible.append([p in visible for p in reflectors])
+    if record:
+        state.timeline_selected.append([p in selected for p in reflectors])
+        state.timeline_visible.append([p in visible for p in reflectors])
 
 
 def _write_report_images(

@@ -1,0 +1,200 @@
+"""Scale-out on Dask: chunks with warm-up equal the unchunked run; a 2-worker LocalCluster
+gives the single-process files; a worker killed mid-chunk loses and repeats no frame."""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import signal
+import threading
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scenes import mirror_gallery_stage
+
+from phrt_usd.cluster import (
+    DEFAULT_WARMUP_FRAMES,
+    dask_client,
+    plan_chunks,
+    render_chunk,
+    run_render_on_cluster,
+    run_sweep_on_cluster,
+    sweep_chunk,
+)
+from phrt_usd.errors import PhrtError
+from phrt_usd.render_job import RenderJob, run_render
+from phrt_usd.renderer import RenderOptions
+from phrt_usd.selection_layer import read_selection_record
+from phrt_usd.sweep import SweepSpec, run_sweep
+
+#: Deterministic budgets (rays) that fit only some of the gallery's five mirrors.
+BUDGET_RAYS = 600
+SWEEP_BUDGETS = [300, 600]
+WIDTH, HEIGHT = 64, 48
+
+#: CSV columns measured in wall time: they differ between any two runs.
+TIMING_COLUMNS = {
+    "frame_ms", "gbuffer_ms", "shade_ms", "select_ms", "trace_ms", "predicted_trace_ms",
+}  # fmt: skip
+
+
+def _rows_without_timings(path: Path) -> list[dict]:
+    with open(path, newline="") as fh:
+        return [{k: v for k, v in r.items() if k not in TIMING_COLUMNS} for r in csv.DictReader(fh)]
+
+
+def _render_job(stage: Path, out: Path, frames: str | None = None) -> RenderJob:
+    options = RenderOptions(
+        heuristic="heu1", width=WIDTH, height=HEIGHT, budget_ms=None, budget_rays=BUDGET_RAYS
+    )
+    return RenderJob(stage_path=stage, out_dir=out, options=options, frames=frames)
+
+
+def _sweep_spec(stage: Path, out: Path) -> SweepSpec:
+    return SweepSpec(
+        stages=[stage], heuristics=["heu1", "heu2"], budgets_rays=SWEEP_BUDGETS,
+        width=WIDTH, height=HEIGHT, out=out,
+    )  # fmt: skip
+
+
+def _same_selection_layer(a: Path, b: Path) -> None:
+    ra, rb = read_selection_record(a), read_selection_record(b)
+    np.testing.assert_array_equal(ra.times, rb.times)
+    assert ra.reflectors == rb.reflectors
+    np.testing.assert_array_equal(ra.selected, rb.selected)
+    np.testing.assert_array_equal(ra.visible, rb.visible)
+    assert ra.stats["rays"] == rb.stats["rays"]
+
+
+def _frames_of(out: Path) -> list[dict]:
+    return json.loads((out / "stats.json").read_text())["frames"]
+
+
+# --------------------------------------------------------------------------- chunks
+
+
+def test_plan_chunks_cover_every_frame_once():
+    chunks = plan_chunks("s.usda", 23, chunk_frames=5, warmup=3)
+    recorded = [i for c in chunks for i in range(c.start, c.stop)]
+    assert recorded == list(range(23))
+    assert [c.first_rendered for c in chunks] == [0, 2, 7, 12, 17]
+    assert [c.index for c in chunks] == list(range(5))
+    with pytest.raises(PhrtError):
+        plan_chunks("s.usda", 10, chunk_frames=0, warmup=1)
+
+
+@pytest.fixture(scope="module")
+def gallery(tmp_path_factory) -> Path:
+    folder = tmp_path_factory.mktemp("gallery")
+    return mirror_gallery_stage(folder / "gallery.usda", frames=24, width=WIDTH, height=HEIGHT)
+
+
+def test_chunked_render_equals_unchunked_after_warmup(gallery, tmp_path):
+    """HEU1 with a rays budget: chunks of 6 frames after DEFAULT_WARMUP_FRAMES warm-up
+    frames select exactly what one uninterrupted run selects, frame by frame, with the
+    same rays and the same per-reflector figures (V, C, R, Q, S)."""
+    job = _render_job(gallery, tmp_path / "whole")
+    job.write_images = False
+    run_render(job)
+    whole = _frames_of(tmp_path / "whole")
+    chunks = plan_chunks(str(gallery), len(whole), 6, DEFAULT_WARMUP_FRAMES)
+    chunked = [f for c in chunks for f in render_chunk(c, job).frames]
+    assert [f.time for f in chunked] == [f["time"] for f in whole]
+    for mine, theirs in zip(chunked, whole, strict=True):
+        assert mine.selected == theirs["selected"], mine.time
+        assert mine.rays == theirs["rays"], mine.time
+        for path, m in mine.metrics.items():
+            for name in ("V", "C", "R", "Q", "S"):
+                assert getattr(m, name) == pytest.approx(theirs["metrics"][path][name], rel=1e-9)
+
+
+def test_chunked_sweep_rows_equal_unchunked(gallery, tmp_path):
+    """Sweep chunks (all configurations together) give the unchunked rows, timings aside:
+    transitions and temporal FLIP of a chunk's first frame come from its warm-up."""
+    spec = _sweep_spec(gallery, tmp_path / "whole")
+    run_sweep(spec)
+    whole = _rows_without_timings(tmp_path / "whole" / "sweep.csv")
+    chunks = plan_chunks(str(gallery), 24, 8, DEFAULT_WARMUP_FRAMES)
+    rows = [r for c in chunks for r in sweep_chunk(c, replace(spec, out=tmp_path / "c")).rows]
+    chunked = [{k: str(v) for k, v in r.items() if k not in TIMING_COLUMNS} for r in rows]
+    assert chunked == whole
+
+
+# --------------------------------------------------------------------------- cluster
+
+
+def test_two_worker_cluster_matches_single_process(gallery, tmp_path):
+    """On a 2-worker LocalCluster: the sweep's CSV rows (timings aside) and timeline, and
+    a render's selection layer and stats, equal a single-process run's."""
+    single = tmp_path / "single"
+    run_sweep(_sweep_spec(gallery, single / "sweep"))
+    run_render(_render_job(gallery, single / "render"))
+    multi = tmp_path / "multi"
+    with dask_client(workers=2) as client:
+        assert len(client.scheduler_info()["workers"]) == 2
+        summary = run_sweep_on_cluster(
+            _sweep_spec(gallery, multi / "sweep"), client, chunk_frames=6, warmup=4
+        )
+        run_render_on_cluster(
+            _render_job(gallery, multi / "render"), client, chunk_frames=6, warmup=4
+        )
+    assert summary["rows"] == 24 * 7  # raster, 2 heuristics x 2 budgets, all, rt
+    assert _rows_without_timings(multi / "sweep" / "sweep.csv") == _rows_without_timings(
+        single / "sweep" / "sweep.csv"
+    )
+    timeline = json.loads((multi / "sweep" / "timeline.json").read_text())
+    assert timeline == json.loads((single / "sweep" / "timeline.json").read_text())
+    for name in ("summary.md", "report.html", "error_vs_time.png"):
+        assert (multi / "sweep" / name).stat().st_size > 0
+    _same_selection_layer(multi / "render" / "selection.usda", single / "render" / "selection.usda")
+    assert len(list((multi / "render" / "frames").glob("*.exr"))) == 24
+    assert not list(multi.rglob(".*.tmp*"))  # no partial file left behind
+
+
+def test_killed_worker_chunk_is_retried_without_losing_or_repeating_frames(gallery, tmp_path):
+    """SIGKILL one worker process while it renders a chunk: the chunk runs again on a
+    live worker, and the result equals the single-process render exactly once per frame."""
+    run_render(_render_job(gallery, tmp_path / "single"))
+    job = _render_job(gallery, tmp_path / "multi")
+    with dask_client(workers=2) as client:
+        pids = client.run(os.getpid)  # worker address → process id
+        outcome: dict = {}
+
+        def render() -> None:
+            try:
+                outcome["summary"] = run_render_on_cluster(job, client, chunk_frames=4, warmup=3)
+            except Exception as exc:  # noqa: BLE001 - handed to the test thread
+                outcome["error"] = exc
+
+        thread = threading.Thread(target=render)
+        thread.start()
+        victim, killed_keys = None, []
+        deadline = time.monotonic() + 60
+        while victim is None and time.monotonic() < deadline:
+            for address, keys in client.processing().items():
+                if keys and address in pids:
+                    victim, killed_keys = address, list(keys)
+                    break
+            time.sleep(0.05)
+        assert victim is not None, "no chunk ever started"
+        time.sleep(0.3)  # well inside the chunk (4 frames + warm-up take seconds)
+        os.kill(pids[victim], signal.SIGKILL)
+        thread.join(timeout=240)
+        assert not thread.is_alive()
+    assert "error" not in outcome, outcome.get("error")
+    frames = _frames_of(tmp_path / "multi")
+    times = [f["time"] for f in frames]
+    assert len(times) == len(set(times)) == 24  # every frame once
+    assert times == [f["time"] for f in _frames_of(tmp_path / "single")]
+    _same_selection_layer(
+        tmp_path / "multi" / "selection.usda", tmp_path / "single" / "selection.usda"
+    )
+    # The chunks the killed worker held came back from a live process.
+    killed_chunks = {int(key.rsplit("-", 1)[1]) for key in killed_keys}
+    assert killed_chunks
+    for index in killed_chunks:
+        assert outcome["summary"]["chunk_pids"][index] != pids[victim]
