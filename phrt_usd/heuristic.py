@@ -72,6 +72,13 @@ STARVED_RELAX = 0.97
 INITIAL_MS_PER_RAY = 0.004
 INITIAL_ROUND_MS = 0.5
 
+#: HEU1's hysteresis in cost (ours; the paper's I is hysteresis in relevance): a reflector
+#: not selected in the previous frame joins only if this fraction of the round's budget
+#: stays free after it. Predicted costs jitter by a few per cent from frame to frame;
+#: without a margin, a selection whose total hovers at the budget drops one reflector
+#: and takes it back on alternate frames.
+ADMISSION_MARGIN = 0.1
+
 #: Lower bound of the learned ms per ray (1e10 rays/s): keeps ms → rays finite.
 MIN_MS_PER_RAY = 1e-7
 
@@ -516,8 +523,9 @@ class Heu1Policy(BudgetedPolicy):
 
     name = "heu1"
 
-    def graph(self) -> SelectionGraph:
-        """The Selection Graph of the untraced candidates, as of now."""
+    def graph(self, reserve: float = 0.0) -> SelectionGraph:
+        """The Selection Graph of the untraced candidates, as of now; candidates not
+        selected in the previous frame need ``reserve`` budget left beyond their cost."""
         frame = self._require_frame()
         done = set(frame.traced)
         nodes = [
@@ -527,6 +535,7 @@ class Heu1Policy(BudgetedPolicy):
                 R=self.relevance_R(e),
                 cost=self.predicted_rays(e),
                 traceable=bool(frame.pixels[e] > 0),
+                reserve=0.0 if e in self.previous_selection else reserve,
             )
             for e in self.candidates()
             if e not in done
@@ -537,7 +546,7 @@ class Heu1Policy(BudgetedPolicy):
         allowance = self.ray_allowance(budget)
         if not allowance > 0.0:
             return []
-        return self.graph().select(allowance)
+        return self.graph(reserve=ADMISSION_MARGIN * allowance).select(allowance)
 
 
 class Heu2Policy(BudgetedPolicy):

@@ -46,6 +46,9 @@ class Node:
     traceable: False for candidates that cannot be traced on their own (no pixels in
         this frame: reflectors only seen through another reflector). They stay in the
         graph, and in its lists, but are never selected.
+    reserve: budget that must remain free *beyond* ``cost`` for the node to be taken
+        (the admission margin for nodes not selected in the previous frame; 0 for the
+        ones that were, so a kept selection is not dropped for small cost noise).
     """
 
     element: int
@@ -53,6 +56,7 @@ class Node:
     R: float
     cost: float
     traceable: bool = True
+    reserve: float = 0.0
 
 
 class SelectionGraph:
@@ -113,19 +117,23 @@ class SelectionGraph:
         taken: set[int] = set()
         chosen: list[int] = []
         entry = self.most_expensive
+        def available(e: int) -> bool:
+            n = self.nodes[e]
+            return e not in taken and n.traceable and n.cost + n.reserve <= remaining
+
         while entry is not None:
             # Walk down the cost list to the most expensive node that can still be taken.
-            node = self.nodes[entry]
-            if entry in taken or not node.traceable or node.cost > remaining:
+            if entry in taken or self.nodes[entry].cost > remaining:
                 entry = self.next_cheaper[entry]
                 continue
-            # Every node that fits costs <= the entry: the best one is the entry or one of
-            # its relevance edges (the first available, as edges are ordered by relevance).
-            best = entry
-            for target in self.more_relevant[entry]:
-                if target not in taken and self.nodes[target].traceable:
-                    best = target
-                    break
+            # Every node that fits costs <= the entry: the best one is the first available
+            # of its relevance edges (ordered by relevance), else the entry itself.
+            best = next((t for t in self.more_relevant[entry] if available(t)), None)
+            if best is None:
+                if not available(entry):
+                    entry = self.next_cheaper[entry]
+                    continue
+                best = entry
             taken.add(best)
             chosen.append(best)
             remaining -= self.nodes[best].cost

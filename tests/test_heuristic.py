@@ -13,6 +13,7 @@ from hypothesis import strategies as st
 from phrt_usd.errors import PhrtError
 from phrt_usd.frame import Budget, FrameView, TraceRecord
 from phrt_usd.heuristic import (
+    ADMISSION_MARGIN,
     D_MIN,
     RAYS_SAFETY,
     TIME_SAFETY_MIN,
@@ -305,8 +306,10 @@ def test_high_priority_pond_at_the_edge_beats_near_barrel():
     barrel = element((0.0, 0.0, -5.0), K=1.0, path="/barrel")  # centre, nearer
     sc = scene([pond, barrel])
     pixels = [6000, 2000]
-    # Fits the pond (6000 rays) or the barrel, never both.
-    budget = int(6000 * RAYS_SAFETY) + 100
+    # Fits the pond (6000 rays, plus the admission margin of a new selection) or the
+    # barrel, never both.
+    budget = int(6000 * RAYS_SAFETY / (1.0 - ADMISSION_MARGIN)) + 100
+    assert budget < 8000 * RAYS_SAFETY
     heu1 = policy_of("heu1")
     metrics, rounds = run_frame(heu1, sc, view(pixels), budget_rays=budget)
     assert rounds == [[0]]

@@ -46,7 +46,10 @@ def test_import_registers_schemas_with_fallbacks():
     settings = UsdRender.Settings.Define(stage, "/Render/Settings").GetPrim()
     assert settings.ApplyAPI(schema.RENDER_SETTINGS_API)
     assert settings.GetAttribute(schema.BUDGET_RAYS).Get() == -1
-    assert abs(settings.GetAttribute(schema.SELECTION_WEIGHT).Get() - schema.DEFAULT_SELECTION_WEIGHT) < 1e-9
+    assert (
+        abs(settings.GetAttribute(schema.SELECTION_WEIGHT).Get() - schema.DEFAULT_SELECTION_WEIGHT)
+        < 1e-9
+    )
     # Re-registering is harmless.
     from pxr import Plug
 

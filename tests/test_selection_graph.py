@@ -131,3 +131,13 @@ def test_paper_figure_like_example():
 def test_duplicate_elements_are_rejected():
     with pytest.raises(ValueError):
         SelectionGraph([Node(1, 0.0, 0.0, 0.0), Node(1, 1.0, 1.0, 1.0)])
+
+
+def test_reserve_keeps_new_nodes_out_of_the_margin():
+    kept = Node(element=0, C=1.0, R=2.0, cost=50.0)
+    new = Node(element=1, C=1.0, R=1.0, cost=45.0, reserve=10.0)
+    graph = SelectionGraph([kept, new])
+    assert graph.select(100.0) == [0]  # 50 + 45 fits, but not with the new node's reserve
+    assert graph.select(105.0) == [0, 1]
+    # A kept node is never held back by another node's reserve.
+    assert SelectionGraph([Node(element=2, C=1.0, R=1.0, cost=100.0)]).select(100.0) == [2]
