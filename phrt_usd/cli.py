@@ -204,6 +204,30 @@ def _progress(enabled: bool):
     )
 
 
+WorkersOpt = Annotated[
+    int | None,
+    typer.Option(help="Start a Dask LocalCluster of N worker processes (docs/cluster.md)."),
+]
+SchedulerOpt = Annotated[
+    str | None, typer.Option(help="Send chunks to a running Dask scheduler (tcp://host:8786).")
+]
+ChunkFramesOpt = Annotated[
+    int | None, typer.Option(help="Frames recorded per cluster task (default 96).")
+]
+WarmupOpt = Annotated[
+    int | None, typer.Option(help="Unrecorded frames before each chunk (default 8).")
+]
+
+
+def _cluster_args(chunk_frames: int | None, warmup: int | None) -> dict:
+    from phrt_usd.cluster import DEFAULT_CHUNK_FRAMES, DEFAULT_WARMUP_FRAMES
+
+    return {
+        "chunk_frames": DEFAULT_CHUNK_FRAMES if chunk_frames is None else chunk_frames,
+        "warmup": DEFAULT_WARMUP_FRAMES if warmup is None else warmup,
+    }
+
+
 @app.command()
 def render(
     stage: Annotated[
@@ -232,6 +256,10 @@ def render(
     ] = None,
     resume: Annotated[bool, typer.Option(help="Continue an interrupted render in OUT.")] = False,
     images: Annotated[bool, typer.Option(help="Write EXR + PNG per frame.")] = True,
+    workers: WorkersOpt = None,
+    scheduler: SchedulerOpt = None,
+    chunk_frames: ChunkFramesOpt = None,
+    warmup: WarmupOpt = None,
     json_out: JsonOpt = False,
 ) -> None:
     """Render the stage's camera path: images, stats.json and the selection layer."""
@@ -282,7 +310,18 @@ def render(
                 progress.update(task, completed=done, total=total)
 
             try:
-                summary = run_render(job, on_frame=on_frame, stage_scene=scene)
+                if workers is None and scheduler is None:
+                    summary = run_render(job, on_frame=on_frame, stage_scene=scene)
+                else:
+                    from phrt_usd.cluster import dask_client, run_render_on_cluster
+
+                    with dask_client(workers, scheduler) as client:
+                        summary = run_render_on_cluster(
+                            job,
+                            client,
+                            on_frame=lambda done, total: on_frame(done, total, None),
+                            **_cluster_args(chunk_frames, warmup),
+                        )
             except RenderInterrupted as exc:
                 typer.echo(f"interrupted: {exc}", err=True)
                 raise typer.Exit(EXIT_INTERRUPTED) from None
@@ -329,6 +368,10 @@ def sweep(
         float | None, typer.Option(help="I (default: the first stage's setting).")
     ] = None,
     out: Annotated[Path, typer.Option("--out", "-o", help="Output directory.")] = Path("sweep"),
+    workers: WorkersOpt = None,
+    scheduler: SchedulerOpt = None,
+    chunk_frames: ChunkFramesOpt = None,
+    warmup: WarmupOpt = None,
     json_out: JsonOpt = False,
 ) -> None:
     """Error against run time: every heuristic x budget against the `all` and `rt`
@@ -364,7 +407,18 @@ def sweep(
                     tasks[stage_name] = progress.add_task(f"sweep {stage_name}", total=total)
                 progress.update(tasks[stage_name], completed=done)
 
-            summary = run_sweep(spec, on_frame=on_frame)
+            if workers is None and scheduler is None:
+                summary = run_sweep(spec, on_frame=on_frame)
+            else:
+                from phrt_usd.cluster import dask_client, run_sweep_on_cluster
+
+                with dask_client(workers, scheduler) as client:
+                    summary = run_sweep_on_cluster(
+                        spec,
+                        client,
+                        on_chunk=lambda done, total: on_frame("chunks", done, total),
+                        **_cluster_args(chunk_frames, warmup),
+                    )
     if json_out:
         print_json(summary)
     else:
