@@ -280,6 +280,7 @@ class _FrameState:
     predicted_rays: dict[int, float] = field(default_factory=dict)  # at selection time
     predicted_ms: dict[int, float] = field(default_factory=dict)  # at selection time
     predicted_trace_ms: float = 0.0  # sum over rounds of the predicted round time
+    first_allowance: float | None = None  # the first round's budget in rays (HEU1 margin)
 
 
 class BudgetedPolicy:
@@ -543,10 +544,15 @@ class Heu1Policy(BudgetedPolicy):
         return SelectionGraph(nodes)
 
     def _choose(self, budget: Budget) -> list[int]:
+        frame = self._require_frame()
         allowance = self.ray_allowance(budget)
         if not allowance > 0.0:
             return []
-        return self.graph(reserve=ADMISSION_MARGIN * allowance).select(allowance)
+        if frame.first_allowance is None:
+            frame.first_allowance = allowance
+        # The margin is a share of the whole frame's budget, also in later rounds.
+        reserve = ADMISSION_MARGIN * frame.first_allowance
+        return self.graph(reserve=reserve).select(allowance)
 
 
 class Heu2Policy(BudgetedPolicy):
