@@ -252,7 +252,10 @@ def _look_pose(position: np.ndarray, direction: np.ndarray) -> np.ndarray:
 
 
 def bench_mitsuba(
-    variant: str, jobs: list[tuple[str, int, int, list[float]]], png_dir: Path | None
+    variant: str,
+    jobs: list[tuple[str, int, int, list[float]]],
+    png_dir: Path | None,
+    png_frame: float | None = None,
 ) -> dict:
     """Run in a child process: Mitsuba ``variant`` on every (stage, w, h, times) job.
     Returns {"stage|WxH": {"frame_ms", "load_ms", "first_ms", "frames"}}."""
@@ -286,7 +289,8 @@ def bench_mitsuba(
             frame_ms.append((time.perf_counter() - t0) * 1000.0)
         if png_dir is not None and stage_path not in saved:  # first resolution of a stage
             saved.add(stage_path)
-            _save_mitsuba_png(mi, mi_scene, stage, times[0], png_dir, Path(stage_path).stem)
+            t_png = times[0] if png_frame is None else png_frame
+            _save_mitsuba_png(mi, mi_scene, stage, t_png, png_dir, Path(stage_path).stem)
         results[f"{stage_path}|{w}x{h}"] = {
             "frame_ms": _median(frame_ms),
             "load_ms": load_ms,
@@ -309,7 +313,10 @@ def _save_mitsuba_png(mi, mi_scene, stage, t, png_dir: Path, stem: str) -> None:
 
 
 def run_mitsuba_child(
-    variant: str, jobs: list[tuple[str, int, int, list[float]]], png_dir: Path | None
+    variant: str,
+    jobs: list[tuple[str, int, int, list[float]]],
+    png_dir: Path | None,
+    png_frame: float | None,
 ) -> dict | str:
     """Results of ``bench_mitsuba`` in a child process, or a one-line reason it did not
     run (missing libLLVM-19, import failure...)."""
@@ -329,6 +336,8 @@ def run_mitsuba_child(
     ]
     if png_dir is not None:
         cmd += ["--png-dir", str(png_dir)]
+        if png_frame is not None:
+            cmd += ["--png-frame", str(png_frame)]
     proc = subprocess.run(cmd, env=env, capture_output=True, text=True, check=False)
     if proc.returncode != 0:
         tail = (proc.stderr.strip().splitlines() or ["no output"])[-1]
@@ -453,14 +462,43 @@ def markdown_block(stage_path: str, res: str, ours: dict, pyr: dict, mits: dict)
         if "trace_ours_mrays_s" in r:
             share = r["trace_ours_mrays_s"] / r["trace_raw_mrays_s"]
             lines.append(
-                f"- {label} trace phase: {r['trace_rays_per_frame'] / 1e3:.0f} k rays/frame; "
+                f"- {label} trace phase: {r['trace_rays_per_frame']:,.0f} rays/frame (mean); "
                 f"ours {r['trace_ours_mrays_s']:.2f} Mrays/s vs raw embreex on the same rays "
                 f"{r['trace_raw_mrays_s']:.2f} Mrays/s ({r['trace_raw_ms']:.1f} ms/frame) = "
                 f"**{share:.0%}** of raw"
             )
         else:
             lines.append(f"- {label}: no rays traced on these frames")
+    lines.append(f"- targets: {targets(res, ours, mits)}")
     return "\n".join(lines) + "\n"
+
+
+#: The issue's targets: hybrid frame time <= Mitsuba's 1-spp frame, >= 20 fps at 320x240,
+#: trace phase >= 50 % of raw embreex's throughput on the same rays.
+TARGET_FPS_320 = 20.0
+TARGET_TRACE_SHARE = 0.5
+
+
+def targets(res: str, ours: dict, mits: dict) -> str:
+    """One line: each target met or missed, and by how much."""
+    hyb = ours["hybrid"]["frame_ms"]
+    parts = []
+    for variant in MITSUBA_VARIANTS:
+        m = mits.get(variant)
+        if isinstance(m, dict):
+            ratio = hyb / m["frame_ms"]
+            verdict = "met" if ratio <= 1.0 else f"missed, {ratio:.2f}x Mitsuba's time"
+            parts.append(f"hybrid / Mitsuba `{variant}` = {ratio:.2f} (<= 1: {verdict})")
+    if res == "320x240":
+        fps = 1000.0 / hyb
+        verdict = "met" if fps >= TARGET_FPS_320 else f"missed by {TARGET_FPS_320 / fps:.1f}x"
+        parts.append(f"hybrid {fps:.1f} fps (>= {TARGET_FPS_320:.0f}: {verdict})")
+    r = ours["hybrid"]
+    if "trace_ours_mrays_s" in r:
+        share = r["trace_ours_mrays_s"] / r["trace_raw_mrays_s"]
+        verdict = "met" if share >= TARGET_TRACE_SHARE else "missed"
+        parts.append(f"hybrid trace {share:.0%} of raw embreex (>= 50 %: {verdict})")
+    return "; ".join(parts)
 
 
 def markdown_profile(stage_path: str, res: str, n: int, rows, total: float, commit: str) -> str:
@@ -488,7 +526,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--profile-top", type=int, default=12)
     ap.add_argument("--append", type=Path, default=None, help="append the tables to this file")
     ap.add_argument("--json", type=Path, default=None, help="write all figures as JSON")
-    ap.add_argument("--png-dir", type=Path, default=None, help="save first-frame images here")
+    ap.add_argument("--png-dir", type=Path, default=None, help="save rt / Mitsuba images here")
+    ap.add_argument("--png-frame", type=float, default=None, help="frame of those images")
     ap.add_argument("--skip-mitsuba", action="store_true")
     ap.add_argument("--only", default=None, help=argparse.SUPPRESS)  # child: mitsuba-<variant>
     ap.add_argument("--jobs-json", default=None, help=argparse.SUPPRESS)
@@ -497,11 +536,12 @@ def main(argv: list[str] | None = None) -> int:
     if args.only:
         variant = args.only.removeprefix("mitsuba-")
         jobs = [(s, w, h, list(t)) for s, w, h, t in json.loads(args.jobs_json)]
-        print(json.dumps(bench_mitsuba(variant, jobs, args.png_dir)))
+        print(json.dumps(bench_mitsuba(variant, jobs, args.png_dir, args.png_frame)))
         return 0
     if not args.stages:
         ap.error("give at least one stage")
 
+    load_before = os.getloadavg()
     resolutions = [tuple(int(v) for v in r.lower().split("x")) for r in args.resolutions.split(",")]
     jobs, results = [], {}
     for stage_path in args.stages:
@@ -515,10 +555,11 @@ def main(argv: list[str] | None = None) -> int:
             jobs.append((stage_path, w, h, times))
             print(f"done ours + pyrender {stage_path} {w}x{h}", file=sys.stderr)
             if args.png_dir is not None and (w, h) == resolutions[0]:
-                _save_ours_png(stage, Path(stage_path).stem, times[0], w, h, args.png_dir)
+                t_png = times[0] if args.png_frame is None else args.png_frame
+                _save_ours_png(stage, Path(stage_path).stem, t_png, w, h, args.png_dir)
     if not args.skip_mitsuba:
         for variant in MITSUBA_VARIANTS:
-            got = run_mitsuba_child(variant, jobs, args.png_dir)
+            got = run_mitsuba_child(variant, jobs, args.png_dir, args.png_frame)
             print(f"done mitsuba {variant}", file=sys.stderr)
             for key in results:
                 results[key]["mitsuba"][variant] = got.get(key) if isinstance(got, dict) else got
@@ -538,8 +579,9 @@ def main(argv: list[str] | None = None) -> int:
             blocks.append(
                 markdown_profile(stage_path, f"{w}x{h}", args.profile, rows, total, commit)
             )
+    load = f"load average (1 min) {load_before[0]:.1f} before, {os.getloadavg()[0]:.1f} after"
     text = "\n".join(blocks)
-    print(text)
+    print(load + "\n\n" + text)
     if args.json:
         args.json.write_text(json.dumps(results, indent=1, default=str))
     if args.append:
@@ -548,7 +590,7 @@ def main(argv: list[str] | None = None) -> int:
         with open(args.append, "a") as fh:
             fh.write(
                 f"\n### Peers, {stamp}, {os.cpu_count()} cores, commit {commit}\n\n"
-                f"`{command}`\n\n{text}"
+                f"`{command}`\n\n{load}\n\n{text}"
             )
     return 0
 
