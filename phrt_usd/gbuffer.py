@@ -59,6 +59,7 @@ os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
 
 import pyrender  # noqa: E402  (after the platform is chosen)
 from OpenGL import GL  # noqa: E402
+from OpenGL.GL import shaders as gl_shaders  # noqa: E402
 from pyrender.constants import RenderFlags  # noqa: E402
 from pyrender.platforms.osmesa import OSMesaPlatform  # noqa: E402
 from pyrender.shader_program import ShaderProgramCache  # noqa: E402
@@ -106,8 +107,9 @@ SHADOW_REFINE_RADIUS = 2
 #: without bound; such points get almost no direct light anyway (n.L ~ 0).
 SHADOW_MIN_COS = 0.1
 
-#: LocalLight cube shadow maps: texels per side of each of the 6 faces (512: 13 lights
-#: x 2 cubes... one static cube per light is 6 x 512² x 3 float32 arrays = 18 MB).
+#: LocalLight cube shadow maps: texels per side of each of the 6 faces. One cube is
+#: 6 x 512² x 3 float32 arrays (depth, min, max) = 18 MB in numpy plus 12 MB of
+#: (min, max) texture on the GPU; the sewer's 13 lights hold ~400 MB in all.
 CUBE_MAP_SIZE = 512
 #: Guard band of every cube face, in texels: a face is rendered over a slightly wider
 #: field than its 90° square, so the texel neighbourhood any lookup reads (PCF taps,
@@ -119,6 +121,10 @@ CUBE_GUARD_TEXELS = SHADOW_REFINE_RADIUS + 2
 #: range, well under the 1-texel bias (8 cm there). Casters nearer to the light than
 #: the near plane (4 mm for that light) are missed.
 CUBE_NEAR_FRACTION = 1e-4
+#: Query points per row of the GPU lookup pass's point texture (rows as needed).
+LOOKUP_TEXTURE_WIDTH = 1024
+#: LocalLights per GPU lookup pass (4 RGBA32F colour attachments, one float each).
+LOOKUP_LIGHTS_PER_PASS = 16
 #: The two axes spanning a cube face, per major axis of the light-to-point vector.
 _CUBE_FACE_AXES = ((1, 2), (0, 2), (0, 1))
 
@@ -235,38 +241,42 @@ def _cube_visibility(
     cube: _CubeMap, rel: np.ndarray, normals: np.ndarray, filtered: bool
 ) -> tuple[np.ndarray, np.ndarray]:
     """Visibility of points ``rel`` (m, 3) (rel metres, within the cube's far plane)
-    with ``normals`` (m, 3) against one cube map, slope-scaled bias as for distant maps.
+    with unit ``normals`` (m, 3) facing the light, against one cube map. The numpy
+    reference of ``shaders/cube_lookup.frag`` (which does the same per pixel on the
+    GPU; keep the two in step), also used for the few uncertain points' PCF.
 
-    The neighbourhood min / max decide most points exactly (all nearby casters beyond
-    the point: lit; all in front: shadowed); the rest are *uncertain*. ``filtered``:
-    uncertain points get bilinear 2x2 PCF, else 0.5 (a caller resolving them
-    otherwise). Returns (m,) float32 visibility and (m,) bool uncertain."""
+    Bias: ``CUBE_BIAS_TEXELS`` texel widths plus the receiver's own depth change over
+    the texels read. For the receiver plane, forward distance w changes per texel by
+    ``texel * w * (|n_b| + |n_c|) / |n·v|`` (sum over both face axes; clamped to
+    ``texel / SHADOW_MIN_COS`` at grazing light). The nearest texel's neighbourhood
+    (radius SHADOW_REFINE_RADIUS, ``depth_min`` / ``depth_max``) decides: all casters
+    beyond the biased point: lit; all in front: shadowed; else *uncertain*.
+    ``filtered``: uncertain points get bilinear 2x2 PCF (bias for the PCF taps only),
+    else 0.5 (for a caller resolving them otherwise). Returns (m,) float32 visibility
+    and (m,) bool uncertain."""
     size = cube.depth.shape[1]
     v = rel - cube.light_rel
     a = np.abs(v)
-    axis = np.where(
-        (a[:, 0] >= a[:, 1]) & (a[:, 0] >= a[:, 2]), 0, np.where(a[:, 1] >= a[:, 2], 1, 2)
-    )
+    on_x = (a[:, 0] >= a[:, 1]) & (a[:, 0] >= a[:, 2])
+    axis = np.where(on_x, 0, np.where(a[:, 1] >= a[:, 2], 1, 2))
     rows = np.arange(len(v))
     w = a[rows, axis]
     face = 2 * axis + (v[rows, axis] < 0)
     vb = np.where(axis == 0, v[:, 1], v[:, 0])
     vc = np.where(axis == 2, v[:, 1], v[:, 2])
+    nb = np.where(axis == 0, normals[:, 1], normals[:, 0])
+    nc = np.where(axis == 2, normals[:, 1], normals[:, 2])
     # w > 0 unless the point is at the light (no light reaches it then: n·l = 0).
     inv_w = 1.0 / np.maximum(w, 1e-300)
     texel = 2.0 * cube.tan_half * w / size  # texel width in metres at distance w
-    cos = np.abs(np.einsum("ij,ij->i", normals, v)) / np.maximum(
-        np.sqrt(np.einsum("ij,ij->i", v, v)), 1e-300
-    )
-    cos = np.clip(cos, SHADOW_MIN_COS, 1.0)
-    tan = np.sqrt(1.0 - cos**2) / cos
-    test = w - texel * (SHADOW_BIAS_TEXELS + SHADOW_SLOPE_BIAS_TEXELS * tan)
+    n_dot_v = np.maximum(np.abs(np.einsum("ij,ij->i", normals, v)), 1e-30)
+    slope = np.minimum(texel * w * (np.abs(nb) + np.abs(nc)) / n_dot_v, texel / SHADOW_MIN_COS)
+    flat_bias = w - texel * SHADOW_BIAS_TEXELS
+    test = flat_bias - (SHADOW_REFINE_RADIUS + 0.5) * slope
     scale = 0.5 * size / cube.tan_half
-    fx = vb * inv_w * scale + (0.5 * size - 0.5)  # texel centres at integers
-    fy = vc * inv_w * scale + (0.5 * size - 0.5)
+    xn = np.clip(np.floor(vb * inv_w * scale + 0.5 * size).astype(np.int64), 0, size - 1)
+    yn = np.clip(np.floor(vc * inv_w * scale + 0.5 * size).astype(np.int64), 0, size - 1)
     base = face * (size * size)
-    xn = np.clip(np.rint(fx).astype(np.int64), 0, size - 1)
-    yn = np.clip(np.rint(fy).astype(np.int64), 0, size - 1)
     nearest = base + yn * size + xn
     lo = cube.depth_min.reshape(-1)[nearest]
     hi = cube.depth_max.reshape(-1)[nearest]
@@ -277,9 +287,10 @@ def _cube_visibility(
     vis[~inside] = 1.0
     if uncertain.any():
         if filtered:
-            vis[uncertain] = _cube_pcf(
-                cube, base[uncertain], fx[uncertain], fy[uncertain], test[uncertain]
-            )
+            u = uncertain
+            fx = vb[u] * inv_w[u] * scale + (0.5 * size - 0.5)  # texel centres at integers
+            fy = vc[u] * inv_w[u] * scale + (0.5 * size - 0.5)
+            vis[u] = _cube_pcf(cube, base[u], fx, fy, flat_bias[u] - slope[u])
         else:
             vis[uncertain] = 0.5
     return vis, uncertain
@@ -421,6 +432,20 @@ class Rasterizer:
         self._cube_static: list[_CubeMap | None] = []
         self._cube_dynamic: list[_CubeMap | None] = []
         self._cube_fresh: list[tuple[bool, bool]] = []  # (static, animated) map valid
+        # GPU lookup pass (``_cube_lookup``): program, empty VAO, cube texture array and
+        # the cube objects it holds (by layer block), point textures, output framebuffer.
+        self._lookup_program: int | None = None
+        self._lookup_vao: int | None = None
+        self._cube_tex: int | None = None
+        self._cube_tex_layers = 0
+        self._cube_tex_held: list[_CubeMap | None] = []
+        self._point_tex: list[int] = []
+        self._lookup_fb: int | None = None
+        self._lookup_rb: list[int] = []
+        self._lookup_rows = 0
+        #: LocalLight cube lookups on the GPU (False: the numpy reference, same answers
+        #: up to float32 rounding at the test's boundaries).
+        self.cube_lookup_on_gpu = True
         self._pool = ThreadPoolExecutor(DERIVE_THREADS, thread_name_prefix="phrt-gbuffer")
         self._closed = False
         self._upload(scene)
@@ -1123,6 +1148,47 @@ class Rasterizer:
             (ok_s and not static, ok_d and not dynamic) for ok_s, ok_d in self._cube_fresh
         ]
 
+    def _local_visibility(
+        self,
+        rel: np.ndarray,
+        normals: np.ndarray,
+        cubes: list[tuple[_CubeMap | None, _CubeMap | None]],
+        ranges: np.ndarray,
+        filtered: bool,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(n, len(cubes)) float32 visibility and bool uncertain of points ``rel`` (n, 3)
+        (rel metres) with ``normals`` (n, 3) for every LocalLight: 0 outside its range
+        ``ranges`` (len(cubes),) or facing away; uncertain pairs get PCF (``filtered``)
+        or 0.5. The bulk runs on the GPU (``cube_lookup_on_gpu``), else in numpy."""
+        n = len(rel)
+        vis = np.zeros((n, len(cubes)), dtype=np.float32)
+        unsure = np.zeros((n, len(cubes)), dtype=bool)
+        if self.cube_lookup_on_gpu:
+            codes = self._cube_lookup(rel, normals, cubes, ranges)
+            np.maximum(codes, 0.0, out=vis)
+            np.less(codes, 0.0, out=unsure)
+        for k, pair in enumerate(cubes):
+            if self.cube_lookup_on_gpu:
+                idx = np.flatnonzero(unsure[:, k])  # only these need more work
+                if len(idx) == 0:
+                    continue
+            else:
+                to_light = np.asarray(self._cube_keys[k][0]) - rel
+                reach = np.einsum("ij,ij->i", to_light, to_light) < ranges[k] ** 2
+                reach &= np.einsum("ij,ij->i", normals, to_light) > 0.0
+                idx = np.flatnonzero(reach)
+            v_all = np.ones(len(idx), dtype=np.float32)
+            u_all = np.zeros(len(idx), dtype=bool)
+            for cube in pair:
+                if cube is not None:
+                    v, u = _cube_visibility(cube, rel[idx], normals[idx], filtered)
+                    # Uncertain in one map matters only where the other lets light by.
+                    u_all = (u_all & (v > 0)) | (u & (v_all > 0))
+                    v_all *= v
+            vis[idx, k] = v_all
+            unsure[idx, k] = u_all
+        return vis, unsure
+
     def shadow_visibility(
         self,
         positions: np.ndarray,
@@ -1172,31 +1238,19 @@ class Rasterizer:
                         vis, unsure = _filtered_visibility(mp, r, nr)
                         out[part, k] *= vis
                         uncertain[part, k] |= unsure
-            for k, (static, dynamic) in enumerate(cubes):
-                j = n_distant + k
-                to_light = np.asarray(self._cube_keys[k][0]) - r
-                reach = np.einsum("ij,ij->i", to_light, to_light) < ranges[j] ** 2
-                reach &= np.einsum("ij,ij->i", nr, to_light) > 0.0
-                idx = np.flatnonzero(reach)
-                vis = np.ones(len(idx), dtype=np.float32)
-                unsure = np.zeros(len(idx), dtype=bool)
-                for cube in (static, dynamic):
-                    if cube is not None:
-                        v, u = _cube_visibility(cube, r[idx], nr[idx], refine is None)
-                        # Uncertain in one map matters only where the other lets light by.
-                        unsure = (unsure & (v > 0)) | (u & (vis > 0))
-                        vis *= v
-                col = np.zeros(len(r), dtype=np.float32)
-                col[idx] = vis
-                out[part, j] = col
-                uncertain[part.start + idx, j] = unsure
 
         bounds = np.linspace(0, len(positions), DERIVE_THREADS + 1).astype(int)
         jobs = [
             self._pool.submit(lookup, slice(a, b))
             for a, b in zip(bounds[:-1], bounds[1:], strict=True)
-            if b > a
+            if b > a and maps
         ]
+        if cubes:  # meanwhile, on this thread (the GL context's)
+            local_vis, local_unsure = self._local_visibility(
+                rel, normals, cubes, ranges[n_distant:], filtered=refine is None
+            )
+            out[:, n_distant:] = local_vis
+            uncertain[:, n_distant:] = local_unsure
         for job in jobs:
             job.result()
         if refine is not None and uncertain.any():
@@ -1208,6 +1262,223 @@ class Rasterizer:
             out[idx] = sub
             self.last_refined = len(idx)
             self.last_refined_pairs = int(pairs.sum())
+        return out
+
+    # ------------------------------------------------------------------ GPU cube lookups
+
+    def _lookup_setup(self) -> None:
+        """Compile the lookup program and create its empty VAO and point textures."""
+        if self._lookup_program is not None:
+            return
+        with open(os.path.join(SHADER_DIR, "cube_lookup.vert")) as f:
+            vert = f.read()
+        with open(os.path.join(SHADER_DIR, "cube_lookup.frag")) as f:
+            frag = f.read()
+        self._lookup_vao = int(GL.glGenVertexArrays(1))
+        GL.glBindVertexArray(self._lookup_vao)
+        self._lookup_program = int(
+            gl_shaders.compileProgram(
+                gl_shaders.compileShader(vert, GL.GL_VERTEX_SHADER),
+                gl_shaders.compileShader(frag, GL.GL_FRAGMENT_SHADER),
+                validate=False,
+            )
+        )
+        GL.glBindVertexArray(0)
+        self._point_tex = [int(t) for t in GL.glGenTextures(2)]
+        for tex in self._point_tex:
+            GL.glBindTexture(GL.GL_TEXTURE_2D, tex)
+            GL.glTexParameteri(GL.GL_TEXTURE_2D, GL.GL_TEXTURE_MIN_FILTER, GL.GL_NEAREST)
+            GL.glTexParameteri(GL.GL_TEXTURE_2D, GL.GL_TEXTURE_MAG_FILTER, GL.GL_NEAREST)
+        GL.glBindTexture(GL.GL_TEXTURE_2D, 0)
+
+    def _upload_cubes(self, cubes: list[tuple[_CubeMap | None, _CubeMap | None]]) -> list[int]:
+        """Cube (min, max) texels into the RG32F texture array, re-sending only cubes
+        that changed. Layout: static cube of light k at layers 6 k, animated cube at
+        6 (L + k) when the scene has animated triangles. Returns the first layer of
+        every held cube in that order (static block then animated block), -1 = none."""
+        n = len(cubes)
+        blocks = [c[0] for c in cubes] + ([c[1] for c in cubes] if self._animated_tri.any() else [])
+        layers = 6 * len(blocks)
+        size = CUBE_MAP_SIZE
+        if self._cube_tex is None or layers != self._cube_tex_layers:
+            if self._cube_tex is not None:
+                GL.glDeleteTextures(1, [self._cube_tex])
+            self._cube_tex = int(GL.glGenTextures(1))
+            GL.glBindTexture(GL.GL_TEXTURE_2D_ARRAY, self._cube_tex)
+            GL.glTexParameteri(GL.GL_TEXTURE_2D_ARRAY, GL.GL_TEXTURE_MIN_FILTER, GL.GL_NEAREST)
+            GL.glTexParameteri(GL.GL_TEXTURE_2D_ARRAY, GL.GL_TEXTURE_MAG_FILTER, GL.GL_NEAREST)
+            GL.glTexImage3D(
+                GL.GL_TEXTURE_2D_ARRAY,
+                0,
+                GL.GL_RG32F,
+                size,
+                size,
+                max(layers, 1),
+                0,
+                GL.GL_RG,
+                GL.GL_FLOAT,
+                None,
+            )
+            self._cube_tex_layers = layers
+            self._cube_tex_held = [None] * len(blocks)
+        GL.glBindTexture(GL.GL_TEXTURE_2D_ARRAY, self._cube_tex)
+        GL.glPixelStorei(GL.GL_UNPACK_ALIGNMENT, 1)
+        for b, cube in enumerate(blocks):
+            if cube is not None and self._cube_tex_held[b] is not cube:
+                for f in range(6):
+                    texels = np.ascontiguousarray(
+                        np.stack([cube.depth_min[f], cube.depth_max[f]], axis=-1), np.float32
+                    )
+                    GL.glTexSubImage3D(
+                        GL.GL_TEXTURE_2D_ARRAY,
+                        0,
+                        0,
+                        0,
+                        6 * b + f,
+                        size,
+                        size,
+                        1,
+                        GL.GL_RG,
+                        GL.GL_FLOAT,
+                        texels,
+                    )
+            self._cube_tex_held[b] = cube
+        GL.glBindTexture(GL.GL_TEXTURE_2D_ARRAY, 0)
+        first = [6 * b if cube is not None else -1 for b, cube in enumerate(blocks)]
+        return first[:n] + (first[n:] if len(first) > n else [-1] * n)
+
+    def _lookup_framebuffer(self, rows: int) -> None:
+        """Four RGBA32F colour attachments of LOOKUP_TEXTURE_WIDTH x >= ``rows``."""
+        if self._lookup_fb is not None and rows <= self._lookup_rows:
+            return
+        if self._lookup_fb is not None:
+            GL.glDeleteFramebuffers(1, [self._lookup_fb])
+            GL.glDeleteRenderbuffers(len(self._lookup_rb), self._lookup_rb)
+        self._lookup_rows = rows
+        self._lookup_rb = [int(b) for b in GL.glGenRenderbuffers(4)]
+        self._lookup_fb = int(GL.glGenFramebuffers(1))
+        GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, self._lookup_fb)
+        for i, rb in enumerate(self._lookup_rb):
+            GL.glBindRenderbuffer(GL.GL_RENDERBUFFER, rb)
+            GL.glRenderbufferStorage(GL.GL_RENDERBUFFER, GL.GL_RGBA32F, LOOKUP_TEXTURE_WIDTH, rows)
+            GL.glFramebufferRenderbuffer(
+                GL.GL_FRAMEBUFFER, GL.GL_COLOR_ATTACHMENT0 + i, GL.GL_RENDERBUFFER, rb
+            )
+        GL.glDrawBuffers(4, [GL.GL_COLOR_ATTACHMENT0 + i for i in range(4)])
+        self._check_fb("cube lookup")
+        GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, 0)
+        GL.glBindRenderbuffer(GL.GL_RENDERBUFFER, 0)
+
+    def _cube_lookup(
+        self,
+        rel: np.ndarray,
+        normals: np.ndarray,
+        cubes: list[tuple[_CubeMap | None, _CubeMap | None]],
+        ranges: np.ndarray,
+    ) -> np.ndarray:
+        """Every point against every LocalLight's cube maps on the GPU (the test of
+        ``_cube_visibility``, in ``shaders/cube_lookup.frag``).
+
+        rel : (n, 3) float64 rel metres; normals : (n, 3) unit, facing the viewer;
+        ranges : (len(cubes),) light ranges in metres.
+        Returns (n, len(cubes)) float32: 1 lit, 0 shadowed / out of range / facing
+        away, -1 uncertain."""
+        n, n_local = len(rel), len(cubes)
+        self._platform.make_current()
+        self._lookup_setup()
+        first = self._upload_cubes(cubes)
+        width = LOOKUP_TEXTURE_WIDTH
+        rows = -(-n // width)
+        self._lookup_framebuffer(rows)
+        GL.glPixelStorei(GL.GL_UNPACK_ALIGNMENT, 1)
+        for tex, data in zip(self._point_tex, (rel, normals), strict=True):
+            texels = np.zeros((rows * width, 4), dtype=np.float32)
+            texels[:n, :3] = data
+            GL.glBindTexture(GL.GL_TEXTURE_2D, tex)
+            GL.glTexImage2D(
+                GL.GL_TEXTURE_2D, 0, GL.GL_RGBA32F, width, rows, 0, GL.GL_RGBA, GL.GL_FLOAT, texels
+            )
+        prog = self._lookup_program
+
+        def loc(name: str) -> int:
+            return GL.glGetUniformLocation(prog, name)
+
+        GL.glUseProgram(prog)
+        GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, self._lookup_fb)
+        GL.glViewport(0, 0, width, rows)
+        GL.glDisable(GL.GL_DEPTH_TEST)
+        GL.glDisable(GL.GL_SCISSOR_TEST)
+        GL.glDisable(GL.GL_BLEND)
+        GL.glDisable(GL.GL_CULL_FACE)
+        for unit, (target, tex) in enumerate(
+            [
+                (GL.GL_TEXTURE_2D, self._point_tex[0]),
+                (GL.GL_TEXTURE_2D, self._point_tex[1]),
+                (GL.GL_TEXTURE_2D_ARRAY, self._cube_tex),
+            ]
+        ):
+            GL.glActiveTexture(GL.GL_TEXTURE0 + unit)
+            GL.glBindTexture(target, tex)
+        GL.glUniform1i(loc("points"), 0)
+        GL.glUniform1i(loc("normals"), 1)
+        GL.glUniform1i(loc("cubes"), 2)
+        GL.glUniform1i(loc("n_points"), n)
+        GL.glUniform1i(loc("width"), width)
+        GL.glUniform1i(loc("size"), CUBE_MAP_SIZE)
+        GL.glUniform1f(loc("tan_half"), CUBE_MAP_SIZE / (CUBE_MAP_SIZE - 2.0 * CUBE_GUARD_TEXELS))
+        GL.glUniform1f(loc("bias_texels"), SHADOW_BIAS_TEXELS)
+        GL.glUniform1f(loc("box_radius"), SHADOW_REFINE_RADIUS + 0.5)
+        GL.glUniform1f(loc("slope_clamp"), 1.0 / SHADOW_MIN_COS)
+        GL.glBindVertexArray(self._lookup_vao)
+        out = np.zeros((n, n_local), dtype=np.float32)
+        readback = np.empty((rows, width, 4), dtype=np.float32)
+        GL.glPixelStorei(GL.GL_PACK_ALIGNMENT, 1)
+        for start in range(0, n_local, LOOKUP_LIGHTS_PER_PASS):
+            ks = list(range(start, min(start + LOOKUP_LIGHTS_PER_PASS, n_local)))
+            pad = LOOKUP_LIGHTS_PER_PASS - len(ks)
+            pos = [self._cube_keys[k][0] for k in ks]
+            near = [
+                (c[0] or c[1]).near if (c[0] or c[1]) is not None else 0.0
+                for c in (cubes[k] for k in ks)
+            ]
+            # A light without any cube (no casters at all) is lit within its range:
+            # its layers stay -1 and cube_test answers 1.
+            pos_arr = np.zeros((LOOKUP_LIGHTS_PER_PASS, 3), np.float32)
+            pos_arr[: len(ks)] = pos
+            GL.glUniform1i(loc("n_lights"), len(ks))
+            GL.glUniform3fv(loc("light_pos"), LOOKUP_LIGHTS_PER_PASS, pos_arr)
+            GL.glUniform1fv(
+                loc("light_range"),
+                LOOKUP_LIGHTS_PER_PASS,
+                np.array([ranges[k] for k in ks] + [0.0] * pad, np.float32),
+            )
+            GL.glUniform1fv(
+                loc("light_near"), LOOKUP_LIGHTS_PER_PASS, np.array(near + [0.0] * pad, np.float32)
+            )
+            GL.glUniform1iv(
+                loc("static_layer"),
+                LOOKUP_LIGHTS_PER_PASS,
+                np.array([first[k] for k in ks] + [-1] * pad, np.int32),
+            )
+            GL.glUniform1iv(
+                loc("dynamic_layer"),
+                LOOKUP_LIGHTS_PER_PASS,
+                np.array([first[n_local + k] for k in ks] + [-1] * pad, np.int32),
+            )
+            GL.glDrawArrays(GL.GL_TRIANGLES, 0, 3)
+            for att in range(-(-len(ks) // 4)):
+                GL.glReadBuffer(GL.GL_COLOR_ATTACHMENT0 + att)
+                GL.glReadPixels(0, 0, width, rows, GL.GL_RGBA, GL.GL_FLOAT, readback)
+                cols = ks[4 * att : 4 * att + 4]
+                out[:, cols] = readback.reshape(-1, 4)[:n, : len(cols)]
+        GL.glBindVertexArray(0)
+        for unit, target in enumerate((GL.GL_TEXTURE_2D, GL.GL_TEXTURE_2D, GL.GL_TEXTURE_2D_ARRAY)):
+            GL.glActiveTexture(GL.GL_TEXTURE0 + unit)
+            GL.glBindTexture(target, 0)
+        GL.glActiveTexture(GL.GL_TEXTURE0)
+        GL.glUseProgram(0)
+        GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, 0)
+        GL.glEnable(GL.GL_DEPTH_TEST)
         return out
 
     # ------------------------------------------------------------------ lifetime

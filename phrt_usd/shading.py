@@ -49,6 +49,15 @@ LIGHT_CUTOFF_IRRADIANCE = 0.02
 #: Blinn-Phong exponent of the specular highlight (one value for every material).
 SHININESS = 64.0
 
+#: SHININESS = 2**k: the highlight's power is computed as k squarings (else with pow).
+_SHININESS_SQUARINGS = (
+    int(np.log2(SHININESS))
+    if SHININESS >= 1
+    and float(SHININESS).is_integer()
+    and (int(SHININESS) & (int(SHININESS) - 1)) == 0
+    else None
+)
+
 #: Weight of the white Blinn-Phong highlight relative to the diffuse term.
 SPECULAR_STRENGTH = 0.25
 
@@ -251,52 +260,82 @@ def shade_local(
     colour += np.broadcast_to(np.asarray(emissive, dtype=np.float32), (n, 3))
     if not lights.has_direct or n == 0:
         return colour.astype(np.float32)
+    # Per point and light colour: the summed diffuse weights (cosine x fall-off x
+    # visibility) and highlight weights of the lights of that radiance, times the
+    # radiance once at the end (lamps usually share a colour: the sewer's 13 lights
+    # have 2, so 2 instead of 13 (n, 3) products).
+    radiance, group = np.unique(
+        np.array(
+            [li.radiance for li in lights.distant] + [li.radiance for li in lights.local],
+            dtype=np.float32,
+        ).reshape(-1, 3),
+        axis=0,
+        return_inverse=True,
+    )
+    group = group.reshape(-1)
+    diffuse = np.zeros((len(radiance), n), dtype=np.float32)
+    highlight = np.zeros((len(radiance), n), dtype=np.float32)
     for j, light in enumerate(lights.distant):
         d = np.asarray(light.direction, dtype=np.float64)
         l_dir = (d / max(np.linalg.norm(d), _MIN_DIRECTION_LENGTH)).astype(np.float32)
         lit = np.maximum(normals @ l_dir, 0.0)
         if visibility is not None:
             lit = lit * visibility[:, j]
-        radiance = np.asarray(light.radiance, dtype=np.float32)
-        _add_light(colour, None, normals, albedo, to_eye, l_dir[None, :], lit, radiance)
+        idx = np.flatnonzero(lit > 0.0)
+        lit = lit[idx]
+        diffuse[group[j], idx] += lit
+        highlight[group[j], idx] += lit * _highlight(
+            np.take(normals, idx, axis=0), np.take(to_eye, idx, axis=0), l_dir[None, :]
+        )
     n_distant = len(lights.distant)
     ranges = light_ranges(lights)
     for k, light in enumerate(lights.local):
         j = n_distant + k
-        to_light = np.asarray(light.position, dtype=np.float64) - positions
+        # Only points that see the light (visibility > 0), within its range (the window
+        # is exactly 0 beyond) and on the lit side of their normal are shaded.
+        if visibility is None:
+            cand = np.arange(n)
+            to_light = np.asarray(light.position, dtype=np.float64) - positions
+        else:
+            cand = np.flatnonzero(visibility[:, j] > 0.0)
+            to_light = np.asarray(light.position, dtype=np.float64) - np.take(
+                positions, cand, axis=0
+            )
         dist2 = np.einsum("ij,ij->i", to_light, to_light)
-        # Only points within the light's range (everything else gets exactly 0 from the
-        # window) and on the lit side of their normal are shaded.
         near = np.flatnonzero(dist2 < ranges[j] ** 2)
         dist = np.maximum(np.sqrt(dist2[near]), MIN_LIGHT_DISTANCE)
         l_dir = (to_light[near] / dist[:, None]).astype(np.float32)
-        n_dot_l = np.einsum("ij,ij->i", normals[near], l_dir)
+        idx = cand[near]
+        nrm = np.take(normals, idx, axis=0)
+        n_dot_l = np.einsum("ij,ij->i", nrm, l_dir)
         front = np.flatnonzero(n_dot_l > 0.0)
-        idx = near[front]
-        dist = dist[front]
+        if len(front) < len(idx):
+            idx, nrm, l_dir = idx[front], nrm[front], l_dir[front]
+            dist, n_dot_l = dist[front], n_dot_l[front]
         # 1/d² in float64: d up to ~1e154 stays finite, and the float32 cast of a tiny
         # fall-off underflows to 0 instead of overflowing d² to Inf.
-        lit = (n_dot_l[front] * range_window(dist, ranges[j]) / dist**2).astype(np.float32)
+        lit = (n_dot_l * range_window(dist, ranges[j]) / dist**2).astype(np.float32)
         if visibility is not None:
-            lit = lit * visibility[idx, j]
-        radiance = np.asarray(light.radiance, dtype=np.float32)
-        _add_light(colour, idx, normals, albedo, to_eye, l_dir[front], lit, radiance)
+            lit *= visibility[idx, j]
+        # idx has no repeats, so the buffered fancy-index += is exact.
+        diffuse[group[j], idx] += lit
+        highlight[group[j], idx] += lit * _highlight(nrm, np.take(to_eye, idx, axis=0), l_dir)
+    for g, rad in enumerate(radiance):
+        colour += (albedo * diffuse[g][:, None] + highlight[g][:, None]) * rad
     return colour.astype(np.float32)
 
 
-def _add_light(colour, idx, normals, albedo, to_eye, l_dir, lit, radiance) -> None:
-    """colour[idx] += (albedo + Blinn-Phong highlight) * lit * radiance, for the points
-    ``idx`` (m,) (None: all n). l_dir (m, 3) or (1, 3) float32 unit directions to the
-    light, lit (m,) the cosine times fall-off times visibility, radiance (3,)."""
-    if idx is not None:
-        normals, albedo, to_eye = normals[idx], albedo[idx], to_eye[idx]
+def _highlight(normals: np.ndarray, to_eye: np.ndarray, l_dir: np.ndarray) -> np.ndarray:
+    """(m,) float32 Blinn-Phong highlight SPECULAR_STRENGTH * max(n·h, 0)**SHININESS for
+    unit normals, directions to the eye (m, 3) and to the light (m, 3) or (1, 3)."""
     half = l_dir + to_eye
     half_len = np.sqrt(np.einsum("ij,ij->i", half, half))
     # l and the eye direction exactly opposite: no meaningful half vector, no highlight.
     n_dot_h = np.einsum("ij,ij->i", normals, half) / np.maximum(half_len, 1e-12)
-    spec = SPECULAR_STRENGTH * np.maximum(n_dot_h, 0.0) ** SHININESS
-    term = (albedo + spec[:, None]) * (lit[:, None] * radiance[None, :])
-    if idx is None:
-        colour += term
+    x = np.maximum(n_dot_h, 0.0)
+    if _SHININESS_SQUARINGS is not None:  # x**64 as 6 squarings: ~10x faster than pow
+        for _ in range(_SHININESS_SQUARINGS):
+            x *= x
     else:
-        colour[idx] += term  # idx has no repeats
+        x = x**SHININESS
+    return SPECULAR_STRENGTH * x

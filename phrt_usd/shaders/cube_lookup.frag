@@ -1,0 +1,116 @@
+#version 330 core
+// LocalLight shadow lookups, fragment stage: one fragment per query point, up to 16
+// lights per pass (4 per colour attachment). The same test as gbuffer._cube_visibility
+// (see there and _CubeMap for the cube layout); keep the two in step.
+//
+// Inputs (textures, texelFetch only):
+//   points  : RGBA32F, (x, y, z) origin-relative world metres of point k at texel
+//             (k % width, k / width)
+//   normals : RGBA32F, (x, y, z) unit shading normal facing the viewer, same layout
+//   cubes   : RG32F 2D array, (min, max) caster forward distance over the texel
+//             neighbourhood; layer = cube's first layer + face
+// Output per light: 1 lit, 0 shadowed / out of range / facing away, -1 uncertain.
+
+uniform sampler2D points;
+uniform sampler2D normals;
+uniform sampler2DArray cubes;
+uniform int n_points;
+uniform int width;
+uniform int n_lights;           // lights in this pass, <= 16
+uniform vec3 light_pos[16];     // origin-relative metres
+uniform float light_range[16];  // metres; 0 = the light reaches nothing
+uniform float light_near[16];   // the cube faces' near plane, metres
+uniform int static_layer[16];   // first layer of the static casters' cube, -1 = none
+uniform int dynamic_layer[16];  // first layer of the animated casters' cube, -1 = none
+uniform int size;               // texels per face side
+uniform float tan_half;         // tangent of a face's half field of view
+uniform float bias_texels;      // SHADOW_BIAS_TEXELS
+uniform float box_radius;       // SHADOW_REFINE_RADIUS + 0.5 (nearest-texel offset)
+uniform float slope_clamp;      // 1 / SHADOW_MIN_COS
+
+layout(location = 0) out vec4 out0;
+layout(location = 1) out vec4 out1;
+layout(location = 2) out vec4 out2;
+layout(location = 3) out vec4 out3;
+
+float cube_test(int layer, int face, ivec2 texel_xy, float test)
+{
+    if (layer < 0) {
+        return 1.0;
+    }
+    vec2 mm = texelFetch(cubes, ivec3(texel_xy, layer + face), 0).rg;
+    if (test <= mm.x) {
+        return 1.0;
+    }
+    if (test > mm.y) {
+        return 0.0;
+    }
+    return -1.0;
+}
+
+float lookup(int j, vec3 p, vec3 n)
+{
+    vec3 v = p - light_pos[j];
+    float r = light_range[j];
+    float ndv = dot(n, v);
+    if (dot(v, v) >= r * r || ndv >= 0.0) {
+        return 0.0;  // out of range, or the light is behind the surface
+    }
+    vec3 a = abs(v);
+    int axis;
+    float w;
+    float major;
+    vec2 bc;
+    vec2 nbc;
+    if (a.x >= a.y && a.x >= a.z) {
+        axis = 0; w = a.x; major = v.x; bc = v.yz; nbc = n.yz;
+    } else if (a.y >= a.z) {
+        axis = 1; w = a.y; major = v.y; bc = v.xz; nbc = n.xz;
+    } else {
+        axis = 2; w = a.z; major = v.z; bc = v.xy; nbc = n.xy;
+    }
+    if (w <= light_near[j]) {
+        return 1.0;
+    }
+    int face = 2 * axis + (major < 0.0 ? 1 : 0);
+    float texel = 2.0 * tan_half * w / float(size);
+    float slope = min(texel * w * (abs(nbc.x) + abs(nbc.y)) / max(-ndv, 1e-30),
+                      slope_clamp * texel);
+    float test = w - texel * bias_texels - box_radius * slope;
+    vec2 f = floor(bc / w * (0.5 * float(size) / tan_half) + 0.5 * float(size));
+    ivec2 t = clamp(ivec2(f), ivec2(0), ivec2(size - 1));
+    float vs = cube_test(static_layer[j], face, t, test);
+    if (vs == 0.0) {
+        return 0.0;
+    }
+    float vd = cube_test(dynamic_layer[j], face, t, test);
+    if (vd == 0.0) {
+        return 0.0;
+    }
+    return min(vs, vd);  // -1 if either is uncertain, else 1
+}
+
+void main()
+{
+    ivec2 xy = ivec2(gl_FragCoord.xy);
+    int k = xy.y * width + xy.x;
+    float result[16];
+    for (int j = 0; j < 16; ++j) {
+        result[j] = 0.0;
+    }
+    if (k < n_points) {
+        vec3 p = texelFetch(points, xy, 0).xyz;
+        vec3 n = texelFetch(normals, xy, 0).xyz;
+        // Constant trip count: the compiler unrolls it, so every array index is a
+        // constant (dynamic indexing of local arrays is slow in llvmpipe).
+        for (int j = 0; j < 16; ++j) {
+            if (j < n_lights) {
+                result[j] = lookup(j, p, n);
+            }
+        }
+    }
+    out0 = vec4(result[0], result[1], result[2], result[3]);
+    out1 = vec4(result[4], result[5], result[6], result[7]);
+    out2 = vec4(result[8], result[9], result[10], result[11]);
+    out3 = vec4(result[12], result[13], result[14], result[15]);
+}
