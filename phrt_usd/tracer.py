@@ -610,8 +610,8 @@ class Tracer:
             w_local = w * alpha * (1.0 - f)
             lit = np.flatnonzero(w_local > 0)
             if len(lit) < len(r):
-                shade_at = (rel[lit], ng[lit], ns[lit], albedo[lit], d_in[lit])
-                em = emissive[lit] if emissive.ndim == 2 else emissive
+                shade_at = tuple(np.take(a, lit, axis=0) for a in (rel, ng, ns, albedo, d_in))
+                em = np.take(emissive, lit, axis=0) if emissive.ndim == 2 else emissive
             else:
                 shade_at = (rel, ng, ns, albedo, d_in)
                 em = emissive
@@ -636,7 +636,7 @@ class Tracer:
             d_refl = d_in - (2.0 * np.einsum("ij,ij->i", d_in, ns))[:, None] * ns
             w_refl = w * alpha * f
             go = np.flatnonzero(w_refl > 0)
-            c_dir, c_idx, c_w = d_refl[go], go, w_refl[go]
+            c_dir, c_idx, c_w = np.take(d_refl, go, axis=0), go, w_refl[go]
             c_refr = np.zeros(len(go), dtype=bool)
             if split:
                 w_refr = w * (1.0 - alpha)
@@ -655,7 +655,7 @@ class Tracer:
                     env = shading.environment_radiance(lights, c_dir)
                     _add(radiance, slot_r[c_idx], c_w[:, None] * env, split)
                 break
-            origins = self._offset(rel[c_idx], ng[c_idx], c_dir)
+            origins = self._offset(np.take(rel, c_idx, axis=0), np.take(ng, c_idx, axis=0), c_dir)
             dirs = c_dir
             slot = slot_r[c_idx]
             r_src = r_src[r][c_idx]
