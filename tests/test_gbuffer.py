@@ -605,3 +605,95 @@ def test_paper_stage_ids(name, tmp_path):
 
 if os.environ.get("PYOPENGL_PLATFORM", "osmesa") != "osmesa":  # pragma: no cover
     pytestmark = pytest.mark.skip("these tests expect the OSMesa platform")
+
+
+@pytest.mark.parametrize("offset", [np.zeros(3), np.array([1e6, -2e5, 3e6])])
+def test_local_light_cube_shadows_match_shadow_rays(offset, tmp_path):
+    """A point light over a table: the cube maps alone agree with Embree shadow rays on
+    most of the floor, the GPU lookup agrees with its numpy reference, and with
+    ``refine`` resolving the uncertain pairs the answer is (nearly) exact. Pairs out
+    of the light's range or facing away get 0, as the tracer reports them."""
+    from phrt_usd import shading
+    from phrt_usd.scene import LocalLight
+    from phrt_usd.tracer import Tracer
+
+    light = LocalLight(np.array([0.6, 3.5, 0.4]) + offset, np.full(3, 20.0))
+    far_light = LocalLight(np.array([0.0, 1.0, -30.0]) + offset, np.full(3, 0.02))
+    lights = Lights(local=[light, far_light])
+    parts = [
+        {"mesh": floor_mesh(size=10.0), "color": (0.6, 0.6, 0.6), "path": "/World/floor"},
+        {"mesh": box((2.0, 0.1, 1.5), (0.0, 1.5, 0.0)), "color": (0.8, 0.2, 0.2)},
+        {"mesh": box((0.05, 1.5, 0.05), (-1.5, 0.75, 1.0)), "color": (0.2, 0.8, 0.2)},
+    ]
+    scene = build_scene(parts, offset=offset, lights=lights)
+    cam = look_at(np.array([0.0, 7.0, 8.0]) + offset, offset)
+    tracer = Tracer(scene, threads=1)
+    with Rasterizer(scene, W, H) as r:
+        g = r.render(cam)
+        floor = g.element_id == 0
+        pos, nrm = g.position[floor], g.normal[floor]
+        vis = r.shadow_visibility(pos, nrm)
+        assert vis.shape == (len(pos), 2) and vis.dtype == np.float32
+        cube_static, cube_dynamic = r.cube_maps()[0]
+        assert cube_dynamic is None and r.cube_maps()[0][0] is cube_static  # cached
+        r.cube_lookup_on_gpu = False
+        vis_numpy = r.shadow_visibility(pos, nrm)
+        r.cube_lookup_on_gpu = True
+        calls = []
+
+        def refine(p, n, pairs):
+            calls.append(int(pairs.sum()))
+            return tracer.shadow_visibility(p, n, pairs=pairs)
+
+        refined = r.shadow_visibility(pos, nrm, refine=refine)
+        assert calls == [r.last_refined_pairs] and 0 < r.last_refined < 0.2 * len(pos)
+    exact = tracer.shadow_visibility(pos, nrm)
+    occ = exact[:, 0] < 0.5
+    assert 0.05 < occ.mean() < 0.6  # the table does shadow the floor
+    agree = float(np.mean((vis[:, 0] >= 0.5) == ~occ))
+    if agree < SHADOW_AGREEMENT:
+        img = np.full((H, W), -1)
+        img[floor] = (vis[:, 0] >= 0.5).astype(int) + 2 * occ.astype(int)
+        save_ids(tmp_path / "cube_disagreement.png", img)
+    print(
+        f"cube shadows: {occ.mean():.2%} shadowed, agreement {agree:.4%}, {r.last_refined} refined"
+    )
+    assert agree >= SHADOW_AGREEMENT, f"cube-map shadows agree on {agree:.4%}"
+    assert np.mean(np.abs(vis - vis_numpy) < 1e-6) >= 0.999  # GPU = numpy reference
+    assert float(np.mean((refined[:, 0] >= 0.5) == ~occ)) >= 0.999
+    # The far, dim light reaches only 1 m: nothing on this floor is in its range.
+    reach = shading.light_ranges(lights)[1]
+    assert np.all(np.linalg.norm(pos - far_light.position, axis=1) > reach)
+    assert np.all(vis[:, 1] == 0.0) and np.all(exact[:, 1] == 0.0)
+    # Facing away from the light: 0 without any lookup answer to the contrary.
+    down = np.tile([0.0, -1.0, 0.0], (len(pos), 1))
+    with Rasterizer(scene, W, H) as r:
+        assert np.all(r.shadow_visibility(pos, down)[:, 0] == 0.0)
+    assert np.all(tracer.shadow_visibility(pos, down)[:, 0] == 0.0)
+
+
+def test_local_light_animated_caster_updates_its_cube_only():
+    """An animated box casts into its own cube map: moving it re-renders that one, keeps
+    the static cube, and moves the shadow."""
+    from phrt_usd.scene import LocalLight
+
+    light = LocalLight(np.array([0.0, 4.0, 0.0]), np.full(3, 10.0))
+    parts = [
+        {"mesh": floor_mesh(size=12.0), "color": (0.6, 0.6, 0.6)},
+        {"mesh": box((1.0, 1.0, 1.0), (-2.0, 1.5, 0.0)), "color": (0.8, 0.2, 0.2)},
+    ]
+    scene = build_scene(parts, lights=Lights(local=[light]))
+    scene.elements[1].animated = True
+    # Straight below the box as seen from the light, before and after it moves by +4 m x.
+    below = np.array([[-3.0, 0.0, 0.0], [3.0, 0.0, 0.0]])
+    up = np.tile([0.0, 1.0, 0.0], (2, 1))
+    with Rasterizer(scene, W, H) as r:
+        np.testing.assert_array_equal(r.shadow_visibility(below, up)[:, 0], [0, 1])
+        static_before, dynamic_before = r.cube_maps()[0]
+        assert static_before is not None and dynamic_before is not None
+        box_vertices = scene.geometry.triangles[scene.geometry.tri_element == 1].ravel()
+        scene.geometry.vertices[np.unique(box_vertices)] += np.array([4.0, 0.0, 0.0])
+        r.update_geometry(scene)
+        np.testing.assert_array_equal(r.shadow_visibility(below, up)[:, 0], [1, 0])
+        static_after, dynamic_after = r.cube_maps()[0]
+        assert static_after is static_before and dynamic_after is not dynamic_before

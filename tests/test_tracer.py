@@ -405,3 +405,51 @@ def test_replay_raw_uses_the_same_rays():
     res = tracer.trace_reflections(gb, [0], 5)
     rays, seconds = tracer.replay_raw()
     assert rays == res.rays and seconds > 0
+
+
+def test_grazing_shading_normals_follow_the_rasterizer_rule():
+    """Where the interpolated normal faces along the view ray (strongly tilted corner
+    normals seen at grazing angles), the tracer uses the geometric normal like the
+    rasterizer does, instead of flipping the shading normal into the surface."""
+    from phrt_usd.gbuffer import Rasterizer
+
+    floor = quad(20.0)
+    scene = make_scene([{"mesh": floor}])
+    tilt = np.array([0.8, 0.6, 0.0], np.float32)  # leans towards +X, away from the camera
+    scene.geometry.corner_normals[:] = tilt
+    cam = look_at([-8.0, 1.0, 0.0], [0.0, 0.0, 0.0])  # looking along +X, grazing
+    w, h = 96, 72
+    tracer = Tracer(scene, threads=1)
+    rt = tracer.primary_gbuffer(cam, w, h)
+    with Rasterizer(scene, w, h) as r:
+        raster = r.render(cam)
+    both = (rt.triangle_id >= 0) & (rt.triangle_id == raster.triangle_id)
+    assert both.sum() > 500
+    view = rt.view_dir[both]
+    tilted_away = np.einsum("ij,j->i", view, tilt) >= 0.0
+    assert tilted_away.mean() > 0.5  # the case under test is common in this view
+    np.testing.assert_allclose(rt.normal[both], raster.normal[both], atol=1e-4)
+    up = np.broadcast_to([0.0, 1.0, 0.0], (int(tilted_away.sum()), 3))
+    np.testing.assert_allclose(rt.normal[both][tilted_away], up, atol=1e-6)
+    assert np.all(np.einsum("ij,ij->i", rt.normal[both], view) < 0.0)  # faces the eye
+
+
+def test_shadow_rays_only_within_light_range_and_facing():
+    """No shadow ray for a point beyond a LocalLight's range or behind its normal; such
+    pairs report 0 (the light adds nothing there) and the rest are traced."""
+    from phrt_usd import shading
+    from phrt_usd.scene import LocalLight
+
+    intensity = 2.0
+    light = LocalLight(np.array([0.0, 1.0, 0.0]), np.full(3, intensity))
+    reach = shading.light_ranges(Lights(local=[light]))[0]
+    scene = make_scene([{"mesh": quad(1.0, center=(0.0, -50.0, 0.0))}], Lights(local=[light]))
+    tracer = Tracer(scene, threads=1)
+    pts = np.array([[0.5 * reach, 0.0, 0.0], [1.5 * reach, 0.0, 0.0], [0.0, 0.0, 0.0]])
+    normals = np.array([[0.0, 1.0, 0.0], [0.0, 1.0, 0.0], [0.0, -1.0, 0.0]])
+    tracer.reset_counters()
+    vis = tracer.shadow_visibility(pts, normals)
+    np.testing.assert_array_equal(vis[:, 0], [1.0, 0.0, 0.0])
+    assert tracer.rays_cast["shadow"] == 1
+    pairs = np.array([[False], [True], [True]])
+    assert tracer.shadow_visibility(pts, normals, pairs=pairs)[0, 0] == 0.0  # not asked
