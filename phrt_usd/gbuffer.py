@@ -1,4 +1,4 @@
-"""Rasterized G-buffer with exact triangle ids, and shadow maps for distant lights.
+"""Rasterized G-buffer with exact triangle ids, and shadow maps for every light.
 
 Pipeline, per phase:
 
@@ -27,6 +27,19 @@ Pipeline, per phase:
    texel neighbourhood holds both occluding and clear depths (shadow edges, casters
    thinner than a texel) are *uncertain*; given a ``refine`` callable (the tracer's
    shadow rays) only those get an exact answer (~2-15 % of the points on the farm).
+5. **Cube shadow maps** (LocalLights, same ``shadow_visibility`` call). Per light, six
+   90° perspective depth renders (CUBE_MAP_SIZE², plus a guard band) of the static
+   casters out to the light's range (``shading.light_ranges``), and six of the animated
+   casters when there are any; cached like the distant maps and re-rendered only for
+   a light that moved / changed range or geometry that moved. The per-point test runs
+   on the GPU (``shaders/cube_lookup.frag``: one fragment per point, 16 lights a pass;
+   ``_cube_visibility`` is its numpy twin): only points within the light's range and
+   facing it are looked up, with a bias that follows the receiver's own depth slope;
+   the nearest texel's neighbourhood min / max decide lit / shadowed / *uncertain*.
+   Uncertain pairs go to ``refine`` (hybrid) or get 2x2 PCF in numpy (raster mode).
+   Measured on the sewer (13 lights, 320x240): ~1.1 s to render all cubes once; the
+   lookup ~20-25 ms of CPU time per frame (llvmpipe spreads it over the cores), about
+   3 % of (point, light) pairs uncertain.
 
 Coordinate spaces: "world" is ``Scene`` world metres (float64); "rel" is world minus
 ``Scene.origin`` (what OpenGL sees, float32 on the GPU, float64 in numpy).
@@ -35,7 +48,8 @@ Limits: opaque triangles only (transmission is a tracer concern); one OpenGL con
 ``Rasterizer``; triangle count must stay below 2**32 - 1 (id encoding). Element
 ``animated`` flags and materials are read when the topology is uploaded (``__init__``,
 or ``update_geometry`` with a changed topology). Without ``refine``, casters much
-thinner than a shadow-map texel (scene extent / 2048) cast broken shadows. Coincident
+thinner than a shadow-map texel (scene extent / 2048) cast broken shadows; cube maps
+miss casters nearer to the light than CUBE_NEAR_FRACTION of its range. Coincident
 (coplanar, overlapping) surfaces z-fight here as they do in Embree: either may win.
 """
 

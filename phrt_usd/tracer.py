@@ -27,7 +27,12 @@ done. Shadow rays treat transmissive surfaces as opaque.
 Robustness: G-buffer positions (possibly from a depth buffer) are first projected onto
 their triangle's plane, then every ray origin is offset by ``RAY_OFFSET_*`` along the
 geometric normal, on the side the ray leaves to. Where a hit's local term has no weight
-(F = 1 mirrors, α = 0 glass) neither shading nor shadow rays are computed.
+(F = 1 mirrors, α = 0 glass) neither shading nor shadow rays are computed, and shadow
+rays go only to lights in front of the shading normal and, for LocalLights, within
+their range (``shading.light_ranges``): all (point, light) pairs of a batch are chosen
+on (n, L) arrays and built into one float32 Embree batch. Shading normals follow the
+rasterizer's rule (``_surface``), so ``rt`` and the raster G-buffer agree at grazing
+pixels.
 
 Threads: embreex releases the GIL inside ``run``, so batches of ≥ ``PARALLEL_MIN_RAYS``
 rays are split over a two-thread pool (measured on this 2-core machine: 76.8k rays on an
