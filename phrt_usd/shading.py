@@ -219,6 +219,12 @@ def light_ranges(lights: Lights) -> np.ndarray:
     return np.concatenate([np.full(len(lights.distant), np.inf), ranges])
 
 
+def _window(distance: np.ndarray, light_range: np.ndarray) -> np.ndarray:
+    """``range_window`` with a range per distance (both (m,) float64; ranges > 0)."""
+    x = (distance / light_range) ** 2
+    return np.clip(1.0 - x * x, 0.0, 1.0) ** 2
+
+
 def range_window(distance: np.ndarray, light_range: float) -> np.ndarray:
     """Smooth cut-off factor (n,) float64 in [0, 1] of a LocalLight at ``distance`` (n,)
     metres: ``clamp(1 - (d / r)**4, 0, 1)**2`` (the Frostbite / Unreal window): 1 near
@@ -238,6 +244,7 @@ def shade_local(
     emissive: np.ndarray,
     lights: Lights,
     visibility: np.ndarray | None,
+    local_pairs: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None,
 ) -> np.ndarray:
     """Direct + ambient + emitted radiance leaving surface points towards the viewer.
 
@@ -249,6 +256,12 @@ def shade_local(
     emissive   : (n, 3) linear RGB, or (3,) for all points
     visibility : (n, L) in [0, 1] (1 = lit), L = len(distant) + len(local) in that order;
                  None means everything is lit
+    local_pairs : optional (point (m,), light (m,) index into ``lights.local``, l_dir
+                 (m, 3) unit directions to the light, dist (m,) metres): the lit
+                 (point, LocalLight) pairs, already known to be visible, in range and
+                 in front of the normal (the tracer has them from its shadow rays).
+                 They replace the LocalLight columns of ``visibility``, and the same
+                 model is evaluated on them without recomputing directions.
     Returns (n, 3) float32 linear RGB.
     """
     positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
@@ -289,7 +302,22 @@ def shade_local(
         )
     n_distant = len(lights.distant)
     ranges = light_ranges(lights)
-    for k, light in enumerate(lights.local):
+    if local_pairs is not None:
+        point, light, l_dir, dist = local_pairs
+        j = n_distant + np.asarray(light, np.int64)
+        nrm = np.take(normals, point, axis=0)
+        l_dir = np.asarray(l_dir, np.float32)
+        dist = np.maximum(np.asarray(dist, np.float64), MIN_LIGHT_DISTANCE)
+        n_dot_l = np.maximum(np.einsum("ij,ij->i", nrm, l_dir), 0.0)
+        lit = (n_dot_l * _window(dist, ranges[j]) / dist**2).astype(np.float32)
+        spec = lit * _highlight(nrm, np.take(to_eye, point, axis=0), l_dir)
+        # Pairs of one light never repeat a point, but several lights share a colour
+        # group: sum with bincount over (group, point).
+        key = group[j] * n + point
+        size = len(radiance) * n
+        diffuse += np.bincount(key, weights=lit, minlength=size).reshape(-1, n)
+        highlight += np.bincount(key, weights=spec, minlength=size).reshape(-1, n)
+    for k, light in enumerate([] if local_pairs is not None else lights.local):
         j = n_distant + k
         # Only points that see the light (visibility > 0), within its range (the window
         # is exactly 0 beyond) and on the lit side of their normal are shaded.

@@ -350,7 +350,8 @@ class Tracer:
     # ------------------------------------------------------------------ shadows
 
     def _shadow(self, rel, offset_normals, shading_normals, lights: Lights, pairs=None):
-        """(n, L) float32 visibility and (n,) int64 shadow rays cast per point, for
+        """(n, L) float32 visibility, (n,) int64 shadow rays cast per point and the lit
+        LocalLight pairs (``shading.shade_local``'s ``local_pairs``, or None), for
         render-relative positions ``rel`` (n, 3) and render-relative ``lights``.
 
         Rays are cast only where they can matter: the light in front of the shading
@@ -364,7 +365,7 @@ class Tracer:
         n_distant = len(lights.distant)
         n_lights = n_distant + len(lights.local)
         if not lights.has_direct or n == 0:
-            return np.ones((n, n_lights), np.float32), np.zeros(n, np.int64)
+            return np.ones((n, n_lights), np.float32), np.zeros(n, np.int64), None
         rel = np.asarray(rel, np.float64)
         ns = np.asarray(shading_normals, np.float32)
         # (L, 3) light directions (distant, unit) and positions (local), float64.
@@ -398,6 +399,7 @@ class Tracer:
         ng32 = np.asarray(offset_normals, np.float32)
         eps = self._epsilon(rel).astype(np.float32)
         batches = []  # (point, light, dirs (m, 3), tfar (m,), p (m, 3), eps (m,)) per kind
+        local = None
         if n_distant:
             point, light = np.nonzero(want[:, :n_distant])
             d = np.take(dirs.astype(np.float32), light, axis=0)
@@ -413,10 +415,10 @@ class Tracer:
             dist = np.sqrt(np.einsum("ij,ij->i", to, to))
             np.maximum(dist, np.float32(shading.MIN_LIGHT_DISTANCE), out=dist)
             to /= dist[:, None]
+            local = (point, light, to, dist)
             # Stop short of the light by the offset so the light's own position is free.
-            dist -= e
-            np.maximum(dist, np.float32(0.0), out=dist)
-            batches.append((point, light + n_distant, to, dist, p, e))
+            tfar = np.maximum(dist - e, np.float32(0.0))
+            batches.append((point, light + n_distant, to, tfar, p, e))
         point, light, d, tfar, p, e = (
             np.concatenate(parts) if len(batches) > 1 else parts[0]
             for parts in zip(*batches, strict=True)
@@ -428,8 +430,11 @@ class Tracer:
             ng += p  # the offset origins
             occluded = self._run("OCCLUDED", ng, d, tfar)
             vis.reshape(-1)[point * n_lights + light] = ~occluded
+            if local is not None:  # the lit LocalLight pairs, for shade_local
+                free = np.flatnonzero(~occluded[len(point) - len(local[0]) :])
+                local = tuple(np.take(a, free, axis=0) for a in local)
             self.rays_cast["shadow"] += m
-        return vis, np.bincount(point, minlength=n).astype(np.int64)
+        return vis, np.bincount(point, minlength=n).astype(np.int64), local
 
     def shadow_visibility(
         self,
@@ -454,7 +459,7 @@ class Tracer:
         if triangle_ids is not None:
             tri = np.asarray(triangle_ids, np.int64).reshape(-1)
             rel, _ = self._snap_to_triangles(rel, tri, normals)
-        vis, _ = self._shadow(rel, normals, normals, self._relative_lights(), pairs)
+        vis, _, _ = self._shadow(rel, normals, normals, self._relative_lights(), pairs)
         return vis
 
     # ------------------------------------------------------------------ primary rays
@@ -620,13 +625,20 @@ class Tracer:
             else:
                 shade_at = (rel, ng, ns, albedo, d_in)
                 em = emissive
-            vis, shadow_rays = self._shadow(*shade_at[:3], lights)
+            vis, shadow_rays, lit_pairs = self._shadow(*shade_at[:3], lights)
             if lights.has_direct:
                 rays_src += np.bincount(r_src[r[lit]], weights=shadow_rays, minlength=n_src).astype(
                     np.int64
                 )
             local = shading.shade_local(
-                shade_at[0], shade_at[2], shade_at[3], shade_at[4], em, lights, vis
+                shade_at[0],
+                shade_at[2],
+                shade_at[3],
+                shade_at[4],
+                em,
+                lights,
+                vis,
+                lit_pairs,
             )
             _add(radiance, slot_r[lit], w_local[lit, None] * local, split)
             ch = chain[r] + refl

@@ -166,3 +166,42 @@ def test_sample_texture_st_origin_bottom_left():
     tex[3, 0] = 1.0  # bottom-left texel
     got = shading.sample_texture(tex, np.array([[0.125, 0.125], [0.875, 0.875]]))
     np.testing.assert_allclose(got, [[1, 1, 1], [0, 0, 0]])
+
+
+def test_local_pairs_give_the_same_shading_as_visibility():
+    """The tracer's shortcut (lit LocalLight pairs with their directions) evaluates the
+    same model as the (n, L) visibility matrix."""
+    rng = np.random.default_rng(3)
+    n = 500
+    pos = rng.uniform(-6.0, 6.0, (n, 3))
+    nrm = rng.normal(size=(n, 3))
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    view = rng.normal(size=(n, 3))
+    view /= np.linalg.norm(view, axis=1, keepdims=True)
+    albedo = rng.uniform(0.0, 1.0, (n, 3)).astype(np.float32)
+    lights = Lights(
+        distant=[DistantLight(np.array([0.3, 1.0, 0.2]), np.array([1.0, 0.9, 0.8]))],
+        local=[
+            LocalLight(np.array([1.0, 2.0, 0.0]), np.full(3, 0.5)),  # range 5 m
+            LocalLight(np.array([-3.0, 0.0, 1.0]), np.array([2.0, 1.0, 0.5])),
+            LocalLight(np.array([0.0, -2.0, 4.0]), np.full(3, 0.5)),
+        ],
+    )
+    vis = (rng.uniform(size=(n, 4)) > 0.3).astype(np.float32)
+    ranges = shading.light_ranges(lights)
+    points, lights_k, dirs, dists = [], [], [], []
+    for k, light in enumerate(lights.local):
+        to = light.position - pos
+        dist = np.linalg.norm(to, axis=1)
+        ok = (vis[:, 1 + k] > 0) & (dist < ranges[1 + k]) & (np.einsum("ij,ij->i", nrm, to) > 0)
+        vis[~ok, 1 + k] = 0.0  # what the tracer reports for such pairs
+        points.append(np.flatnonzero(ok))
+        lights_k.append(np.full(ok.sum(), k))
+        dirs.append(to[ok] / dist[ok, None])
+        dists.append(dist[ok])
+    pairs = tuple(np.concatenate(a) for a in (points, lights_k, dirs, dists))
+    assert 0 < len(pairs[0]) < 3 * n
+    em = np.zeros(3, np.float32)
+    full = shading.shade_local(pos, nrm, albedo, view, em, lights, vis)
+    short = shading.shade_local(pos, nrm, albedo, view, em, lights, vis, pairs)
+    np.testing.assert_allclose(short, full, rtol=1e-4, atol=1e-6)
