@@ -1181,6 +1181,9 @@ class Rasterizer:
             codes = self._cube_lookup(rel, normals, cubes, ranges)
             np.maximum(codes, 0.0, out=vis)
             np.less(codes, 0.0, out=unsure)
+            if not filtered:  # the caller resolves the uncertain pairs itself
+                vis[unsure] = 0.5
+                return vis, unsure
         for k, pair in enumerate(cubes):
             if self.cube_lookup_on_gpu:
                 idx = np.flatnonzero(unsure[:, k])  # only these need more work
