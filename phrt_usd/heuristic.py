@@ -425,10 +425,10 @@ class BudgetedPolicy:
         """The paper's C for ``element`` in the current frame (see the module docstring)."""
         frame = self._require_frame()
         V_i = float(frame.V[element])
-        reflected = self.reflects.get(element, {})
-        js = np.array(sorted(reflected), dtype=np.int64)
+        reflected = self.reflects.get(element)
+        js = np.array(sorted(reflected or ()), dtype=np.int64)
         if len(js) == 0:
-            return processing_cost(V_i, self.q_of(element), [], [], [])
+            return V_i * self.q_of(element)  # processing_cost with nothing reflected
         f = np.array([reflected[j] for j in js], dtype=np.float64)
         seen_V = np.maximum(frame.V[js], V_i * f)  # visible itself, or through element
         sep = np.linalg.norm(frame.centers[js] - frame.centers[element], axis=1)
@@ -439,7 +439,9 @@ class BudgetedPolicy:
     def relevance_R(self, element: int) -> float:
         frame = self._require_frame()
         S = 1.0 if element in self.previous_selection else 0.0
-        return float(relevance(S, self.selection_weight, frame.V[element], frame.K[element]))
+        # Scalar form of ``relevance``: I and K are clipped already, V is finite (D >= D_MIN),
+        # so R <= (1 + WEIGHT_MAX) * WEIGHT_MAX stays finite; this runs per node and round.
+        return (S * self.selection_weight + float(frame.V[element])) * float(frame.K[element])
 
     def predicted_rays(self, element: int) -> float:
         """Conservative rays to trace ``element``'s pixels: pixels * rays per pixel *
