@@ -185,7 +185,7 @@ class Tracer:
         if len(vert) or len(tri):
             return True
         return not np.array_equal(
-            np.asarray(geo.corner_normals[rows], np.float32), self._tri_shade[rows, 0]
+            np.asarray(geo.corner_normals[rows], np.float32), self._tri_normals[rows]
         )
 
     def _build(self, scene: Scene) -> None:
@@ -205,10 +205,11 @@ class Tracer:
         self._vertex_animated[self._triangles[self._tri_animated].reshape(-1)] = True
         # Packed per-triangle tables, so one fancy-index gather fetches all a hit needs.
         # _tri_geom (T, 4, 3) float64 render-relative metres: v0, v1 - v0, v2 - v0, unit
-        # front-face normal; _tri_shade (T, 2, 3, 3) float32: corner shading normals,
-        # corner albedo. Filled by _fill_tables.
+        # front-face normal; _tri_normals, _tri_albedo (T, 3, 3) float32: corner shading
+        # normals, corner albedo. Filled by _fill_tables.
         self._tri_geom = np.empty((n_tri, 4, 3), np.float64)
-        self._tri_shade = np.empty((n_tri, 2, 3, 3), np.float32)
+        self._tri_normals = np.empty((n_tri, 3, 3), np.float32)
+        self._tri_albedo = np.empty((n_tri, 3, 3), np.float32)
         self._fill_tables(geo, slice(None))
         mats = scene.materials
         reflectivity = np.clip(scene.reflectivity.astype(np.float64), 0.0, 1.0)
@@ -270,8 +271,9 @@ class Tracer:
             self.extent = 1.0  # Scene.extent of an empty scene
 
     def _fill_tables(self, geo, rows) -> None:
-        """``_tri_geom`` / ``_tri_shade`` rows ``rows`` (index array or slice) from
-        ``self._vertices`` / ``self._triangles`` and ``geo``'s corner data."""
+        """Rows ``rows`` (index array or slice) of ``_tri_geom`` / ``_tri_normals`` /
+        ``_tri_albedo`` from ``self._vertices``, ``self._triangles`` and ``geo``'s corner
+        data."""
         tris = self._triangles[rows]
         n = len(tris)
         if n == 0:
@@ -285,8 +287,8 @@ class Tracer:
         # Degenerate triangles (never hit by Embree) get +Y.
         normal = np.where(length > 0, normal / np.where(length > 0, length, 1.0), (0.0, 1.0, 0.0))
         self._tri_geom[rows] = np.stack([v0, e1, e2, normal], axis=1)
-        self._tri_shade[rows, 0] = np.asarray(geo.corner_normals[rows], np.float32).reshape(n, 3, 3)
-        self._tri_shade[rows, 1] = np.asarray(geo.corner_albedo[rows], np.float32).reshape(n, 3, 3)
+        self._tri_normals[rows] = np.asarray(geo.corner_normals[rows], np.float32).reshape(n, 3, 3)
+        self._tri_albedo[rows] = np.asarray(geo.corner_albedo[rows], np.float32).reshape(n, 3, 3)
 
     def _new_bvh(self, vertices: np.ndarray, triangles: np.ndarray | None):
         """A committed embreex scene of one triangle mesh (float32 render-relative
@@ -473,7 +475,14 @@ class Tracer:
         """Everything shading needs at hits on triangles ``tri`` (m,) with barycentrics u, v:
         render-relative position (m, 3) float64; geometric normal (m, 3) float64 and
         shading normal (m, 3) float32, both facing against ``incoming`` (m, 3); albedo and
-        emissive (m, 3) float32."""
+        emissive (m, 3) float32 (emissive (3,) zeros when the stage has no emission)."""
+        pos, ng, ns = self._surface_geometry(tri, u, v, incoming)
+        albedo, emissive = self._surface_colour(tri, u, v)
+        return pos, ng, ns, albedo, emissive
+
+    def _surface_geometry(self, tri, u, v, incoming):
+        """``_surface``'s position, geometric normal and shading normal (what a path
+        needs to continue; colour is looked up later, once per call)."""
         g = np.take(self._tri_geom, tri, axis=0)  # np.take: ~3x faster than g[tri]
         pos = g[:, 0] + u[:, None] * g[:, 1] + v[:, None] * g[:, 2]
         # The rasterizer's rule (gbuffer.Rasterizer._derive), so both modes agree at
@@ -482,12 +491,10 @@ class Tracer:
         # still faces along the ray (or is degenerate) the geometric normal replaces it.
         side = np.where(np.einsum("ij,ij->i", g[:, 3], incoming) > 0, -1.0, 1.0)
         ng = g[:, 3] * side[:, None]
-        s = np.take(self._tri_shade, tri, axis=0)
+        s = np.take(self._tri_normals, tri, axis=0)  # (m, 3, 3) corner normals
         w1 = u.astype(np.float32)[:, None]
         w2 = v.astype(np.float32)[:, None]
-        w0 = 1.0 - w1 - w2
-        ns = s[:, 0, 0] * w0 + s[:, 0, 1] * w1 + s[:, 0, 2] * w2  # float32, like Embree's dirs
-        albedo = s[:, 1, 0] * w0 + s[:, 1, 1] * w1 + s[:, 1, 2] * w2
+        ns = s[:, 0] * (1.0 - w1 - w2) + s[:, 1] * w1 + s[:, 2] * w2  # float32
         ns *= side.astype(np.float32)[:, None]
         ns_len = np.sqrt(np.einsum("ij,ij->i", ns, ns))
         # ``~(len >= ...)`` also catches a NaN interpolated normal.
@@ -495,6 +502,16 @@ class Tracer:
         ns /= np.maximum(ns_len, _MIN_NORMAL_LENGTH)[:, None]
         if bad.any():
             ns[bad] = ng[bad]
+        return pos, ng, ns
+
+    def _surface_colour(self, tri, u, v):
+        """``_surface``'s albedo (m, 3) float32 (texture lookup where the material has
+        one) and emissive ((m, 3) float32, or (3,) zeros without emission)."""
+        s = np.take(self._tri_albedo, tri, axis=0)  # (m, 3, 3) corner albedo
+        w1 = u.astype(np.float32)[:, None]
+        w2 = v.astype(np.float32)[:, None]
+        w0 = 1.0 - w1 - w2
+        albedo = s[:, 0] * w0 + s[:, 1] * w1 + s[:, 2] * w2
         mat = np.take(self._tri_material, tri)
         for m_id, texture in enumerate(self._textures):
             if texture is None:
@@ -512,7 +529,7 @@ class Tracer:
             emissive = self._emissive[mat]
         else:
             emissive = np.zeros(3, np.float32)
-        return pos, ng, ns, albedo, emissive
+        return albedo, emissive
 
     def _snap_to_triangles(self, rel: np.ndarray, tri: np.ndarray, fallback: np.ndarray):
         """Project render-relative positions (n, 3) (e.g. from a depth buffer) onto the
@@ -752,17 +769,25 @@ class Tracer:
 
     def _paths(self, pix, src, origins, dirs, sources, bounce_limit, first_kind, start):
         """The bounce loop. pix (n,) flat pixel per starting ray, src (n,) source index,
-        origins (n, 3) render-relative float64 already offset, dirs (n, 3) unit."""
+        origins (n, 3) render-relative float64 already offset, dirs (n, 3) unit.
+
+        The loop only follows paths (intersect, surface geometry, children). What a
+        path collects — environment radiance at misses and at the bounce limit, local
+        shading (with its shadow rays) at hits — does not steer it, so it is gathered
+        over all bounces and evaluated once per call: one environment lookup, one shadow
+        batch, one ``shade_local``, one accumulation (fixed per-call cost, not
+        per-bounce; hybrid batches are small, 50-5,000 rays)."""
         lights = self._relative_lights()
         n_pix, n_src = len(pix), len(sources)
-        # Without refraction every live ray has its own pixel slot, so plain fancy-index
-        # updates are exact; refraction splits paths and needs the unbuffered ``ufunc.at``.
         split = self._transmission
-        radiance = np.zeros((n_pix, 3))
         chain_pix = np.zeros(n_pix, np.int64)  # reflector hits along the longest path
-        rays_src = np.zeros(n_src, np.int64)
         hit_keys: list[np.ndarray] = []  # source * E + element, one per reflector hit
         n_elem = max(len(self.scene.elements), 1)
+        cast_src: list[np.ndarray] = []  # source of every ray cast, per bounce
+        # Deferred work, one entry per bounce: environment (slot, weight, dir) and local
+        # shading (slot, weight, source, tri, u, v, position, ng, ns, incoming dir).
+        env_parts: list[tuple] = []
+        shade_parts: list[tuple] = []
         # Live ray state (k rays): pixel slot, source, weight, reflector chain, kind.
         slot = np.arange(n_pix)
         r_src = src
@@ -770,26 +795,27 @@ class Tracer:
         chain = np.zeros(n_pix, np.int64)
         refracted = np.full(n_pix, first_kind == "refraction")
         if bounce_limit < 1:
-            radiance += shading.environment_radiance(lights, dirs)
+            env_parts.append((slot, weight, dirs))
             slot = slot[:0]
         for depth in range(max(bounce_limit, 0)):
             if len(slot) == 0:
                 break
-            n_refr = int(refracted.sum())
+            n_refr = int(np.count_nonzero(refracted))
             self.rays_cast["refraction"] += n_refr
             self.rays_cast["reflection"] += len(slot) - n_refr
-            rays_src += np.bincount(r_src, minlength=n_src)
+            cast_src.append(r_src)
             hits = self._intersect(origins, dirs)
-            miss = np.ones(len(slot), dtype=bool)
-            miss[hits.ray] = False
-            if miss.any():
-                env = shading.environment_radiance(lights, dirs[miss])
-                _add(radiance, slot[miss], weight[miss, None] * env, split)
             r = hits.ray
+            if len(r) < len(slot):
+                miss = np.ones(len(slot), dtype=bool)
+                miss[r] = False
+                m = np.flatnonzero(miss)
+                env_parts.append((slot[m], weight[m], np.take(dirs, m, axis=0)))
             if len(r) == 0:
                 break
-            d_in = dirs[r]
-            rel, ng, ns, albedo, emissive = self._surface(hits.tri, hits.u, hits.v, d_in)
+            every = len(r) == len(slot)  # all rays hit: no gathers needed
+            d_in = dirs if every else np.take(dirs, r, axis=0)
+            rel, ng, ns = self._surface_geometry(hits.tri, hits.u, hits.v, d_in)
             refl = np.take(self._tri_reflector, hits.tri)
             f = np.take(self._tri_f, hits.tri)
             if split:
@@ -797,47 +823,41 @@ class Tracer:
                 alpha = self._opacity[mat]
             else:
                 alpha = 1.0
-            w = weight[r]
-            slot_r = slot[r]
+            w = weight if every else weight[r]
+            slot_r = slot if every else slot[r]
+            src_r = r_src if every else r_src[r]
             # Local shading (and its shadow rays) only where it carries weight: a perfect
             # mirror (F = 1) or clear glass (α = 0) shows none of its own surface.
             w_local = w * alpha * (1.0 - f)
             lit = np.flatnonzero(w_local > 0)
-            if len(lit) < len(r):
-                shade_at = tuple(np.take(a, lit, axis=0) for a in (rel, ng, ns, albedo, d_in))
-                em = np.take(emissive, lit, axis=0) if emissive.ndim == 2 else emissive
-            else:
-                shade_at = (rel, ng, ns, albedo, d_in)
-                em = emissive
-            vis, shadow_rays, lit_pairs = self._shadow(*shade_at[:3], lights)
-            if lights.has_direct:
-                rays_src += np.bincount(r_src[r[lit]], weights=shadow_rays, minlength=n_src).astype(
-                    np.int64
+            if len(lit) == len(r):
+                shade_parts.append(
+                    (slot_r, w_local, src_r, hits.tri, hits.u, hits.v, rel, ng, ns, d_in)
                 )
-            local = shading.shade_local(
-                shade_at[0],
-                shade_at[2],
-                shade_at[3],
-                shade_at[4],
-                em,
-                lights,
-                vis,
-                lit_pairs,
-            )
-            _add(radiance, slot_r[lit], w_local[lit, None] * local, split)
-            ch = chain[r] + refl
+            elif len(lit):
+                shade_parts.append(
+                    (slot_r[lit], w_local[lit], src_r[lit], hits.tri[lit], hits.u[lit])
+                    + (hits.v[lit],)
+                    + tuple(np.take(a, lit, axis=0) for a in (rel, ng, ns, d_in))
+                )
+            ch = chain if every else chain[r]
+            ch = ch + refl
             if split:
                 np.maximum.at(chain_pix, slot_r, ch)
             else:
                 chain_pix[slot_r] = ch  # chains only grow along a path
             if refl.any():
-                hit_keys.append(r_src[r][refl] * n_elem + self._tri_element[hits.tri[refl]])
+                hit_keys.append(src_r[refl] * n_elem + self._tri_element[hits.tri[refl]])
             # Children: reflected rays (weight w α F), refracted rays (weight w (1 - α)).
-            # Mirror of a unit vector about a unit normal: unit already, no renormalising.
-            d_refl = d_in - (2.0 * np.einsum("ij,ij->i", d_in, ns))[:, None] * ns
             w_refl = w * alpha * f
             go = np.flatnonzero(w_refl > 0)
-            c_dir, c_idx, c_w = np.take(d_refl, go, axis=0), go, w_refl[go]
+            if not split and len(go) == 0:
+                break
+            # Mirror of a unit vector about a unit normal: unit already, no renormalising.
+            d_go = np.take(d_in, go, axis=0)
+            ns_go = np.take(ns, go, axis=0)
+            c_dir = d_go - (2.0 * np.einsum("ij,ij->i", d_go, ns_go))[:, None] * ns_go
+            c_idx, c_w = go, w_refl[go]
             c_refr = np.zeros(len(go), dtype=bool)
             if split:
                 w_refr = w * (1.0 - alpha)
@@ -847,32 +867,63 @@ class Tracer:
                     d_refr = _refract(
                         d_in[gi], ns[gi], self._tri_geom[tri_g, 3], self._ior[mat[gi]]
                     )
-                    c_dir = np.concatenate([c_dir, d_refr])
+                    c_dir = np.concatenate([c_dir, d_refr.astype(c_dir.dtype)])
                     c_idx = np.concatenate([c_idx, gi])
                     c_w = np.concatenate([c_w, w_refr[gi]])
                     c_refr = np.concatenate([c_refr, np.ones(len(gi), dtype=bool)])
             if depth + 1 >= bounce_limit:
                 if len(c_idx):
-                    env = shading.environment_radiance(lights, c_dir)
-                    _add(radiance, slot_r[c_idx], c_w[:, None] * env, split)
+                    env_parts.append((slot_r[c_idx], c_w, c_dir))
                 break
             origins = self._offset(np.take(rel, c_idx, axis=0), np.take(ng, c_idx, axis=0), c_dir)
             dirs = c_dir
             slot = slot_r[c_idx]
-            r_src = r_src[r][c_idx]
+            r_src = src_r[c_idx]
             weight = c_w
             chain = ch[c_idx]
             refracted = c_refr
+        radiance, rays_src = self._gather(env_parts, shade_parts, cast_src, lights, n_pix, n_src)
         seconds = time.perf_counter() - start
         return ReflectionResult(
             pixel_index=pix.astype(np.int64),
-            radiance=radiance.astype(np.float32),
+            radiance=radiance,
             records=self._records(
                 sources, src, chain_pix, rays_src, hit_keys, n_elem, bounce_limit, seconds
             ),
             rays=int(rays_src.sum()),
             seconds=seconds,
         )
+
+    def _gather(self, env_parts, shade_parts, cast_src, lights, n_pix, n_src):
+        """The deferred part of ``_paths``: environment and local shading of every
+        bounce at once. Returns radiance (n_pix, 3) float32 and rays cast per source
+        (n_src,) int64 (path rays + shadow rays)."""
+        rays_src = _bincount(cast_src, None, n_src).astype(np.int64)
+        slots, values = [], []
+        if env_parts:
+            slot, weight, dirs = (_cat(p) for p in zip(*env_parts, strict=True))
+            env = shading.environment_radiance(lights, dirs)
+            slots.append(slot)
+            values.append(weight[:, None] * env)
+        if shade_parts:
+            slot, w, src, tri, u, v, rel, ng, ns, d_in = (
+                _cat(p) for p in zip(*shade_parts, strict=True)
+            )
+            albedo, emissive = self._surface_colour(tri, u, v)
+            vis, shadow_rays, lit_pairs = self._shadow(rel, ng, ns, lights)
+            if lights.has_direct:
+                rays_src += np.bincount(src, weights=shadow_rays, minlength=n_src).astype(np.int64)
+            local = shading.shade_local(rel, ns, albedo, d_in, emissive, lights, vis, lit_pairs)
+            slots.append(slot)
+            values.append(w[:, None] * local)
+        radiance = np.zeros((n_pix, 3), np.float32)
+        if slots:
+            slot = _cat(slots)
+            value = _cat(values)
+            # Slots repeat across bounces (and refraction splits paths): sum per channel.
+            for c in range(3):
+                radiance[:, c] = np.bincount(slot, weights=value[:, c], minlength=n_pix)
+        return radiance, rays_src
 
     @staticmethod
     def _records(sources, src, chain_pix, rays_src, hit_keys, n_elem, bounce_limit, seconds):
@@ -909,19 +960,22 @@ def _columns(v: np.ndarray, m: np.ndarray) -> np.ndarray:
     return v[:, 0:1] * m[:, 0][None] + v[:, 1:2] * m[:, 1][None] + v[:, 2:3] * m[:, 2][None]
 
 
+def _cat(parts) -> np.ndarray:
+    """np.concatenate without a copy for a single part."""
+    return parts[0] if len(parts) == 1 else np.concatenate(parts)
+
+
+def _bincount(parts: list[np.ndarray], weights, size: int) -> np.ndarray:
+    """np.bincount over concatenated index arrays ``parts`` (empty list: zeros)."""
+    if not parts:
+        return np.zeros(size, np.int64)
+    return np.bincount(_cat(parts), weights=weights, minlength=size)
+
+
 def _unit(v: np.ndarray) -> np.ndarray:
     """Rows of (n, 3) scaled to unit length (zero rows stay zero instead of NaN)."""
     length = np.sqrt(np.einsum("ij,ij->i", v, v))[:, None]
     return v / np.where(length > 0, length, 1.0)
-
-
-def _add(target: np.ndarray, index: np.ndarray, values: np.ndarray, repeated: bool) -> None:
-    """target[index] += values. ``repeated``: indices may repeat (refraction splits paths)
-    and must all be summed, which the buffered fancy-index ``+=`` would not do."""
-    if repeated:
-        np.add.at(target, index, values)
-    else:
-        target[index] += values
 
 
 def _refract(d: np.ndarray, ns: np.ndarray, ng_raw: np.ndarray, ior: np.ndarray) -> np.ndarray:
