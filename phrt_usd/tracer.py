@@ -90,12 +90,14 @@ class _Hits:
     """Intersections of a batch of rays that hit something (m of the n rays).
 
     ray : (m,) int64 index of the ray in its batch; tri : (m,) int64 triangle ids;
-    u, v : (m,) float64 Embree barycentrics (p = v0 + u (v1 - v0) + v (v2 - v0))."""
+    u, v : (m,) float32 Embree barycentrics (p = v0 + u (v1 - v0) + v (v2 - v0));
+    miss : (n - m,) int64 indices of the rays that hit nothing."""
 
     ray: np.ndarray
     tri: np.ndarray
     u: np.ndarray
     v: np.ndarray
+    miss: np.ndarray
 
 
 class Tracer:
@@ -214,6 +216,9 @@ class Tracer:
         mats = scene.materials
         reflectivity = np.clip(scene.reflectivity.astype(np.float64), 0.0, 1.0)
         is_reflector = np.array([e.is_reflector for e in scene.elements], dtype=bool)
+        self._element_reflector = is_reflector
+        self._reflector_ids = np.flatnonzero(is_reflector)
+        self._pixel_cache: tuple | None = None
         # Per triangle: reflector flag and F (0 for non-reflectors).
         self._tri_reflector = is_reflector[self._tri_element] if n_tri else np.zeros(0, bool)
         self._tri_f = np.where(self._tri_reflector, reflectivity[self._tri_element], 0.0)
@@ -386,8 +391,8 @@ class Tracer:
         INTERSECT: the animated BVH gets the static hits' distances as ``tfar`` (embreex
         writes each hit's t into ``dists``), so it reports only nearer hits, which then
         replace the static ones. OCCLUDED: occluded if either BVH says so. Returns
-        (primID (n,) int32 global triangle ids or NO_HIT, u, v (n,) float32) or (n,)
-        bool occluded; None when not ``merge``."""
+        (primID (n,) int32 / int64 global triangle ids or NO_HIT, u, v (n,) float32) or
+        (n,) bool occluded; None when not ``merge``."""
         static, dynamic = self._static, self._dynamic
         if query != "INTERSECT":
             # OCCLUDED reads but never writes ``dists``: both calls share ``t32``.
@@ -412,9 +417,9 @@ class Tracer:
         if near is not None:
             prim, u, v = near["primID"], near["u"], near["v"]
             if self._static_map is not None:
-                prim = np.take(self._static_map, prim).astype(np.int32)
+                prim = np.take(self._static_map, prim)
         if far is not None:
-            far_prim = np.take(self._dynamic_map, far["primID"]).astype(np.int32)
+            far_prim = np.take(self._dynamic_map, far["primID"])
             if near is None:
                 return far_prim, far["u"], far["v"]
             nearer = far_prim >= 0
@@ -426,12 +431,15 @@ class Tracer:
 
     def _intersect(self, origins: np.ndarray, dirs: np.ndarray) -> _Hits:
         prim, u, v = self._run("INTERSECT", origins, dirs)
-        ray = np.flatnonzero(prim >= 0)
+        hit = prim >= 0
+        ray = np.flatnonzero(hit)
+        every = len(ray) == len(prim)
         return _Hits(
             ray=ray,
-            tri=prim[ray].astype(np.int64),
-            u=u[ray].astype(np.float64),
-            v=v[ray].astype(np.float64),
+            tri=(prim if every else np.take(prim, ray)).astype(np.int64, copy=False),
+            u=u if every else np.take(u, ray),
+            v=v if every else np.take(v, ray),
+            miss=ray[:0] if every else np.flatnonzero(~hit),
         )
 
     def replay_raw(self, threads: int | None = None) -> tuple[int, float]:
@@ -492,8 +500,8 @@ class Tracer:
         side = np.where(np.einsum("ij,ij->i", g[:, 3], incoming) > 0, -1.0, 1.0)
         ng = g[:, 3] * side[:, None]
         s = np.take(self._tri_normals, tri, axis=0)  # (m, 3, 3) corner normals
-        w1 = u.astype(np.float32)[:, None]
-        w2 = v.astype(np.float32)[:, None]
+        w1 = u.astype(np.float32, copy=False)[:, None]
+        w2 = v.astype(np.float32, copy=False)[:, None]
         ns = s[:, 0] * (1.0 - w1 - w2) + s[:, 1] * w1 + s[:, 2] * w2  # float32
         ns *= side.astype(np.float32)[:, None]
         ns_len = np.sqrt(np.einsum("ij,ij->i", ns, ns))
@@ -508,8 +516,8 @@ class Tracer:
         """``_surface``'s albedo (m, 3) float32 (texture lookup where the material has
         one) and emissive ((m, 3) float32, or (3,) zeros without emission)."""
         s = np.take(self._tri_albedo, tri, axis=0)  # (m, 3, 3) corner albedo
-        w1 = u.astype(np.float32)[:, None]
-        w2 = v.astype(np.float32)[:, None]
+        w1 = u.astype(np.float32, copy=False)[:, None]
+        w2 = v.astype(np.float32, copy=False)[:, None]
         w0 = 1.0 - w1 - w2
         albedo = s[:, 0] * w0 + s[:, 1] * w1 + s[:, 2] * w2
         mat = np.take(self._tri_material, tri)
@@ -744,21 +752,51 @@ class Tracer:
         origins = self._offset(rel, ng_front, d)
         return self._paths(pix, src, origins, d, sources, bounce_limit, "refraction", start)
 
+    def _reflector_pixels(self, element_id: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Flat indices (m,) and element ids (m,) of the pixels of ``element_id`` (H, W)
+        showing a reflector. Cached for the latest id image (a G-buffer is never
+        modified once made; the cache holds the array, so its identity stays unique)."""
+        cached = self._pixel_cache
+        if cached is not None and cached[0] is element_id:
+            return cached[1], cached[2]
+        elem = element_id.reshape(-1)
+        ids = self._reflector_ids
+        if len(ids):
+            # A range test first (two cheap compares over the image), the table lookup
+            # only on the pixels in the reflector id range.
+            cand = np.flatnonzero((elem >= ids[0]) & (elem <= ids[-1]))
+            cand_elem = np.take(elem, cand)
+            keep = np.flatnonzero(np.take(self._element_reflector, cand_elem))
+            cand, cand_elem = np.take(cand, keep), np.take(cand_elem, keep)
+        else:
+            cand = cand_elem = np.zeros(0, np.int64)
+        self._pixel_cache = (element_id, cand, cand_elem)
+        return cand, cand_elem
+
     def _source_pixels(self, gbuffer: GBuffer, sources: list[int], mask):
         """Pixels to start paths from: flat indices (n,), index into ``sources`` (n,),
         triangle ids (n,), snapped render-relative positions (n, 3) float64, unit
         front-face triangle normals (n, 3), unit shading normals facing the viewer (n, 3)
         float64, unit view directions (n, 3) float64."""
-        elem = gbuffer.element_id.reshape(-1)
         # Element id → index in ``sources`` (-1: not a source); the last slot serves id -1.
-        table = np.full(max(len(self.scene.elements), max(sources, default=0) + 1) + 1, -1)
+        n_elem = len(self.scene.elements)
+        table = np.full(max(n_elem, max(sources, default=0) + 1) + 1, -1)
         table[[s for s in sources if s >= 0]] = [i for i, s in enumerate(sources) if s >= 0]
-        src_all = table[elem]
-        if mask is not None:
-            src_all = np.where(mask, src_all, -1)
-        pix = np.flatnonzero(src_all >= 0)
-        src = src_all[pix]
-        tri = gbuffer.triangle_id.reshape(-1)[pix].astype(np.int64)
+        if mask is None and all(0 <= s < n_elem and self._element_reflector[s] for s in sources):
+            # Reflector sources (the renderer's case): look only at the G-buffer's
+            # reflector pixels, found once per G-buffer (later rounds reuse them).
+            cand, cand_elem = self._reflector_pixels(gbuffer.element_id)
+            keep = np.flatnonzero(np.take(table, cand_elem) >= 0)
+            pix = np.take(cand, keep)
+            src = np.take(table, np.take(cand_elem, keep))
+        else:
+            elem = gbuffer.element_id.reshape(-1)
+            chosen = np.take(table >= 0, elem)
+            if mask is not None:
+                chosen &= mask
+            pix = np.flatnonzero(chosen)
+            src = np.take(table, np.take(elem, pix))
+        tri = np.take(gbuffer.triangle_id.reshape(-1), pix).astype(np.int64)
         # Directions and normals stay float32 (Embree's precision for directions anyway).
         view = _unit(np.take(gbuffer.view_dir.reshape(-1, 3), pix, axis=0).astype(np.float32))
         ns = _unit(np.take(gbuffer.normal.reshape(-1, 3), pix, axis=0).astype(np.float32))
@@ -806,10 +844,8 @@ class Tracer:
             cast_src.append(r_src)
             hits = self._intersect(origins, dirs)
             r = hits.ray
-            if len(r) < len(slot):
-                miss = np.ones(len(slot), dtype=bool)
-                miss[r] = False
-                m = np.flatnonzero(miss)
+            m = hits.miss
+            if len(m):
                 env_parts.append((slot[m], weight[m], np.take(dirs, m, axis=0)))
             if len(r) == 0:
                 break
@@ -933,8 +969,11 @@ class Tracer:
         total = int(rays_src.sum())
         per_source: list[dict[int, int]] = [{} for _ in range(n_src)]
         if hit_keys:
-            keys, counts = np.unique(np.concatenate(hit_keys), return_counts=True)
-            for key, count in zip(keys.tolist(), counts.tolist(), strict=True):
+            # Hits per (source, element) key: a bincount over the n_src * E keys (small),
+            # then one dict entry per non-zero count.
+            counts = np.bincount(_cat(hit_keys), minlength=n_src * n_elem)
+            keys = np.flatnonzero(counts)
+            for key, count in zip(keys.tolist(), counts[keys].tolist(), strict=True):
                 per_source[key // n_elem][key % n_elem] = count
         pixels = np.bincount(src, minlength=n_src)
         chain_sum = np.bincount(src, weights=chain_pix, minlength=n_src)
