@@ -231,6 +231,7 @@ class Tracer:
         self._emissive = emissive
         self._textures = list(mats.textures) if geo.corner_uv is not None else []
         self._lights_key: tuple | None = None
+        self._light_cache: tuple | None = None
         # Global ids of each BVH's triangles, with a trailing NO_HIT so that
         # ``np.take(ids, primID)`` maps Embree's miss (-1) to NO_HIT too. The static map
         # is None when every triangle is static (Embree's ids are the global ones).
@@ -335,6 +336,21 @@ class Tracer:
             self._relative = Lights(distant=lights.distant, local=local, dome=lights.dome)
             self._lights_key = key
         return self._relative
+
+    def _light_arrays(self, lights: Lights) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(D, 3) unit DistantLight directions, (P, 3) LocalLight positions (both
+        float64, as given) and (P,) LocalLight ranges in metres
+        (``shading.light_ranges``) of ``lights``; cached for the latest ``Lights``
+        object (the tracer's render-relative lights are one object per scene)."""
+        cached = self._light_cache
+        if cached is not None and cached[0] is lights:
+            return cached[1]
+        dirs = np.array([li.direction for li in lights.distant], np.float64).reshape(-1, 3)
+        dirs /= np.maximum(np.linalg.norm(dirs, axis=1, keepdims=True), 1e-300)
+        pos = np.array([li.position for li in lights.local], np.float64).reshape(-1, 3)
+        ranges = shading.light_ranges(lights)[len(lights.distant) :]
+        self._light_cache = (lights, (dirs, pos, ranges))
+        return dirs, pos, ranges
 
     # ------------------------------------------------------------------ Embree calls
 
@@ -577,11 +593,7 @@ class Tracer:
             return np.ones((n, n_lights), np.float32), np.zeros(n, np.int64), None
         rel = np.asarray(rel, np.float64)
         ns = np.asarray(shading_normals, np.float32)
-        # (L, 3) light directions (distant, unit) and positions (local), float64.
-        dirs = np.array([li.direction for li in lights.distant], np.float64).reshape(-1, 3)
-        dirs /= np.maximum(np.linalg.norm(dirs, axis=1, keepdims=True), 1e-300)
-        pos = np.array([li.position for li in lights.local], np.float64).reshape(-1, 3)
-        ranges = shading.light_ranges(lights)[n_distant:]
+        dirs, pos, ranges = self._light_arrays(lights)
         # Facing: n·l > 0. For LocalLights n·(p_L - p) = n·p_L - n·p, with the squared
         # distance |p_L|² - 2 p·p_L + |p|² (render-relative: |p| is at most the scene
         # extent, so the cancellation error stays ~1e-16 extent², far below any range²).
