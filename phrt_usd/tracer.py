@@ -17,7 +17,8 @@ opacity α (α = 1 unless the stage has transmissive materials)::
 
     radiance = α * ((1 - F) * local(X) + F * reflected) + (1 - α) * refracted
 
-``local`` is ``shading.shade_local`` with ray-traced shadows. ``reflected``/``refracted``
+``local`` is ``shading.shade_local`` with ray-traced shadows (evaluated after the loop,
+see below). ``reflected``/``refracted``
 continue as new rays while the depth is below the bounce limit, and read the environment
 at the limit. Refraction (Snell's law with the material's ior, total internal reflection
 → mirror reflection) is part of the same bounce loop; it runs only when
@@ -36,7 +37,14 @@ pixels.
 
 Threads: embreex releases the GIL inside ``run``, so batches of ≥ ``PARALLEL_MIN_RAYS``
 rays are split over a two-thread pool (measured on this 2-core machine: 76.8k rays on an
-82k-triangle mesh, 8.3 → 13.6 Mray/s; smaller batches gain nothing).
+82k-triangle mesh, 8.3 → 13.6 Mray/s; smaller batches gain nothing). Local shading of
+a call's hits (numpy and shadow rays together) is split the same way from
+``PARALLEL_MIN_SHADE_RAYS`` shadow rays on (numpy releases the GIL on large arrays too).
+
+Fixed cost per call: hybrid batches are small (farm: 50-5,000 rays), so the bounce loop
+only follows paths; environment lookups, shadow rays and local shading of all bounces are
+gathered and evaluated once per call (``Tracer._gather``), reflector pixels are found once
+per G-buffer, light tables are cached per ``Lights`` object.
 
 Geometry: two BVHs, static and animated triangles (``Element.animated``); when only
 animated elements moved, ``update_geometry`` rebuilds just the small animated BVH (farm:
@@ -76,6 +84,11 @@ RAY_OFFSET_RELATIVE = 1e-5
 
 #: Batches smaller than this run on one thread (splitting costs more than it saves).
 PARALLEL_MIN_RAYS = 8192
+
+#: Local shading (numpy + shadow rays) of hits is split over the pool only from this many
+#: shadow rays (points x lights) on: measured on the sewer (13 lights, 2 cores), 10.6k
+#: rays take 2.2 ms split vs 1.9 ms on one thread, 349k rays 49 ms vs 63 ms.
+PARALLEL_MIN_SHADE_RAYS = 32768
 
 #: Interpolated shading normals shorter than this are degenerate (the rasterizer's
 #: threshold, so both modes pick the geometric normal at the same pixels).
@@ -354,9 +367,10 @@ class Tracer:
 
     # ------------------------------------------------------------------ Embree calls
 
-    def _run(self, query: str, origins: np.ndarray, dirs: np.ndarray, tfar=None):
+    def _run(self, query: str, origins: np.ndarray, dirs: np.ndarray, tfar=None, threads=None):
         """One ray batch. origins (n, 3) float64 render-relative metres, dirs (n, 3)
-        unit, tfar (n,) metres or None. Returns (primID, u, v) with global triangle ids
+        unit, tfar (n,) metres or None; ``threads`` (default the tracer's) 1 inside a
+        pool worker. Returns (primID, u, v) with global triangle ids
         (INTERSECT) or (n,) bool occluded. This is the only cast of ray data to float32
         (a no-op for arrays already float32 and contiguous)."""
         o32 = np.ascontiguousarray(origins, dtype=np.float32)
@@ -366,7 +380,7 @@ class Tracer:
             t32 = np.minimum(t32, np.float32(_FAR))  # float64 inf / huge -> finite
         if self.record_rays:
             self.last_rays.append((query, o32, d32, t32))
-        return self._run_raw(query, o32, d32, t32, self.threads)
+        return self._run_raw(query, o32, d32, t32, self.threads if threads is None else threads)
 
     def _run_raw(self, query, o32, d32, t32, threads, merge: bool = True):
         """Both BVHs on float32 arrays, split into ``threads`` chunks over the pool when
@@ -574,7 +588,9 @@ class Tracer:
 
     # ------------------------------------------------------------------ shadows
 
-    def _shadow(self, rel, offset_normals, shading_normals, lights: Lights, pairs=None):
+    def _shadow(
+        self, rel, offset_normals, shading_normals, lights: Lights, pairs=None, threads=None
+    ):
         """(n, L) float32 visibility, (n,) int64 shadow rays cast per point and the lit
         LocalLight pairs (``shading.shade_local``'s ``local_pairs``, or None), for
         render-relative positions ``rel`` (n, 3) and render-relative ``lights``.
@@ -649,12 +665,11 @@ class Tracer:
             ng = np.take(ng32, point, axis=0)
             ng *= np.where(np.einsum("ij,ij->i", d, ng) >= 0.0, e, -e)[:, None]
             ng += p  # the offset origins
-            occluded = self._run("OCCLUDED", ng, d, tfar)
+            occluded = self._run("OCCLUDED", ng, d, tfar, threads)
             vis.reshape(-1)[point * n_lights + light] = ~occluded
             if local is not None:  # the lit LocalLight pairs, for shade_local
                 free = np.flatnonzero(~occluded[len(point) - len(local[0]) :])
                 local = tuple(np.take(a, free, axis=0) for a in local)
-            self.rays_cast["shadow"] += m
         return vis, np.bincount(point, minlength=n).astype(np.int64), local
 
     def shadow_visibility(
@@ -680,7 +695,28 @@ class Tracer:
         if triangle_ids is not None:
             tri = np.asarray(triangle_ids, np.int64).reshape(-1)
             rel, _ = self._snap_to_triangles(rel, tri, normals)
-        vis, _, _ = self._shadow(rel, normals, normals, self._relative_lights(), pairs)
+        lights = self._relative_lights()
+        n, n_lights = len(rel), len(lights.distant) + len(lights.local)
+        bounds = self._split(n * max(n_lights, 1), n)
+        if bounds is None:
+            vis, rays, _ = self._shadow(rel, normals, normals, lights, pairs)
+        else:  # numpy and Embree work of each chunk on its own pool thread
+            parts = [
+                self._pool.submit(
+                    self._shadow,
+                    rel[lo:hi],
+                    normals[lo:hi],
+                    normals[lo:hi],
+                    lights,
+                    None if pairs is None else pairs[lo:hi],
+                    1,
+                )
+                for lo, hi in bounds
+            ]
+            done = [f.result() for f in parts]
+            vis = np.concatenate([d[0] for d in done])
+            rays = np.concatenate([d[1] for d in done])
+        self.rays_cast["shadow"] += int(rays.sum())
         return vis
 
     # ------------------------------------------------------------------ primary rays
@@ -942,6 +978,25 @@ class Tracer:
             seconds=seconds,
         )
 
+    def _split(self, work: int, n: int) -> list[tuple[int, int]] | None:
+        """(start, stop) chunks of ``n`` points to shade over the pool, or None when
+        ``work`` (shadow rays they may cast) is below PARALLEL_MIN_SHADE_RAYS or there
+        is no pool."""
+        if self._pool is None or work < PARALLEL_MIN_SHADE_RAYS or n < self.threads:
+            return None
+        edges = np.linspace(0, n, self.threads + 1).astype(int).tolist()
+        return list(zip(edges[:-1], edges[1:], strict=True))
+
+    def _shade_points(self, tri, u, v, rel, ng, ns, d_in, lights: Lights, threads=None):
+        """Local shading with ray-traced shadows at hits (tri, u, v (m,); rel, ng, ns,
+        d_in (m, 3), see ``_surface``): (m, 3) float32 radiance and (m,) int64 shadow
+        rays cast per point. Safe to run on the pool with ``threads`` = 1."""
+        albedo, emissive = self._surface_colour(tri, u, v)
+        vis, shadow_rays, lit_pairs = self._shadow(rel, ng, ns, lights, threads=threads)
+        local = shading.shade_local(rel, ns, albedo, d_in, emissive, lights, vis, lit_pairs)
+        # The caller updates ``rays_cast`` (a dict ``+=`` from pool threads could race).
+        return local, shadow_rays
+
     def _gather(self, env_parts, shade_parts, cast_src, lights, n_pix, n_src):
         """The deferred part of ``_paths``: environment and local shading of every
         bounce at once. Returns radiance (n_pix, 3) float32 and rays cast per source
@@ -957,11 +1012,29 @@ class Tracer:
             slot, w, src, tri, u, v, rel, ng, ns, d_in = (
                 _cat(p) for p in zip(*shade_parts, strict=True)
             )
-            albedo, emissive = self._surface_colour(tri, u, v)
-            vis, shadow_rays, lit_pairs = self._shadow(rel, ng, ns, lights)
+            n_lights = len(lights.distant) + len(lights.local)
+            bounds = self._split(len(slot) * max(n_lights, 1), len(slot))
+            if bounds is None:
+                local, shadow_rays = self._shade_points(tri, u, v, rel, ng, ns, d_in, lights)
+            else:
+                # Large batches (the sewer: 13 lights, ~300k shadow rays): the whole
+                # shading, numpy included, runs in chunks on the pool (numpy and embreex
+                # release the GIL), each chunk's Embree batch on its own thread.
+                parts = [
+                    self._pool.submit(
+                        self._shade_points,
+                        *(a[lo:hi] for a in (tri, u, v, rel, ng, ns, d_in)),
+                        lights,
+                        1,
+                    )
+                    for lo, hi in bounds
+                ]
+                done = [f.result() for f in parts]
+                local = np.concatenate([d[0] for d in done])
+                shadow_rays = np.concatenate([d[1] for d in done])
             if lights.has_direct:
                 rays_src += np.bincount(src, weights=shadow_rays, minlength=n_src).astype(np.int64)
-            local = shading.shade_local(rel, ns, albedo, d_in, emissive, lights, vis, lit_pairs)
+                self.rays_cast["shadow"] += int(shadow_rays.sum())
             slots.append(slot)
             values.append(w[:, None] * local)
         radiance = np.zeros((n_pix, 3), np.float32)

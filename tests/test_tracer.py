@@ -614,3 +614,37 @@ def test_records_count_every_ray_cast_per_source():
     np.testing.assert_array_equal(again.pixel_index, fresh.pixel_index)
     np.testing.assert_allclose(again.radiance, fresh.radiance, atol=1e-6)
     assert [r.hits for r in again.records] == [r.hits for r in fresh.records]
+
+
+def test_shading_split_over_threads_matches_one_thread(monkeypatch):
+    """Local shading of large batches runs in chunks on the pool: same radiance, ray
+    counts and shadow visibility as on one thread (threshold lowered to force it)."""
+    import phrt_usd.tracer as tracer_module
+    from phrt_usd.scene import LocalLight
+
+    lights = Lights(
+        distant=[DistantLight(np.array([0.3, 1.0, 0.2]), np.ones(3))],
+        local=[LocalLight(np.array([1.0, 3.0, 1.0]), np.full(3, 20.0))],
+    )
+    parts = [
+        dict(mesh=quad(20.0), F=0.5),
+        dict(mesh=sphere((0, 1, 0), 1.0, 3), F=0.3, smooth=True),
+        dict(mesh=box((2, 0, -1), (3, 2, 1))),
+    ]
+    scene = make_scene(parts, lights)
+    camera = look_at((0.0, 4.0, 7.0), (0.0, 0.5, 0.0))
+    results = []
+    for threads, threshold in ((1, tracer_module.PARALLEL_MIN_SHADE_RAYS), (2, 16)):
+        monkeypatch.setattr(tracer_module, "PARALLEL_MIN_SHADE_RAYS", threshold)
+        tracer = Tracer(scene, threads=threads)
+        gb = tracer.primary_gbuffer(camera, 48, 36)
+        tracer.reset_counters()
+        res = tracer.trace_reflections(gb, [0, 1], 3)
+        pts = gb.position[gb.covered]
+        vis = tracer.shadow_visibility(pts, gb.normal[gb.covered])
+        results.append((res, dict(tracer.rays_cast), vis))
+    (one, cast_one, vis_one), (two, cast_two, vis_two) = results
+    np.testing.assert_allclose(two.radiance, one.radiance, atol=1e-6)
+    assert two.rays == one.rays and cast_two == cast_one and cast_one["shadow"] > 0
+    assert [r.rays for r in two.records] == [r.rays for r in one.records]
+    np.testing.assert_array_equal(vis_two, vis_one)
