@@ -26,6 +26,7 @@ the time those rays take (``TraceTimeModel``). Both are learned online from the 
 from __future__ import annotations
 
 import math
+from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -283,7 +284,7 @@ class _FrameState:
     first_allowance: float | None = None  # the first round's budget in rays (HEU1 margin)
 
 
-class BudgetedPolicy:
+class BudgetedPolicy(ABC):
     """What every policy shares: the per-frame metrics, the memory across frames (Q,
     rays per pixel, which reflector reflects which, the previous selection) and the cost
     model. Subclasses decide only which ids a round traces (``_choose``)."""
@@ -511,8 +512,9 @@ class BudgetedPolicy:
         done = set(frame.traced)
         return [int(e) for e in np.flatnonzero(frame.pixels > 0) if int(e) not in done]
 
+    @abstractmethod
     def _choose(self, budget: Budget) -> list[int]:
-        raise NotImplementedError
+        """Element ids to trace in this round, within ``budget``."""
 
     def _require_frame(self) -> _FrameState:
         if self._frame is None:
