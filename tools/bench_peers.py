@@ -503,7 +503,7 @@ def targets(res: str, ours: dict, mits: dict) -> str:
 
 def markdown_profile(stage_path: str, res: str, n: int, rows, total: float, commit: str) -> str:
     lines = [
-        f"#### Profile (before): {Path(stage_path).stem} {res}, hybrid HEU1, {n} frames, "
+        f"#### Profile: {Path(stage_path).stem} {res}, hybrid HEU1, {n} frames, "
         f"{total:.2f} s, commit {commit}\n",
         "| own s | share | function | where |",
         "|---|---|---|---|",
