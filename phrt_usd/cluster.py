@@ -298,10 +298,8 @@ def run_render_on_cluster(
     """``run_render`` on a Dask cluster (no checkpoint / ``--resume``: a lost chunk is
     re-run by the scheduler instead). ``on_frame(done, total)`` after every chunk.
     Returns ``run_render``'s summary dict plus ``chunk_pids`` (see the sweep's)."""
-    from phrt_usd.render_job import _run_info, parse_frames
+    from phrt_usd.render_job import _run_info, parse_frames, write_run_records
     from phrt_usd.report import build_report
-    from phrt_usd.run_files import write_stats
-    from phrt_usd.selection_layer import write_selection_layer
     from phrt_usd.stage_reader import open_stage
 
     if job.resume:
@@ -316,16 +314,7 @@ def run_render_on_cluster(
 
     def write(results: dict) -> list[FrameStats]:
         frames = [f for c in chunks if c.index in results for f in results[c.index].frames]
-        write_stats(out, run_info, frames)
-        write_selection_layer(
-            layer_path,
-            str(job.stage_path),
-            run_info["reflectors"],
-            frames,
-            run_info,
-            scene.time_codes_per_second,
-            merge=True,
-        )
+        write_run_records(out, layer_path, job, scene, run_info, frames)
         return frames
 
     def progress(results: dict) -> None:

@@ -211,6 +211,18 @@ def _checkpoint(
     with open(tmp, "wb") as fh:
         pickle.dump({"run_info": run_info, "frames": frames, "policy": renderer.policy}, fh)
     os.replace(tmp, out / CHECKPOINT_NAME)
+    write_run_records(out, layer_path, job, scene, run_info, frames)
+
+
+def write_run_records(
+    out: Path,
+    layer_path: Path,
+    job: RenderJob,
+    scene: StageScene,
+    run_info: dict,
+    frames: list[FrameStats],
+) -> None:
+    """stats.json and the selection layer (merged with frames already in it), atomically."""
     write_stats(out, run_info, frames)
     write_selection_layer(
         layer_path,
