@@ -552,6 +552,9 @@ def test_degenerate_camera_is_a_user_error(showcase):
 
 
 PAPER_STAGES = ["farm", "sewer"]
+#: Paper stages authored without coincident (z-fighting) surfaces: their ids must agree
+#: with Embree strictly, with no allowance for ties between coplanar faces.
+STRICT_ID_STAGES = {"sewer"}
 
 
 @pytest.mark.parametrize("name", PAPER_STAGES)
@@ -578,6 +581,8 @@ def test_paper_stage_ids(name, tmp_path):
             strict = check_ids(stage.scene, g, ref_tri, tmp_path, name, save=False)
             agree = check_ids(stage.scene, g, ref_tri, tmp_path, f"{name}_{t:g}", ref_hit)
             print(f"{name} t={t:.1f}: ids agree {strict:.4%} strict, {agree:.4%} with ties")
+            if name in STRICT_ID_STAGES:
+                agree = check_ids(stage.scene, g, ref_tri, tmp_path, f"{name}_{t:g}_strict")
             assert agree >= ID_AGREEMENT, f"{name} t={t}: ids agree on {agree:.4%}"
             for k, light in enumerate(stage.scene.lights.distant):
                 # Pixels facing the light: the shadow map must agree with shadow rays.

@@ -1239,6 +1239,10 @@ WATER_Y, CHANNEL_FLOOR_Y = -0.4, -0.9
 DRY_WIDTH, DRY_WALL = 3.0, 2.2
 #: Chambers: centre x (local), half size, ceiling height.
 JUNCTION_X, SUMP_X, CHAMBER_HALF, CHAMBER_HEIGHT = 0.0, 28.0, 3.0, 5.0
+#: Chamber wall thickness (m). Tunnel shells stop at the chamber's *outer* wall face
+#: (CHAMBER_HALF + CHAMBER_WALL from the centre): running them on to the inner face would
+#: make their walls coincide with the door jambs over the wall's thickness (z-fighting).
+CHAMBER_WALL = 0.2
 WEST_END_X, NORTH_END_Z, SOUTH_END_Z = -16.0, -24.0, 22.0
 #: Length of one tunnel subdivision along its axis (metres); sets the triangle count.
 TUNNEL_STEP = 0.1
@@ -1260,7 +1264,7 @@ def chamber_walls(cx: float, openings: dict[str, float], wall_height_open: float
     openings: side ("+x", "-x", "+z", "-z") -> opening width (m); openings are
     ``wall_height_open`` high, the wall above them is solid (a lintel).
     """
-    h, t, top = CHAMBER_HALF, 0.2, CHAMBER_HEIGHT
+    h, t, top = CHAMBER_HALF, CHAMBER_WALL, CHAMBER_HEIGHT
     parts = [box((2 * h + 2 * t, t, 2 * h + 2 * t), (cx, top + t / 2, 0))]
     for side in ("+x", "-x", "+z", "-z"):
         sign = 1.0 if side[0] == "+" else -1.0
@@ -1349,11 +1353,16 @@ def build_sewer_geometry(path: Path) -> None:
         "Chambers": [],
     }
     ch = CHAMBER_HALF
+    cw = ch + CHAMBER_WALL  # chamber centre to its outer wall face: where the shells stop
     # wet main tunnel: west arm and middle stretch, both along +x
     for x0, x1 in ((WEST_END_X, JUNCTION_X - ch), (JUNCTION_X + ch, SUMP_X - ch)):
-        n = int(round((x1 - x0) / TUNNEL_STEP))
+        # shell ends at the chamber's outer wall face (see CHAMBER_WALL); the walkways
+        # below it run on to the inner face and floor the doorway
+        sx0 = x0 if x0 == WEST_END_X else x0 + CHAMBER_WALL
+        sx1 = x1 - CHAMBER_WALL
+        n = int(round((sx1 - sx0) / TUNNEL_STEP))
         parts["Shell"].append(
-            tunnel_shell(MAIN_WIDTH, MAIN_WALL, x1 - x0, 16, n, 0.0).moved((x0, 0, 0))
+            tunnel_shell(MAIN_WIDTH, MAIN_WALL, sx1 - sx0, 16, n, 0.0).moved((sx0, 0, 0))
         )
         parts["Walkways"].append(walkway_slabs(x0, x1))
         for z in (CHANNEL_HALF + 0.05, -CHANNEL_HALF - 0.05):
@@ -1362,10 +1371,12 @@ def build_sewer_geometry(path: Path) -> None:
     parts["Shell"].append(box((0.2, 7.0, MAIN_WIDTH + 0.4), (WEST_END_X - 0.1, 2.5, 0)))
     # dry tunnels along z: north of the junction (z < 0) and south of the sump (z > 0)
     for x_at, z0, z1 in ((JUNCTION_X, NORTH_END_Z, -ch), (SUMP_X, ch, SOUTH_END_Z)):
-        n = int(round((z1 - z0) / TUNNEL_STEP))
-        shell = tunnel_shell(DRY_WIDTH, DRY_WALL, z1 - z0, 14, n, 0.0)
-        # built along +x from 0; rotate so it runs along +z from z0
-        parts["Shell"].append(shell.moved((x_at, 0.0, z0), yaw_deg=-90.0))
+        # shell ends at the chamber's outer wall face (see CHAMBER_WALL)
+        sz0, sz1 = (z0, -cw) if z1 == -ch else (cw, z1)
+        n = int(round((sz1 - sz0) / TUNNEL_STEP))
+        shell = tunnel_shell(DRY_WIDTH, DRY_WALL, sz1 - sz0, 14, n, 0.0)
+        # built along +x from 0; rotate so it runs along +z from sz0
+        parts["Shell"].append(shell.moved((x_at, 0.0, sz0), yaw_deg=-90.0))
         parts["Walkways"].append(box((DRY_WIDTH, 0.3, z1 - z0), (x_at, -0.15, (z0 + z1) / 2)))
         for dx, y in ((-1.2, 1.4), (-1.2, 1.75)):
             parts["DryPipes"].append(
