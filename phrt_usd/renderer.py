@@ -314,12 +314,20 @@ class FrameRenderer:
         """Local shading (H, W, 3) of covered pixels and the shadow pass used, if any."""
         scene = self.scene
         h, w = gb.shape
-        covered = gb.covered
-        local = np.zeros((h, w, 3), dtype=np.float32)
+        covered = gb.covered.reshape(-1)
+        local = np.zeros((h * w, 3), dtype=np.float32)
         if not covered.any():
-            return local, None
-        pos = gb.position[covered]
-        nrm = gb.normal[covered]
+            return local.reshape(h, w, 3), None
+        # Covered pixels as flat indices (enclosed stages cover every pixel: then plain
+        # reshapes, no gather at all).
+        pix = slice(None) if covered.all() else np.flatnonzero(covered)
+
+        def take(a: np.ndarray) -> np.ndarray:
+            flat = a.reshape(h * w, *a.shape[2:])
+            return flat if isinstance(pix, slice) else np.take(flat, pix, axis=0)
+
+        pos = take(gb.position)
+        nrm = take(gb.normal)
         lights = scene.lights
         n_lights = len(lights.distant) + len(lights.local)
         shadow_pass = None
@@ -339,12 +347,12 @@ class FrameRenderer:
             # All lights, distant then local (the order shade_local expects).
             visibility = self._rasterizer.shadow_visibility(pos, nrm, refine=refine)
             shadow_pass = "shadow_map" if refine is None else "shadow_map+rays"
-        tri = gb.triangle_id[covered]
+        tri = take(gb.triangle_id)
         emissive = scene.materials.emissive[scene.geometry.tri_material[tri]]
-        local[covered] = shade_local(
-            pos, nrm, gb.albedo[covered], gb.view_dir[covered], emissive, lights, visibility
+        local[pix] = shade_local(
+            pos, nrm, take(gb.albedo), take(gb.view_dir), emissive, lights, visibility
         )
-        return local, shadow_pass
+        return local.reshape(h, w, 3), shadow_pass
 
 
 def _remaining(opts: RenderOptions, trace_ms: float, rays: int) -> Budget:

@@ -29,6 +29,9 @@ row 0 latitude +π/2; longitude 0 points to +Z and longitude +π/2 to +X.
 
 from __future__ import annotations
 
+import os
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 
 from phrt_usd.scene import DEFAULT_ENVIRONMENT, DomeLight, Lights
@@ -60,6 +63,11 @@ _SHININESS_SQUARINGS = (
 
 #: Weight of the white Blinn-Phong highlight relative to the diffuse term.
 SPECULAR_STRENGTH = 0.25
+
+#: Threads ``shade_local`` splits large batches over (points are independent), and the
+#: smallest batch worth splitting (below it thread hand-off costs more than it saves).
+SHADE_THREADS = max(1, min(4, os.cpu_count() or 1))
+SHADE_MIN_THREADED_POINTS = 8192
 
 #: Directions shorter than this are treated as zero-length (looked up as dome-space +Y)
 #: instead of being divided by ~0 into NaN/Inf.
@@ -225,6 +233,14 @@ def _window(distance: np.ndarray, light_range: np.ndarray) -> np.ndarray:
     return np.clip(1.0 - x * x, 0.0, 1.0) ** 2
 
 
+def _window_sq(distance2: np.ndarray, light_range: float) -> np.ndarray:
+    """``range_window`` from squared distances (m,) float64 (saves the square root)."""
+    if not light_range > 0.0:
+        return np.zeros(np.shape(distance2))
+    x = distance2 / (light_range * light_range)
+    return np.clip(1.0 - x * x, 0.0, 1.0) ** 2
+
+
 def range_window(distance: np.ndarray, light_range: float) -> np.ndarray:
     """Smooth cut-off factor (n,) float64 in [0, 1] of a LocalLight at ``distance`` (n,)
     metres: ``clamp(1 - (d / r)**4, 0, 1)**2`` (the Frostbite / Unreal window): 1 near
@@ -236,7 +252,7 @@ def range_window(distance: np.ndarray, light_range: float) -> np.ndarray:
     return np.clip(1.0 - x * x, 0.0, 1.0) ** 2
 
 
-def shade_local(
+def _shade_chunk(
     positions: np.ndarray,
     normals: np.ndarray,
     albedo: np.ndarray,
@@ -317,40 +333,117 @@ def shade_local(
         size = len(radiance) * n
         diffuse += np.bincount(key, weights=lit, minlength=size).reshape(-1, n)
         highlight += np.bincount(key, weights=spec, minlength=size).reshape(-1, n)
+    # Light-major visibility: each light's column becomes one contiguous row.
+    vis_rows = None if visibility is None else np.ascontiguousarray(visibility.T)
     for k, light in enumerate([] if local_pairs is not None else lights.local):
         j = n_distant + k
         # Only points that see the light (visibility > 0), within its range (the window
         # is exactly 0 beyond) and on the lit side of their normal are shaded.
-        if visibility is None:
-            cand = np.arange(n)
+        if vis_rows is None:
+            idx = np.arange(n)
             to_light = np.asarray(light.position, dtype=np.float64) - positions
         else:
-            cand = np.flatnonzero(visibility[:, j] > 0.0)
+            idx = np.flatnonzero(vis_rows[j] > 0.0)
             to_light = np.asarray(light.position, dtype=np.float64) - np.take(
-                positions, cand, axis=0
+                positions, idx, axis=0
             )
         dist2 = np.einsum("ij,ij->i", to_light, to_light)
-        near = np.flatnonzero(dist2 < ranges[j] ** 2)
-        dist = np.maximum(np.sqrt(dist2[near]), MIN_LIGHT_DISTANCE)
-        l_dir = (to_light[near] / dist[:, None]).astype(np.float32)
-        idx = cand[near]
+        near = dist2 < ranges[j] ** 2
+        if not near.all():  # shadow maps already zero these: usually nothing to drop
+            idx, to_light, dist2 = idx[near], to_light[near], dist2[near]
+        dist2 = np.maximum(dist2, MIN_LIGHT_DISTANCE**2)
+        inv_dist = 1.0 / np.sqrt(dist2)
+        l_dir = (to_light * inv_dist[:, None]).astype(np.float32)
         nrm = np.take(normals, idx, axis=0)
         n_dot_l = np.einsum("ij,ij->i", nrm, l_dir)
-        front = np.flatnonzero(n_dot_l > 0.0)
-        if len(front) < len(idx):
+        front = n_dot_l > 0.0
+        if not front.all():
             idx, nrm, l_dir = idx[front], nrm[front], l_dir[front]
-            dist, n_dot_l = dist[front], n_dot_l[front]
-        # 1/d² in float64: d up to ~1e154 stays finite, and the float32 cast of a tiny
-        # fall-off underflows to 0 instead of overflowing d² to Inf.
-        lit = (n_dot_l * range_window(dist, ranges[j]) / dist**2).astype(np.float32)
-        if visibility is not None:
-            lit *= visibility[idx, j]
+            dist2, n_dot_l = dist2[front], n_dot_l[front]
+        # Window and 1/d² in float64: d up to ~1e154 stays finite, and the float32 cast
+        # of a tiny fall-off underflows to 0 instead of overflowing d² to Inf.
+        lit = (n_dot_l * (_window_sq(dist2, ranges[j]) / dist2)).astype(np.float32)
+        if vis_rows is not None:
+            lit *= vis_rows[j, idx]
         # idx has no repeats, so the buffered fancy-index += is exact.
         diffuse[group[j], idx] += lit
         highlight[group[j], idx] += lit * _highlight(nrm, np.take(to_eye, idx, axis=0), l_dir)
     for g, rad in enumerate(radiance):
         colour += (albedo * diffuse[g][:, None] + highlight[g][:, None]) * rad
     return colour.astype(np.float32)
+
+
+def shade_local(
+    positions: np.ndarray,
+    normals: np.ndarray,
+    albedo: np.ndarray,
+    view_dirs: np.ndarray,
+    emissive: np.ndarray,
+    lights: Lights,
+    visibility: np.ndarray | None,
+    local_pairs: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None,
+) -> np.ndarray:
+    """Direct + ambient + emitted radiance leaving surface points towards the viewer.
+
+    positions  : (n, 3) float64 world metres
+    normals    : (n, 3) world unit shading normals (facing the viewer)
+    albedo     : (n, 3) linear RGB
+    view_dirs  : (n, 3) world unit directions from the viewer (eye or previous bounce)
+                 to the point
+    emissive   : (n, 3) linear RGB, or (3,) for all points
+    visibility : (n, L) in [0, 1] (1 = lit), L = len(distant) + len(local) in that order;
+                 None means everything is lit
+    local_pairs : optional (point (m,), light (m,) index into ``lights.local``, l_dir
+                 (m, 3) unit directions to the light, dist (m,) metres): the lit
+                 (point, LocalLight) pairs, already known to be visible, in range and
+                 in front of the normal (the tracer has them from its shadow rays).
+                 They replace the LocalLight columns of ``visibility``, and the same
+                 model is evaluated on them without recomputing directions.
+    Returns (n, 3) float32 linear RGB.
+
+    Points are independent: large batches without ``local_pairs`` are split into
+    SHADE_THREADS contiguous chunks shaded on a thread pool (numpy releases the GIL).
+    """
+    positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+    n = positions.shape[0]
+    if local_pairs is not None or SHADE_THREADS < 2 or n < SHADE_MIN_THREADED_POINTS:
+        return _shade_chunk(
+            positions, normals, albedo, view_dirs, emissive, lights, visibility, local_pairs
+        )
+    normals = np.asarray(normals).reshape(n, 3)
+    albedo = np.asarray(albedo).reshape(n, 3)
+    view_dirs = np.asarray(view_dirs).reshape(n, 3)
+    emissive = np.asarray(emissive)
+    out = np.empty((n, 3), dtype=np.float32)
+
+    def run(part: slice) -> None:
+        out[part] = _shade_chunk(
+            positions[part],
+            normals[part],
+            albedo[part],
+            view_dirs[part],
+            emissive if emissive.ndim == 1 else emissive[part],
+            lights,
+            None if visibility is None else visibility[part],
+        )
+
+    bounds = np.linspace(0, n, SHADE_THREADS + 1).astype(int)
+    pool = _shade_pool()
+    jobs = [pool.submit(run, slice(a, b)) for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
+    for job in jobs:
+        job.result()
+    return out
+
+
+_POOL: ThreadPoolExecutor | None = None
+
+
+def _shade_pool() -> ThreadPoolExecutor:
+    """The module's shading thread pool, created on first use."""
+    global _POOL
+    if _POOL is None:
+        _POOL = ThreadPoolExecutor(SHADE_THREADS, thread_name_prefix="phrt-shade")
+    return _POOL
 
 
 def _highlight(normals: np.ndarray, to_eye: np.ndarray, l_dir: np.ndarray) -> np.ndarray:
