@@ -137,8 +137,10 @@ CUBE_GUARD_TEXELS = SHADOW_REFINE_RADIUS + 2
 CUBE_NEAR_FRACTION = 1e-4
 #: Query points per row of the GPU lookup pass's point texture (rows as needed).
 LOOKUP_TEXTURE_WIDTH = 1024
-#: LocalLights per GPU lookup pass (4 RGBA32F colour attachments, one float each).
+#: LocalLights per GPU lookup pass (one RGBA32UI colour attachment, one byte each).
 LOOKUP_LIGHTS_PER_PASS = 16
+#: Per-light codes the GPU lookup packs one byte each (``shaders/cube_lookup.frag``).
+LOOKUP_SHADOWED, LOOKUP_LIT, LOOKUP_UNCERTAIN = 0, 1, 2
 #: The two axes spanning a cube face, per major axis of the light-to-point vector.
 _CUBE_FACE_AXES = ((1, 2), (0, 2), (0, 1))
 
@@ -1179,8 +1181,8 @@ class Rasterizer:
         unsure = np.zeros((n, len(cubes)), dtype=bool)
         if self.cube_lookup_on_gpu:
             codes = self._cube_lookup(rel, normals, cubes, ranges)
-            np.maximum(codes, 0.0, out=vis)
-            np.less(codes, 0.0, out=unsure)
+            np.equal(codes, LOOKUP_LIT, out=vis, casting="unsafe")
+            np.equal(codes, LOOKUP_UNCERTAIN, out=unsure)
             if not filtered:  # the caller resolves the uncertain pairs itself
                 vis[unsure] = 0.5
                 return vis, unsure
@@ -1365,23 +1367,23 @@ class Rasterizer:
         return first[:n] + (first[n:] if len(first) > n else [-1] * n)
 
     def _lookup_framebuffer(self, rows: int) -> None:
-        """Four RGBA32F colour attachments of LOOKUP_TEXTURE_WIDTH x >= ``rows``."""
+        """One RGBA32UI colour attachment of LOOKUP_TEXTURE_WIDTH x >= ``rows`` (the
+        packed per-light codes of ``shaders/cube_lookup.frag``)."""
         if self._lookup_fb is not None and rows <= self._lookup_rows:
             return
         if self._lookup_fb is not None:
             GL.glDeleteFramebuffers(1, [self._lookup_fb])
             GL.glDeleteRenderbuffers(len(self._lookup_rb), self._lookup_rb)
         self._lookup_rows = rows
-        self._lookup_rb = [int(b) for b in GL.glGenRenderbuffers(4)]
+        self._lookup_rb = [int(GL.glGenRenderbuffers(1))]
         self._lookup_fb = int(GL.glGenFramebuffers(1))
         GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, self._lookup_fb)
-        for i, rb in enumerate(self._lookup_rb):
-            GL.glBindRenderbuffer(GL.GL_RENDERBUFFER, rb)
-            GL.glRenderbufferStorage(GL.GL_RENDERBUFFER, GL.GL_RGBA32F, LOOKUP_TEXTURE_WIDTH, rows)
-            GL.glFramebufferRenderbuffer(
-                GL.GL_FRAMEBUFFER, GL.GL_COLOR_ATTACHMENT0 + i, GL.GL_RENDERBUFFER, rb
-            )
-        GL.glDrawBuffers(4, [GL.GL_COLOR_ATTACHMENT0 + i for i in range(4)])
+        GL.glBindRenderbuffer(GL.GL_RENDERBUFFER, self._lookup_rb[0])
+        GL.glRenderbufferStorage(GL.GL_RENDERBUFFER, GL.GL_RGBA32UI, LOOKUP_TEXTURE_WIDTH, rows)
+        GL.glFramebufferRenderbuffer(
+            GL.GL_FRAMEBUFFER, GL.GL_COLOR_ATTACHMENT0, GL.GL_RENDERBUFFER, self._lookup_rb[0]
+        )
+        GL.glDrawBuffers(1, [GL.GL_COLOR_ATTACHMENT0])
         self._check_fb("cube lookup")
         GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, 0)
         GL.glBindRenderbuffer(GL.GL_RENDERBUFFER, 0)
@@ -1398,8 +1400,8 @@ class Rasterizer:
 
         rel : (n, 3) float64 rel metres; normals : (n, 3) unit, facing the viewer;
         ranges : (len(cubes),) light ranges in metres.
-        Returns (n, len(cubes)) float32: 1 lit, 0 shadowed / out of range / facing
-        away, -1 uncertain."""
+        Returns (n, len(cubes)) uint8 codes: LOOKUP_LIT, LOOKUP_SHADOWED (also out of
+        range / facing away) or LOOKUP_UNCERTAIN."""
         n, n_local = len(rel), len(cubes)
         self._platform.make_current()
         self._lookup_setup()
@@ -1447,8 +1449,10 @@ class Rasterizer:
         GL.glUniform1f(loc("box_radius"), SHADOW_REFINE_RADIUS + 0.5)
         GL.glUniform1f(loc("slope_clamp"), 1.0 / SHADOW_MIN_COS)
         GL.glBindVertexArray(self._lookup_vao)
-        out = np.zeros((n, n_local), dtype=np.float32)
-        readback = np.empty((rows, width, 4), dtype=np.float32)
+        out = np.zeros((n, n_local), dtype=np.uint8)
+        # One byte per light, 16 per texel (see the shader): the readback viewed as
+        # (texels, 16) uint8 is light-ordered on little-endian hosts.
+        readback = np.empty((rows, width, 4), dtype="<u4")
         GL.glPixelStorei(GL.GL_PACK_ALIGNMENT, 1)
         for start in range(0, n_local, LOOKUP_LIGHTS_PER_PASS):
             ks = list(range(start, min(start + LOOKUP_LIGHTS_PER_PASS, n_local)))
@@ -1483,11 +1487,9 @@ class Rasterizer:
                 np.array([first[n_local + k] for k in ks] + [-1] * pad, np.int32),
             )
             GL.glDrawArrays(GL.GL_TRIANGLES, 0, 3)
-            for att in range(-(-len(ks) // 4)):
-                GL.glReadBuffer(GL.GL_COLOR_ATTACHMENT0 + att)
-                GL.glReadPixels(0, 0, width, rows, GL.GL_RGBA, GL.GL_FLOAT, readback)
-                cols = ks[4 * att : 4 * att + 4]
-                out[:, cols] = readback.reshape(-1, 4)[:n, : len(cols)]
+            GL.glReadBuffer(GL.GL_COLOR_ATTACHMENT0)
+            GL.glReadPixels(0, 0, width, rows, GL.GL_RGBA_INTEGER, GL.GL_UNSIGNED_INT, readback)
+            out[:, start : start + len(ks)] = readback.view(np.uint8).reshape(-1, 16)[:n, : len(ks)]
         GL.glBindVertexArray(0)
         for unit, target in enumerate((GL.GL_TEXTURE_2D, GL.GL_TEXTURE_2D, GL.GL_TEXTURE_2D_ARRAY)):
             GL.glActiveTexture(GL.GL_TEXTURE0 + unit)

@@ -1,7 +1,9 @@
 #version 330 core
 // LocalLight shadow lookups, fragment stage: one fragment per query point, up to 16
-// lights per pass (4 per colour attachment). The same test as gbuffer._cube_visibility
-// (see there and _CubeMap for the cube layout); keep the two in step.
+// lights per pass, packed as one byte each into one RGBA32UI attachment (light j in
+// channel j / 4, bits 8 (j % 4) .. 8 (j % 4) + 7: little-endian bytes in light order).
+// The same test as gbuffer._cube_visibility (see there and _CubeMap for the cube
+// layout); keep the two in step.
 //
 // Inputs (textures, texelFetch only):
 //   points  : RGBA32F, (x, y, z) origin-relative world metres of point k at texel
@@ -9,7 +11,7 @@
 //   normals : RGBA32F, (x, y, z) unit shading normal facing the viewer, same layout
 //   cubes   : RG32F 2D array, (min, max) caster forward distance over the texel
 //             neighbourhood; layer = cube's first layer + face
-// Output per light: 1 lit, 0 shadowed / out of range / facing away, -1 uncertain.
+// Output code per light: 1 lit, 0 shadowed / out of range / facing away, 2 uncertain.
 
 uniform sampler2D points;
 uniform sampler2D normals;
@@ -28,10 +30,7 @@ uniform float bias_texels;      // SHADOW_BIAS_TEXELS
 uniform float box_radius;       // SHADOW_REFINE_RADIUS + 0.5 (nearest-texel offset)
 uniform float slope_clamp;      // 1 / SHADOW_MIN_COS
 
-layout(location = 0) out vec4 out0;
-layout(location = 1) out vec4 out1;
-layout(location = 2) out vec4 out2;
-layout(location = 3) out vec4 out3;
+layout(location = 0) out uvec4 codes;
 
 float cube_test(int layer, int face, ivec2 texel_xy, float test)
 {
@@ -90,6 +89,11 @@ float lookup(int j, vec3 p, vec3 n)
     return min(vs, vd);  // -1 if either is uncertain, else 1
 }
 
+uint code(float r)
+{
+    return r > 0.5 ? 1u : (r < -0.5 ? 2u : 0u);
+}
+
 void main()
 {
     ivec2 xy = ivec2(gl_FragCoord.xy);
@@ -109,8 +113,10 @@ void main()
             }
         }
     }
-    out0 = vec4(result[0], result[1], result[2], result[3]);
-    out1 = vec4(result[4], result[5], result[6], result[7]);
-    out2 = vec4(result[8], result[9], result[10], result[11]);
-    out3 = vec4(result[12], result[13], result[14], result[15]);
+    uint word[4];
+    for (int c = 0; c < 4; ++c) {
+        word[c] = code(result[4 * c]) | (code(result[4 * c + 1]) << 8)
+            | (code(result[4 * c + 2]) << 16) | (code(result[4 * c + 3]) << 24);
+    }
+    codes = uvec4(word[0], word[1], word[2], word[3]);
 }
