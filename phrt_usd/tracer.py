@@ -600,8 +600,9 @@ class Tracer:
         the light's range (``shading.light_ranges``; beyond it the light contributes 0).
         Such pairs, and pairs outside ``pairs`` ((n, L) bool, None = all), report 0.
 
-        All (point, light) pairs are tested at once on (n, L) arrays, then one Embree
-        batch is built in float32 directly (no per-light passes, no extra copies)."""
+        All (point, light) pairs are tested at once on (n, L) arrays (with ``pairs``,
+        only the wanted pairs, one by one), then one Embree batch is built in float32
+        directly (no per-light passes, no extra copies)."""
         n = rel.shape[0]
         n_distant = len(lights.distant)
         n_lights = n_distant + len(lights.local)
@@ -614,20 +615,23 @@ class Tracer:
         # distance |p_L|² - 2 p·p_L + |p|² (render-relative: |p| is at most the scene
         # extent, so the cancellation error stays ~1e-16 extent², far below any range²).
         # Written per column (_columns), not as a BLAS product (see gbuffer._transform).
-        want = np.empty((n, n_lights), dtype=bool)
-        if n_distant:
-            want[:, :n_distant] = _columns(ns, dirs.astype(np.float32)) > 0.0
-        if len(pos):
-            n_dot_p = np.einsum("ij,ij->i", ns, rel.astype(np.float32))
-            want[:, n_distant:] = _columns(ns, pos.astype(np.float32)) > n_dot_p[:, None]
-            dist2 = (
-                np.einsum("ij,ij->i", pos, pos)[None, :]
-                - 2.0 * _columns(rel, pos)
-                + np.einsum("ij,ij->i", rel, rel)[:, None]
-            )
-            want[:, n_distant:] &= dist2 < (ranges**2)[None, :]
         if pairs is not None:
-            want &= pairs
+            # Only the wanted pairs (e.g. a shadow map's uncertain few per cent): facing
+            # and range are tested per pair further down, not on (n, L) arrays.
+            want = np.asarray(pairs, dtype=bool).reshape(n, n_lights)
+        else:
+            want = np.empty((n, n_lights), dtype=bool)
+            if n_distant:
+                want[:, :n_distant] = _columns(ns, dirs.astype(np.float32)) > 0.0
+            if len(pos):
+                n_dot_p = np.einsum("ij,ij->i", ns, rel.astype(np.float32))
+                want[:, n_distant:] = _columns(ns, pos.astype(np.float32)) > n_dot_p[:, None]
+                dist2 = (
+                    np.einsum("ij,ij->i", pos, pos)[None, :]
+                    - 2.0 * _columns(rel, pos)
+                    + np.einsum("ij,ij->i", rel, rel)[:, None]
+                )
+                want[:, n_distant:] &= dist2 < (ranges**2)[None, :]
         vis = np.zeros((n, n_lights), np.float32)
         # Per pair, float32 is enough: positions are render-relative (|p| <= extent) and
         # the offset epsilon is >= 160 float32 ulps of |p| (RAY_OFFSET_RELATIVE), so the
@@ -640,6 +644,9 @@ class Tracer:
         if n_distant:
             point, light = np.nonzero(want[:, :n_distant])
             d = np.take(dirs.astype(np.float32), light, axis=0)
+            if pairs is not None:  # facing (see above), per wanted pair
+                front = np.flatnonzero(np.einsum("ij,ij->i", np.take(ns, point, axis=0), d) > 0)
+                point, light, d = point[front], light[front], d[front]
             far = np.full(len(point), _FAR, np.float32)
             batches.append((point, light, d, far, np.take(rel32, point, axis=0), eps[point]))
         if len(pos):
@@ -649,6 +656,11 @@ class Tracer:
             e = np.take(eps, point)
             to = np.take(pos.astype(np.float32), light, axis=0)
             to -= p
+            if pairs is not None:  # facing and range (see above), per wanted pair
+                keep = np.einsum("ij,ij->i", np.take(ns, point, axis=0), to) > 0.0
+                keep &= np.einsum("ij,ij->i", to, to) < np.take(ranges**2, light)
+                keep = np.flatnonzero(keep)
+                point, light, p, e, to = point[keep], light[keep], p[keep], e[keep], to[keep]
             dist = np.sqrt(np.einsum("ij,ij->i", to, to))
             np.maximum(dist, np.float32(shading.MIN_LIGHT_DISTANCE), out=dist)
             to /= dist[:, None]
