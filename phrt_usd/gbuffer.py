@@ -1241,12 +1241,13 @@ class Rasterizer:
         maps = self.shadow_maps() if n_distant else []
         cubes = self.cube_maps() if lights.local else []
         n_lights = n_distant + len(cubes)
-        out = np.ones((len(positions), n_lights), dtype=np.float32)
         self.last_refined = self.last_refined_pairs = 0
         if len(positions) == 0 or n_lights == 0:
-            return out
+            return np.ones((len(positions), n_lights), dtype=np.float32)
         rel = positions - self._origin
-        uncertain = np.zeros(out.shape, dtype=bool)
+        if n_distant:  # else the LocalLight lookup's own arrays are used (see below)
+            out = np.ones((len(positions), n_lights), dtype=np.float32)
+            uncertain = np.zeros(out.shape, dtype=bool)
         ranges = light_ranges(lights)
 
         def lookup(part: slice) -> None:  # one chunk of points, all maps (disjoint rows)
@@ -1268,8 +1269,11 @@ class Rasterizer:
             local_vis, local_unsure = self._local_visibility(
                 rel, normals, cubes, ranges[n_distant:], filtered=refine is None
             )
-            out[:, n_distant:] = local_vis
-            uncertain[:, n_distant:] = local_unsure
+            if n_distant:
+                out[:, n_distant:] = local_vis
+                uncertain[:, n_distant:] = local_unsure
+            else:  # local lights only: the lookup's arrays are the answer (no copies)
+                out, uncertain = local_vis, local_unsure
         for job in jobs:
             job.result()
         if refine is not None and uncertain.any():
