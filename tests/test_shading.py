@@ -205,3 +205,33 @@ def test_local_pairs_give_the_same_shading_as_visibility():
     full = shading.shade_local(pos, nrm, albedo, view, em, lights, vis)
     short = shading.shade_local(pos, nrm, albedo, view, em, lights, vis, pairs)
     np.testing.assert_allclose(short, full, rtol=1e-4, atol=1e-6)
+
+
+def test_threaded_shade_local_matches_one_chunk(monkeypatch):
+    """Large batches are split over threads; the result must equal one-piece shading
+    (points are independent), visibility columns and per-point emissive included."""
+    rng = np.random.default_rng(7)
+    n = 3 * shading.SHADE_MIN_THREADED_POINTS
+    pos = rng.uniform(-5.0, 5.0, (n, 3))
+    nrm = rng.normal(size=(n, 3))
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    view = rng.normal(size=(n, 3))
+    view /= np.linalg.norm(view, axis=1, keepdims=True)
+    albedo = rng.uniform(0.0, 1.0, (n, 3)).astype(np.float32)
+    emissive = rng.uniform(0.0, 0.1, (n, 3)).astype(np.float32)
+    lights = Lights(
+        distant=[DistantLight(np.array([0.3, -1.0, 0.2]), np.full(3, 2.0))],
+        local=[
+            LocalLight(np.array([1.0, 2.0, 0.0]), np.array([4.0, 3.0, 2.0])),
+            LocalLight(np.array([-3.0, 1.0, 2.0]), np.full(3, 0.5)),
+        ],
+    )
+    vis = rng.uniform(0.0, 1.0, (n, 3)).astype(np.float32)
+    vis[vis < 0.3] = 0.0
+    monkeypatch.setattr(shading, "SHADE_THREADS", 3)  # uneven chunks, on any machine
+    threaded = shading.shade_local(pos, nrm, albedo, view, emissive, lights, vis)
+    monkeypatch.setattr(shading, "SHADE_THREADS", 1)
+    single = shading.shade_local(pos, nrm, albedo, view, emissive, lights, vis)
+    assert threaded.shape == (n, 3) and threaded.dtype == np.float32
+    np.testing.assert_array_equal(threaded, single)
+    assert float(threaded.max()) > 0.0
