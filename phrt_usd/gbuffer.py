@@ -317,7 +317,14 @@ def _cube_pcf(cube: _CubeMap, base, fx, fy, test) -> np.ndarray:
     never leave it). base (m,) flat offset of the face, fx / fy (m,) texel coordinates,
     test (m,) biased forward distances. Returns (m,) float32."""
     size = cube.depth.shape[1]
-    flat = cube.depth.reshape(-1)
+    return _bilinear_pcf(cube.depth.reshape(-1), size, base, fx, fy, test).astype(np.float32)
+
+
+def _bilinear_pcf(flat, size: int, base, fx, fy, test) -> np.ndarray:
+    """Share of the 2x2 texels around (fx, fy) whose depth is >= ``test``, bilinearly
+    weighted. flat: square ``size`` x ``size`` depth maps flattened (several maps one
+    after another, ``base`` (m,) or 0 picks the map); fx, fy, test: (m,) texel
+    coordinates and biased depths. Taps are clamped to the map. Returns (m,) float64."""
     x0 = np.floor(fx).astype(np.int64)
     y0 = np.floor(fy).astype(np.int64)
     wx = fx - x0
@@ -332,7 +339,7 @@ def _cube_pcf(cube: _CubeMap, base, fx, fy, test) -> np.ndarray:
         xi = np.clip(x0 + dx, 0, size - 1)
         yi = np.clip(y0 + dy, 0, size - 1)
         vis += weight * (test <= flat[base + yi * size + xi])
-    return vis.astype(np.float32)
+    return vis
 
 
 def _transform(v: np.ndarray, m: np.ndarray) -> np.ndarray:
@@ -381,20 +388,7 @@ def _filtered_visibility(
     inside = (fx > -1.0) & (fx < s) & (fy > -1.0) & (fy < s) & np.isfinite(test)
     fx = np.where(inside, fx, 0.0)
     fy = np.where(inside, fy, 0.0)
-    x0 = np.floor(fx).astype(np.int64)
-    y0 = np.floor(fy).astype(np.int64)
-    wx = fx - x0
-    wy = fy - y0
-    vis = np.zeros(len(rel))
-    for dx, dy, weight in (
-        (0, 0, (1 - wx) * (1 - wy)),
-        (1, 0, wx * (1 - wy)),
-        (0, 1, (1 - wx) * wy),
-        (1, 1, wx * wy),
-    ):
-        xi = np.clip(x0 + dx, 0, s - 1)
-        yi = np.clip(y0 + dy, 0, s - 1)
-        vis += weight * (test <= mp.depth[yi, xi])
+    vis = _bilinear_pcf(mp.depth.reshape(-1), s, 0, fx, fy, test)
     xn = np.clip(np.rint(fx).astype(np.int64), 0, s - 1)  # nearest texel
     yn = np.clip(np.rint(fy).astype(np.int64), 0, s - 1)
     uncertain = inside & (mp.depth_min[yn, xn] < test) & (mp.depth_max[yn, xn] >= test)

@@ -246,10 +246,7 @@ def range_window(distance: np.ndarray, light_range: float) -> np.ndarray:
     metres: ``clamp(1 - (d / r)**4, 0, 1)**2`` (the Frostbite / Unreal window): 1 near
     the light, falling to exactly 0 at and beyond ``light_range`` with zero slope there,
     so no ring marks the range. ``light_range`` <= 0 gives 0 everywhere."""
-    if not light_range > 0.0:
-        return np.zeros(np.shape(distance))
-    x = (np.asarray(distance, dtype=np.float64) / light_range) ** 2
-    return np.clip(1.0 - x * x, 0.0, 1.0) ** 2
+    return _window_sq(np.asarray(distance, dtype=np.float64) ** 2, light_range)
 
 
 def _shade_chunk(
@@ -262,24 +259,7 @@ def _shade_chunk(
     visibility: np.ndarray | None,
     local_pairs: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None,
 ) -> np.ndarray:
-    """Direct + ambient + emitted radiance leaving surface points towards the viewer.
-
-    positions  : (n, 3) float64 world metres
-    normals    : (n, 3) world unit shading normals (facing the viewer)
-    albedo     : (n, 3) linear RGB
-    view_dirs  : (n, 3) world unit directions from the viewer (eye or previous bounce)
-                 to the point
-    emissive   : (n, 3) linear RGB, or (3,) for all points
-    visibility : (n, L) in [0, 1] (1 = lit), L = len(distant) + len(local) in that order;
-                 None means everything is lit
-    local_pairs : optional (point (m,), light (m,) index into ``lights.local``, l_dir
-                 (m, 3) unit directions to the light, dist (m,) metres): the lit
-                 (point, LocalLight) pairs, already known to be visible, in range and
-                 in front of the normal (the tracer has them from its shadow rays).
-                 They replace the LocalLight columns of ``visibility``, and the same
-                 model is evaluated on them without recomputing directions.
-    Returns (n, 3) float32 linear RGB.
-    """
+    """``shade_local`` on one chunk of points (same arguments and result)."""
     positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
     n = positions.shape[0]
     normals = np.asarray(normals, dtype=np.float32).reshape(n, 3)
