@@ -380,11 +380,10 @@ def sweep(
     from phrt_usd.sweep import SweepSpec, parse_budget_list, run_sweep
 
     with user_errors():
-        for path in stages:
-            open_input(path)  # every stage readable before the sweep starts
+        opened = [open_input(path) for path in stages]  # all readable before starting
         weight = selection_weight
         if weight is None:
-            weight = read_render_params(open_input(stages[0])).selection_weight
+            weight = read_render_params(opened[0]).selection_weight
         width, height = _parse_resolution(resolution)
         spec = SweepSpec(
             stages=stages,

@@ -261,7 +261,7 @@ def run_sweep_on_cluster(
     ``chunk_pids``: the process id of the worker whose result was kept, per chunk."""
     from phrt_usd.render_job import parse_frames
     from phrt_usd.stage_reader import open_stage
-    from phrt_usd.sweep import _write_csv, check_spec, finish_sweep
+    from phrt_usd.sweep import check_spec, finish_sweep, write_sweep_csv
 
     check_spec(spec)
     spec.out.mkdir(parents=True, exist_ok=True)
@@ -271,7 +271,7 @@ def run_sweep_on_cluster(
         chunks += plan_chunks(stage_address(stage), n_frames, chunk_frames, warmup, len(chunks))
 
     def progress(results: dict) -> None:
-        _write_csv(spec.out / "sweep.csv", _sweep_rows(chunks, results))
+        write_sweep_csv(spec.out / "sweep.csv", _sweep_rows(chunks, results))
         if on_chunk is not None:
             on_chunk(len(results), len(chunks))
 
@@ -298,7 +298,7 @@ def run_render_on_cluster(
     """``run_render`` on a Dask cluster (no checkpoint / ``--resume``: a lost chunk is
     re-run by the scheduler instead). ``on_frame(done, total)`` after every chunk.
     Returns ``run_render``'s summary dict plus ``chunk_pids`` (see the sweep's)."""
-    from phrt_usd.render_job import _run_info, parse_frames, write_run_records
+    from phrt_usd.render_job import job_run_info, parse_frames, write_run_records
     from phrt_usd.report import build_report
     from phrt_usd.stage_reader import open_stage
 
@@ -309,7 +309,7 @@ def run_render_on_cluster(
     scene = open_stage(job.stage_path, camera=job.camera)
     times = parse_frames(job.frames, scene.frame_range)
     layer_path = job.selection_layer or out / "selection.usda"
-    run_info = _run_info(job, scene, times)
+    run_info = job_run_info(job, scene, times)
     chunks = plan_chunks(stage_address(job.stage_path), len(times), chunk_frames, warmup)
 
     def write(results: dict) -> list[FrameStats]:

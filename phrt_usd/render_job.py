@@ -86,7 +86,7 @@ def run_render(
     times = parse_frames(job.frames, scene.frame_range)
     out.mkdir(parents=True, exist_ok=True)
     layer_path = job.selection_layer or out / "selection.usda"
-    run_info = _run_info(job, scene, times)
+    run_info = job_run_info(job, scene, times)
 
     renderer = FrameRenderer(scene, job.options)
     done: list[FrameStats] = []
@@ -100,7 +100,7 @@ def run_render(
     stop = threading.Event()
     since_checkpoint = 0
     try:
-        with _stop_on_signals(stop):
+        with stop_on_signals(stop):
             for t in todo:
                 done.append(render_frame(renderer, t, out if job.write_images else None))
                 since_checkpoint += 1
@@ -146,7 +146,7 @@ def render_frame(renderer: FrameRenderer, t: float, out: Path | None) -> FrameSt
     return output.stats
 
 
-def _run_info(job: RenderJob, scene: StageScene, times: list[float]) -> dict:
+def job_run_info(job: RenderJob, scene: StageScene, times: list[float]) -> dict:
     opts = job.options
     info = make_run_info(
         stage=str(job.stage_path),
@@ -236,7 +236,7 @@ def write_run_records(
 
 
 @contextmanager
-def _stop_on_signals(stop: threading.Event) -> Iterator[None]:
+def stop_on_signals(stop: threading.Event) -> Iterator[None]:
     """While active, SIGINT/SIGTERM set ``stop`` instead of killing the process."""
     if threading.current_thread() is not threading.main_thread():
         yield

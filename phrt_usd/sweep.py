@@ -38,7 +38,7 @@ from phrt_usd.errors import PhrtError
 from phrt_usd.heuristic import make_policy
 from phrt_usd.image_metrics import flip_map, mean_over, psnr
 from phrt_usd.images import write_preview_png
-from phrt_usd.render_job import _stop_on_signals, parse_frames
+from phrt_usd.render_job import parse_frames, stop_on_signals
 from phrt_usd.renderer import FrameOutput, FrameRenderer, RenderOptions
 from phrt_usd.schema import DEFAULT_SELECTION_WEIGHT
 from phrt_usd.stage_reader import open_stage
@@ -150,7 +150,7 @@ def run_sweep(spec: SweepSpec, on_frame: Callable[[str, int, int], None] | None 
     rows: list[dict] = []
     timeline: dict = {}
     stop = threading.Event()
-    with _stop_on_signals(stop):
+    with stop_on_signals(stop):
         for stage_path in spec.stages:
             if stop.is_set():
                 break
@@ -173,7 +173,7 @@ def finish_sweep(spec: SweepSpec, rows: list[dict], timeline: dict, interrupted:
     """Write sweep.csv, timeline.json and the report into ``spec.out``; returns the
     summary dict of ``run_sweep``."""
     out = spec.out
-    _write_csv(out / "sweep.csv", rows)
+    write_sweep_csv(out / "sweep.csv", rows)
     _write_json(out / "timeline.json", timeline)
     from phrt_usd.sweep_report import write_sweep_report
 
@@ -193,7 +193,7 @@ def _sweep_stage(stage_path, spec, rows, timeline, stop, on_frame) -> None:
     try:
         for n, t in enumerate(sweep.times):
             rows.extend(sweep.frame(t, record=True))
-            _write_csv(spec.out / "sweep.csv", rows)
+            write_sweep_csv(spec.out / "sweep.csv", rows)
             if on_frame is not None:
                 on_frame(sweep.name, n + 1, len(sweep.times))
             if stop.is_set():
@@ -381,7 +381,7 @@ def _write_display_png(path: Path, rgb: np.ndarray) -> None:
     os.replace(tmp, path)
 
 
-def _write_csv(path: Path, rows: list[dict]) -> None:
+def write_sweep_csv(path: Path, rows: list[dict]) -> None:
     buf = io.StringIO()
     writer = csv.DictWriter(buf, fieldnames=CSV_COLUMNS)
     writer.writeheader()
