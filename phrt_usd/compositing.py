@@ -24,10 +24,17 @@ def reflect(directions: np.ndarray, normals: np.ndarray) -> np.ndarray:
     return directions - 2.0 * np.sum(directions * normals, axis=1, keepdims=True) * normals
 
 
-def pixel_reflectivity(gbuffer: GBuffer, scene: Scene) -> np.ndarray:
-    """(H, W) float32 F of the element seen at each pixel (0 for background)."""
-    per_element = np.append(scene.reflectivity, np.float32(0.0))  # index -1 → 0
-    return per_element[gbuffer.element_id]
+def pixel_reflectivity(gbuffer: GBuffer, element_reflectivity: np.ndarray) -> np.ndarray:
+    """(H, W) float32 F of the element seen at each pixel (0 for background).
+
+    element_reflectivity: (E + 1,) float32 F per element id, with a trailing 0 that the
+    background id -1 indexes (see ``element_reflectivity``)."""
+    return element_reflectivity[gbuffer.element_id]
+
+
+def element_reflectivity(scene: Scene) -> np.ndarray:
+    """(E + 1,) float32 F per element id plus a trailing 0 for the background (id -1)."""
+    return np.append(scene.reflectivity, np.float32(0.0))
 
 
 def base_image(

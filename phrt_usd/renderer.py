@@ -22,7 +22,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from phrt_usd.compositing import apply_traced, base_image, pixel_reflectivity
+from phrt_usd.compositing import (
+    apply_traced,
+    base_image,
+    element_reflectivity,
+    pixel_reflectivity,
+)
 from phrt_usd.errors import PhrtError
 from phrt_usd.frame import (
     Budget,
@@ -118,6 +123,7 @@ class FrameRenderer:
         self.options = options
         scene = stage_scene.scene
         self._reflector_ids = scene.reflector_ids
+        self._element_f = element_reflectivity(scene)  # F per element: fixed for a run
         self._animated = any(e.animated for e in scene.elements)
         self._geometry_time: float | None = None
         self._rasterizer = None
@@ -191,7 +197,7 @@ class FrameRenderer:
         local, shadow_pass = self._shade_local(gb)
         if shadow_pass:
             passes.append(shadow_pass)
-        reflectivity = pixel_reflectivity(gb, scene)
+        reflectivity = pixel_reflectivity(gb, self._element_f)
         image = base_image(gb, scene, local, reflectivity)
         phase["shade"] = _ms(t)
         pixel_counts = np.bincount(gb.element_id[gb.covered], minlength=len(scene.elements))
