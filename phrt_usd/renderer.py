@@ -300,20 +300,34 @@ class FrameRenderer:
         visible pixels, NaN for elements without any (see FrameView.screen_boxes)."""
         n = len(self.scene.elements)
         boxes = np.full((n, 4), np.nan)
-        if len(self._reflector_ids) == 0:
+        refl = np.asarray(self._reflector_ids, dtype=np.int64)
+        if len(refl) == 0:
             return boxes
-        is_reflector = np.zeros(n + 1, dtype=bool)  # index -1 (background) → False
-        is_reflector[self._reflector_ids] = True
-        rows, cols = np.nonzero(is_reflector[gb.element_id])
+        # Reflector index per element id (index -1, the background, maps to -1).
+        index = np.full(n + 1, -1, dtype=np.int64)
+        index[refl] = np.arange(len(refl))
+        k = index[gb.element_id]
+        rows, cols = np.nonzero(k >= 0)
         if len(rows) == 0:
             return boxes
-        ids = gb.element_id[rows, cols]
-        lo = np.full((n, 2), np.inf)
-        hi = np.full((n, 2), -np.inf)
-        np.minimum.at(lo, ids, np.stack([cols, rows], axis=1))
-        np.maximum.at(hi, ids, np.stack([cols, rows], axis=1))
-        seen = np.isfinite(lo[:, 0])
-        boxes[seen] = np.concatenate([lo[seen], hi[seen]], axis=1)
+        k = k[rows, cols]
+        h, w = gb.shape
+        # (H, R) / (W, R) occupancy: a reflector's first and last occupied row and
+        # column are its box (argmax finds the first True).
+        in_row = np.zeros((h, len(refl)), dtype=bool)
+        in_row[rows, k] = True
+        in_col = np.zeros((w, len(refl)), dtype=bool)
+        in_col[cols, k] = True
+        seen = in_row.any(axis=0)
+        boxes[refl[seen]] = np.stack(
+            [
+                in_col.argmax(axis=0),
+                in_row.argmax(axis=0),
+                w - 1 - in_col[::-1].argmax(axis=0),
+                h - 1 - in_row[::-1].argmax(axis=0),
+            ],
+            axis=1,
+        )[seen]
         return boxes
 
     def _shade_local(self, gb: GBuffer) -> tuple[np.ndarray, str | None]:

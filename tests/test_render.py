@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from scenes import mirror_floor_stage, mirrored_sphere_pixels
+from scenes import mirror_floor_stage, mirror_gallery_stage, mirrored_sphere_pixels
 
 from phrt_usd.errors import PhrtError
 from phrt_usd.image_metrics import flip_map
@@ -101,3 +101,25 @@ def test_every_stage_renders_finite_or_fails_clearly(path):
     for out in outputs:
         for channel in (out.beauty, out.alpha, out.gbuffer.depth[out.gbuffer.covered]):
             assert np.all(np.isfinite(channel))
+
+
+def test_screen_boxes_bound_each_reflectors_pixels(tmp_path):
+    stage = open_stage(mirror_gallery_stage(tmp_path / "gallery.usda"))
+    renderer = FrameRenderer(
+        stage, RenderOptions(mode="hybrid", heuristic="all", width=96, height=64, budget_ms=None)
+    )
+    try:
+        prep = renderer.prepare(1.0)
+    finally:
+        renderer.close()
+    ids = prep.gbuffer.element_id
+    seen = 0
+    for e, element in enumerate(stage.scene.elements):
+        rows, cols = np.nonzero(ids == e)
+        box = prep.screen_boxes[e]
+        if element.is_reflector and len(rows):
+            seen += 1
+            assert box.tolist() == [cols.min(), rows.min(), cols.max(), rows.max()]
+        else:
+            assert np.isnan(box).all()
+    assert seen >= 2
