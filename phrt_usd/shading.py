@@ -83,6 +83,10 @@ def _safe_normalize(v: np.ndarray, fallback: np.ndarray) -> np.ndarray:
     """Rows of ``v`` (n, 3) scaled to unit length; rows of (near) zero length or
     non-finite become ``fallback`` (3,). Returns float64 (n, 3)."""
     v = np.asarray(v, dtype=np.float64)
+    length2 = np.einsum("ij,ij->i", v, v)
+    if np.all((length2 > _MIN_DIRECTION_LENGTH**2) & (length2 < np.inf)):
+        # The usual case (finite, not tiny, |v|² not overflowing): plain division.
+        return v / np.sqrt(length2)[:, None]
     finite = np.all(np.isfinite(v), axis=1)
     v = np.where(finite[:, None], v, 0.0)
     # Scale by the largest component first so huge vectors do not overflow when squared.
@@ -126,9 +130,14 @@ def _bilinear(texture: np.ndarray, x: np.ndarray, y: np.ndarray, wrap_y: bool) -
     else:
         r0 = np.clip(y0, 0, h - 1)
         r1 = np.clip(y0 + 1, 0, h - 1)
-    top = texture[r0, c0] * (1.0 - fx) + texture[r0, c1] * fx
-    bottom = texture[r1, c0] * (1.0 - fx) + texture[r1, c1] * fx
-    return (top * (1.0 - fy) + bottom * fy).astype(np.float32)
+    # Gathers from the flattened texture (1-D takes are several times faster than
+    # 2-D fancy indexing).
+    flat = np.ascontiguousarray(texture, dtype=np.float32).reshape(h * w, -1)
+    r0 *= w
+    r1 *= w
+    top = flat.take(r0 + c0, axis=0) * (1.0 - fx) + flat.take(r0 + c1, axis=0) * fx
+    bottom = flat.take(r1 + c0, axis=0) * (1.0 - fx) + flat.take(r1 + c1, axis=0) * fx
+    return top * (1.0 - fy) + bottom * fy
 
 
 def _dome_colour(dome: DomeLight) -> np.ndarray:
