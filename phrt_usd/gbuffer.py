@@ -67,7 +67,14 @@ import numpy as np
 from phrt_usd.errors import PhrtError
 from phrt_usd.frame import GBuffer
 from phrt_usd.scene import NO_HIT, CameraFrame, Scene
-from phrt_usd.shading import light_ranges
+from phrt_usd.shading import (
+    MIN_LIGHT_DISTANCE,
+    SHININESS,
+    SPECULAR_STRENGTH,
+    LightPairs,
+    light_ranges,
+    pair_directions,
+)
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
 
@@ -312,6 +319,25 @@ def _cube_visibility(
     return vis, uncertain
 
 
+def _cube_pair_visibility(
+    pair: tuple[_CubeMap | None, _CubeMap | None],
+    rel: np.ndarray,
+    normals: np.ndarray,
+    filtered: bool,
+) -> tuple[np.ndarray, np.ndarray]:
+    """(m,) float32 visibility and (m,) bool uncertain of points ``rel`` (m, 3) through a
+    light's (static, animated) cube maps: the product of both maps' answers."""
+    v_all = np.ones(len(rel), dtype=np.float32)
+    u_all = np.zeros(len(rel), dtype=bool)
+    for cube in pair:
+        if cube is not None:
+            v, u = _cube_visibility(cube, rel, normals, filtered)
+            # Uncertain in one map matters only where the other lets light by.
+            u_all = (u_all & (v > 0)) | (u & (v_all > 0))
+            v_all *= v
+    return v_all, u_all
+
+
 def _cube_pcf(cube: _CubeMap, base, fx, fy, test) -> np.ndarray:
     """Bilinear 2x2 percentage-closer filtering on one face each (guard band: the taps
     never leave it). base (m,) flat offset of the face, fx / fy (m,) texel coordinates,
@@ -393,6 +419,25 @@ def _filtered_visibility(
     yn = np.clip(np.rint(fy).astype(np.int64), 0, s - 1)
     uncertain = inside & (mp.depth_min[yn, xn] < test) & (mp.depth_max[yn, xn] >= test)
     return np.where(inside, vis, 1.0), uncertain
+
+
+@dataclass
+class LightTerms:
+    """What shading G-buffer points needs from the shadow maps (``Rasterizer.light_terms``,
+    consumed by ``shading.shade_local``). n points, D DistantLights.
+
+    distant_visibility : (n, D) float32 in [0, 1], 1 = lit
+    local_sums         : diffuse (n, 3) and highlight (n, 3) float32 sums of the
+                         LocalLight pairs the cube maps decided are lit, or None when the
+                         scene has no LocalLights
+    local_pairs        : the (point, LocalLight) pairs the maps could not decide, with
+                         their visibility from shadow rays or PCF (lit ones only), or
+                         None
+    """
+
+    distant_visibility: np.ndarray
+    local_sums: tuple[np.ndarray, np.ndarray] | None
+    local_pairs: LightPairs | None
 
 
 class Rasterizer:
@@ -1190,17 +1235,126 @@ class Rasterizer:
                 reach = np.einsum("ij,ij->i", to_light, to_light) < ranges[k] ** 2
                 reach &= np.einsum("ij,ij->i", normals, to_light) > 0.0
                 idx = np.flatnonzero(reach)
-            v_all = np.ones(len(idx), dtype=np.float32)
-            u_all = np.zeros(len(idx), dtype=bool)
-            for cube in pair:
-                if cube is not None:
-                    v, u = _cube_visibility(cube, rel[idx], normals[idx], filtered)
-                    # Uncertain in one map matters only where the other lets light by.
-                    u_all = (u_all & (v > 0)) | (u & (v_all > 0))
-                    v_all *= v
-            vis[idx, k] = v_all
-            unsure[idx, k] = u_all
+            vis[idx, k], unsure[idx, k] = _cube_pair_visibility(
+                pair, rel[idx], normals[idx], filtered
+            )
         return vis, unsure
+
+    def light_terms(
+        self,
+        positions: np.ndarray,
+        normals: np.ndarray,
+        to_eye: np.ndarray,
+        refine: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray] | None = None,
+    ) -> LightTerms:
+        """The shadow-mapped lighting of points, for ``shading.shade_local``: as
+        ``shadow_visibility`` (same maps, same ``refine`` contract), but the LocalLight
+        pairs the cube maps decide are lit are also *shaded* on the GPU, in the lookup
+        pass (``shaders/cube_lookup.frag``): no (n, L) visibility matrix and no numpy
+        shading of them. Requires ``cube_lookup_on_gpu``.
+
+        positions : (n, 3) float64 world metres; normals : (n, 3) unit, facing the
+        viewer; to_eye : (n, 3) unit directions from the points to the viewer.
+        """
+        positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+        normals = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
+        lights = self._scene.lights
+        n, n_distant = len(positions), len(lights.distant)
+        distant = np.ones((n, n_distant), dtype=np.float32)
+        distant_unsure = np.zeros((n, n_distant), dtype=bool)
+        self.last_refined = self.last_refined_pairs = 0
+        if n == 0 or not lights.has_direct:
+            return LightTerms(distant, None, None)
+        rel = positions - self._origin
+        jobs = self._distant_lookups(rel, normals, distant, distant_unsure)
+        if not lights.local:
+            for job in jobs:
+                job.result()
+            return LightTerms(
+                self._refined(positions, normals, distant, distant_unsure, refine), None, None
+            )
+        cubes = self.cube_maps()
+        ranges = light_ranges(lights)[n_distant:]
+        diffuse, highlight, local_unsure = self._cube_lookup(rel, normals, cubes, ranges, to_eye)
+        for job in jobs:
+            job.result()
+        uncertain = np.concatenate([distant_unsure, local_unsure], axis=1)
+        # The local pairs the maps could not decide, with their visibility: exact from
+        # ``refine``, else the maps' PCF.
+        if refine is not None:
+            vis = self._refined(
+                positions,
+                normals,
+                np.concatenate([distant, local_unsure.astype(np.float32)], axis=1),
+                uncertain,
+                refine,
+            )
+            distant = vis[:, :n_distant]
+            point, light = np.nonzero(local_unsure)
+            weight = vis[:, n_distant:][point, light]
+        else:
+            point, light = np.nonzero(local_unsure)
+            weight = np.zeros(len(point), dtype=np.float32)
+            for k, pair in enumerate(cubes):
+                at = np.flatnonzero(light == k)
+                if len(at):
+                    p = point[at]
+                    weight[at] = _cube_pair_visibility(pair, rel[p], normals[p], True)[0]
+        lit = np.flatnonzero(weight > 0.0)
+        point, light, weight = point[lit], light[lit], weight[lit]
+        l_dir, dist = pair_directions(lights, positions, point, light)
+        return LightTerms(
+            distant, (diffuse, highlight), LightPairs(point, light, l_dir, dist, weight)
+        )
+
+    def _distant_lookups(
+        self, rel: np.ndarray, normals: np.ndarray, out: np.ndarray, uncertain: np.ndarray
+    ) -> list:
+        """Start the DistantLights' shadow-map lookups of points ``rel`` (n, 3) rel
+        metres on the worker threads: they multiply into ``out`` (n, D) and flag
+        ``uncertain`` (n, D). Returns the futures (empty without DistantLights)."""
+        maps = self.shadow_maps() if len(self._scene.lights.distant) else []
+        if not maps:
+            return []
+
+        def lookup(part: slice) -> None:  # one chunk of points, all maps (disjoint rows)
+            r, nr = rel[part], normals[part]
+            for k, pair in enumerate(maps):
+                for mp in pair:
+                    if mp is not None:
+                        vis, unsure = _filtered_visibility(mp, r, nr)
+                        out[part, k] *= vis
+                        uncertain[part, k] |= unsure
+
+        bounds = np.linspace(0, len(rel), DERIVE_THREADS + 1).astype(int)
+        return [
+            self._pool.submit(lookup, slice(a, b))
+            for a, b in zip(bounds[:-1], bounds[1:], strict=True)
+            if b > a
+        ]
+
+    def _refined(
+        self,
+        positions: np.ndarray,
+        normals: np.ndarray,
+        vis: np.ndarray,
+        uncertain: np.ndarray,
+        refine: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray] | None,
+    ) -> np.ndarray:
+        """``vis`` (n, L) with its ``uncertain`` (n, L) pairs replaced by ``refine``'s
+        answer (in place; unchanged without ``refine``). Sets ``last_refined`` (points)
+        and ``last_refined_pairs``."""
+        if refine is None or not uncertain.any():
+            return vis
+        idx = np.flatnonzero(uncertain.any(axis=1))
+        pairs = uncertain[idx]
+        exact = np.asarray(refine(positions[idx], normals[idx], pairs), dtype=np.float32)
+        sub = vis[idx]
+        sub[pairs] = exact.reshape(pairs.shape)[pairs]
+        vis[idx] = sub
+        self.last_refined = len(idx)
+        self.last_refined_pairs = int(pairs.sum())
+        return vis
 
     def shadow_visibility(
         self,
@@ -1232,7 +1386,6 @@ class Rasterizer:
         normals = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
         lights = self._scene.lights
         n_distant = len(lights.distant)
-        maps = self.shadow_maps() if n_distant else []
         cubes = self.cube_maps() if lights.local else []
         n_lights = n_distant + len(cubes)
         self.last_refined = self.last_refined_pairs = 0
@@ -1242,23 +1395,12 @@ class Rasterizer:
         if n_distant:  # else the LocalLight lookup's own arrays are used (see below)
             out = np.ones((len(positions), n_lights), dtype=np.float32)
             uncertain = np.zeros(out.shape, dtype=bool)
+            distant_vis = np.ones((len(positions), n_distant), dtype=np.float32)
+            distant_unsure = np.zeros(distant_vis.shape, dtype=bool)
+            jobs = self._distant_lookups(rel, normals, distant_vis, distant_unsure)
+        else:
+            jobs = []
         ranges = light_ranges(lights)
-
-        def lookup(part: slice) -> None:  # one chunk of points, all maps (disjoint rows)
-            r, nr = rel[part], normals[part]
-            for k, pair in enumerate(maps):
-                for mp in pair:
-                    if mp is not None:
-                        vis, unsure = _filtered_visibility(mp, r, nr)
-                        out[part, k] *= vis
-                        uncertain[part, k] |= unsure
-
-        bounds = np.linspace(0, len(positions), DERIVE_THREADS + 1).astype(int)
-        jobs = [
-            self._pool.submit(lookup, slice(a, b))
-            for a, b in zip(bounds[:-1], bounds[1:], strict=True)
-            if b > a and maps
-        ]
         if cubes:  # meanwhile, on this thread (the GL context's)
             local_vis, local_unsure = self._local_visibility(
                 rel, normals, cubes, ranges[n_distant:], filtered=refine is None
@@ -1270,16 +1412,10 @@ class Rasterizer:
                 out, uncertain = local_vis, local_unsure
         for job in jobs:
             job.result()
-        if refine is not None and uncertain.any():
-            idx = np.flatnonzero(uncertain.any(axis=1))
-            pairs = uncertain[idx]
-            exact = np.asarray(refine(positions[idx], normals[idx], pairs), dtype=np.float32)
-            sub = out[idx]
-            sub[pairs] = exact.reshape(len(idx), n_lights)[pairs]
-            out[idx] = sub
-            self.last_refined = len(idx)
-            self.last_refined_pairs = int(pairs.sum())
-        return out
+        if n_distant:
+            out[:, :n_distant] = distant_vis
+            uncertain[:, :n_distant] = distant_unsure
+        return self._refined(positions, normals, out, uncertain, refine)
 
     # ------------------------------------------------------------------ GPU cube lookups
 
@@ -1301,7 +1437,7 @@ class Rasterizer:
             )
         )
         GL.glBindVertexArray(0)
-        self._point_tex = [int(t) for t in GL.glGenTextures(2)]
+        self._point_tex = [int(t) for t in GL.glGenTextures(3)]  # points, normals, to_eye
         for tex in self._point_tex:
             GL.glBindTexture(GL.GL_TEXTURE_2D, tex)
             GL.glTexParameteri(GL.GL_TEXTURE_2D, GL.GL_TEXTURE_MIN_FILTER, GL.GL_NEAREST)
@@ -1365,23 +1501,26 @@ class Rasterizer:
         return first[:n] + (first[n:] if len(first) > n else [-1] * n)
 
     def _lookup_framebuffer(self, rows: int) -> None:
-        """One RGBA32UI colour attachment of LOOKUP_TEXTURE_WIDTH x >= ``rows`` (the
-        packed per-light codes of ``shaders/cube_lookup.frag``)."""
+        """The outputs of ``shaders/cube_lookup.frag``, LOOKUP_TEXTURE_WIDTH x >= ``rows``
+        each: RGBA32UI packed per-light codes, RGBA32F diffuse sums (+ uncertain bits),
+        RGBA32F highlight sums."""
         if self._lookup_fb is not None and rows <= self._lookup_rows:
             return
         if self._lookup_fb is not None:
             GL.glDeleteFramebuffers(1, [self._lookup_fb])
             GL.glDeleteRenderbuffers(len(self._lookup_rb), self._lookup_rb)
         self._lookup_rows = rows
-        self._lookup_rb = [int(GL.glGenRenderbuffers(1))]
+        self._lookup_rb = [int(rb) for rb in GL.glGenRenderbuffers(3)]
         self._lookup_fb = int(GL.glGenFramebuffers(1))
         GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, self._lookup_fb)
-        GL.glBindRenderbuffer(GL.GL_RENDERBUFFER, self._lookup_rb[0])
-        GL.glRenderbufferStorage(GL.GL_RENDERBUFFER, GL.GL_RGBA32UI, LOOKUP_TEXTURE_WIDTH, rows)
-        GL.glFramebufferRenderbuffer(
-            GL.GL_FRAMEBUFFER, GL.GL_COLOR_ATTACHMENT0, GL.GL_RENDERBUFFER, self._lookup_rb[0]
-        )
-        GL.glDrawBuffers(1, [GL.GL_COLOR_ATTACHMENT0])
+        formats = (GL.GL_RGBA32UI, GL.GL_RGBA32F, GL.GL_RGBA32F)
+        for i, (rb, fmt) in enumerate(zip(self._lookup_rb, formats, strict=True)):
+            GL.glBindRenderbuffer(GL.GL_RENDERBUFFER, rb)
+            GL.glRenderbufferStorage(GL.GL_RENDERBUFFER, fmt, LOOKUP_TEXTURE_WIDTH, rows)
+            GL.glFramebufferRenderbuffer(
+                GL.GL_FRAMEBUFFER, GL.GL_COLOR_ATTACHMENT0 + i, GL.GL_RENDERBUFFER, rb
+            )
+        GL.glDrawBuffers(3, [GL.GL_COLOR_ATTACHMENT0 + i for i in range(3)])
         self._check_fb("cube lookup")
         GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, 0)
         GL.glBindRenderbuffer(GL.GL_RENDERBUFFER, 0)
@@ -1392,14 +1531,19 @@ class Rasterizer:
         normals: np.ndarray,
         cubes: list[tuple[_CubeMap | None, _CubeMap | None]],
         ranges: np.ndarray,
-    ) -> np.ndarray:
+        to_eye: np.ndarray | None = None,
+    ) -> np.ndarray | tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Every point against every LocalLight's cube maps on the GPU (the test of
         ``_cube_visibility``, in ``shaders/cube_lookup.frag``).
 
         rel : (n, 3) float64 rel metres; normals : (n, 3) unit, facing the viewer;
         ranges : (len(cubes),) light ranges in metres.
-        Returns (n, len(cubes)) uint8 codes: LOOKUP_LIT, LOOKUP_SHADOWED (also out of
-        range / facing away) or LOOKUP_UNCERTAIN."""
+        Without ``to_eye``: returns (n, len(cubes)) uint8 codes: LOOKUP_LIT,
+        LOOKUP_SHADOWED (also out of range / facing away) or LOOKUP_UNCERTAIN.
+        With ``to_eye`` (n, 3) unit directions to the viewer: the lit pairs are also
+        shaded on the GPU; returns diffuse (n, 3) and highlight (n, 3) float32 sums over
+        the lit pairs (``shading.shade_local``'s ``local_sums``) and (n, len(cubes))
+        bool uncertain pairs (not in the sums)."""
         n, n_local = len(rel), len(cubes)
         self._platform.make_current()
         self._lookup_setup()
@@ -1408,12 +1552,23 @@ class Rasterizer:
         rows = -(-n // width)
         self._lookup_framebuffer(rows)
         GL.glPixelStorei(GL.GL_UNPACK_ALIGNMENT, 1)
-        for tex, data in zip(self._point_tex, (rel, normals), strict=True):
-            texels = np.zeros((rows * width, 4), dtype=np.float32)
-            texels[:n, :3] = data
+        shading = to_eye is not None
+        # Without shading the to_eye texture is never read for a result: send no data.
+        inputs = (rel, normals, to_eye if shading else np.zeros((0, 3)))
+        for tex, data in zip(self._point_tex, inputs, strict=True):
+            texels = np.zeros((rows * width if len(data) else 1, 4), dtype=np.float32)
+            texels[: len(data), :3] = data
             GL.glBindTexture(GL.GL_TEXTURE_2D, tex)
             GL.glTexImage2D(
-                GL.GL_TEXTURE_2D, 0, GL.GL_RGBA32F, width, rows, 0, GL.GL_RGBA, GL.GL_FLOAT, texels
+                GL.GL_TEXTURE_2D,
+                0,
+                GL.GL_RGBA32F,
+                width if len(data) else 1,
+                rows if len(data) else 1,
+                0,
+                GL.GL_RGBA,
+                GL.GL_FLOAT,
+                texels,
             )
         prog = self._lookup_program
 
@@ -1427,18 +1582,15 @@ class Rasterizer:
         GL.glDisable(GL.GL_SCISSOR_TEST)
         GL.glDisable(GL.GL_BLEND)
         GL.glDisable(GL.GL_CULL_FACE)
-        for unit, (target, tex) in enumerate(
-            [
-                (GL.GL_TEXTURE_2D, self._point_tex[0]),
-                (GL.GL_TEXTURE_2D, self._point_tex[1]),
-                (GL.GL_TEXTURE_2D_ARRAY, self._cube_tex),
-            ]
-        ):
+        targets = [GL.GL_TEXTURE_2D, GL.GL_TEXTURE_2D, GL.GL_TEXTURE_2D_ARRAY, GL.GL_TEXTURE_2D]
+        textures = [self._point_tex[0], self._point_tex[1], self._cube_tex, self._point_tex[2]]
+        for unit, (target, tex) in enumerate(zip(targets, textures, strict=True)):
             GL.glActiveTexture(GL.GL_TEXTURE0 + unit)
             GL.glBindTexture(target, tex)
         GL.glUniform1i(loc("points"), 0)
         GL.glUniform1i(loc("normals"), 1)
         GL.glUniform1i(loc("cubes"), 2)
+        GL.glUniform1i(loc("to_eye"), 3)
         GL.glUniform1i(loc("n_points"), n)
         GL.glUniform1i(loc("width"), width)
         GL.glUniform1i(loc("size"), CUBE_MAP_SIZE)
@@ -1446,11 +1598,21 @@ class Rasterizer:
         GL.glUniform1f(loc("bias_texels"), SHADOW_BIAS_TEXELS)
         GL.glUniform1f(loc("box_radius"), SHADOW_REFINE_RADIUS + 0.5)
         GL.glUniform1f(loc("slope_clamp"), 1.0 / SHADOW_MIN_COS)
+        GL.glUniform1f(loc("min_light_distance"), MIN_LIGHT_DISTANCE)
+        GL.glUniform1f(loc("shininess"), SHININESS)
+        GL.glUniform1f(loc("specular_strength"), SPECULAR_STRENGTH)
         GL.glBindVertexArray(self._lookup_vao)
-        out = np.zeros((n, n_local), dtype=np.uint8)
-        # One byte per light, 16 per texel (see the shader): the readback viewed as
-        # (texels, 16) uint8 is light-ordered on little-endian hosts.
-        readback = np.empty((rows, width, 4), dtype="<u4")
+        if shading:
+            diffuse = np.zeros((n, 3), dtype=np.float32)
+            highlight = np.zeros((n, 3), dtype=np.float32)
+            unsure = np.zeros((n, n_local), dtype=bool)
+            sums = np.empty((rows, width, 4), dtype=np.float32)
+        else:
+            out = np.zeros((n, n_local), dtype=np.uint8)
+            # One byte per light, 16 per texel (see the shader): the readback viewed as
+            # (texels, 16) uint8 is light-ordered on little-endian hosts.
+            readback = np.empty((rows, width, 4), dtype="<u4")
+        lights = self._scene.lights
         GL.glPixelStorei(GL.GL_PACK_ALIGNMENT, 1)
         for start in range(0, n_local, LOOKUP_LIGHTS_PER_PASS):
             ks = list(range(start, min(start + LOOKUP_LIGHTS_PER_PASS, n_local)))
@@ -1464,8 +1626,11 @@ class Rasterizer:
             # its layers stay -1 and cube_test answers 1.
             pos_arr = np.zeros((LOOKUP_LIGHTS_PER_PASS, 3), np.float32)
             pos_arr[: len(ks)] = pos
+            rad_arr = np.zeros((LOOKUP_LIGHTS_PER_PASS, 3), np.float32)
+            rad_arr[: len(ks)] = [lights.local[k].radiance for k in ks]
             GL.glUniform1i(loc("n_lights"), len(ks))
             GL.glUniform3fv(loc("light_pos"), LOOKUP_LIGHTS_PER_PASS, pos_arr)
+            GL.glUniform3fv(loc("light_radiance"), LOOKUP_LIGHTS_PER_PASS, rad_arr)
             GL.glUniform1fv(
                 loc("light_range"),
                 LOOKUP_LIGHTS_PER_PASS,
@@ -1485,17 +1650,31 @@ class Rasterizer:
                 np.array([first[n_local + k] for k in ks] + [-1] * pad, np.int32),
             )
             GL.glDrawArrays(GL.GL_TRIANGLES, 0, 3)
-            GL.glReadBuffer(GL.GL_COLOR_ATTACHMENT0)
-            GL.glReadPixels(0, 0, width, rows, GL.GL_RGBA_INTEGER, GL.GL_UNSIGNED_INT, readback)
-            out[:, start : start + len(ks)] = readback.view(np.uint8).reshape(-1, 16)[:n, : len(ks)]
+            if shading:
+                GL.glReadBuffer(GL.GL_COLOR_ATTACHMENT1)
+                GL.glReadPixels(0, 0, width, rows, GL.GL_RGBA, GL.GL_FLOAT, sums)
+                flat = sums.reshape(-1, 4)[:n]
+                diffuse += flat[:, :3]
+                bits = flat[:, 3].astype(np.uint32)
+                unsure[:, ks] = (bits[:, None] >> np.arange(len(ks), dtype=np.uint32)) & 1 > 0
+                GL.glReadBuffer(GL.GL_COLOR_ATTACHMENT2)
+                GL.glReadPixels(0, 0, width, rows, GL.GL_RGBA, GL.GL_FLOAT, sums)
+                highlight += sums.reshape(-1, 4)[:n, :3]
+            else:
+                GL.glReadBuffer(GL.GL_COLOR_ATTACHMENT0)
+                GL.glReadPixels(0, 0, width, rows, GL.GL_RGBA_INTEGER, GL.GL_UNSIGNED_INT, readback)
+                codes = readback.view(np.uint8).reshape(-1, 16)[:n, : len(ks)]
+                out[:, start : start + len(ks)] = codes
         GL.glBindVertexArray(0)
-        for unit, target in enumerate((GL.GL_TEXTURE_2D, GL.GL_TEXTURE_2D, GL.GL_TEXTURE_2D_ARRAY)):
+        for unit, target in enumerate(targets):
             GL.glActiveTexture(GL.GL_TEXTURE0 + unit)
             GL.glBindTexture(target, 0)
         GL.glActiveTexture(GL.GL_TEXTURE0)
         GL.glUseProgram(0)
         GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, 0)
         GL.glEnable(GL.GL_DEPTH_TEST)
+        if shading:
+            return diffuse, highlight, unsure
         return out
 
     # ------------------------------------------------------------------ lifetime

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import os
 from concurrent.futures import ThreadPoolExecutor
+from typing import NamedTuple
 
 import numpy as np
 
@@ -77,6 +78,35 @@ _MIN_DIRECTION_LENGTH = 1e-30
 #: The texture object is kept so that a recycled id can never alias another array.
 _AMBIENT_CACHE: dict[int, tuple[np.ndarray, np.ndarray]] = {}
 _AMBIENT_CACHE_SIZE = 8
+
+
+class LightPairs(NamedTuple):
+    """m (point, LocalLight) pairs known to be lit, with what shading them needs.
+
+    point  : (m,) int64 index of the point
+    light  : (m,) int64 index into ``lights.local``
+    l_dir  : (m, 3) float32 unit directions from the point to the light
+    dist   : (m,) metres from the point to the light
+    weight : (m,) float32 visibility in (0, 1], or None: fully lit
+    """
+
+    point: np.ndarray
+    light: np.ndarray
+    l_dir: np.ndarray
+    dist: np.ndarray
+    weight: np.ndarray | None = None
+
+
+def pair_directions(
+    lights: Lights, positions: np.ndarray, point: np.ndarray, light: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Unit directions (m, 3) float32 and distances (m,) float64 metres (clamped to
+    ``MIN_LIGHT_DISTANCE``) from ``positions[point]`` ((n, 3) world metres) to
+    ``lights.local[light]``, for m pairs."""
+    centres = np.array([li.position for li in lights.local], dtype=np.float64).reshape(-1, 3)
+    to_light = np.take(centres, light, axis=0) - np.take(positions, point, axis=0)
+    dist = np.maximum(np.sqrt(np.einsum("ij,ij->i", to_light, to_light)), MIN_LIGHT_DISTANCE)
+    return (to_light / dist[:, None]).astype(np.float32), dist
 
 
 def _safe_normalize(v: np.ndarray, fallback: np.ndarray) -> np.ndarray:
@@ -266,7 +296,8 @@ def _shade_chunk(
     emissive: np.ndarray,
     lights: Lights,
     visibility: np.ndarray | None,
-    local_pairs: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None,
+    local_pairs: LightPairs | tuple | None = None,
+    local_sums: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> np.ndarray:
     """``shade_local`` on one chunk of points (same arguments and result)."""
     positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
@@ -276,6 +307,8 @@ def _shade_chunk(
     to_eye = -np.asarray(view_dirs, dtype=np.float32).reshape(n, 3)
     colour = albedo * ambient_radiance(lights)[None, :]
     colour += np.broadcast_to(np.asarray(emissive, dtype=np.float32), (n, 3))
+    if local_sums is not None:
+        colour += albedo * local_sums[0] + local_sums[1]
     if not lights.has_direct or n == 0:
         return colour.astype(np.float32)
     # Per point and light colour: the summed diffuse weights (cosine x fall-off x
@@ -308,13 +341,15 @@ def _shade_chunk(
     n_distant = len(lights.distant)
     ranges = light_ranges(lights)
     if local_pairs is not None:
-        point, light, l_dir, dist = local_pairs
+        point, light, l_dir, dist, weight = LightPairs(*local_pairs)
         j = n_distant + np.asarray(light, np.int64)
         nrm = np.take(normals, point, axis=0)
         l_dir = np.asarray(l_dir, np.float32)
         dist = np.maximum(np.asarray(dist, np.float64), MIN_LIGHT_DISTANCE)
         n_dot_l = np.maximum(np.einsum("ij,ij->i", nrm, l_dir), 0.0)
         lit = (n_dot_l * _window(dist, ranges[j]) / dist**2).astype(np.float32)
+        if weight is not None:
+            lit *= weight
         spec = lit * _highlight(nrm, np.take(to_eye, point, axis=0), l_dir)
         # Pairs of one light never repeat a point, but several lights share a colour
         # group: sum with bincount over (group, point).
@@ -324,7 +359,8 @@ def _shade_chunk(
         highlight += np.bincount(key, weights=spec, minlength=size).reshape(-1, n)
     # Light-major visibility: each light's column becomes one contiguous row.
     vis_rows = None if visibility is None else np.ascontiguousarray(visibility.T)
-    for k, light in enumerate([] if local_pairs is not None else lights.local):
+    skip_local = local_pairs is not None or local_sums is not None
+    for k, light in enumerate([] if skip_local else lights.local):
         j = n_distant + k
         # Only points that see the light (visibility > 0), within its range (the window
         # is exactly 0 beyond) and on the lit side of their normal are shaded.
@@ -370,7 +406,8 @@ def shade_local(
     emissive: np.ndarray,
     lights: Lights,
     visibility: np.ndarray | None,
-    local_pairs: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None,
+    local_pairs: LightPairs | tuple | None = None,
+    local_sums: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> np.ndarray:
     """Direct + ambient + emitted radiance leaving surface points towards the viewer.
 
@@ -382,12 +419,17 @@ def shade_local(
     emissive   : (n, 3) linear RGB, or (3,) for all points
     visibility : (n, L) in [0, 1] (1 = lit), L = len(distant) + len(local) in that order;
                  None means everything is lit
-    local_pairs : optional (point (m,), light (m,) index into ``lights.local``, l_dir
-                 (m, 3) unit directions to the light, dist (m,) metres): the lit
+    local_pairs : optional ``LightPairs`` (or its first four fields as a tuple): the lit
                  (point, LocalLight) pairs, already known to be visible, in range and
                  in front of the normal (the tracer has them from its shadow rays).
                  They replace the LocalLight columns of ``visibility``, and the same
                  model is evaluated on them without recomputing directions.
+    local_sums : optional (diffuse (n, 3), highlight (n, 3)) float32: the LocalLight
+                 terms of the model already summed elsewhere (``gbuffer.Rasterizer.
+                 light_terms``, on the GPU), per light ``radiance * n·l * window / d²``
+                 and that times the highlight. Added as ``albedo * diffuse +
+                 highlight``; LocalLights are then evaluated only at ``local_pairs``
+                 and ``visibility`` needs only its DistantLight columns.
     Returns (n, 3) float32 linear RGB.
 
     Points are independent: large batches without ``local_pairs`` are split into
@@ -395,9 +437,22 @@ def shade_local(
     """
     positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
     n = positions.shape[0]
-    if local_pairs is not None or SHADE_THREADS < 2 or n < SHADE_MIN_THREADED_POINTS:
+    if (
+        local_pairs is not None
+        or local_sums is not None
+        or SHADE_THREADS < 2
+        or n < SHADE_MIN_THREADED_POINTS
+    ):
         return _shade_chunk(
-            positions, normals, albedo, view_dirs, emissive, lights, visibility, local_pairs
+            positions,
+            normals,
+            albedo,
+            view_dirs,
+            emissive,
+            lights,
+            visibility,
+            local_pairs,
+            local_sums,
         )
     normals = np.asarray(normals).reshape(n, 3)
     albedo = np.asarray(albedo).reshape(n, 3)

@@ -664,7 +664,7 @@ class Tracer:
             dist = np.sqrt(np.einsum("ij,ij->i", to, to))
             np.maximum(dist, np.float32(shading.MIN_LIGHT_DISTANCE), out=dist)
             to /= dist[:, None]
-            local = (point, light, to, dist)
+            local = shading.LightPairs(point, light, to, dist)
             # Stop short of the light by the offset so the light's own position is free.
             tfar = np.maximum(dist - e, np.float32(0.0))
             batches.append((point, light + n_distant, to, tfar, p, e))
@@ -681,7 +681,7 @@ class Tracer:
             vis.reshape(-1)[point * n_lights + light] = ~occluded
             if local is not None:  # the lit LocalLight pairs, for shade_local
                 free = np.flatnonzero(~occluded[len(point) - len(local[0]) :])
-                local = tuple(np.take(a, free, axis=0) for a in local)
+                local = shading.LightPairs(*(np.take(a, free, axis=0) for a in local[:4]))
         return vis, np.bincount(point, minlength=n).astype(np.int64), local
 
     def shadow_visibility(

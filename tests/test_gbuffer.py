@@ -677,6 +677,60 @@ def test_local_light_cube_shadows_match_shadow_rays(offset, tmp_path):
     assert np.all(tracer.shadow_visibility(pos, down)[:, 0] == 0.0)
 
 
+@pytest.mark.parametrize("use_refine", [False, True])
+def test_gpu_light_terms_shade_like_the_visibility_matrix(use_refine):
+    """LocalLights shaded in the GPU lookup pass (``light_terms`` + ``shade_local``'s
+    ``local_sums``) give the same colours as the (n, L) visibility matrix shaded in
+    numpy, with a DistantLight alongside, with and without shadow-ray refinement."""
+    from phrt_usd import shading
+    from phrt_usd.scene import LocalLight
+    from phrt_usd.tracer import Tracer
+
+    lights = Lights(
+        distant=[DistantLight(np.array([0.3, 1.0, 0.2]), np.array([0.8, 0.8, 0.7]))],
+        local=[
+            LocalLight(np.array([0.6, 3.5, 0.4]), np.array([20.0, 15.0, 10.0])),
+            LocalLight(np.array([-2.0, 1.0, 1.5]), np.full(3, 5.0)),
+        ],
+    )
+    parts = [
+        {"mesh": floor_mesh(size=10.0), "color": (0.6, 0.6, 0.6)},
+        {"mesh": box((2.0, 0.1, 1.5), (0.0, 1.5, 0.0)), "color": (0.8, 0.2, 0.2)},
+        {"mesh": box((0.05, 1.5, 0.05), (-1.5, 0.75, 1.0)), "color": (0.2, 0.8, 0.2)},
+    ]
+    scene = build_scene(parts, lights=lights)
+    cam = look_at(np.array([0.0, 7.0, 8.0]), np.zeros(3))
+    tracer = Tracer(scene, threads=1)
+
+    def refine(p, n, pairs):
+        return tracer.shadow_visibility(p, n, pairs=pairs)
+
+    with Rasterizer(scene, W, H) as r:
+        g = r.render(cam)
+        cov = g.covered
+        pos, nrm = g.position[cov], g.normal[cov]
+        albedo, view = g.albedo[cov], g.view_dir[cov]
+        fix = refine if use_refine else None
+        vis = r.shadow_visibility(pos, nrm, refine=fix)
+        terms = r.light_terms(pos, nrm, -view, refine=fix)
+    assert terms.distant_visibility.shape == (len(pos), 1)
+    assert terms.local_pairs is not None and len(terms.local_pairs.point) > 0
+    expected = shading.shade_local(pos, nrm, albedo, view, np.zeros(3), lights, vis)
+    got = shading.shade_local(
+        pos,
+        nrm,
+        albedo,
+        view,
+        np.zeros(3),
+        lights,
+        terms.distant_visibility,
+        local_pairs=terms.local_pairs,
+        local_sums=terms.local_sums,
+    )
+    assert np.all(np.isfinite(got))
+    np.testing.assert_allclose(got, expected, rtol=1e-4, atol=1e-5)
+
+
 def test_local_light_animated_caster_updates_its_cube_only():
     """An animated box casts into its own cube map: moving it re-renders that one, keeps
     the static cube, and moves the shadow."""

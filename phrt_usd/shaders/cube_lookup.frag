@@ -11,7 +11,12 @@
 //   normals : RGBA32F, (x, y, z) unit shading normal facing the viewer, same layout
 //   cubes   : RG32F 2D array, (min, max) caster forward distance over the texel
 //             neighbourhood; layer = cube's first layer + face
+//   to_eye  : RGBA32F, (x, y, z) unit direction from the point to the viewer, same layout
 // Output code per light: 1 lit, 0 shadowed / out of range / facing away, 2 uncertain.
+// Also the local shading of the lit pairs (shading._shade_chunk's model, keep in step):
+//   diffuse   : rgb = sum over lit lights of radiance * n.l * window / d^2,
+//               a = bit j set where light j is uncertain (exact in float up to 2^24)
+//   highlight : rgb = the same sum times the Blinn-Phong highlight
 
 uniform sampler2D points;
 uniform sampler2D normals;
@@ -29,8 +34,15 @@ uniform float tan_half;         // tangent of a face's half field of view
 uniform float bias_texels;      // SHADOW_BIAS_TEXELS
 uniform float box_radius;       // SHADOW_REFINE_RADIUS + 0.5 (nearest-texel offset)
 uniform float slope_clamp;      // 1 / SHADOW_MIN_COS
+uniform sampler2D to_eye;
+uniform vec3 light_radiance[16];     // linear RGB
+uniform float min_light_distance;    // shading.MIN_LIGHT_DISTANCE
+uniform float shininess;             // shading.SHININESS
+uniform float specular_strength;     // shading.SPECULAR_STRENGTH
 
 layout(location = 0) out uvec4 codes;
+layout(location = 1) out vec4 diffuse;
+layout(location = 2) out vec4 highlight;
 
 float cube_test(int layer, int face, ivec2 texel_xy, float test)
 {
@@ -94,6 +106,23 @@ uint code(float r)
     return r > 0.5 ? 1u : (r < -0.5 ? 2u : 0u);
 }
 
+// Adds light j's contribution at a point it lights (the shadow test said lit).
+void shade(int j, vec3 p, vec3 n, vec3 e, inout vec3 d_sum, inout vec3 h_sum)
+{
+    vec3 to_light = light_pos[j] - p;
+    float r2 = light_range[j] * light_range[j];
+    float dist2 = max(dot(to_light, to_light), min_light_distance * min_light_distance);
+    vec3 l = to_light * inversesqrt(dist2);
+    float x = dist2 / r2;
+    float window = clamp(1.0 - x * x, 0.0, 1.0);
+    float lit = max(dot(n, l), 0.0) * window * window / dist2;
+    vec3 h = l + e;
+    float n_dot_h = dot(n, h) / max(length(h), 1e-12);
+    float spec = specular_strength * pow(max(n_dot_h, 0.0), shininess);
+    d_sum += light_radiance[j] * lit;
+    h_sum += light_radiance[j] * (lit * spec);
+}
+
 void main()
 {
     ivec2 xy = ivec2(gl_FragCoord.xy);
@@ -102,14 +131,23 @@ void main()
     for (int j = 0; j < 16; ++j) {
         result[j] = 0.0;
     }
+    vec3 d_sum = vec3(0.0);
+    vec3 h_sum = vec3(0.0);
+    float unsure = 0.0;
     if (k < n_points) {
         vec3 p = texelFetch(points, xy, 0).xyz;
         vec3 n = texelFetch(normals, xy, 0).xyz;
+        vec3 e = texelFetch(to_eye, xy, 0).xyz;
         // Constant trip count: the compiler unrolls it, so every array index is a
         // constant (dynamic indexing of local arrays is slow in llvmpipe).
         for (int j = 0; j < 16; ++j) {
             if (j < n_lights) {
                 result[j] = lookup(j, p, n);
+                if (result[j] > 0.5) {
+                    shade(j, p, n, e, d_sum, h_sum);
+                } else if (result[j] < -0.5) {
+                    unsure += float(1 << j);
+                }
             }
         }
     }
@@ -119,4 +157,6 @@ void main()
             | (code(result[4 * c + 2]) << 16) | (code(result[4 * c + 3]) << 24);
     }
     codes = uvec4(word[0], word[1], word[2], word[3]);
+    diffuse = vec4(d_sum, unsure);
+    highlight = vec4(h_sum, 0.0);
 }
