@@ -38,6 +38,7 @@ uniform sampler2D to_eye;
 uniform vec3 light_radiance[16];     // linear RGB
 uniform float min_light_distance;    // shading.MIN_LIGHT_DISTANCE
 uniform float shininess;             // shading.SHININESS
+uniform int shininess_squarings;     // log2(SHININESS) when a power of 2, else -1
 uniform float specular_strength;     // shading.SPECULAR_STRENGTH
 
 layout(location = 0) out uvec4 codes;
@@ -113,12 +114,20 @@ void shade(int j, vec3 p, vec3 n, vec3 e, inout vec3 d_sum, inout vec3 h_sum)
     float r2 = light_range[j] * light_range[j];
     float dist2 = max(dot(to_light, to_light), min_light_distance * min_light_distance);
     vec3 l = to_light * inversesqrt(dist2);
-    float x = dist2 / r2;
-    float window = clamp(1.0 - x * x, 0.0, 1.0);
+    float q = dist2 / r2;
+    float window = clamp(1.0 - q * q, 0.0, 1.0);
     float lit = max(dot(n, l), 0.0) * window * window / dist2;
     vec3 h = l + e;
     float n_dot_h = dot(n, h) / max(length(h), 1e-12);
-    float spec = specular_strength * pow(max(n_dot_h, 0.0), shininess);
+    float x = max(n_dot_h, 0.0);
+    if (shininess_squarings >= 0) {  // x^(2^k) as k squarings, as shading does
+        for (int i = 0; i < shininess_squarings; ++i) {
+            x *= x;
+        }
+    } else {
+        x = pow(x, shininess);
+    }
+    float spec = specular_strength * x;
     d_sum += light_radiance[j] * lit;
     h_sum += light_radiance[j] * (lit * spec);
 }
