@@ -80,6 +80,20 @@ INITIAL_ROUND_MS = 0.5
 #: and takes it back on alternate frames.
 ADMISSION_MARGIN = 0.1
 
+#: HEU1's growth forecast (ours, docs/heuristic.md "Transition-aware selection"): a
+#: reflector's predicted rays are extrapolated FORECAST_HORIZON frames (1 s at 24 fps)
+#: ahead from the growth of its pixel count over the last GROWTH_WINDOW frames it was in
+#: view: the geometric mean growth per frame, clamped to [1, GROWTH_MAX] (a shrinking
+#: reflector is forecast at its current cost; one glitchy frame cannot forecast infinity).
+FORECAST_HORIZON = 24
+GROWTH_WINDOW = 4
+GROWTH_MAX = 2.0
+#: A pixel history counts as a trend when its net change (in log pixels) is at least this
+#: share of its total up-and-down travel (1: monotone).
+TREND_MIN = 0.5
+#: Forecasts are capped here so that sums of them stay finite.
+FORECAST_MAX = 1e300
+
 #: Lower bound of the learned ms per ray (1e10 rays/s): keeps ms → rays finite.
 MIN_MS_PER_RAY = 1e-7
 
@@ -282,6 +296,7 @@ class _FrameState:
     predicted_ms: dict[int, float] = field(default_factory=dict)  # at selection time
     predicted_trace_ms: float = 0.0  # sum over rounds of the predicted round time
     first_allowance: float | None = None  # the first round's budget in rays (HEU1 margin)
+    forecast_used: float = 0.0  # HEU1: forecasts of this frame's selection, summed
 
 
 class BudgetedPolicy(ABC):
@@ -523,29 +538,104 @@ class BudgetedPolicy(ABC):
 
 
 class Heu1Policy(BudgetedPolicy):
-    """The paper's heuristic: the most relevant (R) candidates whose predicted cost fits,
-    chosen on a Selection Graph rebuilt from the untraced candidates every round."""
+    """The paper's heuristic on a Selection Graph rebuilt from the untraced candidates
+    every round, made transition-aware (docs/heuristic.md):
+
+    * reflectors selected in the previous frame are kept, cheapest first, as many as fit
+      (when they no longer all fit, the fewest are dropped);
+    * the others are taken by relevance R among those whose predicted cost fits, with
+      the admission margin; a reflector already in view in the previous frame (so that
+      taking it is a transition) must in addition not be shrinking, and its cost forecast
+      FORECAST_HORIZON frames ahead must fit the budget left by the forecasts of the
+      reflectors taken before it. A reflector entering the view is taken freely.
+    """
 
     name = "heu1"
 
-    def graph(self, reserve: float = 0.0) -> SelectionGraph:
-        """The Selection Graph of the untraced candidates, as of now; candidates not
-        selected in the previous frame need ``reserve`` budget left beyond their cost."""
+    def __init__(self, *, selection_weight: float, bounce_limit: int) -> None:
+        super().__init__(selection_weight=selection_weight, bounce_limit=bounce_limit)
+        #: Pixel counts of each reflector in view over its last consecutive frames in view
+        #: (at most GROWTH_WINDOW + 1, oldest first, the current frame last).
+        self.pixel_history: dict[int, list[int]] = {}
+        #: Reflectors with pixels in the previous frame.
+        self.previous_visible: set[int] = set()
+
+    def begin_frame(self, view: FrameView, scene: Scene) -> None:
+        super().begin_frame(view, scene)
+        frame = self._require_frame()
+        history = {}
+        for e in np.flatnonzero(frame.pixels > 0).tolist():
+            history[e] = [*self.pixel_history.get(e, [])[-GROWTH_WINDOW:], int(frame.pixels[e])]
+        self.pixel_history = history  # a reflector out of view starts afresh
+
+    def end_frame(self) -> dict[int, ReflectorMetrics]:
+        frame = self._require_frame()
+        self.previous_visible = set(np.flatnonzero(frame.pixels > 0).tolist())
+        return super().end_frame()
+
+    def growth(self, element: int) -> float:
+        """Per-frame growth of ``element``'s pixel count: the geometric mean over its
+        recent frames in view when they show a trend (monotone: every step up, or every
+        step down), else 1 (also with fewer than two frames). Finite, > 0.
+
+        Only a steady trend counts: a camera moving smoothly makes a reflector's pixel
+        count grow or shrink steadily, while counts that jitter (partial occlusion,
+        animation) would otherwise extrapolate to a wildly wrong forecast."""
+        h = np.asarray(self.pixel_history.get(element, []), dtype=np.float64)
+        if len(h) < 2 or h[0] <= 0:
+            return 1.0
+        steps = np.diff(np.log(np.maximum(h, 1.0)))
+        travel = float(np.sum(np.abs(steps)))
+        if travel > 0.0 and abs(float(np.sum(steps))) < TREND_MIN * travel:
+            return 1.0  # up and down more than it moved: no trend to extrapolate
+        return float((h[-1] / h[0]) ** (1.0 / (len(h) - 1)))
+
+    def forecast_rays(self, element: int) -> float:
+        """Predicted rays FORECAST_HORIZON frames ahead: ``predicted_rays * g**H`` with
+        the growth g clamped to [1, GROWTH_MAX]; finite (<= FORECAST_MAX)."""
+        g = min(max(self.growth(element), 1.0), GROWTH_MAX)
+        return float(min(self.predicted_rays(element) * g**FORECAST_HORIZON, FORECAST_MAX))
+
+    def _node(self, e: int, reserve: float, budget: float) -> Node:
+        frame = self._require_frame()
+        kept = e in self.previous_selection
+        forecast = self.forecast_rays(e)
+        if kept and forecast > budget:
+            # It will outgrow the whole budget within the horizon and be dropped whatever
+            # is decided now: what it holds of the budget is not a lasting commitment.
+            forecast = 0.0
+        return Node(
+            element=e,
+            C=self.cost_C(e),
+            R=self.relevance_R(e),
+            cost=self.predicted_rays(e),
+            traceable=bool(frame.pixels[e] > 0),
+            reserve=0.0 if kept else reserve,
+            kept=kept,
+            forecast=forecast,
+            admission=not kept and e in self.previous_visible,
+        )
+
+    def graph(self, reserve: float = 0.0, budget: float = math.inf) -> SelectionGraph:
+        """The Selection Graph of the untraced candidates, as of now. Candidates not
+        selected in the previous frame need ``reserve`` budget left beyond their cost;
+        ``budget`` is the frame's whole budget (a kept reflector forecast beyond it
+        charges no forecast). Candidates in view in the previous frame, not selected
+        then, and shrinking now are left out: taking one would be a transition for a
+        reflector that is on its way out of the view."""
         frame = self._require_frame()
         done = set(frame.traced)
-        nodes = [
-            Node(
-                element=e,
-                C=self.cost_C(e),
-                R=self.relevance_R(e),
-                cost=self.predicted_rays(e),
-                traceable=bool(frame.pixels[e] > 0),
-                reserve=0.0 if e in self.previous_selection else reserve,
-            )
+        return SelectionGraph(
+            self._node(e, reserve, budget)
             for e in self.candidates()
-            if e not in done
-        ]
-        return SelectionGraph(nodes)
+            if e not in done and not self._leaving(e)
+        )
+
+    def _leaving(self, e: int) -> bool:
+        """In view in the previous frame, not selected then, and shrinking now."""
+        return (
+            e in self.previous_visible and e not in self.previous_selection and self.growth(e) < 1.0
+        )
 
     def _choose(self, budget: Budget) -> list[int]:
         frame = self._require_frame()
@@ -554,9 +644,13 @@ class Heu1Policy(BudgetedPolicy):
             return []
         if frame.first_allowance is None:
             frame.first_allowance = allowance
-        # The margin is a share of the whole frame's budget, also in later rounds.
+        # The margin and the horizon budget are shares of the whole frame's budget, also
+        # in later rounds.
         reserve = ADMISSION_MARGIN * frame.first_allowance
-        return self.graph(reserve=reserve).select(allowance)
+        graph = self.graph(reserve=reserve, budget=frame.first_allowance)
+        ids = graph.select(allowance, horizon_budget=frame.first_allowance - frame.forecast_used)
+        frame.forecast_used += sum(graph.nodes[e].forecast for e in ids)
+        return ids
 
 
 class Heu2Policy(BudgetedPolicy):

@@ -16,7 +16,11 @@ function of its nodes (the order in which nodes are given does not matter):
 * relevance order: higher ``R`` is more relevant; equal ``R`` → lower element id is more
   relevant.
 
-Selection (``select``) walks the cost list from its head to the first node that fits the
+Selection (``select``) has two steps. **Keep**: the nodes selected in the previous frame
+(``kept``) are taken first, cheapest first (the cost list walked from its tail), as many as
+fit: when they no longer all fit, the fewest are dropped, the most expensive ones (each
+drop is a visible switch from ray tracing to raster). **Admit**: among the other nodes,
+greedy by relevance. It walks the cost list from its head to the first node that fits the
 remaining budget (the *entry*); every node from the entry on fits. The most relevant node
 that fits is then the entry itself or one of its relevance edges, because every fitting
 node costs no more than the entry. That node is taken, its cost subtracted, and the walk
@@ -30,6 +34,7 @@ edges computed by one vectorised comparison.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable
 from dataclasses import dataclass
 
@@ -49,6 +54,13 @@ class Node:
     reserve: budget that must remain free *beyond* ``cost`` for the node to be taken
         (the admission margin for nodes not selected in the previous frame; 0 for the
         ones that were, so a kept selection is not dropped for small cost noise).
+    kept: selected in the previous frame: taken in the keep step (cheapest first),
+        before any other node, whatever its R.
+    forecast: the node's cost forecast some frames ahead (unit of ``cost``, finite,
+        >= 0). Every node taken uses up its forecast of the *horizon budget* of ``select``.
+    admission: the node is taken only if its ``forecast`` also fits what is left of the
+        horizon budget (HEU1 sets it for reflectors that would switch to ray tracing
+        while in view).
     """
 
     element: int
@@ -57,6 +69,9 @@ class Node:
     cost: float
     traceable: bool = True
     reserve: float = 0.0
+    kept: bool = False
+    forecast: float = 0.0
+    admission: bool = False
 
 
 class SelectionGraph:
@@ -104,23 +119,46 @@ class SelectionGraph:
             edges[int(e)] = [int(ids[t]) for t in targets]
         return edges
 
-    def select(self, budget: float) -> list[int]:
-        """Greedy by relevance among the traceable nodes that fit ``budget``.
+    def select(self, budget: float, horizon_budget: float = math.inf) -> list[int]:
+        """Keep, then admit (module docstring), within ``budget``.
 
         ``budget`` is in the unit of ``Node.cost`` (``float('inf')`` = unbounded). Returns
-        element ids in the order they were taken (most relevant first); the sum of their
-        costs is <= ``budget``. A non-positive or NaN budget selects nothing.
+        element ids in the order they were taken (kept nodes cheapest first, then the
+        others most relevant first); the sum of their costs is <= ``budget``. A
+        non-positive or NaN budget selects nothing.
+
+        ``horizon_budget`` (same unit) is a second tally: every node taken uses up its
+        ``forecast`` of it, and an ``admission`` node is available only while its forecast
+        fits what is left (kept nodes can take it below zero, which then blocks every
+        admission node). The default, unbounded, leaves the forecasts out.
         """
         if not budget > 0.0:  # also catches NaN
             return []
         remaining = float(budget)
-        taken: set[int] = set()
+        horizon_left = float(horizon_budget)
         chosen: list[int] = []
-        entry = self.most_expensive
+
+        # Keep: previously selected nodes, cheapest first, until one no longer fits (no
+        # costlier one would either).
+        for e in reversed(self.by_cost):
+            n = self.nodes[e]
+            if not (n.kept and n.traceable):
+                continue
+            if n.cost > remaining:
+                break
+            chosen.append(e)
+            remaining -= n.cost
+            horizon_left -= n.forecast
+        taken: set[int] = set(chosen)
+
         def available(e: int) -> bool:
             n = self.nodes[e]
-            return e not in taken and n.traceable and n.cost + n.reserve <= remaining
+            if e in taken or n.kept or not n.traceable or n.cost + n.reserve > remaining:
+                return False
+            return not n.admission or n.forecast <= horizon_left
 
+        # Admit: greedy by relevance among the other nodes.
+        entry = self.most_expensive
         while entry is not None:
             # Walk down the cost list to the most expensive node that can still be taken.
             if entry in taken or self.nodes[entry].cost > remaining:
@@ -137,4 +175,5 @@ class SelectionGraph:
             taken.add(best)
             chosen.append(best)
             remaining -= self.nodes[best].cost
+            horizon_left -= self.nodes[best].forecast
         return chosen

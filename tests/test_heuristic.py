@@ -15,6 +15,7 @@ from phrt_usd.frame import Budget, FrameView, TraceRecord
 from phrt_usd.heuristic import (
     ADMISSION_MARGIN,
     D_MIN,
+    FORECAST_HORIZON,
     RAYS_SAFETY,
     TIME_SAFETY_MIN,
     Heu1Policy,
@@ -373,15 +374,101 @@ def selections_over_sequence(policy, frames_=60, budget=1500):
 def test_hysteresis_fewer_transitions_than_heu2():
     heu1 = selections_over_sequence(policy_of("heu1", weight=0.001))
     heu2 = selections_over_sequence(policy_of("heu2"))
-    no_memory = selections_over_sequence(policy_of("heu1", weight=0.0))
-    assert all(len(s) == 1 for s in heu1 + heu2)  # the budget fits exactly one
-    t1, t2, t0 = (
-        transitions(heu1, [0, 1]),
-        transitions(heu2, [0, 1]),
-        transitions(no_memory, [0, 1]),
-    )
-    assert t2 >= 10 and t0 >= 10  # the pair does cross many times
-    assert t1 == 0
+    # The keep step holds a selection whatever I is (I only matters among newcomers).
+    no_weight = selections_over_sequence(policy_of("heu1", weight=0.0))
+    assert all(len(s) == 1 for s in heu1 + heu2 + no_weight)  # the budget fits exactly one
+    assert transitions(heu2, [0, 1]) >= 10  # the pair does cross many times
+    assert transitions(heu1, [0, 1]) == 0 and transitions(no_weight, [0, 1]) == 0
+
+
+def growing_scene_pixels(t: int) -> list[int]:
+    """Pixels of four reflectors over a scripted approach: a small static one (0) in view
+    throughout; a large one (1) in view from the start, growing 8 % a frame from frame
+    10; two small ones (2, 3) entering at frame 5, one static, one growing 10 % a frame."""
+    big = 600 if t < 10 else int(600 * 1.08 ** (t - 10))
+    return [
+        100,
+        min(big, W * H),
+        0 if t < 5 else 150,
+        0 if t < 5 else min(int(150 * 1.10 ** (t - 5)), W * H),
+    ]
+
+
+def test_transitions_in_a_growing_sequence_fewer_than_heu2_and_as_many_selected():
+    sc = scene([element((float(i), 0.0, -8.0)) for i in range(4)])
+    budget = 1200
+    runs = {}
+    for name in ("heu1", "heu2"):
+        policy, sels, vis = policy_of(name), [], []
+        for t in range(60):
+            pixels = growing_scene_pixels(t)
+            metrics, rounds = run_frame(policy, sc, view(pixels, time=t), budget_rays=budget)
+            assert sum(metrics[e].predicted_rays for r in rounds[:1] for e in r) <= budget
+            sels.append({e for e, m in metrics.items() if m.selected})
+            vis.append({e for e in range(4) if pixels[e] > 0})
+        runs[name] = (sels, vis)
+
+    def count(sels, vis):
+        return sum(
+            (e in a) != (e in b)
+            for a, b, va, vb in zip(sels, sels[1:], vis, vis[1:], strict=False)
+            for e in va & vb
+        )
+
+    t1, t2 = count(*runs["heu1"]), count(*runs["heu2"])
+    assert t1 < t2
+    mean1 = np.mean([len(s) for s in runs["heu1"][0]])
+    mean2 = np.mean([len(s) for s in runs["heu2"][0]])
+    assert mean1 >= mean2
+
+
+def test_growing_reflector_in_view_is_not_admitted_when_its_forecast_does_not_fit():
+    # Reflector 0 holds most of a 1000-ray budget while reflector 1, also in view, does
+    # not fit next to it. Then 0 leaves the view. Reflector 1 now fits; growing 10 % a
+    # frame, its forecast 24 frames ahead does not, so HEU1 does not switch it to ray
+    # tracing (it would be forced back to raster soon: two transitions). Static, it is
+    # admitted.
+    sc = scene([element((0.0, 0.0, -8.0)), element((1.0, 0.0, -8.0))])
+    for growth, admitted in ((1.10, False), (1.0, True)):
+        policy = policy_of("heu1")
+        for t in range(6):
+            m, _ = run_frame(policy, sc, view([800, int(300 * growth**t)]), budget_rays=1000)
+            assert m[0].selected and not m[1].selected
+        policy.begin_frame(view([0, int(300 * growth**6)]), sc)
+        assert policy.growth(1) == pytest.approx(growth, rel=0.02)
+        forecast = policy.forecast_rays(1)
+        assert forecast == pytest.approx(
+            policy.predicted_rays(1) * policy.growth(1) ** FORECAST_HORIZON
+        )
+        assert policy.predicted_rays(1) * (1 + ADMISSION_MARGIN) < 1000  # fits now
+        ids = policy.next_round(Budget(rays=1000))
+        policy.end_frame()
+        assert (1 in ids) is admitted, (growth, ids, forecast)
+
+
+def test_kept_selection_drops_the_fewest_when_it_no_longer_fits():
+    # Three kept reflectors; the largest grows past what the budget holds with the two
+    # small ones: it is the one dropped (one transition), not the two small ones, even
+    # though it is the most relevant.
+    sc = scene([element((0.0, 0.0, -4.0)), element((1.0, 0.0, -8.0)), element((-1.0, 0.0, -8.0))])
+    policy = policy_of("heu1")
+    m, _ = run_frame(policy, sc, view([500, 100, 100]), budget_rays=1000)
+    assert {e for e, x in m.items() if x.selected} == {0, 1, 2}
+    m, _ = run_frame(policy, sc, view([800, 100, 100]), budget_rays=1000)
+    assert m[0].R > m[1].R
+    assert {e for e, x in m.items() if x.selected} == {1, 2}
+
+
+def test_shrinking_reflector_in_view_is_not_admitted_but_one_entering_is():
+    sc = scene([element((0.0, 0.0, -8.0)), element((1.0, 0.0, -8.0)), element((2.0, 0.0, -8.0))])
+    policy = policy_of("heu1")
+    # Reflector 1 is too large to trace next to 0 and shrinks while in view.
+    for t, px in enumerate((3000, 2500, 2000, 1500)):
+        m, _ = run_frame(policy, sc, view([200, px, 0], time=t), budget_rays=1000)
+        assert not m[1].selected
+    m, _ = run_frame(policy, sc, view([200, 300, 300], time=4), budget_rays=1000)
+    assert not m[1].selected  # in view, shrinking: taking it would be a transition
+    assert m[2].selected  # entering the view: free, and it fits
 
 
 def test_stiff_selection_weight_keeps_selection_but_fills_leftover_budget():

@@ -21,26 +21,42 @@ def node_lists(draw, max_size=12):
     ids = draw(st.lists(st.integers(0, 200), unique=True, max_size=max_size))
     return [
         Node(element=e, C=draw(costs), R=draw(relevances), cost=draw(costs),
-             traceable=draw(st.booleans()) or draw(st.booleans()))
+             traceable=draw(st.booleans()) or draw(st.booleans()),
+             kept=draw(st.booleans()), forecast=draw(costs), admission=draw(st.booleans()))
         for e in ids
     ]  # fmt: skip
 
 
-def reference_greedy(nodes: list[Node], budget: float) -> list[int]:
-    """The intended selection, by brute force: repeatedly take the most relevant
-    (R desc, id asc) traceable node that fits what is left of the budget."""
+def reference_greedy(nodes: list[Node], budget: float, horizon: float = math.inf) -> list[int]:
+    """The intended selection, by brute force: the kept traceable nodes cheapest first
+    (cost asc, id desc: the cost list walked from its tail) while they fit; then
+    repeatedly the most relevant (R desc, id asc) other traceable node that fits what is
+    left of the budget (and, for an admission node, of the horizon budget)."""
     if not budget > 0:
         return []
-    left = sorted((n for n in nodes if n.traceable), key=lambda n: (-n.R, n.element))
     chosen = []
-    remaining = budget
+    remaining, horizon_left = budget, horizon
+    for n in sorted(
+        (n for n in nodes if n.kept and n.traceable), key=lambda n: (n.cost, -n.element)
+    ):
+        if n.cost > remaining:
+            break
+        chosen.append(n.element)
+        remaining -= n.cost
+        horizon_left -= n.forecast
+    left = sorted((n for n in nodes if n.traceable and not n.kept), key=lambda n: (-n.R, n.element))
     while True:
-        fitting = [n for n in left if n.cost <= remaining]
+        fitting = [
+            n
+            for n in left
+            if n.cost + n.reserve <= remaining and (not n.admission or n.forecast <= horizon_left)
+        ]
         if not fitting:
             return chosen
         best = fitting[0]
         chosen.append(best.element)
         remaining -= best.cost
+        horizon_left -= best.forecast
         left.remove(best)
 
 
@@ -89,6 +105,48 @@ def test_selection_fits_budget_and_is_greedy_by_relevance(nodes, budget):
     assert all(g.nodes[e].traceable for e in chosen)
     assert sum(g.nodes[e].cost for e in chosen) <= budget
     assert chosen == reference_greedy(nodes, budget)
+
+
+@settings(max_examples=300)
+@given(node_lists(), st.sampled_from([0.0, 2.5, 9.0, 20.0, math.inf]),
+       st.sampled_from([-1.0, 0.0, 3.0, 10.0, math.inf]))  # fmt: skip
+def test_selection_with_horizon_budget_matches_brute_force(nodes, budget, horizon):
+    g = SelectionGraph(nodes)
+    chosen = g.select(budget, horizon_budget=horizon)
+    assert sum(g.nodes[e].cost for e in chosen) <= budget
+    assert chosen == reference_greedy(nodes, budget, horizon)
+    # Admission nodes only ever taken while their forecast fitted: the forecasts of the
+    # admission nodes taken sum to at most the horizon budget (kept nodes excepted).
+    admitted = [e for e in chosen if g.nodes[e].admission and not g.nodes[e].kept]
+    if admitted and math.isfinite(horizon):
+        assert g.nodes[admitted[-1]].forecast <= horizon - sum(
+            g.nodes[e].forecast for e in chosen[: chosen.index(admitted[-1])]
+        )
+
+
+def test_kept_nodes_drop_the_most_expensive_first():
+    # Kept: 6 (most relevant), 3, 3; budget 8 fits the two cheap ones or the costly one
+    # with room to spare: the keep step drops one node (the costly one), not two.
+    nodes = [
+        Node(element=0, C=1.0, R=9.0, cost=6.0, kept=True),
+        Node(element=1, C=1.0, R=1.0, cost=3.0, kept=True),
+        Node(element=2, C=1.0, R=1.0, cost=3.0, kept=True),
+        Node(element=3, C=1.0, R=5.0, cost=2.0),  # newcomer: only after the kept ones
+    ]
+    assert SelectionGraph(nodes).select(8.0) == [2, 1, 3]
+    assert SelectionGraph(nodes).select(5.0) == [2, 3]
+
+
+def test_admission_needs_its_forecast_to_fit_the_horizon_budget():
+    kept = Node(element=0, C=1.0, R=1.0, cost=40.0, kept=True, forecast=70.0)
+    growing = Node(element=1, C=1.0, R=5.0, cost=20.0, forecast=50.0, admission=True)
+    entering = Node(element=2, C=1.0, R=4.0, cost=20.0, forecast=50.0)
+    g = SelectionGraph([kept, growing, entering])
+    # 40 + 20 + 20 fit now; the growing node's forecast does not fit 100 - 70 = 30, the
+    # entering one (no admission check) is taken all the same.
+    assert g.select(100.0, horizon_budget=100.0) == [0, 2]
+    assert g.select(100.0, horizon_budget=120.0) == [0, 1, 2]
+    assert g.select(100.0) == [0, 1, 2]  # no horizon budget: forecasts play no part
 
 
 @given(node_lists(), st.sampled_from([0.0, 3.0, 9.0, math.inf]), st.randoms())

@@ -1,0 +1,186 @@
+"""Replay selection policies offline on a recorded camera path (rays budgets only).
+
+With a rays budget a policy's choices depend only on what the renderer shows it: each
+frame's ``FrameView`` (pixel counts, screen boxes, camera) and, for each reflector it
+traces, that reflector's ``TraceRecord`` (rays, pixels, bounces, reflectors hit). A
+reflector's record does not depend on which other reflectors are traced with it (its
+rays start from its own G-buffer pixels), so one ``all`` render that records every
+visible reflector's record per frame lets any policy be replayed exactly, without
+rendering: the replay runs the renderer's round loop (``FrameRenderer.finish``) with the
+recorded records instead of the tracer. The first step checks that: replaying HEU1 and
+HEU2 gives the same transitions and mean selected as real ``paper_tables`` runs.
+
+    uv run python tools/policy_replay.py capture stages/farm.usda runs/replay/farm.pkl
+    uv run python tools/policy_replay.py replay runs/replay/farm.pkl \
+        --budgets 500,1000,2000,4000 [--heuristics heu1,heu2]
+
+``capture`` renders the stage's full camera path once (hybrid, ``all``, unbounded, no
+images; 320x240 unless told). ``replay`` prints, per heuristic and budget: transitions
+(split into admissions of reflectors already in view and drops while in view), mean
+selected, and the HEU1/HEU2 ratio.
+"""
+
+from __future__ import annotations
+
+import argparse
+import pickle
+import sys
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+
+from phrt_usd.frame import Budget
+from phrt_usd.heuristic import AllPolicy, make_policy
+from phrt_usd.render_job import parse_frames
+from phrt_usd.renderer import FrameRenderer, RenderOptions
+from phrt_usd.schema import read_render_params
+from phrt_usd.stage_reader import open_stage
+
+
+class _CapturePolicy(AllPolicy):
+    """``all`` that keeps what it was shown and what tracing found, frame by frame."""
+
+    def __init__(self, **kw) -> None:
+        super().__init__(**kw)
+        #: One SimpleNamespace per frame: ``view`` (FrameView), ``elements`` (per element:
+        #: is_reflector, priority, center) and ``records`` (element id → TraceRecord of
+        #: every visible reflector). Plain types, so the pickle loads anywhere.
+        self.frames: list[SimpleNamespace] = []
+
+    def begin_frame(self, view, scene) -> None:
+        super().begin_frame(view, scene)
+        elements = [
+            SimpleNamespace(is_reflector=e.is_reflector, priority=e.priority, center=e.center)
+            for e in scene.elements
+        ]
+        self.frames.append(SimpleNamespace(view=view, elements=elements, records={}))
+
+    def record(self, records, seconds) -> None:
+        super().record(records, seconds)
+        for rec in records:
+            self.frames[-1].records[int(rec.source)] = rec
+
+
+def capture(stage_path: Path, out: Path, width: int, height: int) -> None:
+    stage = open_stage(stage_path)
+    params = read_render_params(stage.stage)
+    options = RenderOptions(
+        mode="hybrid", heuristic="all", width=width, height=height,
+        budget_ms=None, budget_rays=None, bounce_limit=params.bounce_limit,
+    )  # fmt: skip
+    renderer = FrameRenderer(stage, options)
+    policy = _CapturePolicy(selection_weight=0.0, bounce_limit=params.bounce_limit)
+    renderer.policy = policy
+    times = parse_frames(None, stage.frame_range)
+    try:
+        for k, t in enumerate(times):
+            renderer.render(t)
+            if k % 100 == 0:
+                print(f"{stage_path.stem}: frame {k}/{len(times)}", file=sys.stderr)
+    finally:
+        renderer.close()
+    lights = stage.scene.lights
+    data = {
+        "stage": str(stage_path),
+        "selection_weight": params.selection_weight,
+        "bounce_limit": params.bounce_limit,
+        "lights": SimpleNamespace(distant=list(lights.distant), local=list(lights.local)),
+        "reflectors": [int(i) for i in stage.scene.reflector_ids],
+        "frames": policy.frames,
+    }
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with open(out, "wb") as fh:
+        pickle.dump(data, fh)
+
+
+def replay(data: dict, heuristic: str, budget_rays: int, selection_weight: float | None = None):
+    """Run ``heuristic`` over the recorded frames with a rays budget, the way
+    ``FrameRenderer.finish`` does. Returns (selected, visible): (F, R) bool arrays over
+    the recorded reflectors, in frame order."""
+    weight = data["selection_weight"] if selection_weight is None else selection_weight
+    policy = make_policy(heuristic, selection_weight=weight, bounce_limit=data["bounce_limit"])
+    refl = data["reflectors"]
+    column = {e: k for k, e in enumerate(refl)}
+    selected = np.zeros((len(data["frames"]), len(refl)), dtype=bool)
+    visible = np.zeros_like(selected)
+    for f, frame in enumerate(data["frames"]):
+        scene = SimpleNamespace(elements=frame.elements, lights=data["lights"])
+        counts = frame.view.pixel_counts
+        policy.begin_frame(frame.view, scene)
+        rays, chosen = 0, []
+        while budget_rays - rays > 0:
+            ids = policy.next_round(Budget(rays=budget_rays - rays))
+            ids = [i for i in ids if counts[i] > 0 and i not in chosen]
+            if not ids:
+                break
+            records = [frame.records[i] for i in ids]
+            rays += sum(r.rays for r in records)
+            chosen.extend(ids)
+            policy.record(records, 1e-6 * sum(r.rays for r in records))
+        policy.end_frame()
+        for e in chosen:
+            selected[f, column[e]] = True
+        for e in refl:
+            visible[f, column[e]] = counts[e] > 0
+    return selected, visible
+
+
+def transition_counts(selected: np.ndarray, visible: np.ndarray) -> dict:
+    """Transitions as ``phrt report`` counts them, split by kind: an *admission* is a
+    reflector in view in both frames that becomes selected, a *drop* one that stops
+    being selected. ``entered_selected``: selected on the frame it came into view
+    (free)."""
+    both = visible[1:] & visible[:-1]
+    adm = int(np.count_nonzero(both & selected[1:] & ~selected[:-1]))
+    drop = int(np.count_nonzero(both & ~selected[1:] & selected[:-1]))
+    entered = int(np.count_nonzero(visible[1:] & ~visible[:-1] & selected[1:]))
+    return {
+        "transitions": adm + drop,
+        "admissions": adm,
+        "drops": drop,
+        "entered_selected": entered,
+        "mean_selected": float(selected.sum(axis=1).mean()),
+        "mean_visible": float(visible.sum(axis=1).mean()),
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    sub = ap.add_subparsers(dest="command", required=True)
+    cap = sub.add_parser("capture")
+    cap.add_argument("stage", type=Path)
+    cap.add_argument("out", type=Path)
+    cap.add_argument("--width", type=int, default=320)
+    cap.add_argument("--height", type=int, default=240)
+    rep = sub.add_parser("replay")
+    rep.add_argument("recording", type=Path)
+    rep.add_argument("--budgets", required=True, help="comma list of rays budgets")
+    rep.add_argument("--heuristics", default="heu1,heu2")
+    rep.add_argument("--selection-weight", type=float, default=None)
+    args = ap.parse_args(argv)
+    if args.command == "capture":
+        capture(args.stage, args.out, args.width, args.height)
+        return 0
+    with open(args.recording, "rb") as fh:
+        data = pickle.load(fh)
+    heuristics = [h.strip() for h in args.heuristics.split(",") if h.strip()]
+    print("| budget | heuristic | transitions (adm + drop) | entered selected | mean selected |")
+    print("|---|---|---|---|---|")
+    for budget in (int(b) for b in args.budgets.split(",")):
+        out = {}
+        for h in heuristics:
+            out[h] = transition_counts(*replay(data, h, budget, args.selection_weight))
+            c = out[h]
+            print(
+                f"| {budget} | {h} | {c['transitions']} ({c['admissions']} + {c['drops']}) "
+                f"| {c['entered_selected']} | {c['mean_selected']:.2f} |"
+            )
+        if "heu1" in out and "heu2" in out and out["heu2"]["transitions"]:
+            pct = 100.0 * out["heu1"]["transitions"] / out["heu2"]["transitions"]
+            print(f"| {budget} | heu1/heu2 | {pct:.1f} % | | |")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
