@@ -1,0 +1,140 @@
+"""Fewest transitions any selection can make on a recorded camera path (an offline bound).
+
+For a recording made by ``tools/policy_replay.py capture`` and a rays budget B, solve the
+integer program
+
+    minimise    sum over frames f >= 1 and reflectors r in view at f-1 and f of |x[f,r] - x[f-1,r]|
+    subject to  sum_r rays[f,r] * x[f,r] <= B             for every frame f
+                sum_{f,r} x[f,r] >= frames * mean_selected
+                x[f,r] in {0, 1},  x[f,r] = 0 where r is not in view at f
+
+where ``rays[f,r]`` is what tracing r cost at f in the recording (its ``TraceRecord``).
+The solution knows the whole camera path, so no online policy can do better with the
+same costs; real policies also plan with a safety factor on predicted rays, which only
+makes them more constrained. ``mean_selected`` defaults to HEU2's on the same budget
+(replayed), the constraint the brief puts on HEU1. Solved with scipy's HiGHS MILP.
+
+    uv run python tools/transition_bound.py runs/replay/farm.pkl --budgets 500,1000,2000,4000
+"""
+
+from __future__ import annotations
+
+import argparse
+import pickle
+import sys
+from pathlib import Path
+
+import numpy as np
+from scipy.optimize import Bounds, LinearConstraint, milp
+from scipy.sparse import coo_matrix
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from policy_replay import replay, transition_counts  # noqa: E402
+
+
+def recorded_costs(data: dict) -> tuple[np.ndarray, np.ndarray]:
+    """(F, R) float64 rays per reflector and frame (0 out of view) and (F, R) bool in view,
+    over the recording's reflectors."""
+    refl = data["reflectors"]
+    rays = np.zeros((len(data["frames"]), len(refl)))
+    visible = np.zeros(rays.shape, dtype=bool)
+    for f, frame in enumerate(data["frames"]):
+        for k, e in enumerate(refl):
+            if frame.view.pixel_counts[e] > 0:
+                visible[f, k] = True
+                rays[f, k] = frame.records[e].rays
+    return rays, visible
+
+
+def fewest_transitions(
+    rays: np.ndarray, visible: np.ndarray, budget: float, mean_selected: float, time_limit: float
+) -> tuple[float, float, str]:
+    """(transitions, mean selected, solver status) of the optimum (or of the best
+    solution found within ``time_limit`` seconds; the status says which)."""
+    F, R = rays.shape
+    n_x = F * R
+    x_index = np.arange(n_x).reshape(F, R)
+    pairs = np.argwhere(visible[1:] & visible[:-1])  # (m, 2): frame - 1, reflector
+    m = len(pairs)
+    t_index = n_x + np.arange(m)
+    cost = np.concatenate([np.zeros(n_x), np.ones(m)])
+    rows, cols, vals, lo, hi = [], [], [], [], []
+    row = 0
+    # Budget per frame.
+    for f in range(F):
+        ks = np.flatnonzero(visible[f])
+        rows += [row] * len(ks)
+        cols += x_index[f, ks].tolist()
+        vals += rays[f, ks].tolist()
+        lo.append(-np.inf)
+        hi.append(budget)
+        row += 1
+    # t >= x[f] - x[f-1] and t >= x[f-1] - x[f].
+    for j, (f0, k) in enumerate(pairs):
+        a, b = x_index[f0, k], x_index[f0 + 1, k]
+        for sign in (1.0, -1.0):
+            rows += [row, row, row]
+            cols += [t_index[j], a, b]
+            vals += [1.0, sign, -sign]
+            lo.append(0.0)
+            hi.append(np.inf)
+            row += 1
+    # Enough selections on average.
+    ks = np.flatnonzero(visible.reshape(-1))
+    rows += [row] * len(ks)
+    cols += ks.tolist()
+    vals += [1.0] * len(ks)
+    lo.append(np.ceil(mean_selected * F - 1e-9))
+    hi.append(np.inf)
+    row += 1
+    A = coo_matrix((vals, (rows, cols)), shape=(row, n_x + m)).tocsr()
+    upper = np.concatenate([visible.reshape(-1).astype(float), np.ones(m)])
+    integrality = np.concatenate([np.ones(n_x), np.zeros(m)])
+    res = milp(
+        cost,
+        constraints=LinearConstraint(A, lo, hi),
+        integrality=integrality,
+        bounds=Bounds(np.zeros(n_x + m), upper),
+        options={"time_limit": time_limit, "mip_rel_gap": 0.0},
+    )
+    if res.x is None:
+        return float("nan"), float("nan"), res.message
+    x = np.round(res.x[:n_x]).reshape(F, R)
+    counts = transition_counts(x.astype(bool), visible)
+    status = "optimal" if res.status == 0 else f"best found ({res.message})"
+    # The proven lower bound of the objective when not solved to optimality.
+    bound = getattr(res, "mip_dual_bound", None)
+    if res.status != 0 and bound is not None:
+        status += f", bound >= {bound:.1f}"
+    return float(counts["transitions"]), float(counts["mean_selected"]), status
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("recording", type=Path)
+    ap.add_argument("--budgets", required=True, help="comma list of rays budgets")
+    ap.add_argument("--time-limit", type=float, default=120.0, help="seconds per budget")
+    args = ap.parse_args(argv)
+    with open(args.recording, "rb") as fh:
+        data = pickle.load(fh)
+    rays, visible = recorded_costs(data)
+    print(
+        "| budget | HEU2 transitions | HEU2 mean selected | fewest transitions at that mean "
+        "(offline) | its mean selected | solver |"
+    )
+    print("|---|---|---|---|---|---|")
+    for budget in (int(b) for b in args.budgets.split(",")):
+        heu2 = transition_counts(*replay(data, "heu2", budget))
+        t, mean, status = fewest_transitions(
+            rays, visible, budget, heu2["mean_selected"], args.time_limit
+        )
+        print(
+            f"| {budget} | {heu2['transitions']} | {heu2['mean_selected']:.2f} | {t:.0f} "
+            f"| {mean:.2f} | {status} |",
+            flush=True,
+        )
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
