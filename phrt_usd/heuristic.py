@@ -560,6 +560,12 @@ class Heu1Policy(BudgetedPolicy):
         #: Reflectors with pixels in the previous frame.
         self.previous_visible: set[int] = set()
 
+    def __setstate__(self, state: dict) -> None:
+        # A policy pickled in a checkpoint by an older version has no growth memory yet.
+        state.setdefault("pixel_history", {})
+        state.setdefault("previous_visible", set())
+        self.__dict__.update(state)
+
     def begin_frame(self, view: FrameView, scene: Scene) -> None:
         super().begin_frame(view, scene)
         frame = self._require_frame()
