@@ -492,7 +492,7 @@ class Rasterizer:
         self._cube_fresh: list[tuple[bool, bool]] = []  # (static, animated) map valid
         # GPU lookup pass (``_cube_lookup``): program, empty VAO, cube texture array and
         # the cube objects it holds (by layer block), point textures, output framebuffer.
-        self._lookup_program: int | None = None
+        self._lookup_programs: dict[tuple[int, bool, bool], int] = {}
         self._lookup_vao: int | None = None
         self._cube_tex: int | None = None
         self._cube_tex_layers = 0
@@ -533,7 +533,7 @@ class Rasterizer:
             self._primitive = prim
         n = geo.triangle_count
         self._tri64 = np.zeros((n, 13))
-        self._tri32 = np.zeros((n, 6, 3), dtype=np.float32)
+        self._tri32 = np.zeros((n, 3, 6), dtype=np.float32)
         self._fill_tables(scene, np.arange(n))
         self._scene_changed(scene)
         self._static_maps = self._dynamic_maps = None
@@ -548,8 +548,9 @@ class Rasterizer:
                  e2 = c - a), h = n_g·a. For a point p on the plane, the barycentric
                  weights of b and c are v = p·g1 - c1 and w = p·g2 - c2 (g1, g2: the dual
                  basis of e1, e2 within the plane).
-        _tri32 : (T, 6, 3) float32, the three corner normals then the three corner
-                 albedos (``Geometry.corner_normals`` / ``corner_albedo``).
+        _tri32 : (T, 3, 6) float32, per corner its normal then its albedo
+                 (``Geometry.corner_normals`` / ``corner_albedo``), so that one
+                 weighted sum over the corners interpolates both.
         """
         geo = scene.geometry
         tri = geo.vertices[geo.triangles[rows]] - self._origin
@@ -578,7 +579,7 @@ class Rasterizer:
             axis=1,
         )
         self._tri32[rows] = np.concatenate(
-            [geo.corner_normals[rows], geo.corner_albedo[rows]], axis=1
+            [geo.corner_normals[rows], geo.corner_albedo[rows]], axis=2
         )
 
     def _scene_changed(self, scene: Scene) -> None:
@@ -674,7 +675,7 @@ class Rasterizer:
         # other elements' shading is static (materials are not animated).
         check = np.flatnonzero(tri_moved | self._animated_tri)
         if len(check):
-            shading = np.concatenate([geo.corner_normals[check], geo.corner_albedo[check]], axis=1)
+            shading = np.concatenate([geo.corner_normals[check], geo.corner_albedo[check]], axis=2)
             differs = np.any(shading != self._tri32[check], axis=(1, 2))
             rows = check[tri_moved[check] | differs]
             if len(rows):
@@ -885,8 +886,9 @@ class Rasterizer:
         disjoint pixels.
         """
         geo = self._scene.geometry
-        dc = d[covered]
-        tab = self._tri64[tid]  # (n, 13), see _build_tables
+        # np.take: several times faster than fancy indexing for row gathers.
+        dc = np.take(d, covered, axis=0)
+        tab = np.take(self._tri64, tid, axis=0)  # (n, 13), see _fill_tables
         ng = tab[:, 8:11]
         # Ray-plane intersection in float64, rel space: t = (h - n·o) / n·d.
         den = np.einsum("ij,ij->i", ng, dc)
@@ -903,14 +905,14 @@ class Rasterizer:
         b0 = np.clip(1.0 - bv - bw, 0.0, 1.0)
         b1 = np.clip(bv, 0.0, 1.0)
         b2 = np.clip(bw, 0.0, 1.0)
-        inv_sum = 1.0 / np.maximum(b0 + b1 + b2, 1e-12)
-        w0 = (b0 * inv_sum).astype(np.float32)[:, None]  # (n, 1) each
-        w1 = (b1 * inv_sum).astype(np.float32)[:, None]
-        w2 = (b2 * inv_sum).astype(np.float32)[:, None]
+        bary = np.stack([b0, b1, b2], axis=1)
+        bary /= np.maximum(b0 + b1 + b2, 1e-12)[:, None]
+        bary = bary.astype(np.float32)  # (n, 3)
 
-        corners = self._tri32[tid]  # (n, 6, 3): 3 normals, 3 albedos
-        n = corners[:, 0] * w0 + corners[:, 1] * w1 + corners[:, 2] * w2
-        col = corners[:, 3] * w0 + corners[:, 4] * w1 + corners[:, 5] * w2
+        # (n, 6): interpolated normal then albedo (corners (n, 3, 6), see _fill_tables).
+        values = np.einsum("ij,ijk->ik", bary, np.take(self._tri32, tid, axis=0))
+        n = values[:, :3]
+        col = values[:, 3:]
 
         # Shading normal on the camera's side of the triangle; where it still faces
         # away (or is degenerate), use the geometric normal.
@@ -922,15 +924,18 @@ class Rasterizer:
         if bad.any():
             g = ng[bad] * (side[bad] / np.maximum(tab[bad, 12], 1e-300))[:, None]
             n[bad] = g.astype(np.float32)
-        out.normal[covered] = n
 
         textured = self._tri_textured[tid]
         if textured.any():
-            bary = np.concatenate([w0[textured], w1[textured], w2[textured]], axis=1)
-            col[textured] = self._texture_albedo(tid[textured], bary)
+            col[textured] = self._texture_albedo(tid[textured], bary[textured])
+        # Sorted pixel indices without gaps (every pixel of an enclosed view is covered):
+        # slice writes, much faster than scattering.
+        if covered[-1] - covered[0] + 1 == len(covered):
+            covered = slice(int(covered[0]), int(covered[-1]) + 1)
+        out.normal[covered] = n
         out.albedo[covered] = col
         out.triangle_id[covered] = tid
-        out.element_id[covered] = geo.tri_element[tid]
+        out.element_id[covered] = np.take(geo.tri_element, tid)
         out.position[covered] = p_rel + self._origin
         out.depth[covered] = t * _transform(dc, fwd[None])[:, 0]
 
@@ -1278,31 +1283,39 @@ class Rasterizer:
             )
         cubes = self.cube_maps()
         ranges = light_ranges(lights)[n_distant:]
-        diffuse, highlight, local_unsure = self._cube_lookup(rel, normals, cubes, ranges, to_eye)
+        diffuse, highlight, bits = self._cube_lookup(rel, normals, cubes, ranges, to_eye)
         for job in jobs:
             job.result()
-        uncertain = np.concatenate([distant_unsure, local_unsure], axis=1)
-        # The local pairs the maps could not decide, with their visibility: exact from
-        # ``refine``, else the maps' PCF.
-        if refine is not None:
-            vis = self._refined(
-                positions,
-                normals,
-                np.concatenate([distant, local_unsure.astype(np.float32)], axis=1),
-                uncertain,
-                refine,
-            )
-            distant = vis[:, :n_distant]
-            point, light = np.nonzero(local_unsure)
-            weight = vis[:, n_distant:][point, light]
+        # The pairs the maps could not decide, on the few rows that have any: the
+        # LocalLight ones are shaded from their visibility (exact from ``refine``, else
+        # the maps' PCF), the DistantLight ones are corrected in ``distant``.
+        unsure_rows = bits.any(axis=1)
+        if n_distant:
+            unsure_rows |= distant_unsure.any(axis=1)
+        rows = np.flatnonzero(unsure_rows)
+        local_unsure = np.zeros((len(rows), len(cubes)), dtype=bool)
+        for p, start in enumerate(range(0, len(cubes), LOOKUP_LIGHTS_PER_PASS)):
+            count = min(LOOKUP_LIGHTS_PER_PASS, len(cubes) - start)
+            shifts = np.arange(count, dtype=np.uint32)
+            local_unsure[:, start : start + count] = (bits[rows, p, None] >> shifts) & 1 > 0
+        at, light = np.nonzero(local_unsure)
+        point = rows[at]
+        if refine is not None and len(rows):
+            pairs = np.concatenate([distant_unsure[rows], local_unsure], axis=1)
+            exact = np.asarray(
+                refine(positions[rows], normals[rows], pairs), dtype=np.float32
+            ).reshape(pairs.shape)
+            distant[rows] = np.where(pairs[:, :n_distant], exact[:, :n_distant], distant[rows])
+            weight = exact[:, n_distant:][at, light]
+            self.last_refined = len(rows)
+            self.last_refined_pairs = int(pairs.sum())
         else:
-            point, light = np.nonzero(local_unsure)
             weight = np.zeros(len(point), dtype=np.float32)
             for k, pair in enumerate(cubes):
-                at = np.flatnonzero(light == k)
-                if len(at):
-                    p = point[at]
-                    weight[at] = _cube_pair_visibility(pair, rel[p], normals[p], True)[0]
+                on = np.flatnonzero(light == k)
+                if len(on):
+                    p = point[on]
+                    weight[on] = _cube_pair_visibility(pair, rel[p], normals[p], True)[0]
         lit = np.flatnonzero(weight > 0.0)
         point, light, weight = point[lit], light[lit], weight[lit]
         l_dir, dist = pair_directions(lights, positions, point, light)
@@ -1422,24 +1435,36 @@ class Rasterizer:
 
     # ------------------------------------------------------------------ GPU cube lookups
 
-    def _lookup_setup(self) -> None:
-        """Compile the lookup program and create its empty VAO and point textures."""
-        if self._lookup_program is not None:
-            return
-        with open(os.path.join(SHADER_DIR, "cube_lookup.vert")) as f:
-            vert = f.read()
-        with open(os.path.join(SHADER_DIR, "cube_lookup.frag")) as f:
-            frag = f.read()
-        self._lookup_vao = int(GL.glGenVertexArrays(1))
-        GL.glBindVertexArray(self._lookup_vao)
-        self._lookup_program = int(
-            gl_shaders.compileProgram(
-                gl_shaders.compileShader(vert, GL.GL_VERTEX_SHADER),
-                gl_shaders.compileShader(frag, GL.GL_FRAGMENT_SHADER),
-                validate=False,
+    def _lookup_program_for(self, n_lights: int, shade: bool) -> int:
+        """The lookup program for a pass of ``n_lights`` lights (with shading or not),
+        compiled on first use with the defines ``shaders/cube_lookup.frag`` expects."""
+        has_dynamic = bool(self._animated_tri.any())
+        key = (n_lights, has_dynamic, shade)
+        if key not in self._lookup_programs:
+            with open(os.path.join(SHADER_DIR, "cube_lookup.vert")) as f:
+                vert = f.read()
+            with open(os.path.join(SHADER_DIR, "cube_lookup.frag")) as f:
+                version, frag = f.read().split("\n", 1)
+            squarings = np.log2(SHININESS) if SHININESS >= 1.0 else 0.5
+            defines = (
+                f"#define N_LIGHTS {n_lights}\n#define HAS_DYNAMIC {int(has_dynamic)}\n"
+                f"#define SHADE {int(shade)}\n"
+                f"#define SQUARINGS {int(squarings) if squarings % 1 == 0 else -1}\n"
             )
-        )
-        GL.glBindVertexArray(0)
+            self._lookup_programs[key] = int(
+                gl_shaders.compileProgram(
+                    gl_shaders.compileShader(vert, GL.GL_VERTEX_SHADER),
+                    gl_shaders.compileShader(f"{version}\n{defines}{frag}", GL.GL_FRAGMENT_SHADER),
+                    validate=False,
+                )
+            )
+        return self._lookup_programs[key]
+
+    def _lookup_setup(self) -> None:
+        """Create the lookup pass's empty VAO and point textures."""
+        if self._lookup_vao is not None:
+            return
+        self._lookup_vao = int(GL.glGenVertexArrays(1))
         self._point_tex = [int(t) for t in GL.glGenTextures(3)]  # points, normals, to_eye
         for tex in self._point_tex:
             GL.glBindTexture(GL.GL_TEXTURE_2D, tex)
@@ -1545,8 +1570,9 @@ class Rasterizer:
         LOOKUP_SHADOWED (also out of range / facing away) or LOOKUP_UNCERTAIN.
         With ``to_eye`` (n, 3) unit directions to the viewer: the lit pairs are also
         shaded on the GPU; returns diffuse (n, 3) and highlight (n, 3) float32 sums over
-        the lit pairs (``shading.shade_local``'s ``local_sums``) and (n, len(cubes))
-        bool uncertain pairs (not in the sums)."""
+        the lit pairs (``shading.shade_local``'s ``local_sums``) and (n, passes) uint32
+        uncertain pairs (not in the sums): bit j of pass p is light
+        p * LOOKUP_LIGHTS_PER_PASS + j."""
         n, n_local = len(rel), len(cubes)
         self._platform.make_current()
         self._lookup_setup()
@@ -1573,12 +1599,6 @@ class Rasterizer:
                 GL.GL_FLOAT,
                 texels,
             )
-        prog = self._lookup_program
-
-        def loc(name: str) -> int:
-            return GL.glGetUniformLocation(prog, name)
-
-        GL.glUseProgram(prog)
         GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, self._lookup_fb)
         GL.glViewport(0, 0, width, rows)
         GL.glDisable(GL.GL_DEPTH_TEST)
@@ -1590,27 +1610,11 @@ class Rasterizer:
         for unit, (target, tex) in enumerate(zip(targets, textures, strict=True)):
             GL.glActiveTexture(GL.GL_TEXTURE0 + unit)
             GL.glBindTexture(target, tex)
-        GL.glUniform1i(loc("points"), 0)
-        GL.glUniform1i(loc("normals"), 1)
-        GL.glUniform1i(loc("cubes"), 2)
-        GL.glUniform1i(loc("to_eye"), 3)
-        GL.glUniform1i(loc("n_points"), n)
-        GL.glUniform1i(loc("width"), width)
-        GL.glUniform1i(loc("size"), CUBE_MAP_SIZE)
-        GL.glUniform1f(loc("tan_half"), CUBE_MAP_SIZE / (CUBE_MAP_SIZE - 2.0 * CUBE_GUARD_TEXELS))
-        GL.glUniform1f(loc("bias_texels"), SHADOW_BIAS_TEXELS)
-        GL.glUniform1f(loc("box_radius"), SHADOW_REFINE_RADIUS + 0.5)
-        GL.glUniform1f(loc("slope_clamp"), 1.0 / SHADOW_MIN_COS)
-        GL.glUniform1f(loc("min_light_distance"), MIN_LIGHT_DISTANCE)
-        GL.glUniform1f(loc("shininess"), SHININESS)
-        squarings = np.log2(SHININESS) if SHININESS >= 1.0 else 0.5
-        GL.glUniform1i(loc("shininess_squarings"), int(squarings) if squarings % 1 == 0 else -1)
-        GL.glUniform1f(loc("specular_strength"), SPECULAR_STRENGTH)
         GL.glBindVertexArray(self._lookup_vao)
         if shading:
             diffuse = np.zeros((n, 3), dtype=np.float32)
             highlight = np.zeros((n, 3), dtype=np.float32)
-            unsure = np.zeros((n, n_local), dtype=bool)
+            bits = np.zeros((n, -(-n_local // LOOKUP_LIGHTS_PER_PASS)), dtype=np.uint32)
             sums = np.empty((rows, width, 4), dtype=np.float32)
         else:
             out = np.zeros((n, n_local), dtype=np.uint8)
@@ -1629,11 +1633,31 @@ class Rasterizer:
             ]
             # A light without any cube (no casters at all) is lit within its range:
             # its layers stay -1 and cube_test answers 1.
+            prog = self._lookup_program_for(len(ks), shading)
+
+            def loc(name: str, prog: int = prog) -> int:
+                return GL.glGetUniformLocation(prog, name)
+
+            GL.glUseProgram(prog)
+            GL.glUniform1i(loc("points"), 0)
+            GL.glUniform1i(loc("normals"), 1)
+            GL.glUniform1i(loc("cubes"), 2)
+            GL.glUniform1i(loc("to_eye"), 3)
+            GL.glUniform1i(loc("n_points"), n)
+            GL.glUniform1i(loc("width"), width)
+            GL.glUniform1i(loc("size"), CUBE_MAP_SIZE)
+            tan_half = CUBE_MAP_SIZE / (CUBE_MAP_SIZE - 2.0 * CUBE_GUARD_TEXELS)
+            GL.glUniform1f(loc("tan_half"), tan_half)
+            GL.glUniform1f(loc("bias_texels"), SHADOW_BIAS_TEXELS)
+            GL.glUniform1f(loc("box_radius"), SHADOW_REFINE_RADIUS + 0.5)
+            GL.glUniform1f(loc("slope_clamp"), 1.0 / SHADOW_MIN_COS)
+            GL.glUniform1f(loc("min_light_distance"), MIN_LIGHT_DISTANCE)
+            GL.glUniform1f(loc("shininess"), SHININESS)
+            GL.glUniform1f(loc("specular_strength"), SPECULAR_STRENGTH)
             pos_arr = np.zeros((LOOKUP_LIGHTS_PER_PASS, 3), np.float32)
             pos_arr[: len(ks)] = pos
             rad_arr = np.zeros((LOOKUP_LIGHTS_PER_PASS, 3), np.float32)
             rad_arr[: len(ks)] = [lights.local[k].radiance for k in ks]
-            GL.glUniform1i(loc("n_lights"), len(ks))
             GL.glUniform3fv(loc("light_pos"), LOOKUP_LIGHTS_PER_PASS, pos_arr)
             GL.glUniform3fv(loc("light_radiance"), LOOKUP_LIGHTS_PER_PASS, rad_arr)
             GL.glUniform1fv(
@@ -1660,8 +1684,7 @@ class Rasterizer:
                 GL.glReadPixels(0, 0, width, rows, GL.GL_RGBA, GL.GL_FLOAT, sums)
                 flat = sums.reshape(-1, 4)[:n]
                 diffuse += flat[:, :3]
-                bits = flat[:, 3].astype(np.uint32)
-                unsure[:, ks] = (bits[:, None] >> np.arange(len(ks), dtype=np.uint32)) & 1 > 0
+                bits[:, start // LOOKUP_LIGHTS_PER_PASS] = flat[:, 3]
                 GL.glReadBuffer(GL.GL_COLOR_ATTACHMENT2)
                 GL.glReadPixels(0, 0, width, rows, GL.GL_RGBA, GL.GL_FLOAT, sums)
                 highlight += sums.reshape(-1, 4)[:n, :3]
@@ -1679,7 +1702,7 @@ class Rasterizer:
         GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, 0)
         GL.glEnable(GL.GL_DEPTH_TEST)
         if shading:
-            return diffuse, highlight, unsure
+            return diffuse, highlight, bits
         return out
 
     # ------------------------------------------------------------------ lifetime

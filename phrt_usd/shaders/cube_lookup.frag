@@ -1,4 +1,11 @@
 #version 330 core
+// Compiled per pass shape (gbuffer.Rasterizer._lookup_program_for) with these defines
+// in front of this file, because llvmpipe runs every branch of the code under masks:
+// code for absent lights, maps or outputs would cost as much as used code.
+//   N_LIGHTS     lights in this pass, 1..16
+//   HAS_DYNAMIC  1 when the scene has animated casters (a second cube per light)
+//   SHADE        1 to also shade the lit pairs (diffuse / highlight outputs)
+//   SQUARINGS    log2(shading.SHININESS) when that is an integer, else -1 (pow)
 // LocalLight shadow lookups, fragment stage: one fragment per query point, up to 16
 // lights per pass, packed as one byte each into one RGBA32UI attachment (light j in
 // channel j / 4, bits 8 (j % 4) .. 8 (j % 4) + 7: little-endian bytes in light order).
@@ -23,7 +30,6 @@ uniform sampler2D normals;
 uniform sampler2DArray cubes;
 uniform int n_points;
 uniform int width;
-uniform int n_lights;           // lights in this pass, <= 16
 uniform vec3 light_pos[16];     // origin-relative metres
 uniform float light_range[16];  // metres; 0 = the light reaches nothing
 uniform float light_near[16];   // the cube faces' near plane, metres
@@ -38,7 +44,6 @@ uniform sampler2D to_eye;
 uniform vec3 light_radiance[16];     // linear RGB
 uniform float min_light_distance;    // shading.MIN_LIGHT_DISTANCE
 uniform float shininess;             // shading.SHININESS
-uniform int shininess_squarings;     // log2(SHININESS) when a power of 2, else -1
 uniform float specular_strength;     // shading.SPECULAR_STRENGTH
 
 layout(location = 0) out uvec4 codes;
@@ -92,14 +97,15 @@ float lookup(int j, vec3 p, vec3 n)
     vec2 f = floor(bc / w * (0.5 * float(size) / tan_half) + 0.5 * float(size));
     ivec2 t = clamp(ivec2(f), ivec2(0), ivec2(size - 1));
     float vs = cube_test(static_layer[j], face, t, test);
-    if (vs == 0.0) {
-        return 0.0;
-    }
+#if HAS_DYNAMIC
     float vd = cube_test(dynamic_layer[j], face, t, test);
-    if (vd == 0.0) {
+    if (vs == 0.0 || vd == 0.0) {
         return 0.0;
     }
     return min(vs, vd);  // -1 if either is uncertain, else 1
+#else
+    return vs;
+#endif
 }
 
 uint code(float r)
@@ -120,13 +126,13 @@ void shade(int j, vec3 p, vec3 n, vec3 e, inout vec3 d_sum, inout vec3 h_sum)
     vec3 h = l + e;
     float n_dot_h = dot(n, h) / max(length(h), 1e-12);
     float x = max(n_dot_h, 0.0);
-    if (shininess_squarings >= 0) {  // x^(2^k) as k squarings, as shading does
-        for (int i = 0; i < shininess_squarings; ++i) {
-            x *= x;
-        }
-    } else {
-        x = pow(x, shininess);
+#if SQUARINGS >= 0
+    for (int i = 0; i < SQUARINGS; ++i) {  // x^(2^k) as k squarings, as shading does
+        x *= x;
     }
+#else
+    x = pow(x, shininess);
+#endif
     float spec = specular_strength * x;
     d_sum += light_radiance[j] * lit;
     h_sum += light_radiance[j] * (lit * spec);
@@ -146,26 +152,31 @@ void main()
     if (k < n_points) {
         vec3 p = texelFetch(points, xy, 0).xyz;
         vec3 n = texelFetch(normals, xy, 0).xyz;
+#if SHADE
         vec3 e = texelFetch(to_eye, xy, 0).xyz;
+#endif
         // Constant trip count: the compiler unrolls it, so every array index is a
         // constant (dynamic indexing of local arrays is slow in llvmpipe).
-        for (int j = 0; j < 16; ++j) {
-            if (j < n_lights) {
-                result[j] = lookup(j, p, n);
-                if (result[j] > 0.5) {
-                    shade(j, p, n, e, d_sum, h_sum);
-                } else if (result[j] < -0.5) {
-                    unsure += float(1 << j);
-                }
+        for (int j = 0; j < N_LIGHTS; ++j) {
+            result[j] = lookup(j, p, n);
+#if SHADE
+            if (result[j] > 0.5) {
+                shade(j, p, n, e, d_sum, h_sum);
+            } else if (result[j] < -0.5) {
+                unsure += float(1 << j);
             }
+#endif
         }
     }
+#if SHADE
+    diffuse = vec4(d_sum, unsure);
+    highlight = vec4(h_sum, 0.0);
+#else
     uint word[4];
     for (int c = 0; c < 4; ++c) {
         word[c] = code(result[4 * c]) | (code(result[4 * c + 1]) << 8)
             | (code(result[4 * c + 2]) << 16) | (code(result[4 * c + 3]) << 24);
     }
     codes = uvec4(word[0], word[1], word[2], word[3]);
-    diffuse = vec4(d_sum, unsure);
-    highlight = vec4(h_sum, 0.0);
+#endif
 }
