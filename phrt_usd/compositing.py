@@ -46,20 +46,19 @@ def base_image(
     reflectivity : (H, W) float32 F per pixel
     Returns (H, W, 3) float32.
     """
-    h, w = gbuffer.shape
-    image = np.empty((h, w, 3), dtype=np.float32)
-    covered = gbuffer.covered
-    background = ~covered
-    if background.any():
-        image[background] = environment_radiance(scene.lights, gbuffer.view_dir[background])
-    image[covered] = local[covered]
-    mirror = reflectivity > 0.0
-    if mirror.any():
-        f = reflectivity[mirror][:, None]
-        env = environment_radiance(
-            scene.lights, reflect(gbuffer.view_dir[mirror], gbuffer.normal[mirror])
-        )
-        image[mirror] = (1.0 - f) * local[mirror] + f * env
+    # Flat pixel indices and np.take: several times faster than boolean-mask indexing.
+    image = np.array(local, dtype=np.float32)  # local is zero where uncovered
+    flat = image.reshape(-1, 3)
+    view = gbuffer.view_dir.reshape(-1, 3)
+    background = np.flatnonzero(~gbuffer.covered.reshape(-1))
+    if len(background):
+        flat[background] = environment_radiance(scene.lights, np.take(view, background, axis=0))
+    mirror = np.flatnonzero(reflectivity.reshape(-1) > 0.0)
+    if len(mirror):
+        f = np.take(reflectivity.reshape(-1), mirror)[:, None]
+        normals = np.take(gbuffer.normal.reshape(-1, 3), mirror, axis=0)
+        env = environment_radiance(scene.lights, reflect(np.take(view, mirror, axis=0), normals))
+        flat[mirror] = (1.0 - f) * np.take(flat, mirror, axis=0) + f * env
     return image
 
 
