@@ -374,10 +374,10 @@ def _bilinear_pcf(flat, size: int, base, fx, fy, test) -> np.ndarray:
 def _transform(v: np.ndarray, m: np.ndarray) -> np.ndarray:
     """(n, k) = v (n, 3) times m (k, 3) transposed, i.e. each row of v mapped by m.
 
-    Written out per column instead of ``v @ m.T``: numpy hands such skinny products to
-    the multithreaded BLAS, which on this 2-core machine, next to llvmpipe's render
-    threads, was seen to take up to 12 ms for 76 800 rows (this form: ~1.5 ms)."""
-    return v[:, 0:1] * m[:, 0][None] + v[:, 1:2] * m[:, 1][None] + v[:, 2:3] * m[:, 2][None]
+    An einsum instead of ``v @ m.T``: numpy hands such skinny products to the
+    multithreaded BLAS, which on this 2-core machine, next to llvmpipe's render threads,
+    was seen to take up to 12 ms for 76 800 rows (einsum's own loop: ~1 ms)."""
+    return np.einsum("ij,kj->ik", v, m)
 
 
 def _box_extremum(a: np.ndarray, r: int, op: np.ufunc) -> np.ndarray:
