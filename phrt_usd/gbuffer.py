@@ -367,7 +367,7 @@ def _bilinear_pcf(flat, size: int, base, fx, fy, test) -> np.ndarray:
     ):
         xi = np.clip(x0 + dx, 0, size - 1)
         yi = np.clip(y0 + dy, 0, size - 1)
-        vis += weight * (test <= flat[base + yi * size + xi])
+        vis += weight * (test <= np.take(flat, base + yi * size + xi))
     return vis
 
 
@@ -407,21 +407,33 @@ def _filtered_visibility(
     ``_ShadowMap.depth_min``)."""
     s = mp.depth.shape[0]
     lp = _transform(rel, mp.light_from_rel)
-    texel = float(mp.texel.max())
-    cos = np.clip(np.abs(_transform(normals, mp.light_from_rel[2:3])[:, 0]), SHADOW_MIN_COS, 1.0)
-    tan = np.sqrt(1.0 - cos**2) / cos
-    test = -lp[:, 2] - texel * (SHADOW_BIAS_TEXELS + SHADOW_SLOPE_BIAS_TEXELS * tan)
-    # Bilinear PCF over the 2x2 texels around the point (texel centres at +0.5).
+    # Texel coordinates (texel centres at +0.5); only points over the map's footprint
+    # need the rest (an animated caster's map covers a small part of the view).
     fx = (lp[:, 0] - mp.lo[0]) / mp.texel[0] - 0.5
     fy = (lp[:, 1] - mp.lo[1]) / mp.texel[1] - 0.5
-    inside = (fx > -1.0) & (fx < s) & (fy > -1.0) & (fy < s) & np.isfinite(test)
-    fx = np.where(inside, fx, 0.0)
-    fy = np.where(inside, fy, 0.0)
-    vis = _bilinear_pcf(mp.depth.reshape(-1), s, 0, fx, fy, test)
-    xn = np.clip(np.rint(fx).astype(np.int64), 0, s - 1)  # nearest texel
-    yn = np.clip(np.rint(fy).astype(np.int64), 0, s - 1)
-    uncertain = inside & (mp.depth_min[yn, xn] < test) & (mp.depth_max[yn, xn] >= test)
-    return np.where(inside, vis, 1.0), uncertain
+    inside = np.flatnonzero((fx > -1.0) & (fx < s) & (fy > -1.0) & (fy < s))
+    vis = np.ones(len(rel))
+    uncertain = np.zeros(len(rel), dtype=bool)
+    if len(inside) == 0:
+        return vis, uncertain
+    fx, fy = fx[inside], fy[inside]
+    texel = float(mp.texel.max())
+    n_z = _transform(np.take(normals, inside, axis=0), mp.light_from_rel[2:3])[:, 0]
+    cos = np.clip(np.abs(n_z), SHADOW_MIN_COS, 1.0)
+    tan = np.sqrt(1.0 - cos**2) / cos
+    test = -lp[inside, 2] - texel * (SHADOW_BIAS_TEXELS + SHADOW_SLOPE_BIAS_TEXELS * tan)
+    finite = np.isfinite(test)
+    # Bilinear PCF over the 2x2 texels around the point.
+    vis[inside] = np.where(finite, _bilinear_pcf(mp.depth.reshape(-1), s, 0, fx, fy, test), 1.0)
+    nearest = np.clip(np.rint(fy).astype(np.int64), 0, s - 1) * s + np.clip(
+        np.rint(fx).astype(np.int64), 0, s - 1
+    )
+    uncertain[inside] = (
+        finite
+        & (np.take(mp.depth_min.reshape(-1), nearest) < test)
+        & (np.take(mp.depth_max.reshape(-1), nearest) >= test)
+    )
+    return vis, uncertain
 
 
 @dataclass
