@@ -376,7 +376,9 @@ class FrameRenderer:
                 visibility = self._rasterizer.shadow_visibility(pos, nrm, refine=refine)
             shadow_pass = "shadow_map" if refine is None else "shadow_map+rays"
         tri = take(gb.triangle_id)
-        emissive = scene.materials.emissive[scene.geometry.tri_material[tri]]
+        emissive = np.take(
+            scene.materials.emissive, np.take(scene.geometry.tri_material, tri), axis=0
+        )
         local[pix] = shade_local(
             pos,
             nrm,

@@ -432,17 +432,17 @@ def shade_local(
                  and ``visibility`` needs only its DistantLight columns.
     Returns (n, 3) float32 linear RGB.
 
-    Points are independent: large batches without ``local_pairs`` are split into
-    SHADE_THREADS contiguous chunks shaded on a thread pool (numpy releases the GIL).
+    Points are independent: large batches are split into SHADE_THREADS contiguous
+    chunks (``local_pairs`` with them, when sorted by point) shaded on a thread pool
+    (numpy releases the GIL).
     """
     positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
     n = positions.shape[0]
-    if (
-        local_pairs is not None
-        or local_sums is not None
-        or SHADE_THREADS < 2
-        or n < SHADE_MIN_THREADED_POINTS
-    ):
+    pairs = None if local_pairs is None else LightPairs(*local_pairs)
+    # Pairs sorted by point (as the tracer and the rasterizer make them) split with the
+    # points; unsorted ones are shaded in one chunk.
+    split_pairs = pairs is None or bool(np.all(np.diff(pairs.point) >= 0))
+    if SHADE_THREADS < 2 or n < SHADE_MIN_THREADED_POINTS or not split_pairs:
         return _shade_chunk(
             positions,
             normals,
@@ -461,6 +461,13 @@ def shade_local(
     out = np.empty((n, 3), dtype=np.float32)
 
     def run(part: slice) -> None:
+        chunk_pairs = None
+        if pairs is not None:
+            lo, hi = np.searchsorted(pairs.point, [part.start, part.stop])
+            chunk_pairs = LightPairs(
+                pairs.point[lo:hi] - part.start,
+                *(None if a is None else a[lo:hi] for a in pairs[1:]),
+            )
         out[part] = _shade_chunk(
             positions[part],
             normals[part],
@@ -469,6 +476,8 @@ def shade_local(
             emissive if emissive.ndim == 1 else emissive[part],
             lights,
             None if visibility is None else visibility[part],
+            chunk_pairs,
+            None if local_sums is None else (local_sums[0][part], local_sums[1][part]),
         )
 
     bounds = np.linspace(0, n, SHADE_THREADS + 1).astype(int)

@@ -235,3 +235,20 @@ def test_threaded_shade_local_matches_one_chunk(monkeypatch):
     assert threaded.shape == (n, 3) and threaded.dtype == np.float32
     np.testing.assert_array_equal(threaded, single)
     assert float(threaded.max()) > 0.0
+    # Weighted LocalLight pairs (sorted by point) and GPU-style local sums split with
+    # the points too.
+    point = np.sort(rng.choice(n, n // 2, replace=False))
+    light = rng.integers(0, 2, len(point))
+    l_dir, dist = shading.pair_directions(lights, pos, point, light)
+    weight = rng.uniform(0.1, 1.0, len(point)).astype(np.float32)
+    pairs = shading.LightPairs(point, light, l_dir, dist, weight)
+    sums = (rng.uniform(0, 1, (n, 3)).astype(np.float32),) * 2
+    runs = []
+    for threads in (3, 1):
+        monkeypatch.setattr(shading, "SHADE_THREADS", threads)
+        runs.append(
+            shading.shade_local(
+                pos, nrm, albedo, view, emissive, lights, vis[:, :1], pairs, local_sums=sums
+            )
+        )
+    np.testing.assert_allclose(runs[0], runs[1], rtol=1e-6, atol=1e-7)
