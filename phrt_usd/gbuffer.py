@@ -149,6 +149,8 @@ CUBE_NEAR_FRACTION = 1e-4
 LOOKUP_TEXTURE_WIDTH = 1024
 #: LocalLights per GPU lookup pass (one RGBA32UI colour attachment, one byte each).
 LOOKUP_LIGHTS_PER_PASS = 16
+#: DistantLights the GPU lookup pass shades itself (more are looked up in numpy).
+LOOKUP_MAX_DISTANT = 2
 #: Per-light codes the GPU lookup packs one byte each (``shaders/cube_lookup.frag``).
 LOOKUP_SHADOWED, LOOKUP_LIT, LOOKUP_UNCERTAIN = 0, 1, 2
 #: The two axes spanning a cube face, per major axis of the light-to-point vector.
@@ -441,17 +443,18 @@ class LightTerms:
     """What shading G-buffer points needs from the shadow maps (``Rasterizer.light_terms``,
     consumed by ``shading.shade_local``). n points, D DistantLights.
 
-    distant_visibility : (n, D) float32 in [0, 1], 1 = lit
-    local_sums         : diffuse (n, 3) and highlight (n, 3) float32 sums of the
-                         LocalLight pairs the cube maps decided are lit, or None when the
-                         scene has no LocalLights
+    distant_visibility : (n, D) float32 in [0, 1]: DistantLight visibility of the pairs
+                         *not* in ``lit_sums`` (0 for the pairs summed there)
+    lit_sums           : diffuse (n, 3) and highlight (n, 3) float32 sums over the
+                         (point, light) pairs the maps decided are lit, shaded on the GPU
+                         (LocalLights and up to LOOKUP_MAX_DISTANT DistantLights)
     local_pairs        : the (point, LocalLight) pairs the maps could not decide, with
                          their visibility from shadow rays or PCF (lit ones only), or
                          None
     """
 
     distant_visibility: np.ndarray
-    local_sums: tuple[np.ndarray, np.ndarray] | None
+    lit_sums: tuple[np.ndarray, np.ndarray] | None
     local_pairs: LightPairs | None
 
 
@@ -504,7 +507,9 @@ class Rasterizer:
         self._cube_fresh: list[tuple[bool, bool]] = []  # (static, animated) map valid
         # GPU lookup pass (``_cube_lookup``): program, empty VAO, cube texture array and
         # the cube objects it holds (by layer block), point textures, output framebuffer.
-        self._lookup_programs: dict[tuple[int, bool, bool], int] = {}
+        self._lookup_programs: dict[tuple[int, int, bool, bool], int] = {}
+        self._dmap_tex: list[int] = []  # DistantLight map textures (``_upload_distant``)
+        self._dmap_held: list[_ShadowMap | None] = []
         self._lookup_vao: int | None = None
         self._cube_tex: int | None = None
         self._cube_tex_layers = 0
@@ -1286,18 +1291,22 @@ class Rasterizer:
         if n == 0 or not lights.has_direct:
             return LightTerms(distant, None, None)
         rel = positions - self._origin
-        jobs = self._distant_lookups(rel, normals, distant, distant_unsure)
-        if not lights.local:
-            for job in jobs:
-                job.result()
-            return LightTerms(
-                self._refined(positions, normals, distant, distant_unsure, refine), None, None
-            )
-        cubes = self.cube_maps()
+        # Up to LOOKUP_MAX_DISTANT DistantLights are looked up and shaded on the GPU
+        # too; more are looked up in numpy meanwhile (and shaded by shade_local).
+        gpu_distant = n_distant <= LOOKUP_MAX_DISTANT
+        maps = self.shadow_maps() if gpu_distant and n_distant else []
+        jobs = [] if gpu_distant else self._distant_lookups(rel, normals, distant, distant_unsure)
+        cubes = self.cube_maps() if lights.local else []
         ranges = light_ranges(lights)[n_distant:]
-        diffuse, highlight, bits = self._cube_lookup(rel, normals, cubes, ranges, to_eye)
+        diffuse, highlight, bits = self._cube_lookup(rel, normals, cubes, ranges, to_eye, maps)
         for job in jobs:
             job.result()
+        if maps:
+            # Lit pairs are in the sums already: ``distant`` keeps only what shade_local
+            # must still add, the uncertain pairs once resolved below.
+            distant[:] = 0.0
+            shifts = 16 + np.arange(n_distant, dtype=np.uint32)
+            distant_unsure = (bits[:, :1] >> shifts) & 1 > 0
         # The pairs the maps could not decide, on the few rows that have any: the
         # LocalLight ones are shaded from their visibility (exact from ``refine``, else
         # the maps' PCF), the DistantLight ones are corrected in ``distant``.
@@ -1310,6 +1319,13 @@ class Rasterizer:
             count = min(LOOKUP_LIGHTS_PER_PASS, len(cubes) - start)
             shifts = np.arange(count, dtype=np.uint32)
             local_unsure[:, start : start + count] = (bits[rows, p, None] >> shifts) & 1 > 0
+        if maps and refine is None:  # the uncertain DistantLight pairs: the maps' PCF
+            for k, pair in enumerate(maps):
+                on = np.flatnonzero(distant_unsure[:, k])
+                distant[on, k] = 1.0
+                for mp in pair:
+                    if mp is not None and len(on):
+                        distant[on, k] *= _filtered_visibility(mp, rel[on], normals[on])[0]
         at, light = np.nonzero(local_unsure)
         point = rows[at]
         if refine is not None and len(rows):
@@ -1447,11 +1463,12 @@ class Rasterizer:
 
     # ------------------------------------------------------------------ GPU cube lookups
 
-    def _lookup_program_for(self, n_lights: int, shade: bool) -> int:
-        """The lookup program for a pass of ``n_lights`` lights (with shading or not),
-        compiled on first use with the defines ``shaders/cube_lookup.frag`` expects."""
+    def _lookup_program_for(self, n_lights: int, n_distant: int, shade: bool) -> int:
+        """The lookup program for a pass of ``n_lights`` LocalLights and ``n_distant``
+        DistantLights (with shading or not), compiled on first use with the defines
+        ``shaders/cube_lookup.frag`` expects."""
         has_dynamic = bool(self._animated_tri.any())
-        key = (n_lights, has_dynamic, shade)
+        key = (n_lights, n_distant, has_dynamic, shade)
         if key not in self._lookup_programs:
             with open(os.path.join(SHADER_DIR, "cube_lookup.vert")) as f:
                 vert = f.read()
@@ -1459,7 +1476,8 @@ class Rasterizer:
                 version, frag = f.read().split("\n", 1)
             squarings = np.log2(SHININESS) if SHININESS >= 1.0 else 0.5
             defines = (
-                f"#define N_LIGHTS {n_lights}\n#define HAS_DYNAMIC {int(has_dynamic)}\n"
+                f"#define N_LIGHTS {n_lights}\n#define N_DISTANT {n_distant}\n"
+                f"#define HAS_DYNAMIC {int(has_dynamic)}\n"
                 f"#define SHADE {int(shade)}\n"
                 f"#define SQUARINGS {int(squarings) if squarings % 1 == 0 else -1}\n"
             )
@@ -1540,6 +1558,63 @@ class Rasterizer:
         first = [6 * b if cube is not None else -1 for b, cube in enumerate(blocks)]
         return first[:n] + (first[n:] if len(first) > n else [-1] * n)
 
+    def _upload_distant(self, maps: list[tuple[_ShadowMap | None, _ShadowMap | None]]) -> None:
+        """(min, max) texels of each DistantLight's static and animated maps into RG32F
+        textures (slot 2 k and 2 k + 1), re-sending only maps that changed."""
+        slots = [mp for pair in maps for mp in pair]
+        while len(self._dmap_tex) < len(slots):
+            tex = int(GL.glGenTextures(1))
+            GL.glBindTexture(GL.GL_TEXTURE_2D, tex)
+            GL.glTexParameteri(GL.GL_TEXTURE_2D, GL.GL_TEXTURE_MIN_FILTER, GL.GL_NEAREST)
+            GL.glTexParameteri(GL.GL_TEXTURE_2D, GL.GL_TEXTURE_MAG_FILTER, GL.GL_NEAREST)
+            self._dmap_tex.append(tex)
+            self._dmap_held.append(None)
+        GL.glPixelStorei(GL.GL_UNPACK_ALIGNMENT, 1)
+        for i, mp in enumerate(slots):
+            if mp is None or self._dmap_held[i] is mp:
+                continue
+            s = mp.depth.shape[0]
+            texels = np.ascontiguousarray(np.stack([mp.depth_min, mp.depth_max], -1), np.float32)
+            GL.glBindTexture(GL.GL_TEXTURE_2D, self._dmap_tex[i])
+            GL.glTexImage2D(
+                GL.GL_TEXTURE_2D, 0, GL.GL_RG32F, s, s, 0, GL.GL_RG, GL.GL_FLOAT, texels
+            )
+            self._dmap_held[i] = mp
+        GL.glBindTexture(GL.GL_TEXTURE_2D, 0)
+
+    def _distant_uniforms(
+        self,
+        maps: list[tuple[_ShadowMap | None, _ShadowMap | None]],
+        loc: Callable[[str], int],
+    ) -> None:
+        """Set the lookup program's DistantLight uniforms (``shaders/cube_lookup.frag``)
+        for ``maps`` (per light: static, animated), textures on units 4 + 2 k (+ 1)."""
+        lights = self._scene.lights.distant
+        d = len(maps)
+        dirs = np.array([li.direction for li in lights[:d]], np.float64).reshape(d, 3)
+        dirs /= np.maximum(np.linalg.norm(dirs, axis=1, keepdims=True), 1e-300)
+        radiance = np.array([li.radiance for li in lights[:d]], np.float32).reshape(d, 3)
+        GL.glUniform3fv(loc("distant_dir"), d, dirs.astype(np.float32))
+        GL.glUniform3fv(loc("distant_radiance"), d, radiance)
+        frames = np.zeros((2 * d, 3, 3), np.float32)
+        lo = np.zeros((2 * d, 2), np.float32)
+        texel = np.ones((2 * d, 2), np.float32)
+        size = np.zeros(2 * d, np.int32)
+        for m, mp in enumerate(mp for pair in maps for mp in pair):
+            if mp is not None:
+                frames[m], lo[m], texel[m] = mp.light_from_rel, mp.lo, mp.texel
+                size[m] = mp.depth.shape[0]
+        for row, name in enumerate(("map_x", "map_y", "map_z")):
+            GL.glUniform3fv(loc(name), 2 * d, np.ascontiguousarray(frames[:, row]))
+        GL.glUniform2fv(loc("map_lo"), 2 * d, lo)
+        GL.glUniform2fv(loc("map_texel"), 2 * d, texel)
+        GL.glUniform1iv(loc("map_size"), 2 * d, size)
+        GL.glUniform1f(loc("slope_bias_texels"), SHADOW_SLOPE_BIAS_TEXELS)
+        GL.glUniform1f(loc("min_cos"), SHADOW_MIN_COS)
+        for k in range(d):
+            GL.glUniform1i(loc(f"dmap_s{k}"), 4 + 2 * k)
+            GL.glUniform1i(loc(f"dmap_d{k}"), 5 + 2 * k)
+
     def _lookup_framebuffer(self, rows: int) -> None:
         """The outputs of ``shaders/cube_lookup.frag``, LOOKUP_TEXTURE_WIDTH x >= ``rows``
         each: RGBA32UI packed per-light codes, RGBA32F diffuse sums (+ uncertain bits),
@@ -1572,6 +1647,7 @@ class Rasterizer:
         cubes: list[tuple[_CubeMap | None, _CubeMap | None]],
         ranges: np.ndarray,
         to_eye: np.ndarray | None = None,
+        distant: list[tuple[_ShadowMap | None, _ShadowMap | None]] | None = None,
     ) -> np.ndarray | tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Every point against every LocalLight's cube maps on the GPU (the test of
         ``_cube_visibility``, in ``shaders/cube_lookup.frag``).
@@ -1582,13 +1658,17 @@ class Rasterizer:
         LOOKUP_SHADOWED (also out of range / facing away) or LOOKUP_UNCERTAIN.
         With ``to_eye`` (n, 3) unit directions to the viewer: the lit pairs are also
         shaded on the GPU; returns diffuse (n, 3) and highlight (n, 3) float32 sums over
-        the lit pairs (``shading.shade_local``'s ``local_sums``) and (n, passes) uint32
-        uncertain pairs (not in the sums): bit j of pass p is light
-        p * LOOKUP_LIGHTS_PER_PASS + j."""
+        the lit pairs (``shading.shade_local``'s ``lit_sums``) and (n, passes) uint32
+        uncertain pairs (not in the sums): bit j of pass p is LocalLight
+        p * LOOKUP_LIGHTS_PER_PASS + j. ``distant`` (with ``to_eye`` only): the
+        (static, animated) maps of up to LOOKUP_MAX_DISTANT DistantLights, looked up
+        and shaded in the first pass too (uncertain: bit 16 + k of pass 0)."""
         n, n_local = len(rel), len(cubes)
         self._platform.make_current()
         self._lookup_setup()
         first = self._upload_cubes(cubes)
+        distant = distant if to_eye is not None and distant else []
+        self._upload_distant(distant)
         width = LOOKUP_TEXTURE_WIDTH
         rows = -(-n // width)
         self._lookup_framebuffer(rows)
@@ -1619,14 +1699,17 @@ class Rasterizer:
         GL.glDisable(GL.GL_CULL_FACE)
         targets = [GL.GL_TEXTURE_2D, GL.GL_TEXTURE_2D, GL.GL_TEXTURE_2D_ARRAY, GL.GL_TEXTURE_2D]
         textures = [self._point_tex[0], self._point_tex[1], self._cube_tex, self._point_tex[2]]
+        targets += [GL.GL_TEXTURE_2D] * 2 * len(distant)  # units 4 + 2 k (+1): maps
+        textures += self._dmap_tex[: 2 * len(distant)]
         for unit, (target, tex) in enumerate(zip(targets, textures, strict=True)):
             GL.glActiveTexture(GL.GL_TEXTURE0 + unit)
             GL.glBindTexture(target, tex)
         GL.glBindVertexArray(self._lookup_vao)
+        passes = max(-(-n_local // LOOKUP_LIGHTS_PER_PASS), 1 if distant else 0)
         if shading:
             diffuse = np.zeros((n, 3), dtype=np.float32)
             highlight = np.zeros((n, 3), dtype=np.float32)
-            bits = np.zeros((n, -(-n_local // LOOKUP_LIGHTS_PER_PASS)), dtype=np.uint32)
+            bits = np.zeros((n, passes), dtype=np.uint32)
             sums = np.empty((rows, width, 4), dtype=np.float32)
         else:
             out = np.zeros((n, n_local), dtype=np.uint8)
@@ -1635,8 +1718,10 @@ class Rasterizer:
             readback = np.empty((rows, width, 4), dtype="<u4")
         lights = self._scene.lights
         GL.glPixelStorei(GL.GL_PACK_ALIGNMENT, 1)
-        for start in range(0, n_local, LOOKUP_LIGHTS_PER_PASS):
+        for p in range(passes):
+            start = p * LOOKUP_LIGHTS_PER_PASS
             ks = list(range(start, min(start + LOOKUP_LIGHTS_PER_PASS, n_local)))
+            n_distant = len(distant) if p == 0 else 0
             pad = LOOKUP_LIGHTS_PER_PASS - len(ks)
             pos = [self._cube_keys[k][0] for k in ks]
             near = [
@@ -1645,7 +1730,7 @@ class Rasterizer:
             ]
             # A light without any cube (no casters at all) is lit within its range:
             # its layers stay -1 and cube_test answers 1.
-            prog = self._lookup_program_for(len(ks), shading)
+            prog = self._lookup_program_for(len(ks), n_distant, shading)
 
             def loc(name: str, prog: int = prog) -> int:
                 return GL.glGetUniformLocation(prog, name)
@@ -1666,10 +1751,12 @@ class Rasterizer:
             GL.glUniform1f(loc("min_light_distance"), MIN_LIGHT_DISTANCE)
             GL.glUniform1f(loc("shininess"), SHININESS)
             GL.glUniform1f(loc("specular_strength"), SPECULAR_STRENGTH)
+            if n_distant:
+                self._distant_uniforms(distant, loc)
             pos_arr = np.zeros((LOOKUP_LIGHTS_PER_PASS, 3), np.float32)
-            pos_arr[: len(ks)] = pos
+            pos_arr[: len(ks)] = np.reshape(pos, (-1, 3))
             rad_arr = np.zeros((LOOKUP_LIGHTS_PER_PASS, 3), np.float32)
-            rad_arr[: len(ks)] = [lights.local[k].radiance for k in ks]
+            rad_arr[: len(ks)] = np.reshape([lights.local[k].radiance for k in ks], (-1, 3))
             GL.glUniform3fv(loc("light_pos"), LOOKUP_LIGHTS_PER_PASS, pos_arr)
             GL.glUniform3fv(loc("light_radiance"), LOOKUP_LIGHTS_PER_PASS, rad_arr)
             GL.glUniform1fv(
@@ -1696,7 +1783,7 @@ class Rasterizer:
                 GL.glReadPixels(0, 0, width, rows, GL.GL_RGBA, GL.GL_FLOAT, sums)
                 flat = sums.reshape(-1, 4)[:n]
                 diffuse += flat[:, :3]
-                bits[:, start // LOOKUP_LIGHTS_PER_PASS] = flat[:, 3]
+                bits[:, p] = flat[:, 3]
                 GL.glReadBuffer(GL.GL_COLOR_ATTACHMENT2)
                 GL.glReadPixels(0, 0, width, rows, GL.GL_RGBA, GL.GL_FLOAT, sums)
                 highlight += sums.reshape(-1, 4)[:n, :3]

@@ -351,7 +351,7 @@ class FrameRenderer:
         lights = scene.lights
         n_lights = len(lights.distant) + len(lights.local)
         shadow_pass = None
-        local_pairs = local_sums = None
+        local_pairs = lit_sums = None
         if n_lights == 0:
             visibility = np.ones((len(pos), 0), dtype=np.float32)
         elif self.options.mode == "rt":
@@ -365,13 +365,14 @@ class FrameRenderer:
                 def refine(p: np.ndarray, n: np.ndarray, pairs: np.ndarray) -> np.ndarray:
                     return self._tracer.shadow_visibility(p, n, pairs=pairs)
 
-            if lights.local and self._rasterizer.cube_lookup_on_gpu:
-                # LocalLights shaded in the GPU lookup pass; the rest comes back as
-                # DistantLight visibility and the pairs the maps could not decide.
+            if self._rasterizer.cube_lookup_on_gpu:
+                # Lit pairs shaded in the GPU lookup pass; the rest comes back as
+                # DistantLight visibility and the LocalLight pairs the maps could not
+                # decide.
                 to_eye = -take(gb.view_dir)
                 terms = self._rasterizer.light_terms(pos, nrm, to_eye, refine=refine)
                 visibility = terms.distant_visibility
-                local_pairs, local_sums = terms.local_pairs, terms.local_sums
+                local_pairs, lit_sums = terms.local_pairs, terms.lit_sums
             else:  # all lights, distant then local (the order shade_local expects)
                 visibility = self._rasterizer.shadow_visibility(pos, nrm, refine=refine)
             shadow_pass = "shadow_map" if refine is None else "shadow_map+rays"
@@ -388,7 +389,7 @@ class FrameRenderer:
             lights,
             visibility,
             local_pairs=local_pairs,
-            local_sums=local_sums,
+            lit_sums=lit_sums,
         )
         return local.reshape(h, w, 3), shadow_pass
 

@@ -297,7 +297,7 @@ def _shade_chunk(
     lights: Lights,
     visibility: np.ndarray | None,
     local_pairs: LightPairs | tuple | None = None,
-    local_sums: tuple[np.ndarray, np.ndarray] | None = None,
+    lit_sums: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> np.ndarray:
     """``shade_local`` on one chunk of points (same arguments and result)."""
     positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
@@ -307,8 +307,8 @@ def _shade_chunk(
     to_eye = -np.asarray(view_dirs, dtype=np.float32).reshape(n, 3)
     colour = albedo * ambient_radiance(lights)[None, :]
     colour += np.broadcast_to(np.asarray(emissive, dtype=np.float32), (n, 3))
-    if local_sums is not None:
-        colour += albedo * local_sums[0] + local_sums[1]
+    if lit_sums is not None:
+        colour += albedo * lit_sums[0] + lit_sums[1]
     if not lights.has_direct or n == 0:
         return colour.astype(np.float32)
     # Per point and light colour: the summed diffuse weights (cosine x fall-off x
@@ -359,7 +359,7 @@ def _shade_chunk(
         highlight += np.bincount(key, weights=spec, minlength=size).reshape(-1, n)
     # Light-major visibility: each light's column becomes one contiguous row.
     vis_rows = None if visibility is None else np.ascontiguousarray(visibility.T)
-    skip_local = local_pairs is not None or local_sums is not None
+    skip_local = local_pairs is not None or lit_sums is not None
     for k, light in enumerate([] if skip_local else lights.local):
         j = n_distant + k
         # Only points that see the light (visibility > 0), within its range (the window
@@ -407,7 +407,7 @@ def shade_local(
     lights: Lights,
     visibility: np.ndarray | None,
     local_pairs: LightPairs | tuple | None = None,
-    local_sums: tuple[np.ndarray, np.ndarray] | None = None,
+    lit_sums: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> np.ndarray:
     """Direct + ambient + emitted radiance leaving surface points towards the viewer.
 
@@ -424,12 +424,13 @@ def shade_local(
                  in front of the normal (the tracer has them from its shadow rays).
                  They replace the LocalLight columns of ``visibility``, and the same
                  model is evaluated on them without recomputing directions.
-    local_sums : optional (diffuse (n, 3), highlight (n, 3)) float32: the LocalLight
-                 terms of the model already summed elsewhere (``gbuffer.Rasterizer.
-                 light_terms``, on the GPU), per light ``radiance * n·l * window / d²``
-                 and that times the highlight. Added as ``albedo * diffuse +
-                 highlight``; LocalLights are then evaluated only at ``local_pairs``
-                 and ``visibility`` needs only its DistantLight columns.
+    lit_sums   : optional (diffuse (n, 3), highlight (n, 3)) float32: the terms of
+                 (point, light) pairs already shaded elsewhere (``gbuffer.Rasterizer.
+                 light_terms``, on the GPU), per pair ``radiance * n·l`` (LocalLights
+                 also ``* window / d²``) and that times the highlight. Added as
+                 ``albedo * diffuse + highlight``; LocalLights are then evaluated only
+                 at ``local_pairs``, and ``visibility`` needs only its DistantLight
+                 columns, 0 for pairs already in the sums.
     Returns (n, 3) float32 linear RGB.
 
     Points are independent: large batches are split into SHADE_THREADS contiguous
@@ -452,7 +453,7 @@ def shade_local(
             lights,
             visibility,
             local_pairs,
-            local_sums,
+            lit_sums,
         )
     normals = np.asarray(normals).reshape(n, 3)
     albedo = np.asarray(albedo).reshape(n, 3)
@@ -477,7 +478,7 @@ def shade_local(
             lights,
             None if visibility is None else visibility[part],
             chunk_pairs,
-            None if local_sums is None else (local_sums[0][part], local_sums[1][part]),
+            None if lit_sums is None else (lit_sums[0][part], lit_sums[1][part]),
         )
 
     bounds = np.linspace(0, n, SHADE_THREADS + 1).astype(int)

@@ -248,7 +248,7 @@ def test_threaded_shade_local_matches_one_chunk(monkeypatch):
         monkeypatch.setattr(shading, "SHADE_THREADS", threads)
         runs.append(
             shading.shade_local(
-                pos, nrm, albedo, view, emissive, lights, vis[:, :1], pairs, local_sums=sums
+                pos, nrm, albedo, view, emissive, lights, vis[:, :1], pairs, lit_sums=sums
             )
         )
     np.testing.assert_allclose(runs[0], runs[1], rtol=1e-6, atol=1e-7)

@@ -2,7 +2,8 @@
 // Compiled per pass shape (gbuffer.Rasterizer._lookup_program_for) with these defines
 // in front of this file, because llvmpipe runs every branch of the code under masks:
 // code for absent lights, maps or outputs would cost as much as used code.
-//   N_LIGHTS     lights in this pass, 1..16
+//   N_LIGHTS     LocalLights in this pass, 0..16
+//   N_DISTANT    DistantLights in this pass (with SHADE, first pass only), 0..2
 //   HAS_DYNAMIC  1 when the scene has animated casters (a second cube per light)
 //   SHADE        1 to also shade the lit pairs (diffuse / highlight outputs)
 //   SQUARINGS    log2(shading.SHININESS) when that is an integer, else -1 (pow)
@@ -19,11 +20,15 @@
 //   cubes   : RG32F 2D array, (min, max) caster forward distance over the texel
 //             neighbourhood; layer = cube's first layer + face
 //   to_eye  : RGBA32F, (x, y, z) unit direction from the point to the viewer, same layout
+//   dmap_s<k>, dmap_d<k> : RG32F, (min, max) caster depth over the texel neighbourhood
+//             of DistantLight k's static / animated orthographic map (as
+//             gbuffer._ShadowMap; the test of gbuffer._filtered_visibility)
 // Output code per light: 1 lit, 0 shadowed / out of range / facing away, 2 uncertain.
 // Also the local shading of the lit pairs (shading._shade_chunk's model, keep in step):
-//   diffuse   : rgb = sum over lit lights of radiance * n.l * window / d^2,
-//               a = bit j set where light j is uncertain (exact in float up to 2^24)
-//   highlight : rgb = the same sum times the Blinn-Phong highlight
+//   diffuse   : rgb = sum over lit lights of radiance * n.l * window / d^2 (DistantLights:
+//               radiance * n.l), a = bit j set where LocalLight j is uncertain, bit
+//               16 + k where DistantLight k is (exact in float up to 2^24)
+//   highlight : rgb = the same sums times the Blinn-Phong highlight
 
 uniform sampler2D points;
 uniform sampler2D normals;
@@ -45,6 +50,26 @@ uniform vec3 light_radiance[16];     // linear RGB
 uniform float min_light_distance;    // shading.MIN_LIGHT_DISTANCE
 uniform float shininess;             // shading.SHININESS
 uniform float specular_strength;     // shading.SPECULAR_STRENGTH
+
+#if N_DISTANT > 0
+uniform vec3 distant_dir[N_DISTANT];       // unit, towards the light
+uniform vec3 distant_radiance[N_DISTANT];  // linear RGB
+// Per map m = 2 k (static) and 2 k + 1 (animated casters) of DistantLight k:
+uniform vec3 map_x[2 * N_DISTANT];  // rows of the light frame (rel metres -> light)
+uniform vec3 map_y[2 * N_DISTANT];
+uniform vec3 map_z[2 * N_DISTANT];
+uniform vec2 map_lo[2 * N_DISTANT];     // lower corner of the map, metres
+uniform vec2 map_texel[2 * N_DISTANT];  // texel size, metres
+uniform int map_size[2 * N_DISTANT];    // texels per side, 0 = no map (no casters)
+uniform float slope_bias_texels;        // SHADOW_SLOPE_BIAS_TEXELS
+uniform float min_cos;                  // SHADOW_MIN_COS
+uniform sampler2D dmap_s0;
+uniform sampler2D dmap_d0;
+#endif
+#if N_DISTANT > 1
+uniform sampler2D dmap_s1;
+uniform sampler2D dmap_d1;
+#endif
 
 layout(location = 0) out uvec4 codes;
 layout(location = 1) out vec4 diffuse;
@@ -113,6 +138,65 @@ uint code(float r)
     return r > 0.5 ? 1u : (r < -0.5 ? 2u : 0u);
 }
 
+// Blinn-Phong highlight for unit normal n, direction to the eye e and to the light l.
+float highlight_of(vec3 n, vec3 e, vec3 l)
+{
+    vec3 h = l + e;
+    float x = max(dot(n, h) / max(length(h), 1e-12), 0.0);
+#if SQUARINGS >= 0
+    for (int i = 0; i < SQUARINGS; ++i) {  // x^(2^k) as k squarings, as shading does
+        x *= x;
+    }
+#else
+    x = pow(x, shininess);
+#endif
+    return specular_strength * x;
+}
+
+#if N_DISTANT > 0
+// One orthographic map m: 1 lit, 0 shadowed, -1 uncertain (gbuffer._filtered_visibility:
+// lit when test <= the neighbourhood's min, shadowed when test > its max).
+float map_test(sampler2D tex, int m, vec3 p, vec3 n)
+{
+    int s = map_size[m];
+    if (s <= 0) {
+        return 1.0;
+    }
+    vec3 lp = vec3(dot(map_x[m], p), dot(map_y[m], p), dot(map_z[m], p));
+    vec2 f = (lp.xy - map_lo[m]) / map_texel[m] - 0.5;
+    if (!(f.x > -1.0 && f.x < float(s) && f.y > -1.0 && f.y < float(s))) {
+        return 1.0;  // outside the footprint: none of the map's casters is above
+    }
+    float c = clamp(abs(dot(n, map_z[m])), min_cos, 1.0);
+    float tan_angle = sqrt(1.0 - c * c) / c;
+    float texel = max(map_texel[m].x, map_texel[m].y);
+    float test = -lp.z - texel * (bias_texels + slope_bias_texels * tan_angle);
+    ivec2 t = clamp(ivec2(roundEven(f)), ivec2(0), ivec2(s - 1));
+    vec2 mm = texelFetch(tex, t, 0).rg;
+    if (test <= mm.x) {
+        return 1.0;
+    }
+    return test > mm.y ? 0.0 : -1.0;
+}
+
+// DistantLight k through both its maps: lit pairs are shaded, uncertain ones flagged.
+void distant(int k, float vs, float vd, vec3 n, vec3 e,
+             inout vec3 d_sum, inout vec3 h_sum, inout float unsure)
+{
+    if (vs == 0.0 || vd == 0.0) {
+        return;
+    }
+    if (vs < 0.0 || vd < 0.0) {
+        unsure += float(1 << (16 + k));
+        return;
+    }
+    vec3 l = distant_dir[k];
+    float lit = max(dot(n, l), 0.0);
+    d_sum += distant_radiance[k] * lit;
+    h_sum += distant_radiance[k] * (lit * highlight_of(n, e, l));
+}
+#endif
+
 // Adds light j's contribution at a point it lights (the shadow test said lit).
 void shade(int j, vec3 p, vec3 n, vec3 e, inout vec3 d_sum, inout vec3 h_sum)
 {
@@ -123,19 +207,8 @@ void shade(int j, vec3 p, vec3 n, vec3 e, inout vec3 d_sum, inout vec3 h_sum)
     float q = dist2 / r2;
     float window = clamp(1.0 - q * q, 0.0, 1.0);
     float lit = max(dot(n, l), 0.0) * window * window / dist2;
-    vec3 h = l + e;
-    float n_dot_h = dot(n, h) / max(length(h), 1e-12);
-    float x = max(n_dot_h, 0.0);
-#if SQUARINGS >= 0
-    for (int i = 0; i < SQUARINGS; ++i) {  // x^(2^k) as k squarings, as shading does
-        x *= x;
-    }
-#else
-    x = pow(x, shininess);
-#endif
-    float spec = specular_strength * x;
     d_sum += light_radiance[j] * lit;
-    h_sum += light_radiance[j] * (lit * spec);
+    h_sum += light_radiance[j] * (lit * highlight_of(n, e, l));
 }
 
 void main()
@@ -157,6 +230,18 @@ void main()
 #endif
         // Constant trip count: the compiler unrolls it, so every array index is a
         // constant (dynamic indexing of local arrays is slow in llvmpipe).
+#if N_DISTANT > 0
+        if (dot(n, distant_dir[0]) > 0.0) {  // facing away: no light, nothing to decide
+            distant(0, map_test(dmap_s0, 0, p, n), map_test(dmap_d0, 1, p, n), n, e,
+                    d_sum, h_sum, unsure);
+        }
+#endif
+#if N_DISTANT > 1
+        if (dot(n, distant_dir[1]) > 0.0) {
+            distant(1, map_test(dmap_s1, 2, p, n), map_test(dmap_d1, 3, p, n), n, e,
+                    d_sum, h_sum, unsure);
+        }
+#endif
         for (int j = 0; j < N_LIGHTS; ++j) {
             result[j] = lookup(j, p, n);
 #if SHADE
