@@ -493,7 +493,7 @@ class Rasterizer:
         self._mesh_node = None
         self._uploaded: np.ndarray | None = None  # (V, 3) float32 rel, as on the GPU
         self._dirs_key: tuple | None = None
-        self._dirs_cam: np.ndarray | None = None
+        self._dirs_cam: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self._static_maps: list[_ShadowMap | None] | None = None
         self._dynamic_maps: list[_ShadowMap | None] | None = None
         self._batches: dict[str, tuple[int, int, int]] = {}  # name → (vao, ebo, count)
@@ -800,19 +800,26 @@ class Rasterizer:
         near = max(near, far * MIN_NEAR_OVER_FAR)
         return near, far
 
-    def _camera_dirs(self, camera: CameraFrame) -> np.ndarray:
-        """(H*W, 3) float64 unit camera-space directions through pixel centres, in the
-        order and with the formula of ``CameraFrame.pixel_rays`` (cached per fov)."""
+    def _world_dirs(self, camera: CameraFrame, rot: np.ndarray) -> np.ndarray:
+        """(H*W, 3) float64 unit world directions through pixel centres, in the order
+        and with the formula of ``CameraFrame.pixel_rays``, for the camera-to-world
+        rotation ``rot`` (3, 3). Pixel (row, col) is ``(ys[row] rot_y + xs[col] rot_x -
+        rot_z) / |(xs[col], ys[row], -1)|``: one broadcast sum of a per-row and a
+        per-column term, the lengths cached per field of view."""
         tx, ty = camera.tan_half_fov(self.width, self.height)
         key = (tx, ty)
         if key != self._dirs_key:
             xs = ((np.arange(self.width) + 0.5) / self.width * 2.0 - 1.0) * tx
             ys = (1.0 - (np.arange(self.height) + 0.5) / self.height * 2.0) * ty
-            gx, gy = np.meshgrid(xs, ys)
-            d = np.stack([gx, gy, -np.ones_like(gx)], axis=-1).reshape(-1, 3)
-            self._dirs_cam = d / np.linalg.norm(d, axis=1, keepdims=True)
+            inv_len = 1.0 / np.sqrt(xs[None, :] ** 2 + ys[:, None] ** 2 + 1.0)
+            self._dirs_cam = (xs, ys, inv_len[:, :, None])
             self._dirs_key = key
-        return self._dirs_cam
+        xs, ys, inv_len = self._dirs_cam
+        per_row = ys[:, None] * rot[:, 1] - rot[:, 2]  # (H, 3)
+        per_col = xs[:, None] * rot[:, 0]  # (W, 3)
+        d = per_row[:, None, :] + per_col[None, :, :]
+        d *= inv_len
+        return d.reshape(-1, 3)
 
     # ------------------------------------------------------------------ render
 
@@ -848,7 +855,7 @@ class Rasterizer:
 
         # Directions: rotate the cached unit camera-space rays (as pixel_rays does; a
         # camera transform with scale or shear needs the normalisation again).
-        d = _transform(self._camera_dirs(camera), rot)
+        d = self._world_dirs(camera, rot)
         if not np.allclose(rot.T @ rot, np.eye(3), rtol=0.0, atol=1e-12):
             d /= np.linalg.norm(d, axis=1, keepdims=True)
 
