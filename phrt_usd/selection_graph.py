@@ -17,9 +17,13 @@ function of its nodes (the order in which nodes are given does not matter):
   relevant.
 
 Selection (``select``) has two steps. **Keep**: the nodes selected in the previous frame
-(``kept``) are taken first, cheapest first (the cost list walked from its tail), as many as
-fit: when they no longer all fit, the fewest are dropped, the most expensive ones (each
-drop is a visible switch from ray tracing to raster). **Admit**: among the other nodes,
+(``kept``) keep their claim while they are at least as relevant as the strongest
+*challenger* (the most relevant other node that could be taken); their R includes the
+paper's ``S·I`` bonus, so a newcomer displaces one only by beating its V by more than I.
+The claimed nodes are taken first, cheapest first (the cost list walked from its tail), as
+many as fit: when they no longer all fit, the fewest are dropped, the most expensive ones
+(each drop is a visible switch from ray tracing to raster). **Admit**: among the other
+nodes (kept ones that lost their claim included),
 greedy by relevance. It walks the cost list from its head to the first node that fits the
 remaining budget (the *entry*); every node from the entry on fits. The most relevant node
 that fits is then the entry itself or one of its relevance edges, because every fitting
@@ -55,7 +59,7 @@ class Node:
         (the admission margin for nodes not selected in the previous frame; 0 for the
         ones that were, so a kept selection is not dropped for small cost noise).
     kept: selected in the previous frame: taken in the keep step (cheapest first),
-        before any other node, whatever its R.
+        before any other node, unless a node that could be taken is more relevant.
     forecast: the node's cost forecast some frames ahead (unit of ``cost``, finite,
         >= 0). Every node taken uses up its forecast of the *horizon budget* of ``select``.
     admission: the node is taken only if its ``forecast`` also fits what is left of the
@@ -138,11 +142,26 @@ class SelectionGraph:
         horizon_left = float(horizon_budget)
         chosen: list[int] = []
 
-        # Keep: previously selected nodes, cheapest first, until one no longer fits (no
-        # costlier one would either).
+        # The strongest challenger: the most relevant other node that could be taken.
+        # A kept node less relevant than it (its R includes the S·I bonus) has lost its
+        # claim to be kept, as in the paper, and competes by relevance below.
+        challenger = max(
+            (
+                n.R
+                for n in self.nodes.values()
+                if not n.kept
+                and n.traceable
+                and n.cost + n.reserve <= remaining
+                and (not n.admission or n.forecast <= horizon_left)
+            ),
+            default=-math.inf,
+        )
+        claimed = {e for e, n in self.nodes.items() if n.kept and n.R >= challenger}
+        # Keep: the claimed nodes, cheapest first, until one no longer fits (no costlier
+        # one would either).
         for e in reversed(self.by_cost):
             n = self.nodes[e]
-            if not (n.kept and n.traceable):
+            if e not in claimed or not n.traceable:
                 continue
             if n.cost > remaining:
                 break
@@ -153,7 +172,7 @@ class SelectionGraph:
 
         def available(e: int) -> bool:
             n = self.nodes[e]
-            if e in taken or n.kept or not n.traceable or n.cost + n.reserve > remaining:
+            if e in taken or e in claimed or not n.traceable or n.cost + n.reserve > remaining:
                 return False
             return not n.admission or n.forecast <= horizon_left
 

@@ -374,11 +374,13 @@ def selections_over_sequence(policy, frames_=60, budget=1500):
 def test_hysteresis_fewer_transitions_than_heu2():
     heu1 = selections_over_sequence(policy_of("heu1", weight=0.001))
     heu2 = selections_over_sequence(policy_of("heu2"))
-    # The keep step holds a selection whatever I is (I only matters among newcomers).
+    # I = 0: no hysteresis, the more relevant of the pair displaces the kept one (the
+    # paper's rule); with I above the V difference the selection holds.
     no_weight = selections_over_sequence(policy_of("heu1", weight=0.0))
     assert all(len(s) == 1 for s in heu1 + heu2 + no_weight)  # the budget fits exactly one
     assert transitions(heu2, [0, 1]) >= 10  # the pair does cross many times
-    assert transitions(heu1, [0, 1]) == 0 and transitions(no_weight, [0, 1]) == 0
+    assert transitions(heu1, [0, 1]) == 0
+    assert transitions(no_weight, [0, 1]) >= 10
 
 
 def growing_scene_pixels(t: int) -> list[int]:

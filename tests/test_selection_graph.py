@@ -28,23 +28,36 @@ def node_lists(draw, max_size=12):
 
 
 def reference_greedy(nodes: list[Node], budget: float, horizon: float = math.inf) -> list[int]:
-    """The intended selection, by brute force: the kept traceable nodes cheapest first
-    (cost asc, id desc: the cost list walked from its tail) while they fit; then
-    repeatedly the most relevant (R desc, id asc) other traceable node that fits what is
-    left of the budget (and, for an admission node, of the horizon budget)."""
+    """The intended selection, by brute force: the kept nodes at least as relevant as
+    every other node that could be taken (the *challenger*) are kept, traceable ones
+    cheapest first (cost asc, id desc: the cost list walked from its tail) while they
+    fit; then repeatedly the most relevant (R desc, id asc) remaining traceable node that
+    fits what is left of the budget (and, for an admission node, of the horizon budget)."""
     if not budget > 0:
         return []
+    challenger = max(
+        (
+            n.R
+            for n in nodes
+            if not n.kept
+            and n.traceable
+            and n.cost + n.reserve <= budget
+            and (not n.admission or n.forecast <= horizon)
+        ),
+        default=-math.inf,
+    )
+    claimed = [n for n in nodes if n.kept and n.R >= challenger]
     chosen = []
     remaining, horizon_left = budget, horizon
-    for n in sorted(
-        (n for n in nodes if n.kept and n.traceable), key=lambda n: (n.cost, -n.element)
-    ):
+    for n in sorted((n for n in claimed if n.traceable), key=lambda n: (n.cost, -n.element)):
         if n.cost > remaining:
             break
         chosen.append(n.element)
         remaining -= n.cost
         horizon_left -= n.forecast
-    left = sorted((n for n in nodes if n.traceable and not n.kept), key=lambda n: (-n.R, n.element))
+    left = sorted(
+        (n for n in nodes if n.traceable and n not in claimed), key=lambda n: (-n.R, n.element)
+    )
     while True:
         fitting = [
             n
@@ -126,19 +139,20 @@ def test_selection_with_horizon_budget_matches_brute_force(nodes, budget, horizo
 
 def test_kept_nodes_drop_the_most_expensive_first():
     # Kept: 6 (most relevant), 3, 3; budget 8 fits the two cheap ones or the costly one
-    # with room to spare: the keep step drops one node (the costly one), not two.
+    # with room to spare: the keep step drops one node (the costly one), not two. The
+    # newcomer is less relevant than every kept node, so it cannot displace any.
     nodes = [
         Node(element=0, C=1.0, R=9.0, cost=6.0, kept=True),
         Node(element=1, C=1.0, R=1.0, cost=3.0, kept=True),
         Node(element=2, C=1.0, R=1.0, cost=3.0, kept=True),
-        Node(element=3, C=1.0, R=5.0, cost=2.0),  # newcomer: only after the kept ones
+        Node(element=3, C=1.0, R=0.5, cost=2.0),  # newcomer: only after the kept ones
     ]
     assert SelectionGraph(nodes).select(8.0) == [2, 1, 3]
     assert SelectionGraph(nodes).select(5.0) == [2, 3]
 
 
 def test_admission_needs_its_forecast_to_fit_the_horizon_budget():
-    kept = Node(element=0, C=1.0, R=1.0, cost=40.0, kept=True, forecast=70.0)
+    kept = Node(element=0, C=1.0, R=10.0, cost=40.0, kept=True, forecast=70.0)
     growing = Node(element=1, C=1.0, R=5.0, cost=20.0, forecast=50.0, admission=True)
     entering = Node(element=2, C=1.0, R=4.0, cost=20.0, forecast=50.0)
     g = SelectionGraph([kept, growing, entering])
@@ -199,3 +213,16 @@ def test_reserve_keeps_new_nodes_out_of_the_margin():
     assert graph.select(105.0) == [0, 1]
     # A kept node is never held back by another node's reserve.
     assert SelectionGraph([Node(element=2, C=1.0, R=1.0, cost=100.0)]).select(100.0) == [2]
+
+
+def test_a_more_relevant_newcomer_displaces_a_kept_node():
+    """The paper's hysteresis: a kept node (R with its S·I bonus) stays unless a node
+    that could be taken instead is more relevant; the budget fits one of the two."""
+    newcomer = Node(element=1, C=1.0, R=3.0, cost=5.0)
+    weak = Node(element=0, C=1.0, R=1.0, cost=5.0, kept=True)
+    strong = Node(element=0, C=1.0, R=4.0, cost=5.0, kept=True)
+    assert SelectionGraph([weak, newcomer]).select(5.0) == [1]
+    assert SelectionGraph([strong, newcomer]).select(5.0) == [0]
+    # A challenger that does not fit the budget cannot displace anything.
+    big = Node(element=1, C=1.0, R=3.0, cost=50.0)
+    assert SelectionGraph([weak, big]).select(5.0) == [0]
