@@ -1280,10 +1280,12 @@ class Rasterizer:
         refine: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray] | None = None,
     ) -> LightTerms:
         """The shadow-mapped lighting of points, for ``shading.shade_local``: as
-        ``shadow_visibility`` (same maps, same ``refine`` contract), but the LocalLight
-        pairs the cube maps decide are lit are also *shaded* on the GPU, in the lookup
-        pass (``shaders/cube_lookup.frag``): no (n, L) visibility matrix and no numpy
-        shading of them. Requires ``cube_lookup_on_gpu``.
+        ``shadow_visibility`` (same maps, same ``refine`` contract), but the (point,
+        light) pairs the maps decide are lit, for every LocalLight and up to
+        LOOKUP_MAX_DISTANT DistantLights, are also *shaded* on the GPU in the lookup pass
+        (``shaders/cube_lookup.frag``): no (n, L) visibility matrix and no numpy shading
+        of them; only the undecided pairs are resolved (``refine``, else PCF) and
+        returned. Requires ``cube_lookup_on_gpu``.
 
         positions : (n, 3) float64 world metres; normals : (n, 3) unit, facing the
         viewer; to_eye : (n, 3) unit directions from the points to the viewer.
