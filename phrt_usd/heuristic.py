@@ -541,8 +541,10 @@ class Heu1Policy(BudgetedPolicy):
     """The paper's heuristic on a Selection Graph rebuilt from the untraced candidates
     every round, made transition-aware (docs/heuristic.md):
 
-    * reflectors selected in the previous frame are kept, cheapest first, as many as fit
-      (when they no longer all fit, the fewest are dropped);
+    * reflectors selected in the previous frame keep their claim while no candidate that
+      could be taken is more relevant (R with the paper's S·I bonus), and the claimed
+      ones are kept cheapest first, as many as fit (when they no longer all fit, the
+      fewest are dropped);
     * the others are taken by relevance R among those whose predicted cost fits, with
       the admission margin; a reflector already in view in the previous frame (so that
       taking it is a transition) must in addition not be shrinking, and its cost forecast
@@ -581,8 +583,9 @@ class Heu1Policy(BudgetedPolicy):
 
     def growth(self, element: int) -> float:
         """Per-frame growth of ``element``'s pixel count: the geometric mean over its
-        recent frames in view when they show a trend (monotone: every step up, or every
-        step down), else 1 (also with fewer than two frames). Finite, > 0.
+        recent frames in view when they show a trend (net change in log pixels at least
+        TREND_MIN of the up-and-down travel), else 1 (also with fewer than two frames).
+        Finite, > 0.
 
         Only a steady trend counts: a camera moving smoothly makes a reflector's pixel
         count grow or shrink steadily, while counts that jitter (partial occlusion,
