@@ -493,7 +493,7 @@ class Rasterizer:
         self._mesh_node = None
         self._uploaded: np.ndarray | None = None  # (V, 3) float32 rel, as on the GPU
         self._dirs_key: tuple | None = None
-        self._dirs_cam: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._dirs_grid: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self._static_maps: list[_ShadowMap | None] | None = None
         self._dynamic_maps: list[_ShadowMap | None] | None = None
         self._batches: dict[str, tuple[int, int, int]] = {}  # name → (vao, ebo, count)
@@ -812,9 +812,9 @@ class Rasterizer:
             xs = ((np.arange(self.width) + 0.5) / self.width * 2.0 - 1.0) * tx
             ys = (1.0 - (np.arange(self.height) + 0.5) / self.height * 2.0) * ty
             inv_len = 1.0 / np.sqrt(xs[None, :] ** 2 + ys[:, None] ** 2 + 1.0)
-            self._dirs_cam = (xs, ys, inv_len[:, :, None])
+            self._dirs_grid = (xs, ys, inv_len[:, :, None])
             self._dirs_key = key
-        xs, ys, inv_len = self._dirs_cam
+        xs, ys, inv_len = self._dirs_grid
         per_row = ys[:, None] * rot[:, 1] - rot[:, 2]  # (H, 3)
         per_col = xs[:, None] * rot[:, 0]  # (W, 3)
         d = per_row[:, None, :] + per_col[None, :, :]
@@ -1448,9 +1448,9 @@ class Rasterizer:
         if n_distant:  # else the LocalLight lookup's own arrays are used (see below)
             out = np.ones((len(positions), n_lights), dtype=np.float32)
             uncertain = np.zeros(out.shape, dtype=bool)
-            distant_vis = np.ones((len(positions), n_distant), dtype=np.float32)
-            distant_unsure = np.zeros(distant_vis.shape, dtype=bool)
-            jobs = self._distant_lookups(rel, normals, distant_vis, distant_unsure)
+            # The DistantLight columns are filled in place (views, disjoint from the
+            # LocalLight columns written below on this thread).
+            jobs = self._distant_lookups(rel, normals, out[:, :n_distant], uncertain[:, :n_distant])
         else:
             jobs = []
         ranges = light_ranges(lights)
@@ -1465,9 +1465,6 @@ class Rasterizer:
                 out, uncertain = local_vis, local_unsure
         for job in jobs:
             job.result()
-        if n_distant:
-            out[:, :n_distant] = distant_vis
-            uncertain[:, :n_distant] = distant_unsure
         return self._refined(positions, normals, out, uncertain, refine)
 
     # ------------------------------------------------------------------ GPU cube lookups

@@ -442,8 +442,11 @@ def shade_local(
     pairs = None if local_pairs is None else LightPairs(*local_pairs)
     # Pairs sorted by point (as the tracer and the rasterizer make them) split with the
     # points; unsorted ones are shaded in one chunk.
-    split_pairs = pairs is None or bool(np.all(np.diff(pairs.point) >= 0))
-    if SHADE_THREADS < 2 or n < SHADE_MIN_THREADED_POINTS or not split_pairs:
+    if (
+        SHADE_THREADS < 2
+        or n < SHADE_MIN_THREADED_POINTS
+        or (pairs is not None and not bool(np.all(np.diff(pairs.point) >= 0)))
+    ):
         return _shade_chunk(
             positions,
             normals,
