@@ -142,6 +142,7 @@ def render_chunk(chunk: Chunk, job: RenderJob) -> RenderChunkResult:
     scene = open_stage(chunk.stage, camera=job.camera)
     times = parse_frames(job.frames, scene.frame_range)
     renderer = FrameRenderer(scene, job.options)
+    renderer.plan(times[chunk.first_rendered : chunk.stop])
     frames = []
     out = Path(job.out_dir) if job.write_images else None
     try:

@@ -98,6 +98,10 @@ class FrameView:
     pixel_counts: (E,) int64 pixels per element id in the G-buffer (A * W * H).
     screen_boxes: (E, 4) float64 pixel bounds (col_min, row_min, col_max, row_max) of
         each reflector's visible pixels, NaN where it has none; None if not computed.
+    upcoming_cameras: the cameras of the next frames of the render, in order (at most
+        ``heuristic.FORECAST_HORIZON``; empty when the renderer does not know them, e.g.
+        for the last frame or a single-frame render). A stage's camera path is known in
+        advance, so HEU1 can forecast a reflector's cost from it.
     """
 
     time: float
@@ -106,6 +110,7 @@ class FrameView:
     height: int
     pixel_counts: np.ndarray
     screen_boxes: np.ndarray | None = None
+    upcoming_cameras: tuple[CameraFrame, ...] = ()
 
 
 @dataclass

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import math
 from abc import ABC, abstractmethod
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -85,6 +86,16 @@ ADMISSION_MARGIN = 0.1
 #: ahead from the growth of its pixel count over the last GROWTH_WINDOW frames it was in
 #: view: the geometric mean growth per frame, clamped to [1, GROWTH_MAX] (a shrinking
 #: reflector is forecast at its current cost; one glitchy frame cannot forecast infinity).
+#: When the renderer knows the frames to come (``FrameView.upcoming_cameras``: a stage's
+#: camera path is known before the render starts), the forecast is instead the largest
+#: cost over the next LOOKAHEAD_FRAMES frames, scaled from the current cost by the screen
+#: area of the reflector's bounding box (``box_screen_area``). Measured on both stages
+#: (docs/heuristic.md): 48 frames gave fewer transitions than 24 at the same mean selected
+#: count; longer ones shut out reflectors that grow late.
+LOOKAHEAD_FRAMES = 48
+#: Every LOOKAHEAD_STEP-th upcoming camera is looked at (and the last): a box's screen
+#: area changes smoothly along a camera path, and each camera costs numpy work per frame.
+LOOKAHEAD_STEP = 4
 FORECAST_HORIZON = 24
 GROWTH_WINDOW = 4
 GROWTH_MAX = 2.0
@@ -146,6 +157,50 @@ def screen_centrality(boxes: np.ndarray, width: int, height: int) -> np.ndarray:
     ndc_x = cx / max(width, 1) * 2.0 - 1.0
     ndc_y = 1.0 - cy / max(height, 1) * 2.0
     return np.clip(1.0 - np.maximum(np.abs(ndc_x), np.abs(ndc_y)), 0.0, 1.0)
+
+
+def box_screen_area(
+    bounds_min: np.ndarray,
+    bounds_max: np.ndarray,
+    cameras: Sequence[CameraFrame],
+    width: int,
+    height: int,
+) -> np.ndarray:
+    """Pixels covered by the screen rectangle of axis-aligned boxes, clipped to the image,
+    for each of several cameras.
+
+    bounds_min, bounds_max: (n, 3) float64 world metres → (len(cameras), n) float64 in
+    [0, W * H]. A box wholly behind a camera's eye covers 0; one that reaches from in front
+    of the eye to behind it projects to an unbounded rectangle and counts as the whole
+    image (the camera is at or inside it). Occlusion is not considered: this bounds what
+    the box's contents can cover, and is used for ratios between cameras.
+    """
+    lo = np.asarray(bounds_min, dtype=np.float64).reshape(-1, 3)
+    hi = np.asarray(bounds_max, dtype=np.float64).reshape(-1, 3)
+    n, m = len(lo), len(cameras)
+    if n == 0 or m == 0:
+        return np.zeros((m, n))
+    # (n * 8, 3) corners: bit k of the corner index picks lo or hi on axis k.
+    pick = ((np.arange(8)[:, None] >> np.arange(3)) & 1).astype(bool)
+    corners = np.where(pick[None], hi[:, None, :], lo[:, None, :]).reshape(-1, 3)
+    cam_from_world = np.linalg.inv(np.stack([c.world_from_camera for c in cameras]))
+    # (m, n * 8, 3) camera-space corners, as CameraFrame.project computes them.
+    pc = corners @ cam_from_world[:, :3, :3].transpose(0, 2, 1) + cam_from_world[:, None, :3, 3]
+    tan = np.array([c.tan_half_fov(width, height) for c in cameras])  # (m, 2)
+    depth = (-pc[..., 2]).reshape(m, n, 8)
+    in_front = np.any(depth > 0.0, axis=2)
+    straddles = in_front & np.any(depth <= 0.0, axis=2)
+    # A corner on the eye plane divides by ~0; such a box straddles or touches the eye
+    # and is replaced below, so its (inf / NaN) rectangle is only clipped away here.
+    safe = np.where(np.abs(depth) < 1e-300, 1e-300, depth)
+    with np.errstate(over="ignore", invalid="ignore"):
+        ndc_x = pc[..., 0].reshape(m, n, 8) / (safe * tan[:, 0, None, None])
+        ndc_y = pc[..., 1].reshape(m, n, 8) / (safe * tan[:, 1, None, None])
+    x = np.clip(np.nan_to_num((ndc_x + 1.0) * 0.5 * width, nan=0.0), 0.0, float(width))
+    y = np.clip(np.nan_to_num((1.0 - ndc_y) * 0.5 * height, nan=0.0), 0.0, float(height))
+    area = (x.max(axis=2) - x.min(axis=2)) * (y.max(axis=2) - y.min(axis=2))
+    area = np.where(straddles, float(width) * float(height), area)
+    return np.where(in_front, area, 0.0)
 
 
 def camera_distance(centers: np.ndarray, eye: np.ndarray) -> np.ndarray:
@@ -561,11 +616,16 @@ class Heu1Policy(BudgetedPolicy):
         self.pixel_history: dict[int, list[int]] = {}
         #: Reflectors with pixels in the previous frame.
         self.previous_visible: set[int] = set()
+        #: This frame's lookahead growth per reflector in view (element id → largest
+        #: bounding-box screen area over the upcoming cameras / the current one, >= 1);
+        #: empty when the view has no upcoming cameras.
+        self.lookahead_growth: dict[int, float] = {}
 
     def __setstate__(self, state: dict) -> None:
         # A policy pickled in a checkpoint by an older version has no growth memory yet.
         state.setdefault("pixel_history", {})
         state.setdefault("previous_visible", set())
+        state.setdefault("lookahead_growth", {})
         self.__dict__.update(state)
 
     def begin_frame(self, view: FrameView, scene: Scene) -> None:
@@ -575,6 +635,25 @@ class Heu1Policy(BudgetedPolicy):
         for e in np.flatnonzero(frame.pixels > 0).tolist():
             history[e] = [*self.pixel_history.get(e, [])[-GROWTH_WINDOW:], int(frame.pixels[e])]
         self.pixel_history = history  # a reflector out of view starts afresh
+        self.lookahead_growth = self._lookahead_growth(view, scene, np.fromiter(history, int))
+
+    @staticmethod
+    def _lookahead_growth(view: FrameView, scene: Scene, ids: np.ndarray) -> dict[int, float]:
+        """Element id → peak screen area of its box over the next LOOKAHEAD_FRAMES upcoming
+        cameras (every LOOKAHEAD_STEP-th) / its area now (>= 1, finite), for the
+        reflectors ``ids`` in view; {} without upcoming cameras."""
+        if not view.upcoming_cameras or len(ids) == 0:
+            return {}
+        lo = np.array([scene.elements[i].bounds_min for i in ids], dtype=np.float64)
+        hi = np.array([scene.elements[i].bounds_max for i in ids], dtype=np.float64)
+        ahead = view.upcoming_cameras[:LOOKAHEAD_FRAMES]
+        cameras = [view.camera, *ahead[LOOKAHEAD_STEP - 1 :: LOOKAHEAD_STEP], ahead[-1]]
+        areas = box_screen_area(lo, hi, cameras, view.width, view.height)  # (1 + H, n)
+        # A reflector in view has pixels, so a box area under one pixel is a sliver at
+        # the image edge: growth is measured from one pixel, which keeps it finite.
+        growth = areas.max(axis=0) / np.maximum(areas[0], 1.0)
+        growth = np.clip(np.nan_to_num(growth, nan=1.0, posinf=FORECAST_MAX), 1.0, FORECAST_MAX)
+        return dict(zip(ids.tolist(), growth.tolist(), strict=True))
 
     def end_frame(self) -> dict[int, ReflectorMetrics]:
         frame = self._require_frame()
@@ -600,10 +679,14 @@ class Heu1Policy(BudgetedPolicy):
         return float((h[-1] / h[0]) ** (1.0 / (len(h) - 1)))
 
     def forecast_rays(self, element: int) -> float:
-        """Predicted rays FORECAST_HORIZON frames ahead: ``predicted_rays * g**H`` with
-        the growth g clamped to [1, GROWTH_MAX]; finite (<= FORECAST_MAX)."""
-        g = min(max(self.growth(element), 1.0), GROWTH_MAX)
-        return float(min(self.predicted_rays(element) * g**FORECAST_HORIZON, FORECAST_MAX))
+        """Predicted rays within the forecast's horizon: with upcoming cameras,
+        ``predicted_rays`` times the lookahead growth (LOOKAHEAD_FRAMES ahead); otherwise
+        ``predicted_rays * g**H`` with the pixel growth g clamped to [1, GROWTH_MAX] and
+        H = FORECAST_HORIZON. Finite (<= FORECAST_MAX)."""
+        growth = self.lookahead_growth.get(element)
+        if growth is None:
+            growth = min(max(self.growth(element), 1.0), GROWTH_MAX) ** FORECAST_HORIZON
+        return float(min(self.predicted_rays(element) * growth, FORECAST_MAX))
 
     def _node(self, e: int, reserve: float, budget: float) -> Node:
         frame = self._require_frame()

@@ -89,6 +89,7 @@ def run_render(
     run_info = job_run_info(job, scene, times)
 
     renderer = FrameRenderer(scene, job.options)
+    renderer.plan(times)
     done: list[FrameStats] = []
     if job.resume:
         done, policy = _load_checkpoint(out, run_info)

@@ -18,6 +18,7 @@ everything, all reflectors traced: the reference).
 from __future__ import annotations
 
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -37,7 +38,7 @@ from phrt_usd.frame import (
     ReflectorMetrics,
     SelectionPolicy,
 )
-from phrt_usd.heuristic import make_policy
+from phrt_usd.heuristic import LOOKAHEAD_FRAMES, make_policy
 from phrt_usd.scene import CameraFrame, Scene
 from phrt_usd.schema import DEFAULT_SELECTION_WEIGHT
 from phrt_usd.shading import shade_local
@@ -91,6 +92,7 @@ class PreparedFrame:
 
     time: float
     camera: CameraFrame
+    upcoming_cameras: tuple[CameraFrame, ...]  # see FrameView
     gbuffer: GBuffer
     local: np.ndarray
     reflectivity: np.ndarray
@@ -139,6 +141,11 @@ class FrameRenderer:
             from phrt_usd.tracer import Tracer
 
             self._tracer = Tracer(scene, threads=options.threads)
+        #: The frames this renderer will render, in order (``plan``), and the cameras of
+        #: those looked up so far, by time code.
+        self._planned: list[float] = []
+        self._planned_index: dict[float, int] = {}
+        self._cameras: dict[float, CameraFrame] = {}
         policy_name = "all" if options.mode == "rt" else options.heuristic
         self.policy = make_policy(
             policy_name,
@@ -158,6 +165,31 @@ class FrameRenderer:
     def close(self) -> None:
         if self._rasterizer is not None:
             self._rasterizer.close()
+
+    def plan(self, times: Sequence[float]) -> None:
+        """Tell the renderer the time codes it will render, in order. Each frame's
+        ``FrameView`` then carries the cameras of the next LOOKAHEAD_FRAMES planned
+        frames, which HEU1 uses to forecast a reflector's cost (a stage's camera path is
+        known before the render starts). Without a plan, views have no upcoming cameras."""
+        self._planned = [float(t) for t in times]
+        self._planned_index = {}
+        for k, t in enumerate(self._planned):
+            self._planned_index.setdefault(t, k)
+        self._cameras = {}
+
+    def _upcoming_cameras(self, time_code: float) -> tuple[CameraFrame, ...]:
+        """Cameras of the planned frames after ``time_code`` (at most LOOKAHEAD_FRAMES),
+        each looked up once per run."""
+        k = self._planned_index.get(float(time_code))
+        if k is None:
+            return ()
+        ahead = self._planned[k + 1 : k + 1 + LOOKAHEAD_FRAMES]
+        cameras = {
+            t: self._cameras[t] if t in self._cameras else self.stage_scene.camera(t)
+            for t in ahead
+        }
+        self._cameras = cameras  # earlier frames' cameras are not needed again
+        return tuple(cameras.values())
 
     def render(self, time_code: float) -> FrameOutput:
         """Render one frame with this renderer's options and selection policy."""
@@ -181,6 +213,7 @@ class FrameRenderer:
             if self._tracer is not None:
                 self._tracer.update_geometry(self.scene)
         camera = self.stage_scene.camera(time_code)
+        upcoming = self._upcoming_cameras(time_code)
         phase["set_time"] = _ms(t)
 
         scene = self.scene
@@ -205,6 +238,7 @@ class FrameRenderer:
         return PreparedFrame(
             float(time_code),
             camera,
+            upcoming,
             gb,
             local,
             reflectivity,
@@ -239,7 +273,13 @@ class FrameRenderer:
         selected: list[int] = []
         if self._tracer is not None and opts.mode != "raster":
             view = FrameView(
-                prep.time, prep.camera, opts.width, opts.height, pixel_counts, prep.screen_boxes
+                prep.time,
+                prep.camera,
+                opts.width,
+                opts.height,
+                pixel_counts,
+                prep.screen_boxes,
+                prep.upcoming_cameras,
             )
             t = time.perf_counter()
             policy.begin_frame(view, scene)

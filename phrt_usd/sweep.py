@@ -221,6 +221,7 @@ class StageSweep:
             selection_weight=spec.selection_weight,
         )  # fmt: skip
         self.hybrid = FrameRenderer(self.stage, base)
+        self.hybrid.plan(self.times)
         self.rt = FrameRenderer(self.stage, replace(base, mode="rt"))
         self.states = [_ConfigState(c, spec) for c in sweep_configs(spec)]
         self.reference = _ConfigState(SweepConfig("all"), spec)

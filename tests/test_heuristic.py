@@ -16,11 +16,13 @@ from phrt_usd.heuristic import (
     ADMISSION_MARGIN,
     D_MIN,
     FORECAST_HORIZON,
+    LOOKAHEAD_FRAMES,
     RAYS_SAFETY,
     TIME_SAFETY_MIN,
     Heu1Policy,
     Heu2Policy,
     TraceTimeModel,
+    box_screen_area,
     camera_distance,
     centrality,
     distance_factor,
@@ -446,6 +448,62 @@ def test_growing_reflector_in_view_is_not_admitted_when_its_forecast_does_not_fi
         ids = policy.next_round(Budget(rays=1000))
         policy.end_frame()
         assert (1 in ids) is admitted, (growth, ids, forecast)
+
+
+def test_box_screen_area_is_the_clipped_rectangle_of_the_projected_corners():
+    # A unit box 8 m ahead, centred: its rectangle spans the projected near corners.
+    lo, hi = np.array([[-0.5, -0.5, -8.5]]), np.array([[0.5, 0.5, -7.5]])
+    cam = camera()
+    corners = np.array([[x, y, z] for x in (-0.5, 0.5) for y in (-0.5, 0.5) for z in (-8.5, -7.5)])
+    p = cam.project(corners, W, H)
+    expected = np.ptp(p[:, 0]) * np.ptp(p[:, 1])
+    assert box_screen_area(lo, hi, [cam], W, H)[0, 0] == pytest.approx(expected)
+    # Moving the camera halfway towards it roughly doubles its size on screen (x4 area);
+    # behind the camera it covers nothing; a box around the eye covers the whole image.
+    areas = box_screen_area(
+        lo, hi, [cam, camera((0.0, 0.0, -4.0)), camera((0.0, 0.0, -20.0))], W, H
+    )
+    assert 3.0 < areas[1, 0] / areas[0, 0] < 5.0
+    assert areas[2, 0] == 0.0
+    around = box_screen_area(np.array([[-1.0, -1.0, -1.0]]), np.ones((1, 3)), [cam], W, H)
+    assert around[0, 0] == W * H
+
+
+coords = st.floats(-1e12, 1e12)
+
+
+@given(st.lists(st.tuples(coords, coords, coords), min_size=2, max_size=2), coords)
+@settings(max_examples=200, deadline=None)
+def test_box_screen_area_is_finite_and_within_the_image(corners, eye_z):
+    a, b = np.array(corners)
+    area = box_screen_area(
+        np.minimum(a, b)[None], np.maximum(a, b)[None], [camera((0, 0, eye_z))], W, H
+    )
+    assert np.all(np.isfinite(area)) and 0.0 <= area[0, 0] <= W * H
+
+
+def test_lookahead_keeps_out_a_reflector_the_camera_will_approach():
+    # Reflector 1 is in view but not selected (it does not fit next to 0); then 0 leaves
+    # the view and 1 fits, static in pixels so far, so the pixel trend forecasts no growth.
+    # The upcoming cameras move towards 1: its box will cover many times its area now, so
+    # with the lookahead HEU1 does not switch it to ray tracing; without, it does.
+    sc = scene([element((0.0, 0.0, -8.0)), element((1.0, 0.0, -8.0))])
+    approach = tuple(camera((0.8, 0.0, -5.0 * k / LOOKAHEAD_FRAMES)) for k in range(1, 40))
+    for upcoming, admitted in (((), True), (approach, False)):
+        policy = policy_of("heu1")
+        for t in range(6):
+            m, _ = run_frame(policy, sc, view([800, 300], time=t), budget_rays=1000)
+            assert m[0].selected and not m[1].selected
+        fv = view([0, 300], time=6)
+        fv.upcoming_cameras = upcoming
+        policy.begin_frame(fv, sc)
+        growth = policy.lookahead_growth.get(1)
+        assert (growth is None) == (not upcoming)
+        if upcoming:
+            assert growth > 3.0 and policy.forecast_rays(1) > 1000
+        ids = policy.next_round(Budget(rays=1000))
+        policy.end_frame()
+        assert (1 in ids) is admitted, (upcoming != (), ids)
 
 
 def test_kept_selection_drops_the_fewest_when_it_no_longer_fits():

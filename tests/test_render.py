@@ -123,3 +123,21 @@ def test_screen_boxes_bound_each_reflectors_pixels(tmp_path):
         else:
             assert np.isnan(box).all()
     assert seen >= 2
+
+
+def test_planned_frames_give_each_view_the_upcoming_cameras():
+    stage = open_stage(STAGES / "sewer.usda")  # its camera path moves every frame
+    renderer = FrameRenderer(
+        stage, RenderOptions(mode="hybrid", heuristic="heu1", width=64, height=48, budget_ms=None)
+    )
+    try:
+        assert renderer.prepare(10.0).upcoming_cameras == ()  # no plan: no lookahead
+        plan = [10.0, 12.0, 14.0, 16.0]
+        renderer.plan(plan)
+        ahead = renderer.prepare(12.0).upcoming_cameras
+        last = renderer.prepare(16.0).upcoming_cameras
+    finally:
+        renderer.close()
+    assert len(ahead) == 2 and last == ()
+    for cam, t in zip(ahead, plan[2:], strict=True):
+        np.testing.assert_array_equal(cam.world_from_camera, stage.camera(t).world_from_camera)

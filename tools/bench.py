@@ -38,6 +38,7 @@ def bench_stage(stage_path: str, width: int, height: int, frames: str) -> list[d
     for label, base in CONFIGS:
         opts = RenderOptions(**{**base.__dict__, "width": width, "height": height})
         renderer = FrameRenderer(stage, opts)
+        renderer.plan(times)
         tracer = renderer.tracer
         renderer.render(times[0])  # warm-up: first upload, shadow map, caches
         frame_ms, phases = [], {p: [] for p in PHASES}

@@ -131,6 +131,7 @@ def bench_ours(stage: StageScene, times: list[float], w: int, h: int, budget_ms:
     for label, base in configs.items():
         opts = RenderOptions(**{**base.__dict__, "width": w, "height": h})
         renderer = FrameRenderer(stage, opts)
+        renderer.plan(times)
         renderer.render(times[0])  # warm-up: first upload, shadow maps, caches
         log = RayLog(renderer.tracer) if renderer.tracer is not None else None
         frame_ms, phases = [], {p: [] for p in PHASES}

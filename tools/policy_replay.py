@@ -25,13 +25,14 @@ from __future__ import annotations
 import argparse
 import pickle
 import sys
+from dataclasses import replace
 from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
 
 from phrt_usd.frame import Budget
-from phrt_usd.heuristic import AllPolicy, make_policy
+from phrt_usd.heuristic import LOOKAHEAD_FRAMES, AllPolicy, make_policy
 from phrt_usd.render_job import parse_frames
 from phrt_usd.renderer import FrameRenderer, RenderOptions
 from phrt_usd.schema import read_render_params
@@ -44,14 +45,20 @@ class _CapturePolicy(AllPolicy):
     def __init__(self, **kw) -> None:
         super().__init__(**kw)
         #: One SimpleNamespace per frame: ``view`` (FrameView), ``elements`` (per element:
-        #: is_reflector, priority, center) and ``records`` (element id → TraceRecord of
+        #: is_reflector, priority, center, bounds) and ``records`` (element id → TraceRecord of
         #: every visible reflector). Plain types, so the pickle loads anywhere.
         self.frames: list[SimpleNamespace] = []
 
     def begin_frame(self, view, scene) -> None:
         super().begin_frame(view, scene)
         elements = [
-            SimpleNamespace(is_reflector=e.is_reflector, priority=e.priority, center=e.center)
+            SimpleNamespace(
+                is_reflector=e.is_reflector,
+                priority=e.priority,
+                center=e.center,
+                bounds_min=e.bounds_min,
+                bounds_max=e.bounds_max,
+            )  # fmt: skip
             for e in scene.elements
         ]
         self.frames.append(SimpleNamespace(view=view, elements=elements, records={}))
@@ -94,20 +101,30 @@ def capture(stage_path: Path, out: Path, width: int, height: int) -> None:
         pickle.dump(data, fh)
 
 
-def replay(data: dict, heuristic: str, budget_rays: int, selection_weight: float | None = None):
+def replay(
+    data: dict,
+    heuristic: str,
+    budget_rays: int,
+    selection_weight: float | None = None,
+    lookahead: bool = True,
+):
     """Run ``heuristic`` over the recorded frames with a rays budget, the way
-    ``FrameRenderer.finish`` does. Returns (selected, visible): (F, R) bool arrays over
-    the recorded reflectors, in frame order."""
+    ``FrameRenderer.finish`` does; with ``lookahead`` each view gets the next recorded
+    frames' cameras as ``upcoming_cameras``, as a render of the whole path does. Returns
+    (selected, visible): (F, R) bool arrays over the recorded reflectors, in frame order."""
     weight = data["selection_weight"] if selection_weight is None else selection_weight
     policy = make_policy(heuristic, selection_weight=weight, bounce_limit=data["bounce_limit"])
     refl = data["reflectors"]
     column = {e: k for k, e in enumerate(refl)}
     selected = np.zeros((len(data["frames"]), len(refl)), dtype=bool)
     visible = np.zeros_like(selected)
-    for f, frame in enumerate(data["frames"]):
+    frames = data["frames"]
+    for f, frame in enumerate(frames):
         scene = SimpleNamespace(elements=frame.elements, lights=data["lights"])
         counts = frame.view.pixel_counts
-        policy.begin_frame(frame.view, scene)
+        ahead = frames[f + 1 : f + 1 + LOOKAHEAD_FRAMES] if lookahead else []
+        view = replace(frame.view, upcoming_cameras=tuple(g.view.camera for g in ahead))
+        policy.begin_frame(view, scene)
         rays, chosen = 0, []
         while budget_rays - rays > 0:
             ids = policy.next_round(Budget(rays=budget_rays - rays))
@@ -158,6 +175,7 @@ def main(argv: list[str] | None = None) -> int:
     rep.add_argument("--budgets", required=True, help="comma list of rays budgets")
     rep.add_argument("--heuristics", default="heu1,heu2")
     rep.add_argument("--selection-weight", type=float, default=None)
+    rep.add_argument("--no-lookahead", action="store_true", help="views without upcoming cameras")
     args = ap.parse_args(argv)
     if args.command == "capture":
         capture(args.stage, args.out, args.width, args.height)
@@ -170,7 +188,10 @@ def main(argv: list[str] | None = None) -> int:
     for budget in (int(b) for b in args.budgets.split(",")):
         out = {}
         for h in heuristics:
-            out[h] = transition_counts(*replay(data, h, budget, args.selection_weight))
+            lookahead = not args.no_lookahead
+            out[h] = transition_counts(
+                *replay(data, h, budget, args.selection_weight, lookahead=lookahead)
+            )
             c = out[h]
             print(
                 f"| {budget} | {h} | {c['transitions']} ({c['admissions']} + {c['drops']}) "
