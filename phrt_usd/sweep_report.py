@@ -508,6 +508,65 @@ def paper_comparison(
     return lines
 
 
+def frontier_flip_at(points: Iterable[tuple[float, float]], ms: float) -> float | None:
+    """The lowest mean FLIP a heuristic reached within ``ms`` mean frame milliseconds,
+    linearly interpolated: ``points`` are its (mean frame ms, mean FLIP) over budgets.
+    The points are reduced to their Pareto frontier (a point slower *and* worse than
+    another is dropped: that time buys at least the faster point's error), interpolated
+    between neighbours, and held at the slowest point's error beyond it. None when
+    ``ms`` is faster than every point (no budget of it was that fast)."""
+    frontier: list[tuple[float, float]] = []
+    for t, e in sorted(points):
+        if not frontier or e < frontier[-1][1]:
+            frontier.append((t, e))
+    if not frontier or ms < frontier[0][0]:
+        return None
+    for (t0, e0), (t1, e1) in zip(frontier, frontier[1:], strict=False):
+        if ms <= t1:
+            # The line is what alternating the two budgets over frames would give.
+            return e0 + (e1 - e0) * (ms - t0) / (t1 - t0) if t1 > t0 else e1
+    return frontier[-1][1]
+
+
+def equal_time_comparison(summary: list[Mapping[str, Any]], stage: str) -> list[str]:
+    """Lines comparing HEU1 and HEU2 at equal mean frame time, per budget kind (ms or
+    rays budgets): for each HEU1 point with some budget, HEU2's frontier error at HEU1's
+    mean frame ms (``frontier_flip_at``), and the verdict."""
+    lines = []
+    for kind, field in (("ms", "budget_ms"), ("rays", "budget_rays")):
+        curves: dict[str, list[Mapping[str, Any]]] = {"heu1": [], "heu2": []}
+        for e in summary:
+            if e["stage"] == stage and e["heuristic"] in curves and e[field] is not None:
+                if e["mean_flip"] is not None:
+                    curves[e["heuristic"]].append(e)
+        if not curves["heu1"] or not curves["heu2"]:
+            continue
+        heu2 = [(e["mean_frame_ms"], e["mean_flip"]) for e in curves["heu2"]]
+        wins = compared = 0
+        parts = []
+        for e in curves["heu1"]:
+            if e[field] in (0.0, math.inf):
+                continue  # both heuristics do the same there (nothing / everything)
+            other = frontier_flip_at(heu2, e["mean_frame_ms"])
+            if other is None:
+                parts.append(f"{e['budget']}: faster than any HEU2 point")
+                continue
+            compared += 1
+            wins += e["mean_flip"] <= other
+            parts.append(
+                f"{e['budget']}: {_significant3(e['mean_flip'])} at "
+                f"{e['mean_frame_ms']:.2f} ms vs HEU2 {_significant3(other)}"
+            )
+        if parts:
+            lines.append(
+                f"Equal mean frame time ({kind} budgets; HEU2 interpolated on its "
+                f"error-time frontier): HEU1 mean FLIP <= HEU2 at {wins} of {compared}. "
+                + "; ".join(parts)
+                + "."
+            )
+    return lines
+
+
 # --- summary.md ------------------------------------------------------------------------
 
 
@@ -537,7 +596,11 @@ def write_summary_md(
             if entry["stage"] == stage:
                 lines.append("| " + " | ".join(_md_cell(c) for c in table_cells(entry)) + " |")
         lines.append("")
-        notes = [*stage_notes(summary, stage), *paper_comparison(summary, stage, paper)]
+        notes = [
+            *stage_notes(summary, stage),
+            *paper_comparison(summary, stage, paper),
+            *equal_time_comparison(summary, stage),
+        ]
         lines += [_md_cell(line) + "  " for line in notes]
         lines.append("")
     write_text_atomic(Path(path), "\n".join(lines))
@@ -929,7 +992,11 @@ def write_report_html(
                 f'alt="{_esc(f"mean FLIP against mean frame time, {stage}")}">'
             )
         parts.append(_html_table(entries))
-        notes = [*stage_notes(summary, stage), *paper_comparison(summary, stage, paper)]
+        notes = [
+            *stage_notes(summary, stage),
+            *paper_comparison(summary, stage, paper),
+            *equal_time_comparison(summary, stage),
+        ]
         parts += [f'<p class="note">{_esc(line)}</p>' for line in notes]
         timeline = out_dir / timeline_plot_name(stage)
         if timeline.is_file():

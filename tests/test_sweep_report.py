@@ -23,6 +23,8 @@ import pytest
 from phrt_usd.errors import PhrtError
 from phrt_usd.sweep_report import (
     PAPER_FIGURES,
+    equal_time_comparison,
+    frontier_flip_at,
     summarize,
     timeline_states,
     write_sweep_report,
@@ -421,3 +423,32 @@ def test_unbounded_and_missing_values_stay_finite():
 def test_paper_defaults_match_design():
     assert PAPER_FIGURES["farm"]["heu1_fps"] == 25.4
     assert PAPER_FIGURES["sewer"]["transitions_ratio"] == 0.046
+
+
+def test_frontier_interpolates_the_best_error_within_a_time():
+    points = [(50.0, 0.05), (52.0, 0.03), (51.0, 0.06), (54.0, 0.01)]  # (51, 0.06) dominated
+    assert frontier_flip_at(points, 49.0) is None  # faster than any point
+    assert frontier_flip_at(points, 50.0) == pytest.approx(0.05)
+    assert frontier_flip_at(points, 51.0) == pytest.approx(0.04)
+    assert frontier_flip_at(points, 53.0) == pytest.approx(0.02)
+    assert frontier_flip_at(points, 99.0) == pytest.approx(0.01)  # held beyond the slowest
+    assert frontier_flip_at([(50.0, 0.05), (50.0, 0.04)], 50.0) == pytest.approx(0.04)
+
+
+def test_equal_time_comparison_counts_where_heu1_is_not_worse():
+    def entry(h, ms_budget, frame_ms, flip):
+        return {
+            "stage": "s", "heuristic": h, "budget_ms": ms_budget, "budget_rays": None,
+            "budget": f"{ms_budget} ms", "mean_frame_ms": frame_ms, "mean_flip": flip,
+        }  # fmt: skip
+
+    summary = [
+        entry("heu2", 0.0, 50.0, 0.05), entry("heu2", 4.0, 52.0, 0.03),
+        entry("heu2", math.inf, 54.0, 0.0),
+        entry("heu1", 0.0, 50.0, 0.05), entry("heu1", 2.0, 51.0, 0.039),  # HEU2 there: 0.04
+        entry("heu1", 4.0, 53.0, 0.016),  # HEU2 there: 0.015
+        entry("heu1", math.inf, 54.0, 0.0),
+    ]  # fmt: skip
+    (line,) = equal_time_comparison(summary, "s")
+    assert "ms budgets" in line and "at 1 of 2" in line
+    assert "2.0 ms: 0.039 at 51.00 ms vs HEU2 0.04" in line
