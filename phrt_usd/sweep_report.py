@@ -533,20 +533,27 @@ def equal_time_comparison(summary: list[Mapping[str, Any]], stage: str) -> list[
     rays budgets): for each HEU1 point with some budget, HEU2's frontier error at HEU1's
     mean frame ms (``frontier_flip_at``), and the verdict."""
     lines = []
+
+    def bounded(value: float | None) -> bool:
+        return value is not None and math.isfinite(value)
+
     for kind, field in (("ms", "budget_ms"), ("rays", "budget_rays")):
+        # Each curve: this kind's budgets plus the unbounded point (no budget at all).
         curves: dict[str, list[Mapping[str, Any]]] = {"heu1": [], "heu2": []}
         for e in summary:
-            if e["stage"] == stage and e["heuristic"] in curves and e[field] is not None:
-                if e["mean_flip"] is not None:
-                    curves[e["heuristic"]].append(e)
-        if not curves["heu1"] or not curves["heu2"]:
+            if e["stage"] != stage or e["heuristic"] not in curves or e["mean_flip"] is None:
+                continue
+            unbounded = not bounded(e["budget_ms"]) and not bounded(e["budget_rays"])
+            if e[field] is not None or unbounded:
+                curves[e["heuristic"]].append(e)
+        if not any(bounded(e[field]) for e in curves["heu1"]) or not curves["heu2"]:
             continue
         heu2 = [(e["mean_frame_ms"], e["mean_flip"]) for e in curves["heu2"]]
         wins = compared = 0
         parts = []
         for e in curves["heu1"]:
-            if e[field] in (0.0, math.inf):
-                continue  # both heuristics do the same there (nothing / everything)
+            if not bounded(e[field]) or e[field] == 0.0:
+                continue  # both heuristics do the same there (everything / nothing)
             other = frontier_flip_at(heu2, e["mean_frame_ms"])
             if other is None:
                 parts.append(f"{e['budget']}: faster than any HEU2 point")

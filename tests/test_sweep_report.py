@@ -444,11 +444,12 @@ def test_equal_time_comparison_counts_where_heu1_is_not_worse():
 
     summary = [
         entry("heu2", 0.0, 50.0, 0.05), entry("heu2", 4.0, 52.0, 0.03),
-        entry("heu2", math.inf, 54.0, 0.0),
+        entry("heu2", None, 54.0, 0.0),  # unbounded: no budget of either kind
         entry("heu1", 0.0, 50.0, 0.05), entry("heu1", 2.0, 51.0, 0.039),  # HEU2 there: 0.04
         entry("heu1", 4.0, 53.0, 0.016),  # HEU2 there: 0.015
-        entry("heu1", math.inf, 54.0, 0.0),
+        entry("heu1", None, 54.0, 0.0),
     ]  # fmt: skip
     (line,) = equal_time_comparison(summary, "s")
     assert "ms budgets" in line and "at 1 of 2" in line
     assert "2.0 ms: 0.039 at 51.00 ms vs HEU2 0.04" in line
+    assert "4.0 ms: 0.016 at 53.00 ms vs HEU2 0.015" in line
