@@ -124,6 +124,9 @@ def author_reflectors(
             edit_stage.GetPrimAtPath(path), priority=priority, reflectivity=reflectivity
         )
     if relative is not None:
+        # Close the authoring stage first: while it is open, USD recomposes the anonymous
+        # layer against the relative path (which only resolves next to the file) and warns.
+        del edit_stage
         edit_layer.subLayerPaths[0] = relative
     _write_atomically(edit_layer, target)
     return AuthorResult(layer=str(target), prims=list(prim_paths))
