@@ -89,13 +89,11 @@ ADMISSION_MARGIN = 0.1
 #: When the renderer knows the frames to come (``FrameView.upcoming_cameras``: a stage's
 #: camera path is known before the render starts), the forecast is instead the largest
 #: cost over the next LOOKAHEAD_FRAMES frames, scaled from the current cost by the screen
-#: area of the reflector's bounding box (``box_screen_area``). Measured on both stages
+#: area of the reflector's bounding box (``box_screen_area``; each upcoming camera's
+#: areas are computed once and reused by the following frames). Measured on both stages
 #: (docs/heuristic.md): 48 frames gave fewer transitions than 24 at the same mean selected
 #: count; longer ones shut out reflectors that grow late.
 LOOKAHEAD_FRAMES = 48
-#: Every LOOKAHEAD_STEP-th upcoming camera is looked at (and the last): a box's screen
-#: area changes smoothly along a camera path, and each camera costs numpy work per frame.
-LOOKAHEAD_STEP = 4
 FORECAST_HORIZON = 24
 GROWTH_WINDOW = 4
 GROWTH_MAX = 2.0
@@ -620,12 +618,24 @@ class Heu1Policy(BudgetedPolicy):
         #: bounding-box screen area over the upcoming cameras / the current one, >= 1);
         #: empty when the view has no upcoming cameras.
         self.lookahead_growth: dict[int, float] = {}
+        #: Screen area of every reflector's box per upcoming camera, computed once per
+        #: camera (the renderer passes the same CameraFrame objects frame after frame):
+        #: id(camera) → (camera, (R,) float64 pixels, in the order of the reflector ids).
+        #: The camera is held so that its id cannot be reused while cached. Boxes are
+        #: those of the frame that first saw the camera (animation is not forecast).
+        self._box_areas: dict[int, tuple[CameraFrame, np.ndarray]] = {}
+        self._box_areas_key: tuple = ()  # (width, height, reflector count) of the cache
+
+    def __getstate__(self) -> dict:
+        return {**self.__dict__, "_box_areas": {}, "_box_areas_key": ()}  # a cache only
 
     def __setstate__(self, state: dict) -> None:
         # A policy pickled in a checkpoint by an older version has no growth memory yet.
         state.setdefault("pixel_history", {})
         state.setdefault("previous_visible", set())
         state.setdefault("lookahead_growth", {})
+        state.setdefault("_box_areas", {})
+        state.setdefault("_box_areas_key", ())
         self.__dict__.update(state)
 
     def begin_frame(self, view: FrameView, scene: Scene) -> None:
@@ -637,21 +647,30 @@ class Heu1Policy(BudgetedPolicy):
         self.pixel_history = history  # a reflector out of view starts afresh
         self.lookahead_growth = self._lookahead_growth(view, scene, np.fromiter(history, int))
 
-    @staticmethod
-    def _lookahead_growth(view: FrameView, scene: Scene, ids: np.ndarray) -> dict[int, float]:
-        """Element id → peak screen area of its box over the next LOOKAHEAD_FRAMES upcoming
-        cameras (every LOOKAHEAD_STEP-th) / its area now (>= 1, finite), for the
-        reflectors ``ids`` in view; {} without upcoming cameras."""
-        if not view.upcoming_cameras or len(ids) == 0:
-            return {}
-        lo = np.array([scene.elements[i].bounds_min for i in ids], dtype=np.float64)
-        hi = np.array([scene.elements[i].bounds_max for i in ids], dtype=np.float64)
+    def _lookahead_growth(self, view: FrameView, scene: Scene, ids: np.ndarray) -> dict[int, float]:
+        """Element id → peak screen area of its box over now and the next LOOKAHEAD_FRAMES
+        upcoming cameras / its area now (>= 1, finite), for the reflectors ``ids`` in
+        view; {} without upcoming cameras."""
         ahead = view.upcoming_cameras[:LOOKAHEAD_FRAMES]
-        cameras = [view.camera, *ahead[LOOKAHEAD_STEP - 1 :: LOOKAHEAD_STEP], ahead[-1]]
-        areas = box_screen_area(lo, hi, cameras, view.width, view.height)  # (1 + H, n)
+        if not ahead or len(ids) == 0:
+            return {}
+        refl = self._reflectors_of(scene)  # ascending element ids
+        lo = np.array([scene.elements[i].bounds_min for i in refl], dtype=np.float64)
+        hi = np.array([scene.elements[i].bounds_max for i in refl], dtype=np.float64)
+        w, h = view.width, view.height
+        if self._box_areas_key != (w, h, len(refl)):
+            self._box_areas, self._box_areas_key = {}, (w, h, len(refl))
+        new = [c for c in ahead if id(c) not in self._box_areas]
+        cached = {id(c): self._box_areas[id(c)] for c in ahead if id(c) in self._box_areas}
+        for c, areas in zip(new, box_screen_area(lo, hi, new, w, h), strict=True):
+            cached[id(c)] = (c, areas)
+        self._box_areas = cached  # cameras no longer ahead are dropped
+        cols = np.searchsorted(refl, ids)
+        now = box_screen_area(lo[cols], hi[cols], [view.camera], w, h)[0]
+        peak = np.max([areas[cols] for _c, areas in cached.values()], axis=0)
         # A reflector in view has pixels, so a box area under one pixel is a sliver at
         # the image edge: growth is measured from one pixel, which keeps it finite.
-        growth = areas.max(axis=0) / np.maximum(areas[0], 1.0)
+        growth = np.maximum(peak, now) / np.maximum(now, 1.0)
         growth = np.clip(np.nan_to_num(growth, nan=1.0, posinf=FORECAST_MAX), 1.0, FORECAST_MAX)
         return dict(zip(ids.tolist(), growth.tolist(), strict=True))
 

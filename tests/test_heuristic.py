@@ -506,6 +506,25 @@ def test_lookahead_keeps_out_a_reflector_the_camera_will_approach():
         assert (1 in ids) is admitted, (upcoming != (), ids)
 
 
+def test_lookahead_reuses_each_upcoming_cameras_areas_without_changing_them():
+    # Frame after frame the window of upcoming cameras slides by one; growth figures from
+    # a policy that caches each camera's box areas equal those of a fresh policy.
+    sc = scene([element((0.0, 0.0, -8.0)), element((1.0, 0.0, -8.0), half=0.2)])
+    path = [camera((0.3 * k / 10, 0.0, -6.0 * k / 60)) for k in range(60)]
+    policy = policy_of("heu1")
+    for t in range(6):
+        fv = view([300, 40], cam=path[t], time=t)
+        fv.upcoming_cameras = tuple(path[t + 1 : t + 1 + LOOKAHEAD_FRAMES])
+        policy.begin_frame(fv, sc)
+        fresh = policy_of("heu1")
+        fresh.begin_frame(fv, sc)
+        assert policy.lookahead_growth == pytest.approx(fresh.lookahead_growth, rel=1e-12)
+        assert min(policy.lookahead_growth.values()) > 1.0  # the camera approaches both
+        policy.end_frame()
+        fresh.end_frame()
+    assert len(policy._box_areas) == LOOKAHEAD_FRAMES  # only the window is kept
+
+
 def test_kept_selection_drops_the_fewest_when_it_no_longer_fits():
     # Three kept reflectors; the largest grows past what the budget holds with the two
     # small ones: it is the one dropped (one transition), not the two small ones, even
