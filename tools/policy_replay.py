@@ -69,7 +69,18 @@ class _CapturePolicy(AllPolicy):
             self.frames[-1].records[int(rec.source)] = rec
 
 
-def capture(stage_path: Path, out: Path, width: int, height: int) -> None:
+def capture(
+    stage_path: Path,
+    out: Path,
+    width: int,
+    height: int,
+    frames: str | None = None,
+    images: Path | None = None,
+) -> None:
+    """Record ``frames`` (default: the whole path) into ``out``; with ``images``, also an
+    npz of per frame (F, H, W) element ids, the raster image and the ``all`` image
+    (F, H, W, 3) float32 and the ``all`` run's traced mask, from which the image of any
+    selection is composed exactly (``compose``)."""
     stage = open_stage(stage_path)
     params = read_render_params(stage.stage)
     options = RenderOptions(
@@ -79,10 +90,17 @@ def capture(stage_path: Path, out: Path, width: int, height: int) -> None:
     renderer = FrameRenderer(stage, options)
     policy = _CapturePolicy(selection_weight=0.0, bounce_limit=params.bounce_limit)
     renderer.policy = policy
-    times = parse_frames(None, stage.frame_range)
+    times = parse_frames(frames, stage.frame_range)
+    stacks: dict[str, list[np.ndarray]] = {"ids": [], "raster": [], "all": [], "traced": []}
     try:
         for k, t in enumerate(times):
-            renderer.render(t)
+            prep = renderer.prepare(t)
+            output = renderer.finish(prep, policy, options)
+            if images is not None:
+                stacks["ids"].append(prep.gbuffer.element_id.astype(np.int32))
+                stacks["raster"].append(prep.image.astype(np.float32))
+                stacks["all"].append(output.beauty.astype(np.float32))
+                stacks["traced"].append(output.traced_mask)
             if k % 100 == 0:
                 print(f"{stage_path.stem}: frame {k}/{len(times)}", file=sys.stderr)
     finally:
@@ -99,6 +117,32 @@ def capture(stage_path: Path, out: Path, width: int, height: int) -> None:
     out.parent.mkdir(parents=True, exist_ok=True)
     with open(out, "wb") as fh:
         pickle.dump(data, fh)
+    if images is not None:
+        np.savez(images, times=np.asarray(times), **{k: np.stack(v) for k, v in stacks.items()})
+
+
+def compose(images, f: int, selected_ids: list[int]) -> np.ndarray:
+    """(H, W, 3) float32: frame ``f``'s image when exactly ``selected_ids`` are traced.
+
+    A reflector's traced pixels depend only on its own G-buffer pixels (its rays follow
+    other reflectors whether or not those are selected), so the image of a selection is
+    the ``all`` image on the selected reflectors' traced pixels and the raster image
+    elsewhere."""
+    take = images["traced"][f] & np.isin(images["ids"][f], selected_ids)
+    return np.where(take[..., None], images["all"][f], images["raster"][f])
+
+
+def mean_flip(images, selected: np.ndarray, reflectors: list[int]) -> float:
+    """Mean over frames of the mean FLIP against the ``all`` image, for (F, R) bool
+    ``selected`` over ``reflectors``."""
+    from phrt_usd.image_metrics import flip_map
+
+    refl = np.asarray(reflectors)
+    errors = [
+        float(flip_map(images["all"][f], compose(images, f, refl[row].tolist())).mean())
+        for f, row in enumerate(selected)
+    ]
+    return float(np.mean(errors))
 
 
 def replay(
@@ -143,6 +187,19 @@ def replay(
     return selected, visible
 
 
+def mean_rays(data: dict, selected: np.ndarray) -> float:
+    """Mean traced rays per frame of an (F, R) ``selected`` (the recorded records' rays)."""
+    refl = data["reflectors"]
+    return float(
+        np.mean(
+            [
+                sum(frame.records[refl[r]].rays for r in np.flatnonzero(row))
+                for frame, row in zip(data["frames"], selected, strict=True)
+            ]
+        )
+    )
+
+
 def transition_counts(selected: np.ndarray, visible: np.ndarray) -> dict:
     """Transitions as ``phrt report`` counts them, split by kind: an *admission* is a
     reflector in view in both frames that becomes selected, a *drop* one that stops
@@ -170,36 +227,45 @@ def main(argv: list[str] | None = None) -> int:
     cap.add_argument("out", type=Path)
     cap.add_argument("--width", type=int, default=320)
     cap.add_argument("--height", type=int, default=240)
+    cap.add_argument("--frames", default=None, help="A:B[:STEP] time codes (default: the path)")
+    cap.add_argument("--images", type=Path, default=None, help="also write images (.npz)")
     rep = sub.add_parser("replay")
     rep.add_argument("recording", type=Path)
     rep.add_argument("--budgets", required=True, help="comma list of rays budgets")
     rep.add_argument("--heuristics", default="heu1,heu2")
     rep.add_argument("--selection-weight", type=float, default=None)
     rep.add_argument("--no-lookahead", action="store_true", help="views without upcoming cameras")
+    rep.add_argument("--images", type=Path, default=None, help="capture's images: add mean FLIP")
     args = ap.parse_args(argv)
     if args.command == "capture":
-        capture(args.stage, args.out, args.width, args.height)
+        capture(args.stage, args.out, args.width, args.height, args.frames, args.images)
         return 0
     with open(args.recording, "rb") as fh:
         data = pickle.load(fh)
     heuristics = [h.strip() for h in args.heuristics.split(",") if h.strip()]
-    print("| budget | heuristic | transitions (adm + drop) | entered selected | mean selected |")
-    print("|---|---|---|---|---|")
+    images = np.load(args.images) if args.images else None
+    print(
+        "| budget | heuristic | transitions (adm + drop) | entered selected | mean selected "
+        "| mean rays | mean FLIP |"
+    )
+    print("|---|---|---|---|---|---|---|")
     for budget in (int(b) for b in args.budgets.split(",")):
         out = {}
         for h in heuristics:
             lookahead = not args.no_lookahead
-            out[h] = transition_counts(
-                *replay(data, h, budget, args.selection_weight, lookahead=lookahead)
+            selected, visible = replay(data, h, budget, args.selection_weight, lookahead=lookahead)
+            out[h] = c = transition_counts(selected, visible)
+            flip = (
+                "" if images is None else f"{mean_flip(images, selected, data['reflectors']):.5f}"
             )
-            c = out[h]
             print(
                 f"| {budget} | {h} | {c['transitions']} ({c['admissions']} + {c['drops']}) "
-                f"| {c['entered_selected']} | {c['mean_selected']:.2f} |"
+                f"| {c['entered_selected']} | {c['mean_selected']:.2f} "
+                f"| {mean_rays(data, selected):.0f} | {flip} |"
             )
         if "heu1" in out and "heu2" in out and out["heu2"]["transitions"]:
             pct = 100.0 * out["heu1"]["transitions"] / out["heu2"]["transitions"]
-            print(f"| {budget} | heu1/heu2 | {pct:.1f} % | | |")
+            print(f"| {budget} | heu1/heu2 | {pct:.1f} % | | | | |")
     return 0
 
 
