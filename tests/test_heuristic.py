@@ -196,6 +196,38 @@ def test_processing_cost_finite(A, P, D, Q, reflected):
     assert math.isfinite(c) and c >= V * Q
 
 
+coords = st.one_of(st.floats(-1e6, 1e6), st.floats(-1e-3, 1e-3), st.sampled_from([0.0, 1e150]))
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    st.lists(st.tuples(coords, coords, coords), min_size=2, max_size=5),
+    st.lists(st.integers(0, 20000), min_size=5, max_size=5),
+    st.lists(st.floats(0.0, 1.0), min_size=4, max_size=4),
+    st.lists(st.integers(1, 5), min_size=5, max_size=5),
+)
+def test_cost_c_equals_the_array_formulas(centers, pixels, fractions, qs):
+    """The policy's scalar C equals processing_cost over distance_factor (eq. 2), also
+    for coincident, far and tiny-scale centres."""
+    sc = scene([element(c) for c in centers])
+    n = len(centers)
+    policy = policy_of("heu1")
+    policy.begin_frame(view(pixels[:n]), sc)
+    policy.Q = {e: float(qs[e]) for e in range(n)}
+    policy.reflects = {0: {j: fractions[j - 1] for j in range(1, n)}}
+    frame = policy._frame
+    js = np.arange(1, n)
+    f = np.array(fractions[: n - 1])
+    sep = np.linalg.norm(frame.centers[js] - frame.centers[0], axis=1)
+    expected = processing_cost(
+        float(frame.V[0]), qs[0], np.maximum(frame.V[js], frame.V[0] * f),
+        np.array(qs[1:n], dtype=float), distance_factor(sep, frame.D[0]),
+    )  # fmt: skip
+    got = policy.cost_C(0)
+    assert math.isfinite(got)
+    assert got == pytest.approx(expected, rel=1e-12, abs=0.0)
+
+
 @given(st.booleans(), weights, unit, unit, distances, weights)
 def test_relevance_finite_over_extremes(S, weight, A, P, D, K):
     r = float(relevance(float(S), weight, visibility(A, P, D), K))
