@@ -351,6 +351,7 @@ class _FrameState:
     predicted_trace_ms: float = 0.0  # sum over rounds of the predicted round time
     first_allowance: float | None = None  # the first round's budget in rays (HEU1 margin)
     forecast_used: float = 0.0  # HEU1: forecasts of this frame's selection, summed
+    unfit_claims: set[int] = field(default_factory=set)  # HEU1: kept, claimed, did not fit
     #: C per element as of the last recorded round (C changes only when ``record``
     #: learns Q and reflections; the graph of every round and the metrics reuse it).
     C: dict[int, float] = field(default_factory=dict)
@@ -631,6 +632,9 @@ class Heu1Policy(BudgetedPolicy):
         self.pixel_history: dict[int, list[int]] = {}
         #: Reflectors with pixels in the previous frame.
         self.previous_visible: set[int] = set()
+        #: Reflectors the keep step could not fit while in view, not selected since and
+        #: still in view: they are no challengers of kept reflectors (``Node.challenger``).
+        self.forced_out: set[int] = set()
         #: This frame's lookahead growth per reflector in view (element id → largest
         #: bounding-box screen area over the upcoming cameras / the current one, >= 1);
         #: empty when the view has no upcoming cameras.
@@ -650,6 +654,7 @@ class Heu1Policy(BudgetedPolicy):
         # A policy pickled in a checkpoint by an older version has no growth memory yet.
         state.setdefault("pixel_history", {})
         state.setdefault("previous_visible", set())
+        state.setdefault("forced_out", set())
         state.setdefault("lookahead_growth", {})
         state.setdefault("_box_areas", {})
         state.setdefault("_box_areas_key", ())
@@ -695,7 +700,9 @@ class Heu1Policy(BudgetedPolicy):
 
     def end_frame(self) -> dict[int, ReflectorMetrics]:
         frame = self._require_frame()
-        self.previous_visible = set(np.flatnonzero(frame.pixels > 0).tolist())
+        visible = set(np.flatnonzero(frame.pixels > 0).tolist())
+        self.forced_out = ((self.forced_out | frame.unfit_claims) & visible) - set(frame.traced)
+        self.previous_visible = visible
         return super().end_frame()
 
     def growth(self, element: int) -> float:
@@ -744,6 +751,7 @@ class Heu1Policy(BudgetedPolicy):
             kept=kept,
             forecast=forecast,
             admission=not kept and e in self.previous_visible,
+            challenger=e not in self.forced_out,
         )
 
     def graph(self, reserve: float = 0.0, budget: float = math.inf) -> SelectionGraph:
@@ -779,6 +787,10 @@ class Heu1Policy(BudgetedPolicy):
         reserve = ADMISSION_MARGIN * frame.first_allowance
         graph = self.graph(reserve=reserve, budget=frame.first_allowance)
         ids = graph.select(allowance, horizon_budget=frame.first_allowance - frame.forecast_used)
+        if not frame.traced:
+            # The first round's keep step decides which claims cost pushes out; in later
+            # rounds, kept reflectors not taken yet are ones that already lost or missed.
+            frame.unfit_claims.update(graph.unfit_claims)
         frame.forecast_used += sum(graph.nodes[e].forecast for e in ids)
         return ids
 

@@ -18,7 +18,8 @@ function of its nodes (the order in which nodes are given does not matter):
 
 Selection (``select``) has two steps. **Keep**: the nodes selected in the previous frame
 (``kept``) keep their claim while they are at least as relevant as the strongest
-*challenger* (the most relevant other node that could be taken); their R includes the
+*challenger* (the most relevant other node that could be taken, ``Node.challenger``);
+their R includes the
 paper's ``S·I`` bonus, so a newcomer displaces one only by beating its V by more than I.
 The claimed nodes are taken first, cheapest first (the cost list walked from its tail), as
 many as fit: when they no longer all fit, the fewest are dropped, the most expensive ones
@@ -65,6 +66,10 @@ class Node:
     admission: the node is taken only if its ``forecast`` also fits what is left of the
         horizon budget (HEU1 sets it for reflectors that would switch to ray tracing
         while in view).
+    challenger: the node can displace kept nodes less relevant than itself. HEU1 clears
+        it for reflectors whose claim the keep step could not fit (``unfit_claims``):
+        such a node may take free budget, but not push out the reflectors it was dropped
+        in favour of (which would bring it back, and drop it again, every other frame).
     """
 
     element: int
@@ -76,6 +81,7 @@ class Node:
     kept: bool = False
     forecast: float = 0.0
     admission: bool = False
+    challenger: bool = True
 
 
 class SelectionGraph:
@@ -98,6 +104,8 @@ class SelectionGraph:
 
         # Relevance edges, each list ordered most relevant first.
         self.more_relevant: dict[int, list[int]] = self._relevance_edges()
+        #: Set by ``select``: claimed kept nodes that did not fit.
+        self.unfit_claims: list[int] = []
 
     def is_more_relevant(self, a: int, b: int) -> bool:
         """True if node ``a`` is more relevant than node ``b`` (higher R, ties: lower id)."""
@@ -135,7 +143,11 @@ class SelectionGraph:
         ``forecast`` of it, and an ``admission`` node is available only while its forecast
         fits what is left (kept nodes can take it below zero, which then blocks every
         admission node). The default, unbounded, leaves the forecasts out.
+
+        Afterwards ``unfit_claims`` lists the claimed nodes the keep step could not fit
+        (cheapest first); they are not taken in the admit step either.
         """
+        self.unfit_claims: list[int] = []
         if not budget > 0.0:  # also catches NaN
             return []
         remaining = float(budget)
@@ -150,6 +162,7 @@ class SelectionGraph:
                 n.R
                 for n in self.nodes.values()
                 if not n.kept
+                and n.challenger
                 and n.traceable
                 and n.cost + n.reserve <= remaining
                 and (not n.admission or n.forecast <= horizon_left)
@@ -159,11 +172,11 @@ class SelectionGraph:
         claimed = {e for e, n in self.nodes.items() if n.kept and n.R >= challenger}
         # Keep: the claimed nodes, cheapest first, until one no longer fits (no costlier
         # one would either).
-        for e in reversed(self.by_cost):
+        keep = [e for e in reversed(self.by_cost) if e in claimed and self.nodes[e].traceable]
+        for k, e in enumerate(keep):
             n = self.nodes[e]
-            if e not in claimed or not n.traceable:
-                continue
             if n.cost > remaining:
+                self.unfit_claims = keep[k:]
                 break
             chosen.append(e)
             remaining -= n.cost

@@ -707,3 +707,22 @@ def test_pickled_policy_continues_identically():
         a = run_frame(policy, oscillating_pair(t), view([1000, 1000]), 1500)[1]
         b = run_frame(clone, oscillating_pair(t), view([1000, 1000]), 1500)[1]
         assert a == b
+
+
+def test_a_reflector_cost_pushed_out_does_not_displace_the_ones_kept_instead():
+    """The keep step drops the big reflector B when the kept pair no longer fits; B, more
+    relevant than the small S that stays, must not push S out again on later frames (the
+    pair would otherwise swap back and forth as costs move around the budget), but it
+    takes free budget as soon as there is some."""
+    sc = scene([element((0.0, 0.0, -4.0), path="/B"), element((2.0, 0.0, -8.0), path="/S")])
+    policy = policy_of("heu1", weight=1e-4)
+    budget = 1000
+    selections = []
+    pixels = [[500, 300]] + [[700, 300]] * 12 + [[700, 0]] * 2
+    for t, px in enumerate(pixels):
+        metrics, _ = run_frame(policy, sc, view(px, time=t), budget_rays=budget)
+        selections.append({e for e, m in metrics.items() if m.selected})
+    assert selections[0] == {0, 1}  # both enter the view and fit
+    assert selections[1] == {1}  # B grew: both no longer fit, the dearer one is dropped
+    assert all(s == {1} for s in selections[2:13])  # B (more relevant) does not swap back
+    assert selections[13] == {0}  # S left the view: B takes the free budget

@@ -22,16 +22,17 @@ def node_lists(draw, max_size=12):
     return [
         Node(element=e, C=draw(costs), R=draw(relevances), cost=draw(costs),
              traceable=draw(st.booleans()) or draw(st.booleans()),
-             kept=draw(st.booleans()), forecast=draw(costs), admission=draw(st.booleans()))
+             kept=draw(st.booleans()), forecast=draw(costs), admission=draw(st.booleans()),
+             challenger=draw(st.booleans()) or draw(st.booleans()))
         for e in ids
     ]  # fmt: skip
 
 
 def reference_greedy(nodes: list[Node], budget: float, horizon: float = math.inf) -> list[int]:
     """The intended selection, by brute force: the kept nodes at least as relevant as
-    every other node that could be taken (the *challenger*) are kept, traceable ones
-    cheapest first (cost asc, id desc: the cost list walked from its tail) while they
-    fit; then repeatedly the most relevant (R desc, id asc) remaining traceable node that
+    every other node that could be taken and may challenge (the *challenger*) are kept,
+    traceable ones cheapest first (cost asc, id desc: the cost list walked from its tail)
+    while they fit; then repeatedly the most relevant (R desc, id asc) remaining traceable node that
     fits what is left of the budget (and, for an admission node, of the horizon budget)."""
     if not budget > 0:
         return []
@@ -40,6 +41,7 @@ def reference_greedy(nodes: list[Node], budget: float, horizon: float = math.inf
             n.R
             for n in nodes
             if not n.kept
+            and n.challenger
             and n.traceable
             and n.cost + n.reserve <= budget
             and (not n.admission or n.forecast <= horizon)
@@ -147,8 +149,12 @@ def test_kept_nodes_drop_the_most_expensive_first():
         Node(element=2, C=1.0, R=1.0, cost=3.0, kept=True),
         Node(element=3, C=1.0, R=0.5, cost=2.0),  # newcomer: only after the kept ones
     ]
-    assert SelectionGraph(nodes).select(8.0) == [2, 1, 3]
-    assert SelectionGraph(nodes).select(5.0) == [2, 3]
+    graph = SelectionGraph(nodes)
+    assert graph.select(8.0) == [2, 1, 3]
+    assert graph.unfit_claims == [0]  # claimed, did not fit
+    assert graph.select(5.0) == [2, 3]
+    assert graph.unfit_claims == [1, 0]  # cheapest first
+    assert graph.select(20.0) == [2, 1, 0, 3] and graph.unfit_claims == []
 
 
 def test_admission_needs_its_forecast_to_fit_the_horizon_budget():
@@ -223,6 +229,10 @@ def test_a_more_relevant_newcomer_displaces_a_kept_node():
     strong = Node(element=0, C=1.0, R=4.0, cost=5.0, kept=True)
     assert SelectionGraph([weak, newcomer]).select(5.0) == [1]
     assert SelectionGraph([strong, newcomer]).select(5.0) == [0]
+    # Nor can one that may not challenge (HEU1: cost pushed it out in favour of these).
+    pushed_out = Node(element=1, C=1.0, R=3.0, cost=5.0, challenger=False)
+    assert SelectionGraph([weak, pushed_out]).select(5.0) == [0]
+    assert SelectionGraph([weak, pushed_out]).select(10.0) == [0, 1]  # free budget: taken
     # A challenger that does not fit the budget cannot displace anything.
     big = Node(element=1, C=1.0, R=3.0, cost=50.0)
     assert SelectionGraph([weak, big]).select(5.0) == [0]
