@@ -305,7 +305,7 @@ def summarize(
 
     stage, config, heuristic, mode, kind (see ``config_kind``), budget_ms / budget_rays
     (float, None = not used, inf = unbounded), budget (label), frames (count),
-    mean_frame_ms, median_frame_ms, mean_fps, mean_trace_ms, mean_flip,
+    mean_frame_ms, median_frame_ms, mean_fps, mean_trace_ms, mean_rays, mean_flip,
     mean_flip_reflectors, mean_psnr, transitions (sum, int), transition_chances (int),
     transition_rate (transitions / chances, None without chances), chances_from
     ("timeline" | "csv"), mean_selected, mean_visible, mean_flip_temporal,
@@ -386,6 +386,7 @@ def _summarize_config(
         # A mean frame time of 0 ms (clock resolution) would give infinite fps.
         "mean_fps": 1000.0 / mean_frame_ms if mean_frame_ms > 0.0 else None,
         "mean_trace_ms": _mean(_number(r, "trace_ms") for r in ordered),
+        "mean_rays": _mean(_number(r, "rays") for r in ordered),
         "mean_flip": _mean(_number(r, "flip") for r in ordered),
         "mean_flip_reflectors": _mean(_number(r, "flip_reflectors") for r in ordered),
         "mean_psnr": _mean(_number(r, "psnr") for r in ordered),
@@ -436,6 +437,7 @@ TABLE_COLUMNS: tuple[tuple[str, str, Any], ...] = (
     ("median frame ms", "median_frame_ms", _fixed(2)),
     ("mean fps", "mean_fps", _fixed(1)),
     ("mean trace ms", "mean_trace_ms", _fixed(2)),
+    ("mean rays", "mean_rays", _fixed(0)),
     ("mean FLIP", "mean_flip", _significant3),
     ("mean FLIP reflectors", "mean_flip_reflectors", _significant3),
     ("mean PSNR dB", "mean_psnr", _fixed(2)),
@@ -509,8 +511,9 @@ def paper_comparison(
 
 
 def frontier_flip_at(points: Iterable[tuple[float, float]], ms: float) -> float | None:
-    """The lowest mean FLIP a heuristic reached within ``ms`` mean frame milliseconds,
-    linearly interpolated: ``points`` are its (mean frame ms, mean FLIP) over budgets.
+    """The lowest mean FLIP a heuristic reached within a cost of ``ms`` (mean frame
+    milliseconds, or another cost such as mean traced rays), linearly interpolated:
+    ``points`` are its (mean cost, mean FLIP) over budgets.
     The points are reduced to their Pareto frontier (a point slower *and* worse than
     another is dropped: that time buys at least the faster point's error), interpolated
     between neighbours, and held at the slowest point's error beyond it. None when
@@ -528,10 +531,20 @@ def frontier_flip_at(points: Iterable[tuple[float, float]], ms: float) -> float 
     return frontier[-1][1]
 
 
+#: The cost axes HEU1 and HEU2 are compared on: (summary key, its name, its unit). Frame
+#: time is the one that matters; traced rays are its deterministic part (a rays budget
+#: selects the same on every machine), free of the timing noise of a few-ms trace phase.
+COMPARISON_AXES = (
+    ("mean_frame_ms", "mean frame time", "ms"),
+    ("mean_rays", "mean traced rays", "rays"),
+)
+
+
 def equal_time_comparison(summary: list[Mapping[str, Any]], stage: str) -> list[str]:
-    """Lines comparing HEU1 and HEU2 at equal mean frame time, per budget kind (ms or
-    rays budgets): for each HEU1 point with some budget, HEU2's frontier error at HEU1's
-    mean frame ms (``frontier_flip_at``), and the verdict."""
+    """Lines comparing HEU1 and HEU2 at equal cost, per budget kind (ms or rays budgets)
+    and per axis of ``COMPARISON_AXES`` (rays only for rays budgets): for each HEU1 point
+    with some budget, HEU2's frontier error at HEU1's cost (``frontier_flip_at``), and
+    the verdict."""
     lines = []
 
     def bounded(value: float | None) -> bool:
@@ -548,29 +561,35 @@ def equal_time_comparison(summary: list[Mapping[str, Any]], stage: str) -> list[
                 curves[e["heuristic"]].append(e)
         if not any(bounded(e[field]) for e in curves["heu1"]) or not curves["heu2"]:
             continue
-        heu2 = [(e["mean_frame_ms"], e["mean_flip"]) for e in curves["heu2"]]
-        wins = compared = 0
-        parts = []
-        for e in curves["heu1"]:
-            if not bounded(e[field]) or e[field] == 0.0:
-                continue  # both heuristics do the same there (everything / nothing)
-            other = frontier_flip_at(heu2, e["mean_frame_ms"])
-            if other is None:
-                parts.append(f"{e['budget']}: faster than any HEU2 point")
+        for axis, name, unit in COMPARISON_AXES:
+            if (kind == "ms" and unit == "rays") or any(
+                e.get(axis) is None for e in curves["heu1"] + curves["heu2"]
+            ):
                 continue
-            compared += 1
-            wins += e["mean_flip"] <= other
-            parts.append(
-                f"{e['budget']}: {_significant3(e['mean_flip'])} at "
-                f"{e['mean_frame_ms']:.2f} ms vs HEU2 {_significant3(other)}"
-            )
-        if parts:
-            lines.append(
-                f"Equal mean frame time ({kind} budgets; HEU2 interpolated on its "
-                f"error-time frontier): HEU1 mean FLIP <= HEU2 at {wins} of {compared}. "
-                + "; ".join(parts)
-                + "."
-            )
+            heu2 = [(e[axis], e["mean_flip"]) for e in curves["heu2"]]
+            wins = compared = 0
+            parts = []
+            for e in curves["heu1"]:
+                if not bounded(e[field]) or e[field] == 0.0:
+                    continue  # both heuristics do the same there (everything / nothing)
+                other = frontier_flip_at(heu2, e[axis])
+                if other is None:
+                    parts.append(f"{e['budget']}: cheaper than any HEU2 point")
+                    continue
+                compared += 1
+                wins += e["mean_flip"] <= other
+                cost = f"{e[axis]:.2f} ms" if unit == "ms" else f"{e[axis]:.0f} rays"
+                parts.append(
+                    f"{e['budget']}: {_significant3(e['mean_flip'])} at {cost} "
+                    f"vs HEU2 {_significant3(other)}"
+                )
+            if parts:
+                lines.append(
+                    f"Equal {name} ({kind} budgets; HEU2 interpolated on its error-"
+                    f"{unit} frontier): HEU1 mean FLIP <= HEU2 at {wins} of {compared}. "
+                    + "; ".join(parts)
+                    + "."
+                )
     return lines
 
 

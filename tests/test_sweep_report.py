@@ -449,7 +449,29 @@ def test_equal_time_comparison_counts_where_heu1_is_not_worse():
         entry("heu1", 4.0, 53.0, 0.016),  # HEU2 there: 0.015
         entry("heu1", None, 54.0, 0.0),
     ]  # fmt: skip
-    (line,) = equal_time_comparison(summary, "s")
+    (line,) = equal_time_comparison(summary, "s")  # no rays axis for ms budgets
     assert "ms budgets" in line and "at 1 of 2" in line
     assert "2.0 ms: 0.039 at 51.00 ms vs HEU2 0.04" in line
     assert "4.0 ms: 0.016 at 53.00 ms vs HEU2 0.015" in line
+
+
+def test_equal_rays_comparison_for_rays_budgets():
+    def entry(h, rays_budget, frame_ms, rays, flip):
+        return {
+            "stage": "s", "heuristic": h, "budget_ms": None, "budget_rays": rays_budget,
+            "budget": f"{rays_budget} rays", "mean_frame_ms": frame_ms, "mean_rays": rays,
+            "mean_flip": flip,
+        }  # fmt: skip
+
+    summary = [
+        entry("heu2", 0.0, 50.0, 0.0, 0.05), entry("heu2", 1000.0, 52.0, 600.0, 0.03),
+        entry("heu2", None, 54.0, 2000.0, 0.0),
+        # Fewer rays than HEU2 at the same budget, slower (selection overhead): worse at
+        # equal frame time, better at equal rays (HEU2 at 300 rays: 0.04).
+        entry("heu1", 1000.0, 53.0, 300.0, 0.035),
+        entry("heu1", None, 54.0, 2000.0, 0.0),
+    ]  # fmt: skip
+    time_line, rays_line = equal_time_comparison(summary, "s")
+    assert time_line.startswith("Equal mean frame time (rays budgets") and "at 0 of 1" in time_line
+    assert rays_line.startswith("Equal mean traced rays (rays budgets") and "at 1 of 1" in rays_line
+    assert "1000.0 rays: 0.035 at 300 rays vs HEU2 0.04" in rays_line

@@ -7,6 +7,8 @@ stages, from full camera-path renders with HEU1 and HEU2 under the same budget.
 
 Each stage × heuristic is one `phrt render` run (no images) into OUT/<stage>-<heu>;
 the tables come from `phrt report` on those runs (`build_report(..., vs=...)`).
+``--samples N`` renders the stage's whole camera path at N evenly spaced time codes
+(the paper's paths run 10,000 frames; ours span 720 time codes) instead of ``--frames``.
 """
 
 from __future__ import annotations
@@ -47,7 +49,11 @@ def run_pair(stage_path: Path, out: Path, args: argparse.Namespace) -> dict:
             if args.selection_weight is None
             else args.selection_weight,
         )
-        job = RenderJob(stage_path, run_dir, options, frames=args.frames, write_images=False)
+        frames = args.frames
+        if args.samples:
+            start, end = stage.frame_range
+            frames = f"{start!r}:{end!r}:{(end - start) / (args.samples - 1)!r}"
+        job = RenderJob(stage_path, run_dir, options, frames=frames, write_images=False)
         run_render(job, stage_scene=stage)
         runs[heuristic] = run_dir
         print(f"done {stage_path.stem} {heuristic}", file=sys.stderr)
@@ -83,6 +89,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--budget-ms", type=float, default=None)
     ap.add_argument("--selection-weight", type=float, default=None)
     ap.add_argument("--frames", default=None)
+    ap.add_argument("--samples", type=int, default=None, help="N time codes over the path")
     ap.add_argument("--width", type=int, default=320)
     ap.add_argument("--height", type=int, default=240)
     ap.add_argument("--out", type=Path, default=Path("runs/paper"))
