@@ -355,6 +355,8 @@ class _FrameState:
     #: C per element as of the last recorded round (C changes only when ``record``
     #: learns Q and reflections; the graph of every round and the metrics reuse it).
     C: dict[int, float] = field(default_factory=dict)
+    #: ``predicted_rays`` per element as of the last recorded round (same reason).
+    rays: dict[int, float] = field(default_factory=dict)
 
 
 class BudgetedPolicy(ABC):
@@ -447,7 +449,8 @@ class BudgetedPolicy(ABC):
 
     def record(self, records: list[TraceRecord], seconds: float) -> None:
         frame = self._require_frame()
-        frame.C.clear()  # Q and reflections change below
+        frame.C.clear()  # Q, reflections and rays per pixel change below
+        frame.rays.clear()
         n = len(frame.scene.elements)
         total_rays = 0
         for rec in records:
@@ -536,6 +539,9 @@ class BudgetedPolicy(ABC):
         everything traced so far; else Q * (1 + number of lights) (one reflection ray plus
         one shadow ray per light, per bounce)."""
         frame = self._require_frame()
+        cached = frame.rays.get(element)
+        if cached is not None:
+            return cached
         pixels = float(frame.pixels[element])
         rpp = self.rays_per_pixel.get(element)
         if rpp is None:
@@ -544,7 +550,8 @@ class BudgetedPolicy(ABC):
             else:
                 lights = frame.scene.lights
                 rpp = self.q_of(element) * (1 + len(lights.distant) + len(lights.local))
-        return pixels * max(rpp, MIN_RAYS_PER_PIXEL) * RAYS_SAFETY
+        frame.rays[element] = rays = pixels * max(rpp, MIN_RAYS_PER_PIXEL) * RAYS_SAFETY
+        return rays
 
     def predicted_ms(self, rays: float) -> float:
         """Milliseconds a candidate's ``rays`` add to a round (time safety included; the
@@ -646,9 +653,10 @@ class Heu1Policy(BudgetedPolicy):
         #: those of the frame that first saw the camera (animation is not forecast).
         self._box_areas: dict[int, tuple[CameraFrame, np.ndarray]] = {}
         self._box_areas_key: tuple = ()  # (width, height, reflector count) of the cache
+        self._growth: dict[int, float] = {}  # growth() of this frame, element id → value
 
     def __getstate__(self) -> dict:
-        return {**self.__dict__, "_box_areas": {}, "_box_areas_key": ()}  # a cache only
+        return {**self.__dict__, "_box_areas": {}, "_box_areas_key": (), "_growth": {}}  # caches
 
     def __setstate__(self, state: dict) -> None:
         # A policy pickled in a checkpoint by an older version has no growth memory yet.
@@ -658,6 +666,7 @@ class Heu1Policy(BudgetedPolicy):
         state.setdefault("lookahead_growth", {})
         state.setdefault("_box_areas", {})
         state.setdefault("_box_areas_key", ())
+        state.setdefault("_growth", {})
         self.__dict__.update(state)
 
     def begin_frame(self, view: FrameView, scene: Scene) -> None:
@@ -667,6 +676,7 @@ class Heu1Policy(BudgetedPolicy):
         for e in np.flatnonzero(frame.pixels > 0).tolist():
             history[e] = [*self.pixel_history.get(e, [])[-GROWTH_WINDOW:], int(frame.pixels[e])]
         self.pixel_history = history  # a reflector out of view starts afresh
+        self._growth = {}  # growth() per element, for this frame's history
         self.lookahead_growth = self._lookahead_growth(view, scene, np.fromiter(history, int))
 
     def _lookahead_growth(self, view: FrameView, scene: Scene, ids: np.ndarray) -> dict[int, float]:
@@ -706,6 +716,12 @@ class Heu1Policy(BudgetedPolicy):
         return super().end_frame()
 
     def growth(self, element: int) -> float:
+        cached = self._growth.get(element)
+        if cached is None:
+            cached = self._growth[element] = self._pixel_growth(element)
+        return cached
+
+    def _pixel_growth(self, element: int) -> float:
         """Per-frame growth of ``element``'s pixel count: the geometric mean over its
         recent frames in view when they show a trend (net change in log pixels at least
         TREND_MIN of the up-and-down travel), else 1 (also with fewer than two frames).
@@ -714,12 +730,13 @@ class Heu1Policy(BudgetedPolicy):
         Only a steady trend counts: a camera moving smoothly makes a reflector's pixel
         count grow or shrink steadily, while counts that jitter (partial occlusion,
         animation) would otherwise extrapolate to a wildly wrong forecast."""
-        h = np.asarray(self.pixel_history.get(element, []), dtype=np.float64)
+        h = self.pixel_history.get(element, [])  # at most GROWTH_WINDOW + 1 counts: scalars
         if len(h) < 2 or h[0] <= 0:
             return 1.0
-        steps = np.diff(np.log(np.maximum(h, 1.0)))
-        travel = float(np.sum(np.abs(steps)))
-        if travel > 0.0 and abs(float(np.sum(steps))) < TREND_MIN * travel:
+        logs = [math.log(max(c, 1.0)) for c in h]
+        steps = [b - a for a, b in zip(logs, logs[1:], strict=False)]
+        travel = sum(abs(d) for d in steps)
+        if travel > 0.0 and abs(sum(steps)) < TREND_MIN * travel:
             return 1.0  # up and down more than it moved: no trend to extrapolate
         return float((h[-1] / h[0]) ** (1.0 / (len(h) - 1)))
 
