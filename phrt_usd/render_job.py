@@ -1,6 +1,7 @@
 """Rendering a frame range to an output directory: images, stats.json, selection layer.
 
-A run is checkpointed every ``checkpoint_every`` frames and when it stops early: the
+A run is checkpointed every ``checkpoint_every`` frames (less often in long runs, see
+``CHECKPOINT_MAX_SHARE``) and when it stops early: the
 checkpoint (``OUT/checkpoint.pkl``: finished frames' stats and the selection policy's
 memory) is written atomically first, then ``stats.json`` and the selection layer are
 rewritten from it. SIGINT / SIGTERM finish the current frame, write everything and raise
@@ -14,6 +15,7 @@ import os
 import pickle
 import signal
 import threading
+import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -32,6 +34,11 @@ from phrt_usd.stage_reader import StageScene, open_stage
 
 CHECKPOINT_NAME = "checkpoint.pkl"
 DEFAULT_CHECKPOINT_EVERY = 10
+#: A checkpoint rewrites every finished frame's stats and the selection layer, so its cost
+#: grows with the run: after one that took d seconds the next waits at least
+#: d * (1 / CHECKPOINT_MAX_SHARE - 1), keeping checkpoints to ~10 % of a long run's time
+#: (a 10,000-frame path otherwise spent most of its time writing them).
+CHECKPOINT_MAX_SHARE = 0.1
 
 
 class RenderInterrupted(Exception):
@@ -100,6 +107,7 @@ def run_render(
 
     stop = threading.Event()
     since_checkpoint = 0
+    next_checkpoint = 0.0  # time.perf_counter() before which no periodic checkpoint
     try:
         with stop_on_signals(stop):
             for t in todo:
@@ -109,8 +117,13 @@ def run_render(
                     on_frame(len(done), len(times), done[-1])
                 if stop.is_set():
                     break
-                if since_checkpoint >= job.checkpoint_every:
+                if since_checkpoint >= job.checkpoint_every and time.perf_counter() >= (
+                    next_checkpoint
+                ):
+                    t0 = time.perf_counter()
                     _checkpoint(out, layer_path, job, scene, run_info, done, renderer)
+                    spent = time.perf_counter() - t0
+                    next_checkpoint = time.perf_counter() + spent * (1 / CHECKPOINT_MAX_SHARE - 1)
                     since_checkpoint = 0
         _checkpoint(out, layer_path, job, scene, run_info, done, renderer)
     finally:
