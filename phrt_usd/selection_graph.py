@@ -19,8 +19,8 @@ function of its nodes (the order in which nodes are given does not matter):
 Selection (``select``) has two steps. **Keep**: the nodes selected in the previous frame
 (``kept``) keep their claim while they are at least as relevant as the strongest
 *challenger* (the most relevant other node that could be taken, ``Node.challenger``);
-their R includes the
-paper's ``S·I`` bonus, so a newcomer displaces one only by beating its V by more than I.
+their R includes the paper's ``S·I`` bonus, so a newcomer displaces one only by beating
+its V by more than I.
 The claimed nodes are taken first, cheapest first (the cost list walked from its tail), as
 many as fit: when they no longer all fit, the fewest are dropped, the most expensive ones
 (each drop is a visible switch from ray tracing to raster). **Admit**: among the other
