@@ -15,8 +15,9 @@ HEU2 gives the same transitions and mean selected as real ``paper_tables`` runs.
     uv run python tools/policy_replay.py replay runs/replay/farm.pkl \
         --budgets 500,1000,2000,4000 [--heuristics heu1,heu2] [--images runs/replay/farm.npz]
 
-``capture`` renders the stage's full camera path once (hybrid, ``all``, unbounded, no
-images; 320x240 unless told). ``replay`` prints, per heuristic and budget: transitions
+``capture`` renders the stage's full camera path (or ``--frames``) once (hybrid, ``all``,
+unbounded; 320x240 unless told; no image files, but with ``--images`` the frames' raster
+and ``all`` images in one npz). ``replay`` prints, per heuristic and budget: transitions
 (split into admissions of reflectors already in view and drops while in view), mean
 selected, mean traced rays, the HEU1/HEU2 ratio and, with ``--images``, the mean FLIP
 against ``all`` of each policy's images composed from the recording (``compose``: equal to
