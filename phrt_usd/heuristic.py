@@ -374,6 +374,7 @@ class _FrameState:
     C: dict[int, float] = field(default_factory=dict)
     #: ``predicted_rays`` per element as of the last recorded round (same reason).
     rays: dict[int, float] = field(default_factory=dict)
+    growth: dict[int, float] = field(default_factory=dict)  # HEU1: growth() of this frame
 
 
 class BudgetedPolicy(ABC):
@@ -669,10 +670,9 @@ class Heu1Policy(BudgetedPolicy):
         #: those of the frame that first saw the camera (animation is not forecast).
         self._box_areas: dict[int, tuple[CameraFrame, np.ndarray]] = {}
         self._box_areas_key: tuple = ()  # (width, height, reflector count) of the cache
-        self._growth: dict[int, float] = {}  # growth() of this frame, element id → value
 
     def __getstate__(self) -> dict:
-        return {**self.__dict__, "_box_areas": {}, "_box_areas_key": (), "_growth": {}}  # caches
+        return {**self.__dict__, "_box_areas": {}, "_box_areas_key": ()}  # a cache only
 
     def __setstate__(self, state: dict) -> None:
         # A policy pickled in a checkpoint by an older version has no growth memory yet.
@@ -682,7 +682,6 @@ class Heu1Policy(BudgetedPolicy):
         state.setdefault("lookahead_growth", {})
         state.setdefault("_box_areas", {})
         state.setdefault("_box_areas_key", ())
-        state.setdefault("_growth", {})
         self.__dict__.update(state)
 
     def begin_frame(self, view: FrameView, scene: Scene) -> None:
@@ -692,7 +691,6 @@ class Heu1Policy(BudgetedPolicy):
         for e in np.flatnonzero(frame.pixels > 0).tolist():
             history[e] = [*self.pixel_history.get(e, [])[-GROWTH_WINDOW:], int(frame.pixels[e])]
         self.pixel_history = history  # a reflector out of view starts afresh
-        self._growth = {}  # growth() per element, for this frame's history
         self.lookahead_growth = self._lookahead_growth(view, scene, np.fromiter(history, int))
 
     def _lookahead_growth(self, view: FrameView, scene: Scene, ids: np.ndarray) -> dict[int, float]:
@@ -732,12 +730,6 @@ class Heu1Policy(BudgetedPolicy):
         return super().end_frame()
 
     def growth(self, element: int) -> float:
-        cached = self._growth.get(element)
-        if cached is None:
-            cached = self._growth[element] = self._pixel_growth(element)
-        return cached
-
-    def _pixel_growth(self, element: int) -> float:
         """Per-frame growth of ``element``'s pixel count: the geometric mean over its
         recent frames in view when they show a trend (net change in log pixels at least
         TREND_MIN of the up-and-down travel), else 1 (also with fewer than two frames).
@@ -746,6 +738,13 @@ class Heu1Policy(BudgetedPolicy):
         Only a steady trend counts: a camera moving smoothly makes a reflector's pixel
         count grow or shrink steadily, while counts that jitter (partial occlusion,
         animation) would otherwise extrapolate to a wildly wrong forecast."""
+        growth = self._require_frame().growth  # the history is fixed within a frame
+        if element not in growth:
+            growth[element] = self._pixel_growth(element)
+        return growth[element]
+
+    def _pixel_growth(self, element: int) -> float:
+        """``growth`` computed from the pixel history."""
         h = self.pixel_history.get(element, [])  # at most GROWTH_WINDOW + 1 counts: scalars
         if len(h) < 2 or h[0] <= 0:
             return 1.0
