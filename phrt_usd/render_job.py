@@ -117,13 +117,11 @@ def run_render(
                     on_frame(len(done), len(times), done[-1])
                 if stop.is_set():
                     break
-                if since_checkpoint >= job.checkpoint_every and time.perf_counter() >= (
-                    next_checkpoint
-                ):
-                    t0 = time.perf_counter()
+                start = time.perf_counter()
+                if since_checkpoint >= job.checkpoint_every and start >= next_checkpoint:
                     _checkpoint(out, layer_path, job, scene, run_info, done, renderer)
-                    spent = time.perf_counter() - t0
-                    next_checkpoint = time.perf_counter() + spent * (1 / CHECKPOINT_MAX_SHARE - 1)
+                    end = time.perf_counter()
+                    next_checkpoint = end + (end - start) * (1 / CHECKPOINT_MAX_SHARE - 1)
                     since_checkpoint = 0
         _checkpoint(out, layer_path, job, scene, run_info, done, renderer)
     finally:

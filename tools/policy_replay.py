@@ -38,6 +38,7 @@ import numpy as np
 
 from phrt_usd.frame import Budget
 from phrt_usd.heuristic import LOOKAHEAD_FRAMES, AllPolicy, make_policy
+from phrt_usd.image_metrics import flip_map
 from phrt_usd.render_job import parse_frames
 from phrt_usd.renderer import FrameRenderer, RenderOptions
 from phrt_usd.schema import read_render_params
@@ -140,8 +141,6 @@ def compose(images, f: int, selected_ids: list[int]) -> np.ndarray:
 def mean_flip(images, selected: np.ndarray, reflectors: list[int]) -> float:
     """Mean over frames of the mean FLIP against the ``all`` image, for (F, R) bool
     ``selected`` over ``reflectors``."""
-    from phrt_usd.image_metrics import flip_map
-
     refl = np.asarray(reflectors)
     errors = [
         float(flip_map(images["all"][f], compose(images, f, refl[row].tolist())).mean())
