@@ -38,7 +38,7 @@ from phrt_usd.frame import (
     ReflectorMetrics,
     SelectionPolicy,
 )
-from phrt_usd.heuristic import LOOKAHEAD_FRAMES, make_policy
+from phrt_usd.heuristic import UPCOMING_CAMERAS, make_policy
 from phrt_usd.scene import CameraFrame, Scene
 from phrt_usd.schema import DEFAULT_SELECTION_WEIGHT
 from phrt_usd.shading import shade_local
@@ -168,7 +168,7 @@ class FrameRenderer:
 
     def plan(self, times: Sequence[float]) -> None:
         """Tell the renderer the time codes it will render, in order. Each frame's
-        ``FrameView`` then carries the cameras of the next LOOKAHEAD_FRAMES planned
+        ``FrameView`` then carries the cameras of the next UPCOMING_CAMERAS planned
         frames, which HEU1 uses to forecast a reflector's cost (a stage's camera path is
         known before the render starts). Without a plan, views have no upcoming cameras."""
         self._planned = [float(t) for t in times]
@@ -177,19 +177,21 @@ class FrameRenderer:
             self._planned_index.setdefault(t, k)
         self._cameras = {}
 
-    def _upcoming_cameras(self, time_code: float) -> tuple[CameraFrame, ...]:
-        """Cameras of the planned frames after ``time_code`` (at most LOOKAHEAD_FRAMES),
-        each looked up once per run."""
+    def _path_cameras(self, time_code: float) -> tuple[CameraFrame, tuple[CameraFrame, ...]]:
+        """The camera at ``time_code`` and those of the planned frames after it (at most
+        UPCOMING_CAMERAS). Each planned camera is looked up once per run, so a frame's
+        camera is the object earlier views listed as upcoming (policies cache by it)."""
         k = self._planned_index.get(float(time_code))
         if k is None:
-            return ()
-        ahead = self._planned[k + 1 : k + 1 + LOOKAHEAD_FRAMES]
+            return self.stage_scene.camera(time_code), ()
+        times = self._planned[k : k + 1 + UPCOMING_CAMERAS]
         cameras = {
             t: self._cameras[t] if t in self._cameras else self.stage_scene.camera(t)
-            for t in ahead
+            for t in times
         }
         self._cameras = cameras  # earlier frames' cameras are not needed again
-        return tuple(cameras.values())
+        current, *ahead = cameras.values()
+        return current, tuple(ahead)
 
     def render(self, time_code: float) -> FrameOutput:
         """Render one frame with this renderer's options and selection policy."""
@@ -212,8 +214,7 @@ class FrameRenderer:
                 self._rasterizer.update_geometry(self.scene)
             if self._tracer is not None:
                 self._tracer.update_geometry(self.scene)
-        camera = self.stage_scene.camera(time_code)
-        upcoming = self._upcoming_cameras(time_code)
+        camera, upcoming = self._path_cameras(time_code)
         phase["set_time"] = _ms(t)
 
         scene = self.scene

@@ -1,8 +1,9 @@
 """The Selection Graph of the paper (§4.1–4.2): which candidate reflectors to ray-trace.
 
-One node per candidate reflector, holding the paper's processing cost ``C``, relevance
-``R`` and the calibrated ``cost`` the budget is checked against (predicted rays, see
-``phrt_usd.heuristic``). Two kinds of edges:
+One node per candidate reflector, holding the paper's relevance ``R`` and the calibrated
+``cost`` the budget is checked against (predicted rays, see ``phrt_usd.heuristic``), which
+takes the place of the paper's processing cost ``C`` here (``C`` is reported in the
+policy's metrics but decides nothing). Two kinds of edges:
 
 * the **cost list**: every node points to the next cheaper node (``next_cheaper``); the
   list starts at the most expensive node (``most_expensive``);
@@ -33,8 +34,8 @@ continues from the entry (the remaining budget only shrinks, so nodes before it 
 fit again). The result is "greedy by relevance among the nodes that fit", which is what
 the paper describes: the most relevant nodes whose cost fits the time left.
 
-The graph is small (tens of nodes): it is plain Python lists and dicts, with the relevance
-edges computed by one vectorised comparison.
+The graph is small (tens of nodes): it is plain Python lists and dicts, and a node's
+relevance edges are listed when the walk first asks for them.
 """
 
 from __future__ import annotations
@@ -43,15 +44,13 @@ import math
 from collections.abc import Iterable
 from dataclasses import dataclass
 
-import numpy as np
-
 
 @dataclass(frozen=True)
 class Node:
     """One candidate reflector.
 
     element: element id (index into ``Scene.elements``).
-    C, R: the paper's processing cost and relevance (unitless, finite, >= 0).
+    R: the paper's relevance (unitless, finite, >= 0).
     cost: what the budget is measured in (predicted rays, >= 0).
     traceable: False for candidates that cannot be traced on their own (no pixels in
         this frame: reflectors only seen through another reflector). They stay in the
@@ -73,7 +72,6 @@ class Node:
     """
 
     element: int
-    C: float
     R: float
     cost: float
     traceable: bool = True
@@ -102,8 +100,11 @@ class SelectionGraph:
             for k, e in enumerate(self.by_cost)
         }
 
-        # Relevance edges, each list ordered most relevant first.
-        self.more_relevant: dict[int, list[int]] = self._relevance_edges()
+        # Relevance edges, each list ordered most relevant first, built on first use:
+        # the admit walk only visits the edges of its entries.
+        self._by_relevance = sorted(self.nodes, key=lambda e: (-self.nodes[e].R, e))
+        self._relevance_rank = {e: k for k, e in enumerate(self._by_relevance)}
+        self.more_relevant: dict[int, list[int]] = _Edges(self._relevance_edges)
         #: Set by ``select``: claimed kept nodes that did not fit.
         self.unfit_claims: list[int] = []
 
@@ -112,24 +113,12 @@ class SelectionGraph:
         ra, rb = self.nodes[a].R, self.nodes[b].R
         return ra > rb or (ra == rb and a < b)
 
-    def _relevance_edges(self) -> dict[int, list[int]]:
-        ids = np.array(sorted(self.nodes), dtype=np.int64)
-        if len(ids) == 0:
-            return {}
-        r = np.array([self.nodes[e].R for e in ids], dtype=np.float64)
-        cost = np.array([self.nodes[e].cost for e in ids], dtype=np.float64)
-        # edge[i, j]: node j is more relevant than node i and costs no more than node i.
-        more = (r[None, :] > r[:, None]) | (
-            (r[None, :] == r[:, None]) & (ids[None, :] < ids[:, None])
-        )
-        edge = more & (cost[None, :] <= cost[:, None])
-        # Order each node's targets most relevant first (R descending, then id).
-        relevance_rank = np.lexsort((ids, -r))  # positions, most relevant first
-        edges: dict[int, list[int]] = {}
-        for i, e in enumerate(ids):
-            targets = relevance_rank[edge[i, relevance_rank]]
-            edges[int(e)] = [int(ids[t]) for t in targets]
-        return edges
+    def _relevance_edges(self, e: int) -> list[int]:
+        """Node ``e``'s relevance edges: the nodes ahead of it in relevance order that cost
+        no more than it does, most relevant first."""
+        cost = self.nodes[e].cost
+        ahead = self._by_relevance[: self._relevance_rank[e]]
+        return [t for t in ahead if self.nodes[t].cost <= cost]
 
     def select(self, budget: float, horizon_budget: float = math.inf) -> list[int]:
         """Keep, then admit (module docstring), within ``budget``.
@@ -209,3 +198,15 @@ class SelectionGraph:
             remaining -= self.nodes[best].cost
             horizon_left -= self.nodes[best].forecast
         return chosen
+
+
+class _Edges(dict):
+    """``SelectionGraph.more_relevant``: a dict that fills an entry on first lookup."""
+
+    def __init__(self, edges_of) -> None:
+        super().__init__()
+        self._edges_of = edges_of
+
+    def __missing__(self, e: int) -> list[int]:
+        self[e] = edges = self._edges_of(e)
+        return edges

@@ -10,15 +10,18 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from phrt_usd import heuristic
 from phrt_usd.errors import PhrtError
 from phrt_usd.frame import Budget, FrameView, TraceRecord
 from phrt_usd.heuristic import (
     ADMISSION_MARGIN,
     D_MIN,
     FORECAST_HORIZON,
+    LOOKAHEAD_BATCH,
     LOOKAHEAD_FRAMES,
     RAYS_SAFETY,
     TIME_SAFETY_MIN,
+    UPCOMING_CAMERAS,
     Heu1Policy,
     Heu2Policy,
     TraceTimeModel,
@@ -538,23 +541,32 @@ def test_lookahead_keeps_out_a_reflector_the_camera_will_approach():
         assert (1 in ids) is admitted, (upcoming != (), ids)
 
 
-def test_lookahead_reuses_each_upcoming_cameras_areas_without_changing_them():
+def test_lookahead_reuses_each_upcoming_cameras_areas_without_changing_them(monkeypatch):
     # Frame after frame the window of upcoming cameras slides by one; growth figures from
-    # a policy that caches each camera's box areas equal those of a fresh policy.
+    # a policy that caches each camera's box areas, computed in batches, equal those of a
+    # fresh policy.
     sc = scene([element((0.0, 0.0, -8.0)), element((1.0, 0.0, -8.0), half=0.2)])
-    path = [camera((0.3 * k / 10, 0.0, -6.0 * k / 60)) for k in range(60)]
+    frames = 2 * LOOKAHEAD_BATCH + 4
+    path = [camera((0.3 * k / 200, 0.0, -5.0 * k / 200)) for k in range(frames + UPCOMING_CAMERAS)]
+    calls = []
+    monkeypatch.setattr(
+        heuristic, "box_screen_area", lambda *a: calls.append(1) or box_screen_area(*a)
+    )
     policy = policy_of("heu1")
-    for t in range(6):
+    for t in range(frames):
         fv = view([300, 40], cam=path[t], time=t)
-        fv.upcoming_cameras = tuple(path[t + 1 : t + 1 + LOOKAHEAD_FRAMES])
+        fv.upcoming_cameras = tuple(path[t + 1 : t + 1 + UPCOMING_CAMERAS])
         policy.begin_frame(fv, sc)
-        fresh = policy_of("heu1")
-        fresh.begin_frame(fv, sc)
-        assert policy.lookahead_growth == pytest.approx(fresh.lookahead_growth, rel=1e-12)
+        if t % 7 == 0:
+            fresh = policy_of("heu1")
+            fresh.begin_frame(fv, sc)
+            assert policy.lookahead_growth == pytest.approx(fresh.lookahead_growth, rel=1e-12)
+            fresh.end_frame()
+            del calls[-1]
         assert min(policy.lookahead_growth.values()) > 1.0  # the camera approaches both
         policy.end_frame()
-        fresh.end_frame()
-    assert len(policy._box_areas) == LOOKAHEAD_FRAMES  # only the window is kept
+    assert len(calls) == 3  # frames 0, LOOKAHEAD_BATCH + 1 and 2 * (LOOKAHEAD_BATCH + 1)
+    assert len(policy._box_areas) <= 1 + UPCOMING_CAMERAS  # only the path ahead is kept
 
 
 def test_kept_selection_drops_the_fewest_when_it_no_longer_fits():

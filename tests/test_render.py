@@ -135,9 +135,11 @@ def test_planned_frames_give_each_view_the_upcoming_cameras():
         plan = [10.0, 12.0, 14.0, 16.0]
         renderer.plan(plan)
         ahead = renderer.prepare(12.0).upcoming_cameras
+        current = renderer.prepare(14.0).camera
         last = renderer.prepare(16.0).upcoming_cameras
     finally:
         renderer.close()
     assert len(ahead) == 2 and last == ()
+    assert current is ahead[0]  # the same object: policies cache per-camera figures by it
     for cam, t in zip(ahead, plan[2:], strict=True):
         np.testing.assert_array_equal(cam.world_from_camera, stage.camera(t).world_from_camera)

@@ -20,7 +20,7 @@ relevances = st.sampled_from([0.0, 0.5, 1.0, 2.0, 1e9, 1e18])
 def node_lists(draw, max_size=12):
     ids = draw(st.lists(st.integers(0, 200), unique=True, max_size=max_size))
     return [
-        Node(element=e, C=draw(costs), R=draw(relevances), cost=draw(costs),
+        Node(element=e, R=draw(relevances), cost=draw(costs),
              traceable=draw(st.booleans()) or draw(st.booleans()),
              kept=draw(st.booleans()), forecast=draw(costs), admission=draw(st.booleans()),
              challenger=draw(st.booleans()) or draw(st.booleans()))
@@ -144,10 +144,10 @@ def test_kept_nodes_drop_the_most_expensive_first():
     # with room to spare: the keep step drops one node (the costly one), not two. The
     # newcomer is less relevant than every kept node, so it cannot displace any.
     nodes = [
-        Node(element=0, C=1.0, R=9.0, cost=6.0, kept=True),
-        Node(element=1, C=1.0, R=1.0, cost=3.0, kept=True),
-        Node(element=2, C=1.0, R=1.0, cost=3.0, kept=True),
-        Node(element=3, C=1.0, R=0.5, cost=2.0),  # newcomer: only after the kept ones
+        Node(element=0, R=9.0, cost=6.0, kept=True),
+        Node(element=1, R=1.0, cost=3.0, kept=True),
+        Node(element=2, R=1.0, cost=3.0, kept=True),
+        Node(element=3, R=0.5, cost=2.0),  # newcomer: only after the kept ones
     ]
     graph = SelectionGraph(nodes)
     assert graph.select(8.0) == [2, 1, 3]
@@ -158,9 +158,9 @@ def test_kept_nodes_drop_the_most_expensive_first():
 
 
 def test_admission_needs_its_forecast_to_fit_the_horizon_budget():
-    kept = Node(element=0, C=1.0, R=10.0, cost=40.0, kept=True, forecast=70.0)
-    growing = Node(element=1, C=1.0, R=5.0, cost=20.0, forecast=50.0, admission=True)
-    entering = Node(element=2, C=1.0, R=4.0, cost=20.0, forecast=50.0)
+    kept = Node(element=0, R=10.0, cost=40.0, kept=True, forecast=70.0)
+    growing = Node(element=1, R=5.0, cost=20.0, forecast=50.0, admission=True)
+    entering = Node(element=2, R=4.0, cost=20.0, forecast=50.0)
     g = SelectionGraph([kept, growing, entering])
     # 40 + 20 + 20 fit now; the growing node's forecast does not fit 100 - 70 = 30, the
     # entering one (no admission check) is taken all the same.
@@ -178,9 +178,9 @@ def test_selection_does_not_depend_on_node_order(nodes, budget, rnd: random.Rand
 
 def test_unbounded_selects_every_traceable_node_and_zero_budget_none():
     nodes = [
-        Node(element=3, C=1.0, R=2.0, cost=10.0),
-        Node(element=1, C=1.0, R=5.0, cost=1.0),
-        Node(element=7, C=0.0, R=0.0, cost=0.0, traceable=False),
+        Node(element=3, R=2.0, cost=10.0),
+        Node(element=1, R=5.0, cost=1.0),
+        Node(element=7, R=0.0, cost=0.0, traceable=False),
     ]
     g = SelectionGraph(nodes)
     assert g.select(math.inf) == [1, 3]
@@ -192,10 +192,10 @@ def test_unbounded_selects_every_traceable_node_and_zero_budget_none():
 def test_paper_figure_like_example():
     # Expensive but most relevant node first if it fits; otherwise the cheaper relevant ones.
     nodes = [
-        Node(element=0, C=9.0, R=9.0, cost=9.0),
-        Node(element=1, C=5.0, R=4.0, cost=5.0),
-        Node(element=2, C=3.0, R=6.0, cost=3.0),
-        Node(element=3, C=1.0, R=1.0, cost=1.0),
+        Node(element=0, R=9.0, cost=9.0),
+        Node(element=1, R=4.0, cost=5.0),
+        Node(element=2, R=6.0, cost=3.0),
+        Node(element=3, R=1.0, cost=1.0),
     ]
     g = SelectionGraph(nodes)
     assert g.by_cost == [0, 1, 2, 3]
@@ -212,27 +212,27 @@ def test_duplicate_elements_are_rejected():
 
 
 def test_reserve_keeps_new_nodes_out_of_the_margin():
-    kept = Node(element=0, C=1.0, R=2.0, cost=50.0)
-    new = Node(element=1, C=1.0, R=1.0, cost=45.0, reserve=10.0)
+    kept = Node(element=0, R=2.0, cost=50.0)
+    new = Node(element=1, R=1.0, cost=45.0, reserve=10.0)
     graph = SelectionGraph([kept, new])
     assert graph.select(100.0) == [0]  # 50 + 45 fits, but not with the new node's reserve
     assert graph.select(105.0) == [0, 1]
     # A kept node is never held back by another node's reserve.
-    assert SelectionGraph([Node(element=2, C=1.0, R=1.0, cost=100.0)]).select(100.0) == [2]
+    assert SelectionGraph([Node(element=2, R=1.0, cost=100.0)]).select(100.0) == [2]
 
 
 def test_a_more_relevant_newcomer_displaces_a_kept_node():
     """The paper's hysteresis: a kept node (R with its S·I bonus) stays unless a node
     that could be taken instead is more relevant; the budget fits one of the two."""
-    newcomer = Node(element=1, C=1.0, R=3.0, cost=5.0)
-    weak = Node(element=0, C=1.0, R=1.0, cost=5.0, kept=True)
-    strong = Node(element=0, C=1.0, R=4.0, cost=5.0, kept=True)
+    newcomer = Node(element=1, R=3.0, cost=5.0)
+    weak = Node(element=0, R=1.0, cost=5.0, kept=True)
+    strong = Node(element=0, R=4.0, cost=5.0, kept=True)
     assert SelectionGraph([weak, newcomer]).select(5.0) == [1]
     assert SelectionGraph([strong, newcomer]).select(5.0) == [0]
     # Nor can one that may not challenge (HEU1: cost pushed it out in favour of these).
-    pushed_out = Node(element=1, C=1.0, R=3.0, cost=5.0, challenger=False)
+    pushed_out = Node(element=1, R=3.0, cost=5.0, challenger=False)
     assert SelectionGraph([weak, pushed_out]).select(5.0) == [0]
     assert SelectionGraph([weak, pushed_out]).select(10.0) == [0, 1]  # free budget: taken
     # A challenger that does not fit the budget cannot displace anything.
-    big = Node(element=1, C=1.0, R=3.0, cost=50.0)
+    big = Node(element=1, R=3.0, cost=50.0)
     assert SelectionGraph([weak, big]).select(5.0) == [0]

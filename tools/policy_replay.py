@@ -37,7 +37,7 @@ from types import SimpleNamespace
 import numpy as np
 
 from phrt_usd.frame import Budget
-from phrt_usd.heuristic import LOOKAHEAD_FRAMES, AllPolicy, make_policy
+from phrt_usd.heuristic import UPCOMING_CAMERAS, AllPolicy, make_policy
 from phrt_usd.image_metrics import flip_map
 from phrt_usd.render_job import parse_frames
 from phrt_usd.renderer import FrameRenderer, RenderOptions
@@ -170,7 +170,7 @@ def replay(
     for f, frame in enumerate(frames):
         scene = SimpleNamespace(elements=frame.elements, lights=data["lights"])
         counts = frame.view.pixel_counts
-        ahead = frames[f + 1 : f + 1 + LOOKAHEAD_FRAMES] if lookahead else []
+        ahead = frames[f + 1 : f + 1 + UPCOMING_CAMERAS] if lookahead else []
         view = replace(frame.view, upcoming_cameras=tuple(g.view.camera for g in ahead))
         policy.begin_frame(view, scene)
         rays, chosen = 0, []
