@@ -824,6 +824,10 @@ class Heu1Policy(BudgetedPolicy):
             return []
         if frame.first_allowance is None:
             frame.first_allowance = allowance
+        elif all(self.predicted_rays(e) > allowance for e in self._untraced_visible()):
+            # A later round in which nothing fits: no graph needed (the first round's is,
+            # for the claims the keep step could not fit).
+            return []
         # The margin and the horizon budget are shares of the whole frame's budget, also
         # in later rounds.
         reserve = ADMISSION_MARGIN * frame.first_allowance
