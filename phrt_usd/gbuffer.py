@@ -523,7 +523,12 @@ class Rasterizer:
         self.cube_lookup_on_gpu = True
         self._pool = ThreadPoolExecutor(DERIVE_THREADS, thread_name_prefix="phrt-gbuffer")
         self._closed = False
-        self._upload(scene)
+        _OPEN.add(self)
+        try:
+            self._upload(scene)
+        except BaseException:
+            self.close()
+            raise
 
     # ------------------------------------------------------------------ geometry upload
 
@@ -1821,6 +1826,7 @@ class Rasterizer:
         if self._closed:
             return
         self._closed = True
+        _OPEN.discard(self)
         self._pool.shutdown(wait=True)
         self._platform.make_current()
         self._delete_shadow_batches()
@@ -1838,11 +1844,14 @@ class Rasterizer:
     def __exit__(self, *exc) -> None:
         self.close()
 
-    def __del__(self) -> None:
-        try:
-            self.close()
-        except Exception:  # interpreter shutdown: GL may already be gone
-            pass
+
+
+#: Every rasterizer not closed yet. pyrender's own finalisers delete GL objects in whatever
+#: context is current, and the garbage collector can run them in the middle of another
+#: rasterizer's render (any allocation may trigger it), deleting that one's framebuffers:
+#: so a rasterizer is referenced from here until ``close()`` (or the end of the process)
+#: and is never collected while open.
+_OPEN: set[Rasterizer] = set()
 
 
 def sample_bilinear_wrap(texture: np.ndarray, uv: np.ndarray) -> np.ndarray:

@@ -329,6 +329,25 @@ def test_mirror_visible_from_behind(tmp_path):
     assert np.all(g.normal[g.covered][:, 1] < -0.99)  # flipped towards the camera below
 
 
+def test_an_open_rasterizer_is_not_collected_until_closed():
+    """pyrender's finalisers delete GL objects in whatever context is current; a rasterizer
+    collected during another's render would delete that one's framebuffers."""
+    import gc
+    import weakref
+
+    quad = floor_mesh(size=4.0, n=1)
+    scene = build_scene([{"mesh": quad, "color": (1, 0, 0), "reflector": True}])
+    cam = look_at([0.3, 3.0, 0.2], [0.0, 0.0, 0.0], up=(0.0, 0.0, 1.0))
+    with Rasterizer(scene, W, H) as a:
+        dropped = weakref.ref(Rasterizer(scene, W, H))
+        gc.collect()
+        assert dropped() is not None  # still open: kept
+        assert a.render(cam).covered.mean() > 0.2
+        dropped().close()
+    gc.collect()
+    assert dropped() is None  # closed: collected as usual
+
+
 def test_random_triangle_soup_ids_exact(tmp_path):
     """70k random coloured triangles (ids above 2^16 use the third byte): every id the
     rasterizer writes names a triangle that really contains the pixel's ray, and ids
