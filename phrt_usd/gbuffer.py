@@ -1845,7 +1845,6 @@ class Rasterizer:
         self.close()
 
 
-
 #: Every rasterizer not closed yet. pyrender's own finalisers delete GL objects in whatever
 #: context is current, and the garbage collector can run them in the middle of another
 #: rasterizer's render (any allocation may trigger it), deleting that one's framebuffers:
