@@ -375,10 +375,8 @@ class _FrameState:
     first_allowance: float | None = None  # the first round's budget in rays (HEU1 margin)
     forecast_used: float = 0.0  # HEU1: forecasts of this frame's selection, summed
     unfit_claims: set[int] = field(default_factory=set)  # HEU1: kept, claimed, did not fit
-    #: C per element as of the last recorded round (C changes only when ``record``
-    #: learns Q and reflections; the graph of every round and the metrics reuse it).
-    C: dict[int, float] = field(default_factory=dict)
-    #: ``predicted_rays`` per element as of the last recorded round (same reason).
+    #: ``predicted_rays`` per element as of the last recorded round (it changes only when
+    #: ``record`` learns rays per pixel; every round asks for it per candidate).
     rays: dict[int, float] = field(default_factory=dict)
     growth: dict[int, float] = field(default_factory=dict)  # HEU1: growth() of this frame
 
@@ -473,8 +471,7 @@ class BudgetedPolicy(ABC):
 
     def record(self, records: list[TraceRecord], seconds: float) -> None:
         frame = self._require_frame()
-        frame.C.clear()  # Q, reflections and rays per pixel change below
-        frame.rays.clear()
+        frame.rays.clear()  # rays per pixel change below
         n = len(frame.scene.elements)
         total_rays = 0
         for rec in records:
@@ -525,15 +522,13 @@ class BudgetedPolicy(ABC):
 
     def cost_C(self, element: int) -> float:
         """The paper's C for ``element`` in the current frame (see the module docstring)."""
-        frame = self._require_frame()
-        if element not in frame.C:
-            self._fill_C(frame, [element, *self.candidates()])
-        return frame.C[element]
+        return self.costs_C([element])[element]
 
-    def _fill_C(self, frame: _FrameState, elements: list[int]) -> None:
-        """C of ``elements`` into ``frame.C``, in one array pass over every (element,
-        reflected reflector) pair: the graph of a round and the metrics ask for every
-        candidate's C, and per-element numpy calls would cost far more than the sums."""
+    def costs_C(self, elements: list[int]) -> dict[int, float]:
+        """``cost_C`` of each of ``elements``, in one array pass over every (element,
+        reflected reflector) pair: the metrics ask for every candidate's C, and
+        per-element numpy calls would cost far more than the sums."""
+        frame = self._require_frame()
         ids = np.array(sorted(set(elements)), dtype=np.int64)
         pairs = [(k, j, f) for k, e in enumerate(ids.tolist())
                  for j, f in sorted(self.reflects.get(e, {}).items())]  # fmt: skip
@@ -547,7 +542,7 @@ class BudgetedPolicy(ABC):
             frame.V[ids], [self.q_of(e) for e in ids.tolist()], owner, seen_V,
             [self.q_of(j) for j in js.tolist()], distance_factor(sep, frame.D[src]),
         )  # fmt: skip
-        frame.C.update(zip(ids.tolist(), C.tolist(), strict=True))
+        return dict(zip(ids.tolist(), C.tolist(), strict=True))
 
     def relevance_R(self, element: int) -> float:
         frame = self._require_frame()
@@ -605,12 +600,14 @@ class BudgetedPolicy(ABC):
         """Figures for every candidate as of now (after the last recorded round)."""
         frame = self._require_frame()
         traced = set(frame.traced)
+        candidates = self.candidates()
+        C = self.costs_C(candidates)
         out = {}
-        for e in self.candidates():
+        for e in candidates:
             rays = frame.predicted_rays.get(e, self.predicted_rays(e))
             out[e] = ReflectorMetrics(
                 V=float(frame.V[e]),
-                C=self.cost_C(e),
+                C=C[e],
                 R=self.relevance_R(e),
                 Q=self.q_of(e),
                 S=e in self.previous_selection,
@@ -716,12 +713,12 @@ class Heu1Policy(BudgetedPolicy):
             # One call for every camera of the view not cached yet, the ones beyond the
             # window included: with the renderer's UPCOMING_CAMERAS that is one call per
             # LOOKAHEAD_BATCH frames.
-            new = {id(c): c for c in (view.camera, *view.upcoming_cameras) if id(c) not in cached}
+            path = {id(c): c for c in (view.camera, *view.upcoming_cameras)}
+            new = {k: c for k, c in path.items() if k not in cached}
             lo = np.array([scene.elements[i].bounds_min for i in refl], dtype=np.float64)
             hi = np.array([scene.elements[i].bounds_max for i in refl], dtype=np.float64)
             areas = box_screen_area(lo, hi, list(new.values()), w, h)
-            wanted = {id(c) for c in (view.camera, *view.upcoming_cameras)}
-            cached = {k: v for k, v in cached.items() if k in wanted}  # drop cameras passed
+            cached = {k: v for k, v in cached.items() if k in path}  # drop cameras passed
             cached.update(zip(new, zip(new.values(), areas, strict=True), strict=True))
             self._box_areas = cached
         cols = np.searchsorted(refl, ids)
