@@ -30,13 +30,14 @@ transform used wherever an LDR image is needed (the sweep's FLIP error uses it t
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 import OpenImageIO as oiio
 
 from phrt_usd.errors import PhrtError
-from phrt_usd.run_files import atomic_path
+from phrt_usd.run_files import WriteFailed, atomic_path
 
 #: Largest finite half-float; brighter radiance is clamped to it in the EXR's RGB.
 HALF_MAX = 65504.0
@@ -119,7 +120,7 @@ def write_frame_exr(
     spec.attribute("oiio:ColorSpace", "lin_rec709_scene")
     for key, value in (metadata or {}).items():
         spec.attribute(key, value)
-    with atomic_path(path) as tmp:
+    with atomic_path(path, _check_image(spec)) as tmp:
         _write(tmp, spec, pixels)
 
 
@@ -189,12 +190,16 @@ def write_preview_png(path: Path, beauty: np.ndarray, exposure: float = 0.0) -> 
         raise PhrtError(f"{path}: beauty must be (H, W, 3), got {beauty.shape}")
     if not np.isfinite(beauty).all():
         raise PhrtError(f"{path}: beauty has NaN/Inf")
-    ldr = np.rint(tonemap_ldr(beauty, exposure) * 255.0).astype(np.uint8)
-    height, width = ldr.shape[:2]
+    write_png_atomic(path, np.rint(tonemap_ldr(beauty, exposure) * 255.0).astype(np.uint8))
+
+
+def write_png_atomic(path: Path, pixels: np.ndarray) -> None:
+    """Write (H, W, 3) uint8 display-referred sRGB ``pixels`` as a PNG, atomically."""
+    height, width = pixels.shape[:2]
     spec = oiio.ImageSpec(width, height, 3, oiio.UINT8)
     spec.attribute("oiio:ColorSpace", "srgb_rec709_scene")
-    with atomic_path(path) as tmp:
-        _write(tmp, spec, ldr)
+    with atomic_path(Path(path), _check_image(spec)) as tmp:
+        _write(tmp, spec, np.ascontiguousarray(pixels, dtype=np.uint8))
 
 
 def read_preview_png(path: Path) -> np.ndarray:
@@ -210,12 +215,34 @@ def read_preview_png(path: Path) -> np.ndarray:
 
 
 def _write(path: Path, spec: oiio.ImageSpec, pixels: np.ndarray) -> None:
-    """Write ``pixels`` (H, W, C) with ``spec`` to ``path``; PhrtError on failure."""
+    """Write ``pixels`` (H, W, C) with ``spec`` to ``path``; PhrtError on failure, the
+    close included (a full disk shows there first)."""
     output = oiio.ImageOutput.create(str(path))
     if output is None:
         raise PhrtError(f"{path}: no image writer for this extension ({oiio.geterror()})")
-    try:
-        if not output.open(str(path), spec) or not output.write_image(pixels):
-            raise PhrtError(f"{path}: cannot write image ({output.geterror()})")
-    finally:
-        output.close()
+    ok = output.open(str(path), spec) and output.write_image(pixels)
+    closed = output.close()
+    if not (ok and closed):
+        raise WriteFailed(f"{path}: cannot write image ({output.geterror() or 'close failed'})")
+
+
+def _check_image(spec: oiio.ImageSpec) -> Callable[[Path], None]:
+    """A check for ``atomic_path``: the written file opens as an image of ``spec``'s size
+    and channel count (the header and the file's length are read, not every pixel)."""
+
+    def check(path: Path) -> None:
+        image = oiio.ImageInput.open(str(path))
+        if image is None:
+            raise WriteFailed(f"{path}: written image does not open ({oiio.geterror()})")
+        try:
+            got = image.spec()
+            if (got.width, got.height, got.nchannels) != (
+                spec.width,
+                spec.height,
+                spec.nchannels,
+            ):
+                raise WriteFailed(f"{path}: written image has the wrong size")
+        finally:
+            image.close()
+
+    return check

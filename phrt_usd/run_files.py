@@ -11,19 +11,22 @@ Layout of a render's output directory ``OUT``::
 (``0012``, ``-003``), fractional ones keep 3 decimals (``0012.500``), so time codes are
 told apart to 1/1000 of a time code.
 
-Every file is written atomically: to a hidden temp file in the same directory (same
-extension, so OpenImageIO / USD pick the right format), then ``os.replace``'d over the
-final name. A reader never sees a half-written file and a crash leaves the old file whole.
+Every file is written by ``atomic_path``: to an exclusively created hidden temp file in the
+same directory (same extension, so OpenImageIO / USD pick the right format), checked,
+fsynced, then renamed over the final name. A reader never sees a half-written file, a
+crash or a full disk leaves the old file whole, and a planted symlink is never followed.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
 import platform
-import secrets
-from collections.abc import Iterator
+import stat
+import tempfile
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import asdict
 from datetime import UTC, datetime
@@ -51,27 +54,97 @@ INTEGRAL_TIME_TOLERANCE = 1e-6
 # --- atomic writes ---------------------------------------------------------------------
 
 
-@contextmanager
-def atomic_path(final: Path) -> Iterator[Path]:
-    """Yield a temp path next to ``final``; on success move it over ``final``.
+class WriteFailed(PhrtError):
+    """An output could not be written (OS error, full disk, writer failure). The previous
+    file under that name, if any, is untouched and no temp file is left behind."""
 
-    The temp name is ``.<name>.<pid>.<random>.tmp<ext>`` in ``final``'s directory (same
-    file system, so ``os.replace`` is atomic; same extension, so writers that choose a
-    format by extension work). If the body raises, the temp file is removed and ``final``
-    is left untouched.
+
+#: Permission bits a new output gets before the umask (what ``open(..., "w")`` uses).
+NEW_FILE_MODE = 0o666
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+@contextmanager
+def atomic_path(final: Path, check: Callable[[Path], None] | None = None) -> Iterator[Path]:
+    """Yield a fresh temp path next to ``final``; once the body has written it, publish it
+    under ``final``. The one way phrt writes any output file.
+
+    * The temp file ``.<stem>.<random>.tmp<ext>`` is created exclusively in ``final``'s
+      directory (``O_CREAT | O_EXCL | O_NOFOLLOW``: a planted file or symlink at that name
+      is never opened, let alone followed) with ``final``'s extension, so writers that pick
+      a format by extension (OpenImageIO, USD) work; the body writes it by name.
+    * On success the temp must still be a regular file (not replaced by a symlink) and
+      non-empty; ``check(tmp)`` (optional) may read it back and raise; it is fsynced,
+      given ``final``'s current mode (a new file gets ``NEW_FILE_MODE`` less the umask),
+      renamed over ``final`` (a rename replaces a symlink at ``final`` itself, never its
+      target) and the directory is fsynced.
+    * If anything fails, the temp file is removed, ``final`` keeps its previous content,
+      and an OS error is raised as ``WriteFailed`` naming ``final`` and the error.
     """
     final = Path(final)
-    final.parent.mkdir(parents=True, exist_ok=True)
-    stem, ext = _split_extension(final.name)
-    tmp = final.with_name(f".{stem}.{os.getpid()}.{secrets.token_hex(4)}.tmp{ext}")
+    try:
+        final.parent.mkdir(parents=True, exist_ok=True)
+        stem, ext = _split_extension(final.name)
+        fd, name = tempfile.mkstemp(prefix=f".{stem}.", suffix=f".tmp{ext}", dir=final.parent)
+        os.close(fd)
+    except OSError as error:
+        raise WriteFailed(f"{final}: cannot write ({_os_reason(error)})") from None
+    tmp = Path(name)
     try:
         yield tmp
-        if not tmp.exists():
-            raise PhrtError(f"writing {final}: the writer produced no file")
-        os.replace(tmp, final)
+        _publish(tmp, final, check)
+    except OSError as error:
+        raise WriteFailed(f"{final}: cannot write ({_os_reason(error)})") from None
     finally:
-        if tmp.exists():
+        with contextlib.suppress(FileNotFoundError):
             tmp.unlink()
+
+
+def _publish(tmp: Path, final: Path, check: Callable[[Path], None] | None) -> None:
+    """Verify, fsync and rename ``tmp`` over ``final`` (see ``atomic_path``)."""
+    info = tmp.lstat()
+    if not stat.S_ISREG(info.st_mode):
+        raise WriteFailed(f"{final}: the temp file was replaced by something else")
+    if info.st_size == 0:
+        raise WriteFailed(f"{final}: the writer produced an empty file")
+    if check is not None:
+        check(tmp)
+    try:
+        mode = stat.S_IMODE(final.stat().st_mode)
+    except FileNotFoundError:
+        mode = NEW_FILE_MODE & ~_umask()
+    fd = os.open(tmp, os.O_RDONLY | os.O_NOFOLLOW)
+    try:
+        os.fchmod(fd, mode)
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+    os.replace(tmp, final)
+    _fsync_directory(final.parent)
+
+
+def _fsync_directory(path: Path) -> None:
+    """Make a rename in ``path`` durable (a no-op where directories cannot be opened)."""
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass  # some file systems do not fsync directories; the rename itself happened
+    finally:
+        os.close(fd)
+
+
+def _os_reason(error: OSError) -> str:
+    """``No space left on device`` etc.; the strerror of an OSError without its repr."""
+    return error.strerror or str(error)
 
 
 def _split_extension(name: str) -> tuple[str, str]:
@@ -82,10 +155,21 @@ def _split_extension(name: str) -> tuple[str, str]:
     return name[:dot], name[dot:]
 
 
-def write_text_atomic(path: Path, text: str) -> None:
-    """Write ``text`` (UTF-8) to ``path`` atomically."""
-    with atomic_path(path) as tmp:
-        tmp.write_text(text, encoding="utf-8")
+def write_bytes_atomic(path: Path, data: bytes, check: Callable[[Path], None] | None = None):
+    """Write ``data`` to ``path`` atomically (see ``atomic_path``)."""
+    with atomic_path(path, check) as tmp:
+        fd = os.open(tmp, os.O_WRONLY | os.O_TRUNC | os.O_NOFOLLOW)
+        try:
+            view = memoryview(data)
+            while view:
+                view = view[os.write(fd, view) :]
+        finally:
+            os.close(fd)
+
+
+def write_text_atomic(path: Path, text: str, check: Callable[[Path], None] | None = None):
+    """Write ``text`` (UTF-8) to ``path`` atomically (see ``atomic_path``)."""
+    write_bytes_atomic(path, text.encode("utf-8"), check)
 
 
 # --- layout ----------------------------------------------------------------------------

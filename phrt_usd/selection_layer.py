@@ -33,7 +33,7 @@ from pxr import Sdf, Vt
 
 from phrt_usd.errors import PhrtError
 from phrt_usd.frame import FrameStats, ReflectorMetrics
-from phrt_usd.run_files import atomic_path
+from phrt_usd.run_files import WriteFailed, atomic_path
 
 #: Prim holding the per-frame render statistics (an ``over``: never defined, never drawn).
 STATS_PRIM_PATH = Sdf.Path("/PhrtRenderStats")
@@ -112,10 +112,20 @@ def write_selection_layer(
         _write_stats_prim(layer, frames)
         _write_metadata(layer, stage_path, run_info, frames, tcps)
 
-    with atomic_path(path) as tmp:
+    with atomic_path(path, check=_check_layer) as tmp:
         if not layer.Export(str(tmp)):
-            raise PhrtError(f"selection layer {path}: USD could not write the file")
+            raise WriteFailed(f"selection layer {path}: USD could not write the file")
     return path
+
+
+def _check_layer(path: Path) -> None:
+    """A check for ``atomic_path``: the written file opens as a USD layer again."""
+    try:
+        ok = Sdf.Layer.OpenAsAnonymous(str(path)) is not None
+    except Exception:  # noqa: BLE001 - USD raises Tf.ErrorException
+        ok = False
+    if not ok:
+        raise WriteFailed(f"selection layer {path}: the written file does not parse as USD")
 
 
 @dataclass

@@ -26,7 +26,6 @@ from __future__ import annotations
 import csv
 import io
 import json
-import os
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
@@ -37,9 +36,10 @@ import numpy as np
 from phrt_usd.errors import PhrtError
 from phrt_usd.heuristic import make_policy
 from phrt_usd.image_metrics import flip_map, mean_over, psnr
-from phrt_usd.images import write_preview_png
+from phrt_usd.images import write_png_atomic, write_preview_png
 from phrt_usd.render_job import parse_frames, stop_on_signals
 from phrt_usd.renderer import FrameOutput, FrameRenderer, RenderOptions
+from phrt_usd.run_files import write_text_atomic
 from phrt_usd.schema import DEFAULT_SELECTION_WEIGHT
 from phrt_usd.stage_reader import open_stage
 
@@ -384,18 +384,8 @@ def _write_report_images(
 
 def _write_display_png(path: Path, rgb: np.ndarray) -> None:
     """Write an (H, W, 3) display-referred [0, 1] image as an 8-bit PNG, atomically."""
-    import OpenImageIO as oiio
-
-    tmp = path.with_name(f".{path.stem}.tmp.png")
     data = np.round(np.clip(rgb, 0.0, 1.0) * 255.0).astype(np.uint8)
-    h, w = data.shape[:2]
-    spec = oiio.ImageSpec(w, h, 3, oiio.UINT8)
-    image_out = oiio.ImageOutput.create(str(tmp))
-    if image_out is None or not image_out.open(str(tmp), spec):
-        raise PhrtError(f"{path}: cannot write PNG ({oiio.geterror()})")
-    image_out.write_image(data)
-    image_out.close()
-    os.replace(tmp, path)
+    write_png_atomic(path, data)
 
 
 def write_sweep_csv(path: Path, rows: list[dict]) -> None:
@@ -403,14 +393,8 @@ def write_sweep_csv(path: Path, rows: list[dict]) -> None:
     writer = csv.DictWriter(buf, fieldnames=CSV_COLUMNS)
     writer.writeheader()
     writer.writerows(rows)
-    _write_text(path, buf.getvalue())
+    write_text_atomic(path, buf.getvalue())
 
 
 def _write_json(path: Path, data: dict) -> None:
-    _write_text(path, json.dumps(data, indent=1))
-
-
-def _write_text(path: Path, text: str) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
+    write_text_atomic(path, json.dumps(data, indent=1))
