@@ -2,8 +2,10 @@
 print. Domain errors (``PhrtError``) end as one ``error: ...`` line on stderr and a
 non-zero exit code, never a traceback; see ``user_errors``.
 
-Exit codes: 0 success; 1 the stage/prims have problems (validation errors, bad prim);
-2 the input cannot be read (missing file, directory, not USD) or a bad option.
+Exit codes: 0 success; 1 the stage/prims have problems (validation errors, bad prim) or
+the render failed (a frame or a file could not be written); 2 the input cannot be read
+(missing file, directory, not USD) or an option is bad; 130 interrupted. With ``--json``
+an error is one JSON object ``{"error": message, "code": exit code}`` on stdout.
 """
 
 from __future__ import annotations
@@ -20,10 +22,11 @@ from rich.console import Console
 from rich.table import Table
 
 import phrt_usd  # noqa: F401  (registers the schema plugin before any stage opens)
-from phrt_usd.errors import PhrtError
+from phrt_usd.errors import BadOption, PhrtError
 
 EXIT_PROBLEMS = 1
 EXIT_UNREADABLE = 2
+EXIT_INTERRUPTED = 130
 
 app = typer.Typer(
     help="Heuristic hybrid rendering of USD stages (raster + selective ray-traced reflections).",
@@ -37,18 +40,33 @@ class UnreadableInput(PhrtError):
     """The input cannot be read at all (exit 2)."""
 
 
+def fail(message: str, code: int, json_out: bool = False) -> typer.Exit:
+    """Report ``message`` (one line: ``error: ...`` on stderr, or the JSON error object on
+    stdout) and return the ``typer.Exit`` to raise."""
+    message = " ".join(str(message).split())  # one line, whatever the source
+    if json_out:
+        print_json({"error": message, "code": code})
+    else:
+        typer.echo(f"error: {message}", err=True)
+    return typer.Exit(code)
+
+
 @contextlib.contextmanager
-def user_errors(exit_code: int = EXIT_PROBLEMS) -> Iterator[None]:
-    """Turn a PhrtError raised inside the block into ``error: <message>`` on stderr and
-    ``typer.Exit(exit_code)`` (UnreadableInput always exits 2)."""
+def user_errors(exit_code: int = EXIT_PROBLEMS, json_out: bool = False) -> Iterator[None]:
+    """Turn an error raised inside the block into one line and an exit code (see the
+    module docstring): UnreadableInput and BadOption exit 2, another PhrtError
+    ``exit_code``, an OSError (a file phrt could not read or write) 1, Ctrl-C 130."""
     try:
         yield
-    except UnreadableInput as exc:
-        typer.echo(f"error: {exc}", err=True)
-        raise typer.Exit(EXIT_UNREADABLE) from None
+    except (UnreadableInput, BadOption) as exc:
+        raise fail(str(exc), EXIT_UNREADABLE, json_out) from None
     except PhrtError as exc:
-        typer.echo(f"error: {exc}", err=True)
-        raise typer.Exit(exit_code) from None
+        raise fail(str(exc), exit_code, json_out) from None
+    except OSError as exc:
+        where = f"{exc.filename}: " if exc.filename else ""
+        raise fail(f"{where}{exc.strerror or exc}", EXIT_PROBLEMS, json_out) from None
+    except KeyboardInterrupt:
+        raise fail("interrupted", EXIT_INTERRUPTED, json_out) from None
 
 
 def open_input(path: Path):
@@ -79,7 +97,7 @@ def validate(stage: StageArg, json_out: JsonOpt = False) -> None:
     """
     from phrt_usd.validation import validate_stage
 
-    with user_errors():
+    with user_errors(json_out=json_out):
         report = validate_stage(open_input(stage), str(stage))
     if json_out:
         print_json(report.as_dict())
@@ -97,7 +115,7 @@ def inspect(stage: StageArg, json_out: JsonOpt = False) -> None:
     """Summarise reflectors, camera paths, render settings, lights and needed passes."""
     from phrt_usd.inspection import inspect_stage
 
-    with user_errors():
+    with user_errors(json_out=json_out):
         summary = inspect_stage(open_input(stage), str(stage))
     if json_out:
         print_json(summary)
@@ -175,14 +193,11 @@ def _print_summary(s: dict) -> None:
 #: The demo stage rendered when `phrt render` is given no stage.
 DEMO_STAGE = Path(__file__).resolve().parent.parent / "stages" / "farm.usda"
 
-EXIT_INTERRUPTED = 130
-
-
 def _parse_resolution(text: str) -> tuple[int, int]:
     try:
         w, h = (int(v) for v in text.lower().split("x"))
     except ValueError:
-        raise PhrtError(f"--resolution {text!r}: expected WxH, e.g. 320x240") from None
+        raise BadOption(f"--resolution {text!r}: expected WxH, e.g. 320x240") from None
     return w, h
 
 
@@ -254,7 +269,12 @@ def render(
     selection_layer: Annotated[
         Path | None, typer.Option(help="Selection layer (default OUT/selection.usda).")
     ] = None,
-    resume: Annotated[bool, typer.Option(help="Continue an interrupted render in OUT.")] = False,
+    resume: Annotated[
+        bool, typer.Option(help="Continue the interrupted render in OUT (same run only).")
+    ] = False,
+    overwrite: Annotated[
+        bool, typer.Option(help="Replace phrt's files in a non-empty OUT (others stay).")
+    ] = False,
     images: Annotated[bool, typer.Option(help="Write EXR + PNG per frame.")] = True,
     workers: WorkersOpt = None,
     scheduler: SchedulerOpt = None,
@@ -269,10 +289,12 @@ def render(
     from phrt_usd.stage_reader import read_stage
 
     stage = stage or DEMO_STAGE
-    with user_errors():
+    with user_errors(json_out=json_out):
         usd_stage = open_input(stage)
         params = read_render_params(usd_stage)
         scene = read_stage(usd_stage, camera=camera)
+        for warning in getattr(scene, "warnings", []):
+            typer.echo(f"warning: {warning}", err=True)
         width, height = _parse_resolution(resolution) if resolution else params.resolution
         budget_ms = _unbounded(budget_ms)
         if budget_ms is None and budget_rays is not None:
@@ -300,6 +322,7 @@ def render(
             camera=camera,
             selection_layer=selection_layer,
             resume=resume,
+            overwrite=overwrite,
             write_images=images,
         )
         progress = _progress(not json_out and sys.stderr.isatty())
@@ -323,8 +346,8 @@ def render(
                             **_cluster_args(chunk_frames, warmup),
                         )
             except RenderInterrupted as exc:
-                typer.echo(f"interrupted: {exc}", err=True)
-                raise typer.Exit(EXIT_INTERRUPTED) from None
+                raise fail(f"interrupted: {exc}", EXIT_INTERRUPTED, json_out) from None
+    summary["warnings"] = list(getattr(scene, "warnings", []))
     if json_out:
         print_json(summary)
     else:
@@ -343,7 +366,7 @@ def report(
     """The paper's metrics (transitions, mean selected, fps, overruns) of a run."""
     from phrt_usd.report import build_report, print_report
 
-    with user_errors():
+    with user_errors(json_out=json_out):
         result = build_report(run, vs)
     if json_out:
         print_json(result)
@@ -379,7 +402,7 @@ def sweep(
     from phrt_usd.schema import read_render_params
     from phrt_usd.sweep import SweepSpec, parse_budget_list, run_sweep
 
-    with user_errors():
+    with user_errors(json_out=json_out):
         opened = [open_input(path) for path in stages]  # all readable before starting
         weight = selection_weight
         if weight is None:

@@ -299,14 +299,13 @@ def run_render_on_cluster(
     """``run_render`` on a Dask cluster (no checkpoint / ``--resume``: a lost chunk is
     re-run by the scheduler instead). ``on_frame(done, total)`` after every chunk.
     Returns ``run_render``'s summary dict plus ``chunk_pids`` (see the sweep's)."""
-    from phrt_usd.render_job import job_run_info, parse_frames, write_run_records
+    from phrt_usd.render_job import RunDirectory, job_run_info, parse_frames, write_run_records
     from phrt_usd.report import build_report
     from phrt_usd.stage_reader import open_stage
 
     if job.resume:
         raise PhrtError("--resume is not available with --workers / --scheduler")
     out = Path(job.out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     scene = open_stage(job.stage_path, camera=job.camera)
     times = parse_frames(job.frames, scene.frame_range)
     layer_path = job.selection_layer or out / "selection.usda"
@@ -323,13 +322,14 @@ def run_render_on_cluster(
         if on_frame is not None:
             on_frame(len(frames), len(times))
 
-    worker_job = replace(job, out_dir=out.resolve())  # workers write images there
-    results = _gather(client, render_chunk, chunks, worker_job, progress)
-    _check_complete(chunks, results)
-    frames = write(results)
-    if sorted(f.time for f in frames) != sorted(times):
-        raise PhrtError(f"cluster render of {job.stage_path}: frames missing or repeated")
-    _remove_stale_temporaries(out)
+    with RunDirectory(out, layer_path, scene, overwrite=job.overwrite):
+        worker_job = replace(job, out_dir=out.resolve())  # workers write images there
+        results = _gather(client, render_chunk, chunks, worker_job, progress)
+        _check_complete(chunks, results)
+        frames = write(results)
+        if sorted(f.time for f in frames) != sorted(times):
+            raise PhrtError(f"cluster render of {job.stage_path}: frames missing or repeated")
+        _remove_stale_temporaries(out)
     summary = build_report(layer_path)
     summary.update(
         out=str(out),

@@ -354,6 +354,88 @@ class TraceTimeModel:
         return max((ms / self.safety - self.overhead_ms) / self.ms_per_ray, 0.0)
 
 
+# ------------------------------------------------------------- memory as plain data
+
+
+def _to_plain(value):
+    """Policy memory → JSON data: sets become ``{"set": [...]}``, dicts with int keys
+    ``{"int_keys": [[k, v], ...]}`` (JSON keys are strings), tuples lists."""
+    if isinstance(value, set | frozenset):
+        return {"set": sorted(_to_plain(v) for v in value)}
+    if isinstance(value, dict):
+        if all(isinstance(k, str) for k in value):
+            return {"str_keys": {k: _to_plain(v) for k, v in value.items()}}
+        return {"int_keys": [[int(k), _to_plain(v)] for k, v in value.items()]}
+    if isinstance(value, list | tuple):
+        return [_to_plain(v) for v in value]
+    if isinstance(value, np.generic):
+        return value.item()
+    if value is None or isinstance(value, bool | int | float | str):
+        return value
+    raise PhrtError(f"policy memory holds a {type(value).__name__}, not plain data")
+
+
+def _from_plain(value):
+    """Inverse of ``_to_plain``; PhrtError for anything it could not have written."""
+    if isinstance(value, dict):
+        if set(value) == {"set"} and isinstance(value["set"], list):
+            return {_hashable(_from_plain(v)) for v in value["set"]}
+        if set(value) == {"str_keys"} and isinstance(value["str_keys"], dict):
+            return {k: _from_plain(v) for k, v in value["str_keys"].items()}
+        if set(value) == {"int_keys"} and isinstance(value["int_keys"], list):
+            pairs = value["int_keys"]
+            if not all(isinstance(p, list) and len(p) == 2 and type(p[0]) is int for p in pairs):
+                raise PhrtError("policy memory: a malformed int-keyed table")
+            return {k: _from_plain(v) for k, v in pairs}
+        raise PhrtError("policy memory: an unknown table")
+    if isinstance(value, list):
+        return [_from_plain(v) for v in value]
+    if value is None or isinstance(value, bool | int | float | str):
+        return value
+    raise PhrtError("policy memory: not plain data")
+
+
+def _hashable(value):
+    if isinstance(value, list | dict | set):
+        raise PhrtError("policy memory: a set holds a table")
+    return value
+
+
+def _same_shape(got, want) -> bool:
+    """``got`` has ``want``'s keys and, recursively, compatible types (a number where a
+    number was, a container where one was). The policies' memory tables are keyed by
+    element id and hold numbers (or tables and lists of numbers), so the content of a
+    table that is empty in ``want`` must be that."""
+    if isinstance(want, dict):
+        if not isinstance(got, dict):
+            return False
+        if not want:
+            return all(isinstance(k, int) and _numeric(v) for k, v in got.items())
+        return set(got) == set(want) and all(_same_shape(got[k], want[k]) for k in want)
+    if isinstance(want, set | list):
+        return isinstance(got, type(want)) and all(_number(v) for v in got)
+    if isinstance(want, bool):
+        return isinstance(got, bool)
+    if isinstance(want, int | float):
+        return _number(got)
+    if want is None:
+        return got is None or _number(got)
+    return type(got) is type(want)
+
+
+def _number(value) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def _numeric(value) -> bool:
+    """A number, or a list or int-keyed table of numbers (any depth)."""
+    if isinstance(value, dict):
+        return all(isinstance(k, int) and _numeric(v) for k, v in value.items())
+    if isinstance(value, list | set):
+        return all(_numeric(v) for v in value)
+    return _number(value)
+
+
 # --------------------------------------------------------------------------- policies
 
 
@@ -410,6 +492,40 @@ class BudgetedPolicy(ABC):
         self._reflector_cache: tuple[tuple[int, int], np.ndarray] | None = None
         #: Predicted trace time of the last finished frame (ms, time safety included).
         self.last_predicted_trace_ms = 0.0
+
+    #: Attributes that are caches or the frame in progress, not memory across frames:
+    #: left out of ``memory()`` and rebuilt on demand after ``restore_memory``.
+    CACHE_ATTRIBUTES = frozenset({"_frame", "_reflector_cache", "_box_areas", "_box_areas_key"})
+
+    def memory(self) -> dict:
+        """The policy's memory across frames as plain JSON data (for checkpoints): every
+        attribute but the caches, between frames. ``restore_memory`` on a fresh policy of
+        the same name and parameters makes it select exactly as this one would."""
+        if self._frame is not None:
+            raise PhrtError("a policy's memory is saved between frames only")
+        state = {k: v for k, v in vars(self).items() if k not in self.CACHE_ATTRIBUTES}
+        state["time_model"] = vars(self.time_model)
+        return {"policy": self.name, "state": _to_plain(state)}
+
+    def restore_memory(self, memory: dict) -> None:
+        """Set the memory saved by ``memory()``; PhrtError if it is not this policy's or
+        does not have this policy's attributes and types (nothing is changed then)."""
+        if not isinstance(memory, dict) or memory.get("policy") != self.name:
+            raise PhrtError(f"saved policy memory is not a {self.name} policy's")
+        state = _from_plain(memory.get("state"))
+        expected = {k: v for k, v in vars(self).items() if k not in self.CACHE_ATTRIBUTES}
+        model = state.pop("time_model", None) if isinstance(state, dict) else None
+        if (
+            not isinstance(state, dict)
+            or not isinstance(model, dict)
+            or set(model) != set(vars(self.time_model))
+            or not _same_shape(state, {k: v for k, v in expected.items() if k != "time_model"})
+        ):
+            raise PhrtError(f"saved {self.name} policy memory has other fields or types")
+        if not all(isinstance(v, int | float) for v in model.values()):
+            raise PhrtError(f"saved {self.name} cost model holds a non-number")
+        vars(self).update(state)
+        vars(self.time_model).update(model)
 
     # ---- SelectionPolicy
 
@@ -674,19 +790,6 @@ class Heu1Policy(BudgetedPolicy):
         #: forecast), the current camera's too, so growth compares like with like.
         self._box_areas: dict[int, tuple[CameraFrame, np.ndarray]] = {}
         self._box_areas_key: tuple = ()  # (width, height, reflector count) of the cache
-
-    def __getstate__(self) -> dict:
-        return {**self.__dict__, "_box_areas": {}, "_box_areas_key": ()}  # a cache only
-
-    def __setstate__(self, state: dict) -> None:
-        # A policy pickled in a checkpoint by an older version has no growth memory yet.
-        state.setdefault("pixel_history", {})
-        state.setdefault("previous_visible", set())
-        state.setdefault("forced_out", set())
-        state.setdefault("lookahead_growth", {})
-        state.setdefault("_box_areas", {})
-        state.setdefault("_box_areas_key", ())
-        self.__dict__.update(state)
 
     def begin_frame(self, view: FrameView, scene: Scene) -> None:
         super().begin_frame(view, scene)

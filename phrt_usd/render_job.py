@@ -1,38 +1,72 @@
 """Rendering a frame range to an output directory: images, stats.json, selection layer.
 
+The output directory ``OUT`` belongs to one run at a time (``RunDirectory``): a render
+holds ``OUT/.phrt.lock`` for its whole run, refuses an ``OUT`` that holds files unless it
+resumes the same run (``resume``) or replaces phrt's own files (``overwrite``), and never
+writes outside ``OUT`` except the selection layer the job names (never a layer of the
+stage). A run is identified by content (``run_identity``): a digest of the stage's layers,
+the camera, the frames and every option that changes pixels or selections.
+
 A run is checkpointed every ``checkpoint_every`` frames (less often in long runs, see
-``CHECKPOINT_MAX_SHARE``) and when it stops early: the
-checkpoint (``OUT/checkpoint.pkl``: finished frames' stats and the selection policy's
-memory) is written atomically first, then ``stats.json`` and the selection layer are
-rewritten from it. SIGINT / SIGTERM finish the current frame, write everything and raise
-``RenderInterrupted``; ``resume=True`` continues after the last checkpointed frame with
-the policy exactly as it was, so the result equals an uninterrupted run.
+``CHECKPOINT_MAX_SHARE``), when it stops early and when a frame fails: the checkpoint
+(``OUT/checkpoint.json``: plain JSON with the finished frames' stats and the selection
+policy's memory, never code) is written first, then ``stats.json`` and the selection
+layer, each through the one atomic writer. SIGINT / SIGTERM finish the current frame,
+write everything and raise ``RenderInterrupted``; ``resume=True`` continues after the last
+checkpointed frame with the policy exactly as it was, so the result equals an
+uninterrupted run.
 """
 
 from __future__ import annotations
 
+import errno
+import fcntl
+import hashlib
+import json
 import os
-import pickle
+import re
 import signal
+import stat
 import threading
 import time
 from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from phrt_usd.errors import PhrtError
+from phrt_usd.errors import BadOption, PhrtError
 from phrt_usd.frame import FrameStats
 from phrt_usd.images import write_frame_exr, write_preview_png
 from phrt_usd.renderer import FrameRenderer, RenderOptions
 from phrt_usd.report import build_report
-from phrt_usd.run_files import frame_image_paths, make_run_info, write_stats
+from phrt_usd.run_files import (
+    CHECKPOINT_FILE,
+    FRAMES_DIR,
+    LOCK_FILE,
+    SELECTION_LAYER_FILE,
+    STATS_FILE,
+    frame_image_paths,
+    frame_stats_from_row,
+    frame_stats_row,
+    make_run_info,
+    to_json_value,
+    write_stats,
+    write_text_atomic,
+)
 from phrt_usd.selection_layer import write_selection_layer
 from phrt_usd.stage_reader import StageScene, open_stage
 
-CHECKPOINT_NAME = "checkpoint.pkl"
+#: Identifies checkpoint files; bump the version when their content changes meaning.
+CHECKPOINT_FORMAT = "phrt-checkpoint"
+CHECKPOINT_VERSION = 1
+#: Largest checkpoint read back (bytes): a 100,000-frame run's is ~100 MB; anything
+#: larger is not one of ours and is refused before it is parsed.
+CHECKPOINT_MAX_BYTES = 1 << 30
+#: Most frames one render may list (``--frames``): a million frames of stats already
+#: make a stats.json of ~1 GB.
+MAX_FRAMES = 1_000_000
 DEFAULT_CHECKPOINT_EVERY = 10
 #: A checkpoint rewrites every finished frame's stats and the selection layer, so its cost
 #: grows with the run: after one that took d seconds the next waits at least
@@ -54,6 +88,7 @@ class RenderJob:
     camera: str | None = None
     selection_layer: Path | None = None
     resume: bool = False
+    overwrite: bool = False  # clear phrt's own files in out_dir first
     write_images: bool = True
     checkpoint_every: int = DEFAULT_CHECKPOINT_EVERY
 
@@ -69,16 +104,18 @@ def parse_frames(spec: str | None, default: tuple[float, float]) -> list[float]:
         try:
             parts = [float(p) for p in spec.split(":")]
         except ValueError:
-            raise PhrtError(f"--frames {spec!r}: expected A:B[:STEP] with numbers") from None
+            raise BadOption(f"--frames {spec!r}: expected A:B[:STEP] with numbers") from None
         if len(parts) == 1:
             parts = [parts[0], parts[0]]
         if len(parts) not in (2, 3):
-            raise PhrtError(f"--frames {spec!r}: expected A:B[:STEP]")
+            raise BadOption(f"--frames {spec!r}: expected A:B[:STEP]")
         start, end = parts[0], parts[1]
         step = parts[2] if len(parts) == 3 else 1.0
     if not all(np.isfinite([start, end, step])) or step <= 0 or end < start:
-        raise PhrtError(f"--frames {spec!r}: need finite A <= B and STEP > 0")
+        raise BadOption(f"--frames {spec!r}: need finite A <= B and STEP > 0")
     count = int(np.floor((end - start) / step + 1e-9)) + 1
+    if count > MAX_FRAMES:
+        raise BadOption(f"--frames {spec!r}: {count} frames, more than {MAX_FRAMES}")
     return [float(start + i * step) for i in range(count)]
 
 
@@ -87,29 +124,38 @@ def run_render(
     on_frame: Callable[[int, int, FrameStats], None] | None = None,
     stage_scene: StageScene | None = None,
 ) -> dict:
-    """Render ``job`` and return the summary object (DESIGN.md §2 keys and more)."""
+    """Render ``job`` and return the summary object (DESIGN.md §2 keys and more).
+
+    Raises PhrtError before anything is written if ``out_dir`` is not usable (see
+    ``RunDirectory``); a frame that fails ends the run with its error after the finished
+    frames' records are written."""
     out = job.out_dir
     scene = stage_scene or open_stage(job.stage_path, camera=job.camera)
     times = parse_frames(job.frames, scene.frame_range)
-    out.mkdir(parents=True, exist_ok=True)
-    layer_path = job.selection_layer or out / "selection.usda"
+    layer_path = job.selection_layer or out / SELECTION_LAYER_FILE
     run_info = job_run_info(job, scene, times)
+    with RunDirectory(
+        out, layer_path, scene, resume=job.resume, overwrite=job.overwrite
+    ) as run_dir:
+        resume = job.resume and not run_dir.fresh
+        return _render_frames(job, scene, times, layer_path, run_info, on_frame, resume)
 
+
+def _render_frames(job, scene, times, layer_path, run_info, on_frame, resume) -> dict:
+    out = job.out_dir
     renderer = FrameRenderer(scene, job.options)
     renderer.plan(times)
     done: list[FrameStats] = []
-    if job.resume:
-        done, policy = _load_checkpoint(out, run_info)
-        if policy is not None:
-            renderer.policy = policy
-    finished = {s.time for s in done}
-    todo = [t for t in times if t not in finished]
-
-    stop = threading.Event()
-    since_checkpoint = 0
-    next_checkpoint = 0.0  # time.perf_counter() before which no periodic checkpoint
     try:
-        with stop_on_signals(stop):
+        if resume:
+            done = _load_checkpoint(out, run_info, renderer)
+        finished = {s.time for s in done}
+        todo = [t for t in times if t not in finished]
+        stop = threading.Event()
+        since_checkpoint = 0
+        next_checkpoint = 0.0  # time.perf_counter() before which no periodic checkpoint
+        with stop_on_signals(stop), _records_kept(out, layer_path, job, scene, run_info, done,
+                                                  renderer):  # fmt: skip
             for t in todo:
                 done.append(render_frame(renderer, t, out if job.write_images else None))
                 since_checkpoint += 1
@@ -123,7 +169,6 @@ def run_render(
                     end = time.perf_counter()
                     next_checkpoint = end + (end - start) * (1 / CHECKPOINT_MAX_SHARE - 1)
                     since_checkpoint = 0
-        _checkpoint(out, layer_path, job, scene, run_info, done, renderer)
     finally:
         renderer.close()
     if stop.is_set() and len(done) < len(times):
@@ -138,6 +183,20 @@ def run_render(
         passes=sorted({p for s in done for p in s.passes}),
     )
     return summary
+
+
+@contextmanager
+def _records_kept(out, layer_path, job, scene, run_info, done, renderer) -> Iterator[None]:
+    """Write the checkpoint and records of ``done`` when the block ends, however it ends.
+    If the block failed, its error is the one raised (a checkpoint that cannot be written
+    then, e.g. on the same full disk, leaves the previous good one)."""
+    try:
+        yield
+    except BaseException:
+        with suppress(PhrtError, OSError):
+            _checkpoint(out, layer_path, job, scene, run_info, done, renderer)
+        raise
+    _checkpoint(out, layer_path, job, scene, run_info, done, renderer)
 
 
 def render_frame(renderer: FrameRenderer, t: float, out: Path | None) -> FrameStats:
@@ -159,6 +218,8 @@ def render_frame(renderer: FrameRenderer, t: float, out: Path | None) -> FrameSt
 
 
 def job_run_info(job: RenderJob, scene: StageScene, times: list[float]) -> dict:
+    """The run object of stats.json, the selection layer and the checkpoint, with the
+    run's ``identity`` (see ``run_identity``)."""
     opts = job.options
     info = make_run_info(
         stage=str(job.stage_path),
@@ -174,12 +235,13 @@ def job_run_info(job: RenderJob, scene: StageScene, times: list[float]) -> dict:
         time_codes_per_second=scene.time_codes_per_second,
     )
     info["camera"] = scene.camera_path
+    info["identity"] = run_identity(info, scene, times)
     return info
 
 
-# Options that must match between an interrupted run and its --resume.
-_RESUME_KEYS = (
-    "stage",
+#: Run settings that change pixels or selections: with the stage's layers, the camera
+#: and the frame list they identify a run (``run_identity``).
+IDENTITY_KEYS = (
     "mode",
     "heuristic",
     "budget_ms",
@@ -187,25 +249,98 @@ _RESUME_KEYS = (
     "bounce_limit",
     "selection_weight",
     "resolution",
+    "camera",
 )
 
 
-def _load_checkpoint(out: Path, run_info: dict) -> tuple[list[FrameStats], object | None]:
-    path = out / CHECKPOINT_NAME
-    if not path.exists():
-        return [], None
+def run_identity(run_info: dict, scene: StageScene, times: list[float]) -> dict:
+    """``{"digest", "layers", "options"}``: ``layers`` is a SHA-256 over the content of
+    every layer the stage uses (root, sublayers, references, payloads, session; by content,
+    so the same file under another name is the same run and an edited one is not),
+    ``options`` the ``IDENTITY_KEYS`` settings and the frame list, ``digest`` both."""
+    layers = sorted(_layer_digest(layer) for layer in scene.stage.GetUsedLayers())
+    layer_digest = hashlib.sha256("\n".join(layers).encode()).hexdigest()
+    options = {key: to_json_value(run_info.get(key)) for key in IDENTITY_KEYS}
+    options["frames"] = [float(t) for t in times]
+    text = json.dumps({"layers": layer_digest, "options": options}, sort_keys=True)
+    return {
+        "digest": hashlib.sha256(text.encode()).hexdigest(),
+        "layers": layer_digest,
+        "options": options,
+    }
+
+
+def _layer_digest(layer) -> str:
+    """SHA-256 of a layer's file bytes, or of its text when it has no file or unsaved
+    edits (anonymous and session layers)."""
+    path = layer.realPath
+    if path and not layer.dirty and os.path.isfile(path):
+        digest = hashlib.sha256()
+        with open(path, "rb") as handle:
+            for block in iter(lambda: handle.read(1 << 20), b""):
+                digest.update(block)
+        return digest.hexdigest()
+    return hashlib.sha256(layer.ExportToString().encode()).hexdigest()
+
+
+def _load_checkpoint(out: Path, run_info: dict, renderer: FrameRenderer) -> list[FrameStats]:
+    """Finished frames of the interrupted run in ``out``, and its policy's memory restored
+    into ``renderer.policy``. PhrtError (one line) unless the checkpoint is a phrt
+    checkpoint of this very run."""
+    path = out / CHECKPOINT_FILE
     try:
-        with open(path, "rb") as fh:
-            state = pickle.load(fh)
-    except (OSError, pickle.UnpicklingError, EOFError) as exc:
-        raise PhrtError(f"{path}: cannot read checkpoint ({exc})") from None
-    for key in _RESUME_KEYS:
-        if state["run_info"].get(key) != run_info.get(key):
-            raise PhrtError(
-                f"--resume: {key} differs from the interrupted run in {out} "
-                f"({state['run_info'].get(key)!r} vs {run_info.get(key)!r})"
-            )
-    return list(state["frames"]), state["policy"]
+        fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW)
+    except FileNotFoundError:
+        raise PhrtError(f"--resume: {out} holds no checkpoint ({CHECKPOINT_FILE})") from None
+    except OSError as error:
+        raise PhrtError(f"{path}: cannot read checkpoint ({error.strerror})") from None
+    with os.fdopen(fd, "rb") as handle:
+        if not stat.S_ISREG(os.fstat(handle.fileno()).st_mode):
+            raise PhrtError(f"{path}: not a regular file")
+        data = handle.read(CHECKPOINT_MAX_BYTES + 1)
+    if len(data) > CHECKPOINT_MAX_BYTES:
+        raise PhrtError(f"{path}: larger than any checkpoint phrt writes")
+    try:
+        state = json.loads(data.decode("utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as error:
+        raise PhrtError(f"{path}: not a readable checkpoint ({error})") from None
+    if not isinstance(state, dict) or state.get("format") != CHECKPOINT_FORMAT:
+        raise PhrtError(f'{path}: not a phrt checkpoint (no "format": "{CHECKPOINT_FORMAT}")')
+    if state.get("version") != CHECKPOINT_VERSION:
+        raise PhrtError(f"{path}: checkpoint version {state.get('version')!r}, expected 1")
+    _check_same_run(out, state.get("identity"), run_info["identity"])
+    frames = state.get("frames")
+    if not isinstance(frames, list):
+        raise PhrtError(f"{path}: checkpoint has no frame list")
+    try:
+        done = [frame_stats_from_row(row) for row in frames]
+        renderer.policy.restore_memory(state.get("policy"))
+    except PhrtError as error:
+        raise PhrtError(f"{path}: {error}") from None
+    wanted = set(run_info["identity"]["options"]["frames"])
+    if any(s.time not in wanted for s in done) or len({s.time for s in done}) != len(done):
+        raise PhrtError(f"{path}: checkpoint frames are not frames of this run")
+    return done
+
+
+def _check_same_run(out: Path, saved, current: dict) -> None:
+    """PhrtError naming what differs unless ``saved`` is ``current``'s identity."""
+    if not isinstance(saved, dict) or saved.get("digest") == current["digest"]:
+        if isinstance(saved, dict):
+            return
+        raise PhrtError(f"--resume: the checkpoint in {out} has no run identity")
+    if saved.get("layers") != current["layers"]:
+        raise PhrtError(
+            f"--resume: the stage's layers changed since the interrupted run in {out}"
+        )
+    old = saved.get("options") if isinstance(saved.get("options"), dict) else {}
+    for key, value in current["options"].items():
+        if old.get(key) != value:
+            shown = f"{key} ({old.get(key)!r} vs {value!r})"
+            if key == "frames":
+                shown = "the frame list"
+            raise PhrtError(f"--resume: {shown} differs from the interrupted run in {out}")
+    raise PhrtError(f"--resume: the checkpoint in {out} is of another run")
 
 
 def _checkpoint(
@@ -219,10 +354,14 @@ def _checkpoint(
 ) -> None:
     """Write the checkpoint, then stats.json and the selection layer, each atomically."""
     frames = sorted(frames, key=lambda s: s.time)
-    tmp = out / (CHECKPOINT_NAME + ".tmp")
-    with open(tmp, "wb") as fh:
-        pickle.dump({"run_info": run_info, "frames": frames, "policy": renderer.policy}, fh)
-    os.replace(tmp, out / CHECKPOINT_NAME)
+    document = {
+        "format": CHECKPOINT_FORMAT,
+        "version": CHECKPOINT_VERSION,
+        "identity": run_info["identity"],
+        "frames": [frame_stats_row(f) for f in frames],
+        "policy": renderer.policy.memory(),
+    }
+    write_text_atomic(out / CHECKPOINT_FILE, json.dumps(document, allow_nan=False) + "\n")
     write_run_records(out, layer_path, job, scene, run_info, frames)
 
 
@@ -234,7 +373,7 @@ def write_run_records(
     run_info: dict,
     frames: list[FrameStats],
 ) -> None:
-    """stats.json and the selection layer (merged with frames already in it), atomically."""
+    """stats.json and the selection layer of ``frames`` (every finished frame), atomically."""
     write_stats(out, run_info, frames)
     write_selection_layer(
         layer_path,
@@ -243,8 +382,159 @@ def write_run_records(
         frames,
         run_info,
         scene.time_codes_per_second,
-        merge=True,
+        merge=False,
     )
+
+
+# --- the run directory -----------------------------------------------------------------
+
+#: Frame image names phrt writes in ``OUT/frames`` (see ``run_files.frame_name``).
+_FRAME_IMAGE = re.compile(r"^-?\d{3,}(\.\d{3})?\.(exr|png)$")
+
+
+class RunDirectory:
+    """Context manager owning ``out`` for one run (see the module docstring).
+
+    On entry: ``out`` is created if missing (PhrtError if it is a file or cannot be
+    made); ``OUT/.phrt.lock`` is taken with ``flock`` (released by the kernel if the
+    process dies, so a killed run never blocks the next) or the run is refused naming the
+    holder's pid; an ``out`` holding anything is refused unless ``resume`` (the checkpoint
+    must then be this run's: checked by ``_load_checkpoint``) or ``overwrite`` (phrt's own
+    files are deleted first: frame images, stats, selection layer, checkpoint; anything
+    else stays); the selection layer may not be a layer of the stage. On exit the lock is
+    released and its file removed.
+    """
+
+    def __init__(self, out: Path, layer_path: Path, scene: StageScene | None, *,
+                 resume: bool = False, overwrite: bool = False):  # fmt: skip
+        if resume and overwrite:
+            raise BadOption("--resume and --overwrite exclude each other")
+        self.out = Path(out)
+        self.layer_path = Path(layer_path)
+        self.scene = scene
+        self.resume = resume
+        self.overwrite = overwrite
+        self._fd: int | None = None
+        self.fresh = True  # False when resuming a run that left files in out
+
+    def __enter__(self) -> RunDirectory:
+        out = self.out
+        if out.exists() and not out.is_dir():
+            raise BadOption(f"--out {out}: exists and is not a directory")
+        try:
+            out.mkdir(parents=True, exist_ok=True)
+        except OSError as error:
+            raise BadOption(f"--out {out}: cannot create ({error.strerror})") from None
+        if self.scene is not None:
+            _check_not_a_stage_layer(self.layer_path, self.scene)
+        self._lock()
+        try:
+            self._claim()
+        except BaseException:
+            self._unlock()
+            raise
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._unlock()
+
+    def _lock(self) -> None:
+        path = self.out / LOCK_FILE
+        for _ in range(3):  # the holder may remove the file between our open and flock
+            try:
+                fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o644)
+            except OSError as error:
+                if error.errno == errno.ELOOP:
+                    raise PhrtError(f"{path}: is a symlink; remove it") from None
+                raise BadOption(f"--out {self.out}: cannot write ({error.strerror})") from None
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                holder = os.read(fd, 64).decode("ascii", "replace").strip() or "?"
+                os.close(fd)
+                raise PhrtError(
+                    f"{self.out}: another render is writing here (pid {holder}); "
+                    "wait for it or choose another --out"
+                ) from None
+            if _same_file(fd, path):
+                os.ftruncate(fd, 0)
+                os.write(fd, f"{os.getpid()}\n".encode())
+                self._fd = fd
+                return
+            os.close(fd)  # locked a file that was just removed: try the new one
+        raise PhrtError(f"{path}: could not take the lock")
+
+    def _unlock(self) -> None:
+        if self._fd is not None:
+            with suppress(OSError):
+                os.unlink(self.out / LOCK_FILE)
+            os.close(self._fd)  # closing releases the flock
+            self._fd = None
+
+    def _claim(self) -> None:
+        """Refuse a non-empty ``out`` unless resuming or overwriting (see the class)."""
+        present = sorted(p.name for p in self.out.iterdir() if p.name != LOCK_FILE)
+        layer_exists = self.layer_path.exists() or self.layer_path.is_symlink()
+        outside = layer_exists and self.layer_path.parent.resolve() != self.out.resolve()
+        if self.resume:
+            # A fresh out_dir starts the run; otherwise _load_checkpoint refuses anything
+            # but this run's checkpoint. Its selection layer is rewritten whole.
+            self.fresh = not present
+            return
+        if self.overwrite:
+            self._clear()
+            return
+        if present:
+            shown = ", ".join(present[:3]) + (", ..." if len(present) > 3 else "")
+            raise PhrtError(
+                f"--out {self.out}: not empty ({shown}); use --resume to continue the run "
+                "in it or --overwrite to replace phrt's files"
+            )
+        if outside:
+            raise PhrtError(
+                f"--selection-layer {self.layer_path}: exists; use --overwrite to replace it"
+            )
+
+    def _clear(self) -> None:
+        """Delete phrt's own files in ``out`` (never following a symlink: a link is
+        removed itself), and the job's selection layer."""
+        for name in (STATS_FILE, SELECTION_LAYER_FILE, CHECKPOINT_FILE):
+            with suppress(FileNotFoundError):
+                (self.out / name).unlink()
+        with suppress(FileNotFoundError):
+            if self.layer_path.is_symlink() or self.layer_path.is_file():
+                self.layer_path.unlink()
+        frames = self.out / FRAMES_DIR
+        if frames.is_symlink():
+            frames.unlink()
+        elif frames.is_dir():
+            for entry in frames.iterdir():
+                if _FRAME_IMAGE.match(entry.name) or entry.name.startswith("."):
+                    if entry.is_dir() and not entry.is_symlink():
+                        continue
+                    entry.unlink()
+            with suppress(OSError):
+                frames.rmdir()  # only when nothing else is left in it
+
+
+def _same_file(fd: int, path: Path) -> bool:
+    try:
+        here = os.lstat(path)
+    except FileNotFoundError:
+        return False
+    there = os.fstat(fd)
+    return (here.st_dev, here.st_ino) == (there.st_dev, there.st_ino)
+
+
+def _check_not_a_stage_layer(layer_path: Path, scene: StageScene) -> None:
+    """BadOption if the selection layer would overwrite a layer the stage uses."""
+    target = os.path.realpath(layer_path)
+    for layer in scene.stage.GetUsedLayers():
+        if layer.realPath and os.path.realpath(layer.realPath) == target:
+            raise BadOption(
+                f"--selection-layer {layer_path}: is a layer of the stage ({layer.identifier}); "
+                "choose another path"
+            )
 
 
 @contextmanager

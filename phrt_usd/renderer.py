@@ -29,7 +29,7 @@ from phrt_usd.compositing import (
     element_reflectivity,
     pixel_reflectivity,
 )
-from phrt_usd.errors import PhrtError
+from phrt_usd.errors import BadOption
 from phrt_usd.frame import (
     Budget,
     FrameStats,
@@ -48,6 +48,16 @@ MODES = ("raster", "hybrid", "rt")
 HEURISTICS = ("heu1", "heu2", "all", "none")
 
 
+#: Largest frame side in pixels (OpenGL's usual maximum framebuffer size).
+MAX_RESOLUTION_SIDE = 16384
+#: Largest frame in pixels: the G-buffer, shading planes and images take ~100 bytes a
+#: pixel, so 2**26 pixels (e.g. 8192x8192) already need several GB.
+MAX_RESOLUTION_PIXELS = 2**26
+#: Largest --budget-rays: far above any frame's need (a 2**26-pixel frame at 16 bounces
+#: casts ~1e9 rays) and small enough for every int64 figure and USD's integer metadata.
+MAX_BUDGET_RAYS = 10**12
+
+
 @dataclass
 class RenderOptions:
     """How to render. ``None`` budgets are unbounded."""
@@ -64,21 +74,28 @@ class RenderOptions:
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
-            raise PhrtError(f"unknown mode {self.mode!r}; expected one of {', '.join(MODES)}")
+            raise BadOption(f"unknown mode {self.mode!r}; expected one of {', '.join(MODES)}")
         if self.heuristic not in HEURISTICS:
-            raise PhrtError(
+            raise BadOption(
                 f"unknown heuristic {self.heuristic!r}; expected one of {', '.join(HEURISTICS)}"
             )
-        if not (1 <= self.width <= 16384 and 1 <= self.height <= 16384):
-            raise PhrtError(f"resolution {self.width}x{self.height} out of range 1..16384")
+        side, pixels = MAX_RESOLUTION_SIDE, MAX_RESOLUTION_PIXELS
+        if not (1 <= self.width <= side and 1 <= self.height <= side):
+            raise BadOption(f"resolution {self.width}x{self.height} out of range 1..{side}")
+        if self.width * self.height > pixels:
+            raise BadOption(
+                f"resolution {self.width}x{self.height}: more than {pixels} pixels a frame"
+            )
         if self.budget_ms is not None and not (self.budget_ms >= 0 and np.isfinite(self.budget_ms)):
-            raise PhrtError(f"--budget-ms must be a finite number >= 0, got {self.budget_ms}")
-        if self.budget_rays is not None and self.budget_rays < 0:
-            raise PhrtError(f"--budget-rays must be >= 0, got {self.budget_rays}")
+            raise BadOption(f"--budget-ms must be a finite number >= 0, got {self.budget_ms}")
+        if self.budget_rays is not None and not 0 <= self.budget_rays <= MAX_BUDGET_RAYS:
+            raise BadOption(
+                f"--budget-rays must be in 0..{MAX_BUDGET_RAYS}, got {self.budget_rays}"
+            )
         if not 0 <= self.bounce_limit <= 16:
-            raise PhrtError(f"bounce limit must be in 0..16, got {self.bounce_limit}")
+            raise BadOption(f"bounce limit must be in 0..16, got {self.bounce_limit}")
         if not (self.selection_weight >= 0 and np.isfinite(self.selection_weight)):
-            raise PhrtError(f"selection weight I must be finite and >= 0: {self.selection_weight}")
+            raise BadOption(f"selection weight I must be finite and >= 0: {self.selection_weight}")
 
 
 @dataclass

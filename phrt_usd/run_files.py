@@ -6,6 +6,8 @@ Layout of a render's output directory ``OUT``::
     OUT/frames/NNNN.png     8-bit sRGB preview of the same frame
     OUT/stats.json          run settings + one row per rendered frame (this module)
     OUT/selection.usda      the selection layer (see selection_layer.py)
+    OUT/checkpoint.json     finished frames and the policy's memory, for --resume
+    OUT/.phrt.lock          held (flock) by the render writing OUT; names its pid
 
 ``NNNN`` is the frame's time code: integral time codes are zero-padded to 4 digits
 (``0012``, ``-003``), fractional ones keep 3 decimals (``0012.500``), so time codes are
@@ -28,7 +30,7 @@ import stat
 import tempfile
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from dataclasses import asdict
+from dataclasses import asdict, fields
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -37,11 +39,13 @@ import numpy as np
 
 from phrt_usd import __version__
 from phrt_usd.errors import PhrtError
-from phrt_usd.frame import FrameStats
+from phrt_usd.frame import FrameStats, ReflectorMetrics
 
 FRAMES_DIR = "frames"
 STATS_FILE = "stats.json"
 SELECTION_LAYER_FILE = "selection.usda"
+CHECKPOINT_FILE = "checkpoint.json"
+LOCK_FILE = ".phrt.lock"
 
 #: Identifies stats.json files written by this module; bump the version on breaking change.
 STATS_FORMAT = "phrt-stats"
@@ -270,6 +274,54 @@ def to_json_value(value: Any) -> Any:
     if isinstance(value, Path):
         return str(value)
     return value
+
+
+def frame_stats_from_row(row: Any) -> FrameStats:
+    """Inverse of ``frame_stats_row`` for rows read back from a file; PhrtError (naming
+    the field) unless ``row`` has every field with its type."""
+    if not isinstance(row, dict) or set(row) != {f.name for f in fields(FrameStats)}:
+        raise PhrtError("a frame record without the fields of a phrt frame")
+
+    def number(name: str, value: Any) -> float:
+        if value is None:  # a non-finite figure, written as null (see to_json_value)
+            return math.nan
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            raise PhrtError(f"frame record field {name}: not a number")
+        return float(value)
+
+    def paths(name: str) -> list[str]:
+        value = row[name]
+        if not isinstance(value, list) or not all(isinstance(p, str) for p in value):
+            raise PhrtError(f"frame record field {name}: not a list of prim paths")
+        return list(value)
+
+    metrics = {}
+    if not isinstance(row["metrics"], dict) or not isinstance(row["phase_ms"], dict):
+        raise PhrtError("frame record fields metrics / phase_ms: not tables")
+    names = {f.name for f in fields(ReflectorMetrics)}
+    for path, m in row["metrics"].items():
+        if not isinstance(m, dict) or not set(m) <= names:
+            raise PhrtError(f"frame record metrics of {path}: not reflector figures")
+        metrics[path] = ReflectorMetrics(
+            **{k: (bool(v) if k in ("S", "selected", "visible") else number(k, v))
+               for k, v in m.items()}
+        )  # fmt: skip
+    time = number("time", row["time"])
+    rays = number("rays", row["rays"])
+    if not math.isfinite(time) or rays != int(rays):
+        raise PhrtError("frame record: time not finite or rays not whole")
+    return FrameStats(
+        time=time,
+        phase_ms={str(k): number(f"phase_ms.{k}", v) for k, v in row["phase_ms"].items()},
+        frame_ms=number("frame_ms", row["frame_ms"]),
+        trace_ms=number("trace_ms", row["trace_ms"]),
+        predicted_trace_ms=number("predicted_trace_ms", row["predicted_trace_ms"]),
+        rays=int(rays),
+        visible=paths("visible"),
+        selected=paths("selected"),
+        metrics=metrics,
+        passes=paths("passes"),
+    )
 
 
 def frame_stats_row(frame: FrameStats) -> dict[str, Any]:

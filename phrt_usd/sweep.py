@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from phrt_usd.errors import PhrtError
+from phrt_usd.errors import BadOption
 from phrt_usd.heuristic import make_policy
 from phrt_usd.image_metrics import flip_map, mean_over, psnr
 from phrt_usd.images import write_png_atomic, write_preview_png
@@ -101,9 +101,9 @@ def parse_budget_list(text: str | None, kind: type) -> list:
         try:
             v = kind(item)
         except ValueError:
-            raise PhrtError(f"budget {item!r} is not a number (or inf)") from None
+            raise BadOption(f"budget {item!r} is not a number (or inf)") from None
         if v < 0 or not np.isfinite(v):
-            raise PhrtError(f"budget {item!r} must be finite and >= 0 (or inf)")
+            raise BadOption(f"budget {item!r} must be finite and >= 0 (or inf)")
         values.append(v)
     return values
 
@@ -161,12 +161,12 @@ def run_sweep(spec: SweepSpec, on_frame: Callable[[str, int, int], None] | None 
 def check_spec(spec: SweepSpec) -> None:
     """Raise PhrtError unless ``spec`` names heuristics and budgets the sweep knows."""
     if not spec.heuristics:
-        raise PhrtError("--heuristics: give at least one of heu1, heu2")
+        raise BadOption("--heuristics: give at least one of heu1, heu2")
     for h in spec.heuristics:
         if h not in ("heu1", "heu2"):
-            raise PhrtError(f"--heuristics: {h!r} is not heu1 or heu2")
+            raise BadOption(f"--heuristics: {h!r} is not heu1 or heu2")
     if not spec.budgets_ms and not spec.budgets_rays:
-        raise PhrtError("give --budgets-ms or --budgets-rays")
+        raise BadOption("give --budgets-ms or --budgets-rays")
 
 
 def finish_sweep(spec: SweepSpec, rows: list[dict], timeline: dict, interrupted: bool) -> dict:

@@ -3,6 +3,7 @@ HEU2, and small scenarios with fake frames (no rendering: a Scene of Elements on
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
@@ -707,18 +708,34 @@ def test_time_starved_policy_relaxes_its_safety():
     assert policy.time_model.safety < before
 
 
-def test_pickled_policy_continues_identically():
-    """Render jobs checkpoint the policy with pickle; a resumed run must select the same."""
-    import pickle
-
-    policy = policy_of("heu1")
+@pytest.mark.parametrize("name", ["heu1", "heu2", "all", "none"])
+def test_policy_memory_as_json_continues_identically(name):
+    """Render jobs checkpoint the policy's memory as JSON; a policy restored from it must
+    select exactly as the original from then on (same ids every frame)."""
+    policy = policy_of(name)
     for t in range(5):
         run_frame(policy, oscillating_pair(t), view([1000, 1000]), 1500, hits={0: {1: 3}})
-    clone = pickle.loads(pickle.dumps(policy))
+    text = json.dumps(policy.memory(), allow_nan=False)
+    clone = policy_of(name)
+    clone.restore_memory(json.loads(text))
     for t in range(5, 25):
         a = run_frame(policy, oscillating_pair(t), view([1000, 1000]), 1500)[1]
         b = run_frame(clone, oscillating_pair(t), view([1000, 1000]), 1500)[1]
         assert a == b
+
+
+def test_policy_memory_of_another_policy_or_shape_is_refused():
+    policy = policy_of("heu1")
+    run_frame(policy, oscillating_pair(0), view([1000, 1000]), 1500, hits={0: {1: 3}})
+    memory = policy.memory()
+    with pytest.raises(PhrtError, match="not a heu2"):
+        policy_of("heu2").restore_memory(memory)
+    broken = json.loads(json.dumps(memory))
+    broken["state"]["str_keys"]["Q"] = {"int_keys": [[0, "x"]]}
+    fresh = policy_of("heu1")
+    with pytest.raises(PhrtError, match="other fields or types"):
+        fresh.restore_memory(broken)
+    assert fresh.Q == {}  # nothing changed by a refused restore
 
 
 def test_a_reflector_cost_pushed_out_does_not_displace_the_ones_kept_instead():
