@@ -134,14 +134,22 @@ def author(
     out: Annotated[
         Path | None, typer.Option(help="Layer to write (default: <stage stem>.phrt.usda).")
     ] = None,
-    in_place: Annotated[bool, typer.Option(help="Edit the stage's root layer itself.")] = False,
+    in_place: Annotated[
+        bool, typer.Option(help="Edit the stage's root layer itself, in its own format.")
+    ] = False,
+    force: Annotated[
+        bool,
+        typer.Option(help="Overwrite an existing overlay (never the stage or a layer it uses)."),
+    ] = False,
 ) -> None:
     """Apply PhrtReflectorAPI with priority K to PRIMS, in a new layer over the stage."""
     from phrt_usd.authoring import author_reflectors
 
     with user_errors():
         open_input(stage)  # unreadable input -> exit 2 before anything else
-        result = author_reflectors(stage, prims, priority, reflectivity, out, in_place)
+        result = author_reflectors(
+            stage, prims, priority, reflectivity, out=out, in_place=in_place, force=force
+        )
     typer.echo(f"wrote {result.layer}: {len(result.prims)} reflector(s)")
 
 
