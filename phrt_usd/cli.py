@@ -374,7 +374,8 @@ def report(
     """The paper's metrics (transitions, mean selected, fps, overruns) of a run."""
     from phrt_usd.report import build_report, print_report
 
-    with user_errors(json_out=json_out):
+    # Every problem report meets is a run it cannot read: exit 2.
+    with user_errors(EXIT_UNREADABLE, json_out=json_out):
         result = build_report(run, vs)
     if json_out:
         print_json(result)

@@ -45,6 +45,7 @@ from phrt_usd.run_files import (
     CHECKPOINT_FILE,
     FRAMES_DIR,
     LOCK_FILE,
+    RESERVE_FILE,
     SELECTION_LAYER_FILE,
     STATS_FILE,
     frame_image_paths,
@@ -67,6 +68,11 @@ CHECKPOINT_MAX_BYTES = 1 << 30
 #: Most frames one render may list (``--frames``): a million frames of stats already
 #: make a stats.json of ~1 GB.
 MAX_FRAMES = 1_000_000
+#: Disk held in reserve for a run's records (see ``RunDirectory.keep_reserve``): at least
+#: RESERVE_MIN_BYTES, and RESERVE_FACTOR times what the records took when last written
+#: (an atomic rewrite needs the old and the new file at once, and records grow).
+RESERVE_MIN_BYTES = 64 * 1024
+RESERVE_FACTOR = 3
 DEFAULT_CHECKPOINT_EVERY = 10
 #: A checkpoint rewrites every finished frame's stats and the selection layer, so its cost
 #: grows with the run: after one that took d seconds the next waits at least
@@ -137,66 +143,96 @@ def run_render(
     with RunDirectory(
         out, layer_path, scene, resume=job.resume, overwrite=job.overwrite
     ) as run_dir:
-        resume = job.resume and not run_dir.fresh
-        return _render_frames(job, scene, times, layer_path, run_info, on_frame, resume)
+        return _Run(job, scene, run_info, layer_path, run_dir).render(times, on_frame)
 
 
-def _render_frames(job, scene, times, layer_path, run_info, on_frame, resume) -> dict:
-    out = job.out_dir
-    renderer = FrameRenderer(scene, job.options)
-    renderer.plan(times)
-    done: list[FrameStats] = []
-    try:
-        if resume:
-            done = _load_checkpoint(out, run_info, renderer)
-        finished = {s.time for s in done}
-        todo = [t for t in times if t not in finished]
+class _Run:
+    """One render's state between frames: finished frames, the renderer, and the policy
+    memory as of the last finished frame (what a checkpoint must hold so that a resumed
+    run continues exactly, even when the run ends inside a frame)."""
+
+    def __init__(self, job, scene, run_info, layer_path, run_dir: RunDirectory):
+        self.job, self.scene, self.run_info = job, scene, run_info
+        self.layer_path, self.run_dir = layer_path, run_dir
+        self.done: list[FrameStats] = []
+        self.renderer = FrameRenderer(scene, job.options)
+        self.memory = self.renderer.policy.memory()
+
+    def render(self, times: list[float], on_frame) -> dict:
+        job, out, renderer = self.job, self.job.out_dir, self.renderer
+        renderer.plan(times)
         stop = threading.Event()
-        since_checkpoint = 0
-        next_checkpoint = 0.0  # time.perf_counter() before which no periodic checkpoint
-        with stop_on_signals(stop), _records_kept(out, layer_path, job, scene, run_info, done,
-                                                  renderer):  # fmt: skip
-            for t in todo:
-                done.append(render_frame(renderer, t, out if job.write_images else None))
-                since_checkpoint += 1
-                if on_frame is not None:
-                    on_frame(len(done), len(times), done[-1])
-                if stop.is_set():
-                    break
-                start = time.perf_counter()
-                if since_checkpoint >= job.checkpoint_every and start >= next_checkpoint:
-                    _checkpoint(out, layer_path, job, scene, run_info, done, renderer)
-                    end = time.perf_counter()
-                    next_checkpoint = end + (end - start) * (1 / CHECKPOINT_MAX_SHARE - 1)
-                    since_checkpoint = 0
-    finally:
-        renderer.close()
-    if stop.is_set() and len(done) < len(times):
-        raise RenderInterrupted(
-            f"stopped after {len(done)} of {len(times)} frames; finished frames are in {out} "
-            "(continue with --resume)"
+        try:
+            if job.resume and not self.run_dir.fresh:
+                self.done = _load_checkpoint(out, self.run_info, renderer)
+                self.memory = renderer.policy.memory()
+            finished = {s.time for s in self.done}
+            todo = [t for t in times if t not in finished]
+            since_checkpoint = 0
+            next_checkpoint = 0.0  # time.perf_counter() before which no periodic checkpoint
+            with stop_on_signals(stop), self._records_kept():
+                for t in todo:
+                    self.done.append(render_frame(renderer, t, out if job.write_images else None))
+                    self.memory = renderer.policy.memory()
+                    since_checkpoint += 1
+                    if on_frame is not None:
+                        on_frame(len(self.done), len(times), self.done[-1])
+                    if stop.is_set():
+                        break
+                    start = time.perf_counter()
+                    if since_checkpoint >= job.checkpoint_every and start >= next_checkpoint:
+                        self.checkpoint()
+                        end = time.perf_counter()
+                        next_checkpoint = end + (end - start) * (1 / CHECKPOINT_MAX_SHARE - 1)
+                        since_checkpoint = 0
+        finally:
+            renderer.close()
+        if stop.is_set() and len(self.done) < len(times):
+            raise RenderInterrupted(
+                f"stopped after {len(self.done)} of {len(times)} frames; finished frames are "
+                f"in {out} (continue with --resume)"
+            )
+        summary = build_report(self.layer_path)
+        summary.update(
+            out=str(out),
+            selection_layer=str(self.layer_path),
+            passes=sorted({p for s in self.done for p in s.passes}),
         )
-    summary = build_report(layer_path)
-    summary.update(
-        out=str(out),
-        selection_layer=str(layer_path),
-        passes=sorted({p for s in done for p in s.passes}),
-    )
-    return summary
+        return summary
 
+    @contextmanager
+    def _records_kept(self) -> Iterator[None]:
+        """Write the checkpoint and records of the finished frames when the block ends,
+        however it ends. If the block failed, its error is the one raised; the disk
+        reserve is given up first so that the records fit even on a full disk."""
+        try:
+            yield
+        except BaseException:
+            self.run_dir.release_reserve()
+            with suppress(PhrtError, OSError):
+                self.checkpoint()
+            raise
+        self.checkpoint()
 
-@contextmanager
-def _records_kept(out, layer_path, job, scene, run_info, done, renderer) -> Iterator[None]:
-    """Write the checkpoint and records of ``done`` when the block ends, however it ends.
-    If the block failed, its error is the one raised (a checkpoint that cannot be written
-    then, e.g. on the same full disk, leaves the previous good one)."""
-    try:
-        yield
-    except BaseException:
-        with suppress(PhrtError, OSError):
-            _checkpoint(out, layer_path, job, scene, run_info, done, renderer)
-        raise
-    _checkpoint(out, layer_path, job, scene, run_info, done, renderer)
+    def checkpoint(self) -> None:
+        """Write the checkpoint, then stats.json and the selection layer, each atomically,
+        and grow the disk reserve to hold them all again."""
+        frames = sorted(self.done, key=lambda s: s.time)
+        document = {
+            "format": CHECKPOINT_FORMAT,
+            "version": CHECKPOINT_VERSION,
+            "identity": self.run_info["identity"],
+            "frames": [frame_stats_row(f) for f in frames],
+            "policy": self.memory,
+        }
+        out = self.job.out_dir
+        text = json.dumps(document, allow_nan=False) + "\n"
+        write_text_atomic(out / CHECKPOINT_FILE, text)
+        write_run_records(out, self.layer_path, self.job, self.scene, self.run_info, frames)
+        written = len(text) + sum(
+            p.stat().st_size for p in (out / STATS_FILE, self.layer_path) if p.exists()
+        )
+        self.run_dir.keep_reserve(RESERVE_FACTOR * written)
 
 
 def render_frame(renderer: FrameRenderer, t: float, out: Path | None) -> FrameStats:
@@ -343,28 +379,6 @@ def _check_same_run(out: Path, saved, current: dict) -> None:
     raise PhrtError(f"--resume: the checkpoint in {out} is of another run")
 
 
-def _checkpoint(
-    out: Path,
-    layer_path: Path,
-    job: RenderJob,
-    scene: StageScene,
-    run_info: dict,
-    frames: list[FrameStats],
-    renderer: FrameRenderer,
-) -> None:
-    """Write the checkpoint, then stats.json and the selection layer, each atomically."""
-    frames = sorted(frames, key=lambda s: s.time)
-    document = {
-        "format": CHECKPOINT_FORMAT,
-        "version": CHECKPOINT_VERSION,
-        "identity": run_info["identity"],
-        "frames": [frame_stats_row(f) for f in frames],
-        "policy": renderer.policy.memory(),
-    }
-    write_text_atomic(out / CHECKPOINT_FILE, json.dumps(document, allow_nan=False) + "\n")
-    write_run_records(out, layer_path, job, scene, run_info, frames)
-
-
 def write_run_records(
     out: Path,
     layer_path: Path,
@@ -430,13 +444,39 @@ class RunDirectory:
         self._lock()
         try:
             self._claim()
+            self.keep_reserve(RESERVE_MIN_BYTES)
+            frames = out / FRAMES_DIR
+            if frames.is_symlink() or (frames.exists() and not frames.is_dir()):
+                raise PhrtError(f"{frames}: not a directory of this run (a link or a file)")
         except BaseException:
             self._unlock()
             raise
         return self
 
     def __exit__(self, *exc) -> None:
+        self.release_reserve()
         self._unlock()
+
+    def keep_reserve(self, nbytes: int) -> None:
+        """Hold at least ``max(nbytes, RESERVE_MIN_BYTES)`` of disk in ``OUT/.phrt.reserve``
+        (allocated, never written to) so that when the disk fills, releasing it leaves
+        room to write the finished frames' records. Without room for it, nothing is held."""
+        nbytes = max(int(nbytes), RESERVE_MIN_BYTES)
+        try:
+            fd = os.open(self.out / RESERVE_FILE, os.O_WRONLY | os.O_CREAT | os.O_NOFOLLOW, 0o600)
+        except OSError:
+            return
+        try:
+            if os.fstat(fd).st_size < nbytes:
+                os.posix_fallocate(fd, 0, nbytes)
+        except OSError:
+            pass  # no room for the reserve (the disk is full already) or no fallocate here
+        finally:
+            os.close(fd)
+
+    def release_reserve(self) -> None:
+        with suppress(FileNotFoundError):
+            (self.out / RESERVE_FILE).unlink()
 
     def _lock(self) -> None:
         path = self.out / LOCK_FILE
@@ -473,7 +513,9 @@ class RunDirectory:
 
     def _claim(self) -> None:
         """Refuse a non-empty ``out`` unless resuming or overwriting (see the class)."""
-        present = sorted(p.name for p in self.out.iterdir() if p.name != LOCK_FILE)
+        present = sorted(
+            p.name for p in self.out.iterdir() if p.name not in (LOCK_FILE, RESERVE_FILE)
+        )
         layer_exists = self.layer_path.exists() or self.layer_path.is_symlink()
         outside = layer_exists and self.layer_path.parent.resolve() != self.out.resolve()
         if self.resume:
@@ -498,7 +540,7 @@ class RunDirectory:
     def _clear(self) -> None:
         """Delete phrt's own files in ``out`` (never following a symlink: a link is
         removed itself), and the job's selection layer."""
-        for name in (STATS_FILE, SELECTION_LAYER_FILE, CHECKPOINT_FILE):
+        for name in (STATS_FILE, SELECTION_LAYER_FILE, CHECKPOINT_FILE, RESERVE_FILE):
             with suppress(FileNotFoundError):
                 (self.out / name).unlink()
         with suppress(FileNotFoundError):

@@ -8,6 +8,7 @@ Layout of a render's output directory ``OUT``::
     OUT/selection.usda      the selection layer (see selection_layer.py)
     OUT/checkpoint.json     finished frames and the policy's memory, for --resume
     OUT/.phrt.lock          held (flock) by the render writing OUT; names its pid
+    OUT/.phrt.reserve       disk held back while rendering, so records fit on a full disk
 
 ``NNNN`` is the frame's time code: integral time codes are zero-padded to 4 digits
 (``0012``, ``-003``), fractional ones keep 3 decimals (``0012.500``), so time codes are
@@ -46,6 +47,7 @@ STATS_FILE = "stats.json"
 SELECTION_LAYER_FILE = "selection.usda"
 CHECKPOINT_FILE = "checkpoint.json"
 LOCK_FILE = ".phrt.lock"
+RESERVE_FILE = ".phrt.reserve"
 
 #: Identifies stats.json files written by this module; bump the version on breaking change.
 STATS_FORMAT = "phrt-stats"
@@ -114,8 +116,9 @@ def _publish(tmp: Path, final: Path, check: Callable[[Path], None] | None) -> No
     info = tmp.lstat()
     if not stat.S_ISREG(info.st_mode):
         raise WriteFailed(f"{final}: the temp file was replaced by something else")
-    if info.st_size == 0:
-        raise WriteFailed(f"{final}: the writer produced an empty file")
+    if info.st_size == 0:  # image writers may report success on a full disk
+        full = " (no space left on device)" if _disk_full(final.parent) else ""
+        raise WriteFailed(f"{final}: the writer produced an empty file{full}")
     if check is not None:
         check(tmp)
     try:
@@ -130,6 +133,14 @@ def _publish(tmp: Path, final: Path, check: Callable[[Path], None] | None) -> No
         os.close(fd)
     os.replace(tmp, final)
     _fsync_directory(final.parent)
+
+
+def _disk_full(path: Path) -> bool:
+    try:
+        info = os.statvfs(path)
+    except OSError:
+        return False
+    return info.f_bavail * info.f_frsize < 64 * 1024  # less than a small file's room
 
 
 def _fsync_directory(path: Path) -> None:
