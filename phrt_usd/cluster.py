@@ -24,12 +24,18 @@ decides what one task does and puts the results back together. See ``docs/cluste
 * **Faults**: a worker that dies mid-chunk loses that chunk's task; the scheduler runs it
   again on another worker (Dask's ``allowed-failures``); an exception inside a chunk is
   retried ``TASK_RETRIES`` times. Either way the chunk's frames come back exactly once.
+* **Security**: a scheduler runs the code sent to it. The local cluster listens on
+  loopback only; ``--scheduler`` values are checked (``parse_scheduler_address``) and a
+  plain-tcp scheduler on another machine is warned about (``scheduler_warning``).
 """
 
 from __future__ import annotations
 
+import ipaddress
 import os
+import re
 import secrets
+import sys
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, replace
@@ -38,7 +44,7 @@ from typing import TYPE_CHECKING
 
 from distributed.diagnostics.plugin import WorkerPlugin
 
-from phrt_usd.errors import PhrtError
+from phrt_usd.errors import BadOption, PhrtError
 from phrt_usd.frame import FrameStats
 
 if TYPE_CHECKING:
@@ -171,29 +177,174 @@ class PhrtWorkerSetup(WorkerPlugin):
 # --------------------------------------------------------------------------- client
 
 
+#: Where the local cluster listens: scheduler, nannies, workers and the scheduler's HTTP
+#: endpoint bind this loopback address only (port 0: any free port), so no other machine
+#: can reach them. Processes on this machine still can: see docs/cluster.md, "Security".
+LOOPBACK_HOST = "127.0.0.1"
+
+#: Schemes ``--scheduler`` accepts (a bare ``host:port`` is ``tcp://``, Dask's default).
+#: ``inproc://`` is left out: it names a scheduler inside the same process, which a new
+#: ``phrt`` process never has.
+SCHEDULER_SCHEMES = ("tcp", "tls")
+
+_HOSTNAME_LABEL = re.compile(r"(?!-)[A-Za-z0-9_-]{1,63}(?<!-)", re.ASCII)
+
+
+@dataclass(frozen=True)
+class SchedulerAddress:
+    """A parsed ``--scheduler`` value: ``scheme://host:port`` (IPv6 hosts without the
+    brackets)."""
+
+    scheme: str
+    host: str
+    port: int
+
+    def __str__(self) -> str:
+        host = f"[{self.host}]" if ":" in self.host else self.host
+        return f"{self.scheme}://{host}:{self.port}"
+
+    @property
+    def is_loopback(self) -> bool:
+        """True for ``localhost`` and literals in 127.0.0.0/8 or ::1; any other name is
+        taken as another machine (no name is looked up)."""
+        if self.host.lower().rstrip(".") == "localhost":
+            return True
+        try:
+            ip = ipaddress.ip_address(self.host)
+        except ValueError:
+            return False
+        if isinstance(ip, ipaddress.IPv6Address) and ip.ipv4_mapped is not None:
+            ip = ip.ipv4_mapped
+        return ip.is_loopback
+
+
+def _is_host_name_or_ipv4(host: str) -> bool:
+    """An IPv4 literal, or a name of dot-separated labels whose last is not all digits
+    (``10.0.0.300`` is a mistyped address, not a name)."""
+    try:
+        ipaddress.IPv4Address(host)
+        return True
+    except ValueError:
+        labels = host.removesuffix(".").split(".")
+        return all(_HOSTNAME_LABEL.fullmatch(label) for label in labels) and not (
+            labels[-1].isdigit()
+        )
+
+
+def parse_scheduler_address(address: str) -> SchedulerAddress:
+    """Check the form of a ``--scheduler`` value: ``tcp://host:port``, ``tls://host:port``
+    or ``host:port`` (tcp); host a name, an IPv4 literal or a bracketed IPv6 literal.
+    Anything else is a ``BadOption`` naming the option and the value. No name is
+    resolved here."""
+
+    def bad(why: str) -> BadOption:
+        return BadOption(
+            f"--scheduler {address!r}: {why}; expected tcp://HOST:PORT or tls://HOST:PORT"
+        )
+
+    scheme, sep, rest = address.strip().partition("://")
+    if not sep:
+        scheme, rest = "tcp", address.strip()
+    scheme = scheme.lower()
+    if scheme not in SCHEDULER_SCHEMES:
+        raise bad(f"scheme {scheme!r} not supported")
+    if rest.startswith("["):
+        host, bracket, tail = rest[1:].partition("]")
+        if not bracket or not tail.startswith(":"):
+            raise bad("an IPv6 host needs brackets and a port, like [::1]:8786")
+        port_text = tail[1:]
+        try:
+            if not isinstance(ipaddress.ip_address(host), ipaddress.IPv6Address):
+                raise ValueError(host)
+        except ValueError:
+            raise bad(f"{host!r} is not an IPv6 address") from None
+    else:
+        host, colon, port_text = rest.rpartition(":")
+        if not colon:
+            raise bad("missing :PORT")
+        if not host:
+            raise bad("missing host")
+        if ":" in host:
+            raise bad("an IPv6 host needs brackets, like [::1]:8786")
+        if not _is_host_name_or_ipv4(host):
+            raise bad(f"{host!r} is not a host name or IP address")
+    if not re.fullmatch(r"[0-9]{1,5}", port_text) or not 1 <= int(port_text) <= 65535:
+        raise bad(f"port {port_text!r} is not a number in 1..65535")
+    return SchedulerAddress(scheme, host, int(port_text))
+
+
+def tls_client_configured(security=None) -> bool:
+    """True when Dask's configuration (or ``security``, a ``distributed.Security``) gives
+    the client a CA file and a certificate: without them distributed cannot open a
+    ``tls://`` connection at all."""
+    if security is None:
+        from distributed import Security
+
+        security = Security()
+    return bool(security.tls_ca_file and security.tls_client_cert)
+
+
+def scheduler_warning(address: SchedulerAddress | str) -> str | None:
+    """The one-line warning printed before connecting to ``address``, or ``None``: a
+    loopback scheduler and a ``tls://`` one (mutual TLS: only holders of a certificate
+    of the cluster's CA can connect) get none."""
+    if isinstance(address, str):
+        address = parse_scheduler_address(address)
+    if address.is_loopback or address.scheme == "tls":
+        return None
+    return (
+        f"warning: --scheduler {address} is not on this machine and not encrypted: a Dask "
+        "scheduler runs the code sent to it, and anyone who can reach it can run code as "
+        "its workers' user; connect only to a cluster you control, over TLS (tls://, "
+        "see docs/cluster.md)"
+    )
+
+
+def _connect(address: SchedulerAddress) -> Client:
+    """A client of the scheduler at ``address`` (warning first, see ``scheduler_warning``)."""
+    from distributed import Client
+
+    if address.scheme == "tls" and not tls_client_configured():
+        raise BadOption(
+            f"--scheduler {address}: TLS is not configured: set Dask's "
+            "distributed.comm.tls.ca-file and distributed.comm.tls.client.cert (and .key) "
+            "(see docs/cluster.md)"
+        )
+    warning = scheduler_warning(address)
+    if warning is not None:
+        print(warning, file=sys.stderr)
+    try:
+        return Client(str(address), timeout="20s")
+    except OSError as exc:
+        raise PhrtError(f"--scheduler {address}: cannot connect ({exc})") from None
+
+
 @contextmanager
 def dask_client(workers: int | None = None, scheduler: str | None = None) -> Iterator[Client]:
-    """A ``distributed.Client``: connected to ``scheduler`` (``tcp://host:8786``), or to
-    a ``LocalCluster`` of ``workers`` single-threaded worker processes on this machine.
-    The Phrt worker plugin is registered either way. Closed on exit."""
+    """A ``distributed.Client``: connected to ``scheduler`` (``tcp://host:8786``,
+    ``tls://host:8786``; checked by ``parse_scheduler_address``, warned about by
+    ``scheduler_warning``), or to a ``LocalCluster`` of ``workers`` single-threaded
+    worker processes on this machine listening on loopback only (``LOOPBACK_HOST``, no
+    dashboard). The Phrt worker plugin is registered either way. Closed on exit."""
     from distributed import Client, LocalCluster
 
     if (workers is None) == (scheduler is None):
-        raise PhrtError("give exactly one of --workers N or --scheduler ADDRESS")
+        raise BadOption("give exactly one of --workers N or --scheduler ADDRESS")
     if scheduler is not None:
-        try:
-            client = Client(scheduler, timeout="20s")
-        except OSError as exc:
-            raise PhrtError(f"--scheduler {scheduler}: cannot connect ({exc})") from None
+        client = _connect(parse_scheduler_address(scheduler))
         cluster = None
     else:
         if workers < 1:
-            raise PhrtError(f"--workers must be >= 1, got {workers}")
+            raise BadOption(f"--workers must be >= 1, got {workers}")
         cluster = LocalCluster(
             n_workers=workers,
             threads_per_worker=1,  # one chunk at a time per process (OSMesa, Embree)
             processes=True,
-            dashboard_address=None,
+            host=LOOPBACK_HOST,  # scheduler, nannies and workers (tcp, or tls if Dask's
+            # config sets distributed.comm.require-encryption)
+            dashboard_address=None,  # no dashboard; the workers' HTTP endpoints on host
+            # The scheduler's HTTP endpoint (metrics, no dashboard): loopback, any port.
+            scheduler_kwargs={"dashboard": False, "dashboard_address": f"{LOOPBACK_HOST}:0"},
         )
         client = Client(cluster)
     try:

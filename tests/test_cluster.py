@@ -1,5 +1,7 @@
 """Scale-out on Dask: chunks with warm-up equal the unchunked run; a 2-worker LocalCluster
-gives the single-process files; a worker killed mid-chunk loses and repeats no frame."""
+gives the single-process files; a worker killed mid-chunk loses and repeats no frame; the
+local cluster listens on loopback only; ``--scheduler`` values are checked and a remote
+plain-tcp scheduler is warned about."""
 
 from __future__ import annotations
 
@@ -11,19 +13,25 @@ import threading
 import time
 from pathlib import Path
 
+import dask
 import numpy as np
+import psutil
 import pytest
 from scenes import mirror_gallery_stage
 
 from phrt_usd.cluster import (
     DEFAULT_WARMUP_FRAMES,
+    SchedulerAddress,
     dask_client,
+    parse_scheduler_address,
     plan_chunks,
     render_chunk,
     run_render_on_cluster,
     run_sweep_on_cluster,
+    scheduler_warning,
+    tls_client_configured,
 )
-from phrt_usd.errors import PhrtError
+from phrt_usd.errors import BadOption, PhrtError
 from phrt_usd.render_job import RenderJob, run_render
 from phrt_usd.renderer import RenderOptions
 from phrt_usd.selection_layer import read_selection_record
@@ -187,3 +195,134 @@ def test_killed_worker_chunk_is_retried_without_losing_or_repeating_frames(galle
     assert killed_chunks
     for index in killed_chunks:
         assert outcome["summary"]["chunk_pids"][index] != pids[victim]
+
+
+# --------------------------------------------------------------------------- security
+
+
+def _listening(process: psutil.Process) -> list[tuple[str, int]]:
+    return [
+        (c.laddr.ip, c.laddr.port)
+        for c in process.net_connections(kind="inet")
+        if c.status == psutil.CONN_LISTEN
+    ]
+
+
+def test_local_cluster_listens_on_loopback_only(capsys):
+    """Scheduler, nanny and worker addresses are 127.0.0.1, and no socket of this process
+    (the scheduler runs here) or of the worker processes listens on another address; a
+    client of that scheduler (``--scheduler``, loopback) gets no warning."""
+    with dask_client(workers=1) as client:
+        address = client.scheduler.address
+        assert parse_scheduler_address(address).host == "127.0.0.1"
+        workers = client.scheduler_info()["workers"]
+        assert len(workers) == 1
+        for worker_address, info in workers.items():
+            assert parse_scheduler_address(worker_address).host == "127.0.0.1"
+            assert parse_scheduler_address(info["nanny"]).host == "127.0.0.1"
+        me = psutil.Process()
+        sockets = _listening(me) + [s for p in me.children(recursive=True) for s in _listening(p)]
+        assert ("127.0.0.1", parse_scheduler_address(address).port) in sockets
+        assert len(sockets) >= 3  # scheduler, its HTTP endpoint, nanny / worker
+        assert all(ip == "127.0.0.1" for ip, _ in sockets), sockets
+        with dask_client(scheduler=address) as remote:
+            assert remote.scheduler_info()["workers"].keys() == workers.keys()
+    assert capsys.readouterr().err == ""
+
+
+@pytest.mark.parametrize(
+    ("given", "expected"),
+    [
+        ("tcp://10.0.0.5:8786", SchedulerAddress("tcp", "10.0.0.5", 8786)),
+        ("tls://sched.example:8786", SchedulerAddress("tls", "sched.example", 8786)),
+        ("TCP://node-1.lan.:9000", SchedulerAddress("tcp", "node-1.lan.", 9000)),
+        ("localhost:8786", SchedulerAddress("tcp", "localhost", 8786)),  # bare: tcp
+        ("tcp://[::1]:8786", SchedulerAddress("tcp", "::1", 8786)),
+        ("tls://[2001:db8::7]:443", SchedulerAddress("tls", "2001:db8::7", 443)),
+    ],
+)
+def test_scheduler_address_good_forms(given, expected):
+    assert parse_scheduler_address(given) == expected
+    assert parse_scheduler_address(str(expected)) == expected  # str() round-trips
+
+
+@pytest.mark.parametrize(
+    "given",
+    [
+        "", "tcp://", "tcp://host", "host", "tcp://:8786", "http://host:8786",
+        "inproc://127.0.0.1/1/1", "ucx://host:8786", "tcp://host:0", "tcp://host:65536",
+        "tcp://host:port", "tcp://host:8786/path", "tcp://user@host:8786", "tcp://a b:8786",
+        "tcp://::1:8786", "tcp://[::1]", "tcp://[1.2.3.4]:8786", "tcp://10.0.0.300:8786",
+        "tcp://-host:8786",
+    ],
+)  # fmt: skip
+def test_scheduler_address_bad_forms_are_one_line_option_errors(given):
+    with pytest.raises(BadOption) as raised:
+        parse_scheduler_address(given)
+    message = str(raised.value)
+    assert message.startswith(f"--scheduler {given!r}: ")
+    assert "\n" not in message
+    with pytest.raises(BadOption):  # dask_client checks before connecting
+        with dask_client(scheduler=given):
+            pass
+
+
+@pytest.mark.parametrize(
+    "address",
+    ["tcp://127.0.0.1:8786", "tcp://127.1.2.3:8786", "tcp://[::1]:8786",
+     "tcp://[::ffff:127.0.0.1]:8786", "localhost:8786", "tcp://LOCALHOST.:8786",
+     "tls://10.0.0.5:8786"],
+)  # fmt: skip
+def test_no_warning_for_loopback_or_tls_scheduler(address):
+    assert scheduler_warning(address) is None
+
+
+@pytest.mark.parametrize(
+    "address",
+    ["tcp://10.0.0.5:8786", "192.168.1.20:8786", "tcp://203.0.113.9:8786",
+     "tcp://[2001:db8::7]:8786", "tcp://0.0.0.0:8786", "tcp://cluster.lan:8786",
+     "tcp://localhost.example:8786"],
+)  # fmt: skip
+def test_one_line_warning_for_remote_plain_tcp_scheduler(address):
+    warning = scheduler_warning(address)
+    assert warning is not None and "\n" not in warning
+    assert warning.startswith(f"warning: --scheduler {parse_scheduler_address(address)} ")
+    assert "runs the code sent to it" in warning
+    assert "tls://" in warning and "docs/cluster.md" in warning
+
+
+def test_dask_client_prints_the_warning_once_before_connecting(monkeypatch, capsys):
+    """No remote scheduler is contacted: the connection is made to fail."""
+    import distributed
+
+    def refuse(address, **kwargs):
+        raise OSError(f"refused {address}")
+
+    monkeypatch.setattr(distributed, "Client", refuse)
+    with pytest.raises(PhrtError, match=r"^--scheduler tcp://10\.0\.0\.5:8786: cannot connect"):
+        with dask_client(scheduler="10.0.0.5:8786"):
+            pass
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1
+    assert err.startswith("warning: --scheduler tcp://10.0.0.5:8786 ")
+
+
+def test_tls_scheduler_without_tls_configuration_is_refused(tmp_path):
+    """distributed cannot open a tls:// connection without a CA file and a client
+    certificate (it raises a TypeError); phrt says which configuration keys to set."""
+    unset = {
+        "distributed.comm.tls.ca-file": None,
+        "distributed.comm.tls.client.cert": None,
+        "distributed.comm.tls.client.key": None,
+    }
+    with dask.config.set(unset):
+        assert not tls_client_configured()
+        with pytest.raises(BadOption, match=r"distributed\.comm\.tls\.ca-file"):
+            with dask_client(scheduler="tls://10.0.0.5:8786"):
+                pass
+    configured = {
+        "distributed.comm.tls.ca-file": str(tmp_path / "ca.pem"),
+        "distributed.comm.tls.client.cert": str(tmp_path / "client.pem"),
+    }
+    with dask.config.set(configured):
+        assert tls_client_configured()
