@@ -10,9 +10,9 @@ rendering: the replay runs the renderer's round loop (``FrameRenderer.finish``) 
 recorded records instead of the tracer. The first step checks that: replaying HEU1 and
 HEU2 gives the same transitions and mean selected as real ``paper_tables`` runs.
 
-    uv run python tools/policy_replay.py capture stages/farm.usda runs/replay/farm.pkl \
+    uv run python tools/policy_replay.py capture stages/farm.usda runs/replay/farm.json.gz \
         [--frames A:B:STEP] [--images runs/replay/farm.npz]
-    uv run python tools/policy_replay.py replay runs/replay/farm.pkl \
+    uv run python tools/policy_replay.py replay runs/replay/farm.json.gz \
         --budgets 500,1000,2000,4000 [--heuristics heu1,heu2] [--images runs/replay/farm.npz]
 
 ``capture`` renders the stage's full camera path (or ``--frames``) once (hybrid, ``all``,
@@ -23,24 +23,43 @@ selected, mean traced rays, the HEU1/HEU2 ratio and, with ``--images``, the mean
 against ``all`` of each policy's images composed from the recording (``compose``: equal to
 ``phrt sweep``'s figures on the same frames, e.g. farm 521:640:2 at 1000 rays: 0.00442 /
 0.00422 both ways).
+
+A recording is plain data: JSON (gzip-compressed when its name ends in ``.gz``) with
+``"format": "phrt-replay-recording"`` and ``"version": 1``, read back by ``load_recording``
+(shared with ``tools/transition_bound.py``). Its objects are a closed list of known types
+(``CameraFrame``, ``FrameView``, ``TraceRecord``, ``DistantLight``, ``LocalLight``, a
+frame's element table), each read field by field with its type checked; numpy arrays are
+``{"dtype", "shape", "data"}`` with a few numeric dtypes and ``data`` the flat values in C
+order. Floats are written by ``repr`` (NaN and infinities as JSON's ``NaN`` /
+``Infinity`` extension), so they read back bit for bit and a replay of the file selects
+exactly what a replay of the capture in memory does. Reading never unpickles, imports or
+evaluates anything: a file that is not such a recording is refused with one line, as is an
+``--images`` npz that is not a capture's (loaded with ``allow_pickle=False``).
 """
 
 from __future__ import annotations
 
 import argparse
-import pickle
+import gzip
+import json
+import math
 import sys
+import zipfile
+import zlib
 from dataclasses import replace
 from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
 
-from phrt_usd.frame import Budget
+from phrt_usd.errors import PhrtError
+from phrt_usd.frame import Budget, FrameView, TraceRecord
 from phrt_usd.heuristic import UPCOMING_CAMERAS, AllPolicy, make_policy
 from phrt_usd.image_metrics import flip_map
 from phrt_usd.render_job import parse_frames
 from phrt_usd.renderer import FrameRenderer, RenderOptions
+from phrt_usd.run_files import atomic_path, write_bytes_atomic
+from phrt_usd.scene import CameraFrame, DistantLight, LocalLight
 from phrt_usd.schema import read_render_params
 from phrt_usd.stage_reader import open_stage
 
@@ -52,7 +71,7 @@ class _CapturePolicy(AllPolicy):
         super().__init__(**kw)
         #: One SimpleNamespace per frame: ``view`` (FrameView), ``elements`` (per element:
         #: is_reflector, priority, center, bounds) and ``records`` (element id → TraceRecord of
-        #: every visible reflector). Plain types, so the pickle loads anywhere.
+        #: every visible reflector). Known types only, so ``save_recording`` can write it.
         self.frames: list[SimpleNamespace] = []
 
     def begin_frame(self, view, scene) -> None:
@@ -120,11 +139,440 @@ def capture(
         "reflectors": [int(i) for i in stage.scene.reflector_ids],
         "frames": policy.frames,
     }
-    out.parent.mkdir(parents=True, exist_ok=True)
-    with open(out, "wb") as fh:
-        pickle.dump(data, fh)
+    save_recording(out, data)
     if images is not None:
-        np.savez(images, times=np.asarray(times), **{k: np.stack(v) for k, v in stacks.items()})
+        arrays = {k: np.stack(v) for k, v in stacks.items()}
+        with atomic_path(images) as tmp, open(tmp, "wb") as fh:
+            np.savez(fh, times=np.asarray(times), **arrays)
+
+
+# ------------------------------------------------------------------ recording files
+
+#: The ``format`` and ``version`` a recording file names; any other is refused.
+RECORDING_FORMAT = "phrt-replay-recording"
+RECORDING_VERSION = 1
+
+
+class RecordingError(PhrtError):
+    """A file that is not a recording (or a capture's images) this tool can read; its
+    message is one line naming the file and what is wrong."""
+
+
+#: The only dtypes a recording's arrays have (by name).
+_DTYPES = {name: np.dtype(name) for name in ("bool", "int64", "float64")}
+
+
+class _Array:
+    """Field kind: an ndarray of one of ``dtypes`` whose shape matches ``shape`` (``None``
+    = any length on that axis)."""
+
+    def __init__(self, dtypes: tuple[str, ...], *shape: int | None) -> None:
+        self.dtypes, self.shape = dtypes, shape
+
+
+class _Optional:
+    def __init__(self, kind) -> None:
+        self.kind = kind
+
+
+class _Tuple:
+    def __init__(self, kind) -> None:
+        self.kind = kind
+
+
+_F8 = ("float64",)
+_VEC3 = _Array(_F8, 3)
+_INT_MAP = "int_map"  # dict[int, int], written as [[key, value], ...] in insertion order
+
+#: The closed list of classes a recording holds: class → field → kind (``int``,
+#: ``float``, ``_INT_MAP``, an ``_Array`` / ``_Optional`` / ``_Tuple``, or another class
+#: of this table). Decoding calls only these constructors, with checked fields.
+_SCHEMAS: dict[type, dict[str, object]] = {
+    CameraFrame: {
+        "world_from_camera": _Array(_F8, 4, 4),
+        "focal_length": float,
+        "horizontal_aperture": float,
+        "near": float,
+        "far": float,
+    },
+    FrameView: {
+        "time": float,
+        "camera": CameraFrame,
+        "width": int,
+        "height": int,
+        "pixel_counts": _Array(("int64",), None),
+        "screen_boxes": _Optional(_Array(_F8, None, 4)),
+        "upcoming_cameras": _Tuple(CameraFrame),
+    },
+    TraceRecord: {
+        "source": int,
+        "pixels": int,
+        "rays": int,
+        "hits": _INT_MAP,
+        "max_reflector_bounces": int,
+        "mean_reflector_bounces": float,
+        "seconds": float,
+    },
+    DistantLight: {"direction": _VEC3, "radiance": _VEC3, "angle": float},
+    LocalLight: {"position": _VEC3, "radiance": _VEC3, "radius": float},
+}
+
+#: A frame's elements (``_CapturePolicy``) as one table of columns, name → kind; element
+#: i's attributes are row i of each column.
+_ELEMENT_COLUMNS = {
+    "is_reflector": _Array(("bool",), None),
+    "priority": _Array(_F8, None),
+    "center": _Array(_F8, None, 3),
+    "bounds_min": _Array(_F8, None, 3),
+    "bounds_max": _Array(_F8, None, 3),
+}
+
+
+def _fail(where: str, what: str):
+    raise RecordingError(f"{where}: {what}")
+
+
+# --- writing
+
+
+def _encode(value, kind, where: str):
+    """``value`` (of ``kind``) → JSON data; RecordingError if it is not of that kind (the
+    capture holds something this format version does not know)."""
+    if kind is int:
+        if isinstance(value, bool) or not isinstance(value, int | np.integer):
+            _fail(where, f"expected an int, not {type(value).__name__}")
+        return int(value)
+    if kind is float:
+        if isinstance(value, bool) or not isinstance(value, float | int | np.integer):
+            _fail(where, f"expected a float, not {type(value).__name__}")
+        return float(value)
+    if kind == _INT_MAP:
+        if not isinstance(value, dict):
+            _fail(where, f"expected a dict, not {type(value).__name__}")
+        return [
+            [_encode(k, int, where), _encode(v, int, f"{where}[{k}]")] for k, v in value.items()
+        ]
+    if isinstance(kind, _Optional):
+        return None if value is None else _encode(value, kind.kind, where)
+    if isinstance(kind, _Tuple):
+        if not isinstance(value, tuple | list):
+            _fail(where, f"expected a tuple, not {type(value).__name__}")
+        return [_encode(v, kind.kind, f"{where}[{i}]") for i, v in enumerate(value)]
+    if isinstance(kind, _Array):
+        return _encode_array(value, kind, where)
+    schema = _SCHEMAS[kind]
+    if type(value) is not kind:
+        _fail(where, f"expected a {kind.__name__}, not {type(value).__name__}")
+    if set(vars(value)) != set(schema):
+        unknown = sorted(set(vars(value)) ^ set(schema))
+        _fail(where, f"{kind.__name__} field {unknown[0]!r} is not in the format")
+    return {name: _encode(getattr(value, name), k, f"{where}.{name}") for name, k in schema.items()}
+
+
+def _encode_array(value, kind: _Array, where: str) -> dict:
+    if not isinstance(value, np.ndarray) or value.dtype.name not in kind.dtypes:
+        got = value.dtype.name if isinstance(value, np.ndarray) else type(value).__name__
+        _fail(where, f"expected an array of {'/'.join(kind.dtypes)}, not {got}")
+    if not _shape_fits(value.shape, kind.shape):
+        _fail(where, f"array shape {value.shape} is not {kind.shape}")
+    return {"dtype": value.dtype.name, "shape": list(value.shape), "data": value.ravel().tolist()}
+
+
+def _shape_fits(shape, want) -> bool:
+    return len(shape) == len(want) and all(
+        w is None or s == w for s, w in zip(shape, want, strict=True)
+    )
+
+
+def _encode_elements(elements: list, where: str) -> dict:
+    table = {}
+    for name, kind in _ELEMENT_COLUMNS.items():
+        column = [getattr(e, name) for e in elements]
+        if name == "is_reflector":
+            if not all(isinstance(v, bool | np.bool_) for v in column):
+                _fail(f"{where}.{name}", "an element's value is not a bool")
+            array = np.array(column, dtype=bool)
+        elif name == "priority":
+            array = np.array([_encode(v, float, f"{where}.{name}") for v in column])
+        else:
+            for v in column:
+                _encode_array(v, _VEC3, f"{where}.{name}")
+            array = np.array(column, dtype=np.float64).reshape(len(column), 3)
+        table[name] = _encode_array(array, kind, f"{where}.{name}")
+    return table
+
+
+def encode_recording(data: dict) -> dict:
+    """A capture's recording (``capture``'s ``data``) → the JSON data of its file."""
+    lights = data["lights"]
+    frames = []
+    for f, frame in enumerate(data["frames"]):
+        where = f"frames[{f}]"
+        records = []
+        for key, rec in frame.records.items():
+            if key != rec.source:
+                _fail(f"{where}.records[{key}]", f"holds the record of source {rec.source}")
+            records.append(_encode(rec, TraceRecord, f"{where}.records[{key}]"))
+        frames.append(
+            {
+                "view": _encode(frame.view, FrameView, f"{where}.view"),
+                "elements": _encode_elements(frame.elements, f"{where}.elements"),
+                "records": records,
+            }
+        )
+    return {
+        "format": RECORDING_FORMAT,
+        "version": RECORDING_VERSION,
+        "stage": str(data["stage"]),
+        "selection_weight": _encode(data["selection_weight"], float, "selection_weight"),
+        "bounce_limit": _encode(data["bounce_limit"], int, "bounce_limit"),
+        "lights": {
+            "distant": _encode(lights.distant, _Tuple(DistantLight), "lights.distant"),
+            "local": _encode(lights.local, _Tuple(LocalLight), "lights.local"),
+        },
+        "reflectors": _encode(data["reflectors"], _Tuple(int), "reflectors"),
+        "frames": frames,
+    }
+
+
+def save_recording(path: Path, data: dict) -> None:
+    """Write ``data`` to ``path`` as a recording (gzip when the name ends in ``.gz``),
+    atomically, and read it back before it replaces anything under that name."""
+    raw = json.dumps(encode_recording(data), separators=(",", ":")).encode("utf-8")
+    if Path(path).name.endswith(".gz"):
+        raw = gzip.compress(raw, compresslevel=6, mtime=0)
+    write_bytes_atomic(Path(path), raw, check=load_recording)
+
+
+# --- reading
+
+
+def _object(value, names, where: str) -> dict:
+    """``value`` as a JSON object with exactly the fields ``names``."""
+    if not isinstance(value, dict):
+        _fail(where, f"expected an object, not {_json_type(value)}")
+    missing = [n for n in names if n not in value]
+    if missing:
+        _fail(where, f"missing field {missing[0]!r}")
+    extra = sorted(set(value) - set(names))
+    if extra:
+        _fail(where, f"unknown field {extra[0]!r}")
+    return value
+
+
+def _json_type(value) -> str:
+    if value is None:
+        return "null"
+    if isinstance(value, bool):
+        return "a boolean"
+    if isinstance(value, int | float):
+        return "a number"
+    if isinstance(value, str):
+        return "a string"
+    return "an array" if isinstance(value, list) else "an object"
+
+
+def _list(value, where: str) -> list:
+    if not isinstance(value, list):
+        _fail(where, f"expected an array, not {_json_type(value)}")
+    return value
+
+
+def _decode(value, kind, where: str):
+    """JSON data → a value of ``kind``; RecordingError unless ``value`` is exactly what
+    ``_encode`` writes for that kind."""
+    if kind is int:
+        if type(value) is not int:
+            _fail(where, f"expected an integer, not {_json_type(value)}")
+        return value
+    if kind is float:
+        if type(value) not in (float, int):
+            _fail(where, f"expected a number, not {_json_type(value)}")
+        return float(value)
+    if kind == _INT_MAP:
+        table = {}
+        for i, pair in enumerate(_list(value, where)):
+            if not (isinstance(pair, list) and len(pair) == 2):
+                _fail(f"{where}[{i}]", "expected a [key, value] pair")
+            key = _decode(pair[0], int, f"{where}[{i}]")
+            if key in table:
+                _fail(f"{where}[{i}]", f"a second entry for {key}")
+            table[key] = _decode(pair[1], int, f"{where}[{i}]")
+        return table
+    if isinstance(kind, _Optional):
+        return None if value is None else _decode(value, kind.kind, where)
+    if isinstance(kind, _Tuple):
+        items = _list(value, where)
+        return tuple(_decode(v, kind.kind, f"{where}[{i}]") for i, v in enumerate(items))
+    if isinstance(kind, _Array):
+        return _decode_array(value, kind, where)
+    schema = _SCHEMAS[kind]
+    obj = _object(value, schema, where)
+    return kind(**{name: _decode(obj[name], k, f"{where}.{name}") for name, k in schema.items()})
+
+
+def _decode_array(value, kind: _Array, where: str) -> np.ndarray:
+    obj = _object(value, ("dtype", "shape", "data"), where)
+    name = obj["dtype"]
+    if not isinstance(name, str) or name not in kind.dtypes:
+        _fail(f"{where}.dtype", f"expected {'/'.join(map(repr, kind.dtypes))}, not {name!r}")
+    shape = _list(obj["shape"], f"{where}.shape")
+    if not all(type(n) is int and n >= 0 for n in shape) or not _shape_fits(shape, kind.shape):
+        _fail(f"{where}.shape", f"{shape} is not an array shape {kind.shape}")
+    data = _list(obj["data"], f"{where}.data")
+    if len(data) != math.prod(shape):
+        _fail(f"{where}.data", f"{len(data)} values for shape {shape}")
+    dtype = _DTYPES[name]
+    if dtype.kind == "b":
+        ok = all(type(v) is bool for v in data)
+    elif dtype.kind == "i":
+        info = np.iinfo(dtype)
+        ok = all(type(v) is int and info.min <= v <= info.max for v in data)
+    else:
+        ok = all(type(v) in (float, int) for v in data)
+    if not ok:
+        _fail(f"{where}.data", f"holds values that are not {name}")
+    return np.array(data, dtype=dtype).reshape(shape)
+
+
+def _decode_elements(value, where: str) -> list[SimpleNamespace]:
+    obj = _object(value, _ELEMENT_COLUMNS, where)
+    columns = {n: _decode(obj[n], k, f"{where}.{n}") for n, k in _ELEMENT_COLUMNS.items()}
+    n = len(columns["is_reflector"])
+    if any(len(c) != n for c in columns.values()):
+        _fail(where, "columns of different lengths")
+    is_reflector = columns["is_reflector"].tolist()
+    priority = columns["priority"].tolist()
+    return [
+        SimpleNamespace(
+            is_reflector=is_reflector[i],
+            priority=priority[i],
+            center=columns["center"][i],
+            bounds_min=columns["bounds_min"][i],
+            bounds_max=columns["bounds_max"][i],
+        )
+        for i in range(n)
+    ]
+
+
+def _decode_frame(value, reflectors: list[int], where: str) -> SimpleNamespace:
+    obj = _object(value, ("view", "elements", "records"), where)
+    view = _decode(obj["view"], FrameView, f"{where}.view")
+    elements = _decode_elements(obj["elements"], f"{where}.elements")
+    records = {}
+    for i, item in enumerate(_list(obj["records"], f"{where}.records")):
+        rec = _decode(item, TraceRecord, f"{where}.records[{i}]")
+        if rec.source in records:
+            _fail(f"{where}.records[{i}]", f"a second record of source {rec.source}")
+        records[rec.source] = rec
+    # What replay and transition_bound index, so a bad file fails here, not inside them.
+    counts = view.pixel_counts
+    if view.width < 1 or view.height < 1 or not view.camera.focal_length > 0.0:
+        _fail(f"{where}.view", "no image size or focal length")
+    if len(elements) != len(counts):
+        _fail(where, f"{len(elements)} elements but {len(counts)} pixel counts")
+    if [i for i, e in enumerate(elements) if e.is_reflector] != reflectors:
+        _fail(where, "its reflector elements are not the recording's reflectors")
+    lacking = [e for e in reflectors if counts[e] > 0 and e not in records]
+    if lacking:
+        _fail(where, f"no record of reflector {lacking[0]}, which is in view")
+    return SimpleNamespace(view=view, elements=elements, records=records)
+
+
+_RECORDING_FIELDS = (
+    "format", "version", "stage", "selection_weight", "bounce_limit", "lights", "reflectors",
+    "frames",
+)  # fmt: skip
+
+
+def decode_recording(value) -> dict:
+    """The JSON data of a recording file → the recording (``capture``'s ``data``)."""
+    if not isinstance(value, dict) or value.get("format") != RECORDING_FORMAT:
+        got = value.get("format") if isinstance(value, dict) else None
+        raise RecordingError(
+            f"not a replay recording (format {got!r}, expected {RECORDING_FORMAT!r})"
+            if isinstance(got, str)
+            else "not a replay recording (no format name)"
+        )
+    if value.get("version") != RECORDING_VERSION:
+        raise RecordingError(
+            f"recording version {value.get('version')!r} is not supported "
+            f"(this tool reads version {RECORDING_VERSION})"
+        )
+    obj = _object(value, _RECORDING_FIELDS, "recording")
+    if not isinstance(obj["stage"], str):
+        _fail("stage", f"expected a string, not {_json_type(obj['stage'])}")
+    lights = _object(obj["lights"], ("distant", "local"), "lights")
+    reflectors = list(_decode(obj["reflectors"], _Tuple(int), "reflectors"))
+    frames = [
+        _decode_frame(item, reflectors, f"frames[{f}]")
+        for f, item in enumerate(_list(obj["frames"], "frames"))
+    ]
+    return {
+        "stage": obj["stage"],
+        "selection_weight": _decode(obj["selection_weight"], float, "selection_weight"),
+        "bounce_limit": _decode(obj["bounce_limit"], int, "bounce_limit"),
+        "lights": SimpleNamespace(
+            distant=list(_decode(lights["distant"], _Tuple(DistantLight), "lights.distant")),
+            local=list(_decode(lights["local"], _Tuple(LocalLight), "lights.local")),
+        ),
+        "reflectors": reflectors,
+        "frames": frames,
+    }
+
+
+def load_recording(path: Path) -> dict:
+    """Read a recording file written by ``save_recording`` (gzip or not: told by its first
+    bytes). Never unpickles or evaluates anything; RecordingError (one line) for a file
+    that is not such a recording."""
+    try:
+        raw = Path(path).read_bytes()
+    except OSError as error:
+        raise RecordingError(f"{path}: cannot read ({error.strerror or error})") from None
+    try:
+        if raw[:2] == b"\x1f\x8b":
+            raw = gzip.decompress(raw)
+        value = json.loads(raw)
+    except (OSError, EOFError, zlib.error) as error:
+        raise RecordingError(f"{path}: not a replay recording (bad gzip: {error})") from None
+    except (ValueError, RecursionError) as error:
+        # JSONDecodeError and UnicodeDecodeError are ValueErrors.
+        reason = str(error).splitlines()[0] if str(error) else type(error).__name__
+        raise RecordingError(f"{path}: not a replay recording (not JSON: {reason})") from None
+    try:
+        return decode_recording(value)
+    except RecordingError as error:
+        raise RecordingError(f"{path}: {error}") from None
+
+
+#: A capture's images npz: name → (dtype kind, ndim); every array has the frame count first.
+_IMAGE_ARRAYS = {"ids": ("i", 3), "raster": ("f", 4), "all": ("f", 4), "traced": ("b", 3)}
+
+
+def load_images(path: Path, n_frames: int) -> dict[str, np.ndarray]:
+    """The arrays of ``capture``'s ``--images`` npz (``allow_pickle=False``: an object
+    array or a pickle is refused), checked against a recording of ``n_frames`` frames."""
+    try:
+        npz = np.load(path, allow_pickle=False)
+        if not isinstance(npz, np.lib.npyio.NpzFile):
+            raise ValueError("not an npz archive")
+        with npz:
+            missing = [k for k in _IMAGE_ARRAYS if k not in npz.files]
+            if missing:
+                raise ValueError(f"no array {missing[0]!r}")
+            images = {k: npz[k] for k in _IMAGE_ARRAYS}
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as error:
+        raise RecordingError(f"{path}: not a capture's images ({error})") from None
+    shape = images["ids"].shape
+    for name, (dtype_kind, ndim) in _IMAGE_ARRAYS.items():
+        a = images[name]
+        if a.dtype.kind != dtype_kind or a.ndim != ndim or a.shape[:3] != shape[:3]:
+            raise RecordingError(f"{path}: not a capture's images ({name!r}: {a.dtype} {a.shape})")
+    if images["raster"].shape[3:] != (3,) or images["all"].shape != images["raster"].shape:
+        raise RecordingError(f"{path}: not a capture's images (image shapes)")
+    if shape[0] != n_frames:
+        raise RecordingError(f"{path}: {shape[0]} frames of images, the recording has {n_frames}")
+    return images
 
 
 def compose(images, f: int, selected_ids: list[int]) -> np.ndarray:
@@ -241,13 +689,16 @@ def main(argv: list[str] | None = None) -> int:
     rep.add_argument("--no-lookahead", action="store_true", help="views without upcoming cameras")
     rep.add_argument("--images", type=Path, default=None, help="capture's images: add mean FLIP")
     args = ap.parse_args(argv)
-    if args.command == "capture":
-        capture(args.stage, args.out, args.width, args.height, args.frames, args.images)
-        return 0
-    with open(args.recording, "rb") as fh:
-        data = pickle.load(fh)
+    try:
+        if args.command == "capture":
+            capture(args.stage, args.out, args.width, args.height, args.frames, args.images)
+            return 0
+        data = load_recording(args.recording)
+        images = load_images(args.images, len(data["frames"])) if args.images else None
+    except PhrtError as error:
+        print(f"policy_replay: {error}", file=sys.stderr)
+        return 1
     heuristics = [h.strip() for h in args.heuristics.split(",") if h.strip()]
-    images = np.load(args.images) if args.images else None
     print(
         "| budget | heuristic | transitions (adm + drop) | entered selected | mean selected "
         "| mean rays | mean FLIP |"

@@ -14,13 +14,15 @@ same costs; real policies also plan with a safety factor on predicted rays, whic
 makes them more constrained. ``mean_selected`` defaults to HEU2's on the same budget
 (replayed), the constraint the brief puts on HEU1. Solved with scipy's HiGHS MILP.
 
-    uv run python tools/transition_bound.py runs/replay/farm.pkl --budgets 500,1000,2000,4000
+    uv run python tools/transition_bound.py runs/replay/farm.json.gz --budgets 500,1000,2000,4000
+
+The recording is read with ``policy_replay.load_recording`` (plain JSON data, never
+unpickled); a file that is not one is refused with one line.
 """
 
 from __future__ import annotations
 
 import argparse
-import pickle
 import sys
 from pathlib import Path
 
@@ -29,7 +31,7 @@ from scipy.optimize import Bounds, LinearConstraint, milp
 from scipy.sparse import coo_matrix
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from policy_replay import replay, transition_counts  # noqa: E402
+from policy_replay import RecordingError, load_recording, replay, transition_counts  # noqa: E402
 
 
 def recorded_costs(data: dict) -> tuple[np.ndarray, np.ndarray]:
@@ -115,8 +117,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--budgets", required=True, help="comma list of rays budgets")
     ap.add_argument("--time-limit", type=float, default=120.0, help="seconds per budget")
     args = ap.parse_args(argv)
-    with open(args.recording, "rb") as fh:
-        data = pickle.load(fh)
+    try:
+        data = load_recording(args.recording)
+    except RecordingError as error:
+        print(f"transition_bound: {error}", file=sys.stderr)
+        return 1
     rays, visible = recorded_costs(data)
     print(
         "| budget | HEU2 transitions | HEU2 mean selected | fewest transitions at that mean "
