@@ -169,23 +169,39 @@ class CameraPath:
         return look_at(pos * meters_per_unit, tgt * meters_per_unit, UP_VECTORS[self.up_axis])
 
 
+def camera_path_problems(prim: Usd.Prim) -> list[str]:
+    """Every reason ``read_camera_path`` refuses the prim, one line each (``[]`` when it
+    reads). The first is the message ``read_camera_path`` raises;
+    ``phrt_usd.validation`` reports all of them."""
+    return _read(prim)[1]
+
+
 def read_camera_path(prim: Usd.Prim) -> CameraPath:
     """Read (``phrt_usd.schema``) and validate a ``PhrtCameraPath`` prim.
 
     Raises ``PhrtError`` (one line naming the prim and attribute) for missing or
     non-finite control points, mismatched lengths, non-increasing key times, an unknown
-    interpolation or an end frame before the start frame.
+    interpolation or an end frame before the start frame (``camera_path_problems``).
     """
+    path, problems = _read(prim)
+    if path is None:
+        raise PhrtError(problems[0])
+    return path
+
+
+def _read(prim: Usd.Prim) -> tuple[CameraPath | None, list[str]]:
+    """The camera path, or None and the reasons it is refused (in checking order)."""
     data = schema.read_camera_path(prim)
     where = data.path
+    problems = []
     for name, pts in ((schema.POSITIONS, data.positions), (schema.TARGETS, data.targets)):
         if len(pts) == 0:
-            raise PhrtError(f"{where}.{name}: camera path has no control points")
-        if not np.all(np.isfinite(pts)):
-            raise PhrtError(f"{where}.{name}: non-finite control point")
+            problems.append(f"{where}.{name}: camera path has no control points")
+        elif not np.all(np.isfinite(pts)):
+            problems.append(f"{where}.{name}: non-finite control point")
     n = len(data.positions)
     if len(data.targets) != n:
-        raise PhrtError(
+        problems.append(
             f"{where}: {schema.POSITIONS} has {n} points but {schema.TARGETS} "
             f"has {len(data.targets)}"
         )
@@ -199,38 +215,57 @@ def read_camera_path(prim: Usd.Prim) -> CameraPath:
         lo = data.start if has_start else 0.0
         hi = data.end if has_end else float(n - 1)
         key_times = np.linspace(lo, hi, n) if n > 1 else np.array([lo])
-    if len(key_times) != n:
-        raise PhrtError(
+    keys_ok = len(key_times) == n and n > 0
+    if n == 0:
+        pass  # no control points (reported above): nothing to time
+    elif len(key_times) != n:
+        problems.append(
             f"{where}.{schema.KEY_TIMES}: {len(key_times)} times for {n} control points"
         )
-    if not np.all(np.isfinite(key_times)) or np.any(np.diff(key_times) <= 0):
-        raise PhrtError(f"{where}.{schema.KEY_TIMES}: times must be finite and strictly increasing")
+    elif not np.all(np.isfinite(key_times)) or np.any(np.diff(key_times) <= 0):
+        keys_ok = False
+        problems.append(f"{where}.{schema.KEY_TIMES}: times must be finite and strictly increasing")
     if data.interpolation not in schema.INTERPOLATIONS:
-        raise PhrtError(
+        problems.append(
             f"{where}.{schema.INTERPOLATION}: {data.interpolation!r} is not one of "
             f"{', '.join(schema.INTERPOLATIONS)}"
         )
-    start = data.start if has_start else float(key_times[0])
-    end = data.end if has_end else float(key_times[-1])
-    if not (np.isfinite(start) and np.isfinite(end)) or end < start:
-        raise PhrtError(f"{where}: frame range [{start}, {end}] is empty or not finite")
-    return CameraPath(
-        path=where,
-        camera=data.camera or "",
-        positions=data.positions,
-        targets=data.targets,
-        key_times=np.asarray(key_times, dtype=np.float64),
-        interpolation=data.interpolation,
-        start_frame=float(start),
-        end_frame=float(end),
-        up_axis=str(UsdGeom.GetStageUpAxis(prim.GetStage())),
+    # Frame range defaults come from the key times: only when those are usable.
+    start = data.start if has_start else (float(key_times[0]) if keys_ok else None)
+    end = data.end if has_end else (float(key_times[-1]) if keys_ok else None)
+    if start is not None and end is not None:
+        if not (np.isfinite(start) and np.isfinite(end)) or end < start:
+            problems.append(f"{where}: frame range [{start}, {end}] is empty or not finite")
+    if problems:
+        return None, problems
+    return (
+        CameraPath(
+            path=where,
+            camera=data.camera or "",
+            positions=data.positions,
+            targets=data.targets,
+            key_times=np.asarray(key_times, dtype=np.float64),
+            interpolation=data.interpolation,
+            start_frame=float(start),
+            end_frame=float(end),
+            up_axis=str(UsdGeom.GetStageUpAxis(prim.GetStage())),
+        ),
+        [],
     )
 
 
-def find_camera_path(stage: Usd.Stage, camera: str) -> CameraPath | None:
-    """The first active ``PhrtCameraPath`` whose ``phrt:camera`` targets ``camera``."""
+def find_camera_path_prim(stage: Usd.Stage, camera: str) -> Usd.Prim | None:
+    """The first active ``PhrtCameraPath`` prim whose ``phrt:camera`` targets ``camera``
+    (the one that drives it; later ones are ignored), or None."""
     for prim in schema.find_camera_paths(stage):
         rel = prim.GetRelationship(schema.CAMERA)
         if rel and any(str(t) == camera for t in rel.GetForwardedTargets()):
-            return read_camera_path(prim)
+            return prim
     return None
+
+
+def find_camera_path(stage: Usd.Stage, camera: str) -> CameraPath | None:
+    """The camera path driving ``camera`` (``find_camera_path_prim``), read and
+    validated (``PhrtError``), or None."""
+    prim = find_camera_path_prim(stage, camera)
+    return None if prim is None else read_camera_path(prim)

@@ -30,6 +30,16 @@ Pipeline (``read_stage``):
 5. **Lights.** UsdLux Distant, Sphere, Rect, Disk, Cylinder and Dome lights, read once at
    the start of the frame range (not animated; colour temperature ignored).
 
+Refusals and warnings: every reason ``read_stage`` refuses a stage is a one-line
+``PhrtError`` ``"<where>: <what>"``; the rules that ``phrt validate`` must agree with are
+functions here returning those messages (``stage_problems``, ``choose_camera``,
+``camera_problems``, ``reflector_problems``, ``mesh_problems`` /
+``mesh_problems_in_range``; ``phrt_usd.camera_path.camera_path_problems``), and the render
+raises their first message. The camera is checked at the start of the frame range before
+any geometry is read, and again at every ``camera(time)``. Sublayers, references and
+payloads USD could not open do not stop the render: ``StageScene.warnings`` holds one
+line per missing asset (``composition_problems`` / ``composition_warnings``).
+
 Decisions where USD leaves room:
 
 - Normals: authored ``primvars:normals`` (preferred) or ``normals`` in any interpolation;
@@ -68,12 +78,13 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import re
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
 import OpenImageIO as oiio
-from pxr import Sdf, Usd, UsdGeom, UsdLux, UsdRender, UsdShade
+from pxr import Gf, Pcp, Sdf, Tf, Usd, UsdGeom, UsdLux, UsdRender, UsdShade
 
 from phrt_usd import schema
 from phrt_usd.camera_path import CameraPath, find_camera_path
@@ -440,10 +451,86 @@ def smooth_corner_normals(points: np.ndarray, triangles: np.ndarray) -> np.ndarr
     return np.where(bad[..., None], face_n, corner)
 
 
+def _points_problems(points: np.ndarray, where: str) -> list[str]:
+    """Render refusal of a point array (n, 3): non-finite values."""
+    finite = np.all(np.isfinite(points), axis=1)
+    if finite.all():
+        return []
+    return [f"{where}: non-finite point at index {int(np.argmax(~finite))}"]
+
+
 def _check_points(points: np.ndarray, where: str) -> None:
-    if not np.all(np.isfinite(points)):
-        bad = int(np.argmax(~np.all(np.isfinite(points), axis=1)))
-        raise PhrtError(f"{where}: non-finite point at index {bad}")
+    for problem in _points_problems(points, where):
+        raise PhrtError(problem)
+
+
+def _mesh_counts_indices(prim: Usd.Prim, time: Usd.TimeCode) -> tuple[np.ndarray, np.ndarray]:
+    """faceVertexCounts and faceVertexIndices at ``time`` as int64 arrays."""
+    mesh = UsdGeom.Mesh(prim)
+    counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get(time) or [], dtype=np.int64)
+    indices = np.asarray(mesh.GetFaceVertexIndicesAttr().Get(time) or [], dtype=np.int64)
+    return counts, indices
+
+
+def _topology_problems(path, counts: np.ndarray, indices: np.ndarray, n_points: int) -> list[str]:
+    """Render refusals of a mesh topology: negative counts, counts that do not add up to
+    the indices, indices outside the points."""
+    problems = []
+    if np.any(counts < 0):
+        problems.append(f"{path}.faceVertexCounts: negative face vertex count")
+    if int(counts.sum()) != len(indices):
+        problems.append(
+            f"{path}.faceVertexIndices: {len(indices)} indices but faceVertexCounts "
+            f"sums to {int(counts.sum())}"
+        )
+    if len(indices) and (indices.min() < 0 or indices.max() >= n_points):
+        problems.append(
+            f"{path}.faceVertexIndices: index out of range [0, {n_points}) "
+            f"(min {indices.min()}, max {indices.max()})"
+        )
+    return problems
+
+
+def mesh_problems(prim: Usd.Prim, time: float) -> list[str]:
+    """Every reason the render refuses this UsdGeomMesh's points and topology at ``time``
+    (the first is the message it raises), ``[]`` when it reads. Faces with fewer than
+    3 vertices are not a refusal (they are skipped)."""
+    code = Usd.TimeCode(float(time))
+    points = _mesh_points_at(prim, code)
+    counts, indices = _mesh_counts_indices(prim, code)
+    path = prim.GetPath()
+    return _points_problems(points, f"{path}.points") + _topology_problems(
+        path, counts, indices, len(points)
+    )
+
+
+def mesh_problems_in_range(prim: Usd.Prim, frames: tuple[float, float]) -> list[str]:
+    """``mesh_problems`` wherever the render reads this mesh over the frame range: at its
+    start and, when the shape is animated (points or normals may vary, as the render
+    decides), at every time sample inside the range of points and topology, with the
+    refusal of a point count that changes. One message per location, the earliest."""
+    start, end = frames
+    problems = mesh_problems(prim, start)
+    if problems or not _varies(prim, _SHAPE_ATTRS["Mesh"]):
+        return problems
+    n_points = len(_mesh_points_at(prim, Usd.TimeCode(start)))
+    interval = Gf.Interval(start, end)
+    times: set[float] = set()
+    for name in (*_SHAPE_ATTRS["Mesh"], "faceVertexCounts", "faceVertexIndices"):
+        attr = prim.GetAttribute(name)
+        if attr:
+            times.update(attr.GetTimeSamplesInInterval(interval))
+    seen: set[str] = set()
+    for t in sorted(times - {start}):
+        found = mesh_problems(prim, t)
+        if not found and len(_mesh_points_at(prim, Usd.TimeCode(t))) != n_points:
+            found = [f"{prim.GetPath()}: topology changes at time {t} (not supported)"]
+        for problem in found:
+            where = problem.partition(": ")[0]
+            if where not in seen:
+                seen.add(where)
+                problems.append(problem)
+    return problems
 
 
 def _mesh_topology(prim: Usd.Prim, time: Usd.TimeCode, n_points: int):
@@ -452,31 +539,24 @@ def _mesh_topology(prim: Usd.Prim, time: Usd.TimeCode, n_points: int):
     Returns corners (T, 3) face-vertex ids, tri_face (T,), triangles (T, 3) point ids,
     all int64, with ``leftHanded`` winding already flipped.
     """
-    path = prim.GetPath()
     mesh = UsdGeom.Mesh(prim)
-    counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get(time) or [], dtype=np.int64)
-    indices = np.asarray(mesh.GetFaceVertexIndicesAttr().Get(time) or [], dtype=np.int64)
-    if np.any(counts < 0):
-        raise PhrtError(f"{path}.faceVertexCounts: negative face vertex count")
-    if int(counts.sum()) != len(indices):
-        raise PhrtError(
-            f"{path}.faceVertexIndices: {len(indices)} indices but faceVertexCounts "
-            f"sums to {int(counts.sum())}"
-        )
-    if len(indices) and (indices.min() < 0 or indices.max() >= n_points):
-        raise PhrtError(
-            f"{path}.faceVertexIndices: index out of range [0, {n_points}) "
-            f"(min {indices.min()}, max {indices.max()})"
-        )
+    counts, indices = _mesh_counts_indices(prim, time)
+    for problem in _topology_problems(prim.GetPath(), counts, indices, n_points):
+        raise PhrtError(problem)
     corners, tri_face = _fan_corners(counts)
     if mesh.GetOrientationAttr().Get(time) == UsdGeom.Tokens.leftHanded:
         corners = corners[:, [0, 2, 1]]
     return corners, tri_face, indices[corners]
 
 
-def _read_mesh_points(prim: Usd.Prim, time: Usd.TimeCode) -> np.ndarray:
+def _mesh_points_at(prim: Usd.Prim, time: Usd.TimeCode) -> np.ndarray:
+    """(n, 3) float64 points at ``time`` (unchecked; empty when unauthored)."""
     pts = UsdGeom.Mesh(prim).GetPointsAttr().Get(time)
-    points = np.asarray(pts if pts is not None else [], dtype=np.float64).reshape(-1, 3)
+    return np.asarray(pts if pts is not None else [], dtype=np.float64).reshape(-1, 3)
+
+
+def _read_mesh_points(prim: Usd.Prim, time: Usd.TimeCode) -> np.ndarray:
+    points = _mesh_points_at(prim, time)
     _check_points(points, f"{prim.GetPath()}.points")
     return points
 
@@ -798,16 +878,31 @@ class _Part:
     flipped: bool = False  # winding flipped for a negative-determinant transform
 
 
+def reflector_problems(prim: Usd.Prim, path: str | None = None) -> list[str]:
+    """Every reason the render refuses a reflector gprim's K and F (``path`` names the
+    element, default the prim path): K must be finite and >= 0, F finite (F outside
+    [0, 1] is clamped, not refused). ``[]`` for a valid reflector or a non-reflector."""
+    if not schema.is_reflector(prim):
+        return []
+    path = str(prim.GetPath()) if path is None else path
+    k = schema.reflector_priority(prim)
+    f = schema.reflector_reflectivity(prim)
+    problems = []
+    if not np.isfinite(k) or k < 0:
+        problems.append(f"{path}.{schema.PRIORITY}: must be a finite number >= 0, got {k}")
+    if not np.isfinite(f):
+        problems.append(f"{path}.{schema.REFLECTIVITY}: must be finite, got {f}")
+    return problems
+
+
 def _element_flags(prim: Usd.Prim, path: str) -> tuple[bool, float, float]:
     """(is_reflector, K, F) of a gprim; K and F are 0 for non-reflectors."""
     if not schema.is_reflector(prim):
         return False, 0.0, 0.0
+    for problem in reflector_problems(prim, path):
+        raise PhrtError(problem)
     k = schema.reflector_priority(prim)
     f = schema.reflector_reflectivity(prim)
-    if not np.isfinite(k) or k < 0:
-        raise PhrtError(f"{path}.{schema.PRIORITY}: must be a finite number >= 0, got {k}")
-    if not np.isfinite(f):
-        raise PhrtError(f"{path}.{schema.REFLECTIVITY}: must be finite, got {f}")
     return True, k, float(np.clip(f, 0.0, 1.0))  # F is a blend weight: clamp to [0, 1]
 
 
@@ -843,6 +938,10 @@ _SHAPE_ATTRS = {
     "Capsule": ("radius", "height"),
     "Plane": ("width", "length"),
 }
+
+
+#: Prim types the render reads as geometry (other gprims, e.g. curves, are not drawn).
+RENDERED_GPRIM_TYPES = tuple(_SHAPE_ATTRS)
 
 
 def _shape_kind(prim: Usd.Prim) -> str | None:
@@ -960,11 +1059,13 @@ def _read_light(prim: Usd.Prim, ctx: _TimeContext, mpu: float, lights: Lights) -
 # --------------------------------------------------------------------------------------
 
 
-def _choose_camera(stage: Usd.Stage, camera: str | None) -> Usd.Prim:
+def choose_camera(stage: Usd.Stage, camera: str | None = None) -> Usd.Prim:
+    """The camera the render uses (module doc, step 1). Raises ``PhrtError`` when there is
+    none, or when the chosen path / the render settings' target is not a UsdGeomCamera."""
     if camera:
         prim = stage.GetPrimAtPath(camera) if Sdf.Path.IsValidPathString(camera) else None
         if not prim or not prim.IsA(UsdGeom.Camera):
-            raise PhrtError(f"camera {camera!r}: no UsdGeomCamera prim at that path")
+            raise PhrtError(f"{camera}: no UsdGeomCamera prim at this path (--camera)")
         return prim
     settings_prim = schema.find_render_settings(stage)
     if settings_prim is not None:
@@ -983,6 +1084,236 @@ def _choose_camera(stage: Usd.Stage, camera: str | None) -> Usd.Prim:
     raise PhrtError(f"{stage.GetRootLayer().identifier}: stage has no UsdGeomCamera")
 
 
+def stage_problems(stage: Usd.Stage) -> list[str]:
+    """Render refusals of the stage metadata: metersPerUnit must be finite and > 0."""
+    mpu = float(UsdGeom.GetStageMetersPerUnit(stage))
+    if np.isfinite(mpu) and mpu > 0:
+        return []
+    return [f"{stage.GetRootLayer().identifier}: metersPerUnit must be > 0, got {mpu}"]
+
+
+def frame_range(stage: Usd.Stage, path_driver: CameraPath | None) -> tuple[float, float]:
+    """(start, end) time codes rendered by default: the driving camera path's, else the
+    stage's start/end time codes."""
+    if path_driver is not None:
+        return (path_driver.start_frame, path_driver.end_frame)
+    return (float(stage.GetStartTimeCode()), float(stage.GetEndTimeCode()))
+
+
+@dataclass
+class _CameraValues:
+    world: np.ndarray | None  # (4, 4) row-vector local → world, stage units (None: driven)
+    focal: float
+    aperture: float
+    near: float
+    far: float
+    problems: list[str]
+
+
+def _camera_values(prim: Usd.Prim, time: float, driven: bool) -> _CameraValues:
+    """The camera's attributes at ``time`` and every reason the render refuses them."""
+    code = Usd.TimeCode(float(time))
+    cam = UsdGeom.Camera(prim)
+    where = str(prim.GetPath())
+    problems = []
+    if cam.GetProjectionAttr().Get(code) == UsdGeom.Tokens.orthographic:
+        problems.append(f"{where}.projection: orthographic cameras are not supported")
+    world = None
+    if not driven:
+        world = np.array(UsdGeom.XformCache(code).GetLocalToWorldTransform(prim))
+        if not np.all(np.isfinite(world)):
+            problems.append(f"{where}: non-finite camera transform at time {time}")
+    focal = float(cam.GetFocalLengthAttr().Get(code))
+    aperture = float(cam.GetHorizontalApertureAttr().Get(code))
+    near, far = (float(x) for x in cam.GetClippingRangeAttr().Get(code))
+    if not (np.isfinite(focal) and focal > 0):
+        problems.append(f"{where}.focalLength: must be > 0 at time {time}, got {focal}")
+    if not (np.isfinite(aperture) and aperture > 0):
+        problems.append(f"{where}.horizontalAperture: must be > 0 at time {time}, got {aperture}")
+    if not (np.isfinite(near) and np.isfinite(far) and far > near):
+        problems.append(f"{where}.clippingRange: need near < far, got ({near}, {far})")
+    return _CameraValues(world, focal, aperture, near, far, problems)
+
+
+def camera_problems(prim: Usd.Prim, time: float, driven: bool = False) -> list[str]:
+    """Every reason the render refuses the camera at ``time`` (the first is what
+    ``StageScene.camera`` raises): orthographic projection, a non-finite transform
+    (unless a camera path drives it, ``driven``), focal length or horizontal aperture
+    not > 0, clipping range not near < far."""
+    return _camera_values(prim, time, driven).problems
+
+
+_CAMERA_ATTRS = ("projection", "focalLength", "horizontalAperture", "clippingRange")
+
+
+def camera_check_times(prim: Usd.Prim, frames: tuple[float, float], driven: bool) -> list[float]:
+    """Times at which ``camera_problems`` covers the whole frame range: its start and end
+    and every time sample inside it of the camera attributes and (unless driven) of the
+    transforms of the camera and its ancestors. Values between samples are linear
+    interpolations, so their extremes are at these times."""
+    start, end = frames
+    interval = Gf.Interval(start, end)
+    times = {start, end}
+    for name in _CAMERA_ATTRS:
+        attr = prim.GetAttribute(name)
+        if attr:
+            times.update(attr.GetTimeSamplesInInterval(interval))
+    p = prim
+    while not driven and p and not p.IsPseudoRoot():
+        xf = UsdGeom.Xformable(p)
+        if xf:
+            times.update(xf.GetTimeSamplesInInterval(interval))
+            if xf.GetResetXformStack():
+                break
+        p = p.GetParent()
+    return sorted(float(t) for t in times)
+
+
+# --------------------------------------------------------------------------------------
+# What the render reads
+# --------------------------------------------------------------------------------------
+
+
+def _walk_subtree(root: Usd.Prim, code: Usd.TimeCode, top: bool = True):
+    """(kind, prim) of what the render reads under ``root`` at ``code``, in its order.
+
+    kind: a gprim type (``_SHAPE_ATTRS``), or with ``top`` "PointInstancer" (its subtree
+    is not walked: prototypes render only through the instancer) and "Light". Subtrees
+    that are invisible, guide or proxy are pruned (``_pruned``). Inside a prototype
+    (``top`` False) only gprims are yielded and nested instancers are walked through, not
+    expanded.
+    """
+    if not root:
+        return
+    it = iter(Usd.PrimRange(root, Usd.TraverseInstanceProxies()))
+    for prim in it:
+        if _pruned(prim, code):
+            it.PruneChildren()
+            continue
+        kind = _shape_kind(prim)
+        if kind is not None:
+            yield kind, prim
+        elif not top:
+            continue
+        elif prim.IsA(UsdGeom.PointInstancer):
+            yield "PointInstancer", prim
+            it.PruneChildren()
+        elif prim.HasAPI(UsdLux.LightAPI):
+            yield "Light", prim
+
+
+def rendered_gprims(stage: Usd.Stage, time: float):
+    """(kind, prim) of every gprim the render reads at ``time`` (the start of the frame
+    range): those of the stage and, once each, those of the PointInstancer prototypes."""
+    code = Usd.TimeCode(float(time))
+    seen: set[str] = set()
+    prototypes: list[Sdf.Path] = []
+    for kind, prim in _walk_subtree(stage.GetPseudoRoot(), code):
+        if kind == "PointInstancer":
+            prototypes += UsdGeom.PointInstancer(prim).GetPrototypesRel().GetForwardedTargets()
+        elif kind != "Light" and str(prim.GetPath()) not in seen:
+            seen.add(str(prim.GetPath()))
+            yield kind, prim
+    for proto in dict.fromkeys(prototypes):
+        for kind, prim in _walk_subtree(stage.GetPrimAtPath(proto), code, top=False):
+            if str(prim.GetPath()) not in seen:
+                seen.add(str(prim.GetPath()))
+                yield kind, prim
+
+
+# --------------------------------------------------------------------------------------
+# Composition: sublayers, references and payloads USD could not open
+# --------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class CompositionProblem:
+    """One composition error of the stage (``Usd.Stage.GetCompositionErrors``).
+
+    kind    : "sublayer", "reference", "payload", or "other" (any other Pcp error)
+    where   : the prim whose arc failed; for a sublayer, the layer that lists it
+    asset   : the asset path USD could not open, as USD resolved it ("" for "other")
+    message : one line, ``"<where>: <what>"`` (``phrt validate`` reports it as an error)
+    """
+
+    kind: str
+    where: str
+    asset: str
+    message: str
+
+
+_ASSET_ERROR = re.compile(
+    r"Could not open asset @(?P<asset>.*?)@ for (?P<arc>\w+) introduced by "
+    r"@(?P<layer>.*?)@<(?P<site>[^>]*)>\.?(?:\s*--\s*(?P<reason>.*?))?\.?$"
+)
+_SUBLAYER_ERROR = re.compile(r"Could not load sublayer @(?P<asset>.*?)@ of layer @(?P<layer>.*?)@")
+
+
+def composition_problems(stage: Usd.Stage) -> list[CompositionProblem]:
+    """Sublayers, references and payloads the stage names but USD could not open, and
+    the stage's other composition errors, one each, sorted by location (USD's own order
+    varies). Muted layers are intentional and not reported."""
+    problems = []
+    for err in stage.GetCompositionErrors():
+        if err.errorType == Pcp.ErrorType_MutedAssetPath:
+            continue
+        text = " ".join(str(err).split())
+        prim = str(err.rootSite.path)
+        m = _ASSET_ERROR.search(text)
+        if m and err.errorType == Pcp.ErrorType_InvalidAssetPath:
+            arc = m["arc"] if m["arc"] in ("reference", "payload") else "reference"
+            reason = f" ({m['reason']})" if m["reason"] else ""
+            problems.append(
+                CompositionProblem(
+                    arc, prim, m["asset"], f"{prim}: cannot open {arc} {m['asset']}{reason}"
+                )
+            )
+            continue
+        m = _SUBLAYER_ERROR.search(text)
+        if m and err.errorType == Pcp.ErrorType_InvalidSublayerPath:
+            problems.append(
+                CompositionProblem(
+                    "sublayer",
+                    m["layer"],
+                    m["asset"],
+                    f"{m['layer']}: cannot open sublayer {m['asset']}",
+                )
+            )
+            continue
+        problems.append(CompositionProblem("other", prim, "", f"{prim}: {text}"))
+    return sorted(problems, key=lambda p: (p.where, p.message))
+
+
+#: Prim paths listed in one composition warning before "and N more".
+_WARNING_PATHS = 5
+
+
+def composition_warnings(problems: list[CompositionProblem]) -> list[str]:
+    """One-line render warnings for ``composition_problems``: per missing reference or
+    payload asset, the number of prims that render without its content and their paths;
+    per missing sublayer, the layer (the number of prims it held is unknown)."""
+    by_asset: dict[tuple[str, str], list[str]] = {}
+    warnings = []
+    for p in problems:
+        if p.kind in ("reference", "payload"):
+            by_asset.setdefault((p.kind, p.asset), []).append(p.where)
+        elif p.kind == "sublayer":
+            warnings.append(
+                f"missing sublayer {p.asset} of {p.where}: not rendered "
+                "(how many prims it held is unknown)"
+            )
+        else:
+            warnings.append(f"composition error: {p.message}")
+    for (kind, asset), prims in by_asset.items():
+        shown = ", ".join(prims[:_WARNING_PATHS])
+        if len(prims) > _WARNING_PATHS:
+            shown += f" and {len(prims) - _WARNING_PATHS} more"
+        n = len(prims)
+        count = "1 prim renders" if n == 1 else f"{n} prims render"
+        warnings.append(f"missing {kind} {asset}: {count} without its content ({shown})")
+    return warnings
+
+
 # --------------------------------------------------------------------------------------
 # The stage scene
 # --------------------------------------------------------------------------------------
@@ -997,27 +1328,27 @@ class StageScene:
     frame_range           : (start, end) time codes — the PhrtCameraPath's if one drives
                             the camera, else the stage's start/end time codes
     time_codes_per_second : from the stage
+    warnings              : list[str], one line each: what the render goes on without
+                            (missing sublayers, references, payloads; ``composition_warnings``)
     """
 
     def __init__(self, stage: Usd.Stage, camera: str | None = None):
         self.stage = stage
+        for problem in stage_problems(stage):
+            raise PhrtError(problem)
         self.meters_per_unit = float(UsdGeom.GetStageMetersPerUnit(stage))
-        if not np.isfinite(self.meters_per_unit) or self.meters_per_unit <= 0:
-            raise PhrtError(f"metersPerUnit: must be > 0, got {self.meters_per_unit}")
         self.up_axis = str(UsdGeom.GetStageUpAxis(stage))
         self.time_codes_per_second = float(stage.GetTimeCodesPerSecond())
-        cam_prim = _choose_camera(stage, camera)
+        self.warnings: list[str] = composition_warnings(composition_problems(stage))
+        cam_prim = choose_camera(stage, camera)
         self.camera_path = str(cam_prim.GetPath())
         self._camera_prim = cam_prim
         self.path_driver: CameraPath | None = find_camera_path(stage, self.camera_path)
-        if self.path_driver is not None:
-            self.frame_range = (self.path_driver.start_frame, self.path_driver.end_frame)
-        else:
-            self.frame_range = (
-                float(stage.GetStartTimeCode()),
-                float(stage.GetEndTimeCode()),
-            )
+        self.frame_range = frame_range(stage, self.path_driver)
         self._time = self.frame_range[0]
+        # Refuse a camera that cannot render the first frame before reading any geometry.
+        for problem in camera_problems(cam_prim, self._time, self.path_driver is not None):
+            raise PhrtError(problem)
         self._build(_TimeContext(self._time))
 
     # ---- reading ------------------------------------------------------------------
@@ -1066,13 +1397,12 @@ class StageScene:
             )
             elements[-1].animated = parts[-1].animated
 
-        it = iter(Usd.PrimRange(self.stage.GetPseudoRoot(), Usd.TraverseInstanceProxies()))
-        for prim in it:
-            if _pruned(prim, ctx.code):
-                it.PruneChildren()
-                continue
-            kind = _shape_kind(prim)
-            if kind is not None:
+        for kind, prim in _walk_subtree(self.stage.GetPseudoRoot(), ctx.code):
+            if kind == "PointInstancer":
+                self._expand_instancer(prim, ctx, probe, bank, add)
+            elif kind == "Light":
+                _read_light(prim, ctx, self.meters_per_unit, lights)
+            else:
                 mesh = local_mesh(prim, kind)
                 add(
                     prim,
@@ -1082,11 +1412,6 @@ class StageScene:
                     lambda c, p=prim: c.world(p),
                     probe.xform_varies(prim),
                 )
-            elif prim.IsA(UsdGeom.PointInstancer):
-                self._expand_instancer(prim, ctx, probe, bank, add)
-                it.PruneChildren()  # prototypes render only through the instancer
-            elif prim.HasAPI(UsdLux.LightAPI):
-                _read_light(prim, ctx, self.meters_per_unit, lights)
 
         self._parts = parts
         self._animated = [p for p in parts if p.animated]
@@ -1124,14 +1449,7 @@ class StageScene:
         for proto_path in protos:
             root = self.stage.GetPrimAtPath(proto_path)
             found = []
-            sub = iter(Usd.PrimRange(root, Usd.TraverseInstanceProxies())) if root else iter(())
-            for g in sub:
-                if _pruned(g, ctx.code):
-                    sub.PruneChildren()
-                    continue
-                kind = _shape_kind(g)
-                if kind is None:
-                    continue
+            for kind, g in _walk_subtree(root, ctx.code, top=False):
                 rel = np.array(ctx.cache.ComputeRelativeTransform(g, root)[0])
                 if g == root:
                     rel = np.eye(4)  # the root's own xform is in the instance transform
@@ -1295,33 +1613,17 @@ class StageScene:
 
     def camera(self, time: float) -> CameraFrame:
         """The camera at ``time``: world metres, orthonormal rotation."""
-        prim = self._camera_prim
-        code = Usd.TimeCode(float(time))
-        cam = UsdGeom.Camera(prim)
-        where = self.camera_path
-        if cam.GetProjectionAttr().Get(code) == UsdGeom.Tokens.orthographic:
-            raise PhrtError(f"{where}.projection: orthographic cameras are not supported")
+        v = _camera_values(self._camera_prim, time, self.path_driver is not None)
+        for problem in v.problems:
+            raise PhrtError(problem)
         if self.path_driver is not None:
             world_from_camera = self.path_driver.world_from_camera(time, self.meters_per_unit)
         else:
-            m = np.array(UsdGeom.XformCache(code).GetLocalToWorldTransform(prim))
-            if not np.all(np.isfinite(m)):
-                raise PhrtError(f"{where}: non-finite camera transform at time {time}")
-            rot = _rotation_columns(m)
+            m = v.world
             world_from_camera = np.eye(4)
-            world_from_camera[:3, :3] = rot
+            world_from_camera[:3, :3] = _rotation_columns(m)
             world_from_camera[:3, 3] = m[3, :3] * self.meters_per_unit
-        focal = float(cam.GetFocalLengthAttr().Get(code))
-        aperture = float(cam.GetHorizontalApertureAttr().Get(code))
-        near, far = (float(x) for x in cam.GetClippingRangeAttr().Get(code))
-        if not (np.isfinite(focal) and focal > 0):
-            raise PhrtError(f"{where}.focalLength: must be > 0 at time {time}, got {focal}")
-        if not (np.isfinite(aperture) and aperture > 0):
-            raise PhrtError(
-                f"{where}.horizontalAperture: must be > 0 at time {time}, got {aperture}"
-            )
-        if not (np.isfinite(near) and np.isfinite(far) and far > near):
-            raise PhrtError(f"{where}.clippingRange: need near < far, got ({near}, {far})")
+        focal, aperture, near, far = v.focal, v.aperture, v.near, v.far
         # A zero near plane gives a singular depth projection: keep it a tiny positive
         # fraction of the far plane.
         near = max(near, far * 1e-7)
@@ -1353,20 +1655,75 @@ def read_stage(stage: Usd.Stage, camera: str | None = None) -> StageScene:
     return StageScene(stage, camera)
 
 
-def open_stage(path: str | os.PathLike, camera: str | None = None) -> StageScene:
-    """Open a stage file (payloads loaded) and read it. Raises ``PhrtError`` (one line)
-    for a missing or unreadable file, a stage without camera, or invalid data."""
+#: File extensions of the stage files ``open_usd`` accepts (USD picks the file format
+#: from the extension; ``.usd`` may hold text or crate).
+USD_EXTENSIONS = (".usda", ".usdc", ".usd", ".usdz")
+
+
+def _tf_error_cause(exc: Exception) -> str:
+    """The first quoted reason of a (multi-line) ``Tf.ErrorException``, one line."""
+    found = re.findall(r"'([^'\n]+)'\s*$", str(exc), flags=re.MULTILINE)
+    causes = [c.strip() for c in found if not c.startswith("Failed to open layer")]
+    if causes:
+        return causes[0]
+    return "unreadable, or not a valid USD file"
+
+
+def open_usd(path: str | os.PathLike) -> Usd.Stage:
+    """Open a USD stage file with every payload loaded.
+
+    Raises ``PhrtError`` (one line naming the path and what is wrong) for a missing path,
+    a directory, a file without one of ``USD_EXTENSIONS``, or a file USD cannot read
+    (garbage bytes, invalid syntax, unreadable). A file without an extension is refused,
+    not sniffed: USD chooses the file format from the extension, and the same file
+    must open the same way in every USD tool — rename it to ``.usd`` (text or crate).
+    """
     path = os.fspath(path)
-    if not os.path.isfile(path):
-        raise PhrtError(f"{path}: no such stage file")
+    if not os.path.exists(path):
+        raise PhrtError(f"{path}: no such file")
+    if os.path.isdir(path):
+        raise PhrtError(f"{path}: is a directory, not a USD file")
+    ext = os.path.splitext(path)[1]
+    expected = "/".join(USD_EXTENSIONS)
+    if not ext or ext == ".":
+        raise PhrtError(f"{path}: no USD file extension ({expected})")
+    if not Sdf.FileFormat.FindByExtension(ext[1:]):
+        raise PhrtError(f"{path}: not a USD file (extension {ext!r}, expected {expected})")
     try:
         stage = Usd.Stage.Open(path, Usd.Stage.LoadAll)
-    except Exception as exc:  # pxr raises Tf.ErrorException with multi-line text
-        first = str(exc).strip().splitlines()[-1] if str(exc).strip() else type(exc).__name__
-        raise PhrtError(f"{path}: cannot open stage ({first.strip()})") from None
+    except Tf.ErrorException as exc:
+        raise PhrtError(f"{path}: cannot open as USD ({_tf_error_cause(exc)})") from None
     if stage is None:
-        raise PhrtError(f"{path}: cannot open stage")
-    return read_stage(stage, camera)
+        raise PhrtError(f"{path}: cannot open as USD")
+    return stage
 
 
-__all__ = ["StageScene", "open_stage", "read_stage", "read_texture", "smooth_corner_normals"]
+def open_stage(path: str | os.PathLike, camera: str | None = None) -> StageScene:
+    """Open a stage file (``open_usd``) and read it (``read_stage``). Raises
+    ``PhrtError`` (one line) for an unusable file, a stage without camera, or invalid
+    data."""
+    return read_stage(open_usd(path), camera)
+
+
+__all__ = [
+    "USD_EXTENSIONS",
+    "CompositionProblem",
+    "StageScene",
+    "camera_check_times",
+    "camera_problems",
+    "choose_camera",
+    "composition_problems",
+    "composition_warnings",
+    "frame_range",
+    "RENDERED_GPRIM_TYPES",
+    "mesh_problems",
+    "mesh_problems_in_range",
+    "open_stage",
+    "open_usd",
+    "read_stage",
+    "read_texture",
+    "reflector_problems",
+    "rendered_gprims",
+    "smooth_corner_normals",
+    "stage_problems",
+]

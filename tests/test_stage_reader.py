@@ -418,13 +418,48 @@ def test_out_of_range_index_raises():
         read_stage(stage)
 
 
-def test_missing_file_and_no_camera(tmp_path):
-    with pytest.raises(PhrtError, match="no such stage file"):
-        open_stage(tmp_path / "nope.usda")
-    bad = tmp_path / "bad.usda"
-    bad.write_text('#usda 1.0\n def Xform "A" {{{ \n')
-    with pytest.raises(PhrtError, match="cannot open stage"):
-        open_stage(bad)
+@pytest.mark.parametrize(
+    "name, content, problem",
+    [
+        ("nope.usda", None, "no such file"),
+        ("dir.usda", "dir", "is a directory, not a USD file"),
+        ("stage", "#usda 1.0\n", "no USD file extension (.usda/.usdc/.usd/.usdz)"),
+        ("stage.txt", "#usda 1.0\n", "not a USD file (extension '.txt', expected "
+         ".usda/.usdc/.usd/.usdz)"),
+        ("bad.usda", '#usda 1.0\n def Xform "A" {{{ \n', "cannot open as USD ("),
+        ("bad.usdc", b"\x00\xffgarbage", "cannot open as USD (File too small"),
+        ("bad.usd", b"PXR-USDC garbage \x00" * 20, "cannot open as USD ("),
+        ("bad.usdz", b"PK\x03\x04 garbage", "cannot open as USD ("),
+    ],
+)  # fmt: skip
+def test_unusable_stage_file_is_one_line_error(tmp_path, name, content, problem):
+    path = tmp_path / name
+    if content == "dir":
+        path.mkdir()
+    elif isinstance(content, bytes):
+        path.write_bytes(content)
+    elif content is not None:
+        path.write_text(content)
+    with pytest.raises(PhrtError) as err:
+        open_stage(path)
+    message = str(err.value)
+    assert message.startswith(f"{path}: {problem}"), message
+    assert "\n" not in message and "Traceback" not in message
+
+
+def test_missing_reference_is_a_warning_not_a_refusal(tmp_path):
+    stage = new_stage()
+    quad_pentagon(stage)
+    assert read_stage(stage).warnings == []
+    stage.DefinePrim("/World/Prop").GetReferences().AddReference(str(tmp_path / "gone.usda"))
+    ss = read_stage(stage)
+    assert ss.warnings == [
+        f"missing reference {tmp_path}/gone.usda: 1 prim renders without its content (/World/Prop)"
+    ]
+    assert ss.scene.geometry.triangle_count == 5  # the rest renders
+
+
+def test_no_camera(tmp_path):
     stage = Usd.Stage.CreateInMemory()
     with pytest.raises(PhrtError, match="no UsdGeomCamera"):
         read_stage(stage)
