@@ -166,6 +166,8 @@ class _Run:
             if job.resume and not self.run_dir.fresh:
                 self.done = _load_checkpoint(out, self.run_info, renderer)
                 self.memory = renderer.policy.memory()
+            else:  # the run's identity goes on disk before its first frame does
+                self.checkpoint(records=False)
             finished = {s.time for s in self.done}
             todo = [t for t in times if t not in finished]
             since_checkpoint = 0
@@ -214,9 +216,9 @@ class _Run:
             raise
         self.checkpoint()
 
-    def checkpoint(self) -> None:
-        """Write the checkpoint, then stats.json and the selection layer, each atomically,
-        and grow the disk reserve to hold them all again."""
+    def checkpoint(self, records: bool = True) -> None:
+        """Write the checkpoint, then (with ``records``) stats.json and the selection
+        layer, each atomically, and grow the disk reserve to hold them all again."""
         frames = sorted(self.done, key=lambda s: s.time)
         document = {
             "format": CHECKPOINT_FORMAT,
@@ -228,6 +230,8 @@ class _Run:
         out = self.job.out_dir
         text = json.dumps(document, allow_nan=False) + "\n"
         write_text_atomic(out / CHECKPOINT_FILE, text)
+        if not records:
+            return
         write_run_records(out, self.layer_path, self.job, self.scene, self.run_info, frames)
         written = len(text) + sum(
             p.stat().st_size for p in (out / STATS_FILE, self.layer_path) if p.exists()

@@ -106,6 +106,11 @@ def atomic_path(final: Path, check: Callable[[Path], None] | None = None) -> Ite
         _publish(tmp, final, check)
     except OSError as error:
         raise WriteFailed(f"{final}: cannot write ({_os_reason(error)})") from None
+    except PhrtError as error:  # a writer's own report: name the final file, not the temp
+        message = str(error).replace(str(tmp), str(final))
+        if _disk_full(final.parent) and "no space left" not in message.lower():
+            message += " (no space left on device)"
+        raise WriteFailed(message) from None
     finally:
         with contextlib.suppress(FileNotFoundError):
             tmp.unlink()
@@ -117,8 +122,7 @@ def _publish(tmp: Path, final: Path, check: Callable[[Path], None] | None) -> No
     if not stat.S_ISREG(info.st_mode):
         raise WriteFailed(f"{final}: the temp file was replaced by something else")
     if info.st_size == 0:  # image writers may report success on a full disk
-        full = " (no space left on device)" if _disk_full(final.parent) else ""
-        raise WriteFailed(f"{final}: the writer produced an empty file{full}")
+        raise WriteFailed(f"{final}: the writer produced an empty file")
     if check is not None:
         check(tmp)
     try:
@@ -375,4 +379,45 @@ def read_stats(out: Path) -> tuple[dict[str, Any], list[dict[str, Any]]]:
         raise PhrtError(
             f"{path}: stats version {document.get('version')}, expected {STATS_VERSION}"
         )
-    return document.get("run", {}), list(document.get("frames", []))
+    run, rows = document.get("run", {}), document.get("frames", [])
+    if not isinstance(rows, list):
+        raise PhrtError(f'{path}: "frames" is not a list of frame records')
+    try:
+        check_run_info(run)
+        for row in rows:
+            frame_stats_from_row(row)
+    except PhrtError as error:
+        raise PhrtError(f"{path}: {error}") from None
+    return run, rows
+
+
+#: Types of the run settings readers use (stats.json "run", the layer's customLayerData).
+_RUN_INFO_TYPES: dict[str, tuple[type, ...]] = {
+    "stage": (str,),
+    "mode": (str,),
+    "heuristic": (str,),
+    "budget_ms": (int, float),
+    "budget_rays": (int,),
+    "bounce_limit": (int,),
+    "selection_weight": (int, float),
+    "time_codes_per_second": (int, float),
+    "camera": (str,),
+}
+
+
+def check_run_info(run: Any) -> None:
+    """PhrtError unless ``run`` is a table whose known settings have their types
+    (``None`` allowed: an unused budget); ``resolution`` is two whole numbers."""
+    if not isinstance(run, dict):
+        raise PhrtError("run settings are not a table")
+    for key, kinds in _RUN_INFO_TYPES.items():
+        value = run.get(key)
+        if value is not None and (isinstance(value, bool) or not isinstance(value, kinds)):
+            raise PhrtError(f"run setting {key}: {value!r} is not a {kinds[0].__name__}")
+    resolution = run.get("resolution")
+    if resolution is not None and not (
+        isinstance(resolution, list)
+        and len(resolution) == 2
+        and all(isinstance(v, int) and not isinstance(v, bool) for v in resolution)
+    ):
+        raise PhrtError(f"run setting resolution: {resolution!r} is not [width, height]")

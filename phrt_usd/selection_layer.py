@@ -29,11 +29,11 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from pxr import Sdf, Vt
+from pxr import Sdf, Tf, Vt
 
-from phrt_usd.errors import PhrtError
+from phrt_usd.errors import PhrtError, usd_error_reason
 from phrt_usd.frame import FrameStats, ReflectorMetrics
-from phrt_usd.run_files import WriteFailed, atomic_path
+from phrt_usd.run_files import WriteFailed, atomic_path, check_run_info
 
 #: Prim holding the per-frame render statistics (an ``over``: never defined, never drawn).
 STATS_PRIM_PATH = Sdf.Path("/PhrtRenderStats")
@@ -157,15 +157,27 @@ def read_selection(layer_path: Path) -> tuple[np.ndarray, list[str], np.ndarray,
 
 
 def read_selection_record(layer_path: Path) -> SelectionRecord:
-    """Read a selection layer (samples, stats prim and run settings) into a record."""
+    """Read a selection layer (samples, stats prim and run settings) into a record.
+    PhrtError (one line) for a file that is not a readable selection layer."""
     layer = _open_layer(Path(layer_path))
+    try:
+        return _read_record(layer)
+    except (Tf.ErrorException, UnicodeDecodeError, TypeError, ValueError) as error:
+        # Damaged content that parsed as USD: wrong value types, undecodable strings.
+        reason = usd_error_reason(error) if isinstance(error, Tf.ErrorException) else error
+        raise PhrtError(f"selection layer {layer_path}: unreadable ({reason})") from None
+
+
+def _read_record(layer: Sdf.Layer) -> SelectionRecord:
     reflectors = sorted(_reflector_paths_in(layer))
     samples = {
         name: [_samples(layer, Sdf.Path(p).AppendProperty(name)) for p in reflectors]
         for name in (SELECTED, VISIBLE)
     }
     stats = {
-        name.rsplit(":", 1)[1]: _samples(layer, STATS_PRIM_PATH.AppendProperty(name))
+        name.rsplit(":", 1)[1]: {
+            t: float(v) for t, v in _samples(layer, STATS_PRIM_PATH.AppendProperty(name)).items()
+        }
         for name, _, _ in STATS_ATTRIBUTES
     }
     times = set()
@@ -182,13 +194,15 @@ def read_selection_record(layer_path: Path) -> SelectionRecord:
                 array[row[t], column] = bool(value)
         arrays[name] = array
     data = layer.customLayerData.get(LAYER_DATA_KEY, {})
+    run_info = _from_vt(dict(data))
+    check_run_info(run_info)
     return SelectionRecord(
         times=times,
         reflectors=reflectors,
         selected=arrays[SELECTED],
         visible=arrays[VISIBLE],
         stats={k: v for k, v in stats.items() if v},
-        run_info=_from_vt(dict(data)),
+        run_info=run_info,
         time_codes_per_second=float(layer.timeCodesPerSecond),
     )
 
@@ -319,7 +333,8 @@ def _open_layer(path: Path) -> Sdf.Layer:
     try:
         layer = Sdf.Layer.OpenAsAnonymous(str(path))
     except Exception as error:  # noqa: BLE001 - USD raises Tf.ErrorException
-        raise PhrtError(f"selection layer {path}: cannot open ({error})") from None
+        reason = usd_error_reason(error)
+        raise PhrtError(f"selection layer {path}: cannot open ({reason})") from None
     if layer is None:
         raise PhrtError(f"selection layer {path}: cannot open")
     return layer

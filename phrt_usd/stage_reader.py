@@ -88,7 +88,7 @@ from pxr import Gf, Pcp, Sdf, Tf, Usd, UsdGeom, UsdLux, UsdRender, UsdShade
 
 from phrt_usd import schema
 from phrt_usd.camera_path import CameraPath, find_camera_path
-from phrt_usd.errors import PhrtError
+from phrt_usd.errors import PhrtError, usd_error_reason
 from phrt_usd.scene import (
     CameraFrame,
     DistantLight,
@@ -1660,15 +1660,6 @@ def read_stage(stage: Usd.Stage, camera: str | None = None) -> StageScene:
 USD_EXTENSIONS = (".usda", ".usdc", ".usd", ".usdz")
 
 
-def _tf_error_cause(exc: Exception) -> str:
-    """The first quoted reason of a (multi-line) ``Tf.ErrorException``, one line."""
-    found = re.findall(r"'([^'\n]+)'\s*$", str(exc), flags=re.MULTILINE)
-    causes = [c.strip() for c in found if not c.startswith("Failed to open layer")]
-    if causes:
-        return causes[0]
-    return "unreadable, or not a valid USD file"
-
-
 def open_usd(path: str | os.PathLike) -> Usd.Stage:
     """Open a USD stage file with every payload loaded.
 
@@ -1692,7 +1683,7 @@ def open_usd(path: str | os.PathLike) -> Usd.Stage:
     try:
         stage = Usd.Stage.Open(path, Usd.Stage.LoadAll)
     except Tf.ErrorException as exc:
-        raise PhrtError(f"{path}: cannot open as USD ({_tf_error_cause(exc)})") from None
+        raise PhrtError(f"{path}: cannot open as USD ({usd_error_reason(exc)})") from None
     if stage is None:
         raise PhrtError(f"{path}: cannot open as USD")
     return stage
