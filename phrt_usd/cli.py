@@ -71,7 +71,7 @@ def user_errors(exit_code: int = EXIT_PROBLEMS, json_out: bool = False) -> Itera
 
 def open_input(path: Path):
     """Open a stage for a command; unreadable input raises UnreadableInput."""
-    from phrt_usd.validation import open_stage
+    from phrt_usd.usd.validation import open_stage
 
     try:
         return open_stage(path)
@@ -95,7 +95,7 @@ def validate(stage: StageArg, json_out: JsonOpt = False) -> None:
     Prints one line per problem (`ERROR /prim.attribute: ...`, `WARNING ...`). Exit 0 when
     there are no errors (warnings alone pass), 1 with errors, 2 if the stage is unreadable.
     """
-    from phrt_usd.validation import validate_stage
+    from phrt_usd.usd.validation import validate_stage
 
     with user_errors(json_out=json_out):
         report = validate_stage(open_input(stage), str(stage))
@@ -113,7 +113,7 @@ def validate(stage: StageArg, json_out: JsonOpt = False) -> None:
 @app.command()
 def inspect(stage: StageArg, json_out: JsonOpt = False) -> None:
     """Summarise reflectors, camera paths, render settings, lights and needed passes."""
-    from phrt_usd.inspection import inspect_stage
+    from phrt_usd.usd.inspection import inspect_stage
 
     with user_errors(json_out=json_out):
         summary = inspect_stage(open_input(stage), str(stage))
@@ -143,7 +143,7 @@ def author(
     ] = False,
 ) -> None:
     """Apply PhrtReflectorAPI with priority K to PRIMS, in a new layer over the stage."""
-    from phrt_usd.authoring import author_reflectors
+    from phrt_usd.usd.authoring import author_reflectors
 
     with user_errors():
         open_input(stage)  # unreadable input -> exit 2 before anything else
@@ -291,10 +291,10 @@ def render(
     json_out: JsonOpt = False,
 ) -> None:
     """Render the stage's camera path: images, stats.json and the selection layer."""
-    from phrt_usd.render_job import RenderInterrupted, RenderJob, run_render
-    from phrt_usd.renderer import RenderOptions
-    from phrt_usd.schema import read_render_params
-    from phrt_usd.stage_reader import read_stage
+    from phrt_usd.render.renderer import RenderOptions
+    from phrt_usd.run.render_job import RenderInterrupted, RenderJob, run_render
+    from phrt_usd.usd.schema import read_render_params
+    from phrt_usd.usd.stage import read_stage
 
     stage = stage or DEMO_STAGE
     with user_errors(json_out=json_out):
@@ -359,7 +359,7 @@ def render(
     if json_out:
         print_json(summary)
     else:
-        from phrt_usd.report import print_report
+        from phrt_usd.evaluate.report import print_report
 
         print_report(summary, Console())
         typer.echo(f"wrote {summary['out']}")
@@ -372,7 +372,7 @@ def report(
     json_out: JsonOpt = False,
 ) -> None:
     """The paper's metrics (transitions, mean selected, fps, overruns) of a run."""
-    from phrt_usd.report import build_report, print_report
+    from phrt_usd.evaluate.report import build_report, print_report
 
     # Every problem report meets is a run it cannot read: exit 2.
     with user_errors(EXIT_UNREADABLE, json_out=json_out):
@@ -408,8 +408,8 @@ def sweep(
 ) -> None:
     """Error against run time: every heuristic x budget against the `all` and `rt`
     references; writes sweep.csv, summary.md, error_vs_time.png and report.html."""
-    from phrt_usd.schema import read_render_params
-    from phrt_usd.sweep import SweepSpec, parse_budget_list, run_sweep
+    from phrt_usd.evaluate.sweep import SweepSpec, parse_budget_list, run_sweep
+    from phrt_usd.usd.schema import read_render_params
 
     with user_errors(json_out=json_out):
         opened = [open_input(path) for path in stages]  # all readable before starting

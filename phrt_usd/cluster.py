@@ -45,13 +45,13 @@ from typing import TYPE_CHECKING
 from distributed.diagnostics.plugin import WorkerPlugin
 
 from phrt_usd.errors import BadOption, PhrtError
-from phrt_usd.frame import FrameStats
+from phrt_usd.model.frame import FrameStats
 
 if TYPE_CHECKING:
     from distributed import Client
 
-    from phrt_usd.render_job import RenderJob
-    from phrt_usd.sweep import SweepSpec
+    from phrt_usd.evaluate.sweep import SweepSpec
+    from phrt_usd.run.render_job import RenderJob
 
 #: Frames recorded per chunk by default. A chunk pays a fixed start-up (opening the stage,
 #: building the rasterizer and the Embree scene: ~0.2-2 s) plus ``warmup`` extra frames;
@@ -126,7 +126,7 @@ class RenderChunkResult:
 
 def sweep_chunk(chunk: Chunk, spec: SweepSpec) -> SweepChunkResult:
     """On a worker: sweep the chunk's frames (warm-up first), rows kept in memory."""
-    from phrt_usd.sweep import StageSweep
+    from phrt_usd.evaluate.sweep import StageSweep
 
     sweep = StageSweep(chunk.stage, spec)
     rows: list[dict] = []
@@ -141,9 +141,9 @@ def sweep_chunk(chunk: Chunk, spec: SweepSpec) -> SweepChunkResult:
 def render_chunk(chunk: Chunk, job: RenderJob) -> RenderChunkResult:
     """On a worker: render the chunk's frames (warm-up first); recorded frames' images go
     to ``job.out_dir`` when ``job.write_images``."""
-    from phrt_usd.render_job import parse_frames, render_frame
-    from phrt_usd.renderer import FrameRenderer
-    from phrt_usd.stage_reader import open_stage
+    from phrt_usd.render.renderer import FrameRenderer
+    from phrt_usd.run.render_job import parse_frames, render_frame
+    from phrt_usd.usd.stage import open_stage
 
     scene = open_stage(chunk.stage, camera=job.camera)
     times = parse_frames(job.frames, scene.frame_range)
@@ -411,9 +411,9 @@ def run_sweep_on_cluster(
     timeline as one process with a rays budget (docs/cluster.md). ``on_chunk(done,
     total)`` after every finished chunk. Returns ``run_sweep``'s summary dict plus
     ``chunk_pids``: the process id of the worker whose result was kept, per chunk."""
-    from phrt_usd.render_job import parse_frames
-    from phrt_usd.stage_reader import open_stage
-    from phrt_usd.sweep import check_spec, finish_sweep, write_sweep_csv
+    from phrt_usd.evaluate.sweep import check_spec, finish_sweep, write_sweep_csv
+    from phrt_usd.run.render_job import parse_frames
+    from phrt_usd.usd.stage import open_stage
 
     check_spec(spec)
     spec.out.mkdir(parents=True, exist_ok=True)
@@ -450,9 +450,9 @@ def run_render_on_cluster(
     """``run_render`` on a Dask cluster (no checkpoint / ``--resume``: a lost chunk is
     re-run by the scheduler instead). ``on_frame(done, total)`` after every chunk.
     Returns ``run_render``'s summary dict plus ``chunk_pids`` (see the sweep's)."""
-    from phrt_usd.render_job import RunDirectory, job_run_info, parse_frames, write_run_records
-    from phrt_usd.report import build_report
-    from phrt_usd.stage_reader import open_stage
+    from phrt_usd.evaluate.report import build_report
+    from phrt_usd.run.render_job import RunDirectory, job_run_info, parse_frames, write_run_records
+    from phrt_usd.usd.stage import open_stage
 
     if job.resume:
         raise PhrtError("--resume is not available with --workers / --scheduler")

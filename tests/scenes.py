@@ -8,7 +8,7 @@ import numpy as np
 from pxr import Gf, Usd, UsdGeom, UsdLux, UsdRender
 
 import phrt_usd  # noqa: F401  (registers the schema before any stage opens)
-from phrt_usd import schema
+from phrt_usd.usd import schema
 
 SPHERE_CENTER = np.array([0.0, 1.0, 0.0])
 SPHERE_RADIUS = 0.5

@@ -1,4 +1,4 @@
-"""phrt_usd.authoring: opinions in a new layer over the stage (the input untouched, all its
+"""phrt_usd.usd.authoring: opinions in a new layer over the stage (the input untouched, all its
 layer metadata carried over), or in place in the file's own format; never overwriting what
 it should not."""
 
@@ -11,10 +11,10 @@ import pytest
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdUtils
 from typer.testing import CliRunner
 
-from phrt_usd import authoring, schema
-from phrt_usd.authoring import author_reflectors, default_overlay_path
 from phrt_usd.cli import app
 from phrt_usd.errors import PhrtError
+from phrt_usd.usd import authoring, schema
+from phrt_usd.usd.authoring import author_reflectors, default_overlay_path
 
 
 @pytest.fixture()

@@ -8,9 +8,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from pxr import Gf, Sdf, Usd, UsdGeom, Vt
 
-from phrt_usd.camera_path import interpolate, look_at
 from phrt_usd.errors import PhrtError
-from phrt_usd.stage_reader import read_stage
+from phrt_usd.usd.camera_path import interpolate, look_at
+from phrt_usd.usd.stage import read_stage
 
 finite = st.floats(min_value=-1e6, max_value=1e6, allow_nan=False)
 vec3 = st.tuples(finite, finite, finite).map(np.array)

@@ -32,10 +32,10 @@ from phrt_usd.cluster import (
     tls_client_configured,
 )
 from phrt_usd.errors import BadOption, PhrtError
-from phrt_usd.render_job import RenderJob, run_render
-from phrt_usd.renderer import RenderOptions
-from phrt_usd.selection_layer import read_selection_record
-from phrt_usd.sweep import SweepSpec, run_sweep
+from phrt_usd.evaluate.sweep import SweepSpec, run_sweep
+from phrt_usd.render.renderer import RenderOptions
+from phrt_usd.run.render_job import RenderJob, run_render
+from phrt_usd.run.selection_layer import read_selection_record
 
 #: Deterministic budgets (rays) that fit only some of the gallery's five mirrors.
 BUDGET_RAYS = 600

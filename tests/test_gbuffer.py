@@ -1,4 +1,4 @@
-"""Rasterized G-buffer (phrt_usd.gbuffer) against Embree primary and shadow rays.
+"""Rasterized G-buffer (phrt_usd.render.raster.gbuffer) against Embree primary and shadow rays.
 
 Scenes are built here from trimesh primitives (no USD). Reference rays go through the
 same pixel centres (``CameraFrame.pixel_rays``), float32 after subtracting
@@ -16,9 +16,8 @@ import trimesh
 from embreex import mesh_construction, rtcore_scene
 
 from phrt_usd.errors import PhrtError
-from phrt_usd.frame import GBuffer
-from phrt_usd.gbuffer import Rasterizer, sample_bilinear_wrap
-from phrt_usd.scene import (
+from phrt_usd.model.frame import GBuffer
+from phrt_usd.model.scene import (
     CameraFrame,
     DistantLight,
     Element,
@@ -27,6 +26,7 @@ from phrt_usd.scene import (
     MaterialTable,
     Scene,
 )
+from phrt_usd.render.raster.gbuffer import Rasterizer, sample_bilinear_wrap
 
 W, H = 320, 240
 #: Required share of covered pixels whose element id matches Embree (DESIGN.md target).
@@ -479,7 +479,7 @@ def test_update_geometry_moves_prims_and_invalidates_shadows(animated, tmp_path)
 def test_box_extremum_matches_scipy():
     from scipy import ndimage
 
-    from phrt_usd.gbuffer import _box_extremum
+    from phrt_usd.render.raster.gbuffer import _box_extremum
 
     a = np.random.default_rng(1).random((37, 23)).astype(np.float32)
     a[a > 0.9] = np.inf
@@ -584,9 +584,9 @@ def test_paper_stage_ids(name, tmp_path):
     if not path.exists():
         pytest.skip(f"{path} not there yet")
     try:
-        from phrt_usd.stage_reader import open_stage
+        from phrt_usd.usd.stage import open_stage
     except ImportError:
-        pytest.skip("phrt_usd.stage_reader not there yet")
+        pytest.skip("phrt_usd.usd.stage not there yet")
     stage = open_stage(str(path))
     t0, t1 = stage.frame_range
     with Rasterizer(stage.scene, W, H) as r:
@@ -637,9 +637,9 @@ def test_local_light_cube_shadows_match_shadow_rays(offset, tmp_path):
     most of the floor, the GPU lookup agrees with its numpy reference, and with
     ``refine`` resolving the uncertain pairs the answer is (nearly) exact. Pairs out
     of the light's range or facing away get 0, as the tracer reports them."""
-    from phrt_usd import shading
-    from phrt_usd.scene import LocalLight
-    from phrt_usd.tracer import Tracer
+    from phrt_usd.model.scene import LocalLight
+    from phrt_usd.render import shading
+    from phrt_usd.render.trace.tracer import Tracer
 
     light = LocalLight(np.array([0.6, 3.5, 0.4]) + offset, np.full(3, 20.0))
     far_light = LocalLight(np.array([0.0, 1.0, -30.0]) + offset, np.full(3, 0.02))
@@ -703,9 +703,9 @@ def test_gpu_light_terms_shade_like_the_visibility_matrix(use_refine, with_local
     ``lit_sums``) give the same colours as the (n, L) visibility matrix shaded in
     numpy: a DistantLight with and without LocalLights, with and without shadow-ray
     refinement."""
-    from phrt_usd import shading
-    from phrt_usd.scene import LocalLight
-    from phrt_usd.tracer import Tracer
+    from phrt_usd.model.scene import LocalLight
+    from phrt_usd.render import shading
+    from phrt_usd.render.trace.tracer import Tracer
 
     lights = Lights(
         distant=[DistantLight(np.array([0.3, 1.0, 0.2]), np.array([0.8, 0.8, 0.7]))],
@@ -759,7 +759,7 @@ def test_gpu_light_terms_shade_like_the_visibility_matrix(use_refine, with_local
 def test_local_light_animated_caster_updates_its_cube_only():
     """An animated box casts into its own cube map: moving it re-renders that one, keeps
     the static cube, and moves the shadow."""
-    from phrt_usd.scene import LocalLight
+    from phrt_usd.model.scene import LocalLight
 
     light = LocalLight(np.array([0.0, 4.0, 0.0]), np.full(3, 10.0))
     parts = [

@@ -11,10 +11,19 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from phrt_usd import heuristic
 from phrt_usd.errors import PhrtError
-from phrt_usd.frame import Budget, FrameView, TraceRecord
-from phrt_usd.heuristic import (
+from phrt_usd.model.frame import Budget, FrameView, TraceRecord
+from phrt_usd.model.scene import (
+    CameraFrame,
+    DistantLight,
+    Element,
+    Geometry,
+    Lights,
+    MaterialTable,
+    Scene,
+)
+from phrt_usd.select import policies as heuristic
+from phrt_usd.select.policies import (
     ADMISSION_MARGIN,
     D_MIN,
     FORECAST_HORIZON,
@@ -34,15 +43,6 @@ from phrt_usd.heuristic import (
     processing_cost,
     relevance,
     visibility,
-)
-from phrt_usd.scene import (
-    CameraFrame,
-    DistantLight,
-    Element,
-    Geometry,
-    Lights,
-    MaterialTable,
-    Scene,
 )
 
 W, H = 320, 240

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from phrt_usd.errors import PhrtError
-from phrt_usd.image_metrics import PSNR_IDENTICAL_DB, flip_map, mean_over, psnr
+from phrt_usd.evaluate.image_metrics import PSNR_IDENTICAL_DB, flip_map, mean_over, psnr
 
 
 def _image(seed: int = 0) -> np.ndarray:

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from phrt_usd.errors import PhrtError
-from phrt_usd.images import (
+from phrt_usd.run.images import (
     DEPTH_BACKGROUND,
     HALF_MAX,
     MAX_EXACT_ID,
@@ -20,7 +20,7 @@ from phrt_usd.images import (
     write_frame_exr,
     write_preview_png,
 )
-from phrt_usd.run_files import frame_image_paths, frame_name
+from phrt_usd.run.run_files import frame_image_paths, frame_name
 
 H, W = 24, 32
 

@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from phrt_usd.scene import (
+from phrt_usd.model.scene import (
     CameraFrame,
     DistantLight,
     DomeLight,
@@ -21,7 +21,7 @@ from phrt_usd.scene import (
 
 mi = pytest.importorskip("mitsuba", reason="mitsuba is optional (the bench extra)")
 
-from phrt_usd import mitsuba_export  # noqa: E402  (after the skip)
+from phrt_usd.bench import mitsuba_export  # noqa: E402  (after the skip)
 
 #: Scene far from the world origin: the export must subtract it like our renderer does.
 ORIGIN = np.array([1000.0, 0.0, -2000.0])

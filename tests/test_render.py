@@ -9,10 +9,10 @@ import pytest
 from scenes import mirror_floor_stage, mirror_gallery_stage, mirrored_sphere_pixels
 
 from phrt_usd.errors import PhrtError
-from phrt_usd.image_metrics import flip_map
-from phrt_usd.images import write_preview_png
-from phrt_usd.renderer import FrameRenderer, RenderOptions
-from phrt_usd.stage_reader import open_stage
+from phrt_usd.evaluate.image_metrics import flip_map
+from phrt_usd.render.renderer import FrameRenderer, RenderOptions
+from phrt_usd.run.images import write_preview_png
+from phrt_usd.usd.stage import open_stage
 
 STAGES = Path(__file__).resolve().parent.parent / "stages"
 #: Fraction of the analytically mirrored sphere's floor pixels that must show it red.

@@ -13,10 +13,10 @@ from pxr import Sdf, Usd
 from rich.console import Console
 
 from phrt_usd.errors import PhrtError
-from phrt_usd.frame import FrameStats, ReflectorMetrics
-from phrt_usd.report import OVERRUN_FACTOR, build_report, print_report, selection_metrics
-from phrt_usd.run_files import make_run_info, read_stats, selection_layer_path, write_stats
-from phrt_usd.selection_layer import STATS_PRIM_PATH, write_selection_layer
+from phrt_usd.evaluate.report import OVERRUN_FACTOR, build_report, print_report, selection_metrics
+from phrt_usd.model.frame import FrameStats, ReflectorMetrics
+from phrt_usd.run.run_files import make_run_info, read_stats, selection_layer_path, write_stats
+from phrt_usd.run.selection_layer import STATS_PRIM_PATH, write_selection_layer
 
 REFLECTORS = [f"/World/R{i}" for i in range(6)]
 
@@ -72,7 +72,7 @@ def write_run(out: Path, frames: list[FrameStats], heuristic: str = "heu1") -> P
 
 def transitions_from_usd(layer: Path) -> tuple[int, int]:
     """(transitions, visible-in-both pairs) straight from the layer's time samples with
-    plain Usd calls, independently of phrt_usd.report."""
+    plain Usd calls, independently of phrt_usd.evaluate.report."""
     stage = Usd.Stage.Open(str(layer))
     transitions = pairs = 0
     for prim in stage.TraverseAll():

@@ -33,7 +33,7 @@ import OpenImageIO as oiio
 import pytest
 from test_sweep_report import write_synthetic_sweep
 
-from phrt_usd.sweep_report import write_sweep_report
+from phrt_usd.evaluate.sweep_report import write_sweep_report
 
 CHROMIUM = Path("/usr/bin/chromium")
 

@@ -21,12 +21,18 @@ from hypothesis import strategies as st
 from scenes import mirror_gallery_stage
 
 from phrt_usd.errors import PhrtError
-from phrt_usd.heuristic import make_policy
-from phrt_usd.render_job import RenderJob, _load_checkpoint, job_run_info, parse_frames, run_render
-from phrt_usd.renderer import RenderOptions
-from phrt_usd.report import build_report
-from phrt_usd.run_files import CHECKPOINT_FILE
-from phrt_usd.stage_reader import open_stage
+from phrt_usd.evaluate.report import build_report
+from phrt_usd.render.renderer import RenderOptions
+from phrt_usd.run.render_job import (
+    RenderJob,
+    _load_checkpoint,
+    job_run_info,
+    parse_frames,
+    run_render,
+)
+from phrt_usd.run.run_files import CHECKPOINT_FILE
+from phrt_usd.select.policies import make_policy
+from phrt_usd.usd.stage import open_stage
 
 OPTIONS = RenderOptions(width=32, height=24, budget_ms=None, budget_rays=600)
 #: Examples per file kind: each is a parse of a small file, so a few hundred stay quick.

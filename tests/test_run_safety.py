@@ -22,9 +22,9 @@ from scenes import mirror_gallery_stage
 from test_render_job import _check_readable
 
 from phrt_usd.errors import BadOption, PhrtError
-from phrt_usd.render_job import RenderJob, run_render
-from phrt_usd.renderer import RenderOptions
-from phrt_usd.run_files import CHECKPOINT_FILE, LOCK_FILE, WriteFailed, write_text_atomic
+from phrt_usd.render.renderer import RenderOptions
+from phrt_usd.run.render_job import RenderJob, run_render
+from phrt_usd.run.run_files import CHECKPOINT_FILE, LOCK_FILE, WriteFailed, write_text_atomic
 
 OPTIONS = RenderOptions(width=32, height=24, budget_ms=None, budget_rays=600)
 CLI = [sys.executable, "-m", "typer", "phrt_usd.cli", "run"]
@@ -202,7 +202,7 @@ def test_a_second_render_into_a_locked_out_is_refused(gallery, tmp_path):
 
 
 def test_a_failing_frame_keeps_the_finished_frames_records(gallery, tmp_path, monkeypatch):
-    from phrt_usd import render_job
+    from phrt_usd.run import render_job
 
     real = render_job.render_frame
     calls = []
@@ -255,7 +255,7 @@ def test_full_disk_leaves_no_broken_file_and_keeps_records(gallery, tmp_path, sm
     options = RenderOptions(width=160, height=120, budget_ms=None, budget_rays=600)
     stage = mirror_gallery_stage(tmp_path / "g.usda", frames=30)
     if small_disk is None:  # not root or no tmpfs: inject ENOSPC into the image writer
-        from phrt_usd import images
+        from phrt_usd.run import images
 
         real, calls = images._write, []
 

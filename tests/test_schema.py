@@ -9,7 +9,7 @@ import numpy as np
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdRender
 
 import phrt_usd
-from phrt_usd import schema
+from phrt_usd.usd import schema
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -126,7 +126,7 @@ def test_reader_without_plugin_uses_same_defaults(tmp_path):
         "from pxr import Usd\n"
         f"s = Usd.Stage.Open({str(layer)!r})\n"
         "import warnings; warnings.simplefilter('ignore')\n"
-        "from phrt_usd import schema\n"  # registered too late for this process
+        "from phrt_usd.usd import schema\n"  # registered too late for this process
         "p = s.GetPrimAtPath('/World/Mirror')\n"
         "assert p.GetAttribute('phrt:priority').Get() is None\n"
         "print(schema.is_reflector(p), schema.reflector_priority(p))\n"

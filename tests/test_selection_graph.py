@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from phrt_usd.selection_graph import Node, SelectionGraph
+from phrt_usd.select.selection_graph import Node, SelectionGraph
 
 # Few distinct values so that ties in cost and in R are common.
 costs = st.sampled_from([0.0, 1.0, 2.0, 3.0, 5.0, 8.0, 1e6])

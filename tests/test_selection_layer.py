@@ -12,8 +12,8 @@ import pytest
 from pxr import Sdf, Usd
 
 from phrt_usd.errors import PhrtError
-from phrt_usd.frame import FrameStats, ReflectorMetrics
-from phrt_usd.selection_layer import (
+from phrt_usd.model.frame import FrameStats, ReflectorMetrics
+from phrt_usd.run.selection_layer import (
     FIGURE_ATTRIBUTES,
     STATS_PRIM_PATH,
     read_selection,

@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux, UsdRender, UsdShade, Vt
 
 from phrt_usd.errors import PhrtError
-from phrt_usd.stage_reader import _fan_corners, open_stage, read_stage, smooth_corner_normals
+from phrt_usd.usd.stage import _fan_corners, open_stage, read_stage, smooth_corner_normals
 
 
 def new_stage(up: str = "Y", mpu: float = 1.0) -> Usd.Stage:

@@ -21,7 +21,7 @@ import OpenImageIO as oiio
 import pytest
 
 from phrt_usd.errors import PhrtError
-from phrt_usd.sweep_report import (
+from phrt_usd.evaluate.sweep_report import (
     PAPER_FIGURES,
     equal_time_comparison,
     frontier_flip_at,

@@ -19,8 +19,8 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from phrt_usd.frame import FrameView, TraceRecord
-from phrt_usd.scene import CameraFrame, DistantLight, LocalLight
+from phrt_usd.model.frame import FrameView, TraceRecord
+from phrt_usd.model.scene import CameraFrame, DistantLight, LocalLight
 
 TOOLS = Path(__file__).resolve().parents[1] / "tools"
 if str(TOOLS) not in sys.path:

@@ -10,8 +10,8 @@ from embreex.mesh_construction import TriangleMesh
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from phrt_usd.frame import GBuffer
-from phrt_usd.scene import (
+from phrt_usd.model.frame import GBuffer
+from phrt_usd.model.scene import (
     DEFAULT_ENVIRONMENT,
     CameraFrame,
     DistantLight,
@@ -22,7 +22,7 @@ from phrt_usd.scene import (
     MaterialTable,
     Scene,
 )
-from phrt_usd.tracer import Tracer
+from phrt_usd.render.trace.tracer import Tracer
 
 SKY = np.array([0.2, 0.4, 0.8])
 
@@ -306,7 +306,7 @@ def test_total_internal_reflection_and_no_refraction_work_when_opaque():
     tracer.trace_reflections(gb, [0, 1], 5)
     assert tracer.rays_cast["refraction"] == 0
     # Snell at grazing incidence from inside glass: beyond the critical angle, mirror.
-    from phrt_usd.tracer import _refract
+    from phrt_usd.render.trace.tracer import _refract
 
     d = np.array([[np.sin(1.0), np.cos(1.0), 0.0]])  # 57° > 41.8° critical, leaving
     out = _refract(d, np.array([[0.0, 1.0, 0.0]]), np.array([[0.0, 1.0, 0.0]]), np.array([1.5]))
@@ -317,7 +317,7 @@ def test_total_internal_reflection_and_no_refraction_work_when_opaque():
 
 
 def test_environment_up_reads_top_row():
-    from phrt_usd.shading import environment_radiance
+    from phrt_usd.render.shading import environment_radiance
 
     tex = np.zeros((8, 16, 3), np.float32)
     tex[:4] = (0, 0, 1)
@@ -330,7 +330,7 @@ def test_environment_up_reads_top_row():
 @settings(max_examples=200, deadline=None)
 @given(st.lists(st.floats(allow_nan=False, allow_infinity=True, width=64), min_size=3, max_size=3))
 def test_environment_lookup_never_nan(direction):
-    from phrt_usd.shading import environment_radiance
+    from phrt_usd.render.shading import environment_radiance
 
     tex = np.random.default_rng(0).random((6, 12, 3)).astype(np.float32)
     rot = np.array([[1.0, 0, 0], [0, 0, -1.0], [0, 1.0, 0]])  # a Z-up stage's dome
@@ -411,7 +411,7 @@ def test_grazing_shading_normals_follow_the_rasterizer_rule():
     """Where the interpolated normal faces along the view ray (strongly tilted corner
     normals seen at grazing angles), the tracer uses the geometric normal like the
     rasterizer does, instead of flipping the shading normal into the surface."""
-    from phrt_usd.gbuffer import Rasterizer
+    from phrt_usd.render.raster.gbuffer import Rasterizer
 
     floor = quad(20.0)
     scene = make_scene([{"mesh": floor}])
@@ -437,8 +437,8 @@ def test_grazing_shading_normals_follow_the_rasterizer_rule():
 def test_shadow_rays_only_within_light_range_and_facing():
     """No shadow ray for a point beyond a LocalLight's range or behind its normal; such
     pairs report 0 (the light adds nothing there) and the rest are traced."""
-    from phrt_usd import shading
-    from phrt_usd.scene import LocalLight
+    from phrt_usd.model.scene import LocalLight
+    from phrt_usd.render import shading
 
     intensity = 2.0
     light = LocalLight(np.array([0.0, 1.0, 0.0]), np.full(3, intensity))
@@ -619,8 +619,8 @@ def test_records_count_every_ray_cast_per_source():
 def test_shading_split_over_threads_matches_one_thread(monkeypatch):
     """Local shading of large batches runs in chunks on the pool: same radiance, ray
     counts and shadow visibility as on one thread (threshold lowered to force it)."""
-    import phrt_usd.tracer as tracer_module
-    from phrt_usd.scene import LocalLight
+    import phrt_usd.render.trace.tracer as tracer_module
+    from phrt_usd.model.scene import LocalLight
 
     lights = Lights(
         distant=[DistantLight(np.array([0.3, 1.0, 0.2]), np.ones(3))],

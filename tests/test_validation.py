@@ -1,4 +1,4 @@
-"""phrt_usd.validation: one issue line per planted problem, clean stage passes."""
+"""phrt_usd.usd.validation: one issue line per planted problem, clean stage passes."""
 
 import math
 import re
@@ -6,11 +6,11 @@ import re
 import pytest
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux, UsdRender, UsdShade
 
-from phrt_usd import schema
-from phrt_usd import stage_reader as sr
 from phrt_usd.errors import PhrtError
-from phrt_usd.stage_reader import read_stage
-from phrt_usd.validation import open_stage, validate_file, validate_stage
+from phrt_usd.usd import schema
+from phrt_usd.usd import stage as sr
+from phrt_usd.usd.stage import read_stage
+from phrt_usd.usd.validation import open_stage, validate_file, validate_stage
 
 
 def clean_stage(path):

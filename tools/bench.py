@@ -18,9 +18,9 @@ import statistics
 import sys
 from pathlib import Path
 
-from phrt_usd.render_job import parse_frames
-from phrt_usd.renderer import FrameRenderer, RenderOptions
-from phrt_usd.stage_reader import open_stage
+from phrt_usd.render.renderer import FrameRenderer, RenderOptions
+from phrt_usd.run.render_job import parse_frames
+from phrt_usd.usd.stage import open_stage
 
 CONFIGS = (
     ("raster", RenderOptions(mode="raster", heuristic="none", budget_ms=None)),

@@ -14,7 +14,7 @@ along the stage's frame range, or an explicit ``A:B[:STEP]``), in one run:
 * pyrender's own lit render of the same geometry (one node with per-corner vertex
   colours, the stage's distant lights as DirectionalLights and local lights as
   PointLights, default flags: no shadows), one untimed render first: the raster floor;
-* Mitsuba 3 on the same scene and cameras (``phrt_usd.mitsuba_export``), ``path``
+* Mitsuba 3 on the same scene and cameras (``phrt_usd.bench.mitsuba_export``), ``path``
   integrator, 1 spp, ``max_depth`` 7 (= 6 bounces), in ``scalar_rgb`` and, when
   ``libLLVM-19`` is installed, ``llvm_ad_rgb``. A Mitsuba variant is process-wide and
   ``DRJIT_LIBLLVM_PATH`` must be set before import, so each variant runs in a child
@@ -45,9 +45,9 @@ from pathlib import Path
 
 import numpy as np
 
-from phrt_usd.render_job import parse_frames
-from phrt_usd.renderer import FrameRenderer, RenderOptions
-from phrt_usd.stage_reader import StageScene, open_stage
+from phrt_usd.render.renderer import FrameRenderer, RenderOptions
+from phrt_usd.run.render_job import parse_frames
+from phrt_usd.usd.stage import StageScene, open_stage
 
 PHASES = ("set_time", "gbuffer", "shade", "select", "trace")
 #: Mitsuba integrator depth (camera segment included: 7 = up to 6 bounces), the depth of
@@ -66,7 +66,7 @@ REPO = Path(__file__).resolve().parent.parent
 
 def frame_times(stage: StageScene, spec: str) -> list[float]:
     """Time codes to bench: ``N`` (N frames evenly spread over the frame range, ends
-    included) or ``A:B[:STEP]`` (``phrt_usd.render_job.parse_frames``)."""
+    included) or ``A:B[:STEP]`` (``phrt_usd.run.render_job.parse_frames``)."""
     if spec.isdigit():
         start, end = stage.frame_range
         return [float(round(t)) for t in np.linspace(start, end, max(int(spec), 1))]
@@ -183,7 +183,7 @@ def bench_pyrender(stage: StageScene, times: list[float], w: int, h: int) -> dic
     import pyrender
     import trimesh
 
-    from phrt_usd.mitsuba_export import corner_colors
+    from phrt_usd.bench.mitsuba_export import corner_colors
 
     stage.set_time(times[0])
     scene = stage.scene
@@ -263,7 +263,7 @@ def bench_mitsuba(
     import mitsuba as mi
 
     mi.set_variant(variant)
-    from phrt_usd import mitsuba_export
+    from phrt_usd.bench import mitsuba_export
 
     results = {}
     stages: dict[str, StageScene] = {}
@@ -304,8 +304,8 @@ def bench_mitsuba(
 
 def _save_mitsuba_png(mi, mi_scene, stage, t, png_dir: Path, stem: str) -> None:
     """A low-noise Mitsuba image (64 spp) of frame ``t`` for the visual check."""
-    from phrt_usd import mitsuba_export
-    from phrt_usd.images import write_preview_png
+    from phrt_usd.bench import mitsuba_export
+    from phrt_usd.run.images import write_preview_png
 
     mitsuba_export.set_camera(mi_scene, stage.camera(t), stage.scene.origin)
     image = np.asarray(mi.render(mi_scene, spp=64), dtype=np.float32)
@@ -598,7 +598,7 @@ def main(argv: list[str] | None = None) -> int:
 
 def _save_ours_png(stage: StageScene, stem: str, t: float, w: int, h: int, png_dir: Path) -> None:
     """Our rt frame ``t`` for the visual check against Mitsuba's."""
-    from phrt_usd.images import write_preview_png
+    from phrt_usd.run.images import write_preview_png
 
     renderer = FrameRenderer(
         stage, RenderOptions(mode="rt", heuristic="all", budget_ms=None, width=w, height=h)

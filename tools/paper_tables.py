@@ -19,11 +19,11 @@ import os
 import sys
 from pathlib import Path
 
-from phrt_usd.render_job import RenderJob, run_render
-from phrt_usd.renderer import RenderOptions
-from phrt_usd.report import build_report
-from phrt_usd.schema import read_render_params
-from phrt_usd.stage_reader import open_stage
+from phrt_usd.evaluate.report import build_report
+from phrt_usd.render.renderer import RenderOptions
+from phrt_usd.run.render_job import RenderJob, run_render
+from phrt_usd.usd.schema import read_render_params
+from phrt_usd.usd.stage import open_stage
 
 #: The paper's Tables 2–4 (GTX 760, OptiX; HEU1 / HEU2).
 PAPER = {

@@ -53,15 +53,15 @@ from types import SimpleNamespace
 import numpy as np
 
 from phrt_usd.errors import PhrtError
-from phrt_usd.frame import Budget, FrameView, TraceRecord
-from phrt_usd.heuristic import UPCOMING_CAMERAS, AllPolicy, make_policy
-from phrt_usd.image_metrics import flip_map
-from phrt_usd.render_job import parse_frames
-from phrt_usd.renderer import FrameRenderer, RenderOptions
-from phrt_usd.run_files import atomic_path, write_bytes_atomic
-from phrt_usd.scene import CameraFrame, DistantLight, LocalLight
-from phrt_usd.schema import read_render_params
-from phrt_usd.stage_reader import open_stage
+from phrt_usd.evaluate.image_metrics import flip_map
+from phrt_usd.model.frame import Budget, FrameView, TraceRecord
+from phrt_usd.model.scene import CameraFrame, DistantLight, LocalLight
+from phrt_usd.render.renderer import FrameRenderer, RenderOptions
+from phrt_usd.run.render_job import parse_frames
+from phrt_usd.run.run_files import atomic_path, write_bytes_atomic
+from phrt_usd.select.policies import UPCOMING_CAMERAS, AllPolicy, make_policy
+from phrt_usd.usd.schema import read_render_params
+from phrt_usd.usd.stage import open_stage
 
 
 class _CapturePolicy(AllPolicy):

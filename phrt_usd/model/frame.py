@@ -1,0 +1,177 @@
+"""Per-frame data passed between the render phases (the contracts between modules).
+
+    G-buffer (gbuffer.py, or tracer.py in ``rt`` mode)
+      → candidates and selection rounds (heuristic.py, a ``SelectionPolicy``)
+      → reflection tracing of the selected reflectors' pixels (tracer.py)
+      → compositing (compositing.py) → images (images.py), stats and layer (selection_layer.py)
+
+Images are (H, W, ...) arrays, row 0 at the top, in linear RGB.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+
+from phrt_usd.model.scene import CameraFrame, Scene
+
+
+@dataclass
+class GBuffer:
+    """What rasterization (or, in ``rt`` mode, primary rays) found at each pixel.
+
+    element_id  : (H, W) int32, element id, -1 for background
+    triangle_id : (H, W) int32, triangle id, -1 for background
+    depth       : (H, W) float32, view depth in metres (along the camera's -Z), inf for
+                  background
+    position    : (H, W, 3) float64 world metres (undefined where element_id == -1)
+    normal      : (H, W, 3) float32 world-space unit shading normal, facing the camera
+    albedo      : (H, W, 3) float32 linear RGB
+    view_dir    : (H, W, 3) float32 world-space unit direction from the eye to the pixel
+    """
+
+    element_id: np.ndarray
+    triangle_id: np.ndarray
+    depth: np.ndarray
+    position: np.ndarray
+    normal: np.ndarray
+    albedo: np.ndarray
+    view_dir: np.ndarray
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.element_id.shape  # type: ignore[return-value]
+
+    @property
+    def covered(self) -> np.ndarray:
+        """(H, W) bool, True where something was hit."""
+        return self.element_id >= 0
+
+
+@dataclass
+class TraceRecord:
+    """What tracing one selected reflector's pixels found (one per source reflector).
+
+    rays: rays cast for this source (reflection + refraction + shadow rays, all bounces).
+    hits: reflector element id → number of reflection rays that hit it, at any bounce
+          (reflectors the secondary rays discovered, including off-screen ones).
+    max_reflector_bounces: longest chain of reflector-to-reflector bounces seen
+          (0 when no ray hit another reflector), capped at the bounce limit.
+    mean_reflector_bounces: mean over this source's pixels of that chain length.
+    seconds: wall time attributed to this source (its share of the batch by rays).
+    """
+
+    source: int
+    pixels: int
+    rays: int
+    hits: dict[int, int] = field(default_factory=dict)
+    max_reflector_bounces: int = 0
+    mean_reflector_bounces: float = 0.0
+    seconds: float = 0.0
+
+
+@dataclass
+class ReflectionResult:
+    """Result of tracing the pixels of a batch of selected reflectors.
+
+    pixel_index : (n,) int64 flat pixel indices (row * W + col) that were traced
+    radiance    : (n, 3) float32 linear RGB reflected (and refracted) radiance arriving
+                  at those pixels, before mixing with the reflector's F
+    records     : one TraceRecord per source reflector in the batch
+    rays        : total rays cast (all kinds)
+    seconds     : wall time of the whole batch
+    """
+
+    pixel_index: np.ndarray
+    radiance: np.ndarray
+    records: list[TraceRecord]
+    rays: int
+    seconds: float
+
+
+@dataclass
+class FrameView:
+    """What a selection policy sees of a frame before tracing.
+
+    pixel_counts: (E,) int64 pixels per element id in the G-buffer (A * W * H).
+    screen_boxes: (E, 4) float64 pixel bounds (col_min, row_min, col_max, row_max) of
+        each reflector's visible pixels, NaN where it has none; None if not computed.
+    upcoming_cameras: the cameras of the next frames of the render, in order (at most
+        ``heuristic.UPCOMING_CAMERAS``; empty when the renderer does not know them, e.g.
+        for the last frame or a single-frame render). A stage's camera path is known in
+        advance, so HEU1 can forecast a reflector's cost from it.
+    """
+
+    time: float
+    camera: CameraFrame
+    width: int
+    height: int
+    pixel_counts: np.ndarray
+    screen_boxes: np.ndarray | None = None
+    upcoming_cameras: tuple[CameraFrame, ...] = ()
+
+
+@dataclass
+class Budget:
+    """Remaining trace budget of the current frame. ``None`` fields are unbounded.
+
+    ms: wall-clock milliseconds left for tracing (``--budget-ms``);
+    rays: rays left (``--budget-rays``, deterministic on every machine).
+    """
+
+    ms: float | None = None
+    rays: int | None = None
+
+
+@dataclass
+class ReflectorMetrics:
+    """The heuristic's figures for one candidate in one frame (paper, Table 1)."""
+
+    V: float
+    C: float
+    R: float
+    Q: float
+    S: bool
+    selected: bool
+    visible: bool
+    predicted_rays: float = 0.0
+    predicted_ms: float = 0.0
+
+
+class SelectionPolicy(Protocol):
+    """How reflectors are chosen per frame; implemented in ``phrt_usd.select.policies``.
+
+    The renderer calls, per frame::
+
+        policy.begin_frame(view, scene)
+        while (ids := policy.next_round(budget)):   # budget shrinks after each round
+            result = tracer.trace(...ids...)
+            policy.record(result.records, result.seconds)
+        metrics = policy.end_frame()                # element id → ReflectorMetrics
+    """
+
+    def begin_frame(self, view: FrameView, scene: Scene) -> None: ...
+
+    def next_round(self, budget: Budget) -> list[int]: ...
+
+    def record(self, records: list[TraceRecord], seconds: float) -> None: ...
+
+    def end_frame(self) -> dict[int, ReflectorMetrics]: ...
+
+
+@dataclass
+class FrameStats:
+    """Everything recorded about one rendered frame (stats.json row, selection layer)."""
+
+    time: float
+    phase_ms: dict[str, float]  # e.g. {"read": .., "gbuffer": .., "shade": .., "trace": ..}
+    frame_ms: float
+    trace_ms: float
+    predicted_trace_ms: float
+    rays: int
+    visible: list[str]  # reflector prim paths visible in the frame
+    selected: list[str]  # reflector prim paths traced in the frame
+    metrics: dict[str, ReflectorMetrics]  # prim path → figures (candidates only)
+    passes: list[str]  # render passes that ran, e.g. ["gbuffer", "shadow_map", "trace"]

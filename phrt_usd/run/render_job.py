@@ -1,0 +1,601 @@
+"""Rendering a frame range to an output directory: images, stats.json, selection layer.
+
+The output directory ``OUT`` belongs to one run at a time (``RunDirectory``): a render
+holds ``OUT/.phrt.lock`` for its whole run, refuses an ``OUT`` that holds files unless it
+resumes the same run (``resume``) or replaces phrt's own files (``overwrite``), and never
+writes outside ``OUT`` except the selection layer the job names (never a layer of the
+stage). A run is identified by content (``run_identity``): a digest of the stage's layers,
+the camera, the frames and every option that changes pixels or selections.
+
+A run is checkpointed every ``checkpoint_every`` frames (less often in long runs, see
+``CHECKPOINT_MAX_SHARE``), when it stops early and when a frame fails: the checkpoint
+(``OUT/checkpoint.json``: plain JSON with the finished frames' stats and the selection
+policy's memory, never code) is written first, then ``stats.json`` and the selection
+layer, each through the one atomic writer. SIGINT / SIGTERM finish the current frame,
+write everything and raise ``RenderInterrupted``; ``resume=True`` continues after the last
+checkpointed frame with the policy exactly as it was, so the result equals an
+uninterrupted run.
+"""
+
+from __future__ import annotations
+
+import errno
+import fcntl
+import hashlib
+import json
+import os
+import re
+import signal
+import stat
+import threading
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager, suppress
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from phrt_usd.errors import BadOption, PhrtError
+from phrt_usd.evaluate.report import build_report
+from phrt_usd.model.frame import FrameStats
+from phrt_usd.render.renderer import FrameRenderer, RenderOptions
+from phrt_usd.run.images import write_frame_exr, write_preview_png
+from phrt_usd.run.run_files import (
+    CHECKPOINT_FILE,
+    FRAMES_DIR,
+    LOCK_FILE,
+    RESERVE_FILE,
+    SELECTION_LAYER_FILE,
+    STATS_FILE,
+    frame_image_paths,
+    frame_stats_from_row,
+    frame_stats_row,
+    make_run_info,
+    to_json_value,
+    write_stats,
+    write_text_atomic,
+)
+from phrt_usd.run.selection_layer import write_selection_layer
+from phrt_usd.usd.stage import StageScene, open_stage
+
+#: Identifies checkpoint files; bump the version when their content changes meaning.
+CHECKPOINT_FORMAT = "phrt-checkpoint"
+CHECKPOINT_VERSION = 1
+#: Largest checkpoint read back (bytes): a 100,000-frame run's is ~100 MB; anything
+#: larger is not one of ours and is refused before it is parsed.
+CHECKPOINT_MAX_BYTES = 1 << 30
+#: Most frames one render may list (``--frames``): a million frames of stats already
+#: make a stats.json of ~1 GB.
+MAX_FRAMES = 1_000_000
+#: Disk held in reserve for a run's records (see ``RunDirectory.keep_reserve``): at least
+#: RESERVE_MIN_BYTES, and RESERVE_FACTOR times what the records took when last written
+#: (an atomic rewrite needs the old and the new file at once, and records grow).
+RESERVE_MIN_BYTES = 64 * 1024
+RESERVE_FACTOR = 3
+DEFAULT_CHECKPOINT_EVERY = 10
+#: A checkpoint rewrites every finished frame's stats and the selection layer, so its cost
+#: grows with the run: after one that took d seconds the next waits at least
+#: d * (1 / CHECKPOINT_MAX_SHARE - 1), keeping checkpoints to ~10 % of a long run's time
+#: (a 10,000-frame path otherwise spent most of its time writing them).
+CHECKPOINT_MAX_SHARE = 0.1
+
+
+class RenderInterrupted(Exception):
+    """Raised after a signal stopped the run and every finished frame was written."""
+
+
+@dataclass
+class RenderJob:
+    stage_path: Path
+    out_dir: Path
+    options: RenderOptions
+    frames: str | None = None  # "A:B[:STEP]" in time codes, both ends included
+    camera: str | None = None
+    selection_layer: Path | None = None
+    resume: bool = False
+    overwrite: bool = False  # clear phrt's own files in out_dir first
+    write_images: bool = True
+    checkpoint_every: int = DEFAULT_CHECKPOINT_EVERY
+
+
+def parse_frames(spec: str | None, default: tuple[float, float]) -> list[float]:
+    """``"A:B[:STEP]"`` → time codes A, A+STEP, … up to and including B (stage time codes).
+
+    ``None`` gives the default range with step 1; ``"A"`` alone is one frame.
+    """
+    if spec is None:
+        start, end, step = default[0], default[1], 1.0
+    else:
+        try:
+            parts = [float(p) for p in spec.split(":")]
+        except ValueError:
+            raise BadOption(f"--frames {spec!r}: expected A:B[:STEP] with numbers") from None
+        if len(parts) == 1:
+            parts = [parts[0], parts[0]]
+        if len(parts) not in (2, 3):
+            raise BadOption(f"--frames {spec!r}: expected A:B[:STEP]")
+        start, end = parts[0], parts[1]
+        step = parts[2] if len(parts) == 3 else 1.0
+    if not all(np.isfinite([start, end, step])) or step <= 0 or end < start:
+        raise BadOption(f"--frames {spec!r}: need finite A <= B and STEP > 0")
+    count = int(np.floor((end - start) / step + 1e-9)) + 1
+    if count > MAX_FRAMES:
+        raise BadOption(f"--frames {spec!r}: {count} frames, more than {MAX_FRAMES}")
+    return [float(start + i * step) for i in range(count)]
+
+
+def run_render(
+    job: RenderJob,
+    on_frame: Callable[[int, int, FrameStats], None] | None = None,
+    stage_scene: StageScene | None = None,
+) -> dict:
+    """Render ``job`` and return the summary object (DESIGN.md §2 keys and more).
+
+    Raises PhrtError before anything is written if ``out_dir`` is not usable (see
+    ``RunDirectory``); a frame that fails ends the run with its error after the finished
+    frames' records are written."""
+    out = job.out_dir
+    scene = stage_scene or open_stage(job.stage_path, camera=job.camera)
+    times = parse_frames(job.frames, scene.frame_range)
+    layer_path = job.selection_layer or out / SELECTION_LAYER_FILE
+    run_info = job_run_info(job, scene, times)
+    with RunDirectory(
+        out, layer_path, scene, resume=job.resume, overwrite=job.overwrite
+    ) as run_dir:
+        return _Run(job, scene, run_info, layer_path, run_dir).render(times, on_frame)
+
+
+class _Run:
+    """One render's state between frames: finished frames, the renderer, and the policy
+    memory as of the last finished frame (what a checkpoint must hold so that a resumed
+    run continues exactly, even when the run ends inside a frame)."""
+
+    def __init__(self, job, scene, run_info, layer_path, run_dir: RunDirectory):
+        self.job, self.scene, self.run_info = job, scene, run_info
+        self.layer_path, self.run_dir = layer_path, run_dir
+        self.done: list[FrameStats] = []
+        self.renderer = FrameRenderer(scene, job.options)
+        self.memory = self.renderer.policy.memory()
+
+    def render(self, times: list[float], on_frame) -> dict:
+        job, out, renderer = self.job, self.job.out_dir, self.renderer
+        renderer.plan(times)
+        stop = threading.Event()
+        try:
+            if job.resume and not self.run_dir.fresh:
+                self.done = _load_checkpoint(out, self.run_info, renderer)
+                self.memory = renderer.policy.memory()
+            else:  # the run's identity goes on disk before its first frame does
+                self.checkpoint(records=False)
+            finished = {s.time for s in self.done}
+            todo = [t for t in times if t not in finished]
+            since_checkpoint = 0
+            next_checkpoint = 0.0  # time.perf_counter() before which no periodic checkpoint
+            with stop_on_signals(stop), self._records_kept():
+                for t in todo:
+                    self.done.append(render_frame(renderer, t, out if job.write_images else None))
+                    self.memory = renderer.policy.memory()
+                    since_checkpoint += 1
+                    if on_frame is not None:
+                        on_frame(len(self.done), len(times), self.done[-1])
+                    if stop.is_set():
+                        break
+                    start = time.perf_counter()
+                    if since_checkpoint >= job.checkpoint_every and start >= next_checkpoint:
+                        self.checkpoint()
+                        end = time.perf_counter()
+                        next_checkpoint = end + (end - start) * (1 / CHECKPOINT_MAX_SHARE - 1)
+                        since_checkpoint = 0
+        finally:
+            renderer.close()
+        if stop.is_set() and len(self.done) < len(times):
+            raise RenderInterrupted(
+                f"stopped after {len(self.done)} of {len(times)} frames; finished frames are "
+                f"in {out} (continue with --resume)"
+            )
+        summary = build_report(self.layer_path)
+        summary.update(
+            out=str(out),
+            selection_layer=str(self.layer_path),
+            passes=sorted({p for s in self.done for p in s.passes}),
+        )
+        return summary
+
+    @contextmanager
+    def _records_kept(self) -> Iterator[None]:
+        """Write the checkpoint and records of the finished frames when the block ends,
+        however it ends. If the block failed, its error is the one raised; the disk
+        reserve is given up first so that the records fit even on a full disk."""
+        try:
+            yield
+        except BaseException:
+            self.run_dir.release_reserve()
+            with suppress(PhrtError, OSError):
+                self.checkpoint()
+            raise
+        self.checkpoint()
+
+    def checkpoint(self, records: bool = True) -> None:
+        """Write the checkpoint, then (with ``records``) stats.json and the selection
+        layer, each atomically, and grow the disk reserve to hold them all again."""
+        frames = sorted(self.done, key=lambda s: s.time)
+        document = {
+            "format": CHECKPOINT_FORMAT,
+            "version": CHECKPOINT_VERSION,
+            "identity": self.run_info["identity"],
+            "frames": [frame_stats_row(f) for f in frames],
+            "policy": self.memory,
+        }
+        out = self.job.out_dir
+        text = json.dumps(document, allow_nan=False) + "\n"
+        write_text_atomic(out / CHECKPOINT_FILE, text)
+        if not records:
+            return
+        write_run_records(out, self.layer_path, self.job, self.scene, self.run_info, frames)
+        written = len(text) + sum(
+            p.stat().st_size for p in (out / STATS_FILE, self.layer_path) if p.exists()
+        )
+        self.run_dir.keep_reserve(RESERVE_FACTOR * written)
+
+
+def render_frame(renderer: FrameRenderer, t: float, out: Path | None) -> FrameStats:
+    """Render frame ``t`` with ``renderer`` (its policy remembers the frame); with an
+    output directory ``out``, write the frame's EXR and PNG there (atomically)."""
+    output = renderer.render(t)
+    if out is not None:
+        exr, png = frame_image_paths(out, t)
+        write_frame_exr(
+            exr,
+            output.beauty,
+            output.alpha,
+            output.gbuffer.depth,
+            output.gbuffer.element_id,
+            output.traced_mask,
+        )
+        write_preview_png(png, output.beauty)
+    return output.stats
+
+
+def job_run_info(job: RenderJob, scene: StageScene, times: list[float]) -> dict:
+    """The run object of stats.json, the selection layer and the checkpoint, with the
+    run's ``identity`` (see ``run_identity``)."""
+    opts = job.options
+    info = make_run_info(
+        stage=str(job.stage_path),
+        mode=opts.mode,
+        heuristic="all" if opts.mode == "rt" else opts.heuristic,
+        budget_ms=opts.budget_ms,
+        budget_rays=opts.budget_rays,
+        resolution=(opts.width, opts.height),
+        bounce_limit=opts.bounce_limit,
+        selection_weight=opts.selection_weight,
+        frame_range=(times[0], times[-1]),
+        reflectors=[scene.scene.elements[i].path for i in scene.scene.reflector_ids],
+        time_codes_per_second=scene.time_codes_per_second,
+    )
+    info["camera"] = scene.camera_path
+    info["identity"] = run_identity(info, scene, times)
+    return info
+
+
+#: Run settings that change pixels or selections: with the stage's layers, the camera
+#: and the frame list they identify a run (``run_identity``).
+IDENTITY_KEYS = (
+    "mode",
+    "heuristic",
+    "budget_ms",
+    "budget_rays",
+    "bounce_limit",
+    "selection_weight",
+    "resolution",
+    "camera",
+)
+
+
+def run_identity(run_info: dict, scene: StageScene, times: list[float]) -> dict:
+    """``{"digest", "layers", "options"}``: ``layers`` is a SHA-256 over the content of
+    every layer the stage uses (root, sublayers, references, payloads, session; by content,
+    so the same file under another name is the same run and an edited one is not),
+    ``options`` the ``IDENTITY_KEYS`` settings and the frame list, ``digest`` both."""
+    layers = sorted(_layer_digest(layer) for layer in scene.stage.GetUsedLayers())
+    layer_digest = hashlib.sha256("\n".join(layers).encode()).hexdigest()
+    options = {key: to_json_value(run_info.get(key)) for key in IDENTITY_KEYS}
+    options["frames"] = [float(t) for t in times]
+    text = json.dumps({"layers": layer_digest, "options": options}, sort_keys=True)
+    return {
+        "digest": hashlib.sha256(text.encode()).hexdigest(),
+        "layers": layer_digest,
+        "options": options,
+    }
+
+
+def _layer_digest(layer) -> str:
+    """SHA-256 of a layer's file bytes, or of its text when it has no file or unsaved
+    edits (anonymous and session layers)."""
+    path = layer.realPath
+    if path and not layer.dirty and os.path.isfile(path):
+        digest = hashlib.sha256()
+        with open(path, "rb") as handle:
+            for block in iter(lambda: handle.read(1 << 20), b""):
+                digest.update(block)
+        return digest.hexdigest()
+    return hashlib.sha256(layer.ExportToString().encode()).hexdigest()
+
+
+def _load_checkpoint(out: Path, run_info: dict, renderer: FrameRenderer) -> list[FrameStats]:
+    """Finished frames of the interrupted run in ``out``, and its policy's memory restored
+    into ``renderer.policy``. PhrtError (one line) unless the checkpoint is a phrt
+    checkpoint of this very run."""
+    path = out / CHECKPOINT_FILE
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW)
+    except FileNotFoundError:
+        raise PhrtError(f"--resume: {out} holds no checkpoint ({CHECKPOINT_FILE})") from None
+    except OSError as error:
+        raise PhrtError(f"{path}: cannot read checkpoint ({error.strerror})") from None
+    with os.fdopen(fd, "rb") as handle:
+        if not stat.S_ISREG(os.fstat(handle.fileno()).st_mode):
+            raise PhrtError(f"{path}: not a regular file")
+        data = handle.read(CHECKPOINT_MAX_BYTES + 1)
+    if len(data) > CHECKPOINT_MAX_BYTES:
+        raise PhrtError(f"{path}: larger than any checkpoint phrt writes")
+    try:
+        state = json.loads(data.decode("utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as error:
+        raise PhrtError(f"{path}: not a readable checkpoint ({error})") from None
+    if not isinstance(state, dict) or state.get("format") != CHECKPOINT_FORMAT:
+        raise PhrtError(f'{path}: not a phrt checkpoint (no "format": "{CHECKPOINT_FORMAT}")')
+    if state.get("version") != CHECKPOINT_VERSION:
+        raise PhrtError(f"{path}: checkpoint version {state.get('version')!r}, expected 1")
+    _check_same_run(out, state.get("identity"), run_info["identity"])
+    frames = state.get("frames")
+    if not isinstance(frames, list):
+        raise PhrtError(f"{path}: checkpoint has no frame list")
+    try:
+        done = [frame_stats_from_row(row) for row in frames]
+        renderer.policy.restore_memory(state.get("policy"))
+    except PhrtError as error:
+        raise PhrtError(f"{path}: {error}") from None
+    wanted = set(run_info["identity"]["options"]["frames"])
+    if any(s.time not in wanted for s in done) or len({s.time for s in done}) != len(done):
+        raise PhrtError(f"{path}: checkpoint frames are not frames of this run")
+    return done
+
+
+def _check_same_run(out: Path, saved, current: dict) -> None:
+    """PhrtError naming what differs unless ``saved`` is ``current``'s identity."""
+    if not isinstance(saved, dict) or saved.get("digest") == current["digest"]:
+        if isinstance(saved, dict):
+            return
+        raise PhrtError(f"--resume: the checkpoint in {out} has no run identity")
+    if saved.get("layers") != current["layers"]:
+        raise PhrtError(
+            f"--resume: the stage's layers changed since the interrupted run in {out}"
+        )
+    old = saved.get("options") if isinstance(saved.get("options"), dict) else {}
+    for key, value in current["options"].items():
+        if old.get(key) != value:
+            shown = f"{key} ({old.get(key)!r} vs {value!r})"
+            if key == "frames":
+                shown = "the frame list"
+            raise PhrtError(f"--resume: {shown} differs from the interrupted run in {out}")
+    raise PhrtError(f"--resume: the checkpoint in {out} is of another run")
+
+
+def write_run_records(
+    out: Path,
+    layer_path: Path,
+    job: RenderJob,
+    scene: StageScene,
+    run_info: dict,
+    frames: list[FrameStats],
+) -> None:
+    """stats.json and the selection layer of ``frames`` (every finished frame), atomically."""
+    write_stats(out, run_info, frames)
+    write_selection_layer(
+        layer_path,
+        str(job.stage_path),
+        run_info["reflectors"],
+        frames,
+        run_info,
+        scene.time_codes_per_second,
+        merge=False,
+    )
+
+
+# --- the run directory -----------------------------------------------------------------
+
+#: Frame image names phrt writes in ``OUT/frames`` (see ``run_files.frame_name``).
+_FRAME_IMAGE = re.compile(r"^-?\d{3,}(\.\d{3})?\.(exr|png)$")
+
+
+class RunDirectory:
+    """Context manager owning ``out`` for one run (see the module docstring).
+
+    On entry: ``out`` is created if missing (PhrtError if it is a file or cannot be
+    made); ``OUT/.phrt.lock`` is taken with ``flock`` (released by the kernel if the
+    process dies, so a killed run never blocks the next) or the run is refused naming the
+    holder's pid; an ``out`` holding anything is refused unless ``resume`` (the checkpoint
+    must then be this run's: checked by ``_load_checkpoint``) or ``overwrite`` (phrt's own
+    files are deleted first: frame images, stats, selection layer, checkpoint; anything
+    else stays); the selection layer may not be a layer of the stage. On exit the lock is
+    released and its file removed.
+    """
+
+    def __init__(self, out: Path, layer_path: Path, scene: StageScene | None, *,
+                 resume: bool = False, overwrite: bool = False):  # fmt: skip
+        if resume and overwrite:
+            raise BadOption("--resume and --overwrite exclude each other")
+        self.out = Path(out)
+        self.layer_path = Path(layer_path)
+        self.scene = scene
+        self.resume = resume
+        self.overwrite = overwrite
+        self._fd: int | None = None
+        self.fresh = True  # False when resuming a run that left files in out
+
+    def __enter__(self) -> RunDirectory:
+        out = self.out
+        if out.exists() and not out.is_dir():
+            raise BadOption(f"--out {out}: exists and is not a directory")
+        try:
+            out.mkdir(parents=True, exist_ok=True)
+        except OSError as error:
+            raise BadOption(f"--out {out}: cannot create ({error.strerror})") from None
+        if self.scene is not None:
+            _check_not_a_stage_layer(self.layer_path, self.scene)
+        self._lock()
+        try:
+            self._claim()
+            self.keep_reserve(RESERVE_MIN_BYTES)
+            frames = out / FRAMES_DIR
+            if frames.is_symlink() or (frames.exists() and not frames.is_dir()):
+                raise PhrtError(f"{frames}: not a directory of this run (a link or a file)")
+        except BaseException:
+            self._unlock()
+            raise
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.release_reserve()
+        self._unlock()
+
+    def keep_reserve(self, nbytes: int) -> None:
+        """Hold at least ``max(nbytes, RESERVE_MIN_BYTES)`` of disk in ``OUT/.phrt.reserve``
+        (allocated, never written to) so that when the disk fills, releasing it leaves
+        room to write the finished frames' records. Without room for it, nothing is held."""
+        nbytes = max(int(nbytes), RESERVE_MIN_BYTES)
+        try:
+            fd = os.open(self.out / RESERVE_FILE, os.O_WRONLY | os.O_CREAT | os.O_NOFOLLOW, 0o600)
+        except OSError:
+            return
+        try:
+            if os.fstat(fd).st_size < nbytes:
+                os.posix_fallocate(fd, 0, nbytes)
+        except OSError:
+            pass  # no room for the reserve (the disk is full already) or no fallocate here
+        finally:
+            os.close(fd)
+
+    def release_reserve(self) -> None:
+        with suppress(FileNotFoundError):
+            (self.out / RESERVE_FILE).unlink()
+
+    def _lock(self) -> None:
+        path = self.out / LOCK_FILE
+        for _ in range(3):  # the holder may remove the file between our open and flock
+            try:
+                fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o644)
+            except OSError as error:
+                if error.errno == errno.ELOOP:
+                    raise PhrtError(f"{path}: is a symlink; remove it") from None
+                raise BadOption(f"--out {self.out}: cannot write ({error.strerror})") from None
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                holder = os.read(fd, 64).decode("ascii", "replace").strip() or "?"
+                os.close(fd)
+                raise PhrtError(
+                    f"{self.out}: another render is writing here (pid {holder}); "
+                    "wait for it or choose another --out"
+                ) from None
+            if _same_file(fd, path):
+                os.ftruncate(fd, 0)
+                os.write(fd, f"{os.getpid()}\n".encode())
+                self._fd = fd
+                return
+            os.close(fd)  # locked a file that was just removed: try the new one
+        raise PhrtError(f"{path}: could not take the lock")
+
+    def _unlock(self) -> None:
+        if self._fd is not None:
+            with suppress(OSError):
+                os.unlink(self.out / LOCK_FILE)
+            os.close(self._fd)  # closing releases the flock
+            self._fd = None
+
+    def _claim(self) -> None:
+        """Refuse a non-empty ``out`` unless resuming or overwriting (see the class)."""
+        present = sorted(
+            p.name for p in self.out.iterdir() if p.name not in (LOCK_FILE, RESERVE_FILE)
+        )
+        layer_exists = self.layer_path.exists() or self.layer_path.is_symlink()
+        outside = layer_exists and self.layer_path.parent.resolve() != self.out.resolve()
+        if self.resume:
+            # A fresh out_dir starts the run; otherwise _load_checkpoint refuses anything
+            # but this run's checkpoint. Its selection layer is rewritten whole.
+            self.fresh = not present
+            return
+        if self.overwrite:
+            self._clear()
+            return
+        if present:
+            shown = ", ".join(present[:3]) + (", ..." if len(present) > 3 else "")
+            raise PhrtError(
+                f"--out {self.out}: not empty ({shown}); use --resume to continue the run "
+                "in it or --overwrite to replace phrt's files"
+            )
+        if outside:
+            raise PhrtError(
+                f"--selection-layer {self.layer_path}: exists; use --overwrite to replace it"
+            )
+
+    def _clear(self) -> None:
+        """Delete phrt's own files in ``out`` (never following a symlink: a link is
+        removed itself), and the job's selection layer."""
+        for name in (STATS_FILE, SELECTION_LAYER_FILE, CHECKPOINT_FILE, RESERVE_FILE):
+            with suppress(FileNotFoundError):
+                (self.out / name).unlink()
+        with suppress(FileNotFoundError):
+            if self.layer_path.is_symlink() or self.layer_path.is_file():
+                self.layer_path.unlink()
+        frames = self.out / FRAMES_DIR
+        if frames.is_symlink():
+            frames.unlink()
+        elif frames.is_dir():
+            for entry in frames.iterdir():
+                if _FRAME_IMAGE.match(entry.name) or entry.name.startswith("."):
+                    if entry.is_dir() and not entry.is_symlink():
+                        continue
+                    entry.unlink()
+            with suppress(OSError):
+                frames.rmdir()  # only when nothing else is left in it
+
+
+def _same_file(fd: int, path: Path) -> bool:
+    try:
+        here = os.lstat(path)
+    except FileNotFoundError:
+        return False
+    there = os.fstat(fd)
+    return (here.st_dev, here.st_ino) == (there.st_dev, there.st_ino)
+
+
+def _check_not_a_stage_layer(layer_path: Path, scene: StageScene) -> None:
+    """BadOption if the selection layer would overwrite a layer the stage uses."""
+    target = os.path.realpath(layer_path)
+    for layer in scene.stage.GetUsedLayers():
+        if layer.realPath and os.path.realpath(layer.realPath) == target:
+            raise BadOption(
+                f"--selection-layer {layer_path}: is a layer of the stage ({layer.identifier}); "
+                "choose another path"
+            )
+
+
+@contextmanager
+def stop_on_signals(stop: threading.Event) -> Iterator[None]:
+    """While active, SIGINT/SIGTERM set ``stop`` instead of killing the process."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum, frame):  # noqa: ARG001 - signal handler signature
+        stop.set()
+
+    previous = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for s, h in previous.items():
+            signal.signal(s, h)

@@ -1,0 +1,423 @@
+"""The run directory: where a render's files live, ``stats.json``, and atomic file writes.
+
+Layout of a render's output directory ``OUT``::
+
+    OUT/frames/NNNN.exr     one multi-channel EXR per rendered frame (see images.py)
+    OUT/frames/NNNN.png     8-bit sRGB preview of the same frame
+    OUT/stats.json          run settings + one row per rendered frame (this module)
+    OUT/selection.usda      the selection layer (see selection_layer.py)
+    OUT/checkpoint.json     finished frames and the policy's memory, for --resume
+    OUT/.phrt.lock          held (flock) by the render writing OUT; names its pid
+    OUT/.phrt.reserve       disk held back while rendering, so records fit on a full disk
+
+``NNNN`` is the frame's time code: integral time codes are zero-padded to 4 digits
+(``0012``, ``-003``), fractional ones keep 3 decimals (``0012.500``), so time codes are
+told apart to 1/1000 of a time code.
+
+Every file is written by ``atomic_path``: to an exclusively created hidden temp file in the
+same directory (same extension, so OpenImageIO / USD pick the right format), checked,
+fsynced, then renamed over the final name. A reader never sees a half-written file, a
+crash or a full disk leaves the old file whole, and a planted symlink is never followed.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import math
+import os
+import platform
+import stat
+import tempfile
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import asdict, fields
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from phrt_usd import __version__
+from phrt_usd.errors import PhrtError
+from phrt_usd.model.frame import FrameStats, ReflectorMetrics
+
+FRAMES_DIR = "frames"
+STATS_FILE = "stats.json"
+SELECTION_LAYER_FILE = "selection.usda"
+CHECKPOINT_FILE = "checkpoint.json"
+LOCK_FILE = ".phrt.lock"
+RESERVE_FILE = ".phrt.reserve"
+
+#: Identifies stats.json files written by this module; bump the version on breaking change.
+STATS_FORMAT = "phrt-stats"
+STATS_VERSION = 1
+
+#: Time codes closer than this to an integer are named as that integer (``0012``).
+INTEGRAL_TIME_TOLERANCE = 1e-6
+
+
+# --- atomic writes ---------------------------------------------------------------------
+
+
+class WriteFailed(PhrtError):
+    """An output could not be written (OS error, full disk, writer failure). The previous
+    file under that name, if any, is untouched and no temp file is left behind."""
+
+
+#: Permission bits a new output gets before the umask (what ``open(..., "w")`` uses).
+NEW_FILE_MODE = 0o666
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+@contextmanager
+def atomic_path(final: Path, check: Callable[[Path], None] | None = None) -> Iterator[Path]:
+    """Yield a fresh temp path next to ``final``; once the body has written it, publish it
+    under ``final``. The one way phrt writes any output file.
+
+    * The temp file ``.<stem>.<random>.tmp<ext>`` is created exclusively in ``final``'s
+      directory (``O_CREAT | O_EXCL | O_NOFOLLOW``: a planted file or symlink at that name
+      is never opened, let alone followed) with ``final``'s extension, so writers that pick
+      a format by extension (OpenImageIO, USD) work; the body writes it by name.
+    * On success the temp must still be a regular file (not replaced by a symlink) and
+      non-empty; ``check(tmp)`` (optional) may read it back and raise; it is fsynced,
+      given ``final``'s current mode (a new file gets ``NEW_FILE_MODE`` less the umask),
+      renamed over ``final`` (a rename replaces a symlink at ``final`` itself, never its
+      target) and the directory is fsynced.
+    * If anything fails, the temp file is removed, ``final`` keeps its previous content,
+      and an OS error is raised as ``WriteFailed`` naming ``final`` and the error.
+    """
+    final = Path(final)
+    try:
+        final.parent.mkdir(parents=True, exist_ok=True)
+        stem, ext = _split_extension(final.name)
+        fd, name = tempfile.mkstemp(prefix=f".{stem}.", suffix=f".tmp{ext}", dir=final.parent)
+        os.close(fd)
+    except OSError as error:
+        raise WriteFailed(f"{final}: cannot write ({_os_reason(error)})") from None
+    tmp = Path(name)
+    try:
+        yield tmp
+        _publish(tmp, final, check)
+    except OSError as error:
+        raise WriteFailed(f"{final}: cannot write ({_os_reason(error)})") from None
+    except PhrtError as error:  # a writer's own report: name the final file, not the temp
+        message = str(error).replace(str(tmp), str(final))
+        if _disk_full(final.parent) and "no space left" not in message.lower():
+            message += " (no space left on device)"
+        raise WriteFailed(message) from None
+    finally:
+        with contextlib.suppress(FileNotFoundError):
+            tmp.unlink()
+
+
+def _publish(tmp: Path, final: Path, check: Callable[[Path], None] | None) -> None:
+    """Verify, fsync and rename ``tmp`` over ``final`` (see ``atomic_path``)."""
+    info = tmp.lstat()
+    if not stat.S_ISREG(info.st_mode):
+        raise WriteFailed(f"{final}: the temp file was replaced by something else")
+    if info.st_size == 0:  # image writers may report success on a full disk
+        raise WriteFailed(f"{final}: the writer produced an empty file")
+    if check is not None:
+        check(tmp)
+    try:
+        mode = stat.S_IMODE(final.stat().st_mode)
+    except FileNotFoundError:
+        mode = NEW_FILE_MODE & ~_umask()
+    fd = os.open(tmp, os.O_RDONLY | os.O_NOFOLLOW)
+    try:
+        os.fchmod(fd, mode)
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+    os.replace(tmp, final)
+    _fsync_directory(final.parent)
+
+
+def _disk_full(path: Path) -> bool:
+    try:
+        info = os.statvfs(path)
+    except OSError:
+        return False
+    return info.f_bavail * info.f_frsize < 64 * 1024  # less than a small file's room
+
+
+def _fsync_directory(path: Path) -> None:
+    """Make a rename in ``path`` durable (a no-op where directories cannot be opened)."""
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass  # some file systems do not fsync directories; the rename itself happened
+    finally:
+        os.close(fd)
+
+
+def _os_reason(error: OSError) -> str:
+    """``No space left on device`` etc.; the strerror of an OSError without its repr."""
+    return error.strerror or str(error)
+
+
+def _split_extension(name: str) -> tuple[str, str]:
+    """``"0012.500.exr"`` → ``("0012.500", ".exr")`` (only the last suffix is the format)."""
+    dot = name.rfind(".")
+    if dot <= 0:
+        return name, ""
+    return name[:dot], name[dot:]
+
+
+def write_bytes_atomic(path: Path, data: bytes, check: Callable[[Path], None] | None = None):
+    """Write ``data`` to ``path`` atomically (see ``atomic_path``)."""
+    with atomic_path(path, check) as tmp:
+        fd = os.open(tmp, os.O_WRONLY | os.O_TRUNC | os.O_NOFOLLOW)
+        try:
+            view = memoryview(data)
+            while view:
+                view = view[os.write(fd, view) :]
+        finally:
+            os.close(fd)
+
+
+def write_text_atomic(path: Path, text: str, check: Callable[[Path], None] | None = None):
+    """Write ``text`` (UTF-8) to ``path`` atomically (see ``atomic_path``)."""
+    write_bytes_atomic(path, text.encode("utf-8"), check)
+
+
+# --- layout ----------------------------------------------------------------------------
+
+
+def frame_name(time: float) -> str:
+    """File stem of the frame at time code ``time``: ``0012``, ``-003``, ``0012.500``."""
+    if not math.isfinite(time):
+        raise PhrtError(f"frame time code {time} is not finite")
+    nearest = round(time)
+    if abs(time - nearest) < INTEGRAL_TIME_TOLERANCE:
+        return f"{int(nearest):04d}"
+    return f"{time:08.3f}"
+
+
+def frame_image_paths(out: Path, time: float) -> tuple[Path, Path]:
+    """(EXR path, PNG path) of the frame at time code ``time`` in run directory ``out``."""
+    stem = frame_name(time)
+    frames = Path(out) / FRAMES_DIR
+    return frames / f"{stem}.exr", frames / f"{stem}.png"
+
+
+def stats_path(out: Path) -> Path:
+    return Path(out) / STATS_FILE
+
+
+def selection_layer_path(out: Path) -> Path:
+    """Default selection layer path of run directory ``out`` (``OUT/selection.usda``)."""
+    return Path(out) / SELECTION_LAYER_FILE
+
+
+# --- stats.json ------------------------------------------------------------------------
+
+
+def make_run_info(
+    *,
+    stage: str | None,
+    mode: str,
+    heuristic: str,
+    budget_ms: float | None,
+    budget_rays: int | None,
+    resolution: tuple[int, int],
+    bounce_limit: int,
+    selection_weight: float,
+    frame_range: tuple[float, float],
+    reflectors: list[str],
+    time_codes_per_second: float = 24.0,
+) -> dict[str, Any]:
+    """The ``run`` object of stats.json (and the selection layer's customLayerData).
+
+    ``budget_ms`` / ``budget_rays`` are ``None`` when that budget is not used;
+    ``resolution`` is (width, height) pixels; ``frame_range`` is (first, last) time code of
+    the render; ``reflectors`` are all reflector prim paths of the stage. Machine, date and
+    phrt version are filled in here.
+    """
+    return {
+        "stage": stage,
+        "mode": mode,
+        "heuristic": heuristic,
+        "budget_ms": budget_ms,
+        "budget_rays": budget_rays,
+        "resolution": [int(resolution[0]), int(resolution[1])],
+        "bounce_limit": int(bounce_limit),
+        "selection_weight": float(selection_weight),
+        "frame_range": [float(frame_range[0]), float(frame_range[1])],
+        "time_codes_per_second": float(time_codes_per_second),
+        "reflectors": list(reflectors),
+        "machine": {
+            "cores": os.cpu_count(),
+            "cpu": platform.processor() or platform.machine(),
+            "system": platform.system(),
+            "python": platform.python_version(),
+        },
+        "date": datetime.now(UTC).isoformat(timespec="seconds"),
+        "phrt_version": __version__,
+    }
+
+
+def to_json_value(value: Any) -> Any:
+    """``value`` with numpy scalars/arrays made plain and non-finite floats made ``None``.
+
+    JSON has no NaN/Inf; a non-finite figure (which the renderer should never produce) is
+    written as ``null`` rather than losing the whole file of a long render.
+    """
+    if isinstance(value, dict):
+        return {str(k): to_json_value(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [to_json_value(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return to_json_value(value.tolist())
+    if isinstance(value, bool | np.bool_):
+        return bool(value)
+    if isinstance(value, int | np.integer):
+        return int(value)
+    if isinstance(value, float | np.floating):
+        value = float(value)
+        return value if math.isfinite(value) else None
+    if isinstance(value, Path):
+        return str(value)
+    return value
+
+
+def frame_stats_from_row(row: Any) -> FrameStats:
+    """Inverse of ``frame_stats_row`` for rows read back from a file; PhrtError (naming
+    the field) unless ``row`` has every field with its type."""
+    if not isinstance(row, dict) or set(row) != {f.name for f in fields(FrameStats)}:
+        raise PhrtError("a frame record without the fields of a phrt frame")
+
+    def number(name: str, value: Any) -> float:
+        if value is None:  # a non-finite figure, written as null (see to_json_value)
+            return math.nan
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            raise PhrtError(f"frame record field {name}: not a number")
+        return float(value)
+
+    def paths(name: str) -> list[str]:
+        value = row[name]
+        if not isinstance(value, list) or not all(isinstance(p, str) for p in value):
+            raise PhrtError(f"frame record field {name}: not a list of prim paths")
+        return list(value)
+
+    metrics = {}
+    if not isinstance(row["metrics"], dict) or not isinstance(row["phase_ms"], dict):
+        raise PhrtError("frame record fields metrics / phase_ms: not tables")
+    names = {f.name for f in fields(ReflectorMetrics)}
+    for path, m in row["metrics"].items():
+        if not isinstance(m, dict) or not set(m) <= names:
+            raise PhrtError(f"frame record metrics of {path}: not reflector figures")
+        metrics[path] = ReflectorMetrics(
+            **{k: (bool(v) if k in ("S", "selected", "visible") else number(k, v))
+               for k, v in m.items()}
+        )  # fmt: skip
+    time = number("time", row["time"])
+    rays = number("rays", row["rays"])
+    if not math.isfinite(time) or rays != int(rays):
+        raise PhrtError("frame record: time not finite or rays not whole")
+    return FrameStats(
+        time=time,
+        phase_ms={str(k): number(f"phase_ms.{k}", v) for k, v in row["phase_ms"].items()},
+        frame_ms=number("frame_ms", row["frame_ms"]),
+        trace_ms=number("trace_ms", row["trace_ms"]),
+        predicted_trace_ms=number("predicted_trace_ms", row["predicted_trace_ms"]),
+        rays=int(rays),
+        visible=paths("visible"),
+        selected=paths("selected"),
+        metrics=metrics,
+        passes=paths("passes"),
+    )
+
+
+def frame_stats_row(frame: FrameStats) -> dict[str, Any]:
+    """One stats.json row: time, phase_ms, frame_ms, trace_ms, predicted_trace_ms, rays,
+    visible, selected, metrics (prim path → ReflectorMetrics fields), passes."""
+    return to_json_value(asdict(frame))
+
+
+def write_stats(out: Path, run_info: dict[str, Any], frames: list[FrameStats]) -> Path:
+    """Write ``OUT/stats.json`` atomically (rows sorted by time); returns its path.
+
+    Cheap enough to call after every frame, so an interrupted render keeps its stats.
+    """
+    document = {
+        "format": STATS_FORMAT,
+        "version": STATS_VERSION,
+        "run": to_json_value(run_info),
+        "frames": [frame_stats_row(f) for f in sorted(frames, key=lambda f: f.time)],
+    }
+    path = stats_path(out)
+    write_text_atomic(path, json.dumps(document, indent=1, allow_nan=False) + "\n")
+    return path
+
+
+def read_stats(out: Path) -> tuple[dict[str, Any], list[dict[str, Any]]]:
+    """(run_info, frame rows as dicts) from ``OUT/stats.json`` (``out`` may also be the
+    file itself). Raises PhrtError if it is missing or not a phrt stats file."""
+    path = Path(out)
+    if path.is_dir():
+        path = stats_path(path)
+    try:
+        document = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise PhrtError(f"{path}: no stats file") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
+        raise PhrtError(f"{path}: cannot read stats ({error})") from None
+    if not isinstance(document, dict) or document.get("format") != STATS_FORMAT:
+        raise PhrtError(f'{path}: not a phrt stats file (no "format": "{STATS_FORMAT}")')
+    if document.get("version") != STATS_VERSION:
+        raise PhrtError(
+            f"{path}: stats version {document.get('version')}, expected {STATS_VERSION}"
+        )
+    run, rows = document.get("run", {}), document.get("frames", [])
+    if not isinstance(rows, list):
+        raise PhrtError(f'{path}: "frames" is not a list of frame records')
+    try:
+        check_run_info(run)
+        for row in rows:
+            frame_stats_from_row(row)
+    except PhrtError as error:
+        raise PhrtError(f"{path}: {error}") from None
+    return run, rows
+
+
+#: Types of the run settings readers use (stats.json "run", the layer's customLayerData).
+_RUN_INFO_TYPES: dict[str, tuple[type, ...]] = {
+    "stage": (str,),
+    "mode": (str,),
+    "heuristic": (str,),
+    "budget_ms": (int, float),
+    "budget_rays": (int,),
+    "bounce_limit": (int,),
+    "selection_weight": (int, float),
+    "time_codes_per_second": (int, float),
+    "camera": (str,),
+}
+
+
+def check_run_info(run: Any) -> None:
+    """PhrtError unless ``run`` is a table whose known settings have their types
+    (``None`` allowed: an unused budget); ``resolution`` is two whole numbers."""
+    if not isinstance(run, dict):
+        raise PhrtError("run settings are not a table")
+    for key, kinds in _RUN_INFO_TYPES.items():
+        value = run.get(key)
+        if value is not None and (isinstance(value, bool) or not isinstance(value, kinds)):
+            raise PhrtError(f"run setting {key}: {value!r} is not a {kinds[0].__name__}")
+    resolution = run.get("resolution")
+    if resolution is not None and not (
+        isinstance(resolution, list)
+        and len(resolution) == 2
+        and all(isinstance(v, int) and not isinstance(v, bool) for v in resolution)
+    ):
+        raise PhrtError(f"run setting resolution: {resolution!r} is not [width, height]")

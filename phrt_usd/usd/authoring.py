@@ -1,0 +1,292 @@
+"""``phrt author``: mark prims as reflectors without touching the user's files.
+
+By default the opinions go to a new layer (``<stem>.phrt.usda`` next to the stage, or an
+explicit ``out`` path) that sublayers the original stage's root layer by a relative path
+and holds ``over``s with PhrtReflectorAPI and K (and F). Opening that layer gives the
+original stage plus the reflector opinions. Only ``in_place=True`` edits the stage's root
+layer.
+
+What this module guarantees:
+
+* Nothing is written unless every prim checks out (exists, is a gprim) and K / F are in
+  range; errors are one-line ``PhrtError``s naming the prim or the file.
+* An overlay composes exactly like the stage alone: it carries *all* layer metadata of
+  the stage's root layer (``UsdUtils.CopyLayerMetadata``: timeCodesPerSecond,
+  framesPerSecond, start/end time code, renderSettingsPrimPath, customLayerData, upAxis,
+  metersPerUnit, defaultPrim, ...), so the sublayer is not retimed and the stage's time
+  range and render settings survive.
+* An overlay never overwrites an existing file unless ``force=True``, and never (not
+  even with ``force``) the input stage or any layer the stage uses: its layer stack,
+  referenced and payload layers, and what those layers use in turn (compared by real
+  path, symlinks resolved).
+* ``in_place=True`` keeps the file's format: a text layer stays text, a crate stays
+  crate (a ``.usd`` file keeps whichever of the two it is). A ``.usdz`` package is never
+  edited in place (refused, the file untouched); write an overlay instead.
+* Every file goes through ``run_files.atomic_path`` (temp file beside the target, then a
+  rename; an existing file's mode is kept, a new file follows the umask), and the written
+  layer is reopened and checked before it replaces the target. On any failure the
+  target keeps its previous content.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+from pxr import Ar, Sdf, Tf, Usd, UsdGeom, UsdUtils
+
+from phrt_usd.errors import BadOption, PhrtError
+from phrt_usd.run.run_files import WriteFailed, atomic_path
+from phrt_usd.usd import schema
+from phrt_usd.usd.validation import open_stage
+
+OVERLAY_SUFFIX = ".phrt.usda"
+
+#: Sdf file formats phrt writes layers in (``usd`` is text or crate, see ``_usd_flavour``).
+WRITABLE_FORMATS = ("usda", "usdc", "usd")
+
+#: First bytes of each flavour of layer file.
+_MAGIC = {"usdc": b"PXR-USDC", "usda": b"#usda"}
+
+
+@dataclass(frozen=True)
+class AuthorResult:
+    """Where the opinions went and which prims got them."""
+
+    layer: str
+    prims: list[str]
+
+
+def default_overlay_path(stage_path: str | Path) -> Path:
+    """``dir/name.usda`` -> ``dir/name.phrt.usda``."""
+    p = Path(stage_path)
+    return p.with_name(p.name.split(".")[0] + OVERLAY_SUFFIX)
+
+
+def _check_prims(stage: Usd.Stage, prim_paths: list[str]) -> list[Usd.Prim]:
+    prims = []
+    for path in prim_paths:
+        if not Sdf.Path.IsValidPathString(path) or not Sdf.Path(path).IsAbsolutePath():
+            raise PhrtError(f"{path}: not an absolute prim path")
+        prim = stage.GetPrimAtPath(path)
+        if not prim:
+            raise PhrtError(f"{path}: no such prim in the stage")
+        if not prim.IsA(UsdGeom.Gprim):
+            raise PhrtError(
+                f"{path}: is a {prim.GetTypeName() or 'typeless prim'}, not a gprim; "
+                f"{schema.REFLECTOR_API} applies to gprims only"
+            )
+        prims.append(prim)
+    return prims
+
+
+def _check_values(priority: float, reflectivity: float | None) -> None:
+    if not (priority >= 0.0 and priority != float("inf")):  # rejects NaN too
+        raise BadOption(f"--priority {priority}: K must be finite and >= 0")
+    if reflectivity is not None and not (0.0 <= reflectivity <= 1.0):
+        raise BadOption(f"--reflectivity {reflectivity}: F must be in [0, 1]")
+
+
+# --- which files a stage uses ----------------------------------------------------------
+
+
+def _real(path: str) -> str:
+    """The real file behind a layer path (the package itself for ``a.usdz[b.usda]``)."""
+    if Ar.IsPackageRelativePath(path):
+        path = Ar.SplitPackageRelativePathOuter(path)[0]
+    return os.path.realpath(path)
+
+
+def _used_files(stage: Usd.Stage) -> set[str]:
+    """Real paths of every file the stage's layers use: the stage's layer stack, all
+    layers it composes (references, payloads), and, transitively, every sublayer,
+    reference and payload any of those layers names, loaded or not (unselected variants,
+    unloaded payloads included)."""
+    files: set[str] = set()
+    seen: set[str] = set()
+    todo = list(stage.GetUsedLayers())
+    while todo:
+        layer = todo.pop()
+        if layer.identifier in seen:
+            continue
+        seen.add(layer.identifier)
+        if layer.realPath:
+            files.add(_real(layer.realPath))
+        for asset in layer.GetCompositionAssetDependencies():
+            path = layer.ComputeAbsolutePath(asset)
+            if not path:
+                continue
+            files.add(_real(path))
+            if os.path.isfile(_real(path)):
+                try:
+                    dependency = Sdf.Layer.FindOrOpen(path)
+                except Tf.ErrorException:
+                    dependency = None
+                if dependency is not None:
+                    todo.append(dependency)
+    return files
+
+
+# --- formats -----------------------------------------------------------------------------
+
+
+def _usd_flavour(path: Path) -> str:
+    """``usdc`` when the ``.usd`` file at ``path`` is a crate, else ``usda``."""
+    return "usdc" if Sdf.FileFormat.FindById("usdc").CanRead(str(path)) else "usda"
+
+
+def _check_written(
+    final: Path, flavour: str | None, prim_paths: list[str]
+) -> Callable[[Path], None]:
+    """A check for ``atomic_path``: the temp file is of the expected flavour (``usda`` /
+    ``usdc``; None: either), reopens as a layer, and holds K for every prim."""
+
+    def check(tmp: Path) -> None:
+        if flavour is not None:
+            with open(tmp, "rb") as f:
+                head = f.read(len(_MAGIC[flavour]))
+            if head != _MAGIC[flavour]:
+                raise WriteFailed(f"{final}: the written file is not a {flavour} layer")
+        try:
+            layer = Sdf.Layer.OpenAsAnonymous(str(tmp))
+        except Tf.ErrorException:
+            layer = None
+        if layer is None:
+            raise WriteFailed(f"{final}: the written file does not open as a USD layer")
+        for path in prim_paths:
+            attr = layer.GetAttributeAtPath(Sdf.Path(path).AppendProperty(schema.PRIORITY))
+            if attr is None or not attr.HasDefaultValue():
+                raise WriteFailed(f"{final}: the written layer lost the opinions on {path}")
+
+    return check
+
+
+def _write(
+    layer: Sdf.Layer, final: Path, flavour: str | None, args: dict, prim_paths: list[str]
+) -> None:
+    with atomic_path(final, check=_check_written(final, flavour, prim_paths)) as tmp:
+        if not layer.Export(str(tmp), args=args):
+            raise WriteFailed(f"{final}: USD could not write the layer")
+
+
+# --- authoring ---------------------------------------------------------------------------
+
+
+def author_reflectors(
+    stage_path: str | Path,
+    prim_paths: list[str],
+    priority: float,
+    reflectivity: float | None = None,
+    out: str | Path | None = None,
+    in_place: bool = False,
+    force: bool = False,
+) -> AuthorResult:
+    """Apply PhrtReflectorAPI with K (and F) to ``prim_paths`` of the stage at
+    ``stage_path``; see the module docstring for where the opinions are written and what
+    is guaranteed. ``force`` lets an overlay replace an existing file that the stage does
+    not use (it has no effect with ``in_place``)."""
+    if out is not None and in_place:
+        raise BadOption("--out and --in-place exclude each other")
+    if not prim_paths:
+        raise BadOption("no prim paths given")
+    _check_values(priority, reflectivity)
+    stage_file = Path(stage_path)
+    stage = open_stage(stage_file)
+    _check_prims(stage, prim_paths)
+    if in_place:
+        target = _author_in_place(stage, stage_file, prim_paths, priority, reflectivity)
+    else:
+        target = Path(out) if out is not None else default_overlay_path(stage_file)
+        _author_overlay(stage, stage_file, target, prim_paths, priority, reflectivity, force)
+    return AuthorResult(layer=str(target), prims=list(prim_paths))
+
+
+def _author_in_place(
+    stage: Usd.Stage,
+    stage_file: Path,
+    prim_paths: list[str],
+    priority: float,
+    reflectivity: float | None,
+) -> Path:
+    """Author into the stage's root layer and write it back in its own format."""
+    root = stage.GetRootLayer()
+    file_format = root.GetFileFormat()
+    if file_format.IsPackage() or file_format.formatId == "usdz":
+        raise PhrtError(
+            f"{stage_file}: a .usdz package cannot be edited in place; "
+            f"write an overlay instead (drop --in-place, or use --out PATH)"
+        )
+    if file_format.formatId not in WRITABLE_FORMATS:
+        raise PhrtError(
+            f"{stage_file}: cannot edit a '{file_format.formatId}' layer in place; "
+            f"write an overlay instead (drop --in-place, or use --out PATH)"
+        )
+    # The real file (a symlinked stage keeps its link; the file it points to is edited).
+    target = Path(os.path.realpath(root.realPath))
+    if file_format.formatId == "usd":
+        flavour = _usd_flavour(target)
+        args = {"format": flavour}
+    else:
+        flavour, args = file_format.formatId, {}
+    try:
+        for path in prim_paths:
+            schema.apply_reflector(
+                stage.GetPrimAtPath(path), priority=priority, reflectivity=reflectivity
+            )
+        _write(root, target, flavour, args, prim_paths)
+    finally:
+        # The registry's layer now matches the file again (or, after a failure, drops
+        # the opinions that never reached it).
+        root.Reload(force=True)
+    return target
+
+
+def _author_overlay(
+    stage: Usd.Stage,
+    stage_file: Path,
+    target: Path,
+    prim_paths: list[str],
+    priority: float,
+    reflectivity: float | None,
+    force: bool,
+) -> None:
+    """Write a new layer over the stage's root layer holding the opinions."""
+    ext = target.suffix.lstrip(".")
+    file_format = Sdf.FileFormat.FindByExtension(ext) if ext else None
+    if file_format is None or file_format.formatId not in WRITABLE_FORMATS:
+        raise BadOption(f"--out {target}: write the overlay as .usda, .usdc or .usd")
+    src = stage.GetRootLayer()
+    real_target = os.path.realpath(target)
+    if real_target == _real(src.realPath) or real_target == os.path.realpath(stage_file):
+        raise PhrtError(f"{target}: is the input stage; use --in-place to edit it")
+    if real_target in _used_files(stage):
+        raise PhrtError(
+            f"{target}: is a layer the stage uses (sublayer, reference or payload); "
+            f"refusing to overwrite it, even with --force"
+        )
+    if target.is_dir():
+        raise PhrtError(f"{target}: is a directory")
+    if os.path.lexists(target) and not force:
+        raise PhrtError(f"{target}: already exists; pass --force to overwrite it")
+
+    edit_layer = Sdf.Layer.CreateAnonymous(f".{ext}")
+    # Every piece of the root layer's metadata: an overlay without timeCodesPerSecond
+    # would retime the stage (24 against the sublayer's own), lose its time range, ...
+    UsdUtils.CopyLayerMetadata(src, edit_layer, skipSublayers=True, bakeUnauthoredFallbacks=False)
+    # Compose against the absolute identifier while authoring; the file gets the path
+    # relative to its own directory, so the pair can be moved together.
+    edit_layer.subLayerPaths.append(src.identifier)
+    relative = Path(os.path.relpath(stage_file.resolve(), target.resolve().parent)).as_posix()
+    edit_stage = Usd.Stage.Open(edit_layer)
+    for path in prim_paths:
+        schema.apply_reflector(
+            edit_stage.GetPrimAtPath(path), priority=priority, reflectivity=reflectivity
+        )
+    # Close the authoring stage first: while it is open, USD recomposes the anonymous
+    # layer against the relative path (which only resolves next to the file) and warns.
+    del edit_stage
+    edit_layer.subLayerPaths[0] = relative
+    flavour = file_format.formatId if file_format.formatId in _MAGIC else None
+    _write(edit_layer, target, flavour, {}, prim_paths)

@@ -1,0 +1,146 @@
+"""What a stage holds for phrt: reflectors, camera paths, render settings, lights,
+stage metadata, and which render passes a render of it needs.
+
+Everything is read at the default time code (bounds too) and returned as plain
+JSON-ready dicts/lists; ``phrt inspect`` prints them as tables or one JSON object.
+
+Passes: ``gbuffer`` always; ``shadows`` iff a DistantLight/SphereLight/RectLight exists;
+``reflections`` iff any reflector; ``refraction`` iff some UsdPreviewSurface has an
+authored opacity < 1; ``environment`` iff a DomeLight exists.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+from pxr import Usd, UsdGeom, UsdLux, UsdShade
+
+from phrt_usd.usd import schema
+from phrt_usd.usd.validation import open_stage
+
+SHADOW_LIGHT_TYPES = ("DistantLight", "SphereLight", "RectLight")
+ENVIRONMENT_LIGHT_TYPES = ("DomeLight", "DomeLight_1")
+
+
+def _triangle_count(prim: Usd.Prim) -> int | None:
+    """Triangles of a Mesh after fan triangulation, sum(count - 2) over faces with >= 3
+    vertices; None for implicit gprims (Sphere, Cube, ...) whose tessellation is the
+    renderer's choice."""
+    if not prim.IsA(UsdGeom.Mesh):
+        return None
+    counts = UsdGeom.Mesh(prim).GetFaceVertexCountsAttr().Get()
+    c = np.asarray(counts if counts is not None else [], dtype=np.int64)
+    return int(np.clip(c - 2, 0, None).sum())
+
+
+def _bounds(cache: UsdGeom.BBoxCache, prim: Usd.Prim, meters_per_unit: float) -> dict:
+    """World-space axis-aligned bounds, stage units and metres; None for empty bounds."""
+    box = cache.ComputeWorldBound(prim).ComputeAlignedRange()
+    if box.IsEmpty():
+        return {"min": None, "max": None, "min_m": None, "max_m": None}
+    lo = np.array(box.GetMin(), dtype=np.float64)
+    hi = np.array(box.GetMax(), dtype=np.float64)
+    return {
+        "min": lo.tolist(),
+        "max": hi.tolist(),
+        "min_m": (lo * meters_per_unit).tolist(),
+        "max_m": (hi * meters_per_unit).tolist(),
+    }
+
+
+def _lights(stage: Usd.Stage) -> list[dict]:
+    return [
+        {"path": str(p.GetPath()), "type": p.GetTypeName() or "LightAPI"}
+        for p in stage.Traverse()
+        if p.HasAPI(UsdLux.LightAPI)
+    ]
+
+
+def _has_translucent_preview_surface(stage: Usd.Stage) -> bool:
+    """Some UsdPreviewSurface shader has an authored inputs:opacity < 1."""
+    for prim in stage.Traverse():
+        if not prim.IsA(UsdShade.Shader):
+            continue
+        shader = UsdShade.Shader(prim)
+        if shader.GetShaderId() != "UsdPreviewSurface":
+            continue
+        opacity = shader.GetInput("opacity")
+        if opacity and opacity.GetAttr().HasAuthoredValue():
+            value = opacity.Get()
+            if value is not None and value < 1.0:
+                return True
+    return False
+
+
+def required_passes(stage: Usd.Stage, lights: list[dict], n_reflectors: int) -> list[str]:
+    """Render passes the stage needs, in pipeline order."""
+    types = {light["type"] for light in lights}
+    passes = ["gbuffer"]
+    if types & set(SHADOW_LIGHT_TYPES):
+        passes.append("shadows")
+    if n_reflectors:
+        passes.append("reflections")
+    if _has_translucent_preview_surface(stage):
+        passes.append("refraction")
+    if types & set(ENVIRONMENT_LIGHT_TYPES):
+        passes.append("environment")
+    return passes
+
+
+def inspect_stage(stage: Usd.Stage, label: str | None = None) -> dict:
+    """Summary of an open stage as one JSON-ready dict (keys: stage, metadata, reflectors,
+    camera_paths, render_settings, lights, passes)."""
+    mpu = float(UsdGeom.GetStageMetersPerUnit(stage))
+    cache = UsdGeom.BBoxCache(
+        Usd.TimeCode.Default(), [UsdGeom.Tokens.default_, UsdGeom.Tokens.render]
+    )
+    reflectors = [
+        {
+            "path": str(p.GetPath()),
+            "type": p.GetTypeName(),
+            "priority": schema.reflector_priority(p),
+            "reflectivity": schema.reflector_reflectivity(p),
+            "triangles": _triangle_count(p),
+            "bounds": _bounds(cache, p, mpu),
+        }
+        for p in schema.find_reflectors(stage)
+    ]
+    camera_paths = []
+    for prim in schema.find_camera_paths(stage):
+        data = schema.read_camera_path(prim)
+        camera_paths.append(
+            {
+                "path": data.path,
+                "camera": data.camera,
+                "start": data.start,
+                "end": data.end,
+                "control_points": int(len(data.positions)),
+                "interpolation": data.interpolation,
+            }
+        )
+    lights = _lights(stage)
+    return {
+        "stage": label or stage.GetRootLayer().identifier,
+        "metadata": {
+            "upAxis": str(UsdGeom.GetStageUpAxis(stage)),
+            "metersPerUnit": mpu,
+            "startTimeCode": stage.GetStartTimeCode(),
+            "endTimeCode": stage.GetEndTimeCode(),
+            "timeCodesPerSecond": stage.GetTimeCodesPerSecond(),
+            "defaultPrim": str(stage.GetDefaultPrim().GetPath())
+            if stage.GetDefaultPrim()
+            else None,
+        },
+        "reflectors": reflectors,
+        "camera_paths": camera_paths,
+        "render_settings": asdict(schema.read_render_params(stage)),
+        "lights": lights,
+        "passes": required_passes(stage, lights, len(reflectors)),
+    }
+
+
+def inspect_file(path: str | Path) -> dict:
+    """Open and inspect; PhrtError when the file cannot be opened as USD."""
+    return inspect_stage(open_stage(path), str(path))
