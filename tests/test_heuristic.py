@@ -23,26 +23,27 @@ from phrt_usd.model.scene import (
     Scene,
 )
 from phrt_usd.select import policies as heuristic
-from phrt_usd.select.policies import (
-    ADMISSION_MARGIN,
+from phrt_usd.select.cost_model import TIME_SAFETY_MIN, TraceTimeModel
+from phrt_usd.select.metrics import (
     D_MIN,
-    FORECAST_HORIZON,
-    LOOKAHEAD_BATCH,
-    LOOKAHEAD_FRAMES,
-    RAYS_SAFETY,
-    TIME_SAFETY_MIN,
-    UPCOMING_CAMERAS,
-    Heu1Policy,
-    Heu2Policy,
-    TraceTimeModel,
     box_screen_area,
     camera_distance,
     centrality,
     distance_factor,
-    make_policy,
     processing_cost,
     relevance,
     visibility,
+)
+from phrt_usd.select.policies import (
+    ADMISSION_MARGIN,
+    FORECAST_HORIZON,
+    LOOKAHEAD_BATCH,
+    LOOKAHEAD_FRAMES,
+    RAYS_SAFETY,
+    UPCOMING_CAMERAS,
+    Heu1Policy,
+    Heu2Policy,
+    make_policy,
 )
 
 W, H = 320, 240

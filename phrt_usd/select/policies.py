@@ -1,33 +1,24 @@
 """Which reflectors to ray-trace each frame: the paper's HEU1, the HEU2 baseline, and the
-fixed policies ``all``, ``none`` and ``list`` (``phrt_usd.model.frame.SelectionPolicy``).
+fixed policies ``all``, ``none`` and ``list`` (``phrt_usd.model.frame.SelectionPolicy``),
+and ``make_policy`` to pick one by name.
 
-Metrics (paper, Table 1; every interpretation is spelled out in ``docs/heuristic.md``):
-
-* ``A`` visible projected area: pixels of the element in the G-buffer / (W * H), in [0, 1].
-* ``P`` centrality of the bounding-box centre: ``1 - max(|ndc_x|, |ndc_y|)`` clamped to
-  [0, 1] (1 at the view centre, 0 on or outside the image border, 0 behind the camera).
-* ``D`` Euclidean distance from the eye to the bounding-box centre, metres, >= ``D_MIN``.
-* ``V = A * P / D`` (1 / metre).
-* ``Q = 1 + reflector-to-reflector bounces`` of the reflector's rays, learned from its
-  ``TraceRecord``s, remembered across frames, in [1, bounce limit].
-* ``O`` for a reflector ``i`` reflecting ``j``: 1 while |c_i - c_j| <= D_i, then +1 per
-  doubling: ``1 + floor(log2(|c_i - c_j| / D_i))``.
-* ``C_i = V_i * Q_i + sum_j V_j' * Q_j / O_ij`` over the reflectors ``j`` that ``i`` was
-  seen to reflect, with ``V_j' = max(V_j, V_i * f_ij)`` (``f_ij``: fraction of i's pixels
-  whose rays hit j), so a reflector seen only through ``i`` still adds to ``C_i``.
-* ``R = (S * I + V) * K``.
+Every policy computes the Table 1 metrics of the frame's candidates
+(``phrt_usd.select.metrics``) and remembers across frames what tracing taught it: Q, rays
+per pixel, which reflector reflects which, the previous selection (saved and restored as
+plain data through ``phrt_usd.select.policy_memory``). HEU1 selects on a Selection Graph
+(``phrt_usd.select.selection_graph``) with hysteresis and a lookahead over the camera
+path (docs/heuristic.md, "Transition-aware selection").
 
 Budget: ``C`` has no unit. What the budget is checked against is a calibrated prediction
 of the rays tracing a candidate costs (``pixels * rays per pixel * RAYS_SAFETY``) and of
-the time those rays take (``TraceTimeModel``). Both are learned online from the renderer's
-``record`` calls.
+the time those rays take (``phrt_usd.select.cost_model.TraceTimeModel``). Both are learned
+online from the renderer's ``record`` calls.
 """
 
 from __future__ import annotations
 
 import math
 from abc import ABC, abstractmethod
-from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -35,44 +26,30 @@ import numpy as np
 from phrt_usd.errors import PhrtError
 from phrt_usd.model.frame import Budget, FrameView, ReflectorMetrics, SelectionPolicy, TraceRecord
 from phrt_usd.model.scene import CameraFrame, Scene
+from phrt_usd.select.cost_model import TIME_MODEL_DECAY, TraceTimeModel
+from phrt_usd.select.metrics import (
+    box_screen_area,
+    camera_distance,
+    centrality,
+    clip_weight,
+    distance_factor,
+    processing_costs,
+    screen_centrality,
+    visibility,
+    visible_area,
+)
+from phrt_usd.select.policy_memory import from_plain, same_shape, to_plain
 from phrt_usd.select.selection_graph import Node, SelectionGraph
-
-#: Smallest camera distance D in metres. D is a bounding-box-centre distance, so it can be
-#: ~0 when the eye is inside a large reflector's box; V = A*P/D then stays <= 1 / D_MIN.
-#: A micrometre is below any sensible camera near plane, so it never changes a real ranking.
-D_MIN = 1e-6
-
-#: K (phrt:priority) and I (phrt:selectionWeight) are clipped to [0, WEIGHT_MAX] (NaN → 0)
-#: so R = (S*I + V)*K <= ~1e24 stays finite in float64 whatever the stage says.
-WEIGHT_MAX = 1e12
 
 #: Predicted rays are multiplied by this: rays per pixel learned in earlier frames
 #: under-predict when a reflector starts reflecting more reflectors (deeper bounces).
 RAYS_SAFETY = 1.1
 
-#: Predicted trace milliseconds are multiplied by a time safety factor: wall time jitters
-#: from round to round (caches, the OS, other processes on the two cores). The factor is
-#: the JITTER_QUANTILE quantile of measured / modelled round time, tracked online, and
-#: never below TIME_SAFETY_MIN: on a quiet machine it settles near 1.1 (with RAYS_SAFETY
-#: the selection then plans to use ~1 / 1.2 = 83 % of the budget); on a loaded machine
-#: it grows so that rounds still end within the budget.
-TIME_SAFETY_MIN = 1.05
-TIME_SAFETY_INITIAL = 1.1
-TIME_SAFETY_MAX = 10.0
-JITTER_QUANTILE = 0.97
-#: Step of the online quantile tracker (ratio units): +STEP*q on a round slower than
-#: the factor predicts, -STEP*(1-q) otherwise, so ~3 % of rounds exceed it.
-JITTER_STEP = 0.2
-#: When the time budget lets nothing at all be traced in a frame, the safety factor is
-#: multiplied by this. Otherwise a noisy spell could raise it so far that nothing is ever
-#: traced again, and without rounds there is nothing to learn from: the factor creeps back
-#: until a round fits, and that round's measurement then corrects it.
-STARVED_RELAX = 0.97
+#: Weight of the newest observation in a reflector's rays-per-pixel average.
+RAYS_PER_PIXEL_ALPHA = 0.5
 
-#: Before anything was measured: 0.004 ms per ray (250k rays/s, slower than embreex plus
-#: numpy shading on one laptop core) and 0.5 ms fixed cost per tracing round.
-INITIAL_MS_PER_RAY = 0.004
-INITIAL_ROUND_MS = 0.5
+#: Fewest rays per traced pixel: the reflection ray itself.
+MIN_RAYS_PER_PIXEL = 1.0
 
 #: HEU1's hysteresis in cost (ours; the paper's I is hysteresis in relevance): a reflector
 #: not selected in the previous frame joins only if this fraction of the round's budget
@@ -86,13 +63,23 @@ ADMISSION_MARGIN = 0.1
 #: ahead from the growth of its pixel count over the last GROWTH_WINDOW frames it was in
 #: view: the geometric mean growth per frame, clamped to [1, GROWTH_MAX] (a shrinking
 #: reflector is forecast at its current cost; one glitchy frame cannot forecast infinity).
-#: When the renderer knows the frames to come (``FrameView.upcoming_cameras``: a stage's
-#: camera path is known before the render starts), the forecast is instead the largest
-#: cost over the next LOOKAHEAD_FRAMES frames, scaled from the current cost by the screen
-#: area of the reflector's bounding box (``box_screen_area``; each upcoming camera's
-#: areas are computed once and reused by the following frames). Measured on both stages
-#: (docs/heuristic.md): 48 frames gave fewer transitions than 24 at the same mean selected
-#: count; longer ones shut out reflectors that grow late.
+FORECAST_HORIZON = 24
+GROWTH_WINDOW = 4
+GROWTH_MAX = 2.0
+#: A pixel history counts as a trend when its net change (in log pixels) is at least this
+#: share of its total up-and-down travel (1: monotone).
+TREND_MIN = 0.5
+#: Forecasts (rays) are capped here so that sums of them stay finite.
+FORECAST_MAX = 1e300
+
+#: HEU1's lookahead: when the renderer knows the frames to come
+#: (``FrameView.upcoming_cameras``: a stage's camera path is known before the render
+#: starts), the forecast is instead the largest cost over the next LOOKAHEAD_FRAMES frames,
+#: scaled from the current cost by the screen area of the reflector's bounding box
+#: (``box_screen_area``; each upcoming camera's areas are computed once and reused by the
+#: following frames). Measured on both stages (docs/heuristic.md): 48 frames gave fewer
+#: transitions than 24 at the same mean selected count; longer ones shut out reflectors
+#: that grow late.
 LOOKAHEAD_FRAMES = 48
 #: Box areas are computed for LOOKAHEAD_BATCH cameras at a time (one array pass instead of
 #: one per frame: the per-call overhead was ~0.2 ms of HEU1's selection time per frame);
@@ -100,343 +87,6 @@ LOOKAHEAD_FRAMES = 48
 #: window reaches it.
 LOOKAHEAD_BATCH = 48
 UPCOMING_CAMERAS = LOOKAHEAD_FRAMES + LOOKAHEAD_BATCH
-FORECAST_HORIZON = 24
-GROWTH_WINDOW = 4
-GROWTH_MAX = 2.0
-#: A pixel history counts as a trend when its net change (in log pixels) is at least this
-#: share of its total up-and-down travel (1: monotone).
-TREND_MIN = 0.5
-#: Forecasts are capped here so that sums of them stay finite.
-FORECAST_MAX = 1e300
-
-#: Lower bound of the learned ms per ray (1e10 rays/s): keeps ms → rays finite.
-MIN_MS_PER_RAY = 1e-7
-
-#: Weight of older rounds in the time model (exponential forgetting per round).
-TIME_MODEL_DECAY = 0.9
-
-#: Weight of the newest observation in a reflector's rays-per-pixel average.
-RAYS_PER_PIXEL_ALPHA = 0.5
-
-#: Fewest rays per traced pixel: the reflection ray itself.
-MIN_RAYS_PER_PIXEL = 1.0
-
-
-# --------------------------------------------------------------------------- metrics
-
-
-def visible_area(pixels: np.ndarray, width: int, height: int) -> np.ndarray:
-    """A: (n,) pixel counts → (n,) float64 fraction of the image, in [0, 1]."""
-    total = max(int(width) * int(height), 1)
-    return np.clip(np.asarray(pixels, dtype=np.float64) / total, 0.0, 1.0)
-
-
-def centrality(centers: np.ndarray, camera: CameraFrame, width: int, height: int) -> np.ndarray:
-    """P: (n, 3) world-metre points → (n,) float64 in [0, 1].
-
-    ``1 - max(|ndc_x|, |ndc_y|)``: 1 at the view centre, falling linearly to 0 on the
-    image border (a square falloff matching the rectangular view plane), 0 outside the
-    image and behind the camera.
-    """
-    centers = np.asarray(centers, dtype=np.float64).reshape(-1, 3)
-    if len(centers) == 0:
-        return np.zeros(0)
-    with np.errstate(over="ignore", invalid="ignore"):
-        projected = camera.project(centers, width, height)
-        ndc_x = projected[:, 0] / width * 2.0 - 1.0
-        ndc_y = 1.0 - projected[:, 1] / height * 2.0
-        p = 1.0 - np.maximum(np.abs(ndc_x), np.abs(ndc_y))
-    p = np.where(projected[:, 2] > 0.0, p, 0.0)  # behind the eye: not in view
-    # Points on the eye plane project to +-inf (or NaN for 0/0): they are not in view.
-    return np.clip(np.nan_to_num(p, nan=0.0, posinf=0.0, neginf=0.0), 0.0, 1.0)
-
-
-def screen_centrality(boxes: np.ndarray, width: int, height: int) -> np.ndarray:
-    """P from screen-space boxes: (n, 4) pixel (col_min, row_min, col_max, row_max) →
-    (n,) float64 in [0, 1], the falloff of ``centrality`` at the box centre (pixel
-    centres at +0.5)."""
-    boxes = np.nan_to_num(np.asarray(boxes, dtype=np.float64).reshape(-1, 4), nan=-1e9)
-    cx = 0.5 * (boxes[:, 0] + boxes[:, 2]) + 0.5
-    cy = 0.5 * (boxes[:, 1] + boxes[:, 3]) + 0.5
-    ndc_x = cx / max(width, 1) * 2.0 - 1.0
-    ndc_y = 1.0 - cy / max(height, 1) * 2.0
-    return np.clip(1.0 - np.maximum(np.abs(ndc_x), np.abs(ndc_y)), 0.0, 1.0)
-
-
-def box_screen_area(
-    bounds_min: np.ndarray,
-    bounds_max: np.ndarray,
-    cameras: Sequence[CameraFrame],
-    width: int,
-    height: int,
-) -> np.ndarray:
-    """Pixels covered by the screen rectangle of axis-aligned boxes, clipped to the image,
-    for each of several cameras.
-
-    bounds_min, bounds_max: (n, 3) float64 world metres → (len(cameras), n) float64 in
-    [0, W * H]. A box wholly behind a camera's eye covers 0; one that reaches from in front
-    of the eye to behind it projects to an unbounded rectangle and counts as the whole
-    image (the camera is at or inside it). Occlusion is not considered: this bounds what
-    the box's contents can cover, and is used for ratios between cameras.
-    """
-    lo = np.asarray(bounds_min, dtype=np.float64).reshape(-1, 3)
-    hi = np.asarray(bounds_max, dtype=np.float64).reshape(-1, 3)
-    n, m = len(lo), len(cameras)
-    if n == 0 or m == 0:
-        return np.zeros((m, n))
-    # (n * 8, 3) corners: bit k of the corner index picks lo or hi on axis k.
-    pick = ((np.arange(8)[:, None] >> np.arange(3)) & 1).astype(bool)
-    corners = np.where(pick[None], hi[:, None, :], lo[:, None, :]).reshape(-1, 3)
-    cam_from_world = np.linalg.inv(np.stack([c.world_from_camera for c in cameras]))
-    # (m, n * 8, 3) camera-space corners, as CameraFrame.project computes them.
-    pc = corners @ cam_from_world[:, :3, :3].transpose(0, 2, 1) + cam_from_world[:, None, :3, 3]
-    tan = np.array([c.tan_half_fov(width, height) for c in cameras])  # (m, 2)
-    depth = (-pc[..., 2]).reshape(m, n, 8)
-    in_front = np.any(depth > 0.0, axis=2)
-    straddles = in_front & np.any(depth <= 0.0, axis=2)
-    # A corner on the eye plane divides by ~0; such a box straddles or touches the eye
-    # and is replaced below, so its (inf / NaN) rectangle is only clipped away here.
-    safe = np.where(np.abs(depth) < 1e-300, 1e-300, depth)
-    with np.errstate(over="ignore", invalid="ignore"):
-        ndc_x = pc[..., 0].reshape(m, n, 8) / (safe * tan[:, 0, None, None])
-        ndc_y = pc[..., 1].reshape(m, n, 8) / (safe * tan[:, 1, None, None])
-    x = np.clip(np.nan_to_num((ndc_x + 1.0) * 0.5 * width, nan=0.0), 0.0, float(width))
-    y = np.clip(np.nan_to_num((1.0 - ndc_y) * 0.5 * height, nan=0.0), 0.0, float(height))
-    area = (x.max(axis=2) - x.min(axis=2)) * (y.max(axis=2) - y.min(axis=2))
-    area = np.where(straddles, float(width) * float(height), area)
-    return np.where(in_front, area, 0.0)
-
-
-def camera_distance(centers: np.ndarray, eye: np.ndarray) -> np.ndarray:
-    """D: (n, 3) world-metre points, (3,) eye → (n,) float64 metres, >= D_MIN."""
-    centers = np.asarray(centers, dtype=np.float64).reshape(-1, 3)
-    d = np.linalg.norm(centers - np.asarray(eye, dtype=np.float64), axis=1)
-    return np.clip(np.nan_to_num(d, nan=D_MIN, posinf=np.finfo(np.float64).max), D_MIN, None)
-
-
-def visibility(A: np.ndarray, P: np.ndarray, D: np.ndarray) -> np.ndarray:
-    """V = A * P / D (paper eq. 1), float64, finite: D is clamped to >= D_MIN."""
-    A = np.clip(np.asarray(A, dtype=np.float64), 0.0, 1.0)
-    P = np.clip(np.asarray(P, dtype=np.float64), 0.0, 1.0)
-    D = np.clip(np.asarray(D, dtype=np.float64), D_MIN, None)
-    return A * P / D
-
-
-def distance_factor(separation: np.ndarray, D: np.ndarray | float) -> np.ndarray:
-    """O: 1 while ``separation <= D``, +1 each time it doubles: 1 + floor(log2(sep / D)).
-
-    separation: (n,) metres between the two reflectors' bounding-box centres;
-    D: the reflecting element's camera distance (metres, clamped >= D_MIN). Result (n,)
-    float64 >= 1, at most ~2100 even for 1e300 m / 1e-6 m.
-    """
-    D = np.clip(np.asarray(D, dtype=np.float64), D_MIN, None)
-    sep = np.nan_to_num(np.asarray(separation, dtype=np.float64), nan=0.0)
-    with np.errstate(over="ignore"):
-        ratio = np.maximum(sep / D, 1.0)  # <= D counts as 1 (no doubling yet)
-    ratio = np.minimum(ratio, np.finfo(np.float64).max)  # inf/huge → largest float
-    return 1.0 + np.floor(np.log2(ratio))
-
-
-def processing_costs(
-    V: np.ndarray,
-    Q: np.ndarray,
-    owner: np.ndarray,
-    reflected_V: np.ndarray,
-    reflected_Q: np.ndarray,
-    reflected_O: np.ndarray,
-) -> np.ndarray:
-    """C = V*Q + sum_j V_j*Q_j/O_j (paper eq. 2) for n elements at once.
-
-    V, Q: (n,) the elements' own figures; owner: (m,) int index into the n elements of
-    each reflected reflector; reflected_V, reflected_Q, reflected_O: (m,) its figures.
-    All inputs finite and >= 0 (O >= 1), so every C is finite and >= 0. Returns (n,)."""
-    V = np.asarray(V, dtype=np.float64)
-    rv = np.asarray(reflected_V, dtype=np.float64)
-    rq = np.asarray(reflected_Q, dtype=np.float64)
-    ro = np.maximum(np.asarray(reflected_O, dtype=np.float64), 1.0)
-    reflected = np.bincount(np.asarray(owner, dtype=np.int64), rv * rq / ro, minlength=len(V))
-    return V * np.asarray(Q, dtype=np.float64) + reflected
-
-
-def processing_cost(
-    V: float, Q: float, reflected_V: np.ndarray, reflected_Q: np.ndarray, reflected_O: np.ndarray
-) -> float:
-    """``processing_costs`` of one element reflecting the (m,) reflectors given."""
-    owner = np.zeros(len(np.atleast_1d(reflected_V)), dtype=np.int64)
-    return float(processing_costs([V], [Q], owner, reflected_V, reflected_Q, reflected_O)[0])
-
-
-def relevance(S: np.ndarray, weight: float, V: np.ndarray, K: np.ndarray) -> np.ndarray:
-    """R = (S * I + V) * K (paper eq. 3) with I = ``weight``; I and K clipped to
-    [0, WEIGHT_MAX]."""
-    I_ = clip_weight(weight)
-    K_ = clip_weight(K)
-    S_ = np.asarray(S, dtype=np.float64)
-    V_ = np.nan_to_num(np.asarray(V, dtype=np.float64), nan=0.0, posinf=1.0 / D_MIN)
-    return (S_ * I_ + V_) * K_
-
-
-def clip_weight(w: np.ndarray | float) -> np.ndarray:
-    """K or I as float64 in [0, WEIGHT_MAX]; NaN → 0 (see WEIGHT_MAX)."""
-    w = np.nan_to_num(np.asarray(w, dtype=np.float64), nan=0.0, posinf=WEIGHT_MAX)
-    return np.clip(w, 0.0, WEIGHT_MAX)
-
-
-# --------------------------------------------------------------------------- cost model
-
-
-class TraceTimeModel:
-    """Milliseconds of one tracing round: ``overhead_ms + ms_per_ray * rays``.
-
-    Fitted by exponentially weighted least squares over the rounds seen so far (older
-    rounds weigh ``TIME_MODEL_DECAY`` less per round). When the fit gives a negative
-    overhead, the line goes through the origin instead (``ms_per_ray = sum ms / sum
-    rays``, conservative for rounds larger than average). When the rounds' ray counts are
-    too alike to separate the two terms, or time does not grow with rays (small rounds
-    dominated by noise), ``ms_per_ray`` keeps its previous value and the overhead absorbs
-    the mean time.
-
-    Predictions are multiplied by ``safety``, an online estimate of the JITTER_QUANTILE
-    quantile of (measured / modelled) round time, clamped to [TIME_SAFETY_MIN,
-    TIME_SAFETY_MAX].
-    """
-
-    def __init__(self) -> None:
-        self.overhead_ms = INITIAL_ROUND_MS
-        self.ms_per_ray = INITIAL_MS_PER_RAY
-        self.rounds = 0
-        self.safety = TIME_SAFETY_INITIAL
-        # Weighted sums: weight, rays, ms, rays^2, rays*ms.
-        self._w = self._r = self._m = self._rr = self._rm = 0.0
-
-    def learn(self, rays: int, ms: float) -> None:
-        """One round: ``rays`` cast in ``ms`` wall-clock milliseconds."""
-        if rays <= 0 or not math.isfinite(ms) or ms < 0.0:
-            return
-        r, m = float(rays), float(ms)
-        if self.rounds > 0:  # the first round only tells how wrong the initial guess was
-            ratio = m / (self.overhead_ms + self.ms_per_ray * r)
-            q = JITTER_QUANTILE
-            step = JITTER_STEP * (q if ratio > self.safety else -(1.0 - q))
-            self.safety = min(max(self.safety + step, TIME_SAFETY_MIN), TIME_SAFETY_MAX)
-        k = TIME_MODEL_DECAY
-        self._w = k * self._w + 1.0
-        self._r = k * self._r + r
-        self._m = k * self._m + m
-        self._rr = k * self._rr + r * r
-        self._rm = k * self._rm + r * m
-        self.rounds += 1
-        spread = self._w * self._rr - self._r * self._r  # w^2 * variance of rays
-        slope = intercept = -1.0
-        if spread > 1e-6 * self._w * self._rr:  # ray counts differ enough to fit a line
-            slope = (self._w * self._rm - self._r * self._m) / spread
-            intercept = (self._m - slope * self._r) / self._w
-        if slope > 0.0 and intercept >= 0.0:
-            self.overhead_ms, self.ms_per_ray = intercept, slope
-        elif slope > 0.0:  # negative overhead: a line through the origin instead
-            self.overhead_ms, self.ms_per_ray = 0.0, self._m / self._r
-        else:
-            # No growth with rays visible (rounds too alike, or noise dominates): the rounds
-            # tell their mean time, not the per-ray cost, which keeps its previous value.
-            self.overhead_ms = max(self._m / self._w - self.ms_per_ray * self._r / self._w, 0.0)
-        self.ms_per_ray = max(self.ms_per_ray, MIN_MS_PER_RAY)
-
-    def relax(self) -> None:
-        """Nothing fitted the time budget this frame: lower the safety factor a little."""
-        self.safety = max(self.safety * STARVED_RELAX, TIME_SAFETY_MIN)
-
-    def predicted_ms(self, rays: float) -> float:
-        """Conservative milliseconds for a round of ``rays`` rays (``safety`` included)."""
-        return (self.overhead_ms + self.ms_per_ray * max(rays, 0.0)) * self.safety
-
-    def rays_within(self, ms: float) -> float:
-        """Most rays a round may cast and still (conservatively) end within ``ms``."""
-        return max((ms / self.safety - self.overhead_ms) / self.ms_per_ray, 0.0)
-
-
-# ------------------------------------------------------------- memory as plain data
-
-
-def _to_plain(value):
-    """Policy memory → JSON data: sets become ``{"set": [...]}``, dicts with int keys
-    ``{"int_keys": [[k, v], ...]}`` (JSON keys are strings), tuples lists."""
-    if isinstance(value, set | frozenset):
-        return {"set": sorted(_to_plain(v) for v in value)}
-    if isinstance(value, dict):
-        if all(isinstance(k, str) for k in value):
-            return {"str_keys": {k: _to_plain(v) for k, v in value.items()}}
-        return {"int_keys": [[int(k), _to_plain(v)] for k, v in value.items()]}
-    if isinstance(value, list | tuple):
-        return [_to_plain(v) for v in value]
-    if isinstance(value, np.generic):
-        return value.item()
-    if value is None or isinstance(value, bool | int | float | str):
-        return value
-    raise PhrtError(f"policy memory holds a {type(value).__name__}, not plain data")
-
-
-def _from_plain(value):
-    """Inverse of ``_to_plain``; PhrtError for anything it could not have written."""
-    if isinstance(value, dict):
-        if set(value) == {"set"} and isinstance(value["set"], list):
-            return {_hashable(_from_plain(v)) for v in value["set"]}
-        if set(value) == {"str_keys"} and isinstance(value["str_keys"], dict):
-            return {k: _from_plain(v) for k, v in value["str_keys"].items()}
-        if set(value) == {"int_keys"} and isinstance(value["int_keys"], list):
-            pairs = value["int_keys"]
-            if not all(isinstance(p, list) and len(p) == 2 and type(p[0]) is int for p in pairs):
-                raise PhrtError("policy memory: a malformed int-keyed table")
-            return {k: _from_plain(v) for k, v in pairs}
-        raise PhrtError("policy memory: an unknown table")
-    if isinstance(value, list):
-        return [_from_plain(v) for v in value]
-    if value is None or isinstance(value, bool | int | float | str):
-        return value
-    raise PhrtError("policy memory: not plain data")
-
-
-def _hashable(value):
-    if isinstance(value, list | dict | set):
-        raise PhrtError("policy memory: a set holds a table")
-    return value
-
-
-def _same_shape(got, want) -> bool:
-    """``got`` has ``want``'s keys and, recursively, compatible types (a number where a
-    number was, a container where one was). The policies' memory tables are keyed by
-    element id and hold numbers (or tables and lists of numbers), so the content of a
-    table that is empty in ``want`` must be that."""
-    if isinstance(want, dict):
-        if not isinstance(got, dict):
-            return False
-        if not want:
-            return all(isinstance(k, int) and _numeric(v) for k, v in got.items())
-        return set(got) == set(want) and all(_same_shape(got[k], want[k]) for k in want)
-    if isinstance(want, set | list):
-        return isinstance(got, type(want)) and all(_number(v) for v in got)
-    if isinstance(want, bool):
-        return isinstance(got, bool)
-    if isinstance(want, int | float):
-        return _number(got)
-    if want is None:
-        return got is None or _number(got)
-    return type(got) is type(want)
-
-
-def _number(value) -> bool:
-    return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
-
-
-def _numeric(value) -> bool:
-    """A number, or a list or int-keyed table of numbers (any depth)."""
-    if isinstance(value, dict):
-        return all(isinstance(k, int) and _numeric(v) for k, v in value.items())
-    if isinstance(value, list | set):
-        return all(_numeric(v) for v in value)
-    return _number(value)
-
-
-# --------------------------------------------------------------------------- policies
 
 
 @dataclass
@@ -505,21 +155,21 @@ class BudgetedPolicy(ABC):
             raise PhrtError("a policy's memory is saved between frames only")
         state = {k: v for k, v in vars(self).items() if k not in self.CACHE_ATTRIBUTES}
         state["time_model"] = vars(self.time_model)
-        return {"policy": self.name, "state": _to_plain(state)}
+        return {"policy": self.name, "state": to_plain(state)}
 
     def restore_memory(self, memory: dict) -> None:
         """Set the memory saved by ``memory()``; PhrtError if it is not this policy's or
         does not have this policy's attributes and types (nothing is changed then)."""
         if not isinstance(memory, dict) or memory.get("policy") != self.name:
             raise PhrtError(f"saved policy memory is not a {self.name} policy's")
-        state = _from_plain(memory.get("state"))
+        state = from_plain(memory.get("state"))
         expected = {k: v for k, v in vars(self).items() if k not in self.CACHE_ATTRIBUTES}
         model = state.pop("time_model", None) if isinstance(state, dict) else None
         if (
             not isinstance(state, dict)
             or not isinstance(model, dict)
             or set(model) != set(vars(self.time_model))
-            or not _same_shape(state, {k: v for k, v in expected.items() if k != "time_model"})
+            or not same_shape(state, {k: v for k, v in expected.items() if k != "time_model"})
         ):
             raise PhrtError(f"saved {self.name} policy memory has other fields or types")
         if not all(isinstance(v, int | float) for v in model.values()):
