@@ -71,10 +71,10 @@ def user_errors(exit_code: int = EXIT_PROBLEMS, json_out: bool = False) -> Itera
 
 def open_input(path: Path):
     """Open a stage for a command; unreadable input raises UnreadableInput."""
-    from phrt_usd.usd.validation import open_stage
+    from phrt_usd.usd.stage import open_usd
 
     try:
-        return open_stage(path)
+        return open_usd(path)
     except PhrtError as exc:
         raise UnreadableInput(str(exc)) from None
 

@@ -13,7 +13,8 @@ from hypothesis import strategies as st
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux, UsdRender, UsdShade, Vt
 
 from phrt_usd.errors import PhrtError
-from phrt_usd.usd.stage import _fan_corners, open_stage, read_stage, smooth_corner_normals
+from phrt_usd.usd.meshes import _fan_corners, smooth_corner_normals
+from phrt_usd.usd.stage import open_stage, read_stage
 
 
 def new_stage(up: str = "Y", mpu: float = 1.0) -> Usd.Stage:

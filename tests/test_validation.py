@@ -9,8 +9,8 @@ from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux, UsdRender, UsdShade
 from phrt_usd.errors import PhrtError
 from phrt_usd.usd import schema
 from phrt_usd.usd import stage as sr
-from phrt_usd.usd.stage import read_stage
-from phrt_usd.usd.validation import open_stage, validate_file, validate_stage
+from phrt_usd.usd.stage import open_usd, read_stage
+from phrt_usd.usd.validation import validate_file, validate_stage
 
 
 def clean_stage(path):
@@ -349,7 +349,7 @@ def test_missing_sublayer_reference_and_payload(tmp_path):
         stage.DefinePrim(f"/World/{name}").GetReferences().AddReference("./missing_ref.usda")
     stage.DefinePrim("/World/Pay").GetPayloads().AddPayload("./missing_pay.usda")
     stage.GetRootLayer().Save()
-    stage = open_stage(path)
+    stage = open_usd(path)
     lines = errors_of(stage)
     assert sorted(lines) == sorted(
         [

@@ -40,7 +40,7 @@ from pxr import Ar, Sdf, Tf, Usd, UsdGeom, UsdUtils
 from phrt_usd.errors import BadOption, PhrtError
 from phrt_usd.run.run_files import WriteFailed, atomic_path
 from phrt_usd.usd import schema
-from phrt_usd.usd.validation import open_stage
+from phrt_usd.usd.stage import open_usd
 
 OVERLAY_SUFFIX = ".phrt.usda"
 
@@ -193,7 +193,7 @@ def author_reflectors(
         raise BadOption("no prim paths given")
     _check_values(priority, reflectivity)
     stage_file = Path(stage_path)
-    stage = open_stage(stage_file)
+    stage = open_usd(stage_file)
     _check_prims(stage, prim_paths)
     if in_place:
         target = _author_in_place(stage, stage_file, prim_paths, priority, reflectivity)

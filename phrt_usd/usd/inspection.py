@@ -18,7 +18,7 @@ import numpy as np
 from pxr import Usd, UsdGeom, UsdLux, UsdShade
 
 from phrt_usd.usd import schema
-from phrt_usd.usd.validation import open_stage
+from phrt_usd.usd.stage import open_usd
 
 SHADOW_LIGHT_TYPES = ("DistantLight", "SphereLight", "RectLight")
 ENVIRONMENT_LIGHT_TYPES = ("DomeLight", "DomeLight_1")
@@ -143,4 +143,4 @@ def inspect_stage(stage: Usd.Stage, label: str | None = None) -> dict:
 
 def inspect_file(path: str | Path) -> dict:
     """Open and inspect; PhrtError when the file cannot be opened as USD."""
-    return inspect_stage(open_stage(path), str(path))
+    return inspect_stage(open_usd(path), str(path))

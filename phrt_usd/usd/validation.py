@@ -6,10 +6,11 @@ unusable or wrong for rendering (exit 1 in ``phrt validate``); ``warning`` is su
 but renders (e.g. a zero-area mirror). USD validator results keep USD's own severity
 (Error -> error, Warn/Info -> warning).
 
-Validate agrees with render: the render's refusal rules live in ``phrt_usd.usd.stage``
-(and ``phrt_usd.usd.camera_path``) as functions returning the message the render raises;
-validation calls the same functions and reports each message as an error, with the same
-text (``Issue.line()`` is ``"ERROR " + message``). Checked where the render reads:
+Validate agrees with render: the render's refusal rules live in ``phrt_usd.usd.stage``,
+``phrt_usd.usd.meshes``, ``phrt_usd.usd.composition`` and ``phrt_usd.usd.camera_path``
+as functions returning the message the render raises; validation calls the same
+functions and reports each message as an error, with the same text (``Issue.line()`` is
+``"ERROR " + message``). Checked where the render reads:
 
 - composition: every sublayer, reference and payload USD could not open, one line each
   (prim and asset, or layer and sublayer), and other composition errors — errors here,
@@ -47,8 +48,20 @@ from pxr import Usd, UsdGeom, UsdRender, UsdValidation
 
 from phrt_usd.errors import PhrtError
 from phrt_usd.usd import schema
-from phrt_usd.usd import stage as sr
 from phrt_usd.usd.camera_path import camera_path_problems, find_camera_path_prim, read_camera_path
+from phrt_usd.usd.composition import CompositionProblem, composition_problems
+from phrt_usd.usd.meshes import RENDERED_GPRIM_TYPES, mesh_area, mesh_problems_in_range
+from phrt_usd.usd.stage import (
+    camera_check_times,
+    camera_problems,
+    choose_camera,
+    frame_range,
+    open_usd,
+    read_stage,
+    reflector_problems,
+    rendered_gprims,
+    stage_problems,
+)
 
 ERROR = "error"
 WARNING = "warning"
@@ -102,20 +115,13 @@ class ValidationReport:
         }
 
 
-def open_stage(path: str | Path) -> Usd.Stage:
-    """Open a USD stage file, payloads loaded: ``phrt_usd.usd.stage.open_usd`` (one-line
-    PhrtError for a missing path, a directory, no USD file extension — refused, not
-    sniffed — or a file USD cannot read)."""
-    return sr.open_usd(path)
-
-
 # --- USD's own validators -----------------------------------------------------------------
 #: Replaced by ``composition_problems`` (one line per missing arc, naming the prim).
 _REPLACED_VALIDATORS = ("usdValidation:CompositionErrorTest",)
 _UNRESOLVABLE = re.compile(r"unresolvable external dependency '(?P<asset>[^']*)'")
 
 
-def _usd_issues(stage: Usd.Stage, composition: list[sr.CompositionProblem]) -> list[Issue]:
+def _usd_issues(stage: Usd.Stage, composition: list[CompositionProblem]) -> list[Issue]:
     registry = UsdValidation.ValidationRegistry()
     validators = [
         v
@@ -175,11 +181,11 @@ def _camera_issues(
         messages += camera_path_problems(path_prim)
         if not messages:
             driver = read_camera_path(path_prim)
-    frames = sr.frame_range(stage, driver)
+    frames = frame_range(stage, driver)
     driven = path_prim is not None
     at_times = []
-    for t in sr.camera_check_times(camera, frames, driven):
-        at_times += sr.camera_problems(camera, t, driven)
+    for t in camera_check_times(camera, frames, driven):
+        at_times += camera_problems(camera, t, driven)
     messages += _first_per_where(at_times)
     return [Issue.of(severity, m + note) for m in messages], frames
 
@@ -249,43 +255,29 @@ def _reflector_warnings(prim: Usd.Prim, kind: str, time: float) -> list[Issue]:
                 "skipped by the renderer",
             )
         )
-    if _mesh_area(points, counts, indices) <= 0.0:
+    if mesh_area(points, counts, indices) <= 0.0:
         issues.append(Issue(WARNING, _attr_where(prim, "points"), "mesh reflector has zero area"))
     return issues
-
-
-def _mesh_area(points: np.ndarray, counts: np.ndarray, indices: np.ndarray) -> float:
-    """Total area of a polygon mesh, fan-triangulated as the render does (faces of fewer
-    than 3 vertices skipped), in stage units squared.
-
-    points : (p, 3) float64; counts : (f,) int64 >= 0; indices : (sum(counts),) int64 in
-    range (the render's topology rules hold).
-    """
-    corners, _ = sr._fan_corners(counts)
-    if len(corners) == 0:
-        return 0.0
-    a, b, c = (points[indices[corners[:, k]]] for k in range(3))
-    return float(0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1).sum())
 
 
 def _gprim_issues(stage: Usd.Stage, frames: tuple[float, float]) -> list[Issue]:
     """The render's reflector and mesh rules on every gprim it reads, plus warnings."""
     issues = []
-    for kind, prim in sr.rendered_gprims(stage, frames[0]):
-        messages = sr.reflector_problems(prim)
+    for kind, prim in rendered_gprims(stage, frames[0]):
+        messages = reflector_problems(prim)
         if kind == "Mesh":
-            messages += sr.mesh_problems_in_range(prim, frames)
+            messages += mesh_problems_in_range(prim, frames)
         issues += [Issue.of(ERROR, m) for m in messages]
         if schema.is_reflector(prim) and not messages:
             issues += _reflector_warnings(prim, kind, frames[0])
     for prim in schema.find_reflectors(stage):
-        if prim.GetTypeName() not in sr.RENDERED_GPRIM_TYPES:
+        if prim.GetTypeName() not in RENDERED_GPRIM_TYPES:
             issues.append(
                 Issue(
                     WARNING,
                     str(prim.GetPath()),
                     f"{schema.REFLECTOR_API} on a {prim.GetTypeName() or 'typeless prim'}: "
-                    f"the renderer draws only {', '.join(sr.RENDERED_GPRIM_TYPES)} and "
+                    f"the renderer draws only {', '.join(RENDERED_GPRIM_TYPES)} and "
                     "ignores it",
                 )
             )
@@ -293,20 +285,20 @@ def _gprim_issues(stage: Usd.Stage, frames: tuple[float, float]) -> list[Issue]:
 
 
 def render_issues(
-    stage: Usd.Stage, composition: list[sr.CompositionProblem] | None = None
+    stage: Usd.Stage, composition: list[CompositionProblem] | None = None
 ) -> list[Issue]:
     """The render's own rules (module doc): an error for each refusal, with the render's
     message; warnings for what it accepts with doubts."""
     if composition is None:
-        composition = sr.composition_problems(stage)
+        composition = composition_problems(stage)
     issues = [Issue.of(ERROR, p.message) for p in composition]
-    issues += [Issue.of(ERROR, m) for m in sr.stage_problems(stage)]
+    issues += [Issue.of(ERROR, m) for m in stage_problems(stage)]
     try:
-        camera = sr.choose_camera(stage)
+        camera = choose_camera(stage)
     except PhrtError as exc:
         camera = None
         issues.append(Issue.of(ERROR, str(exc)))
-    frames = sr.frame_range(stage, None)
+    frames = frame_range(stage, None)
     if camera is not None:
         found, frames = _camera_issues(stage, camera, default=True)
         issues += found
@@ -317,7 +309,7 @@ def render_issues(
     issues += _gprim_issues(stage, frames)
     lines = {i.line() for i in issues}
     try:
-        sr.read_stage(stage)
+        read_stage(stage)
     except PhrtError as exc:
         last = Issue.of(ERROR, str(exc))
         if last.line() not in lines:
@@ -353,7 +345,7 @@ def _render_settings_issues(prim: Usd.Prim) -> list[Issue]:
 
 
 def phrt_issues(
-    stage: Usd.Stage, composition: list[sr.CompositionProblem] | None = None
+    stage: Usd.Stage, composition: list[CompositionProblem] | None = None
 ) -> list[Issue]:
     """The Phrt rules: the render's own (``render_issues``) and the render settings'."""
     issues = render_issues(stage, composition)
@@ -366,10 +358,10 @@ def phrt_issues(
 def validate_stage(stage: Usd.Stage, label: str | None = None) -> ValidationReport:
     """USD's validators and the Phrt rules on an open stage."""
     name = label or stage.GetRootLayer().identifier
-    composition = sr.composition_problems(stage)
+    composition = composition_problems(stage)
     return ValidationReport(name, _usd_issues(stage, composition) + phrt_issues(stage, composition))
 
 
 def validate_file(path: str | Path) -> ValidationReport:
     """Open and validate; PhrtError when the file cannot be opened as USD."""
-    return validate_stage(open_stage(path), str(path))
+    return validate_stage(open_usd(path), str(path))

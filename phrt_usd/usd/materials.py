@@ -1,0 +1,210 @@
+"""Materials: bound UsdPreviewSurface materials as ``MaterialTable`` rows, textures.
+
+``MaterialBank`` reads each bound material once (``ComputeBoundMaterial`` per gprim and
+per ``materialBind`` GeomSubset, ``face_materials``) and deduplicates them into one
+``phrt_usd.model.scene.MaterialTable`` (row 0 = no material). UsdPreviewSurface inputs
+are read with their connections followed: ``diffuseColor`` may come from a
+``UsdUVTexture``, whose image ``read_texture`` loads. Materials are read once, at the
+start of the frame range (not animated).
+
+- A textured ``diffuseColor`` is stored as the texture's mean colour (the row's
+  ``diffuse``) plus the texture itself (``MaterialTable.textures``).
+- Textures are stored as read, row 0 = **top** of the image; USD ``st`` has v = 0 at the
+  **bottom**, so a sampler reads row ``(1 - v) * h``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import OpenImageIO as oiio
+from pxr import Usd, UsdShade
+
+from phrt_usd.errors import PhrtError
+from phrt_usd.model.scene import MaterialTable
+from phrt_usd.usd.values import asset_file
+
+#: UsdPreviewSurface's own fallback ``diffuseColor`` (used when a material is bound but
+#: its diffuseColor is unauthored and the gprim has no displayColor).
+PREVIEW_SURFACE_DIFFUSE = 0.18
+
+
+def _srgb_to_linear(c: np.ndarray) -> np.ndarray:
+    """IEC 61966-2-1 sRGB transfer function, inverse (values in [0, 1])."""
+    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
+
+
+@dataclass
+class _MaterialRow:
+    diffuse: np.ndarray  # (3,) linear RGB (texture mean when textured)
+    diffuse_authored: bool
+    metallic: float = 0.0
+    roughness: float = 0.5
+    opacity: float = 1.0
+    ior: float = 1.5
+    emissive: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    texture: np.ndarray | None = None  # (h, w, 3) float32 linear, row 0 = top
+    uv_primvar: str = "st"
+
+
+def read_texture(path: str, where: str, color_space: str = "auto") -> np.ndarray:
+    """Read an image with OpenImageIO as (h, w, 3) float32 linear RGB, row 0 = top.
+
+    color_space: UsdUVTexture ``sourceColorSpace`` — "sRGB" converts to linear, "raw"
+    does not, "auto" converts 8-bit files only. Grey images are replicated to RGB.
+    """
+    inp = oiio.ImageInput.open(path)
+    if inp is None:
+        raise PhrtError(f"{where}: cannot read texture {path!r} ({oiio.geterror().strip()})")
+    try:
+        spec = inp.spec()
+        pixels = inp.read_image(0, 0, 0, spec.nchannels, "float")
+        eight_bit = spec.format.basetype in (oiio.UINT8, oiio.INT8)
+    finally:
+        inp.close()
+    if pixels is None:
+        raise PhrtError(f"{where}: cannot decode texture {path!r}")
+    pixels = np.asarray(pixels, dtype=np.float32).reshape(spec.height, spec.width, -1)
+    rgb = np.repeat(pixels[..., :1], 3, axis=2) if pixels.shape[2] < 3 else pixels[..., :3]
+    if color_space == "sRGB" or (color_space == "auto" and eight_bit):
+        rgb = _srgb_to_linear(np.clip(rgb, 0.0, 1.0))
+    # Float files may hold Inf/NaN (e.g. broken HDR exports); render them as black.
+    rgb = np.nan_to_num(rgb, nan=0.0, posinf=0.0, neginf=0.0)
+    return np.ascontiguousarray(rgb, dtype=np.float32)
+
+
+def material_key(material: UsdShade.Material | None) -> str:
+    """Identity of a material for deduplication: its path, or for a material reached
+    through an instance proxy the path of its prim in the prototype (all instances of a
+    prototype share one row). "" for no material."""
+    if not material:
+        return ""
+    prim = material.GetPrim()
+    return str(prim.GetPrimInPrototype().GetPath() if prim.IsInstanceProxy() else prim.GetPath())
+
+
+class MaterialBank:
+    """Deduplicates bound materials into table rows. Row 0 = no material bound."""
+
+    def __init__(self, time: Usd.TimeCode):
+        self.time = time
+        self.rows: list[_MaterialRow] = [
+            _MaterialRow(np.full(3, PREVIEW_SURFACE_DIFFUSE), diffuse_authored=False)
+        ]
+        self._index: dict[str, int] = {"": 0}
+        self._textures: dict[tuple[str, str], np.ndarray] = {}
+
+    def index(self, material: UsdShade.Material | None) -> int:
+        key = material_key(material)
+        if key not in self._index:
+            self._index[key] = len(self.rows)
+            self.rows.append(self._read(material))
+        return self._index[key]
+
+    def _value(self, shader: UsdShade.Shader, name: str):
+        """(value, source shader or None) of an input, following connections."""
+        inp = shader.GetInput(name)
+        if not inp:
+            return None, None
+        attrs = inp.GetValueProducingAttributes()
+        if not attrs:
+            return None, None
+        attr = attrs[0]
+        if UsdShade.Utils.GetType(attr.GetName()) == UsdShade.AttributeType.Output:
+            return attr.GetBaseName(), UsdShade.Shader(attr.GetPrim())
+        return attr.Get(self.time), None
+
+    def _read(self, material: UsdShade.Material) -> _MaterialRow:
+        row = _MaterialRow(np.full(3, PREVIEW_SURFACE_DIFFUSE), diffuse_authored=False)
+        shader = material.ComputeSurfaceSource()[0]
+        if not shader or shader.GetIdAttr().Get() != "UsdPreviewSurface":
+            return row  # not a preview surface: fall back like a bare material
+        for name, attr_name in (
+            ("metallic", "metallic"),
+            ("roughness", "roughness"),
+            ("opacity", "opacity"),
+            ("ior", "ior"),
+        ):
+            value, src = self._value(shader, name)
+            if src is None and value is not None and np.isfinite(float(value)):
+                setattr(row, attr_name, float(value))
+        row.metallic = float(np.clip(row.metallic, 0.0, 1.0))
+        row.roughness = float(np.clip(row.roughness, 0.0, 1.0))
+        row.opacity = float(np.clip(row.opacity, 0.0, 1.0))
+        value, src = self._value(shader, "emissiveColor")
+        if src is None and value is not None:
+            row.emissive = np.nan_to_num(np.asarray(value, dtype=np.float64))
+        value, src = self._value(shader, "diffuseColor")
+        if src is not None:
+            self._read_texture_input(row, src, value, str(material.GetPath()))
+        elif value is not None:
+            row.diffuse = np.clip(np.nan_to_num(np.asarray(value, dtype=np.float64)), 0, None)
+            row.diffuse_authored = True
+        return row
+
+    def _read_texture_input(
+        self, row: _MaterialRow, tex: UsdShade.Shader, output: str, where: str
+    ) -> None:
+        """Fill ``row`` from a UsdUVTexture feeding ``diffuseColor``."""
+        if tex.GetIdAttr().Get() != "UsdUVTexture":
+            return  # some other node (e.g. a primvar reader): keep the default colour
+        file_value, _ = self._value(tex, "file")
+        path = asset_file(file_value, f"{tex.GetPath()}.inputs:file")
+        fallback, _ = self._value(tex, "fallback")
+        if not path:
+            if fallback is not None:
+                row.diffuse = np.asarray(fallback, dtype=np.float64)[:3]
+                row.diffuse_authored = True
+            return
+        space, _ = self._value(tex, "sourceColorSpace")
+        space = str(space or "auto")
+        key = (path, space)
+        if key not in self._textures:
+            self._textures[key] = read_texture(path, f"{tex.GetPath()}.inputs:file", space)
+        image = self._textures[key]
+        scale, _ = self._value(tex, "scale")
+        bias, _ = self._value(tex, "bias")
+        if scale is not None or bias is not None:
+            s = np.asarray(scale if scale is not None else (1, 1, 1, 1), np.float32)[:3]
+            b = np.asarray(bias if bias is not None else (0, 0, 0, 0), np.float32)[:3]
+            image = image * s + b
+        channel = {"r": 0, "g": 1, "b": 2}.get(output)
+        if channel is not None:
+            image = np.repeat(image[..., channel : channel + 1], 3, axis=2)
+        row.texture = np.ascontiguousarray(image, dtype=np.float32)
+        row.diffuse = image.reshape(-1, 3).mean(axis=0).astype(np.float64)
+        row.diffuse_authored = True
+        st, reader = self._value(tex, "st")
+        if reader is not None:
+            varname, _ = self._value(reader, "varname")
+            if varname:
+                row.uv_primvar = str(varname)
+
+    def table(self) -> MaterialTable:
+        rows = self.rows
+        return MaterialTable(
+            diffuse=np.array([r.diffuse for r in rows], dtype=np.float32).reshape(-1, 3),
+            metallic=np.array([r.metallic for r in rows], dtype=np.float32),
+            roughness=np.array([r.roughness for r in rows], dtype=np.float32),
+            opacity=np.array([r.opacity for r in rows], dtype=np.float32),
+            ior=np.array([r.ior for r in rows], dtype=np.float32),
+            emissive=np.array([r.emissive for r in rows], dtype=np.float32).reshape(-1, 3),
+            textures=[r.texture for r in rows],
+        )
+
+
+def face_materials(prim: Usd.Prim, n_faces: int, bank: MaterialBank) -> tuple[np.ndarray, int]:
+    """Material row per face (F,) int32 from the prim binding and materialBind subsets."""
+    binding = UsdShade.MaterialBindingAPI(prim)
+    base = bank.index(binding.ComputeBoundMaterial()[0])
+    face_mat = np.full(n_faces, base, dtype=np.int32)
+    for subset in binding.GetMaterialBindSubsets():
+        sub_mat = UsdShade.MaterialBindingAPI(subset.GetPrim()).ComputeBoundMaterial()[0]
+        if not sub_mat:
+            continue
+        idx = np.asarray(subset.GetIndicesAttr().Get(bank.time) or [], dtype=np.int64)
+        if len(idx) and (idx.min() < 0 or idx.max() >= n_faces):
+            raise PhrtError(f"{subset.GetPath()}.indices: face index out of range")
+        face_mat[idx] = bank.index(sub_mat)
+    return face_mat, base
