@@ -29,7 +29,7 @@ from phrt_usd.model.scene import (
 from phrt_usd.render.raster.gbuffer import Rasterizer, sample_bilinear_wrap
 
 W, H = 320, 240
-#: Required share of covered pixels whose element id matches Embree (DESIGN.md target).
+#: Required share of covered pixels whose element id matches Embree (docs/design.md §3).
 ID_AGREEMENT = 0.995
 #: Required share of floor pixels whose shadow-map verdict matches Embree shadow rays.
 SHADOW_AGREEMENT = 0.97

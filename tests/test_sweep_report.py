@@ -272,7 +272,7 @@ def test_summary_budgets_and_paper_line(report_dir):
     assert budgets["heu1@20000rays"] == "20000 rays"
     assert budgets["heu1@inf"] == "unbounded"
     assert budgets["raster"] == "—"
-    # Without paper.json the defaults from DESIGN.md are shown, once per stage.
+    # Without paper.json the defaults from docs/design.md §1 are shown, once per stage.
     assert text.count("fps HEU1 25.4 / HEU2 26.4") == 1
     assert text.count("fps HEU1 21.8 / HEU2 23.3") == 1
     assert "transitions HEU1/HEU2 3.8 %" in text
