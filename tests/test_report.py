@@ -13,7 +13,8 @@ from pxr import Sdf, Usd
 from rich.console import Console
 
 from phrt_usd.errors import PhrtError
-from phrt_usd.evaluate.report import OVERRUN_FACTOR, build_report, print_report, selection_metrics
+from phrt_usd.evaluate.report import OVERRUN_FACTOR, build_report, print_report
+from phrt_usd.evaluate.selection_metrics import selection_metrics
 from phrt_usd.model.frame import FrameStats, ReflectorMetrics
 from phrt_usd.run.run_files import make_run_info, read_stats, selection_layer_path, write_stats
 from phrt_usd.run.selection_layer import STATS_PRIM_PATH, write_selection_layer

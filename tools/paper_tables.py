@@ -19,9 +19,10 @@ import os
 import sys
 from pathlib import Path
 
+from phrt_usd.api import run_render
 from phrt_usd.evaluate.report import build_report
 from phrt_usd.render.renderer import RenderOptions
-from phrt_usd.run.render_job import RenderJob, run_render
+from phrt_usd.run.render_job import RenderJob
 from phrt_usd.usd.schema import read_render_params
 from phrt_usd.usd.stage import open_stage
 
@@ -69,7 +70,9 @@ def tables(reports: dict[str, dict]) -> str:
     for name, r in reports.items():
         b = r["vs"]
         paper = PAPER.get(name, {})
-        ratio = r["transitions"] / b["transitions"] * 100 if b["transitions"] else float("nan")
+        # HEU1's transitions as a percentage of HEU2's, as `phrt report --vs` gives it.
+        ratio = r["comparison"]["transitions_ratio_pct"]
+        ratio = float("nan") if ratio is None else ratio
         lines.append(
             f"| {name} | {r['transitions']} / {b['transitions']} = {ratio:.1f} % "
             f"| {paper.get('transitions_pct', '–')} % "

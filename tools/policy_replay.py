@@ -52,13 +52,14 @@ from types import SimpleNamespace
 
 import numpy as np
 
+from phrt_usd.atomic import atomic_path, write_bytes_atomic
 from phrt_usd.errors import PhrtError
 from phrt_usd.evaluate.image_metrics import flip_map
+from phrt_usd.evaluate.selection_metrics import admissions_and_drops, selection_metrics
 from phrt_usd.model.frame import Budget, FrameView, TraceRecord
 from phrt_usd.model.scene import CameraFrame, DistantLight, LocalLight
 from phrt_usd.render.renderer import FrameRenderer, RenderOptions
-from phrt_usd.run.render_job import parse_frames
-from phrt_usd.run.run_files import atomic_path, write_bytes_atomic
+from phrt_usd.run.frames import parse_frames
 from phrt_usd.select.policies import UPCOMING_CAMERAS, AllPolicy, make_policy
 from phrt_usd.usd.schema import read_render_params
 from phrt_usd.usd.stage import open_stage
@@ -653,21 +654,20 @@ def mean_rays(data: dict, selected: np.ndarray) -> float:
 
 
 def transition_counts(selected: np.ndarray, visible: np.ndarray) -> dict:
-    """Transitions as ``phrt report`` counts them, split by kind: an *admission* is a
-    reflector in view in both frames that becomes selected, a *drop* one that stops
-    being selected. ``entered_selected``: selected on the frame it came into view
-    (free)."""
-    both = visible[1:] & visible[:-1]
-    adm = int(np.count_nonzero(both & selected[1:] & ~selected[:-1]))
-    drop = int(np.count_nonzero(both & ~selected[1:] & selected[:-1]))
+    """Transitions of (F, R) bool ``selected`` / ``visible`` as ``phrt report`` counts them
+    (``selection_metrics``), split by kind: an *admission* is a reflector in view in both
+    frames that becomes selected, a *drop* one that stops being selected.
+    ``entered_selected``: selected on the frame it came into view (free)."""
+    metrics = selection_metrics(selected, visible)
+    adm, drop = admissions_and_drops(selected, visible)
     entered = int(np.count_nonzero(visible[1:] & ~visible[:-1] & selected[1:]))
     return {
-        "transitions": adm + drop,
+        "transitions": metrics["transitions"],
         "admissions": adm,
         "drops": drop,
         "entered_selected": entered,
-        "mean_selected": float(selected.sum(axis=1).mean()),
-        "mean_visible": float(visible.sum(axis=1).mean()),
+        "mean_selected": metrics["mean_selected"],
+        "mean_visible": metrics["mean_visible"],
     }
 
 

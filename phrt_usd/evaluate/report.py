@@ -10,12 +10,10 @@ renders, merged frame by frame like the selection), else from a ``stats.json`` n
 the layer, else the timing fields are ``null``. ``stats.json`` also gives the median
 time of each render phase.
 
-Transitions (paper §5.1): for each pair of consecutive rendered frames (time codes in
-increasing order; a gap between merged sub-ranges counts as consecutive) and each
-reflector visible in both frames, one transition if ``phrt:selected`` differs between
-them. ``transition_rate`` = transitions / number of such (pair, reflector-visible-in-both)
-cases. With ``vs``, ``comparison.transitions_ratio_pct`` = 100 × transitions(run) /
-transitions(vs) is the paper's Table 2 figure (HEU1/HEU2).
+Transitions and ``transition_rate`` are counted by ``selection_metrics`` (its module states
+the definition, paper §5.1) over the layer's frames in increasing time code. With ``vs``,
+``comparison.transitions_ratio_pct`` = 100 × transitions(run) / transitions(vs) is the
+paper's Table 2 figure (HEU1/HEU2).
 """
 
 from __future__ import annotations
@@ -28,6 +26,7 @@ from rich.console import Console
 from rich.table import Table
 
 from phrt_usd.errors import PhrtError
+from phrt_usd.evaluate.selection_metrics import selection_metrics
 from phrt_usd.run.run_files import read_stats, selection_layer_path, stats_path
 from phrt_usd.run.selection_layer import SelectionRecord, read_selection_record
 
@@ -54,27 +53,6 @@ def build_report(run_dir_or_layer: Path, vs: Path | None = None) -> dict[str, An
         report["comparison"] = compare(report, other)
         report["comparison"]["same_frames"] = bool(np.array_equal(times, other_times))
     return report
-
-
-def selection_metrics(selected: np.ndarray, visible: np.ndarray) -> dict[str, Any]:
-    """Selection figures of F frames (rows, in time order) × R reflectors (columns).
-
-    selected, visible : (F, R) bool
-    """
-    frames = int(selected.shape[0])
-    both_visible = visible[1:] & visible[:-1]
-    switched = selected[1:] != selected[:-1]
-    transitions = int(np.count_nonzero(both_visible & switched))
-    pairs = int(np.count_nonzero(both_visible))
-    return {
-        "frames": frames,
-        "reflectors": int(selected.shape[1]),
-        "mean_selected": float(selected.sum(axis=1).mean()) if frames else None,
-        "mean_visible": float(visible.sum(axis=1).mean()) if frames else None,
-        "transitions": transitions,
-        "transition_pairs": pairs,
-        "transition_rate": transitions / pairs if pairs else None,
-    }
 
 
 def timing_metrics(

@@ -33,12 +33,14 @@ from pathlib import Path
 
 import numpy as np
 
+from phrt_usd.atomic import write_text_atomic
 from phrt_usd.errors import BadOption
 from phrt_usd.evaluate.image_metrics import flip_map, mean_over, psnr
+from phrt_usd.evaluate.selection_metrics import transitions_per_frame
 from phrt_usd.render.renderer import FrameOutput, FrameRenderer, RenderOptions
+from phrt_usd.run.frames import parse_frames
 from phrt_usd.run.images import write_png_atomic, write_preview_png
-from phrt_usd.run.render_job import parse_frames, stop_on_signals
-from phrt_usd.run.run_files import write_text_atomic
+from phrt_usd.run.render_job import stop_on_signals
 from phrt_usd.select.policies import make_policy
 from phrt_usd.usd.schema import DEFAULT_SELECTION_WEIGHT
 from phrt_usd.usd.stage import open_stage
@@ -117,7 +119,10 @@ def sweep_configs(spec: SweepSpec) -> list[SweepConfig]:
 
 
 class _ConfigState:
-    """Per-configuration memory across frames: policy, previous image and selection."""
+    """Per-configuration memory across frames: policy, previous image and selection.
+
+    ``previous``: the last rendered frame's (selected, visible), each (R,) bool over the
+    stage's reflectors (``StageSweep.reflectors`` order); None before the first frame."""
 
     def __init__(self, config: SweepConfig, spec: SweepSpec):
         self.config = config
@@ -137,7 +142,7 @@ class _ConfigState:
             selection_weight=spec.selection_weight,
         )
         self.previous_image: np.ndarray | None = None
-        self.previous: tuple[set[str], set[str]] | None = None  # (visible, selected)
+        self.previous: tuple[np.ndarray, np.ndarray] | None = None
         self.timeline_selected: list[list[bool]] = []
         self.timeline_visible: list[list[bool]] = []
 
@@ -270,17 +275,26 @@ class StageSweep:
         outputs += [(reference, ref_out), (rt_state, rt_out)]
         rows = []
         for state, output in outputs:
+            selection = _selection_row(output, self.reflectors)
             if record:
                 error = flip_map(ref_out.beauty, output.beauty)
                 rows.append(
                     _row(
-                        self.name, state, output, ref_out, error, rt_out, reflector_px, temporal_ref
+                        self.name,
+                        state,
+                        output,
+                        ref_out,
+                        error,
+                        rt_out,
+                        reflector_px,
+                        temporal_ref,
+                        selection,
                     )
                 )
                 if t in self.report_frames:
                     label = state.config.label
                     _write_report_images(self.spec.out, self.name, t, label, output, error)
-            _remember(state, output, self.reflectors, record)
+            _remember(state, output, selection, record)
         if record:
             self.recorded.append(t)
         return rows
@@ -308,17 +322,24 @@ def _row(
     rt: FrameOutput,
     reflector_px: np.ndarray,
     temporal_ref: float | None,
+    selection: tuple[np.ndarray, np.ndarray],
 ) -> dict:
     """One CSV row. flip_ref: (H, W) FLIP of this output against the ``all`` reference
     ``ref``; reflector_px: (H, W) bool pixels of reflectors; temporal_ref: the
-    reference's FLIP between this frame and the previous one (None on the first)."""
+    reference's FLIP between this frame and the previous one (None on the first);
+    selection: this frame's (selected, visible), see ``_selection_row``. ``transitions``:
+    from the configuration's previous frame into this one (``selection_metrics``; 0 on
+    its first frame)."""
     st = output.stats
     cfg = state.config
-    visible, selected = set(st.visible), set(st.selected)
     transitions = 0
     if state.previous is not None:
-        prev_visible, prev_selected = state.previous
-        transitions = len((selected ^ prev_selected) & visible & prev_visible)
+        (selected_before, visible_before), (selected, visible) = state.previous, selection
+        transitions = int(
+            transitions_per_frame(
+                np.stack([selected_before, selected]), np.stack([visible_before, visible])
+            )[-1]
+        )
     temporal = None
     if state.previous_image is not None:
         temporal = mean_over(flip_map(state.previous_image, output.beauty))
@@ -338,8 +359,8 @@ def _row(
         "trace_ms": round(st.trace_ms, 3),
         "predicted_trace_ms": round(st.predicted_trace_ms, 3),
         "rays": st.rays,
-        "visible": len(visible),
-        "selected": len(selected),
+        "visible": len(set(st.visible)),
+        "selected": len(set(st.selected)),
         "transitions": transitions,
         "flip": round(mean_over(flip_ref), 6),
         "flip_reflectors": round(mean_over(flip_ref, reflector_px), 6),
@@ -357,15 +378,27 @@ def _blank(value):
 
 
 def _remember(
-    state: _ConfigState, output: FrameOutput, reflectors: list[str], record: bool = True
+    state: _ConfigState,
+    output: FrameOutput,
+    selection: tuple[np.ndarray, np.ndarray],
+    record: bool = True,
 ) -> None:
-    st = output.stats
-    visible, selected = set(st.visible), set(st.selected)
-    state.previous = (visible, selected)
+    """Keep this frame's image and (selected, visible) for the next frame's row."""
+    selected, visible = selection
+    state.previous = selection
     state.previous_image = output.beauty
     if record:
-        state.timeline_selected.append([p in selected for p in reflectors])
-        state.timeline_visible.append([p in visible for p in reflectors])
+        state.timeline_selected.append(selected.tolist())
+        state.timeline_visible.append(visible.tolist())
+
+
+def _selection_row(output: FrameOutput, reflectors: list[str]) -> tuple[np.ndarray, np.ndarray]:
+    """(selected, visible) of one rendered frame, each (R,) bool over ``reflectors``."""
+    selected, visible = set(output.stats.selected), set(output.stats.visible)
+    return (
+        np.array([p in selected for p in reflectors], dtype=bool),
+        np.array([p in visible for p in reflectors], dtype=bool),
+    )
 
 
 def _write_report_images(
