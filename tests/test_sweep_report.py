@@ -21,13 +21,13 @@ import OpenImageIO as oiio
 import pytest
 
 from phrt_usd.errors import PhrtError
-from phrt_usd.evaluate.sweep_report import (
+from phrt_usd.evaluate.sweep_plots import timeline_states
+from phrt_usd.evaluate.sweep_report import write_sweep_report
+from phrt_usd.evaluate.sweep_summary import (
     PAPER_FIGURES,
     equal_time_comparison,
     frontier_flip_at,
     summarize,
-    timeline_states,
-    write_sweep_report,
 )
 
 COLUMNS = [

@@ -1,0 +1,225 @@
+"""report.html of a sweep: one static page of its plots, tables, timelines and images.
+
+Reads from ``OUT`` (all optional but the summary): the PNGs of ``sweep_plots`` and the
+chosen frames' images the sweep wrote::
+
+    OUT/images/<stage>/<frame>/<config>.png       tone-mapped preview of chosen frames
+    OUT/images/<stage>/<frame>/<config>_flip.png  FLIP error map vs the reference (magma)
+    OUT/images/<stage>/<frame>/all.png            the reference (``all`` config)
+
+Limits: the page is static (no JavaScript); images are referenced by relative path, so
+``report.html`` must stay next to ``images/`` and the PNGs.
+"""
+
+from __future__ import annotations
+
+import html
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+from urllib.parse import quote
+
+from phrt_usd.atomic import write_text_atomic
+from phrt_usd.evaluate.sweep_plots import ERROR_VS_TIME_PNG, stage_plot_name, timeline_plot_name
+from phrt_usd.evaluate.sweep_summary import (
+    DEFINITIONS,
+    PAPER_FIGURES,
+    TABLE_COLUMNS,
+    csv_number,
+    equal_time_comparison,
+    format_fixed,
+    format_significant3,
+    paper_comparison,
+    stage_notes,
+    stages_of,
+    table_cells,
+)
+
+REPORT_HTML = "report.html"
+IMAGES_DIR = "images"
+#: Name of the reference config (every reflector traced); FLIP/PSNR are measured against it.
+REFERENCE_CONFIG = "all"
+#: Suffix of a config's FLIP error map in the images directory.
+FLIP_MAP_SUFFIX = "_flip"
+
+
+_CSS = """
+body { font-family: sans-serif; margin: 1.5em; color: #222; max-width: 1400px; }
+h1 { font-size: 1.4em; } h2 { font-size: 1.2em; margin-top: 1.6em; }
+h3 { font-size: 1.0em; }
+table { border-collapse: collapse; font-size: 0.8em; margin: 0.5em 0; }
+th, td { border: 1px solid #ccc; padding: 2px 6px; text-align: right; }
+th { background: #f0f0f0; }
+td:nth-child(-n+3), th:nth-child(-n+3) { text-align: left; }
+p.note { font-size: 0.85em; color: #555; max-width: 60em; }
+div.frame { display: flex; flex-wrap: wrap; gap: 6px 28px; }
+div.row { display: flex; gap: 6px; margin-bottom: 8px; }
+figure { margin: 0; }
+figure img { width: 190px; image-rendering: pixelated; border: 1px solid #ccc; }
+figcaption { font-size: 0.7em; max-width: 190px; }
+img.plot { max-width: 100%; }
+"""
+
+
+def _esc(text: Any) -> str:
+    return html.escape(str(text), quote=True)
+
+
+def _src(out_dir: Path, path: Path) -> str:
+    """Relative, URL-quoted reference to ``path`` from report.html in ``out_dir``."""
+    return _esc(quote(path.relative_to(out_dir).as_posix()))
+
+
+def _html_table(entries: list[Mapping[str, Any]]) -> str:
+    head = "".join(f"<th>{_esc(h)}</th>" for h, _k, _f in TABLE_COLUMNS)
+    body = "".join(
+        "<tr>" + "".join(f"<td>{_esc(c)}</td>" for c in table_cells(e)) + "</tr>" for e in entries
+    )
+    return f"<table><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>"
+
+
+def _frame_dirs(stage_dir: Path) -> list[Path]:
+    def key(path: Path) -> tuple:
+        try:
+            return (0, float(path.name), path.name)
+        except ValueError:
+            return (1, 0.0, path.name)
+
+    dirs = (p for p in stage_dir.iterdir() if p.is_dir() and not p.name.startswith("."))
+    return sorted(dirs, key=key)
+
+
+def _frame_row(
+    rows: list[Mapping[str, Any]], stage: str, config: str, frame_dir: str
+) -> Mapping[str, Any] | None:
+    """The CSV row of this stage/config at the frame named by an image directory."""
+    try:
+        time = float(frame_dir)
+    except ValueError:
+        time = None
+    for row in rows:
+        if row["stage"] != stage or row["config"] != config:
+            continue
+        if str(row["frame"]) == frame_dir:
+            return row
+        try:
+            if time is not None and abs(float(row["frame"]) - time) < 1e-3:
+                return row
+        except ValueError:
+            continue
+    return None
+
+
+def _figure(out_dir: Path, path: Path, caption: str) -> str:
+    return (
+        f'<figure><img src="{_src(out_dir, path)}" alt="{_esc(caption)}">'
+        f"<figcaption>{_esc(caption)}</figcaption></figure>"
+    )
+
+
+def _images_section(
+    out_dir: Path, stage: str, order: list[str], rows: list[Mapping[str, Any]]
+) -> list[str]:
+    stage_dir = out_dir / IMAGES_DIR / stage
+    if not stage_dir.is_dir():
+        return []
+    parts = []
+    for frame_dir in _frame_dirs(stage_dir):
+        # Hidden files are temp files of interrupted atomic writes.
+        pngs = {p.stem: p for p in frame_dir.glob("*.png") if not p.name.startswith(".")}
+        reference = pngs.get(REFERENCE_CONFIG)
+        configs = [
+            name for name in pngs if not name.endswith(FLIP_MAP_SUFFIX) and name != REFERENCE_CONFIG
+        ]
+        configs.sort(key=lambda c: (order.index(c) if c in order else len(order), c))
+        parts.append(f"<h3>{_esc(stage)}, frame {_esc(frame_dir.name)}</h3>")
+        parts.append('<div class="frame">')
+        for config in configs:
+            row = _frame_row(rows, stage, config, frame_dir.name)
+            figures_text = ""
+            if row is not None:
+                flip = format_significant3(csv_number(row, "flip"))
+                psnr = format_fixed(2)(csv_number(row, "psnr"))
+                figures_text = f", FLIP {flip}, PSNR {psnr} dB vs all"
+            cells = [_figure(out_dir, pngs[config], f"{config}{figures_text}")]
+            if reference is not None:
+                cells.append(_figure(out_dir, reference, "reference: all reflectors traced"))
+            flip_map = pngs.get(config + FLIP_MAP_SUFFIX)
+            if flip_map is not None:
+                cells.append(
+                    _figure(
+                        out_dir,
+                        flip_map,
+                        f"FLIP error of {config} vs all (magma: black = 0, yellow = 1)",
+                    )
+                )
+            parts.append('<div class="row">' + "".join(cells) + "</div>")
+        if not configs and reference is not None:
+            parts.append(
+                '<div class="row">'
+                + _figure(out_dir, reference, "reference: all reflectors traced")
+                + "</div>"
+            )
+        parts.append("</div>")
+    return parts
+
+
+def write_report_html(
+    out_dir: Path,
+    summary: list[Mapping[str, Any]],
+    paper: Mapping[str, Mapping[str, float]] | None = None,
+    rows: list[Mapping[str, Any]] | None = None,
+) -> None:
+    """Write OUT/report.html: one static page (inline CSS, no scripts, no external URLs).
+
+    Shows the error-vs-time plot(s), one table per stage with the paper comparison, the
+    selection timeline PNG per stage, and per chosen frame each config's image beside the
+    reference and its FLIP map. Only files that exist in ``out_dir`` are referenced
+    (relative paths); the plots and timelines must be written first.
+    rows : sweep.csv rows, for per-image FLIP/PSNR captions (optional).
+    """
+    out_dir = Path(out_dir)
+    paper = PAPER_FIGURES if paper is None else paper
+    rows = rows or []
+    stages = stages_of(summary)
+    order_by_stage = {s: [e["config"] for e in summary if e["stage"] == s] for s in stages}
+    parts = [
+        "<!DOCTYPE html>",
+        '<html lang="en"><head><meta charset="utf-8">',
+        "<title>phrt sweep: error against run time</title>",
+        f"<style>{_CSS}</style></head><body>",
+        "<h1>phrt sweep: error against run time</h1>",
+        f'<p class="note">{_esc(DEFINITIONS)}</p>',
+    ]
+    plot = out_dir / ERROR_VS_TIME_PNG
+    if plot.is_file():
+        parts.append(
+            f'<img class="plot" src="{_src(out_dir, plot)}" '
+            'alt="mean FLIP against mean frame time">'
+        )
+    for stage in stages:
+        entries = [e for e in summary if e["stage"] == stage]
+        parts.append(f"<h2>Stage {_esc(stage)}</h2>")
+        stage_plot = out_dir / stage_plot_name(stage)
+        if len(stages) > 1 and stage_plot.is_file():
+            parts.append(
+                f'<img class="plot" src="{_src(out_dir, stage_plot)}" '
+                f'alt="{_esc(f"mean FLIP against mean frame time, {stage}")}">'
+            )
+        parts.append(_html_table(entries))
+        notes = [
+            *stage_notes(summary, stage),
+            *paper_comparison(summary, stage, paper),
+            *equal_time_comparison(summary, stage),
+        ]
+        parts += [f'<p class="note">{_esc(line)}</p>' for line in notes]
+        timeline = out_dir / timeline_plot_name(stage)
+        if timeline.is_file():
+            parts.append(f"<h3>Selection timeline, {_esc(stage)}</h3>")
+            parts.append(
+                f'<img class="plot" src="{_src(out_dir, timeline)}" '
+                f'alt="{_esc(f"selection timeline of {stage}")}">'
+            )
+        parts += _images_section(out_dir, stage, order_by_stage[stage], rows)
+    parts.append("</body></html>")
+    write_text_atomic(out_dir / REPORT_HTML, "\n".join(parts) + "\n")

@@ -1,0 +1,269 @@
+"""Figures of a sweep (matplotlib, PNG): error against frame time, selection timelines.
+
+    OUT/error_vs_time.png            mean FLIP against mean frame time, every stage
+    OUT/error_vs_time_<stage>.png    the same per stage (only with more than one stage)
+    OUT/timeline_<stage>.png         which reflector was traced in which frame, per config
+
+Inputs are ``sweep_summary.summarize``'s entries and timeline.json's per-stage object.
+Every PNG is written through ``atomic_path`` (a reader never sees a partial image).
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from matplotlib.colors import BoundaryNorm, ListedColormap
+from matplotlib.figure import Figure
+from matplotlib.patches import Patch
+
+from phrt_usd.atomic import atomic_path
+from phrt_usd.errors import PhrtError
+from phrt_usd.evaluate.sweep_summary import budget_sort_key, stages_of, timeline_arrays
+
+ERROR_VS_TIME_PNG = "error_vs_time.png"
+
+# --- plot layout -----------------------------------------------------------------------
+
+#: error_vs_time.png: 8 x 5 inches at 100 dpi = 800 x 500 pixels.
+PLOT_SIZE_INCHES = (8.0, 5.0)
+PLOT_DPI = 100
+#: Use a log time axis when the slowest plotted frame time exceeds the fastest by this.
+LOG_X_RATIO = 8.0
+#: Smallest frame time placed on a log axis (ms); a 0 ms mean would be at -inf.
+MIN_LOG_MS = 1e-3
+#: Timeline image: height of one reflector row (inches), shrunk so that all rows of all
+#: configs fit in TIMELINE_MAX_GRID_INCHES (33 reflectors x 10 configs stay one image).
+TIMELINE_ROW_INCHES = 0.1
+TIMELINE_MAX_GRID_INCHES = 14.0
+TIMELINE_WIDTH_INCHES = 9.0
+#: (top, bottom) margins for title and legend + x axis; (left, right) for the reflector
+#: names and the config names.
+TIMELINE_MARGIN_INCHES = (0.4, 0.8)
+TIMELINE_SIDE_INCHES = (1.2, 1.3)
+#: Reflector names fill this fraction of their row height; below the smallest readable
+#: font size (points) they are left out.
+TIMELINE_LABEL_FILL = 0.8
+TIMELINE_MIN_LABEL_POINTS = 3.5
+#: At most about this many labelled frames on the time axis.
+TIMELINE_MAX_XTICKS = 20
+
+HEURISTIC_COLOURS = {"heu1": "tab:blue", "heu2": "tab:orange"}
+OTHER_HEURISTIC_COLOUR = "tab:green"
+STAGE_LINESTYLES = ("-", "--", ":", "-.")
+#: (kind, marker, colour, legend name) of the single-point baselines.
+BASELINE_MARKERS = (
+    ("reference", "*", "black", "all (reference)"),
+    ("raster", "s", "dimgray", "raster only"),
+    ("rt", "D", "tab:purple", "rt"),
+)
+#: The FLIP axis starts this fraction of its top below 0.
+Y_MARGIN_FRACTION = 0.04
+
+#: Timeline cell states and their colours (index = state).
+TIMELINE_STATES = (
+    ("not visible", "#e9e9e9"),
+    ("raster (visible, not traced)", "#9ecae1"),
+    ("ray-traced", "#d62728"),
+    ("traced while not visible", "#f7a1a1"),
+)
+
+
+# --- plots -----------------------------------------------------------------------------
+
+
+def safe_file_part(name: str) -> str:
+    """``name`` reduced to [A-Za-z0-9_.-] (others → '_') for use in a file name."""
+    return re.sub(r"[^A-Za-z0-9_.-]", "_", name) or "_"
+
+
+def stage_plot_name(stage: str) -> str:
+    return f"error_vs_time_{safe_file_part(stage)}.png"
+
+
+def timeline_plot_name(stage: str) -> str:
+    return f"timeline_{safe_file_part(stage)}.png"
+
+
+def _short_budget(entry: Mapping[str, Any]) -> str:
+    return "∞" if entry["budget"] == "unbounded" else entry["budget"].replace(" ", "")
+
+
+def _save(fig: Figure, path: Path) -> None:
+    with atomic_path(Path(path)) as tmp:
+        fig.savefig(tmp, format="png", dpi=PLOT_DPI, metadata={"Software": None})
+
+
+def plot_error_vs_time(
+    summary: list[Mapping[str, Any]], path: Path, title: str | None = None
+) -> None:
+    """Mean FLIP (vs ``all``) against mean frame ms, for every stage in ``summary``.
+
+    One line per heuristic per stage through its budgets (each point annotated with its
+    budget; colour = heuristic, line style = stage, hollow markers for every stage but
+    the first); ray budgets are a separate line with triangles (a different family of
+    points). ``all``, ``raster`` and ``rt`` are single points with their own markers. The
+    time axis is logarithmic when it spans more than ``LOG_X_RATIO``. 800 x 500 px PNG.
+    """
+    fig = Figure(figsize=PLOT_SIZE_INCHES, dpi=PLOT_DPI)
+    ax = fig.add_subplot()
+    stages = stages_of(summary)
+    times = []
+    for stage_index, stage in enumerate(stages):
+        linestyle = STAGE_LINESTYLES[stage_index % len(STAGE_LINESTYLES)]
+        # The first stage's markers are filled, the others' hollow.
+        filled = stage_index == 0
+        prefix = f"{stage} " if len(stages) > 1 else ""
+        entries = [e for e in summary if e["stage"] == stage and e["mean_flip"] is not None]
+        lines: dict[tuple[str, bool], list[Mapping[str, Any]]] = {}
+        for entry in entries:
+            times.append(entry["mean_frame_ms"])
+            if entry["kind"] == "heuristic":
+                by_rays = budget_sort_key(entry)[0] == 1
+                lines.setdefault((entry["heuristic"], by_rays), []).append(entry)
+        for (heuristic, by_rays), points in lines.items():
+            points = sorted(points, key=lambda e: e["mean_frame_ms"])
+            colour = HEURISTIC_COLOURS.get(heuristic, OTHER_HEURISTIC_COLOUR)
+            label = f"{prefix}{heuristic.upper()}" + (" (ray budgets)" if by_rays else "")
+            xs = [e["mean_frame_ms"] for e in points]
+            ys = [e["mean_flip"] for e in points]
+            ax.plot(
+                xs,
+                ys,
+                linestyle=linestyle,
+                marker="^" if by_rays else "o",
+                markersize=5,
+                color=colour,
+                markerfacecolor=colour if filled else "white",
+                label=label,
+            )
+            for entry, x, y in zip(points, xs, ys, strict=True):
+                ax.annotate(
+                    _short_budget(entry),
+                    (x, y),
+                    textcoords="offset points",
+                    xytext=(4, 3),
+                    fontsize=6,
+                    color=colour,
+                )
+        for kind, marker, colour, name in BASELINE_MARKERS:
+            points = [e for e in entries if e["kind"] == kind]
+            if points:
+                ax.scatter(
+                    [e["mean_frame_ms"] for e in points],
+                    [e["mean_flip"] for e in points],
+                    marker=marker,
+                    s=90 if marker == "*" else 40,
+                    facecolors=colour if filled else "white",
+                    edgecolors=colour,
+                    label=f"{prefix}{name}",
+                    zorder=3,
+                )
+    if times:
+        low = max(min(times), MIN_LOG_MS)
+        if max(times) / low > LOG_X_RATIO:
+            ax.set_xscale("log")
+    ax.margins(x=0.08)  # room for the budget labels right of the last points
+    ax.set_xlabel("mean frame time (ms)")
+    ax.set_ylabel("mean FLIP vs all (lower is better)")
+    # Start just below 0 so the reference (FLIP 0 against itself) is not hidden by the axis.
+    top = max(ax.get_ylim()[1], 1e-6)
+    ax.set_ylim(-Y_MARGIN_FRACTION * top, top)
+    ax.set_title(title or "Error against run time", fontsize=10)
+    ax.grid(True, which="both", linewidth=0.3, alpha=0.5)
+    if ax.get_legend_handles_labels()[0]:
+        # Outside the axes, so that it never hides a point.
+        ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)
+    fig.tight_layout()
+    _save(fig, path)
+
+
+def timeline_states(selected: np.ndarray, visible: np.ndarray) -> np.ndarray:
+    """Cell states (index into TIMELINE_STATES) from (frames, reflectors) bool arrays.
+
+    Returns (reflectors, frames) int8: 0 not visible, 1 raster, 2 traced, 3 traced while
+    not visible.
+    """
+    states = np.where(visible, np.where(selected, 2, 1), np.where(selected, 3, 0))
+    return states.T.astype(np.int8)
+
+
+def plot_selection_timeline(
+    stage: str, configs: Mapping[str, Any], path: Path, order: list[str] | None = None
+) -> None:
+    """Which reflector was ray-traced in which frame, every config of one stage in one image.
+
+    configs : timeline.json's object for one stage, {config: {"reflectors", "frames",
+              "selected", "visible"}}; every config must list the same frames. Blocks
+              follow ``order`` (configs not in it last), top to bottom.
+    One block of rows per config (its name on the right), one row per reflector (prim
+    name on the left while rows are tall enough to read), one column per frame.
+    """
+    order = order or []
+    names = [c for c in order if c in configs] + [c for c in configs if c not in order]
+    blocks = []
+    for name in names:
+        reflectors, frame_times, selected, visible = timeline_arrays(stage, name, configs[name])
+        blocks.append((name, reflectors, frame_times, timeline_states(selected, visible)))
+    blocks = [b for b in blocks if b[3].size > 0]
+    if not blocks:
+        raise PhrtError(f"timeline.json stage {stage!r}: no frames or reflectors to draw")
+    frames = [float(t) for t in blocks[0][2]]
+    for name, _reflectors, other, _states in blocks:
+        if [float(t) for t in other] != frames:
+            raise PhrtError(
+                f"timeline.json stage {stage!r} config {name!r}: frames differ from "
+                f"config {blocks[0][0]!r}"
+            )
+
+    # Stack the blocks with one empty (masked) row between them.
+    rows, labels, block_centres = [], [], []
+    for name, reflectors, _frames, states in blocks:
+        if rows:
+            rows.append(np.full((1, len(frames)), -1, dtype=np.int8))
+            labels.append("")
+        start = sum(len(r) for r in rows)
+        rows.append(states)
+        labels += [r.rsplit("/", 1)[-1] for r in reflectors]
+        block_centres.append((start + 0.5 * (len(reflectors) - 1), name))
+    grid = np.concatenate(rows, axis=0)
+    image = np.ma.masked_less(grid, 0)
+
+    row_inches = min(TIMELINE_ROW_INCHES, TIMELINE_MAX_GRID_INCHES / len(grid))
+    height = len(grid) * row_inches + TIMELINE_MARGIN_INCHES[0] + TIMELINE_MARGIN_INCHES[1]
+    fig = Figure(figsize=(TIMELINE_WIDTH_INCHES, height), dpi=PLOT_DPI)
+    ax = fig.add_axes(
+        (
+            TIMELINE_SIDE_INCHES[0] / TIMELINE_WIDTH_INCHES,
+            TIMELINE_MARGIN_INCHES[1] / height,
+            1.0 - sum(TIMELINE_SIDE_INCHES) / TIMELINE_WIDTH_INCHES,
+            len(grid) * row_inches / height,
+        )
+    )
+    # Masked cells (the gap rows between configs) are white.
+    cmap = ListedColormap([colour for _name, colour in TIMELINE_STATES], bad="white")
+    norm = BoundaryNorm(np.arange(len(TIMELINE_STATES) + 1) - 0.5, cmap.N)
+    ax.imshow(image, aspect="auto", interpolation="nearest", cmap=cmap, norm=norm)
+    label_points = row_inches * 72.0 * TIMELINE_LABEL_FILL
+    if label_points >= TIMELINE_MIN_LABEL_POINTS:
+        ax.set_yticks(range(len(grid)), labels, fontsize=min(label_points, 7.0))
+    else:
+        ax.set_yticks([])
+        ax.set_ylabel("reflectors", fontsize=7)
+    for centre, name in block_centres:
+        ax.text(1.01, centre, name, transform=ax.get_yaxis_transform(), fontsize=7, va="center")
+    step = max(1, len(frames) // TIMELINE_MAX_XTICKS)
+    ticks = list(range(0, len(frames), step))
+    ax.set_xticks(ticks, [f"{frames[i]:g}" for i in ticks], fontsize=6)
+    ax.set_xlabel("time code", fontsize=7)
+    ax.set_title(f"Selection timeline: {stage}", fontsize=9)
+    handles = [_legend_patch(colour, name) for name, colour in TIMELINE_STATES]
+    fig.legend(handles=handles, loc="lower center", ncol=len(handles), fontsize=7, frameon=False)
+    _save(fig, path)
+
+
+def _legend_patch(colour: str, label: str) -> Patch:
+    return Patch(facecolor=colour, edgecolor="gray", label=label)

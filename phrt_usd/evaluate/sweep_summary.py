@@ -1,0 +1,601 @@
+"""Sweep results as figures: reading sweep.csv, per-config summaries, comparisons, summary.md.
+
+Reads what ``phrt sweep`` (``sweep.py``) wrote into its output directory ``OUT``::
+
+    OUT/sweep.csv        one row per stage x config x frame (columns: see REQUIRED_COLUMNS)
+    OUT/timeline.json    {stage: {config: {"reflectors": [paths], "frames": [times],
+                                           "selected": [[bool]], "visible": [[bool]]}}}
+    OUT/paper.json       optional: the paper's figures per stage (else PAPER_FIGURES)
+
+``read_sweep_csv`` → ``summarize`` (one dict per stage x config, in display order) →
+``write_summary_md`` (one table per stage + the paper's figures beside ours and the
+equal-time comparison of HEU1 and HEU2, ``equal_time_comparison``). The tables' cells
+(``table_cells``) and notes are shared with ``sweep_html``.
+
+Definitions used in the tables (all means are over the config's frames):
+
+- *mean fps* = 1000 / mean frame ms (frames per second of wall time over the whole path,
+  not the mean of per-frame fps, which short frames would inflate).
+- *transitions* = the sum of sweep.csv's per-frame ``transitions`` (counted by the sweep
+  with ``selection_metrics``, whose module states the definition).
+- *transition rate* = transitions / chances to switch, a chance being a reflector visible
+  in two consecutive frames (``selection_metrics.transition_chances``, as in ``phrt
+  report``), counted from timeline.json. Without a usable timeline (absent, or not the
+  CSV's frame count) the chances are approximated from the CSV's per-frame visible counts
+  after the first frame, which also counts reflectors that just entered the view; the
+  summary says which was used.
+- *temporal FLIP* = mean FLIP between consecutive frames of the config; shown next to the
+  reference's for the same frame pairs (camera motion alone gives the reference's value;
+  flicker from selection changes shows as the excess).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import statistics
+from collections.abc import Iterable, Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from phrt_usd.atomic import write_text_atomic
+from phrt_usd.errors import PhrtError
+from phrt_usd.evaluate.selection_metrics import transition_chances
+
+# --- file names ------------------------------------------------------------------------
+
+SWEEP_CSV = "sweep.csv"
+TIMELINE_JSON = "timeline.json"
+PAPER_JSON = "paper.json"
+SUMMARY_MD = "summary.md"
+
+#: The paper's results (GTX 760, OptiX; docs/design.md §1), used when paper.json is absent.
+#: transitions_ratio is HEU1's transitions as a fraction of HEU2's.
+PAPER_FIGURES: dict[str, dict[str, float]] = {
+    "farm": {
+        "heu1_fps": 25.4,
+        "heu2_fps": 26.4,
+        "transitions_ratio": 0.038,
+        "heu1_selected": 5,
+        "heu2_selected": 4,
+    },
+    "sewer": {
+        "heu1_fps": 21.8,
+        "heu2_fps": 23.3,
+        "transitions_ratio": 0.046,
+        "heu1_selected": 15,
+        "heu2_selected": 12,
+    },
+}
+
+#: Columns of sweep.csv this module reads (others are ignored).
+REQUIRED_COLUMNS = (
+    "stage",
+    "config",
+    "heuristic",
+    "mode",
+    "budget_ms",
+    "budget_rays",
+    "frame",
+    "frame_ms",
+    "trace_ms",
+    "visible",
+    "selected",
+    "transitions",
+    "flip",
+    "flip_reflectors",
+    "psnr",
+    "flip_temporal",
+    "flip_temporal_reference",
+)
+
+#: Display order of config kinds in tables and legends.
+KIND_ORDER = {"raster": 0, "heuristic": 1, "reference": 2, "rt": 3}
+#: Display order of heuristics at one budget; others follow alphabetically.
+HEURISTIC_ORDER = {"heu1": 0, "heu2": 1}
+
+MISSING = "—"
+
+#: How the tables' figures are defined; heads summary.md and report.html.
+DEFINITIONS = (
+    "FLIP and PSNR are measured against the `all` reference (every reflector ray-traced; "
+    "PSNR 100 dB = identical). Mean fps = 1000 / mean frame ms. Transition rate = "
+    "transitions / chances to switch (reflector visible in two consecutive frames). "
+    "Temporal FLIP: between consecutive frames of the config; the reference's for the "
+    "same frame pairs beside it (camera motion alone gives the reference's value)."
+)
+
+
+# --- reading ---------------------------------------------------------------------------
+
+
+def read_sweep_csv(path: Path) -> list[dict[str, str]]:
+    """Rows of sweep.csv as dicts of strings; PhrtError if missing, empty or short of columns."""
+    path = Path(path)
+    if not path.is_file():
+        raise PhrtError(f"{path}: sweep results not found (run `phrt sweep` first)")
+    with path.open(newline="", encoding="utf-8") as handle:
+        reader = csv.DictReader(handle)
+        missing = [c for c in REQUIRED_COLUMNS if c not in (reader.fieldnames or [])]
+        if missing:
+            raise PhrtError(f"{path}: missing column(s) {', '.join(missing)}")
+        rows = list(reader)
+    if not rows:
+        raise PhrtError(f"{path}: no rows")
+    return rows
+
+
+def load_paper_figures(out_dir: Path) -> dict[str, dict[str, float]]:
+    """The paper's figures: OUT/paper.json if present, else ``PAPER_FIGURES``."""
+    path = Path(out_dir) / PAPER_JSON
+    if not path.is_file():
+        return {stage: dict(figures) for stage, figures in PAPER_FIGURES.items()}
+    data = _read_json_object(path, "{stage: {figure: number}}")
+    paper: dict[str, dict[str, float]] = {}
+    for stage, figures in data.items():
+        if not isinstance(figures, dict):
+            raise PhrtError(f"{path}: figures of stage {stage!r} are not an object")
+        for key, value in figures.items():
+            if (
+                isinstance(value, bool)
+                or not isinstance(value, int | float)
+                or not math.isfinite(value)
+            ):
+                raise PhrtError(f"{path}: {stage}.{key} is not a finite number")
+        paper[str(stage)] = {str(k): float(v) for k, v in figures.items()}
+    return paper
+
+
+def csv_number(row: Mapping[str, Any], column: str, *, allow_inf: bool = False) -> float | None:
+    """Float value of ``row[column]``, None when empty; PhrtError naming the cell if bad."""
+    raw = row.get(column)
+    if raw is None or (isinstance(raw, str) and raw.strip() == ""):
+        return None
+    try:
+        value = float(raw)
+    except (TypeError, ValueError):
+        value = math.nan
+    if math.isnan(value) or (math.isinf(value) and not allow_inf):
+        raise PhrtError(
+            f"sweep.csv stage {row.get('stage')!r} config {row.get('config')!r} "
+            f"frame {row.get('frame')!r}: column {column} = {raw!r} is not a finite number"
+        )
+    return value
+
+
+def _mean(values: Iterable[float | None]) -> float | None:
+    present = [v for v in values if v is not None]
+    return sum(present) / len(present) if present else None
+
+
+# --- summary ---------------------------------------------------------------------------
+
+
+def config_kind(heuristic: str, mode: str) -> str:
+    """'raster' | 'rt' | 'reference' | 'heuristic' — the config's role in the report."""
+    if mode == "raster" or heuristic == "none":
+        return "raster"
+    if mode == "rt":
+        return "rt"
+    if heuristic == "all":
+        return "reference"
+    return "heuristic"
+
+
+def budget_label(kind: str, budget_ms: float | None, budget_rays: float | None) -> str:
+    """Human label of a config's budget: '4 ms', '20000 rays', 'unbounded' or '—'."""
+    parts = []
+    if budget_ms is not None and math.isfinite(budget_ms):
+        parts.append(f"{budget_ms:g} ms")
+    if budget_rays is not None and math.isfinite(budget_rays):
+        parts.append(f"{int(budget_rays)} rays")
+    if parts:
+        return ", ".join(parts)
+    return "unbounded" if kind == "heuristic" else MISSING
+
+
+def budget_sort_key(entry: Mapping[str, Any]) -> tuple:
+    """Time budgets ascending, then ray budgets ascending, then unbounded."""
+    ms, rays = entry["budget_ms"], entry["budget_rays"]
+    if ms is not None and math.isfinite(ms):
+        return (0, ms, rays if rays is not None else math.inf)
+    if rays is not None and math.isfinite(rays):
+        return (1, rays, 0.0)
+    return (2, 0.0, 0.0)
+
+
+def _row_sort_key(entry: Mapping[str, Any]) -> tuple:
+    heuristic = entry["heuristic"]
+    return (
+        KIND_ORDER[entry["kind"]],
+        budget_sort_key(entry) if entry["kind"] == "heuristic" else (0, 0.0, 0.0),
+        HEURISTIC_ORDER.get(heuristic, len(HEURISTIC_ORDER)),
+        heuristic,
+        entry["config"],
+    )
+
+
+def summarize(
+    rows: Iterable[Mapping[str, Any]], timeline: Mapping[str, Any] | None = None
+) -> list[dict[str, Any]]:
+    """One dict per stage x config from sweep.csv rows, in display order.
+
+    Stages keep their order of first appearance; within a stage: raster, heuristics by
+    budget (ms budgets ascending, then ray budgets, then unbounded; HEU1 before HEU2 at
+    each budget), the ``all`` reference, ``rt``. Keys of each dict:
+
+    stage, config, heuristic, mode, kind (see ``config_kind``), budget_ms / budget_rays
+    (float, None = not used, inf = unbounded), budget (label), frames (count),
+    mean_frame_ms, median_frame_ms, mean_fps, mean_trace_ms, mean_rays, mean_flip,
+    mean_flip_reflectors, mean_psnr, transitions (sum, int), transition_chances (int),
+    transition_rate (transitions / chances, None without chances), chances_from
+    ("timeline" | "csv"), mean_selected, mean_visible, mean_flip_temporal,
+    mean_flip_temporal_reference. Means skip empty cells and are None when every cell is
+    empty.
+
+    timeline : timeline.json's object; when it has the config with as many frames as the
+               CSV, chances to switch are counted exactly from it (see module doc).
+    """
+    groups: dict[tuple[str, str], list[Mapping[str, Any]]] = {}
+    for row in rows:
+        groups.setdefault((str(row["stage"]), str(row["config"])), []).append(row)
+    if not groups:
+        raise PhrtError("sweep.csv: no rows to summarize")
+
+    stage_order = {stage: i for i, stage in enumerate(dict.fromkeys(s for s, _ in groups))}
+    summary = []
+    for (stage, config), group in groups.items():
+        entry = (timeline or {}).get(stage, {})
+        data = entry.get(config) if isinstance(entry, dict) else None
+        chances = None
+        if data is not None:
+            _reflectors, frames, _selected, visible = timeline_arrays(stage, config, data)
+            if len(frames) == len(group):
+                chances = int(np.count_nonzero(transition_chances(visible)))
+        summary.append(_summarize_config(stage, config, group, chances))
+    summary.sort(key=lambda e: (stage_order[e["stage"]], _row_sort_key(e)))
+    return summary
+
+
+def _constant(group: list[Mapping[str, Any]], column: str, stage: str, config: str) -> str:
+    values = {str(row[column]).strip() for row in group}
+    if len(values) != 1:
+        raise PhrtError(
+            f"sweep.csv stage {stage!r} config {config!r}: column {column} varies "
+            f"between frames ({', '.join(sorted(values))})"
+        )
+    return values.pop()
+
+
+def _summarize_config(
+    stage: str, config: str, group: list[Mapping[str, Any]], chances: int | None
+) -> dict:
+    """Summary entry of one stage x config; ``chances`` from the timeline, or None."""
+    heuristic = _constant(group, "heuristic", stage, config)
+    mode = _constant(group, "mode", stage, config)
+    kind = config_kind(heuristic, mode)
+    _constant(group, "budget_ms", stage, config)
+    _constant(group, "budget_rays", stage, config)
+    budget_ms = csv_number(group[0], "budget_ms", allow_inf=True)
+    budget_rays = csv_number(group[0], "budget_rays", allow_inf=True)
+
+    ordered = sorted(group, key=lambda row: csv_number(row, "frame") or 0.0)
+    frame_ms = [csv_number(r, "frame_ms") for r in ordered]
+    if any(v is None for v in frame_ms):
+        raise PhrtError(f"sweep.csv stage {stage!r} config {config!r}: empty frame_ms")
+    mean_frame_ms = sum(frame_ms) / len(frame_ms)
+    transitions = [csv_number(r, "transitions") or 0.0 for r in ordered]
+    chances_from = "timeline"
+    if chances is None:
+        # Approximation: reflectors visible in every frame that has a predecessor.
+        chances = int(round(sum(csv_number(r, "visible") or 0.0 for r in ordered[1:])))
+        chances_from = "csv"
+    total_transitions = int(round(sum(transitions)))
+    return {
+        "stage": stage,
+        "config": config,
+        "heuristic": heuristic,
+        "mode": mode,
+        "kind": kind,
+        "budget_ms": budget_ms,
+        "budget_rays": budget_rays,
+        "budget": budget_label(kind, budget_ms, budget_rays),
+        "frames": len(ordered),
+        "mean_frame_ms": mean_frame_ms,
+        "median_frame_ms": statistics.median(frame_ms),
+        # A mean frame time of 0 ms (clock resolution) would give infinite fps.
+        "mean_fps": 1000.0 / mean_frame_ms if mean_frame_ms > 0.0 else None,
+        "mean_trace_ms": _mean(csv_number(r, "trace_ms") for r in ordered),
+        "mean_rays": _mean(csv_number(r, "rays") for r in ordered),
+        "mean_flip": _mean(csv_number(r, "flip") for r in ordered),
+        "mean_flip_reflectors": _mean(csv_number(r, "flip_reflectors") for r in ordered),
+        "mean_psnr": _mean(csv_number(r, "psnr") for r in ordered),
+        "transitions": total_transitions,
+        "transition_chances": chances,
+        "transition_rate": total_transitions / chances if chances > 0 else None,
+        "chances_from": chances_from,
+        "mean_selected": _mean(csv_number(r, "selected") for r in ordered),
+        "mean_visible": _mean(csv_number(r, "visible") for r in ordered),
+        "mean_flip_temporal": _mean(csv_number(r, "flip_temporal") for r in ordered),
+        "mean_flip_temporal_reference": _mean(
+            csv_number(r, "flip_temporal_reference") for r in ordered
+        ),
+    }
+
+
+def stages_of(summary: list[Mapping[str, Any]]) -> list[str]:
+    """Stage names in summary order."""
+    return list(dict.fromkeys(e["stage"] for e in summary))
+
+
+# --- number formatting (shared by the markdown and the HTML tables) ---------------------
+
+
+def format_fixed(digits: int):
+    def fmt(value: float | None) -> str:
+        return MISSING if value is None else f"{value:.{digits}f}"
+
+    return fmt
+
+
+def format_significant3(value: float | None) -> str:
+    """3 significant digits: 0.0123, 0.123, 1.23 (FLIP is in [0, 1], often ≪ 1)."""
+    return MISSING if value is None else f"{value:.3g}"
+
+
+def format_percent(value: float | None) -> str:
+    return MISSING if value is None else f"{100.0 * value:.2f} %"
+
+
+#: (header, summary key, formatter) of every table column, in order.
+TABLE_COLUMNS: tuple[tuple[str, str, Any], ...] = (
+    ("config", "config", str),
+    ("heuristic", "heuristic", str),
+    ("budget", "budget", str),
+    ("frames", "frames", str),
+    ("mean frame ms", "mean_frame_ms", format_fixed(2)),
+    ("median frame ms", "median_frame_ms", format_fixed(2)),
+    ("mean fps", "mean_fps", format_fixed(1)),
+    ("mean trace ms", "mean_trace_ms", format_fixed(2)),
+    ("mean rays", "mean_rays", format_fixed(0)),
+    ("mean FLIP", "mean_flip", format_significant3),
+    ("mean FLIP reflectors", "mean_flip_reflectors", format_significant3),
+    ("mean PSNR dB", "mean_psnr", format_fixed(2)),
+    ("transitions", "transitions", str),
+    ("transition rate", "transition_rate", format_percent),
+    ("mean selected", "mean_selected", format_fixed(2)),
+    ("temporal FLIP", "mean_flip_temporal", format_significant3),
+    ("reference temporal FLIP", "mean_flip_temporal_reference", format_significant3),
+)
+
+
+def table_cells(entry: Mapping[str, Any]) -> list[str]:
+    """The formatted cells of one summary entry, in ``TABLE_COLUMNS`` order."""
+    return [fmt(entry[key]) for _header, key, fmt in TABLE_COLUMNS]
+
+
+def stage_notes(summary: list[Mapping[str, Any]], stage: str) -> list[str]:
+    """Caveats of one stage's table: configs whose transition rate is approximated."""
+    approximated = [
+        e["config"] for e in summary if e["stage"] == stage and e["chances_from"] == "csv"
+    ]
+    if not approximated:
+        return []
+    return [
+        "Transition rate approximated from per-frame visible counts (no matching "
+        f"timeline.json entry) for: {', '.join(approximated)}."
+    ]
+
+
+def paper_comparison(
+    summary: list[Mapping[str, Any]], stage: str, paper: Mapping[str, Mapping[str, float]]
+) -> list[str]:
+    """Plain-text lines comparing the paper's HEU1/HEU2 figures with this sweep's.
+
+    Ours are given at every budget where both HEU1 and HEU2 were run; the transitions
+    ratio is HEU1's transitions over HEU2's (as in the paper).
+    """
+    lines = []
+    figures = paper.get(stage)
+    if figures:
+
+        def figure(key: str, scale: float = 1.0, fmt: str = "g") -> str:
+            value = figures.get(key)
+            return MISSING if value is None else format(scale * value, fmt)
+
+        lines.append(
+            "Paper (GTX 760, OptiX): "
+            f"fps HEU1 {figure('heu1_fps')} / HEU2 {figure('heu2_fps')}; "
+            f"transitions HEU1/HEU2 {figure('transitions_ratio', 100.0, '.1f')} %; "
+            f"mean selected HEU1 {figure('heu1_selected')} / HEU2 {figure('heu2_selected')}."
+        )
+    else:
+        lines.append(f"The paper has no figures for stage {stage!r}.")
+    by_budget: dict[str, dict[str, Mapping[str, Any]]] = {}
+    for entry in summary:
+        if entry["stage"] == stage and entry["heuristic"] in ("heu1", "heu2"):
+            by_budget.setdefault(entry["budget"], {})[entry["heuristic"]] = entry
+    for budget, pair in by_budget.items():
+        if len(pair) != 2:
+            continue
+        heu1, heu2 = pair["heu1"], pair["heu2"]
+        ratio = heu1["transitions"] / heu2["transitions"] if heu2["transitions"] else None
+        lines.append(
+            f"This sweep at budget {budget}: fps HEU1 {format_fixed(1)(heu1['mean_fps'])} / "
+            f"HEU2 {format_fixed(1)(heu2['mean_fps'])}; transitions HEU1/HEU2 "
+            f"{format_percent(ratio)} ({heu1['transitions']} / {heu2['transitions']}); "
+            f"mean selected HEU1 {format_fixed(2)(heu1['mean_selected'])} / "
+            f"HEU2 {format_fixed(2)(heu2['mean_selected'])}."
+        )
+    return lines
+
+
+def frontier_flip_at(points: Iterable[tuple[float, float]], ms: float) -> float | None:
+    """The lowest mean FLIP a heuristic reached within a cost of ``ms`` (mean frame
+    milliseconds, or another cost such as mean traced rays), linearly interpolated:
+    ``points`` are its (mean cost, mean FLIP) over budgets.
+    The points are reduced to their Pareto frontier (a point slower *and* worse than
+    another is dropped: that time buys at least the faster point's error), interpolated
+    between neighbours, and held at the slowest point's error beyond it. None when
+    ``ms`` is faster than every point (no budget of it was that fast)."""
+    frontier: list[tuple[float, float]] = []
+    for t, e in sorted(points):
+        if not frontier or e < frontier[-1][1]:
+            frontier.append((t, e))
+    if not frontier or ms < frontier[0][0]:
+        return None
+    for (t0, e0), (t1, e1) in zip(frontier, frontier[1:], strict=False):
+        if ms <= t1:
+            # The line is what alternating the two budgets over frames would give.
+            return e0 + (e1 - e0) * (ms - t0) / (t1 - t0) if t1 > t0 else e1
+    return frontier[-1][1]
+
+
+#: The cost axes HEU1 and HEU2 are compared on: (summary key, its name, its unit). Frame
+#: time is the one that matters; traced rays are its deterministic part (a rays budget
+#: selects the same on every machine), free of the timing noise of a few-ms trace phase.
+COMPARISON_AXES = (
+    ("mean_frame_ms", "mean frame time", "ms"),
+    ("mean_rays", "mean traced rays", "rays"),
+)
+
+
+def equal_time_comparison(summary: list[Mapping[str, Any]], stage: str) -> list[str]:
+    """Lines comparing HEU1 and HEU2 at equal cost, per budget kind (ms or rays budgets)
+    and per axis of ``COMPARISON_AXES`` (rays only for rays budgets): for each HEU1 point
+    with some budget, HEU2's frontier error at HEU1's cost (``frontier_flip_at``), and
+    the verdict."""
+    lines = []
+
+    def bounded(value: float | None) -> bool:
+        return value is not None and math.isfinite(value)
+
+    for kind, field in (("ms", "budget_ms"), ("rays", "budget_rays")):
+        # Each curve: this kind's budgets plus the unbounded point (no budget at all).
+        curves: dict[str, list[Mapping[str, Any]]] = {"heu1": [], "heu2": []}
+        for e in summary:
+            if e["stage"] != stage or e["heuristic"] not in curves or e["mean_flip"] is None:
+                continue
+            unbounded = not bounded(e["budget_ms"]) and not bounded(e["budget_rays"])
+            if e[field] is not None or unbounded:
+                curves[e["heuristic"]].append(e)
+        if not any(bounded(e[field]) for e in curves["heu1"]) or not curves["heu2"]:
+            continue
+        for axis, name, unit in COMPARISON_AXES:
+            if (kind == "ms" and unit == "rays") or any(
+                e.get(axis) is None for e in curves["heu1"] + curves["heu2"]
+            ):
+                continue
+            heu2 = [(e[axis], e["mean_flip"]) for e in curves["heu2"]]
+            wins = compared = 0
+            parts = []
+            for e in curves["heu1"]:
+                if not bounded(e[field]) or e[field] == 0.0:
+                    continue  # both heuristics do the same there (everything / nothing)
+                other = frontier_flip_at(heu2, e[axis])
+                if other is None:
+                    parts.append(f"{e['budget']}: cheaper than any HEU2 point")
+                    continue
+                compared += 1
+                wins += e["mean_flip"] <= other
+                cost = f"{e[axis]:.2f} ms" if unit == "ms" else f"{e[axis]:.0f} rays"
+                parts.append(
+                    f"{e['budget']}: {format_significant3(e['mean_flip'])} at {cost} "
+                    f"vs HEU2 {format_significant3(other)}"
+                )
+            if parts:
+                lines.append(
+                    f"Equal {name} ({kind} budgets; HEU2 interpolated on its error-"
+                    f"{unit} frontier): HEU1 mean FLIP <= HEU2 at {wins} of {compared}. "
+                    + "; ".join(parts)
+                    + "."
+                )
+    return lines
+
+
+# --- summary.md ------------------------------------------------------------------------
+
+
+def _md_cell(text: str) -> str:
+    return text.replace("\\", "\\\\").replace("|", "\\|").replace("\n", " ")
+
+
+def write_summary_md(
+    summary: list[Mapping[str, Any]],
+    path: Path,
+    paper: Mapping[str, Mapping[str, float]] | None = None,
+) -> None:
+    """Write summary.md: per stage a heading, one markdown table, the paper comparison."""
+    paper = PAPER_FIGURES if paper is None else paper
+    lines = [
+        "# phrt sweep: error against run time",
+        "",
+        DEFINITIONS,
+        "",
+    ]
+    header = [h for h, _k, _f in TABLE_COLUMNS]
+    for stage in stages_of(summary):
+        lines += [f"## Stage {_md_cell(stage)}", ""]
+        lines.append("| " + " | ".join(header) + " |")
+        lines.append("|" + "|".join("---" for _ in header) + "|")
+        for entry in summary:
+            if entry["stage"] == stage:
+                lines.append("| " + " | ".join(_md_cell(c) for c in table_cells(entry)) + " |")
+        lines.append("")
+        notes = [
+            *stage_notes(summary, stage),
+            *paper_comparison(summary, stage, paper),
+            *equal_time_comparison(summary, stage),
+        ]
+        lines += [_md_cell(line) + "  " for line in notes]
+        lines.append("")
+    write_text_atomic(Path(path), "\n".join(lines))
+
+
+# --- timeline.json -------------------------------------------------------------------
+
+
+def read_timeline(path: Path) -> dict[str, Any]:
+    """timeline.json as {stage: {config: {...}}}; {} if the file is absent."""
+    path = Path(path)
+    if not path.is_file():
+        return {}
+    return _read_json_object(path, "{stage: {config: ...}}")
+
+
+def _read_json_object(path: Path, layout: str) -> dict[str, Any]:
+    """The JSON object in ``path``; PhrtError naming the file when it cannot be read or
+    is not an object (``layout``: the object expected, for the message)."""
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as error:
+        raise PhrtError(f"{path}: cannot read ({error})") from error
+    if not isinstance(data, dict):
+        raise PhrtError(f"{path}: expected an object {layout}")
+    return data
+
+
+def timeline_arrays(
+    stage: str, config: str, data: Any
+) -> tuple[list[str], list, np.ndarray, np.ndarray]:
+    """(reflector paths, frame times, selected, visible) of one config in timeline.json;
+    selected / visible are (frames, reflectors) bool. PhrtError if the shapes disagree."""
+    where = f"timeline.json stage {stage!r} config {config!r}"
+    if not isinstance(data, dict):
+        raise PhrtError(f"{where}: expected an object")
+    reflectors = data.get("reflectors", [])
+    frames = data.get("frames", [])
+    shape = (len(frames), len(reflectors))
+    arrays = []
+    for key in ("selected", "visible"):
+        try:
+            values = np.asarray(data.get(key, []), dtype=bool).reshape(shape)
+        except ValueError as error:
+            raise PhrtError(
+                f"{where}: {key} is not {shape[0]} frames x {shape[1]} reflectors"
+            ) from error
+        arrays.append(values)
+    return [str(r) for r in reflectors], list(frames), arrays[0], arrays[1]
