@@ -45,6 +45,8 @@ _LOCAL_LIGHT_TYPES = (UsdLux.SphereLight, UsdLux.RectLight, UsdLux.DiskLight, Us
 
 
 def read_light(prim: Usd.Prim, ctx: TimeContext, mpu: float, lights: Lights) -> None:
+    """Append the UsdLux light ``prim`` at ``ctx`` to ``lights`` (module doc);
+    ``mpu`` is the stage's metres per unit. Other light types are ignored."""
     code = ctx.code
     m = ctx.world(prim)
     path = str(prim.GetPath())

@@ -74,8 +74,12 @@ RENDERED_GPRIM_TYPES = tuple(SHAPE_ATTRS)
 
 
 def shape_kind(prim: Usd.Prim) -> str | None:
+    """The prim's type when the render reads it as geometry (``SHAPE_ATTRS``), else None."""
     t = prim.GetTypeName()
     return t if t in SHAPE_ATTRS else None
+
+
+# ---- primvars: values expanded to triangle corners ----------------------------------
 
 
 def _fan_corners(counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -145,6 +149,9 @@ def _read_primvar(prim: Usd.Prim, name: str, time: Usd.TimeCode) -> tuple[np.nda
     if value is None or len(value) == 0:
         return None
     return np.asarray(value, dtype=np.float64), str(pv.GetInterpolation())
+
+
+# ---- meshes ---------------------------------------------------------------------------
 
 
 @dataclass
@@ -539,6 +546,9 @@ def _read_implicit(kind: str, prim: Usd.Prim, time: Usd.TimeCode, bank: Material
     albedo = _albedo(tri_material, display, bank)
     uv = np.zeros((len(tris), 3, 2), np.float32) if bank.rows[mat].texture is not None else None
     return LocalMesh(pts, tris, normals, albedo, tri_material, uv)
+
+
+# ---- deformation and dispatch -----------------------------------------------------
 
 
 #: Deformation reader: time → (local points (n, 3), corner normals (T, 3, 3) or None

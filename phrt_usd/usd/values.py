@@ -68,6 +68,7 @@ def asset_file(value, where: str) -> str:
 
 
 def varies(prim: Usd.Prim, names: tuple[str, ...]) -> bool:
+    """True when any of the prim's attributes ``names`` might vary in time."""
     return any((a := prim.GetAttribute(n)) and a.ValueMightBeTimeVarying() for n in names)
 
 
