@@ -291,8 +291,9 @@ def render(
     json_out: JsonOpt = False,
 ) -> None:
     """Render the stage's camera path: images, stats.json and the selection layer."""
+    from phrt_usd.api import run_render
     from phrt_usd.render.renderer import RenderOptions
-    from phrt_usd.run.render_job import RenderInterrupted, RenderJob, run_render
+    from phrt_usd.run.render_job import RenderInterrupted, RenderJob
     from phrt_usd.usd.schema import read_render_params
     from phrt_usd.usd.stage import read_stage
 

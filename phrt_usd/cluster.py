@@ -142,7 +142,8 @@ def render_chunk(chunk: Chunk, job: RenderJob) -> RenderChunkResult:
     """On a worker: render the chunk's frames (warm-up first); recorded frames' images go
     to ``job.out_dir`` when ``job.write_images``."""
     from phrt_usd.render.renderer import FrameRenderer
-    from phrt_usd.run.render_job import parse_frames, render_frame
+    from phrt_usd.run.frames import parse_frames
+    from phrt_usd.run.render_job import render_frame
     from phrt_usd.usd.stage import open_stage
 
     scene = open_stage(chunk.stage, camera=job.camera)
@@ -412,7 +413,7 @@ def run_sweep_on_cluster(
     total)`` after every finished chunk. Returns ``run_sweep``'s summary dict plus
     ``chunk_pids``: the process id of the worker whose result was kept, per chunk."""
     from phrt_usd.evaluate.sweep import check_spec, finish_sweep, write_sweep_csv
-    from phrt_usd.run.render_job import parse_frames
+    from phrt_usd.run.frames import parse_frames
     from phrt_usd.usd.stage import open_stage
 
     check_spec(spec)
@@ -450,8 +451,10 @@ def run_render_on_cluster(
     """``run_render`` on a Dask cluster (no checkpoint / ``--resume``: a lost chunk is
     re-run by the scheduler instead). ``on_frame(done, total)`` after every chunk.
     Returns ``run_render``'s summary dict plus ``chunk_pids`` (see the sweep's)."""
-    from phrt_usd.evaluate.report import build_report
-    from phrt_usd.run.render_job import RunDirectory, job_run_info, parse_frames, write_run_records
+    from phrt_usd.api import summary_of
+    from phrt_usd.run.frames import parse_frames
+    from phrt_usd.run.render_job import RunRecord, job_run_info, write_run_records
+    from phrt_usd.run.run_directory import RunDirectory
     from phrt_usd.usd.stage import open_stage
 
     if job.resume:
@@ -481,13 +484,9 @@ def run_render_on_cluster(
         if sorted(f.time for f in frames) != sorted(times):
             raise PhrtError(f"cluster render of {job.stage_path}: frames missing or repeated")
         _remove_stale_temporaries(out)
-    summary = build_report(layer_path)
-    summary.update(
-        out=str(out),
-        selection_layer=str(layer_path),
-        passes=sorted({p for s in frames for p in s.passes}),
-        chunk_pids=[results[c.index].worker_pid for c in chunks],
-    )
+    passes = sorted({p for s in frames for p in s.passes})
+    summary = summary_of(RunRecord(out, layer_path, sorted(frames, key=lambda s: s.time), passes))
+    summary["chunk_pids"] = [results[c.index].worker_pid for c in chunks]
     return summary
 
 

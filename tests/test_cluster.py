@@ -19,6 +19,7 @@ import psutil
 import pytest
 from scenes import mirror_gallery_stage
 
+from phrt_usd.api import run_render
 from phrt_usd.cluster import (
     DEFAULT_WARMUP_FRAMES,
     SchedulerAddress,
@@ -34,7 +35,7 @@ from phrt_usd.cluster import (
 from phrt_usd.errors import BadOption, PhrtError
 from phrt_usd.evaluate.sweep import SweepSpec, run_sweep
 from phrt_usd.render.renderer import RenderOptions
-from phrt_usd.run.render_job import RenderJob, run_render
+from phrt_usd.run.render_job import RenderJob
 from phrt_usd.run.selection_layer import read_selection_record
 
 #: Deterministic budgets (rays) that fit only some of the gallery's five mirrors.

@@ -21,10 +21,12 @@ import pytest
 from scenes import mirror_gallery_stage
 from test_render_job import _check_readable
 
+from phrt_usd.api import run_render
+from phrt_usd.atomic import WriteFailed, write_text_atomic
 from phrt_usd.errors import BadOption, PhrtError
 from phrt_usd.render.renderer import RenderOptions
-from phrt_usd.run.render_job import RenderJob, run_render
-from phrt_usd.run.run_files import CHECKPOINT_FILE, LOCK_FILE, WriteFailed, write_text_atomic
+from phrt_usd.run.render_job import RenderJob
+from phrt_usd.run.run_files import CHECKPOINT_FILE, LOCK_FILE
 
 OPTIONS = RenderOptions(width=32, height=24, budget_ms=None, budget_rays=600)
 CLI = [sys.executable, "-m", "typer", "phrt_usd.cli", "run"]

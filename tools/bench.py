@@ -19,7 +19,7 @@ import sys
 from pathlib import Path
 
 from phrt_usd.render.renderer import FrameRenderer, RenderOptions
-from phrt_usd.run.render_job import parse_frames
+from phrt_usd.run.frames import parse_frames
 from phrt_usd.usd.stage import open_stage
 
 CONFIGS = (

@@ -46,7 +46,7 @@ from pathlib import Path
 import numpy as np
 
 from phrt_usd.render.renderer import FrameRenderer, RenderOptions
-from phrt_usd.run.render_job import parse_frames
+from phrt_usd.run.frames import parse_frames
 from phrt_usd.usd.stage import StageScene, open_stage
 
 PHASES = ("set_time", "gbuffer", "shade", "select", "trace")
@@ -66,7 +66,7 @@ REPO = Path(__file__).resolve().parent.parent
 
 def frame_times(stage: StageScene, spec: str) -> list[float]:
     """Time codes to bench: ``N`` (N frames evenly spread over the frame range, ends
-    included) or ``A:B[:STEP]`` (``phrt_usd.run.render_job.parse_frames``)."""
+    included) or ``A:B[:STEP]`` (``phrt_usd.run.frames.parse_frames``)."""
     if spec.isdigit():
         start, end = stage.frame_range
         return [float(round(t)) for t in np.linspace(start, end, max(int(spec), 1))]

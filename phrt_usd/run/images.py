@@ -36,8 +36,8 @@ from pathlib import Path
 import numpy as np
 import OpenImageIO as oiio
 
+from phrt_usd.atomic import WriteFailed, atomic_path
 from phrt_usd.errors import PhrtError
-from phrt_usd.run.run_files import WriteFailed, atomic_path
 
 #: Largest finite half-float; brighter radiance is clamped to it in the EXR's RGB.
 HALF_MAX = 65504.0

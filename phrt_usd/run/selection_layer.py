@@ -31,9 +31,10 @@ from typing import Any
 import numpy as np
 from pxr import Sdf, Tf, Vt
 
+from phrt_usd.atomic import WriteFailed, atomic_path
 from phrt_usd.errors import PhrtError, usd_error_reason
 from phrt_usd.model.frame import FrameStats, ReflectorMetrics
-from phrt_usd.run.run_files import WriteFailed, atomic_path, check_run_info
+from phrt_usd.run.run_files import check_run_info
 
 #: Prim holding the per-frame render statistics (an ``over``: never defined, never drawn).
 STATS_PRIM_PATH = Sdf.Path("/PhrtRenderStats")

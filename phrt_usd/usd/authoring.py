@@ -37,8 +37,8 @@ from pathlib import Path
 
 from pxr import Ar, Sdf, Tf, Usd, UsdGeom, UsdUtils
 
+from phrt_usd.atomic import WriteFailed, atomic_path
 from phrt_usd.errors import BadOption, PhrtError
-from phrt_usd.run.run_files import WriteFailed, atomic_path
 from phrt_usd.usd import schema
 from phrt_usd.usd.stage import open_usd
 
