@@ -23,6 +23,7 @@ from rich.table import Table
 
 import phrt_usd  # noqa: F401  (registers the schema plugin before any stage opens)
 from phrt_usd.errors import BadOption, PhrtError
+from phrt_usd.usd.schema import DEFAULT_BOUNCE_LIMIT, DEFAULT_RESOLUTION
 
 EXIT_PROBLEMS = 1
 EXIT_UNREADABLE = 2
@@ -200,6 +201,7 @@ def _print_summary(s: dict) -> None:
 
 #: The demo stage rendered when `phrt render` is given no stage.
 DEMO_STAGE = Path(__file__).resolve().parent.parent / "stages" / "farm.usda"
+
 
 def _parse_resolution(text: str) -> tuple[int, int]:
     try:
@@ -395,8 +397,12 @@ def sweep(
         str | None, typer.Option(help="Comma list of trace budgets in rays.")
     ] = None,
     frames: Annotated[str | None, typer.Option(help="A:B[:STEP] time codes.")] = None,
-    resolution: Annotated[str, typer.Option(help="WxH.")] = "320x240",
-    bounce_limit: Annotated[int, typer.Option(help="Reflection bounce limit.")] = 5,
+    resolution: Annotated[str, typer.Option(help="WxH.")] = "x".join(
+        str(v) for v in DEFAULT_RESOLUTION
+    ),
+    bounce_limit: Annotated[
+        int, typer.Option(help="Reflection bounce limit.")
+    ] = DEFAULT_BOUNCE_LIMIT,
     selection_weight: Annotated[
         float | None, typer.Option(help="I (default: the first stage's setting).")
     ] = None,

@@ -37,12 +37,21 @@ from phrt_usd.atomic import write_text_atomic
 from phrt_usd.errors import BadOption
 from phrt_usd.evaluate.image_metrics import flip_map, mean_over, psnr
 from phrt_usd.evaluate.selection_metrics import transitions_per_frame
+from phrt_usd.evaluate.sweep_files import (
+    ERROR_VS_TIME_PNG,
+    FLIP_MAP_SUFFIX,
+    IMAGES_DIR,
+    REPORT_HTML,
+    SUMMARY_MD,
+    SWEEP_CSV,
+    TIMELINE_JSON,
+)
 from phrt_usd.render.renderer import FrameOutput, FrameRenderer, RenderOptions
 from phrt_usd.run.frames import parse_frames
 from phrt_usd.run.images import write_png_atomic, write_preview_png
 from phrt_usd.run.render_job import stop_on_signals
 from phrt_usd.select.policies import make_policy
-from phrt_usd.usd.schema import DEFAULT_SELECTION_WEIGHT
+from phrt_usd.usd.schema import DEFAULT_BOUNCE_LIMIT, DEFAULT_RESOLUTION, DEFAULT_SELECTION_WEIGHT
 from phrt_usd.usd.stage import open_stage
 
 CSV_COLUMNS = [
@@ -83,9 +92,9 @@ class SweepSpec:
     budgets_ms: list[float | None] = field(default_factory=list)
     budgets_rays: list[int | None] = field(default_factory=list)
     frames: str | None = None
-    width: int = 320
-    height: int = 240
-    bounce_limit: int = 5
+    width: int = DEFAULT_RESOLUTION[0]
+    height: int = DEFAULT_RESOLUTION[1]
+    bounce_limit: int = DEFAULT_BOUNCE_LIMIT
     selection_weight: float = DEFAULT_SELECTION_WEIGHT
     out: Path = Path("sweep")
 
@@ -178,8 +187,8 @@ def finish_sweep(spec: SweepSpec, rows: list[dict], timeline: dict, interrupted:
     """Write sweep.csv, timeline.json and the report into ``spec.out``; returns the
     summary dict of ``run_sweep``."""
     out = spec.out
-    write_sweep_csv(out / "sweep.csv", rows)
-    _write_json(out / "timeline.json", timeline)
+    write_sweep_csv(out / SWEEP_CSV, rows)
+    _write_json(out / TIMELINE_JSON, timeline)
     from phrt_usd.evaluate.sweep_report import write_sweep_report
 
     write_sweep_report(out)
@@ -189,7 +198,7 @@ def finish_sweep(spec: SweepSpec, rows: list[dict], timeline: dict, interrupted:
         "stages": [Path(s).stem for s in spec.stages],
         "configs": [c.label for c in sweep_configs(spec)] + ["all", "rt"],
         "interrupted": interrupted,
-        "files": ["sweep.csv", "timeline.json", "summary.md", "error_vs_time.png", "report.html"],
+        "files": [SWEEP_CSV, TIMELINE_JSON, SUMMARY_MD, ERROR_VS_TIME_PNG, REPORT_HTML],
     }
 
 
@@ -199,7 +208,7 @@ def _sweep_stage(stage_path, spec, rows, timeline, stop, on_frame) -> None:
         sweep.warm_up()
         for n, t in enumerate(sweep.times):
             rows.extend(sweep.frame(t, record=True))
-            write_sweep_csv(spec.out / "sweep.csv", rows)
+            write_sweep_csv(spec.out / SWEEP_CSV, rows)
             if on_frame is not None:
                 on_frame(sweep.name, n + 1, len(sweep.times))
             if stop.is_set():
@@ -407,12 +416,12 @@ def _write_report_images(
     """Preview PNG and FLIP error map (magma) of one configuration's frame."""
     import matplotlib
 
-    folder = out / "images" / stage / f"{t:g}"
+    folder = out / IMAGES_DIR / stage / f"{t:g}"
     folder.mkdir(parents=True, exist_ok=True)
     write_preview_png(folder / f"{label}.png", output.beauty)
     magma = matplotlib.colormaps["magma"](np.clip(error, 0.0, 1.0))[..., :3]
     # The error map is already display-referred: written without the tone map.
-    _write_display_png(folder / f"{label}_flip.png", magma.astype(np.float32))
+    _write_display_png(folder / f"{label}{FLIP_MAP_SUFFIX}.png", magma.astype(np.float32))
 
 
 def _write_display_png(path: Path, rgb: np.ndarray) -> None:
