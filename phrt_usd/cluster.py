@@ -413,6 +413,7 @@ def run_sweep_on_cluster(
     total)`` after every finished chunk. Returns ``run_sweep``'s summary dict plus
     ``chunk_pids``: the process id of the worker whose result was kept, per chunk."""
     from phrt_usd.evaluate.sweep import check_spec, finish_sweep, write_sweep_csv
+    from phrt_usd.evaluate.sweep_files import SWEEP_CSV
     from phrt_usd.run.frames import parse_frames
     from phrt_usd.usd.stage import open_stage
 
@@ -424,7 +425,7 @@ def run_sweep_on_cluster(
         chunks += plan_chunks(stage_address(stage), n_frames, chunk_frames, warmup, len(chunks))
 
     def progress(results: dict) -> None:
-        write_sweep_csv(spec.out / "sweep.csv", _sweep_rows(chunks, results))
+        write_sweep_csv(spec.out / SWEEP_CSV, _sweep_rows(chunks, results))
         if on_chunk is not None:
             on_chunk(len(results), len(chunks))
 

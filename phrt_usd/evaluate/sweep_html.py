@@ -20,7 +20,14 @@ from typing import Any
 from urllib.parse import quote
 
 from phrt_usd.atomic import write_text_atomic
-from phrt_usd.evaluate.sweep_plots import ERROR_VS_TIME_PNG, stage_plot_name, timeline_plot_name
+from phrt_usd.evaluate.sweep_files import (
+    ERROR_VS_TIME_PNG,
+    FLIP_MAP_SUFFIX,
+    IMAGES_DIR,
+    REPORT_HTML,
+    stage_plot_name,
+    timeline_plot_name,
+)
 from phrt_usd.evaluate.sweep_summary import (
     DEFINITIONS,
     PAPER_FIGURES,
@@ -35,12 +42,8 @@ from phrt_usd.evaluate.sweep_summary import (
     table_cells,
 )
 
-REPORT_HTML = "report.html"
-IMAGES_DIR = "images"
 #: Name of the reference config (every reflector traced); FLIP/PSNR are measured against it.
 REFERENCE_CONFIG = "all"
-#: Suffix of a config's FLIP error map in the images directory.
-FLIP_MAP_SUFFIX = "_flip"
 
 
 _CSS = """

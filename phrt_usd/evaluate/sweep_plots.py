@@ -10,7 +10,6 @@ Every PNG is written through ``atomic_path`` (a reader never sees a partial imag
 
 from __future__ import annotations
 
-import re
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -23,8 +22,6 @@ from matplotlib.patches import Patch
 from phrt_usd.atomic import atomic_path
 from phrt_usd.errors import PhrtError
 from phrt_usd.evaluate.sweep_summary import budget_sort_key, stages_of, timeline_arrays
-
-ERROR_VS_TIME_PNG = "error_vs_time.png"
 
 # --- plot layout -----------------------------------------------------------------------
 
@@ -73,19 +70,6 @@ TIMELINE_STATES = (
 
 
 # --- plots -----------------------------------------------------------------------------
-
-
-def safe_file_part(name: str) -> str:
-    """``name`` reduced to [A-Za-z0-9_.-] (others → '_') for use in a file name."""
-    return re.sub(r"[^A-Za-z0-9_.-]", "_", name) or "_"
-
-
-def stage_plot_name(stage: str) -> str:
-    return f"error_vs_time_{safe_file_part(stage)}.png"
-
-
-def timeline_plot_name(stage: str) -> str:
-    return f"timeline_{safe_file_part(stage)}.png"
 
 
 def _short_budget(entry: Mapping[str, Any]) -> str:

@@ -19,18 +19,17 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from phrt_usd.evaluate.sweep_html import write_report_html
-from phrt_usd.evaluate.sweep_plots import (
+from phrt_usd.evaluate.sweep_files import (
     ERROR_VS_TIME_PNG,
-    plot_error_vs_time,
-    plot_selection_timeline,
-    stage_plot_name,
-    timeline_plot_name,
-)
-from phrt_usd.evaluate.sweep_summary import (
     SUMMARY_MD,
     SWEEP_CSV,
     TIMELINE_JSON,
+    stage_plot_name,
+    timeline_plot_name,
+)
+from phrt_usd.evaluate.sweep_html import write_report_html
+from phrt_usd.evaluate.sweep_plots import plot_error_vs_time, plot_selection_timeline
+from phrt_usd.evaluate.sweep_summary import (
     load_paper_figures,
     read_sweep_csv,
     read_timeline,

@@ -44,13 +44,7 @@ import numpy as np
 from phrt_usd.atomic import write_text_atomic
 from phrt_usd.errors import PhrtError
 from phrt_usd.evaluate.selection_metrics import transition_chances
-
-# --- file names ------------------------------------------------------------------------
-
-SWEEP_CSV = "sweep.csv"
-TIMELINE_JSON = "timeline.json"
-PAPER_JSON = "paper.json"
-SUMMARY_MD = "summary.md"
+from phrt_usd.evaluate.sweep_files import PAPER_JSON
 
 #: The paper's results (GTX 760, OptiX; docs/design.md §1), used when paper.json is absent.
 #: transitions_ratio is HEU1's transitions as a fraction of HEU2's.
