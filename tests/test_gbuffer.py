@@ -26,7 +26,8 @@ from phrt_usd.model.scene import (
     MaterialTable,
     Scene,
 )
-from phrt_usd.render.raster.gbuffer import Rasterizer, sample_bilinear_wrap
+from phrt_usd.render.raster.gbuffer import sample_bilinear_wrap
+from phrt_usd.render.raster.rasterizer import Rasterizer
 
 W, H = 320, 240
 #: Required share of covered pixels whose element id matches Embree (docs/design.md §3).
@@ -479,7 +480,7 @@ def test_update_geometry_moves_prims_and_invalidates_shadows(animated, tmp_path)
 def test_box_extremum_matches_scipy():
     from scipy import ndimage
 
-    from phrt_usd.render.raster.gbuffer import _box_extremum
+    from phrt_usd.render.raster.shadow_maps import _box_extremum
 
     a = np.random.default_rng(1).random((37, 23)).astype(np.float32)
     a[a > 0.9] = np.inf

@@ -411,7 +411,7 @@ def test_grazing_shading_normals_follow_the_rasterizer_rule():
     """Where the interpolated normal faces along the view ray (strongly tilted corner
     normals seen at grazing angles), the tracer uses the geometric normal like the
     rasterizer does, instead of flipping the shading normal into the surface."""
-    from phrt_usd.render.raster.gbuffer import Rasterizer
+    from phrt_usd.render.raster.rasterizer import Rasterizer
 
     floor = quad(20.0)
     scene = make_scene([{"mesh": floor}])

@@ -39,7 +39,7 @@ from phrt_usd.render.compositing import (
     element_reflectivity,
     pixel_reflectivity,
 )
-from phrt_usd.render.shading import shade_local
+from phrt_usd.render.lighting import shade_gbuffer
 from phrt_usd.select.policies import UPCOMING_CAMERAS, make_policy
 from phrt_usd.usd.schema import DEFAULT_SELECTION_WEIGHT
 from phrt_usd.usd.stage import StageScene
@@ -148,7 +148,7 @@ class FrameRenderer:
         self._rasterizer = None
         self._tracer = None
         if options.mode != "rt":
-            from phrt_usd.render.raster.gbuffer import Rasterizer
+            from phrt_usd.render.raster.rasterizer import Rasterizer
 
             self._rasterizer = Rasterizer(scene, options.width, options.height)
         # Embree is only needed to trace (reflectors in hybrid, everything in rt).
@@ -389,67 +389,9 @@ class FrameRenderer:
         return boxes
 
     def _shade_local(self, gb: GBuffer) -> tuple[np.ndarray, str | None]:
-        """Local shading (H, W, 3) of covered pixels and the shadow pass used, if any."""
-        scene = self.scene
-        h, w = gb.shape
-        covered = gb.covered.reshape(-1)
-        local = np.zeros((h * w, 3), dtype=np.float32)
-        if not covered.any():
-            return local.reshape(h, w, 3), None
-        # Covered pixels as flat indices (enclosed stages cover every pixel: then plain
-        # reshapes, no gather at all).
-        pix = slice(None) if covered.all() else np.flatnonzero(covered)
-
-        def take(a: np.ndarray) -> np.ndarray:
-            flat = a.reshape(h * w, *a.shape[2:])
-            return flat if isinstance(pix, slice) else np.take(flat, pix, axis=0)
-
-        pos = take(gb.position)
-        nrm = take(gb.normal)
-        lights = scene.lights
-        n_lights = len(lights.distant) + len(lights.local)
-        shadow_pass = None
-        local_pairs = lit_sums = None
-        if n_lights == 0:
-            visibility = np.ones((len(pos), 0), dtype=np.float32)
-        elif self.options.mode == "rt":
-            visibility = self._tracer.shadow_visibility(pos, nrm)
-            shadow_pass = "shadow_rays"
-        else:
-            refine = None
-            if self._tracer is not None:
-                # Hybrid: shadow-map texels the maps cannot decide (edges, casters thinner
-                # than a texel) are resolved with shadow rays; raster mode keeps the maps.
-                def refine(p: np.ndarray, n: np.ndarray, pairs: np.ndarray) -> np.ndarray:
-                    return self._tracer.shadow_visibility(p, n, pairs=pairs)
-
-            if self._rasterizer.cube_lookup_on_gpu:
-                # Lit pairs shaded in the GPU lookup pass; the rest comes back as
-                # DistantLight visibility and the LocalLight pairs the maps could not
-                # decide.
-                to_eye = -take(gb.view_dir)
-                terms = self._rasterizer.light_terms(pos, nrm, to_eye, refine=refine)
-                visibility = terms.distant_visibility
-                local_pairs, lit_sums = terms.local_pairs, terms.lit_sums
-            else:  # all lights, distant then local (the order shade_local expects)
-                visibility = self._rasterizer.shadow_visibility(pos, nrm, refine=refine)
-            shadow_pass = "shadow_map" if refine is None else "shadow_map+rays"
-        tri = take(gb.triangle_id)
-        emissive = np.take(
-            scene.materials.emissive, np.take(scene.geometry.tri_material, tri), axis=0
-        )
-        local[pix] = shade_local(
-            pos,
-            nrm,
-            take(gb.albedo),
-            take(gb.view_dir),
-            emissive,
-            lights,
-            visibility,
-            local_pairs=local_pairs,
-            lit_sums=lit_sums,
-        )
-        return local.reshape(h, w, 3), shadow_pass
+        """Local shading (H, W, 3) of covered pixels and the shadow pass used, if any
+        (``lighting.shade_gbuffer``: who answers the shadow queries in this mode)."""
+        return shade_gbuffer(gb, self.scene, self.options.mode, self._rasterizer, self._tracer)
 
 
 def _remaining(opts: RenderOptions, trace_ms: float, rays: int) -> Budget:

@@ -1,5 +1,5 @@
 #version 330 core
-// Compiled per pass shape (gbuffer.Rasterizer._lookup_program_for) with these defines
+// Compiled per pass shape (light_pass.LightPass._program_for) with these defines
 // in front of this file, because llvmpipe runs every branch of the code under masks:
 // code for absent lights, maps or outputs would cost as much as used code.
 //   N_LIGHTS     LocalLights in this pass, 0..16
@@ -10,7 +10,7 @@
 // LocalLight shadow lookups, fragment stage: one fragment per query point, up to 16
 // lights per pass, packed as one byte each into one RGBA32UI attachment (light j in
 // channel j / 4, bits 8 (j % 4) .. 8 (j % 4) + 7: little-endian bytes in light order).
-// The same test as gbuffer._cube_visibility (see there and _CubeMap for the cube
+// The same test as shadow_maps.cube_visibility (see there and CubeMap for the cube
 // layout); keep the two in step.
 //
 // Inputs (textures, texelFetch only):
@@ -22,7 +22,7 @@
 //   to_eye  : RGBA32F, (x, y, z) unit direction from the point to the viewer, same layout
 //   dmap_s<k>, dmap_d<k> : RG32F, (min, max) caster depth over the texel neighbourhood
 //             of DistantLight k's static / animated orthographic map (as
-//             gbuffer._ShadowMap; the test of gbuffer._filtered_visibility)
+//             shadow_maps.ShadowMap; the test of shadow_maps.filtered_visibility)
 // Output code per light: 1 lit, 0 shadowed / out of range / facing away, 2 uncertain.
 // Also the local shading of the lit pairs (shading._shade_chunk's model, keep in step):
 //   diffuse   : rgb = sum over lit lights of radiance * n.l * window / d^2 (DistantLights:
@@ -154,7 +154,7 @@ float highlight_of(vec3 n, vec3 e, vec3 l)
 }
 
 #if N_DISTANT > 0
-// One orthographic map m: 1 lit, 0 shadowed, -1 uncertain (gbuffer._filtered_visibility:
+// One orthographic map m: 1 lit, 0 shadowed, -1 uncertain (shadow_maps.filtered_visibility:
 // lit when test <= the neighbourhood's min, shadowed when test > its max).
 float map_test(sampler2D tex, int m, vec3 p, vec3 n)
 {

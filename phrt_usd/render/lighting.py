@@ -1,0 +1,108 @@
+"""Direct lighting of a frame's G-buffer: who answers its shadow queries, per render mode,
+then the local shading of every covered pixel (``shading.shade_local``).
+
+- ``rt``: the tracer's shadow rays for every (pixel, light) pair.
+- ``raster``: the rasterizer's shadow maps alone; the pairs they cannot decide (shadow
+  edges, casters thinner than a texel) get the maps' percentage-closer filtering.
+- ``hybrid``: the shadow maps, and those undecided pairs resolved by the tracer's shadow
+  rays (only when the renderer has a tracer; without reflectors to trace it has none,
+  and the maps' filtering is used as in ``raster``).
+
+The raster side returns the undecided pairs (``map_lighting.UncertainPairs``); the
+settling happens here, so the rasterizer never calls the tracer. With the GPU lookup
+(``Rasterizer.cube_lookup_on_gpu``) the pairs the maps decide are lit are shaded in the
+lookup pass already and only the rest is shaded in numpy.
+
+Shapes: a G-buffer of H x W pixels, n of them covered, L lights (distant, then local).
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from phrt_usd.model.frame import GBuffer
+from phrt_usd.model.scene import Scene
+from phrt_usd.render.shading import shade_local
+
+if TYPE_CHECKING:  # the raster and trace halves import OpenGL / Embree: only if used
+    from phrt_usd.render.raster.rasterizer import Rasterizer
+    from phrt_usd.render.trace.tracer import Tracer
+
+
+def shade_gbuffer(
+    gb: GBuffer,
+    scene: Scene,
+    mode: str,
+    rasterizer: Rasterizer | None,
+    tracer: Tracer | None,
+) -> tuple[np.ndarray, str | None]:
+    """Local shading (H, W, 3) float32 of ``gb``'s covered pixels (0 elsewhere) and the
+    shadow pass used, if any ("shadow_rays", "shadow_map" or "shadow_map+rays").
+
+    mode : "rt" (needs ``tracer``), "raster" or "hybrid" (need ``rasterizer``; a
+    ``tracer`` there resolves the pairs the shadow maps cannot decide).
+    """
+    h, w = gb.shape
+    covered = gb.covered.reshape(-1)
+    local = np.zeros((h * w, 3), dtype=np.float32)
+    if not covered.any():
+        return local.reshape(h, w, 3), None
+    # Covered pixels as flat indices (enclosed stages cover every pixel: then plain
+    # reshapes, no gather at all).
+    pix = slice(None) if covered.all() else np.flatnonzero(covered)
+
+    def take(a: np.ndarray) -> np.ndarray:
+        flat = a.reshape(h * w, *a.shape[2:])
+        return flat if isinstance(pix, slice) else np.take(flat, pix, axis=0)
+
+    pos = take(gb.position)
+    nrm = take(gb.normal)
+    lights = scene.lights
+    n_lights = len(lights.distant) + len(lights.local)
+    shadow_pass = None
+    local_pairs = lit_sums = None
+    if n_lights == 0:
+        visibility = np.ones((len(pos), 0), dtype=np.float32)
+    elif mode == "rt":
+        visibility = tracer.shadow_visibility(pos, nrm)
+        shadow_pass = "shadow_rays"
+    else:
+        if rasterizer.cube_lookup_on_gpu:
+            # Lit pairs shaded in the GPU lookup pass; the rest comes back as
+            # DistantLight visibility and the LocalLight pairs the maps could not
+            # decide.
+            to_eye = -take(gb.view_dir)
+            terms = _settled(rasterizer.map_light_terms(pos, nrm, to_eye), tracer)
+            visibility = terms.distant_visibility
+            local_pairs, lit_sums = terms.local_pairs, terms.lit_sums
+        else:  # all lights, distant then local (the order shade_local expects)
+            pending = rasterizer.map_visibility(pos, nrm, filtered=tracer is None)
+            visibility = _settled(pending, tracer)
+        shadow_pass = "shadow_map" if tracer is None else "shadow_map+rays"
+    tri = take(gb.triangle_id)
+    emissive = np.take(scene.materials.emissive, np.take(scene.geometry.tri_material, tri), axis=0)
+    local[pix] = shade_local(
+        pos,
+        nrm,
+        take(gb.albedo),
+        take(gb.view_dir),
+        emissive,
+        lights,
+        visibility,
+        local_pairs=local_pairs,
+        lit_sums=lit_sums,
+    )
+    return local.reshape(h, w, 3), shadow_pass
+
+
+def _settled(pending, tracer: Tracer | None):
+    """``pending`` (``MapVisibility`` or ``PendingLightTerms``) finished: the pairs the
+    shadow maps could not decide resolved by ``tracer``'s shadow rays, or without a
+    tracer by the maps' own filtering."""
+    query = pending.uncertain_pairs()
+    if tracer is None or query is None:
+        return pending.filtered()
+    exact = tracer.shadow_visibility(query.positions, query.normals, pairs=query.pairs)
+    return pending.resolved(exact)

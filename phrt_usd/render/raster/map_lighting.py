@@ -1,0 +1,375 @@
+"""What the shadow maps say about the lighting of points: the (n, L) visibility matrix,
+or the light terms of ``shading.shade_local`` with the lit pairs shaded on the GPU, each
+with the (point, light) pairs the maps could not decide left open.
+
+The maps answer most pairs (``shadow_maps``: numpy lookups of the DistantLights' maps on
+the worker threads; ``light_pass``: the GPU lookup of every LocalLight's cube maps and
+of up to LOOKUP_MAX_DISTANT DistantLights, meanwhile). A pair whose texel neighbourhood
+holds both occluding and clear depths is *uncertain*. The result (``MapVisibility``,
+``PendingLightTerms``) names those pairs (``uncertain``) and is finished in one of two
+ways, chosen by the caller (``render.lighting``): ``resolved`` with an exact answer for
+exactly those pairs (the tracer's shadow rays), or ``filtered``, the maps' own
+percentage-closer filtering.
+
+Shapes: n points, D DistantLights, L lights in all (``shading``'s order: distant, then
+local). Positions are world metres (float64); lookups run in rel space (``context``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from phrt_usd.model.scene import Lights
+from phrt_usd.render.raster.context import RasterContext
+from phrt_usd.render.raster.light_pass import (
+    LOOKUP_LIGHTS_PER_PASS,
+    LOOKUP_LIT,
+    LOOKUP_MAX_DISTANT,
+    LOOKUP_UNCERTAIN,
+    LightPass,
+)
+from phrt_usd.render.raster.shadow_maps import (
+    CubeMap,
+    ShadowMap,
+    ShadowMaps,
+    cube_pair_visibility,
+    filtered_visibility,
+)
+from phrt_usd.render.shading import LightPairs, light_ranges, pair_directions
+
+
+@dataclass
+class UncertainPairs:
+    """The (point, light) pairs the maps could not decide, as an exact shadow test
+    (``Tracer.shadow_visibility``) takes them: m points with at least one such pair.
+
+    positions : (m, 3) float64 world metres; normals : (m, 3) float64 unit, facing the
+    viewer; pairs : (m, L) bool, the undecided pairs (light order distant, then local)
+    """
+
+    positions: np.ndarray
+    normals: np.ndarray
+    pairs: np.ndarray
+
+
+@dataclass
+class LightTerms:
+    """What shading G-buffer points needs from the shadow maps (``PendingLightTerms``,
+    consumed by ``shading.shade_local``). n points, D DistantLights.
+
+    distant_visibility : (n, D) float32 in [0, 1]: DistantLight visibility of the pairs
+                         *not* in ``lit_sums`` (0 for the pairs summed there)
+    lit_sums           : diffuse (n, 3) and highlight (n, 3) float32 sums over the
+                         (point, light) pairs the maps decided are lit, shaded on the GPU
+                         (LocalLights and up to LOOKUP_MAX_DISTANT DistantLights)
+    local_pairs        : the (point, LocalLight) pairs the maps could not decide, with
+                         their visibility from shadow rays or PCF (lit ones only), or
+                         None
+    """
+
+    distant_visibility: np.ndarray
+    lit_sums: tuple[np.ndarray, np.ndarray] | None
+    local_pairs: LightPairs | None
+
+
+@dataclass
+class MapVisibility:
+    """Shadow-map visibility of n points to L lights, before the undecided pairs are
+    settled (``MapLighting.visibility``).
+
+    positions, normals : (n, 3) float64, as looked up
+    visibility : (n, L) float32 in [0, 1], 1 = lit; at the uncertain pairs the maps'
+                 PCF (looked up ``filtered``) or 0.5 (left to ``resolved``)
+    uncertain  : (n, L) bool
+    """
+
+    positions: np.ndarray
+    normals: np.ndarray
+    visibility: np.ndarray
+    uncertain: np.ndarray
+
+    def uncertain_pairs(self) -> UncertainPairs | None:
+        """The undecided pairs, None when there are none."""
+        if not self.uncertain.any():
+            return None
+        idx = np.flatnonzero(self.uncertain.any(axis=1))
+        return UncertainPairs(self.positions[idx], self.normals[idx], self.uncertain[idx])
+
+    def resolved(self, exact: np.ndarray) -> np.ndarray:
+        """(n, L) ``visibility`` with the uncertain pairs replaced (in place) by
+        ``exact`` (m, L), an exact test's answer for ``uncertain_pairs()``."""
+        vis = self.visibility
+        idx = np.flatnonzero(self.uncertain.any(axis=1))
+        pairs = self.uncertain[idx]
+        exact = np.asarray(exact, dtype=np.float32)
+        sub = vis[idx]
+        sub[pairs] = exact.reshape(pairs.shape)[pairs]
+        vis[idx] = sub
+        return vis
+
+    def filtered(self) -> np.ndarray:
+        """(n, L) ``visibility`` as the maps have it (their PCF, when looked up so)."""
+        return self.visibility
+
+
+@dataclass
+class PendingLightTerms:
+    """``LightTerms`` before the undecided pairs are settled (``MapLighting.light_terms``).
+
+    positions, normals, rel : (n, 3) float64 world metres, unit normals, rel metres
+    lights          : the scene's lights at the lookup
+    distant         : (n, D) float32 DistantLight visibility (0 where in ``lit_sums``)
+    distant_unsure  : (n, D) bool, the DistantLight pairs the maps could not decide
+    maps            : the (static, animated) maps of the DistantLights shaded on the GPU
+                      (empty when they were looked up in numpy: ``distant`` holds their
+                      PCF then)
+    cubes           : (static, animated) cube maps per LocalLight
+    lit_sums        : as ``LightTerms.lit_sums``; None: nothing to shade (no points or
+                      no direct light), the result is ``distant`` alone
+    rows            : (m,) int64 points with an undecided pair
+    local_unsure    : (m, len(cubes)) bool, their undecided LocalLight pairs
+    """
+
+    positions: np.ndarray
+    normals: np.ndarray
+    rel: np.ndarray
+    lights: Lights
+    distant: np.ndarray
+    distant_unsure: np.ndarray
+    maps: list[tuple[ShadowMap | None, ShadowMap | None]]
+    cubes: list[tuple[CubeMap | None, CubeMap | None]]
+    lit_sums: tuple[np.ndarray, np.ndarray] | None
+    rows: np.ndarray
+    local_unsure: np.ndarray
+
+    def uncertain_pairs(self) -> UncertainPairs | None:
+        """The undecided pairs (DistantLight columns first), None when there are none."""
+        rows = self.rows
+        if not len(rows):
+            return None
+        pairs = np.concatenate([self.distant_unsure[rows], self.local_unsure], axis=1)
+        return UncertainPairs(self.positions[rows], self.normals[rows], pairs)
+
+    def resolved(self, exact: np.ndarray) -> LightTerms:
+        """The light terms with ``exact`` (m, L), an exact test's answer for
+        ``uncertain_pairs()``, at the undecided pairs."""
+        rows, distant = self.rows, self.distant
+        n_distant = distant.shape[1]
+        at, light = np.nonzero(self.local_unsure)
+        pairs = np.concatenate([self.distant_unsure[rows], self.local_unsure], axis=1)
+        exact = np.asarray(exact, dtype=np.float32).reshape(pairs.shape)
+        distant[rows] = np.where(pairs[:, :n_distant], exact[:, :n_distant], distant[rows])
+        weight = exact[:, n_distant:][at, light]
+        return self._terms(rows[at], light, weight)
+
+    def filtered(self) -> LightTerms:
+        """The light terms with the maps' PCF at the undecided pairs."""
+        if self.lit_sums is None:
+            return LightTerms(self.distant, None, None)
+        rel, normals, distant = self.rel, self.normals, self.distant
+        for k, pair in enumerate(self.maps):  # the uncertain DistantLight pairs
+            on = np.flatnonzero(self.distant_unsure[:, k])
+            distant[on, k] = 1.0
+            for mp in pair:
+                if mp is not None and len(on):
+                    distant[on, k] *= filtered_visibility(mp, rel[on], normals[on])[0]
+        at, light = np.nonzero(self.local_unsure)
+        point = self.rows[at]
+        weight = np.zeros(len(point), dtype=np.float32)
+        for k, pair in enumerate(self.cubes):
+            on = np.flatnonzero(light == k)
+            if len(on):
+                p = point[on]
+                weight[on] = cube_pair_visibility(pair, rel[p], normals[p], True)[0]
+        return self._terms(point, light, weight)
+
+    def _terms(self, point: np.ndarray, light: np.ndarray, weight: np.ndarray) -> LightTerms:
+        """LightTerms with the LocalLight pairs (``point``, ``light``) (k,) of visibility
+        ``weight`` (k,) float32 that let light by."""
+        lit = np.flatnonzero(weight > 0.0)
+        point, light, weight = point[lit], light[lit], weight[lit]
+        l_dir, dist = pair_directions(self.lights, self.positions, point, light)
+        return LightTerms(
+            self.distant, self.lit_sums, LightPairs(point, light, l_dir, dist, weight)
+        )
+
+
+class MapLighting:
+    """Looks points up in a ``RasterContext``'s shadow maps (see the module)."""
+
+    def __init__(self, ctx: RasterContext, maps: ShadowMaps, light_pass: LightPass) -> None:
+        self._ctx = ctx
+        self._maps = maps
+        self._light_pass = light_pass
+
+    def visibility(
+        self, positions: np.ndarray, normals: np.ndarray, filtered: bool, on_gpu: bool
+    ) -> MapVisibility:
+        """Fraction of every light reaching each point, by shadow mapping.
+
+        positions : (n, 3) float64 world metres
+        normals   : (n, 3) unit shading normals facing the viewer (for DistantLights
+                    only |n·L| is used, for the bias; LocalLights also skip points
+                    facing away)
+        filtered  : the uncertain LocalLight pairs get the maps' PCF here; else 0.5, for
+                    the caller to resolve (``MapVisibility.resolved``)
+        on_gpu    : LocalLight cube lookups on the GPU, else their numpy reference (same
+                    answers up to float32 rounding at the test's boundaries)
+        DistantLights: the product of the static and the animated casters' filtered
+        orthographic maps. LocalLights: cube maps, looked up only for points within the
+        light's range (``shading.light_ranges``) and facing it; other pairs get 0 (the
+        light contributes nothing there).
+        """
+        positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+        normals = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
+        lights = self._ctx.scene.lights
+        n_distant = len(lights.distant)
+        cubes = self._maps.cube_maps() if lights.local else []
+        n_lights = n_distant + len(cubes)
+        if len(positions) == 0 or n_lights == 0:
+            out = np.ones((len(positions), n_lights), dtype=np.float32)
+            return MapVisibility(positions, normals, out, np.zeros(out.shape, dtype=bool))
+        rel = positions - self._ctx.origin
+        if n_distant:  # else the LocalLight lookup's own arrays are used (see below)
+            out = np.ones((len(positions), n_lights), dtype=np.float32)
+            uncertain = np.zeros(out.shape, dtype=bool)
+            # The DistantLight columns are filled in place (views, disjoint from the
+            # LocalLight columns written below on this thread).
+            jobs = self._maps.distant_lookups(
+                rel, normals, out[:, :n_distant], uncertain[:, :n_distant]
+            )
+        else:
+            jobs = []
+        ranges = light_ranges(lights)
+        if cubes:  # meanwhile, on this thread (the GL context's)
+            local_vis, local_unsure = self._local_visibility(
+                rel, normals, cubes, ranges[n_distant:], filtered, on_gpu
+            )
+            if n_distant:
+                out[:, n_distant:] = local_vis
+                uncertain[:, n_distant:] = local_unsure
+            else:  # local lights only: the lookup's arrays are the answer (no copies)
+                out, uncertain = local_vis, local_unsure
+        for job in jobs:
+            job.result()
+        return MapVisibility(positions, normals, out, uncertain)
+
+    def _local_visibility(
+        self,
+        rel: np.ndarray,
+        normals: np.ndarray,
+        cubes: list[tuple[CubeMap | None, CubeMap | None]],
+        ranges: np.ndarray,
+        filtered: bool,
+        on_gpu: bool,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(n, len(cubes)) float32 visibility and bool uncertain of points ``rel`` (n, 3)
+        (rel metres) with ``normals`` (n, 3) for every LocalLight: 0 outside its range
+        ``ranges`` (len(cubes),) or facing away; uncertain pairs get PCF (``filtered``)
+        or 0.5. The bulk runs on the GPU (``on_gpu``), else in numpy."""
+        n = len(rel)
+        vis = np.zeros((n, len(cubes)), dtype=np.float32)
+        unsure = np.zeros((n, len(cubes)), dtype=bool)
+        if on_gpu:
+            codes = self._light_pass.lookup(rel, normals, cubes, ranges)
+            np.equal(codes, LOOKUP_LIT, out=vis, casting="unsafe")
+            np.equal(codes, LOOKUP_UNCERTAIN, out=unsure)
+            if not filtered:  # the caller resolves the uncertain pairs itself
+                vis[unsure] = 0.5
+                return vis, unsure
+        for k, pair in enumerate(cubes):
+            if on_gpu:
+                idx = np.flatnonzero(unsure[:, k])  # only these need more work
+                if len(idx) == 0:
+                    continue
+            else:
+                to_light = np.asarray(self._maps.cube_keys[k][0]) - rel
+                reach = np.einsum("ij,ij->i", to_light, to_light) < ranges[k] ** 2
+                reach &= np.einsum("ij,ij->i", normals, to_light) > 0.0
+                idx = np.flatnonzero(reach)
+            vis[idx, k], unsure[idx, k] = cube_pair_visibility(
+                pair, rel[idx], normals[idx], filtered
+            )
+        return vis, unsure
+
+    def light_terms(
+        self, positions: np.ndarray, normals: np.ndarray, to_eye: np.ndarray
+    ) -> PendingLightTerms:
+        """The shadow-mapped lighting of points, for ``shading.shade_local``: as
+        ``visibility`` (same maps), but the (point, light) pairs the maps decide are
+        lit, for every LocalLight and up to LOOKUP_MAX_DISTANT DistantLights, are also
+        *shaded* on the GPU in the lookup pass (``shaders/cube_lookup.frag``): no (n, L)
+        visibility matrix and no numpy shading of them; only the undecided pairs are
+        left to settle. Needs the GPU lookup.
+
+        positions : (n, 3) float64 world metres; normals : (n, 3) unit, facing the
+        viewer; to_eye : (n, 3) unit directions from the points to the viewer.
+        """
+        positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+        normals = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
+        lights = self._ctx.scene.lights
+        n, n_distant = len(positions), len(lights.distant)
+        distant = np.ones((n, n_distant), dtype=np.float32)
+        distant_unsure = np.zeros((n, n_distant), dtype=bool)
+        rel = positions - self._ctx.origin
+        if n == 0 or not lights.has_direct:  # nothing to look up: ``distant`` is all
+            return PendingLightTerms(
+                positions,
+                normals,
+                rel,
+                lights,
+                distant,
+                distant_unsure,
+                maps=[],
+                cubes=[],
+                lit_sums=None,
+                rows=np.zeros(0, dtype=np.int64),
+                local_unsure=np.zeros((0, 0), dtype=bool),
+            )
+        # Up to LOOKUP_MAX_DISTANT DistantLights are looked up and shaded on the GPU
+        # too; more are looked up in numpy meanwhile (and shaded by shade_local).
+        gpu_distant = n_distant <= LOOKUP_MAX_DISTANT
+        maps = self._maps.distant_maps() if gpu_distant and n_distant else []
+        jobs = (
+            [] if gpu_distant else self._maps.distant_lookups(rel, normals, distant, distant_unsure)
+        )
+        cubes = self._maps.cube_maps() if lights.local else []
+        ranges = light_ranges(lights)[n_distant:]
+        diffuse, highlight, bits = self._light_pass.lookup(
+            rel, normals, cubes, ranges, to_eye, maps
+        )
+        for job in jobs:
+            job.result()
+        if maps:
+            # Lit pairs are in the sums already: ``distant`` keeps only what shade_local
+            # must still add, the uncertain pairs once resolved.
+            distant[:] = 0.0
+            shifts = 16 + np.arange(n_distant, dtype=np.uint32)
+            distant_unsure = (bits[:, :1] >> shifts) & 1 > 0
+        # The pairs the maps could not decide, on the few rows that have any: the
+        # LocalLight ones are shaded from their visibility (exact, else the maps' PCF),
+        # the DistantLight ones are corrected in ``distant``.
+        unsure_rows = bits.any(axis=1)
+        if n_distant:
+            unsure_rows |= distant_unsure.any(axis=1)
+        rows = np.flatnonzero(unsure_rows)
+        local_unsure = np.zeros((len(rows), len(cubes)), dtype=bool)
+        for p, start in enumerate(range(0, len(cubes), LOOKUP_LIGHTS_PER_PASS)):
+            count = min(LOOKUP_LIGHTS_PER_PASS, len(cubes) - start)
+            shifts = np.arange(count, dtype=np.uint32)
+            local_unsure[:, start : start + count] = (bits[rows, p, None] >> shifts) & 1 > 0
+        return PendingLightTerms(
+            positions,
+            normals,
+            rel,
+            lights,
+            distant,
+            distant_unsure,
+            maps,
+            cubes,
+            (diffuse, highlight),
+            rows,
+            local_unsure,
+        )
