@@ -9,7 +9,7 @@ holds both occluding and clear depths is *uncertain*. The result (``MapVisibilit
 ``PendingLightTerms``) names those pairs (``uncertain``) and is finished in one of two
 ways, chosen by the caller (``render.lighting``): ``resolved`` with an exact answer for
 exactly those pairs (the tracer's shadow rays), or ``filtered``, the maps' own
-percentage-closer filtering.
+percentage-closer filtering; once, as both settle the result's arrays in place.
 
 Shapes: n points, D DistantLights, L lights in all (``shading``'s order: distant, then
 local). Positions are world metres (float64); lookups run in rel space (``context``).

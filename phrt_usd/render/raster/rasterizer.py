@@ -151,7 +151,9 @@ class Rasterizer:
         ``shadow_visibility``; to_eye : (n, 3) unit directions to the viewer."""
         return self._settle(self.map_light_terms(positions, normals, to_eye), refine)
 
-    def _settle(self, pending, refine: ExactTest | None):
+    def _settle(
+        self, pending: MapVisibility | PendingLightTerms, refine: ExactTest | None
+    ) -> np.ndarray | LightTerms:
         self.last_refined = self.last_refined_pairs = 0
         query = pending.uncertain_pairs()
         if refine is None or query is None:
