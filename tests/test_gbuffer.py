@@ -26,7 +26,7 @@ from phrt_usd.model.scene import (
     MaterialTable,
     Scene,
 )
-from phrt_usd.render.raster.gbuffer import sample_bilinear_wrap
+from phrt_usd.model.surface import sample_bilinear_wrap
 from phrt_usd.render.raster.rasterizer import Rasterizer
 
 W, H = 320, 240

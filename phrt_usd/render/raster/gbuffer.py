@@ -28,6 +28,7 @@ import pyrender
 from pyrender.constants import RenderFlags
 
 from phrt_usd.errors import PhrtError
+from phrt_usd.model import surface
 from phrt_usd.model.frame import GBuffer
 from phrt_usd.model.scene import NO_HIT, CameraFrame, Scene
 from phrt_usd.render.raster.context import (
@@ -116,8 +117,7 @@ class GBufferPass:
     def upload(self, scene: Scene) -> None:
         """All per-triangle tables, after the context uploaded ``scene``'s topology."""
         n = scene.geometry.triangle_count
-        self._tri64 = np.zeros((n, 13))
-        self._tri32 = np.zeros((n, 3, 6), dtype=np.float32)
+        self._table = surface.TriangleTable(n)
         self._fill_tables(scene, np.arange(n))
         self._textured(scene)
 
@@ -128,53 +128,17 @@ class GBufferPass:
         # other elements' shading is static (materials are not animated).
         check = np.flatnonzero(tri_moved | self._ctx.animated_tri)
         if len(check):
-            shading = np.concatenate([geo.corner_normals[check], geo.corner_albedo[check]], axis=2)
-            differs = np.any(shading != self._tri32[check], axis=(1, 2))
+            differs = self._table.corners_differ(geo.corner_normals, geo.corner_albedo, check)
             rows = check[tri_moved[check] | differs]
             if len(rows):
                 self._fill_tables(scene, rows)
 
     def _fill_tables(self, scene: Scene, rows: np.ndarray) -> None:
-        """Recompute the per-triangle tables of triangles ``rows``; packed so that each
-        frame does one gather per table.
-
-        _tri64 : (T, 13) float64, rel space. Columns: g1 (3), c1, g2 (3), c2, n_g (3),
-                 h, |n_g|. n_g = e1 x e2 (unnormalised geometric normal, e1 = b - a,
-                 e2 = c - a), h = n_g·a. For a point p on the plane, the barycentric
-                 weights of b and c are v = p·g1 - c1 and w = p·g2 - c2 (g1, g2: the dual
-                 basis of e1, e2 within the plane).
-        _tri32 : (T, 3, 6) float32, per corner its normal then its albedo
-                 (``Geometry.corner_normals`` / ``corner_albedo``), so that one
-                 weighted sum over the corners interpolates both.
-        """
+        """Recompute the per-triangle tables (``_table``, a ``surface.TriangleTable``,
+        rel space) of triangles ``rows``."""
         geo = scene.geometry
-        tri = geo.vertices[geo.triangles[rows]] - self._origin
-        a = tri[:, 0]
-        e1 = tri[:, 1] - a
-        e2 = tri[:, 2] - a
-        ng = np.cross(e1, e2)
-        d00 = np.einsum("ij,ij->i", e1, e1)
-        d01 = np.einsum("ij,ij->i", e1, e2)
-        d11 = np.einsum("ij,ij->i", e2, e2)
-        den = d00 * d11 - d01**2
-        # Degenerate (zero-area) triangles never cover a pixel; guard the division anyway.
-        inv = np.where(den > 0.0, 1.0 / np.where(den > 0.0, den, 1.0), 0.0)[:, None]
-        g1 = (d11[:, None] * e1 - d01[:, None] * e2) * inv
-        g2 = (d00[:, None] * e2 - d01[:, None] * e1) * inv
-        self._tri64[rows] = np.concatenate(
-            [
-                g1,
-                np.einsum("ij,ij->i", a, g1)[:, None],
-                g2,
-                np.einsum("ij,ij->i", a, g2)[:, None],
-                ng,
-                np.einsum("ij,ij->i", a, ng)[:, None],
-                np.linalg.norm(ng, axis=1)[:, None],
-            ],
-            axis=1,
-        )
-        self._tri32[rows] = np.concatenate(
-            [geo.corner_normals[rows], geo.corner_albedo[rows]], axis=2
+        self._table.fill(
+            geo.vertices, geo.triangles, self._origin, geo.corner_normals, geo.corner_albedo, rows
         )
 
     def _textured(self, scene: Scene) -> None:
@@ -274,7 +238,7 @@ class GBufferPass:
         if not np.allclose(rot.T @ rot, np.eye(3), rtol=0.0, atol=1e-12):
             d /= np.linalg.norm(d, axis=1, keepdims=True)
 
-        covered = np.flatnonzero((ids > 0) & (ids <= len(self._tri64)))
+        covered = np.flatnonzero((ids > 0) & (ids <= len(self._table)))
         tid = ids[covered].astype(np.int64) - 1
 
         triangle_id = np.full(h * w, NO_HIT, dtype=np.int32)
@@ -327,7 +291,7 @@ class GBufferPass:
         geo = self._scene.geometry
         # np.take: several times faster than fancy indexing for row gathers.
         dc = np.take(d, covered, axis=0)
-        tab = np.take(self._tri64, tid, axis=0)  # (n, 13), see _fill_tables
+        tab = np.take(self._table.plane, tid, axis=0)  # (n, 13), see surface.TriangleTable
         ng = tab[:, 8:11]
         # Ray-plane intersection in float64, rel space: t = (h - n·o) / n·d.
         den = np.einsum("ij,ij->i", ng, dc)
@@ -348,25 +312,22 @@ class GBufferPass:
         bary /= np.maximum(b0 + b1 + b2, 1e-12)[:, None]
         bary = bary.astype(np.float32)  # (n, 3)
 
-        # (n, 6): interpolated normal then albedo (corners (n, 3, 6), see _fill_tables).
-        values = np.einsum("ij,ijk->ik", bary, np.take(self._tri32, tid, axis=0))
-        n = values[:, :3]
+        # (n, 6): interpolated normal then albedo (corners (n, 3, 6), surface.TriangleTable),
+        # the normal turned by the side rule (the sign of den = n_g·d decides the side).
+        values = surface.interpolate(np.take(self._table.corners, tid, axis=0), bary)
+        side = surface.viewer_side(den)
+        n = surface.orient_shading_normals(values[:, :3], side, dc, self._table, tid)
         col = values[:, 3:]
-
-        # Shading normal on the camera's side of the triangle; where it still faces
-        # away (or is degenerate), use the geometric normal.
-        side = np.where(den > 0.0, -1.0, 1.0)  # n_g·d > 0: the back face is seen
-        n *= side[:, None].astype(np.float32)
-        n_len = np.sqrt(np.einsum("ij,ij->i", n, n))
-        bad = (n_len < 1e-6) | (np.einsum("ij,ij->i", n, dc) >= 0.0)
-        n /= np.maximum(n_len, 1e-6)[:, None]
-        if bad.any():
-            g = ng[bad] * (side[bad] / np.maximum(tab[bad, 12], 1e-300))[:, None]
-            n[bad] = g.astype(np.float32)
-
         textured = self._tri_textured[tid]
         if textured.any():
-            col[textured] = self._texture_albedo(tid[textured], bary[textured])
+            col[textured] = surface.texture_albedo(
+                col[textured],
+                tid[textured],
+                bary[textured],
+                geo.tri_material,
+                geo.corner_uv,
+                self._scene.materials.textures,
+            )
         # Sorted pixel indices without gaps (every pixel of an enclosed view is covered):
         # slice writes, much faster than scattering.
         if covered[-1] - covered[0] + 1 == len(covered):
@@ -377,45 +338,3 @@ class GBufferPass:
         out.element_id[covered] = np.take(geo.tri_element, tid)
         out.position[covered] = p_rel + self._origin
         out.depth[covered] = t * transform_rows(dc, fwd[None])[:, 0]
-
-    def _texture_albedo(self, tid: np.ndarray, bary: np.ndarray) -> np.ndarray:
-        """(n, 3) float32 linear RGB for pixels on textured triangles: bilinear, wrapping
-        lookup of the material's texture at the interpolated uv (image row 0 = top, so
-        v = 0 is the bottom row: the USD ``st`` convention).
-
-        tid : (n,) triangle ids, all textured; bary : (n, 3) float32 weights.
-        """
-        geo = self._scene.geometry
-        textures = self._scene.materials.textures
-        uv = (bary[:, :, None] * geo.corner_uv[tid]).sum(axis=1)
-        mats = geo.tri_material[tid]
-        out = np.zeros((len(tid), 3), dtype=np.float32)
-        for m in np.unique(mats):  # loop over the few textured materials in view
-            sel = mats == m
-            out[sel] = sample_bilinear_wrap(textures[m], uv[sel])
-        return out
-
-
-def sample_bilinear_wrap(texture: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """Bilinear texture lookup with wrap-around.
-
-    texture : (h, w, 3) float32 linear RGB, row 0 = top of the image
-    uv      : (n, 2) texture coordinates, (0, 0) = bottom-left, period 1
-    Returns (n, 3) float32.
-    """
-    th, tw = texture.shape[:2]
-    uv = np.nan_to_num(np.asarray(uv, dtype=np.float64), nan=0.0, posinf=0.0, neginf=0.0)
-    uv = uv - np.floor(uv)  # wrap first: keeps the integer texel indices small
-    fx = uv[:, 0] * tw - 0.5
-    fy = (1.0 - uv[:, 1]) * th - 0.5
-    x0 = np.floor(fx)
-    y0 = np.floor(fy)
-    wx = (fx - x0)[:, None]
-    wy = (fy - y0)[:, None]
-    x0 = x0.astype(np.int64) % tw
-    y0 = y0.astype(np.int64) % th
-    x1 = (x0 + 1) % tw
-    y1 = (y0 + 1) % th
-    top = texture[y0, x0] * (1 - wx) + texture[y0, x1] * wx
-    bottom = texture[y1, x0] * (1 - wx) + texture[y1, x1] * wx
-    return (top * (1 - wy) + bottom * wy).astype(np.float32)
