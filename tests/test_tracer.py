@@ -306,7 +306,7 @@ def test_total_internal_reflection_and_no_refraction_work_when_opaque():
     tracer.trace_reflections(gb, [0, 1], 5)
     assert tracer.rays_cast["refraction"] == 0
     # Snell at grazing incidence from inside glass: beyond the critical angle, mirror.
-    from phrt_usd.render.trace.tracer import _refract
+    from phrt_usd.render.trace.paths import refract as _refract
 
     d = np.array([[np.sin(1.0), np.cos(1.0), 0.0]])  # 57° > 41.8° critical, leaving
     out = _refract(d, np.array([[0.0, 1.0, 0.0]]), np.array([[0.0, 1.0, 0.0]]), np.array([1.5]))
@@ -481,7 +481,7 @@ def _single_bvh_cast(scene: Scene, o32: np.ndarray, d32: np.ndarray):
 
 def _hit_t(tracer: Tracer, prim, u, v, o32, d32) -> np.ndarray:
     """Ray parameter of hits rebuilt from the tracer's triangle table (inf for misses)."""
-    g = tracer._tri_geom[np.maximum(prim, 0)]
+    g = tracer.bvh.table.frame[np.maximum(prim, 0)]
     p = g[:, 0] + u[:, None] * g[:, 1] + v[:, None] * g[:, 2]
     t = np.einsum("ij,ij->i", p - o32, d32.astype(np.float64))
     return np.where(prim >= 0, t, np.inf)
@@ -492,19 +492,19 @@ def test_moved_animated_element_is_hit_at_its_new_place_only():
     scene = make_scene(parts)
     scene.elements[1].animated = True
     tracer = Tracer(scene, threads=1)
-    static_bvh = tracer._static
+    static_bvh = tracer.bvh.static
     down = np.array([[0.0, 10.0, 0.0], [4.0, 10.0, 0.0]])  # above the box, above x = 4
     dirs = np.tile([0.0, -1.0, 0.0], (2, 1))
-    hits = tracer._intersect(down - scene.origin, dirs)
+    hits = tracer.bvh.intersect(down - scene.origin, dirs)
     np.testing.assert_array_equal(scene.geometry.tri_element[hits.tri], [1, 0])
     box_vertices = np.unique(scene.geometry.triangles[scene.geometry.tri_element == 1])
     scene.geometry.vertices[box_vertices] += (4.0, 0.0, 0.0)
     tracer.update_geometry(scene)
-    assert not tracer.last_build_full and tracer._static is static_bvh  # static BVH kept
-    hits = tracer._intersect(down - scene.origin, dirs)
+    assert not tracer.last_build_full and tracer.bvh.static is static_bvh  # static BVH kept
+    hits = tracer.bvh.intersect(down - scene.origin, dirs)
     np.testing.assert_array_equal(scene.geometry.tri_element[hits.tri], [0, 1])
     # The box top is now at y = 1.5 above x = 4; the hit point is rebuilt there.
-    rel, _, _, _, _ = tracer._surface(hits.tri, hits.u, hits.v, dirs)
+    rel, _, _, _, _ = tracer.surfaces.at(hits.tri, hits.u, hits.v, dirs)
     np.testing.assert_allclose(rel[1] + scene.origin, [4.0, 1.5, 0.0], atol=1e-5)
     np.testing.assert_allclose(rel[0] + scene.origin, [0.0, 0.0, 0.0], atol=1e-5)
     # Shadow rays see it at the new place only.
@@ -512,14 +512,14 @@ def test_moved_animated_element_is_hit_at_its_new_place_only():
     scene.lights = lights
     vis = tracer.shadow_visibility(down * (1, 0, 1), np.tile([0.0, 1.0, 0.0], (2, 1)))
     np.testing.assert_array_equal(vis[:, 0], [1.0, 0.0])
-    assert tracer.extent == pytest.approx(scene.extent, rel=1e-12)
+    assert tracer.bvh.boundary.extent == pytest.approx(scene.extent, rel=1e-12)
     # A static element that moves is not missed: full rebuild.
     floor_vertices = np.unique(scene.geometry.triangles[scene.geometry.tri_element == 0])
     scene.geometry.vertices[floor_vertices] += (0.0, -1.0, 0.0)
     tracer.update_geometry(scene)
     assert tracer.last_build_full
-    hits = tracer._intersect(down[:1] - scene.origin, dirs[:1])
-    rel, _, _, _, _ = tracer._surface(hits.tri, hits.u, hits.v, dirs[:1])
+    hits = tracer.bvh.intersect(down[:1] - scene.origin, dirs[:1])
+    rel, _, _, _, _ = tracer.surfaces.at(hits.tri, hits.u, hits.v, dirs[:1])
     np.testing.assert_allclose(rel[0] + scene.origin, [0.0, -1.0, 0.0], atol=1e-5)
 
 
@@ -527,15 +527,15 @@ def test_static_only_scene_costs_one_query_per_batch():
     lights = Lights(distant=[DistantLight(np.array([0.0, 1.0, 0.0]), np.ones(3))])
     parts = [dict(mesh=quad(20.0), F=1.0), dict(mesh=sphere((0, 1, 0), 1.0, 3))]
     tracer = Tracer(make_scene(parts, lights), threads=1)
-    assert tracer._dynamic is None
+    assert tracer.bvh.dynamic is None
     gb = tracer.primary_gbuffer(look_at((0, 3, 6), (0, 0, 0)), 40, 30)
-    counter = _CountingBVH(tracer._static)
-    tracer._static = counter
+    counter = _CountingBVH(tracer.bvh.static)
+    tracer.bvh.static = counter
     tracer.record_rays = True
     tracer.trace_reflections(gb, [0], 5)
     assert counter.calls == len(tracer.last_rays) > 0
     tracer.update_geometry(tracer.scene)  # nothing moved: nothing rebuilt
-    assert tracer._static is counter and not tracer.last_build_full
+    assert tracer.bvh.static is counter and not tracer.last_build_full
 
 
 @pytest.mark.parametrize("seed", range(4))
@@ -571,7 +571,7 @@ def test_two_bvhs_match_a_single_bvh_on_random_scenes(seed):
             scene.geometry.vertices[ids] += rng.normal(scale=0.5, size=3)
             tracer.update_geometry(scene)
             assert not tracer.last_build_full
-        prim, u, v = tracer._run("INTERSECT", o32, d32)
+        prim, u, v = tracer.bvh.run("INTERSECT", o32, d32)
         ref_prim, ref_t, ref_occluded = _single_bvh_cast(scene, o32, d32)
         t = _hit_t(tracer, prim, u, v, o32, d32)
         assert np.mean(ref_prim >= 0) > 0.3  # the rays do hit things
@@ -582,7 +582,7 @@ def test_two_bvhs_match_a_single_bvh_on_random_scenes(seed):
         # Same triangle, except where two triangles are hit at the same t (a tie, which
         # either BVH may break either way; the t check above holds for those too).
         assert np.mean(prim[hit] == ref_prim[hit]) > 0.999
-        occluded = tracer._run("OCCLUDED", o32, d32, np.full(n_rays, 3.0))
+        occluded = tracer.bvh.run("OCCLUDED", o32, d32, np.full(n_rays, 3.0))
         np.testing.assert_array_equal(occluded, ref_occluded)
 
 
@@ -619,7 +619,7 @@ def test_records_count_every_ray_cast_per_source():
 def test_shading_split_over_threads_matches_one_thread(monkeypatch):
     """Local shading of large batches runs in chunks on the pool: same radiance, ray
     counts and shadow visibility as on one thread (threshold lowered to force it)."""
-    import phrt_usd.render.trace.tracer as tracer_module
+    import phrt_usd.render.trace.shadow_rays as tracer_module
     from phrt_usd.model.scene import LocalLight
 
     lights = Lights(
