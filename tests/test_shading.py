@@ -6,6 +6,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from phrt_usd.model import surface
 from phrt_usd.model.scene import DEFAULT_ENVIRONMENT, DistantLight, DomeLight, Lights, LocalLight
 from phrt_usd.render import shading
 
@@ -164,7 +165,7 @@ def test_shading_finite_for_extreme_positions(x, y):
 def test_sample_texture_st_origin_bottom_left():
     tex = np.zeros((4, 4, 3), np.float32)
     tex[3, 0] = 1.0  # bottom-left texel
-    got = shading.sample_texture(tex, np.array([[0.125, 0.125], [0.875, 0.875]]))
+    got = surface.sample_bilinear_wrap(tex, np.array([[0.125, 0.125], [0.875, 0.875]]))
     np.testing.assert_allclose(got, [[1, 1, 1], [0, 0, 0]])
 
 

@@ -54,7 +54,7 @@ import numpy as np
 
 from phrt_usd.errors import PhrtError
 from phrt_usd.model.scene import DEFAULT_ENVIRONMENT, CameraFrame, Scene
-from phrt_usd.render.shading import sample_texture
+from phrt_usd.model.surface import sample_bilinear_wrap
 
 #: Reflectivity groups are F rounded to this step: a handful of meshes per scene.
 F_STEP = 0.05
@@ -108,7 +108,7 @@ def corner_colors(scene: Scene) -> np.ndarray:
         tris = np.flatnonzero(geo.tri_material == m)
         if len(tris):
             uv = geo.corner_uv[tris].reshape(-1, 2)
-            colors[tris] = sample_texture(texture, uv).reshape(-1, 3, 3)
+            colors[tris] = sample_bilinear_wrap(texture, uv).reshape(-1, 3, 3)
     return colors
 
 

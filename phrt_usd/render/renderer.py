@@ -41,7 +41,15 @@ from phrt_usd.render.compositing import (
 )
 from phrt_usd.render.lighting import shade_gbuffer
 from phrt_usd.select.policies import UPCOMING_CAMERAS, make_policy
-from phrt_usd.usd.schema import DEFAULT_SELECTION_WEIGHT
+from phrt_usd.usd.schema import (
+    DEFAULT_BOUNCE_LIMIT,
+    DEFAULT_BUDGET_MS,
+    DEFAULT_HEURISTIC,
+    DEFAULT_MODE,
+    DEFAULT_RESOLUTION,
+    DEFAULT_SELECTION_WEIGHT,
+    MAX_BOUNCE_LIMIT,
+)
 from phrt_usd.usd.stage import StageScene
 
 MODES = ("raster", "hybrid", "rt")
@@ -60,15 +68,16 @@ MAX_BUDGET_RAYS = 10**12
 
 @dataclass
 class RenderOptions:
-    """How to render. ``None`` budgets are unbounded."""
+    """How to render. ``None`` budgets are unbounded. Defaults are the schema's
+    (``PhrtRenderSettingsAPI`` fallbacks in ``usd.schema``), declared there once."""
 
-    mode: str = "hybrid"
-    heuristic: str = "heu1"
-    width: int = 320
-    height: int = 240
-    budget_ms: float | None = 10.0
+    mode: str = DEFAULT_MODE
+    heuristic: str = DEFAULT_HEURISTIC
+    width: int = DEFAULT_RESOLUTION[0]
+    height: int = DEFAULT_RESOLUTION[1]
+    budget_ms: float | None = DEFAULT_BUDGET_MS
     budget_rays: int | None = None
-    bounce_limit: int = 5
+    bounce_limit: int = DEFAULT_BOUNCE_LIMIT
     selection_weight: float = DEFAULT_SELECTION_WEIGHT
     threads: int = 2
 
@@ -92,8 +101,10 @@ class RenderOptions:
             raise BadOption(
                 f"--budget-rays must be in 0..{MAX_BUDGET_RAYS}, got {self.budget_rays}"
             )
-        if not 0 <= self.bounce_limit <= 16:
-            raise BadOption(f"bounce limit must be in 0..16, got {self.bounce_limit}")
+        if not 0 <= self.bounce_limit <= MAX_BOUNCE_LIMIT:
+            raise BadOption(
+                f"bounce limit must be in 0..{MAX_BOUNCE_LIMIT}, got {self.bounce_limit}"
+            )
         if not (self.selection_weight >= 0 and np.isfinite(self.selection_weight)):
             raise BadOption(f"selection weight I must be finite and >= 0: {self.selection_weight}")
 

@@ -129,19 +129,6 @@ def _safe_normalize(v: np.ndarray, fallback: np.ndarray) -> np.ndarray:
     return out
 
 
-def sample_texture(texture: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """Bilinear lookup of a (h, w, 3) float32 texture at (n, 2) USD texture coordinates.
-
-    USD's st origin is the bottom-left of the image (row h-1); coordinates wrap (repeat).
-    Non-finite coordinates read texel (0, 0). Returns (n, 3) float32.
-    """
-    h, w = texture.shape[:2]
-    uv = np.where(np.isfinite(uv), uv, 0.0).astype(np.float64)
-    x = (uv[:, 0] % 1.0) * w - 0.5
-    y = ((1.0 - uv[:, 1]) % 1.0) * h - 0.5
-    return _bilinear(texture, x, y, wrap_y=True)
-
-
 def _bilinear(texture: np.ndarray, x: np.ndarray, y: np.ndarray, wrap_y: bool) -> np.ndarray:
     """Bilinear sample at continuous pixel coordinates (x: column, y: row; texel centres
     at integer + 0.5 - 0.5 = integers). x always wraps; y wraps or clamps."""

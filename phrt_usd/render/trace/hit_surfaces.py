@@ -17,7 +17,6 @@ import numpy as np
 
 from phrt_usd.model import surface
 from phrt_usd.model.scene import Scene
-from phrt_usd.render import shading
 from phrt_usd.render.trace.bvh import Bvh
 
 #: Smallest index of refraction used (ior ≤ 0 is meaningless; Snell's law stays finite).
@@ -80,9 +79,6 @@ class HitSurfaces:
         corners = np.take(self._bvh.table.corners, tri, axis=0)  # (m, 3, 6)
         albedo = surface.interpolate(corners[:, :, 3:], weights)
         if self._textures:
-            # shading.sample_texture, not surface.sample_bilinear_wrap: the two bilinear
-            # samplers round differently in the last bit (float32 vs float64 weights);
-            # one sampler for both modes would change ``rt`` or raster pixels.
             surface.texture_albedo(
                 albedo,
                 tri,
@@ -90,7 +86,6 @@ class HitSurfaces:
                 self._bvh.tri_material,
                 self._scene.geometry.corner_uv,
                 self._textures,
-                sample=shading.sample_texture,
             )
         if self._has_emission:
             emissive = self._emissive[np.take(self._bvh.tri_material, tri)]
