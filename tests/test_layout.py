@@ -13,6 +13,7 @@ PACKAGE = Path(__file__).resolve().parent.parent / "phrt_usd"
 PHASES = {
     "errors": 0,
     "atomic": 0,
+    "threads": 0,
     "model": 1,
     "usd": 2,
     "select": 3,

@@ -41,6 +41,7 @@ from phrt_usd.render.compositing import (
 )
 from phrt_usd.render.lighting import shade_gbuffer
 from phrt_usd.select.policies import UPCOMING_CAMERAS, make_policy
+from phrt_usd.threads import DEFAULT_THREADS
 from phrt_usd.usd.schema import (
     DEFAULT_BOUNCE_LIMIT,
     DEFAULT_BUDGET_MS,
@@ -79,7 +80,7 @@ class RenderOptions:
     budget_rays: int | None = None
     bounce_limit: int = DEFAULT_BOUNCE_LIMIT
     selection_weight: float = DEFAULT_SELECTION_WEIGHT
-    threads: int = 2
+    threads: int = DEFAULT_THREADS  # the tracer's pool (phrt_usd.threads)
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:

@@ -29,13 +29,13 @@ row 0 latitude +π/2; longitude 0 points to +Z and longitude +π/2 to +X.
 
 from __future__ import annotations
 
-import os
 from concurrent.futures import ThreadPoolExecutor
 from typing import NamedTuple
 
 import numpy as np
 
 from phrt_usd.model.scene import DEFAULT_ENVIRONMENT, DomeLight, Lights
+from phrt_usd.threads import DEFAULT_THREADS
 
 #: Smallest light-to-surface distance in metres used for the 1/d² fall-off of LocalLights.
 #: A surface point at (or numerically on) a point light would otherwise get Inf irradiance.
@@ -65,9 +65,10 @@ _SHININESS_SQUARINGS = (
 #: Weight of the white Blinn-Phong highlight relative to the diffuse term.
 SPECULAR_STRENGTH = 0.25
 
-#: Threads ``shade_local`` splits large batches over (points are independent), and the
-#: smallest batch worth splitting (below it thread hand-off costs more than it saves).
-SHADE_THREADS = max(1, min(4, os.cpu_count() or 1))
+#: Threads ``shade_local`` splits large batches over (points are independent:
+#: ``phrt_usd.threads``), and the smallest batch worth splitting (below it thread hand-off
+#: costs more than it saves).
+SHADE_THREADS = DEFAULT_THREADS
 SHADE_MIN_THREADED_POINTS = 8192
 
 #: Directions shorter than this are treated as zero-length (looked up as dome-space +Y)

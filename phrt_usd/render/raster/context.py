@@ -35,6 +35,7 @@ from pyrender.shader_program import ShaderProgramCache
 
 from phrt_usd.errors import PhrtError
 from phrt_usd.model.scene import Scene
+from phrt_usd.threads import DEFAULT_THREADS
 
 #: Directory of our GLSL files (``flat.*``: id pass, ``depth.*``: shadow-map pass,
 #: ``cube_lookup.*``: the light pass).
@@ -42,8 +43,8 @@ SHADER_DIR = os.path.join(os.path.dirname(os.path.abspath(__file__)), "shaders")
 
 #: Worker threads deriving the G-buffer from the id image and looking points up in the
 #: shadow maps (numpy releases the GIL in its loops, so the pixels / points are split
-#: into this many chunks).
-WORKER_THREADS = max(1, min(2, os.cpu_count() or 1))
+#: into this many chunks): ``phrt_usd.threads``.
+WORKER_THREADS = DEFAULT_THREADS
 
 #: Clip ranges tightened to the scene's bounds (nothing exists outside them) are padded
 #: by this fraction of the scene extent so that bounding geometry is not clipped.

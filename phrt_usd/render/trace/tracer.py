@@ -44,6 +44,7 @@ from phrt_usd.render.trace.bvh import Bvh
 from phrt_usd.render.trace.hit_surfaces import HitSurfaces
 from phrt_usd.render.trace.paths import PathTracer, refract, unit
 from phrt_usd.render.trace.shadow_rays import ShadowRays
+from phrt_usd.threads import DEFAULT_THREADS
 
 
 class Tracer:
@@ -61,7 +62,7 @@ class Tracer:
     last_build_full : True when it rebuilt the static BVH too (False: animated only).
     """
 
-    def __init__(self, scene: Scene, threads: int = 2) -> None:
+    def __init__(self, scene: Scene, threads: int = DEFAULT_THREADS) -> None:
         self.threads = max(1, int(threads))
         self._pool = ThreadPoolExecutor(self.threads) if self.threads > 1 else None
         self.rays_cast: dict[str, int] = {}
