@@ -1,9 +1,10 @@
 """Per-frame data passed between the render phases (the contracts between modules).
 
-    G-buffer (gbuffer.py, or tracer.py in ``rt`` mode)
-      → candidates and selection rounds (heuristic.py, a ``SelectionPolicy``)
-      → reflection tracing of the selected reflectors' pixels (tracer.py)
-      → compositing (compositing.py) → images (images.py), stats and layer (selection_layer.py)
+    G-buffer (render/raster/gbuffer.py, or render/trace/tracer.py in ``rt`` mode)
+      → candidates and selection rounds (select/policies.py, a ``SelectionPolicy``)
+      → reflection tracing of the selected reflectors' pixels (render/trace/tracer.py)
+      → compositing (render/compositing.py) → images (run/images.py), stats and layer
+        (run/selection_layer.py)
 
 Images are (H, W, ...) arrays, row 0 at the top, in linear RGB.
 """
@@ -99,7 +100,7 @@ class FrameView:
     screen_boxes: (E, 4) float64 pixel bounds (col_min, row_min, col_max, row_max) of
         each reflector's visible pixels, NaN where it has none; None if not computed.
     upcoming_cameras: the cameras of the next frames of the render, in order (at most
-        ``heuristic.UPCOMING_CAMERAS``; empty when the renderer does not know them, e.g.
+        ``select.policies.UPCOMING_CAMERAS``; empty when the renderer does not know them, e.g.
         for the last frame or a single-frame render). A stage's camera path is known in
         advance, so HEU1 can forecast a reflector's cost from it.
     """

@@ -413,9 +413,10 @@ def shade_local(
                  They replace the LocalLight columns of ``visibility``, and the same
                  model is evaluated on them without recomputing directions.
     lit_sums   : optional (diffuse (n, 3), highlight (n, 3)) float32: the terms of
-                 (point, light) pairs already shaded elsewhere (``gbuffer.Rasterizer.
-                 light_terms``, on the GPU), per pair ``radiance * n·l`` (LocalLights
-                 also ``* window / d²``) and that times the highlight. Added as
+                 (point, light) pairs already shaded elsewhere (``LightTerms.lit_sums``
+                 of ``render.raster.map_lighting``, on the GPU), per pair
+                 ``radiance * n·l`` (LocalLights also ``* window / d²``) and that times
+                 the highlight. Added as
                  ``albedo * diffuse + highlight``; LocalLights are then evaluated only
                  at ``local_pairs``, and ``visibility`` needs only its DistantLight
                  columns, 0 for pairs already in the sums.

@@ -22,7 +22,7 @@ What this module guarantees:
 * ``in_place=True`` keeps the file's format: a text layer stays text, a crate stays
   crate (a ``.usd`` file keeps whichever of the two it is). A ``.usdz`` package is never
   edited in place (refused, the file untouched); write an overlay instead.
-* Every file goes through ``run_files.atomic_path`` (temp file beside the target, then a
+* Every file goes through ``phrt_usd.atomic.atomic_path`` (temp file beside the target, then a
   rename; an existing file's mode is kept, a new file follows the umask), and the written
   layer is reopened and checked before it replaces the target. On any failure the
   target keeps its previous content.
