@@ -2,10 +2,12 @@
 trace phase's ray throughput against raw embreex on exactly the same rays, same run.
 
     uv run python tools/bench.py stages/farm.usda stages/sewer.usda \
-        --resolutions 320x240,640x480 --frames 1:720:24 [--append BENCHMARKS.md]
+        --resolutions 320x240,640x480 --frames 1:720:24 \
+        [--append docs/bench-log/DATE-COMMIT-frame-phases.md]
 
 Prints a markdown table (and appends it, with the command, date and core count, to the
-file given by --append). Timings are wall-clock medians over the chosen frames; the
+file given by --append: a new log file in docs/bench-log/, see BENCHMARKS.md "How to
+measure"). Timings are wall-clock medians over the chosen frames; the
 first frame of every configuration is rendered once untimed as warm-up.
 """
 

@@ -1,7 +1,8 @@
 """Peer benchmark: our three modes against pyrender, raw embreex and Mitsuba 3, side by side.
 
     uv run python tools/bench_peers.py stages/farm.usda stages/sewer.usda \
-        --resolutions 320x240,640x480 --frames 5 --profile 30 --append BENCHMARKS.md
+        --resolutions 320x240,640x480 --frames 5 --profile 30 \
+        --append docs/bench-log/DATE-COMMIT-peers.md
 
 For each stage x resolution, on the same frames (``--frames N``: N frames spread evenly
 along the stage's frame range, or an explicit ``A:B[:STEP]``), in one run:
@@ -23,7 +24,8 @@ along the stage's frame range, or an explicit ``A:B[:STEP]``), in one run:
   exported once at the first frame's time (animated prims stay there).
 
 Prints markdown tables of medians and ratios (ours / peer), optionally appends them, the
-command, core count, date and git commit to ``--append``. ``--profile N`` also runs
+command, core count, date and git commit to ``--append`` (a new log file in
+docs/bench-log/, see BENCHMARKS.md "How to measure"). ``--profile N`` also runs
 pyinstrument over N hybrid frames per stage and lists the functions with the most own
 time (pyinstrument samples the main thread only: time in worker threads shows up as the
 main thread waiting for them).

@@ -3,12 +3,14 @@ stages, from full camera-path renders with HEU1 and HEU2 under the same budget.
 
     uv run python tools/paper_tables.py stages/farm.usda stages/sewer.usda \
         --budget-rays 20000 [--budget-ms 10] [--frames A:B:STEP] [--out runs/paper] \
-        [--append BENCHMARKS.md]
+        [--append docs/bench-log/DATE-COMMIT-paper-tables.md]
 
 Each stage × heuristic is one `phrt render` run (no images) into OUT/<stage>-<heu>;
 the tables come from `phrt report` on those runs (`build_report(..., vs=...)`).
 ``--samples N`` renders the stage's whole camera path at N evenly spaced time codes
 (the paper's paths run 10,000 frames; ours span 720 time codes) instead of ``--frames``.
+``--append FILE`` also appends the tables, with the command, date and core count, to
+FILE: a new log file in docs/bench-log/, see BENCHMARKS.md "How to measure".
 """
 
 from __future__ import annotations
