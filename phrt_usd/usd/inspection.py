@@ -12,13 +12,11 @@ authored opacity < 1; ``environment`` iff a DomeLight exists.
 from __future__ import annotations
 
 from dataclasses import asdict
-from pathlib import Path
 
 import numpy as np
 from pxr import Usd, UsdGeom, UsdLux, UsdShade
 
 from phrt_usd.usd import schema
-from phrt_usd.usd.stage import open_usd
 
 SHADOW_LIGHT_TYPES = ("DistantLight", "SphereLight", "RectLight")
 ENVIRONMENT_LIGHT_TYPES = ("DomeLight", "DomeLight_1")
@@ -139,8 +137,3 @@ def inspect_stage(stage: Usd.Stage, label: str | None = None) -> dict:
         "lights": lights,
         "passes": required_passes(stage, lights, len(reflectors)),
     }
-
-
-def inspect_file(path: str | Path) -> dict:
-    """Open and inspect; PhrtError when the file cannot be opened as USD."""
-    return inspect_stage(open_usd(path), str(path))

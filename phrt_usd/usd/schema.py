@@ -95,11 +95,6 @@ _TYPES = {
 }
 
 
-def attribute_type(name: str) -> Sdf.ValueTypeName:
-    """The value type of a Phrt attribute (e.g. ``Sdf.ValueTypeNames.Float`` for PRIORITY)."""
-    return _TYPES[name]
-
-
 def _set(prim: Usd.Prim, name: str, value, time: Usd.TimeCode | None = None) -> None:
     attr = prim.GetAttribute(name)  # valid when the schema defines it or it is authored
     if not attr:
@@ -354,11 +349,3 @@ def read_render_params(stage: Usd.Stage, settings_path: str | None = None) -> Re
         camera_path=str(cameras[0]) if cameras else None,
         settings_path=str(prim.GetPath()),
     )
-
-
-def set_figure(prim: Usd.Prim, name: str, value: float | bool, time: float) -> None:
-    """Write one per-frame figure (SELECTED, VISIBLE, FIGURE_V, ...) at time code ``time``
-    in the current edit target (the selection layer)."""
-    if name not in (SELECTED, VISIBLE, FIGURE_V, FIGURE_C, FIGURE_R, FIGURE_Q, FIGURE_S):
-        raise ValueError(f"{name} is not a per-frame figure")
-    _set(prim, name, value, Usd.TimeCode(time))
