@@ -150,3 +150,12 @@ def test_raster_run_casts_no_rays(tmp_path):
     stats = json.loads((tmp_path / "r" / "stats.json").read_text())
     assert all(f["rays"] == 0 for f in stats["frames"])
     assert np.isfinite(summary["median_frame_ms"])
+
+
+def test_parse_frames_takes_usd_frame_specs():
+    """USD's FrameSpec (as usdrecord takes it): strides, counting down, comma lists;
+    rendered once each in increasing time order."""
+    assert parse_frames("101:109x2", (0, 0)) == [101, 103, 105, 107, 109]
+    assert parse_frames("10:1x-2", (0, 0)) == [2, 4, 6, 8, 10]
+    assert parse_frames("1:3,10,20:30x5,2", (0, 0)) == [1, 2, 3, 10, 20, 25, 30]
+    assert parse_frames("1:2x0.5", (0, 0)) == [1, 1.5, 2]

@@ -1,37 +1,83 @@
-"""Which frames a render covers: the ``--frames`` grammar to a list of time codes."""
+"""Which frames a render covers: the ``--frames`` grammar to a list of time codes.
+
+Accepted, in stage time codes, both ends included:
+
+* USD's FrameSpec, as ``usdrecord`` takes it (``UsdUtils.TimeCodeRange``): ``A``,
+  ``A:B``, ``A:BxSTRIDE`` (``101:109x2`` → 101, 103, ..., 109; a negative stride counts
+  down), and comma lists of those (``1:5,10,20:30x5``);
+* ``A:B:STEP`` (phrt's own older form, same as ``A:BxSTEP``).
+
+Frames are rendered once each, in increasing time order (a policy's memory, transitions
+and the selection layer all follow time), whatever order the list gives.
+"""
 
 from __future__ import annotations
 
 import numpy as np
+from pxr import Tf, UsdUtils
 
-from phrt_usd.errors import BadOption
+from phrt_usd.errors import BadOption, usd_error_reason
 
 #: Most frames one render may list (``--frames``): a million frames of stats already
 #: make a stats.json of ~1 GB.
 MAX_FRAMES = 1_000_000
+#: Time codes closer than this are the same frame (a stride of 0.1 summed ten times).
+SAME_FRAME = 1e-9
 
 
 def parse_frames(spec: str | None, default: tuple[float, float]) -> list[float]:
-    """``"A:B[:STEP]"`` → time codes A, A+STEP, … up to and including B (stage time codes).
-
-    ``None`` gives the default range with step 1; ``"A"`` alone is one frame.
-    """
+    """The time codes ``spec`` names (see the module docstring), increasing, each once.
+    ``None`` gives the ``default`` (start, end) range with stride 1. BadOption (one line)
+    for a malformed spec, a stride of 0, non-finite ends or more than MAX_FRAMES."""
     if spec is None:
-        start, end, step = default[0], default[1], 1.0
-    else:
-        try:
-            parts = [float(p) for p in spec.split(":")]
-        except ValueError:
-            raise BadOption(f"--frames {spec!r}: expected A:B[:STEP] with numbers") from None
-        if len(parts) == 1:
-            parts = [parts[0], parts[0]]
-        if len(parts) not in (2, 3):
-            raise BadOption(f"--frames {spec!r}: expected A:B[:STEP]")
-        start, end = parts[0], parts[1]
-        step = parts[2] if len(parts) == 3 else 1.0
+        start, end = default
+        return _range(start, end, 1.0, f"{start:g}:{end:g}")
+    times: list[float] = []
+    for part in (p.strip() for p in spec.split(",")):
+        if not part:
+            raise BadOption(f"--frames {spec!r}: an empty item in the list")
+        pieces = part.split(":")
+        if len(pieces) == 3:  # A:B:STEP
+            try:
+                start, end, step = (float(p) for p in pieces)
+            except ValueError:
+                raise BadOption(f"--frames {spec!r}: {part!r} is not A:B:STEP") from None
+            times += _range(start, end, step, spec)
+        else:
+            times += _frame_spec(part, spec)
+        if len(times) > MAX_FRAMES:
+            raise BadOption(f"--frames {spec!r}: more than {MAX_FRAMES} frames")
+    return _unique_sorted(times)
+
+
+def _frame_spec(part: str, spec: str) -> list[float]:
+    try:
+        codes = UsdUtils.TimeCodeRange.CreateFromFrameSpec(part)
+    except Tf.ErrorException as error:
+        raise BadOption(f"--frames {spec!r}: {usd_error_reason(error)}") from None
+    if not codes.IsValid():
+        raise BadOption(f"--frames {spec!r}: {part!r} is not a FrameSpec (A, A:B, A:BxSTRIDE)")
+    start, end = codes.startTimeCode.GetValue(), codes.endTimeCode.GetValue()
+    if not np.isfinite([start, end]).all():
+        raise BadOption(f"--frames {spec!r}: need finite frame numbers")
+    if abs(end - start) / abs(codes.stride) + 1 > MAX_FRAMES:
+        raise BadOption(f"--frames {spec!r}: more than {MAX_FRAMES} frames")
+    return [float(code.GetValue()) for code in codes]
+
+
+def _range(start: float, end: float, step: float, spec: str) -> list[float]:
+    """start, start + step, ... up to and including end (end >= start, step > 0)."""
     if not all(np.isfinite([start, end, step])) or step <= 0 or end < start:
         raise BadOption(f"--frames {spec!r}: need finite A <= B and STEP > 0")
     count = int(np.floor((end - start) / step + 1e-9)) + 1
     if count > MAX_FRAMES:
         raise BadOption(f"--frames {spec!r}: {count} frames, more than {MAX_FRAMES}")
     return [float(start + i * step) for i in range(count)]
+
+
+def _unique_sorted(times: list[float]) -> list[float]:
+    out: list[float] = []
+    for t in sorted(times):
+        if not out or t - out[-1] > SAME_FRAME:
+            out.append(t)
+    return out
