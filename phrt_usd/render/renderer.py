@@ -49,13 +49,11 @@ from phrt_usd.usd.schema import (
     DEFAULT_MODE,
     DEFAULT_RESOLUTION,
     DEFAULT_SELECTION_WEIGHT,
+    HEURISTICS,
     MAX_BOUNCE_LIMIT,
+    MODES,
 )
 from phrt_usd.usd.stage import StageScene
-
-MODES = ("raster", "hybrid", "rt")
-HEURISTICS = ("heu1", "heu2", "all", "none")
-
 
 #: Largest frame side in pixels (OpenGL's usual maximum framebuffer size).
 MAX_RESOLUTION_SIDE = 16384
