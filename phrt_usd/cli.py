@@ -13,6 +13,7 @@ from __future__ import annotations
 import contextlib
 import json
 import sys
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Annotated
@@ -35,6 +36,36 @@ app = typer.Typer(
     add_completion=False,
     pretty_exceptions_enable=False,
 )
+
+#: How much commands print on stderr: 0 quiet (errors only), 1 progress, 2 every frame.
+_VERBOSITY = {"level": 1}
+#: Without a terminal, a progress line at most this often (seconds), and at the end.
+PROGRESS_LINE_SECONDS = 5.0
+
+
+def _version(value: bool) -> None:
+    if value:
+        typer.echo(f"phrt {phrt_usd.__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def main(
+    version: Annotated[
+        bool,
+        typer.Option("--version", callback=_version, is_eager=True, help="Print the version."),
+    ] = False,
+    verbose: Annotated[
+        bool, typer.Option("--verbose", "-v", help="A line on stderr for every frame.")
+    ] = False,
+    quiet: Annotated[
+        bool, typer.Option("--quiet", "-q", help="No progress on stderr (errors only).")
+    ] = False,
+) -> None:
+    """Heuristic hybrid rendering of USD stages (raster + selective ray-traced reflections)."""
+    if verbose and quiet:
+        raise fail("--verbose and --quiet exclude each other", EXIT_UNREADABLE)
+    _VERBOSITY["level"] = 0 if quiet else 2 if verbose else 1
 
 
 class UnreadableInput(PhrtError):
@@ -216,17 +247,56 @@ def _unbounded(value: float | None) -> float | None:
     return None if value is not None and value == float("inf") else value
 
 
-def _progress(enabled: bool):
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeRemainingColumn
+def _progress():
+    """Progress on stderr: a rich bar on a terminal; elsewhere (farm logs, CI) plain
+    lines ``render farm.usda: 12/120 frames (10 %)`` every PROGRESS_LINE_SECONDS and at
+    the end, or for every frame with ``-v``; nothing with ``-q``."""
+    level = _VERBOSITY["level"]
+    if sys.stderr.isatty() and level == 1:
+        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeRemainingColumn
 
-    return Progress(
-        "[progress.description]{task.description}",
-        BarColumn(),
-        MofNCompleteColumn(),
-        TimeRemainingColumn(),
-        console=Console(stderr=True),
-        disable=not enabled,
-    )
+        return Progress(
+            "[progress.description]{task.description}",
+            BarColumn(),
+            MofNCompleteColumn(),
+            TimeRemainingColumn(),
+            console=Console(stderr=True),
+        )
+    return _LineProgress(enabled=level > 0, every_frame=level == 2)
+
+
+class _LineProgress:
+    """The part of rich's Progress the commands use, as plain stderr lines."""
+
+    def __init__(self, enabled: bool, every_frame: bool) -> None:
+        self.enabled, self.every_frame = enabled, every_frame
+        self.tasks: dict[int, list] = {}  # id -> [description, total, last printed, done]
+
+    def __enter__(self) -> _LineProgress:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        pass
+
+    def add_task(self, description: str, total: float | None = None) -> int:
+        self.tasks[len(self.tasks)] = [description, total, 0.0, 0]
+        return len(self.tasks) - 1
+
+    def update(self, task: int, completed: int, total: float | None = None) -> None:
+        entry = self.tasks[task]
+        entry[1] = total if total is not None else entry[1]
+        entry[3] = completed
+        now = time.monotonic()
+        finished = entry[1] is not None and completed >= entry[1]
+        if not self.enabled or not (
+            self.every_frame or finished or now - entry[2] >= PROGRESS_LINE_SECONDS
+        ):
+            return
+        entry[2] = now
+        total = entry[1]
+        share = f" ({100.0 * completed / total:.0f} %)" if total else ""
+        shown = f"{completed}/{int(total)}" if total else f"{completed}"
+        typer.echo(f"{entry[0]}: {shown} frames{share}", err=True)
 
 
 WorkersOpt = Annotated[
@@ -336,7 +406,7 @@ def render(
             overwrite=overwrite,
             write_images=images,
         )
-        progress = _progress(not json_out and sys.stderr.isatty())
+        progress = _progress()
         with progress:
             task = progress.add_task(f"render {stage.name}", total=None)
 
@@ -436,7 +506,7 @@ def sweep(
             selection_weight=weight,
             out=out,
         )
-        progress = _progress(not json_out and sys.stderr.isatty())
+        progress = _progress()
         with progress:
             tasks: dict[str, int] = {}
 
