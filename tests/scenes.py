@@ -1,15 +1,31 @@
-"""Small USD stages authored for tests (fast to render, with known geometry)."""
+"""Scene builders for tests: every stage and in-memory scene a test renders, reads or
+selects on, each documented with the geometry it makes so that a test's analytic
+expectation can be read from its builder.
+
+USD stages (files, or in memory): the common camera/light set-up, a mirror floor, a
+mirror gallery on a camera path, a validating quad mirror, a lone cube, a stage with
+composition arcs, a camera-only stage and a camera-path stage.
+
+In-memory ``Scene``s (no USD): triangle soups from trimesh parts (``parts_scene`` with
+``box``, ``box_between``, ``sphere``) and ``CameraFrame``s (``look_at``). World space is
+metres, +Y up, unless a builder says otherwise.
+"""
 
 from __future__ import annotations
 
 from pathlib import Path
 
 import numpy as np
-from pxr import Gf, Usd, UsdGeom, UsdLux, UsdRender
+import trimesh
+from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux, UsdRender, Vt
 
 import phrt_usd  # noqa: F401  (registers the schema before any stage opens)
+from phrt_usd.model.scene import CameraFrame, Element, Geometry, Lights, MaterialTable, Scene
 from phrt_usd.usd import schema
 
+# ---------------------------------------------------------------- USD stages
+
+#: mirror_floor_stage's red ball (world metres) and its fixed camera's eye and target.
 SPHERE_CENTER = np.array([0.0, 1.0, 0.0])
 SPHERE_RADIUS = 0.5
 EYE = np.array([0.0, 2.0, 5.0])
@@ -29,6 +45,8 @@ def _look_at_matrix(eye: np.ndarray, target: np.ndarray) -> Gf.Matrix4d:
 
 
 def _quad(stage: Usd.Stage, path: str, half: float, color) -> UsdGeom.Mesh:
+    """A square mesh of side 2 ``half`` in its local y = 0 plane, centred on the origin,
+    facing +Y (one quad face, 2 triangles), with one display colour."""
     mesh = UsdGeom.Mesh.Define(stage, path)
     mesh.CreatePointsAttr([(-half, 0, -half), (-half, 0, half), (half, 0, half), (half, 0, -half)])
     mesh.CreateFaceVertexCountsAttr([4])
@@ -38,6 +56,12 @@ def _quad(stage: Usd.Stage, path: str, half: float, color) -> UsdGeom.Mesh:
 
 
 def _common(stage: Usd.Stage, width: int, height: int) -> UsdGeom.Camera:
+    """The common set-up: Y-up, 1 m per unit, default prim /World; a sun /World/Sun
+    (DistantLight, intensity 2, rotateXYZ (-60, 30, 0)) and a sky /World/Sky (DomeLight,
+    colour (0.3, 0.5, 0.9), intensity 0.5); the camera /World/Camera (focal 24 mm,
+    horizontal aperture 36 mm, so a 73.7° horizontal field of view; clipping 0.01 to
+    100 m; no transform yet) named by /Render/Settings (width x height, 1000 ms budget),
+    the stage's render settings. Returns the camera."""
     UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
     UsdGeom.SetStageMetersPerUnit(stage, 1.0)
     world = UsdGeom.Xform.Define(stage, "/World")
@@ -120,3 +144,236 @@ def mirrored_sphere_pixels(camera, width: int, height: int) -> np.ndarray:
     b = np.sum(oc * dirs, axis=1)
     disc = b * b - (np.sum(oc * oc, axis=1) - SPHERE_RADIUS**2)
     return ((disc > 0) & (-b - np.sqrt(np.maximum(disc, 0)) > 0)).reshape(height, width)
+
+
+def clean_stage(path: Path) -> Usd.Stage:
+    """A stage that validates clean, created at ``path`` but not saved (callers edit or
+    save it). Y-up, 1 m per unit, default prim /World. /World/Mirror: the unit quad
+    (0, 0, 0)-(1, 1, 0) in the z = 0 plane facing +Z (2 triangles), a reflector with
+    priority K = 2 and reflectivity F = 0.5. /World/Cam, without a transform of its own,
+    driven by the camera path /World/Path: from (0, 1, 5) at frame 1 to (1, 1, 5) at frame
+    24, looking at the origin. /World/Render: 320 x 240, heuristic heu1, 10 ms budget."""
+    stage = Usd.Stage.CreateNew(str(path))
+    UsdGeom.SetStageUpAxis(stage, "Y")
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    world = UsdGeom.Xform.Define(stage, "/World")
+    stage.SetDefaultPrim(world.GetPrim())
+    mesh = UsdGeom.Mesh.Define(stage, "/World/Mirror")
+    mesh.CreatePointsAttr([(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0)])
+    mesh.CreateFaceVertexCountsAttr([4])
+    mesh.CreateFaceVertexIndicesAttr([0, 1, 2, 3])
+    schema.apply_reflector(mesh.GetPrim(), priority=2.0, reflectivity=0.5)
+    UsdGeom.Camera.Define(stage, "/World/Cam")
+    schema.define_camera_path(
+        stage, "/World/Path", "/World/Cam", [(0, 1, 5), (1, 1, 5)], [(0, 0, 0), (0, 0, 0)], [1, 24]
+    )
+    settings = UsdRender.Settings.Define(stage, "/World/Render")
+    settings.CreateResolutionAttr(Gf.Vec2i(320, 240))
+    schema.apply_render_settings(settings.GetPrim(), heuristic="heu1", budget_ms=10.0)
+    return stage
+
+
+def cube_stage(path: Path, fmt: str | None = None) -> Path:
+    """A saved stage with one cube and nothing else (no camera, light or reflector):
+    /World (Xform) and /World/Box (Cube, USD's default size 2, centred on the origin).
+    ``fmt`` ('usda' or 'usdc') chooses the encoding of a ``.usd`` path."""
+    layer = Sdf.Layer.CreateAnonymous(".usda")
+    stage = Usd.Stage.Open(layer)
+    UsdGeom.Xform.Define(stage, "/World")
+    UsdGeom.Cube.Define(stage, "/World/Box")
+    assert layer.Export(str(path), args={"format": fmt} if fmt else {})
+    return path
+
+
+def composed_stage(directory: Path) -> Path:
+    """``directory``/scene.usda with every kind of composition arc, each layer holding one
+    cube at /<Name> (its default prim): scene.usda sublayers sub.usda (which sublayers
+    deep.usda), references ref.usda at /World/Ref, payloads pay.usda at /World/Pay and,
+    only in the unselected variant 'fancy' of /World/Var's variant set 'look',
+    references var.usda (which sublayers vardeep.usda). Its own prim: the cube
+    /World/Box."""
+    for name in ("deep", "sub", "ref", "pay", "var", "vardeep"):
+        layer = Sdf.Layer.CreateNew(str(directory / f"{name}.usda"))
+        stage = Usd.Stage.Open(layer)
+        UsdGeom.Cube.Define(stage, f"/{name.capitalize()}")
+        layer.defaultPrim = name.capitalize()
+        if name in ("sub", "var"):
+            layer.subLayerPaths.append("deep.usda" if name == "sub" else "vardeep.usda")
+        layer.Save()
+    path = directory / "scene.usda"
+    stage = Usd.Stage.CreateNew(str(path))
+    stage.GetRootLayer().subLayerPaths.append("sub.usda")
+    UsdGeom.Cube.Define(stage, "/World/Box")
+    stage.DefinePrim("/World/Ref").GetReferences().AddReference("ref.usda")
+    stage.DefinePrim("/World/Pay").GetPayloads().AddPayload("pay.usda")
+    holder = stage.DefinePrim("/World/Var")
+    variants = holder.GetVariantSets().AddVariantSet("look")
+    variants.AddVariant("plain")
+    variants.AddVariant("fancy")
+    variants.SetVariantSelection("fancy")
+    with variants.GetVariantEditContext():
+        holder.GetReferences().AddReference("var.usda")
+    variants.SetVariantSelection("plain")
+    stage.GetRootLayer().Save()
+    return path
+
+
+def _units_stage(up: str, mpu: float) -> Usd.Stage:
+    """An empty in-memory stage with up axis ``up`` ('Y' or 'Z') and ``mpu`` metres per
+    stage unit."""
+    stage = Usd.Stage.CreateInMemory()
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y if up == "Y" else UsdGeom.Tokens.z)
+    UsdGeom.SetStageMetersPerUnit(stage, mpu)
+    return stage
+
+
+def camera_stage(up: str = "Y", mpu: float = 1.0) -> Usd.Stage:
+    """An in-memory stage holding only the camera /Cam (USD defaults: focal 50 mm,
+    aperture 20.955 mm) translated to (0, 0, 10) stage units, looking down -Z at the
+    origin; up axis ``up`` ('Y' or 'Z'), ``mpu`` metres per unit. Tests add prims."""
+    stage = _units_stage(up, mpu)
+    cam = UsdGeom.Camera.Define(stage, "/Cam")
+    cam.AddTranslateOp().Set(Gf.Vec3d(0, 0, 10))
+    return stage
+
+
+def camera_path_stage(positions, targets, keys, interp="linear", up="Y", mpu=1.0, **extra):
+    """An in-memory stage: the camera /Cam (focal 35 mm, no transform) and the
+    PhrtCameraPath /CameraPath driving it, authored attribute by attribute (no
+    validation): phrt:positions and phrt:targets ((n, 3) stage units), phrt:keyTimes
+    ``keys`` (left unauthored when None), phrt:interpolation ``interp``, and each
+    ``extra`` name=value as a double attribute phrt:<name>. Up axis ``up``, ``mpu``
+    metres per unit."""
+    stage = _units_stage(up, mpu)
+    cam = UsdGeom.Camera.Define(stage, "/Cam")
+    cam.CreateFocalLengthAttr(35.0)
+    p = stage.DefinePrim("/CameraPath", "PhrtCameraPath")
+    p.CreateRelationship("phrt:camera").SetTargets([cam.GetPath()])
+    p.CreateAttribute("phrt:positions", Sdf.ValueTypeNames.Point3dArray).Set(
+        Vt.Vec3dArray([Gf.Vec3d(*x) for x in positions])
+    )
+    p.CreateAttribute("phrt:targets", Sdf.ValueTypeNames.Point3dArray).Set(
+        Vt.Vec3dArray([Gf.Vec3d(*x) for x in targets])
+    )
+    if keys is not None:
+        p.CreateAttribute("phrt:keyTimes", Sdf.ValueTypeNames.DoubleArray).Set(keys)
+    p.CreateAttribute("phrt:interpolation", Sdf.ValueTypeNames.Token).Set(interp)
+    for name, value in extra.items():
+        p.CreateAttribute(f"phrt:{name}", Sdf.ValueTypeNames.Double).Set(value)
+    return stage
+
+
+# ---------------------------------------------------------------- in-memory scenes
+
+
+def box(extents, center) -> trimesh.Trimesh:
+    """Closed axis-aligned box (12 triangles, outward normals) of size ``extents`` (3,)
+    centred on ``center`` (3,)."""
+    return trimesh.creation.box(
+        extents=extents, transform=trimesh.transformations.translation_matrix(center)
+    )
+
+
+def box_between(lo, hi) -> trimesh.Trimesh:
+    """``box`` spanning the corners ``lo`` (3,) to ``hi`` (3,)."""
+    lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
+    return box(hi - lo, 0.5 * (lo + hi))
+
+
+def sphere(radius, center, subdivisions: int = 4) -> trimesh.Trimesh:
+    """Icosphere of ``radius`` centred on ``center`` (3,): 20 * 4**subdivisions triangles
+    with outward normals, its vertices on the exact sphere."""
+    m = trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
+    m.apply_translation(center)
+    return m
+
+
+def parts_scene(parts: list[dict], lights: Lights | None = None, offset=None) -> Scene:
+    """A Scene with one element and one material per part, in the order given.
+
+    Part keys: "mesh" (trimesh.Trimesh, world metres), "albedo" ((3,) linear RGB, default
+    0.5 grey; also the material's diffuse), "F" (reflectivity; None or absent: not a
+    reflector; a reflector gets priority K = 1), "smooth" (corner normals from the
+    mesh's vertex normals; default: face normals), "path" (default /World/part<i>),
+    "emissive" ((3,), default black), "opacity" (default 1), "ior" (default 1.5).
+    Materials are rough (roughness 1) dielectrics (metallic 0) without textures.
+    ``offset`` (3,) metres, if given, translates every part. ``lights`` default to none;
+    Scene.origin is the centre of the vertices' bounding box."""
+    verts, tris, tri_elem, corner_n, corner_a, elements = [], [], [], [], [], []
+    n_mat = len(parts)
+    diffuse = np.zeros((n_mat, 3), np.float32)
+    emissive = np.zeros((n_mat, 3), np.float32)
+    opacity = np.ones(n_mat, np.float32)
+    ior = np.full(n_mat, 1.5, np.float32)
+    base = 0
+    for i, part in enumerate(parts):
+        mesh = part["mesh"]
+        v = np.asarray(mesh.vertices, dtype=np.float64)
+        if offset is not None:
+            v = v + np.asarray(offset, dtype=np.float64)
+        f = np.asarray(mesh.faces, dtype=np.int64)
+        verts.append(v)
+        tris.append(f + base)
+        base += len(v)
+        tri_elem.append(np.full(len(f), i, np.int32))
+        if part.get("smooth"):
+            corner_n.append(np.asarray(mesh.vertex_normals, np.float32)[f])
+        else:
+            fn = np.asarray(mesh.face_normals, np.float32)
+            corner_n.append(np.repeat(fn[:, None], 3, axis=1))
+        albedo = np.asarray(part.get("albedo", (0.5, 0.5, 0.5)), np.float32)
+        corner_a.append(np.broadcast_to(albedo, (len(f), 3, 3)).copy())
+        diffuse[i] = albedo
+        emissive[i] = part.get("emissive", (0.0, 0.0, 0.0))
+        opacity[i] = part.get("opacity", 1.0)
+        ior[i] = part.get("ior", 1.5)
+        refl = part.get("F")
+        elements.append(
+            Element(
+                path=part.get("path", f"/World/part{i}"),
+                is_reflector=refl is not None,
+                priority=1.0 if refl is not None else 0.0,
+                reflectivity=float(refl or 0.0),
+                bounds_min=v.min(axis=0),
+                bounds_max=v.max(axis=0),
+            )
+        )
+    all_v = np.concatenate(verts)
+    tri_elem_all = np.concatenate(tri_elem)
+    geometry = Geometry(
+        vertices=all_v,
+        triangles=np.concatenate(tris),
+        tri_element=tri_elem_all,
+        tri_material=tri_elem_all.copy(),
+        corner_normals=np.concatenate(corner_n),
+        corner_albedo=np.concatenate(corner_a),
+    )
+    materials = MaterialTable(
+        diffuse=diffuse,
+        metallic=np.zeros(n_mat, np.float32),
+        roughness=np.ones(n_mat, np.float32),
+        opacity=opacity,
+        ior=ior,
+        emissive=emissive,
+        textures=[None] * n_mat,
+    )
+    origin = 0.5 * (all_v.min(axis=0) + all_v.max(axis=0))
+    return Scene(elements, geometry, materials, lights or Lights(), origin)
+
+
+def look_at(
+    eye, target, up=(0.0, 1.0, 0.0), focal=35.0, aperture=36.0, near=0.01, far=1000.0
+) -> CameraFrame:
+    """CameraFrame at ``eye`` (3,) looking at ``target`` (3,), ``up`` (3,) up (world
+    metres; camera space looks down -Z, +Y up): ``focal`` mm over a horizontal
+    ``aperture`` mm (35 over 36: a 54.4° horizontal field of view), clipping ``near``
+    to ``far`` metres."""
+    eye = np.asarray(eye, dtype=np.float64)
+    f = np.asarray(target, dtype=np.float64) - eye
+    f /= np.linalg.norm(f)
+    r = np.cross(f, up)
+    r /= np.linalg.norm(r)
+    u = np.cross(r, f)
+    m = np.eye(4)
+    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = r, u, -f, eye
+    return CameraFrame(m, focal, aperture, near=near, far=far)

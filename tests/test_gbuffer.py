@@ -14,18 +14,11 @@ import numpy as np
 import pytest
 import trimesh
 from embreex import mesh_construction, rtcore_scene
+from scenes import box, look_at, parts_scene, sphere
 
 from phrt_usd.errors import PhrtError
 from phrt_usd.model.frame import GBuffer
-from phrt_usd.model.scene import (
-    CameraFrame,
-    DistantLight,
-    Element,
-    Geometry,
-    Lights,
-    MaterialTable,
-    Scene,
-)
+from phrt_usd.model.scene import CameraFrame, DistantLight, Lights, Scene
 from phrt_usd.model.surface import sample_bilinear_wrap
 from phrt_usd.render.raster.rasterizer import Rasterizer
 
@@ -45,90 +38,6 @@ RAY_OFFSET = 1e-3
 # ---------------------------------------------------------------- scene construction
 
 
-def build_scene(parts: list[dict], offset: np.ndarray | None = None, lights=None) -> Scene:
-    """Scene from parts {"mesh": trimesh.Trimesh, "color": (3,), "smooth": bool,
-    "reflector": bool, "path": str}; everything translated by ``offset`` metres."""
-    offset = np.zeros(3) if offset is None else np.asarray(offset, dtype=np.float64)
-    verts, tris, tri_el, normals, albedo, elements = [], [], [], [], [], []
-    base = 0
-    for i, part in enumerate(parts):
-        m = part["mesh"]
-        v = np.asarray(m.vertices, dtype=np.float64) + offset
-        f = np.asarray(m.faces, dtype=np.int64)
-        verts.append(v)
-        tris.append(f + base)
-        base += len(v)
-        tri_el.append(np.full(len(f), i, dtype=np.int32))
-        if part.get("smooth", False):
-            normals.append(np.asarray(m.vertex_normals, dtype=np.float32)[f])
-        else:
-            fn = np.asarray(m.face_normals, dtype=np.float32)
-            normals.append(np.repeat(fn[:, None, :], 3, axis=1))
-        albedo.append(np.broadcast_to(np.asarray(part["color"], np.float32), (len(f), 3, 3)))
-        elements.append(
-            Element(
-                path=part.get("path", f"/World/part{i}"),
-                is_reflector=part.get("reflector", False),
-                priority=1.0 if part.get("reflector", False) else 0.0,
-                reflectivity=1.0 if part.get("reflector", False) else 0.0,
-                bounds_min=v.min(axis=0),
-                bounds_max=v.max(axis=0),
-            )
-        )
-    vertices = np.concatenate(verts)
-    triangles = np.concatenate(tris)
-    geometry = Geometry(
-        vertices=vertices,
-        triangles=triangles,
-        tri_element=np.concatenate(tri_el),
-        tri_material=np.zeros(len(triangles), dtype=np.int32),
-        corner_normals=np.concatenate(normals).astype(np.float32),
-        corner_albedo=np.concatenate(albedo).astype(np.float32),
-    )
-    materials = MaterialTable(
-        diffuse=np.full((1, 3), 0.5, np.float32),
-        metallic=np.zeros(1, np.float32),
-        roughness=np.full(1, 0.5, np.float32),
-        opacity=np.ones(1, np.float32),
-        ior=np.full(1, 1.5, np.float32),
-        emissive=np.zeros((1, 3), np.float32),
-        textures=[None],
-    )
-    origin = 0.5 * (vertices.min(axis=0) + vertices.max(axis=0))
-    return Scene(
-        elements=elements,
-        geometry=geometry,
-        materials=materials,
-        lights=lights or Lights(),
-        origin=origin,
-    )
-
-
-def look_at(eye, target, up=(0.0, 1.0, 0.0), focal=35.0, aperture=36.0) -> CameraFrame:
-    """CameraFrame at ``eye`` looking at ``target`` (+Y up)."""
-    eye = np.asarray(eye, dtype=np.float64)
-    f = np.asarray(target, dtype=np.float64) - eye
-    f /= np.linalg.norm(f)
-    r = np.cross(f, up)
-    r /= np.linalg.norm(r)
-    u = np.cross(r, f)
-    m = np.eye(4)
-    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = r, u, -f, eye
-    return CameraFrame(m, focal, aperture, near=0.01, far=1000.0)
-
-
-def box(extents, center) -> trimesh.Trimesh:
-    return trimesh.creation.box(
-        extents=extents, transform=trimesh.transformations.translation_matrix(center)
-    )
-
-
-def sphere(radius, center, subdivisions=4) -> trimesh.Trimesh:
-    m = trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
-    m.apply_translation(center)
-    return m
-
-
 def floor_mesh(size=20.0, y=0.0, n=10) -> trimesh.Trimesh:
     """Open, one-sided grid of 2 n^2 triangles facing +Y."""
     xs = np.linspace(-size / 2, size / 2, n + 1)
@@ -144,21 +53,20 @@ def floor_mesh(size=20.0, y=0.0, n=10) -> trimesh.Trimesh:
 
 def showcase_parts() -> list[dict]:
     """Floor, 4 boxes, 9 smooth spheres: ~47k triangles."""
-    parts = [{"mesh": floor_mesh(), "color": (0.6, 0.6, 0.6), "path": "/World/floor"}]
+    parts = [{"mesh": floor_mesh(), "albedo": (0.6, 0.6, 0.6), "path": "/World/floor"}]
     rng = np.random.default_rng(7)
     for i in range(4):
         c = (-4.0 + 2.7 * i, 0.75, -1.5 + (i % 2))
-        parts.append(
-            {"mesh": box((1.2, 1.5, 1.2), c), "color": rng.random(3), "reflector": i % 2 == 0}
-        )
+        reflectivity = 1.0 if i % 2 == 0 else None
+        parts.append({"mesh": box((1.2, 1.5, 1.2), c), "albedo": rng.random(3), "F": reflectivity})
     for i in range(9):
         c = (-4.0 + (i % 3) * 3.5, 0.6 + 0.3 * (i // 3), 1.5 - 2.5 * (i // 3))
         parts.append(
             {
                 "mesh": sphere(0.6, c),
-                "color": rng.random(3),
+                "albedo": rng.random(3),
                 "smooth": True,
-                "reflector": i % 3 == 1,
+                "F": 1.0 if i % 3 == 1 else None,
             }
         )
     return parts
@@ -253,7 +161,7 @@ def check_ids(
 
 @pytest.fixture(scope="module")
 def showcase():
-    scene = build_scene(showcase_parts())
+    scene = parts_scene(showcase_parts())
     r = Rasterizer(scene, W, H)
     yield scene, r
     r.close()
@@ -270,7 +178,7 @@ def test_showcase_is_large_enough(showcase):
 @pytest.mark.parametrize("offset", [0.0, 1e6])
 def test_ids_positions_normals_match_embree(offset, tmp_path):
     off = np.array([offset, 0.5 * offset, -offset])
-    scene = build_scene(showcase_parts(), offset=off)
+    scene = parts_scene(showcase_parts(), offset=off)
     cam = showcase_camera(off)
     with Rasterizer(scene, W, H) as r:
         g = r.render(cam)
@@ -322,7 +230,7 @@ def test_background_pixels(showcase):
 def test_mirror_visible_from_behind(tmp_path):
     """A one-sided quad is rasterized from its back too (no back-face culling)."""
     quad = floor_mesh(size=4.0, n=1)  # faces +Y
-    scene = build_scene([{"mesh": quad, "color": (1, 0, 0), "reflector": True}])
+    scene = parts_scene([{"mesh": quad, "albedo": (1, 0, 0), "F": 1.0}])
     cam = look_at([0.3, -3.0, 0.2], [0.0, 0.0, 0.0], up=(0.0, 0.0, 1.0))
     with Rasterizer(scene, W, H) as r:
         g = r.render(cam)
@@ -337,7 +245,7 @@ def test_an_open_rasterizer_is_not_collected_until_closed():
     import weakref
 
     quad = floor_mesh(size=4.0, n=1)
-    scene = build_scene([{"mesh": quad, "color": (1, 0, 0), "reflector": True}])
+    scene = parts_scene([{"mesh": quad, "albedo": (1, 0, 0), "F": 1.0}])
     cam = look_at([0.3, 3.0, 0.2], [0.0, 0.0, 0.0], up=(0.0, 0.0, 1.0))
     with Rasterizer(scene, W, H) as a:
         dropped = weakref.ref(Rasterizer(scene, W, H))
@@ -358,7 +266,7 @@ def test_random_triangle_soup_ids_exact(tmp_path):
     centres = rng.uniform(-2.0, 2.0, (n, 1, 3))
     v = (centres + rng.normal(0.0, 0.08, (n, 3, 3))).reshape(-1, 3)
     mesh = trimesh.Trimesh(v, np.arange(3 * n).reshape(n, 3), process=False)
-    scene = build_scene([{"mesh": mesh, "color": (0.5, 0.5, 0.5)}])
+    scene = parts_scene([{"mesh": mesh, "albedo": (0.5, 0.5, 0.5)}])
     colours = rng.random((n, 3)).astype(np.float32)
     scene.geometry.corner_albedo = np.repeat(colours[:, None, :], 3, axis=1)
     cam = look_at([0.4, 0.3, 7.0], [0.0, 0.0, 0.0])
@@ -403,11 +311,11 @@ def test_shadow_map_matches_shadow_rays(animated, tmp_path):
     lights = Lights(distant=[DistantLight(direction=light_dir, radiance=np.ones(3))])
     for offset in (np.zeros(3), np.array([1e6, -2e5, 3e6])):
         parts = [
-            {"mesh": floor_mesh(size=8.0), "color": (0.6, 0.6, 0.6), "path": "/World/floor"},
-            {"mesh": box((3.5, 0.3, 2.5), (0.0, 2.0, 0.0)), "color": (0.8, 0.2, 0.2)},
-            {"mesh": sphere(0.7, (2.5, 0.7, -1.0), 3), "color": (0.2, 0.8, 0.2), "smooth": True},
+            {"mesh": floor_mesh(size=8.0), "albedo": (0.6, 0.6, 0.6), "path": "/World/floor"},
+            {"mesh": box((3.5, 0.3, 2.5), (0.0, 2.0, 0.0)), "albedo": (0.8, 0.2, 0.2)},
+            {"mesh": sphere(0.7, (2.5, 0.7, -1.0), 3), "albedo": (0.2, 0.8, 0.2), "smooth": True},
         ]
-        scene = build_scene(parts, offset=offset, lights=lights)
+        scene = parts_scene(parts, offset=offset, lights=lights)
         scene.elements[2].animated = animated
         cam = look_at(np.array([0.0, 7.0, 8.0]) + offset, np.array([0.0, 0.0, 0.0]) + offset)
         with Rasterizer(scene, W, H) as r:
@@ -452,11 +360,11 @@ def test_update_geometry_moves_prims_and_invalidates_shadows(animated, tmp_path)
     casts into its own small map and the static map is kept."""
     light = DistantLight(direction=np.array([0.0, 1.0, 0.0]), radiance=np.ones(3))
     parts = [
-        {"mesh": floor_mesh(size=12.0), "color": (0.6, 0.6, 0.6)},
-        {"mesh": box((1.0, 1.0, 1.0), (-2.0, 1.5, 0.0)), "color": (0.8, 0.2, 0.2)},
-        {"mesh": box((1.0, 1.0, 1.0), (0.0, 1.5, -3.0)), "color": (0.2, 0.2, 0.8)},
+        {"mesh": floor_mesh(size=12.0), "albedo": (0.6, 0.6, 0.6)},
+        {"mesh": box((1.0, 1.0, 1.0), (-2.0, 1.5, 0.0)), "albedo": (0.8, 0.2, 0.2)},
+        {"mesh": box((1.0, 1.0, 1.0), (0.0, 1.5, -3.0)), "albedo": (0.2, 0.2, 0.8)},
     ]
-    scene = build_scene(parts, lights=Lights(distant=[light]))
+    scene = parts_scene(parts, lights=Lights(distant=[light]))
     scene.elements[1].animated = animated
     cam = look_at([0.0, 6.0, 8.0], [0.0, 0.0, 0.0])
     below = np.array([[-2.0, 0.0, 0.0], [2.0, 0.0, 0.0], [0.0, 0.0, -3.0]])
@@ -509,7 +417,7 @@ def test_textured_albedo_follows_uv():
     quad = trimesh.Trimesh(
         [[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], [[0, 1, 2], [0, 2, 3]], process=False
     )
-    scene = build_scene([{"mesh": quad, "color": (1, 1, 1)}])
+    scene = parts_scene([{"mesh": quad, "albedo": (1, 1, 1)}])
     geo = scene.geometry
     geo.corner_uv = ((geo.vertices[geo.triangles][:, :, :2] + 1.0) / 2.0).astype(np.float32)
     scene.materials.textures = [tex]
@@ -527,15 +435,15 @@ def test_textured_albedo_follows_uv():
 )
 def test_extreme_inputs_stay_finite(case, tmp_path):
     """No NaN/Inf (except background depth) and sane ids for degenerate set-ups."""
-    parts = [{"mesh": box((2.0, 2.0, 2.0), (0.0, 0.0, 0.0)), "color": (0.5, 0.5, 0.5)}]
+    parts = [{"mesh": box((2.0, 2.0, 2.0), (0.0, 0.0, 0.0)), "albedo": (0.5, 0.5, 0.5)}]
     offset = np.zeros(3)
     cam = look_at([0.0, 1.0, 6.0], [0.0, 0.0, 0.0])
     if case == "tiny_far_away":  # 1 mm box 1e6 m from the origin
         offset = np.array([1e6, 1e6, -1e6])
-        parts = [{"mesh": box((1e-3,) * 3, (0.0, 0.0, 0.0)), "color": (0.5, 0.5, 0.5)}]
+        parts = [{"mesh": box((1e-3,) * 3, (0.0, 0.0, 0.0)), "albedo": (0.5, 0.5, 0.5)}]
         cam = look_at(offset + [0.0, 1e-3, 4e-3], offset)
         cam.near = 1e-5
-    scene = build_scene(parts, offset=offset)
+    scene = parts_scene(parts, offset=offset)
     if case == "empty":
         geo = scene.geometry
         geo.vertices = np.zeros((0, 3))
@@ -646,11 +554,11 @@ def test_local_light_cube_shadows_match_shadow_rays(offset, tmp_path):
     far_light = LocalLight(np.array([0.0, 1.0, -30.0]) + offset, np.full(3, 0.02))
     lights = Lights(local=[light, far_light])
     parts = [
-        {"mesh": floor_mesh(size=10.0), "color": (0.6, 0.6, 0.6), "path": "/World/floor"},
-        {"mesh": box((2.0, 0.1, 1.5), (0.0, 1.5, 0.0)), "color": (0.8, 0.2, 0.2)},
-        {"mesh": box((0.05, 1.5, 0.05), (-1.5, 0.75, 1.0)), "color": (0.2, 0.8, 0.2)},
+        {"mesh": floor_mesh(size=10.0), "albedo": (0.6, 0.6, 0.6), "path": "/World/floor"},
+        {"mesh": box((2.0, 0.1, 1.5), (0.0, 1.5, 0.0)), "albedo": (0.8, 0.2, 0.2)},
+        {"mesh": box((0.05, 1.5, 0.05), (-1.5, 0.75, 1.0)), "albedo": (0.2, 0.8, 0.2)},
     ]
-    scene = build_scene(parts, offset=offset, lights=lights)
+    scene = parts_scene(parts, offset=offset, lights=lights)
     cam = look_at(np.array([0.0, 7.0, 8.0]) + offset, offset)
     tracer = Tracer(scene, threads=1)
     with Rasterizer(scene, W, H) as r:
@@ -718,11 +626,11 @@ def test_gpu_light_terms_shade_like_the_visibility_matrix(use_refine, with_local
         else [],
     )
     parts = [
-        {"mesh": floor_mesh(size=10.0), "color": (0.6, 0.6, 0.6)},
-        {"mesh": box((2.0, 0.1, 1.5), (0.0, 1.5, 0.0)), "color": (0.8, 0.2, 0.2)},
-        {"mesh": box((0.05, 1.5, 0.05), (-1.5, 0.75, 1.0)), "color": (0.2, 0.8, 0.2)},
+        {"mesh": floor_mesh(size=10.0), "albedo": (0.6, 0.6, 0.6)},
+        {"mesh": box((2.0, 0.1, 1.5), (0.0, 1.5, 0.0)), "albedo": (0.8, 0.2, 0.2)},
+        {"mesh": box((0.05, 1.5, 0.05), (-1.5, 0.75, 1.0)), "albedo": (0.2, 0.8, 0.2)},
     ]
-    scene = build_scene(parts, lights=lights)
+    scene = parts_scene(parts, lights=lights)
     cam = look_at(np.array([0.0, 7.0, 8.0]), np.zeros(3))
     tracer = Tracer(scene, threads=1)
 
@@ -764,10 +672,10 @@ def test_local_light_animated_caster_updates_its_cube_only():
 
     light = LocalLight(np.array([0.0, 4.0, 0.0]), np.full(3, 10.0))
     parts = [
-        {"mesh": floor_mesh(size=12.0), "color": (0.6, 0.6, 0.6)},
-        {"mesh": box((1.0, 1.0, 1.0), (-2.0, 1.5, 0.0)), "color": (0.8, 0.2, 0.2)},
+        {"mesh": floor_mesh(size=12.0), "albedo": (0.6, 0.6, 0.6)},
+        {"mesh": box((1.0, 1.0, 1.0), (-2.0, 1.5, 0.0)), "albedo": (0.8, 0.2, 0.2)},
     ]
-    scene = build_scene(parts, lights=Lights(local=[light]))
+    scene = parts_scene(parts, lights=Lights(local=[light]))
     scene.elements[1].animated = True
     # Straight below the box as seen from the light, before and after it moves by +4 m x.
     below = np.array([[-3.0, 0.0, 0.0], [3.0, 0.0, 0.0]])

@@ -9,102 +9,16 @@ from embreex import rtcore_scene as rtcs
 from embreex.mesh_construction import TriangleMesh
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from scenes import box_between, look_at, parts_scene, sphere
 
 from phrt_usd.model.frame import GBuffer
-from phrt_usd.model.scene import (
-    DEFAULT_ENVIRONMENT,
-    CameraFrame,
-    DistantLight,
-    DomeLight,
-    Element,
-    Geometry,
-    Lights,
-    MaterialTable,
-    Scene,
-)
+from phrt_usd.model.scene import DEFAULT_ENVIRONMENT, DistantLight, DomeLight, Lights, Scene
 from phrt_usd.render.trace.tracer import Tracer
 
 SKY = np.array([0.2, 0.4, 0.8])
 
 
 # ---------------------------------------------------------------- scene builders
-
-
-def make_scene(parts: list[dict], lights: Lights | None = None) -> Scene:
-    """One element and one material per part. Part keys: mesh (trimesh), F (None = not
-    a reflector), albedo, emissive, opacity, ior, smooth (vertex normals)."""
-    verts, tris, tri_elem, corner_n, corner_a, elements = [], [], [], [], [], []
-    n_mat = len(parts)
-    diffuse = np.zeros((n_mat, 3), np.float32)
-    emissive = np.zeros((n_mat, 3), np.float32)
-    opacity = np.ones(n_mat, np.float32)
-    ior = np.full(n_mat, 1.5, np.float32)
-    offset = 0
-    for i, part in enumerate(parts):
-        mesh = part["mesh"]
-        v = np.asarray(mesh.vertices, dtype=np.float64)
-        f = np.asarray(mesh.faces, dtype=np.int64)
-        verts.append(v)
-        tris.append(f + offset)
-        offset += len(v)
-        tri_elem.append(np.full(len(f), i, np.int32))
-        if part.get("smooth"):
-            corner_n.append(np.asarray(mesh.vertex_normals, np.float32)[f])
-        else:
-            fn = np.asarray(mesh.face_normals, np.float32)
-            corner_n.append(np.repeat(fn[:, None], 3, axis=1))
-        albedo = np.asarray(part.get("albedo", (0.5, 0.5, 0.5)), np.float32)
-        corner_a.append(np.broadcast_to(albedo, (len(f), 3, 3)).copy())
-        diffuse[i] = albedo
-        emissive[i] = part.get("emissive", (0.0, 0.0, 0.0))
-        opacity[i] = part.get("opacity", 1.0)
-        ior[i] = part.get("ior", 1.5)
-        refl = part.get("F")
-        elements.append(
-            Element(
-                path=f"/World/part{i}",
-                is_reflector=refl is not None,
-                priority=1.0 if refl is not None else 0.0,
-                reflectivity=float(refl or 0.0),
-                bounds_min=v.min(axis=0),
-                bounds_max=v.max(axis=0),
-            )
-        )
-    all_v = np.concatenate(verts)
-    tri_elem_all = np.concatenate(tri_elem)
-    geometry = Geometry(
-        vertices=all_v,
-        triangles=np.concatenate(tris),
-        tri_element=tri_elem_all,
-        tri_material=tri_elem_all.copy(),
-        corner_normals=np.concatenate(corner_n),
-        corner_albedo=np.concatenate(corner_a),
-    )
-    materials = MaterialTable(
-        diffuse=diffuse,
-        metallic=np.zeros(n_mat, np.float32),
-        roughness=np.ones(n_mat, np.float32),
-        opacity=opacity,
-        ior=ior,
-        emissive=emissive,
-        textures=[None] * n_mat,
-    )
-    origin = 0.5 * (all_v.min(axis=0) + all_v.max(axis=0))
-    return Scene(elements, geometry, materials, lights or Lights(), origin)
-
-
-def look_at(eye, target, up=(0.0, 1.0, 0.0), focal: float = 35.0) -> CameraFrame:
-    eye = np.asarray(eye, dtype=np.float64)
-    fwd = np.asarray(target, dtype=np.float64) - eye
-    fwd /= np.linalg.norm(fwd)
-    right = np.cross(fwd, up)
-    right /= np.linalg.norm(right)
-    m = np.eye(4)
-    m[:3, 0] = right
-    m[:3, 1] = np.cross(right, fwd)
-    m[:3, 2] = -fwd
-    m[:3, 3] = eye
-    return CameraFrame(m, focal, 36.0, 1e-6, 1e9)
 
 
 def quad(size: float, center=(0.0, 0.0, 0.0), axis: str = "y") -> trimesh.Trimesh:
@@ -117,19 +31,6 @@ def quad(size: float, center=(0.0, 0.0, 0.0), axis: str = "y") -> trimesh.Trimes
         v = np.array([[-h, -h, 0], [h, -h, 0], [h, h, 0], [-h, h, 0]], dtype=np.float64)
         f = np.array([[0, 1, 2], [0, 2, 3]])
     return trimesh.Trimesh(v + np.asarray(center), f, process=False)
-
-
-def box(lo, hi) -> trimesh.Trimesh:
-    lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
-    mesh = trimesh.creation.box(extents=hi - lo)
-    mesh.apply_translation(0.5 * (lo + hi))
-    return mesh
-
-
-def sphere(center, radius: float, subdivisions: int = 4) -> trimesh.Trimesh:
-    mesh = trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
-    mesh.apply_translation(center)
-    return mesh
 
 
 def assert_rows(rows: np.ndarray, expected, atol: float) -> None:
@@ -153,9 +54,9 @@ def test_mirror_floor_reflects_sphere_where_mirrored_geometry_says():
     center, radius = np.array([0.3, 1.0, -0.5]), 0.6
     parts = [
         dict(mesh=quad(60.0), F=1.0),
-        dict(mesh=sphere(center, radius, 5), albedo=(1, 0, 0), emissive=(1, 0, 0), smooth=True),
+        dict(mesh=sphere(radius, center, 5), albedo=(1, 0, 0), emissive=(1, 0, 0), smooth=True),
     ]
-    scene = make_scene(parts)
+    scene = parts_scene(parts)
     tracer = Tracer(scene)
     camera = look_at((0.0, 3.0, 6.0), (0.0, 0.0, 0.0))
     gb = tracer.primary_gbuffer(camera, 160, 120)
@@ -183,7 +84,7 @@ def test_parallel_mirrors_stop_at_bounce_limit(limit):
         dict(mesh=quad(2000.0, (0, 0, 0), "z"), F=1.0),
         dict(mesh=quad(2000.0, (0, 0, 2.0), "z"), F=0.9),
     ]
-    scene = make_scene(parts)
+    scene = parts_scene(parts)
     scene.geometry.triangles[2:] = scene.geometry.triangles[2:][:, ::-1]  # second faces -z
     tracer = Tracer(scene)
     camera = look_at((0.0, 0.0, 1.0), (0.05, 0.02, 0.0), focal=200.0)
@@ -214,8 +115,9 @@ def test_no_acne_no_leaks_far_from_origin_and_tiny(offset, scale):
         dome=DomeLight(color=SKY),
     )
     floor = quad(20.0 * scale, offset)
-    cube = box(offset + scale * np.array([-1.0, 0.0, -1.0]), offset + scale * np.array([1, 2, 1]))
-    scene = make_scene([dict(mesh=floor, F=0.7), dict(mesh=cube)], lights)
+    lo, hi = offset + scale * np.array([-1.0, 0.0, -1.0]), offset + scale * np.array([1, 2, 1])
+    cube = box_between(lo, hi)
+    scene = parts_scene([dict(mesh=floor, F=0.7), dict(mesh=cube)], lights)
     tracer = Tracer(scene)
     camera = look_at(
         offset + scale * np.array([8.0, 6.0, 8.0]), offset + scale * np.array([3, 0, 3])
@@ -253,13 +155,13 @@ def test_no_acne_no_leaks_far_from_origin_and_tiny(offset, scale):
 
 def test_shadow_rays_under_box_and_without_lights():
     lights = Lights(distant=[DistantLight(np.array([0.0, 1.0, 0.0]), np.ones(3))])
-    parts = [dict(mesh=quad(20.0)), dict(mesh=box((-1, 1, -1), (1, 2, 1)))]
-    tracer = Tracer(make_scene(parts, lights))
+    parts = [dict(mesh=quad(20.0)), dict(mesh=box_between((-1, 1, -1), (1, 2, 1)))]
+    tracer = Tracer(parts_scene(parts, lights))
     pts = np.array([[0.0, 0.0, 0.0], [5.0, 0.0, 0.0], [0.9, 0.0, 0.9]])
     vis = tracer.shadow_visibility(pts, np.tile([0.0, 1.0, 0.0], (3, 1)))
     np.testing.assert_array_equal(vis[:, 0], [0.0, 1.0, 0.0])
     assert tracer.rays_cast["shadow"] == 3
-    dark = make_scene(parts, Lights())
+    dark = parts_scene(parts, Lights())
     tracer = Tracer(dark)
     assert tracer.shadow_visibility(pts, np.tile([0.0, 1.0, 0.0], (3, 1))).shape == (3, 0)
     gb = tracer.primary_gbuffer(look_at((0, 5, 8), (0, 0, 0)), 40, 30)
@@ -271,9 +173,9 @@ def test_shadow_rays_under_box_and_without_lights():
 
 
 def test_glass_slab_shifts_ray_as_snell_says():
-    slab = box((-50, 0, -50), (50, 1.0, 50))
+    slab = box_between((-50, 0, -50), (50, 1.0, 50))
     parts = [dict(mesh=slab, opacity=0.0, ior=1.5), dict(mesh=quad(400.0, (0, -3.0, 0)))]
-    tracer = Tracer(make_scene(parts))
+    tracer = Tracer(parts_scene(parts))
     tracer.record_rays = True
     camera = look_at((-1.0, 2.0, 0.0), (0.0, 1.0, 0.0))  # 45° onto the slab's top at x=0
     gb = tracer.primary_gbuffer(camera, 1, 1)
@@ -298,8 +200,8 @@ def test_glass_slab_shifts_ray_as_snell_says():
 
 
 def test_total_internal_reflection_and_no_refraction_work_when_opaque():
-    parts = [dict(mesh=quad(20.0), F=1.0), dict(mesh=sphere((0, 1, 0), 0.5))]
-    tracer = Tracer(make_scene(parts))
+    parts = [dict(mesh=quad(20.0), F=1.0), dict(mesh=sphere(0.5, (0, 1, 0)))]
+    tracer = Tracer(parts_scene(parts))
     gb = tracer.primary_gbuffer(look_at((0, 3, 6), (0, 0, 0)), 40, 30)
     res = tracer.trace_refraction(gb, bounce_limit=5)
     assert res.rays == 0 and len(res.pixel_index) == 0
@@ -346,9 +248,9 @@ def test_environment_lookup_never_nan(direction):
 def test_offscreen_reflector_discovered_through_mirror():
     parts = [
         dict(mesh=quad(60.0), F=1.0),
-        dict(mesh=sphere((0.0, 6.0, -4.0), 1.0), F=0.5),  # above the top of the frame
+        dict(mesh=sphere(1.0, (0.0, 6.0, -4.0)), F=0.5),  # above the top of the frame
     ]
-    tracer = Tracer(make_scene(parts))
+    tracer = Tracer(parts_scene(parts))
     camera = look_at((0.0, 3.0, 8.0), (0.0, 0.0, 0.0))
     gb = tracer.primary_gbuffer(camera, 80, 60)
     assert not np.any(gb.element_id == 1)  # off-screen
@@ -365,10 +267,10 @@ def test_primary_gbuffer_matches_direct_embree():
     lights = Lights(distant=[DistantLight(np.array([0.3, 0.9, 0.1]), np.ones(3))])
     parts = [
         dict(mesh=quad(20.0), F=0.5),
-        dict(mesh=sphere((0, 1, 0), 1.0, 3), albedo=(0.2, 0.8, 0.2), smooth=True),
-        dict(mesh=box((2, 0, -1), (3, 2, 1))),
+        dict(mesh=sphere(1.0, (0, 1, 0), 3), albedo=(0.2, 0.8, 0.2), smooth=True),
+        dict(mesh=box_between((2, 0, -1), (3, 2, 1))),
     ]
-    scene = make_scene(parts, lights)
+    scene = parts_scene(parts, lights)
     tracer = Tracer(scene)
     camera = look_at((4.0, 3.0, 6.0), (0.0, 0.5, 0.0))
     gb = tracer.primary_gbuffer(camera, 64, 48)
@@ -397,9 +299,9 @@ def test_primary_gbuffer_matches_direct_embree():
 
 
 def test_replay_raw_uses_the_same_rays():
-    parts = [dict(mesh=quad(20.0), F=1.0), dict(mesh=sphere((0, 1, 0), 1.0, 3))]
+    parts = [dict(mesh=quad(20.0), F=1.0), dict(mesh=sphere(1.0, (0, 1, 0), 3))]
     lights = Lights(distant=[DistantLight(np.array([0.0, 1.0, 0.0]), np.ones(3))])
-    tracer = Tracer(make_scene(parts, lights))
+    tracer = Tracer(parts_scene(parts, lights))
     gb = tracer.primary_gbuffer(look_at((0, 3, 6), (0, 0, 0)), 40, 30)
     tracer.record_rays = True
     res = tracer.trace_reflections(gb, [0], 5)
@@ -414,7 +316,7 @@ def test_grazing_shading_normals_follow_the_rasterizer_rule():
     from phrt_usd.render.raster.rasterizer import Rasterizer
 
     floor = quad(20.0)
-    scene = make_scene([{"mesh": floor}])
+    scene = parts_scene([{"mesh": floor}])
     tilt = np.array([0.8, 0.6, 0.0], np.float32)  # leans towards +X, away from the camera
     scene.geometry.corner_normals[:] = tilt
     cam = look_at([-8.0, 1.0, 0.0], [0.0, 0.0, 0.0])  # looking along +X, grazing
@@ -443,7 +345,7 @@ def test_shadow_rays_only_within_light_range_and_facing():
     intensity = 2.0
     light = LocalLight(np.array([0.0, 1.0, 0.0]), np.full(3, intensity))
     reach = shading.light_ranges(Lights(local=[light]))[0]
-    scene = make_scene([{"mesh": quad(1.0, center=(0.0, -50.0, 0.0))}], Lights(local=[light]))
+    scene = parts_scene([{"mesh": quad(1.0, center=(0.0, -50.0, 0.0))}], Lights(local=[light]))
     tracer = Tracer(scene, threads=1)
     pts = np.array([[0.5 * reach, 0.0, 0.0], [1.5 * reach, 0.0, 0.0], [0.0, 0.0, 0.0]])
     normals = np.array([[0.0, 1.0, 0.0], [0.0, 1.0, 0.0], [0.0, -1.0, 0.0]])
@@ -488,8 +390,8 @@ def _hit_t(tracer: Tracer, prim, u, v, o32, d32) -> np.ndarray:
 
 
 def test_moved_animated_element_is_hit_at_its_new_place_only():
-    parts = [dict(mesh=quad(20.0)), dict(mesh=box((-0.5, 0.5, -0.5), (0.5, 1.5, 0.5)))]
-    scene = make_scene(parts)
+    parts = [dict(mesh=quad(20.0)), dict(mesh=box_between((-0.5, 0.5, -0.5), (0.5, 1.5, 0.5)))]
+    scene = parts_scene(parts)
     scene.elements[1].animated = True
     tracer = Tracer(scene, threads=1)
     static_bvh = tracer.bvh.static
@@ -525,8 +427,8 @@ def test_moved_animated_element_is_hit_at_its_new_place_only():
 
 def test_static_only_scene_costs_one_query_per_batch():
     lights = Lights(distant=[DistantLight(np.array([0.0, 1.0, 0.0]), np.ones(3))])
-    parts = [dict(mesh=quad(20.0), F=1.0), dict(mesh=sphere((0, 1, 0), 1.0, 3))]
-    tracer = Tracer(make_scene(parts, lights), threads=1)
+    parts = [dict(mesh=quad(20.0), F=1.0), dict(mesh=sphere(1.0, (0, 1, 0), 3))]
+    tracer = Tracer(parts_scene(parts, lights), threads=1)
     assert tracer.bvh.dynamic is None
     gb = tracer.primary_gbuffer(look_at((0, 3, 6), (0, 0, 0)), 40, 30)
     counter = _CountingBVH(tracer.bvh.static)
@@ -553,7 +455,7 @@ def test_two_bvhs_match_a_single_bvh_on_random_scenes(seed):
             corners.reshape(-1, 3), np.arange(3 * n).reshape(n, 3), process=False
         )
         parts.append(dict(mesh=mesh))
-    scene = make_scene(parts)
+    scene = parts_scene(parts)
     for e in scene.elements:
         e.animated = bool(rng.random() < 0.4)
     scene.elements[int(rng.integers(6))].animated = True
@@ -594,11 +496,11 @@ def test_records_count_every_ray_cast_per_source():
     lights = Lights(distant=[DistantLight(np.array([0.2, 1.0, 0.1]), np.ones(3))])
     parts = [
         dict(mesh=quad(20.0), F=0.6),
-        dict(mesh=sphere((0, 1, 0), 1.0, 3), F=0.8),
-        dict(mesh=box((2, 0, -1), (3, 2, 1)), F=1.0),
-        dict(mesh=box((-3, 0, -1), (-2, 2, 1))),
+        dict(mesh=sphere(1.0, (0, 1, 0), 3), F=0.8),
+        dict(mesh=box_between((2, 0, -1), (3, 2, 1)), F=1.0),
+        dict(mesh=box_between((-3, 0, -1), (-2, 2, 1))),
     ]
-    scene = make_scene(parts, lights)
+    scene = parts_scene(parts, lights)
     tracer = Tracer(scene, threads=1)
     gb = tracer.primary_gbuffer(look_at((0.0, 4.0, 7.0), (0.0, 0.5, 0.0)), 64, 48)
     tracer.record_rays = True
@@ -628,10 +530,10 @@ def test_shading_split_over_threads_matches_one_thread(monkeypatch):
     )
     parts = [
         dict(mesh=quad(20.0), F=0.5),
-        dict(mesh=sphere((0, 1, 0), 1.0, 3), F=0.3, smooth=True),
-        dict(mesh=box((2, 0, -1), (3, 2, 1))),
+        dict(mesh=sphere(1.0, (0, 1, 0), 3), F=0.3, smooth=True),
+        dict(mesh=box_between((2, 0, -1), (3, 2, 1))),
     ]
-    scene = make_scene(parts, lights)
+    scene = parts_scene(parts, lights)
     camera = look_at((0.0, 4.0, 7.0), (0.0, 0.5, 0.0))
     results = []
     for threads, threshold in ((1, tracer_module.PARALLEL_MIN_SHADE_RAYS), (2, 16)):
