@@ -6,10 +6,10 @@ from pathlib import Path
 
 import pytest
 from pxr import Sdf, Usd, UsdGeom, UsdLux, UsdShade
+from scenes import clean_stage, cube_stage
 from typer.testing import CliRunner
 
 from phrt_usd.cli import app
-from tests.test_validation import clean_stage
 
 REPO = Path(__file__).resolve().parent.parent
 runner = CliRunner()
@@ -103,10 +103,7 @@ def test_inspect_json_and_passes(good):
 
 
 def test_inspect_table_and_minimal_passes(tmp_path):
-    path = tmp_path / "plain.usda"
-    stage = Usd.Stage.CreateNew(str(path))
-    UsdGeom.Cube.Define(stage, "/Box")
-    stage.GetRootLayer().Save()
+    path = cube_stage(tmp_path / "plain.usda")
     result = run("inspect", path)
     assert result.exit_code == 0
     assert "Passes: gbuffer" in result.stdout

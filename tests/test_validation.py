@@ -4,35 +4,14 @@ import math
 import re
 
 import pytest
-from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux, UsdRender, UsdShade
+from pxr import Gf, Sdf, UsdGeom, UsdLux, UsdRender, UsdShade
+from scenes import clean_stage
 
 from phrt_usd.errors import PhrtError
 from phrt_usd.usd import schema
 from phrt_usd.usd import stage as sr
 from phrt_usd.usd.stage import open_usd, read_stage
 from phrt_usd.usd.validation import validate_file, validate_stage
-
-
-def clean_stage(path):
-    """A valid stage: metadata, a quad mirror, a camera, a camera path, render settings."""
-    stage = Usd.Stage.CreateNew(str(path))
-    UsdGeom.SetStageUpAxis(stage, "Y")
-    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
-    world = UsdGeom.Xform.Define(stage, "/World")
-    stage.SetDefaultPrim(world.GetPrim())
-    mesh = UsdGeom.Mesh.Define(stage, "/World/Mirror")
-    mesh.CreatePointsAttr([(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0)])
-    mesh.CreateFaceVertexCountsAttr([4])
-    mesh.CreateFaceVertexIndicesAttr([0, 1, 2, 3])
-    schema.apply_reflector(mesh.GetPrim(), priority=2.0, reflectivity=0.5)
-    UsdGeom.Camera.Define(stage, "/World/Cam")
-    schema.define_camera_path(
-        stage, "/World/Path", "/World/Cam", [(0, 1, 5), (1, 1, 5)], [(0, 0, 0), (0, 0, 0)], [1, 24]
-    )
-    settings = UsdRender.Settings.Define(stage, "/World/Render")
-    settings.CreateResolutionAttr(Gf.Vec2i(320, 240))
-    schema.apply_render_settings(settings.GetPrim(), heuristic="heu1", budget_ms=10.0)
-    return stage
 
 
 def errors_of(stage):
