@@ -9,6 +9,7 @@ from pathlib import Path
 
 import pytest
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdUtils
+from scenes import composed_stage, cube_stage
 from typer.testing import CliRunner
 
 from phrt_usd.cli import app
@@ -90,46 +91,6 @@ def test_errors_write_nothing(stage_file, prims, priority, message):
 runner = CliRunner()
 
 
-def _simple_stage(path: Path, fmt: str | None = None) -> Path:
-    """A stage with one cube at ``path``; ``fmt`` ('usda' / 'usdc') for a ``.usd``."""
-    layer = Sdf.Layer.CreateAnonymous(".usda")
-    stage = Usd.Stage.Open(layer)
-    UsdGeom.Xform.Define(stage, "/World")
-    UsdGeom.Cube.Define(stage, "/World/Box")
-    assert layer.Export(str(path), args={"format": fmt} if fmt else {})
-    return path
-
-
-def _composed_stage(tmp_path: Path) -> Path:
-    """scene.usda sublayers sub.usda (which sublayers deep.usda), references ref.usda,
-    payloads pay.usda and references var.usda (which sublayers vardeep.usda) only in an
-    unselected variant."""
-    for name in ("deep", "sub", "ref", "pay", "var", "vardeep"):
-        layer = Sdf.Layer.CreateNew(str(tmp_path / f"{name}.usda"))
-        stage = Usd.Stage.Open(layer)
-        UsdGeom.Cube.Define(stage, f"/{name.capitalize()}")
-        layer.defaultPrim = name.capitalize()
-        if name in ("sub", "var"):
-            layer.subLayerPaths.append("deep.usda" if name == "sub" else "vardeep.usda")
-        layer.Save()
-    path = tmp_path / "scene.usda"
-    stage = Usd.Stage.CreateNew(str(path))
-    stage.GetRootLayer().subLayerPaths.append("sub.usda")
-    UsdGeom.Cube.Define(stage, "/World/Box")
-    stage.DefinePrim("/World/Ref").GetReferences().AddReference("ref.usda")
-    stage.DefinePrim("/World/Pay").GetPayloads().AddPayload("pay.usda")
-    holder = stage.DefinePrim("/World/Var")
-    variants = holder.GetVariantSets().AddVariantSet("look")
-    variants.AddVariant("plain")
-    variants.AddVariant("fancy")
-    variants.SetVariantSelection("fancy")
-    with variants.GetVariantEditContext():
-        holder.GetReferences().AddReference("var.usda")
-    variants.SetVariantSelection("plain")
-    stage.GetRootLayer().Save()
-    return path
-
-
 FPS30_SAMPLES = (1.0, 7.5, 13.0, 24.0, 30.0, 48.0)
 
 
@@ -195,7 +156,7 @@ def _umask(mask: int):
 
 
 def test_in_place_usdc_stays_crate(tmp_path):
-    path = _simple_stage(tmp_path / "scene.usdc")
+    path = cube_stage(tmp_path / "scene.usdc")
     assert path.read_bytes().startswith(b"PXR-USDC")
     result = author_reflectors(path, ["/World/Box"], 3.0, in_place=True)
     assert result.layer == str(path)
@@ -206,7 +167,7 @@ def test_in_place_usdc_stays_crate(tmp_path):
 
 @pytest.mark.parametrize("fmt, magic", [("usda", b"#usda"), ("usdc", b"PXR-USDC")])
 def test_in_place_usd_keeps_its_flavour(tmp_path, fmt, magic):
-    path = _simple_stage(tmp_path / "scene.usd", fmt)
+    path = cube_stage(tmp_path / "scene.usd", fmt)
     assert path.read_bytes().startswith(magic)
     author_reflectors(path, ["/World/Box"], 5.0, in_place=True)
     assert path.read_bytes().startswith(magic)
@@ -214,7 +175,7 @@ def test_in_place_usd_keeps_its_flavour(tmp_path, fmt, magic):
 
 
 def test_in_place_usdz_refused_file_byte_identical(tmp_path):
-    inner = _simple_stage(tmp_path / "inner.usdc")
+    inner = cube_stage(tmp_path / "inner.usdc")
     package = tmp_path / "scene.usdz"
     assert UsdUtils.CreateNewUsdzPackage(Sdf.AssetPath(str(inner)), str(package))
     before = package.read_bytes()
@@ -233,7 +194,7 @@ def test_in_place_usdz_refused_file_byte_identical(tmp_path):
 
 
 def test_in_place_symlinked_stage_edits_target_keeps_link(tmp_path):
-    real = _simple_stage(tmp_path / "real.usdc")
+    real = cube_stage(tmp_path / "real.usdc")
     link = tmp_path / "link.usdc"
     link.symlink_to(real.name)
     author_reflectors(link, ["/World/Box"], 6.0, in_place=True)
@@ -243,7 +204,7 @@ def test_in_place_symlinked_stage_edits_target_keeps_link(tmp_path):
 
 @pytest.mark.parametrize("mode, mask", [(0o644, 0o002), (0o664, 0o022), (0o600, 0o022)])
 def test_in_place_keeps_file_mode(tmp_path, mode, mask):
-    path = _simple_stage(tmp_path / "scene.usdc")
+    path = cube_stage(tmp_path / "scene.usdc")
     path.chmod(mode)
     with _umask(mask):
         author_reflectors(path, ["/World/Box"], 1.5, in_place=True)
@@ -259,7 +220,7 @@ def test_new_overlay_follows_umask(stage_file, mask, mode):
 
 
 def test_failed_check_leaves_file_and_stage_layer_untouched(tmp_path, monkeypatch):
-    path = _simple_stage(tmp_path / "scene.usdc")
+    path = cube_stage(tmp_path / "scene.usdc")
     before = path.read_bytes()
     held = Sdf.Layer.FindOrOpen(str(path))  # the layer the stage will be opened on
     monkeypatch.setattr(authoring, "_MAGIC", {**authoring._MAGIC, "usdc": b"NOT-CRATE"})
@@ -301,7 +262,7 @@ def test_default_overlay_existing_needs_force(stage_file):
     "name", ["sub.usda", "deep.usda", "ref.usda", "pay.usda", "var.usda", "vardeep.usda"]
 )
 def test_out_onto_a_layer_the_stage_uses_refused_even_with_force(tmp_path, name):
-    stage_file = _composed_stage(tmp_path)
+    stage_file = composed_stage(tmp_path)
     before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
     for target in (tmp_path / name, tmp_path / "elsewhere" / ".." / name):
         with pytest.raises(PhrtError) as info:
@@ -312,7 +273,7 @@ def test_out_onto_a_layer_the_stage_uses_refused_even_with_force(tmp_path, name)
 
 
 def test_out_symlink_to_used_layer_refused_even_with_force(tmp_path):
-    stage_file = _composed_stage(tmp_path)
+    stage_file = composed_stage(tmp_path)
     (tmp_path / "links").mkdir()
     link = tmp_path / "links" / "alias.usda"
     link.symlink_to(tmp_path / "ref.usda")
@@ -323,7 +284,7 @@ def test_out_symlink_to_used_layer_refused_even_with_force(tmp_path):
 
 
 def test_out_is_the_input_stage_refused(tmp_path):
-    stage_file = _composed_stage(tmp_path)
+    stage_file = composed_stage(tmp_path)
     link = tmp_path / "same.usda"
     link.symlink_to(stage_file.name)
     before = stage_file.read_bytes()
@@ -334,7 +295,7 @@ def test_out_is_the_input_stage_refused(tmp_path):
 
 
 def test_overlay_of_composed_stage_written_next_to_layers(tmp_path):
-    stage_file = _composed_stage(tmp_path)
+    stage_file = composed_stage(tmp_path)
     overlay = Path(author_reflectors(stage_file, ["/World/Box", "/World/Ref"], 4.0).layer)
     stage = Usd.Stage.Open(str(overlay))
     assert schema.reflector_priority(stage.GetPrimAtPath("/World/Ref")) == 4.0
@@ -408,14 +369,14 @@ def test_cli_author_exit_codes(stage_file, tmp_path):
 
 
 def test_cli_author_refusals_exit_1(tmp_path):
-    stage_file = _composed_stage(tmp_path)
+    stage_file = composed_stage(tmp_path)
     result = _cli(
         stage_file, "/World/Box", "--priority", "1", "--out", tmp_path / "ref.usda", "--force"
     )
     assert result.exit_code == 1 and result.stderr.count("\n") == 1
     assert "is a layer the stage uses" in result.stderr
 
-    inner = _simple_stage(tmp_path / "inner.usdc")
+    inner = cube_stage(tmp_path / "inner.usdc")
     package = tmp_path / "p.usdz"
     assert UsdUtils.CreateNewUsdzPackage(Sdf.AssetPath(str(inner)), str(package))
     before = package.read_bytes()
@@ -426,7 +387,7 @@ def test_cli_author_refusals_exit_1(tmp_path):
 
 
 def test_cli_author_in_place_usdc(tmp_path):
-    path = _simple_stage(tmp_path / "scene.usdc")
+    path = cube_stage(tmp_path / "scene.usdc")
     result = _cli(path, "/World/Box", "--priority", "7", "--in-place")
     assert result.exit_code == 0, result.output
     assert path.read_bytes().startswith(b"PXR-USDC")
