@@ -1,6 +1,11 @@
-"""Frame images: one multi-channel OpenEXR per frame and an 8-bit sRGB PNG preview.
+"""Frame images: multi-channel OpenEXR files and 8-bit sRGB PNG previews.
 
-EXR channels (zip compressed, scanline):
+EXRs are written with the ``OpenEXR`` bindings (``write_exr``: exact ``UINT`` channels,
+matrix, rational and double header attributes, multi-part files), PNGs with OpenImageIO.
+Both go through the one atomic writer. ``phrt_usd.run.products`` decides which files and
+channels a frame gets; this module encodes them.
+
+The default layout's channels (``write_frame_exr``; zip compressed, scanline):
 
 =========  =======  ===================================================================
 channel    storage  meaning
@@ -10,19 +15,21 @@ R, G, B    half     linear RGB radiance (scene-referred); values above the half 
 A          half     coverage, 1 where geometry was hit, 0 for background
 Z          float    view depth in metres along the camera's -Z; background is written
                     as the finite ``DEPTH_BACKGROUND`` (1e30), read back as ``inf``
-id         float    element id (index into ``Scene.elements``), -1 for background;
-                    float32 holds every integer of magnitude ≤ 2**24 exactly
+id         uint     element id (index into ``Scene.elements``); background (element id
+                    -1) is ``ID_BACKGROUND`` (2**32 - 1, the bits of int32 -1); the
+                    header's manifest names each id's prim (``phrt_usd.run.products``)
 traced     half     1 where the pixel's reflection was ray-traced this frame, else 0
 =========  =======  ===================================================================
 
-Why ``id`` is float and not an EXR ``UINT`` channel: EXR and OpenImageIO support a UINT
-channel next to half/float ones, but OIIO's Python ``write_image`` takes one buffer type
-for all channels and converts floats to integer channels as *normalised* values (1.0 →
-2**32-1), so a UINT channel cannot be filled exactly from Python in one pass. float32 is
-what compositors expect of an object-id AOV anyway; ids beyond 2**24 raise ``PhrtError``.
+Why ids stay ≤ ``MAX_EXACT_ID`` (2**24) although the channel is an exact uint32: many
+tools read every channel as float32 (Nuke, OpenImageIO's float reads), where larger ids
+would merge; a larger id raises ``PhrtError``.
 
 Why Z is finite: many compositing operations (``1/Z``, depth merges, blur) turn ``inf``
 into NaN; 1e30 m sorts behind everything and stays finite.
+
+Files carry no wall-clock time unless asked (``capDate``, see ``products``), so
+identical renders are identical files.
 
 The preview is ``tonemap_ldr`` quantised to 8 bits. ``tonemap_ldr`` is the display
 transform used wherever an LDR image is needed (the sweep's FLIP error uses it too).
@@ -30,33 +37,88 @@ transform used wherever an LDR image is needed (the sweep's FLIP error uses it t
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import io
+import json
+from collections.abc import Callable, Mapping
 from pathlib import Path
 
 import numpy as np
+import OpenEXR
 import OpenImageIO as oiio
 
-from phrt_usd.atomic import WriteFailed, atomic_path
+from phrt_usd.atomic import WriteFailed, atomic_path, write_bytes_atomic
 from phrt_usd.errors import PhrtError
 
-#: Largest finite half-float; brighter radiance is clamped to it in the EXR's RGB.
+#: Largest finite half-float; brighter radiance is clamped to it in half channels.
 HALF_MAX = 65504.0
 #: Depth written for background pixels (metres). Anything at or beyond it reads as inf.
 DEPTH_BACKGROUND = 1e30
-#: Largest element id magnitude that float32 stores exactly (2**24).
+#: Largest element id written (2**24: what float32 readers still tell apart).
 MAX_EXACT_ID = 2**24
+#: The uint32 ``id`` of background pixels: element id -1 as uint32 bits.
+ID_BACKGROUND = 2**32 - 1
 
+#: The default layout's channels, in the order ``read_frame_exr`` knows them.
 CHANNELS = ("R", "G", "B", "A", "Z", "id", "traced")
-_CHANNEL_FORMATS = (
-    oiio.HALF,
-    oiio.HALF,
-    oiio.HALF,
-    oiio.HALF,
-    oiio.FLOAT,
-    oiio.FLOAT,
-    oiio.HALF,
-)
-EXR_COMPRESSION = "zip"
+EXR_COMPRESSION = OpenEXR.ZIP_COMPRESSION
+#: The colour space of RGB channels (EXR's ``colorInteropID``, as OpenImageIO names it).
+COLOR_INTEROP_ID = "lin_rec709_scene"
+#: The header attribute holding the id manifest as JSON text (``{"id": "prim path"}``).
+MANIFEST_ATTR = "phrt/idManifest"
+#: The storage types of EXR channels: numpy dtypes the OpenEXR bindings map to HALF,
+#: FLOAT and UINT.
+STORAGE = {"half": np.float16, "float": np.float32, "uint": np.uint32}
+
+
+# --- encoding the renderer's planes ----------------------------------------------------
+
+
+def check_beauty(path: Path, beauty: np.ndarray) -> np.ndarray:
+    """``beauty`` as (H, W, 3) float32; PhrtError naming the first NaN/Inf pixel."""
+    beauty = np.asarray(beauty)
+    if beauty.ndim != 3 or beauty.shape[2] != 3:
+        raise PhrtError(f"{path}: beauty must be (H, W, 3), got {beauty.shape}")
+    if not np.isfinite(beauty).all():
+        bad = np.argwhere(~np.isfinite(beauty))[0]
+        raise PhrtError(f"{path}: beauty has NaN/Inf at row {bad[0]}, column {bad[1]}")
+    return beauty.astype(np.float32, copy=False)
+
+
+def check_plane(path: Path, name: str, plane: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
+    """``plane`` as an array of ``shape``; PhrtError naming it otherwise."""
+    plane = np.asarray(plane)
+    if plane.shape != tuple(shape):
+        raise PhrtError(f"{path}: {name} must be {tuple(shape)}, got {plane.shape}")
+    return plane
+
+
+def stored_depth(path: Path, depth: np.ndarray) -> np.ndarray:
+    """View depth as written: float32, +inf and beyond as ``DEPTH_BACKGROUND``; PhrtError
+    for NaN."""
+    depth = np.asarray(depth)
+    if np.isnan(depth).any():
+        raise PhrtError(f"{path}: depth has NaN")
+    return np.minimum(depth, DEPTH_BACKGROUND).astype(np.float32)
+
+
+def stored_ids(path: Path, element_id: np.ndarray) -> np.ndarray:
+    """Element ids as written: uint32, -1 (background) as ``ID_BACKGROUND``; PhrtError for
+    an id beyond ``MAX_EXACT_ID`` or below -1."""
+    ids = np.asarray(element_id).astype(np.int64)
+    if ids.size and (ids.max() > MAX_EXACT_ID or ids.min() < -1):
+        raise PhrtError(f"{path}: element id beyond {MAX_EXACT_ID} cannot be stored exactly")
+    return np.where(ids < 0, ID_BACKGROUND, ids).astype(np.uint32)
+
+
+def stored(values: np.ndarray, storage: str) -> np.ndarray:
+    """``values`` in ``storage`` ("half" | "float" | "uint"); half clamps to ±HALF_MAX
+    (larger values would be stored as inf)."""
+    if storage == "half":
+        return np.clip(values, -HALF_MAX, HALF_MAX).astype(np.float16)
+    return np.ascontiguousarray(values, dtype=STORAGE[storage])
+
+
+# --- EXR files ---------------------------------------------------------------------------
 
 
 def write_frame_exr(
@@ -66,62 +128,164 @@ def write_frame_exr(
     depth: np.ndarray,
     element_id: np.ndarray,
     traced_mask: np.ndarray,
-    metadata: dict[str, str | float | int] | None = None,
+    metadata: Mapping[str, object] | None = None,
+    manifest: Mapping[int, str] | None = None,
 ) -> None:
-    """Write one frame as a multi-channel EXR, atomically.
+    """Write one frame in the default layout (``CHANNELS``, module docstring), atomically.
 
     beauty      : (H, W, 3) float32 linear RGB, must be finite (else PhrtError)
     alpha       : (H, W) float in [0, 1], coverage
     depth       : (H, W) float view depth in metres, ``inf`` for background (NaN raises)
     element_id  : (H, W) int32 element ids, -1 for background
     traced_mask : (H, W) bool, pixels whose reflection was ray-traced
-    metadata    : optional extra header attributes, e.g. ``{"phrt:time": 12.0}``
+    metadata    : extra header attributes (see ``write_exr``), e.g. ``{"phrt/timeCode": 12.0}``
+    manifest    : element id → prim path of the ids in the frame (``MANIFEST_ATTR``)
     """
     path = Path(path)
-    beauty = np.asarray(beauty)
-    if beauty.ndim != 3 or beauty.shape[2] != 3:
-        raise PhrtError(f"{path}: beauty must be (H, W, 3), got {beauty.shape}")
-    height, width = beauty.shape[:2]
-    planes = {
-        "alpha": np.asarray(alpha),
-        "depth": np.asarray(depth),
-        "element_id": np.asarray(element_id),
-        "traced_mask": np.asarray(traced_mask),
-    }
-    for name, plane in planes.items():
-        if plane.shape != (height, width):
-            raise PhrtError(f"{path}: {name} must be {(height, width)}, got {plane.shape}")
-    if not np.isfinite(beauty).all():
-        bad = np.argwhere(~np.isfinite(beauty))[0]
-        raise PhrtError(f"{path}: beauty has NaN/Inf at row {bad[0]}, column {bad[1]}")
-    if not np.isfinite(planes["alpha"]).all():
+    beauty = check_beauty(path, beauty)
+    shape = beauty.shape[:2]
+    alpha = check_plane(path, "alpha", alpha, shape)
+    depth = check_plane(path, "depth", depth, shape)
+    element_id = check_plane(path, "element_id", element_id, shape)
+    traced_mask = check_plane(path, "traced_mask", traced_mask, shape)
+    if not np.isfinite(alpha).all():
         raise PhrtError(f"{path}: alpha has NaN/Inf")
-    if np.isnan(planes["depth"]).any():
-        raise PhrtError(f"{path}: depth has NaN")
-    ids = planes["element_id"]
-    if ids.size and np.abs(ids.astype(np.int64)).max() > MAX_EXACT_ID:
-        raise PhrtError(f"{path}: element id beyond {MAX_EXACT_ID} cannot be stored exactly")
+    channels = {
+        "R": stored(beauty[..., 0], "half"),
+        "G": stored(beauty[..., 1], "half"),
+        "B": stored(beauty[..., 2], "half"),
+        "A": stored(alpha, "half"),
+        "Z": stored_depth(path, depth),
+        "id": stored_ids(path, element_id),
+        "traced": stored(traced_mask.astype(np.float32), "half"),
+    }
+    write_exr(path, {"": channels}, metadata, manifest)
 
-    pixels = np.empty((height, width, len(CHANNELS)), dtype=np.float32)
-    # Clamp to the half range: larger values would be stored as inf.
-    pixels[..., 0:3] = np.clip(beauty, -HALF_MAX, HALF_MAX)
-    pixels[..., 3] = planes["alpha"]
-    # +inf (background) and absurdly far depths both become the finite background value.
-    pixels[..., 4] = np.minimum(planes["depth"], DEPTH_BACKGROUND)
-    pixels[..., 5] = ids
-    pixels[..., 6] = planes["traced_mask"].astype(np.float32)
 
-    spec = oiio.ImageSpec(width, height, len(CHANNELS), oiio.FLOAT)
-    spec.channelnames = CHANNELS
-    spec.channelformats = _CHANNEL_FORMATS
-    spec.alpha_channel = 3
-    spec.z_channel = 4
-    spec.attribute("compression", EXR_COMPRESSION)
-    spec.attribute("oiio:ColorSpace", "lin_rec709_scene")
-    for key, value in (metadata or {}).items():
-        spec.attribute(key, value)
-    with atomic_path(path, _check_image(spec)) as tmp:
-        _write(tmp, spec, pixels)
+def write_exr(
+    path: Path,
+    parts: Mapping[str, Mapping[str, np.ndarray]],
+    header: Mapping[str, object] | None = None,
+    manifest: Mapping[int, str] | None = None,
+    manifest_channel: str = "id",
+) -> None:
+    """Write an EXR of ``parts`` (part name → channel name → (H, W) float16 / float32 /
+    uint32 array, storage HALF / FLOAT / UINT), atomically and zip compressed.
+
+    One part named ``""`` is a single-part file; several parts make a multi-part file,
+    each part named by its key. ``header`` attributes go on every part: ``str``,
+    ``int``, ``float`` (stored as float32), a (1,) float64 array (a double), a (4, 4)
+    float32 / float64 array (``M44f`` / ``M44d``), a ``fractions.Fraction``
+    (a rational). ``manifest`` (id → prim path) is written twice: as the OpenEXR
+    ``idManifest`` of ``manifest_channel`` (ids not hashed) and as JSON text in
+    ``MANIFEST_ATTR`` (keys are decimal ids), which any EXR reader can show."""
+    path = Path(path)
+    shapes = {a.shape for channels in parts.values() for a in channels.values()}
+    if len(shapes) != 1 or len(next(iter(shapes))) != 2:
+        raise PhrtError(f"{path}: channels must all be one (H, W) size, got {sorted(shapes)}")
+    attributes: dict[str, object] = {
+        "compression": EXR_COMPRESSION,
+        "type": OpenEXR.scanlineimage,
+        "colorInteropID": COLOR_INTEROP_ID,
+    }
+    attributes.update(header or {})
+    if manifest is not None:
+        attributes["idManifest"] = _id_manifest(manifest, manifest_channel)
+        attributes[MANIFEST_ATTR] = json.dumps(
+            {str(int(k)): str(v) for k, v in sorted(manifest.items())}, separators=(",", ":")
+        )
+    names = list(parts)
+    if names == [""]:
+        image = OpenEXR.File(attributes, _contiguous(parts[""]))
+    else:
+        image = OpenEXR.File(
+            [OpenEXR.Part(dict(attributes), _contiguous(parts[n]), name=n) for n in names]
+        )
+    buffer = io.BytesIO()
+    try:
+        image.write(buffer)
+    except (RuntimeError, TypeError, ValueError) as error:
+        raise PhrtError(f"{path}: cannot encode EXR ({error})") from None
+    expected = (next(iter(shapes)), [len(parts[n]) for n in names])
+    write_bytes_atomic(path, buffer.getvalue(), _check_exr(expected))
+
+
+def _contiguous(channels: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+    out = {}
+    for name, array in channels.items():
+        if array.dtype not in (np.float16, np.float32, np.uint32):
+            raise PhrtError(f"channel {name}: dtype {array.dtype} is not half, float or uint")
+        out[name] = np.ascontiguousarray(array)
+    return out
+
+
+def _id_manifest(manifest: Mapping[int, str], channel: str) -> OpenEXR.IDManifest:
+    """OpenEXR's own id manifest: one channel group, ids not hashed, stable for the run."""
+    result = OpenEXR.IDManifest()
+    group = result.add(channel)
+    group.setComponent("prim")
+    group.setEncodingScheme(OpenEXR.ID_MANIFEST_ID_SCHEME)
+    group.setHashScheme(OpenEXR.ID_MANIFEST_NOTHASHED)
+    group.setLifetime(OpenEXR.LIFETIME_SHOT)
+    for key, value in sorted(manifest.items()):
+        group.insert(int(key), str(value))
+    return result
+
+
+def _check_exr(expected) -> Callable[[Path], None]:
+    """A check for ``atomic_path``: the written file's header reads back with the size and
+    the channel count of every part (pixels are not decoded)."""
+    (height, width), counts = expected
+
+    def check(path: Path) -> None:
+        try:
+            image = OpenEXR.File(str(path), header_only=True)
+            got = [_size_and_channels(p.header) for p in image.parts]
+        except (RuntimeError, KeyError, IndexError, TypeError) as error:
+            raise WriteFailed(f"{path}: written image does not open ({error})") from None
+        if got != [(height, width, n) for n in counts]:
+            raise WriteFailed(f"{path}: written image has the wrong size")
+
+    return check
+
+
+def _size_and_channels(header: Mapping[str, object]) -> tuple[int, int, int]:
+    """(height, width, channel count) from a part's header (its data window)."""
+    low, high = header["dataWindow"]
+    return int(high[1] - low[1] + 1), int(high[0] - low[0] + 1), len(header["channels"])
+
+
+def read_exr(path: Path) -> tuple[dict[str, object], dict[str, np.ndarray]]:
+    """(header of the first part, channel name → (H, W) array of every part) of an EXR.
+    Arrays keep their storage: float16, float32 or uint32. PhrtError if it cannot be read."""
+    path = Path(path)
+    try:
+        image = OpenEXR.File(str(path), separate_channels=True)
+        header = dict(image.parts[0].header)
+        channels = {
+            name: np.asarray(channel.pixels)
+            for part in image.parts
+            for name, channel in part.channels.items()
+        }
+    except (RuntimeError, OSError, IndexError) as error:
+        raise PhrtError(f"{path}: cannot read EXR ({error})") from None
+    return header, channels
+
+
+def read_manifest(header: Mapping[str, object]) -> dict[int, str]:
+    """id → prim path from an EXR header written by ``write_exr`` (empty if it has none)."""
+    text = header.get(MANIFEST_ATTR)
+    if not isinstance(text, str):
+        return {}
+    return {int(k): v for k, v in json.loads(text).items()}
+
+
+def element_ids(ids: np.ndarray) -> np.ndarray:
+    """(H, W) int32 element ids (-1 background) from an ``id`` channel as read: uint32
+    (``ID_BACKGROUND`` is -1) or the float ids of files written before uint ids."""
+    if ids.dtype == np.uint32:
+        return ids.view(np.int32).copy()
+    return np.rint(ids.astype(np.float64)).astype(np.int32)
 
 
 def read_frame_exr(path: Path) -> dict[str, np.ndarray]:
@@ -132,29 +296,22 @@ def read_frame_exr(path: Path) -> dict[str, np.ndarray]:
     ``traced_mask`` (H, W) bool.
     """
     path = Path(path)
-    image = oiio.ImageInput.open(str(path))
-    if image is None:
-        raise PhrtError(f"{path}: cannot open image ({oiio.geterror()})")
-    try:
-        names = list(image.spec().channelnames)
-        missing = [c for c in CHANNELS if c not in names]
-        if missing:
-            raise PhrtError(f"{path}: not a phrt frame, missing channels {missing}")
-        data = image.read_image(oiio.FLOAT)
-        if data is None:
-            raise PhrtError(f"{path}: cannot read pixels ({image.geterror()})")
-    finally:
-        image.close()
-    channel = {name: data[..., names.index(name)] for name in CHANNELS}
-    depth = channel["Z"].copy()
+    _, channel = read_exr(path)
+    missing = [c for c in CHANNELS if c not in channel]
+    if missing:
+        raise PhrtError(f"{path}: not a phrt frame, missing channels {missing}")
+    depth = channel["Z"].astype(np.float32)
     depth[depth >= np.float32(DEPTH_BACKGROUND)] = np.inf
     return {
-        "beauty": np.stack([channel["R"], channel["G"], channel["B"]], axis=-1),
-        "alpha": channel["A"].copy(),
+        "beauty": np.stack([channel[c].astype(np.float32) for c in "RGB"], axis=-1),
+        "alpha": channel["A"].astype(np.float32),
         "depth": depth,
-        "element_id": np.rint(channel["id"]).astype(np.int32),
-        "traced_mask": channel["traced"] > 0.5,
+        "element_id": element_ids(channel["id"]),
+        "traced_mask": channel["traced"].astype(np.float32) > 0.5,
     }
+
+
+# --- previews -------------------------------------------------------------------------
 
 
 def srgb_oetf(linear: np.ndarray) -> np.ndarray:
