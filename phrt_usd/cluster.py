@@ -146,7 +146,7 @@ def render_chunk(chunk: Chunk, job: RenderJob) -> RenderChunkResult:
     from phrt_usd.run.render_job import render_frame
     from phrt_usd.usd.stage import open_stage
 
-    scene = open_stage(chunk.stage, camera=job.camera)
+    scene = open_stage(chunk.stage, camera=job.camera, controls=job.controls)
     times = parse_frames(job.frames, scene.frame_range)
     renderer = FrameRenderer(scene, job.options)
     renderer.plan(times[chunk.first_rendered : chunk.stop])
@@ -461,7 +461,7 @@ def run_render_on_cluster(
     if job.resume:
         raise PhrtError("--resume is not available with --workers / --scheduler")
     out = Path(job.out_dir)
-    scene = open_stage(job.stage_path, camera=job.camera)
+    scene = open_stage(job.stage_path, camera=job.camera, controls=job.controls)
     times = parse_frames(job.frames, scene.frame_range)
     layer_path = job.selection_layer or out / "selection.usda"
     run_info = job_run_info(job, scene, times)

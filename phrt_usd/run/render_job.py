@@ -7,7 +7,13 @@ holds ``OUT/.phrt.lock`` for its whole run, refuses an ``OUT`` that holds files 
 resumes the same run (``resume``) or replaces phrt's own files (``overwrite``), and never
 writes outside ``OUT`` except the selection layer the job names (never a layer of the
 stage). A run is identified by content (``run_identity``): a digest of the stage's layers,
-the camera, the frames and every option that changes pixels or selections.
+the camera, the frames, the render settings prim and its products, and every option that
+changes pixels or selections.
+
+What a frame writes comes from the stage's render settings (``prepare_job``): the
+settings prim (``settings``, else the stage's), its RenderProducts and their vars, or
+``image`` / ``aovs`` (``phrt_usd.run.products``); the products' own camera and resolution
+are the render's unless the job names a camera or ``resolution_given``.
 
 A run is checkpointed every ``checkpoint_every`` frames (less often in long runs, see
 ``CHECKPOINT_MAX_SHARE``), when it stops early and when a frame fails: the checkpoint
@@ -30,7 +36,7 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager, suppress
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from phrt_usd.atomic import write_text_atomic
@@ -38,13 +44,12 @@ from phrt_usd.errors import PhrtError
 from phrt_usd.model.frame import FrameStats
 from phrt_usd.render.renderer import FrameRenderer, RenderOptions
 from phrt_usd.run.frames import parse_frames
-from phrt_usd.run.images import write_frame_exr, write_preview_png
+from phrt_usd.run.products import ImagePlan, default_plan, plan_images, write_frame_images
 from phrt_usd.run.run_directory import RESERVE_FACTOR, RunDirectory
 from phrt_usd.run.run_files import (
     CHECKPOINT_FILE,
     SELECTION_LAYER_FILE,
     STATS_FILE,
-    frame_image_paths,
     frame_stats_from_row,
     frame_stats_row,
     make_run_info,
@@ -52,7 +57,9 @@ from phrt_usd.run.run_files import (
     write_stats,
 )
 from phrt_usd.run.selection_layer import write_selection_layer
-from phrt_usd.usd.stage import StageScene, open_stage
+from phrt_usd.usd.render_settings import read_render_settings
+from phrt_usd.usd.stage import StageScene, open_stage, read_stage
+from phrt_usd.usd.stage_controls import StageControls
 
 #: Identifies checkpoint files; bump the version when their content changes meaning.
 CHECKPOINT_FORMAT = "phrt-checkpoint"
@@ -77,13 +84,19 @@ class RenderJob:
     stage_path: Path
     out_dir: Path
     options: RenderOptions
-    frames: str | None = None  # "A:B[:STEP]" in time codes, both ends included
+    frames: str | None = None  # --frames (run.frames): FrameSpec or A:B:STEP, time codes
     camera: str | None = None
+    controls: StageControls = field(default_factory=StageControls)  # session layers etc.
     selection_layer: Path | None = None
     resume: bool = False
     overwrite: bool = False  # clear phrt's own files in out_dir first
     write_images: bool = True
     checkpoint_every: int = DEFAULT_CHECKPOINT_EVERY
+    settings: str | None = None  # the RenderSettings prim (--settings; else the stage's)
+    image: str | None = None  # --image TEMPLATE: one file per frame instead of the products
+    aovs: tuple[str, ...] = ()  # --aovs: vars added to every EXR (run.products.SOURCES)
+    timestamp: bool = False  # --timestamp: the wall-clock capDate in EXR headers
+    resolution_given: bool = False  # options' width/height were asked for: products' yield
 
 
 @dataclass(frozen=True)
@@ -94,6 +107,7 @@ class RunRecord:
     selection_layer: Path
     frames: list[FrameStats]  # every finished frame of the run, in time order
     passes: list[str]
+    images: ImagePlan | None = None  # the files of each frame: images.files(out, time)
 
 
 def render_to_directory(
@@ -107,14 +121,48 @@ def render_to_directory(
     ``RunDirectory``); a frame that fails ends the run with its error after the finished
     frames' records are written."""
     out = job.out_dir
-    scene = stage_scene or open_stage(job.stage_path, camera=job.camera)
+    scene = stage_scene or open_stage(job.stage_path, camera=job.camera, controls=job.controls)
+    job, scene, plan = prepare_job(job, scene)
     times = parse_frames(job.frames, scene.frame_range)
+    plan.check_frame_count(len(times))
     layer_path = job.selection_layer or out / SELECTION_LAYER_FILE
-    run_info = job_run_info(job, scene, times)
+    run_info = job_run_info(job, scene, times, plan)
     with RunDirectory(
-        out, layer_path, scene, resume=job.resume, overwrite=job.overwrite
+        out,
+        layer_path,
+        scene,
+        resume=job.resume,
+        overwrite=job.overwrite,
+        images=plan.templates(),
     ) as run_dir:
-        return _Run(job, scene, run_info, layer_path, run_dir).render(times, on_frame)
+        return _Run(job, scene, run_info, layer_path, run_dir, plan).render(times, on_frame)
+
+
+def prepare_job(job: RenderJob, scene: StageScene) -> tuple[RenderJob, StageScene, ImagePlan]:
+    """The job as its render settings make it, the stage read with its camera, and the
+    images each frame gets (see the module docstring). The camera: the job's, else the
+    products', else the settings'; ``scene`` is read again if it has another. PhrtError
+    (one line, naming the prim) for settings, products or vars phrt cannot use."""
+    settings = read_render_settings(scene.stage, job.settings)
+    plan = plan_images(
+        settings,
+        job.out_dir,
+        image=job.image,
+        aovs=tuple(job.aovs),
+        stage=str(job.stage_path),
+        timestamp=job.timestamp,
+    )
+    camera = job.camera or plan.camera or (settings.camera if settings else None)
+    if camera and camera != scene.camera_path:
+        scene = read_stage(scene.stage, camera=camera)
+    if camera:
+        job = replace(job, camera=camera)  # workers of a cluster read the same camera
+    opts = job.options
+    if plan.resolution and not job.resolution_given:
+        if plan.resolution != (opts.width, opts.height):
+            width, height = plan.resolution
+            job = replace(job, options=replace(opts, width=width, height=height))
+    return job, scene, plan
 
 
 class _Run:
@@ -122,9 +170,9 @@ class _Run:
     memory as of the last finished frame (what a checkpoint must hold so that a resumed
     run continues exactly, even when the run ends inside a frame)."""
 
-    def __init__(self, job, scene, run_info, layer_path, run_dir: RunDirectory):
+    def __init__(self, job, scene, run_info, layer_path, run_dir: RunDirectory, plan):
         self.job, self.scene, self.run_info = job, scene, run_info
-        self.layer_path, self.run_dir = layer_path, run_dir
+        self.layer_path, self.run_dir, self.plan = layer_path, run_dir, plan
         self.done: list[FrameStats] = []
         self.renderer = FrameRenderer(scene, job.options)
         self.memory = self.renderer.policy.memory()
@@ -145,7 +193,8 @@ class _Run:
             next_checkpoint = 0.0  # time.perf_counter() before which no periodic checkpoint
             with stop_on_signals(stop), self._records_kept():
                 for t in todo:
-                    self.done.append(render_frame(renderer, t, out if job.write_images else None))
+                    written = out if job.write_images else None
+                    self.done.append(render_frame(renderer, t, written, self.plan))
                     self.memory = renderer.policy.memory()
                     since_checkpoint += 1
                     if on_frame is not None:
@@ -170,6 +219,7 @@ class _Run:
             selection_layer=self.layer_path,
             frames=sorted(self.done, key=lambda s: s.time),
             passes=sorted({p for s in self.done for p in s.passes}),
+            images=self.plan if job.write_images else None,
         )
 
     @contextmanager
@@ -209,27 +259,38 @@ class _Run:
         self.run_dir.keep_reserve(RESERVE_FACTOR * written)
 
 
-def render_frame(renderer: FrameRenderer, t: float, out: Path | None) -> FrameStats:
+def render_frame(
+    renderer: FrameRenderer, t: float, out: Path | None, images: ImagePlan | None = None
+) -> FrameStats:
     """Render frame ``t`` with ``renderer`` (its policy remembers the frame); with an
-    output directory ``out``, write the frame's EXR and PNG there (atomically)."""
+    output directory ``out``, write the frame's files of ``images`` there, each atomically
+    (the default layout, ``frames/NNNN.exr`` and ``.png``, without a plan)."""
     output = renderer.render(t)
     if out is not None:
-        exr, png = frame_image_paths(out, t)
-        write_frame_exr(
-            exr,
-            output.beauty,
-            output.alpha,
-            output.gbuffer.depth,
-            output.gbuffer.element_id,
-            output.traced_mask,
+        stage_scene = renderer.stage_scene
+        root = stage_scene.stage.GetRootLayer()
+        write_frame_images(
+            images or default_plan(),
+            out,
+            t,
+            output,
+            stage_scene.camera(t),
+            stage_scene.scene,
+            frames_per_second=stage_scene.time_codes_per_second,
+            camera_path=stage_scene.camera_path,
+            stage=root.realPath or root.identifier,
         )
-        write_preview_png(png, output.beauty)
     return output.stats
 
 
-def job_run_info(job: RenderJob, scene: StageScene, times: list[float]) -> dict:
+def job_run_info(
+    job: RenderJob, scene: StageScene, times: list[float], images: ImagePlan | None = None
+) -> dict:
     """The run object of stats.json, the selection layer and the checkpoint, with the
-    run's ``identity`` (see ``run_identity``)."""
+    run's ``identity`` (see ``run_identity``); ``images``: the run's files (``prepare_job``,
+    which this calls when not given)."""
+    if images is None:
+        job, scene, images = prepare_job(job, scene)
     opts = job.options
     info = make_run_info(
         stage=str(job.stage_path),
@@ -245,6 +306,9 @@ def job_run_info(job: RenderJob, scene: StageScene, times: list[float]) -> dict:
         time_codes_per_second=scene.time_codes_per_second,
     )
     info["camera"] = scene.camera_path
+    info["settings"] = images.settings
+    info["products"] = images.describe()
+    info["composition"] = job.controls.as_dict()
     info["identity"] = run_identity(info, scene, times)
     return info
 
@@ -260,6 +324,9 @@ IDENTITY_KEYS = (
     "selection_weight",
     "resolution",
     "camera",
+    "settings",  # the RenderSettings prim
+    "products",  # every file name template of a frame and its channels
+    "composition",  # session layers, variants, mask (the mask is in no layer's content)
 )
 
 
@@ -340,9 +407,7 @@ def _check_same_run(out: Path, saved, current: dict) -> None:
             return
         raise PhrtError(f"--resume: the checkpoint in {out} has no run identity")
     if saved.get("layers") != current["layers"]:
-        raise PhrtError(
-            f"--resume: the stage's layers changed since the interrupted run in {out}"
-        )
+        raise PhrtError(f"--resume: the stage's layers changed since the interrupted run in {out}")
     old = saved.get("options") if isinstance(saved.get("options"), dict) else {}
     for key, value in current["options"].items():
         if old.get(key) != value:

@@ -80,6 +80,7 @@ from phrt_usd.usd.meshes import (
     shape_kind,
     smooth_corner_normals,
 )
+from phrt_usd.usd.stage_controls import StageControls
 from phrt_usd.usd.values import (
     AnimationProbe,
     TimeContext,
@@ -595,8 +596,9 @@ def read_stage(stage: Usd.Stage, camera: str | None = None) -> StageScene:
 USD_EXTENSIONS = (".usda", ".usdc", ".usd", ".usdz")
 
 
-def open_usd(path: str | os.PathLike) -> Usd.Stage:
-    """Open a USD stage file with every payload loaded.
+def open_usd(path: str | os.PathLike, controls: StageControls | None = None) -> Usd.Stage:
+    """Open a USD stage file with every payload loaded, composed with ``controls``
+    (session layers, variant selections, population mask; see ``stage_controls``).
 
     Raises ``PhrtError`` (one line naming the path and what is wrong) for a missing path,
     a directory, a file without one of ``USD_EXTENSIONS``, or a file USD cannot read
@@ -615,17 +617,31 @@ def open_usd(path: str | os.PathLike) -> Usd.Stage:
         raise PhrtError(f"{path}: no USD file extension ({expected})")
     if not Sdf.FileFormat.FindByExtension(ext[1:]):
         raise PhrtError(f"{path}: not a USD file (extension {ext!r}, expected {expected})")
+    controls = controls or StageControls()
     try:
-        stage = Usd.Stage.Open(path, Usd.Stage.LoadAll)
+        session = controls.session_layer()
+        mask = controls.population_mask()
+        root = None if session is None and mask is None else Sdf.Layer.FindOrOpen(path)
+        if root is None:  # no controls, or a root USD cannot read: Open says why
+            stage = Usd.Stage.Open(path, Usd.Stage.LoadAll)
+        else:
+            session = session or Sdf.Layer.CreateAnonymous("session.usda")
+            if mask is None:
+                stage = Usd.Stage.Open(root, session, Usd.Stage.LoadAll)
+            else:
+                stage = Usd.Stage.OpenMasked(root, session, mask, Usd.Stage.LoadAll)
     except Tf.ErrorException as exc:
         raise PhrtError(f"{path}: cannot open as USD ({usd_error_reason(exc)})") from None
     if stage is None:
         raise PhrtError(f"{path}: cannot open as USD")
+    controls.check(stage)
     return stage
 
 
-def open_stage(path: str | os.PathLike, camera: str | None = None) -> StageScene:
+def open_stage(
+    path: str | os.PathLike, camera: str | None = None, controls: StageControls | None = None
+) -> StageScene:
     """Open a stage file (``open_usd``) and read it (``read_stage``). Raises
     ``PhrtError`` (one line) for an unusable file, a stage without camera, or invalid
     data."""
-    return read_stage(open_usd(path), camera)
+    return read_stage(open_usd(path, controls), camera)
