@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from pxr import Gf, Sdf, Usd, UsdGeom, Vt
+from pxr import Gf, Usd, UsdGeom
+from scenes import camera_path_stage
 
 from phrt_usd.errors import PhrtError
 from phrt_usd.usd.camera_path import interpolate, look_at
@@ -14,28 +15,6 @@ from phrt_usd.usd.stage import read_stage
 
 finite = st.floats(min_value=-1e6, max_value=1e6, allow_nan=False)
 vec3 = st.tuples(finite, finite, finite).map(np.array)
-
-
-def path_stage(positions, targets, keys, interp="linear", up="Y", mpu=1.0, **extra):
-    stage = Usd.Stage.CreateInMemory()
-    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y if up == "Y" else UsdGeom.Tokens.z)
-    UsdGeom.SetStageMetersPerUnit(stage, mpu)
-    cam = UsdGeom.Camera.Define(stage, "/Cam")
-    cam.CreateFocalLengthAttr(35.0)
-    p = stage.DefinePrim("/CameraPath", "PhrtCameraPath")
-    p.CreateRelationship("phrt:camera").SetTargets([cam.GetPath()])
-    p.CreateAttribute("phrt:positions", Sdf.ValueTypeNames.Point3dArray).Set(
-        Vt.Vec3dArray([Gf.Vec3d(*x) for x in positions])
-    )
-    p.CreateAttribute("phrt:targets", Sdf.ValueTypeNames.Point3dArray).Set(
-        Vt.Vec3dArray([Gf.Vec3d(*x) for x in targets])
-    )
-    if keys is not None:
-        p.CreateAttribute("phrt:keyTimes", Sdf.ValueTypeNames.DoubleArray).Set(keys)
-    p.CreateAttribute("phrt:interpolation", Sdf.ValueTypeNames.Token).Set(interp)
-    for name, value in extra.items():
-        p.CreateAttribute(f"phrt:{name}", Sdf.ValueTypeNames.Double).Set(value)
-    return stage
 
 
 def assert_rotation(m):
@@ -52,7 +31,7 @@ KEYS = [0.0, 10.0, 15.0, 40.0]
 
 @pytest.mark.parametrize("interp", ["linear", "catmullRom"])
 def test_exact_at_key_times_and_clamped(interp):
-    ss = read_stage(path_stage(POS, TGT, KEYS, interp, startFrame=0.0, endFrame=40.0))
+    ss = read_stage(camera_path_stage(POS, TGT, KEYS, interp, startFrame=0.0, endFrame=40.0))
     assert ss.frame_range == (0.0, 40.0)
     assert ss.path_driver is not None
     for p, t, k in zip(POS, TGT, KEYS, strict=True):
@@ -117,9 +96,9 @@ def test_degenerate_views(up):
     upv = np.array([0, 1.0, 0]) if up == "Y" else np.array([0, 0, 1.0])
     same = [(1, 2, 3), (1, 2, 3)]
     straight_up = [tuple(np.array([1, 2, 3]) + 5 * upv), tuple(np.array([1, 2, 3]) - 5 * upv)]
-    ss = read_stage(path_stage([(1, 2, 3), (1, 2, 3)], same + [], [0.0, 1.0], up=up))
+    ss = read_stage(camera_path_stage([(1, 2, 3), (1, 2, 3)], same + [], [0.0, 1.0], up=up))
     assert_rotation(ss.camera(0.5).world_from_camera)
-    ss = read_stage(path_stage([(1, 2, 3), (1, 2, 3)], straight_up, [0.0, 1.0], up=up))
+    ss = read_stage(camera_path_stage([(1, 2, 3), (1, 2, 3)], straight_up, [0.0, 1.0], up=up))
     m0, m1 = ss.camera(0).world_from_camera, ss.camera(1).world_from_camera
     assert_rotation(m0)
     assert_rotation(m1)
@@ -127,7 +106,7 @@ def test_degenerate_views(up):
     np.testing.assert_allclose(-m1[:3, 2], -upv, atol=1e-12)  # and straight down
     # Ordinary views keep the stage up axis as camera up (no roll).
     ss = read_stage(
-        path_stage([(0, 0, 0)], [tuple(np.cross(upv, [1, 0, 0]) + [1, 0, 0])], None, up=up)
+        camera_path_stage([(0, 0, 0)], [tuple(np.cross(upv, [1, 0, 0]) + [1, 0, 0])], None, up=up)
     )
     cam_up = ss.camera(0).world_from_camera[:3, 1]
     assert np.dot(cam_up, upv) > 0.5
@@ -135,15 +114,15 @@ def test_degenerate_views(up):
 
 
 def test_path_in_stage_units_scaled_to_metres():
-    ss = read_stage(path_stage(POS, TGT, KEYS, mpu=0.01))
+    ss = read_stage(camera_path_stage(POS, TGT, KEYS, mpu=0.01))
     np.testing.assert_allclose(ss.camera(10).position, [0.1, 0, 0])
 
 
 def test_key_times_default_and_frame_range_from_keys():
-    ss = read_stage(path_stage(POS, TGT, None, startFrame=1.0, endFrame=31.0))
+    ss = read_stage(camera_path_stage(POS, TGT, None, startFrame=1.0, endFrame=31.0))
     np.testing.assert_allclose(ss.path_driver.key_times, [1, 11, 21, 31])
     np.testing.assert_allclose(ss.camera(11).position, POS[1])
-    ss = read_stage(path_stage(POS, TGT, KEYS))
+    ss = read_stage(camera_path_stage(POS, TGT, KEYS))
     assert ss.frame_range == (0.0, 40.0)
 
 
@@ -159,7 +138,7 @@ def test_key_times_default_and_frame_range_from_keys():
 def test_invalid_paths_raise(kwargs, match):
     args = {"positions": POS, "targets": TGT, "keys": KEYS, "interp": "linear"} | kwargs
     with pytest.raises(PhrtError, match=match):
-        read_stage(path_stage(**args))
+        read_stage(camera_path_stage(**args))
 
 
 def test_time_sampled_xform_camera_without_path():
@@ -192,7 +171,7 @@ def test_time_sampled_xform_camera_without_path():
 
 
 def test_path_for_other_camera_is_ignored():
-    stage = path_stage(POS, TGT, KEYS)
+    stage = camera_path_stage(POS, TGT, KEYS)
     other = UsdGeom.Camera.Define(stage, "/Other")
     other.AddTranslateOp().Set(Gf.Vec3d(7, 8, 9))
     ss = read_stage(stage, camera="/Other")
@@ -201,7 +180,7 @@ def test_path_for_other_camera_is_ignored():
 
 
 def test_bad_camera_attributes_raise():
-    stage = path_stage(POS, TGT, KEYS)
+    stage = camera_path_stage(POS, TGT, KEYS)
     UsdGeom.Camera(stage.GetPrimAtPath("/Cam")).GetFocalLengthAttr().Set(0.0)
     with pytest.raises(PhrtError, match="focalLength"):
         read_stage(stage).camera(0)

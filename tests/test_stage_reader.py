@@ -11,19 +11,11 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux, UsdRender, UsdShade, Vt
+from scenes import camera_stage
 
 from phrt_usd.errors import PhrtError
 from phrt_usd.usd.meshes import _fan_corners, smooth_corner_normals
 from phrt_usd.usd.stage import open_stage, read_stage
-
-
-def new_stage(up: str = "Y", mpu: float = 1.0) -> Usd.Stage:
-    stage = Usd.Stage.CreateInMemory()
-    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y if up == "Y" else UsdGeom.Tokens.z)
-    UsdGeom.SetStageMetersPerUnit(stage, mpu)
-    cam = UsdGeom.Camera.Define(stage, "/Cam")
-    cam.AddTranslateOp().Set(Gf.Vec3d(0, 0, 10))
-    return stage
 
 
 def quad_pentagon(stage: Usd.Stage, path: str = "/World/Mesh", left: bool = False):
@@ -54,7 +46,7 @@ def tri_normals(geom) -> np.ndarray:
 
 @pytest.mark.parametrize("left", [False, True])
 def test_quad_pentagon_triangulation_and_winding(left):
-    stage = new_stage()
+    stage = camera_stage()
     quad_pentagon(stage, left=left)
     scene = read_stage(stage).scene
     g = scene.geometry
@@ -86,7 +78,7 @@ def test_fan_triangle_count(counts):
 
 
 def test_meters_per_unit_scales_vertices_and_camera():
-    stage = new_stage(mpu=0.01)
+    stage = camera_stage(mpu=0.01)
     quad_pentagon(stage)
     ss = read_stage(stage)
     g = ss.scene.geometry
@@ -99,7 +91,7 @@ def test_meters_per_unit_scales_vertices_and_camera():
 
 
 def test_z_up_stage_keeps_world_axes():
-    stage = new_stage(up="Z")
+    stage = camera_stage(up="Z")
     xf = UsdGeom.Xform.Define(stage, "/World")
     xf.AddTranslateOp().Set(Gf.Vec3d(0, 0, 5))
     quad_pentagon(stage)
@@ -113,7 +105,7 @@ def test_z_up_stage_keeps_world_axes():
 
 
 def test_reference_and_instanceable_prims_one_element_per_instance():
-    stage = new_stage()
+    stage = camera_stage()
     proto = UsdGeom.Xform.Define(stage, "/Proto")
     proto.GetPrim().SetSpecifier(Sdf.SpecifierClass)  # abstract: not rendered itself
     box = UsdGeom.Cube.Define(stage, "/Proto/Box")
@@ -139,7 +131,7 @@ def test_reference_and_instanceable_prims_one_element_per_instance():
 
 
 def test_point_instancer_expansion_with_invisible_ids():
-    stage = new_stage()
+    stage = camera_stage()
     pi = UsdGeom.PointInstancer.Define(stage, "/World/Trees")
     pi.AddTranslateOp().Set(Gf.Vec3d(0, 0, -3))
     a = UsdGeom.Cube.Define(stage, "/World/Trees/Protos/A")
@@ -175,7 +167,7 @@ def preview_material(stage, path, color):
 
 
 def test_geom_subset_materials_give_per_triangle_colours():
-    stage = new_stage()
+    stage = camera_stage()
     mesh = quad_pentagon(stage)
     red, _ = preview_material(stage, "/Looks/Red", (1, 0, 0))
     blue, _ = preview_material(stage, "/Looks/Blue", (0, 0, 1))
@@ -196,7 +188,7 @@ def test_geom_subset_materials_give_per_triangle_colours():
 
 @pytest.mark.parametrize("interp", ["constant", "uniform", "vertex", "faceVarying"])
 def test_display_color_interpolations(interp):
-    stage = new_stage()
+    stage = camera_stage()
     mesh = quad_pentagon(stage)
     n = {"constant": 1, "uniform": 2, "vertex": 9, "faceVarying": 9}[interp]
     colors = np.linspace(0, 1, n * 3).reshape(n, 3).astype(np.float32)
@@ -218,7 +210,7 @@ def test_display_color_interpolations(interp):
 
 
 def test_no_color_is_mid_grey():
-    stage = new_stage()
+    stage = camera_stage()
     quad_pentagon(stage)
     np.testing.assert_allclose(read_stage(stage).scene.geometry.corner_albedo, 0.5)
 
@@ -233,7 +225,7 @@ def test_texture_loaded_through_oiio(tmp_path):
     out.open(str(path), oiio.ImageSpec(w, h, 3, "uint8"))
     out.write_image(img)
     out.close()
-    stage = new_stage()
+    stage = camera_stage()
     mesh = quad_pentagon(stage)
     st_pv = UsdGeom.PrimvarsAPI(mesh).CreatePrimvar(
         "st", Sdf.ValueTypeNames.TexCoord2fArray, UsdGeom.Tokens.vertex
@@ -265,7 +257,7 @@ def test_texture_loaded_through_oiio(tmp_path):
 
 
 def test_invisible_guide_and_inactive_prims_skipped():
-    stage = new_stage()
+    stage = camera_stage()
     quad_pentagon(stage, "/World/Visible")
     hidden = UsdGeom.Xform.Define(stage, "/World/Hidden")
     hidden.MakeInvisible()
@@ -287,7 +279,7 @@ def test_invisible_guide_and_inactive_prims_skipped():
 
 
 def test_animated_translate_changes_only_animated_vertices():
-    stage = new_stage()
+    stage = camera_stage()
     stage.SetStartTimeCode(0)
     stage.SetEndTimeCode(10)
     quad_pentagon(stage, "/World/Static")
@@ -316,14 +308,14 @@ def test_animated_translate_changes_only_animated_vertices():
 
 
 def test_static_stage_set_time_reports_no_change():
-    stage = new_stage()
+    stage = camera_stage()
     quad_pentagon(stage)
     ss = read_stage(stage)
     assert ss.set_time(3.0) is False
 
 
 def test_deforming_points_recomputed():
-    stage = new_stage()
+    stage = camera_stage()
     mesh = quad_pentagon(stage)
     pts = np.asarray(mesh.GetPointsAttr().Get())
     mesh.GetPointsAttr().Set(Vt.Vec3fArray.FromNumpy(pts), 0)
@@ -338,7 +330,7 @@ def test_deforming_points_recomputed():
 
 
 def test_lights_directions_and_radiance(tmp_path):
-    stage = new_stage()
+    stage = camera_stage()
     sun = UsdLux.DistantLight.Define(stage, "/Lights/Sun")
     sun.AddRotateXOp().Set(-90.0)  # -Z axis now points down (-Y): sun straight overhead
     sun.CreateIntensityAttr(2.0)
@@ -381,7 +373,7 @@ def test_lights_directions_and_radiance(tmp_path):
 
 
 def test_reflector_flags_and_clamp():
-    stage = new_stage()
+    stage = camera_stage()
     m = quad_pentagon(stage, "/World/Mirror").GetPrim()
     m.AddAppliedSchema("PhrtReflectorAPI")
     m.CreateAttribute("phrt:reflectivity", Sdf.ValueTypeNames.Float).Set(3.0)
@@ -399,7 +391,7 @@ def test_reflector_flags_and_clamp():
 
 @pytest.mark.parametrize("reflector", [True, False])
 def test_nan_points_raise_naming_prim(reflector):
-    stage = new_stage()
+    stage = camera_stage()
     mesh = quad_pentagon(stage, "/World/Bad")
     if reflector:
         mesh.GetPrim().AddAppliedSchema("PhrtReflectorAPI")
@@ -412,7 +404,7 @@ def test_nan_points_raise_naming_prim(reflector):
 
 
 def test_out_of_range_index_raises():
-    stage = new_stage()
+    stage = camera_stage()
     mesh = quad_pentagon(stage, "/World/Bad")
     mesh.GetFaceVertexIndicesAttr().Set([0, 1, 2, 99, 4, 5, 6, 7, 8])
     with pytest.raises(PhrtError, match=r"/World/Bad\.faceVertexIndices"):
@@ -449,7 +441,7 @@ def test_unusable_stage_file_is_one_line_error(tmp_path, name, content, problem)
 
 
 def test_missing_reference_is_a_warning_not_a_refusal(tmp_path):
-    stage = new_stage()
+    stage = camera_stage()
     quad_pentagon(stage)
     assert read_stage(stage).warnings == []
     stage.DefinePrim("/World/Prop").GetReferences().AddReference(str(tmp_path / "gone.usda"))
@@ -465,11 +457,11 @@ def test_no_camera(tmp_path):
     with pytest.raises(PhrtError, match="no UsdGeomCamera"):
         read_stage(stage)
     with pytest.raises(PhrtError, match="/Nope"):
-        read_stage(new_stage(), camera="/Nope")
+        read_stage(camera_stage(), camera="/Nope")
 
 
 def test_camera_choice_render_settings_over_first_camera(tmp_path):
-    stage = new_stage()
+    stage = camera_stage()
     UsdGeom.Camera.Define(stage, "/Other")
     settings = UsdRender.Settings.Define(stage, "/Render/Settings")
     settings.CreateCameraRel().SetTargets(["/Other"])
@@ -481,7 +473,7 @@ def test_camera_choice_render_settings_over_first_camera(tmp_path):
 
 
 def test_implicit_gprims_are_closed_and_outward():
-    stage = new_stage()
+    stage = camera_stage()
     for i, kind in enumerate(["Sphere", "Cube", "Cylinder", "Cone", "Capsule"]):
         prim = stage.DefinePrim(f"/World/{kind}", kind)
         UsdGeom.Xformable(prim).AddTranslateOp().Set(Gf.Vec3d(3 * i, 0, 0))
@@ -544,7 +536,7 @@ def test_smooth_normals_area_weighted():
 
 
 def test_negative_scale_keeps_front_face_consistent():
-    stage = new_stage()
+    stage = camera_stage()
     xf = UsdGeom.Xform.Define(stage, "/World")
     xf.AddScaleOp().Set(Gf.Vec3f(-1, 1, 1))
     quad_pentagon(stage)
@@ -554,7 +546,7 @@ def test_negative_scale_keeps_front_face_consistent():
 
 
 def test_read_speed_many_prims():
-    stage = new_stage()
+    stage = camera_stage()
     for i in range(300):
         s = UsdGeom.Sphere.Define(stage, f"/World/S{i}")
         s.AddTranslateOp().Set(Gf.Vec3d(i, 0, 0))
@@ -567,7 +559,7 @@ def test_read_speed_many_prims():
 
 def test_deforming_instances_and_animated_normals():
     """Instances of one deforming prototype each follow it; authored normals animate."""
-    stage = new_stage()
+    stage = camera_stage()
     proto = UsdGeom.Xform.Define(stage, "/Proto")
     proto.GetPrim().SetSpecifier(Sdf.SpecifierClass)
     mesh = quad_pentagon(stage, "/Proto/Mesh")
@@ -597,7 +589,7 @@ def test_deforming_instances_and_animated_normals():
 )
 def test_plane_axes(axis, size, normal):
     """UsdGeomPlane: width along z/x/x and length along y/z/y for axis X/Y/Z."""
-    stage = new_stage()
+    stage = camera_stage()
     plane = UsdGeom.Plane.Define(stage, "/World/Plane")
     plane.CreateAxisAttr(axis)
     plane.CreateWidthAttr(2.0)
