@@ -14,6 +14,19 @@ UP = np.array([[0.0, 1.0, 0.0]])
 DOWN = -UP
 
 
+def _surface_points(rng: np.random.Generator, n: int, extent: float):
+    """``n`` random shading points: positions (n, 3) uniform in the cube [-extent,
+    extent]^3 metres, unit normals and unit view directions (n, 3) drawn isotropically,
+    albedo (n, 3) float32 uniform in [0, 1)."""
+    pos = rng.uniform(-extent, extent, (n, 3))
+    nrm = rng.normal(size=(n, 3))
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    view = rng.normal(size=(n, 3))
+    view /= np.linalg.norm(view, axis=1, keepdims=True)
+    albedo = rng.uniform(0.0, 1.0, (n, 3)).astype(np.float32)
+    return pos, nrm, view, albedo
+
+
 def _shade(lights, albedo=(0.5, 0.5, 0.5), view=DOWN, normal=UP, pos=((0.0, 0.0, 0.0),), vis=None):
     n_lights = len(lights.distant) + len(lights.local)
     vis = np.ones((1, n_lights), np.float32) if vis is None else vis
@@ -174,12 +187,7 @@ def test_local_pairs_give_the_same_shading_as_visibility():
     same model as the (n, L) visibility matrix."""
     rng = np.random.default_rng(3)
     n = 500
-    pos = rng.uniform(-6.0, 6.0, (n, 3))
-    nrm = rng.normal(size=(n, 3))
-    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
-    view = rng.normal(size=(n, 3))
-    view /= np.linalg.norm(view, axis=1, keepdims=True)
-    albedo = rng.uniform(0.0, 1.0, (n, 3)).astype(np.float32)
+    pos, nrm, view, albedo = _surface_points(rng, n, 6.0)
     lights = Lights(
         distant=[DistantLight(np.array([0.3, 1.0, 0.2]), np.array([1.0, 0.9, 0.8]))],
         local=[
@@ -213,12 +221,7 @@ def test_threaded_shade_local_matches_one_chunk(monkeypatch):
     (points are independent), visibility columns and per-point emissive included."""
     rng = np.random.default_rng(7)
     n = 3 * shading.SHADE_MIN_THREADED_POINTS
-    pos = rng.uniform(-5.0, 5.0, (n, 3))
-    nrm = rng.normal(size=(n, 3))
-    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
-    view = rng.normal(size=(n, 3))
-    view /= np.linalg.norm(view, axis=1, keepdims=True)
-    albedo = rng.uniform(0.0, 1.0, (n, 3)).astype(np.float32)
+    pos, nrm, view, albedo = _surface_points(rng, n, 5.0)
     emissive = rng.uniform(0.0, 0.1, (n, 3)).astype(np.float32)
     lights = Lights(
         distant=[DistantLight(np.array([0.3, -1.0, 0.2]), np.full(3, 2.0))],
