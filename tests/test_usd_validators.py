@@ -191,3 +191,17 @@ def test_check_finds_a_stale_plugin(tmp_path, edit):
     proc = gen_schema("--check", "--out", plugin)
     assert proc.returncode == 1
     assert proc.stderr.startswith("stale: ") and "\n" == proc.stderr[-1]
+
+
+def test_sites_name_the_layer_the_property_or_the_stage(tmp_path):
+    path = tmp_path / "s.usda"
+    stage = clean_stage(path)
+    stage.RemovePrim("/World/Path")
+    stage.RemovePrim("/World/Cam")
+    (err,) = validators.render_task(stage)
+    assert err.GetMessage() == f"{path}: stage has no UsdGeomCamera"
+    (site,) = err.GetSites()
+    assert site.GetLayer().identifier == str(path) and not site.IsPrim()
+    stage.GetPrimAtPath("/World/Render").GetAttribute(schema.MODE).Set("fast")
+    (err,) = validators.render_settings_task(stage.GetPrimAtPath("/World/Render"))
+    assert str(err.GetSites()[0].GetProperty().GetPath()) == "/World/Render.phrt:mode"

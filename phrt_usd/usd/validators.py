@@ -54,15 +54,14 @@ _TYPES = {
 
 
 def _site(stage: Usd.Stage, where: str) -> UsdValidation.ValidationErrorSite:
-    """The prim or property ``where`` names; for a layer (or anything else), the layer
-    (else the stage's pseudo-root)."""
-    if where.startswith("/") and Sdf.Path.IsValidPathString(where):
-        path = Sdf.Path(where)
-        if path.IsAbsoluteRootOrPrimPath() or path.IsPropertyPath():
-            return UsdValidation.ValidationErrorSite(stage, path)
+    """The layer ``where`` names (layer-level problems), else the stage's prim or property
+    at that path, else the stage's pseudo-root."""
     layer = Sdf.Layer.Find(where)
     if layer is not None:
         return UsdValidation.ValidationErrorSite(layer, Sdf.Path.absoluteRootPath)
+    if where.startswith("/") and Sdf.Path.IsValidPathString(where):
+        if stage.GetObjectAtPath(Sdf.Path(where)):
+            return UsdValidation.ValidationErrorSite(stage, Sdf.Path(where))
     return UsdValidation.ValidationErrorSite(stage, Sdf.Path.absoluteRootPath)
 
 
