@@ -11,8 +11,8 @@ import sys
 from pathlib import Path
 
 import pytest
-from pxr import Usd, UsdGeom
-from scenes import mirror_gallery_stage
+from pxr import Usd
+from scenes import cube_stage, mirror_gallery_stage
 
 CLI = [sys.executable, "-m", "typer", "phrt_usd.cli", "run"]
 RENDER = ["--frames", "1:2", "--budget-rays", "600", "--resolution", "32x24"]
@@ -73,10 +73,7 @@ def test_render(files, tmp_path, json_out):
     flag = ["--json"] if json_out else []
     _check(_run("render", str(files["good"]), "--out", str(tmp_path / "a"), *RENDER, *flag), 0)
     # A readable stage render refuses: no camera (problems found -> 1).
-    no_camera = tmp_path / "no_camera.usda"
-    stage = Usd.Stage.CreateNew(str(no_camera))
-    UsdGeom.Sphere.Define(stage, "/Ball")
-    stage.Save()
+    no_camera = cube_stage(tmp_path / "no_camera.usda")
     _check(_run("render", str(no_camera), "--out", str(tmp_path / "b"), *flag), 1, json_out)
     _check(_run("render", str(files["missing"]), "--out", str(tmp_path / "c"), *flag), 2,
            json_out)  # fmt: skip
