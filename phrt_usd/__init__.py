@@ -1,7 +1,12 @@
 """phrt-usd: heuristic hybrid rendering of USD stages (raster + selective ray-traced
-reflections). Importing the package registers the Phrt USD schema plugin."""
+reflections). Importing the package registers the Phrt USD schema plugin.
+
+``phrt_usd.render(stage_or_path, out=None, frames=None, **options)`` and
+``phrt_usd.open(stage_or_path, **options)`` are the Python API (``phrt_usd.api``,
+docs/api.md)."""
 
 import os
+import types
 
 # pyrender/PyOpenGL pick their platform at import time: headless OSMesa unless the user
 # chose otherwise.
@@ -9,6 +14,7 @@ os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
 
 import warnings  # noqa: E402
 from pathlib import Path  # noqa: E402
+from typing import TYPE_CHECKING  # noqa: E402
 
 from pxr import Plug, Usd  # noqa: E402
 
@@ -30,3 +36,39 @@ if not Usd.SchemaRegistry().FindAppliedAPIPrimDefinition("PhrtReflectorAPI"):
         RuntimeWarning,
         stacklevel=2,
     )
+
+# The Python API (phrt_usd.api) is imported on first use, so that `import phrt_usd` (the CLI
+# does it first) stays cheap and never loads OpenGL or Embree (PEP 562).
+_API_NAMES = ("open", "RenderResult", "Renderer", "render_options")
+
+if TYPE_CHECKING:
+    from phrt_usd.api import Renderer, RenderResult, open, render_options  # noqa: F401
+
+
+def __getattr__(name: str):
+    if name in _API_NAMES:
+        from phrt_usd import api
+
+        return getattr(api, name)
+    raise AttributeError(f"module 'phrt_usd' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted({*globals(), *_API_NAMES})
+
+
+class _CallableRenderPackage(types.ModuleType):
+    """``phrt_usd.render`` names the renderer subpackage (``render/``) too, and Python binds
+    a subpackage over any package attribute of its name: so the subpackage itself is made
+    callable, as ``phrt_usd.api.render``."""
+
+    def __call__(self, *args, **kwargs):
+        from phrt_usd.api import render
+
+        return render(*args, **kwargs)
+
+
+from phrt_usd import render as _render_package  # noqa: E402  (cheap: imports nothing)
+
+_render_package.__class__ = _CallableRenderPackage
+del _render_package
