@@ -53,11 +53,16 @@ def _channels(path: Path) -> dict[str, np.ndarray]:
     if image is None:
         sys.exit(f"{path}: cannot open ({oiio.geterror()})")
     try:
-        names = list(image.spec().channelnames)
-        data = image.read_image(oiio.FLOAT)
+        spec = image.spec()
+        out = {}
+        for i, name in enumerate(spec.channelnames):
+            # Integer channels read as integers (OIIO would normalise them to [0, 1]).
+            kind = spec.channelformat(i)
+            fmt = oiio.UINT if kind.basetype == oiio.UINT else oiio.FLOAT
+            out[name] = image.read_image(0, 0, i, i + 1, fmt)[..., 0]
     finally:
         image.close()
-    return {n: data[..., i] for i, n in enumerate(names)}
+    return out
 
 
 def _ids(channel: np.ndarray) -> np.ndarray:
