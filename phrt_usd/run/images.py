@@ -188,7 +188,9 @@ def write_exr(
         "type": OpenEXR.scanlineimage,
         "colorInteropID": COLOR_INTEROP_ID,
     }
-    attributes.update(header or {})
+    for key, value in (header or {}).items():
+        # the bindings read an array's memory as C order, whatever its strides
+        attributes[key] = np.ascontiguousarray(value) if isinstance(value, np.ndarray) else value
     if manifest is not None:
         attributes["idManifest"] = _id_manifest(manifest, manifest_channel)
         attributes[MANIFEST_ATTR] = json.dumps(

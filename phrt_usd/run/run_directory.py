@@ -7,12 +7,14 @@ from __future__ import annotations
 
 import errno
 import fcntl
+import json
 import os
 import re
 from contextlib import suppress
 from pathlib import Path
 
 from phrt_usd.errors import BadOption, PhrtError
+from phrt_usd.run.products import template_pattern
 from phrt_usd.run.run_files import (
     CHECKPOINT_FILE,
     FRAMES_DIR,
@@ -31,6 +33,8 @@ RESERVE_FACTOR = 3
 
 #: Frame image names phrt writes in ``OUT/frames`` (see ``run_files.frame_name``).
 _FRAME_IMAGE = re.compile(r"^-?\d{3,}(\.\d{3})?\.(exr|png)$")
+#: The temp file ``atomic_path`` writes a file through (``.<stem>.<random>.tmp<ext>``).
+_TEMP_FILE = re.compile(r"^\.(.+)\.[^.]+\.tmp(\.[^.]+)$")
 
 
 class RunDirectory:
@@ -44,13 +48,20 @@ class RunDirectory:
     files are deleted first: frame images, stats, selection layer, checkpoint; anything
     else stays); the selection layer may not be a layer of the stage. On exit the lock is
     released and its file removed.
+
+    ``images``: the file name templates of the run's images (``run.products``, relative
+    to ``out``). ``overwrite`` deletes the files they name and those of the templates the
+    previous run recorded in ``stats.json`` (``run.products``), whatever their frame
+    numbers, and then every directory they leave empty; no other file is touched.
     """
 
     def __init__(self, out: Path, layer_path: Path, scene: StageScene | None, *,
-                 resume: bool = False, overwrite: bool = False):  # fmt: skip
+                 resume: bool = False, overwrite: bool = False,
+                 images: list[str] | tuple[str, ...] = ()):  # fmt: skip
         if resume and overwrite:
             raise BadOption("--resume and --overwrite exclude each other")
         self.out = Path(out)
+        self.images = tuple(images)
         self.layer_path = Path(layer_path)
         self.scene = scene
         self.resume = resume
@@ -167,6 +178,9 @@ class RunDirectory:
     def _clear(self) -> None:
         """Delete phrt's own files in ``out`` (never following a symlink: a link is
         removed itself), and the job's selection layer."""
+        templates = set(self.images) | set(_recorded_templates(self.out / STATS_FILE))
+        for template in sorted(templates):
+            _clear_template(self.out, template)
         for name in (STATS_FILE, SELECTION_LAYER_FILE, CHECKPOINT_FILE, RESERVE_FILE):
             with suppress(FileNotFoundError):
                 (self.out / name).unlink()
@@ -184,6 +198,45 @@ class RunDirectory:
                     entry.unlink()
             with suppress(OSError):
                 frames.rmdir()  # only when nothing else is left in it
+
+
+def _recorded_templates(stats: Path) -> list[str]:
+    """The image file name templates a previous run recorded in its stats.json (``run``
+    ``products``: their keys and ``preview``s); none without a readable record."""
+    try:
+        if stats.is_symlink():
+            return []
+        run = json.loads(stats.read_text(encoding="utf-8")).get("run", {})
+        products = run.get("products") or {}
+        names = [*products, *(p.get("preview") for p in products.values())]
+    except (OSError, UnicodeDecodeError, ValueError, AttributeError, TypeError):
+        return []
+    return [n for n in names if isinstance(n, str) and n]
+
+
+def _clear_template(out: Path, template: str) -> None:
+    """Delete the files in ``out`` that ``template`` names (a link is removed itself,
+    never followed; a directory is never entered through a link), and the directories
+    on its way that this leaves empty."""
+    parts = Path(template).parts
+    if not parts or Path(template).is_absolute() or ".." in parts:
+        return  # never one of ours: products are relative names inside out
+    folder = out.joinpath(*parts[:-1])
+    here = out
+    for part in parts[:-1]:
+        here = here / part
+        if here.is_symlink() or not here.is_dir():
+            return
+    pattern = template_pattern(parts[-1])
+    for entry in folder.iterdir():
+        # a killed writer's temp file: .<name without extension>.<random>.tmp<extension>
+        name = _TEMP_FILE.sub(r"\1\2", entry.name)
+        if pattern.match(name) and (entry.is_symlink() or not entry.is_dir()):
+            entry.unlink()
+    while folder != out:
+        with suppress(OSError):
+            folder.rmdir()  # only when nothing else is left in it
+        folder = folder.parent
 
 
 def _same_file(fd: int, path: Path) -> bool:

@@ -4,6 +4,9 @@ Layout of a render's output directory ``OUT``::
 
     OUT/frames/NNNN.exr     one multi-channel EXR per rendered frame (see images.py)
     OUT/frames/NNNN.png     8-bit sRGB preview of the same frame
+    OUT/<productName>       instead of frames/: each RenderProduct's file per frame, or
+                            --image's (see products.py; recorded in stats.json's run
+                            ``products``, so --overwrite finds them again)
     OUT/stats.json          run settings + one row per rendered frame (this module)
     OUT/selection.usda      the selection layer (see selection_layer.py)
     OUT/checkpoint.json     finished frames and the policy's memory, for --resume
@@ -261,6 +264,8 @@ _RUN_INFO_TYPES: dict[str, tuple[type, ...]] = {
     "selection_weight": (int, float),
     "time_codes_per_second": (int, float),
     "camera": (str,),
+    "settings": (str,),
+    "products": (dict,),
 }
 
 

@@ -1,0 +1,593 @@
+"""Which image files a frame gets and what they hold: RenderProducts, ``--image``, ``--aovs``.
+
+``plan_images`` turns the render settings' products (``phrt_usd.usd.render_settings``)
+into an ``ImagePlan``; ``write_frame_images`` writes one frame of it.
+
+**Files.** Every RenderProduct of the settings is one file per frame, named by its
+``productName`` with the frame tokens expanded (``$F``, ``$F4``, ``${F4}``, ``####``,
+``%04d``, ``%d``: the time code, zero-padded to the digits asked; a fractional time code
+keeps 3 decimals, ``0012.500``). Names are relative to ``--out``; an absolute name must
+lie inside ``--out``, and ``..`` is refused: the run directory is the one place a render
+writes, locks and clears (``run_directory``), so a product outside it is refused rather
+than moved. ``.exr`` products hold their vars' channels, ``.png`` products the 8-bit sRGB
+preview of ``color`` (and nothing else). ``--image TEMPLATE`` replaces the products with
+one file named TEMPLATE holding the first product's vars (or the default channels). With
+neither, the default layout: ``frames/$F4.exr`` (``CHANNELS`` of ``images``) and its
+preview ``frames/$F4.png``. A name without a frame token is refused for a render of more
+than one frame.
+
+**Vars → channels.** A RenderVar's ``sourceName`` picks what it holds:
+
+==================  =============================================  ================  =======
+sourceName          meaning                                        channels          storage
+==================  =============================================  ================  =======
+color, Ci, C.* lpe  beauty: linear RGB, coverage in A              R, G, B, A        dataType
+alpha, a            coverage                                       A                 dataType
+depth, z, Z,        view depth in metres along the camera's -Z,    Z                 dataType
+cameraDepth         background 1e30 (``images.DEPTH_BACKGROUND``)
+normal, N           world-space unit shading normal (0 background) N.x, N.y, N.z     dataType
+position, P         world position in metres (0 background)        P.x, P.y, P.z     dataType
+albedo              linear RGB albedo (0 background)               albedo.R/.G/.B    dataType
+primId, id          element id, manifest in the header             id                uint
+phrt:traced         1 where the reflection was ray-traced          traced            dataType
+phrt:reflectivity   the reflector's F at the pixel (0 elsewhere)   reflectivity      dataType
+==================  =============================================  ================  =======
+
+``driver:parameters:aov:name`` renames a var's channels (``N`` → ``Nworld.x``; not color,
+alpha or depth, whose names are the ones EXR readers look for). Storage follows the
+var's ``dataType``: half types (``half``, ``color3h``, ``normal3h``, ...) are HALF,
+``int``/``uint``/``bool`` (``phrt:traced`` only) UINT, others FLOAT; ids are always UINT.
+``--aovs`` adds vars by source name to every EXR (``P`` float, ``N`` / ``albedo`` /
+``reflectivity`` / ``traced`` half, ``depth`` float, ``id`` uint), after the product's own.
+A product whose ``driver:parameters:OpenEXR:multipart`` is true gets one part per var
+(parts named after the var's channels: ``rgba``, ``depth``, ``N``, ...).
+
+**Header** (every EXR): ``worldToCamera`` and ``worldToNDC`` (OpenEXR's standard
+attributes, ``M44f``, row vectors as Imath multiplies them, world = the stage's world in
+metres: camera space is left-handed, +z the viewing direction, as OpenEXR defines it;
+NDC (0, 0) is the image's top-left corner, (1, 1) its bottom-right, after dividing by w),
+``framesPerSecond`` (rational), ``software`` (``phrt-usd VERSION``), ``phrt/version``,
+``phrt/timeCode`` (double), ``phrt/stage``, ``phrt/camera``, ``phrt/renderSettings`` and
+``phrt/renderProduct`` (when there is one), ``phrt/metersPerUnit`` (double), and, with an
+``id`` channel, the manifest of the ids in the frame (``images.write_exr``). The
+wall-clock ``capDate`` and ``utcOffset`` only with ``timestamp`` (``--timestamp``), so
+identical renders write identical bytes.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import re
+from dataclasses import dataclass, replace
+from datetime import UTC, datetime
+from fractions import Fraction
+from pathlib import Path, PurePosixPath
+
+import numpy as np
+
+from phrt_usd import __version__
+from phrt_usd.errors import BadOption, PhrtError
+from phrt_usd.model.scene import CameraFrame, Scene
+from phrt_usd.render.compositing import element_reflectivity, pixel_reflectivity
+from phrt_usd.render.renderer import FrameOutput
+from phrt_usd.run.images import (
+    check_beauty,
+    stored,
+    stored_depth,
+    stored_ids,
+    write_exr,
+    write_preview_png,
+)
+from phrt_usd.usd.render_settings import RenderSettingsSpec, RenderVarSpec
+
+# --- sources ------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Source:
+    """What a RenderVar can hold (module docstring, the table)."""
+
+    key: str  # the plane of the frame: beauty+alpha, alpha, depth, normal, ...
+    names: tuple[str, ...]  # sourceNames that select it (the first is the --aovs name)
+    base: str  # channel base name ("" for color / depth / alpha: fixed names)
+    suffixes: tuple[str, ...]  # channel name suffixes, one per component
+    storage: str  # the storage --aovs and the default layout use
+
+
+SOURCES: tuple[Source, ...] = (
+    Source("color", ("color", "Ci", "C.*"), "", ("R", "G", "B", "A"), "half"),
+    Source("alpha", ("alpha", "a"), "", ("A",), "half"),
+    Source("depth", ("depth", "z", "Z", "cameraDepth"), "", ("Z",), "float"),
+    Source("normal", ("normal", "N"), "N", (".x", ".y", ".z"), "half"),
+    Source("position", ("position", "P"), "P", (".x", ".y", ".z"), "float"),
+    Source("albedo", ("albedo",), "albedo", (".R", ".G", ".B"), "half"),
+    Source("id", ("primId", "id"), "id", ("",), "uint"),
+    Source("traced", ("phrt:traced", "traced"), "traced", ("",), "half"),
+    Source("reflectivity", ("phrt:reflectivity", "reflectivity"), "reflectivity", ("",), "half"),
+)
+_BY_NAME = {name: s for s in SOURCES for name in s.names}
+#: The default layout's vars (``images.CHANNELS``).
+DEFAULT_SOURCES = ("color", "depth", "id", "traced")
+HALF_TYPES = frozenset(
+    "half half2 half3 half4 color3h color4h normal3h point3h vector3h texCoord2h "
+    "texCoord3h quath".split()
+)
+INT_TYPES = frozenset("int uint int64 uint64 bool uchar".split())
+#: The default layout's file name templates, relative to the run directory.
+DEFAULT_TEMPLATE = "frames/$F4.exr"
+DEFAULT_PREVIEW = "frames/$F4.png"
+IMAGE_SUFFIXES = (".exr", ".png")
+
+
+@dataclass(frozen=True)
+class Channel:
+    """One channel of a product: its name, the source plane and component it holds, its
+    storage ("half" | "float" | "uint") and the part it goes to in a multi-part file."""
+
+    name: str
+    source: str
+    component: int
+    storage: str
+    part: str
+
+
+def _channels(source: Source, storage: str, base: str | None) -> list[Channel]:
+    if source.key == "color":
+        color = [Channel(c, "beauty", i, storage, "rgba") for i, c in enumerate("RGB")]
+        return [*color, Channel("A", "alpha", 0, storage, "rgba")]
+    if not source.base:  # alpha, depth
+        return [Channel(source.suffixes[0], source.key, 0, storage, source.key)]
+    base = base or source.base
+    return [
+        Channel(base + suffix, source.key, i, storage, base)
+        for i, suffix in enumerate(source.suffixes)
+    ]
+
+
+def var_channels(var: RenderVarSpec) -> list[Channel]:
+    """The channels of a RenderVar (module docstring); PhrtError naming the var for a
+    source phrt does not render or a dataType that cannot hold it."""
+    source = _BY_NAME.get(var.source_name)
+    if source is None or (var.source_type == "lpe") != (var.source_name == "C.*"):
+        known = ", ".join(s.names[0] for s in SOURCES)
+        raise PhrtError(
+            f"{var.path}: sourceName {var.source_name!r} ({var.source_type}) is not a pass "
+            f"phrt renders ({known})"
+        )
+    data_type = var.data_type
+    if source.key == "id":
+        storage = "uint"
+    elif data_type in INT_TYPES:
+        if source.key != "traced":
+            raise PhrtError(f"{var.path}: dataType {data_type} cannot hold {source.key}")
+        storage = "uint"
+    else:
+        storage = "half" if data_type in HALF_TYPES else "float"
+    return _channels(source, storage, var.aov_name if source.base else None)
+
+
+def aov_channels(names: tuple[str, ...] | list[str]) -> list[Channel]:
+    """The channels of ``--aovs`` source names; BadOption for an unknown one."""
+    channels: list[Channel] = []
+    for name in names:
+        source = _BY_NAME.get(name)
+        if source is None:
+            known = ", ".join(name for s in SOURCES for name in s.names if name != "C.*")
+            raise BadOption(f"--aovs {name!r}: not a pass phrt renders ({known})")
+        channels += _channels(source, source.storage, None)
+    return channels
+
+
+def parse_aovs(text: str | None) -> tuple[str, ...]:
+    """``"P,N,albedo"`` → ``("P", "N", "albedo")`` (checked; BadOption otherwise)."""
+    names = tuple(n.strip() for n in (text or "").split(",") if n.strip())
+    aov_channels(names)
+    return names
+
+
+# --- frame name templates ----------------------------------------------------------------
+
+_TOKEN = re.compile(r"\$\{F(\d*)\}|\$F(\d*)|(#+)|%(0?\d*)d")
+
+
+def has_frame_token(template: str) -> bool:
+    return _TOKEN.search(template) is not None
+
+
+def _frame_text(time: float, width: int) -> str:
+    nearest = round(time)
+    if abs(time - nearest) < 1e-6:
+        return f"{int(nearest):0{width}d}" if width else str(int(nearest))
+    return f"{time:0{width + 4}.3f}" if width else f"{time:.3f}"
+
+
+def expand(template: str, time: float) -> str:
+    """``template`` with its frame tokens replaced by time code ``time`` (module doc)."""
+    if not math.isfinite(time):
+        raise PhrtError(f"frame time code {time} is not finite")
+
+    def token(match: re.Match) -> str:
+        braced, dollar, hashes, printf = match.groups()
+        if hashes is not None:
+            return _frame_text(time, len(hashes))
+        digits = braced if braced is not None else dollar if dollar is not None else printf
+        return _frame_text(time, int(digits) if digits else 0)
+
+    return _TOKEN.sub(token, template)
+
+
+def template_pattern(template: str) -> re.Pattern:
+    """A regex matching every name ``template`` expands to (for clearing old files)."""
+    parts, last = [], 0
+    for match in _TOKEN.finditer(template):
+        parts += [re.escape(template[last : match.start()]), r"-?\d+(?:\.\d{3})?"]
+        last = match.end()
+    parts.append(re.escape(template[last:]))
+    return re.compile("^" + "".join(parts) + "$")
+
+
+def relative_template(out: Path, template: str, where: str, error=PhrtError) -> str:
+    """``template`` as a POSIX path relative to ``out``: a relative name as it is, an
+    absolute one inside ``out`` made relative; ``error`` (naming ``where``) for a name
+    outside ``out``, with ``..``, or not ending in ``.exr`` / ``.png``."""
+    if not template:
+        raise error(f"{where}: productName is empty")
+    if "\0" in template:
+        raise error(f"{where}: {template!r} is not a file name")
+    path = PurePosixPath(template)
+    if path.is_absolute():
+        try:
+            path = PurePosixPath(os.path.realpath(path)).relative_to(os.path.realpath(out))
+        except ValueError:
+            raise error(
+                f"{where}: {template!r} is outside the output directory {out}; products are "
+                "written under --out (give a relative name, or use --image)"
+            ) from None
+    if ".." in path.parts or not path.parts or path.name in ("", "."):
+        raise error(f"{where}: {template!r} leaves the output directory (no '..' allowed)")
+    if path.suffix.lower() not in IMAGE_SUFFIXES:
+        raise error(f"{where}: {template!r}: phrt writes .exr or .png images")
+    return str(path)
+
+
+# --- the plan -----------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class ProductPlan:
+    """One file per frame: ``template`` (relative to the run directory) and its channels."""
+
+    template: str
+    channels: tuple[Channel, ...]
+    product: str | None = None  # the RenderProduct prim, None for the default / --image
+    multipart: bool = False
+    preview: str | None = None  # template of a PNG preview beside it (default layout)
+
+    @property
+    def is_png(self) -> bool:
+        return self.template.lower().endswith(".png")
+
+    def describe(self) -> dict:
+        """What stats.json and the selection layer record and the run identity compares:
+        ``channels`` (``"name:storage"``), ``multipart``, and ``product`` / ``preview``
+        when there are (plain values a USD dictionary holds too)."""
+        entry: dict = {
+            "channels": [f"{c.name}:{c.storage}" for c in self.channels],
+            "multipart": self.multipart,
+        }
+        if self.product:
+            entry["product"] = self.product
+        if self.preview:
+            entry["preview"] = self.preview
+        return entry
+
+
+@dataclass(frozen=True)
+class ImagePlan:
+    """Every file a frame of a run gets (see the module docstring)."""
+
+    products: tuple[ProductPlan, ...]
+    settings: str | None = None  # the RenderSettings prim, None when the stage has none
+    resolution: tuple[int, int] | None = None  # the products' own resolution, if authored
+    camera: str | None = None  # the products' own camera, if authored
+    stage: str | None = None  # the stage named in headers (None: the root layer's path)
+    timestamp: bool = False  # capDate / utcOffset in EXR headers
+    image: bool = False  # the one product is --image's
+
+    def check_frame_count(self, count: int) -> None:
+        """A name without a frame token would write every frame to one file: PhrtError
+        naming the product (BadOption for ``--image``) when ``count`` > 1."""
+        if count <= 1:
+            return
+        for product in self.products:
+            if not has_frame_token(product.template):
+                where = f"--image {product.template!r}" if self.image else (
+                    f"{product.product}.productName {product.template!r}"
+                )  # fmt: skip
+                error = BadOption if self.image else PhrtError
+                raise error(f"{where}: no frame token ($F4, ####, %04d) for {count} frames")
+
+    def templates(self) -> list[str]:
+        """Every file name template of the run (products and previews)."""
+        names = [p.template for p in self.products]
+        return names + [p.preview for p in self.products if p.preview]
+
+    def files(self, out: Path, time: float) -> list[Path]:
+        """The files frame ``time`` is written to, in ``out``."""
+        return [Path(out) / expand(t, time) for t in self.templates()]
+
+    def describe(self) -> dict[str, dict]:
+        """File name template → ``ProductPlan.describe()`` of every product."""
+        return {p.template: p.describe() for p in self.products}
+
+
+def default_plan(aovs: tuple[str, ...] = ()) -> ImagePlan:
+    """The default layout (``frames/NNNN.exr`` + ``.png``), with ``--aovs`` added."""
+    channels = aov_channels(DEFAULT_SOURCES)
+    return ImagePlan(
+        (ProductPlan(DEFAULT_TEMPLATE, _add(channels, aovs), preview=DEFAULT_PREVIEW),)
+    )
+
+
+def _add(channels: list[Channel], aovs: tuple[str, ...]) -> tuple[Channel, ...]:
+    """``channels`` then those of ``aovs`` whose names are not there yet."""
+    names = {c.name for c in channels}
+    extra = [c for c in aov_channels(aovs) if c.name not in names]
+    return tuple(channels + extra)
+
+
+def plan_images(
+    settings: RenderSettingsSpec | None,
+    out: Path,
+    *,
+    image: str | None = None,
+    aovs: tuple[str, ...] = (),
+    stage: str | None = None,
+    timestamp: bool = False,
+) -> ImagePlan:
+    """The images of a run into ``out`` (module docstring). PhrtError naming the product
+    (BadOption for ``--image`` / ``--aovs``) for a name or var phrt cannot write; see also
+    ``ImagePlan.check_frame_count``."""
+    specs = settings.products if settings is not None else ()
+    for spec in specs:
+        if spec.product_type != "raster":
+            raise PhrtError(
+                f"{spec.path}: productType {spec.product_type!r} is not supported "
+                "(phrt writes raster products)"
+            )
+    products: list[ProductPlan] = []
+    if image is not None:
+        template = relative_template(out, image, f"--image {image!r}", BadOption)
+        first = specs[0] if specs else None
+        channels = _product_channels(first) if first else list(aov_channels(DEFAULT_SOURCES))
+        multipart = bool(first and first.multipart)
+        products.append(
+            ProductPlan(template, _add(channels, aovs), first.path if first else None, multipart)
+        )
+        used = specs[:1]
+    else:
+        for spec in specs:
+            template = relative_template(out, spec.product_name, f"{spec.path}.productName")
+            channels = _add(_product_channels(spec), aovs)
+            products.append(ProductPlan(template, channels, spec.path, spec.multipart))
+        used = specs
+    base = ImagePlan((), settings.path if settings else None, stage=stage, timestamp=timestamp)
+    if not products:
+        return replace(base, products=default_plan(aovs).products)
+    seen: dict[str, str] = {}
+    for plan in products:
+        where = plan.product if image is None else "--image"
+        if plan.template in seen:
+            raise PhrtError(f"{where}: writes the same files as {seen[plan.template]}")
+        seen[plan.template] = where
+        if plan.is_png and {c.source for c in plan.channels} - {"beauty", "alpha"}:
+            raise PhrtError(f"{where}: a .png holds the color var only; name it .exr")
+    return replace(
+        base,
+        products=tuple(products),
+        image=image is not None,
+        resolution=_common(used, "resolution"),
+        camera=_common(used, "camera"),
+    )
+
+
+def _product_channels(spec) -> list[Channel]:
+    """A product's channels: its vars' in order (the default channels if it has none);
+    PhrtError naming the var whose channels repeat another's."""
+    if not spec.vars:
+        return list(aov_channels(DEFAULT_SOURCES))
+    channels: list[Channel] = []
+    names: dict[str, str] = {}
+    for var in spec.vars:
+        for channel in var_channels(var):
+            if channel.name in names:
+                raise PhrtError(
+                    f"{var.path}: channel {channel.name} is also written by {names[channel.name]}"
+                )
+            names[channel.name] = var.path
+            channels.append(channel)
+    return channels
+
+
+def _common(specs, attribute: str):
+    """The products' common authored ``attribute`` (None if none authors it); PhrtError if
+    two products differ: one render has one resolution and one camera."""
+    values = {(getattr(s, attribute), s.path) for s in specs if getattr(s, attribute)}
+    distinct = {v for v, _ in values}
+    if len(distinct) > 1:
+        shown = ", ".join(f"{p}: {v}" for v, p in sorted(values, key=str))
+        raise PhrtError(f"products differ in {attribute} ({shown}); phrt renders one per run")
+    return next(iter(distinct)) if distinct else None
+
+
+# --- writing a frame ----------------------------------------------------------------------
+
+
+def write_frame_images(
+    plan: ImagePlan,
+    out: Path,
+    time: float,
+    output: FrameOutput,
+    camera: CameraFrame,
+    scene: Scene,
+    *,
+    frames_per_second: float,
+    camera_path: str,
+    stage: str,
+) -> list[Path]:
+    """Write frame ``time``'s files of ``plan`` into ``out`` (each atomically); returns
+    them. ``output`` is the rendered frame, ``camera`` its camera."""
+    out = Path(out)
+    height, width = output.gbuffer.shape
+    planes = _Planes(output, scene)
+    base = frame_header(
+        camera,
+        width,
+        height,
+        time,
+        frames_per_second=frames_per_second,
+        stage=plan.stage or stage,
+        camera_path=camera_path,
+        meters_per_unit=scene.meters_per_unit,
+        timestamp=plan.timestamp,
+    )
+    if plan.settings:
+        base["phrt/renderSettings"] = plan.settings
+    written = []
+    for product in plan.products:
+        path = confined(out, expand(product.template, time))
+        if product.is_png:
+            write_preview_png(path, planes.get("beauty", path))
+        else:
+            header = dict(base)
+            if product.product:
+                header["phrt/renderProduct"] = product.product
+            _write_product_exr(path, product, planes, header, scene)
+        written.append(path)
+        if product.preview:
+            preview = confined(out, expand(product.preview, time))
+            write_preview_png(preview, planes.get("beauty", path))
+            written.append(preview)
+    return written
+
+
+def _write_product_exr(path: Path, product: ProductPlan, planes, header, scene) -> None:
+    parts: dict[str, dict[str, np.ndarray]] = {}
+    for channel in product.channels:
+        part = channel.part if product.multipart else ""
+        plane = planes.get(channel.source, path)
+        values = plane if plane.ndim == 2 else plane[..., channel.component]
+        if channel.source == "id":
+            values = stored_ids(path, values)
+        elif channel.storage == "uint":
+            values = values.astype(np.uint32)
+        else:
+            values = stored(values, channel.storage)
+        parts.setdefault(part, {})[channel.name] = values
+    manifest = None
+    if "id" in {c.source for c in product.channels}:
+        ids = np.unique(planes.get("id", path))
+        manifest = {int(i): scene.elements[i].path for i in ids if i >= 0}
+    id_channel = next((c.name for c in product.channels if c.source == "id"), "id")
+    write_exr(path, parts, header, manifest, id_channel)
+
+
+class _Planes:
+    """The frame's planes by source key, each computed once when first asked for."""
+
+    def __init__(self, output: FrameOutput, scene: Scene):
+        self.output, self.scene = output, scene
+        self.cache: dict[str, np.ndarray] = {}
+
+    def get(self, key: str, path: Path) -> np.ndarray:
+        if key not in self.cache:
+            self.cache[key] = self._compute(key, path)
+        return self.cache[key]
+
+    def _compute(self, key: str, path: Path) -> np.ndarray:
+        out, gb = self.output, self.output.gbuffer
+        if key == "beauty":
+            return check_beauty(path, out.beauty)
+        if key == "alpha":
+            alpha = np.asarray(out.alpha, dtype=np.float32)
+            if not np.isfinite(alpha).all():
+                raise PhrtError(f"{path}: alpha has NaN/Inf")
+            return alpha
+        if key == "depth":
+            return stored_depth(path, gb.depth)
+        if key == "id":
+            return np.asarray(gb.element_id)
+        if key == "traced":
+            return np.asarray(out.traced_mask, dtype=np.float32)
+        if key == "reflectivity":
+            return pixel_reflectivity(gb, element_reflectivity(self.scene))
+        plane = {"normal": gb.normal, "position": gb.position, "albedo": gb.albedo}[key]
+        values = np.where(gb.covered[..., None], plane, 0.0)
+        if not np.isfinite(values).all():
+            raise PhrtError(f"{path}: {key} has NaN/Inf")
+        return values
+
+
+def confined(out: Path, relative: str) -> Path:
+    """``out / relative``, PhrtError if a link on the way leads it out of ``out``."""
+    path = Path(out) / relative
+    root = os.path.realpath(out)
+    parent = os.path.realpath(path.parent)
+    if os.path.commonpath([root, parent]) != root:
+        raise PhrtError(f"{path}: leads out of the output directory {out} (a symlink)")
+    return path
+
+
+# --- header -------------------------------------------------------------------------------
+
+
+def exr_camera_matrices(
+    camera: CameraFrame, width: int, height: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """(worldToCamera, worldToNDC) as OpenEXR defines them (module docstring): (4, 4)
+    float64 matrices for row vectors (``[x, y, z, 1] @ M``)."""
+    flip = np.diag([1.0, 1.0, -1.0, 1.0])  # USD's camera looks down -z, EXR's down +z
+    camera_from_world = flip @ np.linalg.inv(camera.world_from_camera)
+    tx, ty = camera.tan_half_fov(width, height)
+    near, far = camera.near, camera.far
+    projection = np.array(
+        [
+            [0.5 / tx, 0.0, 0.5, 0.0],
+            [0.0, -0.5 / ty, 0.5, 0.0],
+            [0.0, 0.0, far / (far - near), -far * near / (far - near)],
+            [0.0, 0.0, 1.0, 0.0],
+        ]
+    )
+    return camera_from_world.T, (projection @ camera_from_world).T
+
+
+def frame_header(
+    camera: CameraFrame,
+    width: int,
+    height: int,
+    time: float,
+    *,
+    frames_per_second: float,
+    stage: str,
+    camera_path: str,
+    meters_per_unit: float,
+    timestamp: bool = False,
+) -> dict[str, object]:
+    """The header attributes every EXR of frame ``time`` carries (module docstring)."""
+    to_camera, to_ndc = exr_camera_matrices(camera, width, height)
+    header: dict[str, object] = {
+        "worldToCamera": to_camera.astype(np.float32),
+        "worldToNDC": to_ndc.astype(np.float32),
+        "framesPerSecond": Fraction(frames_per_second).limit_denominator(1_000_000),
+        "software": f"phrt-usd {__version__}",
+        "phrt/version": __version__,
+        "phrt/timeCode": np.array([float(time)]),
+        "phrt/stage": str(stage),
+        "phrt/camera": str(camera_path),
+        "phrt/metersPerUnit": np.array([float(meters_per_unit)]),
+    }
+    if timestamp:
+        header["capDate"] = datetime.now(UTC).strftime("%Y:%m:%d %H:%M:%S")
+        header["utcOffset"] = 0.0
+    return header
