@@ -143,10 +143,11 @@ def render_chunk(chunk: Chunk, job: RenderJob) -> RenderChunkResult:
     to ``job.out_dir`` when ``job.write_images``."""
     from phrt_usd.render.renderer import FrameRenderer
     from phrt_usd.run.frames import parse_frames
-    from phrt_usd.run.render_job import render_frame
+    from phrt_usd.run.render_job import prepare_job, render_frame
     from phrt_usd.usd.stage import open_stage
 
     scene = open_stage(chunk.stage, camera=job.camera, controls=job.controls)
+    _, _, images = prepare_job(job, scene)  # the job came prepared: the files of a frame
     times = parse_frames(job.frames, scene.frame_range)
     renderer = FrameRenderer(scene, job.options)
     renderer.plan(times[chunk.first_rendered : chunk.stop])
@@ -157,7 +158,7 @@ def render_chunk(chunk: Chunk, job: RenderJob) -> RenderChunkResult:
             if i < chunk.start:
                 renderer.render(times[i])  # warm-up: the policy learns, nothing is kept
             else:
-                frames.append(render_frame(renderer, times[i], out))
+                frames.append(render_frame(renderer, times[i], out, images))
     finally:
         renderer.close()
     return RenderChunkResult(chunk, frames, os.getpid())
@@ -454,7 +455,7 @@ def run_render_on_cluster(
     Returns ``run_render``'s summary dict plus ``chunk_pids`` (see the sweep's)."""
     from phrt_usd.api import summary_of
     from phrt_usd.run.frames import parse_frames
-    from phrt_usd.run.render_job import RunRecord, job_run_info, write_run_records
+    from phrt_usd.run.render_job import RunRecord, job_run_info, prepare_job, write_run_records
     from phrt_usd.run.run_directory import RunDirectory
     from phrt_usd.usd.stage import open_stage
 
@@ -462,9 +463,11 @@ def run_render_on_cluster(
         raise PhrtError("--resume is not available with --workers / --scheduler")
     out = Path(job.out_dir)
     scene = open_stage(job.stage_path, camera=job.camera, controls=job.controls)
+    job, scene, images = prepare_job(job, scene)  # the products' camera and resolution
     times = parse_frames(job.frames, scene.frame_range)
+    images.check_frame_count(len(times))
     layer_path = job.selection_layer or out / "selection.usda"
-    run_info = job_run_info(job, scene, times)
+    run_info = job_run_info(job, scene, times, images)
     chunks = plan_chunks(stage_address(job.stage_path), len(times), chunk_frames, warmup)
 
     def write(results: dict) -> list[FrameStats]:
@@ -477,7 +480,7 @@ def run_render_on_cluster(
         if on_frame is not None:
             on_frame(len(frames), len(times))
 
-    with RunDirectory(out, layer_path, scene, overwrite=job.overwrite):
+    with RunDirectory(out, layer_path, scene, overwrite=job.overwrite, images=images.templates()):
         worker_job = replace(job, out_dir=out.resolve())  # workers write images there
         results = _gather(client, render_chunk, chunks, worker_job, progress)
         _check_complete(chunks, results)
@@ -486,7 +489,10 @@ def run_render_on_cluster(
             raise PhrtError(f"cluster render of {job.stage_path}: frames missing or repeated")
         _remove_stale_temporaries(out)
     passes = sorted({p for s in frames for p in s.passes})
-    summary = summary_of(RunRecord(out, layer_path, sorted(frames, key=lambda s: s.time), passes))
+    ordered = sorted(frames, key=lambda s: s.time)
+    summary = summary_of(
+        RunRecord(out, layer_path, ordered, passes, images if job.write_images else None)
+    )
     summary["chunk_pids"] = [results[c.index].worker_pid for c in chunks]
     return summary
 

@@ -12,6 +12,7 @@ from phrt_usd.errors import PhrtError
 from phrt_usd.run.images import (
     DEPTH_BACKGROUND,
     HALF_MAX,
+    ID_BACKGROUND,
     MAX_EXACT_ID,
     read_frame_exr,
     read_preview_png,
@@ -186,3 +187,63 @@ def test_fractional_frame_exr_round_trip(tmp_path: Path) -> None:
     _write(exr, frame)
     assert sorted(os.listdir(exr.parent)) == ["0003.500.exr"]
     np.testing.assert_array_equal(read_frame_exr(exr)["element_id"], frame["element_id"])
+
+
+def test_write_exr_stores_uint_ids_and_header_attributes_exactly(tmp_path: Path) -> None:
+    from fractions import Fraction
+
+    from phrt_usd.run.images import read_exr, read_manifest, write_exr
+
+    ids = np.array([[0, 1, 2**24], [2**32 - 2, ID_BACKGROUND, 7]], dtype=np.uint32)
+    matrix = np.arange(16, dtype=np.float32).reshape(4, 4)
+    header = {
+        "worldToCamera": matrix.T,  # not C-contiguous: written as the matrix it shows
+        "framesPerSecond": Fraction(24000, 1001),
+        "phrt/timeCode": np.array([1.0 / 3.0]),
+        "phrt/stage": "/a/b.usda",
+    }
+    path = tmp_path / "ids.exr"
+    write_exr(path, {"": {"id": ids}}, header, {0: "/A", 7: "/B"})
+    back, channels = read_exr(path)
+    assert channels["id"].dtype == np.uint32
+    np.testing.assert_array_equal(channels["id"], ids)
+    np.testing.assert_array_equal(back["worldToCamera"], matrix.T)
+    assert back["framesPerSecond"] == Fraction(24000, 1001)
+    assert back["phrt/timeCode"][0] == 1.0 / 3.0  # a double, not a float
+    assert back["phrt/stage"] == "/a/b.usda"
+    assert read_manifest(back) == {0: "/A", 7: "/B"}
+    assert "capDate" not in back
+
+
+def test_write_exr_parts_and_same_bytes_twice(tmp_path: Path) -> None:
+    import OpenEXR
+
+    from phrt_usd.run.images import read_exr, write_exr
+
+    rgb = np.full((4, 5), 0.5, dtype=np.float16)
+    z = np.full((4, 5), 2.0, dtype=np.float32)
+    write_exr(tmp_path / "a.exr", {"rgba": {"R": rgb}, "depth": {"Z": z}})
+    write_exr(tmp_path / "b.exr", {"rgba": {"R": rgb}, "depth": {"Z": z}})
+    assert (tmp_path / "a.exr").read_bytes() == (tmp_path / "b.exr").read_bytes()
+    parts = OpenEXR.File(str(tmp_path / "a.exr"), header_only=True).parts
+    assert [p.name() for p in parts] == ["rgba", "depth"]
+    assert set(read_exr(tmp_path / "a.exr")[1]) == {"R", "Z"}
+    with pytest.raises(PhrtError, match="one \\(H, W\\) size"):
+        write_exr(tmp_path / "c.exr", {"": {"R": rgb, "Z": z[:-1]}})
+
+
+def test_frame_ids_are_uint_and_older_float_ids_still_read(tmp_path: Path) -> None:
+    from phrt_usd.run.images import read_exr, write_exr
+
+    frame = _frame(seed=5)
+    _write(tmp_path / "new.exr", frame)
+    _, channels = read_exr(tmp_path / "new.exr")
+    assert channels["id"].dtype == np.uint32
+    assert (channels["id"][frame["element_id"] == -1] == ID_BACKGROUND).all()
+    # A frame of an earlier phrt: id as float, -1 for background.
+    old = {name: channels[name] for name in ("R", "G", "B", "A", "Z", "traced")}
+    old["id"] = frame["element_id"].astype(np.float32)
+    write_exr(tmp_path / "old.exr", {"": old})
+    np.testing.assert_array_equal(
+        read_frame_exr(tmp_path / "old.exr")["element_id"], frame["element_id"]
+    )
