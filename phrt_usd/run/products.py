@@ -49,7 +49,8 @@ NDC (0, 0) is the image's top-left corner, (1, 1) its bottom-right, after dividi
 ``framesPerSecond`` (rational), ``software`` (``phrt-usd VERSION``), ``phrt/version``,
 ``phrt/timeCode`` (double), ``phrt/stage``, ``phrt/camera``, ``phrt/renderSettings`` and
 ``phrt/renderProduct`` (when there is one), ``phrt/metersPerUnit`` (double), and, with an
-``id`` channel, the manifest of the ids in the frame (``images.write_exr``). The
+``id`` channel, the manifest of the ids in the frame (``images.write_exr``: id → the
+element's prim path; a PointInstancer's instances are ``/Instancer.instance[i]/...``). The
 wall-clock ``capDate`` and ``utcOffset`` only with ``timestamp`` (``--timestamp``), so
 identical renders write identical bytes.
 """
