@@ -209,11 +209,11 @@ def test_a_failing_frame_keeps_the_finished_frames_records(gallery, tmp_path, mo
     real = render_job.render_frame
     calls = []
 
-    def failing(renderer, t, out):
+    def failing(renderer, t, *files):
         calls.append(t)
         if len(calls) == 3:
             raise PhrtError(f"frame {t}: injected failure")
-        return real(renderer, t, out)
+        return real(renderer, t, *files)
 
     monkeypatch.setattr(render_job, "render_frame", failing)
     out = tmp_path / "out"
