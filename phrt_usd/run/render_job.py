@@ -44,7 +44,13 @@ from phrt_usd.errors import PhrtError
 from phrt_usd.model.frame import FrameStats
 from phrt_usd.render.renderer import FrameRenderer, RenderOptions
 from phrt_usd.run.frames import parse_frames
-from phrt_usd.run.products import ImagePlan, default_plan, plan_images, write_frame_images
+from phrt_usd.run.products import (
+    ImagePlan,
+    default_plan,
+    parse_aovs,
+    plan_images,
+    write_frame_images,
+)
 from phrt_usd.run.run_directory import RESERVE_FACTOR, RunDirectory
 from phrt_usd.run.run_files import (
     CHECKPOINT_FILE,
@@ -94,7 +100,7 @@ class RenderJob:
     checkpoint_every: int = DEFAULT_CHECKPOINT_EVERY
     settings: str | None = None  # the RenderSettings prim (--settings; else the stage's)
     image: str | None = None  # --image TEMPLATE: one file per frame instead of the products
-    aovs: tuple[str, ...] = ()  # --aovs: vars added to every EXR (run.products.SOURCES)
+    aovs: tuple[str, ...] | str = ()  # --aovs: vars added to every EXR ("P,N" or names)
     timestamp: bool = False  # --timestamp: the wall-clock capDate in EXR headers
     resolution_given: bool = False  # options' width/height were asked for: products' yield
 
@@ -148,7 +154,7 @@ def prepare_job(job: RenderJob, scene: StageScene) -> tuple[RenderJob, StageScen
         settings,
         job.out_dir,
         image=job.image,
-        aovs=tuple(job.aovs),
+        aovs=parse_aovs(job.aovs) if isinstance(job.aovs, str) else tuple(job.aovs),
         stage=str(job.stage_path),
         timestamp=job.timestamp,
     )
