@@ -148,6 +148,15 @@ def _unbounded(ms: float | None) -> float | None:
     return None if ms is not None and ms == math.inf else ms
 
 
+def parse_resolution(text: str) -> tuple[int, int]:
+    """``"320x240"`` → (320, 240); BadOption otherwise (ranges: ``RenderOptions``)."""
+    try:
+        width, height = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise BadOption(f"--resolution {text!r}: expected WxH, e.g. 320x240") from None
+    return width, height
+
+
 def _resolution(given: dict[str, Any], default: tuple[int, int]) -> tuple[int, int]:
     """(width, height) from ``resolution`` ((w, h) or "WxH") or ``width`` / ``height``."""
     if "resolution" not in given:
@@ -157,11 +166,7 @@ def _resolution(given: dict[str, Any], default: tuple[int, int]) -> tuple[int, i
         raise BadOption("give resolution or width/height, not both")
     value = given["resolution"]
     if isinstance(value, str):
-        try:
-            width, height = (int(v) for v in value.lower().split("x"))
-        except ValueError:
-            raise BadOption(f"--resolution {value!r}: expected WxH, e.g. 320x240") from None
-        return width, height
+        return parse_resolution(value)
     if not isinstance(value, Sequence) or len(value) != 2:
         raise BadOption(f"resolution must be (width, height) or 'WxH', got {value!r}")
     return _integer("width", value[0]), _integer("height", value[1])

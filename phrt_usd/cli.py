@@ -101,12 +101,13 @@ def user_errors(exit_code: int = EXIT_PROBLEMS, json_out: bool = False) -> Itera
         raise fail("interrupted", EXIT_INTERRUPTED, json_out) from None
 
 
-def open_input(path: Path):
-    """Open a stage for a command; unreadable input raises UnreadableInput."""
+def open_input(path: Path, controls=None):
+    """Open a stage for a command (composed with ``controls``, a ``StageControls``);
+    unreadable input raises UnreadableInput."""
     from phrt_usd.usd.stage import open_usd
 
     try:
-        return open_usd(path)
+        return open_usd(path, controls)
     except PhrtError as exc:
         raise UnreadableInput(str(exc)) from None
 
@@ -234,19 +235,6 @@ def _print_summary(s: dict) -> None:
 DEMO_STAGE = Path(__file__).resolve().parent.parent / "stages" / "farm.usda"
 
 
-def _parse_resolution(text: str) -> tuple[int, int]:
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise BadOption(f"--resolution {text!r}: expected WxH, e.g. 320x240") from None
-    return w, h
-
-
-def _unbounded(value: float | None) -> float | None:
-    """`inf` on the command line means an unbounded budget."""
-    return None if value is not None and value == float("inf") else value
-
-
 def _progress():
     """Progress on stderr: a rich bar on a terminal; elsewhere (farm logs, CI) plain
     lines ``render farm.usda: 12/120 frames (10 %)`` every PROGRESS_LINE_SECONDS and at
@@ -346,6 +334,17 @@ def render(
         float | None, typer.Option(help="I, the weight of the previous selection.")
     ] = None,
     camera: Annotated[str | None, typer.Option(help="Camera prim path.")] = None,
+    session_layer: Annotated[
+        list[Path] | None,
+        typer.Option(help="A session layer over the stage (repeatable, strongest first)."),
+    ] = None,
+    variant: Annotated[
+        list[str] | None,
+        typer.Option(help="A variant selection PRIM:SET=NAME (repeatable)."),
+    ] = None,
+    mask: Annotated[
+        str | None, typer.Option(help="Populate only these prims: PRIM,PRIM,...")
+    ] = None,
     selection_layer: Annotated[
         Path | None, typer.Option(help="Selection layer (default OUT/selection.usda).")
     ] = None,
@@ -356,6 +355,20 @@ def render(
         bool, typer.Option(help="Replace phrt's files in a non-empty OUT (others stay).")
     ] = False,
     images: Annotated[bool, typer.Option(help="Write EXR + PNG per frame.")] = True,
+    settings: Annotated[
+        str | None,
+        typer.Option(help="RenderSettings prim (default: the stage's renderSettingsPrimPath)."),
+    ] = None,
+    image: Annotated[
+        str | None,
+        typer.Option(help="File name TEMPLATE under OUT instead of the products (a.####.exr)."),
+    ] = None,
+    aovs: Annotated[
+        str | None, typer.Option(help="Passes added to every EXR: P,N,albedo,reflectivity,...")
+    ] = None,
+    timestamp: Annotated[
+        bool, typer.Option(help="Write the wall-clock capDate into EXR headers.")
+    ] = False,
     workers: WorkersOpt = None,
     scheduler: SchedulerOpt = None,
     chunk_frames: ChunkFramesOpt = None,
@@ -363,49 +376,39 @@ def render(
     json_out: JsonOpt = False,
 ) -> None:
     """Render the stage's camera path: images, stats.json and the selection layer."""
-    from phrt_usd.api import run_render
-    from phrt_usd.render.renderer import RenderOptions
-    from phrt_usd.run.render_job import RenderInterrupted, RenderJob
-    from phrt_usd.usd.schema import read_render_params
-    from phrt_usd.usd.stage import read_stage
+    from phrt_usd.api import render_job, run_render
+    from phrt_usd.run.products import parse_aovs
+    from phrt_usd.run.render_job import RenderInterrupted
+    from phrt_usd.usd.stage_controls import StageControls
 
     stage = stage or DEMO_STAGE
     with user_errors(json_out=json_out):
-        usd_stage = open_input(stage)
-        params = read_render_params(usd_stage)
-        scene = read_stage(usd_stage, camera=camera)
-        for warning in getattr(scene, "warnings", []):
-            typer.echo(f"warning: {warning}", err=True)
-        width, height = _parse_resolution(resolution) if resolution else params.resolution
-        budget_ms = _unbounded(budget_ms)
-        if budget_ms is None and budget_rays is not None:
-            ms = None  # a rays budget alone is the deterministic budget
-        else:
-            ms = budget_ms if budget_ms is not None else params.budget_ms
-        rays = budget_rays if budget_rays is not None else params.budget_rays
-        options = RenderOptions(
-            mode=mode or params.mode,
-            heuristic=heuristic or params.heuristic,
-            width=width,
-            height=height,
-            budget_ms=ms,
-            budget_rays=rays,
-            bounce_limit=params.bounce_limit if bounce_limit is None else bounce_limit,
-            selection_weight=(
-                params.selection_weight if selection_weight is None else selection_weight
-            ),
-        )
-        job = RenderJob(
+        controls = StageControls.from_options(session_layer or (), variant or (), mask)
+        job, scene = render_job(  # options as the Python API takes them (phrt_usd.api)
+            open_input(stage, controls),
+            out,
+            frames,
             stage_path=stage,
-            out_dir=out,
-            options=options,
-            frames=frames,
+            controls=controls,
+            mode=mode,
+            heuristic=heuristic,
+            resolution=resolution,
+            budget_ms=budget_ms,
+            budget_rays=budget_rays,
+            bounce_limit=bounce_limit,
+            selection_weight=selection_weight,
             camera=camera,
             selection_layer=selection_layer,
             resume=resume,
             overwrite=overwrite,
             write_images=images,
+            settings=settings,
+            image=image,
+            aovs=parse_aovs(aovs),
+            timestamp=timestamp,
         )
+        for warning in scene.warnings:
+            typer.echo(f"warning: {warning}", err=True)
         progress = _progress()
         with progress:
             task = progress.add_task(f"render {stage.name}", total=None)
@@ -493,7 +496,9 @@ def sweep(
         weight = selection_weight
         if weight is None:
             weight = read_render_params(opened[0]).selection_weight
-        width, height = _parse_resolution(resolution)
+        from phrt_usd.api import parse_resolution
+
+        width, height = parse_resolution(resolution)
         spec = SweepSpec(
             stages=stages,
             heuristics=[h.strip() for h in heuristics.split(",") if h.strip()],
