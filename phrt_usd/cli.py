@@ -431,7 +431,7 @@ def render(
                         )
             except RenderInterrupted as exc:
                 raise fail(f"interrupted: {exc}", EXIT_INTERRUPTED, json_out) from None
-    summary["warnings"] = list(getattr(scene, "warnings", []))
+    summary["warnings"] = list(scene.warnings)
     if json_out:
         print_json(summary)
     else:

@@ -416,6 +416,7 @@ def run_sweep_on_cluster(
     from phrt_usd.evaluate.sweep import check_spec, finish_sweep, write_sweep_csv
     from phrt_usd.evaluate.sweep_files import SWEEP_CSV
     from phrt_usd.run.frames import parse_frames
+    from phrt_usd.run.run_directory import DirectoryLock
     from phrt_usd.usd.stage import open_stage
 
     check_spec(spec)
@@ -432,13 +433,14 @@ def run_sweep_on_cluster(
 
     # Workers write report images into the output directory: give them an absolute path.
     worker_spec = replace(spec, out=spec.out.resolve())
-    results = _gather(client, sweep_chunk, chunks, worker_spec, progress)
-    _check_complete(chunks, results)
-    timeline: dict = {}
-    for chunk in chunks:
-        _merge_timeline(timeline, results[chunk.index])
-    _remove_stale_temporaries(spec.out)
-    summary = finish_sweep(spec, _sweep_rows(chunks, results), timeline, interrupted=False)
+    with DirectoryLock(spec.out):  # one sweep writes OUT at a time
+        results = _gather(client, sweep_chunk, chunks, worker_spec, progress)
+        _check_complete(chunks, results)
+        timeline: dict = {}
+        for chunk in chunks:
+            _merge_timeline(timeline, results[chunk.index])
+        _remove_stale_temporaries(spec.out)
+        summary = finish_sweep(spec, _sweep_rows(chunks, results), timeline, interrupted=False)
     summary["chunk_pids"] = [results[c.index].worker_pid for c in chunks]
     return summary
 

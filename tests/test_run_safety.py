@@ -363,3 +363,28 @@ def test_read_only_out_is_one_line(gallery, tmp_path):
         assert "Read-only file system" in line
     finally:
         subprocess.run(["umount", "-l", str(mount)], check=False)
+
+
+def test_a_second_sweep_into_a_locked_out_is_refused(tmp_path):
+    """Sweeps hold OUT's lock too: a sweep (or render) into a busy OUT is refused at once,
+    naming the holder's pid."""
+    from phrt_usd.run.run_directory import DirectoryLock
+
+    stage = mirror_gallery_stage(tmp_path / "g.usda", frames=2)
+    out = tmp_path / "sweep"
+    out.mkdir()
+    holder = subprocess.Popen([sys.executable, "-c", (
+        "import sys, time; from pathlib import Path; "
+        "from phrt_usd.run.run_directory import DirectoryLock; "
+        f"lock = DirectoryLock(Path({str(out)!r})).acquire(); print('held', flush=True); "
+        "time.sleep(60)")], stdout=subprocess.PIPE, text=True)  # fmt: skip
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        done = _cli("sweep", str(stage), "--out", str(out), "--frames", "1:1",
+                    "--resolution", "32x24", "--budgets-rays", "100")  # fmt: skip
+        assert f"pid {holder.pid}" in _one_line_error(done, 1)
+    finally:
+        holder.kill()
+        holder.wait()
+    with DirectoryLock(out):  # the kernel released the killed holder's lock
+        pass

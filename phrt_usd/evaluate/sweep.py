@@ -50,6 +50,7 @@ from phrt_usd.render.renderer import FrameOutput, FrameRenderer, RenderOptions
 from phrt_usd.run.frames import parse_frames
 from phrt_usd.run.images import write_png_atomic, write_preview_png
 from phrt_usd.run.render_job import stop_on_signals
+from phrt_usd.run.run_directory import DirectoryLock
 from phrt_usd.select.policies import make_policy
 from phrt_usd.usd.schema import DEFAULT_BOUNCE_LIMIT, DEFAULT_RESOLUTION, DEFAULT_SELECTION_WEIGHT
 from phrt_usd.usd.stage import open_stage
@@ -160,16 +161,18 @@ def run_sweep(spec: SweepSpec, on_frame: Callable[[str, int, int], None] | None 
     """Run the sweep; returns a summary dict (rows written, output paths)."""
     check_spec(spec)
     out = spec.out
+    if out.exists() and not out.is_dir():
+        raise BadOption(f"--out {out}: exists and is not a directory")
     out.mkdir(parents=True, exist_ok=True)
     rows: list[dict] = []
     timeline: dict = {}
     stop = threading.Event()
-    with stop_on_signals(stop):
+    with DirectoryLock(out), stop_on_signals(stop):  # one sweep writes OUT at a time
         for stage_path in spec.stages:
             if stop.is_set():
                 break
             _sweep_stage(stage_path, spec, rows, timeline, stop, on_frame)
-    return finish_sweep(spec, rows, timeline, interrupted=stop.is_set())
+        return finish_sweep(spec, rows, timeline, interrupted=stop.is_set())
 
 
 def check_spec(spec: SweepSpec) -> None:

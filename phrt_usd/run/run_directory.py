@@ -37,6 +37,55 @@ _FRAME_IMAGE = re.compile(r"^-?\d{3,}(\.\d{3})?\.(exr|png)$")
 _TEMP_FILE = re.compile(r"^\.(.+)\.[^.]+\.tmp(\.[^.]+)$")
 
 
+class DirectoryLock:
+    """``OUT/.phrt.lock``, held with ``flock`` by the one process writing ``OUT`` (a render
+    or a sweep). The kernel releases it when the process dies, so a killed run never
+    blocks the next; a second writer is refused at once, naming the holder's pid."""
+
+    def __init__(self, out: Path) -> None:
+        self.out = Path(out)
+        self._fd: int | None = None
+
+    def __enter__(self) -> DirectoryLock:
+        return self.acquire()
+
+    def __exit__(self, *exc) -> None:
+        self.release()
+
+    def acquire(self) -> DirectoryLock:
+        path = self.out / LOCK_FILE
+        for _ in range(3):  # the holder may remove the file between our open and flock
+            try:
+                fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o644)
+            except OSError as error:
+                if error.errno == errno.ELOOP:
+                    raise PhrtError(f"{path}: is a symlink; remove it") from None
+                raise BadOption(f"--out {self.out}: cannot write ({error.strerror})") from None
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                holder = os.read(fd, 64).decode("ascii", "replace").strip() or "?"
+                os.close(fd)
+                raise PhrtError(
+                    f"{self.out}: another phrt run is writing here (pid {holder}); "
+                    "wait for it or choose another --out"
+                ) from None
+            if _same_file(fd, path):
+                os.ftruncate(fd, 0)
+                os.write(fd, f"{os.getpid()}\n".encode())
+                self._fd = fd
+                return self
+            os.close(fd)  # locked a file that was just removed: try the new one
+        raise PhrtError(f"{path}: could not take the lock")
+
+    def release(self) -> None:
+        if self._fd is not None:
+            with suppress(OSError):
+                os.unlink(self.out / LOCK_FILE)
+            os.close(self._fd)  # closing releases the flock
+            self._fd = None
+
+
 class RunDirectory:
     """Context manager owning ``out`` for one run (see the module docstring).
 
@@ -66,7 +115,7 @@ class RunDirectory:
         self.scene = scene
         self.resume = resume
         self.overwrite = overwrite
-        self._fd: int | None = None
+        self._lock_held: DirectoryLock | None = None
         self.fresh = True  # False when resuming a run that left files in out
 
     def __enter__(self) -> RunDirectory:
@@ -117,37 +166,12 @@ class RunDirectory:
             (self.out / RESERVE_FILE).unlink()
 
     def _lock(self) -> None:
-        path = self.out / LOCK_FILE
-        for _ in range(3):  # the holder may remove the file between our open and flock
-            try:
-                fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o644)
-            except OSError as error:
-                if error.errno == errno.ELOOP:
-                    raise PhrtError(f"{path}: is a symlink; remove it") from None
-                raise BadOption(f"--out {self.out}: cannot write ({error.strerror})") from None
-            try:
-                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except BlockingIOError:
-                holder = os.read(fd, 64).decode("ascii", "replace").strip() or "?"
-                os.close(fd)
-                raise PhrtError(
-                    f"{self.out}: another render is writing here (pid {holder}); "
-                    "wait for it or choose another --out"
-                ) from None
-            if _same_file(fd, path):
-                os.ftruncate(fd, 0)
-                os.write(fd, f"{os.getpid()}\n".encode())
-                self._fd = fd
-                return
-            os.close(fd)  # locked a file that was just removed: try the new one
-        raise PhrtError(f"{path}: could not take the lock")
+        self._lock_held = DirectoryLock(self.out).acquire()
 
     def _unlock(self) -> None:
-        if self._fd is not None:
-            with suppress(OSError):
-                os.unlink(self.out / LOCK_FILE)
-            os.close(self._fd)  # closing releases the flock
-            self._fd = None
+        if self._lock_held is not None:
+            self._lock_held.release()
+            self._lock_held = None
 
     def _claim(self) -> None:
         """Refuse a non-empty ``out`` unless resuming or overwriting (see the class)."""
