@@ -44,6 +44,7 @@ from phrt_usd.usd.values import (
     AnimationProbe,
     TimeContext,
     attr_value,
+    first_per_location,
     safe_normalize,
     varies,
 )
@@ -260,17 +261,13 @@ def mesh_problems_in_range(prim: Usd.Prim, frames: tuple[float, float]) -> list[
         attr = prim.GetAttribute(name)
         if attr:
             times.update(attr.GetTimeSamplesInInterval(interval))
-    seen: set[str] = set()
+    later = []
     for t in sorted(times - {start}):
         found = mesh_problems(prim, t)
         if not found and len(_mesh_points_at(prim, Usd.TimeCode(t))) != n_points:
             found = [f"{prim.GetPath()}: topology changes at time {t} (not supported)"]
-        for problem in found:
-            where = problem.partition(": ")[0]
-            if where not in seen:
-                seen.add(where)
-                problems.append(problem)
-    return problems
+        later += found
+    return problems + first_per_location(later)
 
 
 def _mesh_topology(prim: Usd.Prim, time: Usd.TimeCode, n_points: int):

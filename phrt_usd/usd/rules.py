@@ -62,6 +62,7 @@ from phrt_usd.usd.stage import (
     rendered_gprims,
     stage_problems,
 )
+from phrt_usd.usd.values import first_per_location
 
 ERROR = "error"
 WARNING = "warning"
@@ -107,17 +108,6 @@ def _attr_where(prim: Usd.Prim, name: str) -> str:
     return f"{prim.GetPath()}.{name}"
 
 
-def _first_per_where(messages: list[str]) -> list[str]:
-    """Messages with a new location only (a problem that lasts is reported once)."""
-    seen, out = set(), []
-    for m in messages:
-        where = m.partition(": ")[0]
-        if where not in seen:
-            seen.add(where)
-            out.append(m)
-    return out
-
-
 def composition_issues(
     stage: Usd.Stage, composition: list[CompositionProblem] | None = None
 ) -> list[Issue]:
@@ -147,7 +137,7 @@ def _camera_issues(
     at_times = []
     for t in camera_check_times(camera, frames, driven):
         at_times += camera_problems(camera, t, driven)
-    messages += _first_per_where(at_times)
+    messages += first_per_location(at_times)
     return [Issue.of(severity, m + note, CAMERA) for m in messages], frames
 
 

@@ -119,6 +119,19 @@ class AnimationProbe:
         return self._memo[key]
 
 
+def first_per_location(messages: list[str]) -> list[str]:
+    """Messages ``"<where>: <what>"`` whose location is new (a problem that lasts over
+    several time samples is reported once, at its first)."""
+    seen: set[str] = set()
+    out = []
+    for message in messages:
+        where = message.partition(": ")[0]
+        if where not in seen:
+            seen.add(where)
+            out.append(message)
+    return out
+
+
 def rotation_columns(m_row: np.ndarray) -> np.ndarray:
     """(3, 3) orthonormal rotation (column-vector convention) of a row-vector matrix.
 
