@@ -327,8 +327,13 @@ def run_render(
 def summary_of(record: RunRecord) -> dict:
     """The summary of a finished run (see the module docstring)."""
     summary = build_report(record.selection_layer)
+    products = record.images.products if record.images is not None else ()
     summary.update(
-        out=str(record.out), selection_layer=str(record.selection_layer), passes=record.passes
+        out=str(record.out),
+        selection_layer=str(record.selection_layer),
+        passes=record.passes,
+        # File name templates of a frame's images, relative to ``out`` (frame tokens kept).
+        images=[name for p in products for name in (p.template, p.preview) if name],
     )
     return summary
 

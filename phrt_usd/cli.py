@@ -443,11 +443,7 @@ def render(
 
 def _written(summary: dict) -> str:
     """``wrote OUT: images frames/$F4.exr, frames/$F4.png (per frame), stats.json, ...``."""
-    from phrt_usd.run.run_files import read_stats
-
-    run, _ = read_stats(Path(summary["out"]))
-    products = run.get("products") or {}  # file name template -> what the file holds
-    names = [n for name, p in products.items() for n in (name, p.get("preview")) if n]
+    names = summary.get("images") or []
     images = f"images {', '.join(names)} (per frame), " if names else ""
     return f"wrote {summary['out']}: {images}stats.json, {summary['selection_layer']}"
 
