@@ -3,9 +3,10 @@
 Every ``Mesh``, ``Sphere``, ``Cube``, ``Cylinder``, ``Cone``, ``Capsule`` and ``Plane``
 becomes one ``LocalMesh``: its triangles prepared once in its local space (stage units;
 fan triangulation, ``leftHanded`` flipped, normals, colours and texture coordinates
-expanded to triangle corners). Every PointInstancer instance × gprim of its prototype
-becomes one element (``expand_instancer``). ``phrt_usd.usd.stage`` places these in the
-world and re-reads the shapes that deform (``local_shape_fn``).
+expanded to triangle corners). ``phrt_usd.usd.instancers`` makes the elements of
+PointInstancers from these, ``phrt_usd.usd.skinning`` deforms skinned ones;
+``phrt_usd.usd.stage`` places them in the world and re-reads the shapes that deform
+(``local_shape_fn``).
 
 Decisions where USD leaves room:
 
@@ -17,6 +18,12 @@ Decisions where USD leaves room:
   mean colour when it is textured), else ``primvars:displayColor`` (linear by USD
   convention, any interpolation), else the UsdPreviewSurface default 0.18 when a material
   is bound, else mid grey 0.5.
+- Faces listed in ``holeIndices`` are not triangulated (raster and trace read the same
+  triangles, so neither draws them); indices outside the faces are ignored, as Hydra
+  does. Smooth normals are computed from the faces that are drawn.
+- Subdivision surfaces (``subdivisionScheme`` other than ``none``, USD's fallback being
+  ``catmullClark``) are drawn as their control cage; ``is_subdivided`` says which
+  (``phrt_usd.usd.traversal.subdivided_meshes`` lists them for a report).
 - Faces with fewer than 3 vertices are skipped (they have no area). Non-finite points,
   face counts that do not add up, and out-of-range indices raise ``PhrtError``
   (``mesh_problems`` / ``mesh_problems_in_range`` return those messages for
@@ -24,14 +31,13 @@ Decisions where USD leaves room:
 
 Limits: no subdivision (the cage is rendered), no curves/points/volumes, no primvar
 inheritance from ancestors, implicit gprims take only a constant displayColor and no
-texture coordinates, nested PointInstancers are not expanded, prototype-internal
-transforms of PointInstancers are taken at the first time only. Topology (point, face
-and instance counts) must not change over time.
+texture coordinates. Topology (point, face, hole and instance counts) must not change
+over time.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -41,8 +47,6 @@ from phrt_usd.errors import PhrtError
 from phrt_usd.usd.materials import MaterialBank, face_materials
 from phrt_usd.usd.values import (
     MIN_NORMAL_LENGTH,
-    AnimationProbe,
-    TimeContext,
     attr_value,
     first_per_location,
     safe_normalize,
@@ -271,7 +275,7 @@ def mesh_problems_in_range(prim: Usd.Prim, frames: tuple[float, float]) -> list[
 
 
 def _mesh_topology(prim: Usd.Prim, time: Usd.TimeCode, n_points: int):
-    """Validated fan triangulation of a UsdGeomMesh.
+    """Validated fan triangulation of a UsdGeomMesh, without its ``holeIndices`` faces.
 
     Returns corners (T, 3) face-vertex ids, tri_face (T,), triangles (T, 3) point ids,
     all int64, with ``leftHanded`` winding already flipped.
@@ -281,6 +285,10 @@ def _mesh_topology(prim: Usd.Prim, time: Usd.TimeCode, n_points: int):
     for problem in _topology_problems(prim.GetPath(), counts, indices, n_points):
         raise PhrtError(problem)
     corners, tri_face = _fan_corners(counts)
+    holes = mesh.GetHoleIndicesAttr().Get(time)
+    if holes is not None and len(holes) and len(tri_face):
+        drawn = ~np.isin(tri_face, np.asarray(holes, dtype=np.int64))
+        corners, tri_face = corners[drawn], tri_face[drawn]
     if mesh.GetOrientationAttr().Get(time) == UsdGeom.Tokens.leftHanded:
         corners = corners[:, [0, 2, 1]]
     return corners, tri_face, indices[corners]
@@ -559,11 +567,26 @@ def local_shape_fn(kind: str, prim: Usd.Prim) -> ShapeAt:
         return lambda code: (_implicit_geometry(kind, prim, code)[0], None)
 
     def mesh_at(code: Usd.TimeCode):
-        points = _read_mesh_points(prim, code)
-        corners, tri_face, triangles = _mesh_topology(prim, code, len(points))
-        return points, _mesh_normals(prim, code, corners, tri_face, triangles)
+        return _read_mesh_points(prim, code), mesh_normals_at(prim, code)[1]
 
     return mesh_at
+
+
+def mesh_normals_at(prim: Usd.Prim, code: Usd.TimeCode) -> tuple[np.ndarray, np.ndarray | None]:
+    """A UsdGeomMesh's drawn triangles (T, 3) int64 point ids and its authored normals
+    expanded to their corners (T, 3, 3) float64 in mesh space, or None (smooth) at
+    ``code``."""
+    points = _read_mesh_points(prim, code)
+    corners, tri_face, triangles = _mesh_topology(prim, code, len(points))
+    return triangles, _mesh_normals(prim, code, corners, tri_face, triangles)
+
+
+def is_subdivided(prim: Usd.Prim) -> bool:
+    """True for a UsdGeomMesh whose ``subdivisionScheme`` (authored, else USD's fallback
+    ``catmullClark``) is not ``none``: a subdivision surface, drawn as its cage."""
+    if not prim.IsA(UsdGeom.Mesh):
+        return False
+    return UsdGeom.Mesh(prim).GetSubdivisionSchemeAttr().Get() != UsdGeom.Tokens.none
 
 
 def read_gprim(kind: str, prim: Usd.Prim, time: Usd.TimeCode, bank: MaterialBank) -> LocalMesh:
@@ -585,82 +608,3 @@ def mesh_area(points: np.ndarray, counts: np.ndarray, indices: np.ndarray) -> fl
         return 0.0
     a, b, c = (points[indices[corners[:, k]]] for k in range(3))
     return float(0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1).sum())
-
-
-# ---- PointInstancers -----------------------------------------------------------------
-
-#: PointInstancer attributes whose animation moves its instances.
-_INSTANCE_ATTRS = (
-    "positions",
-    "orientations",
-    "orientationsf",
-    "scales",
-    "protoIndices",
-    "velocities",
-    "angularVelocities",
-)
-
-#: Receiver of one element: (gprim, element path, kind, its LocalMesh, matrix_at(ctx) →
-#: (4, 4) row-vector prototype gprim → world in stage units, transform may vary).
-AddElement = Callable[
-    [Usd.Prim, str, str, LocalMesh, Callable[[TimeContext], np.ndarray], bool], None
-]
-
-
-def expand_instancer(
-    prim: Usd.Prim,
-    ctx: TimeContext,
-    probe: AnimationProbe,
-    bank: MaterialBank,
-    gprims_under: Callable[[Usd.Prim], Iterable[tuple[str, Usd.Prim]]],
-    add: AddElement,
-) -> None:
-    """One element per (instance, prototype gprim) of a PointInstancer, passed to ``add``
-    in instance order; invisible and inactive instances (the mask) are skipped.
-
-    gprims_under(root) : (kind, gprim) the render reads under a prototype root. Element
-    paths are ``/Instancer.instance[i]``, followed by ``/rel/path`` for a gprim below the
-    prototype root.
-    """
-    pi = UsdGeom.PointInstancer(prim)
-    where = str(prim.GetPath())
-    protos = pi.GetPrototypesRel().GetForwardedTargets()
-    proto_idx = np.asarray(pi.GetProtoIndicesAttr().Get(ctx.code) or [], dtype=np.int64)
-    if len(proto_idx) and (proto_idx.min() < 0 or proto_idx.max() >= len(protos)):
-        raise PhrtError(f"{where}.protoIndices: index out of range [0, {len(protos)})")
-    xforms = ctx.instance_xforms(prim)
-    if len(xforms) != len(proto_idx):
-        raise PhrtError(f"{where}: instance transforms do not match protoIndices")
-    if not np.all(np.isfinite(xforms)):
-        raise PhrtError(f"{where}: non-finite instance transform (positions/scales)")
-    mask = pi.ComputeMaskAtTime(ctx.code)  # inactive and invisible ids → False
-    visible = np.ones(len(proto_idx), bool) if not mask else np.asarray(mask, bool)
-    animated = probe.xform_varies(prim) or varies(prim, _INSTANCE_ATTRS)
-    # Gprims of each prototype, with their transform relative to the prototype root.
-    proto_gprims: list[list[tuple[Usd.Prim, str, str, np.ndarray, LocalMesh]]] = []
-    for proto_path in protos:
-        root = prim.GetStage().GetPrimAtPath(proto_path)
-        found = []
-        for kind, g in gprims_under(root):
-            rel = np.array(ctx.cache.ComputeRelativeTransform(g, root)[0])
-            if g == root:
-                rel = np.eye(4)  # the root's own xform is in the instance transform
-            suffix = str(g.GetPath().MakeRelativePath(root.GetPath()))
-            found.append((g, kind, suffix, rel, read_gprim(kind, g, ctx.code, bank)))
-        proto_gprims.append(found)
-    for i in np.flatnonzero(visible):
-        gprims = proto_gprims[proto_idx[i]]
-        for g, kind, suffix, rel, mesh in gprims:
-            path = f"{where}.instance[{i}]"
-            if len(gprims) > 1 or suffix != ".":
-                path += f"/{suffix}" if suffix != "." else ""
-
-            def matrix_at(c, rel=rel, i=int(i)):
-                inst = c.instance_xforms(prim)
-                if i >= len(inst):
-                    raise PhrtError(
-                        f"{where}: instance count changed at time {c.time} (not supported)"
-                    )
-                return rel @ inst[i] @ c.world(prim)
-
-            add(g, path, kind, mesh, matrix_at, animated or probe.xform_varies(g))

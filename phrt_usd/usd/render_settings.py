@@ -17,6 +17,11 @@
   channel name a pipeline asked for (``driver:parameters:aov:name``, the attribute
   Houdini's Solaris authors), as authored or their schema fallbacks.
 
+* **Purposes.** ``included_purposes(stage, settings)``: the settings' ``includedPurposes``
+  (the UsdGeomImageable purposes a render draws; UsdRender's fallback ``default``,
+  ``render`` when unauthored or when the stage has no settings prim), with one warning
+  line for a token that is no purpose.
+
 What the vars mean and which channels they become is ``phrt_usd.run.products``' business.
 A target that is not a RenderProduct / RenderVar, or a settings path that is no
 RenderSettings prim, raises a one-line ``PhrtError`` naming the prim.
@@ -26,10 +31,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from pxr import Sdf, Usd, UsdRender
+from pxr import Sdf, Usd, UsdGeom, UsdRender
 
 from phrt_usd.errors import BadOption, PhrtError
 from phrt_usd.usd import schema
+from phrt_usd.usd.traversal import DEFAULT_INCLUDED_PURPOSES
 
 #: The product attribute that asks for one EXR part per var (bool, not a schema attribute).
 MULTIPART_ATTR = "driver:parameters:OpenEXR:multipart"
@@ -99,6 +105,33 @@ def read_render_settings(
         camera=_camera(rs.GetCameraRel()),
         products=tuple(products),
     )
+
+
+def included_purposes(
+    stage: Usd.Stage, settings: str | None = None
+) -> tuple[tuple[str, ...], list[str]]:
+    """(the purposes a render of ``stage`` draws, warnings): the ``includedPurposes`` of
+    the settings prim the render uses (``schema.find_render_settings``), else UsdRender's
+    fallback. Tokens that are no UsdGeomImageable purpose draw nothing and give a
+    warning naming the attribute."""
+    prim = schema.find_render_settings(stage, settings)
+    if prim is None:
+        return DEFAULT_INCLUDED_PURPOSES, []
+    attr = UsdRender.Settings(prim).GetIncludedPurposesAttr()
+    value = attr.Get()
+    if value is None:
+        return DEFAULT_INCLUDED_PURPOSES, []
+    purposes = tuple(str(t) for t in value)
+    known = set(UsdGeom.Imageable.GetOrderedPurposeTokens())
+    unknown = [t for t in purposes if t not in known]
+    warnings = []
+    if unknown:
+        warnings.append(
+            f"{attr.GetPath()}: {', '.join(map(repr, unknown))} "
+            f"{'is' if len(unknown) == 1 else 'are'} no purpose "
+            f"(purposes: {', '.join(sorted(known))}); ignored"
+        )
+    return purposes, warnings
 
 
 def _read_product(stage: Usd.Stage, product: UsdRender.Product) -> RenderProductSpec:

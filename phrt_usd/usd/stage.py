@@ -15,18 +15,20 @@ Pipeline (``read_stage``):
    the first ``UsdGeomCamera``. A ``PhrtCameraPath`` whose ``phrt:camera`` targets the
    chosen camera drives it (``phrt_usd.usd.camera_path``); otherwise the camera's own
    (possibly time-sampled) world transform does.
-2. **Traversal.** ``Usd.PrimRange`` with instance proxies, default predicate (inactive,
-   undefined, abstract and unloaded prims are pruned). Subtrees whose root is authored
-   ``invisible`` or has purpose ``guide``/``proxy`` are pruned before anything below is
-   read (visibility and purpose are inherited, so this equals ``ComputeVisibility`` /
-   ``ComputePurpose`` on every prim below). Visibility is evaluated once, at the start
-   of the frame range: animated visibility is not supported.
+2. **Traversal.** ``phrt_usd.usd.traversal``: ``Usd.PrimRange`` with instance proxies,
+   default predicate; invisible subtrees pruned; a prim is read when its
+   ``ComputePurpose`` is one of the render settings' ``includedPurposes`` (fallback
+   ``default``, ``render``). Visibility and purpose are evaluated once, at the start of
+   the frame range: animated visibility is not supported.
 3. **Geometry.** Every gprim the render draws (``meshes.RENDERED_GPRIM_TYPES``) and every
-   PointInstancer instance × gprim of its prototype becomes one element, its triangles
+   PointInstancer instance × gprim of its prototype, at any depth of nesting
+   (``phrt_usd.usd.instancers``), becomes one element, its triangles
    prepared once in local space (``phrt_usd.usd.meshes``), then transformed into one
    world-space batch in **metres**. Elements whose transform or points may vary in time
    are re-transformed in ``StageScene.set_time``; the others are never touched again.
    Element vertex / triangle ranges stay fixed (topology must not change over time).
+   Meshes bound to a UsdSkel skeleton are skinned by USD's own skinning at every time
+   (``phrt_usd.usd.skinning``), placed by the skeleton's transform.
 4. **Materials.** Read once into one ``MaterialTable`` (``phrt_usd.usd.materials``).
 5. **Lights.** Read once at the start of the frame range (``phrt_usd.usd.lights``).
 
@@ -61,26 +63,29 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-from pxr import Gf, Sdf, Tf, Usd, UsdGeom, UsdLux, UsdRender, UsdShade
+from pxr import Gf, Sdf, Tf, Usd, UsdGeom, UsdRender, UsdShade
 
 from phrt_usd.errors import PhrtError, usd_error_reason
 from phrt_usd.model.scene import CameraFrame, Element, Geometry, Lights, Scene
 from phrt_usd.usd import schema
 from phrt_usd.usd.camera_path import CameraPath, find_camera_path
 from phrt_usd.usd.composition import composition_problems, composition_warnings
+from phrt_usd.usd.instancers import expand_instancer
 from phrt_usd.usd.lights import read_light
 from phrt_usd.usd.materials import MaterialBank, material_key
 from phrt_usd.usd.meshes import (
     SHAPE_ATTRS,
     LocalMesh,
     ShapeAt,
-    expand_instancer,
+    is_subdivided,
     local_shape_fn,
     read_gprim,
-    shape_kind,
     smooth_corner_normals,
 )
+from phrt_usd.usd.render_settings import included_purposes
+from phrt_usd.usd.skinning import SkinningReader
 from phrt_usd.usd.stage_controls import StageControls
+from phrt_usd.usd.traversal import rendered_gprims, walk_subtree  # noqa: F401 (re-export)
 from phrt_usd.usd.values import (
     AnimationProbe,
     TimeContext,
@@ -259,65 +264,8 @@ def _element_flags(prim: Usd.Prim, path: str) -> tuple[bool, float, float]:
 # --------------------------------------------------------------------------------------
 
 
-def _pruned(prim: Usd.Prim, code: Usd.TimeCode) -> bool:
-    """True for subtrees the render never sees: authored invisible, guide or proxy."""
-    if prim.IsPseudoRoot() or not prim.IsA(UsdGeom.Imageable):
-        return False
-    img = UsdGeom.Imageable(prim)
-    if img.GetVisibilityAttr().Get(code) == UsdGeom.Tokens.invisible:
-        return True
-    purpose = img.GetPurposeAttr()
-    return purpose.HasAuthoredValue() and purpose.Get() in (
-        UsdGeom.Tokens.guide,
-        UsdGeom.Tokens.proxy,
-    )
-
-
-def _walk_subtree(root: Usd.Prim, code: Usd.TimeCode, top: bool = True):
-    """(kind, prim) of what the render reads under ``root`` at ``code``, in its order.
-
-    kind: a gprim type (``SHAPE_ATTRS``), or with ``top`` "PointInstancer" (its subtree
-    is not walked: prototypes render only through the instancer) and "Light". Subtrees
-    that are invisible, guide or proxy are pruned (``_pruned``). Inside a prototype
-    (``top`` False) only gprims are yielded and nested instancers are walked through, not
-    expanded.
-    """
-    if not root:
-        return
-    it = iter(Usd.PrimRange(root, Usd.TraverseInstanceProxies()))
-    for prim in it:
-        if _pruned(prim, code):
-            it.PruneChildren()
-            continue
-        kind = shape_kind(prim)
-        if kind is not None:
-            yield kind, prim
-        elif not top:
-            continue
-        elif prim.IsA(UsdGeom.PointInstancer):
-            yield "PointInstancer", prim
-            it.PruneChildren()
-        elif prim.HasAPI(UsdLux.LightAPI):
-            yield "Light", prim
-
-
-def rendered_gprims(stage: Usd.Stage, time: float):
-    """(kind, prim) of every gprim the render reads at ``time`` (the start of the frame
-    range): those of the stage and, once each, those of the PointInstancer prototypes."""
-    code = Usd.TimeCode(float(time))
-    seen: set[str] = set()
-    prototypes: list[Sdf.Path] = []
-    for kind, prim in _walk_subtree(stage.GetPseudoRoot(), code):
-        if kind == "PointInstancer":
-            prototypes += UsdGeom.PointInstancer(prim).GetPrototypesRel().GetForwardedTargets()
-        elif kind != "Light" and str(prim.GetPath()) not in seen:
-            seen.add(str(prim.GetPath()))
-            yield kind, prim
-    for proto in dict.fromkeys(prototypes):
-        for kind, prim in _walk_subtree(stage.GetPrimAtPath(proto), code, top=False):
-            if str(prim.GetPath()) not in seen:
-                seen.add(str(prim.GetPath()))
-                yield kind, prim
+# Traversal, visibility and purposes: ``phrt_usd.usd.traversal`` (``walk_subtree``;
+# ``rendered_gprims`` is re-exported here for the validation rules).
 
 
 # --------------------------------------------------------------------------------------
@@ -336,9 +284,14 @@ class StageScene:
     time_codes_per_second : from the stage
     warnings              : list[str], one line each: what the render goes on without
                             (missing sublayers, references, payloads; ``composition_warnings``)
+    included_purposes     : the purposes drawn (the settings' ``includedPurposes``)
+    subdivided_meshes     : prim paths of the drawn meshes that are subdivision surfaces
+                            (drawn as their cage; ``meshes.is_subdivided``)
+
+    ``settings`` names the render settings prim (``--settings``), else the stage's.
     """
 
-    def __init__(self, stage: Usd.Stage, camera: str | None = None):
+    def __init__(self, stage: Usd.Stage, camera: str | None = None, settings: str | None = None):
         self.stage = stage
         for problem in stage_problems(stage):
             raise PhrtError(problem)
@@ -346,6 +299,8 @@ class StageScene:
         self.up_axis = str(UsdGeom.GetStageUpAxis(stage))
         self.time_codes_per_second = float(stage.GetTimeCodesPerSecond())
         self.warnings: list[str] = composition_warnings(composition_problems(stage))
+        self.included_purposes, purpose_warnings = included_purposes(stage, settings)
+        self.warnings += purpose_warnings
         cam_prim = choose_camera(stage, camera)
         self.camera_path = str(cam_prim.GetPath())
         self._camera_prim = cam_prim
@@ -366,9 +321,12 @@ class StageScene:
         parts: list[_Part] = []
         elements: list[Element] = []
         mesh_cache: dict[tuple, LocalMesh] = {}
+        purposes = self.included_purposes
+        skinning = SkinningReader()
+        subdivided: dict[str, None] = {}
 
         def prototype_gprims(root: Usd.Prim):
-            return _walk_subtree(root, ctx.code, top=False)
+            return walk_subtree(root, ctx.code, purposes, top=False)
 
         def local_mesh(prim: Usd.Prim, kind: str) -> LocalMesh:
             # Instance proxies of one prototype share their triangulation (materials
@@ -385,9 +343,11 @@ class StageScene:
                 mesh_cache[key] = mesh
             return mesh
 
-        def add(prim, path, kind, mesh, matrix_at, xform_animated):
-            shape_animated = varies(prim, SHAPE_ATTRS[kind])
+        def add(prim, path, kind, mesh, matrix_at, xform_animated, shape_at=None):
+            shape_animated = shape_at is not None or varies(prim, SHAPE_ATTRS[kind])
             refl, k, f = _element_flags(prim, path)
+            if kind == "Mesh" and is_subdivided(prim):
+                subdivided[str(prim.GetPath())] = None
             if shape_animated:
                 mesh = dataclasses.replace(mesh)  # deforms on its own, even if shared
             elements.append(Element(path, refl, k, f, np.zeros(3), np.zeros(3)))
@@ -397,17 +357,32 @@ class StageScene:
                     path=path,
                     mesh=mesh,
                     matrix_at=matrix_at,
-                    shape_at=local_shape_fn(kind, prim) if shape_animated else None,
+                    shape_at=shape_at
+                    or (local_shape_fn(kind, prim) if shape_animated else None),
                     animated=xform_animated or shape_animated,
                 )
             )
             elements[-1].animated = parts[-1].animated
 
-        for kind, prim in _walk_subtree(self.stage.GetPseudoRoot(), ctx.code):
+        for kind, prim in walk_subtree(self.stage.GetPseudoRoot(), ctx.code, purposes):
             if kind == "PointInstancer":
                 expand_instancer(prim, ctx, probe, bank, prototype_gprims, add)
             elif kind == "Light":
                 read_light(prim, ctx, self.meters_per_unit, lights)
+            elif (skin := skinning.skinned(prim, kind)) is not None:
+                # Skinned: skeleton-space points placed by the skeleton (usd/skinning.py).
+                mesh = local_mesh(prim, kind)
+                shape_at = skin.shape_fn(mesh.smooth)
+                if skin.animated(probe):
+                    add(prim, str(prim.GetPath()), kind, mesh, skin.matrix_at, True, shape_at)
+                else:  # a rest pose: skinned once, then static
+                    mesh = dataclasses.replace(mesh)
+                    mesh.points, normals = shape_at(ctx.code)
+                    if normals is not None:
+                        mesh.corner_normals = normals
+                    elif mesh.smooth:
+                        mesh.corner_normals = smooth_corner_normals(mesh.points, mesh.triangles)
+                    add(prim, str(prim.GetPath()), kind, mesh, skin.matrix_at, False)
             else:
                 mesh = local_mesh(prim, kind)
                 add(
@@ -421,6 +396,7 @@ class StageScene:
 
         self._parts = parts
         self._animated = [p for p in parts if p.animated]
+        self.subdivided_meshes: list[str] = list(subdivided)
         self._assemble(parts, elements, bank, lights, ctx)
 
     def _assemble(self, parts, elements, bank, lights, ctx) -> None:
@@ -586,9 +562,11 @@ class StageScene:
 # --------------------------------------------------------------------------------------
 
 
-def read_stage(stage: Usd.Stage, camera: str | None = None) -> StageScene:
+def read_stage(
+    stage: Usd.Stage, camera: str | None = None, settings: str | None = None
+) -> StageScene:
     """Read an open stage for rendering (see the module doc). Raises ``PhrtError``."""
-    return StageScene(stage, camera)
+    return StageScene(stage, camera, settings)
 
 
 #: File extensions of the stage files ``open_usd`` accepts (USD picks the file format
