@@ -188,7 +188,7 @@ class SkinningReader:
         for binding in self._cache.ComputeSkelBindings(root, predicate):
             skel = binding.GetSkeleton()
             skel_query = self._cache.GetSkelQuery(skel)
-            if not skel_query or not skel_query.IsValid():
+            if not skel_query:
                 continue
             for query in binding.GetSkinningTargets():
                 prim = query.GetPrim()
