@@ -308,7 +308,7 @@ def _prepare(stage_or_path, frames, settings, options, job_names):
     render = render_options(
         stage, settings, **{k: v for k, v in options.items() if k in RENDER_OPTION_NAMES}
     )
-    scene = read_stage(stage, camera=job_options.get("camera"))
+    scene = read_stage(stage, camera=job_options.get("camera"), settings=settings)
     return spec, job_options, render, scene, named
 
 

@@ -146,7 +146,7 @@ def render_chunk(chunk: Chunk, job: RenderJob) -> RenderChunkResult:
     from phrt_usd.run.render_job import prepare_job, render_frame
     from phrt_usd.usd.stage import open_stage
 
-    scene = open_stage(chunk.stage, camera=job.camera, controls=job.controls)
+    scene = open_stage(chunk.stage, camera=job.camera, controls=job.controls, settings=job.settings)
     _, _, images = prepare_job(job, scene)  # the job came prepared: the files of a frame
     times = parse_frames(job.frames, scene.frame_range)
     renderer = FrameRenderer(scene, job.options)
@@ -464,7 +464,9 @@ def run_render_on_cluster(
     if job.resume:
         raise PhrtError("--resume is not available with --workers / --scheduler")
     out = Path(job.out_dir)
-    scene = open_stage(job.stage_path, camera=job.camera, controls=job.controls)
+    scene = open_stage(
+        job.stage_path, camera=job.camera, controls=job.controls, settings=job.settings
+    )
     job, scene, images = prepare_job(job, scene)  # the products' camera and resolution
     times = parse_frames(job.frames, scene.frame_range)
     images.check_frame_count(len(times))

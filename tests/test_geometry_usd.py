@@ -148,6 +148,18 @@ def test_included_purposes_of_the_render_settings(mode):
     assert ids[_pixel(ss, (2, 1, 0))] == _element(ss, "/World/ProxyGroup/Inherits")
 
 
+def test_included_purposes_of_the_settings_prim_asked_for():
+    stage = _purpose_stage(["default", "render"])
+    other = UsdRender.Settings.Define(stage, "/Render/ProxyPreview")
+    other.CreateIncludedPurposesAttr(["proxy"])
+    assert [e.path for e in read_stage(stage).scene.elements] == [
+        "/World/ProxyGroup/Render",
+        "/World/Plain",
+    ]
+    ss = read_stage(stage, settings="/Render/ProxyPreview")  # --settings
+    assert [e.path for e in ss.scene.elements] == ["/World/ProxyGroup/Inherits"]
+
+
 def test_unknown_included_purpose_is_a_warning():
     ss = read_stage(_purpose_stage(["default", "rendr"]))
     assert [e.path for e in ss.scene.elements] == ["/World/Plain"]

@@ -127,7 +127,9 @@ def render_to_directory(
     ``RunDirectory``); a frame that fails ends the run with its error after the finished
     frames' records are written."""
     out = job.out_dir
-    scene = stage_scene or open_stage(job.stage_path, camera=job.camera, controls=job.controls)
+    scene = stage_scene or open_stage(
+        job.stage_path, camera=job.camera, controls=job.controls, settings=job.settings
+    )
     job, scene, plan = prepare_job(job, scene)
     times = parse_frames(job.frames, scene.frame_range)
     plan.check_frame_count(len(times))
@@ -160,7 +162,7 @@ def prepare_job(job: RenderJob, scene: StageScene) -> tuple[RenderJob, StageScen
     )
     camera = job.camera or plan.camera or (settings.camera if settings else None)
     if camera and camera != scene.camera_path:
-        scene = read_stage(scene.stage, camera=camera)
+        scene = read_stage(scene.stage, camera=camera, settings=job.settings)
     if camera:
         job = replace(job, camera=camera)  # workers of a cluster read the same camera
     opts = job.options

@@ -10,11 +10,14 @@ readers' elements in the world and moves them in ``set_time``. The readers:
 
 Pipeline (``read_stage``):
 
-1. **Camera.** Explicit prim path > the render settings' ``camera`` relationship
-   (``renderSettingsPrimPath`` stage metadata, else the first ``UsdRenderSettings``) >
-   the first ``UsdGeomCamera``. A ``PhrtCameraPath`` whose ``phrt:camera`` targets the
-   chosen camera drives it (``phrt_usd.usd.camera_path``); otherwise the camera's own
-   (possibly time-sampled) world transform does.
+1. **Camera.** Explicit prim path or camera name (``--camera``) > the render settings'
+   ``camera`` relationship (``renderSettingsPrimPath`` stage metadata, else the first
+   ``UsdRenderSettings``) > the first ``UsdGeomCamera`` > a default camera framing the
+   stage's bounds (``phrt_usd.usd.default_camera``, one warning). A ``PhrtCameraPath``
+   whose ``phrt:camera`` targets the chosen camera drives it
+   (``phrt_usd.usd.camera_path``); otherwise the camera's own (possibly time-sampled)
+   world transform does. Apertures, offsets and the settings' conform policy, pixel
+   aspect and data window: ``CameraFrame.image_window``.
 2. **Traversal.** ``phrt_usd.usd.traversal``: ``Usd.PrimRange`` with instance proxies,
    default predicate; invisible subtrees pruned; a prim is read when its
    ``ComputePurpose`` is one of the render settings' ``includedPurposes`` (fallback
@@ -65,11 +68,12 @@ from dataclasses import dataclass
 import numpy as np
 from pxr import Gf, Sdf, Tf, Usd, UsdGeom, UsdRender, UsdShade
 
-from phrt_usd.errors import PhrtError, usd_error_reason
+from phrt_usd.errors import BadOption, PhrtError, usd_error_reason
 from phrt_usd.model.scene import CameraFrame, Element, Geometry, Lights, Scene
 from phrt_usd.usd import schema
 from phrt_usd.usd.camera_path import CameraPath, find_camera_path
 from phrt_usd.usd.composition import composition_problems, composition_warnings
+from phrt_usd.usd.default_camera import DEFAULT_CAMERA_NAME, default_camera
 from phrt_usd.usd.instancers import expand_instancer
 from phrt_usd.usd.lights import read_light
 from phrt_usd.usd.materials import MaterialBank, material_key
@@ -82,7 +86,7 @@ from phrt_usd.usd.meshes import (
     read_gprim,
     smooth_corner_normals,
 )
-from phrt_usd.usd.render_settings import included_purposes
+from phrt_usd.usd.render_settings import CameraSettings, camera_settings, included_purposes
 from phrt_usd.usd.skinning import SkinningReader
 from phrt_usd.usd.stage_controls import StageControls
 from phrt_usd.usd.traversal import rendered_gprims, walk_subtree  # noqa: F401 (re-export)
@@ -100,14 +104,16 @@ from phrt_usd.usd.values import (
 # --------------------------------------------------------------------------------------
 
 
-def choose_camera(stage: Usd.Stage, camera: str | None = None) -> Usd.Prim:
-    """The camera the render uses (module doc, step 1). Raises ``PhrtError`` when there is
-    none, or when the chosen path / the render settings' target is not a UsdGeomCamera."""
+def choose_camera(stage: Usd.Stage, camera: str | None = None) -> Usd.Prim | None:
+    """The camera the render uses (module doc, step 1); None when the stage has no
+    UsdGeomCamera at all (the render then frames the stage with ``default_camera``).
+
+    ``camera`` is a prim path, or the name of a camera prim (unique on the stage,
+    instance proxies included). Raises ``PhrtError`` when the path or name holds no
+    UsdGeomCamera or the render settings' target is not one, ``BadOption`` when a name
+    matches several cameras (listing them)."""
     if camera:
-        prim = stage.GetPrimAtPath(camera) if Sdf.Path.IsValidPathString(camera) else None
-        if not prim or not prim.IsA(UsdGeom.Camera):
-            raise PhrtError(f"{camera}: no UsdGeomCamera prim at this path (--camera)")
-        return prim
+        return _camera_by_name_or_path(stage, camera)
     settings_prim = schema.find_render_settings(stage)
     if settings_prim is not None:
         settings = UsdRender.Settings(settings_prim)
@@ -122,7 +128,34 @@ def choose_camera(stage: Usd.Stage, camera: str | None = None) -> Usd.Prim:
     for prim in stage.Traverse():
         if prim.IsA(UsdGeom.Camera):
             return prim
-    raise PhrtError(f"{stage.GetRootLayer().identifier}: stage has no UsdGeomCamera")
+    return None
+
+
+def _all_cameras(stage: Usd.Stage) -> list[Usd.Prim]:
+    """Every UsdGeomCamera of the stage, instance proxies included, in traversal order."""
+    return [
+        p
+        for p in Usd.PrimRange(stage.GetPseudoRoot(), Usd.TraverseInstanceProxies())
+        if p.IsA(UsdGeom.Camera)
+    ]
+
+
+def _camera_by_name_or_path(stage: Usd.Stage, camera: str) -> Usd.Prim:
+    """The camera ``--camera`` names: a prim path (starts with ``/``) or a prim name."""
+    if camera.startswith("/"):
+        prim = stage.GetPrimAtPath(camera) if Sdf.Path.IsValidPathString(camera) else None
+        if not prim or not prim.IsA(UsdGeom.Camera):
+            raise PhrtError(f"{camera}: no UsdGeomCamera prim at this path (--camera)")
+        return prim
+    cameras = _all_cameras(stage)
+    named = [p for p in cameras if p.GetName() == camera]
+    if len(named) == 1:
+        return named[0]
+    if named:
+        paths = ", ".join(str(p.GetPath()) for p in named)
+        raise BadOption(f"--camera {camera}: {len(named)} cameras have this name ({paths})")
+    have = ", ".join(str(p.GetPath()) for p in cameras) or "none"
+    raise PhrtError(f"--camera {camera}: no UsdGeomCamera of this name (cameras: {have})")
 
 
 def stage_problems(stage: Usd.Stage) -> list[str]:
@@ -149,6 +182,8 @@ class _CameraValues:
     near: float
     far: float
     problems: list[str]
+    vertical: float = 0.0  # verticalAperture
+    offsets: tuple[float, float] = (0.0, 0.0)  # horizontal, vertical aperture offsets
 
 
 def _camera_values(prim: Usd.Prim, time: float, driven: bool) -> _CameraValues:
@@ -171,20 +206,38 @@ def _camera_values(prim: Usd.Prim, time: float, driven: bool) -> _CameraValues:
         problems.append(f"{where}.focalLength: must be > 0 at time {time}, got {focal}")
     if not (np.isfinite(aperture) and aperture > 0):
         problems.append(f"{where}.horizontalAperture: must be > 0 at time {time}, got {aperture}")
+    vertical = float(cam.GetVerticalApertureAttr().Get(code))
+    if not (np.isfinite(vertical) and vertical > 0):
+        problems.append(f"{where}.verticalAperture: must be > 0 at time {time}, got {vertical}")
+    offsets = (
+        float(cam.GetHorizontalApertureOffsetAttr().Get(code)),
+        float(cam.GetVerticalApertureOffsetAttr().Get(code)),
+    )
+    for name, value in zip(_OFFSET_ATTRS, offsets, strict=True):
+        if not np.isfinite(value):
+            problems.append(f"{where}.{name}: must be finite at time {time}, got {value}")
     if not (np.isfinite(near) and np.isfinite(far) and far > near):
         problems.append(f"{where}.clippingRange: need near < far, got ({near}, {far})")
-    return _CameraValues(world, focal, aperture, near, far, problems)
+    return _CameraValues(world, focal, aperture, near, far, problems, vertical, offsets)
 
 
 def camera_problems(prim: Usd.Prim, time: float, driven: bool = False) -> list[str]:
     """Every reason the render refuses the camera at ``time`` (the first is what
     ``StageScene.camera`` raises): orthographic projection, a non-finite transform
-    (unless a camera path drives it, ``driven``), focal length or horizontal aperture
-    not > 0, clipping range not near < far."""
+    (unless a camera path drives it, ``driven``), focal length or an aperture not > 0,
+    an aperture offset not finite, clipping range not near < far."""
     return _camera_values(prim, time, driven).problems
 
 
-_CAMERA_ATTRS = ("projection", "focalLength", "horizontalAperture", "clippingRange")
+_OFFSET_ATTRS = ("horizontalApertureOffset", "verticalApertureOffset")
+_CAMERA_ATTRS = (
+    "projection",
+    "focalLength",
+    "horizontalAperture",
+    "verticalAperture",
+    *_OFFSET_ATTRS,
+    "clippingRange",
+)
 
 
 def camera_check_times(prim: Usd.Prim, frames: tuple[float, float], driven: bool) -> list[float]:
@@ -302,15 +355,33 @@ class StageScene:
         self.included_purposes, purpose_warnings = included_purposes(stage, settings)
         self.warnings += purpose_warnings
         cam_prim = choose_camera(stage, camera)
-        self.camera_path = str(cam_prim.GetPath())
+        self.camera_settings = camera_settings(stage, settings)
+        if self.camera_settings.data_window != CameraSettings.data_window:
+            self.warnings.append(
+                f"{schema.find_render_settings(stage, settings).GetPath()}.dataWindowNDC: "
+                f"{self.camera_settings.data_window} is not applied, the whole image is "
+                "rendered and written (CameraFrame.data_window_pixels names its pixels)"
+            )
         self._camera_prim = cam_prim
-        self.path_driver: CameraPath | None = find_camera_path(stage, self.camera_path)
+        self.camera_path = DEFAULT_CAMERA_NAME if cam_prim is None else str(cam_prim.GetPath())
+        self.path_driver: CameraPath | None = (
+            None if cam_prim is None else find_camera_path(stage, self.camera_path)
+        )
         self.frame_range = frame_range(stage, self.path_driver)
         self._time = self.frame_range[0]
         # Refuse a camera that cannot render the first frame before reading any geometry.
-        for problem in camera_problems(cam_prim, self._time, self.path_driver is not None):
-            raise PhrtError(problem)
+        if cam_prim is not None:
+            for problem in camera_problems(cam_prim, self._time, self.path_driver is not None):
+                raise PhrtError(problem)
         self._build(TimeContext(self._time))
+        self._default_camera: CameraFrame | None = None
+        if cam_prim is None:
+            where = stage.GetRootLayer().identifier
+            self._default_camera = default_camera(self.scene, self.up_axis, where)
+            self.warnings.append(
+                f"{where}: stage has no UsdGeomCamera; rendering with a default camera "
+                f"framing the stage's bounds from {'-Y' if self.up_axis == 'Z' else '+Z'}"
+            )
 
     # ---- reading ------------------------------------------------------------------
 
@@ -533,7 +604,17 @@ class StageScene:
         return self._time
 
     def camera(self, time: float) -> CameraFrame:
-        """The camera at ``time``: world metres, orthonormal rotation."""
+        """The camera at ``time``: world metres, orthonormal rotation, the settings'
+        conform policy, pixel aspect and data window (``camera_settings``). The default
+        camera (``default_camera``) when the stage has no camera."""
+        image = self.camera_settings
+        if self._default_camera is not None:
+            return dataclasses.replace(
+                self._default_camera,
+                conform_policy=image.conform_policy,
+                pixel_aspect=image.pixel_aspect,
+                data_window=image.data_window,
+            )
         v = _camera_values(self._camera_prim, time, self.path_driver is not None)
         for problem in v.problems:
             raise PhrtError(problem)
@@ -554,6 +635,12 @@ class StageScene:
             horizontal_aperture=aperture,
             near=near * self.meters_per_unit,
             far=far * self.meters_per_unit,
+            vertical_aperture=v.vertical,
+            horizontal_aperture_offset=v.offsets[0],
+            vertical_aperture_offset=v.offsets[1],
+            conform_policy=image.conform_policy,
+            pixel_aspect=image.pixel_aspect,
+            data_window=image.data_window,
         )
 
 
@@ -617,9 +704,12 @@ def open_usd(path: str | os.PathLike, controls: StageControls | None = None) -> 
 
 
 def open_stage(
-    path: str | os.PathLike, camera: str | None = None, controls: StageControls | None = None
+    path: str | os.PathLike,
+    camera: str | None = None,
+    controls: StageControls | None = None,
+    settings: str | None = None,
 ) -> StageScene:
-    """Open a stage file (``open_usd``) and read it (``read_stage``). Raises
-    ``PhrtError`` (one line) for an unusable file, a stage without camera, or invalid
-    data."""
-    return read_stage(open_usd(path, controls), camera)
+    """Open a stage file (``open_usd``) and read it (``read_stage``; ``settings``: the
+    render settings prim, else the stage's). Raises ``PhrtError`` (one line) for an
+    unusable file, a stage without camera, or invalid data."""
+    return read_stage(open_usd(path, controls), camera, settings)
