@@ -72,9 +72,13 @@ def test_inspect(files, json_out):
 def test_render(files, tmp_path, json_out):
     flag = ["--json"] if json_out else []
     _check(_run("render", str(files["good"]), "--out", str(tmp_path / "a"), *RENDER, *flag), 0)
-    # A readable stage render refuses: no camera (problems found -> 1).
+    # A stage without camera renders with a default one; a readable stage the render
+    # refuses, with neither camera nor geometry (problems found -> 1).
     no_camera = cube_stage(tmp_path / "no_camera.usda")
-    _check(_run("render", str(no_camera), "--out", str(tmp_path / "b"), *flag), 1, json_out)
+    _check(_run("render", str(no_camera), "--out", str(tmp_path / "b0"), *RENDER, *flag), 0)
+    empty = tmp_path / "empty.usda"
+    Usd.Stage.CreateNew(str(empty)).Save()
+    _check(_run("render", str(empty), "--out", str(tmp_path / "b"), *flag), 1, json_out)
     _check(_run("render", str(files["missing"]), "--out", str(tmp_path / "c"), *flag), 2,
            json_out)  # fmt: skip
     _check(_run("render", str(files["good"]), "--out", str(tmp_path / "d"), "--budget-rays",

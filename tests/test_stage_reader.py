@@ -454,8 +454,12 @@ def test_missing_reference_is_a_warning_not_a_refusal(tmp_path):
 
 def test_no_camera(tmp_path):
     stage = Usd.Stage.CreateInMemory()
-    with pytest.raises(PhrtError, match="no UsdGeomCamera"):
-        read_stage(stage)
+    with pytest.raises(PhrtError, match="no UsdGeomCamera and no geometry to frame"):
+        read_stage(stage)  # nothing to frame with a default camera either
+    UsdGeom.Cube.Define(stage, "/Box")
+    scene = read_stage(stage)  # tests/test_cameras_usd.py checks the default camera
+    assert scene.camera_path == "<default camera>"
+    assert "no UsdGeomCamera; rendering with a default camera" in scene.warnings[-1]
     with pytest.raises(PhrtError, match="/Nope"):
         read_stage(camera_stage(), camera="/Nope")
 

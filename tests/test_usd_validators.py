@@ -198,8 +198,12 @@ def test_sites_name_the_layer_the_property_or_the_stage(tmp_path):
     stage = clean_stage(path)
     stage.RemovePrim("/World/Path")
     stage.RemovePrim("/World/Cam")
-    (err,) = validators.render_task(stage)
-    assert err.GetMessage() == f"{path}: stage has no UsdGeomCamera"
+    (err,) = validators.render_task(stage)  # a warning: a default camera frames the stage
+    assert err.GetMessage() == (
+        f"{path}: stage has no UsdGeomCamera: the render uses a default camera framing the "
+        "stage's bounds"
+    )
+    assert err.GetType() == UsdValidation.ValidationErrorType.Warn
     (site,) = err.GetSites()
     assert site.GetLayer().identifier == str(path) and not site.IsPrim()
     stage.GetPrimAtPath("/World/Render").GetAttribute(schema.MODE).Set("fast")

@@ -213,7 +213,6 @@ def _bad_instancer(s):
 
 #: Every refusal path of ``read_stage``: (plant, a fragment of the render's message).
 RENDER_REFUSALS = [
-    (_no_camera, r"s\.usda: stage has no UsdGeomCamera$"),
     (lambda s: _camera(s).GetFocalLengthAttr().Set(0.0),
      r"^/World/Cam\.focalLength: must be > 0 at time 1\.0, got 0\.0$"),
     (lambda s: _camera(s).GetHorizontalApertureAttr().Set(-2.0),
@@ -252,6 +251,26 @@ def test_what_render_refuses_validate_reports_with_the_same_message(tmp_path, pl
     message = str(err.value)
     assert "\n" not in message and re.search(match, message), message
     assert f"ERROR {message}" in errors_of(stage)
+
+
+def test_a_stage_without_camera_renders_with_a_default_one_and_validate_warns(tmp_path):
+    stage = clean_stage(tmp_path / "s.usda")
+    _no_camera(stage)
+    scene = read_stage(stage)  # no refusal: a default camera frames the bounds
+    assert scene.warnings[-1].endswith("rendering with a default camera framing the "
+                                       "stage's bounds from +Z")  # fmt: skip
+    report = validate_stage(stage)
+    assert report.ok  # a warning, not an error
+    assert [i.line() for i in report.warnings if "UsdGeomCamera" in i.line()] == [
+        f"WARNING {tmp_path / 's.usda'}: stage has no UsdGeomCamera: the render uses a "
+        "default camera framing the stage's bounds"
+    ]
+    for prim in list(stage.GetPseudoRoot().GetChildren()):  # nothing left to frame
+        stage.RemovePrim(prim.GetPath())
+    with pytest.raises(PhrtError, match=r"s\.usda: stage has no UsdGeomCamera and no "
+                       r"geometry to frame with a default camera \(nothing to render\)$"):
+        read_stage(stage)
+    assert any("no geometry to frame" in line for line in errors_of(stage))
 
 
 def _animate_points(stage, samples):

@@ -157,15 +157,35 @@ class Lights:
 DEFAULT_ENVIRONMENT = np.array([0.05, 0.05, 0.05])
 
 
+#: UsdRender ``aspectRatioConformPolicy`` tokens (``CameraFrame.image_window``).
+CONFORM_POLICIES = (
+    "expandAperture",
+    "cropAperture",
+    "adjustApertureWidth",
+    "adjustApertureHeight",
+    "adjustPixelAspectRatio",
+)
+#: Relative difference below which the aperture's and the image's aspect ratios count
+#: as equal; the window is then the horizontal fit, bit for bit the window of a camera
+#: without vertical aperture (both conform choices are the same window up to rounding).
+ASPECT_EQUAL_RTOL = 1e-12
+
+
 @dataclass
 class CameraFrame:
-    """The camera at one time code.
+    """The camera at one time code (``GfCamera`` semantics, perspective only).
 
     world_from_camera: (4, 4) float64, camera space → world metres. Camera space is
     USD's / OpenGL's: the camera looks down -Z, +Y is up, +X right.
-    Apertures and focal length in the same unit (USD: tenths of a scene unit; only
-    their ratio matters). Horizontal fit: the horizontal aperture fills the image
-    width, the vertical field of view follows from the image aspect.
+    Apertures, aperture offsets and focal length in the same unit (USD: tenths of a
+    scene unit; only their ratios matter). ``vertical_aperture`` None: the horizontal
+    aperture fills the image width and the vertical field of view follows from the image
+    aspect (the window of ``adjustApertureHeight``).
+    conform_policy: UsdRender ``aspectRatioConformPolicy`` (``CONFORM_POLICIES``), how
+    the aperture is fitted to the image's aspect ratio; pixel_aspect: UsdRender
+    ``pixelAspectRatio`` (pixel width / pixel height, > 0).
+    data_window: UsdRender ``dataWindowNDC`` (xmin, ymin, xmax, ymax), NDC of the image
+    with (0, 0) at the bottom left; ``data_window_pixels`` says which pixels it holds.
     near, far: clipping range in metres.
     """
 
@@ -174,6 +194,12 @@ class CameraFrame:
     horizontal_aperture: float
     near: float
     far: float
+    vertical_aperture: float | None = None
+    horizontal_aperture_offset: float = 0.0
+    vertical_aperture_offset: float = 0.0
+    conform_policy: str = "expandAperture"
+    pixel_aspect: float = 1.0
+    data_window: tuple[float, float, float, float] = (0.0, 0.0, 1.0, 1.0)
 
     @property
     def position(self) -> np.ndarray:
@@ -186,23 +212,74 @@ class CameraFrame:
         f = -self.world_from_camera[:3, 2]
         return f / np.linalg.norm(f)
 
+    def image_window(self, width: int, height: int) -> tuple[float, float, float, float]:
+        """The image plane's (left, right, bottom, top) in camera space at distance 1
+        (x right, y up): the one window both the raster projection and the primary rays
+        use, for an image of ``width`` x ``height`` pixels.
+
+        As ``GfCamera::GetFrustum`` and ``CameraUtilConformedWindow``: the aperture
+        window is ``(±horizontal_aperture/2 + horizontal_aperture_offset,
+        ±vertical_aperture/2 + vertical_aperture_offset) / focal_length``, then conformed
+        about its centre to the image aspect ``width * pixel_aspect / height``:
+        expandAperture grows the too-narrow side (the whole aperture stays visible),
+        cropAperture shrinks the too-wide side, adjustApertureWidth keeps the height,
+        adjustApertureHeight keeps the width, adjustPixelAspectRatio keeps the aperture
+        (the pixels are stretched instead). Aspects equal to ``ASPECT_EQUAL_RTOL``: the
+        width is kept.
+        """
+        par = self.pixel_aspect
+        hx = 0.5 * self.horizontal_aperture / self.focal_length
+        cx = self.horizontal_aperture_offset / self.focal_length
+        cy = self.vertical_aperture_offset / self.focal_length
+        keep = "width"
+        if self.vertical_aperture is not None:
+            ay = 0.5 * self.vertical_aperture / self.focal_length
+            # Aperture aspect hx / ay against image aspect width * par / height.
+            lhs, rhs = hx * height, ay * width * par
+            equal = abs(lhs - rhs) <= ASPECT_EQUAL_RTOL * max(abs(lhs), abs(rhs))
+            policy = self.conform_policy
+            if policy == "adjustPixelAspectRatio":
+                keep = "both"
+            elif policy == "adjustApertureWidth":
+                keep = "height"
+            elif policy == "expandAperture" and not equal and lhs < rhs:
+                keep = "height"  # aperture narrower than the image: widen it
+            elif policy == "cropAperture" and not equal and lhs > rhs:
+                keep = "height"  # aperture wider than the image: crop its width
+        if keep == "width":
+            hy = hx * height / (width * par)
+        elif keep == "height":
+            hy = ay
+            hx = ay * width * par / height
+        else:
+            hy = ay
+        return cx - hx, cx + hx, cy - hy, cy + hy
+
     def tan_half_fov(self, width: int, height: int) -> tuple[float, float]:
-        """(tan(hfov/2), tan(vfov/2)) for an image of ``width`` x ``height`` pixels."""
-        tx = 0.5 * self.horizontal_aperture / self.focal_length
-        return tx, tx * height / width
+        """Half the width and height of ``image_window`` (tan of the half field of view
+        when the window is centred, i.e. without aperture offsets)."""
+        left, right, bottom, top = self.image_window(width, height)
+        return 0.5 * (right - left), 0.5 * (top - bottom)
+
+    def pixel_plane(self, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+        """Camera-space image-plane coordinates of pixel centres at distance 1:
+        xs (width,) float64 per column (left to right), ys (height,) float64 per row
+        (row 0 is the top). Pixel (row, col) is at ((col + 0.5) / width, (row + 0.5) /
+        height) of ``image_window``."""
+        left, right, bottom, top = self.image_window(width, height)
+        cx, hx = 0.5 * (left + right), 0.5 * (right - left)
+        cy, hy = 0.5 * (bottom + top), 0.5 * (top - bottom)
+        xs = cx + ((np.arange(width) + 0.5) / width * 2.0 - 1.0) * hx
+        ys = cy + (1.0 - (np.arange(height) + 0.5) / height * 2.0) * hy
+        return xs, ys
 
     def pixel_rays(self, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
-        """Primary rays through pixel centres.
-
-        Pixel (row, col): row 0 is the *top* of the image, col 0 the left; the ray goes
-        through ((col + 0.5) / width, (row + 0.5) / height) of the image plane.
+        """Primary rays through pixel centres (``pixel_plane``).
 
         Returns origins (H*W, 3) float64 world metres (all the eye) and unit directions
         (H*W, 3) float64 world space, in row-major pixel order.
         """
-        tx, ty = self.tan_half_fov(width, height)
-        xs = ((np.arange(width) + 0.5) / width * 2.0 - 1.0) * tx
-        ys = (1.0 - (np.arange(height) + 0.5) / height * 2.0) * ty
+        xs, ys = self.pixel_plane(width, height)
         gx, gy = np.meshgrid(xs, ys)
         d_cam = np.stack([gx, gy, -np.ones_like(gx)], axis=-1).reshape(-1, 3)
         d = d_cam @ self.world_from_camera[:3, :3].T
@@ -217,12 +294,26 @@ class CameraFrame:
         pc = points @ cam_from_world[:3, :3].T + cam_from_world[:3, 3]
         depth = -pc[:, 2]
         safe = np.where(np.abs(depth) < 1e-300, 1e-300, depth)  # avoid /0 at the eye plane
-        tx, ty = self.tan_half_fov(width, height)
-        ndc_x = pc[:, 0] / (safe * tx)
-        ndc_y = pc[:, 1] / (safe * ty)
+        left, right, bottom, top = self.image_window(width, height)
+        cx, tx = 0.5 * (left + right), 0.5 * (right - left)
+        cy, ty = 0.5 * (bottom + top), 0.5 * (top - bottom)
+        ndc_x = (pc[:, 0] - cx * safe) / (safe * tx)
+        ndc_y = (pc[:, 1] - cy * safe) / (safe * ty)
         px = (ndc_x + 1.0) * 0.5 * width
         py = (1.0 - ndc_y) * 0.5 * height
         return np.stack([px, py, depth], axis=1)
+
+    def data_window_pixels(self, width: int, height: int) -> tuple[int, int, int, int]:
+        """The pixels of ``data_window`` as (col0, row0, col1, row1), half-open, row 0 at
+        the top, clamped to the image: the pixels whose centres lie inside the NDC window
+        (UsdRender ``dataWindowNDC``; y of NDC is up, rows go down). The whole image for
+        the default window."""
+        x0, y0, x1, y1 = self.data_window
+        col0 = int(np.clip(np.ceil(x0 * width - 0.5), 0, width))
+        col1 = int(np.clip(np.floor(x1 * width - 0.5) + 1, col0, width))
+        row0 = int(np.clip(np.ceil((1.0 - y1) * height - 0.5), 0, height))
+        row1 = int(np.clip(np.floor((1.0 - y0) * height - 0.5) + 1, row0, height))
+        return col0, row0, col1, row1
 
 
 @dataclass

@@ -29,11 +29,13 @@ RenderSettings prim, raises a one-line ``PhrtError`` naming the prim.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 from pxr import Sdf, Usd, UsdGeom, UsdRender
 
 from phrt_usd.errors import BadOption, PhrtError
+from phrt_usd.model.scene import CONFORM_POLICIES
 from phrt_usd.usd import schema
 from phrt_usd.usd.traversal import DEFAULT_INCLUDED_PURPOSES
 
@@ -132,6 +134,49 @@ def included_purposes(
             f"(purposes: {', '.join(sorted(known))}); ignored"
         )
     return purposes, warnings
+
+
+@dataclass(frozen=True)
+class CameraSettings:
+    """What the settings prim says about the camera's image (UsdRenderSettingsBase):
+    ``aspectRatioConformPolicy`` (``CONFORM_POLICIES`` of ``phrt_usd.model.scene``),
+    ``pixelAspectRatio`` (> 0) and ``dataWindowNDC`` (xmin, ymin, xmax, ymax), their
+    schema fallbacks where unauthored or without a settings prim."""
+
+    conform_policy: str = "expandAperture"
+    pixel_aspect: float = 1.0
+    data_window: tuple[float, float, float, float] = (0.0, 0.0, 1.0, 1.0)
+
+
+def camera_settings(stage: Usd.Stage, settings: str | None = None) -> CameraSettings:
+    """The ``CameraSettings`` of the settings prim a render of ``stage`` uses
+    (``schema.find_render_settings``). ``PhrtError`` naming the attribute for a policy
+    that is not one of UsdRender's, a pixelAspectRatio not finite and > 0, or a data
+    window that is not finite with min < max."""
+    prim = schema.find_render_settings(stage, settings)
+    if prim is None:
+        return CameraSettings()
+    rs = UsdRender.Settings(prim)
+    policy_attr = rs.GetAspectRatioConformPolicyAttr()
+    policy = str(policy_attr.Get() or CameraSettings.conform_policy)
+    if policy not in CONFORM_POLICIES:
+        raise PhrtError(
+            f"{policy_attr.GetPath()}: {policy!r} is not one of {', '.join(CONFORM_POLICIES)}"
+        )
+    par_attr = rs.GetPixelAspectRatioAttr()
+    par = par_attr.Get()
+    par = float(CameraSettings.pixel_aspect if par is None else par)
+    if not (math.isfinite(par) and par > 0):
+        raise PhrtError(f"{par_attr.GetPath()}: must be finite and > 0, got {par}")
+    window_attr = rs.GetDataWindowNDCAttr()
+    window = window_attr.Get()
+    window = CameraSettings.data_window if window is None else tuple(float(x) for x in window)
+    x0, y0, x1, y1 = window
+    if not (all(math.isfinite(x) for x in window) and x0 < x1 and y0 < y1):
+        raise PhrtError(
+            f"{window_attr.GetPath()}: need finite xmin < xmax and ymin < ymax, got {window}"
+        )
+    return CameraSettings(policy, par, window)
 
 
 def _read_product(stage: Usd.Stage, product: UsdRender.Product) -> RenderProductSpec:

@@ -17,7 +17,9 @@ functions and report each message as an error, with the same text (``Issue.line(
   not open, one line each (prim and asset, or layer and sublayer), and other composition
   errors — errors here, warnings in ``StageScene.warnings`` (the render goes on without
   them);
-- stage: metersPerUnit > 0; a camera to render (``choose_camera``);
+- stage: metersPerUnit > 0; the camera to render (``choose_camera``); a stage without
+  any UsdGeomCamera is a warning (the render frames its bounds with a default camera,
+  ``phrt_usd.usd.default_camera``; without geometry either, the render refuses it);
 - the render's camera (``choose_camera``, no ``--camera``): the camera path that drives it
   (``camera_path_problems``) and ``camera_problems`` at the start and end of the frame
   range and at every time sample inside it; other cameras and their paths get the same
@@ -254,6 +256,16 @@ def render_issues(stage: Usd.Stage) -> list[Issue]:
     if camera is not None:
         found, frames = _camera_issues(stage, camera, default=True)
         issues += found
+    elif not any(i.rule == CAMERA for i in issues):
+        issues.append(
+            Issue(
+                WARNING,
+                stage.GetRootLayer().identifier,
+                "stage has no UsdGeomCamera: the render uses a default camera framing "
+                "the stage's bounds",
+                CAMERA,
+            )
+        )
     for prim in stage.Traverse():
         if prim.IsA(UsdGeom.Camera) and (camera is None or prim != camera):
             issues += _camera_issues(stage, prim, default=False)[0]

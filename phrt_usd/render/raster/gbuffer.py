@@ -65,13 +65,20 @@ class _ExactPerspective(pyrender.camera.Camera):
         return self.matrix
 
 
-def perspective_matrix(tan_x: float, tan_y: float, near: float, far: float) -> np.ndarray:
-    """OpenGL clip_from_camera (4, 4) float64 for a symmetric frustum with half-angle
-    tangents ``tan_x``/``tan_y`` (so that ``CameraFrame.project`` and the rasterizer put
-    a point on the same pixel) and clip planes ``near`` < ``far`` (metres)."""
+def perspective_matrix(
+    window: tuple[float, float, float, float], near: float, far: float
+) -> np.ndarray:
+    """OpenGL clip_from_camera (4, 4) float64 for the image-plane ``window`` (left,
+    right, bottom, top) at distance 1 (``CameraFrame.image_window``, so that
+    ``CameraFrame.project``, the primary rays and the rasterizer put a point on the same
+    pixel; off-centre for aperture offsets) and clip planes ``near`` < ``far``
+    (metres)."""
+    left, right, bottom, top = window
     p = np.zeros((4, 4))
-    p[0, 0] = 1.0 / tan_x
-    p[1, 1] = 1.0 / tan_y
+    p[0, 0] = 2.0 / (right - left)
+    p[0, 2] = (right + left) / (right - left)
+    p[1, 1] = 2.0 / (top - bottom)
+    p[1, 2] = (top + bottom) / (top - bottom)
     p[2, 2] = (far + near) / (near - far)
     p[2, 3] = 2.0 * far * near / (near - far)
     p[3, 2] = -1.0
@@ -171,7 +178,8 @@ class GBufferPass:
         nearest = float(np.linalg.norm(np.maximum(0.0, np.maximum(lo - eye_rel, eye_rel - hi))))
         corners = np.stack(np.meshgrid(*zip(lo, hi, strict=True), indexing="ij"), -1)
         farthest = float(np.linalg.norm(corners.reshape(-1, 3) - eye_rel, axis=1).max())
-        tx, ty = camera.tan_half_fov(self.width, self.height)
+        left, right, bottom, top = camera.image_window(self.width, self.height)
+        tx, ty = max(abs(left), abs(right)), max(abs(bottom), abs(top))  # farthest corner
         min_cos = 1.0 / np.sqrt(1.0 + tx * tx + ty * ty)
         far = min(float(camera.far), farthest + pad)
         near = max(float(camera.near), nearest * min_cos - pad)
@@ -186,11 +194,9 @@ class GBufferPass:
         rotation ``rot`` (3, 3). Pixel (row, col) is ``(ys[row] rot_y + xs[col] rot_x -
         rot_z) / |(xs[col], ys[row], -1)|``: one broadcast sum of a per-row and a
         per-column term, the lengths cached per field of view."""
-        tx, ty = camera.tan_half_fov(self.width, self.height)
-        key = (tx, ty)
+        key = camera.image_window(self.width, self.height)
         if key != self._dirs_key:
-            xs = ((np.arange(self.width) + 0.5) / self.width * 2.0 - 1.0) * tx
-            ys = (1.0 - (np.arange(self.height) + 0.5) / self.height * 2.0) * ty
+            xs, ys = camera.pixel_plane(self.width, self.height)
             inv_len = 1.0 / np.sqrt(xs[None, :] ** 2 + ys[:, None] ** 2 + 1.0)
             self._dirs_grid = (xs, ys, inv_len[:, :, None])
             self._dirs_key = key
@@ -211,18 +217,20 @@ class GBufferPass:
         cam = np.asarray(camera.world_from_camera, dtype=np.float64)
         rot = cam[:3, :3]
         eye_rel = cam[:3, 3] - self._origin
+        window = camera.image_window(w, h)
         tx, ty = camera.tan_half_fov(w, h)
-        if not (np.isfinite(tx) and np.isfinite(ty) and tx > 0.0 and ty > 0.0):
+        if not (np.all(np.isfinite(window)) and tx > 0.0 and ty > 0.0):
             raise PhrtError(
-                f"camera: focal length {camera.focal_length} and horizontal aperture "
-                f"{camera.horizontal_aperture} give no field of view"
+                f"camera: focal length {camera.focal_length} and apertures "
+                f"{camera.horizontal_aperture} x {camera.vertical_aperture} give no "
+                "field of view"
             )
         clip = self._clip_range(camera, eye_rel) if self._ctx.mesh_node is not None else None
         if clip is not None:
             near, far = clip
             pose = cam.copy()
             pose[:3, 3] = eye_rel
-            self._pcamera.matrix = perspective_matrix(tx, ty, near, far)
+            self._pcamera.matrix = perspective_matrix(window, near, far)
             self._pcamera.znear, self._pcamera.zfar = near, far
             self._ctx.pscene.set_pose(self._cam_node, pose)
             self._ctx.make_current()
