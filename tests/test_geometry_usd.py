@@ -240,6 +240,25 @@ def test_nested_instancer_masks_at_both_levels():
     assert paths == expected
 
 
+def test_nested_instancer_follows_animation_at_every_level():
+    stage = _nested_stage()
+    outer = UsdGeom.PointInstancer(stage.GetPrimAtPath("/World/Outer"))
+    moved = OUTER_POS + [0.0, 0.0, -1.0]
+    outer.GetPositionsAttr().Set(Vt.Vec3fArray.FromNumpy(OUTER_POS.astype(np.float32)), 1)
+    outer.GetPositionsAttr().Set(Vt.Vec3fArray.FromNumpy(moved.astype(np.float32)), 2)
+    # A transform below the outer prototype root (the inner instancer's), animated.
+    inner = UsdGeom.Xformable(stage.GetPrimAtPath("/World/Outer/Protos/Group/Inner"))
+    (op,) = inner.GetOrderedXformOps()
+    op.Set(Gf.Vec3d(*INNER_T), 1)
+    op.Set(Gf.Vec3d(*(INNER_T + [0.0, 0.5, 0.0])), 2)
+    ss = read_stage(stage)
+    assert all(e.animated for e in ss.scene.elements)
+    ss.set_time(2.0)
+    for e in ss.scene.elements:
+        i, k = (int(part.split("]")[0]) for part in e.path.split("[")[1:])
+        np.testing.assert_allclose(e.center, _cube_center(i, k) + [0, 0.5, -1.0], atol=1e-6)
+
+
 def test_nested_instancer_pixels_raster_and_rt_agree():
     ss = read_stage(_nested_stage())
     frames = {mode: _render(ss, mode)[0] for mode in MODES}
@@ -338,6 +357,18 @@ def test_skinned_box_points_follow_joint_and_blend_shape():
     assert {tuple(np.round(v).astype(int)) for v in n} == {
         (0, 0, 1), (0, 0, -1), (0, 1, 0), (0, -1, 0), (1, 0, 0), (-1, 0, 0)
     }
+
+
+def test_skinned_box_without_animation_is_static_in_skeleton_space():
+    stage = _skinned_stage()
+    skel = UsdSkel.BindingAPI(stage.GetPrimAtPath("/World/Char/Skel"))
+    skel.GetAnimationSourceRel().ClearTargets(True)
+    ss = read_stage(stage)
+    (box,) = ss.scene.elements
+    # Rest pose = bind pose (identity): the points as authored, placed by the skeleton
+    # (the mesh's own translate (10, 0, 0) does not apply to a skinned mesh).
+    assert not box.animated
+    np.testing.assert_allclose(box.center, SKEL_T, atol=1e-6)
 
 
 @pytest.mark.parametrize("mode", MODES)
