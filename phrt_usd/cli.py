@@ -333,7 +333,10 @@ def render(
     selection_weight: Annotated[
         float | None, typer.Option(help="I, the weight of the previous selection.")
     ] = None,
-    camera: Annotated[str | None, typer.Option(help="Camera prim path.")] = None,
+    camera: Annotated[
+        str | None,
+        typer.Option(help="Camera prim path, or the name of a camera prim (unique on the stage)."),
+    ] = None,
     session_layer: Annotated[
         list[Path] | None,
         typer.Option(help="A session layer over the stage (repeatable, strongest first)."),
