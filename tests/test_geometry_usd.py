@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from pxr import Gf, Usd, UsdGeom, UsdLux, UsdRender, UsdSkel, Vt
+from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux, UsdRender, UsdSkel, Vt
 
 import phrt_usd  # noqa: F401  (registers the schema)
 from phrt_usd.render.renderer import FrameRenderer, RenderOptions
@@ -369,6 +369,27 @@ def test_skinned_box_without_animation_is_static_in_skeleton_space():
     # (the mesh's own translate (10, 0, 0) does not apply to a skinned mesh).
     assert not box.animated
     np.testing.assert_allclose(box.center, SKEL_T, atol=1e-6)
+
+
+def test_skinned_instanced_references_are_skinned_per_instance():
+    stage = _skinned_stage()
+    layer = stage.GetRootLayer()
+    Sdf.CopySpec(layer, "/World/Char", layer, "/Proto")  # the character as a class
+    stage.RemovePrim("/World/Char")
+    stage.GetPrimAtPath("/Proto").SetSpecifier(Sdf.SpecifierClass)
+    offsets = {"/World/A/Box": np.array([0.0, 3.0, 0.0]), "/World/B/Box": np.array([5.0, 3, 0])}
+    for path, offset in offsets.items():
+        inst = stage.DefinePrim(path.rsplit("/", 1)[0], "SkelRoot")
+        inst.GetReferences().AddInternalReference("/Proto")
+        inst.SetInstanceable(True)
+        UsdGeom.Xformable(inst).AddTranslateOp().Set(Gf.Vec3d(*offset))
+    ss = read_stage(stage)
+    assert [e.path for e in ss.scene.elements] == list(offsets)
+    for t in (1.0, 2.0):
+        ss.set_time(t)
+        for e in ss.scene.elements:
+            assert e.animated
+            np.testing.assert_allclose(e.center, _box_center(t) + offsets[e.path], atol=1e-6)
 
 
 @pytest.mark.parametrize("mode", MODES)

@@ -21,8 +21,9 @@ from the skinned points (``LocalMesh.smooth``).
 
 A skinned mesh is an animated element when the skeleton's animation, its blend-shape
 weights, the mesh's points or the skeleton's transform may vary in time; ``set_time``
-then re-skins it. Limits: skinned meshes inside PointInstancer prototypes are not
-skinned (drawn as authored); the skinning of authored normals is linear blend even for a
+then re-skins it. Skinned meshes inside instanced references (instance proxies) are skinned
+per instance. Limits: skinned meshes inside PointInstancer prototypes are not skinned
+(drawn as authored); the skinning of authored normals is linear blend even for a
 dual-quaternion binding.
 """
 
@@ -172,7 +173,7 @@ class SkinningReader:
 
     def skinned(self, prim: Usd.Prim, kind: str) -> Skinned | None:
         """The skinning of a gprim when it is a Mesh bound to a skeleton, else None."""
-        if kind != "Mesh" or not prim.HasAPI(UsdSkel.BindingAPI) or prim.IsInstanceProxy():
+        if kind != "Mesh" or not prim.HasAPI(UsdSkel.BindingAPI):
             return None
         root = UsdSkel.Root.Find(prim)
         if not root:
@@ -183,7 +184,8 @@ class SkinningReader:
         return self._targets.get(prim.GetPath())
 
     def _populate(self, root: UsdSkel.Root) -> None:
-        predicate = Usd.PrimDefaultPredicate
+        # Instance proxies included: a skinned character may be an instanced reference.
+        predicate = Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate)
         self._cache.Populate(root, predicate)
         for binding in self._cache.ComputeSkelBindings(root, predicate):
             skel = binding.GetSkeleton()
