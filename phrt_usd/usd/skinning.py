@@ -23,7 +23,8 @@ A skinned mesh is an animated element when the skeleton's animation, its blend-s
 weights, the mesh's points or the skeleton's transform may vary in time; ``set_time``
 then re-skins it. Skinned meshes inside instanced references (instance proxies) are skinned
 per instance. Limits: skinned meshes inside PointInstancer prototypes are not skinned
-(drawn as authored); the skinning of authored normals is linear blend even for a
+(drawn as authored), nor are meshes with blend shapes but no joint influences; the
+skinning of authored normals is linear blend even for a
 dual-quaternion binding.
 """
 
