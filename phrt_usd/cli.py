@@ -486,6 +486,16 @@ def sweep(
     bounce_limit: Annotated[
         int, typer.Option(help="Reflection bounce limit.")
     ] = DEFAULT_BOUNCE_LIMIT,
+    bounce_limits: Annotated[
+        str | None,
+        typer.Option(help="Comma list of bounce limits to sweep (e.g. 0,1,2,5); replaces "
+                     "--bounce-limit."),
+    ] = None,
+    resolutions: Annotated[
+        str | None,
+        typer.Option(help="Comma list of WxH to sweep (e.g. 160x120,320x240); replaces "
+                     "--resolution."),
+    ] = None,
     selection_weight: Annotated[
         float | None, typer.Option(help="I (default: the first stage's setting).")
     ] = None,
@@ -496,9 +506,17 @@ def sweep(
     warmup: WarmupOpt = None,
     json_out: JsonOpt = False,
 ) -> None:
-    """Error against run time: every heuristic x budget against the `all` and `rt`
-    references; writes sweep.csv, summary.md, error_vs_time.png and report.html."""
-    from phrt_usd.evaluate.sweep import SweepSpec, parse_budget_list, run_sweep
+    """Error against run time: every heuristic x budget (x bounce limit x resolution)
+    against the `all` and `rt` references of the same bounce limit and resolution: per
+    frame FLIP, PSNR, the temporal error (popping) and transitions; writes sweep.csv,
+    summary.md, error_vs_time.png and report.html."""
+    from phrt_usd.evaluate.sweep import (
+        SweepSpec,
+        parse_budget_list,
+        parse_int_list,
+        parse_resolution_list,
+        run_sweep,
+    )
     from phrt_usd.usd.schema import read_render_params
 
     with user_errors(json_out=json_out):
@@ -520,6 +538,8 @@ def sweep(
             bounce_limit=bounce_limit,
             selection_weight=weight,
             out=out,
+            bounce_limits=parse_int_list(bounce_limits, "--bounce-limits"),
+            resolutions=parse_resolution_list(resolutions),
         )
         progress = _progress()
         with progress:

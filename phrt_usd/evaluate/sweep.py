@@ -1,16 +1,20 @@
 """Error against run time: every heuristic × budget on the same frames, in one process.
 
-Per stage and frame, in frame order:
+A sweep's *variants* are the other knobs a user turns: every resolution × bounce limit
+(``SweepSpec.resolutions``, ``SweepSpec.bounce_limits``; one variant by default). Per
+stage and frame, in frame order, per resolution:
 
-1. the raster G-buffer and local shading are made once (``FrameRenderer.prepare``);
-2. the ``all`` reference (every visible reflector, bounce limit, unbounded) finishes that
-   frame, and so does each heuristic × budget with its own selection policy (HEU1 keeps
-   its memory from frame to frame per configuration);
-3. the pure ``rt`` mode renders the frame as a second reference (Embree for everything);
-4. each configuration's image is compared with the references: FLIP (LDR after
-   ``images.tonemap_ldr``) and PSNR, over the frame and over reflector pixels only; the
-   FLIP between consecutive frames of one configuration, next to the reference's, shows
-   popping.
+1. the raster G-buffer and local shading are made once (``FrameRenderer.prepare``), and
+   so are the ``rt`` mode's primary rays;
+2. per bounce limit, the ``all`` reference (every visible reflector, that bounce limit,
+   unbounded) finishes that frame, and so does each heuristic × budget with its own
+   selection policy (HEU1 keeps its memory from frame to frame per configuration);
+3. the pure ``rt`` mode finishes the frame at that bounce limit as a second reference;
+4. each configuration's image is compared with its variant's references: FLIP (LDR
+   after ``images.tonemap_ldr``) and PSNR, over the frame and over reflector pixels only,
+   and the temporal error (``image_metrics.temporal_error_map``, docs/temporal-error.md):
+   FLIP between the configuration's frame-to-frame change and the reference's, which sees
+   the popping of a reflector switching between raster and traced.
 
 Frame times are measured per configuration in the same run: G-buffer and shading
 phases (shared) plus that configuration's own selection and trace phases.
@@ -35,7 +39,7 @@ import numpy as np
 
 from phrt_usd.atomic import write_text_atomic
 from phrt_usd.errors import BadOption
-from phrt_usd.evaluate.image_metrics import flip_map, mean_over, psnr
+from phrt_usd.evaluate.image_metrics import flip_map, mean_over, psnr, temporal_error_map
 from phrt_usd.evaluate.selection_metrics import transitions_per_frame
 from phrt_usd.evaluate.sweep_files import (
     ERROR_VS_TIME_PNG,
@@ -56,34 +60,54 @@ from phrt_usd.usd.schema import DEFAULT_BOUNCE_LIMIT, DEFAULT_RESOLUTION, DEFAUL
 from phrt_usd.usd.stage import open_stage
 
 CSV_COLUMNS = [
-    "stage", "config", "heuristic", "mode", "budget_ms", "budget_rays", "frame",
-    "frame_ms", "gbuffer_ms", "shade_ms", "select_ms", "trace_ms", "predicted_trace_ms",
-    "rays", "visible", "selected", "transitions", "flip", "flip_reflectors", "psnr",
-    "flip_rt", "psnr_rt", "flip_temporal", "flip_temporal_reference",
+    "stage", "config", "heuristic", "mode", "budget_ms", "budget_rays", "resolution",
+    "bounce_limit", "frame", "frame_ms", "gbuffer_ms", "shade_ms", "select_ms", "trace_ms",
+    "predicted_trace_ms", "rays", "visible", "selected", "transitions", "flip",
+    "flip_reflectors", "psnr", "flip_rt", "psnr_rt", "temporal_error",
+    "temporal_error_reflectors",
 ]  # fmt: skip
 
 #: How many frames per stage get their images (hybrid, reference, error map) in the report.
 REPORT_FRAMES = 3
 
 
+@dataclass(frozen=True)
+class Variant:
+    """One setting of the knobs besides heuristic and budget: resolution and bounce limit.
+    ``label`` names the knobs that vary in the sweep (e.g. ``"b2 320x240"``; ``""`` when
+    the sweep has a single variant) and is appended to the configurations' labels."""
+
+    width: int
+    height: int
+    bounce_limit: int
+    label: str = ""
+
+    @property
+    def resolution(self) -> str:
+        return f"{self.width}x{self.height}"
+
+
 @dataclass
 class SweepConfig:
-    """One column of the sweep: a heuristic with one budget (None = unbounded)."""
+    """One column of the sweep: a heuristic with one budget (None = unbounded), at one
+    variant (None: the spec's single resolution and bounce limit, no label suffix)."""
 
     heuristic: str
     mode: str = "hybrid"
     budget_ms: float | None = None
     budget_rays: int | None = None
+    variant: Variant | None = None
 
     @property
     def label(self) -> str:
+        suffix = f" {self.variant.label}" if self.variant is not None and self.variant.label else ""
         if self.mode != "hybrid" or self.heuristic in ("all", "none"):
-            return {"raster": "raster", "rt": "rt"}.get(self.mode, self.heuristic)
+            return {"raster": "raster", "rt": "rt"}.get(self.mode, self.heuristic) + suffix
         if self.budget_rays is not None:
-            return f"{self.heuristic}@{self.budget_rays}rays"
+            return f"{self.heuristic}@{self.budget_rays}rays{suffix}"
         if self.budget_ms is None:
-            return f"{self.heuristic}@inf"
-        return f"{self.heuristic}@{self.budget_ms:g}ms"
+            return f"{self.heuristic}@inf{suffix}"
+        return f"{self.heuristic}@{self.budget_ms:g}ms{suffix}"
 
 
 @dataclass
@@ -98,6 +122,23 @@ class SweepSpec:
     bounce_limit: int = DEFAULT_BOUNCE_LIMIT
     selection_weight: float = DEFAULT_SELECTION_WEIGHT
     out: Path = Path("sweep")
+    #: Knob sweeps: every bounce limit × resolution (WxH); empty = ``bounce_limit`` and
+    #: (``width``, ``height``) alone.
+    bounce_limits: list[int] = field(default_factory=list)
+    resolutions: list[tuple[int, int]] = field(default_factory=list)
+
+    def variants(self) -> list[Variant]:
+        """Every resolution × bounce limit, resolutions outer, in the order given."""
+        limits = self.bounce_limits or [self.bounce_limit]
+        sizes = self.resolutions or [(self.width, self.height)]
+        variants = []
+        for w, h in sizes:
+            for b in limits:
+                parts = ([f"b{b}"] if len(limits) > 1 else []) + (
+                    [f"{w}x{h}"] if len(sizes) > 1 else []
+                )
+                variants.append(Variant(w, h, b, " ".join(parts)))
+        return variants
 
 
 def parse_budget_list(text: str | None, kind: type) -> list:
@@ -120,11 +161,44 @@ def parse_budget_list(text: str | None, kind: type) -> list:
     return values
 
 
-def sweep_configs(spec: SweepSpec) -> list[SweepConfig]:
-    configs = [SweepConfig("none", mode="raster")]
+def parse_int_list(text: str | None, option: str) -> list[int]:
+    """``"0,1,2,5"`` → [0, 1, 2, 5]; BadOption naming ``option`` for a non-integer."""
+    if not text:
+        return []
+    values = []
+    for item in text.split(","):
+        try:
+            values.append(int(item.strip()))
+        except ValueError:
+            raise BadOption(f"{option}: {item.strip()!r} is not an integer") from None
+    return values
+
+
+def parse_resolution_list(text: str | None, option: str = "--resolutions") -> list[tuple[int, int]]:
+    """``"160x120,320x240"`` → [(160, 120), (320, 240)]; BadOption naming the bad item."""
+    if not text:
+        return []
+    sizes = []
+    for item in text.split(","):
+        w, sep, h = item.strip().lower().partition("x")
+        try:
+            if not sep:
+                raise ValueError
+            sizes.append((int(w), int(h)))
+        except ValueError:
+            raise BadOption(f"{option}: {item.strip()!r} is not WxH (e.g. 320x240)") from None
+    return sizes
+
+
+def sweep_configs(spec: SweepSpec, variant: Variant | None = None) -> list[SweepConfig]:
+    """The swept configurations of one variant (the references ``all`` and ``rt`` are
+    added by ``StageSweep``); every variant's when ``variant`` is None."""
+    if variant is None:
+        return [c for v in spec.variants() for c in sweep_configs(spec, v)]
+    configs = [SweepConfig("none", mode="raster", variant=variant)]
     for h in spec.heuristics:
-        configs += [SweepConfig(h, budget_ms=b) for b in spec.budgets_ms]
-        configs += [SweepConfig(h, budget_rays=b) for b in spec.budgets_rays]
+        configs += [SweepConfig(h, budget_ms=b, variant=variant) for b in spec.budgets_ms]
+        configs += [SweepConfig(h, budget_rays=b, variant=variant) for b in spec.budgets_rays]
     return configs
 
 
@@ -136,25 +210,28 @@ class _ConfigState:
 
     def __init__(self, config: SweepConfig, spec: SweepSpec):
         self.config = config
+        variant = config.variant or spec.variants()[0]
+        # rt traces everything: its renderer finishes frames with the ``all`` policy.
+        policy = {"hybrid": config.heuristic, "rt": "all"}.get(config.mode, "none")
         self.policy = make_policy(
-            config.heuristic if config.mode == "hybrid" else "none",
-            selection_weight=spec.selection_weight,
-            bounce_limit=spec.bounce_limit,
+            policy, selection_weight=spec.selection_weight, bounce_limit=variant.bounce_limit
         )
         self.options = RenderOptions(
             mode=config.mode,
             heuristic=config.heuristic,
-            width=spec.width,
-            height=spec.height,
+            width=variant.width,
+            height=variant.height,
             budget_ms=config.budget_ms,
             budget_rays=config.budget_rays,
-            bounce_limit=spec.bounce_limit,
+            bounce_limit=variant.bounce_limit,
             selection_weight=spec.selection_weight,
         )
         self.previous_image: np.ndarray | None = None
         self.previous: tuple[np.ndarray, np.ndarray] | None = None
         self.timeline_selected: list[list[bool]] = []
         self.timeline_visible: list[list[bool]] = []
+        #: This frame's (output, selection) between making the rows and remembering.
+        self.pending: tuple[FrameOutput, tuple[np.ndarray, np.ndarray]] | None = None
 
 
 def run_sweep(spec: SweepSpec, on_frame: Callable[[str, int, int], None] | None = None) -> dict:
@@ -184,6 +261,15 @@ def check_spec(spec: SweepSpec) -> None:
             raise BadOption(f"--heuristics: {h!r} is not heu1 or heu2")
     if not spec.budgets_ms and not spec.budgets_rays:
         raise BadOption("give --budgets-ms or --budgets-rays")
+    knobs = (("--bounce-limits", spec.bounce_limits), ("--resolutions", spec.resolutions))
+    for option, values in knobs:
+        if len(set(values)) != len(values):
+            raise BadOption(f"{option}: a value is given twice")
+    for variant in spec.variants():
+        # RenderOptions states the valid ranges (bounce limit, resolution) once.
+        RenderOptions(
+            width=variant.width, height=variant.height, bounce_limit=variant.bounce_limit
+        )
 
 
 def finish_sweep(spec: SweepSpec, rows: list[dict], timeline: dict, interrupted: bool) -> dict:
@@ -199,7 +285,12 @@ def finish_sweep(spec: SweepSpec, rows: list[dict], timeline: dict, interrupted:
         "out": str(out),
         "rows": len(rows),
         "stages": [Path(s).stem for s in spec.stages],
-        "configs": [c.label for c in sweep_configs(spec)] + ["all", "rt"],
+        "configs": [
+            label
+            for v in spec.variants()
+            for label in [c.label for c in sweep_configs(spec, v)]
+            + [SweepConfig("all", variant=v).label, SweepConfig("all", mode="rt", variant=v).label]
+        ],
         "interrupted": interrupted,
         "files": [SWEEP_CSV, TIMELINE_JSON, SUMMARY_MD, ERROR_VS_TIME_PNG, REPORT_HTML],
     }
@@ -221,11 +312,44 @@ def _sweep_stage(stage_path, spec, rows, timeline, stop, on_frame) -> None:
     timeline[sweep.name] = sweep.timeline()
 
 
+class _VariantStates:
+    """One variant's configurations and its two references (``all`` hybrid, ``rt``)."""
+
+    def __init__(self, variant: Variant, spec: SweepSpec):
+        self.variant = variant
+        self.states = [_ConfigState(c, spec) for c in sweep_configs(spec, variant)]
+        self.reference = _ConfigState(SweepConfig("all", variant=variant), spec)
+        self.rt_state = _ConfigState(SweepConfig("all", mode="rt", variant=variant), spec)
+
+    def all_states(self) -> list[_ConfigState]:
+        return [*self.states, self.reference, self.rt_state]
+
+
+class _Resolution:
+    """The renderers of one resolution (hybrid and rt, shared by its bounce limits) and
+    the previous frame's reflector pixels ((H, W) bool, None before the first frame)."""
+
+    def __init__(self, stage, times, spec: SweepSpec, variants: list[_VariantStates]):
+        first = variants[0].variant
+        base = RenderOptions(
+            mode="hybrid", heuristic="all", width=first.width, height=first.height,
+            budget_ms=None, budget_rays=None, bounce_limit=first.bounce_limit,
+            selection_weight=spec.selection_weight,
+        )  # fmt: skip
+        self.hybrid = FrameRenderer(stage, base)
+        self.hybrid.plan(times)
+        self.rt = FrameRenderer(stage, replace(base, mode="rt"))
+        self.rt.plan(times)
+        self.variants = variants
+        self.previous_reflector_px: np.ndarray | None = None
+
+
 class StageSweep:
-    """One stage's sweep, frame by frame: the shared renderers and every configuration's
-    memory (policy, previous image and selection). ``frame(t, record=False)`` renders a
-    warm-up frame: every memory advances but no row, timeline entry or image is kept, so a
-    chunk of frames can start mid-path (``phrt_usd.cluster``)."""
+    """One stage's sweep, frame by frame: the shared renderers (one hybrid and one rt per
+    resolution) and every configuration's memory (policy, previous image and selection)
+    of every variant. ``frame(t, record=False)`` renders a warm-up frame: every memory
+    advances but no row, timeline entry or image is kept, so a chunk of frames can start
+    mid-path (``phrt_usd.cluster``)."""
 
     def __init__(self, stage_path: Path | str, spec: SweepSpec):
         self.stage = open_stage(stage_path)
@@ -233,17 +357,13 @@ class StageSweep:
         self.name = Path(stage_path).stem
         #: Every time code of this stage's sweep (the chunk's frames are a slice of it).
         self.times = parse_frames(spec.frames, self.stage.frame_range)
-        base = RenderOptions(
-            mode="hybrid", heuristic="all", width=spec.width, height=spec.height,
-            budget_ms=None, budget_rays=None, bounce_limit=spec.bounce_limit,
-            selection_weight=spec.selection_weight,
-        )  # fmt: skip
-        self.hybrid = FrameRenderer(self.stage, base)
-        self.hybrid.plan(self.times)
-        self.rt = FrameRenderer(self.stage, replace(base, mode="rt"))
-        self.states = [_ConfigState(c, spec) for c in sweep_configs(spec)]
-        self.reference = _ConfigState(SweepConfig("all"), spec)
-        self.rt_state = _ConfigState(SweepConfig("all", mode="rt"), spec)
+        by_size: dict[tuple[int, int], list[_VariantStates]] = {}
+        for variant in spec.variants():
+            key = (variant.width, variant.height)
+            by_size.setdefault(key, []).append(_VariantStates(variant, spec))
+        self.resolutions = [
+            _Resolution(self.stage, self.times, spec, vs) for vs in by_size.values()
+        ]
         self.reflectors = [
             self.stage.scene.elements[i].path for i in self.stage.scene.reflector_ids
         ]
@@ -252,61 +372,67 @@ class StageSweep:
         self.recorded: list[float] = []
 
     def close(self) -> None:
-        self.hybrid.close()
-        self.rt.close()
+        for res in self.resolutions:
+            res.hybrid.close()
+            res.rt.close()
 
     def warm_up(self) -> None:
-        """Render the first frame once, untimed, with a throwaway ``all`` policy: the
-        first frame of a process compiles GL programs and builds the Embree scene (~0.8 s
-        on the farm), which would otherwise land in every configuration's first frame
-        time. No configuration's memory is touched."""
+        """Render the first frame once per resolution, untimed, with a throwaway ``all``
+        policy: the first frame of a process compiles GL programs and builds the Embree
+        scene (~0.8 s on the farm), which would otherwise land in every configuration's
+        first frame time. No configuration's memory is touched."""
         if not self.times:
             return
         t = self.times[0]
-        reference = self.reference
-        policy = make_policy(
-            "all", selection_weight=self.spec.selection_weight, bounce_limit=self.spec.bounce_limit
-        )
-        self.hybrid.finish(self.hybrid.prepare(t), policy, reference.options)
-        self.rt.render(t)
+        for res in self.resolutions:
+            reference = res.variants[0].reference
+            policy = make_policy(
+                "all",
+                selection_weight=self.spec.selection_weight,
+                bounce_limit=reference.options.bounce_limit,
+            )
+            res.hybrid.finish(res.hybrid.prepare(t), policy, reference.options)
+            res.rt.render(t)
 
     def frame(self, t: float, record: bool = True) -> list[dict]:
-        """Render frame ``t`` for every configuration and both references; returns its CSV
-        rows (none for a warm-up frame, ``record=False``)."""
-        reference, rt_state = self.reference, self.rt_state
-        prep = self.hybrid.prepare(t)
-        ref_out = self.hybrid.finish(prep, reference.policy, reference.options)
-        rt_out = self.rt.render(t)
-        reflector_px = prep.reflectivity > 0
-        temporal_ref = (
-            None
-            if reference.previous_image is None
-            else mean_over(flip_map(reference.previous_image, ref_out.beauty))
-        )
-        outputs = [(s, self.hybrid.finish(prep, s.policy, s.options)) for s in self.states]
-        outputs += [(reference, ref_out), (rt_state, rt_out)]
+        """Render frame ``t`` for every configuration and both references of every
+        variant; returns its CSV rows (none for a warm-up frame, ``record=False``)."""
         rows = []
-        for state, output in outputs:
-            selection = _selection_row(output, self.reflectors)
-            if record:
-                error = flip_map(ref_out.beauty, output.beauty)
-                rows.append(
-                    _row(
-                        self.name,
-                        state,
-                        output,
-                        ref_out,
-                        error,
-                        rt_out,
-                        reflector_px,
-                        temporal_ref,
-                        selection,
-                    )
+        for res in self.resolutions:
+            prep = res.hybrid.prepare(t)
+            rt_prep = res.rt.prepare(t)
+            reflector_px = prep.reflectivity > 0
+            # Temporal error over pixels that are a reflector's in either frame: a pop
+            # shows where the reflector is now and where it was.
+            temporal_px = (
+                reflector_px
+                if res.previous_reflector_px is None
+                else reflector_px | res.previous_reflector_px
+            )
+            for group in res.variants:
+                reference, rt_state = group.reference, group.rt_state
+                ref_out = res.hybrid.finish(prep, reference.policy, reference.options)
+                rt_out = res.rt.finish(rt_prep, rt_state.policy, rt_state.options)
+                outputs = [(s, res.hybrid.finish(prep, s.policy, s.options)) for s in group.states]
+                outputs += [(reference, ref_out), (rt_state, rt_out)]
+                references = _References(
+                    ref_out, reference.previous_image, rt_out, reflector_px, temporal_px
                 )
-                if t in self.report_frames:
-                    label = state.config.label
-                    _write_report_images(self.spec.out, self.name, t, label, output, error)
-            _remember(state, output, selection, record)
+                for state, output in outputs:
+                    selection = _selection_row(output, self.reflectors)
+                    if record:
+                        error = flip_map(ref_out.beauty, output.beauty)
+                        rows.append(_row(self.name, state, output, error, references, selection))
+                        if t in self.report_frames:
+                            label = state.config.label
+                            _write_report_images(self.spec.out, self.name, t, label, output, error)
+                    state.pending = (output, selection)
+                # Every row of this frame is made before any memory advances: the rows
+                # need the reference's previous image.
+                for state in group.all_states():
+                    _remember(state, *state.pending, record)
+                    state.pending = None
+            res.previous_reflector_px = reflector_px
         if record:
             self.recorded.append(t)
         return rows
@@ -321,27 +447,39 @@ class StageSweep:
                 "selected": s.timeline_selected,
                 "visible": s.timeline_visible,
             }
-            for s in [*self.states, self.reference, self.rt_state]
+            for res in self.resolutions
+            for group in res.variants
+            for s in group.all_states()
         }
+
+
+@dataclass
+class _References:
+    """What one variant's rows are measured against in a frame: the ``all`` reference's
+    output and its previous frame's beauty (None on the first frame), the ``rt`` output,
+    the reflector pixels of this frame and those of this or the previous frame ((H, W)
+    bool, the latter for the temporal error)."""
+
+    ref: FrameOutput
+    ref_previous: np.ndarray | None
+    rt: FrameOutput
+    reflector_px: np.ndarray
+    temporal_px: np.ndarray
 
 
 def _row(
     stage: str,
     state: _ConfigState,
     output: FrameOutput,
-    ref: FrameOutput,
     flip_ref: np.ndarray,
-    rt: FrameOutput,
-    reflector_px: np.ndarray,
-    temporal_ref: float | None,
+    refs: _References,
     selection: tuple[np.ndarray, np.ndarray],
 ) -> dict:
     """One CSV row. flip_ref: (H, W) FLIP of this output against the ``all`` reference
-    ``ref``; reflector_px: (H, W) bool pixels of reflectors; temporal_ref: the
-    reference's FLIP between this frame and the previous one (None on the first);
-    selection: this frame's (selected, visible), see ``_selection_row``. ``transitions``:
-    from the configuration's previous frame into this one (``selection_metrics``; 0 on
-    its first frame)."""
+    ``refs.ref``; selection: this frame's (selected, visible), see ``_selection_row``.
+    ``transitions``: from the configuration's previous frame into this one
+    (``selection_metrics``; 0 on its first frame). ``temporal_error``: mean of
+    ``temporal_error_map`` from the previous frame into this one (empty on the first)."""
     st = output.stats
     cfg = state.config
     transitions = 0
@@ -352,9 +490,13 @@ def _row(
                 np.stack([selected_before, selected]), np.stack([visible_before, visible])
             )[-1]
         )
-    temporal = None
-    if state.previous_image is not None:
-        temporal = mean_over(flip_map(state.previous_image, output.beauty))
+    temporal = temporal_reflectors = None
+    if state.previous_image is not None and refs.ref_previous is not None:
+        tmap = temporal_error_map(
+            refs.ref_previous, refs.ref.beauty, state.previous_image, output.beauty
+        )
+        temporal = round(mean_over(tmap), 6)
+        temporal_reflectors = round(mean_over(tmap, refs.temporal_px), 6)
     heuristic = {"rt": "all", "raster": "none"}.get(cfg.mode, cfg.heuristic)
     return {
         "stage": stage,
@@ -363,6 +505,8 @@ def _row(
         "mode": cfg.mode,
         "budget_ms": _blank(cfg.budget_ms),
         "budget_rays": _blank(cfg.budget_rays),
+        "resolution": f"{state.options.width}x{state.options.height}",
+        "bounce_limit": state.options.bounce_limit,
         "frame": st.time,
         "frame_ms": round(st.frame_ms, 3),
         "gbuffer_ms": round(st.phase_ms.get("gbuffer", 0.0), 3),
@@ -375,12 +519,12 @@ def _row(
         "selected": len(set(st.selected)),
         "transitions": transitions,
         "flip": round(mean_over(flip_ref), 6),
-        "flip_reflectors": round(mean_over(flip_ref, reflector_px), 6),
-        "psnr": round(psnr(ref.beauty, output.beauty), 4),
-        "flip_rt": round(mean_over(flip_map(rt.beauty, output.beauty)), 6),
-        "psnr_rt": round(psnr(rt.beauty, output.beauty), 4),
-        "flip_temporal": _blank(None if temporal is None else round(temporal, 6)),
-        "flip_temporal_reference": _blank(None if temporal_ref is None else round(temporal_ref, 6)),
+        "flip_reflectors": round(mean_over(flip_ref, refs.reflector_px), 6),
+        "psnr": round(psnr(refs.ref.beauty, output.beauty), 4),
+        "flip_rt": round(mean_over(flip_map(refs.rt.beauty, output.beauty)), 6),
+        "psnr_rt": round(psnr(refs.rt.beauty, output.beauty), 4),
+        "temporal_error": _blank(temporal),
+        "temporal_error_reflectors": _blank(temporal_reflectors),
     }
 
 

@@ -120,47 +120,74 @@ def _figure(out_dir: Path, path: Path, caption: str) -> str:
     )
 
 
+def _references_of(entries: list[Mapping[str, Any]]) -> dict[str, str]:
+    """Config → the name of the reference it is measured against: the ``all`` config of
+    its variant (``REFERENCE_CONFIG`` for configs not in ``entries``)."""
+    by_variant = {
+        e.get("variant", ""): e["config"] for e in entries if e.get("kind") == "reference"
+    }
+    return {
+        e["config"]: by_variant.get(e.get("variant", ""), REFERENCE_CONFIG) for e in entries
+    }
+
+
 def _images_section(
-    out_dir: Path, stage: str, order: list[str], rows: list[Mapping[str, Any]]
+    out_dir: Path,
+    stage: str,
+    order: list[str],
+    rows: list[Mapping[str, Any]],
+    references: Mapping[str, str] | None = None,
 ) -> list[str]:
     stage_dir = out_dir / IMAGES_DIR / stage
     if not stage_dir.is_dir():
         return []
+    references = references or {}
+    reference_names = set(references.values()) | {REFERENCE_CONFIG}
     parts = []
     for frame_dir in _frame_dirs(stage_dir):
         # Hidden files are temp files of interrupted atomic writes.
         pngs = {p.stem: p for p in frame_dir.glob("*.png") if not p.name.startswith(".")}
-        reference = pngs.get(REFERENCE_CONFIG)
         configs = [
-            name for name in pngs if not name.endswith(FLIP_MAP_SUFFIX) and name != REFERENCE_CONFIG
+            name
+            for name in pngs
+            if not name.endswith(FLIP_MAP_SUFFIX) and name not in reference_names
         ]
         configs.sort(key=lambda c: (order.index(c) if c in order else len(order), c))
         parts.append(f"<h3>{_esc(stage)}, frame {_esc(frame_dir.name)}</h3>")
         parts.append('<div class="frame">')
         for config in configs:
+            reference_name = references.get(config, REFERENCE_CONFIG)
+            reference = pngs.get(reference_name)
             row = _frame_row(rows, stage, config, frame_dir.name)
             figures_text = ""
             if row is not None:
                 flip = format_significant3(csv_number(row, "flip"))
                 psnr = format_fixed(2)(csv_number(row, "psnr"))
-                figures_text = f", FLIP {flip}, PSNR {psnr} dB vs all"
+                temporal = format_significant3(csv_number(row, "temporal_error"))
+                figures_text = (
+                    f", FLIP {flip}, PSNR {psnr} dB, temporal error {temporal} "
+                    f"vs {reference_name}"
+                )
             cells = [_figure(out_dir, pngs[config], f"{config}{figures_text}")]
             if reference is not None:
-                cells.append(_figure(out_dir, reference, "reference: all reflectors traced"))
+                caption = f"reference {reference_name}: all reflectors traced"
+                cells.append(_figure(out_dir, reference, caption))
             flip_map = pngs.get(config + FLIP_MAP_SUFFIX)
             if flip_map is not None:
                 cells.append(
                     _figure(
                         out_dir,
                         flip_map,
-                        f"FLIP error of {config} vs all (magma: black = 0, yellow = 1)",
+                        f"FLIP error of {config} vs {reference_name} "
+                        "(magma: black = 0, yellow = 1)",
                     )
                 )
             parts.append('<div class="row">' + "".join(cells) + "</div>")
-        if not configs and reference is not None:
+        only_references = [] if configs else sorted(reference_names & set(pngs))
+        for name in only_references:
             parts.append(
                 '<div class="row">'
-                + _figure(out_dir, reference, "reference: all reflectors traced")
+                + _figure(out_dir, pngs[name], f"reference {name}: all reflectors traced")
                 + "</div>"
             )
         parts.append("</div>")
@@ -175,7 +202,9 @@ def write_report_html(
 ) -> None:
     """Write OUT/report.html: one static page (inline CSS, no scripts, no external URLs).
 
-    Shows the error-vs-time plot(s), one table per stage with the paper comparison, the
+    Shows the error-vs-time plot(s) (per-frame FLIP, temporal error, transitions; the
+    Pareto front ringed), one table per stage (the Pareto column marks the front) with the
+    paper comparison, the
     selection timeline PNG per stage, and per chosen frame each config's image beside the
     reference and its FLIP map. Only files that exist in ``out_dir`` are referenced
     (relative paths); the plots and timelines must be written first.
@@ -198,7 +227,7 @@ def write_report_html(
     if plot.is_file():
         parts.append(
             f'<img class="plot" src="{_src(out_dir, plot)}" '
-            'alt="mean FLIP against mean frame time">'
+            'alt="mean FLIP, temporal error and transition rate against mean frame time">'
         )
     for stage in stages:
         entries = [e for e in summary if e["stage"] == stage]
@@ -223,6 +252,8 @@ def write_report_html(
                 f'<img class="plot" src="{_src(out_dir, timeline)}" '
                 f'alt="{_esc(f"selection timeline of {stage}")}">'
             )
-        parts += _images_section(out_dir, stage, order_by_stage[stage], rows)
+        parts += _images_section(
+            out_dir, stage, order_by_stage[stage], rows, _references_of(entries)
+        )
     parts.append("</body></html>")
     write_text_atomic(out_dir / REPORT_HTML, "\n".join(parts) + "\n")

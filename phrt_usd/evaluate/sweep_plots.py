@@ -1,6 +1,7 @@
 """Figures of a sweep (matplotlib, PNG): error against frame time, selection timelines.
 
-    OUT/error_vs_time.png            mean FLIP against mean frame time, every stage
+    OUT/error_vs_time.png            mean FLIP, temporal error and transition rate against
+                                     mean frame time, every stage; Pareto front ringed
     OUT/error_vs_time_<stage>.png    the same per stage (only with more than one stage)
     OUT/timeline_<stage>.png         which reflector was traced in which frame, per config
 
@@ -21,12 +22,12 @@ from matplotlib.patches import Patch
 
 from phrt_usd.atomic import atomic_path
 from phrt_usd.errors import PhrtError
-from phrt_usd.evaluate.sweep_summary import budget_sort_key, stages_of, timeline_arrays
+from phrt_usd.evaluate.sweep_summary import budget_sort_key, timeline_arrays
 
 # --- plot layout -----------------------------------------------------------------------
 
-#: error_vs_time.png: 8 x 5 inches at 100 dpi = 800 x 500 pixels.
-PLOT_SIZE_INCHES = (8.0, 5.0)
+#: error_vs_time.png: 9 x 10 inches at 100 dpi = 900 x 1000 pixels (three panels).
+PLOT_SIZE_INCHES = (9.0, 10.0)
 PLOT_DPI = 100
 #: Use a log time axis when the slowest plotted frame time exceeds the fastest by this.
 LOG_X_RATIO = 8.0
@@ -81,49 +82,112 @@ def _save(fig: Figure, path: Path) -> None:
         fig.savefig(tmp, format="png", dpi=PLOT_DPI, metadata={"Software": None})
 
 
+#: The panels of error_vs_time.png, top to bottom: (summary key, y label, scale).
+ERROR_PANELS = (
+    ("mean_flip", "mean FLIP vs reference\n(per frame, lower is better)", 1.0),
+    ("mean_temporal_error", "mean temporal error\n(popping, lower is better)", 1.0),
+    ("transition_rate", "transition rate (%)", 100.0),
+)
+#: Ring drawn around the configurations on the Pareto front (points squared).
+PARETO_RING_SIZE = 170
+
+
+def _series(summary: list[Mapping[str, Any]]) -> list[tuple[str, str]]:
+    """(stage, variant) pairs in summary order: one family of lines and points each."""
+    return list(dict.fromkeys((e["stage"], e.get("variant", "")) for e in summary))
+
+
 def plot_error_vs_time(
     summary: list[Mapping[str, Any]], path: Path, title: str | None = None
 ) -> None:
-    """Mean FLIP (vs ``all``) against mean frame ms, for every stage in ``summary``.
+    """Three panels against mean frame ms, one x axis: mean FLIP (vs the reference), mean
+    temporal error (``image_metrics.temporal_error_map``) and the transition rate, for
+    every stage and variant in ``summary``.
 
-    One line per heuristic per stage through its budgets (each point annotated with its
-    budget; colour = heuristic, line style = stage, hollow markers for every stage but
-    the first); ray budgets are a separate line with triangles (a different family of
-    points). ``all``, ``raster`` and ``rt`` are single points with their own markers. The
-    time axis is logarithmic when it spans more than ``LOG_X_RATIO``. 800 x 500 px PNG.
+    One line per heuristic per (stage, variant) through its budgets (each point annotated
+    with its budget in the FLIP panel; colour = heuristic, line style = (stage, variant),
+    hollow markers for every series but the first); ray budgets are a separate line with
+    triangles (a different family of points). ``all``, ``raster`` and ``rt`` are single
+    points with their own markers. Configurations on the Pareto front of (frame time,
+    FLIP, temporal error) (``sweep_summary.mark_pareto``) are ringed in black in every
+    panel. The time axis is logarithmic when it spans more than ``LOG_X_RATIO``.
+    ``PLOT_SIZE_INCHES`` at ``PLOT_DPI``.
     """
     fig = Figure(figsize=PLOT_SIZE_INCHES, dpi=PLOT_DPI)
-    ax = fig.add_subplot()
-    stages = stages_of(summary)
-    times = []
-    for stage_index, stage in enumerate(stages):
-        linestyle = STAGE_LINESTYLES[stage_index % len(STAGE_LINESTYLES)]
-        # The first stage's markers are filled, the others' hollow.
-        filled = stage_index == 0
-        prefix = f"{stage} " if len(stages) > 1 else ""
-        entries = [e for e in summary if e["stage"] == stage and e["mean_flip"] is not None]
-        lines: dict[tuple[str, bool], list[Mapping[str, Any]]] = {}
-        for entry in entries:
-            times.append(entry["mean_frame_ms"])
-            if entry["kind"] == "heuristic":
-                by_rays = budget_sort_key(entry)[0] == 1
-                lines.setdefault((entry["heuristic"], by_rays), []).append(entry)
-        for (heuristic, by_rays), points in lines.items():
-            points = sorted(points, key=lambda e: e["mean_frame_ms"])
-            colour = HEURISTIC_COLOURS.get(heuristic, OTHER_HEURISTIC_COLOUR)
-            label = f"{prefix}{heuristic.upper()}" + (" (ray budgets)" if by_rays else "")
-            xs = [e["mean_frame_ms"] for e in points]
-            ys = [e["mean_flip"] for e in points]
-            ax.plot(
-                xs,
-                ys,
-                linestyle=linestyle,
-                marker="^" if by_rays else "o",
-                markersize=5,
-                color=colour,
-                markerfacecolor=colour if filled else "white",
-                label=label,
+    axes = fig.subplots(len(ERROR_PANELS), 1, sharex=True)
+    series = _series(summary)
+    times = [e["mean_frame_ms"] for e in summary if e["mean_frame_ms"] is not None]
+    for ax, (key, ylabel, scale) in zip(axes, ERROR_PANELS, strict=True):
+        annotate = key == ERROR_PANELS[0][0]
+        for index, (stage, variant) in enumerate(series):
+            entries = [
+                e
+                for e in summary
+                if e["stage"] == stage and e.get("variant", "") == variant and e[key] is not None
+            ]
+            name = " ".join(p for p in (stage if len(series) > 1 else "", variant) if p)
+            _plot_series(ax, entries, key, scale, index, f"{name} " if name else "", annotate)
+        ringed = [e for e in summary if e.get("pareto") and e[key] is not None]
+        if ringed:
+            ax.scatter(
+                [e["mean_frame_ms"] for e in ringed],
+                [scale * e[key] for e in ringed],
+                s=PARETO_RING_SIZE,
+                facecolors="none",
+                edgecolors="black",
+                linewidths=1.0,
+                label="Pareto front (time, FLIP, temporal)" if annotate else None,
+                zorder=4,
             )
+        ax.set_ylabel(ylabel, fontsize=8)
+        # Start just below 0 so a zero error (the reference) is not hidden by the axis.
+        top = max(ax.get_ylim()[1], 1e-6)
+        ax.set_ylim(-Y_MARGIN_FRACTION * top, top)
+        ax.grid(True, which="both", linewidth=0.3, alpha=0.5)
+        ax.tick_params(labelsize=7)
+    if times:
+        low = max(min(times), MIN_LOG_MS)
+        if max(times) / low > LOG_X_RATIO:
+            axes[0].set_xscale("log")
+    axes[0].margins(x=0.08)  # room for the budget labels right of the last points
+    axes[-1].set_xlabel("mean frame time (ms)")
+    axes[0].set_title(title or "Error against run time", fontsize=10)
+    if axes[0].get_legend_handles_labels()[0]:
+        # Outside the axes, so that it never hides a point.
+        axes[0].legend(
+            fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0
+        )
+    fig.tight_layout()
+    _save(fig, path)
+
+
+def _plot_series(ax, entries, key: str, scale: float, index: int, prefix: str, annotate: bool):
+    """One (stage, variant)'s lines and baseline points of ``key`` on ``ax`` (see
+    ``plot_error_vs_time``); ``index`` picks the line style, 0 fills the markers."""
+    linestyle = STAGE_LINESTYLES[index % len(STAGE_LINESTYLES)]
+    filled = index == 0
+    lines: dict[tuple[str, bool], list[Mapping[str, Any]]] = {}
+    for entry in entries:
+        if entry["kind"] == "heuristic":
+            by_rays = budget_sort_key(entry)[0] == 1
+            lines.setdefault((entry["heuristic"], by_rays), []).append(entry)
+    for (heuristic, by_rays), points in lines.items():
+        points = sorted(points, key=lambda e: e["mean_frame_ms"])
+        colour = HEURISTIC_COLOURS.get(heuristic, OTHER_HEURISTIC_COLOUR)
+        label = f"{prefix}{heuristic.upper()}" + (" (ray budgets)" if by_rays else "")
+        xs = [e["mean_frame_ms"] for e in points]
+        ys = [scale * e[key] for e in points]
+        ax.plot(
+            xs,
+            ys,
+            linestyle=linestyle,
+            marker="^" if by_rays else "o",
+            markersize=5,
+            color=colour,
+            markerfacecolor=colour if filled else "white",
+            label=label if annotate else None,
+        )
+        if annotate:
             for entry, x, y in zip(points, xs, ys, strict=True):
                 ax.annotate(
                     _short_budget(entry),
@@ -133,36 +197,19 @@ def plot_error_vs_time(
                     fontsize=6,
                     color=colour,
                 )
-        for kind, marker, colour, name in BASELINE_MARKERS:
-            points = [e for e in entries if e["kind"] == kind]
-            if points:
-                ax.scatter(
-                    [e["mean_frame_ms"] for e in points],
-                    [e["mean_flip"] for e in points],
-                    marker=marker,
-                    s=90 if marker == "*" else 40,
-                    facecolors=colour if filled else "white",
-                    edgecolors=colour,
-                    label=f"{prefix}{name}",
-                    zorder=3,
-                )
-    if times:
-        low = max(min(times), MIN_LOG_MS)
-        if max(times) / low > LOG_X_RATIO:
-            ax.set_xscale("log")
-    ax.margins(x=0.08)  # room for the budget labels right of the last points
-    ax.set_xlabel("mean frame time (ms)")
-    ax.set_ylabel("mean FLIP vs all (lower is better)")
-    # Start just below 0 so the reference (FLIP 0 against itself) is not hidden by the axis.
-    top = max(ax.get_ylim()[1], 1e-6)
-    ax.set_ylim(-Y_MARGIN_FRACTION * top, top)
-    ax.set_title(title or "Error against run time", fontsize=10)
-    ax.grid(True, which="both", linewidth=0.3, alpha=0.5)
-    if ax.get_legend_handles_labels()[0]:
-        # Outside the axes, so that it never hides a point.
-        ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)
-    fig.tight_layout()
-    _save(fig, path)
+    for kind, marker, colour, name in BASELINE_MARKERS:
+        points = [e for e in entries if e["kind"] == kind]
+        if points:
+            ax.scatter(
+                [e["mean_frame_ms"] for e in points],
+                [scale * e[key] for e in points],
+                marker=marker,
+                s=90 if marker == "*" else 40,
+                facecolors=colour if filled else "white",
+                edgecolors=colour,
+                label=f"{prefix}{name}" if annotate else None,
+                zorder=3,
+            )
 
 
 def timeline_states(selected: np.ndarray, visible: np.ndarray) -> np.ndarray:

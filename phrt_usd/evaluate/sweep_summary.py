@@ -24,9 +24,15 @@ Definitions used in the tables (all means are over the config's frames):
   CSV's frame count) the chances are approximated from the CSV's per-frame visible counts
   after the first frame, which also counts reflectors that just entered the view; the
   summary says which was used.
-- *temporal FLIP* = mean FLIP between consecutive frames of the config; shown next to the
-  reference's for the same frame pairs (camera motion alone gives the reference's value;
-  flicker from selection changes shows as the excess).
+- *temporal error* = mean over the config's frame pairs of ``image_metrics.
+  temporal_error_map``: FLIP between the config's frame-to-frame change and the
+  reference's (docs/temporal-error.md); 0 for a config that changes exactly as the
+  reference does, high where a reflector pops between raster and traced.
+- *variant* = the resolution and bounce limit of a config (``sweep.Variant``); errors are
+  measured against the reference of the same variant, so comparisons (equal time, the
+  Pareto front) stay within one stage and variant.
+- *Pareto front* = the configs of one stage and variant that no other config of it beats
+  on all of (mean frame ms, mean FLIP, mean temporal error) (``pareto_front``).
 """
 
 from __future__ import annotations
@@ -82,9 +88,10 @@ REQUIRED_COLUMNS = (
     "flip",
     "flip_reflectors",
     "psnr",
-    "flip_temporal",
-    "flip_temporal_reference",
+    "temporal_error",
 )
+#: Columns read when present (sweeps of one variant before knob sweeps lack them).
+OPTIONAL_COLUMNS = ("resolution", "bounce_limit", "temporal_error_reflectors")
 
 #: Display order of config kinds in tables and legends.
 KIND_ORDER = {"raster": 0, "heuristic": 1, "reference": 2, "rt": 3}
@@ -98,8 +105,11 @@ DEFINITIONS = (
     "FLIP and PSNR are measured against the `all` reference (every reflector ray-traced; "
     "PSNR 100 dB = identical). Mean fps = 1000 / mean frame ms. Transition rate = "
     "transitions / chances to switch (reflector visible in two consecutive frames). "
-    "Temporal FLIP: between consecutive frames of the config; the reference's for the "
-    "same frame pairs beside it (camera motion alone gives the reference's value)."
+    "Temporal error: FLIP between the config's frame-to-frame change and the reference's "
+    "(0 = changes as the reference does; popping between raster and ray tracing scores "
+    "high; docs/temporal-error.md). Pareto: not beaten on all of frame time, FLIP and "
+    "temporal error by another config of the same stage and variant (resolution, bounce "
+    "limit), whose reference the errors are measured against."
 )
 
 
@@ -226,9 +236,10 @@ def summarize(
     mean_frame_ms, median_frame_ms, mean_fps, mean_trace_ms, mean_rays, mean_flip,
     mean_flip_reflectors, mean_psnr, transitions (sum, int), transition_chances (int),
     transition_rate (transitions / chances, None without chances), chances_from
-    ("timeline" | "csv"), mean_selected, mean_visible, mean_flip_temporal,
-    mean_flip_temporal_reference. Means skip empty cells and are None when every cell is
-    empty.
+    ("timeline" | "csv"), mean_selected, mean_visible, mean_temporal_error,
+    mean_temporal_error_reflectors, resolution ("WxH" or ""), bounce_limit (int or None),
+    variant (e.g. "320x240, bounce 2"; "" without those columns), pareto (bool, see
+    ``mark_pareto``). Means skip empty cells and are None when every cell is empty.
 
     timeline : timeline.json's object; when it has the config with as many frames as the
                CSV, chances to switch are counted exactly from it (see module doc).
@@ -250,8 +261,54 @@ def summarize(
             if len(frames) == len(group):
                 chances = int(np.count_nonzero(transition_chances(visible)))
         summary.append(_summarize_config(stage, config, group, chances))
-    summary.sort(key=lambda e: (stage_order[e["stage"]], _row_sort_key(e)))
+    variant_order = {v: i for i, v in enumerate(dict.fromkeys(e["variant"] for e in summary))}
+    summary.sort(
+        key=lambda e: (stage_order[e["stage"]], variant_order[e["variant"]], _row_sort_key(e))
+    )
+    mark_pareto(summary)
     return summary
+
+
+#: The objectives of the Pareto front (summary keys, all minimised).
+PARETO_OBJECTIVES = ("mean_frame_ms", "mean_flip", "mean_temporal_error")
+
+
+def pareto_front(points: list[tuple[float, ...]]) -> list[bool]:
+    """Which of ``points`` (each a tuple of objectives, all minimised) are non-dominated:
+    no other point is <= in every objective and < in at least one. Equal points are
+    all kept. O(n^2), n = configs of one stage and variant."""
+    array = np.asarray(points, dtype=np.float64).reshape(len(points), -1)
+    keep = []
+    for p in array:
+        dominated = np.all(array <= p, axis=1) & np.any(array < p, axis=1)
+        keep.append(not bool(dominated.any()))
+    return keep
+
+
+def mark_pareto(summary: list[dict[str, Any]]) -> None:
+    """Set each entry's ``pareto``: on the Pareto front of ``PARETO_OBJECTIVES`` among the
+    entries of its stage and variant. An objective some entry of the group lacks (e.g.
+    the temporal error of a one-frame sweep) is left out for the whole group."""
+    groups: dict[tuple[str, str], list[dict[str, Any]]] = {}
+    for entry in summary:
+        groups.setdefault((entry["stage"], entry["variant"]), []).append(entry)
+    for entries in groups.values():
+        keys = [k for k in PARETO_OBJECTIVES if all(e[k] is not None for e in entries)]
+        if not keys:
+            for entry in entries:
+                entry["pareto"] = False
+            continue
+        front = pareto_front([tuple(e[k] for k in keys) for e in entries])
+        for entry, on_front in zip(entries, front, strict=True):
+            entry["pareto"] = on_front
+
+
+def variant_label(resolution: str, bounce_limit: int | None) -> str:
+    """'320x240, bounce 2' (parts that are known), '' when neither is."""
+    parts = ([resolution] if resolution else []) + (
+        [f"bounce {bounce_limit}"] if bounce_limit is not None else []
+    )
+    return ", ".join(parts)
 
 
 def _constant(group: list[Mapping[str, Any]], column: str, stage: str, config: str) -> str:
@@ -275,6 +332,14 @@ def _summarize_config(
     _constant(group, "budget_rays", stage, config)
     budget_ms = csv_number(group[0], "budget_ms", allow_inf=True)
     budget_rays = csv_number(group[0], "budget_rays", allow_inf=True)
+    resolution = ""
+    bounce = None
+    if "resolution" in group[0]:
+        resolution = _constant(group, "resolution", stage, config)
+    if "bounce_limit" in group[0]:
+        _constant(group, "bounce_limit", stage, config)
+        value = csv_number(group[0], "bounce_limit")
+        bounce = None if value is None else int(value)
 
     ordered = sorted(group, key=lambda row: csv_number(row, "frame") or 0.0)
     frame_ms = [csv_number(r, "frame_ms") for r in ordered]
@@ -313,10 +378,14 @@ def _summarize_config(
         "chances_from": chances_from,
         "mean_selected": _mean(csv_number(r, "selected") for r in ordered),
         "mean_visible": _mean(csv_number(r, "visible") for r in ordered),
-        "mean_flip_temporal": _mean(csv_number(r, "flip_temporal") for r in ordered),
-        "mean_flip_temporal_reference": _mean(
-            csv_number(r, "flip_temporal_reference") for r in ordered
+        "mean_temporal_error": _mean(csv_number(r, "temporal_error") for r in ordered),
+        "mean_temporal_error_reflectors": _mean(
+            csv_number(r, "temporal_error_reflectors") for r in ordered
         ),
+        "resolution": resolution,
+        "bounce_limit": bounce,
+        "variant": variant_label(resolution, bounce),
+        "pareto": False,
     }
 
 
@@ -344,11 +413,25 @@ def format_percent(value: float | None) -> str:
     return MISSING if value is None else f"{100.0 * value:.2f} %"
 
 
+def format_pareto(value: bool) -> str:
+    return PARETO_MARK if value else ""
+
+
+def format_optional(value: Any) -> str:
+    return MISSING if value is None or value == "" else str(value)
+
+
+#: Table cell of a config on the Pareto front.
+PARETO_MARK = "◆"
+
+
 #: (header, summary key, formatter) of every table column, in order.
 TABLE_COLUMNS: tuple[tuple[str, str, Any], ...] = (
     ("config", "config", str),
     ("heuristic", "heuristic", str),
     ("budget", "budget", str),
+    ("resolution", "resolution", format_optional),
+    ("bounce limit", "bounce_limit", format_optional),
     ("frames", "frames", str),
     ("mean frame ms", "mean_frame_ms", format_fixed(2)),
     ("median frame ms", "median_frame_ms", format_fixed(2)),
@@ -361,8 +444,9 @@ TABLE_COLUMNS: tuple[tuple[str, str, Any], ...] = (
     ("transitions", "transitions", str),
     ("transition rate", "transition_rate", format_percent),
     ("mean selected", "mean_selected", format_fixed(2)),
-    ("temporal FLIP", "mean_flip_temporal", format_significant3),
-    ("reference temporal FLIP", "mean_flip_temporal_reference", format_significant3),
+    ("temporal error", "mean_temporal_error", format_significant3),
+    ("temporal error reflectors", "mean_temporal_error_reflectors", format_significant3),
+    ("Pareto", "pareto", format_pareto),
 )
 
 
@@ -389,8 +473,8 @@ def paper_comparison(
 ) -> list[str]:
     """Plain-text lines comparing the paper's HEU1/HEU2 figures with this sweep's.
 
-    Ours are given at every budget where both HEU1 and HEU2 were run; the transitions
-    ratio is HEU1's transitions over HEU2's (as in the paper).
+    Ours are given at every budget (and variant) where both HEU1 and HEU2 were run; the
+    transitions ratio is HEU1's transitions over HEU2's (as in the paper).
     """
     lines = []
     figures = paper.get(stage)
@@ -408,17 +492,20 @@ def paper_comparison(
         )
     else:
         lines.append(f"The paper has no figures for stage {stage!r}.")
-    by_budget: dict[str, dict[str, Mapping[str, Any]]] = {}
+    several = len(variants_of(summary, stage)) > 1
+    by_budget: dict[tuple[str, str], dict[str, Mapping[str, Any]]] = {}
     for entry in summary:
         if entry["stage"] == stage and entry["heuristic"] in ("heu1", "heu2"):
-            by_budget.setdefault(entry["budget"], {})[entry["heuristic"]] = entry
-    for budget, pair in by_budget.items():
+            key = (entry.get("variant", ""), entry["budget"])
+            by_budget.setdefault(key, {})[entry["heuristic"]] = entry
+    for (variant, budget), pair in by_budget.items():
         if len(pair) != 2:
             continue
         heu1, heu2 = pair["heu1"], pair["heu2"]
         ratio = heu1["transitions"] / heu2["transitions"] if heu2["transitions"] else None
+        where = f"{budget}, {variant}" if several else budget
         lines.append(
-            f"This sweep at budget {budget}: fps HEU1 {format_fixed(1)(heu1['mean_fps'])} / "
+            f"This sweep at budget {where}: fps HEU1 {format_fixed(1)(heu1['mean_fps'])} / "
             f"HEU2 {format_fixed(1)(heu2['mean_fps'])}; transitions HEU1/HEU2 "
             f"{format_percent(ratio)} ({heu1['transitions']} / {heu2['transitions']}); "
             f"mean selected HEU1 {format_fixed(2)(heu1['mean_selected'])} / "
@@ -457,56 +544,84 @@ COMPARISON_AXES = (
 )
 
 
+#: The errors HEU1 and HEU2 are compared on at equal cost: (summary key, its name).
+COMPARISON_ERRORS = (
+    ("mean_flip", "mean FLIP"),
+    ("mean_temporal_error", "temporal error"),
+)
+
+
+def variants_of(summary: list[Mapping[str, Any]], stage: str) -> list[str]:
+    """The variants (``variant`` labels) of one stage in summary order; [""] for entries
+    without one."""
+    return list(dict.fromkeys(e.get("variant", "") for e in summary if e["stage"] == stage))
+
+
 def equal_time_comparison(summary: list[Mapping[str, Any]], stage: str) -> list[str]:
-    """Lines comparing HEU1 and HEU2 at equal cost, per budget kind (ms or rays budgets)
-    and per axis of ``COMPARISON_AXES`` (rays only for rays budgets): for each HEU1 point
-    with some budget, HEU2's frontier error at HEU1's cost (``frontier_flip_at``), and
-    the verdict."""
+    """Lines comparing HEU1 and HEU2 at equal cost, per variant of the stage, per budget
+    kind (ms or rays budgets), per axis of ``COMPARISON_AXES`` (rays only for rays
+    budgets) and per error of ``COMPARISON_ERRORS`` (when every point has it): for each
+    HEU1 point with some budget, HEU2's frontier error at HEU1's cost
+    (``frontier_flip_at``), and the verdict. Lines of a stage with several variants start
+    with the variant in brackets."""
+    variants = variants_of(summary, stage)
+    lines = []
+    for variant in variants:
+        prefix = f"[{variant}] " if len(variants) > 1 else ""
+        entries = [
+            e for e in summary if e["stage"] == stage and e.get("variant", "") == variant
+        ]
+        lines += [prefix + line for line in _equal_cost_lines(entries)]
+    return lines
+
+
+def _equal_cost_lines(entries: list[Mapping[str, Any]]) -> list[str]:
+    """``equal_time_comparison``'s lines for the entries of one stage and variant."""
     lines = []
 
     def bounded(value: float | None) -> bool:
         return value is not None and math.isfinite(value)
 
     for kind, field in (("ms", "budget_ms"), ("rays", "budget_rays")):
-        # Each curve: this kind's budgets plus the unbounded point (no budget at all).
-        curves: dict[str, list[Mapping[str, Any]]] = {"heu1": [], "heu2": []}
-        for e in summary:
-            if e["stage"] != stage or e["heuristic"] not in curves or e["mean_flip"] is None:
-                continue
-            unbounded = not bounded(e["budget_ms"]) and not bounded(e["budget_rays"])
-            if e[field] is not None or unbounded:
-                curves[e["heuristic"]].append(e)
-        if not any(bounded(e[field]) for e in curves["heu1"]) or not curves["heu2"]:
-            continue
-        for axis, name, unit in COMPARISON_AXES:
-            if (kind == "ms" and unit == "rays") or any(
-                e.get(axis) is None for e in curves["heu1"] + curves["heu2"]
-            ):
-                continue
-            heu2 = [(e[axis], e["mean_flip"]) for e in curves["heu2"]]
-            wins = compared = 0
-            parts = []
-            for e in curves["heu1"]:
-                if not bounded(e[field]) or e[field] == 0.0:
-                    continue  # both heuristics do the same there (everything / nothing)
-                other = frontier_flip_at(heu2, e[axis])
-                if other is None:
-                    parts.append(f"{e['budget']}: cheaper than any HEU2 point")
+        for error, error_name in COMPARISON_ERRORS:
+            # Each curve: this kind's budgets plus the unbounded point (no budget at all).
+            curves: dict[str, list[Mapping[str, Any]]] = {"heu1": [], "heu2": []}
+            for e in entries:
+                if e["heuristic"] not in curves or e.get(error) is None:
                     continue
-                compared += 1
-                wins += e["mean_flip"] <= other
-                cost = f"{e[axis]:.2f} ms" if unit == "ms" else f"{e[axis]:.0f} rays"
-                parts.append(
-                    f"{e['budget']}: {format_significant3(e['mean_flip'])} at {cost} "
-                    f"vs HEU2 {format_significant3(other)}"
-                )
-            if parts:
-                lines.append(
-                    f"Equal {name} ({kind} budgets; HEU2 interpolated on its error-"
-                    f"{unit} frontier): HEU1 mean FLIP <= HEU2 at {wins} of {compared}. "
-                    + "; ".join(parts)
-                    + "."
-                )
+                unbounded = not bounded(e["budget_ms"]) and not bounded(e["budget_rays"])
+                if e[field] is not None or unbounded:
+                    curves[e["heuristic"]].append(e)
+            if not any(bounded(e[field]) for e in curves["heu1"]) or not curves["heu2"]:
+                continue
+            for axis, name, unit in COMPARISON_AXES:
+                if (kind == "ms" and unit == "rays") or any(
+                    e.get(axis) is None for e in curves["heu1"] + curves["heu2"]
+                ):
+                    continue
+                heu2 = [(e[axis], e[error]) for e in curves["heu2"]]
+                wins = compared = 0
+                parts = []
+                for e in curves["heu1"]:
+                    if not bounded(e[field]) or e[field] == 0.0:
+                        continue  # both heuristics do the same there (everything / nothing)
+                    other = frontier_flip_at(heu2, e[axis])
+                    if other is None:
+                        parts.append(f"{e['budget']}: cheaper than any HEU2 point")
+                        continue
+                    compared += 1
+                    wins += e[error] <= other
+                    cost = f"{e[axis]:.2f} ms" if unit == "ms" else f"{e[axis]:.0f} rays"
+                    parts.append(
+                        f"{e['budget']}: {format_significant3(e[error])} at {cost} "
+                        f"vs HEU2 {format_significant3(other)}"
+                    )
+                if parts:
+                    lines.append(
+                        f"Equal {name} ({kind} budgets; HEU2 interpolated on its error-"
+                        f"{unit} frontier): HEU1 {error_name} <= HEU2 at {wins} of "
+                        f"{compared}. " + "; ".join(parts) + "."
+                    )
     return lines
 
 
