@@ -359,6 +359,26 @@ def test_skinned_box_points_follow_joint_and_blend_shape():
     }
 
 
+def test_skinned_normals_turn_with_the_joint():
+    stage = _skinned_stage(with_normals=True)
+    anim = UsdSkel.Animation(stage.GetPrimAtPath("/World/Char/Skel/Anim"))
+    half = np.sqrt(0.5)
+    anim.GetRotationsAttr().Set(Vt.QuatfArray([Gf.Quatf(1)]), 1)
+    anim.GetRotationsAttr().Set(Vt.QuatfArray([Gf.Quatf(half, 0, 0, half)]), 2)  # 90° about Z
+    ss = read_stage(stage)
+    ss.set_time(2.0)
+    g = ss.scene.geometry
+    # The lift (0, 1, 0) is applied before skinning, so the joint turns it to (-1, 0, 0).
+    center = SKEL_T + JOINT_T[2.0] + [-1.0, 0.0, 0.0]
+    np.testing.assert_allclose(ss.scene.elements[0].center, center, atol=1e-6)
+    # Flat faces: every corner's skinned normal is its world triangle's outward normal.
+    p = g.vertices[g.triangles]
+    face = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    face /= np.linalg.norm(face, axis=1, keepdims=True)
+    assert np.all(np.sum((p.mean(axis=1) - center) * face, axis=1) > 0)  # outward winding
+    np.testing.assert_allclose(g.corner_normals, np.repeat(face[:, None], 3, axis=1), atol=1e-5)
+
+
 def test_skinned_box_without_animation_is_static_in_skeleton_space():
     stage = _skinned_stage()
     skel = UsdSkel.BindingAPI(stage.GetPrimAtPath("/World/Char/Skel"))
