@@ -252,8 +252,8 @@ REC = ["frames", 1, "records", 0]
 MUTATIONS = {
     "wrong format": (lambda d: _set(d, ["format"], "phrt-checkpoint"), "format"),
     "no format": (lambda d: _drop(d, ["format"]), "no format"),
-    "wrong version": (lambda d: _set(d, ["version"], 2), "version 2"),
-    "version as text": (lambda d: _set(d, ["version"], "1"), "version"),
+    "wrong version": (lambda d: _set(d, ["version"], 1), "version 1"),
+    "version as text": (lambda d: _set(d, ["version"], "2"), "version"),
     "missing frames": (lambda d: _drop(d, ["frames"]), "frames"),
     "unknown field": (lambda d: _set(d, ["code"], "__import__('os')"), "code"),
     "missing camera field": (lambda d: _drop(d, [*CAM, "near"]), "near"),

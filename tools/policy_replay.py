@@ -151,7 +151,7 @@ def capture(
 
 #: The ``format`` and ``version`` a recording file names; any other is refused.
 RECORDING_FORMAT = "phrt-replay-recording"
-RECORDING_VERSION = 1
+RECORDING_VERSION = 2  # 2: CameraFrame's vertical aperture, offsets, conform policy
 
 
 class RecordingError(PhrtError):
@@ -195,6 +195,12 @@ _SCHEMAS: dict[type, dict[str, object]] = {
         "horizontal_aperture": float,
         "near": float,
         "far": float,
+        "vertical_aperture": _Optional(float),
+        "horizontal_aperture_offset": float,
+        "vertical_aperture_offset": float,
+        "conform_policy": str,
+        "pixel_aspect": float,
+        "data_window": _Tuple(float),
     },
     FrameView: {
         "time": float,
@@ -247,6 +253,10 @@ def _encode(value, kind, where: str):
         if isinstance(value, bool) or not isinstance(value, float | int | np.integer):
             _fail(where, f"expected a float, not {type(value).__name__}")
         return float(value)
+    if kind is str:
+        if not isinstance(value, str):
+            _fail(where, f"expected a string, not {type(value).__name__}")
+        return value
     if kind == _INT_MAP:
         if not isinstance(value, dict):
             _fail(where, f"expected a dict, not {type(value).__name__}")
@@ -390,6 +400,10 @@ def _decode(value, kind, where: str):
         if type(value) not in (float, int):
             _fail(where, f"expected a number, not {_json_type(value)}")
         return float(value)
+    if kind is str:
+        if type(value) is not str:
+            _fail(where, f"expected a string, not {_json_type(value)}")
+        return value
     if kind == _INT_MAP:
         table = {}
         for i, pair in enumerate(_list(value, where)):
