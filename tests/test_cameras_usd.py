@@ -18,10 +18,13 @@ import sys
 import numpy as np
 import pytest
 from pxr import Gf, Usd, UsdGeom, UsdRender
+from scenes import mirror_floor_stage
 
 from phrt_usd.errors import BadOption, PhrtError
 from phrt_usd.model.scene import CameraFrame
+from phrt_usd.pytest_plugin import assert_images_close
 from phrt_usd.render.raster.rasterizer import Rasterizer
+from phrt_usd.render.renderer import FrameRenderer, RenderOptions
 from phrt_usd.render.trace.tracer import Tracer
 from phrt_usd.usd.default_camera import FOCAL_LENGTH, VERTICAL_APERTURE
 from phrt_usd.usd.stage import choose_camera, read_stage
@@ -221,3 +224,30 @@ def test_default_camera_frames_the_bounds_along_the_up_axis(up):
     assert (ids >= 0).sum() > 0.05 * W * H
     border = np.concatenate([ids[0], ids[-1], ids[:, 0], ids[:, -1]])
     assert np.all(border == -1)
+
+
+#: Shares of pixels that must agree between hybrid with every reflector traced and rt
+#: (the renderer's invariant, docs/design.md): element ids, and the mean FLIP allowed.
+ID_AGREEMENT = 0.995
+HYBRID_VS_RT_FLIP = 0.02
+
+
+def test_hybrid_all_equals_rt_with_offsets_and_a_conformed_square_aperture(tmp_path):
+    stage = Usd.Stage.Open(str(mirror_floor_stage(tmp_path / "mirror.usda", W, H)))
+    cam = UsdGeom.Camera(stage.GetPrimAtPath("/World/Camera"))
+    cam.GetVerticalApertureAttr().Set(36.0)  # square: expandAperture widens it at 4:3
+    cam.CreateHorizontalApertureOffsetAttr(3.0)
+    cam.CreateVerticalApertureOffsetAttr(-2.0)
+    scene = read_stage(stage)
+    outs = {}
+    for mode in ("hybrid", "rt"):
+        options = RenderOptions(mode=mode, heuristic="all", width=W, height=H, budget_ms=None)
+        renderer = FrameRenderer(scene, options)
+        try:
+            outs[mode] = renderer.render(1.0)
+        finally:
+            renderer.close()
+    hybrid, rt = outs["hybrid"], outs["rt"]
+    assert np.mean(hybrid.gbuffer.element_id == rt.gbuffer.element_id) >= ID_AGREEMENT
+    assert hybrid.traced_mask.any()  # the mirror is in view and traced
+    assert_images_close(hybrid.beauty, rt.beauty, max_mean_flip=HYBRID_VS_RT_FLIP, min_psnr=None)
