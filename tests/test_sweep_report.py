@@ -34,7 +34,7 @@ COLUMNS = [
     "stage", "config", "heuristic", "mode", "budget_ms", "budget_rays", "frame", "frame_ms",
     "gbuffer_ms", "shade_ms", "select_ms", "trace_ms", "predicted_trace_ms", "rays",
     "visible", "selected", "transitions", "flip", "flip_reflectors", "psnr", "flip_rt",
-    "psnr_rt", "flip_temporal", "flip_temporal_reference",
+    "psnr_rt", "temporal_error", "temporal_error_reflectors",
 ]  # fmt: skip
 
 #: (config, heuristic, mode, budget_ms, budget_rays), deliberately not in display order.
@@ -118,8 +118,12 @@ def write_synthetic_sweep(out: Path, seed: int = 7, configs=CONFIGS) -> Path:
                         "psnr": 100.0 if is_ref else float(rng.uniform(20, 45)),
                         "flip_rt": float(rng.uniform(0, 0.1)),
                         "psnr_rt": float(rng.uniform(20, 45)),
-                        "flip_temporal": "" if f == 0 else float(rng.uniform(0, 0.05)),
-                        "flip_temporal_reference": "" if f == 0 else float(rng.uniform(0, 0.05)),
+                        "temporal_error": ""
+                        if f == 0
+                        else (0.0 if is_ref else float(rng.uniform(0, 0.05))),
+                        "temporal_error_reflectors": ""
+                        if f == 0
+                        else (0.0 if is_ref else float(rng.uniform(0, 0.3))),
                     }
                 )
             if config in ("raster", "heu1@4ms", "all", "rt"):
@@ -201,8 +205,8 @@ def expected_from_csv(
             "transitions": transitions,
             "transition rate": 100.0 * transitions / chances if chances else None,
             "mean selected": mean(rows, "selected"),
-            "temporal FLIP": mean(rows, "flip_temporal"),
-            "reference temporal FLIP": mean(rows, "flip_temporal_reference"),
+            "temporal error": mean(rows, "temporal_error"),
+            "temporal error reflectors": mean(rows, "temporal_error_reflectors"),
         }
     return expected
 
@@ -216,8 +220,8 @@ def assert_printed_close(text: str, value: float, what: str) -> None:
     exponent = int(number.split("e")[1]) if "e" in number else 0
     half_step = 0.5 * 10.0 ** (exponent - decimals)
     assert abs(printed - value) <= half_step * 1.0001 + 1e-12, f"{what}: {text} vs {value}"
-    if printed != 0.0 and value > 1e-3 and "FLIP" in what:
-        # FLIP columns carry 3 significant digits.
+    if printed != 0.0 and value > 1e-3 and ("FLIP" in what or "temporal" in what):
+        # FLIP and temporal-error columns carry 3 significant digits.
         assert abs(printed - value) / value < 5e-3, f"{what}: {text} vs {value}"
 
 
@@ -323,7 +327,7 @@ def test_plots_are_small_valid_pngs(report_dir):
         spec = image.spec()
         pixels = image.read_image(oiio.UINT8)
         image.close()
-        assert (spec.width, spec.height) == (800, 500), name
+        assert (spec.width, spec.height) == (900, 1000), name  # three panels
         assert pixels.std() > 5.0, f"{name} looks blank"
     for stage in STAGES:
         image = oiio.ImageInput.open(str(report_dir / f"timeline_{stage}.png"))
@@ -407,11 +411,11 @@ def test_bad_inputs_raise_one_line_errors(tmp_path):
 
 
 def test_unbounded_and_missing_values_stay_finite():
-    rows = _rows(budget_ms="inf", flip_temporal="", flip_temporal_reference="", frame_ms="0")
+    rows = _rows(budget_ms="inf", temporal_error="", temporal_error_reflectors="", frame_ms="0")
     (entry,) = summarize(rows)
     assert entry["budget"] == "unbounded"
     assert entry["mean_fps"] is None  # 0 ms mean frame time: no infinite fps
-    assert entry["mean_flip_temporal"] is None
+    assert entry["mean_temporal_error"] is None
     assert entry["transition_rate"] is None  # a single frame has no chance to switch
     assert all(
         not (isinstance(v, float) and not math.isfinite(v))

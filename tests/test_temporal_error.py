@@ -1,0 +1,211 @@
+"""The temporal error (image_metrics.temporal_error_map, docs/temporal-error.md), the
+Pareto front of the sweep summary, and a knob sweep (two bounce limits) end to end.
+
+Synthetic sequences: a reference whose background moves (a sine shifting along x), and
+tests that equal it (identical), add a patch on every other frame (popping) or add the
+same patch on every frame (steady error).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import OpenImageIO as oiio
+import pytest
+
+from phrt_usd.errors import BadOption, PhrtError
+from phrt_usd.evaluate.image_metrics import flip_map, mean_over, temporal_error_map
+from phrt_usd.evaluate.sweep import (
+    SweepSpec,
+    check_spec,
+    parse_int_list,
+    parse_resolution_list,
+    run_sweep,
+)
+from phrt_usd.evaluate.sweep_summary import PARETO_MARK, mark_pareto, pareto_front
+
+sys.path.insert(0, str(Path(__file__).parent))
+from scenes import mirror_gallery_stage  # noqa: E402
+
+H, W, N = 48, 64, 6
+#: Linear radiance added by the patch: well inside the tone map's [0, 1] range on a
+#: background of 0.1..0.4, so nothing clips.
+PATCH = 0.3
+
+
+def _reference(moving: bool) -> list[np.ndarray]:
+    x = np.arange(W, dtype=np.float32)
+    frames = []
+    for t in range(N):
+        phase = 0.7 * t if moving else 0.0
+        row = 0.25 + 0.15 * np.sin(x / 6.0 + phase)
+        frames.append(np.broadcast_to(row[None, :, None], (H, W, 3)).astype(np.float32))
+    return frames
+
+
+def _with_patch(image: np.ndarray, amount: float) -> np.ndarray:
+    out = image.copy()
+    out[12:36, 16:48] += amount
+    return out
+
+
+def _scores(reference: list[np.ndarray], test: list[np.ndarray]) -> tuple[float, float]:
+    """(mean per-frame FLIP, mean temporal error) of ``test`` against ``reference``."""
+    per_frame = np.mean([mean_over(flip_map(r, h)) for r, h in zip(reference, test, strict=True)])
+    temporal = np.mean(
+        [
+            mean_over(temporal_error_map(reference[t - 1], reference[t], test[t - 1], test[t]))
+            for t in range(1, N)
+        ]
+    )
+    return float(per_frame), float(temporal)
+
+
+def test_popping_scores_high_temporally_steady_error_low_identical_zero():
+    reference = _reference(moving=True)
+    popping = [_with_patch(r, PATCH if t % 2 else 0.0) for t, r in enumerate(reference)]
+    steady = [_with_patch(r, PATCH) for r in reference]
+    identical_frame, identical_temporal = _scores(reference, [r.copy() for r in reference])
+    pop_frame, pop_temporal = _scores(reference, popping)
+    steady_frame, steady_temporal = _scores(reference, steady)
+    assert identical_frame == 0.0 and identical_temporal == 0.0  # FLIP of equal images is 0
+    # Per frame, the pop carries the patch in half the frames: about half the steady
+    # error's mean (0.5 analytically; 0.6 leaves room for FLIP's spatial filtering).
+    assert pop_frame <= 0.6 * steady_frame
+    # Temporally the order flips: the pop changes in every frame pair, the steady patch
+    # does not. The steady error's temporal score is not exactly 0 here only because the
+    # constant linear offset changes after the sRGB encoding as the background moves
+    # (measured ratio ~4.8; 3 keeps a margin).
+    assert pop_temporal >= 3.0 * steady_temporal
+    assert steady_temporal > 0.0
+
+
+def test_steady_error_on_a_still_reference_is_exactly_zero():
+    reference = _reference(moving=False)
+    steady = [_with_patch(r, PATCH) for r in reference]
+    per_frame, temporal = _scores(reference, steady)
+    assert per_frame > 0.05  # the error is there in every frame ...
+    assert temporal == 0.0  # ... but it never changes: nothing pops
+
+
+def test_full_frame_pop_is_near_the_top_of_the_scale():
+    black = np.zeros((H, W, 3), np.float32)
+    white = np.ones((H, W, 3), np.float32)
+    # Reference still black; the test jumps to white (change +1, shown white on the
+    # reference's grey) or back (change -1, black on grey): FLIP(grey, white) ~0.85 and
+    # FLIP(grey, black) ~0.93 at half amplitude (CHANGE_SCALE), so both above 0.8.
+    assert mean_over(temporal_error_map(black, black, black, white)) > 0.8
+    assert mean_over(temporal_error_map(black, black, white, black)) > 0.8
+
+
+def test_bad_inputs_raise_instead_of_exiting():
+    a = np.zeros((H, W, 3), np.float32)
+    with pytest.raises(PhrtError, match="one size"):
+        temporal_error_map(a, a, a[:-1], a)
+    bad = a.copy()
+    bad[0, 0, 0] = np.nan
+    with pytest.raises(PhrtError, match="NaN"):
+        temporal_error_map(a, a, bad, a)
+
+
+def test_pareto_front_of_a_hand_made_set():
+    points = [
+        (1.0, 0.5, 0.5),  # fastest: on the front
+        (2.0, 0.1, 0.4),  # on the front
+        (2.0, 0.2, 0.1),  # worse FLIP, better temporal error than the previous: on it
+        (3.0, 0.2, 0.4),  # dominated by (2, 0.1, 0.4)
+        (3.0, 0.0, 0.0),  # exact: on the front
+        (4.0, 0.0, 0.0),  # slower and no better: dominated
+        (2.0, 0.1, 0.4),  # equal to a front point: equal points are all kept
+    ]
+    assert pareto_front(points) == [True, True, True, False, True, False, True]
+
+
+def test_mark_pareto_per_stage_and_variant_and_without_temporal_error():
+    def entry(stage, variant, ms, flip, temporal):
+        keys = ("mean_frame_ms", "mean_flip", "mean_temporal_error")
+        values = dict(zip(keys, (ms, flip, temporal), strict=True))
+        return {"stage": stage, "variant": variant} | values
+
+    summary = [
+        entry("s", "b0", 1.0, 0.2, 0.1), entry("s", "b0", 2.0, 0.3, 0.2),
+        # Another variant's reference: not compared with b0's configs.
+        entry("s", "b2", 5.0, 0.4, 0.3), entry("s", "b2", 6.0, 0.0, 0.0),
+        # One-frame sweep: no temporal error; the front is of (time, FLIP) alone.
+        entry("t", "", 1.0, 0.2, None), entry("t", "", 2.0, 0.2, None),
+    ]  # fmt: skip
+    mark_pareto(summary)
+    assert [e["pareto"] for e in summary] == [True, False, True, True, True, False]
+
+
+def test_knob_lists_are_parsed_and_checked():
+    assert parse_int_list("0, 1,5", "--bounce-limits") == [0, 1, 5]
+    assert parse_resolution_list("160x120,32X24") == [(160, 120), (32, 24)]
+    with pytest.raises(BadOption, match="--resolutions: '160' is not WxH"):
+        parse_resolution_list("160")
+    with pytest.raises(BadOption, match="--bounce-limits: 'two' is not an integer"):
+        parse_int_list("1,two", "--bounce-limits")
+    base = {"stages": [], "heuristics": ["heu1"], "budgets_rays": [100]}
+    with pytest.raises(BadOption, match="bounce limit must be in 0..16"):
+        check_spec(SweepSpec(**base, bounce_limits=[1, 17]))
+    with pytest.raises(BadOption, match="--bounce-limits: a value is given twice"):
+        check_spec(SweepSpec(**base, bounce_limits=[1, 1]))
+    with pytest.raises(BadOption, match="resolution 0x10 out of range"):
+        check_spec(SweepSpec(**base, resolutions=[(0, 10)]))
+
+
+def test_sweep_over_two_bounce_limits(tmp_path):
+    """3 frames x bounce limits 0 and 2 at 64x48, HEU1 with a rays budget: the CSV has
+    the new columns, every configuration is measured against its own bounce limit's
+    references, and the summary, plot and report show the temporal error and Pareto."""
+    stage = mirror_gallery_stage(tmp_path / "gallery.usda", frames=3)
+    out = tmp_path / "sweep"
+    summary = run_sweep(
+        SweepSpec(
+            stages=[stage], heuristics=["heu1"], budgets_rays=[600], frames="1:3",
+            width=64, height=48, bounce_limits=[0, 2], out=out,
+        )  # fmt: skip
+    )
+    labels = ["raster", "heu1@600rays", "all", "rt"]
+    assert summary["configs"] == [f"{c} b{b}" for b in (0, 2) for c in labels]
+    with (out / "sweep.csv").open(newline="") as handle:
+        rows = list(csv.DictReader(handle))
+    assert len(rows) == 3 * 2 * len(labels)
+    for row in rows:
+        bounce = row["config"].rsplit(" b", 1)[1]
+        assert row["bounce_limit"] == bounce and row["resolution"] == "64x48"
+        first = row["frame"] == "1.0"
+        # No previous frame on the first: no temporal error, else a number in [0, 1].
+        assert (row["temporal_error"] == "") == first, row
+        if not first:
+            assert 0.0 <= float(row["temporal_error"]) <= 1.0
+        if row["config"].startswith("all "):
+            # Each variant's reference is its own: zero error against itself, per frame
+            # and temporally.
+            assert float(row["flip"]) == 0.0
+            assert first or float(row["temporal_error"]) == 0.0
+        if bounce == "0":
+            assert int(row["rays"]) == 0  # bounce limit 0: no reflection rays at all
+        elif row["config"] == "all b2":
+            assert int(row["rays"]) > 0
+    timeline = json.loads((out / "timeline.json").read_text())
+    assert set(timeline["gallery"]) == set(summary["configs"])
+
+    text = (out / "summary.md").read_text()
+    header = next(line for line in text.splitlines() if line.startswith("| config"))
+    for column in ("temporal error", "Pareto", "bounce limit", "resolution"):
+        assert f" {column} |" in header
+    table = [line for line in text.splitlines() if line.startswith("| ") and "b0 |" in line]
+    assert any(PARETO_MARK in line for line in table)  # b0 has its own front
+    assert "[64x48, bounce 2] Equal mean traced rays" not in text  # one heuristic only
+    image = oiio.ImageInput.open(str(out / "error_vs_time.png"))
+    assert image is not None and (image.spec().width, image.spec().height) == (900, 1000)
+    image.close()
+    html = (out / "report.html").read_text()
+    assert "<th>temporal error</th>" in html and "<th>Pareto</th>" in html
+    assert "images/gallery/1/all%20b2.png" in html  # b2's configs shown beside all b2
+    assert "temporal error" in html and "vs all b2" in html
