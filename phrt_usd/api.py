@@ -184,7 +184,7 @@ def _check_job_options(options: dict[str, Any]) -> None:
         raise BadOption(f"controls must be a StageControls, got {controls!r}")
     camera = options.get("camera")
     if camera is not None and not isinstance(camera, str):
-        raise BadOption(f"camera must be a prim path string, got {camera!r}")
+        raise BadOption(f"camera must be a prim path or camera name string, got {camera!r}")
     layer = options.get("selection_layer")
     if layer is not None:
         if not isinstance(layer, str | os.PathLike):
