@@ -479,3 +479,32 @@ def test_equal_rays_comparison_for_rays_budgets():
     assert time_line.startswith("Equal mean frame time (rays budgets") and "at 0 of 1" in time_line
     assert rays_line.startswith("Equal mean traced rays (rays budgets") and "at 1 of 1" in rays_line
     assert "1000.0 rays: 0.035 at 300 rays vs HEU2 0.04" in rays_line
+
+
+def test_summary_csv_and_pareto_marks_agree_with_the_tables(report_dir):
+    """summary.csv carries the temporal error unrounded (recomputed from sweep.csv) and
+    the same Pareto marks as summary.md; every stage has a front, and within a stage no
+    marked config is beaten on all of (frame ms, FLIP, temporal error) by another."""
+    expected = expected_from_csv(report_dir / "sweep.csv", report_dir / "timeline.json")
+    with (report_dir / "summary.csv").open(newline="") as handle:
+        rows = list(csv.DictReader(handle))
+    assert len(rows) == len(expected)
+    tables = parse_summary_md((report_dir / "summary.md").read_text())
+    marks = {(s, r["config"]): r["Pareto"] == "◆" for s, t in tables.items() for r in t}
+    for row in rows:
+        key = (row["stage"], row["config"])
+        assert float(row["mean_temporal_error"]) == pytest.approx(
+            expected[key]["temporal error"], rel=1e-12
+        )
+        assert (row["pareto"] == "1") == marks[key], key
+    for stage in STAGES:
+        points = [
+            (float(r["mean_frame_ms"]), float(r["mean_flip"]), float(r["mean_temporal_error"]))
+            for r in rows
+            if r["stage"] == stage
+        ]
+        front = [p for p, r in zip(points, [r for r in rows if r["stage"] == stage],
+                                   strict=True) if r["pareto"] == "1"]  # fmt: skip
+        assert front
+        for p in front:
+            assert not any(all(q[i] <= p[i] for i in range(3)) and q != p for q in points)

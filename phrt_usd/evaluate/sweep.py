@@ -46,6 +46,7 @@ from phrt_usd.evaluate.sweep_files import (
     FLIP_MAP_SUFFIX,
     IMAGES_DIR,
     REPORT_HTML,
+    SUMMARY_CSV,
     SUMMARY_MD,
     SWEEP_CSV,
     TIMELINE_JSON,
@@ -292,7 +293,9 @@ def finish_sweep(spec: SweepSpec, rows: list[dict], timeline: dict, interrupted:
             + [SweepConfig("all", variant=v).label, SweepConfig("all", mode="rt", variant=v).label]
         ],
         "interrupted": interrupted,
-        "files": [SWEEP_CSV, TIMELINE_JSON, SUMMARY_MD, ERROR_VS_TIME_PNG, REPORT_HTML],
+        "files": [
+            SWEEP_CSV, TIMELINE_JSON, SUMMARY_MD, SUMMARY_CSV, ERROR_VS_TIME_PNG, REPORT_HTML,
+        ],  # fmt: skip
     }
 
 

@@ -10,6 +10,8 @@ TIMELINE_JSON = "timeline.json"
 #: Optional input: the paper's figures per stage (``sweep_summary.load_paper_figures``).
 PAPER_JSON = "paper.json"
 SUMMARY_MD = "summary.md"
+#: One row per stage x config: the summary's figures (``sweep_summary.SUMMARY_CSV_KEYS``).
+SUMMARY_CSV = "summary.csv"
 ERROR_VS_TIME_PNG = "error_vs_time.png"
 REPORT_HTML = "report.html"
 #: Chosen frames' images: ``IMAGES_DIR/<stage>/<frame>/<config>.png`` and the config's

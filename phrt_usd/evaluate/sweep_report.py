@@ -5,7 +5,9 @@
 ``write_sweep_report`` reads them and writes the human-readable ones next to them::
 
     OUT/summary.md                   one table per stage + the paper's figures beside ours
-    OUT/error_vs_time.png            mean FLIP against mean frame time, every stage
+    OUT/summary.csv                  the same figures, one row per stage x config
+    OUT/error_vs_time.png            mean FLIP, temporal error, transition rate against
+                                     mean frame time, every stage (Pareto front ringed)
     OUT/error_vs_time_<stage>.png    the same per stage (only with more than one stage)
     OUT/timeline_<stage>.png         which reflector was traced in which frame, per config
     OUT/report.html                  one static page: plots, tables, timelines, images
@@ -21,6 +23,7 @@ from pathlib import Path
 
 from phrt_usd.evaluate.sweep_files import (
     ERROR_VS_TIME_PNG,
+    SUMMARY_CSV,
     SUMMARY_MD,
     SWEEP_CSV,
     TIMELINE_JSON,
@@ -35,6 +38,7 @@ from phrt_usd.evaluate.sweep_summary import (
     read_timeline,
     stages_of,
     summarize,
+    write_summary_csv,
     write_summary_md,
 )
 
@@ -47,6 +51,7 @@ def write_sweep_report(out_dir: Path) -> None:
     summary = summarize(rows, timeline)
     paper = load_paper_figures(out_dir)
     write_summary_md(summary, out_dir / SUMMARY_MD, paper)
+    write_summary_csv(summary, out_dir / SUMMARY_CSV)
 
     stages = stages_of(summary)
     plot_error_vs_time(summary, out_dir / ERROR_VS_TIME_PNG)

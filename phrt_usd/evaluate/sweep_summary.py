@@ -38,6 +38,7 @@ Definitions used in the tables (all means are over the config's frames):
 from __future__ import annotations
 
 import csv
+import io
 import json
 import math
 import statistics
@@ -662,6 +663,34 @@ def write_summary_md(
         lines += [_md_cell(line) + "  " for line in notes]
         lines.append("")
     write_text_atomic(Path(path), "\n".join(lines))
+
+
+#: Columns of summary.csv: the summary entry's keys, numbers unrounded.
+SUMMARY_CSV_KEYS = (
+    "stage", "config", "heuristic", "mode", "kind", "budget", "budget_ms", "budget_rays",
+    "resolution", "bounce_limit", "frames", "mean_frame_ms", "median_frame_ms", "mean_fps",
+    "mean_trace_ms", "mean_rays", "mean_flip", "mean_flip_reflectors", "mean_psnr",
+    "transitions", "transition_chances", "transition_rate", "chances_from",
+    "mean_selected", "mean_visible", "mean_temporal_error",
+    "mean_temporal_error_reflectors", "pareto",
+)  # fmt: skip
+
+
+def write_summary_csv(summary: list[Mapping[str, Any]], path: Path) -> None:
+    """Write summary.csv: one row per summary entry (``SUMMARY_CSV_KEYS``); None is an
+    empty cell, an unbounded budget is ``inf``, ``pareto`` is 1 or 0."""
+    buf = io.StringIO()
+    writer = csv.writer(buf)
+    writer.writerow(SUMMARY_CSV_KEYS)
+    for entry in summary:
+        cells = []
+        for key in SUMMARY_CSV_KEYS:
+            value = entry.get(key)
+            if key == "pareto":
+                value = int(bool(value))
+            cells.append("" if value is None else value)
+        writer.writerow(cells)
+    write_text_atomic(Path(path), buf.getvalue())
 
 
 # --- timeline.json -------------------------------------------------------------------
