@@ -209,3 +209,10 @@ def test_sweep_over_two_bounce_limits(tmp_path):
     assert "<th>temporal error</th>" in html and "<th>Pareto</th>" in html
     assert "images/gallery/1/all%20b2.png" in html  # b2's configs shown beside all b2
     assert "temporal error" in html and "vs all b2" in html
+    # Report frames after the first carry a temporal error map, the first (no previous
+    # frame) none.
+    frames = sorted((out / "images" / "gallery").iterdir(), key=lambda p: float(p.name))
+    assert len(frames) >= 2
+    assert not (frames[0] / "heu1@600rays b2_temporal.png").exists()
+    assert (frames[1] / "heu1@600rays b2_temporal.png").is_file()
+    assert f"images/gallery/{frames[1].name}/heu1%40600rays%20b2_temporal.png" in html

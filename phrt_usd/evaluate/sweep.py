@@ -49,6 +49,7 @@ from phrt_usd.evaluate.sweep_files import (
     SUMMARY_CSV,
     SUMMARY_MD,
     SWEEP_CSV,
+    TEMPORAL_MAP_SUFFIX,
     TIMELINE_JSON,
 )
 from phrt_usd.render.renderer import FrameOutput, FrameRenderer, RenderOptions
@@ -425,10 +426,15 @@ class StageSweep:
                     selection = _selection_row(output, self.reflectors)
                     if record:
                         error = flip_map(ref_out.beauty, output.beauty)
-                        rows.append(_row(self.name, state, output, error, references, selection))
+                        temporal = _temporal_map(state, output, references)
+                        rows.append(
+                            _row(self.name, state, output, error, temporal, references, selection)
+                        )
                         if t in self.report_frames:
                             label = state.config.label
-                            _write_report_images(self.spec.out, self.name, t, label, output, error)
+                            _write_report_images(
+                                self.spec.out, self.name, t, label, output, error, temporal
+                            )
                     state.pending = (output, selection)
                 # Every row of this frame is made before any memory advances: the rows
                 # need the reference's previous image.
@@ -475,14 +481,15 @@ def _row(
     state: _ConfigState,
     output: FrameOutput,
     flip_ref: np.ndarray,
+    temporal_map: np.ndarray | None,
     refs: _References,
     selection: tuple[np.ndarray, np.ndarray],
 ) -> dict:
     """One CSV row. flip_ref: (H, W) FLIP of this output against the ``all`` reference
-    ``refs.ref``; selection: this frame's (selected, visible), see ``_selection_row``.
-    ``transitions``: from the configuration's previous frame into this one
-    (``selection_metrics``; 0 on its first frame). ``temporal_error``: mean of
-    ``temporal_error_map`` from the previous frame into this one (empty on the first)."""
+    ``refs.ref``; temporal_map: ``_temporal_map`` of this output (None on the first
+    frame: ``temporal_error`` cells empty); selection: this frame's (selected, visible),
+    see ``_selection_row``. ``transitions``: from the configuration's previous frame into
+    this one (``selection_metrics``; 0 on its first frame)."""
     st = output.stats
     cfg = state.config
     transitions = 0
@@ -494,12 +501,9 @@ def _row(
             )[-1]
         )
     temporal = temporal_reflectors = None
-    if state.previous_image is not None and refs.ref_previous is not None:
-        tmap = temporal_error_map(
-            refs.ref_previous, refs.ref.beauty, state.previous_image, output.beauty
-        )
-        temporal = round(mean_over(tmap), 6)
-        temporal_reflectors = round(mean_over(tmap, refs.temporal_px), 6)
+    if temporal_map is not None:
+        temporal = round(mean_over(temporal_map), 6)
+        temporal_reflectors = round(mean_over(temporal_map, refs.temporal_px), 6)
     heuristic = {"rt": "all", "raster": "none"}.get(cfg.mode, cfg.heuristic)
     return {
         "stage": stage,
@@ -529,6 +533,18 @@ def _row(
         "temporal_error": _blank(temporal),
         "temporal_error_reflectors": _blank(temporal_reflectors),
     }
+
+
+def _temporal_map(
+    state: _ConfigState, output: FrameOutput, refs: _References
+) -> np.ndarray | None:
+    """(H, W) ``temporal_error_map`` of this configuration from its previous frame into
+    this one, against the reference's change over the same frames; None on the first."""
+    if state.previous_image is None or refs.ref_previous is None:
+        return None
+    return temporal_error_map(
+        refs.ref_previous, refs.ref.beauty, state.previous_image, output.beauty
+    )
 
 
 def _blank(value):
@@ -561,17 +577,28 @@ def _selection_row(output: FrameOutput, reflectors: list[str]) -> tuple[np.ndarr
 
 
 def _write_report_images(
-    out: Path, stage: str, t: float, label: str, output: FrameOutput, error: np.ndarray
+    out: Path,
+    stage: str,
+    t: float,
+    label: str,
+    output: FrameOutput,
+    error: np.ndarray,
+    temporal: np.ndarray | None,
 ) -> None:
-    """Preview PNG and FLIP error map (magma) of one configuration's frame."""
+    """Preview PNG, FLIP error map and (after the first frame) temporal error map (both
+    (H, W) in [0, 1], magma) of one configuration's frame."""
     import matplotlib
 
     folder = out / IMAGES_DIR / stage / f"{t:g}"
     folder.mkdir(parents=True, exist_ok=True)
     write_preview_png(folder / f"{label}.png", output.beauty)
-    magma = matplotlib.colormaps["magma"](np.clip(error, 0.0, 1.0))[..., :3]
-    # The error map is already display-referred: written without the tone map.
-    _write_display_png(folder / f"{label}{FLIP_MAP_SUFFIX}.png", magma.astype(np.float32))
+    maps = [(FLIP_MAP_SUFFIX, error)]
+    if temporal is not None:
+        maps.append((TEMPORAL_MAP_SUFFIX, temporal))
+    for suffix, values in maps:
+        magma = matplotlib.colormaps["magma"](np.clip(values, 0.0, 1.0))[..., :3]
+        # The error map is already display-referred: written without the tone map.
+        _write_display_png(folder / f"{label}{suffix}.png", magma.astype(np.float32))
 
 
 def _write_display_png(path: Path, rgb: np.ndarray) -> None:

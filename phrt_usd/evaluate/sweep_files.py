@@ -18,6 +18,9 @@ REPORT_HTML = "report.html"
 #: FLIP error map ``<config>FLIP_MAP_SUFFIX.png``.
 IMAGES_DIR = "images"
 FLIP_MAP_SUFFIX = "_flip"
+#: ... and its temporal error map ``<config>TEMPORAL_MAP_SUFFIX.png`` (not on the first
+#: recorded frame, which has no previous frame).
+TEMPORAL_MAP_SUFFIX = "_temporal"
 
 
 def safe_file_part(name: str) -> str:

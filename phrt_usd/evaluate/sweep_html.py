@@ -5,6 +5,7 @@ chosen frames' images the sweep wrote::
 
     OUT/images/<stage>/<frame>/<config>.png       tone-mapped preview of chosen frames
     OUT/images/<stage>/<frame>/<config>_flip.png  FLIP error map vs the reference (magma)
+    OUT/images/<stage>/<frame>/<config>_temporal.png  temporal error map (magma)
     OUT/images/<stage>/<frame>/all.png            the reference (``all`` config)
 
 Limits: the page is static (no JavaScript); images are referenced by relative path, so
@@ -25,6 +26,7 @@ from phrt_usd.evaluate.sweep_files import (
     FLIP_MAP_SUFFIX,
     IMAGES_DIR,
     REPORT_HTML,
+    TEMPORAL_MAP_SUFFIX,
     stage_plot_name,
     timeline_plot_name,
 )
@@ -150,7 +152,8 @@ def _images_section(
         configs = [
             name
             for name in pngs
-            if not name.endswith(FLIP_MAP_SUFFIX) and name not in reference_names
+            if not name.endswith((FLIP_MAP_SUFFIX, TEMPORAL_MAP_SUFFIX))
+            and name not in reference_names
         ]
         configs.sort(key=lambda c: (order.index(c) if c in order else len(order), c))
         parts.append(f"<h3>{_esc(stage)}, frame {_esc(frame_dir.name)}</h3>")
@@ -180,6 +183,16 @@ def _images_section(
                         flip_map,
                         f"FLIP error of {config} vs {reference_name} "
                         "(magma: black = 0, yellow = 1)",
+                    )
+                )
+            temporal_map = pngs.get(config + TEMPORAL_MAP_SUFFIX)
+            if temporal_map is not None:
+                cells.append(
+                    _figure(
+                        out_dir,
+                        temporal_map,
+                        f"temporal error of {config}: its change from the previous frame "
+                        f"vs {reference_name}'s (magma)",
                     )
                 )
             parts.append('<div class="row">' + "".join(cells) + "</div>")
