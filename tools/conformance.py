@@ -57,6 +57,10 @@ FILL = 0.9
 PICTURE_SUFFIXES = (".png", ".jpg", ".jpeg", ".gif")
 #: Folders beside a stage where assets keep their own pictures, in order of preference.
 PICTURE_FOLDERS = ("screenshots", "screenshot", "thumbnails")
+#: The wrapper camera's clipping range: near at this fraction of its distance to the
+#: bounds' centre, far this many bounds diagonals beyond the bounds (depth precision of a
+#: 1:1000 range is ample for the raster's depth buffer).
+CLIP_NEAR, CLIP_FAR = 1e-2, 10.0
 #: Camera prim the wrapper layer adds.
 WRAPPER_CAMERA = "/ConformanceCamera"
 
@@ -67,6 +71,7 @@ class Asset:
     stage: Path
     reference: Path | None
     variants: tuple[str, ...] = ()  # "PRIM:SET=NAME" selections the wrapper authors
+    view: tuple[float, float] | None = None  # the wrapper camera's (azimuth, elevation)
 
 
 @dataclass
@@ -104,8 +109,9 @@ class AssetResult:
 
 
 def read_list(assets_dir: Path, list_file: Path) -> list[Asset]:
-    """The assets of a list file: ``NAME | STAGE | REFERENCE | VARIANTS`` lines (VARIANTS:
-    ``PRIM:SET=NAME`` selections separated by spaces)."""
+    """The assets of a list file: ``NAME | STAGE | REFERENCE | VARIANTS | VIEW`` lines
+    (VARIANTS: ``PRIM:SET=NAME`` selections separated by spaces; VIEW: ``AZ,EL`` degrees
+    of the wrapper camera, else ``--view``)."""
     assets = []
     for number, line in enumerate(list_file.read_text().splitlines(), 1):
         line = line.split("#", 1)[0].strip()
@@ -113,14 +119,17 @@ def read_list(assets_dir: Path, list_file: Path) -> list[Asset]:
             continue
         cells = [c.strip() for c in line.split("|")]
         if len(cells) < 2 or not cells[0] or not cells[1]:
-            sys.exit(f"{list_file}:{number}: expected NAME | STAGE [| REFERENCE [| VARIANTS]]")
+            sys.exit(f"{list_file}:{number}: expected NAME | STAGE [| REF [| VARIANTS [| VIEW]]]")
         stage = assets_dir / cells[1]
         reference = assets_dir / cells[2] if len(cells) > 2 and cells[2] else None
         variants = tuple(cells[3].split()) if len(cells) > 3 else ()
         for variant in variants:
             if not parse_variant(variant):
                 sys.exit(f"{list_file}:{number}: variant {variant!r} is not PRIM:SET=NAME")
-        assets.append(Asset(cells[0], stage, reference or find_reference(stage), variants))
+        view = parse_view(cells[4]) if len(cells) > 4 and cells[4] else None
+        if len(cells) > 4 and cells[4] and view is None:
+            sys.exit(f"{list_file}:{number}: view {cells[4]!r} is not AZ,EL (|EL| < 89)")
+        assets.append(Asset(cells[0], stage, reference or find_reference(stage), variants, view))
     return assets
 
 
@@ -157,6 +166,17 @@ def find_reference(stage: Path) -> Path | None:
 # --- the wrapper camera ------------------------------------------------------------------
 
 
+def parse_view(text: str) -> tuple[float, float] | None:
+    """(azimuth, elevation) degrees of ``AZ,EL``; None if malformed. The elevation stays
+    off the poles, where the up axis gives no image right direction."""
+    try:
+        view = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        return None
+    ok = len(view) == 2 and math.isfinite(view[0]) and abs(view[1]) < 89.0
+    return view if ok else None
+
+
 def parse_variant(text: str) -> tuple[str, str, str] | None:
     """(prim path, variant set, selection) of ``PRIM:SET=NAME``; None if malformed."""
     prim, _, rest = text.partition(":")
@@ -180,16 +200,16 @@ def framing_camera(
     stage, time_code: float, aspect: float, azimuth_deg: float, elevation_deg: float
 ) -> tuple[np.ndarray, float, float, float]:
     """(camera-to-world 4x4 row-vector matrix, vertical aperture mm, near, far) of a camera
-    looking at the centre of the stage's default and render purpose bounds from
+    looking at the centre of the stage's bounds (``gprim_bounds``) from
     ``azimuth_deg``/``elevation_deg`` about the up axis, at the nearest distance where the
-    8 corners of the bounds project inside ``FILL`` of the image window.
+    8 corners of the bounds project inside ``FILL`` of the image window. The clipping range
+    is wide (``CLIP_NEAR`` of the distance to ``CLIP_FAR`` sizes beyond): skinned or
+    animated geometry may leave the bounds, and clipping it would hide that.
 
     Raises ValueError when the stage has no finite, non-empty bounds."""
     from pxr import Gf, UsdGeom
 
-    purposes = [UsdGeom.Tokens.default_, UsdGeom.Tokens.render]
-    cache = UsdGeom.BBoxCache(time_code, purposes, useExtentsHint=True)
-    box = cache.ComputeWorldBound(stage.GetPseudoRoot()).ComputeAlignedRange()
+    box = gprim_bounds(stage, time_code)
     if box.IsEmpty():
         raise ValueError("the stage has no geometry bounds to frame")
     low, high = np.array(box.GetMin()), np.array(box.GetMax())
@@ -222,9 +242,29 @@ def framing_camera(
     distance = max(distance, float(z.max()) + 0.05 * size)  # the eye outside the bounds
     eye = centre + distance * towards
     view = Gf.Matrix4d().SetLookAt(Gf.Vec3d(*eye), Gf.Vec3d(*centre), Gf.Vec3d(*world_up))
-    near = max(distance - float(z.max()) - 0.01 * size, distance * 1e-3)
-    far = distance - float(z.min()) + 0.01 * size
+    # never past the nearest corner (the eye is outside the bounds), never zero
+    near = max(min(CLIP_NEAR * distance, 0.5 * (distance - float(z.max()))), 1e-6 * distance)
+    far = distance - float(z.min()) + CLIP_FAR * size
     return np.array(view.GetInverse()), vaperture, near, far
+
+
+def gprim_bounds(stage, time_code: float):
+    """The world-space ``Gf.Range3d`` of every default or render purpose gprim, instance
+    proxies included, each gprim's own bound (``UsdGeom.BBoxCache``, extents hints used).
+
+    Gprim by gprim rather than the pseudo-root's bound: a ``SkelRoot``'s computed extent is
+    its skeleton's joints (UsdSkel's extent rule), which can be a sliver of the skinned mesh;
+    a skinned mesh's own extent is its rest pose, the closer estimate."""
+    from pxr import Gf, Usd, UsdGeom
+
+    purposes = [UsdGeom.Tokens.default_, UsdGeom.Tokens.render]
+    cache = UsdGeom.BBoxCache(time_code, purposes, useExtentsHint=True)
+    box = Gf.Range3d()
+    predicate = Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate)
+    for prim in Usd.PrimRange(stage.GetPseudoRoot(), predicate):
+        if prim.IsA(UsdGeom.Gprim):
+            box.UnionWith(cache.ComputeWorldBound(prim).ComputeAlignedRange())
+    return box
 
 
 def wrapper_stage(asset_stage, asset_path: Path, variants):
@@ -300,7 +340,7 @@ def render_asset(asset: Asset, out: Path, resolution, modes, view) -> AssetResul
         else:
             if stage is source:
                 stage = wrapper_stage(source, asset.stage, ())
-            result.time_code = add_camera(stage, resolution, view)
+            result.time_code = add_camera(stage, resolution, asset.view or view)
             camera, result.camera = WRAPPER_CAMERA, "wrapper"
         if stage is source:
             stage_file = asset.stage
@@ -355,7 +395,7 @@ def render_isolated(asset: Asset, out: Path, resolution, modes, view, timeout) -
     record.parent.mkdir(parents=True, exist_ok=True)
     record.unlink(missing_ok=True)
     job = {"asset": [asset.name, str(asset.stage), str(asset.reference or ""),
-                     list(asset.variants)],
+                     list(asset.variants), asset.view],
            "out": str(out), "resolution": list(resolution), "modes": list(modes),
            "view": list(view), "record": str(record)}  # fmt: skip
     command = [sys.executable, str(Path(__file__).resolve()), "--one", json.dumps(job)]
@@ -376,8 +416,9 @@ def render_isolated(asset: Asset, out: Path, resolution, modes, view, timeout) -
 
 def run_one(job_text: str) -> None:
     job = json.loads(job_text)
-    name, stage, reference, variants = job["asset"]
-    asset = Asset(name, Path(stage), Path(reference) if reference else None, tuple(variants))
+    name, stage, reference, variants, own_view = job["asset"]
+    asset = Asset(name, Path(stage), Path(reference) if reference else None, tuple(variants),
+                  tuple(own_view) if own_view else None)  # fmt: skip
     result = render_asset(
         asset, Path(job["out"]), tuple(job["resolution"]), job["modes"], tuple(job["view"])
     )
@@ -539,11 +580,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--no-isolate", action="store_true", help="render in this process")
     args = parser.parse_args(argv)
     modes = [m.strip() for m in args.mode.split(",") if m.strip()]
-    try:
-        view = tuple(float(v) for v in args.view.split(","))
-        # the elevation stays off the poles, where "up" gives no image right direction
-        assert len(view) == 2 and math.isfinite(view[0]) and abs(view[1]) < 89.0
-    except (ValueError, AssertionError):
+    view = parse_view(args.view)
+    if view is None:
         parser.error(f"--view: expected AZIMUTH,ELEVATION degrees, |EL| < 89: {args.view!r}")
     if not args.assets_dir.is_dir():
         parser.error(f"{args.assets_dir}: not a folder")
