@@ -174,6 +174,13 @@ def author(
         bool,
         typer.Option(help="Overwrite an existing overlay (never the stage or a layer it uses)."),
     ] = False,
+    on_prototype: Annotated[
+        bool,
+        typer.Option(
+            help="A prim inside an instance: author on its prototype (a class every "
+            "instance of it inherits), so every instance gets the reflector."
+        ),
+    ] = False,
 ) -> None:
     """Apply PhrtReflectorAPI with priority K to PRIMS, in a new layer over the stage."""
     from phrt_usd.usd.authoring import author_reflectors
@@ -181,7 +188,14 @@ def author(
     with user_errors():
         open_input(stage)  # unreadable input -> exit 2 before anything else
         result = author_reflectors(
-            stage, prims, priority, reflectivity, out=out, in_place=in_place, force=force
+            stage,
+            prims,
+            priority,
+            reflectivity,
+            out=out,
+            in_place=in_place,
+            force=force,
+            on_prototype=on_prototype,
         )
     typer.echo(f"wrote {result.layer}: {len(result.prims)} reflector(s)")
 

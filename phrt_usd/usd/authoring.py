@@ -22,6 +22,18 @@ What this module guarantees:
 * ``in_place=True`` keeps the file's format: a text layer stays text, a crate stays
   crate (a ``.usd`` file keeps whichever of the two it is). A ``.usdz`` package is never
   edited in place (refused, the file untouched); write an overlay instead.
+* A prim inside an instance (an instance proxy) cannot carry opinions: USD ignores any
+  opinion below an instanceable prim. Authoring one is refused in one line naming the
+  instance root, unless ``on_prototype=True``: then the opinions go where they compose
+  into *every* instance of that prototype, without de-instancing anything and without
+  editing the referenced asset: a ``class`` prim ``/PhrtPrototypes/<Name>`` in the
+  written layer holds an ``over`` at the proxy's path below its instance root (with
+  PhrtReflectorAPI, K, F), and every instance root of the prototype gets a prepended
+  ``inherits`` arc to it. Inherits are part of an instance's composition key and
+  identical on all of them, so the instances still share one prototype, and inherits are
+  stronger than the references/payloads that bring the asset in (LIVRPS), so K and F
+  win over the asset's own. Nested instancing (an instance inside a prototype) is
+  refused: the inner instance root is itself a proxy and cannot take the arc.
 * Every file goes through ``phrt_usd.atomic.atomic_path`` (temp file beside the target, then a
   rename; an existing file's mode is kept, a new file follows the umask), and the written
   layer is reopened and checked before it replaces the target. On any failure the
@@ -35,7 +47,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-from pxr import Ar, Sdf, Tf, Usd, UsdGeom, UsdUtils
+from pxr import Ar, Pcp, Sdf, Tf, Usd, UsdGeom, UsdUtils
 
 from phrt_usd.atomic import WriteFailed, atomic_path
 from phrt_usd.errors import BadOption, PhrtError
@@ -43,6 +55,9 @@ from phrt_usd.usd import schema
 from phrt_usd.usd.stage import open_usd
 
 OVERLAY_SUFFIX = ".phrt.usda"
+
+#: Root ``class`` prim holding the per-prototype reflector opinions (``on_prototype``).
+PROTOTYPE_OPINIONS_ROOT = Sdf.Path("/PhrtPrototypes")
 
 #: Sdf file formats phrt writes layers in (``usd`` is text or crate, see ``_usd_flavour``).
 WRITABLE_FORMATS = ("usda", "usdc", "usd")
@@ -65,7 +80,39 @@ def default_overlay_path(stage_path: str | Path) -> Path:
     return p.with_name(p.name.split(".")[0] + OVERLAY_SUFFIX)
 
 
-def _check_prims(stage: Usd.Stage, prim_paths: list[str]) -> list[Usd.Prim]:
+def instance_root(prim: Usd.Prim) -> Usd.Prim:
+    """The outermost instance root above an instance proxy (the prim that can carry
+    opinions and arcs); ``prim`` itself when it is not a proxy."""
+    root = prim
+    while root.IsInstanceProxy():
+        root = root.GetParent()
+    return root
+
+
+def _proxy_refusal(prim: Usd.Prim) -> str:
+    root = instance_root(prim)
+    source = _prototype_source(root)
+    return (
+        f"{prim.GetPath()}: is inside the instance {root.GetPath()} (an instance proxy "
+        f"cannot carry opinions); author on the prototype with --on-prototype (every "
+        f"instance of it gets the reflector), or on its source{source}, or de-instance "
+        f"{root.GetPath()} (instanceable = false)"
+    )
+
+
+def _prototype_source(root: Usd.Prim) -> str:
+    """`` <asset>@<prim>`` of the first reference or payload that brings the instance's
+    content in, or "" when it has none (e.g. an internal inherit)."""
+    for node in root.GetPrimIndex().rootNode.children:
+        if node.arcType in (Pcp.ArcTypeReference, Pcp.ArcTypePayload):
+            layer = node.layerStack.identifier.rootLayer
+            return f" {layer.identifier}@{node.path}"
+    return ""
+
+
+def _check_prims(
+    stage: Usd.Stage, prim_paths: list[str], on_prototype: bool = False
+) -> list[Usd.Prim]:
     prims = []
     for path in prim_paths:
         if not Sdf.Path.IsValidPathString(path) or not Sdf.Path(path).IsAbsolutePath():
@@ -78,6 +125,19 @@ def _check_prims(stage: Usd.Stage, prim_paths: list[str]) -> list[Usd.Prim]:
                 f"{path}: is a {prim.GetTypeName() or 'typeless prim'}, not a gprim; "
                 f"{schema.REFLECTOR_API} applies to gprims only"
             )
+        if prim.IsInstanceProxy():
+            if not on_prototype:
+                raise PhrtError(_proxy_refusal(prim))
+            root = instance_root(prim)
+            inner = prim.GetParent()
+            while inner != root:
+                if inner.IsInstance():
+                    raise PhrtError(
+                        f"{path}: is inside the instance {inner.GetPath()}, itself inside "
+                        f"the instance {root.GetPath()} (nested instancing); author on the "
+                        f"inner prototype's source or de-instance {root.GetPath()}"
+                    )
+                inner = inner.GetParent()
         prims.append(prim)
     return prims
 
@@ -182,11 +242,14 @@ def author_reflectors(
     out: str | Path | None = None,
     in_place: bool = False,
     force: bool = False,
+    on_prototype: bool = False,
 ) -> AuthorResult:
     """Apply PhrtReflectorAPI with K (and F) to ``prim_paths`` of the stage at
     ``stage_path``; see the module docstring for where the opinions are written and what
     is guaranteed. ``force`` lets an overlay replace an existing file that the stage does
-    not use (it has no effect with ``in_place``)."""
+    not use (it has no effect with ``in_place``). ``on_prototype``: a prim inside an
+    instance is authored on its prototype, through a class every instance inherits
+    (module docstring); without it such a prim is refused."""
     if out is not None and in_place:
         raise BadOption("--out and --in-place exclude each other")
     if not prim_paths:
@@ -194,7 +257,7 @@ def author_reflectors(
     _check_values(priority, reflectivity)
     stage_file = Path(stage_path)
     stage = open_usd(stage_file)
-    _check_prims(stage, prim_paths)
+    _check_prims(stage, prim_paths, on_prototype)
     if in_place:
         target = _author_in_place(stage, stage_file, prim_paths, priority, reflectivity)
     else:
@@ -231,11 +294,13 @@ def _author_in_place(
     else:
         flavour, args = file_format.formatId, {}
     try:
-        for path in prim_paths:
+        plain, proxies = _split_proxies(stage, prim_paths)
+        for path in plain:
             schema.apply_reflector(
                 stage.GetPrimAtPath(path), priority=priority, reflectivity=reflectivity
             )
-        _write(root, target, flavour, args, prim_paths)
+        written = plain + _author_on_prototypes(root, proxies, priority, reflectivity)
+        _write(root, target, flavour, args, written)
     finally:
         # The registry's layer now matches the file again (or, after a failure, drops
         # the opinions that never reached it).
@@ -280,13 +345,102 @@ def _author_overlay(
     edit_layer.subLayerPaths.append(src.identifier)
     relative = Path(os.path.relpath(stage_file.resolve(), target.resolve().parent)).as_posix()
     edit_stage = Usd.Stage.Open(edit_layer)
-    for path in prim_paths:
+    plain, proxies = _split_proxies(edit_stage, prim_paths)
+    for path in plain:
         schema.apply_reflector(
             edit_stage.GetPrimAtPath(path), priority=priority, reflectivity=reflectivity
         )
+    written = plain + _author_on_prototypes(edit_layer, proxies, priority, reflectivity)
     # Close the authoring stage first: while it is open, USD recomposes the anonymous
     # layer against the relative path (which only resolves next to the file) and warns.
     del edit_stage
     edit_layer.subLayerPaths[0] = relative
     flavour = file_format.formatId if file_format.formatId in _MAGIC else None
-    _write(edit_layer, target, flavour, {}, prim_paths)
+    _write(edit_layer, target, flavour, {}, written)
+
+
+# --- on the prototype ---------------------------------------------------------------------
+
+
+def _split_proxies(stage: Usd.Stage, prim_paths: list[str]) -> tuple[list[str], list[Usd.Prim]]:
+    """(paths of prims that take opinions, instance-proxy prims), in the given order."""
+    plain, proxies = [], []
+    for path in prim_paths:
+        prim = stage.GetPrimAtPath(path)
+        (proxies.append(prim) if prim.IsInstanceProxy() else plain.append(path))
+    return plain, proxies
+
+
+def _class_name(taken: set[str], root: Usd.Prim) -> str:
+    """A child name of PROTOTYPE_OPINIONS_ROOT for the prototype of instance ``root``."""
+    name, n = root.GetName(), 1
+    while name in taken:
+        n += 1
+        name = f"{root.GetName()}_{n}"
+    taken.add(name)
+    return name
+
+
+def _existing_class(layer: Sdf.Layer, root: Usd.Prim) -> Sdf.Path | None:
+    """The PROTOTYPE_OPINIONS_ROOT class instance ``root`` already inherits in ``layer``."""
+    spec = layer.GetPrimAtPath(root.GetPath())
+    if spec is None:
+        return None
+    for target in spec.inheritPathList.GetAddedOrExplicitItems():
+        if target.HasPrefix(PROTOTYPE_OPINIONS_ROOT) and target != PROTOTYPE_OPINIONS_ROOT:
+            return target
+    return None
+
+
+def _author_on_prototypes(
+    layer: Sdf.Layer, proxies: list[Usd.Prim], priority: float, reflectivity: float | None
+) -> list[str]:
+    """Author the reflector opinions of instance-proxy gprims into ``layer`` on a class
+    per prototype, inherited by every instance of it (module docstring). Returns the
+    paths of the specs holding K (what the written layer is checked for)."""
+    if not proxies:
+        return []
+    top = layer.GetPrimAtPath(PROTOTYPE_OPINIONS_ROOT) or Sdf.CreatePrimInLayer(
+        layer, PROTOTYPE_OPINIONS_ROOT
+    )
+    top.specifier = Sdf.SpecifierClass
+    taken = {child.name for child in top.nameChildren}
+    classes: dict[Sdf.Path, Sdf.Path] = {}  # prototype path -> class path
+    written: list[str] = []
+    with Sdf.ChangeBlock():
+        for prim in proxies:
+            root = instance_root(prim)
+            prototype = root.GetPrototype()
+            if prototype.GetPath() not in classes:
+                instances = sorted(prototype.GetInstances(), key=lambda p: p.GetPath())
+                found = [c for i in instances if (c := _existing_class(layer, i))]
+                cls = found[0] if found else PROTOTYPE_OPINIONS_ROOT.AppendChild(
+                    _class_name(taken, instances[0])
+                )
+                spec = layer.GetPrimAtPath(cls) or Sdf.CreatePrimInLayer(layer, cls)
+                spec.specifier = Sdf.SpecifierClass
+                for instance in instances:
+                    ispec = layer.GetPrimAtPath(instance.GetPath()) or Sdf.CreatePrimInLayer(
+                        layer, instance.GetPath()
+                    )
+                    if cls not in ispec.inheritPathList.GetAddedOrExplicitItems():
+                        ispec.inheritPathList.Prepend(cls)
+                classes[prototype.GetPath()] = cls
+            where = classes[prototype.GetPath()].AppendPath(
+                prim.GetPath().MakeRelativePath(root.GetPath())
+            )
+            spec = layer.GetPrimAtPath(where) or Sdf.CreatePrimInLayer(layer, where)
+            apis = spec.GetInfo("apiSchemas")
+            if schema.REFLECTOR_API not in apis.GetAddedOrExplicitItems():
+                apis.prependedItems = [schema.REFLECTOR_API, *apis.prependedItems]
+                spec.SetInfo("apiSchemas", apis)
+            values = [(schema.PRIORITY, priority), (schema.REFLECTIVITY, reflectivity)]
+            for name, value in values:
+                if value is None:
+                    continue
+                attr = spec.attributes.get(name) or Sdf.AttributeSpec(
+                    spec, name, Sdf.ValueTypeNames.Float
+                )
+                attr.default = float(value)
+            written.append(str(where))
+    return written
