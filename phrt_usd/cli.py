@@ -138,7 +138,11 @@ def validate(stage: StageArg, json_out: JsonOpt = False) -> None:
         for issue in report.issues:
             typer.echo(issue.line(), err=issue.severity == "error")
         if report.ok:
-            typer.echo(f"ok: {stage} ({len(report.warnings)} warning(s))")
+            typer.echo(
+                f"ok: {stage} ({len(report.warnings)} warning(s); "
+                f"{len(report.reflectors)} reflector(s), "
+                f"{len(report.instanced_reflectors)} inside instances)"
+            )
     if not report.ok:
         raise typer.Exit(EXIT_PROBLEMS)
 
@@ -212,7 +216,10 @@ def _print_summary(s: dict) -> None:
         f"time codes {m['startTimeCode']:g}..{m['endTimeCode']:g} "
         f"@ {m['timeCodesPerSecond']:g}/s"
     )
-    table = Table(title=f"Reflectors ({len(s['reflectors'])})")
+    inside = s.get("instanced_reflectors", 0)
+    title = f"Reflectors ({len(s['reflectors'])}"
+    title += f", {inside} inside instances)" if inside else ")"
+    table = Table(title=title)
     for col in ("path", "K", "F", "triangles", "bounds min (m)", "bounds max (m)"):
         table.add_column(col)
     for r in s["reflectors"]:
@@ -220,7 +227,8 @@ def _print_summary(s: dict) -> None:
         lo = "-" if b["min_m"] is None else ", ".join(_fmt(x) for x in b["min_m"])
         hi = "-" if b["max_m"] is None else ", ".join(_fmt(x) for x in b["max_m"])
         tris = "-" if r["triangles"] is None else str(r["triangles"])
-        table.add_row(r["path"], _fmt(r["priority"]), _fmt(r["reflectivity"]), tris, lo, hi)
+        where = r["path"] + (f" (prototype {r['prototype']})" if r.get("prototype") else "")
+        table.add_row(where, _fmt(r["priority"]), _fmt(r["reflectivity"]), tris, lo, hi)
     console.print(table)
     paths = Table(title=f"Camera paths ({len(s['camera_paths'])})")
     for col in ("path", "camera", "frames", "control points", "interpolation"):

@@ -1,6 +1,10 @@
 """What a stage holds for phrt: reflectors, camera paths, render settings, lights,
 stage metadata, and which render passes a render of it needs.
 
+Reflectors are listed with instance proxies (``rules.stage_reflectors``): a reflector
+inside an instanced reference once per instance, at its per-instance path (the render's
+element path), with its instance root and prototype prim.
+
 Everything is read at the default time code (bounds too) and returned as plain
 JSON-ready dicts/lists; ``phrt inspect`` prints them as tables or one JSON object.
 
@@ -17,6 +21,8 @@ import numpy as np
 from pxr import Usd, UsdGeom, UsdLux, UsdShade
 
 from phrt_usd.usd import schema
+from phrt_usd.usd.authoring import instance_root
+from phrt_usd.usd.rules import stage_reflectors
 
 SHADOW_LIGHT_TYPES = ("DistantLight", "SphereLight", "RectLight")
 ENVIRONMENT_LIGHT_TYPES = ("DomeLight", "DomeLight_1")
@@ -89,7 +95,7 @@ def required_passes(stage: Usd.Stage, lights: list[dict], n_reflectors: int) -> 
 
 def inspect_stage(stage: Usd.Stage, label: str | None = None) -> dict:
     """Summary of an open stage as one JSON-ready dict (keys: stage, metadata, reflectors,
-    camera_paths, render_settings, lights, passes)."""
+    instanced_reflectors (their count), camera_paths, render_settings, lights, passes)."""
     mpu = float(UsdGeom.GetStageMetersPerUnit(stage))
     cache = UsdGeom.BBoxCache(
         Usd.TimeCode.Default(), [UsdGeom.Tokens.default_, UsdGeom.Tokens.render]
@@ -102,8 +108,11 @@ def inspect_stage(stage: Usd.Stage, label: str | None = None) -> dict:
             "reflectivity": schema.reflector_reflectivity(p),
             "triangles": _triangle_count(p),
             "bounds": _bounds(cache, p, mpu),
+            # Inside an instance: the instance root and the prototype prim it shows.
+            "instance": str(instance_root(p).GetPath()) if p.IsInstanceProxy() else None,
+            "prototype": str(p.GetPrimInPrototype().GetPath()) if p.IsInstanceProxy() else None,
         }
-        for p in schema.find_reflectors(stage)
+        for p in stage_reflectors(stage)
     ]
     camera_paths = []
     for prim in schema.find_camera_paths(stage):
@@ -132,6 +141,7 @@ def inspect_stage(stage: Usd.Stage, label: str | None = None) -> dict:
             else None,
         },
         "reflectors": reflectors,
+        "instanced_reflectors": sum(r["instance"] is not None for r in reflectors),
         "camera_paths": camera_paths,
         "render_settings": asdict(schema.read_render_params(stage)),
         "lights": lights,

@@ -218,6 +218,18 @@ def _reflector_warnings(prim: Usd.Prim, kind: str, time: float) -> list[Issue]:
     return issues
 
 
+def stage_reflectors(stage: Usd.Stage) -> list[Usd.Prim]:
+    """Every reflector of the stage in traversal order, instance proxies included: a
+    reflector inside an instanced reference appears once per instance, at its
+    per-instance path (``/World/Tree_3/Leaves``), the path the render names its element
+    by. ``Usd.Prim.GetPrimInPrototype`` gives the prototype prim of such a proxy."""
+    return [
+        p
+        for p in Usd.PrimRange(stage.GetPseudoRoot(), Usd.TraverseInstanceProxies())
+        if schema.is_reflector(p)
+    ]
+
+
 def _gprim_issues(stage: Usd.Stage, frames: tuple[float, float]) -> list[Issue]:
     """The render's reflector and mesh rules on every gprim it reads, plus warnings."""
     issues = []
@@ -228,7 +240,7 @@ def _gprim_issues(stage: Usd.Stage, frames: tuple[float, float]) -> list[Issue]:
         issues += [Issue.of(ERROR, m, GEOMETRY) for m in messages]
         if schema.is_reflector(prim) and not messages:
             issues += _reflector_warnings(prim, kind, frames[0])
-    for prim in schema.find_reflectors(stage):
+    for prim in stage_reflectors(stage):
         if prim.GetTypeName() not in RENDERED_GPRIM_TYPES:
             issues.append(
                 Issue(

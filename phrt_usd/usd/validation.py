@@ -18,14 +18,14 @@ of ``VALIDATOR_NAMES``, each in the order its rules report (prim validators by p
 from __future__ import annotations
 
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from pxr import Sdf, Usd, UsdValidation
 
 from phrt_usd.usd import validators
 from phrt_usd.usd.composition import composition_problems
-from phrt_usd.usd.rules import ERROR, WARNING, Issue
+from phrt_usd.usd.rules import ERROR, WARNING, Issue, stage_reflectors
 from phrt_usd.usd.stage import open_usd
 
 __all__ = ["ERROR", "WARNING", "Issue", "ValidationReport", "validate_file", "validate_stage"]
@@ -33,8 +33,13 @@ __all__ = ["ERROR", "WARNING", "Issue", "ValidationReport", "validate_file", "va
 
 @dataclass(frozen=True)
 class ValidationReport:
+    """``reflectors``: every reflector prim path, instance proxies included
+    (``rules.stage_reflectors``); ``instanced_reflectors``: those inside instances."""
+
     stage: str
     issues: list[Issue]
+    reflectors: list[str] = field(default_factory=list)
+    instanced_reflectors: list[str] = field(default_factory=list)
 
     @property
     def errors(self) -> list[Issue]:
@@ -54,6 +59,8 @@ class ValidationReport:
             "ok": self.ok,
             "errors": [i.as_dict() for i in self.errors],
             "warnings": [i.as_dict() for i in self.warnings],
+            "reflectors": list(self.reflectors),
+            "instanced_reflectors": list(self.instanced_reflectors),
         }
 
 
@@ -123,7 +130,13 @@ def validate_stage(stage: Usd.Stage, label: str | None = None) -> ValidationRepo
     # Stable sorts: a task's own findings keep their order (a context keeps them together).
     usd.sort(key=lambda t: (t[0], t[1]))
     phrt.sort(key=lambda t: (t[0], t[1]))
-    return ValidationReport(name, [t[2] for t in usd] + [t[2] for t in phrt])
+    reflectors = stage_reflectors(stage)
+    return ValidationReport(
+        name,
+        [t[2] for t in usd] + [t[2] for t in phrt],
+        reflectors=[str(p.GetPath()) for p in reflectors],
+        instanced_reflectors=[str(p.GetPath()) for p in reflectors if p.IsInstanceProxy()],
+    )
 
 
 def validate_file(path: str | Path) -> ValidationReport:
