@@ -21,7 +21,8 @@ ASSETS_DIR, by default ``**/*.usd*``):
    crash or a hang past ``--timeout`` is recorded too);
 3. ``OUT/NAME.png``: a contact sheet of the renders and the asset's reference picture
    (the list's third column, else the first ``screenshots/``, ``screenshot/`` or
-   ``thumbnails/`` image beside the stage), each 256 px wide and labelled;
+   ``thumbnails/`` image beside the stage, fitted into a panel), each 256 px wide and
+   labelled;
 4. ``OUT/index.md`` (a markdown table: asset, status, camera, warnings, time, coverage)
    and ``OUT/results.json`` (the same, every warning in full).
 
@@ -430,7 +431,7 @@ def run_one(job_text: str) -> None:
 
 def write_sheet(path: Path, images: dict, modes, reference: Path | None, resolution) -> None:
     """One row: a panel per mode (its render, sRGB previews as the run writes them) and the
-    reference picture scaled to the panel width, each labelled underneath."""
+    reference picture fitted into a panel, each labelled underneath."""
     import OpenImageIO as oiio
 
     from phrt_usd.run.images import tonemap_ldr, write_png_atomic
@@ -446,9 +447,14 @@ def write_sheet(path: Path, images: dict, modes, reference: Path | None, resolut
             panels.append(None)
             labels.append(f"phrt {mode}: failed")
     picture = read_picture(reference) if reference is not None else None
-    if picture is not None:
+    if picture is not None:  # fitted into the panel's box, its aspect kept
         h, w = picture.shape[:2]
-        panels.append(resize(picture, PANEL_WIDTH, max(1, round(PANEL_WIDTH * h / w))))
+        scale = min(PANEL_WIDTH / w, panel_height / h)
+        fitted = resize(picture, max(1, round(w * scale)), max(1, round(h * scale)))
+        box = np.full((panel_height, PANEL_WIDTH, 3), 0.12, np.float32)
+        top, left = (panel_height - fitted.shape[0]) // 2, (PANEL_WIDTH - fitted.shape[1]) // 2
+        box[top : top + fitted.shape[0], left : left + fitted.shape[1]] = fitted
+        panels.append(box)
         labels.append(f"reference: {reference.name}"[:40])
     else:
         panels.append(None)
