@@ -11,7 +11,8 @@
 
 Options (``**options``; ``None`` means "not given": the stage's render settings decide):
 ``mode``, ``heuristic``, ``resolution`` (``(w, h)`` or ``"WxH"``) or ``width`` / ``height``,
-``budget_ms`` (``math.inf``: unbounded), ``budget_rays``, ``bounce_limit``,
+``budget_ms`` (``math.inf``: unbounded), ``budget_rays``, ``target_fps`` (exclusive with
+``budget_ms``), ``bounce_limit``,
 ``selection_weight``, ``threads`` (the ``RenderOptions`` fields), and for ``render`` the
 ``RenderJob`` fields ``camera``, ``selection_layer``, ``resume``, ``overwrite``,
 ``write_images``, ``checkpoint_every``; and how a stage file is composed: ``session_layers``
@@ -96,13 +97,20 @@ def render_options(
     width, height = _resolution(given, params.resolution)
     rays = given.get("budget_rays")
     rays = params.budget_rays if rays is None else _integer("budget_rays", rays)
+    fps = given.get("target_fps")
+    fps = None if fps is None else _real("target_fps", fps)
     if "budget_ms" in given:
         ms = _unbounded(_real("budget_ms", given["budget_ms"]))
-    elif "budget_rays" in given:
+        # A budget given here replaces the stage's frame-rate target (both given: BadOption).
+    elif "budget_rays" in given or fps is not None:
         ms = None  # a rays budget alone is the deterministic budget
+    elif params.target_fps is not None:
+        ms, fps = None, params.target_fps  # the stage's phrt:targetFps replaces its budget
     else:
         ms = _unbounded(params.budget_ms)
     extra = {}
+    if fps is not None:
+        extra["target_fps"] = fps
     if "threads" in given:
         extra["threads"] = _integer("threads", given["threads"], minimum=1)
     return RenderOptions(
@@ -335,7 +343,39 @@ def summary_of(record: RunRecord) -> dict:
         # File name templates of a frame's images, relative to ``out`` (frame tokens kept).
         images=[name for p in products for name in (p.template, p.preview) if name],
     )
+    summary.update(trace_summary(record.frames))
     return summary
+
+
+def trace_summary(frames: Sequence[FrameStats]) -> dict:
+    """What a run's hybrid frames traced: ``untraced_frames`` (frames with visible
+    reflectors that traced nothing), ``mean_budget_use`` (trace ms / T over the
+    time-budgeted frames with visible reflectors, None without any),
+    ``trace_prediction_error`` (median |expected - measured| / measured trace ms after
+    the first three frames, None without traced frames) and ``trace_note``, one line when
+    hybrid frames with visible reflectors traced nothing (the first reason), else None."""
+    seen = [f for f in frames if f.visible]
+    untraced = [f for f in seen if not f.selected and f.untraced_reason is not None]
+    uses = [f.budget_use for f in seen if f.budget_use is not None]
+    errors = [
+        abs(f.expected_trace_ms - f.trace_ms) / f.trace_ms
+        for f in list(frames)[3:]
+        if f.selected and f.trace_ms > 0.0
+    ]
+    note = None
+    if untraced:
+        share = "none" if len(untraced) == len(seen) else f"{len(untraced)} of {len(seen)}"
+        note = (
+            f"hybrid traced nothing in {share} of the frames with visible reflectors"
+            f" ({len(untraced)}/{len(seen)}); e.g. t={untraced[0].time:g}:"
+            f" {untraced[0].untraced_reason}"
+        )
+    return {
+        "untraced_frames": len(untraced),
+        "mean_budget_use": float(np.mean(uses)) if uses else None,
+        "trace_prediction_error": float(np.median(errors)) if errors else None,
+        "trace_note": note,
+    }
 
 
 # --------------------------------------------------------------------------------------

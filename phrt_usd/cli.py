@@ -350,6 +350,10 @@ def render(
     budget_rays: Annotated[
         int | None, typer.Option(help="Trace budget in rays per frame (deterministic).")
     ] = None,
+    target_fps: Annotated[
+        float | None,
+        typer.Option(help="Frame rate to hold: T = what raster and shading leave of 1000/F ms."),
+    ] = None,
     resolution: Annotated[str | None, typer.Option(help="WxH, e.g. 320x240.")] = None,
     bounce_limit: Annotated[int | None, typer.Option(help="Reflection bounce limit.")] = None,
     selection_weight: Annotated[
@@ -420,6 +424,7 @@ def render(
             resolution=resolution,
             budget_ms=budget_ms,
             budget_rays=budget_rays,
+            target_fps=target_fps,
             bounce_limit=bounce_limit,
             selection_weight=selection_weight,
             camera=camera,
@@ -463,6 +468,8 @@ def render(
         from phrt_usd.evaluate.report import print_report
 
         print_report(summary, Console())
+        if summary.get("trace_note"):
+            typer.echo(f"note: {summary['trace_note']}")
         typer.echo(_written(summary))
 
 

@@ -118,7 +118,8 @@ class FrameView:
 class Budget:
     """Remaining trace budget of the current frame. ``None`` fields are unbounded.
 
-    ms: wall-clock milliseconds left for tracing (``--budget-ms``);
+    ms: wall-clock milliseconds left for tracing (``--budget-ms``, or what
+        ``--target-fps`` leaves of the frame period);
     rays: rays left (``--budget-rays``, deterministic on every machine).
     """
 
@@ -176,3 +177,16 @@ class FrameStats:
     selected: list[str]  # reflector prim paths traced in the frame
     metrics: dict[str, ReflectorMetrics]  # prim path → figures (candidates only)
     passes: list[str]  # render passes that ran, e.g. ["gbuffer", "shadow_map", "trace"]
+    #: The frame's trace budget T in ms when time-budgeted (``--budget-ms``, or what
+    #: ``--target-fps`` left of the frame period), else None.
+    budget_ms: float | None = None
+    #: Central estimate of the trace time made before each round (no safety factors),
+    #: summed over the frame's rounds: set against ``trace_ms`` for the cost model's error.
+    expected_trace_ms: float = 0.0
+    #: trace_ms / budget_ms in a time-budgeted frame with visible reflectors, else None.
+    budget_use: float | None = None
+    #: Why nothing was traced in a hybrid frame with visible reflectors (with numbers).
+    untraced_reason: str | None = None
+    #: The run's trace-time calibration, on the frame that ran it: rays, ms of each timed
+    #: round, the fitted fixed ms and ms per ray, its wall ms (not in frame_ms).
+    calibration: dict | None = None

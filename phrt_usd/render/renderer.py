@@ -63,6 +63,21 @@ MAX_RESOLUTION_PIXELS = 2**26
 #: Largest --budget-rays: far above any frame's need (a 2**26-pixel frame at 16 bounces
 #: casts ~1e9 rays) and small enough for every int64 figure and USD's integer metadata.
 MAX_BUDGET_RAYS = 10**12
+#: With ``--target-fps``, a frame's trace budget T leaves this share of the frame period
+#: unbudgeted: what runs after the last tracing round (the policy's end of frame, its
+#: metrics, the stats) is not measured before T is set, and timer and scheduler jitter
+#: between frames would otherwise push every frame slightly past the period.
+TARGET_FPS_MARGIN = 0.05
+#: Highest --target-fps: a period of 1 ms is far below any frame's raster here.
+MAX_TARGET_FPS = 1000.0
+#: The trace-time calibration (``FrameRenderer._calibrate``): timed rounds over this many
+#: reflector pixels of the first frame with visible reflectors, sampled with a fixed seed.
+#: Two sizes separate a round's fixed cost from its per-ray cost; each size is timed
+#: CALIBRATION_REPEATS times after one warm-up round and its fastest time kept (the
+#: others carry the noise of the shared machine). A few thousand rays: a few ms, once.
+CALIBRATION_PIXELS = (64, 512)
+CALIBRATION_REPEATS = 2
+CALIBRATION_SEED = 0
 
 
 @dataclass
@@ -79,6 +94,10 @@ class RenderOptions:
     bounce_limit: int = DEFAULT_BOUNCE_LIMIT
     selection_weight: float = DEFAULT_SELECTION_WEIGHT
     threads: int = DEFAULT_THREADS  # the tracer's pool (phrt_usd.threads)
+    #: Frame rate to hold (``--target-fps``): each frame's T is the frame period less the
+    #: frame's measured raster and shading and the previous frame's selection, less
+    #: TARGET_FPS_MARGIN of the period. Exclusive with ``budget_ms``.
+    target_fps: float | None = None
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -96,6 +115,13 @@ class RenderOptions:
             )
         if self.budget_ms is not None and not (self.budget_ms >= 0 and np.isfinite(self.budget_ms)):
             raise BadOption(f"--budget-ms must be a finite number >= 0, got {self.budget_ms}")
+        if self.target_fps is not None:
+            if not (np.isfinite(self.target_fps) and 0 < self.target_fps <= MAX_TARGET_FPS):
+                raise BadOption(
+                    f"--target-fps must be in (0, {MAX_TARGET_FPS:g}], got {self.target_fps}"
+                )
+            if self.budget_ms is not None:
+                raise BadOption("--budget-ms and --target-fps both given: use one of them")
         if self.budget_rays is not None and not 0 <= self.budget_rays <= MAX_BUDGET_RAYS:
             raise BadOption(
                 f"--budget-rays must be in 0..{MAX_BUDGET_RAYS}, got {self.budget_rays}"
@@ -173,6 +199,9 @@ class FrameRenderer:
         self._planned: list[float] = []
         self._planned_index: dict[float, int] = {}
         self._cameras: dict[float, CameraFrame] = {}
+        #: Selection ms of the last frame each policy finished (id(policy) → ms): the
+        #: estimate of this frame's selection when --target-fps sets T.
+        self._select_ms: dict[int, float] = {}
         policy_name = "all" if options.mode == "rt" else options.heuristic
         self.policy = make_policy(
             policy_name,
@@ -299,6 +328,14 @@ class FrameRenderer:
         rays = 0
         metrics: dict[int, ReflectorMetrics] = {}
         selected: list[int] = []
+        frame_budget_ms = self._frame_budget_ms(prep, policy, opts)
+        untraced_reason = None
+        calibration = None
+        note: dict = {}
+        if self._tracer is not None and opts.mode != "raster" and visible_ids:
+            calibration = self._calibrate(gb, visible_ids, policy, frame_budget_ms)
+            if calibration is not None:
+                phase["calibrate"] = calibration["wall_ms"]
         if self._tracer is not None and opts.mode != "raster":
             view = FrameView(
                 prep.time,
@@ -313,10 +350,12 @@ class FrameRenderer:
             policy.begin_frame(view, scene)
             select_ms += _ms(t)
             while True:
-                budget = _remaining(opts, trace_ms, rays)
+                budget = _remaining(opts, trace_ms, rays, frame_budget_ms)
                 if (budget.ms is not None and budget.ms <= 0) or (
                     budget.rays is not None and budget.rays <= 0
                 ):
+                    if not selected and visible_ids:
+                        untraced_reason = _no_budget_reason(budget, prep, opts, frame_budget_ms)
                     break
                 t = time.perf_counter()
                 ids = policy.next_round(budget)
@@ -339,6 +378,10 @@ class FrameRenderer:
             t = time.perf_counter()
             metrics = policy.end_frame()
             select_ms += _ms(t)
+            note = getattr(policy, "last_frame_note", None) or {}
+            if not selected and visible_ids and untraced_reason is None:
+                untraced_reason = note.get("untraced_reason")
+            self._select_ms[id(policy)] = select_ms
             if selected:
                 passes.append("trace")
                 if scene.materials.has_transmission:
@@ -346,8 +389,18 @@ class FrameRenderer:
         phase["select"] = select_ms
         phase["trace"] = trace_ms
 
+        if opts.mode == "hybrid" and visible_ids and not selected and untraced_reason is None:
+            untraced_reason = (
+                "no tracer: the stage has no reflectors to trace"
+                if self._tracer is None
+                else f"heuristic {opts.heuristic} traces nothing"
+            )
         alpha = gb.covered.astype(np.float32)
-        frame_ms = prep.prepare_ms + _ms(t_finish)
+        # The calibration runs once per run and is reported apart (FrameStats.calibration).
+        frame_ms = prep.prepare_ms + _ms(t_finish) - phase.get("calibrate", 0.0)
+        budget_use = None
+        if frame_budget_ms is not None and frame_budget_ms > 0 and visible_ids:
+            budget_use = trace_ms / frame_budget_ms
         elements = scene.elements
         stats = FrameStats(
             time=prep.time,
@@ -360,8 +413,75 @@ class FrameRenderer:
             selected=[elements[i].path for i in selected],
             metrics={elements[i].path: m for i, m in metrics.items()},
             passes=passes,
+            budget_ms=frame_budget_ms,
+            expected_trace_ms=float(note.get("expected_trace_ms", 0.0)) if selected else 0.0,
+            budget_use=budget_use,
+            untraced_reason=untraced_reason if opts.mode == "hybrid" else None,
+            calibration=calibration,
         )
         return FrameOutput(image, alpha, gb, traced_mask, stats)
+
+    def _frame_budget_ms(
+        self, prep: PreparedFrame, policy: SelectionPolicy, opts: RenderOptions
+    ) -> float | None:
+        """This frame's time budget T (ms), None when not time-budgeted: ``budget_ms``;
+        with ``target_fps``, the period 1000 / F less this frame's raster and shading
+        (``prep.prepare_ms``), the previous frame's selection and the margin, >= 0."""
+        if opts.mode == "rt":
+            return None
+        if opts.target_fps is not None:
+            return target_fps_budget_ms(
+                opts.target_fps, prep.prepare_ms, self._select_ms.get(id(policy), 0.0)
+            )
+        return opts.budget_ms
+
+    def _calibrate(
+        self, gb: GBuffer, visible_ids: list[int], policy: SelectionPolicy, budget_ms
+    ) -> dict | None:
+        """Time the tracer on this frame's own reflector pixels once per run (a policy
+        whose time model is not calibrated yet, in a time-budgeted frame) and hand the
+        timings to the policy (``BudgetedPolicy.calibrate``). The pixels are taken out of
+        the G-buffer into a (1, n) one, so the rounds go through the real
+        ``Tracer.trace_reflections`` and compositing. Returns what stats.json reports, or
+        None when nothing was calibrated."""
+        model = getattr(policy, "time_model", None)
+        if budget_ms is None or model is None or model.calibrated:
+            return None
+        if not hasattr(policy, "calibrate"):
+            return None
+        start = time.perf_counter()
+        flat = np.flatnonzero(np.isin(gb.element_id.reshape(-1), visible_ids))
+        rng = np.random.default_rng(CALIBRATION_SEED)
+        samples: list[tuple[int, float]] = []
+        total_rays = total_pixels = 0
+        sizes = (CALIBRATION_PIXELS[0],) + CALIBRATION_PIXELS * CALIBRATION_REPEATS
+        best: dict[int, tuple[int, float]] = {}
+        for k, n in enumerate(sizes):
+            pick = np.sort(rng.choice(flat, size=n, replace=len(flat) < n))
+            sub = GBuffer(*(getattr(gb, f).reshape(-1, *getattr(gb, f).shape[2:])[pick][None]
+                            for f in GBUFFER_FIELDS))  # fmt: skip
+            ids = sorted(set(sub.element_id.reshape(-1).tolist()))
+            image = np.zeros((1, n, 3), np.float32)
+            t = time.perf_counter()
+            result = self._tracer.trace_reflections(sub, ids, self.options.bounce_limit)
+            apply_traced(image, image.copy(), np.ones((1, n), np.float32), result,
+                         np.zeros((1, n), bool))  # fmt: skip
+            ms = _ms(t)
+            if k == 0:
+                continue  # the warm-up round: caches, the pool's threads
+            total_rays += result.rays
+            total_pixels += n
+            if n not in best or ms < best[n][1]:
+                best[n] = (int(result.rays), ms)
+        samples = list(best.values())
+        policy.calibrate(samples, total_rays, total_pixels)
+        return {
+            "rounds": [{"rays": r, "ms": m} for r, m in samples],
+            "overhead_ms": model.prior_overhead_ms,
+            "ms_per_ray": model.prior_ms_per_ray,
+            "rays_per_pixel": total_rays / max(total_pixels, 1),
+            "wall_ms": _ms(start),
+        }
 
     def _screen_boxes(self, gb: GBuffer) -> np.ndarray:
         """(E, 4) pixel bounds (col_min, row_min, col_max, row_max) of every reflector's
@@ -404,12 +524,43 @@ class FrameRenderer:
         return shade_gbuffer(gb, self.scene, self.options.mode, self._rasterizer, self._tracer)
 
 
-def _remaining(opts: RenderOptions, trace_ms: float, rays: int) -> Budget:
-    """Budget left after ``trace_ms`` and ``rays`` were spent (unbounded in ``rt``)."""
+#: The GBuffer's per-pixel arrays, in its field order (the calibration samples them).
+GBUFFER_FIELDS = ("element_id", "triangle_id", "depth", "position", "normal", "albedo", "view_dir")
+
+
+def target_fps_budget_ms(target_fps: float, prepare_ms: float, select_ms: float) -> float:
+    """A frame's trace budget T (ms) under ``target_fps``: the period 1000 / F less the
+    measured raster and shading (``prepare_ms``), the selection (``select_ms``, the
+    previous frame's: this one's is not known yet) and TARGET_FPS_MARGIN of the period;
+    >= 0 (a raster slower than the period leaves nothing to trace), finite."""
+    period = 1000.0 / target_fps
+    spent = max(float(prepare_ms), 0.0) + max(float(select_ms), 0.0)
+    t = period * (1.0 - TARGET_FPS_MARGIN) - spent
+    return float(t) if t > 0.0 and np.isfinite(t) else 0.0
+
+
+def _no_budget_reason(budget: Budget, prep: PreparedFrame, opts, frame_budget_ms) -> str:
+    """Why a frame with visible reflectors had no budget at all to trace, with numbers."""
+    if budget.rays is not None and budget.rays <= 0:
+        return f"budget {budget.rays} rays"
+    if opts.target_fps is not None:
+        return (
+            f"budget 0 ms: target {opts.target_fps:g} fps ({1000.0 / opts.target_fps:.2f} ms)"
+            f" less raster and shading {prep.prepare_ms:.2f} ms, the last selection and the"
+            f" {TARGET_FPS_MARGIN:.0%} margin leave nothing"
+        )
+    return f"budget {frame_budget_ms:g} ms"
+
+
+def _remaining(
+    opts: RenderOptions, trace_ms: float, rays: int, budget_ms: float | None
+) -> Budget:
+    """Budget left after ``trace_ms`` and ``rays`` were spent of the frame's time budget
+    ``budget_ms`` and of the rays budget (unbounded in ``rt``)."""
     if opts.mode == "rt":
         return Budget()
     return Budget(
-        ms=None if opts.budget_ms is None else opts.budget_ms - trace_ms,
+        ms=None if budget_ms is None else budget_ms - trace_ms,
         rays=None if opts.budget_rays is None else opts.budget_rays - rays,
     )
 

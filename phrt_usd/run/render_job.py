@@ -313,6 +313,7 @@ def job_run_info(
         reflectors=[scene.scene.elements[i].path for i in scene.scene.reflector_ids],
         time_codes_per_second=scene.time_codes_per_second,
     )
+    info["target_fps"] = opts.target_fps  # None: a fixed (or no) time budget
     info["camera"] = scene.camera_path
     info["settings"] = images.settings
     info["products"] = images.describe()
@@ -328,6 +329,7 @@ IDENTITY_KEYS = (
     "heuristic",
     "budget_ms",
     "budget_rays",
+    "target_fps",
     "bounce_limit",
     "selection_weight",
     "resolution",

@@ -156,7 +156,9 @@ def to_json_value(value: Any) -> Any:
 def frame_stats_from_row(row: Any) -> FrameStats:
     """Inverse of ``frame_stats_row`` for rows read back from a file; PhrtError (naming
     the field) unless ``row`` has every field with its type."""
-    if not isinstance(row, dict) or set(row) != {f.name for f in fields(FrameStats)}:
+    everything = {f.name for f in fields(FrameStats)}
+    required = {f.name for f in fields(FrameStats) if f.name not in _OPTIONAL_FRAME_FIELDS}
+    if not isinstance(row, dict) or not required <= set(row) <= everything:
         raise PhrtError("a frame record without the fields of a phrt frame")
 
     def number(name: str, value: Any) -> float:
@@ -198,12 +200,39 @@ def frame_stats_from_row(row: Any) -> FrameStats:
         selected=paths("selected"),
         metrics=metrics,
         passes=paths("passes"),
+        **_optional_frame_fields(row, number),
     )
+
+
+#: FrameStats fields that rows written before they existed lack (read as their defaults).
+_OPTIONAL_FRAME_FIELDS = (
+    "budget_ms", "expected_trace_ms", "budget_use", "untraced_reason", "calibration",
+)  # fmt: skip
+
+
+def _optional_frame_fields(row: dict, number) -> dict[str, Any]:
+    """The optional fields of ``row`` (see _OPTIONAL_FRAME_FIELDS), checked."""
+    out: dict[str, Any] = {}
+    for name in ("budget_ms", "budget_use"):
+        if row.get(name) is not None:
+            out[name] = number(name, row[name])
+    if "expected_trace_ms" in row:
+        out["expected_trace_ms"] = number("expected_trace_ms", row["expected_trace_ms"])
+    reason = row.get("untraced_reason")
+    if reason is not None and not isinstance(reason, str):
+        raise PhrtError("frame record field untraced_reason: not text")
+    out["untraced_reason"] = reason
+    calibration = row.get("calibration")
+    if calibration is not None and not isinstance(calibration, dict):
+        raise PhrtError("frame record field calibration: not a table")
+    out["calibration"] = calibration
+    return out
 
 
 def frame_stats_row(frame: FrameStats) -> dict[str, Any]:
     """One stats.json row: time, phase_ms, frame_ms, trace_ms, predicted_trace_ms, rays,
-    visible, selected, metrics (prim path → ReflectorMetrics fields), passes."""
+    visible, selected, metrics (prim path → ReflectorMetrics fields), passes, budget_ms
+    (the frame's T), expected_trace_ms, budget_use, untraced_reason, calibration."""
     return to_json_value(asdict(frame))
 
 
@@ -260,6 +289,7 @@ _RUN_INFO_TYPES: dict[str, tuple[type, ...]] = {
     "heuristic": (str,),
     "budget_ms": (int, float),
     "budget_rays": (int,),
+    "target_fps": (int, float),
     "bounce_limit": (int,),
     "selection_weight": (int, float),
     "time_codes_per_second": (int, float),

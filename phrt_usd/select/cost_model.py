@@ -33,8 +33,10 @@ JITTER_STEP = 0.2
 #: until a round fits, and that round's measurement then corrects it.
 STARVED_RELAX = 0.97
 
-#: Before anything was measured: 0.004 ms per ray (250k rays/s, slower than embreex plus
-#: numpy shading on one laptop core) and 0.5 ms fixed cost per tracing round.
+#: Before anything was measured or calibrated: 0.004 ms per ray (250k rays/s, slower than
+#: embreex plus numpy shading on one laptop core) and 0.5 ms fixed cost per tracing round.
+#: A render with a time budget replaces both by a calibration on its own stage before the
+#: first round (``TraceTimeModel.calibrate``; ``FrameRenderer`` in render/renderer.py).
 INITIAL_MS_PER_RAY = 0.004
 INITIAL_ROUND_MS = 0.5
 
@@ -46,21 +48,36 @@ MIN_MS_PER_RAY = 1e-7
 #: (per traced reflector).
 TIME_MODEL_DECAY = 0.9
 
+#: Rays are fitted in units of RAY_UNIT rays (a round casts 1e2..1e6 rays): keeps the
+#: normal equations' sums of squares well conditioned.
+RAY_UNIT = 1e4
+#: The prior line (the initial guess, or the calibration) enters the fit as two
+#: pseudo-rounds, one at 0 rays (the fixed cost) and one at RAY_UNIT rays (fixed cost plus
+#: the per-ray cost), each of weight PRIOR_WEIGHT at the start. Their weight is forgotten
+#: like a measured round's (TIME_MODEL_DECAY per round), so after ~20 rounds the measured
+#: rounds (weight ~1 / (1 - decay) = 10) decide the line; when the rounds all trace about
+#: the same rays, they decide its height there and the prior only its tilt.
+PRIOR_WEIGHT = 2.0
+#: The prior's weight never falls below this: with identical rounds the two terms cannot
+#: be told apart from data, and the remaining prior keeps the normal equations regular.
+PRIOR_WEIGHT_MIN = 1e-3
+
 
 class TraceTimeModel:
     """Milliseconds of one tracing round: ``overhead_ms + ms_per_ray * rays``.
 
     Fitted by exponentially weighted least squares over the rounds seen so far (older
-    rounds weigh ``TIME_MODEL_DECAY`` less per round). When the fit gives a negative
-    overhead, the line goes through the origin instead (``ms_per_ray = sum ms / sum
-    rays``, conservative for rounds larger than average). When the rounds' ray counts are
-    too alike to separate the two terms, or time does not grow with rays (small rounds
-    dominated by noise), ``ms_per_ray`` keeps its previous value and the overhead absorbs
-    the mean time.
+    rounds weigh ``TIME_MODEL_DECAY`` less per round) and a prior line: the calibration
+    of ``calibrate`` (or INITIAL_ROUND_MS / INITIAL_MS_PER_RAY without one) as two
+    pseudo-rounds whose weight is forgotten as rounds come (PRIOR_WEIGHT). So the fit
+    converges to the measured time also when every round traces about the same rays (a
+    still or turntable shot): the rounds fix the line's height where they are, the prior
+    only its tilt. A negative fixed cost is replaced by a line through the origin, a
+    non-positive slope by the prior's per-ray cost (noise dominating small rounds).
 
     Predictions are multiplied by ``safety``, an online estimate of the JITTER_QUANTILE
     quantile of (measured / modelled) round time, clamped to [TIME_SAFETY_MIN,
-    TIME_SAFETY_MAX].
+    TIME_SAFETY_MAX]; ``expected_ms`` is the central estimate without it.
     """
 
     def __init__(self) -> None:
@@ -68,48 +85,93 @@ class TraceTimeModel:
         self.ms_per_ray = INITIAL_MS_PER_RAY
         self.rounds = 0
         self.safety = TIME_SAFETY_INITIAL
-        # Weighted sums: weight, rays, ms, rays^2, rays*ms.
+        #: The prior line (ms, ms per ray) and its current weight.
+        self.prior_overhead_ms = INITIAL_ROUND_MS
+        self.prior_ms_per_ray = INITIAL_MS_PER_RAY
+        self.prior_weight = PRIOR_WEIGHT
+        #: True once ``calibrate`` set the prior from this stage's own rays.
+        self.calibrated = False
+        # Weighted sums of the measured rounds: weight, x, ms, x^2, x*ms (x = rays/RAY_UNIT).
         self._w = self._r = self._m = self._rr = self._rm = 0.0
+
+    def calibrate(self, samples: list[tuple[int, float]]) -> None:
+        """Set the prior line from timed calibration rounds ``(rays, ms)`` (at least one;
+        two sizes separate the fixed cost from the per-ray cost) and refit. Marks the
+        model calibrated; rounds learned before stay."""
+        pts = [(float(r), float(m)) for r, m in samples if r > 0 and math.isfinite(m) and m >= 0]
+        if not pts:
+            return
+        pts.sort()
+        (r1, m1), (r2, m2) = pts[0], pts[-1]
+        slope = (m2 - m1) / (r2 - r1) if r2 > r1 else 0.0
+        if slope > 0.0:
+            overhead = m1 - slope * r1
+            if overhead < 0.0:  # a line through the origin instead
+                overhead, slope = 0.0, sum(m for _r, m in pts) / sum(r for r, _m in pts)
+        else:  # timings too noisy to show growth: all of it per ray (conservative)
+            overhead, slope = 0.0, max(m for _r, m in pts) / r2
+        self.prior_overhead_ms = max(overhead, 0.0)
+        self.prior_ms_per_ray = max(slope, MIN_MS_PER_RAY)
+        self.prior_weight = PRIOR_WEIGHT
+        self.calibrated = True
+        self._fit()
 
     def learn(self, rays: int, ms: float) -> None:
         """One round: ``rays`` cast in ``ms`` wall-clock milliseconds."""
         if rays <= 0 or not math.isfinite(ms) or ms < 0.0:
             return
-        r, m = float(rays), float(ms)
-        if self.rounds > 0:  # the first round only tells how wrong the initial guess was
-            ratio = m / (self.overhead_ms + self.ms_per_ray * r)
+        x, m = float(rays) / RAY_UNIT, float(ms)
+        if self.rounds > 0 or self.calibrated:
+            # (Uncalibrated, the first round only tells how wrong the initial guess was.)
+            ratio = m / max(self.expected_ms(rays), 1e-9)
             q = JITTER_QUANTILE
             step = JITTER_STEP * (q if ratio > self.safety else -(1.0 - q))
             self.safety = min(max(self.safety + step, TIME_SAFETY_MIN), TIME_SAFETY_MAX)
         k = TIME_MODEL_DECAY
+        if not self.calibrated and self.rounds == 0:
+            # The initial guess is a guess: the first measured round replaces it at once.
+            self.prior_weight = PRIOR_WEIGHT_MIN
+        self.prior_weight = max(self.prior_weight * k, PRIOR_WEIGHT_MIN)
         self._w = k * self._w + 1.0
-        self._r = k * self._r + r
+        self._r = k * self._r + x
         self._m = k * self._m + m
-        self._rr = k * self._rr + r * r
-        self._rm = k * self._rm + r * m
+        self._rr = k * self._rr + x * x
+        self._rm = k * self._rm + x * m
         self.rounds += 1
-        spread = self._w * self._rr - self._r * self._r  # w^2 * variance of rays
-        slope = intercept = -1.0
-        if spread > 1e-6 * self._w * self._rr:  # ray counts differ enough to fit a line
-            slope = (self._w * self._rm - self._r * self._m) / spread
-            intercept = (self._m - slope * self._r) / self._w
+        self._fit()
+
+    def _fit(self) -> None:
+        """Weighted least squares of the rounds and the prior's two pseudo-rounds."""
+        p, a0, b0 = self.prior_weight, self.prior_overhead_ms, self.prior_ms_per_ray * RAY_UNIT
+        w = self._w + 2.0 * p
+        r = self._r + p  # the pseudo-rounds at x = 0 and x = 1
+        m = self._m + p * a0 + p * (a0 + b0)
+        rr = self._rr + p
+        rm = self._rm + p * (a0 + b0)
+        det = w * rr - r * r  # > 0: the pseudo-rounds at two different x
+        slope = (w * rm - r * m) / det if det > 0.0 else -1.0
+        intercept = (m - slope * r) / w
         if slope > 0.0 and intercept >= 0.0:
-            self.overhead_ms, self.ms_per_ray = intercept, slope
-        elif slope > 0.0:  # negative overhead: a line through the origin instead
-            self.overhead_ms, self.ms_per_ray = 0.0, self._m / self._r
-        else:
-            # No growth with rays visible (rounds too alike, or noise dominates): the rounds
-            # tell their mean time, not the per-ray cost, which keeps its previous value.
-            self.overhead_ms = max(self._m / self._w - self.ms_per_ray * self._r / self._w, 0.0)
-        self.ms_per_ray = max(self.ms_per_ray, MIN_MS_PER_RAY)
+            overhead, per_unit = intercept, slope
+        elif slope > 0.0:  # negative fixed cost: a line through the origin instead
+            overhead, per_unit = 0.0, rm / rr
+        else:  # time does not grow with rays: the prior's per-ray cost, height from the mean
+            per_unit = b0
+            overhead = max((m - per_unit * r) / w, 0.0)
+        self.overhead_ms = float(overhead)
+        self.ms_per_ray = max(float(per_unit) / RAY_UNIT, MIN_MS_PER_RAY)
 
     def relax(self) -> None:
         """Nothing fitted the time budget this frame: lower the safety factor a little."""
         self.safety = max(self.safety * STARVED_RELAX, TIME_SAFETY_MIN)
 
+    def expected_ms(self, rays: float) -> float:
+        """Central estimate of a round's milliseconds (no safety factor)."""
+        return self.overhead_ms + self.ms_per_ray * max(rays, 0.0)
+
     def predicted_ms(self, rays: float) -> float:
         """Conservative milliseconds for a round of ``rays`` rays (``safety`` included)."""
-        return (self.overhead_ms + self.ms_per_ray * max(rays, 0.0)) * self.safety
+        return self.expected_ms(rays) * self.safety
 
     def rays_within(self, ms: float) -> float:
         """Most rays a round may cast and still (conservatively) end within ``ms``."""

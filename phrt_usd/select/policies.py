@@ -104,6 +104,10 @@ class _FrameState:
     predicted_rays: dict[int, float] = field(default_factory=dict)  # at selection time
     predicted_ms: dict[int, float] = field(default_factory=dict)  # at selection time
     predicted_trace_ms: float = 0.0  # sum over rounds of the predicted round time
+    #: Sum over rounds of the central estimate of the round time (no safety factors).
+    expected_trace_ms: float = 0.0
+    #: Why the first round selected nothing while reflectors were visible (numbers in it).
+    untraced_reason: str | None = None
     first_allowance: float | None = None  # the first round's budget in rays (HEU1 margin)
     forecast_used: float = 0.0  # HEU1: forecasts of this frame's selection, summed
     unfit_claims: set[int] = field(default_factory=set)  # HEU1: kept, claimed, did not fit
@@ -142,10 +146,24 @@ class BudgetedPolicy(ABC):
         self._reflector_cache: tuple[tuple[int, int], np.ndarray] | None = None
         #: Predicted trace time of the last finished frame (ms, time safety included).
         self.last_predicted_trace_ms = 0.0
+        #: Of the last finished frame: the central trace-time estimate (ms) and why
+        #: nothing was traced (None if something was, or nothing was visible).
+        self.last_frame_note: dict = {"expected_trace_ms": 0.0, "untraced_reason": None}
 
     #: Attributes that are caches or the frame in progress, not memory across frames:
     #: left out of ``memory()`` and rebuilt on demand after ``restore_memory``.
-    CACHE_ATTRIBUTES = frozenset({"_frame", "_reflector_cache", "_box_areas", "_box_areas_key"})
+    CACHE_ATTRIBUTES = frozenset(
+        {"_frame", "_reflector_cache", "_box_areas", "_box_areas_key", "last_frame_note"}
+    )
+
+    def calibrate(self, samples: list[tuple[int, float]], rays: int, pixels: int) -> None:
+        """A calibration of this stage's tracing before the first round: timed rounds
+        ``(rays, ms)`` set the time model's prior (``TraceTimeModel.calibrate``); their
+        ``rays`` over ``pixels`` traced seed the mean rays per pixel, which predicts
+        reflectors never traced, unless a trace already taught it."""
+        self.time_model.calibrate(samples)
+        if self._global_pixels <= 0.0 and pixels > 0 and rays > 0:
+            self._global_rays, self._global_pixels = float(rays), float(pixels)
 
     def memory(self) -> dict:
         """The policy's memory across frames as plain JSON data (for checkpoints): every
@@ -218,8 +236,10 @@ class BudgetedPolicy(ABC):
     def next_round(self, budget: Budget) -> list[int]:
         frame = self._require_frame()
         ids = self._choose(budget)
-        if not ids and not frame.traced and self._starved_by_time(budget):
-            self.time_model.relax()
+        if not ids and not frame.traced:
+            frame.untraced_reason = self._untraced_reason(budget)
+            if self._starved_by_time(budget):
+                self.time_model.relax()
         for e in ids:
             frame.predicted_rays[e] = self.predicted_rays(e)
         if ids:
@@ -232,6 +252,7 @@ class BudgetedPolicy(ABC):
                 share = frame.predicted_rays[e] / rays if rays > 0.0 else 1.0 / len(ids)
                 frame.predicted_ms[e] = round_ms * share
             frame.predicted_trace_ms += round_ms
+            frame.expected_trace_ms += self.time_model.expected_ms(rays / RAYS_SAFETY)
         frame.traced.extend(ids)
         return ids
 
@@ -270,6 +291,10 @@ class BudgetedPolicy(ABC):
         metrics = self.metrics()
         self.previous_selection = set(frame.traced)
         self.last_predicted_trace_ms = frame.predicted_trace_ms
+        self.last_frame_note = {
+            "expected_trace_ms": frame.expected_trace_ms,
+            "untraced_reason": frame.untraced_reason if not frame.traced else None,
+        }
         self._frame = None
         return metrics
 
@@ -353,6 +378,24 @@ class BudgetedPolicy(ABC):
             ms = 0.0 if math.isnan(budget.ms) else float(budget.ms)  # NaN: nothing is known
             allowance = min(allowance, self.time_model.rays_within(ms))
         return allowance
+
+    def _untraced_reason(self, budget: Budget) -> str | None:
+        """Why a first round selected nothing, with the numbers: the budget against the
+        cheapest visible candidate's predicted cost, or the policy's choice when that one
+        fits. None when no reflector is visible."""
+        frame = self._require_frame()
+        visible = self._untraced_visible()
+        if not visible:
+            return None
+        e = min(visible, key=lambda v: (self.predicted_rays(v), v))
+        rays = self.predicted_rays(e)
+        ms = self.time_model.predicted_ms(rays)
+        what = f"{frame.scene.elements[e].path}, {rays:.0f} rays, {ms:.2f} ms"
+        if budget.rays is not None and rays > budget.rays:
+            return f"budget {budget.rays} rays < cheapest predicted cost ({what})"
+        if budget.ms is not None and not ms <= budget.ms:
+            return f"budget {budget.ms:.2f} ms < cheapest predicted cost ({what})"
+        return f"{self.name} selected nothing though the cheapest fits ({what})"
 
     def _starved_by_time(self, budget: Budget) -> bool:
         """True if a visible candidate would fit the rays budget but not the time one."""

@@ -56,6 +56,7 @@ MODE = "phrt:mode"  # token
 SELECTION_WEIGHT = "phrt:selectionWeight"  # float I
 BUDGET_MS = "phrt:budgetMs"  # float T, milliseconds
 BUDGET_RAYS = "phrt:budgetRays"  # int, -1 = not used
+TARGET_FPS = "phrt:targetFps"  # float frames per second, 0 = not used (then phrt:budgetMs)
 BOUNCE_LIMIT = "phrt:bounceLimit"  # int
 HEURISTICS = ("heu1", "heu2", "all", "none")
 MODES = ("hybrid", "rt", "raster")
@@ -65,6 +66,7 @@ DEFAULT_MODE = "hybrid"
 DEFAULT_SELECTION_WEIGHT = 0.0001
 DEFAULT_BUDGET_MS = 10.0
 DEFAULT_BUDGET_RAYS = -1
+DEFAULT_TARGET_FPS = 0.0
 DEFAULT_BOUNCE_LIMIT = 5
 # Image size when there is no UsdRenderSettings prim (the project's benchmark size).
 DEFAULT_RESOLUTION = (320, 240)
@@ -91,6 +93,7 @@ _TYPES = {
     SELECTION_WEIGHT: Sdf.ValueTypeNames.Float,
     BUDGET_MS: Sdf.ValueTypeNames.Float,
     BUDGET_RAYS: Sdf.ValueTypeNames.Int,
+    TARGET_FPS: Sdf.ValueTypeNames.Float,
     BOUNCE_LIMIT: Sdf.ValueTypeNames.Int,
 }
 
@@ -274,6 +277,7 @@ class RenderParams:
     selection_weight: float = DEFAULT_SELECTION_WEIGHT  # I
     budget_ms: float = DEFAULT_BUDGET_MS  # T
     budget_rays: int | None = None  # None when phrt:budgetRays is -1 / unauthored
+    target_fps: float | None = None  # None when phrt:targetFps is 0 / unauthored
     bounce_limit: int = DEFAULT_BOUNCE_LIMIT
     resolution: tuple[int, int] = DEFAULT_RESOLUTION  # (width, height) pixels
     camera_path: str | None = None  # the UsdRenderSettings camera relationship target
@@ -288,6 +292,7 @@ def apply_render_settings(
     budget_ms: float | None = None,
     budget_rays: int | None = None,
     bounce_limit: int | None = None,
+    target_fps: float | None = None,
 ) -> None:
     """Apply PhrtRenderSettingsAPI to a UsdRenderSettings prim; set the given values."""
     if not prim or not prim.IsA(UsdRender.Settings):
@@ -305,6 +310,7 @@ def apply_render_settings(
         (BUDGET_MS, budget_ms, float),
         (BUDGET_RAYS, budget_rays, int),
         (BOUNCE_LIMIT, bounce_limit, int),
+        (TARGET_FPS, target_fps, float),
     ):
         if value is not None:
             _set(prim, name, cast(value))
@@ -338,12 +344,14 @@ def read_render_params(stage: Usd.Stage, settings_path: str | None = None) -> Re
     res = settings.GetResolutionAttr().Get()
     cameras = settings.GetCameraRel().GetTargets()
     rays = int(_get(prim, BUDGET_RAYS, DEFAULT_BUDGET_RAYS))
+    fps = _f32(_get(prim, TARGET_FPS, DEFAULT_TARGET_FPS))
     return RenderParams(
         heuristic=str(_get(prim, HEURISTIC, DEFAULT_HEURISTIC)),
         mode=str(_get(prim, MODE, DEFAULT_MODE)),
         selection_weight=_f32(_get(prim, SELECTION_WEIGHT, DEFAULT_SELECTION_WEIGHT)),
         budget_ms=_f32(_get(prim, BUDGET_MS, DEFAULT_BUDGET_MS)),
         budget_rays=None if rays < 0 else rays,
+        target_fps=fps if fps != 0.0 else None,
         bounce_limit=int(_get(prim, BOUNCE_LIMIT, DEFAULT_BOUNCE_LIMIT)),
         resolution=(int(res[0]), int(res[1])) if res is not None else DEFAULT_RESOLUTION,
         camera_path=str(cameras[0]) if cameras else None,
