@@ -10,6 +10,15 @@ rendered stage without defining or changing any renderable prim:
   Table 1) in frames where the reflector was a selection candidate, a value block
   (``None``) in the others — so ``Get(t)`` never interpolates a figure into a frame where
   it was not computed;
+* a reflector inside an instance cannot take opinions at its own path (an instance proxy
+  of a scene-graph instance, ``/World/Tree_3/Leaves``; USD ignores opinions below an
+  instanceable prim) or has no prim path at all (a PointInstancer instance,
+  ``/World/Trees.instance[3]/Leaves``). Its samples go on its *host*, the nearest prim
+  that takes opinions (the outermost instance root, or the PointInstancer, or that
+  one's instance root): ``uniform string[] phrt:instanced:paths`` (the element paths)
+  and time-sampled arrays aligned with it, ``bool[] phrt:instanced:selected``,
+  ``bool[] phrt:instanced:visible``, ``float[] phrt:instanced:V`` ... (NaN where the
+  element was not a candidate: an array cannot hold a value block);
 * ``over PhrtRenderStats`` with per-frame ``double phrt:stats:frameMs``, ``traceMs``,
   ``predictedTraceMs`` and ``int64 phrt:stats:rays``, ``int phrt:stats:selectedCount``,
   ``visibleCount``;
@@ -23,6 +32,7 @@ and saved atomically. See ``docs/selection-layer.md``.
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -35,6 +45,7 @@ from phrt_usd.atomic import WriteFailed, atomic_path
 from phrt_usd.errors import PhrtError, usd_error_reason
 from phrt_usd.model.frame import FrameStats, ReflectorMetrics
 from phrt_usd.run.run_files import check_run_info
+from phrt_usd.usd.stage import open_usd
 
 #: Prim holding the per-frame render statistics (an ``over``: never defined, never drawn).
 STATS_PRIM_PATH = Sdf.Path("/PhrtRenderStats")
@@ -78,6 +89,7 @@ def write_selection_layer(
     run_info: dict[str, Any],
     time_codes_per_second: float | None = None,
     merge: bool = True,
+    instance_roots: dict[str, str | None] | None = None,
 ) -> Path:
     """Write (or merge into) the selection layer at ``path`` (``.usda`` or ``.usdc``).
 
@@ -87,7 +99,9 @@ def write_selection_layer(
     ``stage_path``. With ``merge`` and an existing file, samples at the rendered frames'
     time codes are replaced and all others kept (rendering a sub-range updates that
     sub-range); the run settings must match (same mode and heuristic) or PhrtError.
-    Returns ``path``.
+    instance_roots: element path → host prim of a reflector inside an instance (module
+    doc); ``None`` finds them from the path itself (``.instance[i]``) and the stage at
+    ``stage_path`` (its instance proxies). Returns ``path``.
     """
     path = Path(path)
     if path.suffix not in (".usda", ".usdc", ".usd"):
@@ -106,10 +120,19 @@ def write_selection_layer(
     reflectors.extend(_reflector_paths_in(layer))
     reflectors = list(dict.fromkeys(reflectors))
 
+    old_instanced = _instanced_samples(layer)
+    reflectors = list(dict.fromkeys([*reflectors, *old_instanced]))
+    hosts = _hosts(reflectors, stage_path if instance_roots is None else None)
+    if instance_roots is not None:
+        hosts.update(
+            {p: instance_roots[p] for p in reflectors if instance_roots.get(p) is not None}
+        )
     membership = [(set(f.selected), set(f.visible)) for f in frames]
     with Sdf.ChangeBlock():
         for reflector in reflectors:
-            _write_reflector(layer, reflector, frames, membership)
+            if reflector not in hosts:
+                _write_reflector(layer, reflector, frames, membership)
+        _write_instanced(layer, hosts, old_instanced, frames, membership)
         _write_stats_prim(layer, frames)
         _write_metadata(layer, stage_path, run_info, frames, tcps)
 
@@ -170,11 +193,16 @@ def read_selection_record(layer_path: Path) -> SelectionRecord:
 
 
 def _read_record(layer: Sdf.Layer) -> SelectionRecord:
-    reflectors = sorted(_reflector_paths_in(layer))
-    samples = {
-        name: [_samples(layer, Sdf.Path(p).AppendProperty(name)) for p in reflectors]
-        for name in (SELECTED, VISIBLE)
-    }
+    instanced = _instanced_samples(layer)
+    plain = [p for p in _reflector_paths_in(layer) if p not in instanced]
+    reflectors = sorted([*plain, *instanced])
+
+    def of(path: str, name: str) -> dict[float, Any]:
+        if path in instanced:
+            return instanced[path].get(name, {})
+        return _samples(layer, Sdf.Path(path).AppendProperty(name))
+
+    samples = {name: [of(p, name) for p in reflectors] for name in (SELECTED, VISIBLE)}
     stats = {
         name.rsplit(":", 1)[1]: {
             t: float(v) for t, v in _samples(layer, STATS_PRIM_PATH.AppendProperty(name)).items()
@@ -394,3 +422,151 @@ def _time_codes_per_second(stage_path: Path | str | None, given: float | None) -
     if root is None:
         raise PhrtError(f"{stage_path}: cannot open stage to read timeCodesPerSecond")
     return float(root.timeCodesPerSecond)
+
+
+# --- reflectors inside instances -------------------------------------------------------
+
+#: Host attributes of instanced reflectors (module doc): the element paths, and per
+#: time code one array entry per path.
+INSTANCED_PATHS = "phrt:instanced:paths"
+INSTANCED_PREFIX = "phrt:instanced:"
+#: (sample name as a per-prim attribute, array value type, value where there is none).
+INSTANCED_ARRAYS: tuple[tuple[str, Any, Any], ...] = (
+    (SELECTED, Sdf.ValueTypeNames.BoolArray, False),
+    (VISIBLE, Sdf.ValueTypeNames.BoolArray, False),
+    *(
+        (name, Sdf.ValueTypeNames.FloatArray if kind == Sdf.ValueTypeNames.Float
+         else Sdf.ValueTypeNames.BoolArray, np.nan if kind == Sdf.ValueTypeNames.Float
+         else False)
+        for name, kind, _ in FIGURE_ATTRIBUTES
+    ),
+)  # fmt: skip
+
+
+def _instanced_name(name: str) -> str:
+    """``phrt:selected`` → ``phrt:instanced:selected``."""
+    return INSTANCED_PREFIX + name.split(":", 1)[1]
+
+
+def _host_prefix(path: str) -> str | None:
+    """The instancer prim path of a PointInstancer element path (the part before its
+    first ``.instance[``), None for a prim path."""
+    head, sep, _ = path.partition(".instance[")
+    return head if sep else None
+
+
+#: (stage real path, its mtime, reflectors) → hosts: a render writes its layer at every
+#: checkpoint and the stage is opened for this once, not every time.
+_HOSTS_CACHE: dict[tuple, dict[str, str]] = {}
+
+
+def _hosts(reflectors: list[str], stage_path: Path | str | None) -> dict[str, str]:
+    """element path → host prim path for the reflectors that cannot take opinions at
+    their own path: PointInstancer elements always; instance proxies when the stage at
+    ``stage_path`` is given (opened once per stage file and reflector list)."""
+    key = None
+    if stage_path is not None and Path(stage_path).is_file():
+        real = os.path.realpath(stage_path)
+        key = (real, os.stat(real).st_mtime_ns, tuple(reflectors))
+        if key in _HOSTS_CACHE:
+            return dict(_HOSTS_CACHE[key])
+    hosts = _find_hosts(reflectors, stage_path)
+    if key is not None:
+        _HOSTS_CACHE.clear()  # one stage at a time is all a render needs
+        _HOSTS_CACHE[key] = dict(hosts)
+    return hosts
+
+
+def _find_hosts(reflectors: list[str], stage_path: Path | str | None) -> dict[str, str]:
+    stage = None
+    if stage_path is not None and Path(stage_path).is_file():
+        try:
+            stage = open_usd(stage_path)
+        except PhrtError:
+            stage = None  # the render opened it; the path forms below still apply
+    hosts = {}
+    for path in reflectors:
+        prefix = _host_prefix(path)
+        host = prefix if prefix is not None else None
+        prim = stage.GetPrimAtPath(host or path) if stage is not None else None
+        if prim and prim.IsInstanceProxy():
+            while prim.IsInstanceProxy():
+                prim = prim.GetParent()
+            host = str(prim.GetPath())
+        if host is not None:
+            hosts[path] = host
+    return hosts
+
+
+def _instanced_samples(layer: Sdf.Layer) -> dict[str, dict[str, dict[float, Any]]]:
+    """element path → {per-prim attribute name → {time code: value}} from every host in
+    ``layer``; entries with no value (False / NaN fill) are kept as written, NaN figures
+    left out."""
+    found: dict[str, dict[str, dict[float, Any]]] = {}
+
+    def visit(prim: Sdf.PrimSpec) -> None:
+        paths_attr = prim.attributes.get(INSTANCED_PATHS)
+        if paths_attr is not None and paths_attr.default is not None:
+            paths = list(paths_attr.default)
+            for path in paths:
+                found.setdefault(path, {})
+            for name, _, _ in INSTANCED_ARRAYS:
+                attr = prim.path.AppendProperty(_instanced_name(name))
+                for t, values in _samples(layer, attr).items():
+                    if len(values) != len(paths):
+                        raise PhrtError(
+                            f"selection layer: {attr} has {len(values)} entries at time "
+                            f"{t}, {INSTANCED_PATHS} names {len(paths)}"
+                        )
+                    for path, value in zip(paths, values, strict=True):
+                        if isinstance(value, float) and not np.isfinite(value):
+                            continue
+                        found[path].setdefault(name, {})[t] = value
+        for child in prim.nameChildren:
+            visit(child)
+
+    for root in layer.rootPrims:
+        visit(root)
+    return found
+
+
+def _write_instanced(
+    layer: Sdf.Layer,
+    hosts: dict[str, str],
+    old: dict[str, dict[str, dict[float, Any]]],
+    frames: list[FrameStats],
+    membership: list[tuple[set[str], set[str]]],
+) -> None:
+    """The host arrays of every instanced reflector: the old layer's samples at other
+    time codes kept, the rendered frames' replaced."""
+    by_host: dict[str, list[str]] = {}
+    for path, host in hosts.items():
+        by_host.setdefault(host, []).append(path)
+    for host, paths in by_host.items():
+        paths = sorted(paths)
+        samples = {p: {k: dict(v) for k, v in old.get(p, {}).items()} for p in paths}
+        for frame, (selected, visible) in zip(frames, membership, strict=True):
+            for p in paths:
+                per = samples[p]
+                per.setdefault(SELECTED, {})[frame.time] = p in selected
+                per.setdefault(VISIBLE, {})[frame.time] = p in visible
+                metrics = frame.metrics.get(p)
+                for name, _, key in FIGURE_ATTRIBUTES:
+                    values = per.setdefault(name, {})
+                    values.pop(frame.time, None)
+                    if metrics is not None:
+                        value = _finite(getattr(metrics, key))
+                        if not isinstance(value, Sdf.ValueBlock):
+                            values[frame.time] = value
+        spec = layer.GetPrimAtPath(host) or Sdf.CreatePrimInLayer(layer, Sdf.Path(host))
+        names = spec.attributes.get(INSTANCED_PATHS) or Sdf.AttributeSpec(
+            spec, INSTANCED_PATHS, Sdf.ValueTypeNames.StringArray, Sdf.VariabilityUniform, True
+        )
+        names.default = Vt.StringArray(paths)
+        times = sorted({t for p in paths for t in samples[p].get(SELECTED, {})})
+        for name, kind, fill in INSTANCED_ARRAYS:
+            attr = _attribute(spec, _instanced_name(name), kind, custom=True)
+            layer.GetAttributeAtPath(attr).ClearInfo("timeSamples")
+            for t in times:
+                row = [samples[p].get(name, {}).get(t, fill) for p in paths]
+                layer.SetTimeSample(attr, t, row)
