@@ -548,11 +548,17 @@ def md(text: str) -> str:
 
 
 def git_commit() -> str:
+    """The commit rendered with, and whether the package had uncommitted edits."""
+    root = Path(__file__).resolve().parent.parent
     done = subprocess.run(
-        ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-        cwd=Path(__file__).resolve().parent,
+        ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=root
+    )
+    edits = subprocess.run(
+        ["git", "status", "--porcelain", "--", "phrt_usd"], capture_output=True, text=True,
+        cwd=root,
     )  # fmt: skip
-    return done.stdout.strip() or "unknown"
+    commit = done.stdout.strip() or "unknown"
+    return commit + (" with uncommitted edits under phrt_usd/" if edits.stdout.strip() else "")
 
 
 # --- command line ------------------------------------------------------------------------
