@@ -78,5 +78,6 @@ def test_wrapper_camera_sheet_and_a_broken_asset(tmp_path):
     broken = results["broken"]
     assert broken["error"] and "\n" not in broken["error"] and broken["modes"] == []
     index = (out / "index.md").read_text()
+    assert quad["agreement"] == 1.0  # raster and rt cover the same pixels
     assert "| [quad](quad.png) | ok | wrapper |" in index
     assert "| broken | failed | – |" in index

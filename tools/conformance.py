@@ -96,6 +96,8 @@ class AssetResult:
     modes: list[ModeResult] = field(default_factory=list)
     error: str | None = None  # the asset could not be prepared (or its child failed)
     sheet: str | None = None
+    # fraction of pixels covered in both or neither of the first two modes that rendered
+    agreement: float | None = None
 
     @property
     def status(self) -> str:
@@ -354,7 +356,7 @@ def render_asset(asset: Asset, out: Path, resolution, modes, view) -> AssetResul
     except Exception as error:  # noqa: BLE001 - any failure is this asset's record
         result.error = one_line(error)
         return result
-    images = {}
+    images, covered = {}, {}
     for mode in modes:
         record = ModeResult(mode)
         started = time.perf_counter()
@@ -368,7 +370,8 @@ def render_asset(asset: Asset, out: Path, resolution, modes, view) -> AssetResul
                     if warning not in result.warnings:
                         result.warnings.append(warning)
             record.seconds = time.perf_counter() - started
-            record.covered = float(np.mean(np.asarray(frame.alpha) > 0))
+            covered[mode] = np.asarray(frame.alpha) > 0
+            record.covered = float(np.mean(covered[mode]))
             images[mode] = np.asarray(frame.beauty, dtype=np.float32)
         except Exception as error:  # noqa: BLE001 - recorded, the next mode still runs
             record.seconds = time.perf_counter() - started
@@ -376,6 +379,9 @@ def render_asset(asset: Asset, out: Path, resolution, modes, view) -> AssetResul
             if not isinstance(error, PhrtError):
                 record.traceback = traceback.format_exc()
         result.modes.append(record)
+    if len(covered) >= 2:
+        first, second = list(covered.values())[:2]
+        result.agreement = float(np.mean(first == second))
     try:
         sheet = out / f"{asset.name}.png"
         write_sheet(sheet, images, modes, asset.reference, resolution)
@@ -511,8 +517,8 @@ def read_picture(path: Path) -> np.ndarray | None:
 def write_index(out: Path, results: list[AssetResult], settings: dict) -> None:
     rows = [
         "| asset | status | camera | warnings | " + " | ".join(
-            f"{m} s / covered" for m in settings["modes"]) + " |",
-        "|---|---|---|---|" + "---|" * len(settings["modes"]),
+            f"{m} s / covered" for m in settings["modes"]) + " | coverage agrees |",
+        "|---|---|---|---|" + "---|" * (len(settings["modes"]) + 1),
     ]  # fmt: skip
     for r in results:
         cells = [f"[{r.name}]({r.sheet})" if r.sheet else r.name, r.status, r.camera or "–"]
@@ -527,6 +533,7 @@ def write_index(out: Path, results: list[AssetResult], settings: dict) -> None:
                 cells.append("–")
             else:
                 cells.append(f"{m.seconds:.1f} / {100 * m.covered:.0f} %")
+        cells.append("–" if r.agreement is None else f"{100 * r.agreement:.2f} %")
         rows.append("| " + " | ".join(cells) + " |")
     header = [
         "# Conformance run",
@@ -534,7 +541,9 @@ def write_index(out: Path, results: list[AssetResult], settings: dict) -> None:
         f"Made by `tools/conformance.py` at {settings['resolution']} "
         f"({', '.join(settings['modes'])}), commit {settings['commit']}, "
         f"{settings['date']}. Time: wall seconds of reading the stage and rendering one "
-        "frame (a shared machine: indicative only). Covered: pixels with geometry.",
+        "frame (a shared machine: indicative only; raster includes creating the OpenGL "
+        "context). Covered: pixels with geometry. Coverage agrees: pixels covered in both "
+        "of the first two modes or in neither.",
         "",
     ]
     (out / "index.md").write_text("\n".join(header + rows) + "\n")
