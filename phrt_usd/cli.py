@@ -251,6 +251,13 @@ def _print_summary(s: dict) -> None:
     lights = ", ".join(f"{li['type']} {li['path']}" for li in s["lights"]) or "none"
     console.print(f"Lights: {lights}")
     console.print(f"Passes: {', '.join(s['passes'])}")
+    support = s.get("support", [])
+    console.print(f"Not supported or approximated ({len(support)} kinds):" if support else
+                  "Not supported or approximated: nothing found")  # fmt: skip
+    from phrt_usd.usd.support_report import support_lines
+
+    for line in support_lines(support):
+        console.print(f"  {line}", highlight=False, markup=False)
 
 
 #: The demo stage rendered when `phrt render` is given no stage.

@@ -23,6 +23,7 @@ from pxr import Usd, UsdGeom, UsdLux, UsdShade
 from phrt_usd.usd import schema
 from phrt_usd.usd.authoring import instance_root
 from phrt_usd.usd.rules import stage_reflectors
+from phrt_usd.usd.support_report import support_report
 
 SHADOW_LIGHT_TYPES = ("DistantLight", "SphereLight", "RectLight")
 ENVIRONMENT_LIGHT_TYPES = ("DomeLight", "DomeLight_1")
@@ -95,7 +96,8 @@ def required_passes(stage: Usd.Stage, lights: list[dict], n_reflectors: int) -> 
 
 def inspect_stage(stage: Usd.Stage, label: str | None = None) -> dict:
     """Summary of an open stage as one JSON-ready dict (keys: stage, metadata, reflectors,
-    instanced_reflectors (their count), camera_paths, render_settings, lights, passes)."""
+    instanced_reflectors (their count), camera_paths, render_settings, lights, passes,
+    support: what the render ignores or approximates, ``support_report.support_report``)."""
     mpu = float(UsdGeom.GetStageMetersPerUnit(stage))
     cache = UsdGeom.BBoxCache(
         Usd.TimeCode.Default(), [UsdGeom.Tokens.default_, UsdGeom.Tokens.render]
@@ -146,4 +148,5 @@ def inspect_stage(stage: Usd.Stage, label: str | None = None) -> dict:
         "render_settings": asdict(schema.read_render_params(stage)),
         "lights": lights,
         "passes": required_passes(stage, lights, len(reflectors)),
+        "support": support_report(stage),
     }
