@@ -60,7 +60,7 @@ RAY_UNIT = 1e4
 PRIOR_WEIGHT = 2.0
 #: The prior's weight never falls below this: with identical rounds the two terms cannot
 #: be told apart from data, and the remaining prior keeps the normal equations regular.
-PRIOR_WEIGHT_MIN = 1e-3
+PRIOR_WEIGHT_MIN = 1e-9
 
 
 class TraceTimeModel:
