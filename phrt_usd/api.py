@@ -49,7 +49,7 @@ from phrt_usd.run.frames import SAME_FRAME, parse_frames
 from phrt_usd.run.images import read_frame_exr
 from phrt_usd.run.render_job import RenderJob, RunRecord, render_to_directory
 from phrt_usd.usd.schema import read_render_params
-from phrt_usd.usd.stage import StageScene, open_stage, open_usd, read_stage
+from phrt_usd.usd.stage import StageScene, open_usd, read_stage
 from phrt_usd.usd.stage_controls import StageControls
 from phrt_usd.usd.support_report import support_report
 
@@ -329,15 +329,8 @@ def run_render(
     """Render ``job`` and return its summary (see the module docstring). ``on_frame(done,
     total, stats)`` after every frame; ``stage_scene``: the stage already read, if any.
     Raises ``PhrtError`` (one line) for bad input, a busy or non-empty output directory,
-    or a failed frame (after the finished frames' records are written). The summary's
-    ``support`` lists what the stage uses that the render ignores or approximates
-    (``phrt_usd.usd.support_report``)."""
-    scene = stage_scene or open_stage(
-        job.stage_path, camera=job.camera, controls=job.controls, settings=job.settings
-    )
-    summary = summary_of(render_to_directory(job, on_frame, scene))
-    summary["support"] = support_report(scene.stage)
-    return summary
+    or a failed frame (after the finished frames' records are written)."""
+    return summary_of(render_to_directory(job, on_frame, stage_scene))
 
 
 def summary_of(record: RunRecord) -> dict:
@@ -501,6 +494,8 @@ def render(
             temporary.cleanup()
         raise
     summary["warnings"] = list(scene.warnings)
+    # What the stage uses that the render ignores or approximates (usd/support_report.py).
+    summary["support"] = support_report(scene.stage)
     images = ()
     if record.images is not None:
         images = tuple(

@@ -416,6 +416,7 @@ def render(
     from phrt_usd.run.products import parse_aovs
     from phrt_usd.run.render_job import RenderInterrupted
     from phrt_usd.usd.stage_controls import StageControls
+    from phrt_usd.usd.support_report import support_report
 
     stage = stage or DEMO_STAGE
     with user_errors(json_out=json_out):
@@ -469,6 +470,8 @@ def render(
             except RenderInterrupted as exc:
                 raise fail(f"interrupted: {exc}", EXIT_INTERRUPTED, json_out) from None
     summary["warnings"] = list(scene.warnings)
+    # What the stage uses that the render ignores or approximates (usd/support_report.py).
+    summary["support"] = support_report(scene.stage)
     if json_out:
         print_json(summary)
     else:
