@@ -33,7 +33,14 @@ def test_validate_clean_and_json(good):
     assert run("validate", good).exit_code == 0
     result = run("validate", good, "--json")
     data = json.loads(result.stdout)
-    assert data == {"stage": str(good), "ok": True, "errors": [], "warnings": []}
+    assert data == {
+        "stage": str(good),
+        "ok": True,
+        "errors": [],
+        "warnings": [],
+        "reflectors": ["/World/Mirror"],
+        "instanced_reflectors": [],
+    }
 
 
 def test_validate_bad_stage_exit_1_one_line_per_problem(tmp_path, good):
