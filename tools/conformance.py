@@ -416,9 +416,13 @@ def render_isolated(asset: Asset, out: Path, resolution, modes, view, timeout) -
         tail = (done.stderr.strip().splitlines() or [f"exit code {done.returncode}"])[-1]
         fallback.error = f"child process failed (exit {done.returncode}): {tail}"
         return fallback
-    data = json.loads(record.read_text())
-    data["modes"] = [ModeResult(**m) for m in data["modes"]]
-    return AssetResult(**data)
+    try:
+        data = json.loads(record.read_text())
+        data["modes"] = [ModeResult(**m) for m in data["modes"]]
+        return AssetResult(**data)
+    except (ValueError, TypeError, KeyError) as error:
+        fallback.error = f"unreadable result of the child process: {one_line(error)}"
+        return fallback
 
 
 def run_one(job_text: str) -> None:
@@ -622,14 +626,14 @@ def main(argv: list[str] | None = None) -> int:
     results = []
     for asset in assets:
         print(f"{asset.name}: {asset.stage}", file=sys.stderr, flush=True)
-        if args.no_isolate:
-            try:
+        try:
+            if args.no_isolate:
                 result = render_asset(asset, out, args.resolution, modes, view)
-            except Exception as error:  # noqa: BLE001 - last resort: record, go on
-                result = AssetResult(asset.name, str(asset.stage), None, error=one_line(error))
-                traceback.print_exc()
-        else:
-            result = render_isolated(asset, out, args.resolution, modes, view, args.timeout)
+            else:
+                result = render_isolated(asset, out, args.resolution, modes, view, args.timeout)
+        except Exception as error:  # noqa: BLE001 - last resort: record, go on
+            result = AssetResult(asset.name, str(asset.stage), None, error=one_line(error))
+            traceback.print_exc()
         print(f"  {result.status}" + (f": {result.error}" if result.error else ""),
               file=sys.stderr, flush=True)  # fmt: skip
         results.append(result)
