@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from pxr import Sdf, Usd
+from pxr import Sdf, Usd, Vt
 from typer.testing import CliRunner
 
 import phrt_usd
@@ -218,6 +218,69 @@ def test_selection_layer_round_trips_instanced_reflectors(tmp_path):
     # No opinion below an instance root and no invalid path: the hosts carry them.
     assert layer.GetPrimAtPath("/World/Tree_1/Leaves") is None
     assert list(layer.GetAttributeAtPath("/World/Trees." + INSTANCED_PATHS).default) == [point]
+    # Typed arrays (a Python list would be stored as an unregistered VtValue vector).
+    assert isinstance(layer.QueryTimeSample("/World/Tree_1.phrt:instanced:selected", 1.0),
+                      Vt.BoolArray)  # fmt: skip
+    assert isinstance(layer.QueryTimeSample("/World/Tree_1.phrt:instanced:V", 1.0), Vt.FloatArray)
     # A figure of a frame where the element was no candidate is NaN, never interpolated.
     v = layer.QueryTimeSample("/World/Tree_1.phrt:instanced:V", 1.0)
     assert (proxy in frames[0].visible) == bool(np.isfinite(v[0]))
+
+
+POINT_INSTANCER = """#usda 1.0
+(
+    upAxis = "Y"
+    metersPerUnit = 1
+    startTimeCode = 1
+    endTimeCode = 1
+)
+def Xform "World"
+{
+    def PointInstancer "Trees"
+    {
+        point3f[] positions = [(-1, 0, 0), (1, 0, 0)]
+        int[] protoIndices = [0, 0]
+        rel prototypes = </World/Trees/Protos/Leaf>
+        def Scope "Protos"
+        {
+            def Mesh "Leaf" (
+                prepend apiSchemas = ["PhrtReflectorAPI"]
+            )
+            {
+                float phrt:priority = 1
+                int[] faceVertexCounts = [4]
+                int[] faceVertexIndices = [0, 1, 2, 3]
+                point3f[] points = [(-0.5, -0.5, 0), (0.5, -0.5, 0), (0.5, 0.5, 0), (-0.5, 0.5, 0)]
+                uniform token subdivisionScheme = "none"
+            }
+        }
+    }
+    def Camera "Cam"
+    {
+        double3 xformOp:translate = (0, 0, 5)
+        uniform token[] xformOpOrder = ["xformOp:translate"]
+    }
+    def DistantLight "Sun"
+    {
+        float inputs:intensity = 1
+    }
+}
+"""
+
+
+def test_point_instancer_reflectors_render_into_the_selection_layer(tmp_path):
+    """PointInstancer elements (``/World/Trees.instance[i]``, no prim path) used to stop
+    the selection layer writer; they go on the instancer and read back."""
+    stage = tmp_path / "pi.usda"
+    stage.write_text(POINT_INSTANCER)
+    render = phrt_usd.render(stage, tmp_path / "out", frames="1", mode="hybrid",
+                             heuristic="all", resolution=(64, 48))  # fmt: skip
+    elements = ["/World/Trees.instance[0]", "/World/Trees.instance[1]"]
+    assert sorted(render.frames[0].selected) == elements
+    _, reflectors, selected, _ = read_selection(render.selection_layer)
+    assert reflectors == elements and selected.all()
+    composed = Usd.Stage.Open(str(stage))
+    composed.GetRootLayer().subLayerPaths.append(str(render.selection_layer))
+    trees = composed.GetPrimAtPath("/World/Trees")
+    assert list(trees.GetAttribute(INSTANCED_PATHS).Get()) == elements
+    assert list(trees.GetAttribute("phrt:instanced:selected").Get(1.0)) == [True, True]

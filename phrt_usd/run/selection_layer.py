@@ -569,4 +569,5 @@ def _write_instanced(
             layer.GetAttributeAtPath(attr).ClearInfo("timeSamples")
             for t in times:
                 row = [samples[p].get(name, {}).get(t, fill) for p in paths]
-                layer.SetTimeSample(attr, t, row)
+                array = Vt.BoolArray if isinstance(fill, bool) else Vt.FloatArray
+                layer.SetTimeSample(attr, t, array(row))
