@@ -37,6 +37,7 @@ from phrt_usd.render.compositing import (
     apply_traced,
     base_image,
     element_reflectivity,
+    observe_fallback_error,
     pixel_reflectivity,
 )
 from phrt_usd.render.lighting import shade_gbuffer
@@ -76,7 +77,7 @@ MAX_TARGET_FPS = 1000.0
 #: CALIBRATION_REPEATS times after one warm-up round and its fastest time kept (the
 #: others carry the noise of the shared machine). A few thousand rays: a few ms, once.
 CALIBRATION_PIXELS = (64, 512)
-CALIBRATION_REPEATS = 2
+CALIBRATION_REPEATS = 3
 CALIBRATION_SEED = 0
 
 
@@ -372,6 +373,8 @@ class FrameRenderer:
                 rays += result.rays
                 selected.extend(ids)
                 t = time.perf_counter()
+                # What tracing changed against the raster fallback, per source (heu3).
+                observe_fallback_error(result, image, prep.image, gb.element_id)
                 # The policy learns the time the budget is charged (trace + composite).
                 policy.record(result.records, round_ms / 1000.0)
                 select_ms += _ms(t)

@@ -32,6 +32,12 @@ JITTER_STEP = 0.2
 #: traced again, and without rounds there is nothing to learn from: the factor creeps back
 #: until a round fits, and that round's measurement then corrects it.
 STARVED_RELAX = 0.97
+#: Once the safety factor is down at TIME_SAFETY_MIN, a starved frame also scales the
+#: model's times (prior and measured rounds) by this: a calibration or rounds timed in a
+#: loaded spell could otherwise predict every reflector over the budget for ever. The
+#: first round that then fits is measured and corrects the model; with a budget truly too
+#: small this probes once every ~log(predicted / budget) / log(1 / 0.9) frames.
+STARVED_SCALE = 0.9
 
 #: Before anything was measured or calibrated: 0.004 ms per ray (250k rays/s, slower than
 #: embreex plus numpy shading on one laptop core) and 0.5 ms fixed cost per tracing round.
@@ -53,11 +59,12 @@ TIME_MODEL_DECAY = 0.9
 RAY_UNIT = 1e4
 #: The prior line (the initial guess, or the calibration) enters the fit as two
 #: pseudo-rounds, one at 0 rays (the fixed cost) and one at RAY_UNIT rays (fixed cost plus
-#: the per-ray cost), each of weight PRIOR_WEIGHT at the start. Their weight is forgotten
-#: like a measured round's (TIME_MODEL_DECAY per round), so after ~20 rounds the measured
-#: rounds (weight ~1 / (1 - decay) = 10) decide the line; when the rounds all trace about
-#: the same rays, they decide its height there and the prior only its tilt.
-PRIOR_WEIGHT = 2.0
+#: the per-ray cost), each of weight PRIOR_WEIGHT at the start: the first measured round
+#: already outweighs it (the calibration's rounds are small and on a (1, n) image, so they
+#: miss part of a real round's fixed cost). Their weight is forgotten like a measured
+#: round's (TIME_MODEL_DECAY per round); when the rounds all trace about the same rays,
+#: they decide the line's height there and the prior only its tilt.
+PRIOR_WEIGHT = 0.5
 #: The prior's weight never falls below this: with identical rounds the two terms cannot
 #: be told apart from data, and the remaining prior keeps the normal equations regular.
 PRIOR_WEIGHT_MIN = 1e-9
@@ -162,7 +169,15 @@ class TraceTimeModel:
         self.ms_per_ray = max(float(per_unit) / RAY_UNIT, MIN_MS_PER_RAY)
 
     def relax(self) -> None:
-        """Nothing fitted the time budget this frame: lower the safety factor a little."""
+        """Nothing fitted the time budget this frame: lower the safety factor a little,
+        and once it is at its minimum, the modelled times (STARVED_SCALE)."""
+        if self.safety <= TIME_SAFETY_MIN:
+            k = STARVED_SCALE
+            self.prior_overhead_ms *= k
+            self.prior_ms_per_ray = max(self.prior_ms_per_ray * k, MIN_MS_PER_RAY)
+            self._m *= k
+            self._rm *= k
+            self._fit()
         self.safety = max(self.safety * STARVED_RELAX, TIME_SAFETY_MIN)
 
     def expected_ms(self, rays: float) -> float:
