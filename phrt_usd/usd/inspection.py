@@ -55,17 +55,22 @@ def _bounds(cache: UsdGeom.BBoxCache, prim: Usd.Prim, meters_per_unit: float) ->
     }
 
 
+def _traverse(stage: Usd.Stage) -> Usd.PrimRange:
+    """The composed stage as the render walks it: instance proxies included."""
+    return Usd.PrimRange(stage.GetPseudoRoot(), Usd.TraverseInstanceProxies())
+
+
 def _lights(stage: Usd.Stage) -> list[dict]:
     return [
         {"path": str(p.GetPath()), "type": p.GetTypeName() or "LightAPI"}
-        for p in stage.Traverse()
+        for p in _traverse(stage)
         if p.HasAPI(UsdLux.LightAPI)
     ]
 
 
 def _has_translucent_preview_surface(stage: Usd.Stage) -> bool:
     """Some UsdPreviewSurface shader has an authored inputs:opacity < 1."""
-    for prim in stage.Traverse():
+    for prim in _traverse(stage):
         if not prim.IsA(UsdShade.Shader):
             continue
         shader = UsdShade.Shader(prim)
