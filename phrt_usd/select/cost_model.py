@@ -36,8 +36,8 @@ STARVED_RELAX = 0.97
 #: model's times (prior and measured rounds) by this: a calibration or rounds timed in a
 #: loaded spell could otherwise predict every reflector over the budget for ever. The
 #: first round that then fits is measured and corrects the model; with a budget truly too
-#: small this probes once every ~log(predicted / budget) / log(1 / 0.9) frames.
-STARVED_SCALE = 0.9
+#: small this probes once every ~log(predicted / budget) / log(1 / 0.75) frames.
+STARVED_SCALE = 0.75
 
 #: Before anything was measured or calibrated: 0.004 ms per ray (250k rays/s, slower than
 #: embreex plus numpy shading on one laptop core) and 0.5 ms fixed cost per tracing round.
@@ -53,6 +53,14 @@ MIN_MS_PER_RAY = 1e-7
 #: policies' mean rays per pixel over all reflectors forgets older traces at this rate too
 #: (per traced reflector).
 TIME_MODEL_DECAY = 0.9
+
+#: A measured round enters the fit clipped to [1 / OUTLIER_RATIO, OUTLIER_RATIO] times
+#: the model's expectation (once it has one: calibrated or a round seen). On the shared
+#: machine a round sometimes takes 10x its usual time (another process on the cores); one
+#: such round would otherwise hold the whole line up for ~10 rounds. A lasting change of
+#: speed still moves the model by up to 3x per round; the safety factor sees the round
+#: unclipped.
+OUTLIER_RATIO = 3.0
 
 #: Rays are fitted in units of RAY_UNIT rays (a round casts 1e2..1e6 rays): keeps the
 #: normal equations' sums of squares well conditioned.
@@ -130,10 +138,12 @@ class TraceTimeModel:
         x, m = float(rays) / RAY_UNIT, float(ms)
         if self.rounds > 0 or self.calibrated:
             # (Uncalibrated, the first round only tells how wrong the initial guess was.)
-            ratio = m / max(self.expected_ms(rays), 1e-9)
+            expected = max(self.expected_ms(rays), 1e-9)
+            ratio = m / expected
             q = JITTER_QUANTILE
             step = JITTER_STEP * (q if ratio > self.safety else -(1.0 - q))
             self.safety = min(max(self.safety + step, TIME_SAFETY_MIN), TIME_SAFETY_MAX)
+            m = min(max(m, expected / OUTLIER_RATIO), expected * OUTLIER_RATIO)
         k = TIME_MODEL_DECAY
         if not self.calibrated and self.rounds == 0:
             # The initial guess is a guess: the first measured round replaces it at once.
