@@ -480,6 +480,9 @@ def render(
         print_report(summary, Console())
         if summary.get("trace_note"):
             typer.echo(f"note: {summary['trace_note']}")
+        if summary.get("mean_budget_use") is not None:
+            use = summary["mean_budget_use"]
+            typer.echo(f"trace budget use: {use:.0%} of T (mean, frames with reflectors in view)")
         typer.echo(_written(summary))
 
 

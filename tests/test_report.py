@@ -219,6 +219,11 @@ def test_stats_round_trip_atomic_and_json_safe(tmp_path: Path) -> None:
         "selected",
         "metrics",
         "passes",
+        "budget_ms",
+        "expected_trace_ms",
+        "budget_use",
+        "untraced_reason",
+        "calibration",
     }
     (tmp_path / "stats.json").write_text("{}")
     with pytest.raises(PhrtError, match="not a phrt stats file"):
