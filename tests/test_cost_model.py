@@ -116,3 +116,17 @@ def test_nothing_traced_says_why(tmp_path):
     assert all("budget 0.00 ms < cheapest predicted cost" in f["untraced_reason"] for f in seen)
     assert summary["untraced_frames"] == len(seen)
     assert summary["trace_note"].startswith("hybrid traced nothing in none of")
+
+
+def test_rows_written_before_the_new_fields_still_read(tmp_path):
+    """stats.json rows from before budget_ms / expected_trace_ms / ... were recorded read
+    back with those fields at their defaults (a resumed older run)."""
+    from phrt_usd.run.run_files import frame_stats_from_row
+
+    row = {"time": 1.0, "phase_ms": {"trace": 1.0}, "frame_ms": 5.0, "trace_ms": 1.0,
+           "predicted_trace_ms": 1.2, "rays": 10, "visible": [], "selected": [],
+           "metrics": {}, "passes": []}  # fmt: skip
+    stats = frame_stats_from_row(row)
+    assert stats.budget_ms is None and stats.untraced_reason is None
+    with pytest.raises(Exception, match="untraced_reason"):
+        frame_stats_from_row({**row, "untraced_reason": 3})
