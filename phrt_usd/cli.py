@@ -350,7 +350,7 @@ def render(
         str | None, typer.Option(help="A:B[:STEP] in stage time codes, both ends included.")
     ] = None,
     mode: Annotated[str | None, typer.Option(help="raster | hybrid | rt.")] = None,
-    heuristic: Annotated[str | None, typer.Option(help="heu1 | heu2 | all | none.")] = None,
+    heuristic: Annotated[str | None, typer.Option(help="heu1 | heu2 | heu3 | all | none.")] = None,
     budget_ms: Annotated[
         float | None, typer.Option(help="Trace budget T per frame in ms (inf: unbounded).")
     ] = None,

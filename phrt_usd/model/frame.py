@@ -62,6 +62,9 @@ class TraceRecord:
           (0 when no ray hit another reflector), capped at the bounce limit.
     mean_reflector_bounces: mean over this source's pixels of that chain length.
     seconds: wall time attributed to this source (its share of the batch by rays).
+    fallback_error: mean over this source's traced pixels of how far the traced frame is
+          from the raster fallback it replaced (``compositing.observe_fallback_error``:
+          displayed values, in [0, 1]); None until the renderer has composited the round.
     """
 
     source: int
@@ -71,6 +74,7 @@ class TraceRecord:
     max_reflector_bounces: int = 0
     mean_reflector_bounces: float = 0.0
     seconds: float = 0.0
+    fallback_error: float | None = None
 
 
 @dataclass

@@ -81,3 +81,32 @@ def apply_traced(
     f = reflectivity.reshape(-1)[idx][:, None]
     flat_image[idx] = (1.0 - f) * local.reshape(-1, 3)[idx] + f * result.radiance
     traced_mask.reshape(-1)[idx] = True
+
+
+def observe_fallback_error(
+    result: ReflectionResult, image: np.ndarray, fallback: np.ndarray, element_id: np.ndarray
+) -> None:
+    """Set each record's ``fallback_error``: the mean over its source's traced pixels of
+    ``mean_rgb |clip(image) - clip(fallback)|``, what tracing changed on screen there.
+
+    image    : (H, W, 3) float32 linear RGB after ``apply_traced`` of ``result``;
+    fallback : (H, W, 3) float32 the raster frame of the same pixels (``base_image``);
+    element_id : (H, W) int32 (``GBuffer.element_id``): a traced pixel's source reflector.
+    Values are clipped to [0, 1] as the display transform clips them (``tonemap_ldr``,
+    run/images.py, which this phase cannot import; its sRGB encoding is left out), so a
+    highlight far above white counts as white, and NaN counts as 0: the figure is finite,
+    in [0, 1]. Sources without traced pixels get 0.
+    """
+    idx = result.pixel_index
+    if idx.size == 0:
+        for rec in result.records:
+            rec.fallback_error = 0.0
+        return
+    traced = np.clip(np.nan_to_num(image.reshape(-1, 3)[idx]), 0.0, 1.0)
+    raster = np.clip(np.nan_to_num(fallback.reshape(-1, 3)[idx]), 0.0, 1.0)
+    diff = np.abs(traced - raster).mean(axis=1, dtype=np.float64)
+    sources, inverse = np.unique(element_id.reshape(-1)[idx], return_inverse=True)
+    mean = np.bincount(inverse, weights=diff) / np.bincount(inverse)
+    by_source = dict(zip(sources.tolist(), mean.tolist(), strict=True))
+    for rec in result.records:
+        rec.fallback_error = float(by_source.get(int(rec.source), 0.0))

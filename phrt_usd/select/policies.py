@@ -686,7 +686,18 @@ class ListPolicy(BudgetedPolicy):
         return [e for e in self._untraced_visible() if e in wanted]
 
 
-POLICY_NAMES = ("heu1", "heu2", "all", "none", "list")
+POLICY_NAMES = ("heu1", "heu2", "all", "none", "list", "heu3")
+
+#: Policies of other modules of this phase by name (``register_policy``): they subclass
+#: BudgetedPolicy, so this module cannot import them. ``phrt_usd.select`` imports them,
+#: so they are registered before any ``make_policy`` call.
+REGISTERED_POLICIES: dict[str, type] = {}
+
+
+def register_policy(cls: type) -> type:
+    """Class decorator: ``make_policy(cls.name)`` makes a ``cls``."""
+    REGISTERED_POLICIES[cls.name] = cls
+    return cls
 
 
 def make_policy(
@@ -709,6 +720,8 @@ def make_policy(
         return AllPolicy(**common)
     if key == "none":
         return NonePolicy(**common)
+    if key in REGISTERED_POLICIES:  # heu3: select/benefit_policy.py
+        return REGISTERED_POLICIES[key](**common)
     if key == "list":
         if explicit is None:
             raise PhrtError("heuristic 'list' needs an explicit list of reflectors")

@@ -58,7 +58,7 @@ BUDGET_MS = "phrt:budgetMs"  # float T, milliseconds
 BUDGET_RAYS = "phrt:budgetRays"  # int, -1 = not used
 TARGET_FPS = "phrt:targetFps"  # float frames per second, 0 = not used (then phrt:budgetMs)
 BOUNCE_LIMIT = "phrt:bounceLimit"  # int
-HEURISTICS = ("heu1", "heu2", "all", "none")
+HEURISTICS = ("heu1", "heu2", "all", "none", "heu3")
 MODES = ("hybrid", "rt", "raster")
 MAX_BOUNCE_LIMIT = 16  # recursion depth beyond which extra bounces change nothing visible
 DEFAULT_HEURISTIC = "heu1"
