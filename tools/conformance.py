@@ -252,21 +252,41 @@ def framing_camera(
 
 
 def gprim_bounds(stage, time_code: float):
-    """The world-space ``Gf.Range3d`` of every default or render purpose gprim, instance
-    proxies included, each gprim's own bound (``UsdGeom.BBoxCache``, extents hints used).
+    """The world-space ``Gf.Range3d`` of what the stage draws: every default or render
+    purpose gprim's extent computed from its points (``ComputeExtentFromPlugins``: an
+    authored ``extent`` may be wrong, empty or inverted) and every PointInstancer's bound
+    (``UsdGeom.BBoxCache``), instance proxies included.
 
     Gprim by gprim rather than the pseudo-root's bound: a ``SkelRoot``'s computed extent is
     its skeleton's joints (UsdSkel's extent rule), which can be a sliver of the skinned mesh;
-    a skinned mesh's own extent is its rest pose, the closer estimate."""
+    a skinned mesh's own points are its rest pose, the closer estimate."""
     from pxr import Gf, Usd, UsdGeom
 
     purposes = [UsdGeom.Tokens.default_, UsdGeom.Tokens.render]
     cache = UsdGeom.BBoxCache(time_code, purposes, useExtentsHint=True)
+    xforms = UsdGeom.XformCache(time_code)
     box = Gf.Range3d()
     predicate = Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate)
-    for prim in Usd.PrimRange(stage.GetPseudoRoot(), predicate):
-        if prim.IsA(UsdGeom.Gprim):
+    prims = iter(Usd.PrimRange(stage.GetPseudoRoot(), predicate))
+    for prim in prims:
+        if prim.IsA(UsdGeom.PointInstancer):
             box.UnionWith(cache.ComputeWorldBound(prim).ComputeAlignedRange())
+            prims.PruneChildren()  # the prototypes are placed by the instancer
+        elif prim.IsA(UsdGeom.Gprim):
+            imageable = UsdGeom.Imageable(prim)
+            if imageable.ComputePurpose() not in purposes:
+                continue
+            if imageable.ComputeVisibility(time_code) == UsdGeom.Tokens.invisible:
+                continue
+            extent = UsdGeom.Boundable.ComputeExtentFromPlugins(
+                UsdGeom.Boundable(prim), Usd.TimeCode(time_code)
+            )
+            if extent is None or len(extent) != 2:
+                box.UnionWith(cache.ComputeWorldBound(prim).ComputeAlignedRange())
+                continue
+            local = Gf.Range3d(Gf.Vec3d(*extent[0]), Gf.Vec3d(*extent[1]))
+            world = Gf.BBox3d(local, xforms.GetLocalToWorldTransform(prim))
+            box.UnionWith(world.ComputeAlignedRange())
     return box
 
 
@@ -274,13 +294,14 @@ def wrapper_stage(asset_stage, asset_path: Path, variants):
     """An in-memory stage whose root layer sublayers ``asset_path`` and authors the
     ``variants`` selections (over prims), with the asset's ``upAxis``, ``metersPerUnit``
     and time range (stage metadata a sublayer does not carry)."""
-    from pxr import Sdf, Usd, UsdGeom
+    from pxr import Sdf, Usd
 
     layer = Sdf.Layer.CreateAnonymous(".usda")
     layer.subLayerPaths.append(str(asset_path.resolve()))
     stage = Usd.Stage.Open(layer, Usd.Stage.LoadAll)
-    UsdGeom.SetStageUpAxis(stage, UsdGeom.GetStageUpAxis(asset_stage))
-    UsdGeom.SetStageMetersPerUnit(stage, UsdGeom.GetStageMetersPerUnit(asset_stage))
+    for key in ("upAxis", "metersPerUnit"):  # copied as authored, even if invalid
+        if asset_stage.HasAuthoredMetadata(key):
+            stage.SetMetadata(key, asset_stage.GetMetadata(key))
     if asset_stage.HasAuthoredTimeCodeRange():
         stage.SetStartTimeCode(asset_stage.GetStartTimeCode())
         stage.SetEndTimeCode(asset_stage.GetEndTimeCode())
