@@ -25,7 +25,8 @@ previous frame has the paper's S * I added to its relevance (``(S * I * s + b)``
 V * K units through s) and its benefit per ray multiplied by KEEP_GAIN, so it is kept
 unless a challenger buys KEEP_GAIN times more error per ray; a reflector not selected in
 the previous frame joins only if ADMISSION_MARGIN of the frame's budget stays free after
-it (as HEU1's admission).
+it (as HEU1's admission), REJOIN_MARGIN if it was in view then (taking it is a
+transition).
 
 Memory (checkpoints, ``BudgetedPolicy.memory``): the per-reflector tables and the prior
 fit's sums below are plain numbers keyed by element id, shape-checked on restore.
@@ -61,6 +62,13 @@ PRIOR_SCALE_INITIAL = 1.0
 #: selections whose estimates jitter by tens of per cent between frames; a reflector
 #: worth half of a challenger is still traded.
 KEEP_GAIN = 2.0
+#: A reflector in view in the previous frame but not selected then (taking it now is a
+#: transition) joins only if this share of the frame's budget stays free after it, more
+#: than ADMISSION_MARGIN: at small budgets (a few thousand rays) the rays that fit move
+#: by tens of per cent from frame to frame with the time model, and a reflector dropped
+#: for that would otherwise be taken back on the next frame. One entering the view is
+#: no transition and needs ADMISSION_MARGIN only.
+REJOIN_MARGIN = 0.3
 #: Errors and scales are clamped here so that products and sums stay finite.
 VALUE_MAX = 1e12
 
@@ -81,6 +89,8 @@ class Heu3Policy(BudgetedPolicy):
         #: Decayed sums of the prior fit e ≈ s * x with x = P / D: sum x * e, sum x * x.
         self.prior_xy = 0.0
         self.prior_xx = 0.0
+        #: Reflectors with pixels in the previous frame (REJOIN_MARGIN).
+        self.previous_visible: set[int] = set()
 
     # ---- learning
 
@@ -114,6 +124,7 @@ class Heu3Policy(BudgetedPolicy):
                     del self.error_per_pixel[e]
                 else:
                     self.error_confidence[e] = c
+        self.previous_visible = set(np.flatnonzero(frame.pixels > 0).tolist())
         return super().end_frame()
 
     # ---- figures
@@ -173,6 +184,7 @@ class Heu3Policy(BudgetedPolicy):
         if frame.first_allowance is None:
             frame.first_allowance = remaining
         reserve = ADMISSION_MARGIN * frame.first_allowance
+        rejoin = REJOIN_MARGIN * frame.first_allowance
         candidates = self._untraced_visible()
         scores = np.array([self.score(e) for e in candidates], dtype=np.float64)
         chosen = []
@@ -180,7 +192,10 @@ class Heu3Policy(BudgetedPolicy):
         for k in sorted(range(len(candidates)), key=lambda k: (-scores[k], candidates[k])):
             e = candidates[k]
             cost = self.predicted_rays(e)
-            need = cost if e in self.previous_selection else cost + reserve
+            if e in self.previous_selection:
+                need = cost
+            else:
+                need = cost + (rejoin if e in self.previous_visible else reserve)
             if need <= remaining:
                 chosen.append(e)
                 remaining -= cost
