@@ -327,7 +327,7 @@ def test_fixed_policies():
 
 def test_make_policy_rejects_bad_input():
     with pytest.raises(PhrtError, match="unknown heuristic"):
-        policy_of("heu3")
+        policy_of("heu9")
     with pytest.raises(PhrtError, match="selectionWeight"):
         policy_of("heu1", weight=-1.0)
     with pytest.raises(PhrtError, match="bounceLimit"):
