@@ -213,3 +213,16 @@ def test_cli_render_with_heu3_writes_stats(tmp_path):
     assert len(rows) == 4
     assert all(row["rays"] <= 600 for row in rows)  # the rays budget holds
     assert any(row["selected"] for row in rows)  # it traces something
+
+
+def test_taking_a_reflector_already_in_view_needs_the_rejoin_margin():
+    """1500 rays: a reflector of 1100 predicted rays leaves 400 (27 % of the budget) free,
+    above ADMISSION_MARGIN (10 %), below REJOIN_MARGIN (30 %)."""
+    sc = scene(PAIR)
+    entering = policy_of("heu3")
+    assert frame(entering, sc, view([1000, 0]), 1500, {0: 0.2}) == [0]
+    assert frame(entering, sc, view([0, 1000]), 1500, {1: 0.2}) == [1]  # new in view
+    rejoining = policy_of("heu3")
+    assert frame(rejoining, sc, view([1000, 1000]), 1500, {0: 0.2}) == [0]
+    assert frame(rejoining, sc, view([0, 1000]), 1500, {1: 0.2}) == []  # a transition
+    assert frame(rejoining, sc, view([0, 1000]), 1600, {1: 0.2}) == [1]  # 1100 + 480
