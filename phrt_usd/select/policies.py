@@ -390,7 +390,8 @@ class BudgetedPolicy(ABC):
         e = min(visible, key=lambda v: (self.predicted_rays(v), v))
         rays = self.predicted_rays(e)
         ms = self.time_model.predicted_ms(rays)
-        what = f"{frame.scene.elements[e].path}, {rays:.0f} rays, {ms:.2f} ms"
+        name = getattr(frame.scene.elements[e], "path", f"element {e}")
+        what = f"{name}, {rays:.0f} rays, {ms:.2f} ms"
         if budget.rays is not None and rays > budget.rays:
             return f"budget {budget.rays} rays < cheapest predicted cost ({what})"
         if budget.ms is not None and not ms <= budget.ms:
