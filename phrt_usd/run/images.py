@@ -28,6 +28,13 @@ would merge; a larger id raises ``PhrtError``.
 Why Z is finite: many compositing operations (``1/Z``, depth merges, blur) turn ``inf``
 into NaN; 1e30 m sorts behind everything and stays finite.
 
+**Data window.** A file may hold only part of the image (UsdRender ``dataWindowNDC``,
+``CameraFrame.data_window_pixels``): ``DataWindow`` names those pixels. An EXR then has
+OpenEXR's two windows as production renderers write them: ``displayWindow`` the whole
+W x H image, ``dataWindow`` the pixels held (inclusive corners, (0, 0) the top-left
+pixel), and its channels hold only those pixels; a PNG holds only those pixels (PNG has
+no display window). The writers take planes of the whole image and crop them.
+
 Files carry no wall-clock time unless asked (``capDate``, see ``products``), so
 identical renders are identical files.
 
@@ -40,6 +47,7 @@ from __future__ import annotations
 import io
 import json
 from collections.abc import Callable, Mapping
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -68,6 +76,74 @@ MANIFEST_ATTR = "phrt/idManifest"
 #: The storage types of EXR channels: numpy dtypes the OpenEXR bindings map to HALF,
 #: FLOAT and UINT.
 STORAGE = {"half": np.float16, "float": np.float32, "uint": np.uint32}
+
+
+# --- the pixels a file holds -------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class DataWindow:
+    """The pixels a file holds of a ``width`` x ``height`` image (module docstring):
+    columns ``col0 <= c < col1`` and rows ``row0 <= r < row1``, row 0 at the top, as
+    ``CameraFrame.data_window_pixels`` returns them. PhrtError if it holds no pixel or
+    leaves the image."""
+
+    width: int
+    height: int
+    col0: int
+    row0: int
+    col1: int
+    row1: int
+
+    def __post_init__(self):
+        if not (0 <= self.col0 < self.col1 <= self.width and 0 <= self.row0 < self.row1
+                <= self.height):  # fmt: skip
+            raise PhrtError(
+                f"data window columns {self.col0}..{self.col1}, rows {self.row0}..{self.row1} "
+                f"holds no pixel of the {self.width}x{self.height} image"
+            )
+
+    @classmethod
+    def full(cls, width: int, height: int) -> DataWindow:
+        """Every pixel of the image."""
+        return cls(int(width), int(height), 0, 0, int(width), int(height))
+
+    @classmethod
+    def of(cls, width: int, height: int, pixels: tuple[int, int, int, int]) -> DataWindow:
+        """From ``CameraFrame.data_window_pixels(width, height)`` (col0, row0, col1, row1)."""
+        return cls(int(width), int(height), *(int(p) for p in pixels))
+
+    @property
+    def is_full(self) -> bool:
+        return (self.col0, self.row0, self.col1, self.row1) == (0, 0, self.width, self.height)
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """(rows, columns) held."""
+        return self.row1 - self.row0, self.col1 - self.col0
+
+    def crop(self, plane: np.ndarray, path: Path | str = "image") -> np.ndarray:
+        """The held pixels of ``plane`` (H, W, ...) of the whole image (a view); PhrtError
+        naming ``path`` if the plane is not the image's size."""
+        plane = np.asarray(plane)
+        if plane.shape[:2] != (self.height, self.width):
+            raise PhrtError(
+                f"{path}: planes must be {self.height}x{self.width} (rows x columns) for this "
+                f"data window, got {plane.shape[:2]}"
+            )
+        return plane[self.row0 : self.row1, self.col0 : self.col1]
+
+    def exr_windows(self) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+        """OpenEXR's ``displayWindow`` (the whole image) and ``dataWindow`` (the held
+        pixels), each ((xMin, yMin), (xMax, yMax)) inclusive, int32."""
+
+        def box(x0: int, y0: int, x1: int, y1: int) -> tuple[np.ndarray, np.ndarray]:
+            return np.array([x0, y0], np.int32), np.array([x1 - 1, y1 - 1], np.int32)
+
+        return {
+            "displayWindow": box(0, 0, self.width, self.height),
+            "dataWindow": box(self.col0, self.row0, self.col1, self.row1),
+        }
 
 
 # --- encoding the renderer's planes ----------------------------------------------------
@@ -130,6 +206,7 @@ def write_frame_exr(
     traced_mask: np.ndarray,
     metadata: Mapping[str, object] | None = None,
     manifest: Mapping[int, str] | None = None,
+    window: DataWindow | None = None,
 ) -> None:
     """Write one frame in the default layout (``CHANNELS``, module docstring), atomically.
 
@@ -140,6 +217,7 @@ def write_frame_exr(
     traced_mask : (H, W) bool, pixels whose reflection was ray-traced
     metadata    : extra header attributes (see ``write_exr``), e.g. ``{"phrt/timeCode": 12.0}``
     manifest    : element id → prim path of the ids in the frame (``MANIFEST_ATTR``)
+    window      : the pixels the file holds (``DataWindow``; None: all)
     """
     path = Path(path)
     beauty = check_beauty(path, beauty)
@@ -159,7 +237,7 @@ def write_frame_exr(
         "id": stored_ids(path, element_id),
         "traced": stored(traced_mask.astype(np.float32), "half"),
     }
-    write_exr(path, {"": channels}, metadata, manifest)
+    write_exr(path, {"": channels}, metadata, manifest, window=window)
 
 
 def write_exr(
@@ -168,9 +246,12 @@ def write_exr(
     header: Mapping[str, object] | None = None,
     manifest: Mapping[int, str] | None = None,
     manifest_channel: str = "id",
+    window: DataWindow | None = None,
 ) -> None:
     """Write an EXR of ``parts`` (part name → channel name → (H, W) float16 / float32 /
-    uint32 array, storage HALF / FLOAT / UINT), atomically and zip compressed.
+    uint32 array of the whole image, storage HALF / FLOAT / UINT), atomically and zip
+    compressed. With ``window`` (``DataWindow`` of the (H, W) image) the file holds only
+    its pixels, its ``displayWindow`` the whole image and its ``dataWindow`` those pixels.
 
     One part named ``""`` is a single-part file; several parts make a multi-part file,
     each part named by its key. ``header`` attributes go on every part: ``str``,
@@ -183,6 +264,9 @@ def write_exr(
     shapes = {a.shape for channels in parts.values() for a in channels.values()}
     if len(shapes) != 1 or len(next(iter(shapes))) != 2:
         raise PhrtError(f"{path}: channels must all be one (H, W) size, got {sorted(shapes)}")
+    full = next(iter(shapes))
+    window = window or DataWindow.full(full[1], full[0])
+    parts = {n: {c: window.crop(a, path) for c, a in ch.items()} for n, ch in parts.items()}
     attributes: dict[str, object] = {
         "compression": EXR_COMPRESSION,
         "type": OpenEXR.scanlineimage,
@@ -191,6 +275,8 @@ def write_exr(
     for key, value in (header or {}).items():
         # the bindings read an array's memory as C order, whatever its strides
         attributes[key] = np.ascontiguousarray(value) if isinstance(value, np.ndarray) else value
+    if not window.is_full:
+        attributes.update(window.exr_windows())
     if manifest is not None:
         attributes["idManifest"] = _id_manifest(manifest, manifest_channel)
         attributes[MANIFEST_ATTR] = json.dumps(
@@ -208,8 +294,7 @@ def write_exr(
         image.write(buffer)
     except (RuntimeError, TypeError, ValueError) as error:
         raise PhrtError(f"{path}: cannot encode EXR ({error})") from None
-    expected = (next(iter(shapes)), [len(parts[n]) for n in names])
-    write_bytes_atomic(path, buffer.getvalue(), _check_exr(expected))
+    write_bytes_atomic(path, buffer.getvalue(), _check_exr(window, [len(parts[n]) for n in names]))
 
 
 def _contiguous(channels: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
@@ -234,32 +319,41 @@ def _id_manifest(manifest: Mapping[int, str], channel: str) -> OpenEXR.IDManifes
     return result
 
 
-def _check_exr(expected) -> Callable[[Path], None]:
-    """A check for ``atomic_path``: the written file's header reads back with the size and
-    the channel count of every part (pixels are not decoded)."""
-    (height, width), counts = expected
+def _check_exr(window: DataWindow, counts: list[int]) -> Callable[[Path], None]:
+    """A check for ``atomic_path``: the written file's header reads back with the display
+    and data windows of ``window`` and the channel count of every part (pixels are not
+    decoded)."""
+    windows = {k: tuple(map(tuple, v)) for k, v in window.exr_windows().items()}
+    expected = [(windows["displayWindow"], windows["dataWindow"], n) for n in counts]
 
     def check(path: Path) -> None:
         try:
             image = OpenEXR.File(str(path), header_only=True)
-            got = [_size_and_channels(p.header) for p in image.parts]
+            got = [_windows_and_channels(p.header) for p in image.parts]
         except (RuntimeError, KeyError, IndexError, TypeError) as error:
             raise WriteFailed(f"{path}: written image does not open ({error})") from None
-        if got != [(height, width, n) for n in counts]:
+        if got != expected:
             raise WriteFailed(f"{path}: written image has the wrong size")
 
     return check
 
 
-def _size_and_channels(header: Mapping[str, object]) -> tuple[int, int, int]:
-    """(height, width, channel count) from a part's header (its data window)."""
-    low, high = header["dataWindow"]
-    return int(high[1] - low[1] + 1), int(high[0] - low[0] + 1), len(header["channels"])
+def _windows_and_channels(header: Mapping[str, object]) -> tuple[tuple, tuple, int]:
+    """(display window, data window, channel count) from a part's header, the windows as
+    ((xMin, yMin), (xMax, yMax)) int tuples."""
+
+    def box(name: str) -> tuple:
+        low, high = header[name]
+        return (int(low[0]), int(low[1])), (int(high[0]), int(high[1]))
+
+    return box("displayWindow"), box("dataWindow"), len(header["channels"])
 
 
 def read_exr(path: Path) -> tuple[dict[str, object], dict[str, np.ndarray]]:
-    """(header of the first part, channel name → (H, W) array of every part) of an EXR.
-    Arrays keep their storage: float16, float32 or uint32. PhrtError if it cannot be read."""
+    """(header of the first part, channel name → (h, w) array of every part) of an EXR:
+    the pixels of its ``dataWindow`` (the whole ``displayWindow`` unless the file holds
+    a data window, ``DataWindow``). Arrays keep their storage: float16, float32 or uint32.
+    PhrtError if it cannot be read."""
     path = Path(path)
     try:
         image = OpenEXR.File(str(path), separate_channels=True)
@@ -295,7 +389,7 @@ def read_frame_exr(path: Path) -> dict[str, np.ndarray]:
 
     Returns ``beauty`` (H, W, 3) float32, ``alpha`` (H, W) float32, ``depth`` (H, W)
     float32 metres with ``inf`` for background, ``element_id`` (H, W) int32,
-    ``traced_mask`` (H, W) bool.
+    ``traced_mask`` (H, W) bool; H, W those of the file's data window (``read_exr``).
     """
     path = Path(path)
     _, channel = read_exr(path)
@@ -338,10 +432,13 @@ def tonemap_ldr(rgb: np.ndarray, exposure: float = 0.0) -> np.ndarray:
     return srgb_oetf(scaled)
 
 
-def write_preview_png(path: Path, beauty: np.ndarray, exposure: float = 0.0) -> None:
+def write_preview_png(
+    path: Path, beauty: np.ndarray, exposure: float = 0.0, window: DataWindow | None = None
+) -> None:
     """Write ``tonemap_ldr(beauty)`` as an 8-bit RGB PNG, atomically.
 
-    beauty : (H, W, 3) linear RGB, must be finite (else PhrtError)
+    beauty : (H, W, 3) linear RGB of the whole image, must be finite (else PhrtError)
+    window : the pixels the file holds (``DataWindow`` of the (H, W) image; None: all)
     """
     path = Path(path)
     beauty = np.asarray(beauty)
@@ -349,6 +446,8 @@ def write_preview_png(path: Path, beauty: np.ndarray, exposure: float = 0.0) -> 
         raise PhrtError(f"{path}: beauty must be (H, W, 3), got {beauty.shape}")
     if not np.isfinite(beauty).all():
         raise PhrtError(f"{path}: beauty has NaN/Inf")
+    if window is not None:
+        beauty = window.crop(beauty, path)
     write_png_atomic(path, np.rint(tonemap_ldr(beauty, exposure) * 255.0).astype(np.uint8))
 
 

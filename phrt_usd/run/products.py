@@ -45,7 +45,11 @@ A product whose ``driver:parameters:OpenEXR:multipart`` is true gets one part pe
 **Header** (every EXR): ``worldToCamera`` and ``worldToNDC`` (OpenEXR's standard
 attributes, ``M44f``, row vectors as Imath multiplies them, world = the stage's world in
 metres: camera space is left-handed, +z the viewing direction, as OpenEXR defines it;
-NDC (0, 0) is the image's top-left corner, (1, 1) its bottom-right, after dividing by w),
+NDC (0, 0) is the image's top-left corner, (1, 1) its bottom-right, after dividing by w,
+over the camera's ``CameraFrame.image_window``: aperture offsets and the conform policy
+included), ``displayWindow`` / ``dataWindow`` (the whole image / the pixels the file
+holds: the settings' ``dataWindowNDC``, ``CameraFrame.data_window_pixels``; every file of
+a frame, EXR and PNG, holds only those pixels, ``images.DataWindow``),
 ``framesPerSecond`` (rational), ``software`` (``phrt-usd VERSION``), ``phrt/version``,
 ``phrt/timeCode`` (double), ``phrt/stage``, ``phrt/camera``, ``phrt/renderSettings`` and
 ``phrt/renderProduct`` (when there is one), ``phrt/metersPerUnit`` (double), and, with an
@@ -73,6 +77,7 @@ from phrt_usd.model.scene import CameraFrame, Scene
 from phrt_usd.render.compositing import element_reflectivity, pixel_reflectivity
 from phrt_usd.render.renderer import FrameOutput
 from phrt_usd.run.images import (
+    DataWindow,
     check_beauty,
     stored,
     stored_depth,
@@ -438,9 +443,12 @@ def write_frame_images(
     stage: str,
 ) -> list[Path]:
     """Write frame ``time``'s files of ``plan`` into ``out`` (each atomically); returns
-    them. ``output`` is the rendered frame, ``camera`` its camera."""
+    them. ``output`` is the rendered frame, ``camera`` its camera; every file holds the
+    pixels of the camera's data window (``CameraFrame.data_window_pixels``, module
+    docstring)."""
     out = Path(out)
     height, width = output.gbuffer.shape
+    window = DataWindow.of(width, height, camera.data_window_pixels(width, height))
     planes = _Planes(output, scene)
     base = frame_header(
         camera,
@@ -459,21 +467,23 @@ def write_frame_images(
     for product in plan.products:
         path = confined(out, expand(product.template, time))
         if product.is_png:
-            write_preview_png(path, planes.get("beauty", path))
+            write_preview_png(path, planes.get("beauty", path), window=window)
         else:
             header = dict(base)
             if product.product:
                 header["phrt/renderProduct"] = product.product
-            _write_product_exr(path, product, planes, header, scene)
+            _write_product_exr(path, product, planes, header, scene, window)
         written.append(path)
         if product.preview:
             preview = confined(out, expand(product.preview, time))
-            write_preview_png(preview, planes.get("beauty", path))
+            write_preview_png(preview, planes.get("beauty", path), window=window)
             written.append(preview)
     return written
 
 
-def _write_product_exr(path: Path, product: ProductPlan, planes, header, scene) -> None:
+def _write_product_exr(
+    path: Path, product: ProductPlan, planes, header, scene, window: DataWindow
+) -> None:
     parts: dict[str, dict[str, np.ndarray]] = {}
     for channel in product.channels:
         part = channel.part if product.multipart else ""
@@ -488,10 +498,10 @@ def _write_product_exr(path: Path, product: ProductPlan, planes, header, scene) 
         parts.setdefault(part, {})[channel.name] = values
     manifest = None
     if "id" in {c.source for c in product.channels}:
-        ids = np.unique(planes.get("id", path))
+        ids = np.unique(window.crop(planes.get("id", path), path))  # the ids in the file
         manifest = {int(i): scene.elements[i].path for i in ids if i >= 0}
     id_channel = next((c.name for c in product.channels if c.source == "id"), "id")
-    write_exr(path, parts, header, manifest, id_channel)
+    write_exr(path, parts, header, manifest, id_channel, window)
 
 
 class _Planes:
@@ -547,15 +557,21 @@ def exr_camera_matrices(
     camera: CameraFrame, width: int, height: int
 ) -> tuple[np.ndarray, np.ndarray]:
     """(worldToCamera, worldToNDC) as OpenEXR defines them (module docstring): (4, 4)
-    float64 matrices for row vectors (``[x, y, z, 1] @ M``)."""
+    float64 matrices for row vectors (``[x, y, z, 1] @ M``). NDC spans the camera's
+    ``image_window`` (aperture offsets, conform policy and pixel aspect included) over
+    the whole ``width`` x ``height`` image, the EXR's display window."""
     flip = np.diag([1.0, 1.0, -1.0, 1.0])  # USD's camera looks down -z, EXR's down +z
     camera_from_world = flip @ np.linalg.inv(camera.world_from_camera)
-    tx, ty = camera.tan_half_fov(width, height)
+    # At distance z (EXR camera space, x right, y up) the window spans left..right and
+    # bottom..top times z: ndc_x = (x / z - left) / (right - left), ndc_y = (top - y / z)
+    # / (top - bottom), written for the homogeneous divide by w = z.
+    left, right, bottom, top = camera.image_window(width, height)
+    sx, sy = 1.0 / (right - left), 1.0 / (top - bottom)
     near, far = camera.near, camera.far
     projection = np.array(
         [
-            [0.5 / tx, 0.0, 0.5, 0.0],
-            [0.0, -0.5 / ty, 0.5, 0.0],
+            [sx, 0.0, -left * sx, 0.0],
+            [0.0, -sy, top * sy, 0.0],
             [0.0, 0.0, far / (far - near), -far * near / (far - near)],
             [0.0, 0.0, 1.0, 0.0],
         ]

@@ -86,7 +86,7 @@ from phrt_usd.usd.meshes import (
     read_gprim,
     smooth_corner_normals,
 )
-from phrt_usd.usd.render_settings import CameraSettings, camera_settings, included_purposes
+from phrt_usd.usd.render_settings import camera_settings, included_purposes
 from phrt_usd.usd.skinning import SkinningReader
 from phrt_usd.usd.stage_controls import StageControls
 from phrt_usd.usd.traversal import rendered_gprims, walk_subtree  # noqa: F401 (re-export)
@@ -356,12 +356,6 @@ class StageScene:
         self.warnings += purpose_warnings
         cam_prim = choose_camera(stage, camera)
         self.camera_settings = camera_settings(stage, settings)
-        if self.camera_settings.data_window != CameraSettings.data_window:
-            self.warnings.append(
-                f"{schema.find_render_settings(stage, settings).GetPath()}.dataWindowNDC: "
-                f"{self.camera_settings.data_window} is not applied, the whole image is "
-                "rendered and written (CameraFrame.data_window_pixels names its pixels)"
-            )
         self._camera_prim = cam_prim
         self.camera_path = DEFAULT_CAMERA_NAME if cam_prim is None else str(cam_prim.GetPath())
         self.path_driver: CameraPath | None = (
