@@ -44,6 +44,7 @@ from phrt_usd.errors import PhrtError
 from phrt_usd.model.frame import FrameStats
 from phrt_usd.render.renderer import FrameRenderer, RenderOptions
 from phrt_usd.run.frames import parse_frames
+from phrt_usd.run.images import DataWindow
 from phrt_usd.run.products import (
     ImagePlan,
     default_plan,
@@ -63,8 +64,8 @@ from phrt_usd.run.run_files import (
     write_stats,
 )
 from phrt_usd.run.selection_layer import write_selection_layer
-from phrt_usd.usd.render_settings import read_render_settings
-from phrt_usd.usd.stage import StageScene, open_stage, read_stage
+from phrt_usd.usd.render_settings import CameraSettings, read_render_settings
+from phrt_usd.usd.stage import StageScene, choose_camera, open_stage, read_stage
 from phrt_usd.usd.stage_controls import StageControls
 
 #: Identifies checkpoint files; bump the version when their content changes meaning.
@@ -162,7 +163,11 @@ def prepare_job(job: RenderJob, scene: StageScene) -> tuple[RenderJob, StageScen
     )
     camera = job.camera or plan.camera or (settings.camera if settings else None)
     if camera and camera != scene.camera_path:
-        scene = read_stage(scene.stage, camera=camera, settings=job.settings)
+        # A name (``--camera Side``) is resolved to its path once; the stage is read
+        # again only for another camera than the one it was read with.
+        camera = str(choose_camera(scene.stage, camera).GetPath())
+        if camera != scene.camera_path:
+            scene = read_stage(scene.stage, camera=camera, settings=job.settings)
     if camera:
         job = replace(job, camera=camera)  # workers of a cluster read the same camera
     opts = job.options
@@ -170,7 +175,24 @@ def prepare_job(job: RenderJob, scene: StageScene) -> tuple[RenderJob, StageScen
         if plan.resolution != (opts.width, opts.height):
             width, height = plan.resolution
             job = replace(job, options=replace(opts, width=width, height=height))
+    _check_data_window(scene, plan, job.options.width, job.options.height)
     return job, scene, plan
+
+
+def _check_data_window(scene: StageScene, plan: ImagePlan, width: int, height: int) -> None:
+    """PhrtError naming the settings' ``dataWindowNDC`` when it holds no pixel of the
+    ``width`` x ``height`` image (every file holds the data window's pixels), before
+    any frame is rendered."""
+    window = scene.camera_settings.data_window
+    if window == CameraSettings.data_window:
+        return
+    try:
+        DataWindow.of(width, height, scene.camera(scene.time).data_window_pixels(width, height))
+    except PhrtError:
+        raise PhrtError(
+            f"{plan.settings}.dataWindowNDC: {window} holds no pixel of the {width}x{height} "
+            "image (pixels whose centres lie inside it are written)"
+        ) from None
 
 
 class _Run:

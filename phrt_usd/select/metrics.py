@@ -16,7 +16,9 @@ finite for any input; every interpretation is spelled out in ``docs/heuristic.md
   whose rays hit j), so a reflector seen only through ``i`` still adds to ``C_i``.
 * ``R = (S * I + V) * K``.
 
-Points and boxes are world-space metres; screen boxes and areas are pixels of a W x H image.
+Points and boxes are world-space metres; screen boxes and areas are pixels of a W x H image,
+projected through the camera's ``CameraFrame.image_window`` (aperture offsets, conform
+policy and pixel aspect as the render draws them; ``CameraFrame.project``).
 ``box_screen_area`` (the screen rectangle of a box per camera) feeds HEU1's lookahead.
 """
 
@@ -103,7 +105,12 @@ def box_screen_area(
     cam_from_world = np.linalg.inv(np.stack([c.world_from_camera for c in cameras]))
     # (m, n * 8, 3) camera-space corners, as CameraFrame.project computes them.
     pc = corners @ cam_from_world[:, :3, :3].transpose(0, 2, 1) + cam_from_world[:, None, :3, 3]
-    tan = np.array([c.tan_half_fov(width, height) for c in cameras])  # (m, 2)
+    # (m, 4) image windows (left, right, bottom, top) at distance 1: aperture offsets and
+    # the conform policy as the render projects (CameraFrame.image_window); the centre
+    # (cx, cy) is 0 for a centred camera, so its figures are those of tan_half_fov.
+    window = np.array([c.image_window(width, height) for c in cameras], dtype=np.float64)
+    centre = 0.5 * (window[:, [0, 2]] + window[:, [1, 3]])  # (m, 2) cx, cy
+    tan = 0.5 * (window[:, [1, 3]] - window[:, [0, 2]])  # (m, 2) half width, half height
     depth = (-pc[..., 2]).reshape(m, n, 8)
     in_front = np.any(depth > 0.0, axis=2)
     straddles = in_front & np.any(depth <= 0.0, axis=2)
@@ -111,8 +118,12 @@ def box_screen_area(
     # and is replaced below, so its (inf / NaN) rectangle is only clipped away here.
     safe = np.where(np.abs(depth) < 1e-300, 1e-300, depth)
     with np.errstate(over="ignore", invalid="ignore"):
-        ndc_x = pc[..., 0].reshape(m, n, 8) / (safe * tan[:, 0, None, None])
-        ndc_y = pc[..., 1].reshape(m, n, 8) / (safe * tan[:, 1, None, None])
+        ndc_x = (pc[..., 0].reshape(m, n, 8) - centre[:, 0, None, None] * safe) / (
+            safe * tan[:, 0, None, None]
+        )
+        ndc_y = (pc[..., 1].reshape(m, n, 8) - centre[:, 1, None, None] * safe) / (
+            safe * tan[:, 1, None, None]
+        )
     x = np.clip(np.nan_to_num((ndc_x + 1.0) * 0.5 * width, nan=0.0), 0.0, float(width))
     y = np.clip(np.nan_to_num((1.0 - ndc_y) * 0.5 * height, nan=0.0), 0.0, float(height))
     area = (x.max(axis=2) - x.min(axis=2)) * (y.max(axis=2) - y.min(axis=2))

@@ -596,14 +596,22 @@ def read_gprim(kind: str, prim: Usd.Prim, time: Usd.TimeCode, bank: MaterialBank
     return _read_implicit(kind, prim, time, bank)
 
 
-def mesh_area(points: np.ndarray, counts: np.ndarray, indices: np.ndarray) -> float:
+def mesh_area(
+    points: np.ndarray,
+    counts: np.ndarray,
+    indices: np.ndarray,
+    holes: np.ndarray | None = None,
+) -> float:
     """Total area of a polygon mesh, fan-triangulated as the render does (faces of fewer
-    than 3 vertices skipped), in stage units squared.
+    than 3 vertices and the ``holeIndices`` faces skipped), in stage units squared.
 
     points : (p, 3) float64; counts : (f,) int64 >= 0; indices : (sum(counts),) int64 in
-    range (the render's topology rules hold).
+    range (the render's topology rules hold); holes : (h,) int face indices left out
+    (``holeIndices``; indices outside the faces are ignored, as the render does).
     """
-    corners, _ = _fan_corners(counts)
+    corners, tri_face = _fan_corners(counts)
+    if holes is not None and len(holes) and len(tri_face):
+        corners = corners[~np.isin(tri_face, np.asarray(holes, dtype=np.int64))]
     if len(corners) == 0:
         return 0.0
     a, b, c = (points[indices[corners[:, k]]] for k in range(3))

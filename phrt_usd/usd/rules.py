@@ -25,16 +25,18 @@ functions and report each message as an error, with the same text (``Issue.line(
   range and at every time sample inside it; other cameras and their paths get the same
   checks as warnings (they render only with ``--camera``); a camera path that drives no
   camera is a warning (the render ignores it);
-- every gprim the render reads (``rendered_gprims``: not invisible / guide / proxy at
-  the start of the frame range, PointInstancer prototypes included): reflector K and F
-  (``reflector_problems``), mesh points and topology at the start and at every time
-  sample of an animated shape (``mesh_problems_in_range``);
+- every gprim the render reads (``rendered_gprims``: visible at the start of the frame
+  range, of a purpose the render settings' ``includedPurposes`` draw (``included_purposes``,
+  UsdRender's fallback ``default`` and ``render``; an unknown token is a warning),
+  PointInstancer prototypes included): reflector K and F (``reflector_problems``), mesh
+  points and topology at the start and at every time sample of an animated shape
+  (``mesh_problems_in_range``);
 - finally ``read_stage`` itself, so that anything else it refuses (textures, primvar
   sizes, instancers, lights) is reported too (one message: it stops at the first).
 
 Warnings only (the render accepts these): reflector F outside [0, 1] (clamped), a
 reflector on a prim the render does not draw as geometry, a Mesh reflector with no faces,
-faces of fewer than 3 vertices (skipped), zero area.
+faces of fewer than 3 vertices (skipped), zero area (``holeIndices`` faces not counted).
 
 Render settings with PhrtRenderSettingsAPI (``render_settings_issues``, one prim at a
 time): budgets >= 0 (budgetRays >= -1), bounce limit 0..MAX_BOUNCE_LIMIT, selection weight
@@ -54,6 +56,7 @@ from phrt_usd.usd import schema
 from phrt_usd.usd.camera_path import camera_path_problems, find_camera_path_prim, read_camera_path
 from phrt_usd.usd.composition import CompositionProblem, composition_problems
 from phrt_usd.usd.meshes import RENDERED_GPRIM_TYPES, mesh_area, mesh_problems_in_range
+from phrt_usd.usd.render_settings import included_purposes
 from phrt_usd.usd.stage import (
     camera_check_times,
     camera_problems,
@@ -196,6 +199,7 @@ def _reflector_warnings(prim: Usd.Prim, kind: str, time: float) -> list[Issue]:
     points = np.asarray(mesh.GetPointsAttr().Get(code) or [], dtype=np.float64).reshape(-1, 3)
     counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get(code) or [], dtype=np.int64)
     indices = np.asarray(mesh.GetFaceVertexIndicesAttr().Get(code) or [], dtype=np.int64)
+    holes = np.asarray(mesh.GetHoleIndicesAttr().Get(code) or [], dtype=np.int64)
     faces = _attr_where(prim, "faceVertexCounts")
     if counts.size == 0:
         return issues + [Issue(WARNING, faces, "mesh reflector has no faces", GEOMETRY)]
@@ -211,7 +215,7 @@ def _reflector_warnings(prim: Usd.Prim, kind: str, time: float) -> list[Issue]:
                 GEOMETRY,
             )
         )
-    if mesh_area(points, counts, indices) <= 0.0:
+    if mesh_area(points, counts, indices, holes) <= 0.0:  # hole faces are not drawn
         issues.append(
             Issue(WARNING, _attr_where(prim, "points"), "mesh reflector has zero area", GEOMETRY)
         )
@@ -231,9 +235,11 @@ def stage_reflectors(stage: Usd.Stage) -> list[Usd.Prim]:
 
 
 def _gprim_issues(stage: Usd.Stage, frames: tuple[float, float]) -> list[Issue]:
-    """The render's reflector and mesh rules on every gprim it reads, plus warnings."""
-    issues = []
-    for kind, prim in rendered_gprims(stage, frames[0]):
+    """The render's reflector and mesh rules on every gprim it reads (the purposes the
+    render settings include, as the render: ``included_purposes``), plus warnings."""
+    purposes, warnings = included_purposes(stage)
+    issues = [Issue.of(WARNING, w, RENDER_SETTINGS) for w in warnings]
+    for kind, prim in rendered_gprims(stage, frames[0], purposes):
         messages = reflector_problems(prim)
         if kind == "Mesh":
             messages += mesh_problems_in_range(prim, frames)
