@@ -88,6 +88,13 @@ class MaterialTable:
     emissive  : (M, 3) float32 linear RGB radiance added to the shaded colour
     textures  : M entries, each None or an (h, w, 3) float32 linear RGB diffuse texture
                 (UsdUVTexture), sampled with ``Geometry.corner_uv`` and replacing albedo
+    texture_inputs : M dicts, UsdPreviewSurface input name ("diffuseColor", "opacity",
+                "emissiveColor", "metallic", ...) → ``TextureInput``; the diffuse one's
+                ``image`` is ``textures[m]``; empty (or missing rows): not textured,
+                default sampling (repeat, no transform) of ``textures``
+    opacity_threshold : (M,) float32 UsdPreviewSurface ``opacityThreshold``; > 0 makes
+                the material a cut-out: a point whose opacity is below it is not there
+                (no hit, no pixel, no shadow), any other point is opaque. Empty: all 0.
     """
 
     diffuse: np.ndarray
@@ -97,10 +104,69 @@ class MaterialTable:
     ior: np.ndarray
     emissive: np.ndarray
     textures: list[np.ndarray | None] = field(default_factory=list)
+    texture_inputs: list[dict[str, TextureInput]] = field(default_factory=list)
+    opacity_threshold: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))
+
+    def threshold(self, m: int) -> float:
+        """``opacity_threshold`` of row ``m`` (0 where the table has none)."""
+        return float(self.opacity_threshold[m]) if m < len(self.opacity_threshold) else 0.0
+
+    def texture_input(self, m: int, name: str) -> TextureInput | None:
+        """The ``TextureInput`` feeding input ``name`` of row ``m``, or None."""
+        return self.texture_inputs[m].get(name) if m < len(self.texture_inputs) else None
+
+    @property
+    def cutouts(self) -> list[int]:
+        """Rows that are cut-outs: ``opacity_threshold`` > 0 (UsdPreviewSurface: the
+        opacity is then a presence mask, not a translucency)."""
+        return [int(m) for m in np.flatnonzero(np.asarray(self.opacity_threshold) > 0.0)]
 
     @property
     def has_transmission(self) -> bool:
-        return bool(np.any(self.opacity < 1.0))
+        """Some material is translucent: opacity < 1 on a row that is not a cut-out
+        (a cut-out's opacity masks presence; where present it is opaque)."""
+        cut = np.zeros(len(self.opacity), dtype=bool)
+        cut[[m for m in self.cutouts if m < len(cut)]] = True
+        return bool(np.any((self.opacity < 1.0) & ~cut))
+
+
+#: UsdUVTexture ``wrapS``/``wrapT`` modes the sampler knows (``useMetadata`` is resolved
+#: when the texture is read: the file's own wrap metadata, else ``black``, as the
+#: UsdPreviewSurface specification says).
+WRAP_MODES = ("repeat", "mirror", "clamp", "black")
+
+
+@dataclass
+class TextureInput:
+    """One UsdUVTexture (through an optional UsdTransform2d) feeding one input.
+
+    image    : (h, w, c) float32 linear, row 0 = **top** of the file (USD ``st`` has
+               v = 0 at the bottom); c = the file's channels (1 grey, 2 grey+alpha, 3 RGB,
+               4 RGBA), colour space already applied to the colour channels
+    channels : the output's components as channel indices into ``image`` (``rgb`` of a
+               grey file is (0, 0, 0)); ``ALPHA_ONE`` (-1) reads 1 (``a`` of a file
+               without alpha, as the spec says)
+    scale, bias : (k,) float32 per component, ``value = sample * scale + bias``
+    wrap     : (wrapS, wrapT), each of ``WRAP_MODES``
+    transform : (2, 3) float64 affine st → st' (UsdTransform2d: scale, then rotation,
+               then translation), None = identity
+    """
+
+    image: np.ndarray
+    channels: tuple[int, ...]
+    scale: np.ndarray
+    bias: np.ndarray
+    wrap: tuple[str, str] = ("repeat", "repeat")
+    transform: np.ndarray | None = None
+
+    @property
+    def default_sampling(self) -> bool:
+        """Repeat in both directions and no transform (the legacy diffuse lookup)."""
+        return self.wrap == ("repeat", "repeat") and self.transform is None
+
+
+#: ``TextureInput.channels`` entry of an alpha the file does not have (reads 1).
+ALPHA_ONE = -1
 
 
 @dataclass

@@ -25,6 +25,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from phrt_usd.model.scene import ALPHA_ONE, MaterialTable, TextureInput
+
 #: Interpolated shading normals shorter than this are degenerate and replaced by the
 #: geometric normal. Corner normals are unit, so only weights that cancel opposite
 #: normals get this short; 1e-6 keeps the float32 division well away from overflow.
@@ -149,11 +151,15 @@ def orient_shading_normals(normals, side, incoming, table: TriangleTable, tri) -
     return normals
 
 
-def texture_albedo(albedo, tri, weights, tri_material, corner_uv, textures, sample=None):
+def texture_albedo(
+    albedo, tri, weights, tri_material, corner_uv, textures, sample=None, inputs=None
+):
     """Replace, in place, the rows of ``albedo`` (m, 3) float32 at points on triangles
-    ``tri`` (m,) with weights (m, 3) whose material has a texture: ``sample`` (default
-    ``sample_bilinear_wrap``) of ``textures[material]`` at the interpolated
-    ``corner_uv`` (T, 3, 2). tri_material : (T,) material ids; textures : per material
+    ``tri`` (m,) with weights (m, 3) whose material has a texture: ``textures[material]``
+    sampled at the interpolated ``corner_uv`` (T, 3, 2), through the material's
+    ``TextureInput`` of "diffuseColor" (``inputs``: ``MaterialTable.texture_inputs``;
+    its wrap modes and transform) where it has one, else by ``sample`` (default
+    ``sample_bilinear_wrap``). tri_material : (T,) material ids; textures : per material
     None or an (h, w, 3) float32 image. Returns ``albedo``."""
     sample = sample_bilinear_wrap if sample is None else sample
     mats = np.take(tri_material, tri)
@@ -163,8 +169,156 @@ def texture_albedo(albedo, tri, weights, tri_material, corner_uv, textures, samp
         sel = np.flatnonzero(mats == m_id)
         if len(sel):
             uv = interpolate(corner_uv[np.take(tri, sel)], weights[sel])
-            albedo[sel] = sample(texture, uv)
+            spec = inputs[m_id].get("diffuseColor") if inputs and m_id < len(inputs) else None
+            if spec is not None and not spec.default_sampling:
+                albedo[sel] = sample_input(spec, uv)[:, :3]
+            else:
+                albedo[sel] = sample(texture, uv)
     return albedo
+
+
+def transformed_st(spec: TextureInput, uv: np.ndarray) -> np.ndarray:
+    """(n, 2) float64 st after the ``TextureInput.transform`` (UsdTransform2d) of
+    ``spec``; non-finite coordinates read as 0."""
+    uv = np.nan_to_num(np.asarray(uv, dtype=np.float64), nan=0.0, posinf=0.0, neginf=0.0)
+    if spec.transform is not None:
+        uv = uv @ spec.transform[:, :2].T + spec.transform[:, 2]
+    return uv
+
+
+def _wrap_index(i: np.ndarray, size: int, mode: str) -> tuple[np.ndarray, np.ndarray | None]:
+    """Texel indices ``i`` (n,) int64 mapped into [0, size) by ``mode``, and for
+    ``black`` the (n,) bool mask of texels inside the image (outside reads 0)."""
+    if mode == "repeat":
+        return i % size, None
+    if mode == "mirror":  # period 2 size: 0..size-1 then size-1..0
+        j = i % (2 * size)
+        return np.where(j >= size, 2 * size - 1 - j, j), None
+    inside = (i >= 0) & (i < size) if mode == "black" else None
+    return np.clip(i, 0, size - 1), inside
+
+
+def sample_input(spec: TextureInput, uv: np.ndarray) -> np.ndarray:
+    """Bilinear lookup of a ``TextureInput`` at st ``uv`` (n, 2) ((0, 0) = bottom-left):
+    transform, wrap per axis, the output's channels, then ``scale`` and ``bias``.
+    Returns (n, k) float32, k = len(spec.channels). With default sampling (repeat, no
+    transform) the texel weights are those of ``sample_bilinear_wrap``."""
+    texture = spec.image
+    th, tw = texture.shape[:2]
+    uv = transformed_st(spec, uv)
+    wrap_s, wrap_t = spec.wrap
+    # Repeat wraps the coordinate first (as sample_bilinear_wrap: small texel indices).
+    if wrap_s == "repeat":
+        uv[:, 0] -= np.floor(uv[:, 0])
+    if wrap_t == "repeat":
+        uv[:, 1] -= np.floor(uv[:, 1])
+    # Far outside the image every mode is periodic or constant: clamp the coordinate so
+    # the texel indices stay small integers (1e6 periods of mirror are still exact).
+    uv = np.clip(uv, -1e6, 1e6)
+    fx = uv[:, 0] * tw - 0.5
+    fy = (1.0 - uv[:, 1]) * th - 0.5
+    x0 = np.floor(fx)
+    y0 = np.floor(fy)
+    wx = (fx - x0)[:, None]
+    wy = (fy - y0)[:, None]
+    x0 = x0.astype(np.int64)
+    y0 = y0.astype(np.int64)
+    xa, ina = _wrap_index(x0, tw, wrap_s)
+    xb, inb = _wrap_index(x0 + 1, tw, wrap_s)
+    ya, jna = _wrap_index(y0, th, wrap_t)
+    yb, jnb = _wrap_index(y0 + 1, th, wrap_t)
+    chans = [c for c in spec.channels]
+    img = texture.reshape(th, tw, -1)
+
+    def texel(y, x, in_x, in_y):
+        out = np.empty((len(x), len(chans)), np.float32)
+        for k, c in enumerate(chans):
+            out[:, k] = 1.0 if c == ALPHA_ONE else img[y, x, c]
+        if in_x is not None or in_y is not None:
+            keep = np.ones(len(x), bool)
+            keep &= True if in_x is None else in_x
+            keep &= True if in_y is None else in_y
+            out[~keep] = 0.0  # wrap "black": outside the image reads 0
+        return out
+
+    top = texel(ya, xa, ina, jna) * (1 - wx) + texel(ya, xb, inb, jna) * wx
+    bottom = texel(yb, xa, ina, jnb) * (1 - wx) + texel(yb, xb, inb, jnb) * wx
+    value = top * (1 - wy) + bottom * wy
+    return (value * spec.scale + spec.bias).astype(np.float32)
+
+
+def input_values(materials: MaterialTable, name: str, constant, tri, weights, tri_material,
+                 corner_uv) -> np.ndarray:
+    """(m, k) float32 values of UsdPreviewSurface input ``name`` at points on triangles
+    ``tri`` (m,) with weights (m, 3): the material's constant ``constant`` (M, k) row,
+    replaced by its ``TextureInput`` sampled at the interpolated ``corner_uv`` where the
+    input is textured (first k components)."""
+    mats = np.take(tri_material, tri)
+    out = np.array(np.take(constant, mats, axis=0), dtype=np.float32, copy=True)
+    if corner_uv is None:
+        return out
+    for m_id in np.unique(mats):
+        spec = materials.texture_input(int(m_id), name)
+        if spec is None:
+            continue
+        sel = np.flatnonzero(mats == m_id)
+        uv = interpolate(corner_uv[np.take(tri, sel)], weights[sel])
+        value = sample_input(spec, uv)
+        k = out.shape[1]
+        out[sel] = value[:, :k] if value.shape[1] >= k else np.repeat(value[:, :1], k, axis=1)
+    return out
+
+
+class Cutouts:
+    """The cut-out rule (UsdPreviewSurface ``opacityThreshold``) of raster and trace
+    alike: a point of a cut-out material whose opacity (constant or textured, as
+    ``input_values``) is below the threshold is not there.
+
+    tri_cutout : (T,) bool, triangles of cut-out materials; ``any`` False: the scene has
+    none and nobody needs to ask.
+    """
+
+    def __init__(self, materials: MaterialTable, tri_material: np.ndarray, corner_uv):
+        self._materials = materials
+        self._tri_material = np.asarray(tri_material)
+        self._corner_uv = corner_uv
+        cut = np.zeros(len(materials.opacity) + 1, dtype=bool)
+        rows = [m for m in materials.cutouts if m < len(materials.opacity)]
+        cut[rows] = True
+        mat = np.where(
+            (self._tri_material >= 0) & (self._tri_material < len(materials.opacity)),
+            self._tri_material,
+            len(materials.opacity),
+        )
+        self.tri_cutout = cut[mat] if len(mat) else np.zeros(0, bool)
+        self.any = bool(self.tri_cutout.any())
+        self._threshold = np.array(
+            [materials.threshold(m) for m in range(len(materials.opacity))], np.float32
+        )
+
+    def holes(self, tri: np.ndarray, weights: np.ndarray) -> np.ndarray:
+        """(m,) bool: points on triangles ``tri`` (m,) with weights (m, 3) that are not
+        there (opacity < the material's threshold)."""
+        tri = np.asarray(tri, dtype=np.int64)
+        out = np.zeros(len(tri), dtype=bool)
+        if not self.any or len(tri) == 0:
+            return out
+        sel = np.flatnonzero(self.tri_cutout[tri])
+        if len(sel):
+            t = tri[sel]
+            opacity = input_values(
+                self._materials,
+                "opacity",
+                np.asarray(self._materials.opacity, np.float32)[:, None],
+                t,
+                weights[sel],
+                self._tri_material,
+                self._corner_uv,
+            )[:, 0]
+            thr = self._threshold[np.take(self._tri_material, t)]
+            # NaN opacity (a broken texture value) counts as present: never a hole.
+            out[sel] = opacity < thr
+        return out
 
 
 def sample_bilinear_wrap(texture: np.ndarray, uv: np.ndarray) -> np.ndarray:
