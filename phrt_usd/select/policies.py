@@ -627,6 +627,13 @@ class Heu1Policy(BudgetedPolicy):
         reserve = ADMISSION_MARGIN * frame.first_allowance
         graph = self.graph(reserve=reserve, budget=frame.first_allowance)
         ids = graph.select(allowance, horizon_budget=frame.first_allowance - frame.forecast_used)
+        if not ids and not frame.traced:
+            # The admission margin would leave the whole budget idle (and the cost model
+            # without a round to learn from: a still shot then never traced again). Once
+            # taken, a reflector is kept without margin, so this delays no more than the
+            # margin's first admission.
+            graph = self.graph(reserve=0.0, budget=frame.first_allowance)
+            ids = graph.select(allowance, horizon_budget=frame.first_allowance)
         if not frame.traced:
             # The first round's keep step decides which claims cost pushes out; in later
             # rounds, kept reflectors not taken yet are ones that already lost or missed.
