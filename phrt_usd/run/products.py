@@ -375,7 +375,8 @@ def plan_images(
     else:
         for spec in specs:
             template = relative_template(out, spec.product_name, f"{spec.path}.productName")
-            channels = _add(_product_channels(spec), aovs)
+            png = template.lower().endswith(".png")  # --aovs go to every EXR only
+            channels = _add(_product_channels(spec), () if png else aovs)
             products.append(ProductPlan(template, channels, spec.path, spec.multipart))
         used = specs
     base = ImagePlan((), settings.path if settings else None, stage=stage, timestamp=timestamp)
