@@ -18,21 +18,15 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-import OpenImageIO as oiio
 from pxr import Usd, UsdShade
 
 from phrt_usd.errors import PhrtError
 from phrt_usd.model.scene import MaterialTable
-from phrt_usd.usd.values import asset_file
+from phrt_usd.usd import textures
 
 #: UsdPreviewSurface's own fallback ``diffuseColor`` (used when a material is bound but
 #: its diffuseColor is unauthored and the gprim has no displayColor).
 PREVIEW_SURFACE_DIFFUSE = 0.18
-
-
-def _srgb_to_linear(c: np.ndarray) -> np.ndarray:
-    """IEC 61966-2-1 sRGB transfer function, inverse (values in [0, 1])."""
-    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
 
 
 @dataclass
@@ -48,30 +42,13 @@ class _MaterialRow:
     uv_primvar: str = "st"
 
 
-def read_texture(path: str, where: str, color_space: str = "auto") -> np.ndarray:
-    """Read an image with OpenImageIO as (h, w, 3) float32 linear RGB, row 0 = top.
-
-    color_space: UsdUVTexture ``sourceColorSpace`` — "sRGB" converts to linear, "raw"
-    does not, "auto" converts 8-bit files only. Grey images are replicated to RGB.
-    """
-    inp = oiio.ImageInput.open(path)
-    if inp is None:
-        raise PhrtError(f"{where}: cannot read texture {path!r} ({oiio.geterror().strip()})")
-    try:
-        spec = inp.spec()
-        pixels = inp.read_image(0, 0, 0, spec.nchannels, "float")
-        eight_bit = spec.format.basetype in (oiio.UINT8, oiio.INT8)
-    finally:
-        inp.close()
-    if pixels is None:
-        raise PhrtError(f"{where}: cannot decode texture {path!r}")
-    pixels = np.asarray(pixels, dtype=np.float32).reshape(spec.height, spec.width, -1)
-    rgb = np.repeat(pixels[..., :1], 3, axis=2) if pixels.shape[2] < 3 else pixels[..., :3]
-    if color_space == "sRGB" or (color_space == "auto" and eight_bit):
-        rgb = _srgb_to_linear(np.clip(rgb, 0.0, 1.0))
-    # Float files may hold Inf/NaN (e.g. broken HDR exports); render them as black.
-    rgb = np.nan_to_num(rgb, nan=0.0, posinf=0.0, neginf=0.0)
-    return np.ascontiguousarray(rgb, dtype=np.float32)
+def read_texture(value, where: str, color_space: str = "auto") -> np.ndarray:
+    """A texture file (through ``usd/textures.py``, USD's resolver) as (h, w, 3)
+    float32 linear RGB, row 0 = top; grey images are replicated to RGB."""
+    pixels, _ = textures.read_texture(value, where, color_space)
+    if pixels.shape[2] < 3:
+        return np.ascontiguousarray(np.repeat(pixels[..., :1], 3, axis=2))
+    return np.ascontiguousarray(pixels[..., :3])
 
 
 def material_key(material: UsdShade.Material | None) -> str:
@@ -94,6 +71,9 @@ class MaterialBank:
         ]
         self._index: dict[str, int] = {"": 0}
         self._textures: dict[tuple[str, str], np.ndarray] = {}
+        #: One line per texture that could not be read (the render goes on with the
+        #: input's fallback; ``--strict`` and ``phrt validate`` make each an error).
+        self.texture_problems: list[str] = []
 
     def index(self, material: UsdShade.Material | None) -> int:
         key = material_key(material)
@@ -150,18 +130,24 @@ class MaterialBank:
         if tex.GetIdAttr().Get() != "UsdUVTexture":
             return  # some other node (e.g. a primvar reader): keep the default colour
         file_value, _ = self._value(tex, "file")
-        path = asset_file(file_value, f"{tex.GetPath()}.inputs:file")
+        where = f"{tex.GetPath()}.inputs:file"
         fallback, _ = self._value(tex, "fallback")
-        if not path:
+        space, _ = self._value(tex, "sourceColorSpace")
+        space = str(space or "auto")
+        key = (str(getattr(file_value, "resolvedPath", "") or file_value), space)
+        if key not in self._textures and file_value is not None:
+            try:
+                self._textures[key] = read_texture(file_value, where, space)
+            except textures.TextureError as problem:
+                self._textures[key] = None
+                self.texture_problems.append(f"{problem}; using the input's fallback")
+        if self._textures.get(key) is None:
+            # Unreadable or no file: UsdUVTexture's fallback where authored, else the
+            # input's own (UsdPreviewSurface diffuseColor 0.18).
             if fallback is not None:
                 row.diffuse = np.asarray(fallback, dtype=np.float64)[:3]
                 row.diffuse_authored = True
             return
-        space, _ = self._value(tex, "sourceColorSpace")
-        space = str(space or "auto")
-        key = (path, space)
-        if key not in self._textures:
-            self._textures[key] = read_texture(path, f"{tex.GetPath()}.inputs:file", space)
         image = self._textures[key]
         scale, _ = self._value(tex, "scale")
         bias, _ = self._value(tex, "bias")

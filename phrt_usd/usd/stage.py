@@ -368,6 +368,7 @@ class StageScene:
             for problem in camera_problems(cam_prim, self._time, self.path_driver is not None):
                 raise PhrtError(problem)
         self._build(TimeContext(self._time))
+        self.warnings += self.texture_problems
         self._default_camera: CameraFrame | None = None
         if cam_prim is None:
             where = stage.GetRootLayer().identifier
@@ -462,6 +463,9 @@ class StageScene:
         self._parts = parts
         self._animated = [p for p in parts if p.animated]
         self.subdivided_meshes: list[str] = list(subdivided)
+        #: Textures that could not be read (``materials.MaterialBank.texture_problems``):
+        #: warnings of the render, errors with ``--strict`` and in ``phrt validate``.
+        self.texture_problems: list[str] = list(bank.texture_problems)
         self._assemble(parts, elements, bank, lights, ctx)
 
     def _assemble(self, parts, elements, bank, lights, ctx) -> None:

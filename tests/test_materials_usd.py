@@ -1,0 +1,80 @@
+"""Materials read through USD: textures through the resolver (.usdz packages), a missing
+texture as a warning with the input's fallback."""
+
+from __future__ import annotations
+
+import numpy as np
+import OpenImageIO as oiio
+from pxr import Sdf, Usd, UsdGeom, UsdShade, UsdUtils
+
+from phrt_usd.usd.stage import read_stage
+
+RED = (1.0, 0.0, 0.0)
+
+
+def _png(path, rgb):
+    """A 4 x 4 8-bit PNG of one colour (sRGB 255 = linear 1, 0 = 0: exact)."""
+    img = np.zeros((4, 4, 3), np.uint8)
+    img[:] = np.array(rgb) * 255
+    out = oiio.ImageOutput.create(str(path))
+    out.open(str(path), oiio.ImageSpec(4, 4, 3, oiio.UINT8))
+    out.write_image(img)
+    out.close()
+
+
+def _stage(path, texture: str):
+    """A quad bound to a UsdPreviewSurface whose diffuseColor is a UsdUVTexture of
+    ``texture``, and a camera."""
+    stage = Usd.Stage.CreateNew(str(path))
+    mesh = UsdGeom.Mesh.Define(stage, "/Quad")
+    mesh.CreatePointsAttr([(-1, -1, 0), (1, -1, 0), (1, 1, 0), (-1, 1, 0)])
+    mesh.CreateFaceVertexCountsAttr([4])
+    mesh.CreateFaceVertexIndicesAttr([0, 1, 2, 3])
+    st = UsdGeom.PrimvarsAPI(mesh).CreatePrimvar(
+        "st", Sdf.ValueTypeNames.TexCoord2fArray, UsdGeom.Tokens.faceVarying
+    )
+    st.Set([(0, 0), (1, 0), (1, 1), (0, 1)])
+    mat = UsdShade.Material.Define(stage, "/M")
+    surf = UsdShade.Shader.Define(stage, "/M/S")
+    surf.CreateIdAttr("UsdPreviewSurface")
+    tex = UsdShade.Shader.Define(stage, "/M/T")
+    tex.CreateIdAttr("UsdUVTexture")
+    tex.CreateInput("file", Sdf.ValueTypeNames.Asset).Set(texture)
+    out = tex.CreateOutput("rgb", Sdf.ValueTypeNames.Float3)
+    surf.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).ConnectToSource(out)
+    mat.CreateSurfaceOutput().ConnectToSource(surf.ConnectableAPI(), "surface")
+    UsdShade.MaterialBindingAPI.Apply(mesh.GetPrim()).Bind(mat)
+    cam = UsdGeom.Camera.Define(stage, "/Cam")
+    cam.AddTranslateOp().Set((0, 0, 5))
+    stage.GetRootLayer().Save()
+    return stage
+
+
+def test_texture_inside_usdz_is_read_through_the_resolver(tmp_path):
+    _png(tmp_path / "red.png", RED)
+    _stage(tmp_path / "quad.usda", "red.png")
+    package = tmp_path / "quad.usdz"
+    assert UsdUtils.CreateNewUsdzPackage(str(tmp_path / "quad.usda"), str(package))
+    (tmp_path / "red.png").unlink()  # only the package's copy is left
+    scene = read_stage(Usd.Stage.Open(str(package)))
+    texture = scene.scene.materials.textures[scene.scene.geometry.tri_material[0]]
+    assert texture is not None
+    # The red PNG, linear: exactly (1, 0, 0) in every texel (8-bit 255 and 0 are exact).
+    np.testing.assert_array_equal(texture.reshape(-1, 3), np.tile(RED, (16, 1)))
+    assert not scene.texture_problems
+
+
+def test_missing_texture_warns_and_uses_the_fallback(tmp_path):
+    stage = _stage(tmp_path / "quad.usda", "missing.png")
+    UsdShade.Shader(stage.GetPrimAtPath("/M/T")).CreateInput(
+        "fallback", Sdf.ValueTypeNames.Float4
+    ).Set((0.0, 0.5, 0.0, 1.0))
+    scene = read_stage(stage)
+    assert len(scene.texture_problems) == 1
+    line = scene.texture_problems[0]
+    assert "/M/T.inputs:file" in line and "missing.png" in line and "\n" not in line
+    assert line in scene.warnings
+    row = scene.scene.geometry.tri_material[0]
+    assert scene.scene.materials.textures[row] is None
+    # The UsdUVTexture's fallback (0, 0.5, 0) is the albedo every corner gets.
+    np.testing.assert_allclose(scene.scene.geometry.corner_albedo[0], [[0, 0.5, 0]] * 3)
