@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import OpenImageIO as oiio
-from pxr import Sdf, Usd, UsdGeom, UsdShade, UsdUtils
+from pxr import Sdf, Usd, UsdGeom, UsdRender, UsdShade, UsdUtils
 
 from phrt_usd.usd.stage import read_stage
 
@@ -78,3 +78,33 @@ def test_missing_texture_warns_and_uses_the_fallback(tmp_path):
     assert scene.scene.materials.textures[row] is None
     # The UsdUVTexture's fallback (0, 0.5, 0) is the albedo every corner gets.
     np.testing.assert_allclose(scene.scene.geometry.corner_albedo[0], [[0, 0.5, 0]] * 3)
+
+
+def test_full_binding_wins_over_all_purpose(tmp_path):
+    """materialBindingPurposes fallback ["full", ""]: a full binding beats the
+    all-purpose one; a settings prim asking for ["preview", ""] gets the preview one
+    (a collection binding)."""
+    stage = _stage(tmp_path / "quad.usda", "missing.png")
+    colours = {"Full": (0.0, 0.0, 1.0), "Preview": (0.0, 1.0, 0.0)}
+    mats = {}
+    for name, colour in colours.items():
+        mat = UsdShade.Material.Define(stage, f"/{name}")
+        surf = UsdShade.Shader.Define(stage, f"/{name}/S")
+        surf.CreateIdAttr("UsdPreviewSurface")
+        surf.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).Set(colour)
+        mat.CreateSurfaceOutput().ConnectToSource(surf.ConnectableAPI(), "surface")
+        mats[name] = mat
+    quad = stage.GetPrimAtPath("/Quad")
+    api = UsdShade.MaterialBindingAPI(quad)
+    api.Bind(mats["Full"], materialPurpose=UsdShade.Tokens.full)
+    coll = Usd.CollectionAPI.Apply(stage.GetPrimAtPath("/M"), "prev")
+    coll.CreateIncludesRel().AddTarget("/Quad")
+    api.Bind(
+        coll, mats["Preview"], "prev", materialPurpose=UsdShade.Tokens.preview
+    )
+    scene = read_stage(stage)
+    np.testing.assert_allclose(scene.scene.geometry.corner_albedo[0], [colours["Full"]] * 3)
+    settings = UsdRender.Settings.Define(stage, "/Render/Settings")
+    settings.CreateMaterialBindingPurposesAttr(["preview", ""])
+    scene = read_stage(stage)
+    np.testing.assert_allclose(scene.scene.geometry.corner_albedo[0], [colours["Preview"]] * 3)

@@ -18,11 +18,11 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from pxr import Usd, UsdShade
+from pxr import Usd, UsdRender, UsdShade
 
 from phrt_usd.errors import PhrtError
 from phrt_usd.model.scene import MaterialTable
-from phrt_usd.usd import textures
+from phrt_usd.usd import schema, textures
 
 #: UsdPreviewSurface's own fallback ``diffuseColor`` (used when a material is bound but
 #: its diffuseColor is unauthored and the gprim has no displayColor).
@@ -51,6 +51,46 @@ def read_texture(value, where: str, color_space: str = "auto") -> np.ndarray:
     return np.ascontiguousarray(pixels[..., :3])
 
 
+#: UsdRender ``materialBindingPurposes`` fallback: the ``full`` binding, then the
+#: all-purpose one ("").
+DEFAULT_BINDING_PURPOSES = ("full", "")
+
+
+def binding_purposes(stage: Usd.Stage, settings: str | None = None) -> tuple[str, ...]:
+    """The ``materialBindingPurposes`` of the render settings prim a render uses
+    (``schema.find_render_settings``), else ``DEFAULT_BINDING_PURPOSES``."""
+    prim = schema.find_render_settings(stage, settings)
+    if prim is None:
+        return DEFAULT_BINDING_PURPOSES
+    value = UsdRender.Settings(prim).GetMaterialBindingPurposesAttr().Get()
+    return DEFAULT_BINDING_PURPOSES if value is None else tuple(str(t) for t in value)
+
+
+def _binding_purpose(name: str) -> str:
+    """The purpose of a binding relationship by its name: ``material:binding[:purpose]``
+    or ``material:binding:collection[:purpose]:bindingName``."""
+    parts = name.split(":")[2:]
+    if parts and parts[0] == "collection":
+        return parts[1] if len(parts) == 3 else ""
+    return parts[0] if parts else ""
+
+
+def bound_material(prim: Usd.Prim, purposes: tuple[str, ...]) -> UsdShade.Material | None:
+    """The material bound to ``prim`` for the first of ``purposes`` ("" = all-purpose)
+    that has a binding (direct or collection, ``ComputeBoundMaterial`` semantics)."""
+    api = UsdShade.MaterialBindingAPI(prim)
+    for purpose in purposes:
+        mat, rel = api.ComputeBoundMaterial(purpose or UsdShade.Tokens.allPurpose)
+        if not mat:
+            continue
+        # ComputeBoundMaterial falls back to the all-purpose binding by itself; only
+        # accept that when "" is the purpose asked for.
+        rel_purpose = _binding_purpose(rel.GetName()) if rel else ""
+        if purpose == "" or rel_purpose == purpose:
+            return mat
+    return None
+
+
 def material_key(material: UsdShade.Material | None) -> str:
     """Identity of a material for deduplication: its path, or for a material reached
     through an instance proxy the path of its prim in the prototype (all instances of a
@@ -64,8 +104,9 @@ def material_key(material: UsdShade.Material | None) -> str:
 class MaterialBank:
     """Deduplicates bound materials into table rows. Row 0 = no material bound."""
 
-    def __init__(self, time: Usd.TimeCode):
+    def __init__(self, time: Usd.TimeCode, purposes: tuple[str, ...] = DEFAULT_BINDING_PURPOSES):
         self.time = time
+        self.purposes = tuple(purposes)
         self.rows: list[_MaterialRow] = [
             _MaterialRow(np.full(3, PREVIEW_SURFACE_DIFFUSE), diffuse_authored=False)
         ]
@@ -183,10 +224,10 @@ class MaterialBank:
 def face_materials(prim: Usd.Prim, n_faces: int, bank: MaterialBank) -> tuple[np.ndarray, int]:
     """Material row per face (F,) int32 from the prim binding and materialBind subsets."""
     binding = UsdShade.MaterialBindingAPI(prim)
-    base = bank.index(binding.ComputeBoundMaterial()[0])
+    base = bank.index(bound_material(prim, bank.purposes))
     face_mat = np.full(n_faces, base, dtype=np.int32)
     for subset in binding.GetMaterialBindSubsets():
-        sub_mat = UsdShade.MaterialBindingAPI(subset.GetPrim()).ComputeBoundMaterial()[0]
+        sub_mat = bound_material(subset.GetPrim(), bank.purposes)
         if not sub_mat:
             continue
         idx = np.asarray(subset.GetIndicesAttr().Get(bank.time) or [], dtype=np.int64)

@@ -66,7 +66,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-from pxr import Gf, Sdf, Tf, Usd, UsdGeom, UsdRender, UsdShade
+from pxr import Gf, Sdf, Tf, Usd, UsdGeom, UsdRender
 
 from phrt_usd.errors import BadOption, PhrtError, usd_error_reason
 from phrt_usd.model.scene import CameraFrame, Element, Geometry, Lights, Scene
@@ -76,7 +76,7 @@ from phrt_usd.usd.composition import composition_problems, composition_warnings
 from phrt_usd.usd.default_camera import DEFAULT_CAMERA_NAME, default_camera
 from phrt_usd.usd.instancers import expand_instancer
 from phrt_usd.usd.lights import read_light
-from phrt_usd.usd.materials import MaterialBank, material_key
+from phrt_usd.usd.materials import MaterialBank, binding_purposes, bound_material, material_key
 from phrt_usd.usd.meshes import (
     SHAPE_ATTRS,
     LocalMesh,
@@ -354,6 +354,8 @@ class StageScene:
         self.warnings: list[str] = composition_warnings(composition_problems(stage))
         self.included_purposes, purpose_warnings = included_purposes(stage, settings)
         self.warnings += purpose_warnings
+        #: UsdRender ``materialBindingPurposes`` (``materials.binding_purposes``).
+        self.binding_purposes = binding_purposes(stage, settings)
         cam_prim = choose_camera(stage, camera)
         self.camera_settings = camera_settings(stage, settings)
         self._camera_prim = cam_prim
@@ -381,7 +383,7 @@ class StageScene:
     # ---- reading ------------------------------------------------------------------
 
     def _build(self, ctx: TimeContext) -> None:
-        bank = MaterialBank(ctx.code)
+        bank = MaterialBank(ctx.code, self.binding_purposes)
         probe = AnimationProbe()
         lights = Lights()
         parts: list[_Part] = []
@@ -399,7 +401,7 @@ class StageScene:
             # may differ per instance, so the binding is part of the key).
             key = None
             if prim.IsInstanceProxy():
-                mat = UsdShade.MaterialBindingAPI(prim).ComputeBoundMaterial()[0]
+                mat = bound_material(prim, self.binding_purposes)
                 proto = prim.GetPrimInPrototype().GetPath()
                 key = (str(proto), material_key(mat))
                 if key in mesh_cache:
