@@ -73,7 +73,7 @@ def test_missing_texture_warns_and_uses_the_fallback(tmp_path):
     assert len(scene.texture_problems) == 1
     line = scene.texture_problems[0]
     assert "/M/T.inputs:file" in line and "missing.png" in line and "\n" not in line
-    assert line in scene.warnings
+    assert f"{line}; rendered with the input's fallback" in scene.warnings
     row = scene.scene.geometry.tri_material[0]
     assert scene.scene.materials.textures[row] is None
     # The UsdUVTexture's fallback (0, 0.5, 0) is the albedo every corner gets.
@@ -108,3 +108,11 @@ def test_full_binding_wins_over_all_purpose(tmp_path):
     settings.CreateMaterialBindingPurposesAttr(["preview", ""])
     scene = read_stage(stage)
     np.testing.assert_allclose(scene.scene.geometry.corner_albedo[0], [colours["Preview"]] * 3)
+
+
+def test_validate_calls_a_missing_texture_an_error(tmp_path):
+    from phrt_usd.usd.rules import render_issues
+
+    stage = _stage(tmp_path / "quad.usda", "missing.png")
+    errors = [i for i in render_issues(stage) if i.severity == "error"]
+    assert any("/M/T.inputs:file" in i.line() and "missing.png" in i.line() for i in errors)

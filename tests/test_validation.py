@@ -233,7 +233,6 @@ RENDER_REFUSALS = [
     (lambda s: _mirror(s).GetFaceVertexCountsAttr().Set([-1, 5]),
      r"^/World/Mirror\.faceVertexCounts: negative face vertex count$"),
     (_nan_floor, r"^/World/Floor\.points: non-finite point at index 2$"),
-    (_missing_texture, r"^/World/Looks/Tex/Image\.inputs:file: texture file .* not found$"),
     (_short_display_color, r"^/World/Mirror\.primvars:displayColor: 2 values for vertex"),
     (lambda s: UsdLux.DomeLight.Define(s, "/World/Sky").CreateTextureFormatAttr("angular"),
      r"^/World/Sky\.inputs:texture:format: 'angular' unsupported"),
@@ -251,6 +250,17 @@ def test_what_render_refuses_validate_reports_with_the_same_message(tmp_path, pl
     message = str(err.value)
     assert "\n" not in message and re.search(match, message), message
     assert f"ERROR {message}" in errors_of(stage)
+
+
+def test_a_missing_texture_renders_with_a_warning_and_validate_says_error(tmp_path):
+    """Issue 17: a missing texture is no refusal; the render warns (and uses the input's
+    fallback), validate reports the same line as an error."""
+    stage = clean_stage(tmp_path / "s.usda")
+    _missing_texture(stage)
+    scene = read_stage(stage)
+    line = scene.texture_problems[0]
+    assert re.search(r"^/World/Looks/Tex/Image\.inputs:file: texture file .* not found$", line)
+    assert f"ERROR {line}" in errors_of(stage)
 
 
 def test_a_stage_without_camera_renders_with_a_default_one_and_validate_warns(tmp_path):

@@ -181,7 +181,7 @@ class MaterialBank:
                 self._textures[key] = read_texture(file_value, where, space)
             except textures.TextureError as problem:
                 self._textures[key] = None
-                self.texture_problems.append(f"{problem}; using the input's fallback")
+                self.texture_problems.append(str(problem))
         if self._textures.get(key) is None:
             # Unreadable or no file: UsdUVTexture's fallback where authored, else the
             # input's own (UsdPreviewSurface diffuseColor 0.18).

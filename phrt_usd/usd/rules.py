@@ -291,11 +291,15 @@ def render_issues(stage: Usd.Stage) -> list[Issue]:
     issues += _gprim_issues(stage, frames)
     lines = {i.line() for i in issues}
     try:
-        read_stage(stage)
+        scene = read_stage(stage)
     except PhrtError as exc:
         last = Issue.of(ERROR, str(exc), READ)
         if last.line() not in lines:
             issues.append(last)
+    else:
+        # A texture the render cannot read renders with the input's fallback (a
+        # warning there); validation, like ``--strict``, calls it an error.
+        issues += [Issue.of(ERROR, m, READ) for m in scene.texture_problems]
     return issues
 
 

@@ -370,7 +370,7 @@ class StageScene:
             for problem in camera_problems(cam_prim, self._time, self.path_driver is not None):
                 raise PhrtError(problem)
         self._build(TimeContext(self._time))
-        self.warnings += self.texture_problems
+        self.warnings += [f"{m}; rendered with the input's fallback" for m in self.texture_problems]
         self._default_camera: CameraFrame | None = None
         if cam_prim is None:
             where = stage.GetRootLayer().identifier
