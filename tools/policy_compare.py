@@ -1,0 +1,91 @@
+"""Compare selection policies on one stage's frames against the ``all`` reference, in one
+process: each frame is rasterized once and finished by the reference and by every policy
+(as ``phrt sweep`` does, which accepts heu1 and heu2 only). Prints per-policy mean FLIP,
+transitions (``evaluate/selection_metrics.py``), mean selected, rays, trace ms and budget
+use, and writes them with per-frame rows as JSON.
+
+    uv run python tools/policy_compare.py stages/sewer.usda 217 336 16 none,heu1,heu3 out.json
+    uv run python tools/policy_compare.py stages/sewer.usda 217 276 r20000 heu1,heu3 out.json
+
+BUDGET is milliseconds (``--budget-ms``) or ``rN`` for N rays (``--budget-rays``).
+320x240, the schema's bounce limit and selection weight (docs/heuristic.md, "HEU3").
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from dataclasses import replace
+
+import numpy as np
+
+from phrt_usd.evaluate.image_metrics import flip_map, mean_over
+from phrt_usd.evaluate.selection_metrics import transitions_per_frame
+from phrt_usd.render.renderer import FrameRenderer, RenderOptions
+from phrt_usd.select.policies import make_policy
+from phrt_usd.usd.stage import open_stage
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("stage")
+    ap.add_argument("first", type=int)
+    ap.add_argument("last", type=int)
+    ap.add_argument("budget", help="ms, or rN for N rays")
+    ap.add_argument("policies", help="comma list, e.g. none,heu1,heu3")
+    ap.add_argument("out", help="JSON file")
+    args = ap.parse_args()
+    if args.budget.startswith("r"):
+        budget = {"budget_ms": None, "budget_rays": int(args.budget[1:])}
+    else:
+        budget = {"budget_ms": float(args.budget)}
+    names = args.policies.split(",")
+    stage = open_stage(args.stage)
+    base = RenderOptions(mode="hybrid", heuristic="all", width=320, height=240, budget_ms=None)
+    renderer = FrameRenderer(stage, base)
+    times = [float(t) for t in range(args.first, args.last + 1)]
+    renderer.plan(times)
+
+    def policy(name):
+        return make_policy(name, selection_weight=base.selection_weight,
+                           bounce_limit=base.bounce_limit)  # fmt: skip
+
+    reference = policy("all")
+    policies = {n: policy(n) for n in names}
+    options = {n: replace(base, heuristic=n, **budget) for n in names}
+    paths = [stage.scene.elements[i].path for i in stage.scene.reflector_ids]
+    rows: dict[str, list[dict]] = {n: [] for n in names}
+    try:
+        for t in times:
+            prep = renderer.prepare(t)
+            ref = renderer.finish(prep, reference, base)
+            for n in names:
+                out = renderer.finish(prep, policies[n], options[n])
+                s = out.stats
+                rows[n].append({
+                    "time": t, "flip": mean_over(flip_map(ref.beauty, out.beauty)),
+                    "trace_ms": s.trace_ms, "rays": s.rays, "budget_use": s.budget_use,
+                    "visible": [p in s.visible for p in paths],
+                    "selected": [p in s.selected for p in paths]})  # fmt: skip
+    finally:
+        renderer.close()
+    summary = {}
+    for n in names:
+        visible = np.array([r["visible"] for r in rows[n]])
+        selected = np.array([r["selected"] for r in rows[n]])
+        summary[n] = {
+            "flip": float(np.mean([r["flip"] for r in rows[n]])),
+            "transitions": int(transitions_per_frame(selected, visible).sum()),
+            "mean_selected": float(selected.sum(axis=1).mean()),
+            "mean_visible": float(visible.sum(axis=1).mean()),
+            "mean_rays": float(np.mean([r["rays"] for r in rows[n]])),
+            "mean_trace_ms": float(np.mean([r["trace_ms"] for r in rows[n]])),
+            "budget_use": float(np.mean([r["budget_use"] or 0.0 for r in rows[n]])),
+        }
+    print(json.dumps(summary, indent=1))
+    with open(args.out, "w") as f:
+        json.dump({"summary": summary, "rows": rows}, f)
+
+
+if __name__ == "__main__":
+    main()
