@@ -17,7 +17,10 @@ import json
 import sys
 from pathlib import Path
 
+import numpy as np
 from pxr import Usd, UsdGeom, UsdLux
+
+from phrt_usd.run.images import write_png_atomic
 
 TOOLS = Path(__file__).resolve().parents[1] / "tools"
 sys.path.insert(0, str(TOOLS))
@@ -46,13 +49,17 @@ def test_wrapper_camera_sheet_and_a_broken_asset(tmp_path):
     assets.mkdir()
     _quad_stage(assets / "quad.usda")
     (assets / "broken.usda").write_text('#usda 1.0\ndef Xform "A" {{{\n')
-    before = {p.name: p.read_bytes() for p in assets.iterdir()}
+    (assets / "screenshots").mkdir()  # the quad's own picture: pure green, found by the tool
+    green = np.zeros((12, 16, 3), np.uint8)
+    green[..., 1] = 255
+    write_png_atomic(assets / "screenshots" / "quad.png", green)
+    before = {p: p.read_bytes() for p in assets.rglob("*") if p.is_file()}
 
     code = conformance.main([str(assets), str(out), "--resolution", f"{W}x{H}",
                              "--view", "0,0", "--no-isolate"])  # fmt: skip
 
     assert code == 0
-    assert {p.name: p.read_bytes() for p in assets.iterdir()} == before  # inputs untouched
+    assert {p: p.read_bytes() for p in assets.rglob("*") if p.is_file()} == before  # untouched
     results = {a["name"]: a for a in json.loads((out / "results.json").read_text())["assets"]}
 
     quad = results["quad"]
@@ -65,8 +72,9 @@ def test_wrapper_camera_sheet_and_a_broken_asset(tmp_path):
         assert mode["covered"] == COVERED, (mode["mode"], mode["covered"] * W * H)
 
     sheet = conformance.read_picture(out / "quad.png")
-    # two renders and the (missing) reference, each PANEL_WIDTH wide with GAP between
+    # two renders and the reference, each PANEL_WIDTH wide with GAP between
     assert sheet.shape[1] == 3 * conformance.PANEL_WIDTH + 2 * conformance.GAP
+    assert quad["reference"] == str(assets / "screenshots" / "quad.png")
     panel_height = conformance.PANEL_WIDTH * H // W
     raster_panel = sheet[:panel_height, : conformance.PANEL_WIDTH]
     centre = raster_panel[panel_height // 2, conformance.PANEL_WIDTH // 2]
@@ -74,6 +82,10 @@ def test_wrapper_camera_sheet_and_a_broken_asset(tmp_path):
     # the lit quad is at the centre of the panel, far brighter than the dark background
     # (0.3 of the display range: the background is the environment's dim grey)
     assert centre.mean() > corner.mean() + 0.3, (centre, corner)
+    # the reference panel holds the picture in its colours (all channels read); 0.02 allows
+    # the resize filter's rounding
+    reference = sheet[panel_height // 2, 2 * (conformance.PANEL_WIDTH + conformance.GAP) + 128]
+    assert np.allclose(reference, [0, 1, 0], atol=0.02), reference
 
     broken = results["broken"]
     assert broken["error"] and "\n" not in broken["error"] and broken["modes"] == []

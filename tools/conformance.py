@@ -524,7 +524,7 @@ def read_picture(path: Path) -> np.ndarray | None:
     if image is None:
         return None
     try:
-        data = np.asarray(image.read_image(0, 0, 0, -1, oiio.FLOAT), dtype=np.float32)
+        data = np.asarray(image.read_image(oiio.FLOAT), dtype=np.float32)  # every channel
     finally:
         image.close()
     if data.ndim == 2:
