@@ -151,7 +151,7 @@ def capture(
 
 #: The ``format`` and ``version`` a recording file names; any other is refused.
 RECORDING_FORMAT = "phrt-replay-recording"
-RECORDING_VERSION = 2  # 2: CameraFrame's vertical aperture, offsets, conform policy
+RECORDING_VERSION = 3  # 3: TraceRecord.fallback_error; 2: CameraFrame's vertical aperture, offsets, conform policy
 
 
 class RecordingError(PhrtError):
@@ -219,6 +219,7 @@ _SCHEMAS: dict[type, dict[str, object]] = {
         "max_reflector_bounces": int,
         "mean_reflector_bounces": float,
         "seconds": float,
+        "fallback_error": _Optional(float),
     },
     DistantLight: {"direction": _VEC3, "radiance": _VEC3, "angle": float},
     LocalLight: {"position": _VEC3, "radiance": _VEC3, "radius": float},
