@@ -365,7 +365,7 @@ def trace_summary(frames: Sequence[FrameStats]) -> dict:
     ]
     note = None
     if untraced:
-        share = "none" if len(untraced) == len(seen) else f"{len(untraced)} of {len(seen)}"
+        share = "all" if len(untraced) == len(seen) else f"{len(untraced)} of {len(seen)}"
         note = (
             f"hybrid traced nothing in {share} of the frames with visible reflectors"
             f" ({len(untraced)}/{len(seen)}); e.g. t={untraced[0].time:g}:"

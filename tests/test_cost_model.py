@@ -115,7 +115,7 @@ def test_nothing_traced_says_why(tmp_path):
     assert seen and not any(f["selected"] for f in seen)
     assert all("budget 0.00 ms < cheapest predicted cost" in f["untraced_reason"] for f in seen)
     assert summary["untraced_frames"] == len(seen)
-    assert summary["trace_note"].startswith("hybrid traced nothing in none of")
+    assert summary["trace_note"].startswith("hybrid traced nothing in all of")
 
 
 def test_rows_written_before_the_new_fields_still_read(tmp_path):

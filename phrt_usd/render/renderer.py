@@ -392,7 +392,10 @@ class FrameRenderer:
         phase["select"] = select_ms
         phase["trace"] = trace_ms
 
-        if opts.mode == "hybrid" and visible_ids and not selected and untraced_reason is None:
+        # heuristic "none" is raster-only by request: nothing to explain.
+        asked_to_trace = opts.heuristic != "none"
+        if (opts.mode == "hybrid" and asked_to_trace and visible_ids and not selected
+                and untraced_reason is None):
             untraced_reason = (
                 "no tracer: the stage has no reflectors to trace"
                 if self._tracer is None
