@@ -151,7 +151,8 @@ def capture(
 
 #: The ``format`` and ``version`` a recording file names; any other is refused.
 RECORDING_FORMAT = "phrt-replay-recording"
-RECORDING_VERSION = 3  # 3: TraceRecord.fallback_error; 2: CameraFrame's vertical aperture, offsets, conform policy
+#: 3: TraceRecord.fallback_error; 2: CameraFrame's vertical aperture, offsets, conform policy.
+RECORDING_VERSION = 3
 
 
 class RecordingError(PhrtError):
