@@ -373,8 +373,10 @@ class FrameRenderer:
                 rays += result.rays
                 selected.extend(ids)
                 t = time.perf_counter()
-                # What tracing changed against the raster fallback, per source (heu3).
-                observe_fallback_error(result, image, prep.image, gb.element_id)
+                # What tracing changed against the raster fallback, per source: only for
+                # a policy that learns from it (heu3); the others never read it.
+                if getattr(policy, "observes_fallback_error", False):
+                    observe_fallback_error(result, image, prep.image, gb.element_id)
                 # The policy learns the time the budget is charged (trace + composite).
                 policy.record(result.records, round_ms / 1000.0)
                 select_ms += _ms(t)

@@ -79,6 +79,7 @@ class Heu3Policy(BudgetedPolicy):
     module docstring)."""
 
     name = "heu3"
+    observes_fallback_error = True
 
     def __init__(self, *, selection_weight: float, bounce_limit: int) -> None:
         super().__init__(selection_weight=selection_weight, bounce_limit=bounce_limit)

@@ -123,6 +123,9 @@ class BudgetedPolicy(ABC):
     model. Subclasses decide only which ids a round traces (``_choose``)."""
 
     name = "base"
+    #: True when ``record`` reads ``TraceRecord.fallback_error`` (the renderer fills it
+    #: only then: it costs a pass over the traced pixels).
+    observes_fallback_error = False
 
     def __init__(self, *, selection_weight: float, bounce_limit: int) -> None:
         if not (math.isfinite(selection_weight) and selection_weight >= 0.0):
