@@ -252,3 +252,18 @@ def test_hybrid_all_equals_rt_with_offsets_and_a_conformed_square_aperture(tmp_p
     assert np.mean(hybrid.gbuffer.element_id == rt.gbuffer.element_id) >= ID_AGREEMENT
     assert hybrid.traced_mask.any()  # the mirror is in view and traced
     assert_images_close(hybrid.beauty, rt.beauty, max_mean_flip=HYBRID_VS_RT_FLIP, min_psnr=None)
+
+
+@pytest.mark.parametrize(
+    ("clipping", "visible"),
+    # The square lies at view depth DISTANCE = 1.25 m: inside (0.1, 10) and (1.2, 1.3),
+    # in front of near in (1.3, 10) and beyond far in (0.1, 1.2).
+    [((0.1, 10.0), True), ((1.2, 1.3), True), ((1.3, 10.0), False), ((0.1, 1.2), False)],
+)
+def test_clipping_range_clips_raster_and_primary_rays_alike(clipping, visible):
+    stage = _square_stage()
+    UsdGeom.Camera(stage.GetPrimAtPath("/World/Cam")).GetClippingRangeAttr().Set(
+        Gf.Vec2f(*clipping)
+    )
+    rows, cols = _covered(stage)  # raster ids == rt ids is checked inside
+    assert bool(rows) == visible and bool(cols) == visible

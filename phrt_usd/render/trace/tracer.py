@@ -184,12 +184,18 @@ class Tracer:
 
     def primary_gbuffer(self, camera: CameraFrame, width: int, height: int) -> GBuffer:
         """The ``rt`` mode's G-buffer: primary rays through pixel centres, same field
-        definitions as the raster G-buffer (``frame.GBuffer``)."""
+        definitions as the raster G-buffer (``frame.GBuffer``). The camera's clipping
+        range holds as in the raster: a ray starts where its view depth is ``near``, and a
+        nearest hit deeper than ``far`` is a miss."""
         self.last_rays = []
         origin = self.bvh.boundary.origin
         origins, dirs = camera.pixel_rays(width, height)
         n = origins.shape[0]
-        hits = self.bvh.intersect(origins - origin, dirs)
+        # View depth grows by cos (dir . forward) per metre along a ray; pixel rays are
+        # in front of the camera, so cos > 0 (floored against a degenerate window).
+        cos = np.maximum(dirs @ camera.forward, 1e-6)
+        start = max(float(camera.near), 0.0) / cos
+        hits = self.bvh.intersect(origins - origin + dirs * start[:, None], dirs)
         self.rays_cast["primary"] += n
         element = np.full(n, NO_HIT, np.int32)
         triangle = np.full(n, NO_HIT, np.int32)
@@ -199,12 +205,15 @@ class Tracer:
         albedo = np.zeros((n, 3), np.float32)
         r = hits.ray
         rel, _, ns, alb, _ = self.surfaces.at(hits.tri, hits.u, hits.v, dirs[r])
-        element[r] = self.bvh.tri_element[hits.tri]
-        triangle[r] = hits.tri
-        position[r] = rel + origin
-        normal[r] = ns
-        albedo[r] = alb
-        depth[r] = (rel - (camera.position - origin)) @ camera.forward
+        hit_depth = (rel - (camera.position - origin)) @ camera.forward
+        keep = hit_depth <= float(camera.far)  # also drops NaN depths
+        r, tri = r[keep], hits.tri[keep]
+        element[r] = self.bvh.tri_element[tri]
+        triangle[r] = tri
+        position[r] = rel[keep] + origin
+        normal[r] = ns[keep]
+        albedo[r] = alb[keep]
+        depth[r] = hit_depth[keep]
         shape = (height, width)
         return GBuffer(
             element_id=element.reshape(shape),
