@@ -227,6 +227,19 @@ def test_default_camera_frames_the_bounds_along_the_up_axis(up):
     assert np.all(border == -1)
 
 
+@pytest.mark.parametrize("authored", ["X", "banana"])
+def test_an_up_axis_usd_does_not_define_is_read_as_y_with_one_warning(authored):
+    """UsdGeom defines upAxis Y and Z only; USD returns any authored token. The stage is
+    read as USD's fallback (Y): the default camera looks down -Z, and a warning says so."""
+    stage = _box_stage("Y", (-1, -1, -1), (1, 1, 1))
+    stage.SetMetadata("upAxis", authored)
+    scene = read_stage(stage)
+    assert scene.up_axis == "Y"
+    [warning] = [w for w in scene.warnings if "upAxis" in w]
+    assert f"upAxis {authored!r} is not Y or Z; read as Y" in warning and "\n" not in warning
+    np.testing.assert_allclose(scene.camera(0.0).forward, [0, 0, -1], atol=1e-15)
+
+
 #: Shares of pixels that must agree between hybrid with every reflector traced and rt
 #: (the renderer's invariant, docs/design.md): element ids, and the mean FLIP allowed.
 ID_AGREEMENT = 0.995

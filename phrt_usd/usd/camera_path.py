@@ -32,10 +32,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from pxr import Usd, UsdGeom
+from pxr import Usd
 
 from phrt_usd.errors import PhrtError
 from phrt_usd.usd import schema
+from phrt_usd.usd.values import stage_up_axis
 
 #: Below this length (stage units) a view direction counts as zero: target == position.
 _DEGENERATE_LENGTH = 1e-12
@@ -248,7 +249,7 @@ def _read(prim: Usd.Prim) -> tuple[CameraPath | None, list[str]]:
             interpolation=data.interpolation,
             start_frame=float(start),
             end_frame=float(end),
-            up_axis=str(UsdGeom.GetStageUpAxis(prim.GetStage())),
+            up_axis=stage_up_axis(prim.GetStage())[0],
         ),
         [],
     )

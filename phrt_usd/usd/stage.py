@@ -96,6 +96,7 @@ from phrt_usd.usd.values import (
     normal_matrix,
     rotation_columns,
     safe_normalize,
+    stage_up_axis,
     varies,
 )
 
@@ -349,9 +350,10 @@ class StageScene:
         for problem in stage_problems(stage):
             raise PhrtError(problem)
         self.meters_per_unit = float(UsdGeom.GetStageMetersPerUnit(stage))
-        self.up_axis = str(UsdGeom.GetStageUpAxis(stage))
+        self.up_axis, up_warning = stage_up_axis(stage)
         self.time_codes_per_second = float(stage.GetTimeCodesPerSecond())
         self.warnings: list[str] = composition_warnings(composition_problems(stage))
+        self.warnings += [up_warning] if up_warning else []
         self.included_purposes, purpose_warnings = included_purposes(stage, settings)
         self.warnings += purpose_warnings
         #: UsdRender ``materialBindingPurposes`` (``materials.binding_purposes``).

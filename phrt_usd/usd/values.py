@@ -150,3 +150,15 @@ def rotation_columns(m_row: np.ndarray) -> np.ndarray:
     y = y / np.linalg.norm(y)
     x = np.cross(y, z)
     return np.stack([x, y, z], axis=1)
+
+
+def stage_up_axis(stage: Usd.Stage) -> tuple[str, str | None]:
+    """The stage's up axis, "Y" or "Z", and a one-line warning when the authored
+    ``upAxis`` is neither: USD returns whatever token is authored ("X", any string),
+    and UsdGeom defines only Y and Z, so such a stage is read with USD's fallback axis."""
+    axis = str(UsdGeom.GetStageUpAxis(stage))
+    if axis in ("Y", "Z"):
+        return axis, None
+    fallback = str(UsdGeom.GetFallbackUpAxis())
+    where = stage.GetRootLayer().identifier
+    return fallback, f"{where}: upAxis {axis!r} is not Y or Z; read as {fallback} (USD's fallback)"
