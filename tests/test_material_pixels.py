@@ -1,0 +1,136 @@
+"""Materials read through USD, checked at an analytic pixel in raster and rt: a texture
+inside a ``.usdz`` package, a missing texture's fallback, and the binding a purpose
+chooses (``full`` over all-purpose; the settings' ``materialBindingPurposes``).
+
+The stage: a 2 x 2 quad at z = 0 facing +Z, seen from (0, 0, 5) down -Z (focal 50 mm,
+aperture 20 x 20 mm: the image spans +-1.05 at the quad, so the centre pixel lies on it),
+lit only by a white dome of radiance 1. A Lambertian surface under a uniform dome of
+radiance L reflects albedo * L, so the centre pixel's linear colour is the albedo.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import OpenImageIO as oiio
+import pytest
+from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux, UsdRender, UsdShade, UsdUtils
+
+from phrt_usd.render.renderer import FrameRenderer, RenderOptions
+from phrt_usd.usd.stage import read_stage
+
+W = H = 16
+MODES = ("raster", "rt")
+#: Largest allowed difference from the albedo at the centre pixel, per channel: the
+#: dome's ambient term is exact, so this only absorbs float32 shading and 8-bit texels
+#: (0 and 255 decode exactly).
+TOLERANCE = 0.02
+RED, GREEN_HALF, BLUE, GREEN = (1.0, 0.0, 0.0), (0.0, 0.5, 0.0), (0.0, 0.0, 1.0), (0.0, 1.0, 0.0)
+
+
+def _png(path, rgb) -> None:
+    """A 4 x 4 8-bit PNG of one colour."""
+    img = np.zeros((4, 4, 3), np.uint8)
+    img[:] = np.array(rgb) * 255
+    out = oiio.ImageOutput.create(str(path))
+    out.open(str(path), oiio.ImageSpec(4, 4, 3, oiio.UINT8))
+    out.write_image(img)
+    out.close()
+
+
+def _material(stage, path: str, colour=None, texture: str | None = None) -> UsdShade.Material:
+    """A UsdPreviewSurface with a constant ``colour`` or a UsdUVTexture of ``texture``
+    (fallback (0, 0.5, 0)) as its diffuseColor."""
+    mat = UsdShade.Material.Define(stage, path)
+    surf = UsdShade.Shader.Define(stage, f"{path}/Surface")
+    surf.CreateIdAttr("UsdPreviewSurface")
+    diffuse = surf.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f)
+    if texture is None:
+        diffuse.Set(Gf.Vec3f(*colour))
+    else:
+        tex = UsdShade.Shader.Define(stage, f"{path}/Texture")
+        tex.CreateIdAttr("UsdUVTexture")
+        tex.CreateInput("file", Sdf.ValueTypeNames.Asset).Set(texture)
+        tex.CreateInput("fallback", Sdf.ValueTypeNames.Float4).Set((*GREEN_HALF, 1.0))
+        diffuse.ConnectToSource(tex.CreateOutput("rgb", Sdf.ValueTypeNames.Float3))
+    mat.CreateSurfaceOutput().ConnectToSource(surf.ConnectableAPI(), "surface")
+    return mat
+
+
+def _stage(path) -> Usd.Stage:
+    stage = Usd.Stage.CreateNew(str(path))
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    mesh = UsdGeom.Mesh.Define(stage, "/Quad")
+    mesh.CreatePointsAttr([(-1, -1, 0), (1, -1, 0), (1, 1, 0), (-1, 1, 0)])
+    mesh.CreateFaceVertexCountsAttr([4])
+    mesh.CreateFaceVertexIndicesAttr([0, 1, 2, 3])
+    mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+    st = UsdGeom.PrimvarsAPI(mesh).CreatePrimvar(
+        "st", Sdf.ValueTypeNames.TexCoord2fArray, UsdGeom.Tokens.faceVarying
+    )
+    st.Set([(0, 0), (1, 0), (1, 1), (0, 1)])
+    cam = UsdGeom.Camera.Define(stage, "/Cam")
+    cam.CreateFocalLengthAttr(50.0)
+    cam.CreateHorizontalApertureAttr(20.0)
+    cam.CreateVerticalApertureAttr(20.0)
+    cam.CreateClippingRangeAttr(Gf.Vec2f(0.1, 100.0))
+    cam.AddTranslateOp().Set(Gf.Vec3d(0, 0, 5))
+    dome = UsdLux.DomeLight.Define(stage, "/Sky")
+    dome.CreateIntensityAttr(1.0)
+    dome.CreateColorAttr(Gf.Vec3f(1, 1, 1))
+    return stage
+
+
+def _bind(stage, mat, purpose=UsdShade.Tokens.allPurpose) -> None:
+    api = UsdShade.MaterialBindingAPI.Apply(stage.GetPrimAtPath("/Quad"))
+    api.Bind(mat, materialPurpose=purpose)
+
+
+def _centre(stage, mode: str) -> np.ndarray:
+    """(3,) linear colour of the centre pixel of one frame in ``mode``."""
+    scene = read_stage(stage)
+    renderer = FrameRenderer(
+        scene, RenderOptions(mode=mode, heuristic="all", width=W, height=H, budget_ms=None)
+    )
+    try:
+        out = renderer.render(scene.frame_range[0])
+        assert out.gbuffer.element_id[H // 2, W // 2] >= 0, "the centre pixel misses the quad"
+        return np.asarray(out.beauty[H // 2, W // 2], np.float64)
+    finally:
+        renderer.close()
+
+
+@pytest.mark.parametrize("mode", MODES)
+def test_usdz_texture_colours_the_pixel(tmp_path, mode):
+    _png(tmp_path / "red.png", RED)
+    stage = _stage(tmp_path / "quad.usda")
+    _bind(stage, _material(stage, "/M", texture="red.png"))
+    stage.GetRootLayer().Save()
+    package = tmp_path / "quad.usdz"
+    assert UsdUtils.CreateNewUsdzPackage(str(tmp_path / "quad.usda"), str(package))
+    (tmp_path / "red.png").unlink()  # only the package's copy is left
+    np.testing.assert_allclose(
+        _centre(Usd.Stage.Open(str(package)), mode), RED, atol=TOLERANCE
+    )
+
+
+@pytest.mark.parametrize("mode", MODES)
+def test_missing_texture_renders_its_fallback(tmp_path, mode):
+    stage = _stage(tmp_path / "quad.usda")
+    _bind(stage, _material(stage, "/M", texture="missing.png"))
+    np.testing.assert_allclose(_centre(stage, mode), GREEN_HALF, atol=TOLERANCE)
+
+
+@pytest.mark.parametrize("mode", MODES)
+def test_binding_purpose_chooses_the_material(tmp_path, mode):
+    stage = _stage(tmp_path / "quad.usda")
+    _bind(stage, _material(stage, "/All", colour=RED))
+    _bind(stage, _material(stage, "/Full", colour=BLUE), UsdShade.Tokens.full)
+    _bind(stage, _material(stage, "/Preview", colour=GREEN), UsdShade.Tokens.preview)
+    # materialBindingPurposes' fallback is ["full", ""]: the full binding.
+    np.testing.assert_allclose(_centre(stage, mode), BLUE, atol=TOLERANCE)
+    settings = UsdRender.Settings.Define(stage, "/Render/Settings")
+    settings.CreateMaterialBindingPurposesAttr(["preview", ""])
+    np.testing.assert_allclose(_centre(stage, mode), GREEN, atol=TOLERANCE)
+    settings.GetMaterialBindingPurposesAttr().Set([""])
+    np.testing.assert_allclose(_centre(stage, mode), RED, atol=TOLERANCE)
