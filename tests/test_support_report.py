@@ -102,6 +102,15 @@ def _every_kind(tmp_path) -> str:
     UsdGeom.TetMesh.Define(stage, "/World/Tets")
     UsdVol.Volume.Define(stage, "/World/Smoke")
 
+    blink = UsdGeom.Xform.Define(stage, "/World/Blink")  # visibility time-sampled
+    blink.CreateVisibilityAttr().Set(UsdGeom.Tokens.inherited, 1.0)
+    blink.GetVisibilityAttr().Set(UsdGeom.Tokens.invisible, 2.0)
+    UsdGeom.Xform.Define(stage, "/World/Still").CreateVisibilityAttr(UsdGeom.Tokens.inherited)
+    crowd = UsdGeom.PointInstancer.Define(stage, "/World/Crowd")
+    crowd.CreateInvisibleIdsAttr().Set([0], 1.0)
+    crowd.GetInvisibleIdsAttr().Set([1], 2.0)
+    UsdGeom.PointInstancer.Define(stage, "/World/Grove").CreateInvisibleIdsAttr([0])
+
     UsdLux.DistantLight.Define(stage, "/World/Sun")  # read as USD defines it: not reported
     UsdLux.DomeLight_1.Define(stage, "/World/Sky")  # idem
     UsdLux.SphereLight.Define(stage, "/World/Bulb")
@@ -124,6 +133,8 @@ EXPECTED = {
     "materialx_only": ["/World/Looks/Mtlx"],
     "other_surface_only": ["/World/Looks/Ri"],
     "subdivided_mesh": ["/World/Rock_1/Shape", "/World/Rock_2/Shape", "/World/Cage"],
+    "animated_visibility": ["/World/Blink"],
+    "animated_instance_mask": ["/World/Crowd"],
     "skinned_mesh": ["/World/Char/Body"],
     "curves": ["/World/Hair", "/World/Wire"],
     "points": ["/World/Dust"],

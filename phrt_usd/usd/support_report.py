@@ -194,6 +194,19 @@ def _skinned(prim: Usd.Prim) -> bool:
     return bool(binding.GetJointIndicesPrimvar() or binding.GetBlendShapesAttr().HasValue())
 
 
+def _animated_visibility(prim: Usd.Prim) -> bool:
+    if not prim.IsA(UsdGeom.Imageable):
+        return False
+    return UsdGeom.Imageable(prim).GetVisibilityAttr().ValueMightBeTimeVarying()
+
+
+def _animated_instance_mask(prim: Usd.Prim) -> bool:
+    if not prim.IsA(UsdGeom.PointInstancer):
+        return False
+    # inactiveIds is list-op metadata, never animated: only invisibleIds can vary.
+    return UsdGeom.PointInstancer(prim).GetInvisibleIdsAttr().ValueMightBeTimeVarying()
+
+
 def _orthographic(prim: Usd.Prim) -> bool:
     if not prim.IsA(UsdGeom.Camera):
         return False
@@ -224,6 +237,18 @@ KINDS: tuple[SupportKind, ...] = (
         "subdivisionScheme (authored or USD's fallback catmullClark) is not none: the "
         "control cage is drawn, not the limit surface (usd/meshes.py is_subdivided)",
         lambda p: p.IsA(UsdGeom.Mesh) and is_subdivided(p),
+    ),
+    SupportKind(
+        "animated_visibility", "prims with animated visibility",
+        "approximated: visibility of the first frame",
+        "usd/traversal.py reads visibility once, at the first time code of the range",
+        _animated_visibility,
+    ),
+    SupportKind(
+        "animated_instance_mask", "PointInstancers with animated invisibleIds",
+        "approximated: the mask of the first frame",
+        "usd/instancers.py reads the instance mask once, at the first time code",
+        _animated_instance_mask,
     ),
     SupportKind(
         "skinned_mesh", "meshes skinned (UsdSkel)",
