@@ -228,6 +228,8 @@ def _print_summary(s: dict) -> None:
         hi = "-" if b["max_m"] is None else ", ".join(_fmt(x) for x in b["max_m"])
         tris = "-" if r["triangles"] is None else str(r["triangles"])
         where = r["path"] + (f" (prototype {r['prototype']})" if r.get("prototype") else "")
+        if r.get("point_instancer"):
+            where += f" ({r['instances']} instances of {r['point_instancer']})"
         table.add_row(where, _fmt(r["priority"]), _fmt(r["reflectivity"]), tris, lo, hi)
     console.print(table)
     paths = Table(title=f"Camera paths ({len(s['camera_paths'])})")

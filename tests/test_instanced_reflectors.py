@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from pxr import Sdf, Usd, Vt
+from pxr import Sdf, Usd, UsdGeom, Vt
 from typer.testing import CliRunner
 
 import phrt_usd
@@ -284,3 +284,26 @@ def test_point_instancer_reflectors_render_into_the_selection_layer(tmp_path):
     trees = composed.GetPrimAtPath("/World/Trees")
     assert list(trees.GetAttribute(INSTANCED_PATHS).Get()) == elements
     assert list(trees.GetAttribute("phrt:instanced:selected").Get(1.0)) == [True, True]
+
+
+def test_inspect_counts_the_instances_of_a_point_instancer_reflector(tmp_path):
+    """A reflector in a PointInstancer prototype is one prim but as many elements as the
+    instances the mask leaves: inspect names the instancer and that count, nested
+    instancers multiplying (an outer instancer of 3 instances around this one: 3 x 1)."""
+    path = tmp_path / "pi.usda"
+    path.write_text(POINT_INSTANCER)
+    result = CliRunner().invoke(app, ["inspect", str(path)], env={"COLUMNS": "250"})
+    assert result.exit_code == 0 and "(2 instances of /World/Trees)" in result.output
+    stage = Usd.Stage.Open(str(path))
+    [leaf] = inspect_stage(stage)["reflectors"]
+    assert (leaf["point_instancer"], leaf["instances"]) == ("/World/Trees", 2)
+    trees = stage.GetPrimAtPath("/World/Trees")
+    trees.GetAttribute("invisibleIds").Set(Vt.Int64Array([1]))
+    [leaf] = inspect_stage(stage)["reflectors"]
+    assert leaf["instances"] == 1
+    outer = UsdGeom.PointInstancer.Define(stage, "/Forest")
+    outer.CreatePositionsAttr([(0, 0, 0), (5, 0, 0), (10, 0, 0)])
+    outer.CreateProtoIndicesAttr([0, 0, 0])
+    outer.CreatePrototypesRel().SetTargets(["/World"])
+    [leaf] = inspect_stage(stage)["reflectors"]
+    assert (leaf["point_instancer"], leaf["instances"]) == ("/World/Trees", 3)

@@ -18,7 +18,7 @@ from __future__ import annotations
 from dataclasses import asdict
 
 import numpy as np
-from pxr import Usd, UsdGeom, UsdLux, UsdShade
+from pxr import Sdf, Usd, UsdGeom, UsdLux, UsdShade
 
 from phrt_usd.usd import schema
 from phrt_usd.usd.authoring import instance_root
@@ -58,6 +58,43 @@ def _bounds(cache: UsdGeom.BBoxCache, prim: Usd.Prim, meters_per_unit: float) ->
 def _traverse(stage: Usd.Stage) -> Usd.PrimRange:
     """The composed stage as the render walks it: instance proxies included."""
     return Usd.PrimRange(stage.GetPseudoRoot(), Usd.TraverseInstanceProxies())
+
+
+def _prototype_uses(stage: Usd.Stage) -> dict[Sdf.Path, tuple[str, int]]:
+    """Prototype root path → (PointInstancer path, instances drawn) for every
+    PointInstancer prototype: the instances of that prototype the mask leaves
+    (``ComputeMaskAtTime`` at the first time code, as the render reads it), times the
+    instances of the instancer itself when it lies in an outer prototype (nesting)."""
+    uses: dict[Sdf.Path, tuple[str, list[int]]] = {}
+    code = Usd.TimeCode(stage.GetStartTimeCode())
+    for prim in _traverse(stage):
+        if not prim.IsA(UsdGeom.PointInstancer):
+            continue
+        pi = UsdGeom.PointInstancer(prim)
+        protos = pi.GetPrototypesRel().GetForwardedTargets()
+        idx = np.asarray(pi.GetProtoIndicesAttr().Get(code) or [], dtype=np.int64)
+        mask = pi.ComputeMaskAtTime(code)
+        drawn = idx[np.asarray(mask, bool)] if mask else idx
+        counts = np.bincount(drawn[(drawn >= 0) & (drawn < len(protos))], minlength=len(protos))
+        for path, n in zip(protos, counts, strict=True):
+            uses[path] = (str(prim.GetPath()), int(n))
+
+    def total(path: Sdf.Path, depth: int = 0) -> int:
+        instancer, n = uses[path]
+        outer = _prototype_root(Sdf.Path(instancer), uses)
+        if outer is None or depth > len(uses):  # depth: a cycle the render refuses
+            return n
+        return n * total(outer, depth + 1)
+
+    return {path: (instancer, total(path)) for path, (instancer, _) in uses.items()}
+
+
+def _prototype_root(path: Sdf.Path, uses: dict) -> Sdf.Path | None:
+    """The nearest PointInstancer prototype root at or above ``path``, or None."""
+    for ancestor in path.GetAncestorsRange():
+        if ancestor in uses:
+            return ancestor
+    return None
 
 
 def _lights(stage: Usd.Stage) -> list[dict]:
@@ -107,6 +144,12 @@ def inspect_stage(stage: Usd.Stage, label: str | None = None) -> dict:
     cache = UsdGeom.BBoxCache(
         Usd.TimeCode.Default(), [UsdGeom.Tokens.default_, UsdGeom.Tokens.render]
     )
+    uses = _prototype_uses(stage)
+
+    def instancer_of(prim: Usd.Prim) -> tuple[str, int] | tuple[None, None]:
+        root = _prototype_root(prim.GetPath(), uses)
+        return (None, None) if root is None else uses[root]
+
     reflectors = [
         {
             "path": str(p.GetPath()),
@@ -118,6 +161,10 @@ def inspect_stage(stage: Usd.Stage, label: str | None = None) -> dict:
             # Inside an instance: the instance root and the prototype prim it shows.
             "instance": str(instance_root(p).GetPath()) if p.IsInstanceProxy() else None,
             "prototype": str(p.GetPrimInPrototype().GetPath()) if p.IsInstanceProxy() else None,
+            # Inside a PointInstancer prototype: the instancer and how many instances
+            # the render draws of it (one element each, ``instancers.py``).
+            "point_instancer": instancer_of(p)[0],
+            "instances": instancer_of(p)[1],
         }
         for p in stage_reflectors(stage)
     ]
