@@ -280,3 +280,21 @@ def test_clipping_range_clips_raster_and_primary_rays_alike(clipping, visible):
     )
     rows, cols = _covered(stage)  # raster ids == rt ids is checked inside
     assert bool(rows) == visible and bool(cols) == visible
+
+
+def test_a_product_authors_the_image_window_over_its_settings():
+    """A RenderProduct is a UsdRenderSettingsBase: its authored conform policy overrides
+    the settings' (here the unauthored expandAperture); products that disagree are
+    refused in one line, as for resolution and camera."""
+    stage = _square_stage()
+    settings = UsdRender.Settings(stage.GetPrimAtPath("/Render/Settings"))
+    beauty = UsdRender.Product.Define(stage, "/Render/Beauty")
+    beauty.CreateAspectRatioConformPolicyAttr("cropAperture")
+    settings.CreateProductsRel().SetTargets([beauty.GetPath()])
+    assert _covered(stage) == CONFORM_CASES["cropAperture"]
+    other = UsdRender.Product.Define(stage, "/Render/Other")
+    other.CreateAspectRatioConformPolicyAttr("adjustPixelAspectRatio")
+    settings.GetProductsRel().AddTarget(other.GetPath())
+    match = r"^products differ in aspectRatioConformPolicy \(/Render/Beauty"
+    with pytest.raises(PhrtError, match=match):
+        read_stage(stage)

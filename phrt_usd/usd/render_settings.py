@@ -150,33 +150,76 @@ class CameraSettings:
 
 def camera_settings(stage: Usd.Stage, settings: str | None = None) -> CameraSettings:
     """The ``CameraSettings`` of the settings prim a render of ``stage`` uses
-    (``schema.find_render_settings``). ``PhrtError`` naming the attribute for a policy
-    that is not one of UsdRender's, a pixelAspectRatio not finite and > 0, or a data
-    window that is not finite with min < max."""
+    (``schema.find_render_settings``), with what its products author over it: a
+    RenderProduct is a UsdRenderSettingsBase too, and its authored
+    ``aspectRatioConformPolicy``, ``pixelAspectRatio`` or ``dataWindowNDC`` overrides the
+    settings' for its image. One render has one image window, so products that author
+    different values are refused, as for ``resolution`` and ``camera``.
+
+    ``PhrtError`` naming the attribute for a policy that is not one of UsdRender's, a
+    pixelAspectRatio not finite and > 0, a data window that is not finite with
+    min < max, or products that disagree."""
     prim = schema.find_render_settings(stage, settings)
     if prim is None:
         return CameraSettings()
-    rs = UsdRender.Settings(prim)
-    policy_attr = rs.GetAspectRatioConformPolicyAttr()
-    policy = str(policy_attr.Get() or CameraSettings.conform_policy)
-    if policy not in CONFORM_POLICIES:
-        raise PhrtError(
-            f"{policy_attr.GetPath()}: {policy!r} is not one of {', '.join(CONFORM_POLICIES)}"
-        )
-    par_attr = rs.GetPixelAspectRatioAttr()
-    par = par_attr.Get()
-    par = float(CameraSettings.pixel_aspect if par is None else par)
-    if not (math.isfinite(par) and par > 0):
-        raise PhrtError(f"{par_attr.GetPath()}: must be finite and > 0, got {par}")
-    window_attr = rs.GetDataWindowNDCAttr()
-    window = window_attr.Get()
-    window = CameraSettings.data_window if window is None else tuple(float(x) for x in window)
-    x0, y0, x1, y1 = window
-    if not (all(math.isfinite(x) for x in window) and x0 < x1 and y0 < y1):
-        raise PhrtError(
-            f"{window_attr.GetPath()}: need finite xmin < xmax and ymin < ymax, got {window}"
-        )
-    return CameraSettings(policy, par, window)
+    values = _camera_values(UsdRender.SettingsBase(prim), authored_only=False)
+    overrides: dict[str, tuple[object, str]] = {}
+    for target in UsdRender.Settings(prim).GetProductsRel().GetForwardedTargets():
+        product = stage.GetPrimAtPath(target)
+        if not product or not product.IsA(UsdRender.Product):
+            continue  # read_render_settings refuses it with its own message
+        for name, value in _camera_values(UsdRender.SettingsBase(product), True).items():
+            if name in overrides and overrides[name][0] != value:
+                other, path = overrides[name][1], str(target)
+                raise PhrtError(
+                    f"products differ in {_CAMERA_ATTRS[name]} ({other}: "
+                    f"{overrides[name][0]}, {path}: {value}); phrt renders one image "
+                    "window per run"
+                )
+            overrides[name] = (value, str(target))
+    values.update({name: value for name, (value, _) in overrides.items()})
+    return CameraSettings(**values)
+
+
+#: ``CameraSettings`` field → the UsdRenderSettingsBase attribute it comes from.
+_CAMERA_ATTRS = {
+    "conform_policy": "aspectRatioConformPolicy",
+    "pixel_aspect": "pixelAspectRatio",
+    "data_window": "dataWindowNDC",
+}
+
+
+def _camera_values(base: UsdRender.SettingsBase, authored_only: bool) -> dict:
+    """The ``CameraSettings`` fields ``base`` (a settings or product prim) gives: every
+    field (schema fallbacks where unauthored) or, with ``authored_only``, those it
+    authors. PhrtError naming the attribute for a value out of its domain."""
+    values: dict = {}
+    policy_attr = base.GetAspectRatioConformPolicyAttr()
+    if not authored_only or policy_attr.HasAuthoredValue():
+        policy = str(policy_attr.Get() or CameraSettings.conform_policy)
+        if policy not in CONFORM_POLICIES:
+            raise PhrtError(
+                f"{policy_attr.GetPath()}: {policy!r} is not one of {', '.join(CONFORM_POLICIES)}"
+            )
+        values["conform_policy"] = policy
+    par_attr = base.GetPixelAspectRatioAttr()
+    if not authored_only or par_attr.HasAuthoredValue():
+        par = par_attr.Get()
+        par = float(CameraSettings.pixel_aspect if par is None else par)
+        if not (math.isfinite(par) and par > 0):
+            raise PhrtError(f"{par_attr.GetPath()}: must be finite and > 0, got {par}")
+        values["pixel_aspect"] = par
+    window_attr = base.GetDataWindowNDCAttr()
+    if not authored_only or window_attr.HasAuthoredValue():
+        window = window_attr.Get()
+        window = CameraSettings.data_window if window is None else tuple(float(x) for x in window)
+        x0, y0, x1, y1 = window
+        if not (all(math.isfinite(x) for x in window) and x0 < x1 and y0 < y1):
+            raise PhrtError(
+                f"{window_attr.GetPath()}: need finite xmin < xmax and ymin < ymax, got {window}"
+            )
+        values["data_window"] = window
+    return values
 
 
 def _read_product(stage: Usd.Stage, product: UsdRender.Product) -> RenderProductSpec:
