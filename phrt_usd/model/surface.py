@@ -32,6 +32,14 @@ from phrt_usd.model.scene import ALPHA_ONE, MaterialTable, TextureInput
 #: normals get this short; 1e-6 keeps the float32 division well away from overflow.
 MIN_NORMAL_LENGTH = 1e-6
 
+#: Cut-out surfaces (``Cutouts``) one ray passes through before it is stopped: the
+#: raster peels one id layer per cut-out surface along a pixel's (or a shadow-map
+#: texel's) ray, a full redraw each; the tracer re-casts one ray per surface from just
+#: past it. Foliage cards and fences seldom stack deeper than a few along one ray; 8 keeps
+#: the worst frame at 8 extra redraws. A ray stopped at the bound ends as a miss in raster
+#: and trace alike (the environment; a shadow ray or map texel: no occluder).
+MAX_CUTOUT_LAYERS = 8
+
 #: Unit normal of a degenerate (zero-area) triangle in ``TriangleTable.frame``. Neither
 #: the rasterizer nor Embree ever reports a hit on one; any finite unit vector does.
 DEGENERATE_NORMAL = (0.0, 1.0, 0.0)
@@ -177,6 +185,80 @@ def texture_albedo(
     return albedo
 
 
+def has_texture_input(materials: MaterialTable, name: str) -> bool:
+    """Some row of ``materials`` has input ``name`` textured (``texture_inputs``)."""
+    return any(name in inputs for inputs in materials.texture_inputs)
+
+
+def emissive_values(materials: MaterialTable, tri, weights, tri_material, corner_uv):
+    """(m, 3) float32 emissiveColor at points on triangles ``tri`` (m,) with weights
+    (m, 3): the row constants, textured where the material's input is
+    (``input_values``)."""
+    if corner_uv is None or not has_texture_input(materials, "emissiveColor"):
+        return np.take(np.asarray(materials.emissive, np.float32), np.take(tri_material, tri), 0)
+    constant = np.asarray(materials.emissive, np.float32).reshape(-1, 3)
+    return input_values(materials, "emissiveColor", constant, tri, weights, tri_material, corner_uv)
+
+
+def emissive_at(scene, tri: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """(m, 3) float32 emissiveColor of G-buffer pixels (raster or ``rt``): triangles
+    ``tri`` (m,) at world ``points`` (m, 3) of ``scene`` (a ``model.scene.Scene``); the
+    weights come from the points (``point_weights``) only where some input is textured."""
+    geo, materials = scene.geometry, scene.materials
+    if geo.corner_uv is None or not has_texture_input(materials, "emissiveColor"):
+        return np.take(
+            np.asarray(materials.emissive, np.float32), np.take(geo.tri_material, tri), 0
+        )
+    weights = point_weights(geo.vertices, geo.triangles, tri, points)
+    return emissive_values(materials, tri, weights, geo.tri_material, geo.corner_uv)
+
+
+def point_weights(vertices: np.ndarray, triangles: np.ndarray, tri, points) -> np.ndarray:
+    """(m, 3) float32 barycentric weights of ``points`` (m, 3) float64 (world metres,
+    on or near their triangles) on triangles ``tri`` (m,), clamped onto the triangle
+    and renormalised as the raster's derivation does; from world ``vertices`` (V, 3)
+    and ``triangles`` (T, 3). For G-buffer pixels (raster or ``rt``) that need a
+    textured input the G-buffer does not carry."""
+    v = np.take(vertices, np.take(triangles, tri, axis=0), axis=0)  # (m, 3, 3)
+    a = v[:, 0]
+    e1 = v[:, 1] - a
+    e2 = v[:, 2] - a
+    p = np.asarray(points, np.float64) - a
+    d00 = np.einsum("ij,ij->i", e1, e1)
+    d01 = np.einsum("ij,ij->i", e1, e2)
+    d11 = np.einsum("ij,ij->i", e2, e2)
+    d20 = np.einsum("ij,ij->i", p, e1)
+    d21 = np.einsum("ij,ij->i", p, e2)
+    den = d00 * d11 - d01**2
+    inv = np.where(den > 0.0, 1.0 / np.where(den > 0.0, den, 1.0), 0.0)
+    return _clamped_weights((d11 * d20 - d01 * d21) * inv, (d00 * d21 - d01 * d20) * inv)
+
+
+def _clamped_weights(b1: np.ndarray, b2: np.ndarray) -> np.ndarray:
+    """(m, 3) float32 weights (1 - b1 - b2, b1, b2) clamped to [0, 1], renormalised."""
+    b0 = np.clip(1.0 - b1 - b2, 0.0, 1.0)
+    b1 = np.clip(b1, 0.0, 1.0)
+    b2 = np.clip(b2, 0.0, 1.0)
+    w = np.stack([b0, b1, b2], axis=1)
+    w /= np.maximum(b0 + b1 + b2, 1e-12)[:, None]
+    return w.astype(np.float32)
+
+
+def ray_plane_weights(plane: np.ndarray, origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+    """(m, 3) float32 weights where rays from rel ``origins`` (m, 3) along ``dirs``
+    (m, 3) meet the planes of their triangles (gathered ``TriangleTable.plane`` rows
+    (m, 13)), clamped onto the triangle; the raster's pixel-ray rule for rays other
+    than the camera's (shadow-map texels)."""
+    ng = plane[:, 8:11]
+    den = np.einsum("ij,ij->i", ng, dirs)
+    den = np.where(den == 0.0, 1.0, den)  # parallel: never rasterized, any finite t
+    t = (plane[:, 11] - np.einsum("ij,ij->i", ng, origins)) / den
+    p = origins + t[:, None] * dirs
+    b1 = np.einsum("ij,ij->i", p, plane[:, 0:3]) - plane[:, 3]
+    b2 = np.einsum("ij,ij->i", p, plane[:, 4:7]) - plane[:, 7]
+    return _clamped_weights(b1, b2)
+
+
 def transformed_st(spec: TextureInput, uv: np.ndarray) -> np.ndarray:
     """(n, 2) float64 st after the ``TextureInput.transform`` (UsdTransform2d) of
     ``spec``; non-finite coordinates read as 0."""
@@ -247,8 +329,9 @@ def sample_input(spec: TextureInput, uv: np.ndarray) -> np.ndarray:
     return (value * spec.scale + spec.bias).astype(np.float32)
 
 
-def input_values(materials: MaterialTable, name: str, constant, tri, weights, tri_material,
-                 corner_uv) -> np.ndarray:
+def input_values(
+    materials: MaterialTable, name: str, constant, tri, weights, tri_material, corner_uv
+) -> np.ndarray:
     """(m, k) float32 values of UsdPreviewSurface input ``name`` at points on triangles
     ``tri`` (m,) with weights (m, 3): the material's constant ``constant`` (M, k) row,
     replaced by its ``TextureInput`` sampled at the interpolated ``corner_uv`` where the

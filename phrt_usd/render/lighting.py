@@ -22,6 +22,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from phrt_usd.model import surface
 from phrt_usd.model.frame import GBuffer
 from phrt_usd.model.scene import Scene
 from phrt_usd.render.shading import shade_local
@@ -82,7 +83,7 @@ def shade_gbuffer(
             visibility = _settled(pending, tracer)
         shadow_pass = "shadow_map" if tracer is None else "shadow_map+rays"
     tri = take(gb.triangle_id)
-    emissive = np.take(scene.materials.emissive, np.take(scene.geometry.tri_material, tri), axis=0)
+    emissive = surface.emissive_at(scene, tri, pos)  # textured emissiveColor too
     local[pix] = shade_local(
         pos,
         nrm,

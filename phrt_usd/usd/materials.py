@@ -3,12 +3,44 @@
 ``MaterialBank`` reads each bound material once (``ComputeBoundMaterial`` per gprim and
 per ``materialBind`` GeomSubset, ``face_materials``) and deduplicates them into one
 ``phrt_usd.model.scene.MaterialTable`` (row 0 = no material). UsdPreviewSurface inputs
-are read with their connections followed: ``diffuseColor`` may come from a
-``UsdUVTexture``, whose image ``read_texture`` loads. Materials are read once, at the
-start of the frame range (not animated).
+are read with their connections followed (material interface inputs included).
+Materials are read once, at the start of the frame range (not animated).
+
+Texturable inputs the render uses (``TEXTURED_INPUTS``): ``diffuseColor``,
+``emissiveColor`` and ``opacity``, each possibly fed by a ``UsdUVTexture`` output
+(``rgb``, ``r``, ``g``, ``b``, ``a``), read as a ``TextureInput`` as the
+UsdPreviewSurface specification defines it:
+
+- ``file`` through the resolver (``usd/textures.py``); ``sourceColorSpace`` ``raw`` /
+  ``sRGB`` / ``auto`` (``textures.read_texture``); ``fallback`` (float4) where the
+  texture cannot be read, else the input's own default;
+- ``wrapS`` / ``wrapT``: repeat, mirror, clamp, black, and ``useMetadata`` (the
+  fallback): the file's own wrap metadata, else ``black``;
+- ``scale`` / ``bias`` (float4, per output component);
+- ``st``: a ``UsdPrimvarReader_float2`` (its ``varname``, default ``st``), optionally
+  through a ``UsdTransform2d`` (``in`` * ``scale``, rotated by ``rotation`` degrees
+  counter-clockwise, then moved by ``translation``).
+
+``opacityThreshold`` > 0 makes the material a cut-out (``model.surface.Cutouts``): the
+opacity, constant or textured (``outputs:a`` of a file without alpha reads 1), is a
+presence mask. Opacity < 1 without a threshold stays the constant ``opacity`` of the
+row (transmissive when < 1); a *textured* opacity without a threshold is not used as
+translucency (the row is opaque; docs/usd-support.md, known limits).
+
+Inputs read but not textured (the shading does not use them): ``metallic``,
+``roughness``, ``ior`` as constants; ``normal``, ``occlusion``, ``clearcoat`` and
+``displacement`` are not read (``usd/support_report.py`` lists them).
+
+MaterialX: a material whose only surface is a MaterialX one (``outputs:mtlx:surface``)
+gets its base colour from the shader prim's inputs (``ND_standard_surface``:
+``base`` * ``base_color``; ``ND_open_pbr_surface``: ``base_weight`` * ``base_color``;
+``ND_UsdPreviewSurface``: ``diffuseColor``), an ``ND_image_color3`` /
+``ND_tiledimage_color3`` node on it read as a texture; other MaterialX surfaces render
+grey. Either way one notice per material (``MaterialBank.notices``).
 
 - A textured ``diffuseColor`` is stored as the texture's mean colour (the row's
-  ``diffuse``) plus the texture itself (``MaterialTable.textures``).
+  ``diffuse``) plus the texture (``MaterialTable.textures``, the ``rgb`` after scale and
+  bias) and its ``TextureInput`` (``MaterialTable.texture_inputs``).
 - Textures are stored as read, row 0 = **top** of the image; USD ``st`` has v = 0 at the
   **bottom**, so a sampler reads row ``(1 - v) * h``.
 """
@@ -21,12 +53,44 @@ import numpy as np
 from pxr import Usd, UsdRender, UsdShade
 
 from phrt_usd.errors import PhrtError
-from phrt_usd.model.scene import MaterialTable
+from phrt_usd.model.scene import ALPHA_ONE, WRAP_MODES, MaterialTable, TextureInput
 from phrt_usd.usd import schema, textures
 
 #: UsdPreviewSurface's own fallback ``diffuseColor`` (used when a material is bound but
 #: its diffuseColor is unauthored and the gprim has no displayColor).
 PREVIEW_SURFACE_DIFFUSE = 0.18
+
+#: UsdPreviewSurface inputs read from textures: name -> components (the others the
+#: shading does not use; see the module).
+TEXTURED_INPUTS = {"diffuseColor": 3, "emissiveColor": 3, "opacity": 1}
+
+#: UsdUVTexture output -> the file's channel per component, by the file's channel count
+#: (1 grey, 2 grey + alpha, 3 RGB, 4 RGBA); ``ALPHA_ONE``: no alpha, reads 1.
+_OUTPUT_CHANNELS = {
+    "rgb": {1: (0, 0, 0), 2: (0, 0, 0), 3: (0, 1, 2), 4: (0, 1, 2)},
+    "r": {1: (0,), 2: (0,), 3: (0,), 4: (0,)},
+    "g": {1: (0,), 2: (0,), 3: (1,), 4: (1,)},
+    "b": {1: (0,), 2: (0,), 3: (2,), 4: (2,)},
+    "a": {1: (ALPHA_ONE,), 2: (1,), 3: (ALPHA_ONE,), 4: (3,)},
+}
+#: The float4 components (scale, bias, fallback) of each output.
+_OUTPUT_COMPONENTS = {"rgb": (0, 1, 2), "r": (0,), "g": (1,), "b": (2,), "a": (3,)}
+
+#: OpenImageIO ``wrapmodes`` metadata words -> UsdUVTexture wrap modes.
+_METADATA_WRAP = {"periodic": "repeat", "mirror": "mirror", "clamp": "clamp", "black": "black"}
+
+#: MaterialX surface shader ids whose base colour is read: id -> (colour input,
+#: weight input or None, the colour's and the weight's defaults).
+MATERIALX_BASE_COLOUR = {
+    "ND_standard_surface_surfaceshader": ("base_color", "base", 0.8, 0.8),
+    "ND_open_pbr_surface_surfaceshader": ("base_color", "base_weight", 0.8, 1.0),
+    "ND_UsdPreviewSurface_surfaceshader": ("diffuseColor", None, 0.18, 1.0),
+}
+#: MaterialX image nodes read as a texture of the base colour (``file``; address modes
+#: ``uaddressmode`` / ``vaddressmode``).
+MATERIALX_IMAGES = ("ND_image_color3", "ND_tiledimage_color3", "ND_image_color4")
+#: MaterialX address modes -> UsdUVTexture wrap modes (MaterialX's default: periodic).
+_MATERIALX_WRAP = {"periodic": "repeat", "clamp": "clamp", "mirror": "mirror", "constant": "black"}
 
 
 @dataclass
@@ -38,8 +102,16 @@ class _MaterialRow:
     opacity: float = 1.0
     ior: float = 1.5
     emissive: np.ndarray = field(default_factory=lambda: np.zeros(3))
-    texture: np.ndarray | None = None  # (h, w, 3) float32 linear, row 0 = top
+    texture: np.ndarray | None = None  # (h, w, 3) float32 linear diffuse rgb, row 0 = top
     uv_primvar: str = "st"
+    opacity_threshold: float = 0.0
+    #: UsdPreviewSurface input name -> its ``TextureInput`` (``TEXTURED_INPUTS``).
+    inputs: dict[str, TextureInput] = field(default_factory=dict)
+
+    @property
+    def needs_uv(self) -> bool:
+        """Some input of the row is textured: the gprim's texture coordinates are read."""
+        return bool(self.inputs)
 
 
 def read_texture(value, where: str, color_space: str = "auto") -> np.ndarray:
@@ -49,6 +121,19 @@ def read_texture(value, where: str, color_space: str = "auto") -> np.ndarray:
     if pixels.shape[2] < 3:
         return np.ascontiguousarray(np.repeat(pixels[..., :1], 3, axis=2))
     return np.ascontiguousarray(pixels[..., :3])
+
+
+def transform_2d(rotation: float, scale, translation) -> np.ndarray | None:
+    """(2, 3) float64 affine st -> st' of a UsdTransform2d: ``st * scale``, rotated by
+    ``rotation`` degrees counter-clockwise, then ``+ translation``; None for identity."""
+    s = np.asarray(scale, np.float64).reshape(2)
+    t = np.asarray(translation, np.float64).reshape(2)
+    a = np.radians(float(rotation))
+    rot = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+    m = np.concatenate([rot * s[None, :], t[:, None]], axis=1)
+    if np.array_equal(m, [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]):
+        return None
+    return m
 
 
 #: UsdRender ``materialBindingPurposes`` fallback: the ``full`` binding, then the
@@ -111,10 +196,15 @@ class MaterialBank:
             _MaterialRow(np.full(3, PREVIEW_SURFACE_DIFFUSE), diffuse_authored=False)
         ]
         self._index: dict[str, int] = {"": 0}
-        self._textures: dict[tuple[str, str], np.ndarray] = {}
+        #: (resolved path, colour space) -> (pixels (h, w, c), wrap metadata) or None.
+        self._files: dict[tuple[str, str], tuple[np.ndarray, str] | None] = {}
         #: One line per texture that could not be read (the render goes on with the
         #: input's fallback; ``--strict`` and ``phrt validate`` make each an error).
         self.texture_problems: list[str] = []
+        #: One line per material rendered approximately (MaterialX-only materials).
+        self.notices: list[str] = []
+        #: Paths of MaterialX-only materials by treatment ("base colour" / "grey").
+        self.materialx: dict[str, list[str]] = {"base colour": [], "grey": []}
 
     def index(self, material: UsdShade.Material | None) -> int:
         key = material_key(material)
@@ -124,7 +214,9 @@ class MaterialBank:
         return self._index[key]
 
     def _value(self, shader: UsdShade.Shader, name: str):
-        """(value, source shader or None) of an input, following connections."""
+        """(value, source shader or None) of an input, following connections: for a
+        connected shader output (its name, the shader), else the value (None when
+        unauthored and without fallback)."""
         inp = shader.GetInput(name)
         if not inp:
             return None, None
@@ -136,77 +228,222 @@ class MaterialBank:
             return attr.GetBaseName(), UsdShade.Shader(attr.GetPrim())
         return attr.Get(self.time), None
 
+    def _constant(self, shader: UsdShade.Shader, name: str, default):
+        """A finite constant input as float64 (``default`` when unauthored, connected
+        or not finite)."""
+        value, src = self._value(shader, name)
+        if src is not None or value is None:
+            return np.asarray(default, np.float64)
+        value = np.asarray(value, np.float64)
+        return value if np.all(np.isfinite(value)) else np.asarray(default, np.float64)
+
     def _read(self, material: UsdShade.Material) -> _MaterialRow:
         row = _MaterialRow(np.full(3, PREVIEW_SURFACE_DIFFUSE), diffuse_authored=False)
         shader = material.ComputeSurfaceSource()[0]
         if not shader or shader.GetIdAttr().Get() != "UsdPreviewSurface":
-            return row  # not a preview surface: fall back like a bare material
-        for name, attr_name in (
-            ("metallic", "metallic"),
-            ("roughness", "roughness"),
-            ("opacity", "opacity"),
-            ("ior", "ior"),
-        ):
-            value, src = self._value(shader, name)
-            if src is None and value is not None and np.isfinite(float(value)):
-                setattr(row, attr_name, float(value))
+            self._read_materialx(row, material)
+            return row
+        for name in ("metallic", "roughness", "opacity", "ior"):
+            setattr(row, name, float(self._constant(shader, name, getattr(row, name))))
         row.metallic = float(np.clip(row.metallic, 0.0, 1.0))
         row.roughness = float(np.clip(row.roughness, 0.0, 1.0))
         row.opacity = float(np.clip(row.opacity, 0.0, 1.0))
-        value, src = self._value(shader, "emissiveColor")
-        if src is None and value is not None:
-            row.emissive = np.nan_to_num(np.asarray(value, dtype=np.float64))
+        threshold = float(self._constant(shader, "opacityThreshold", 0.0))
+        row.opacity_threshold = float(np.clip(threshold, 0.0, 1.0))
+        row.emissive = np.clip(self._constant(shader, "emissiveColor", np.zeros(3)), 0, None)
         value, src = self._value(shader, "diffuseColor")
-        if src is not None:
-            self._read_texture_input(row, src, value, str(material.GetPath()))
-        elif value is not None:
+        if src is None and value is not None:
             row.diffuse = np.clip(np.nan_to_num(np.asarray(value, dtype=np.float64)), 0, None)
             row.diffuse_authored = True
+        for name in TEXTURED_INPUTS:
+            output, src = self._value(shader, name)
+            if src is not None:
+                self._texture_input(row, name, src, str(output))
         return row
 
-    def _read_texture_input(
-        self, row: _MaterialRow, tex: UsdShade.Shader, output: str, where: str
-    ) -> None:
-        """Fill ``row`` from a UsdUVTexture feeding ``diffuseColor``."""
-        if tex.GetIdAttr().Get() != "UsdUVTexture":
-            return  # some other node (e.g. a primvar reader): keep the default colour
-        file_value, _ = self._value(tex, "file")
+    def _texture_input(self, row: _MaterialRow, name: str, tex: UsdShade.Shader, output: str):
+        """Fill input ``name`` of ``row`` from output ``output`` of the UsdUVTexture
+        ``tex`` (see the module): its ``TextureInput``, or the fallback when the file
+        cannot be read."""
+        if tex.GetIdAttr().Get() != "UsdUVTexture" or output not in _OUTPUT_CHANNELS:
+            return  # some other node: the input keeps its constant
+        comps = _OUTPUT_COMPONENTS[output]
         where = f"{tex.GetPath()}.inputs:file"
-        fallback, _ = self._value(tex, "fallback")
-        space, _ = self._value(tex, "sourceColorSpace")
-        space = str(space or "auto")
-        key = (str(getattr(file_value, "resolvedPath", "") or file_value), space)
-        if key not in self._textures and file_value is not None:
-            try:
-                self._textures[key] = read_texture(file_value, where, space)
-            except textures.TextureError as problem:
-                self._textures[key] = None
-                self.texture_problems.append(str(problem))
-        if self._textures.get(key) is None:
-            # Unreadable or no file: UsdUVTexture's fallback where authored, else the
-            # input's own (UsdPreviewSurface diffuseColor 0.18).
+        file_value, _ = self._value(tex, "file")
+        space = str(self._value(tex, "sourceColorSpace")[0] or "auto")
+        read = self._file(file_value, where, space)
+        if read is None:
+            fallback, _ = self._value(tex, "fallback")
             if fallback is not None:
-                row.diffuse = np.asarray(fallback, dtype=np.float64)[:3]
-                row.diffuse_authored = True
+                self._set_constant(row, name, np.asarray(fallback, np.float64)[list(comps)])
             return
-        image = self._textures[key]
-        scale, _ = self._value(tex, "scale")
-        bias, _ = self._value(tex, "bias")
-        if scale is not None or bias is not None:
-            s = np.asarray(scale if scale is not None else (1, 1, 1, 1), np.float32)[:3]
-            b = np.asarray(bias if bias is not None else (0, 0, 0, 0), np.float32)[:3]
-            image = image * s + b
-        channel = {"r": 0, "g": 1, "b": 2}.get(output)
-        if channel is not None:
-            image = np.repeat(image[..., channel : channel + 1], 3, axis=2)
-        row.texture = np.ascontiguousarray(image, dtype=np.float32)
-        row.diffuse = image.reshape(-1, 3).mean(axis=0).astype(np.float64)
+        pixels, metadata = read
+        channels = _OUTPUT_CHANNELS[output][min(max(pixels.shape[2], 1), 4)]
+        scale = self._constant(tex, "scale", (1.0, 1.0, 1.0, 1.0)).reshape(4)[list(comps)]
+        bias = self._constant(tex, "bias", (0.0, 0.0, 0.0, 0.0)).reshape(4)[list(comps)]
+        wrap = tuple(self._wrap(tex, axis, metadata) for axis in ("wrapS", "wrapT"))
+        transform, varname = self._st(tex)
+        spec = TextureInput(
+            image=pixels,
+            channels=tuple(int(c) for c in channels),
+            scale=scale.astype(np.float32),
+            bias=bias.astype(np.float32),
+            wrap=wrap,
+            transform=transform,
+        )
+        self._use(row, name, spec, varname)
+
+    def _use(self, row: _MaterialRow, name: str, spec: TextureInput, varname: str) -> None:
+        """Record ``spec`` as input ``name`` of ``row`` (reading texture coordinates
+        ``varname``), with the informative constants (texture means)."""
+        row.inputs[name] = spec
+        row.uv_primvar = varname
+        h, w = spec.image.shape[:2]
+        img = spec.image.reshape(h * w, -1)
+        texels = np.stack(
+            [np.ones(h * w, np.float32) if c == ALPHA_ONE else img[:, c] for c in spec.channels],
+            axis=1,
+        )
+        texels = texels * spec.scale + spec.bias
+        mean = texels.mean(axis=0).astype(np.float64)
+        if name == "diffuseColor":
+            row.texture = np.ascontiguousarray(
+                np.broadcast_to(
+                    texels[:, :3] if texels.shape[1] >= 3 else texels[:, :1], (h * w, 3)
+                ).reshape(h, w, 3),
+                dtype=np.float32,
+            )
+            row.diffuse = np.broadcast_to(mean, (3,)).copy() if mean.size == 1 else mean[:3]
+            row.diffuse_authored = True
+        elif name == "emissiveColor":
+            row.emissive = np.broadcast_to(mean, (3,)).copy() if mean.size == 1 else mean[:3]
+        elif name == "opacity":
+            # A textured opacity is a presence mask of a cut-out; without a threshold
+            # it is not used as translucency (module docstring): the row is opaque.
+            row.opacity = 1.0
+
+    def _set_constant(self, row: _MaterialRow, name: str, value: np.ndarray) -> None:
+        """An unreadable texture's ``fallback`` components as the input's constant."""
+        value = np.nan_to_num(value)
+        if name == "diffuseColor":
+            row.diffuse = np.clip(np.broadcast_to(value, (3,)), 0, None).astype(np.float64)
+            row.diffuse_authored = True
+        elif name == "emissiveColor":
+            row.emissive = np.clip(np.broadcast_to(value, (3,)), 0, None).astype(np.float64)
+        elif name == "opacity":
+            row.opacity = float(np.clip(value.reshape(-1)[0], 0.0, 1.0))
+
+    def _file(self, file_value, where: str, space: str):
+        """(pixels (h, w, c) float32, wrap metadata) of a texture file, read once per
+        (resolved path, colour space); None (and one problem line) when unreadable or
+        no file is authored."""
+        if file_value is None or not str(getattr(file_value, "path", file_value) or ""):
+            return None
+        key = (str(getattr(file_value, "resolvedPath", "") or file_value), space)
+        if key not in self._files:
+            try:
+                self._files[key] = textures.read_texture(file_value, where, space)
+            except textures.TextureError as problem:
+                self._files[key] = None
+                self.texture_problems.append(str(problem))
+        return self._files[key]
+
+    def _wrap(self, tex: UsdShade.Shader, axis: str, metadata: str) -> str:
+        """``wrapS`` / ``wrapT`` of ``tex`` as one of ``WRAP_MODES``; ``useMetadata``
+        (the fallback) reads the file's wrap metadata ("s,t"), else ``black``."""
+        value = str(self._value(tex, axis)[0] or "useMetadata")
+        if value in WRAP_MODES:
+            return value
+        words = [w.strip() for w in metadata.split(",")] if metadata else []
+        k = 0 if axis == "wrapS" else 1
+        word = words[k] if len(words) > k else (words[0] if words else "")
+        return _METADATA_WRAP.get(word, "black")
+
+    def _st(self, tex: UsdShade.Shader) -> tuple[np.ndarray | None, str]:
+        """(UsdTransform2d affine or None, primvar name) of a texture's ``st`` input."""
+        transform = None
+        st, src = self._value(tex, "st")
+        if src is not None and src.GetIdAttr().Get() == "UsdTransform2d":
+            transform = transform_2d(
+                float(self._constant(src, "rotation", 0.0)),
+                self._constant(src, "scale", (1.0, 1.0)),
+                self._constant(src, "translation", (0.0, 0.0)),
+            )
+            st, src = self._value(src, "in")
+        varname = "st"
+        if src is not None and str(src.GetIdAttr().Get() or "").startswith("UsdPrimvarReader"):
+            name, _ = self._value(src, "varname")
+            varname = str(name) if name else "st"
+        return transform, varname
+
+    # ------------------------------------------------------------------ MaterialX
+
+    def _read_materialx(self, row: _MaterialRow, material: UsdShade.Material) -> None:
+        """A material without a UsdPreviewSurface: its MaterialX surface's base colour
+        (module docstring), else grey; one notice either way. Materials of other render
+        contexts only keep the default grey silently (the support report lists them)."""
+        out = material.GetSurfaceOutput("mtlx")
+        if not (out and out.HasConnectedSource()):
+            return
+        path = str(material.GetPath())
+        shader = material.ComputeSurfaceSource(["mtlx"])[0]
+        ident = str(shader.GetIdAttr().Get() or "") if shader else ""
+        spec = MATERIALX_BASE_COLOUR.get(ident)
+        if spec is None:
+            self.materialx["grey"].append(path)
+            self.notices.append(
+                f"{path}: MaterialX surface {ident or '(unknown)'} is not read; rendered grey"
+            )
+            return
+        colour_name, weight_name, colour_default, weight_default = spec
+        weight = 1.0
+        if weight_name is not None:
+            weight = float(self._constant(shader, weight_name, weight_default))
+        value, src = self._value(shader, colour_name)
+        texture = ""
+        if src is not None:
+            texture = self._materialx_image(row, src, weight)
+            if not texture:
+                row.diffuse = np.full(3, colour_default * weight)
+        else:
+            colour = colour_default if value is None else value
+            colour = np.nan_to_num(np.broadcast_to(np.asarray(colour, np.float64), (3,)))
+            row.diffuse = np.clip(colour * weight, 0.0, None)
         row.diffuse_authored = True
-        st, reader = self._value(tex, "st")
-        if reader is not None:
-            varname, _ = self._value(reader, "varname")
-            if varname:
-                row.uv_primvar = str(varname)
+        self.materialx["base colour"].append(path)
+        self.notices.append(
+            f"{path}: MaterialX surface {ident}; rendered with its base colour only"
+            + (f" (texture {texture})" if texture else "")
+        )
+
+    def _materialx_image(self, row: _MaterialRow, node: UsdShade.Shader, weight: float) -> str:
+        """Read a plain MaterialX image node feeding the base colour as the diffuse
+        texture (times ``weight``); returns its file path, "" when not read."""
+        if str(node.GetIdAttr().Get() or "") not in MATERIALX_IMAGES:
+            return ""
+        file_value, _ = self._value(node, "file")
+        where = f"{node.GetPath()}.inputs:file"
+        inp = node.GetInput("file")
+        space = str(inp.GetAttr().GetColorSpace() or "") if inp else ""
+        space = {"srgb_texture": "sRGB", "lin_rec709": "raw", "raw": "raw"}.get(space, "auto")
+        read = self._file(file_value, where, space)
+        if read is None:
+            return ""
+        pixels, _ = read
+        channels = _OUTPUT_CHANNELS["rgb"][min(max(pixels.shape[2], 1), 4)]
+        wrap = tuple(
+            _MATERIALX_WRAP.get(str(self._value(node, a)[0] or "periodic"), "repeat")
+            for a in ("uaddressmode", "vaddressmode")
+        )
+        spec = TextureInput(
+            image=pixels,
+            channels=tuple(int(c) for c in channels),
+            scale=np.full(3, weight, np.float32),
+            bias=np.zeros(3, np.float32),
+            wrap=wrap,
+        )
+        self._use(row, "diffuseColor", spec, "st")
+        return str(getattr(file_value, "path", file_value))
 
     def table(self) -> MaterialTable:
         rows = self.rows
@@ -218,6 +455,8 @@ class MaterialBank:
             ior=np.array([r.ior for r in rows], dtype=np.float32),
             emissive=np.array([r.emissive for r in rows], dtype=np.float32).reshape(-1, 3),
             textures=[r.texture for r in rows],
+            texture_inputs=[dict(r.inputs) for r in rows],
+            opacity_threshold=np.array([r.opacity_threshold for r in rows], dtype=np.float32),
         )
 
 

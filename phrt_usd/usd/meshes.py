@@ -363,7 +363,7 @@ def _read_mesh(prim: Usd.Prim, time: Usd.TimeCode, bank: MaterialBank) -> LocalM
     display = _display_color(prim, time, corners, tri_face, triangles)
     albedo = _albedo(tri_material, display, bank)
     uv = None
-    textured = [m for m in np.unique(tri_material) if bank.rows[m].texture is not None]
+    textured = [m for m in np.unique(tri_material) if bank.rows[m].needs_uv]
     if textured:
         name = bank.rows[textured[0]].uv_primvar
         pv = _read_primvar(prim, name, time)
@@ -549,7 +549,7 @@ def _read_implicit(kind: str, prim: Usd.Prim, time: Usd.TimeCode, bank: Material
         color = np.clip(np.nan_to_num(pv[0].reshape(-1, 3)[0]), 0.0, None)
         display = np.broadcast_to(color, (len(tris), 3, 3))
     albedo = _albedo(tri_material, display, bank)
-    uv = np.zeros((len(tris), 3, 2), np.float32) if bank.rows[mat].texture is not None else None
+    uv = np.zeros((len(tris), 3, 2), np.float32) if bank.rows[mat].needs_uv else None
     return LocalMesh(pts, tris, normals, albedo, tri_material, uv)
 
 

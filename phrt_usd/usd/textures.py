@@ -33,6 +33,13 @@ def _srgb_to_linear(c: np.ndarray) -> np.ndarray:
     return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
 
 
+def auto_is_srgb(eight_bit: bool, pixels: np.ndarray) -> bool:
+    """``sourceColorSpace = auto`` without colour-space metadata, as the UsdPreviewSurface
+    specification (and Storm) decide: sRGB for 8-bit files of 3 or 4 channels, else raw
+    (an 8-bit grey map, e.g. roughness or opacity, is data)."""
+    return bool(eight_bit and pixels.shape[2] in (3, 4))
+
+
 def resolved_path(value, where: str) -> str:
     """The resolved path of an ``SdfAssetPath`` value (or a string): the path USD's
     composition anchored and resolved, else the resolver's answer. Raises
@@ -90,10 +97,11 @@ def read_texture(value, where: str, color_space: str = "auto") -> tuple[np.ndarr
     """(image (h, w, c) float32 linear, row 0 = top, c = the file's channels; wrap
     metadata) of an ``inputs:file`` value. color_space: ``sourceColorSpace`` — "sRGB"
     converts the colour channels to linear, "raw" does not, "auto" converts 8-bit files
-    only; alpha is never converted. Non-finite texels read as 0."""
+    of 3 or 4 channels only (``auto_is_srgb``); alpha is never converted. Non-finite
+    texels read as 0."""
     pixels, eight_bit, wrap = read_asset_pixels(resolved_path(value, where), where)
     pixels = np.nan_to_num(pixels, nan=0.0, posinf=0.0, neginf=0.0)
-    if color_space == "sRGB" or (color_space == "auto" and eight_bit):
+    if color_space == "sRGB" or (color_space == "auto" and auto_is_srgb(eight_bit, pixels)):
         colour = 1 if pixels.shape[2] <= 2 else 3
         pixels[..., :colour] = _srgb_to_linear(np.clip(pixels[..., :colour], 0.0, 1.0))
     return np.ascontiguousarray(pixels, dtype=np.float32), wrap

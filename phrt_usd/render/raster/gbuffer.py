@@ -14,6 +14,13 @@
 Coordinate spaces as in ``context``: "world" is ``Scene`` world metres (float64); "rel"
 is world minus ``Scene.origin``.
 
+3. **Cut-outs** (UsdPreviewSurface ``opacityThreshold``; scenes with cut-out materials
+   only). The id pass is then drawn by ``cutout_layers.IdLayers`` (same ids, and the
+   window depths); a covered pixel whose point is a hole (``model.surface.Cutouts`` at
+   the derivation's barycentrics, the rule the tracer uses) is peeled: the next layer's
+   triangle behind it is derived instead, at most ``surface.MAX_CUTOUT_LAYERS`` times
+   (then, or where nothing is behind, the pixel is background).
+
 Limits: opaque triangles only (transmission is a tracer concern). Materials are read when
 the topology is uploaded. Coincident (coplanar, overlapping) surfaces z-fight here as
 they do in Embree: either may win.
@@ -37,6 +44,7 @@ from phrt_usd.render.raster.context import (
     RasterContext,
     transform_rows,
 )
+from phrt_usd.render.raster.cutout_layers import IdLayers
 
 #: Smallest allowed near / far ratio of the perspective projection. The depth buffer
 #: resolves view depth z to about z**2 / (near * 2**24); as near → 0 that diverges and
@@ -95,6 +103,7 @@ class _Outputs:
     position: np.ndarray
     normal: np.ndarray
     albedo: np.ndarray
+    hole: np.ndarray | None = None  # (H*W,) bool: the derived point is a cut-out hole
 
 
 class GBufferPass:
@@ -109,6 +118,7 @@ class GBufferPass:
         self._pool = ctx.pool
         self._dirs_key: tuple | None = None
         self._dirs_grid: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._layers: IdLayers | None = None  # made for the first scene with cut-outs
 
     @property
     def _scene(self) -> Scene:
@@ -127,6 +137,22 @@ class GBufferPass:
         self._table = surface.TriangleTable(n)
         self._fill_tables(scene, np.arange(n))
         self._textured(scene)
+        geo = scene.geometry
+        #: The cut-out rule of the uploaded triangles (``surface.Cutouts``).
+        self.cutouts = surface.Cutouts(scene.materials, geo.tri_material, geo.corner_uv)
+        if self.cutouts.any and self._layers is None:
+            self._layers = IdLayers(self._ctx, self.width, self.height)
+
+    @property
+    def table(self) -> surface.TriangleTable:
+        """The per-triangle tables of the uploaded geometry (rel)."""
+        return self._table
+
+    def close(self) -> None:
+        """Free the cut-out layers' OpenGL objects (before the context goes)."""
+        if self._layers is not None:
+            self._layers.close()
+            self._layers = None
 
     def geometry_moved(self, scene: Scene, tri_moved: np.ndarray) -> None:
         """Refresh the tables of moved triangles ``tri_moved`` (T,) bool (same topology)."""
@@ -232,10 +258,15 @@ class GBufferPass:
             pose[:3, 3] = eye_rel
             self._pcamera.matrix = perspective_matrix(window, near, far)
             self._pcamera.znear, self._pcamera.zfar = near, far
-            self._ctx.pscene.set_pose(self._cam_node, pose)
-            self._ctx.make_current()
-            flags = RenderFlags.FLAT | RenderFlags.OFFSCREEN | RenderFlags.SKIP_CULL_FACES
-            ids = self._ctx.renderer.render(self._ctx.pscene, flags).reshape(-1)
+            if self.cutouts.any:
+                clip_from_rel = self._pcamera.matrix @ np.linalg.inv(pose)
+                layer = self._layers.render(clip_from_rel, w, h)
+                ids, layer_depth = (a[::-1].reshape(-1) for a in layer)  # row 0 = top
+            else:
+                self._ctx.pscene.set_pose(self._cam_node, pose)
+                self._ctx.make_current()
+                flags = RenderFlags.FLAT | RenderFlags.OFFSCREEN | RenderFlags.SKIP_CULL_FACES
+                ids = self._ctx.renderer.render(self._ctx.pscene, flags).reshape(-1)
         else:  # no geometry, or none inside the camera's clipping range
             near, far = 0.0, 0.0
             ids = np.zeros(h * w, dtype=np.uint32)
@@ -259,13 +290,12 @@ class GBufferPass:
 
         out = _Outputs(triangle_id, element_id, depth, position, normal, albedo)
         fwd = -rot[:, 2] / np.linalg.norm(rot[:, 2])
-        chunks = [c for c in np.array_split(np.arange(len(covered)), WORKER_THREADS) if len(c)]
-        jobs = [
-            self._pool.submit(self._derive, covered[c], tid[c], d, eye_rel, near, far, fwd, out)
-            for c in chunks
-        ]
-        for job in jobs:
-            job.result()  # re-raises a worker's exception here
+        if self.cutouts.any:
+            out.hole = np.zeros(h * w, dtype=bool)
+        derive = (d, eye_rel, near, far, fwd, out)
+        self._derive_all(covered, tid, derive)
+        if clip is not None and self.cutouts.any:
+            self._peel(clip_from_rel, ids, layer_depth, out, derive)
 
         return GBuffer(
             element_id=element_id.reshape(h, w),
@@ -276,6 +306,40 @@ class GBufferPass:
             albedo=albedo.reshape(h, w, 3),
             view_dir=view_dir.reshape(h, w, 3),
         )
+
+    def _derive_all(self, covered: np.ndarray, tid: np.ndarray, derive: tuple) -> None:
+        """``_derive`` of pixels ``covered`` (n,) with triangles ``tid`` (n,) in chunks
+        on the worker threads; ``derive``: the rest of its arguments."""
+        chunks = [c for c in np.array_split(np.arange(len(covered)), WORKER_THREADS) if len(c)]
+        jobs = [self._pool.submit(self._derive, covered[c], tid[c], *derive) for c in chunks]
+        for job in jobs:
+            job.result()  # re-raises a worker's exception here
+
+    def _peel(self, clip_from_rel, ids, layer_depth, out: _Outputs, derive: tuple) -> None:
+        """Cut-out holes (``out.hole``) peeled (module, step 3): pixels showing a hole
+        get the next surface behind it, derived again, until none is a hole or
+        ``surface.MAX_CUTOUT_LAYERS`` layers were peeled. ids, layer_depth : (H*W,) the
+        layer's encoded ids and window depths (row 0 = top), updated in place."""
+        h, w = self.height, self.width
+        tri_of = np.append(self._layers.batch_triangles(("static", "dynamic")), -1)
+        pending = np.flatnonzero(out.hole)
+        for _ in range(surface.MAX_CUTOUT_LAYERS):
+            if len(pending) == 0:
+                return
+            prev_ids = np.zeros(h * w, np.uint32)
+            prev_depth = np.ones(h * w, np.float32)
+            prev_ids[pending] = ids[pending]
+            prev_depth[pending] = layer_depth[pending]
+            previous = (prev_ids.reshape(h, w)[::-1], prev_depth.reshape(h, w)[::-1])
+            layer = self._layers.render(clip_from_rel, w, h, previous=previous)
+            ids2, depth2 = (a[::-1].reshape(-1) for a in layer)
+            _background(out, pending, derive[0])
+            found = pending[ids2[pending] > 0]
+            ids[found], layer_depth[found] = ids2[found], depth2[found]
+            if len(found):
+                self._derive_all(found, tri_of[ids[found].astype(np.int64) - 1], derive)
+            pending = found[out.hole[found]]
+        _background(out, pending, derive[0])  # still in holes after the bound: nothing (module)
 
     def _derive(
         self,
@@ -335,7 +399,10 @@ class GBufferPass:
                 geo.tri_material,
                 geo.corner_uv,
                 self._scene.materials.textures,
+                inputs=self._scene.materials.texture_inputs,
             )
+        if out.hole is not None:
+            out.hole[covered] = self.cutouts.holes(tid, bary)
         # Sorted pixel indices without gaps (every pixel of an enclosed view is covered):
         # slice writes, much faster than scattering.
         if covered[-1] - covered[0] + 1 == len(covered):
@@ -346,3 +413,15 @@ class GBufferPass:
         out.element_id[covered] = np.take(geo.tri_element, tid)
         out.position[covered] = p_rel + self._origin
         out.depth[covered] = t * transform_rows(dc, fwd[None])[:, 0]
+
+
+def _background(out: _Outputs, pixels: np.ndarray, dirs: np.ndarray) -> None:
+    """Reset ``pixels`` (k,) of ``out`` to the background (``GBufferPass.render``);
+    dirs : (H*W, 3) the pixels' unit world directions."""
+    out.normal[pixels] = -np.take(dirs, pixels, axis=0)
+    out.triangle_id[pixels] = NO_HIT
+    out.element_id[pixels] = NO_HIT
+    out.depth[pixels] = np.inf
+    out.position[pixels] = 0.0
+    out.albedo[pixels] = 0.0
+    out.hole[pixels] = False

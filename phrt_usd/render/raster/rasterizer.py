@@ -73,6 +73,7 @@ class Rasterizer:
     def _upload(self, scene: Scene) -> None:
         self._ctx.upload(scene)
         self._gbuffer.upload(scene)
+        self._maps.use_cutouts(self._gbuffer.cutouts, self._gbuffer.table)
         self._maps.invalidate(static=True, dynamic=True)
 
     def update_geometry(self, scene: Scene) -> None:
@@ -87,6 +88,7 @@ class Rasterizer:
         change = self._ctx.update_geometry(scene)
         if change.rebuilt:
             self._gbuffer.upload(scene)
+            self._maps.use_cutouts(self._gbuffer.cutouts, self._gbuffer.table)
             self._maps.invalidate(static=True, dynamic=True)
             return
         self._gbuffer.geometry_moved(scene, change.tri_moved)
@@ -175,6 +177,7 @@ class Rasterizer:
         self._closed = True
         _OPEN.discard(self)
         self._maps.close()
+        self._gbuffer.close()
         self._ctx.close()
 
     def __enter__(self) -> Rasterizer:

@@ -25,6 +25,12 @@ uncertain.
 
 Coordinate spaces as in ``context``: "rel" is world minus ``Scene.origin``, metres.
 
+Cut-outs (UsdPreviewSurface ``opacityThreshold``): in a scene with cut-out materials
+every depth render is a peeled id render instead (``cutout_layers.IdLayers.
+first_present_depth``): a texel's depth is that of the nearest caster that is there by
+the one cut-out rule (``model.surface.Cutouts``, the tracer's too), so a cut-out casts
+no shadow through its holes (``use_cutouts``).
+
 Limits: without an exact resolution of the uncertain pairs, casters much thinner than a
 shadow-map texel (scene extent / 2048) cast broken shadows; cube maps miss casters nearer
 to the light than CUBE_NEAR_FRACTION of its range.
@@ -46,6 +52,7 @@ from phrt_usd.render.raster.context import (
     check_framebuffer,
     transform_rows,
 )
+from phrt_usd.render.raster.cutout_layers import IdLayers
 from phrt_usd.render.shading import light_ranges
 
 #: Static shadow-map resolution (texels per side).
@@ -318,7 +325,17 @@ class ShadowMaps:
         self._cube_static: list[CubeMap | None] = []
         self._cube_dynamic: list[CubeMap | None] = []
         self._cube_fresh: list[tuple[bool, bool]] = []  # (static, animated) map valid
+        self._cutouts = None  # (surface.Cutouts, TriangleTable) with cut-outs, else None
+        self._layers: IdLayers | None = None
         self._create_framebuffer()
+
+    def use_cutouts(self, cutouts, table) -> None:
+        """Render the maps through cut-out holes (module): ``cutouts`` the scene's
+        ``surface.Cutouts``, ``table`` its ``surface.TriangleTable`` (rel), as the
+        G-buffer holds them; a scene without cut-outs renders plain depth."""
+        self._cutouts = (cutouts, table) if cutouts.any else None
+        if self._cutouts is not None and self._layers is None:
+            self._layers = IdLayers(self._ctx, SHADOW_MAP_SIZE, SHADOW_MAP_SIZE)
 
     def _create_framebuffer(self) -> None:
         """The depth-only framebuffer every shadow-map render draws into."""
@@ -340,6 +357,9 @@ class ShadowMaps:
 
     def close(self) -> None:
         """Free the shadow framebuffer (before the context goes)."""
+        if self._layers is not None:
+            self._layers.close()
+            self._layers = None
         self._ctx.make_current()
         GL.glDeleteFramebuffers(1, [self._shadow_fb])
         GL.glDeleteRenderbuffers(1, [self._shadow_rb])
@@ -373,7 +393,11 @@ class ShadowMaps:
     def _depth_render(self, clip_from_rel: np.ndarray, name: str, size: int) -> np.ndarray:
         """Depth-only render of batch ``name`` ("static" / "dynamic") through the (4, 4)
         ``clip_from_rel`` matrix, ``size`` texels square. Returns (size, size) float32
-        window depth in [0, 1] (1 = no caster), row 0 at the bottom (OpenGL order)."""
+        window depth in [0, 1] (1 = no caster), row 0 at the bottom (OpenGL order).
+        With cut-outs: the nearest caster that is there (module)."""
+        if self._cutouts is not None:
+            cutouts, table = self._cutouts
+            return self._layers.first_present_depth(clip_from_rel, size, name, table.plane, cutouts)
         self._ctx.make_current()
         vao, _, count = self._ctx.batch(name)
         depth01 = np.ones((size, size), dtype=np.float32)

@@ -6,6 +6,13 @@ same as the raster G-buffer's, so ``rt`` and raster agree at grazing pixels), al
 (texture lookup where the material has one), emission, and the per-triangle material
 figures the bounce loop reads (reflector flag, reflectivity F, opacity, ior).
 
+Cut-outs (UsdPreviewSurface ``opacityThreshold``, ``model.surface.Cutouts``, the rule
+the raster's id layers use too): ``intersect`` and ``occluded`` are the ray queries of
+every traced ray (primary, reflected, refracted, shadow). A hit on a cut-out texel is no
+hit: the ray is re-cast from just past it (the float32 boundary's offset to the far
+side), at most ``surface.MAX_CUTOUT_LAYERS`` times; a ray still in holes after that is a
+miss (a shadow ray: unoccluded). Scenes without cut-outs cast exactly as before.
+
 Spaces: rel = world metres minus ``Scene.origin``, float64 (``bvh.Float32Boundary``).
 Hit points are rebuilt in float64 from the hit triangle's rel vertices and Embree's
 barycentrics (not ``origin + t * dir``), so they lie on the surface to float64 precision.
@@ -17,7 +24,7 @@ import numpy as np
 
 from phrt_usd.model import surface
 from phrt_usd.model.scene import Scene
-from phrt_usd.render.trace.bvh import Bvh
+from phrt_usd.render.trace.bvh import Bvh, Hits
 
 #: Smallest index of refraction used (ior ≤ 0 is meaningless; Snell's law stays finite).
 MIN_IOR = 1e-3
@@ -46,9 +53,87 @@ class HitSurfaces:
         self.opacity = np.clip(np.asarray(mats.opacity, dtype=np.float64), 0.0, 1.0)
         self.ior = np.maximum(np.asarray(mats.ior, dtype=np.float64), MIN_IOR)
         emissive = np.asarray(mats.emissive, dtype=np.float32).reshape(-1, 3)
-        self._has_emission = bool(np.any(emissive != 0))
+        self._textured_emission = surface.has_texture_input(mats, "emissiveColor")
+        self._has_emission = bool(np.any(emissive != 0)) or self._textured_emission
         self._emissive = emissive
         self._textures = list(mats.textures) if scene.geometry.corner_uv is not None else []
+        self._inputs = mats.texture_inputs
+        #: The cut-out rule of this scene's triangles (``model.surface.Cutouts``).
+        self.cutouts = surface.Cutouts(mats, bvh.tri_material, scene.geometry.corner_uv)
+
+    def intersect(self, origins: np.ndarray, dirs: np.ndarray) -> tuple[Hits, np.ndarray]:
+        """Nearest hits that are there (``Bvh.intersect`` through cut-out holes, see the
+        module) of rays from rel ``origins`` (n, 3) along unit ``dirs`` (n, 3), and the
+        batch index of every re-cast ray (k,) int64 (one entry per extra ray cast)."""
+        hits = self._bvh.intersect(origins, dirs)
+        if not self.cutouts.any or len(hits.ray) == 0:
+            return hits, hits.ray[:0]
+        ray = hits.ray
+        tri, u, v = hits.tri.copy(), hits.u.copy(), hits.v.copy()
+        extra = []
+        # Rays whose current hit is a hole, with the index into (ray, tri, u, v).
+        pending = np.flatnonzero(self._holes(tri, u, v))
+        for _ in range(surface.MAX_CUTOUT_LAYERS):
+            if len(pending) == 0:
+                break
+            rows = ray[pending]
+            d = np.take(dirs, rows, axis=0)
+            o, _ = self._past(tri[pending], u[pending], v[pending], d)
+            again = self._bvh.intersect(o, d)
+            extra.append(rows)
+            gone = pending[again.miss]
+            tri[gone] = -1  # through the last hole, nothing: a miss
+            found = pending[again.ray]
+            tri[found], u[found], v[found] = again.tri, again.u, again.v
+            pending = found[self._holes(again.tri, again.u, again.v)]
+        tri[pending] = -1  # still in holes after the bound: a miss (module docstring)
+        keep = tri >= 0
+        recast = np.concatenate(extra) if extra else ray[:0]
+        if keep.all():
+            return Hits(ray, tri, u, v, hits.miss), recast
+        miss = np.sort(np.concatenate([hits.miss, ray[~keep]]))
+        return Hits(ray[keep], tri[keep], u[keep], v[keep], miss), recast
+
+    def occluded(self, origins, dirs, tfar, threads=None) -> np.ndarray:
+        """(n,) bool: something that is there (not a cut-out hole) lies on each ray from
+        rel ``origins`` (n, 3) along unit ``dirs`` (n, 3) within ``tfar`` (n,) metres
+        (``Bvh.run`` OCCLUDED; through holes by nearest-hit re-casts, see the module)."""
+        occluded = self._bvh.run("OCCLUDED", origins, dirs, tfar, threads)
+        if not self.cutouts.any or not occluded.any():
+            return occluded
+        rows = np.flatnonzero(occluded)
+        o = np.asarray(origins, np.float64)[rows]
+        d = np.asarray(dirs, np.float64)[rows]
+        left = np.asarray(tfar, np.float64)[rows]
+        for _ in range(surface.MAX_CUTOUT_LAYERS + 1):
+            tri, u, v = self._bvh.run("INTERSECT", o, d, left, threads)
+            tri = np.asarray(tri, np.int64)
+            hit = tri >= 0
+            hole = np.zeros(len(rows), dtype=bool)
+            hole[hit] = self._holes(tri[hit], u[hit], v[hit])
+            occluded[rows[~hit]] = False  # nothing within reach
+            if not hole.any():
+                return occluded
+            # Through the holes: on from just past them, the rest of the way.
+            k = np.flatnonzero(hole)
+            start = o[k]
+            o_next, _ = self._past(tri[k], u[k], v[k], d[k])
+            left = left[k] - np.einsum("ij,ij->i", o_next - start, d[k])
+            rows, o, d = rows[k], o_next, d[k]
+            left = np.maximum(left, 0.0)
+        occluded[rows] = False  # still in holes after the bound: unoccluded
+        return occluded
+
+    def _holes(self, tri, u, v) -> np.ndarray:
+        """(m,) bool: hits (tri, u, v (m,)) on cut-out holes."""
+        return self.cutouts.holes(tri, surface.weights_from_uv(u, v))
+
+    def _past(self, tri, u, v, dirs):
+        """Rel origins (m, 3) just past hits (tri, u, v) along ``dirs`` (m, 3) (the
+        boundary's offset, to the side the ray leaves to) and the hit points."""
+        g = np.take(self._bvh.table.frame, tri, axis=0)
+        pos = surface.positions(g, u, v)
+        return self._bvh.boundary.offset(pos, g[:, 3], dirs), pos
 
     def at(self, tri: np.ndarray, u: np.ndarray, v: np.ndarray, incoming: np.ndarray):
         """Everything shading needs at hits on triangles ``tri`` (m,) with barycentrics u, v:
@@ -78,16 +163,17 @@ class HitSurfaces:
         weights = surface.weights_from_uv(u, v)
         corners = np.take(self._bvh.table.corners, tri, axis=0)  # (m, 3, 6)
         albedo = surface.interpolate(corners[:, :, 3:], weights)
+        uv = self._scene.geometry.corner_uv
         if self._textures:
             surface.texture_albedo(
-                albedo,
-                tri,
-                weights,
-                self._bvh.tri_material,
-                self._scene.geometry.corner_uv,
-                self._textures,
+                albedo, tri, weights, self._bvh.tri_material, uv, self._textures,
+                inputs=self._inputs,
+            )  # fmt: skip
+        if self._textured_emission:
+            emissive = surface.emissive_values(
+                self._scene.materials, tri, weights, self._bvh.tri_material, uv
             )
-        if self._has_emission:
+        elif self._has_emission:
             emissive = self._emissive[np.take(self._bvh.tri_material, tri)]
         else:
             emissive = np.zeros(3, np.float32)

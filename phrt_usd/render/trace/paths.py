@@ -24,6 +24,10 @@ releases the GIL on large arrays, embreex inside ``run``).
 Records: one ``TraceRecord`` per source reflector (pixels, rays, reflectors hit,
 reflector bounces, time share), what the selection heuristic reads.
 
+Rays meet surfaces through ``HitSurfaces.intersect``: cut-out holes are passed through
+(re-cast from just past them, bounded by ``model.surface.MAX_CUTOUT_LAYERS``; the re-cast
+rays are counted with their kind and source).
+
 Arrays: positions rel float64 (``bvh.Float32Boundary``), directions (n, 3) unit.
 Limits: mirror reflections only (roughness is ignored).
 """
@@ -104,7 +108,12 @@ class PathTracer:
             counters["refraction"] += n_refr
             counters["reflection"] += len(slot) - n_refr
             cast_src.append(r_src)
-            hits = self._bvh.intersect(origins, dirs)
+            hits, recast = self._surfaces.intersect(origins, dirs)
+            if len(recast):  # re-casts through cut-out holes (HitSurfaces.intersect)
+                cast_src.append(r_src[recast])
+                n_refr = int(np.count_nonzero(refracted[recast]))
+                counters["refraction"] += n_refr
+                counters["reflection"] += len(recast) - n_refr
             r = hits.ray
             m = hits.miss
             if len(m):

@@ -6,7 +6,8 @@ local. Rays go only where they can matter: to lights in front of the shading nor
 for LocalLights, within their range (``shading.light_ranges``); all (point, light) pairs
 of a batch are chosen on (n, L) arrays and built into one float32 Embree batch. Origins
 are offset by the boundary's epsilon along the offset normal, on the side the ray
-leaves to. Shadows are hard (light size ignored); transmissive surfaces are opaque.
+leaves to. Shadows are hard (light size ignored); transmissive surfaces are opaque;
+cut-out holes let light through (``HitSurfaces.occluded``, given ``surfaces``).
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ import numpy as np
 from phrt_usd.model.scene import Lights
 from phrt_usd.render import shading
 from phrt_usd.render.trace.bvh import FAR, Bvh
+from phrt_usd.render.trace.hit_surfaces import HitSurfaces
 
 #: Shading work (numpy + shadow rays) on many points is split over the pool only from
 #: this many shadow rays (points x lights) on: measured on the sewer (13 lights, 2
@@ -27,10 +29,18 @@ PARALLEL_MIN_SHADE_RAYS = 32768
 
 class ShadowRays:
     """Shadow rays against one ``Bvh`` (its current geometry and boundary), split over
-    ``pool`` (None: one thread) in ``threads`` chunks for large batches."""
+    ``pool`` (None: one thread) in ``threads`` chunks for large batches; occlusion through
+    ``surfaces`` (cut-out holes let light through) when given."""
 
-    def __init__(self, bvh: Bvh, pool: ThreadPoolExecutor | None, threads: int) -> None:
+    def __init__(
+        self,
+        bvh: Bvh,
+        pool: ThreadPoolExecutor | None,
+        threads: int,
+        surfaces: HitSurfaces | None = None,
+    ) -> None:
         self._bvh = bvh
+        self._surfaces = surfaces
         self.pool = pool
         self.threads = threads
         self._light_cache: tuple | None = None
@@ -171,7 +181,10 @@ class ShadowRays:
             ng = np.take(ng32, point, axis=0)
             ng *= np.where(np.einsum("ij,ij->i", d, ng) >= 0.0, e, -e)[:, None]
             ng += p  # the offset origins
-            occluded = self._bvh.run("OCCLUDED", ng, d, tfar, threads)
+            if self._surfaces is None:
+                occluded = self._bvh.run("OCCLUDED", ng, d, tfar, threads)
+            else:
+                occluded = self._surfaces.occluded(ng, d, tfar, threads)
             vis.reshape(-1)[point * n_lights + light] = ~occluded
             if local is not None:  # the lit LocalLight pairs, for shade_local
                 free = np.flatnonzero(~occluded[len(point) - len(local[0]) :])

@@ -115,7 +115,7 @@ class Tracer:
         """Everything that follows a full build: materials, reflector ids, caches."""
         self.scene = scene
         self.surfaces = HitSurfaces(scene, self.bvh)
-        self._shadows = ShadowRays(self.bvh, self._pool, self.threads)
+        self._shadows = ShadowRays(self.bvh, self._pool, self.threads, self.surfaces)
         self._paths = PathTracer(self.bvh, self.surfaces, self._shadows)
         is_reflector = np.array([e.is_reflector for e in scene.elements], dtype=bool)
         self._element_reflector = is_reflector
@@ -195,8 +195,8 @@ class Tracer:
         # in front of the camera, so cos > 0 (floored against a degenerate window).
         cos = np.maximum(dirs @ camera.forward, 1e-6)
         start = max(float(camera.near), 0.0) / cos
-        hits = self.bvh.intersect(origins - origin + dirs * start[:, None], dirs)
-        self.rays_cast["primary"] += n
+        hits, recast = self.surfaces.intersect(origins - origin + dirs * start[:, None], dirs)
+        self.rays_cast["primary"] += n + len(recast)  # cut-out re-casts: primary rays too
         element = np.full(n, NO_HIT, np.int32)
         triangle = np.full(n, NO_HIT, np.int32)
         depth = np.full(n, np.inf, np.float32)
