@@ -9,7 +9,9 @@ import os
 import types
 
 # pyrender/PyOpenGL pick their platform at import time: headless OSMesa unless the user
-# chose otherwise.
+# chose otherwise (what they chose, if anything, is kept for ``--gl auto``:
+# phrt_usd.render.raster.gl_platform).
+USER_GL_PLATFORM = os.environ.get("PYOPENGL_PLATFORM")
 os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
 
 import warnings  # noqa: E402

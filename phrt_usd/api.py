@@ -13,7 +13,10 @@ Options (``**options``; ``None`` means "not given": the stage's render settings 
 ``mode``, ``heuristic``, ``resolution`` (``(w, h)`` or ``"WxH"``) or ``width`` / ``height``,
 ``budget_ms`` (``math.inf``: unbounded), ``budget_rays``, ``target_fps`` (exclusive with
 ``budget_ms``), ``bounce_limit``,
-``selection_weight``, ``threads`` (the ``RenderOptions`` fields), and for ``render`` the
+``selection_weight``, ``threads`` (1..1024, default: the cores this process may use; every
+pool, llvmpipe, OpenBLAS, numba: ``phrt_usd.threads``), ``gl`` (``auto`` | ``egl`` |
+``osmesa``: the raster phase's OpenGL platform,
+``phrt_usd.render.raster.gl_platform``) (the ``RenderOptions`` fields), and for ``render`` the
 ``RenderJob`` fields ``camera``, ``selection_layer``, ``resume``, ``overwrite``,
 ``write_images``, ``checkpoint_every``; and how a stage file is composed: ``session_layers``
 (files, strongest first), ``variants`` (``{"/World/Car": {"paint": "red"}}`` or
@@ -24,7 +27,9 @@ unknown name or a bad value raises
 The summary (``run_render``, ``RenderResult.summary``) is what ``phrt render --json``
 prints: the report of the run's selection layer (``phrt_usd.evaluate.report.build_report``:
 frames, mean_fps, median_frame_ms, mean_selected, transitions, reflectors, budget_ms,
-budget_overruns, ...) plus ``out``, ``selection_layer`` and the ``passes`` its frames ran.
+budget_overruns, ...) plus ``out``, ``selection_layer``, the ``passes`` its frames ran, and
+how it ran: ``threads`` (the setting), ``gl`` (the OpenGL platform of its raster phase,
+None in ``rt`` mode) and ``llvmpipe_threads`` (llvmpipe's render threads, None without).
 """
 
 from __future__ import annotations
@@ -44,10 +49,12 @@ from pxr import Usd
 from phrt_usd.errors import BadOption, PhrtError
 from phrt_usd.evaluate.report import build_report
 from phrt_usd.model.frame import FrameStats
+from phrt_usd.render.raster.gl_platform import check_gl
 from phrt_usd.render.renderer import FrameOutput, FrameRenderer, RenderOptions
 from phrt_usd.run.frames import SAME_FRAME, parse_frames
 from phrt_usd.run.images import read_frame_exr
 from phrt_usd.run.render_job import RenderJob, RunRecord, render_to_directory
+from phrt_usd.threads import check_threads
 from phrt_usd.usd.schema import read_render_params
 from phrt_usd.usd.stage import StageScene, open_usd, read_stage
 from phrt_usd.usd.stage_controls import StageControls
@@ -113,7 +120,9 @@ def render_options(
     if fps is not None:
         extra["target_fps"] = fps
     if "threads" in given:
-        extra["threads"] = _integer("threads", given["threads"], minimum=1)
+        extra["threads"] = check_threads(given["threads"])
+    if "gl" in given:
+        extra["gl"] = check_gl(given["gl"])
     return RenderOptions(
         mode=given.get("mode", params.mode),
         heuristic=given.get("heuristic", params.heuristic),
@@ -343,6 +352,7 @@ def summary_of(record: RunRecord) -> dict:
         passes=record.passes,
         # File name templates of a frame's images, relative to ``out`` (frame tokens kept).
         images=[name for p in products for name in (p.template, p.preview) if name],
+        **record.runtime,
     )
     summary.update(trace_summary(record.frames))
     return summary

@@ -318,6 +318,22 @@ class _LineProgress:
         typer.echo(f"{entry[0]}: {shown} frames{share}", err=True)
 
 
+ThreadsOpt = Annotated[
+    str | None,
+    typer.Option(
+        metavar="N",
+        help="Threads of every pool, Embree batch, llvmpipe and BLAS (default: the cores "
+        "this process may use).",
+    ),
+]
+GlOpt = Annotated[
+    str | None,
+    typer.Option(
+        metavar="auto|egl|osmesa",
+        help="OpenGL platform of the raster phase (auto: EGL when a working EGL device "
+        "is found, else OSMesa).",
+    ),
+]
 WorkersOpt = Annotated[
     int | None,
     typer.Option(help="Start a Dask LocalCluster of N worker processes (docs/cluster.md)."),
@@ -407,6 +423,8 @@ def render(
     timestamp: Annotated[
         bool, typer.Option(help="Write the wall-clock capDate into EXR headers.")
     ] = False,
+    threads: ThreadsOpt = None,
+    gl: GlOpt = None,
     workers: WorkersOpt = None,
     scheduler: SchedulerOpt = None,
     chunk_frames: ChunkFramesOpt = None,
@@ -417,6 +435,7 @@ def render(
     from phrt_usd.api import render_job, run_render
     from phrt_usd.run.products import parse_aovs
     from phrt_usd.run.render_job import RenderInterrupted
+    from phrt_usd.threads import parse_threads
     from phrt_usd.usd.stage_controls import StageControls
     from phrt_usd.usd.support_report import support_report
 
@@ -446,6 +465,8 @@ def render(
             image=image,
             aovs=parse_aovs(aovs),
             timestamp=timestamp,
+            threads=None if threads is None else parse_threads(threads),
+            gl=gl,
         )
         for warning in scene.warnings:
             typer.echo(f"warning: {warning}", err=True)
@@ -544,6 +565,8 @@ def sweep(
         float | None, typer.Option(help="I (default: the first stage's setting).")
     ] = None,
     out: Annotated[Path, typer.Option("--out", "-o", help="Output directory.")] = Path("sweep"),
+    threads: ThreadsOpt = None,
+    gl: GlOpt = None,
     workers: WorkersOpt = None,
     scheduler: SchedulerOpt = None,
     chunk_frames: ChunkFramesOpt = None,
@@ -561,6 +584,8 @@ def sweep(
         parse_resolution_list,
         run_sweep,
     )
+    from phrt_usd.render.raster.gl_platform import check_gl
+    from phrt_usd.threads import parse_threads
     from phrt_usd.usd.schema import read_render_params
 
     with user_errors(json_out=json_out):
@@ -584,6 +609,8 @@ def sweep(
             out=out,
             bounce_limits=parse_int_list(bounce_limits, "--bounce-limits"),
             resolutions=parse_resolution_list(resolutions),
+            **({} if threads is None else {"threads": parse_threads(threads)}),
+            **({} if gl is None else {"gl": check_gl(gl)}),
         )
         progress = _progress()
         with progress:

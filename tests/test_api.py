@@ -146,7 +146,7 @@ BAD_OPTIONS = [
     ({"selection_weight": math.nan}, "selection_weight"),
     ({"resolution": "big"}, "expected WxH"),
     ({"resolution": (64, 48), "width": 64}, "not both"),
-    ({"threads": 0}, "threads must be >= 1"),
+    ({"threads": 0}, r"threads must be in 1\.\.1024, got 0"),
     ({"bogus": 1}, "unknown option 'bogus'"),
 ]
 

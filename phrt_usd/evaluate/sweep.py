@@ -52,12 +52,14 @@ from phrt_usd.evaluate.sweep_files import (
     TEMPORAL_MAP_SUFFIX,
     TIMELINE_JSON,
 )
+from phrt_usd.render.raster.gl_platform import DEFAULT_GL
 from phrt_usd.render.renderer import FrameOutput, FrameRenderer, RenderOptions
 from phrt_usd.run.frames import parse_frames
 from phrt_usd.run.images import write_png_atomic, write_preview_png
 from phrt_usd.run.render_job import stop_on_signals
 from phrt_usd.run.run_directory import DirectoryLock
 from phrt_usd.select.policies import make_policy
+from phrt_usd.threads import DEFAULT_THREADS
 from phrt_usd.usd.schema import DEFAULT_BOUNCE_LIMIT, DEFAULT_RESOLUTION, DEFAULT_SELECTION_WEIGHT
 from phrt_usd.usd.stage import open_stage
 
@@ -128,6 +130,9 @@ class SweepSpec:
     #: (``width``, ``height``) alone.
     bounce_limits: list[int] = field(default_factory=list)
     resolutions: list[tuple[int, int]] = field(default_factory=list)
+    #: Every renderer's thread setting and OpenGL platform (``RenderOptions``).
+    threads: int = DEFAULT_THREADS
+    gl: str = DEFAULT_GL
 
     def variants(self) -> list[Variant]:
         """Every resolution × bounce limit, resolutions outer, in the order given."""
@@ -227,6 +232,8 @@ class _ConfigState:
             budget_rays=config.budget_rays,
             bounce_limit=variant.bounce_limit,
             selection_weight=spec.selection_weight,
+            threads=spec.threads,
+            gl=spec.gl,
         )
         self.previous_image: np.ndarray | None = None
         self.previous: tuple[np.ndarray, np.ndarray] | None = None
@@ -270,8 +277,9 @@ def check_spec(spec: SweepSpec) -> None:
     for variant in spec.variants():
         # RenderOptions states the valid ranges (bounce limit, resolution) once.
         RenderOptions(
-            width=variant.width, height=variant.height, bounce_limit=variant.bounce_limit
-        )
+            width=variant.width, height=variant.height, bounce_limit=variant.bounce_limit,
+            threads=spec.threads, gl=spec.gl,
+        )  # fmt: skip
 
 
 def finish_sweep(spec: SweepSpec, rows: list[dict], timeline: dict, interrupted: bool) -> dict:
@@ -294,6 +302,7 @@ def finish_sweep(spec: SweepSpec, rows: list[dict], timeline: dict, interrupted:
             + [SweepConfig("all", variant=v).label, SweepConfig("all", mode="rt", variant=v).label]
         ],
         "interrupted": interrupted,
+        "threads": spec.threads,
         "files": [
             SWEEP_CSV, TIMELINE_JSON, SUMMARY_MD, SUMMARY_CSV, ERROR_VS_TIME_PNG, REPORT_HTML,
         ],  # fmt: skip
@@ -338,7 +347,7 @@ class _Resolution:
         base = RenderOptions(
             mode="hybrid", heuristic="all", width=first.width, height=first.height,
             budget_ms=None, budget_rays=None, bounce_limit=first.bounce_limit,
-            selection_weight=spec.selection_weight,
+            selection_weight=spec.selection_weight, threads=spec.threads, gl=spec.gl,
         )  # fmt: skip
         self.hybrid = FrameRenderer(stage, base)
         self.hybrid.plan(times)

@@ -41,8 +41,9 @@ from phrt_usd.render.compositing import (
     pixel_reflectivity,
 )
 from phrt_usd.render.lighting import shade_gbuffer
+from phrt_usd.render.raster.gl_platform import DEFAULT_GL, check_gl
 from phrt_usd.select.policies import UPCOMING_CAMERAS, make_policy
-from phrt_usd.threads import DEFAULT_THREADS
+from phrt_usd.threads import DEFAULT_THREADS, apply_threads, check_threads
 from phrt_usd.usd.schema import (
     DEFAULT_BOUNCE_LIMIT,
     DEFAULT_BUDGET_MS,
@@ -94,13 +95,18 @@ class RenderOptions:
     budget_rays: int | None = None
     bounce_limit: int = DEFAULT_BOUNCE_LIMIT
     selection_weight: float = DEFAULT_SELECTION_WEIGHT
-    threads: int = DEFAULT_THREADS  # the tracer's pool (phrt_usd.threads)
+    #: Threads of every pool, llvmpipe, OpenBLAS and numba (``phrt_usd.threads``).
+    threads: int = DEFAULT_THREADS
+    #: OpenGL platform of the raster phase: auto | egl | osmesa (``render.raster.gl_platform``).
+    gl: str = DEFAULT_GL
     #: Frame rate to hold (``--target-fps``): each frame's T is the frame period less the
     #: frame's measured raster and shading and the previous frame's selection, less
     #: TARGET_FPS_MARGIN of the period. Exclusive with ``budget_ms``.
     target_fps: float | None = None
 
     def __post_init__(self) -> None:
+        self.threads = check_threads(self.threads)
+        self.gl = check_gl(self.gl)
         if self.mode not in MODES:
             raise BadOption(f"unknown mode {self.mode!r}; expected one of {', '.join(MODES)}")
         if self.heuristic not in HEURISTICS:
@@ -184,7 +190,13 @@ class FrameRenderer:
         self._geometry_time: float | None = None
         self._rasterizer = None
         self._tracer = None
+        #: The OpenGL platform the raster phase runs on (None: no raster phase, ``rt``).
+        self.gl: str | None = None
+        apply_threads(options.threads)  # before any GL context or pool exists
         if options.mode != "rt":
+            from phrt_usd.render.raster.gl_platform import activate
+
+            self.gl = activate(options.gl)  # before pyrender / OpenGL are imported
             from phrt_usd.render.raster.rasterizer import Rasterizer
 
             self._rasterizer = Rasterizer(scene, options.width, options.height)

@@ -64,6 +64,7 @@ from phrt_usd.run.run_files import (
     write_stats,
 )
 from phrt_usd.run.selection_layer import write_selection_layer
+from phrt_usd.threads import llvmpipe_threads
 from phrt_usd.usd.render_settings import CameraSettings, read_render_settings
 from phrt_usd.usd.stage import StageScene, choose_camera, open_stage, read_stage
 from phrt_usd.usd.stage_controls import StageControls
@@ -115,6 +116,7 @@ class RunRecord:
     frames: list[FrameStats]  # every finished frame of the run, in time order
     passes: list[str]
     images: ImagePlan | None = None  # the files of each frame: images.files(out, time)
+    runtime: dict = field(default_factory=dict)  # how it ran: see ``runtime_settings``
 
 
 def render_to_directory(
@@ -205,6 +207,8 @@ class _Run:
         self.layer_path, self.run_dir, self.plan = layer_path, run_dir, plan
         self.done: list[FrameStats] = []
         self.renderer = FrameRenderer(scene, job.options)
+        self.runtime = runtime_settings(self.renderer)
+        self.run_info.update(self.runtime)  # stats.json and the layer record them
         self.memory = self.renderer.policy.memory()
 
     def render(self, times: list[float], on_frame) -> RunRecord:
@@ -250,6 +254,7 @@ class _Run:
             frames=sorted(self.done, key=lambda s: s.time),
             passes=sorted({p for s in self.done for p in s.passes}),
             images=self.plan if job.write_images else None,
+            runtime=self.runtime,
         )
 
     @contextmanager
@@ -287,6 +292,19 @@ class _Run:
             p.stat().st_size for p in (out / STATS_FILE, self.layer_path) if p.exists()
         )
         self.run_dir.keep_reserve(RESERVE_FACTOR * written)
+
+
+def runtime_settings(renderer: FrameRenderer) -> dict:
+    """How ``renderer``'s frames run, beside the settings that identify the run (a resumed
+    run may run otherwise and make the same pixels): ``threads`` (the setting), ``gl`` (the
+    OpenGL platform of the raster phase, None without one) and ``llvmpipe_threads``
+    (llvmpipe's render threads in this process, None without llvmpipe)."""
+    gl = renderer.gl
+    return {
+        "threads": renderer.options.threads,
+        "gl": gl,
+        "llvmpipe_threads": llvmpipe_threads() if gl is not None else None,
+    }
 
 
 def render_frame(
@@ -336,6 +354,7 @@ def job_run_info(
         time_codes_per_second=scene.time_codes_per_second,
     )
     info["target_fps"] = opts.target_fps  # None: a fixed (or no) time budget
+    info["threads"] = opts.threads  # --threads (phrt_usd.threads); not in the identity
     info["camera"] = scene.camera_path
     info["settings"] = images.settings
     info["products"] = images.describe()

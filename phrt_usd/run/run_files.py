@@ -296,6 +296,9 @@ _RUN_INFO_TYPES: dict[str, tuple[type, ...]] = {
     "camera": (str,),
     "settings": (str,),
     "products": (dict,),
+    "threads": (int,),  # how the run ran (run.render_job.runtime_settings)
+    "gl": (str,),
+    "llvmpipe_threads": (int,),
 }
 
 

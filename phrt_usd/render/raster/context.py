@@ -1,6 +1,11 @@
 """What every raster pass shares: the OpenGL context, pyrender's renderer with our program
 cache, the id framebuffer, the uploaded geometry and what moved when it changes.
 
+The context is made on the platform OpenGL was loaded with (``gl_platform.activate``
+chose it: EGL or OSMesa) and its worker pool has the process's thread setting
+(``phrt_usd.threads``); llvmpipe's own render threads were fixed by ``LP_NUM_THREADS``
+when the process's first context was created.
+
 Upload (``RasterContext.upload``, ``update_geometry``). All triangles go into ONE
 pyrender node (one mesh, one indexed primitive): pyrender costs several ms per node on
 llvmpipe. Vertices are origin-relative (``Scene.origin`` subtracted in float64, then
@@ -30,21 +35,16 @@ import numpy as np
 import pyrender
 from OpenGL import GL
 from pyrender.constants import RenderFlags
-from pyrender.platforms.osmesa import OSMesaPlatform
 from pyrender.shader_program import ShaderProgramCache
 
 from phrt_usd.errors import PhrtError
 from phrt_usd.model.scene import Scene
-from phrt_usd.threads import DEFAULT_THREADS
+from phrt_usd.render.raster.gl_platform import loaded_platform, make_platform
+from phrt_usd.threads import current_threads
 
 #: Directory of our GLSL files (``flat.*``: id pass, ``depth.*``: shadow-map pass,
 #: ``cube_lookup.*``: the light pass).
 SHADER_DIR = os.path.join(os.path.dirname(os.path.abspath(__file__)), "shaders")
-
-#: Worker threads deriving the G-buffer from the id image and looking points up in the
-#: shadow maps (numpy releases the GIL in its loops, so the pixels / points are split
-#: into this many chunks): ``phrt_usd.threads``.
-WORKER_THREADS = DEFAULT_THREADS
 
 #: Clip ranges tightened to the scene's bounds (nothing exists outside them) are padded
 #: by this fraction of the scene extent so that bounding geometry is not clipped.
@@ -104,7 +104,10 @@ class RasterContext:
     pscene (pyrender scene, one mesh node), mesh_node (None without triangles);
     uploaded (V, 3) float32 vertices as on the GPU; triangles (T, 3) int64;
     animated_tri (T,) bool; bounds_rel (2, 3) float64 and extent (metres, > 0) of all
-    vertices; pool (WORKER_THREADS numpy workers).
+    vertices; threads and pool: the workers deriving the G-buffer from the id image and
+    looking points up in the shadow maps (numpy releases the GIL in its loops, so the
+    pixels / points are split into ``threads`` chunks; ``phrt_usd.threads``); gl: the
+    platform the context runs on (``egl`` / ``osmesa``).
     """
 
     def __init__(self, scene: Scene, width: int, height: int) -> None:
@@ -112,7 +115,8 @@ class RasterContext:
         self.height = int(height)
         self.scene = scene
         self.origin = np.asarray(scene.origin, dtype=np.float64).copy()
-        self._platform = OSMesaPlatform(self.width, self.height)
+        self.gl = loaded_platform() or "osmesa"
+        self._platform = make_platform(self.gl, self.width, self.height)
         self._platform.init_context()
         self._platform.make_current()
         self.renderer = pyrender.Renderer(self.width, self.height)
@@ -126,7 +130,8 @@ class RasterContext:
         self.mesh_node = None
         self.uploaded: np.ndarray | None = None  # (V, 3) float32 rel, as on the GPU
         self._batches: dict[str, tuple[int, int, int]] = {}  # name → (vao, ebo, count)
-        self.pool = ThreadPoolExecutor(WORKER_THREADS, thread_name_prefix="phrt-gbuffer")
+        self.threads = current_threads()
+        self.pool = ThreadPoolExecutor(self.threads, thread_name_prefix="phrt-gbuffer")
 
     def make_current(self) -> None:
         self._platform.make_current()

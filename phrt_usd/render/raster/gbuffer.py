@@ -40,7 +40,6 @@ from phrt_usd.model.frame import GBuffer
 from phrt_usd.model.scene import NO_HIT, CameraFrame, Scene
 from phrt_usd.render.raster.context import (
     CLIP_PADDING,
-    WORKER_THREADS,
     RasterContext,
     transform_rows,
 )
@@ -310,7 +309,7 @@ class GBufferPass:
     def _derive_all(self, covered: np.ndarray, tid: np.ndarray, derive: tuple) -> None:
         """``_derive`` of pixels ``covered`` (n,) with triangles ``tid`` (n,) in chunks
         on the worker threads; ``derive``: the rest of its arguments."""
-        chunks = [c for c in np.array_split(np.arange(len(covered)), WORKER_THREADS) if len(c)]
+        chunks = [c for c in np.array_split(np.arange(len(covered)), self._ctx.threads) if len(c)]
         jobs = [self._pool.submit(self._derive, covered[c], tid[c], *derive) for c in chunks]
         for job in jobs:
             job.result()  # re-raises a worker's exception here

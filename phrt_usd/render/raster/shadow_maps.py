@@ -47,7 +47,6 @@ from OpenGL import GL
 
 from phrt_usd.render.raster.context import (
     CLIP_PADDING,
-    WORKER_THREADS,
     RasterContext,
     check_framebuffer,
     transform_rows,
@@ -615,7 +614,7 @@ class ShadowMaps:
                         out[part, k] *= vis
                         uncertain[part, k] |= unsure
 
-        bounds = np.linspace(0, len(rel), WORKER_THREADS + 1).astype(int)
+        bounds = np.linspace(0, len(rel), self._ctx.threads + 1).astype(int)
         return [
             self._ctx.pool.submit(lookup, slice(a, b))
             for a, b in zip(bounds[:-1], bounds[1:], strict=True)

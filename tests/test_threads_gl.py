@@ -1,0 +1,159 @@
+"""The one thread setting (``--threads``, ``threads=``), the OpenGL platform (``--gl``) and
+what startup loads: bad values are one line, the setting reaches llvmpipe and OpenBLAS
+and is recorded, EGL renders the pixels OSMesa renders, the CLI module loads no OpenGL or
+Embree, a raster render builds no BVH.
+
+Renders run in subprocesses: llvmpipe reads its thread count and PyOpenGL its platform
+once per process, and this test process already chose OSMesa (conftest)."""
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scenes import mirror_floor_stage
+from typer.testing import CliRunner
+
+from phrt_usd.api import render_options
+from phrt_usd.cli import app
+from phrt_usd.errors import BadOption
+from phrt_usd.render.raster.gl_platform import egl_problem
+from phrt_usd.run.images import read_frame_exr
+
+REPO = Path(__file__).resolve().parent.parent
+CLI = [sys.executable, "-m", "typer", "phrt_usd.cli", "run"]
+#: Modules a cheap start must not load: OpenGL, pyrender (trimesh, scipy, networkx),
+#: Embree, the image library, the plots and the cluster.
+HEAVY = ("OpenGL", "pyrender", "trimesh", "embreex", "OpenImageIO", "scipy", "matplotlib",
+         "dask", "networkx")  # fmt: skip
+
+
+def _env() -> dict[str, str]:
+    """The environment of a child render: its own platform choice (not conftest's)."""
+    env = dict(os.environ)
+    env.pop("PYOPENGL_PLATFORM", None)
+    return env
+
+
+def _python(code: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-c", textwrap.dedent(code)], capture_output=True,
+                          text=True, timeout=120, cwd=REPO, env=_env())  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def stage(tmp_path_factory) -> Path:
+    return mirror_floor_stage(tmp_path_factory.mktemp("threads") / "floor.usda", 64, 48)
+
+
+def test_cli_module_loads_no_gl_embree_or_images():
+    """``import phrt_usd.cli`` (every command's start, ``--help`` included) loads none of
+    HEAVY, and ``import phrt_usd.api`` only the image library: the rest is imported by
+    the commands and the renderer parts that need it."""
+    done = _python(f"""
+        import json, sys
+        heavy = {HEAVY!r}
+        def loaded():
+            return sorted({{m.split(".")[0] for m in sys.modules}} & set(heavy))
+        import phrt_usd.cli
+        cli = loaded()
+        import phrt_usd.api
+        print(json.dumps([cli, loaded()]))
+    """)
+    assert done.returncode == 0, done.stderr
+    assert json.loads(done.stdout) == [[], ["OpenImageIO"]]
+
+
+@pytest.mark.parametrize(
+    ("args", "needle"),
+    [
+        (["--threads", "0"], "--threads must be in 1..1024, got 0"),
+        (["--threads", "two"], "--threads 'two': expected a whole number"),
+        (["--threads", "5000"], "--threads must be in 1..1024"),
+        (["--gl", "vulkan"], "gl must be one of auto, egl, osmesa, got 'vulkan'"),
+    ],
+)
+def test_bad_thread_and_gl_values_are_one_line_exit_2(stage, tmp_path, args, needle):
+    result = CliRunner().invoke(app, ["render", str(stage), "--out", str(tmp_path / "o"), *args])
+    assert result.exit_code == 2
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: ") and needle in lines[0], lines
+    assert not (tmp_path / "o").exists()  # refused before anything was written
+
+
+@pytest.mark.parametrize("value", [0, -1, 1.5, True, "2", 2000])
+def test_api_threads_bad_values(stage, value):
+    from pxr import Usd
+
+    with pytest.raises(BadOption, match="threads"):
+        render_options(Usd.Stage.Open(str(stage)), threads=value)
+
+
+def test_threads_reach_openblas_numba_and_the_environment():
+    """``apply_threads`` sets the OpenBLAS numpy loaded (read back through its own
+    getter) and the load-time variables; numba follows when it is loaded."""
+    done = _python("""
+        import ctypes, json, os
+        import numpy
+        from phrt_usd.threads import apply_threads
+        maps = open("/proc/self/maps").read().split()
+        lib = next(p for p in maps if "openblas" in p.lower() and ".so" in p)
+        blas = ctypes.CDLL(lib)
+        get = next(getattr(blas, n) for n in ("scipy_openblas_get_num_threads64_",
+                   "openblas_get_num_threads64_", "openblas_get_num_threads") if hasattr(blas, n))
+        seen = []
+        for n in (1, 2, 1):
+            apply_threads(n)
+            seen.append([get(), os.environ["LP_NUM_THREADS"], os.environ["OMP_NUM_THREADS"]])
+        print(json.dumps(seen))
+    """)
+    assert done.returncode == 0, done.stderr
+    assert json.loads(done.stdout) == [[1, "1", "1"], [2, "2", "2"], [1, "1", "1"]]
+
+
+def test_threads_and_gl_end_to_end(stage, tmp_path):
+    """API (OSMesa, 1 thread) and CLI (EGL when this machine has a working EGL device,
+    2 threads) render the same raster frame: the settings are recorded in the summary
+    and stats.json, llvmpipe runs as many render threads as asked (counted in the
+    process), a raster render builds no BVH (phrt's Embree module is never loaded; pyrender's
+trimesh imports embreex itself), and EGL's pixels equal
+    OSMesa's exactly (both are Mesa's llvmpipe here: same rasterizer, same shaders)."""
+    api_out = tmp_path / "api"
+    done = _python(f"""
+        import json, sys
+        import phrt_usd
+        result = phrt_usd.render({str(stage)!r}, {str(api_out)!r}, mode="raster", threads=1,
+                                 gl="osmesa")
+        s = result.summary
+        print(json.dumps({{"threads": s["threads"], "gl": s["gl"],
+                          "llvmpipe_threads": s["llvmpipe_threads"],
+                          "bvh": "phrt_usd.render.trace.bvh" in sys.modules}}))
+    """)
+    assert done.returncode == 0, done.stderr
+    assert json.loads(done.stdout.splitlines()[-1]) == {
+        "threads": 1, "gl": "osmesa", "llvmpipe_threads": 1, "bvh": False,
+    }  # fmt: skip
+    run = json.loads((api_out / "stats.json").read_text())["run"]
+    assert (run["threads"], run["gl"], run["llvmpipe_threads"]) == (1, "osmesa", 1)
+
+    cli_out = tmp_path / "cli"
+    args = ["render", str(stage), "--out", str(cli_out), "--mode", "raster", "--threads", "2",
+            "--gl", "egl", "--json"]  # fmt: skip
+    cli = subprocess.run([*CLI, *args], capture_output=True, text=True, timeout=120, env=_env())
+    problem = egl_problem()
+    if problem is not None:  # no EGL device here: one clear line, exit 1, nothing faked
+        lines = cli.stderr.strip().splitlines()
+        assert cli.returncode == 1 and len(lines) == 1
+        assert lines[0] == f"error: --gl egl: no working EGL device here: {problem}"
+        return
+    assert cli.returncode == 0, cli.stderr
+    summary = json.loads(cli.stdout)
+    assert (summary["threads"], summary["gl"], summary["llvmpipe_threads"]) == (2, "egl", 2)
+    a = read_frame_exr(api_out / "frames" / "0001.exr")
+    b = read_frame_exr(cli_out / "frames" / "0001.exr")
+    assert set(a) == set(b)
+    for name in a:
+        assert np.array_equal(a[name], b[name]), name  # depth: inf equals inf
