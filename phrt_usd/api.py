@@ -18,7 +18,8 @@ pool, llvmpipe, OpenBLAS, numba: ``phrt_usd.threads``), ``gl`` (``auto`` | ``egl
 ``osmesa``: the raster phase's OpenGL platform,
 ``phrt_usd.render.raster.gl_platform``) (the ``RenderOptions`` fields), and for ``render`` the
 ``RenderJob`` fields ``camera``, ``selection_layer``, ``resume``, ``overwrite``,
-``write_images``, ``checkpoint_every``; and how a stage file is composed: ``session_layers``
+``write_images``, ``checkpoint_every``; ``strict`` (an unreadable texture is an error,
+not a warning and the input's fallback); and how a stage file is composed: ``session_layers``
 (files, strongest first), ``variants`` (``{"/World/Car": {"paint": "red"}}`` or
 ``["/World/Car:paint=red"]``), ``mask`` (prim paths the stage is populated with). An
 unknown name or a bad value raises
@@ -59,6 +60,7 @@ from phrt_usd.usd.schema import read_render_params
 from phrt_usd.usd.stage import StageScene, open_usd, read_stage
 from phrt_usd.usd.stage_controls import StageControls
 from phrt_usd.usd.support_report import support_report
+from phrt_usd.usd.textures import TextureError
 
 #: What the API renders: a stage file or an open stage.
 StageInput = str | os.PathLike | Usd.Stage
@@ -75,6 +77,9 @@ _JOB_FILLED = ("stage_path", "out_dir", "options", "frames")
 #: How a stage file is composed when opened (``StageControls``; the CLI's
 #: ``--session-layer``, ``--variant``, ``--mask``).
 COMPOSITION_OPTION_NAMES = ("session_layers", "variants", "mask")
+#: How the stage is read: ``strict`` (the CLI's ``--strict``) makes a fallback the render
+#: would take for an unreadable texture an error (``_refuse_fallbacks``).
+READ_OPTION_NAMES = ("strict",)
 #: Options ``open`` takes beside the render options (it writes no run directory).
 _OPEN_OPTIONS = ("camera", "controls")
 
@@ -301,7 +306,11 @@ def render_job(
 
 def _prepare(stage_or_path, frames, settings, options, job_names):
     """(frames spec, job options, RenderOptions, StageScene, stage file) of a call."""
-    _known(options, (*RENDER_OPTION_NAMES, *COMPOSITION_OPTION_NAMES, *job_names), "option")
+    _known(
+        options,
+        (*RENDER_OPTION_NAMES, *COMPOSITION_OPTION_NAMES, *READ_OPTION_NAMES, *job_names),
+        "option",
+    )
     given = {k: v for k, v in options.items() if v is not None}
     job_options = {k: v for k, v in given.items() if k in job_names}
     if settings is not None and "settings" in job_names:
@@ -327,7 +336,19 @@ def _prepare(stage_or_path, frames, settings, options, job_names):
         stage, settings, **{k: v for k, v in options.items() if k in RENDER_OPTION_NAMES}
     )
     scene = read_stage(stage, camera=job_options.get("camera"), settings=settings)
+    if given.get("strict"):
+        _refuse_fallbacks(scene)
     return spec, job_options, render, scene, named
+
+
+def _refuse_fallbacks(scene: StageScene) -> None:
+    """``strict``: a texture the render would replace by its input's fallback (a
+    warning otherwise) is an error: ``TextureError`` naming the first one (the CLI
+    exits 1, as for a failed render)."""
+    problems = scene.texture_problems
+    if problems:
+        more = f" (and {len(problems) - 1} more)" if len(problems) > 1 else ""
+        raise TextureError(f"{problems[0]}{more}; --strict makes a texture fallback an error")
 
 
 def run_render(
@@ -491,7 +512,10 @@ def render(
     frame, ``RenderInterrupted`` after SIGINT / SIGTERM."""
     temporary = None
     if out is None:  # unknown names fail before a directory is made, bad values remove it
-        names = (*RENDER_OPTION_NAMES, *COMPOSITION_OPTION_NAMES, *job_option_names())
+        names = (
+            *RENDER_OPTION_NAMES, *COMPOSITION_OPTION_NAMES, *READ_OPTION_NAMES,
+            *job_option_names(),
+        )  # fmt: skip
         _known(options, names, "option")
         temporary = tempfile.TemporaryDirectory(prefix="phrt-render-")
         out = temporary.name

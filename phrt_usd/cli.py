@@ -423,6 +423,10 @@ def render(
     timestamp: Annotated[
         bool, typer.Option(help="Write the wall-clock capDate into EXR headers.")
     ] = False,
+    strict: Annotated[
+        bool,
+        typer.Option(help="An unreadable texture is an error (exit 1), not a warning."),
+    ] = False,
     threads: ThreadsOpt = None,
     gl: GlOpt = None,
     workers: WorkersOpt = None,
@@ -465,6 +469,7 @@ def render(
             image=image,
             aovs=parse_aovs(aovs),
             timestamp=timestamp,
+            strict=strict,
             threads=None if threads is None else parse_threads(threads),
             gl=gl,
         )

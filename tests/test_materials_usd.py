@@ -4,6 +4,7 @@ texture as a warning with the input's fallback."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import OpenImageIO as oiio
 from pxr import Sdf, Usd, UsdGeom, UsdRender, UsdShade, UsdUtils
 
@@ -116,3 +117,25 @@ def test_validate_calls_a_missing_texture_an_error(tmp_path):
     stage = _stage(tmp_path / "quad.usda", "missing.png")
     errors = [i for i in render_issues(stage) if i.severity == "error"]
     assert any("/M/T.inputs:file" in i.line() and "missing.png" in i.line() for i in errors)
+
+
+def test_strict_makes_a_missing_texture_an_error_exit_1(tmp_path):
+    """``phrt render --strict``: the missing texture's warning becomes the error (one
+    line naming the attribute, exit 1 as a failed render, README's exit codes), before
+    any frame is rendered; the API's ``strict=True`` raises the same line."""
+    from typer.testing import CliRunner
+
+    from phrt_usd import api
+    from phrt_usd.cli import app
+    from phrt_usd.usd.textures import TextureError
+
+    _stage(tmp_path / "quad.usda", "missing.png")
+    args = ["render", str(tmp_path / "quad.usda"), "--out", str(tmp_path / "run"), "--strict"]
+    result = CliRunner().invoke(app, [*args, "--resolution", "16x12"])
+    assert result.exit_code == 1, result.output
+    lines = [line for line in result.output.splitlines() if line.startswith("error:")]
+    assert len(lines) == 1 and "/M/T.inputs:file" in lines[0] and "missing.png" in lines[0]
+    assert "--strict" in lines[0] and "Traceback" not in result.output
+    assert not (tmp_path / "run" / "stats.json").exists()
+    with pytest.raises(TextureError, match="/M/T.inputs:file"):
+        api.render(tmp_path / "quad.usda", tmp_path / "api-run", strict=True)
