@@ -157,3 +157,36 @@ trimesh imports embreex itself), and EGL's pixels equal
     assert set(a) == set(b)
     for name in a:
         assert np.array_equal(a[name], b[name]), name  # depth: inf equals inf
+
+
+def test_shading_pool_follows_the_setting(monkeypatch):
+    """Local shading splits a large batch over the process's setting (3 workers here,
+    an uneven split on any machine) and gives the same pixels as one thread."""
+    from phrt_usd.model.scene import DistantLight, Lights
+    from phrt_usd.render import shading
+    from phrt_usd.threads import DEFAULT_THREADS, LOAD_TIME_VARIABLES, apply_threads
+
+    for name in LOAD_TIME_VARIABLES:  # restored after the test
+        monkeypatch.setenv(name, os.environ.get(name, str(DEFAULT_THREADS)))
+    rng = np.random.default_rng(3)
+    n = 2 * shading.SHADE_MIN_THREADED_POINTS
+    pos = rng.normal(size=(n, 3))
+    nrm = rng.normal(size=(n, 3))
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    albedo = rng.uniform(size=(n, 3)).astype(np.float32)
+    view = -nrm
+    lights = Lights(distant=[DistantLight(np.array([0.3, -1.0, 0.2]), np.full(3, 2.0))])
+    vis = np.ones((n, 1), dtype=np.float32)
+    monkeypatch.setattr(shading, "SHADE_THREADS", None)
+    try:
+        images = []
+        for threads in (3, 1):
+            apply_threads(threads)
+            images.append(shading.shade_local(pos, nrm, albedo, view, np.zeros(3), lights, vis))
+            if threads == 3:
+                assert set(shading._POOL) == {3}
+    finally:
+        apply_threads(DEFAULT_THREADS)
+    # 1 ulp: numpy's SIMD loops may round a chunk's ends differently (test_shading.py).
+    np.testing.assert_allclose(images[0], images[1], rtol=1e-6, atol=1e-7)
+    assert float(images[0].max()) > 0.0

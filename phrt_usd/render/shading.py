@@ -35,7 +35,7 @@ from typing import NamedTuple
 import numpy as np
 
 from phrt_usd.model.scene import DEFAULT_ENVIRONMENT, DomeLight, Lights
-from phrt_usd.threads import DEFAULT_THREADS
+from phrt_usd.threads import current_threads
 
 #: Smallest light-to-surface distance in metres used for the 1/d² fall-off of LocalLights.
 #: A surface point at (or numerically on) a point light would otherwise get Inf irradiance.
@@ -65,10 +65,11 @@ _SHININESS_SQUARINGS = (
 #: Weight of the white Blinn-Phong highlight relative to the diffuse term.
 SPECULAR_STRENGTH = 0.25
 
-#: Threads ``shade_local`` splits large batches over (points are independent:
-#: ``phrt_usd.threads``), and the smallest batch worth splitting (below it thread hand-off
-#: costs more than it saves).
-SHADE_THREADS = DEFAULT_THREADS
+#: Threads ``shade_local`` splits large batches over (points are independent): None is
+#: the process's setting (``phrt_usd.threads.current_threads``, which every renderer
+#: applies; tests pin a number); and the smallest batch worth splitting (below it thread
+#: hand-off costs more than it saves).
+SHADE_THREADS: int | None = None
 SHADE_MIN_THREADED_POINTS = 8192
 
 #: Directions shorter than this are treated as zero-length (looked up as dome-space +Y)
@@ -422,7 +423,7 @@ def shade_local(
                  columns, 0 for pairs already in the sums.
     Returns (n, 3) float32 linear RGB.
 
-    Points are independent: large batches are split into SHADE_THREADS contiguous
+    Points are independent: large batches are split into ``_shade_threads()`` contiguous
     chunks (``local_pairs`` with them, when sorted by point) shaded on a thread pool
     (numpy releases the GIL).
     """
@@ -432,7 +433,7 @@ def shade_local(
     # Pairs sorted by point (as the tracer and the rasterizer make them) split with the
     # points; unsorted ones are shaded in one chunk.
     if (
-        SHADE_THREADS < 2
+        _shade_threads() < 2
         or n < SHADE_MIN_THREADED_POINTS
         or (pairs is not None and not bool(np.all(np.diff(pairs.point) >= 0)))
     ):
@@ -473,23 +474,33 @@ def shade_local(
             None if lit_sums is None else (lit_sums[0][part], lit_sums[1][part]),
         )
 
-    bounds = np.linspace(0, n, SHADE_THREADS + 1).astype(int)
-    pool = _shade_pool()
+    threads = _shade_threads()
+    bounds = np.linspace(0, n, threads + 1).astype(int)
+    pool = _shade_pool(threads)
     jobs = [pool.submit(run, slice(a, b)) for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
     for job in jobs:
         job.result()
     return out
 
 
-_POOL: ThreadPoolExecutor | None = None
+_POOL: dict[int, ThreadPoolExecutor] = {}  # the shading pool, by its thread count
 
 
-def _shade_pool() -> ThreadPoolExecutor:
-    """The module's shading thread pool, created on first use."""
-    global _POOL
-    if _POOL is None:
-        _POOL = ThreadPoolExecutor(SHADE_THREADS, thread_name_prefix="phrt-shade")
-    return _POOL
+def _shade_threads() -> int:
+    """SHADE_THREADS, or the process's thread setting when it is None."""
+    return SHADE_THREADS or current_threads()
+
+
+def _shade_pool(threads: int) -> ThreadPoolExecutor:
+    """The module's shading pool of ``threads`` workers, created on first use; a pool of
+    another size is shut down (its workers finish their chunks)."""
+    pool = _POOL.get(threads)
+    if pool is None:
+        for old in _POOL.values():
+            old.shutdown(wait=False)
+        _POOL.clear()
+        pool = _POOL[threads] = ThreadPoolExecutor(threads, thread_name_prefix="phrt-shade")
+    return pool
 
 
 def _highlight(normals: np.ndarray, to_eye: np.ndarray, l_dir: np.ndarray) -> np.ndarray:
