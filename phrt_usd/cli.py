@@ -251,8 +251,6 @@ def _print_summary(s: dict) -> None:
         + ("" if rs["settings_path"] else "  (defaults: no RenderSettings prim)")
     )
     lights = ", ".join(f"{li['type']} {li['path']}" for li in s["lights"]) or "none"
-    if s.get("default_light_rig"):
-        lights += " (rendered with the default light rig: a dim dome and a headlight)"
     console.print(f"Lights: {lights}")
     console.print(f"Passes: {', '.join(s['passes'])}")
     support = s.get("support", [])
@@ -481,7 +479,6 @@ def render(
         with progress:
             task = progress.add_task(f"render {stage.name}", total=None)
 
-            exposure=exposure,
             def on_frame(done: int, total: int, _stats) -> None:
                 progress.update(task, completed=done, total=total)
 
@@ -511,7 +508,6 @@ def render(
         print_report(summary, Console())
         if summary.get("trace_note"):
             typer.echo(f"note: {summary['trace_note']}")
-    summary["default_light_rig"] = scene.scene.lights.default_rig
         if summary.get("mean_budget_use") is not None:
             use = summary["mean_budget_use"]
             typer.echo(f"trace budget use: {use:.0%} of T (mean, frames with reflectors in view)")

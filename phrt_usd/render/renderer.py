@@ -119,9 +119,6 @@ class RenderOptions:
         if self.width * self.height > pixels:
             raise BadOption(
                 f"resolution {self.width}x{self.height}: more than {pixels} pixels a frame"
-    #: ``--exposure EV``: every frame's radiance is scaled by 2**EV before it is written
-    #: (EXR and PNG alike); |EV| beyond MAX_EXPOSURE_EV is clamped (``exposure_ev``).
-    exposure: float = 0.0
             )
         if self.budget_ms is not None and not (self.budget_ms >= 0 and np.isfinite(self.budget_ms)):
             raise BadOption(f"--budget-ms must be a finite number >= 0, got {self.budget_ms}")
@@ -241,13 +238,6 @@ class FrameRenderer:
     def plan(self, times: Sequence[float]) -> None:
         """Tell the renderer the time codes it will render, in order. Each frame's
         ``FrameView`` then carries the cameras of the next UPCOMING_CAMERAS planned
-        if options.exposure_ev != options.exposure:
-            stage_scene.warnings.append(
-                f"--exposure {options.exposure:g} EV clamped to {options.exposure_ev:+g} EV "
-                f"(|EV| <= {MAX_EXPOSURE_EV:g} keeps radiance finite in float32)"
-            )
-        #: The clipping warning was given (once per run, ``_check_clipping``).
-        self._clipping_warned = False
         frames, which HEU1 uses to forecast a reflector's cost (a stage's camera path is
         known before the render starts). Without a plan, views have no upcoming cameras."""
         self._planned = [float(t) for t in times]
@@ -450,10 +440,6 @@ class FrameRenderer:
             calibration=calibration,
         )
         return FrameOutput(image, alpha, gb, traced_mask, stats)
-        scale = 2.0**opts.exposure_ev * prep.camera.exposure_scale
-        if scale != 1.0:  # exposure: the image's radiance, finite (float32 max at most)
-            image = np.minimum(image * np.float32(scale), np.float32(_FLOAT32_MAX))
-        self._check_clipping(image, gb, prep.time, opts.exposure_ev)
 
     def _frame_budget_ms(
         self, prep: PreparedFrame, policy: SelectionPolicy, opts: RenderOptions
