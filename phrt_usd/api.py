@@ -16,7 +16,8 @@ Options (``**options``; ``None`` means "not given": the stage's render settings 
 ``selection_weight``, ``threads`` (1..1024, default: the cores this process may use; every
 pool, llvmpipe, OpenBLAS, numba: ``phrt_usd.threads``), ``gl`` (``auto`` | ``egl`` |
 ``osmesa``: the raster phase's OpenGL platform,
-``phrt_usd.render.raster.gl_platform``) (the ``RenderOptions`` fields), and for ``render`` the
+``phrt_usd.render.raster.gl_platform``), ``exposure`` (EV, default 0.0: every image's radiance
+times 2**exposure, EXR included) (the ``RenderOptions`` fields), and for ``render`` the
 ``RenderJob`` fields ``camera``, ``selection_layer``, ``resume``, ``overwrite``,
 ``write_images``, ``checkpoint_every``; ``strict`` (an unreadable texture is an error,
 not a warning and the input's fallback); and how a stage file is composed: ``session_layers``
@@ -128,6 +129,8 @@ def render_options(
         extra["threads"] = check_threads(given["threads"])
     if "gl" in given:
         extra["gl"] = check_gl(given["gl"])
+    if "exposure" in given:  # EV: the image's radiance x 2**exposure before writing
+        extra["exposure"] = _real("exposure", given["exposure"])
     return RenderOptions(
         mode=given.get("mode", params.mode),
         heuristic=given.get("heuristic", params.heuristic),
@@ -528,6 +531,7 @@ def render(
             temporary.cleanup()
         raise
     summary["warnings"] = list(scene.warnings)
+    summary["default_light_rig"] = scene.scene.lights.default_rig  # usd/default_lights.py
     # What the stage uses that the render ignores or approximates (usd/support_report.py).
     summary["support"] = support_report(scene.stage)
     images = ()

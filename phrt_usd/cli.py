@@ -251,6 +251,8 @@ def _print_summary(s: dict) -> None:
         + ("" if rs["settings_path"] else "  (defaults: no RenderSettings prim)")
     )
     lights = ", ".join(f"{li['type']} {li['path']}" for li in s["lights"]) or "none"
+    if s.get("default_light_rig"):
+        lights += " (rendered with the default light rig: a dim dome and a headlight)"
     console.print(f"Lights: {lights}")
     console.print(f"Passes: {', '.join(s['passes'])}")
     support = s.get("support", [])
@@ -427,6 +429,13 @@ def render(
         bool,
         typer.Option(help="An unreadable texture is an error (exit 1), not a warning."),
     ] = False,
+    exposure: Annotated[
+        float | None,
+        typer.Option(
+            metavar="EV",
+            help="Scale the image radiance by 2^EV before writing (the EXR too); |EV| <= 40.",
+        ),
+    ] = None,
     threads: ThreadsOpt = None,
     gl: GlOpt = None,
     workers: WorkersOpt = None,
@@ -472,9 +481,11 @@ def render(
             strict=strict,
             threads=None if threads is None else parse_threads(threads),
             gl=gl,
+            exposure=exposure,
         )
         for warning in scene.warnings:
             typer.echo(f"warning: {warning}", err=True)
+        warned = len(scene.warnings)
         progress = _progress()
         with progress:
             task = progress.add_task(f"render {stage.name}", total=None)
@@ -497,7 +508,10 @@ def render(
                         )
             except RenderInterrupted as exc:
                 raise fail(f"interrupted: {exc}", EXIT_INTERRUPTED, json_out) from None
+    for warning in scene.warnings[warned:]:  # found while rendering (e.g. clipping)
+        typer.echo(f"warning: {warning}", err=True)
     summary["warnings"] = list(scene.warnings)
+    summary["default_light_rig"] = scene.scene.lights.default_rig
     # What the stage uses that the render ignores or approximates (usd/support_report.py).
     summary["support"] = support_report(scene.stage)
     if json_out:

@@ -443,6 +443,7 @@ def test_unusable_stage_file_is_one_line_error(tmp_path, name, content, problem)
 def test_missing_reference_is_a_warning_not_a_refusal(tmp_path):
     stage = camera_stage()
     quad_pentagon(stage)
+    UsdLux.DistantLight.Define(stage, "/World/Sun")  # lit: no default-rig notice
     assert read_stage(stage).warnings == []
     stage.DefinePrim("/World/Prop").GetReferences().AddReference(str(tmp_path / "gone.usda"))
     ss = read_stage(stage)

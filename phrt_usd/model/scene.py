@@ -178,6 +178,7 @@ class DistantLight:
     direction: np.ndarray
     radiance: np.ndarray
     angle: float = 0.53
+    path: str = ""  # the light's prim path ("" for the default rig's headlight)
 
 
 @dataclass
@@ -186,11 +187,24 @@ class LocalLight:
 
     position: (3,) world metres; radiance: (3,) linear RGB intensity (W/sr-like units,
     falls off with 1/d^2); radius: metres (for the shadow-ray offset only).
+    UsdLux ShapingAPI (``shading.cone_falloff``): axis (3,) world unit vector the light
+    shines along (its -Z); cone_angle degrees off the axis beyond which it emits nothing
+    (>= 180: no cone); cone_softness in [0, 1]; focus >= 0 (0: none).
     """
 
     position: np.ndarray
     radiance: np.ndarray
     radius: float = 0.0
+    path: str = ""
+    axis: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, -1.0]))
+    cone_angle: float = 180.0
+    cone_softness: float = 0.0
+    focus: float = 0.0
+
+    @property
+    def shaped(self) -> bool:
+        """The emission depends on direction (a cone narrower than the sphere, or focus)."""
+        return self.cone_angle < 180.0 or self.focus > 0.0
 
 
 @dataclass
@@ -205,6 +219,10 @@ class DomeLight:
     color: np.ndarray  # (3,) linear RGB (color * intensity * 2**exposure)
     texture: np.ndarray | None = None
     world_from_light: np.ndarray = field(default_factory=lambda: np.eye(3))
+    path: str = ""
+    #: Seen by primary rays (UsdLux ``visibleInPrimaryRay`` / Hydra's camera visibility):
+    #: False leaves the background of camera-ray misses black (alpha 0); it still lights.
+    camera_visible: bool = True
 
 
 @dataclass
@@ -212,6 +230,9 @@ class Lights:
     distant: list[DistantLight] = field(default_factory=list)
     local: list[LocalLight] = field(default_factory=list)
     dome: DomeLight | None = None
+    #: These are the default rig of a stage without lights (``usd/default_lights.py``):
+    #: its headlight, ``distant[0]``, follows the camera every frame.
+    default_rig: bool = False
 
     @property
     def has_direct(self) -> bool:
@@ -266,6 +287,9 @@ class CameraFrame:
     conform_policy: str = "expandAperture"
     pixel_aspect: float = 1.0
     data_window: tuple[float, float, float, float] = (0.0, 0.0, 1.0, 1.0)
+    #: UsdGeomCamera's linear exposure scale (``ComputeLinearExposureScale``: 2^exposure
+    #: x time x ISO/100 x responsivity / fStop²), multiplied into the frame's radiance.
+    exposure_scale: float = 1.0
 
     @property
     def position(self) -> np.ndarray:

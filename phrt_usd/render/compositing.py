@@ -5,7 +5,8 @@ Every covered pixel is ``(1 - F) * local + F * reflected`` with F the element's
 reflectivity (0 for non-reflectors). ``reflected`` is the ray-traced radiance for pixels
 of selected reflectors and, for all others, the environment seen in the mirror
 direction (the raster path's cube-map-like fallback: no geometry in the reflection).
-Background pixels show the environment behind them.
+Background pixels show the environment behind them, unless the dome is hidden from
+camera rays (``DomeLight.camera_visible``): then they stay black (alpha is 0 there).
 
 Images: (H, W, 3) float32 linear RGB, row 0 at the top.
 """
@@ -51,7 +52,8 @@ def base_image(
     flat = image.reshape(-1, 3)
     view = gbuffer.view_dir.reshape(-1, 3)
     background = np.flatnonzero(~gbuffer.covered.reshape(-1))
-    if len(background):
+    dome = scene.lights.dome
+    if len(background) and (dome is None or dome.camera_visible):
         flat[background] = environment_radiance(scene.lights, np.take(view, background, axis=0))
     mirror = np.flatnonzero(reflectivity.reshape(-1) > 0.0)
     if len(mirror):

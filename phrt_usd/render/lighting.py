@@ -11,7 +11,9 @@ then the local shading of every covered pixel (``shading.shade_local``).
 The raster side returns the undecided pairs (``map_lighting.UncertainPairs``); the
 settling happens here, so the rasterizer never calls the tracer. With the GPU lookup
 (``Rasterizer.cube_lookup_on_gpu``) the pairs the maps decide are lit are shaded in the
-lookup pass already and only the rest is shaded in numpy.
+lookup pass already and only the rest is shaded in numpy; with a shaped LocalLight
+(UsdLux ShapingAPI cones, ``shading.cone_falloff``) the GPU pass only looks the maps up
+and every pair is shaded in numpy, so the cone has one implementation.
 
 Shapes: a G-buffer of H x W pixels, n of them covered, L lights (distant, then local).
 """
@@ -25,7 +27,7 @@ import numpy as np
 from phrt_usd.model import surface
 from phrt_usd.model.frame import GBuffer
 from phrt_usd.model.scene import Scene
-from phrt_usd.render.shading import shade_local
+from phrt_usd.render.shading import shade_local, shaped_lights
 
 if TYPE_CHECKING:  # the raster and trace halves import OpenGL / Embree: only if used
     from phrt_usd.render.raster.rasterizer import Rasterizer
@@ -70,7 +72,7 @@ def shade_gbuffer(
         visibility = tracer.shadow_visibility(pos, nrm)
         shadow_pass = "shadow_rays"
     else:
-        if rasterizer.cube_lookup_on_gpu:
+        if rasterizer.cube_lookup_on_gpu and not shaped_lights(lights):
             # Lit pairs shaded in the GPU lookup pass; the rest comes back as
             # DistantLight visibility and the LocalLight pairs the maps could not
             # decide.
@@ -78,7 +80,8 @@ def shade_gbuffer(
             terms = _settled(rasterizer.map_light_terms(pos, nrm, to_eye), tracer)
             visibility = terms.distant_visibility
             local_pairs, lit_sums = terms.local_pairs, terms.lit_sums
-        else:  # all lights, distant then local (the order shade_local expects)
+        else:  # all lights, distant then local (the order shade_local expects); also
+            # with spot cones, which only shade_local evaluates (shading.cone_falloff)
             pending = rasterizer.map_visibility(pos, nrm, filtered=tracer is None)
             visibility = _settled(pending, tracer)
         shadow_pass = "shadow_map" if tracer is None else "shadow_map+rays"

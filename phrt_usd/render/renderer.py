@@ -44,6 +44,8 @@ from phrt_usd.render.lighting import shade_gbuffer
 from phrt_usd.render.raster.gl_platform import DEFAULT_GL, check_gl
 from phrt_usd.select.policies import UPCOMING_CAMERAS, make_policy
 from phrt_usd.threads import DEFAULT_THREADS, apply_threads, check_threads
+from phrt_usd.usd.default_lights import aim_headlight
+from phrt_usd.usd.lights import intensity_note
 from phrt_usd.usd.schema import (
     DEFAULT_BOUNCE_LIMIT,
     DEFAULT_BUDGET_MS,
@@ -79,6 +81,20 @@ MAX_TARGET_FPS = 1000.0
 #: others carry the noise of the shared machine). A few thousand rays: a few ms, once.
 CALIBRATION_PIXELS = (64, 512)
 CALIBRATION_REPEATS = 3
+#: Largest |--exposure| in EV; larger values are clamped to it (with a warning): 2^40
+#: (~1e12) already maps a 1e-6 radiance to display white or a 1e6 one to black, and
+#: keeps ordinary radiance times the scale far inside float32 (max 3.4e38).
+MAX_EXPOSURE_EV = 40.0
+#: Largest finite float32: scaled radiance is clamped to it (an EXR holds no Inf).
+_FLOAT32_MAX = float(np.finfo(np.float32).max)
+#: The clipping warning (``FrameRenderer._check_clipping``): a frame whose covered
+#: pixels are clipped (some channel > CLIP_LEVEL after exposure: display white) for
+#: more than CLIPPED_SHARE of them is "mostly clipped"; once per run. The suggested
+#: exposure brings the covered pixels' median brightest channel to SUGGESTED_MEDIAN
+#: (mid-grey of the display range).
+CLIP_LEVEL = 1.0
+CLIPPED_SHARE = 0.5
+SUGGESTED_MEDIAN = 0.5
 CALIBRATION_SEED = 0
 
 
@@ -103,6 +119,9 @@ class RenderOptions:
     #: frame's measured raster and shading and the previous frame's selection, less
     #: TARGET_FPS_MARGIN of the period. Exclusive with ``budget_ms``.
     target_fps: float | None = None
+    #: ``--exposure EV``: every frame's radiance is scaled by 2**EV before it is written
+    #: (EXR and PNG alike); |EV| beyond MAX_EXPOSURE_EV is clamped (``exposure_ev``).
+    exposure: float = 0.0
 
     def __post_init__(self) -> None:
         self.threads = check_threads(self.threads)
@@ -139,6 +158,13 @@ class RenderOptions:
             )
         if not (self.selection_weight >= 0 and np.isfinite(self.selection_weight)):
             raise BadOption(f"selection weight I must be finite and >= 0: {self.selection_weight}")
+        if not np.isfinite(self.exposure):
+            raise BadOption(f"--exposure must be a finite number of EV, got {self.exposure}")
+
+    @property
+    def exposure_ev(self) -> float:
+        """``exposure`` clamped to +-MAX_EXPOSURE_EV (what the render applies)."""
+        return float(np.clip(self.exposure, -MAX_EXPOSURE_EV, MAX_EXPOSURE_EV))
 
 
 @dataclass
@@ -215,6 +241,13 @@ class FrameRenderer:
         #: Selection ms of the last frame each policy finished (id(policy) → ms): the
         #: estimate of this frame's selection when --target-fps sets T.
         self._select_ms: dict[int, float] = {}
+        if options.exposure_ev != options.exposure:
+            stage_scene.warnings.append(
+                f"--exposure {options.exposure:g} EV clamped to {options.exposure_ev:+g} EV "
+                f"(|EV| <= {MAX_EXPOSURE_EV:g} keeps radiance finite in float32)"
+            )
+        #: The clipping warning was given (once per run, ``_check_clipping``).
+        self._clipping_warned = False
         policy_name = "all" if options.mode == "rt" else options.heuristic
         self.policy = make_policy(
             policy_name,
@@ -284,6 +317,8 @@ class FrameRenderer:
             if self._tracer is not None:
                 self._tracer.update_geometry(self.scene)
         camera, upcoming = self._path_cameras(time_code)
+        # The default light rig's headlight follows the camera (usd/default_lights.py).
+        self.scene.lights = aim_headlight(self.scene.lights, camera)
         phase["set_time"] = _ms(t)
 
         scene = self.scene
@@ -415,6 +450,10 @@ class FrameRenderer:
                 if self._tracer is None
                 else f"heuristic {opts.heuristic} traces nothing"
             )
+        scale = 2.0**opts.exposure_ev * prep.camera.exposure_scale
+        if scale != 1.0:  # exposure: the image's radiance, finite (float32 max at most)
+            image = np.minimum(image * np.float32(scale), np.float32(_FLOAT32_MAX))
+        self._check_clipping(image, gb, prep.time, opts.exposure_ev)
         alpha = gb.covered.astype(np.float32)
         # The calibration runs once per run and is reported apart (FrameStats.calibration).
         frame_ms = prep.prepare_ms + _ms(t_finish) - phase.get("calibrate", 0.0)
@@ -537,6 +576,52 @@ class FrameRenderer:
             axis=1,
         )[seen]
         return boxes
+
+    def _check_clipping(self, image: np.ndarray, gb: GBuffer, t: float, ev: float) -> None:
+        """Once per run: when more than CLIPPED_SHARE of the covered pixels of ``image``
+        (H, W, 3, after exposure) exceed CLIP_LEVEL in some channel, a warning (in
+        ``StageScene.warnings``, the render's warning path) naming the brightest light
+        (``_brightest_light``) and the ``--exposure`` that would bring the covered
+        pixels' median to SUGGESTED_MEDIAN."""
+        if self._clipping_warned:
+            return
+        covered = gb.covered.reshape(-1)
+        if not covered.any():
+            return
+        peak = np.take(image.reshape(-1, 3), np.flatnonzero(covered), axis=0).max(axis=1)
+        share = float(np.mean(peak > CLIP_LEVEL))
+        if share <= CLIPPED_SHARE:
+            return
+        self._clipping_warned = True
+        median = float(np.median(peak))
+        suggest = ev + float(np.log2(SUGGESTED_MEDIAN / median)) if median > 0 else ev
+        centre = np.take(gb.position.reshape(-1, 3), np.flatnonzero(covered), axis=0).mean(0)
+        path, level = self._brightest_light(centre)
+        note = intensity_note(self.stage_scene.stage, path)
+        self.stage_scene.warnings.append(
+            f"frame {t:g}: {share:.0%} of the covered pixels are clipped (> {CLIP_LEVEL:g} "
+            f"after exposure); brightest light {path} (~{level:.3g} at the scene{note}); "
+            f"try --exposure {suggest:.1f}"
+        )
+
+    def _brightest_light(self, centre: np.ndarray) -> tuple[str, float]:
+        """(prim path, brightest channel of its irradiance) of the light that gives most
+        at ``centre`` (3,) world metres, the covered pixels' mean position: a
+        DistantLight its radiance, a LocalLight radiance / d² (unshadowed, no cone), the
+        dome its mean radiance (``shading.ambient_radiance``)."""
+        from phrt_usd.render.shading import MIN_LIGHT_DISTANCE, ambient_radiance
+
+        lights = self.scene.lights
+        best = ("(no light)", 0.0)
+        for li in lights.distant:
+            best = max(best, (li.path, float(np.max(li.radiance))), key=lambda b: b[1])
+        for li in lights.local:
+            d2 = max(float(np.sum((np.asarray(li.position) - centre) ** 2)), MIN_LIGHT_DISTANCE**2)
+            best = max(best, (li.path, float(np.max(li.radiance)) / d2), key=lambda b: b[1])
+        if lights.dome is not None:
+            level = float(np.max(ambient_radiance(lights)))
+            best = max(best, (lights.dome.path, level), key=lambda b: b[1])
+        return best
 
     def _shade_local(self, gb: GBuffer) -> tuple[np.ndarray, str | None]:
         """Local shading (H, W, 3) of covered pixels and the shadow pass used, if any

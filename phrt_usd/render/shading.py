@@ -16,6 +16,8 @@ mapping). The model, deliberately simple and the same everywhere:
   a unit DistantLight shows 1.0.
 * ``h`` is the Blinn-Phong half vector between the light and the direction to the eye.
 * The ambient term is the mean environment radiance, unshadowed.
+* A LocalLight with UsdLux ShapingAPI (a cone, focus) scales ``E_light`` by
+  ``cone_falloff`` of the direction it emits towards the point.
 
 Light order, wherever a per-light axis appears (``visibility`` (n, L), ``light_directions``):
 all ``lights.distant`` first, then all ``lights.local``, each in list order.
@@ -34,7 +36,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from phrt_usd.model.scene import DEFAULT_ENVIRONMENT, DomeLight, Lights
+from phrt_usd.model.scene import DEFAULT_ENVIRONMENT, DomeLight, Lights, LocalLight
 from phrt_usd.threads import current_threads
 
 #: Smallest light-to-surface distance in metres used for the 1/d² fall-off of LocalLights.
@@ -277,6 +279,41 @@ def range_window(distance: np.ndarray, light_range: float) -> np.ndarray:
     return _window_sq(np.asarray(distance, dtype=np.float64) ** 2, light_range)
 
 
+def cone_falloff(light: LocalLight, emission: np.ndarray) -> np.ndarray:
+    """UsdLux ShapingAPI factor (m,) float32 in [0, 1] of ``light``'s emission along
+    ``emission`` (m, 3) world unit directions *from the light* to the points: the one
+    cone of raster and trace alike.
+
+    As the schema defines it (``inputs:shaping:cone:angle`` / ``:softness`` /
+    ``:focus``): with θ the angle between ``light.axis`` and the emission, θc the cone
+    angle and θs = θc (1 - softness), the factor is ``1 - smoothstep(θs, θc, θ)`` (0
+    beyond the cone; at softness 0 a hard edge, 1 up to θc) times ``|cos θ|**focus``
+    (``focusTint`` black). A light that is not ``shaped`` gives 1."""
+    m = len(emission)
+    if not light.shaped:
+        return np.ones(m, dtype=np.float32)
+    cos = np.clip(np.asarray(emission, np.float64) @ np.asarray(light.axis, np.float64), -1, 1)
+    factor = np.ones(m)
+    if light.cone_angle < 180.0:
+        theta = np.arccos(cos)
+        cutoff = np.radians(light.cone_angle)
+        start = cutoff * (1.0 - light.cone_softness)
+        width = cutoff - start
+        if width > 0.0:
+            x = np.clip((theta - start) / width, 0.0, 1.0)
+            factor = 1.0 - x * x * (3.0 - 2.0 * x)
+        factor = np.where(theta > cutoff, 0.0, factor)
+    if light.focus > 0.0:
+        factor = factor * np.abs(cos) ** light.focus
+    return factor.astype(np.float32)
+
+
+def shaped_lights(lights: Lights) -> bool:
+    """Some LocalLight has a cone or focus (``LocalLight.shaped``): its pairs are then
+    shaded here (``cone_falloff``), not in the GPU lookup pass."""
+    return any(li.shaped for li in lights.local)
+
+
 def _shade_chunk(
     positions: np.ndarray,
     normals: np.ndarray,
@@ -339,6 +376,11 @@ def _shade_chunk(
         lit = (n_dot_l * _window(dist, ranges[j]) / dist**2).astype(np.float32)
         if weight is not None:
             lit *= weight
+        if shaped_lights(lights):  # the cone of each shaped light on its own pairs
+            for k in np.unique(light).tolist():
+                if lights.local[k].shaped:
+                    on = np.flatnonzero(light == k)
+                    lit[on] *= cone_falloff(lights.local[k], -l_dir[on])
         spec = lit * _highlight(nrm, np.take(to_eye, point, axis=0), l_dir)
         # Pairs of one light never repeat a point, but several lights share a colour
         # group: sum with bincount over (group, point).
@@ -379,6 +421,8 @@ def _shade_chunk(
         lit = (n_dot_l * (_window_sq(dist2, ranges[j]) / dist2)).astype(np.float32)
         if vis_rows is not None:
             lit *= vis_rows[j, idx]
+        if light.shaped:
+            lit *= cone_falloff(light, -l_dir)
         # idx has no repeats, so the buffered fancy-index += is exact.
         diffuse[group[j], idx] += lit
         highlight[group[j], idx] += lit * _highlight(nrm, np.take(to_eye, idx, axis=0), l_dir)

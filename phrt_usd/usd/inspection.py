@@ -22,6 +22,7 @@ from pxr import Sdf, Usd, UsdGeom, UsdLux, UsdShade
 
 from phrt_usd.usd import schema
 from phrt_usd.usd.authoring import instance_root
+from phrt_usd.usd.lights import READ_LIGHT_TYPE_NAMES
 from phrt_usd.usd.rules import stage_reflectors
 from phrt_usd.usd.support_report import support_report
 
@@ -138,7 +139,8 @@ def required_passes(stage: Usd.Stage, lights: list[dict], n_reflectors: int) -> 
 
 def inspect_stage(stage: Usd.Stage, label: str | None = None) -> dict:
     """Summary of an open stage as one JSON-ready dict (keys: stage, metadata, reflectors,
-    instanced_reflectors (their count), camera_paths, render_settings, lights, passes,
+    instanced_reflectors (their count), camera_paths, render_settings, lights,
+    default_light_rig (no light the render reads: usd/default_lights.py), passes,
     support: what the render ignores or approximates, ``support_report.support_report``)."""
     mpu = float(UsdGeom.GetStageMetersPerUnit(stage))
     cache = UsdGeom.BBoxCache(
@@ -199,6 +201,9 @@ def inspect_stage(stage: Usd.Stage, label: str | None = None) -> dict:
         "camera_paths": camera_paths,
         "render_settings": asdict(schema.read_render_params(stage)),
         "lights": lights,
+        # No light the render reads: it lights the stage with the default rig
+        # (usd/default_lights.py, a dim dome and a headlight), as usd/stage.py does.
+        "default_light_rig": not any(li["type"] in READ_LIGHT_TYPE_NAMES for li in lights),
         "passes": required_passes(stage, lights, len(reflectors)),
         "support": support_report(stage),
     }

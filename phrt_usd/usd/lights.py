@@ -1,16 +1,34 @@
-"""Lights: UsdLux Distant, Sphere, Rect, Disk, Cylinder and Dome lights as ``Lights``.
+"""Lights: UsdLux Distant, Sphere, Rect, Disk, Cylinder, Dome and DomeLight_1 as ``Lights``.
 
-Read once, at the start of the frame range (not animated; colour temperature ignored).
-Positions are world metres, directions world unit vectors.
+Read once, at the start of the frame range (not animated). Positions are world metres,
+directions world unit vectors. Conventions (docs/usd-support.md, "Lights"):
 
-- DistantLight: the direction towards the light (its +Z axis) and
-  ``radiance = color * intensity * 2**exposure``.
-- SphereLight: that radiance used as an intensity with 1/d² fall-off. Rect / Disk /
-  Cylinder lights: the same times the light's (lateral) area in m² (unless
-  ``inputs:normalize`` is on), placed at its centre as a point ``LocalLight``.
-- DomeLight: ``color`` holds ``color * intensity * 2**exposure`` and ``texture`` the raw
-  linear lat-long map; the environment radiance is ``texture * color``. Only the first
-  DomeLight is used, lat-long textures only.
+- Every light's emission is ``color * intensity * 2**exposure`` times, with
+  ``enableColorTemperature``, the blackbody colour of ``colorTemperature``
+  (``blackbody.blackbody_rec709``: 6500 K white, luminance 1), as UsdLux's LightAPI
+  defines it.
+- DistantLight: the direction towards the light (its +Z axis); the emission is the
+  irradiance on a surface facing it (a white surface shows it: the preview-renderer
+  convention of ``render/shading.py``), whatever ``angle`` and ``normalize`` say, so the
+  fallback intensity 50000 is a very bright sun (the clipping warning of the render
+  names it and ``--exposure``).
+- SphereLight: the emission used as a point intensity with 1/d² fall-off (the radius
+  only offsets shadow rays); with ``normalize``, divided by its surface area 4πr² and
+  multiplied by its projected area πr² (UsdLux: constant power whatever the size): /4.
+  Rect / Disk / Cylinder lights: the emission times the light's (lateral) area in m²,
+  the intensity of that area seen face-on; with ``normalize`` the area cancels (UsdLux:
+  luminance divided by the world-space area), so the intensity is independent of size.
+  All placed at their centre as a point ``LocalLight``.
+- ShapingAPI (local lights): ``shaping:cone:angle`` (fallback 90 once the API is
+  applied), ``shaping:cone:softness``, ``shaping:focus`` along the light's -Z axis,
+  evaluated by ``shading.cone_falloff``; ``focusTint`` and IES profiles are not read.
+- DomeLight / DomeLight_1: ``color`` holds the emission, ``texture`` the raw linear
+  lat-long map; the environment radiance is ``texture * color``. DomeLight_1's
+  ``poleAxis`` ("scene": the stage's up axis, "Y", "Z") turns the map's pole to +Z for Z
+  (UsdLux: latitude 0, longitude 0 then points to -Y). ``inputs:texture:format`` other
+  than ``automatic`` / ``latlong``: one warning, the dome untextured. The dome is
+  hidden from camera rays (still lighting) when one of ``CAMERA_VISIBILITY_ATTRS`` says
+  so. Only the first dome is used.
 """
 
 from __future__ import annotations
@@ -20,6 +38,7 @@ from pxr import Usd, UsdLux
 
 from phrt_usd.errors import PhrtError
 from phrt_usd.model.scene import DistantLight, DomeLight, Lights, LocalLight
+from phrt_usd.usd.blackbody import blackbody_rec709
 from phrt_usd.usd.materials import read_texture
 from phrt_usd.usd.values import (
     TimeContext,
@@ -29,66 +48,173 @@ from phrt_usd.usd.values import (
     safe_normalize,
 )
 
+#: Largest |exposure| (EV) read: 2**1000 is still finite in float64.
+MAX_LIGHT_EXPOSURE_EV = 1000.0
 
-def _light_radiance(prim: Usd.Prim, code: Usd.TimeCode) -> np.ndarray:
-    """(3,) color * intensity * 2**exposure, finite and >= 0."""
-    color = np.asarray(attr_value(prim, "inputs:color", code, (1.0, 1.0, 1.0)), dtype=np.float64)
-    intensity = float(attr_value(prim, "inputs:intensity", code, 1.0))
-    exposure = float(attr_value(prim, "inputs:exposure", code, 0.0))
-    # Exposure is a log2 scale; clamp so 2**exposure stays finite in float64.
-    value = color * intensity * 2.0 ** np.clip(exposure, -1000.0, 1000.0)
-    return np.clip(np.nan_to_num(value, nan=0.0, posinf=0.0, neginf=0.0), 0.0, None)
+#: Dome texture formats read as a lat-long map (``inputs:texture:format``).
+LATLONG_FORMATS = ("automatic", "latlong")
 
+#: Bool attributes that hide a dome from camera rays when authored false, in the order
+#: read: ``visibleInPrimaryRay`` (the name Omniverse's RTX renderer and the UsdLux
+#: proposals use) and Karma's ``karma:light:renderlightgeo`` (its "render light
+#: geometry", which for a dome is the background seen by the camera).
+CAMERA_VISIBILITY_ATTRS = ("visibleInPrimaryRay", "karma:light:renderlightgeo")
+
+#: UsdLux ``DomeLight_1.poleAxis`` → rotation (columns: images of the dome-space axes)
+#: from the OpenEXR lat-long frame (+Y pole, longitude 0 at +Z) to the pole's frame:
+#: for Z, +Y → +Z and +Z → -Y (a +90° turn about X), as the schema describes.
+_POLE_ROTATIONS = {
+    "Y": np.eye(3),
+    "Z": np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]]),
+}
+
+#: Type names of the lights ``read_light`` reads (a stage with none of them gets the
+#: default light rig, ``default_lights``).
+READ_LIGHT_TYPE_NAMES = (
+    "DistantLight",
+    "SphereLight",
+    "RectLight",
+    "DiskLight",
+    "CylinderLight",
+    "DomeLight",
+    "DomeLight_1",
+)
 
 #: UsdLux lights approximated as a point ``LocalLight`` at their centre.
 _LOCAL_LIGHT_TYPES = (UsdLux.SphereLight, UsdLux.RectLight, UsdLux.DiskLight, UsdLux.CylinderLight)
+#: The dome light schemas, oldest first.
+_DOME_TYPES = (UsdLux.DomeLight, UsdLux.DomeLight_1)
 
 
-def read_light(prim: Usd.Prim, ctx: TimeContext, mpu: float, lights: Lights) -> None:
-    """Append the UsdLux light ``prim`` at ``ctx`` to ``lights`` (module doc);
-    ``mpu`` is the stage's metres per unit. Other light types are ignored."""
+def light_emission(prim: Usd.Prim, code: Usd.TimeCode) -> np.ndarray:
+    """(3,) UsdLux emission ``color * intensity * 2**exposure`` (times the blackbody
+    colour of ``colorTemperature`` when ``enableColorTemperature``), finite and >= 0.
+    Unauthored inputs read the schema's fallbacks (DistantLight's intensity: 50000)."""
+    color = np.asarray(attr_value(prim, "inputs:color", code, (1.0, 1.0, 1.0)), dtype=np.float64)
+    intensity = float(attr_value(prim, "inputs:intensity", code, 1.0))
+    exposure = float(attr_value(prim, "inputs:exposure", code, 0.0))
+    limit = MAX_LIGHT_EXPOSURE_EV
+    value = color * intensity * 2.0 ** float(np.clip(np.nan_to_num(exposure), -limit, limit))
+    if bool(attr_value(prim, "inputs:enableColorTemperature", code, False)):
+        kelvin = float(attr_value(prim, "inputs:colorTemperature", code, 6500.0))
+        value = value * blackbody_rec709(kelvin)
+    return np.clip(np.nan_to_num(value, nan=0.0, posinf=0.0, neginf=0.0), 0.0, None)
+
+
+def _shaping(prim: Usd.Prim, code: Usd.TimeCode, m: np.ndarray) -> dict:
+    """LocalLight ShapingAPI fields: the world axis (the light's -Z) and the cone and
+    focus inputs (an unapplied API without authored inputs: no cone, no focus)."""
+    angle = float(attr_value(prim, "inputs:shaping:cone:angle", code, 180.0))
+    softness = float(attr_value(prim, "inputs:shaping:cone:softness", code, 0.0))
+    focus = float(attr_value(prim, "inputs:shaping:focus", code, 0.0))
+    return {
+        "axis": safe_normalize(-np.asarray(m[2, :3], dtype=np.float64)),
+        "cone_angle": float(np.clip(np.nan_to_num(angle, nan=180.0), 0.0, 180.0)),
+        "cone_softness": float(np.clip(np.nan_to_num(softness), 0.0, 1.0)),
+        # UsdLux: "values < 0 are ignored".
+        "focus": float(max(np.nan_to_num(focus), 0.0)),
+    }
+
+
+def _camera_visible(prim: Usd.Prim, code: Usd.TimeCode) -> bool:
+    for name in CAMERA_VISIBILITY_ATTRS:
+        attr = prim.GetAttribute(name)
+        if attr and attr.HasAuthoredValue():
+            return bool(attr.Get(code))
+    return True
+
+
+def _dome(
+    prim: Usd.Prim, code: Usd.TimeCode, m: np.ndarray, up_axis: str, warnings: list[str]
+) -> DomeLight:
+    path = str(prim.GetPath())
+    rotation = rotation_columns(m)
+    if prim.IsA(UsdLux.DomeLight_1):
+        pole = str(attr_value(prim, "poleAxis", code, "scene"))
+        pole = up_axis if pole == "scene" else pole
+        if pole not in _POLE_ROTATIONS:
+            raise PhrtError(f"{path}.poleAxis: {pole!r} is not one of scene, Y, Z")
+        rotation = rotation @ _POLE_ROTATIONS[pole]
+    fmt = str(attr_value(prim, "inputs:texture:format", code, "automatic"))
+    file_value = attr_value(prim, "inputs:texture:file", code, None)
+    where = f"{path}.inputs:texture:file"
+    file = asset_file(file_value, where) if file_value is not None else ""
+    texture = None
+    if file and fmt not in LATLONG_FORMATS:
+        warnings.append(
+            f"{path}.inputs:texture:format: {fmt!r} not supported (latlong, automatic); "
+            "the dome is rendered untextured in its colour"
+        )
+    elif file:
+        texture = read_texture(file, where, "auto")
+    return DomeLight(
+        light_emission(prim, code), texture, rotation, path, _camera_visible(prim, code)
+    )
+
+
+def read_light(
+    prim: Usd.Prim,
+    ctx: TimeContext,
+    mpu: float,
+    lights: Lights,
+    up_axis: str = "Y",
+    warnings: list[str] | None = None,
+) -> None:
+    """Append the UsdLux light ``prim`` at ``ctx`` to ``lights`` (module doc); ``mpu``
+    is the stage's metres per unit, ``up_axis`` its up axis (DomeLight_1's "scene"
+    pole); what is read with a fallback is appended to ``warnings``. Other light types
+    are ignored."""
     code = ctx.code
     m = ctx.world(prim)
     path = str(prim.GetPath())
+    warnings = [] if warnings is None else warnings
     if prim.IsA(UsdLux.DistantLight):
         # The light shines down its -Z axis; store the direction towards the light.
         towards = safe_normalize(m[2, :3])
         angle = float(attr_value(prim, "inputs:angle", code, 0.53))
-        lights.distant.append(DistantLight(towards, _light_radiance(prim, code), angle))
+        lights.distant.append(DistantLight(towards, light_emission(prim, code), angle, path))
     elif any(prim.IsA(t) for t in _LOCAL_LIGHT_TYPES):
-        radiance = _light_radiance(prim, code)
+        radiance = light_emission(prim, code)
         scale = np.linalg.norm(m[:3, :3], axis=1) * mpu  # metres per light-space unit
         normalize = bool(attr_value(prim, "inputs:normalize", code, False))
         if prim.IsA(UsdLux.SphereLight):
             radius = float(attr_value(prim, "inputs:radius", code, 0.5)) * float(scale.max())
+            if normalize:
+                radiance = radiance / 4.0  # projected area πr² over surface area 4πr²
         elif prim.IsA(UsdLux.RectLight):
             w = float(attr_value(prim, "inputs:width", code, 1.0)) * scale[0]
             h = float(attr_value(prim, "inputs:height", code, 1.0)) * scale[1]
             radius = 0.5 * float(np.hypot(w, h))
             if not normalize:
-                radiance = radiance * w * h  # area light → point intensity
+                radiance = radiance * abs(w * h)  # area light → point intensity
         elif prim.IsA(UsdLux.DiskLight):
             r = float(attr_value(prim, "inputs:radius", code, 0.5))
             radius = r * float(max(scale[0], scale[1]))
             if not normalize:
-                radiance = radiance * np.pi * (r * scale[0]) * (r * scale[1])
+                radiance = radiance * np.pi * abs((r * scale[0]) * (r * scale[1]))
         else:  # CylinderLight: a tube along its local X axis
             r = float(attr_value(prim, "inputs:radius", code, 0.5)) * float(max(scale[1], scale[2]))
             length = float(attr_value(prim, "inputs:length", code, 1.0)) * scale[0]
             radius = 0.5 * float(np.hypot(length, 2 * r))
             if not normalize:
-                radiance = radiance * 2.0 * np.pi * r * length  # lateral area
-        if not np.isfinite(radius):
+                radiance = radiance * 2.0 * np.pi * abs(r * length)  # lateral area
+        if not np.isfinite(radius) or not np.all(np.isfinite(radiance)):
             raise PhrtError(f"{path}: non-finite light size")
-        lights.local.append(LocalLight(m[3, :3] * mpu, radiance, abs(radius)))
-    elif prim.IsA(UsdLux.DomeLight):
+        lights.local.append(
+            LocalLight(m[3, :3] * mpu, radiance, abs(radius), path, **_shaping(prim, code, m))
+        )
+    elif any(prim.IsA(t) for t in _DOME_TYPES):
         if lights.dome is not None:
             return  # one environment: the first dome light wins
-        fmt = str(attr_value(prim, "inputs:texture:format", code, "automatic"))
-        if fmt not in ("automatic", "latlong"):
-            raise PhrtError(f"{path}.inputs:texture:format: {fmt!r} unsupported (latlong only)")
-        file_value = attr_value(prim, "inputs:texture:file", code, None)
-        where = f"{path}.inputs:texture:file"
-        file = asset_file(file_value, where) if file_value is not None else ""
-        texture = read_texture(file, where, "auto") if file else None
-        lights.dome = DomeLight(_light_radiance(prim, code), texture, rotation_columns(m))
+        lights.dome = _dome(prim, code, m, up_axis, warnings)
+
+
+def intensity_note(stage: Usd.Stage, path: str) -> str:
+    """``"; inputs:intensity unauthored: UsdLux's fallback N"`` when the light at
+    ``path`` reads its intensity from the schema's fallback (DistantLight's is 50000,
+    a sun for a physically based renderer), else ``""`` (no such prim: ``""``)."""
+    prim = stage.GetPrimAtPath(path) if path.startswith("/") else None
+    attr = prim.GetAttribute("inputs:intensity") if prim else None
+    if not attr or attr.HasAuthoredValue():
+        return ""
+    return f"; inputs:intensity unauthored: UsdLux's fallback {attr.Get():g}"

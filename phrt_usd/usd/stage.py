@@ -74,6 +74,7 @@ from phrt_usd.usd import schema
 from phrt_usd.usd.camera_path import CameraPath, find_camera_path
 from phrt_usd.usd.composition import composition_problems, composition_warnings
 from phrt_usd.usd.default_camera import DEFAULT_CAMERA_NAME, default_camera
+from phrt_usd.usd.default_lights import DEFAULT_RIG_NAME, default_light_rig
 from phrt_usd.usd.instancers import expand_instancer
 from phrt_usd.usd.lights import read_light
 from phrt_usd.usd.materials import MaterialBank, binding_purposes, bound_material, material_key
@@ -185,6 +186,13 @@ class _CameraValues:
     problems: list[str]
     vertical: float = 0.0  # verticalAperture
     offsets: tuple[float, float] = (0.0, 0.0)  # horizontal, vertical aperture offsets
+    exposure_scale: float = 1.0  # UsdGeomCamera.ComputeLinearExposureScale
+
+
+#: Largest camera linear exposure scale accepted (2^40: beyond it float32 radiance
+#: of ordinary scenes, ~1e-6..1e6, leaves float32's range, 3.4e38, within a few frames'
+#: worth of headroom only).
+MAX_CAMERA_EXPOSURE_SCALE = 2.0**40
 
 
 def _camera_values(prim: Usd.Prim, time: float, driven: bool) -> _CameraValues:
@@ -219,7 +227,16 @@ def _camera_values(prim: Usd.Prim, time: float, driven: bool) -> _CameraValues:
             problems.append(f"{where}.{name}: must be finite at time {time}, got {value}")
     if not (np.isfinite(near) and np.isfinite(far) and far > near):
         problems.append(f"{where}.clippingRange: need near < far, got ({near}, {far})")
-    return _CameraValues(world, focal, aperture, near, far, problems, vertical, offsets)
+    # USD's own formula: 2^exposure x time x ISO/100 x responsivity / fStop² (1 unauthored).
+    exposure_scale = float(cam.ComputeLinearExposureScale(code))
+    if not (np.isfinite(exposure_scale) and 0.0 <= exposure_scale <= MAX_CAMERA_EXPOSURE_SCALE):
+        problems.append(
+            f"{where}.exposure: the exposure attributes give a linear scale of "
+            f"{exposure_scale} at time {time}, need 0..{MAX_CAMERA_EXPOSURE_SCALE:g}"
+        )
+    return _CameraValues(
+        world, focal, aperture, near, far, problems, vertical, offsets, exposure_scale
+    )
 
 
 def camera_problems(prim: Usd.Prim, time: float, driven: bool = False) -> list[str]:
@@ -373,6 +390,7 @@ class StageScene:
                 raise PhrtError(problem)
         self._build(TimeContext(self._time))
         self.warnings += [f"{m}; rendered with the input's fallback" for m in self.texture_problems]
+        self.warnings += self.material_notices
         self._default_camera: CameraFrame | None = None
         if cam_prim is None:
             where = stage.GetRootLayer().identifier
@@ -438,7 +456,7 @@ class StageScene:
             if kind == "PointInstancer":
                 expand_instancer(prim, ctx, probe, bank, prototype_gprims, add)
             elif kind == "Light":
-                read_light(prim, ctx, self.meters_per_unit, lights)
+                read_light(prim, ctx, self.meters_per_unit, lights, self.up_axis, self.warnings)
             elif (skin := skinning.skinned(prim, kind)) is not None:
                 # Skinned: skeleton-space points placed by the skeleton (usd/skinning.py).
                 mesh = local_mesh(prim, kind)
@@ -470,6 +488,17 @@ class StageScene:
         #: Textures that could not be read (``materials.MaterialBank.texture_problems``):
         #: warnings of the render, errors with ``--strict`` and in ``phrt validate``.
         self.texture_problems: list[str] = list(bank.texture_problems)
+        #: One line per material rendered approximately (``MaterialBank.notices``:
+        #: MaterialX-only materials, base colour only or grey).
+        self.material_notices: list[str] = list(bank.notices)
+        if not lights.has_direct and lights.dome is None:
+            # No light at all: USD viewers' default rig instead of a near-black frame.
+            lights = default_light_rig()
+            self.warnings.append(
+                f"{self.stage.GetRootLayer().identifier}: stage has no UsdLux lights; "
+                f"rendering with the {DEFAULT_RIG_NAME} (a dim dome and a headlight "
+                "from the camera)"
+            )
         self._assemble(parts, elements, bank, lights, ctx)
 
     def _assemble(self, parts, elements, bank, lights, ctx) -> None:
@@ -643,6 +672,7 @@ class StageScene:
             conform_policy=image.conform_policy,
             pixel_aspect=image.pixel_aspect,
             data_window=image.data_window,
+            exposure_scale=v.exposure_scale,
         )
 
 

@@ -23,6 +23,7 @@ from pathlib import PurePosixPath
 from pxr import Ar, Usd, UsdGeom, UsdLux, UsdShade, UsdSkel, UsdVol
 
 from phrt_usd.usd import schema
+from phrt_usd.usd.lights import READ_LIGHT_TYPE_NAMES
 from phrt_usd.usd.meshes import is_subdivided
 
 #: Prim paths listed per kind (the count is always complete).
@@ -153,15 +154,7 @@ def _unreadable_texture_format(prim: Usd.Prim) -> bool:
 
 
 #: UsdLux types the render reads (``usd/lights.py``); DomeLight_1 is the current dome.
-_READ_LIGHT_TYPES = (
-    "DistantLight",
-    "SphereLight",
-    "RectLight",
-    "DiskLight",
-    "CylinderLight",
-    "DomeLight",
-    "DomeLight_1",
-)
+_READ_LIGHT_TYPES = READ_LIGHT_TYPE_NAMES
 _AREA_LIGHT_TYPES = ("SphereLight", "RectLight", "DiskLight", "CylinderLight")
 
 

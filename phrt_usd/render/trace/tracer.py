@@ -33,13 +33,14 @@ animated BVH is rebuilt when it moves), shadows are hard (light size ignored).
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
 from phrt_usd.model.frame import GBuffer, ReflectionResult
-from phrt_usd.model.scene import NO_HIT, CameraFrame, Lights, LocalLight, Scene
+from phrt_usd.model.scene import NO_HIT, CameraFrame, Lights, Scene
 from phrt_usd.render.trace.bvh import Bvh
 from phrt_usd.render.trace.hit_surfaces import HitSurfaces
 from phrt_usd.render.trace.paths import PathTracer, refract, unit
@@ -139,10 +140,10 @@ class Tracer:
         ):
             origin = self.bvh.boundary.origin
             local = [
-                LocalLight(np.asarray(li.position, np.float64) - origin, li.radiance, li.radius)
+                dataclasses.replace(li, position=np.asarray(li.position, np.float64) - origin)
                 for li in lights.local
             ]
-            self._relative = Lights(distant=lights.distant, local=local, dome=lights.dome)
+            self._relative = dataclasses.replace(lights, local=local)
             self._lights_key = key
         return self._relative
 
