@@ -100,9 +100,7 @@ def test_full_binding_wins_over_all_purpose(tmp_path):
     api.Bind(mats["Full"], materialPurpose=UsdShade.Tokens.full)
     coll = Usd.CollectionAPI.Apply(stage.GetPrimAtPath("/M"), "prev")
     coll.CreateIncludesRel().AddTarget("/Quad")
-    api.Bind(
-        coll, mats["Preview"], "prev", materialPurpose=UsdShade.Tokens.preview
-    )
+    api.Bind(coll, mats["Preview"], "prev", materialPurpose=UsdShade.Tokens.preview)
     scene = read_stage(stage)
     np.testing.assert_allclose(scene.scene.geometry.corner_albedo[0], [colours["Full"]] * 3)
     settings = UsdRender.Settings.Define(stage, "/Render/Settings")

@@ -65,6 +65,10 @@ def _every_kind(tmp_path) -> str:
     std = UsdShade.Shader.Define(stage, "/World/Looks/Mtlx/Std")
     std.CreateIdAttr("ND_standard_surface_surfaceshader")
     mtlx.CreateSurfaceOutput("mtlx").ConnectToSource(std.ConnectableAPI(), "out")
+    studio = UsdShade.Material.Define(stage, "/World/Looks/Studio")  # a surface not read
+    own = UsdShade.Shader.Define(stage, "/World/Looks/Studio/Own")
+    own.CreateIdAttr("ND_studio_surface_surfaceshader")
+    studio.CreateSurfaceOutput("mtlx").ConnectToSource(own.ConnectableAPI(), "out")
     ri = UsdShade.Material.Define(stage, "/World/Looks/Ri")
     pxr = UsdShade.Shader.Define(stage, "/World/Looks/Ri/Pxr")
     pxr.CreateIdAttr("PxrSurface")
@@ -77,6 +81,14 @@ def _every_kind(tmp_path) -> str:
     bump = UsdShade.Shader.Define(stage, "/World/Looks/Disp/Bump")
     bump.CreateIdAttr("UsdPreviewSurface")
     disp.CreateDisplacementOutput().ConnectToSource(bump.ConnectableAPI(), "displacement")
+    _preview(stage, "/World/Looks/Leaf")  # textured normal and opacity, no threshold
+    leaf = UsdShade.Shader(stage.GetPrimAtPath("/World/Looks/Leaf/Surface"))
+    _texture(stage, "/World/Looks/Leaf/Maps", "leaf.png")
+    maps = UsdShade.Shader(stage.GetPrimAtPath("/World/Looks/Leaf/Maps"))
+    for name, output in (("normal", "rgb"), ("opacity", "a")):
+        leaf.CreateInput(name, Sdf.ValueTypeNames.Float).ConnectToSource(
+            maps.ConnectableAPI(), output
+        )
 
     for name, material in (("Sharp", mirror), ("Blurry", rough), ("Coated", coat)):
         mesh = _quad(stage, f"/World/{name}")
@@ -130,7 +142,8 @@ def _every_kind(tmp_path) -> str:
 
 #: kind → the prim paths the report must list (all, in traversal order).
 EXPECTED = {
-    "materialx_only": ["/World/Looks/Mtlx"],
+    "materialx_base_colour": ["/World/Looks/Mtlx"],
+    "materialx_only": ["/World/Looks/Studio"],
     "other_surface_only": ["/World/Looks/Ri"],
     "subdivided_mesh": ["/World/Rock_1/Shape", "/World/Rock_2/Shape", "/World/Cage"],
     "animated_visibility": ["/World/Blink"],
@@ -141,6 +154,8 @@ EXPECTED = {
     "nurbs_patch": ["/World/Patch"],
     "tet_mesh": ["/World/Tets"],
     "volume": ["/World/Smoke"],
+    "unshaded_texture": ["/World/Looks/Leaf/Surface"],
+    "texture_opacity_opaque": ["/World/Looks/Leaf/Surface"],
     "clearcoat": ["/World/Looks/Coat/Surface"],
     # Sharp has roughness 0; Blurry takes the fallback 0.5; Coated has 0 authored.
     "rough_reflector": ["/World/Blurry"],
@@ -168,7 +183,8 @@ def test_every_kind_is_reported_with_counts_and_paths(tmp_path):
     assert by_kind["subdivided_mesh"]["treatment"] == "approximated: cage"
     assert by_kind["materialx_only"]["treatment"] == "approximated: grey"
     lines = support_lines(rows)
-    assert "1 materials MaterialX-only: approximated: grey (/World/Looks/Mtlx)" in lines
+    assert "1 materials MaterialX: approximated: grey (/World/Looks/Studio)" in lines
+    assert "1 materials MaterialX: approximated: base colour only (/World/Looks/Mtlx)" in lines
 
 
 def test_supported_stage_reports_nothing_and_cli_carries_it(tmp_path):

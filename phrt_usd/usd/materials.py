@@ -386,7 +386,7 @@ class MaterialBank:
         if not (out and out.HasConnectedSource()):
             return
         path = str(material.GetPath())
-        shader = material.ComputeSurfaceSource(["mtlx"])[0]
+        shader = material.ComputeSurfaceSource("mtlx")[0]
         ident = str(shader.GetIdAttr().Get() or "") if shader else ""
         spec = MATERIALX_BASE_COLOUR.get(ident)
         if spec is None:

@@ -24,6 +24,7 @@ from pxr import Ar, Usd, UsdGeom, UsdLux, UsdShade, UsdSkel, UsdVol
 
 from phrt_usd.usd import schema
 from phrt_usd.usd.lights import READ_LIGHT_TYPE_NAMES
+from phrt_usd.usd.materials import MATERIALX_BASE_COLOUR
 from phrt_usd.usd.meshes import is_subdivided
 
 #: Prim paths listed per kind (the count is always complete).
@@ -65,6 +66,22 @@ def _materialx_only(prim: Usd.Prim) -> bool:
     return bool(out and out.HasConnectedSource())
 
 
+def _materialx_surface_id(prim: Usd.Prim) -> str:
+    """The shader id of a MaterialX-only material's ``mtlx`` surface ("" if none)."""
+    shader = UsdShade.Material(prim).ComputeSurfaceSource("mtlx")[0]
+    return str(shader.GetIdAttr().Get() or "") if shader else ""
+
+
+def _materialx_base_colour(prim: Usd.Prim) -> bool:
+    """MaterialX-only, of a surface whose base colour ``usd/materials.py`` reads."""
+    return _materialx_only(prim) and _materialx_surface_id(prim) in MATERIALX_BASE_COLOUR
+
+
+def _materialx_grey(prim: Usd.Prim) -> bool:
+    """MaterialX-only, of a surface ``usd/materials.py`` does not read (grey)."""
+    return _materialx_only(prim) and _materialx_surface_id(prim) not in MATERIALX_BASE_COLOUR
+
+
 def _other_surface_only(prim: Usd.Prim) -> bool:
     """A material with a surface of some other render context only (``ri``, ``arnold``,
     a non-preview universal shader) and no MaterialX surface."""
@@ -90,6 +107,26 @@ def _preview_input(prim: Usd.Prim, name: str):
     if inp.HasConnectedSource():
         return None, True
     return (inp.Get() if inp.GetAttr().HasAuthoredValue() else None), False
+
+
+#: UsdPreviewSurface inputs a texture may feed that the shading does not use
+#: (``usd/materials.py`` reads ``TEXTURED_INPUTS`` only).
+_UNSHADED_INPUTS = (
+    "normal", "occlusion", "metallic", "roughness", "specularColor", "clearcoat",
+    "clearcoatRoughness", "ior",
+)  # fmt: skip
+
+
+def _unshaded_texture(prim: Usd.Prim) -> bool:
+    return any(_preview_input(prim, name)[1] for name in _UNSHADED_INPUTS)
+
+
+def _texture_opacity_without_threshold(prim: Usd.Prim) -> bool:
+    """A textured opacity with opacityThreshold 0: not a cut-out, drawn opaque."""
+    if not _preview_input(prim, "opacity")[1]:
+        return False
+    value, connected = _preview_input(prim, "opacityThreshold")
+    return not connected and (value is None or float(value) <= 0.0)
 
 
 def _clearcoat(prim: Usd.Prim) -> bool:
@@ -215,10 +252,17 @@ def _of_types(*types) -> Callable[[Usd.Prim], bool]:
 #: What the render does not read as USD defines it, one row per kind (module doc).
 KINDS: tuple[SupportKind, ...] = (
     SupportKind(
-        "materialx_only", "materials MaterialX-only", "approximated: grey",
-        "the render reads UsdPreviewSurface only (usd/materials.py); a material whose "
-        "only surface is a MaterialX one renders as the default grey material",
-        _materialx_only,
+        "materialx_base_colour", "materials MaterialX", "approximated: base colour only",
+        "a MaterialX-only material (ND_standard_surface, ND_open_pbr_surface, "
+        "ND_UsdPreviewSurface) renders its base colour and a plain image on it "
+        "(usd/materials.py MATERIALX_BASE_COLOUR); the rest of the surface is not read",
+        _materialx_base_colour,
+    ),
+    SupportKind(
+        "materialx_only", "materials MaterialX", "approximated: grey",
+        "a MaterialX-only material of another surface shader renders as the default "
+        "grey material (usd/materials.py reads the base colour of MATERIALX_BASE_COLOUR)",
+        _materialx_grey,
     ),
     SupportKind(
         "other_surface_only", "materials without a UsdPreviewSurface", "approximated: grey",
@@ -273,6 +317,20 @@ KINDS: tuple[SupportKind, ...] = (
     SupportKind(
         "volume", "volumes (UsdVolVolume)", IGNORED,
         "no volume rendering", _of_types(UsdVol.Volume),
+    ),
+    SupportKind(
+        "unshaded_texture", "UsdPreviewSurface shaders with textured inputs the shading "
+        "does not use (normal, occlusion, metallic, roughness, ...)", IGNORED,
+        "the shading model (render/shading.py) uses diffuse, emission and cut-out "
+        "opacity; normal maps (no tangents), occlusion and metallic have no term in it",
+        _unshaded_texture,
+    ),
+    SupportKind(
+        "texture_opacity_opaque", "UsdPreviewSurface shaders with a textured opacity "
+        "and no opacityThreshold", "approximated: opaque",
+        "texture alpha is read as a cut-out mask (opacityThreshold > 0); without a "
+        "threshold the surface is drawn opaque, not blended",
+        _texture_opacity_without_threshold,
     ),
     SupportKind(
         "clearcoat", "UsdPreviewSurface shaders with clearcoat", "approximated: no clearcoat",
@@ -353,7 +411,7 @@ def support_report(stage: Usd.Stage) -> list[dict]:
 
 
 def support_lines(rows: list[dict]) -> list[str]:
-    """One line per row: ``4 materials MaterialX-only: approximated: grey (/a, /b, ...)``."""
+    """One line per row: ``4 materials MaterialX: approximated: grey (/a, /b, ...)``."""
     lines = []
     for row in rows:
         more = ", ..." if row["count"] > len(row["paths"]) else ""
