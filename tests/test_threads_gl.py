@@ -116,11 +116,11 @@ def test_threads_reach_openblas_numba_and_the_environment():
 
 def test_threads_and_gl_end_to_end(stage, tmp_path):
     """API (OSMesa, 1 thread) and CLI (EGL when this machine has a working EGL device,
-    2 threads) render the same raster frame: the settings are recorded in the summary
-    and stats.json, llvmpipe runs as many render threads as asked (counted in the
-    process), a raster render builds no BVH (phrt's Embree module is never loaded; pyrender's
-trimesh imports embreex itself), and EGL's pixels equal
-    OSMesa's exactly (both are Mesa's llvmpipe here: same rasterizer, same shaders)."""
+        2 threads) render the same raster frame: the settings are recorded in the summary
+        and stats.json, llvmpipe runs as many render threads as asked (counted in the
+        process), a raster render builds no BVH (phrt's Embree module is never loaded; pyrender's
+    trimesh imports embreex itself), and EGL's pixels equal
+        OSMesa's exactly (both are Mesa's llvmpipe here: same rasterizer, same shaders)."""
     api_out = tmp_path / "api"
     done = _python(f"""
         import json, sys
