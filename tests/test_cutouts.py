@@ -201,3 +201,24 @@ def test_no_threshold_means_opaque(tmp_path):
     assert out.gbuffer.element_id[_pixel(camera, (-0.5, 0.0, 0.0))] == 1
     scene = read_stage(stage)
     assert not scene.scene.materials.has_transmission
+
+
+def test_id_layers_give_the_id_pass_ids(tmp_path):
+    """shaders/peel.frag keeps flat.frag's id encoding (declared "keep in step"): a
+    cut-out scene without holes (alpha 1 everywhere) draws its first layer through
+    cutout_layers.IdLayers, the same scene without opacityThreshold through the id
+    pass; every pixel's triangle id is the same (exact integers)."""
+    from phrt_usd.render.raster.rasterizer import Rasterizer
+
+    ids = {}
+    for threshold in (0.5, 0.0):
+        directory = tmp_path / f"t{threshold}"
+        directory.mkdir()
+        stage = _stage(directory, threshold=threshold)
+        _image(directory / "half_alpha.png", np.ones((8, 8, 4)))  # no holes
+        scene = read_stage(stage)
+        assert bool(scene.scene.materials.cutouts) == (threshold > 0)
+        with Rasterizer(scene.scene, WIDTH, HEIGHT) as raster:
+            ids[threshold] = raster.render(scene.camera(scene.frame_range[0])).triangle_id
+    assert set(np.unique(ids[0.5])) == {-1, 0, 1, 2, 3}  # background, wall and quad
+    np.testing.assert_array_equal(ids[0.5], ids[0.0])
