@@ -206,9 +206,16 @@ def run_alternate(args: argparse.Namespace) -> None:
 def import_cvvdp() -> types.ModuleType:
     """pycvvdp, importing torchvision without its C-op registrations if the plain import
     fails (see ``TORCHVISION_OP_REGISTRATIONS``); one line and exit 2 if not importable."""
+    hint = "run this step under a separate venv with torch (CPU) and cvvdp, docs/temporal-error.md"
+    try:
+        import torch  # noqa: F401
+    except Exception as exc:  # ImportError, or a torch that fails to load
+        fail(f"cannot import torch for cvvdp ({type(exc).__name__}: {exc}); {hint}")
     try:
         import torchvision  # noqa: F401
-    except Exception:  # any failure (RuntimeError from the op registrations): retry
+    except ModuleNotFoundError:
+        pass  # the pycvvdp import below fails and says so
+    except Exception:  # RuntimeError from the op registrations: retry without them
         for name in [n for n in sys.modules if n.split(".")[0] == "torchvision"]:
             del sys.modules[name]
         for name in TORCHVISION_OP_REGISTRATIONS:
@@ -217,9 +224,8 @@ def import_cvvdp() -> types.ModuleType:
               "without them (cvvdp uses only its GaussianBlur)", file=sys.stderr)
     try:
         import pycvvdp
-    except Exception as exc:  # ImportError, or torch/torchvision failing to load
-        fail(f"cannot import cvvdp ({type(exc).__name__}: {exc}); run this step under a "
-             "separate venv with torch (CPU) and cvvdp, see docs/temporal-error.md")
+    except Exception as exc:  # ImportError, or torchvision failing to load
+        fail(f"cannot import cvvdp ({type(exc).__name__}: {exc}); {hint}")
     return pycvvdp
 
 

@@ -1,0 +1,96 @@
+"""tools/cvvdp_check.py without cvvdp: its Spearman helper, its one-line failure when
+cvvdp is not importable (the project's env has no torch), and its ``alternate`` and
+``ours`` steps on two render outputs made here.
+
+The outputs: 4 frames of 32 x 24 of a still scene (a grey gradient) with one reflector
+patch (rows 6-17, columns 8-23) that two reflectors /A and /B share; ``all`` draws the
+patch at 0.8 (traced), ``none`` at 0.2 (raster fallback). Both reflectors are visible in
+every frame, ``all`` selects both, ``none`` neither. So, exactly: ``none``'s error is the
+same in every frame and its temporal error is 0 (steady error on a still reference), and
+the alternating sequence (all, none, all, none) has half its per-frame FLIP (two frames
+exact, two equal to ``none``'s), a positive temporal error, and 2 reflectors x 3 switches
+= 6 transitions.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from phrt_usd.run.images import write_frame_exr, write_preview_png
+
+TOOLS = Path(__file__).resolve().parents[1] / "tools"
+sys.path.insert(0, str(TOOLS))
+import cvvdp_check  # noqa: E402
+
+W, H, FRAMES = 32, 24, 4
+REFLECTORS = ["/A", "/B"]
+
+
+def _render_dir(root: Path, name: str, patch: float, heuristic: str) -> Path:
+    out = root / name
+    (out / "frames").mkdir(parents=True)
+    beauty = np.repeat(np.linspace(0.1, 0.6, W, dtype=np.float32)[None, :, None], H, 0)
+    beauty = np.repeat(beauty, 3, axis=2)
+    beauty[6:18, 8:24] = patch
+    ids = np.full((H, W), -1, dtype=np.int32)
+    ids[6:18, 8:24] = 0
+    frames = []
+    for f in range(FRAMES):
+        stem = f"{241 + f:04d}"
+        write_frame_exr(out / "frames" / f"{stem}.exr", beauty, np.ones((H, W)),
+                        np.full((H, W), 2.0), ids, ids >= 0)
+        write_preview_png(out / "frames" / f"{stem}.png", beauty)
+        frames.append({"frame_ms": 10.0, "rays": 100 if heuristic == "all" else 0,
+                       "visible": REFLECTORS,
+                       "selected": REFLECTORS if heuristic == "all" else []})
+    run = {"stage": "synthetic.usda", "heuristic": heuristic, "budget_ms": None,
+           "budget_rays": None, "resolution": [W, H], "frame_range": [241.0, 244.0],
+           "time_codes_per_second": 24.0, "reflectors": REFLECTORS}
+    (out / "stats.json").write_text(json.dumps({"run": run, "frames": frames}))
+    return out
+
+
+def test_spearman_ranks_ties_and_undefined():
+    assert cvvdp_check.spearman([1, 2, 3, 4], [10, 20, 30, 40]) == pytest.approx(1.0)
+    assert cvvdp_check.spearman([1, 2, 3, 4], [4, 3, 2, 1]) == pytest.approx(-1.0)
+    # ties share their mean rank: ranks (1, 2.5, 2.5, 4) against (1, 2, 3, 4) give
+    # 4.5 / sqrt(4.5 * 5) (centred ranks), computed by hand
+    assert cvvdp_check.spearman([1, 2, 2, 3], [1, 2, 3, 4]) == pytest.approx(
+        4.5 / np.sqrt(22.5), abs=1e-12)
+    assert cvvdp_check.spearman([1, 1, 1], [1, 2, 3]) is None  # constant sample
+    assert cvvdp_check.spearman([1, 2], [1, 2]) is None  # too few values
+
+
+def test_cvvdp_step_without_cvvdp_fails_with_one_line(tmp_path):
+    ours = tmp_path / "ours.json"
+    ours.write_text("{}")
+    done = subprocess.run([sys.executable, str(TOOLS / "cvvdp_check.py"), "cvvdp", str(ours)],
+                          capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1 and "cannot import" in lines[0], done.stderr
+
+
+def test_alternate_and_ours_on_synthetic_outputs(tmp_path):
+    ref = _render_dir(tmp_path, "all", 0.8, "all")
+    none = _render_dir(tmp_path, "none", 0.2, "none")
+    alt = tmp_path / "alt"
+    cvvdp_check.main(["alternate", str(ref), str(none), "--out", str(alt)])
+    out = tmp_path / "ours.json"
+    cvvdp_check.main(["ours", str(ref), str(ref), str(none), str(alt), "--out", str(out)])
+    result = json.loads(out.read_text())
+    assert result["frames_per_second"] == 24.0
+    same, steady, popping = result["configs"]
+    assert same["flip"] == 0.0 and same["temporal_error"] == 0.0 and same["transitions"] == 0
+    assert steady["flip"] > 0.0 and steady["temporal_error"] == 0.0
+    assert steady["transitions"] == 0
+    assert popping["flip"] == pytest.approx(steady["flip"] / 2, rel=1e-6)
+    # a 0.2 -> 0.8 switch of a quarter of the frame: its FLIP is far above float noise
+    assert popping["temporal_error"] > 0.01
+    assert popping["transitions"] == len(REFLECTORS) * (FRAMES - 1)
