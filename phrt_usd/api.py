@@ -502,6 +502,7 @@ def render(
     *,
     settings: str | None = None,
     on_frame: OnFrame | None = None,
+    exposure: float = 0.0,
     **options: Any,
 ) -> RenderResult:
     """Render the stage's frames into ``out`` (default: a new temporary directory the
@@ -509,7 +510,9 @@ def render(
 
     ``stage_or_path``: a stage file or an open ``Usd.Stage`` (rendered as it is in memory,
     unsaved edits included). ``frames``: see ``FramesInput``. ``settings``: the
-    RenderSettings prim to read. ``options``: see the module docstring.
+    RenderSettings prim to read. ``exposure``: EV, every image's radiance x 2**exposure
+    before it is written (``--exposure``; |EV| > 40 clamped, with a warning).
+    ``options``: see the module docstring.
     Raises ``BadOption`` for bad options, ``PhrtError`` (one line) for an unreadable
     stage, a busy or non-empty ``out`` (unless ``resume`` / ``overwrite``) or a failed
     frame, ``RenderInterrupted`` after SIGINT / SIGTERM."""
@@ -523,7 +526,9 @@ def render(
         temporary = tempfile.TemporaryDirectory(prefix="phrt-render-")
         out = temporary.name
     try:
-        job, scene = render_job(stage_or_path, out, frames, settings=settings, **options)
+        job, scene = render_job(
+            stage_or_path, out, frames, settings=settings, exposure=exposure, **options
+        )
         record = render_to_directory(job, on_frame, scene)
         summary = summary_of(record)
     except BaseException:
