@@ -84,6 +84,23 @@ def test_bad_thread_and_gl_values_are_one_line_exit_2(stage, tmp_path, args, nee
     assert not (tmp_path / "o").exists()  # refused before anything was written
 
 
+@pytest.mark.parametrize(
+    ("args", "needle"),
+    [
+        (["--threads", "0"], "--threads must be in 1..1024, got 0"),
+        (["--gl", "metal"], "gl must be one of auto, egl, osmesa, got 'metal'"),
+    ],
+)
+def test_sweep_bad_thread_and_gl_values_are_one_line_exit_2(stage, tmp_path, args, needle):
+    out = tmp_path / "sweep"
+    argv = ["sweep", str(stage), "--budgets-rays", "100", "--out", str(out), *args]
+    result = CliRunner().invoke(app, argv)
+    assert result.exit_code == 2
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: ") and needle in lines[0], lines
+    assert not out.exists()
+
+
 @pytest.mark.parametrize("value", [0, -1, 1.5, True, "2", 2000])
 def test_api_threads_bad_values(stage, value):
     from pxr import Usd
