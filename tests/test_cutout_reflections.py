@@ -1,6 +1,8 @@
-"""Reflected rays pass cut-out holes as primary rays do (HitSurfaces.intersect in the
-bounce loop): a mirror seen by the camera reflects the cut-out quad of
-``test_cutouts`` placed behind the camera, and beyond the quad's cut half the wall.
+"""Cut-outs beyond the camera's own rays: reflected rays pass holes as primary rays do
+(HitSurfaces.intersect in the bounce loop), and a local light's cube shadow maps are
+peeled like the distant maps (the last test). A mirror seen by the camera reflects the
+cut-out quad of ``test_cutouts`` placed behind the camera, and beyond the quad's cut half
+the wall.
 
 Geometry (metres): camera at z = 5 looking down -z; a mirror (PhrtReflectorAPI, F = 1)
 at z = -1; the cut-out quad (2 m, red, alpha 0 for x < 0) at z = 6 and the blue wall at
@@ -76,3 +78,34 @@ def test_the_mirror_shows_the_wall_through_the_cut_half(tmp_path, mode):
     # quad's red where it is there (each channel over twice the others).
     assert b[hole][2] > 2 * max(b[hole][0], b[hole][1]), b[hole]
     assert b[solid][0] > 2 * max(b[solid][1], b[solid][2]), b[solid]
+
+
+def test_a_local_light_shines_through_the_cut_half_in_raster(tmp_path):
+    """The cube shadow maps of a SphereLight are peeled like the distant maps: the
+    test_cutouts stage lit by a small SphereLight at (0, 0, 1) instead of the sun. Wall
+    point (-0.5, 0, -1), seen through the hole, reaches the light through the quad's
+    plane at x = -0.25 (cut half): lit exactly as with no quad; wall point (1.5, 0, -1),
+    beside the quad from the camera, crosses at x = 0.75 (present half): shadowed."""
+    from test_cutouts import _pixel, _render
+    from test_cutouts import _stage as cutout_stage
+
+    def lit_by_bulb(stage):
+        stage.RemovePrim("/Sun")
+        bulb = UsdLux.SphereLight.Define(stage, "/Bulb")
+        bulb.CreateRadiusAttr(0.01)
+        bulb.CreateIntensityAttr(1.0)
+        bulb.AddTranslateOp().Set((0.0, 0.0, 1.0))
+        stage.GetRootLayer().Save()
+        return stage
+
+    (tmp_path / "cut").mkdir()
+    (tmp_path / "bare").mkdir()
+    cut = lit_by_bulb(cutout_stage(tmp_path / "cut"))
+    bare = lit_by_bulb(cutout_stage(tmp_path / "bare"))
+    UsdGeom.Imageable(bare.GetPrimAtPath("/Quad")).MakeInvisible()
+    out, camera = _render(cut, "raster")
+    ref, _ = _render(bare, "raster")
+    through = _pixel(camera, (-0.5, 0.0, -1.0))
+    np.testing.assert_allclose(out.beauty[through], ref.beauty[through], rtol=1e-5)
+    shadowed = _pixel(camera, (1.5, 0.0, -1.0))
+    assert out.beauty[shadowed][2] < 0.5 * ref.beauty[shadowed][2]

@@ -36,7 +36,8 @@ class HitSurfaces:
 
     tri_reflector : (T,) bool; tri_f : (T,) float64 reflectivity F (0 for
     non-reflectors); transmission : the stage has transmissive materials;
-    opacity, ior : (M,) float64 per material (clamped to [0, 1] / ≥ ``MIN_IOR``).
+    opacity, ior : (M,) float64 per material (clamped to [0, 1] / ≥ ``MIN_IOR``; cut-out
+    rows opaque: their opacity is a presence mask, ``Cutouts``).
     """
 
     def __init__(self, scene: Scene, bvh: Bvh) -> None:
@@ -51,6 +52,8 @@ class HitSurfaces:
         self.tri_f = np.where(self.tri_reflector, reflectivity[tri_element], 0.0)
         self.transmission = mats.has_transmission
         self.opacity = np.clip(np.asarray(mats.opacity, dtype=np.float64), 0.0, 1.0)
+        # A cut-out's opacity is a presence mask: where it is there it is opaque.
+        self.opacity[[m for m in mats.cutouts if m < len(self.opacity)]] = 1.0
         self.ior = np.maximum(np.asarray(mats.ior, dtype=np.float64), MIN_IOR)
         emissive = np.asarray(mats.emissive, dtype=np.float32).reshape(-1, 3)
         self._textured_emission = surface.has_texture_input(mats, "emissiveColor")
