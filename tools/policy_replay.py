@@ -1,4 +1,4 @@
-"""Replay selection policies offline on a recorded camera path (rays budgets only).
+"""Replay selection policies offline on a recorded camera path (rays or simulated time budgets).
 
 With a rays budget a policy's choices depend only on what the renderer shows it: each
 frame's ``FrameView`` (pixel counts, screen boxes, camera) and, for each reflector it
@@ -14,6 +14,14 @@ HEU2 gives the same transitions and mean selected as real ``paper_tables`` runs.
         [--frames A:B:STEP] [--images runs/replay/farm.npz]
     uv run python tools/policy_replay.py replay runs/replay/farm.json.gz \
         --budgets 500,1000,2000,4000 [--heuristics heu1,heu2] [--images runs/replay/farm.npz]
+
+``--budgets-ms 10,16`` replays time budgets T instead: each round takes a synthetic time
+(``SimulatedTime``: the least-squares line of the capture's own ``all`` rounds, or
+``--overhead-ms`` / ``--ms-per-ray``, times seeded lognormal ``--jitter``), the policy is
+calibrated on the first frame with visible reflectors as the renderer does it, and
+``budget use`` is trace ms / T as in ``stats.json`` (with a rays budget: traced rays /
+budget), over the frames with visible reflectors. Deterministic for a given seed, but
+only as right as the line: real rounds on a loaded machine vary more.
 
 ``capture`` renders the stage's full camera path (or ``--frames``) once (hybrid, ``all``,
 unbounded; 320x240 unless told; no image files, but with ``--images`` the frames' raster
@@ -46,7 +54,7 @@ import math
 import sys
 import zipfile
 import zlib
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -58,7 +66,12 @@ from phrt_usd.evaluate.image_metrics import flip_map
 from phrt_usd.evaluate.selection_metrics import admissions_and_drops, selection_metrics
 from phrt_usd.model.frame import Budget, FrameView, TraceRecord
 from phrt_usd.model.scene import CameraFrame, DistantLight, LocalLight
-from phrt_usd.render.renderer import FrameRenderer, RenderOptions
+from phrt_usd.render.renderer import (
+    CALIBRATION_PIXELS,
+    CALIBRATION_REPEATS,
+    FrameRenderer,
+    RenderOptions,
+)
 from phrt_usd.run.frames import parse_frames
 from phrt_usd.select.policies import UPCOMING_CAMERAS, AllPolicy, make_policy
 from phrt_usd.usd.schema import read_render_params
@@ -151,8 +164,9 @@ def capture(
 
 #: The ``format`` and ``version`` a recording file names; any other is refused.
 RECORDING_FORMAT = "phrt-replay-recording"
-#: 3: TraceRecord.fallback_error; 2: CameraFrame's vertical aperture, offsets, conform policy.
-RECORDING_VERSION = 3
+#: 4: CameraFrame.exposure_scale, the lights' path and LocalLight's cone; 3:
+#: TraceRecord.fallback_error; 2: CameraFrame's vertical aperture, offsets, conform policy.
+RECORDING_VERSION = 4
 
 
 class RecordingError(PhrtError):
@@ -202,6 +216,7 @@ _SCHEMAS: dict[type, dict[str, object]] = {
         "conform_policy": str,
         "pixel_aspect": float,
         "data_window": _Tuple(float),
+        "exposure_scale": float,
     },
     FrameView: {
         "time": float,
@@ -222,8 +237,17 @@ _SCHEMAS: dict[type, dict[str, object]] = {
         "seconds": float,
         "fallback_error": _Optional(float),
     },
-    DistantLight: {"direction": _VEC3, "radiance": _VEC3, "angle": float},
-    LocalLight: {"position": _VEC3, "radiance": _VEC3, "radius": float},
+    DistantLight: {"direction": _VEC3, "radiance": _VEC3, "angle": float, "path": str},
+    LocalLight: {
+        "position": _VEC3,
+        "radiance": _VEC3,
+        "radius": float,
+        "path": str,
+        "axis": _VEC3,
+        "cone_angle": float,
+        "cone_softness": float,
+        "focus": float,
+    },
 }
 
 #: A frame's elements (``_CapturePolicy``) as one table of columns, name → kind; element
@@ -614,17 +638,73 @@ def mean_flip(images, selected: np.ndarray, reflectors: list[int]) -> float:
     return float(np.mean(errors))
 
 
+@dataclass(frozen=True)
+class SimulatedTime:
+    """A synthetic trace round time for time-budgeted replays: ``(overhead_ms +
+    ms_per_ray * rays) * lognormal(0, jitter)``, drawn from a generator seeded with
+    ``seed`` (so a replay is deterministic). ``fit_time`` gives this machine's line from
+    a capture's own ``all`` rounds."""
+
+    overhead_ms: float
+    ms_per_ray: float
+    jitter: float = 0.1
+    seed: int = 0
+
+    def round_ms(self, rays: int, rng: np.random.Generator) -> float:
+        return (self.overhead_ms + self.ms_per_ray * rays) * float(rng.lognormal(0.0, self.jitter))
+
+
+def fit_time(data: dict, jitter: float = 0.1, seed: int = 0) -> SimulatedTime:
+    """The least-squares line (ms against rays) through the capture's rounds (one
+    ``all`` round per frame with visible reflectors: the sum of its records' seconds),
+    with a fixed cost >= 0 and a cost per ray > 0."""
+    pts = [
+        (sum(r.rays for r in recs), 1000.0 * sum(r.seconds for r in recs))
+        for recs in (list(f.records.values()) for f in data["frames"])
+        if recs
+    ]
+    if len(pts) < 2:
+        raise RecordingError("the recording has fewer than two traced frames: no time line")
+    x, y = np.array(pts, dtype=np.float64).T
+    slope, intercept = np.polyfit(x, y, 1)
+    if not slope > 0.0:
+        slope, intercept = float(np.sum(y) / max(np.sum(x), 1.0)), 0.0
+    return SimulatedTime(max(float(intercept), 0.0), float(slope), jitter, seed)
+
+
+def _calibrate(policy, frame, sim: SimulatedTime, rng: np.random.Generator) -> None:
+    """What ``FrameRenderer._calibrate`` hands the policy on the first time-budgeted frame
+    with visible reflectors: timed rounds of 64 and 512 pixels at that frame's mean rays
+    per pixel (the fastest of three each, as the renderer takes)."""
+    records = list(frame.records.values())
+    rpp = sum(r.rays for r in records) / max(sum(r.pixels for r in records), 1)
+    samples = []
+    for n in CALIBRATION_PIXELS:
+        rays = int(round(n * rpp))
+        samples.append((rays, min(sim.round_ms(rays, rng) for _ in range(CALIBRATION_REPEATS))))
+    pixels = sum(CALIBRATION_PIXELS) * CALIBRATION_REPEATS
+    policy.calibrate(samples, int(round(pixels * rpp)), pixels)
+
+
 def replay(
     data: dict,
     heuristic: str,
-    budget_rays: int,
+    budget_rays: int | None,
     selection_weight: float | None = None,
     lookahead: bool = True,
+    budget_ms: float | None = None,
+    sim: SimulatedTime | None = None,
+    trace_ms: list | None = None,
 ):
     """Run ``heuristic`` over the recorded frames with a rays budget, the way
     ``FrameRenderer.finish`` does; with ``lookahead`` each view gets the next recorded
     frames' cameras as ``upcoming_cameras``, as a render of the whole path does. Returns
-    (selected, visible): (F, R) bool arrays over the recorded reflectors, in frame order."""
+    (selected, visible): (F, R) bool arrays over the recorded reflectors, in frame order.
+
+    With ``budget_ms`` (and ``budget_rays`` None) the budget is a time T per frame and
+    rounds take ``sim``'s synthetic time (calibrated on the first frame with visible
+    reflectors, as the renderer does); ``trace_ms``, if given, receives each frame's
+    simulated trace time."""
     weight = data["selection_weight"] if selection_weight is None else selection_weight
     policy = make_policy(heuristic, selection_weight=weight, bounce_limit=data["bounce_limit"])
     refl = data["reflectors"]
@@ -632,23 +712,37 @@ def replay(
     selected = np.zeros((len(data["frames"]), len(refl)), dtype=bool)
     visible = np.zeros_like(selected)
     frames = data["frames"]
+    timed = budget_ms is not None
+    if timed and (sim is None or budget_rays is not None):
+        raise ValueError("a time-budgeted replay needs sim and no rays budget")
+    rng = np.random.default_rng(sim.seed if sim is not None else 0)
+    calibrated = False
     for f, frame in enumerate(frames):
         scene = SimpleNamespace(elements=frame.elements, lights=data["lights"])
         counts = frame.view.pixel_counts
         ahead = frames[f + 1 : f + 1 + UPCOMING_CAMERAS] if lookahead else []
         view = replace(frame.view, upcoming_cameras=tuple(g.view.camera for g in ahead))
+        if timed and not calibrated and frame.records:
+            _calibrate(policy, frame, sim, rng)
+            calibrated = True
         policy.begin_frame(view, scene)
-        rays, chosen = 0, []
-        while budget_rays - rays > 0:
-            ids = policy.next_round(Budget(rays=budget_rays - rays))
+        rays, chosen, elapsed = 0, [], 0.0
+        while (budget_ms - elapsed > 0) if timed else (budget_rays - rays > 0):
+            budget = Budget(ms=budget_ms - elapsed) if timed else Budget(rays=budget_rays - rays)
+            ids = policy.next_round(budget)
             ids = [i for i in ids if counts[i] > 0 and i not in chosen]
             if not ids:
                 break
             records = [frame.records[i] for i in ids]
-            rays += sum(r.rays for r in records)
+            round_rays = sum(r.rays for r in records)
+            rays += round_rays
             chosen.extend(ids)
-            policy.record(records, 1e-6 * sum(r.rays for r in records))
+            ms = sim.round_ms(round_rays, rng) if timed else 1e-3 * round_rays
+            elapsed += ms
+            policy.record(records, ms / 1000.0)
         policy.end_frame()
+        if trace_ms is not None:
+            trace_ms.append(elapsed)
         for e in chosen:
             selected[f, column[e]] = True
         for e in refl:
@@ -699,7 +793,14 @@ def main(argv: list[str] | None = None) -> int:
     cap.add_argument("--images", type=Path, default=None, help="also write images (.npz)")
     rep = sub.add_parser("replay")
     rep.add_argument("recording", type=Path)
-    rep.add_argument("--budgets", required=True, help="comma list of rays budgets")
+    rep.add_argument("--budgets", default="", help="comma list of rays budgets")
+    rep.add_argument(
+        "--budgets-ms", default="", help="comma list of time budgets T (ms), simulated time"
+    )
+    rep.add_argument("--overhead-ms", type=float, default=None, help="simulated round: fixed ms")
+    rep.add_argument("--ms-per-ray", type=float, default=None, help="simulated round: ms per ray")
+    rep.add_argument("--jitter", type=float, default=0.1, help="lognormal sigma of round times")
+    rep.add_argument("--seed", type=int, default=0)
     rep.add_argument("--heuristics", default="heu1,heu2")
     rep.add_argument("--selection-weight", type=float, default=None)
     rep.add_argument("--no-lookahead", action="store_true", help="views without upcoming cameras")
@@ -711,33 +812,74 @@ def main(argv: list[str] | None = None) -> int:
             return 0
         data = load_recording(args.recording)
         images = load_images(args.images, len(data["frames"])) if args.images else None
+        sim = fit_time(data, args.jitter, args.seed) if args.budgets_ms else None
     except PhrtError as error:
         print(f"policy_replay: {error}", file=sys.stderr)
         return 1
+    if sim is not None:
+        sim = SimulatedTime(
+            sim.overhead_ms if args.overhead_ms is None else args.overhead_ms,
+            sim.ms_per_ray if args.ms_per_ray is None else args.ms_per_ray,
+            args.jitter,
+            args.seed,
+        )
+        print(
+            f"simulated round: ({sim.overhead_ms:.3f} ms + {sim.ms_per_ray * 1e3:.4f} us/ray"
+            f" x rays) x lognormal(0, {sim.jitter}), seed {sim.seed}"
+        )
     heuristics = [h.strip() for h in args.heuristics.split(",") if h.strip()]
+    budgets = [("rays", int(b)) for b in args.budgets.split(",") if b.strip()]
+    budgets += [("ms", float(b)) for b in args.budgets_ms.split(",") if b.strip()]
+    if not budgets:
+        print("policy_replay: give --budgets and/or --budgets-ms", file=sys.stderr)
+        return 2
     print(
         "| budget | heuristic | transitions (adm + drop) | entered selected | mean selected "
-        "| mean rays | mean FLIP |"
+        "| mean rays | budget use | mean FLIP |"
     )
-    print("|---|---|---|---|---|---|---|")
-    for budget in (int(b) for b in args.budgets.split(",")):
+    print("|---|---|---|---|---|---|---|---|")
+    for kind, budget in budgets:
         out = {}
+        label = f"{budget} rays" if kind == "rays" else f"{budget:g} ms"
         for h in heuristics:
             lookahead = not args.no_lookahead
-            selected, visible = replay(data, h, budget, args.selection_weight, lookahead=lookahead)
+            times: list[float] = []
+            selected, visible = replay(
+                data, h, budget if kind == "rays" else None, args.selection_weight,
+                lookahead=lookahead, budget_ms=budget if kind == "ms" else None, sim=sim,
+                trace_ms=times,
+            )  # fmt: skip
             out[h] = c = transition_counts(selected, visible)
             flip = (
                 "" if images is None else f"{mean_flip(images, selected, data['reflectors']):.5f}"
             )
+            use = budget_use(data, selected, visible, budget, times if kind == "ms" else None)
             print(
-                f"| {budget} | {h} | {c['transitions']} ({c['admissions']} + {c['drops']}) "
+                f"| {label} | {h} | {c['transitions']} ({c['admissions']} + {c['drops']}) "
                 f"| {c['entered_selected']} | {c['mean_selected']:.2f} "
-                f"| {mean_rays(data, selected):.0f} | {flip} |"
+                f"| {mean_rays(data, selected):.0f} | {use:.3f} | {flip} |"
             )
         if "heu1" in out and "heu2" in out and out["heu2"]["transitions"]:
             pct = 100.0 * out["heu1"]["transitions"] / out["heu2"]["transitions"]
-            print(f"| {budget} | heu1/heu2 | {pct:.1f} % | | | | |")
+            print(f"| {label} | heu1/heu2 | {pct:.1f} % | | | | | |")
     return 0
+
+
+def budget_use(data: dict, selected: np.ndarray, visible: np.ndarray, budget, times=None) -> float:
+    """Mean over the frames with visible reflectors of the share of the budget spent:
+    traced rays / the rays budget, or (``times``: each frame's trace ms) trace ms / T,
+    as ``stats.json``'s ``budget_use``."""
+    seen = visible.any(axis=1)
+    if not seen.any():
+        return float("nan")
+    if times is not None:
+        return float(np.mean(np.asarray(times)[seen] / budget))
+    refl = data["reflectors"]
+    spent = [
+        sum(frame.records[refl[r]].rays for r in np.flatnonzero(row))
+        for frame, row in zip(data["frames"], selected, strict=True)
+    ]
+    return float(np.mean(np.asarray(spent, dtype=np.float64)[seen] / budget))
 
 
 if __name__ == "__main__":

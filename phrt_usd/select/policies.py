@@ -109,7 +109,8 @@ class _FrameState:
     #: Why the first round selected nothing while reflectors were visible (numbers in it).
     untraced_reason: str | None = None
     first_allowance: float | None = None  # the first round's budget in rays (HEU1 margin)
-    forecast_used: float = 0.0  # HEU1: forecasts of this frame's selection, summed
+    #: HEU1: forecasts of this frame's selection, summed (a number, or per lookahead frame).
+    forecast_used: float | np.ndarray = 0.0
     unfit_claims: set[int] = field(default_factory=set)  # HEU1: kept, claimed, did not fit
     #: ``predicted_rays`` per element as of the last recorded round (it changes only when
     #: ``record`` learns rays per pixel; every round asks for it per candidate).
@@ -156,7 +157,14 @@ class BudgetedPolicy(ABC):
     #: Attributes that are caches or the frame in progress, not memory across frames:
     #: left out of ``memory()`` and rebuilt on demand after ``restore_memory``.
     CACHE_ATTRIBUTES = frozenset(
-        {"_frame", "_reflector_cache", "_box_areas", "_box_areas_key", "last_frame_note"}
+        {
+            "_frame",
+            "_reflector_cache",
+            "_box_areas",
+            "_box_areas_key",
+            "last_frame_note",
+            "_growth_curves",
+        }
     )
 
     def calibrate(self, samples: list[tuple[int, float]], rays: int, pixels: int) -> None:
@@ -460,7 +468,25 @@ class Heu1Policy(BudgetedPolicy):
       the admission margin; a reflector already in view in the previous frame (so that
       taking it is a transition) must in addition not be shrinking, and its cost forecast
       FORECAST_HORIZON frames ahead must fit the budget left by the forecasts of the
-      reflectors taken before it. A reflector entering the view is taken freely.
+      reflectors taken before it. A reflector entering the view is taken freely, unless
+      (entering) the lookahead forecasts it to cost more than the whole budget while its
+      box is on screen: it would be dropped in view, a transition for a few frames;
+    * with a lookahead (upcoming cameras) a forecast is a curve, one predicted cost per
+      upcoming frame (box screen area there / now), and the horizon budget is checked
+      frame by frame against the sum of the selection's curves, not against the sum of
+      their peaks (reflectors that peak at different frames, or leave the view, can be
+      kept together); a kept reflector forecast to outgrow the budget charges its curve
+      only up to that frame;
+    * leftover: rounds after the first fill what the measured rounds left of T, and the
+      admission margin there is a share of that leftover, not of the whole budget (with
+      a time budget the first round plans only ~1/(1.1 x safety) of T, and a margin of
+      10 % of T took most of what was left).
+
+    Deviations from the paper (§4.2: the most relevant nodes whose cost fits, S·I as
+    the only hysteresis): the keep step, the admission margin, the forecasts and the
+    shrinking/outgrowing rules above are ours (docs/heuristic.md, "Transition-aware
+    selection"); the relevance R, the Selection Graph walk and the rounds while time
+    remains are the paper's.
     """
 
     name = "heu1"
@@ -487,6 +513,11 @@ class Heu1Policy(BudgetedPolicy):
         #: forecast), the current camera's too, so growth compares like with like.
         self._box_areas: dict[int, tuple[CameraFrame, np.ndarray]] = {}
         self._box_areas_key: tuple = ()  # (width, height, reflector count) of the cache
+        #: This frame's lookahead per reflector in view: element id → (W,) float64 screen
+        #: area of its box at each of the next W <= LOOKAHEAD_FRAMES upcoming cameras / its
+        #: area now (>= 0, finite; 0 where the box is off-screen); {} without upcoming
+        #: cameras.
+        self._growth_curves: dict[int, np.ndarray] = {}
 
     def begin_frame(self, view: FrameView, scene: Scene) -> None:
         super().begin_frame(view, scene)
@@ -495,12 +526,17 @@ class Heu1Policy(BudgetedPolicy):
         for e in np.flatnonzero(frame.pixels > 0).tolist():
             history[e] = [*self.pixel_history.get(e, [])[-GROWTH_WINDOW:], int(frame.pixels[e])]
         self.pixel_history = history  # a reflector out of view starts afresh
-        self.lookahead_growth = self._lookahead_growth(view, scene, np.fromiter(history, int))
+        self._growth_curves = self._lookahead_curves(view, scene, np.fromiter(history, int))
+        self.lookahead_growth = {
+            e: float(max(curve.max(initial=1.0), 1.0)) for e, curve in self._growth_curves.items()
+        }
 
-    def _lookahead_growth(self, view: FrameView, scene: Scene, ids: np.ndarray) -> dict[int, float]:
-        """Element id → peak screen area of its box over now and the next LOOKAHEAD_FRAMES
-        upcoming cameras / its area now (>= 1, finite), for the reflectors ``ids`` in
-        view; {} without upcoming cameras."""
+    def _lookahead_curves(
+        self, view: FrameView, scene: Scene, ids: np.ndarray
+    ) -> dict[int, np.ndarray]:
+        """Element id → (W,) float64 screen area of its box at each of the next W <=
+        LOOKAHEAD_FRAMES upcoming cameras / its area now (>= 0, finite), for the reflectors
+        ``ids`` in view; {} without upcoming cameras."""
         ahead = view.upcoming_cameras[:LOOKAHEAD_FRAMES]
         if not ahead or len(ids) == 0:
             return {}
@@ -523,12 +559,12 @@ class Heu1Policy(BudgetedPolicy):
             self._box_areas = cached
         cols = np.searchsorted(refl, ids)
         now = cached[id(view.camera)][1][cols]
-        peak = np.stack([cached[id(c)][1] for c in ahead])[:, cols].max(axis=0)
+        later = np.stack([cached[id(c)][1] for c in ahead])[:, cols]  # (W, n)
         # A reflector in view has pixels, so a box area under one pixel is a sliver at
         # the image edge: growth is measured from one pixel, which keeps it finite.
-        growth = np.maximum(peak, now) / np.maximum(now, 1.0)
-        growth = np.clip(np.nan_to_num(growth, nan=1.0, posinf=FORECAST_MAX), 1.0, FORECAST_MAX)
-        return dict(zip(ids.tolist(), growth.tolist(), strict=True))
+        growth = later / np.maximum(now, 1.0)
+        growth = np.clip(np.nan_to_num(growth, nan=0.0, posinf=FORECAST_MAX), 0.0, FORECAST_MAX)
+        return {e: growth[:, k] for k, e in enumerate(ids.tolist())}
 
     def end_frame(self) -> dict[int, ReflectorMetrics]:
         frame = self._require_frame()
@@ -573,14 +609,25 @@ class Heu1Policy(BudgetedPolicy):
             growth = min(max(self.growth(element), 1.0), GROWTH_MAX) ** FORECAST_HORIZON
         return float(min(self.predicted_rays(element) * growth, FORECAST_MAX))
 
+    def forecast_curve(self, element: int) -> float | np.ndarray:
+        """With upcoming cameras: (W,) float64 predicted rays at each of the next W
+        frames (``predicted_rays`` scaled by its box's screen area there over now: 0 once
+        the box is off-screen); without: ``forecast_rays`` (one number)."""
+        curve = self._growth_curves.get(element)
+        if curve is None:
+            return self.forecast_rays(element)
+        return np.minimum(self.predicted_rays(element) * curve, FORECAST_MAX)
+
     def _node(self, e: int, reserve: float, budget: float) -> Node:
         frame = self._require_frame()
         kept = e in self.previous_selection
-        forecast = self.forecast_rays(e)
-        if kept and forecast > budget:
+        forecast = self.forecast_curve(e)
+        over = np.asarray(forecast) > budget
+        if kept and over.any():
             # It will outgrow the whole budget within the horizon and be dropped whatever
-            # is decided now: what it holds of the budget is not a lasting commitment.
-            forecast = 0.0
+            # is decided now: what it holds of the budget is not a lasting commitment
+            # (with a lookahead: from the frame it outgrows the budget on).
+            forecast = 0.0 if np.ndim(forecast) == 0 else np.where(np.cumsum(over), 0.0, forecast)
         return Node(
             element=e,
             R=self.relevance_R(e),
@@ -597,16 +644,28 @@ class Heu1Policy(BudgetedPolicy):
         """The Selection Graph of the untraced candidates, as of now. Candidates not
         selected in the previous frame need ``reserve`` budget left beyond their cost;
         ``budget`` is the frame's whole budget (a kept reflector forecast beyond it
-        charges no forecast). Candidates in view in the previous frame, not selected
-        then, and shrinking now are left out: taking one would be a transition for a
-        reflector that is on its way out of the view."""
+        charges no forecast). Left out: candidates in view in the previous frame, not
+        selected then, and shrinking now (taking one would be a transition for a
+        reflector that is on its way out of the view), and, with a lookahead, candidates
+        entering the view whose forecast outgrows ``budget`` while their box is on
+        screen (``_outgrows``)."""
         frame = self._require_frame()
         done = set(frame.traced)
         return SelectionGraph(
             self._node(e, reserve, budget)
             for e in self.candidates()
-            if e not in done and not self._leaving(e)
+            if e not in done and not self._leaving(e) and not self._outgrows(e, budget)
         )
+
+    def _outgrows(self, e: int, budget: float) -> bool:
+        """Entering the view (not in view in the previous frame, so not selected then),
+        and with a lookahead forecast to cost more than ``budget`` in one of the next
+        LOOKAHEAD_FRAMES frames: it would be dropped while in view, one transition for
+        a few frames of tracing (class docstring, "entering")."""
+        if e in self.previous_visible or e in self.previous_selection:
+            return False
+        curve = self._growth_curves.get(e)
+        return curve is not None and bool(np.any(self.predicted_rays(e) * curve > budget))
 
     def _leaving(self, e: int) -> bool:
         """In view in the previous frame, not selected then, and shrinking now."""
@@ -625,9 +684,9 @@ class Heu1Policy(BudgetedPolicy):
             # A later round in which nothing fits: no graph needed (the first round's is,
             # for the claims the keep step could not fit).
             return []
-        # The margin and the horizon budget are shares of the whole frame's budget, also
-        # in later rounds.
-        reserve = ADMISSION_MARGIN * frame.first_allowance
+        # The horizon budget is the whole frame's budget, also in later rounds; the margin
+        # is a share of what this round may spend (class docstring, "leftover").
+        reserve = ADMISSION_MARGIN * allowance
         graph = self.graph(reserve=reserve, budget=frame.first_allowance)
         ids = graph.select(allowance, horizon_budget=frame.first_allowance - frame.forecast_used)
         if not ids and not frame.traced:
@@ -641,7 +700,8 @@ class Heu1Policy(BudgetedPolicy):
             # The first round's keep step decides which claims cost pushes out; in later
             # rounds, kept reflectors not taken yet are ones that already lost or missed.
             frame.unfit_claims.update(graph.unfit_claims)
-        frame.forecast_used += sum(graph.nodes[e].forecast for e in ids)
+        for e in ids:
+            frame.forecast_used = frame.forecast_used + graph.nodes[e].forecast
         return ids
 
 

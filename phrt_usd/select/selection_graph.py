@@ -44,6 +44,8 @@ import math
 from collections.abc import Iterable
 from dataclasses import dataclass
 
+import numpy as np
+
 
 @dataclass(frozen=True)
 class Node:
@@ -61,10 +63,12 @@ class Node:
     kept: selected in the previous frame: taken in the keep step (cheapest first),
         before any other node, unless a node that could be taken is more relevant.
     forecast: the node's cost forecast some frames ahead (unit of ``cost``, finite,
-        >= 0). Every node taken uses up its forecast of the *horizon budget* of ``select``.
+        >= 0): one number, or a (W,) float64 array, one forecast per frame of a horizon
+        of W frames (HEU1's lookahead along the camera path). Every node taken uses up
+        its forecast of the *horizon budget* of ``select`` (frame by frame for arrays).
     admission: the node is taken only if its ``forecast`` also fits what is left of the
-        horizon budget (HEU1 sets it for reflectors that would switch to ray tracing
-        while in view).
+        horizon budget, in every frame of the horizon (HEU1 sets it for reflectors that
+        would switch to ray tracing while in view).
     challenger: the node can displace kept nodes less relevant than itself. HEU1 clears
         it for reflectors whose claim the keep step could not fit (``unfit_claims``):
         such a node may take free budget, but not push out the reflectors it was dropped
@@ -77,7 +81,7 @@ class Node:
     traceable: bool = True
     reserve: float = 0.0
     kept: bool = False
-    forecast: float = 0.0
+    forecast: float | np.ndarray = 0.0
     admission: bool = False
     challenger: bool = True
 
@@ -120,7 +124,7 @@ class SelectionGraph:
         ahead = self._by_relevance[: self._relevance_rank[e]]
         return [t for t in ahead if self.nodes[t].cost <= cost]
 
-    def select(self, budget: float, horizon_budget: float = math.inf) -> list[int]:
+    def select(self, budget: float, horizon_budget: float | np.ndarray = math.inf) -> list[int]:
         """Keep, then admit (module docstring), within ``budget``.
 
         ``budget`` is in the unit of ``Node.cost`` (``float('inf')`` = unbounded). Returns
@@ -128,10 +132,12 @@ class SelectionGraph:
         others most relevant first); the sum of their costs is <= ``budget``. A
         non-positive or NaN budget selects nothing.
 
-        ``horizon_budget`` (same unit) is a second tally: every node taken uses up its
-        ``forecast`` of it, and an ``admission`` node is available only while its forecast
-        fits what is left (kept nodes can take it below zero, which then blocks every
-        admission node). The default, unbounded, leaves the forecasts out.
+        ``horizon_budget`` (same unit; a number, or a (W,) array with one budget per
+        frame of the horizon, the shape of the array forecasts) is a second tally: every
+        node taken uses up its ``forecast`` of it, and an ``admission`` node is available
+        only while its forecast fits what is left in every frame (kept nodes can take it
+        below zero, which then blocks every admission node). The default, unbounded,
+        leaves the forecasts out.
 
         Afterwards ``unfit_claims`` lists the claimed nodes the keep step could not fit
         (cheapest first); they are not taken in the admit step either.
@@ -140,7 +146,11 @@ class SelectionGraph:
         if not budget > 0.0:  # also catches NaN
             return []
         remaining = float(budget)
-        horizon_left = float(horizon_budget)
+        horizon_left = np.asarray(horizon_budget, dtype=np.float64)
+
+        def fits_horizon(n: Node) -> bool:
+            return not n.admission or bool(np.all(n.forecast <= horizon_left))
+
         chosen: list[int] = []
 
         # The strongest challenger: the most relevant other node that could be taken.
@@ -154,7 +164,7 @@ class SelectionGraph:
                 and n.challenger
                 and n.traceable
                 and n.cost + n.reserve <= remaining
-                and (not n.admission or n.forecast <= horizon_left)
+                and fits_horizon(n)
             ),
             default=-math.inf,
         )
@@ -169,14 +179,14 @@ class SelectionGraph:
                 break
             chosen.append(e)
             remaining -= n.cost
-            horizon_left -= n.forecast
+            horizon_left = horizon_left - n.forecast
         taken: set[int] = set(chosen)
 
         def available(e: int) -> bool:
             n = self.nodes[e]
             if e in taken or e in claimed or not n.traceable or n.cost + n.reserve > remaining:
                 return False
-            return not n.admission or n.forecast <= horizon_left
+            return fits_horizon(n)
 
         # Admit: greedy by relevance among the other nodes.
         entry = self.most_expensive
@@ -196,7 +206,7 @@ class SelectionGraph:
             taken.add(best)
             chosen.append(best)
             remaining -= self.nodes[best].cost
-            horizon_left -= self.nodes[best].forecast
+            horizon_left = horizon_left - self.nodes[best].forecast
         return chosen
 
 
