@@ -4,8 +4,8 @@ texture as a warning with the input's fallback."""
 from __future__ import annotations
 
 import numpy as np
-import pytest
 import OpenImageIO as oiio
+import pytest
 from pxr import Sdf, Usd, UsdGeom, UsdRender, UsdShade, UsdUtils
 
 from phrt_usd.usd.stage import read_stage

@@ -81,11 +81,11 @@ def _every_kind(tmp_path) -> str:
     bump = UsdShade.Shader.Define(stage, "/World/Looks/Disp/Bump")
     bump.CreateIdAttr("UsdPreviewSurface")
     disp.CreateDisplacementOutput().ConnectToSource(bump.ConnectableAPI(), "displacement")
-    _preview(stage, "/World/Looks/Leaf")  # textured normal and opacity, no threshold
+    _preview(stage, "/World/Looks/Leaf")  # textured occlusion and opacity, no threshold
     leaf = UsdShade.Shader(stage.GetPrimAtPath("/World/Looks/Leaf/Surface"))
     _texture(stage, "/World/Looks/Leaf/Maps", "leaf.png")
     maps = UsdShade.Shader(stage.GetPrimAtPath("/World/Looks/Leaf/Maps"))
-    for name, output in (("normal", "rgb"), ("opacity", "a")):
+    for name, output in (("occlusion", "r"), ("opacity", "a")):
         leaf.CreateInput(name, Sdf.ValueTypeNames.Float).ConnectToSource(
             maps.ConnectableAPI(), output
         )

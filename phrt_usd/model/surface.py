@@ -159,6 +159,74 @@ def orient_shading_normals(normals, side, incoming, table: TriangleTable, tri) -
     return normals
 
 
+class NormalMaps:
+    """UsdPreviewSurface ``normal`` textures (tangent space), the one rule of raster and
+    trace: at a point the map's value m (the ``TextureInput``'s sample, scale and bias
+    included; the spec expects the author's (2, 2, 2) / (-1, -1, -1) to map [0, 1] to
+    [-1, 1]) bends the viewer-facing shading normal N into
+    ``normalize(m_x T + m_y B + m_z N)``, T and B the triangle's d(position)/ds and
+    d(position)/dt from its corner ``st`` (made orthogonal to N). Where the result would
+    face away from the viewer, or the triangle's st are degenerate, N stays.
+
+    any : some material has a normal map (nobody else needs to ask).
+    """
+
+    def __init__(self, materials: MaterialTable, tri_material: np.ndarray, corner_uv):
+        self._materials = materials
+        self._tri_material = np.asarray(tri_material)
+        self._corner_uv = corner_uv
+        rows = [m for m, inputs in enumerate(materials.texture_inputs) if "normal" in inputs]
+        mapped = np.zeros(len(materials.opacity) + 1, dtype=bool)
+        mapped[rows] = True
+        if corner_uv is None or not rows:
+            self.tri_mapped = np.zeros(len(self._tri_material), bool)
+        else:
+            mat = np.where(
+                (self._tri_material >= 0) & (self._tri_material < len(materials.opacity)),
+                self._tri_material,
+                len(materials.opacity),
+            )
+            self.tri_mapped = mapped[mat]
+        self.any = bool(self.tri_mapped.any())
+
+    def apply(self, normals, tri, weights, incoming, table: TriangleTable) -> np.ndarray:
+        """In place on ``normals`` (m, 3) float32, unit and facing the viewer (after
+        ``orient_shading_normals``) at points on triangles ``tri`` (m,) with weights
+        (m, 3), seen along unit ``incoming`` (m, 3); returns them."""
+        if not self.any or len(tri) == 0:
+            return normals
+        sel = np.flatnonzero(self.tri_mapped[tri])
+        if len(sel) == 0:
+            return normals
+        t_sel = np.asarray(tri)[sel]
+        n = normals[sel].astype(np.float64)
+        m = input_values(
+            self._materials, "normal", np.tile([0.0, 0.0, 1.0], (len(self._materials.opacity), 1)),
+            t_sel, weights[sel], self._tri_material, self._corner_uv,
+        ).astype(np.float64)  # fmt: skip
+        frame = np.take(table.frame, t_sel, axis=0)  # v0, e1, e2, unit normal (rel)
+        uv = np.asarray(self._corner_uv, np.float64)[t_sel]  # (k, 3, 2)
+        d1, d2 = uv[:, 1] - uv[:, 0], uv[:, 2] - uv[:, 0]
+        det = d1[:, 0] * d2[:, 1] - d2[:, 0] * d1[:, 1]
+        ok = np.abs(det) > 1e-12
+        inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)[:, None]
+        e1, e2 = frame[:, 1], frame[:, 2]
+        tangent = (e1 * d2[:, 1:2] - e2 * d1[:, 1:2]) * inv
+        bitangent = (e2 * d1[:, 0:1] - e1 * d2[:, 0:1]) * inv
+        out = n * m[:, 2:3]
+        for axis, vec in ((0, tangent), (1, bitangent)):
+            vec = vec - n * np.einsum("ij,ij->i", vec, n)[:, None]
+            length = np.linalg.norm(vec, axis=1, keepdims=True)
+            vec = np.where(length > 0, vec / np.where(length > 0, length, 1.0), 0.0)
+            out += vec * m[:, axis : axis + 1]
+        length = np.linalg.norm(out, axis=1, keepdims=True)
+        bent = out / np.where(length > 0, length, 1.0)
+        keep = ok & (length[:, 0] > MIN_NORMAL_LENGTH)
+        keep &= np.einsum("ij,ij->i", bent, np.asarray(incoming, np.float64)[sel]) < 0.0
+        normals[sel[keep]] = bent[keep].astype(np.float32)
+        return normals
+
+
 def texture_albedo(
     albedo, tri, weights, tri_material, corner_uv, textures, sample=None, inputs=None
 ):

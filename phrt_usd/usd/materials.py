@@ -7,7 +7,8 @@ are read with their connections followed (material interface inputs included).
 Materials are read once, at the start of the frame range (not animated).
 
 Texturable inputs the render uses (``TEXTURED_INPUTS``): ``diffuseColor``,
-``emissiveColor`` and ``opacity``, each possibly fed by a ``UsdUVTexture`` output
+``emissiveColor``, ``opacity`` and ``normal`` (tangent space, ``model.surface.
+NormalMaps``), each possibly fed by a ``UsdUVTexture`` output
 (``rgb``, ``r``, ``g``, ``b``, ``a``), read as a ``TextureInput`` as the
 UsdPreviewSurface specification defines it:
 
@@ -28,8 +29,8 @@ row (transmissive when < 1); a *textured* opacity without a threshold is not use
 translucency (the row is opaque; docs/usd-support.md, known limits).
 
 Inputs read but not textured (the shading does not use them): ``metallic``,
-``roughness``, ``ior`` as constants; ``normal``, ``occlusion``, ``clearcoat`` and
-``displacement`` are not read (``usd/support_report.py`` lists them).
+``roughness``, ``ior`` as constants; ``occlusion``, ``clearcoat`` and ``displacement``
+are not read (``usd/support_report.py`` lists them).
 
 MaterialX: a material whose only surface is a MaterialX one (``outputs:mtlx:surface``)
 gets its base colour from the shader prim's inputs (``ND_standard_surface``:
@@ -62,7 +63,7 @@ PREVIEW_SURFACE_DIFFUSE = 0.18
 
 #: UsdPreviewSurface inputs read from textures: name -> components (the others the
 #: shading does not use; see the module).
-TEXTURED_INPUTS = {"diffuseColor": 3, "emissiveColor": 3, "opacity": 1}
+TEXTURED_INPUTS = {"diffuseColor": 3, "emissiveColor": 3, "opacity": 1, "normal": 3}
 
 #: UsdUVTexture output -> the file's channel per component, by the file's channel count
 #: (1 grey, 2 grey + alpha, 3 RGB, 4 RGBA); ``ALPHA_ONE``: no alpha, reads 1.

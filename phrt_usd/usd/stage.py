@@ -391,7 +391,6 @@ class StageScene:
         self._build(TimeContext(self._time))
         self.warnings += [f"{m}; rendered with the input's fallback" for m in self.texture_problems]
         self.warnings += self.material_notices
-        self.warnings += self.material_notices
         self._default_camera: CameraFrame | None = None
         if cam_prim is None:
             where = stage.GetRootLayer().identifier
@@ -489,9 +488,6 @@ class StageScene:
         #: Textures that could not be read (``materials.MaterialBank.texture_problems``):
         #: warnings of the render, errors with ``--strict`` and in ``phrt validate``.
         self.texture_problems: list[str] = list(bank.texture_problems)
-        #: One line per material rendered approximately (``MaterialBank.notices``:
-        #: MaterialX-only materials, base colour only or grey).
-        self.material_notices: list[str] = list(bank.notices)
         #: One line per material rendered approximately (``MaterialBank.notices``:
         #: MaterialX-only materials, base colour only or grey).
         self.material_notices: list[str] = list(bank.notices)

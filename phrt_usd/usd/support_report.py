@@ -112,8 +112,8 @@ def _preview_input(prim: Usd.Prim, name: str):
 #: UsdPreviewSurface inputs a texture may feed that the shading does not use
 #: (``usd/materials.py`` reads ``TEXTURED_INPUTS`` only).
 _UNSHADED_INPUTS = (
-    "normal", "occlusion", "metallic", "roughness", "specularColor", "clearcoat",
-    "clearcoatRoughness", "ior",
+    "occlusion", "metallic", "roughness", "specularColor", "clearcoat", "clearcoatRoughness",
+    "ior",
 )  # fmt: skip
 
 
@@ -320,9 +320,9 @@ KINDS: tuple[SupportKind, ...] = (
     ),
     SupportKind(
         "unshaded_texture", "UsdPreviewSurface shaders with textured inputs the shading "
-        "does not use (normal, occlusion, metallic, roughness, ...)", IGNORED,
-        "the shading model (render/shading.py) uses diffuse, emission and cut-out "
-        "opacity; normal maps (no tangents), occlusion and metallic have no term in it",
+        "does not use (occlusion, metallic, roughness, ...)", IGNORED,
+        "the shading model (render/shading.py) uses diffuse, emission, normal maps and "
+        "cut-out opacity; occlusion, metallic and roughness have no term in it",
         _unshaded_texture,
     ),
     SupportKind(

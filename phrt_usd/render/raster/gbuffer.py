@@ -139,6 +139,7 @@ class GBufferPass:
         geo = scene.geometry
         #: The cut-out rule of the uploaded triangles (``surface.Cutouts``).
         self.cutouts = surface.Cutouts(scene.materials, geo.tri_material, geo.corner_uv)
+        self.normal_maps = surface.NormalMaps(scene.materials, geo.tri_material, geo.corner_uv)
         if self.cutouts.any and self._layers is None:
             self._layers = IdLayers(self._ctx, self.width, self.height)
 
@@ -388,6 +389,7 @@ class GBufferPass:
         values = surface.interpolate(np.take(self._table.corners, tid, axis=0), bary)
         side = surface.viewer_side(den)
         n = surface.orient_shading_normals(values[:, :3], side, dc, self._table, tid)
+        self.normal_maps.apply(n, tid, bary, dc, self._table)
         col = values[:, 3:]
         textured = self._tri_textured[tid]
         if textured.any():

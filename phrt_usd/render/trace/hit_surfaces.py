@@ -63,6 +63,8 @@ class HitSurfaces:
         self._inputs = mats.texture_inputs
         #: The cut-out rule of this scene's triangles (``model.surface.Cutouts``).
         self.cutouts = surface.Cutouts(mats, bvh.tri_material, scene.geometry.corner_uv)
+        #: Tangent-space normal maps (``model.surface.NormalMaps``).
+        self.normal_maps = surface.NormalMaps(mats, bvh.tri_material, scene.geometry.corner_uv)
 
     def intersect(self, origins: np.ndarray, dirs: np.ndarray) -> tuple[Hits, np.ndarray]:
         """Nearest hits that are there (``Bvh.intersect`` through cut-out holes, see the
@@ -158,6 +160,7 @@ class HitSurfaces:
         corners = np.take(table.corners, tri, axis=0)  # (m, 3, 6)
         ns = surface.interpolate(corners[:, :, :3], surface.weights_from_uv(u, v))
         ns = surface.orient_shading_normals(ns, side, incoming, table, tri)
+        self.normal_maps.apply(ns, tri, surface.weights_from_uv(u, v), incoming, table)
         return pos, ng, ns
 
     def colour(self, tri, u, v):
