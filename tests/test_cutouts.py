@@ -222,3 +222,17 @@ def test_id_layers_give_the_id_pass_ids(tmp_path):
             ids[threshold] = raster.render(scene.camera(scene.frame_range[0])).triangle_id
     assert set(np.unique(ids[0.5])) == {-1, 0, 1, 2, 3}  # background, wall and quad
     np.testing.assert_array_equal(ids[0.5], ids[0.0])
+
+
+def test_hybrid_all_matches_rt_on_the_cutout_stage(renders):
+    """The hybrid-equals-rt invariant of tests/test_render.py, on cut-outs: hybrid with
+    every reflector traced (none here: raster G-buffer, maps and rays for the pairs they
+    cannot decide) against rt, within the same mean FLIP."""
+    from test_render import HYBRID_VS_RT_FLIP
+
+    from phrt_usd.pytest_plugin import assert_images_close
+
+    assert_images_close(
+        renders["hybrid"][0].beauty, renders["rt"][0].beauty,
+        max_mean_flip=HYBRID_VS_RT_FLIP, min_psnr=None, name="cutouts",
+    )  # fmt: skip
