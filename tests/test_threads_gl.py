@@ -10,6 +10,7 @@ import json
 import os
 import subprocess
 import sys
+import tempfile
 import textwrap
 from pathlib import Path
 
@@ -33,9 +34,13 @@ HEAVY = ("OpenGL", "pyrender", "trimesh", "embreex", "OpenImageIO", "scipy", "ma
 
 
 def _env() -> dict[str, str]:
-    """The environment of a child render: its own platform choice (not conftest's)."""
+    """The environment of a child render: its own platform choice (not conftest's), and
+    bytecode cached outside the repo so that each child does not recompile every module
+    (this machine sets PYTHONDONTWRITEBYTECODE)."""
     env = dict(os.environ)
     env.pop("PYOPENGL_PLATFORM", None)
+    env.pop("PYTHONDONTWRITEBYTECODE", None)
+    env["PYTHONPYCACHEPREFIX"] = str(Path(tempfile.gettempdir()) / "phrt-test-pycache")
     return env
 
 
@@ -207,3 +212,39 @@ def test_shading_pool_follows_the_setting(monkeypatch):
     # 1 ulp: numpy's SIMD loops may round a chunk's ends differently (test_shading.py).
     np.testing.assert_allclose(images[0], images[1], rtol=1e-6, atol=1e-7)
     assert float(images[0].max()) > 0.0
+
+
+def test_egl_contexts_of_one_process_outlive_each_other(stage):
+    """EGL hands every context of a device the same display; closing one renderer must
+    not end the others (pyrender's own EGL platform terminates the display with each
+    context, which fails the next one): two renderers, the first closed before the
+    second renders, then a third; all render the same pixels. Without EGL here: the
+    one-line refusal."""
+    done = _python(f"""
+        import json
+        import numpy as np
+        import phrt_usd
+        from phrt_usd.errors import PhrtError
+        try:
+            a = phrt_usd.open({str(stage)!r}, mode="raster", gl="egl")
+        except PhrtError as exc:
+            print(json.dumps({{"refused": str(exc)}}))
+            raise SystemExit(0)
+        b = phrt_usd.open({str(stage)!r}, mode="raster", gl="egl")
+        first = a.render(1.0).beauty
+        a.close()
+        second = b.render(1.0).beauty
+        b.close()
+        with phrt_usd.open({str(stage)!r}, mode="raster", gl="egl") as c:
+            third = c.render(1.0).beauty
+        print(json.dumps({{"same": [bool(np.array_equal(first, second)),
+                                   bool(np.array_equal(first, third))],
+                          "lit": float(first.max())}}))
+    """)
+    assert done.returncode == 0, done.stderr
+    result = json.loads(done.stdout.splitlines()[-1])
+    problem = egl_problem()
+    if problem is not None:
+        assert result == {"refused": f"--gl egl: no working EGL device here: {problem}"}
+        return
+    assert result["same"] == [True, True] and result["lit"] > 0.0
