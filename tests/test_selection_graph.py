@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 import random
 
+import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -236,3 +237,20 @@ def test_a_more_relevant_newcomer_displaces_a_kept_node():
     # A challenger that does not fit the budget cannot displace anything.
     big = Node(element=1, R=3.0, cost=50.0)
     assert SelectionGraph([weak, big]).select(5.0) == [0]
+
+
+def test_array_forecasts_are_checked_frame_by_frame_not_by_their_peaks():
+    # Two kept reflectors peak in different frames of a two-frame horizon: the sum of
+    # their peaks (120) exceeds the horizon budget (100), the sum per frame (70) does
+    # not. A reflector in view (admission) forecast at 25 per frame fits what is left in
+    # every frame (30); one forecast at 35 in the second frame does not.
+    a = Node(element=0, R=10.0, cost=30.0, kept=True, forecast=np.array([60.0, 10.0]))
+    b = Node(element=1, R=9.0, cost=31.0, kept=True, forecast=np.array([10.0, 60.0]))
+    fits = Node(element=2, R=5.0, cost=20.0, forecast=np.array([25.0, 25.0]), admission=True)
+    late = Node(element=3, R=5.0, cost=20.0, forecast=np.array([25.0, 35.0]), admission=True)
+    assert SelectionGraph([a, b, fits]).select(100.0, horizon_budget=100.0) == [0, 1, 2]
+    assert SelectionGraph([a, b, late]).select(100.0, horizon_budget=100.0) == [0, 1]
+    # The same nodes with their peaks as scalar forecasts: the sum of peaks blocks both.
+    peaks = [Node(element=n.element, R=n.R, cost=n.cost, kept=n.kept, admission=n.admission,
+                  forecast=float(np.max(n.forecast))) for n in (a, b, fits)]  # fmt: skip
+    assert SelectionGraph(peaks).select(100.0, horizon_budget=100.0) == [0, 1]
