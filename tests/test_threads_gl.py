@@ -54,10 +54,11 @@ def stage(tmp_path_factory) -> Path:
     return mirror_floor_stage(tmp_path_factory.mktemp("threads") / "floor.usda", 64, 48)
 
 
-def test_cli_module_loads_no_gl_embree_or_images():
+def test_startup_loads_only_what_the_mode_needs(stage, tmp_path):
     """``import phrt_usd.cli`` (every command's start, ``--help`` included) loads none of
-    HEAVY, and ``import phrt_usd.api`` only the image library: the rest is imported by
-    the commands and the renderer parts that need it."""
+    HEAVY, ``import phrt_usd.api`` only the image library, and an ``rt`` render adds
+    Embree but no OpenGL, pyrender or its trimesh / scipy / networkx (no raster phase:
+    no GL context, ``gl`` None): the rest is imported by the parts that need it."""
     done = _python(f"""
         import json, sys
         heavy = {HEAVY!r}
@@ -66,10 +67,18 @@ def test_cli_module_loads_no_gl_embree_or_images():
         import phrt_usd.cli
         cli = loaded()
         import phrt_usd.api
-        print(json.dumps([cli, loaded()]))
+        api = loaded()
+        s = phrt_usd.render({str(stage)!r}, {str(tmp_path / "rt")!r}, mode="rt").summary
+        print(json.dumps([cli, api, loaded(), s["gl"], s["llvmpipe_threads"]]))
     """)
     assert done.returncode == 0, done.stderr
-    assert json.loads(done.stdout) == [[], ["OpenImageIO"]]
+    assert json.loads(done.stdout.splitlines()[-1]) == [
+        [],
+        ["OpenImageIO"],
+        ["OpenImageIO", "embreex"],
+        None,
+        None,
+    ]
 
 
 @pytest.mark.parametrize(
