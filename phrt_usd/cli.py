@@ -19,8 +19,6 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
-from rich.console import Console
-from rich.table import Table
 
 import phrt_usd  # noqa: F401  (registers the schema plugin before any stage opens)
 from phrt_usd.errors import BadOption, PhrtError
@@ -209,6 +207,9 @@ def _fmt(v: float | None) -> str:
 
 
 def _print_summary(s: dict) -> None:
+    from rich.console import Console  # rich only where a table is printed: a cheap start
+    from rich.table import Table
+
     console = Console()
     m = s["metadata"]
     console.print(
@@ -274,6 +275,7 @@ def _progress():
     the end, or for every frame with ``-v``; nothing with ``-q``."""
     level = _VERBOSITY["level"]
     if sys.stderr.isatty() and level == 1:
+        from rich.console import Console
         from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeRemainingColumn
 
         return Progress(
@@ -517,6 +519,8 @@ def render(
     if json_out:
         print_json(summary)
     else:
+        from rich.console import Console
+
         from phrt_usd.evaluate.report import print_report
 
         print_report(summary, Console())
@@ -542,6 +546,8 @@ def report(
     json_out: JsonOpt = False,
 ) -> None:
     """The paper's metrics (transitions, mean selected, fps, overruns) of a run."""
+    from rich.console import Console
+
     from phrt_usd.evaluate.report import build_report, print_report
 
     # Every problem report meets is a run it cannot read: exit 2.

@@ -28,9 +28,9 @@ from phrt_usd.run.images import read_frame_exr
 REPO = Path(__file__).resolve().parent.parent
 CLI = [sys.executable, "-m", "typer", "phrt_usd.cli", "run"]
 #: Modules a cheap start must not load: OpenGL, pyrender (trimesh, scipy, networkx),
-#: Embree, the image library, the plots and the cluster.
+#: Embree, the image library, the plots, the cluster and rich (tables printed at the end).
 HEAVY = ("OpenGL", "pyrender", "trimesh", "embreex", "OpenImageIO", "scipy", "matplotlib",
-         "dask", "networkx")  # fmt: skip
+         "dask", "networkx", "rich")  # fmt: skip
 
 
 def _env() -> dict[str, str]:

@@ -19,15 +19,16 @@ paper's Table 2 figure (HEU1/HEU2).
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from rich.console import Console
-from rich.table import Table
 
 from phrt_usd.errors import PhrtError
 from phrt_usd.evaluate.selection_metrics import selection_metrics
 from phrt_usd.run.run_files import read_stats, selection_layer_path, stats_path
+
+if TYPE_CHECKING:  # rich is imported where the tables are drawn (a cheap start)
+    from rich.console import Console
 from phrt_usd.run.selection_layer import SelectionRecord, read_selection_record
 
 #: A frame's trace phase "overruns" its budget when it took more than this × budget_ms
@@ -258,6 +259,8 @@ def _fmt(value: Any, pattern: str) -> str:
 
 def print_report(report: dict[str, Any], console: Console) -> None:
     """Draw the report as rich tables (one run, or the run against ``vs``)."""
+    from rich.table import Table
+
     title = f"{report.get('mode') or '?'} / {report.get('heuristic') or '?'}"
     other = report.get("vs")
     if other is None:
