@@ -236,3 +236,24 @@ def test_hybrid_all_matches_rt_on_the_cutout_stage(renders):
         renders["hybrid"][0].beauty, renders["rt"][0].beauty,
         max_mean_flip=HYBRID_VS_RT_FLIP, min_psnr=None, name="cutouts",
     )  # fmt: skip
+
+
+def test_animated_geometry_keeps_the_triangle_ids(tmp_path):
+    """Id layers number the static triangles, then the animated ones (two draws); the
+    G-buffer maps them back to the scene's triangle ids. With the wall animated (a
+    time-sampled translate: its triangles drawn second) raster and rt agree on every
+    pixel's triangle and the cut half still shows the wall."""
+    stage = _stage(tmp_path)
+    op = UsdGeom.Xformable(stage.GetPrimAtPath("/Wall")).AddTranslateOp()
+    op.Set((0.0, 0.0, 0.0), 1.0)
+    op.Set((0.0, 0.0, -0.5), 2.0)
+    stage.SetStartTimeCode(1.0)
+    stage.SetEndTimeCode(2.0)
+    stage.GetRootLayer().Save()
+    raster, camera = _render(stage, "raster")
+    rt, _ = _render(stage, "rt")
+    assert read_stage(stage).scene.elements[0].animated  # the wall is drawn second
+    hole = _pixel(camera, (-0.5, 0.0, 0.0))
+    assert raster.gbuffer.element_id[hole] == 0
+    differ = int((raster.gbuffer.triangle_id != rt.gbuffer.triangle_id).sum())
+    assert differ <= HEIGHT  # as test_raster_and_rt_agree_on_which_pixels_are_cut

@@ -279,6 +279,8 @@ class GBufferPass:
 
         covered = np.flatnonzero((ids > 0) & (ids <= len(self._table)))
         tid = ids[covered].astype(np.int64) - 1
+        if clip is not None and self.cutouts.any:  # layer ids number static, then animated
+            tid = self._layers.batch_triangles(("static", "dynamic"))[tid]
 
         triangle_id = np.full(h * w, NO_HIT, dtype=np.int32)
         element_id = np.full(h * w, NO_HIT, dtype=np.int32)
