@@ -8,8 +8,10 @@ Each run is a fresh ``phrt render STAGE --frames 1:F --out DIR --overwrite -q --
 subprocess (the venv's ``phrt`` script). Measured per run: *first image*: the
 modification time of the first frame's first file (written through the atomic writer,
 so its last write) minus the wall clock just before the process was started; *command*:
-the whole command's wall time; from ``stats.json``: the first frame's ``frame_ms`` and
-the median of the others (*steady*). Printed: medians over the runs.
+the whole command's wall time and its CPU time (user + sys of the child, all threads:
+less sensitive than wall time to other processes on a shared machine); from
+``stats.json``: the first frame's ``frame_ms`` and the median of the others (*steady*).
+Printed: medians over the runs.
 
 Two Python set-ups, since a cold interpreter recompiles every module it imports unless
 bytecode is cached: *cached* (``PYTHONPYCACHEPREFIX`` in a directory of this tool's,
@@ -28,6 +30,7 @@ import argparse
 import datetime
 import json
 import os
+import resource
 import statistics
 import subprocess
 import sys
@@ -108,9 +111,12 @@ def one_run(stage: Path, out: Path, frames: int, extra: list[str], env: dict) ->
     its first and steady frame ms (stats.json)."""
     command = [*phrt_command(), "-q", "render", str(stage), "--frames", f"1:{frames}",
                "--out", str(out), "--overwrite", "--json", *extra]  # fmt: skip
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
     start = time.time()
     done = subprocess.run(command, capture_output=True, text=True, env=env, timeout=600)
     wall = time.time() - start
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
     if done.returncode != 0:
         raise SystemExit(f"phrt render failed ({done.returncode}): {done.stderr.strip()}")
     summary = json.loads(done.stdout)
@@ -121,6 +127,7 @@ def one_run(stage: Path, out: Path, frames: int, extra: list[str], env: dict) ->
     return {
         "first_image_s": first_image,
         "command_s": wall,
+        "command_cpu_s": cpu,
         "first_ms": frame_ms[0],
         "steady_ms": statistics.median(frame_ms[1:]) if len(frame_ms) > 1 else None,
         "gl": summary.get("gl"),
@@ -145,6 +152,7 @@ def measure(stage: Path, work: Path, runs: int, frames: int, extra: list[str], c
             max(r["first_image_s"] for r in results),
         ),  # fmt: skip
         "command_s": med("command_s"),
+        "command_cpu_s": med("command_cpu_s"),
         "first_ms": med("first_ms"),
         "steady_ms": med("steady_ms"),
         "gl": results[0]["gl"],
@@ -154,15 +162,16 @@ def measure(stage: Path, work: Path, runs: int, frames: int, extra: list[str], c
 
 def markdown(rows: list[dict], runs: int, frames: int, extra: list[str]) -> str:
     lines = [
-        "| Python set-up | first image (median, range) | whole command | first frame | "
-        "steady frame (median) | first ÷ steady | GL | threads |",
-        "|---|---|---|---|---|---|---|---|",
+        "| Python set-up | first image (median, range) | whole command | its CPU (user + sys) "
+        "| first frame | steady frame (median) | first ÷ steady | GL | threads |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         lo, hi = r["first_image_range"]
         lines.append(
             f"| {r['setup']} | {r['first_image_s']:.2f} s ({lo:.2f}–{hi:.2f}) | "
-            f"{r['command_s']:.2f} s | {r['first_ms']:.1f} ms | {r['steady_ms']:.1f} ms | "
+            f"{r['command_s']:.2f} s | {r['command_cpu_s']:.2f} s | {r['first_ms']:.1f} ms | "
+            f"{r['steady_ms']:.1f} ms | "
             f"{r['first_ms'] / r['steady_ms']:.2f} | {r['gl']} | {r['threads']} |"
         )
     opts = " ".join(extra)
