@@ -257,3 +257,18 @@ def test_egl_contexts_of_one_process_outlive_each_other(stage):
         assert result == {"refused": f"--gl egl: no working EGL device here: {problem}"}
         return
     assert result["same"] == [True, True] and result["lit"] > 0.0
+
+
+def test_shader_programs_compile_once(stage):
+    """Every raster pass's programs come from the context's cache: after the first
+    frame no frame compiles one (pyrender's own cache keys by a context pointer that
+    OSMesa hands out anew on every call, so it would compile, and leak, per frame)."""
+    import phrt_usd
+
+    with phrt_usd.open(stage, frames="1:4", mode="hybrid") as renderer:
+        cache = renderer._renderer._rasterizer._ctx.renderer._program_cache._program_cache
+        sizes = []
+        for t in (1.0, 1.0, 1.0, 1.0):
+            renderer.render(t)
+            sizes.append(len(cache))
+    assert sizes[0] >= 2 and sizes == [sizes[0]] * 4, sizes  # id pass + shadow depth at least
