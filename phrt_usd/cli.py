@@ -338,6 +338,13 @@ GlOpt = Annotated[
         "is found, else OSMesa).",
     ),
 ]
+ExposureOpt = Annotated[
+    float | None,
+    typer.Option(
+        metavar="EV",
+        help="Scale the image radiance by 2^EV before writing (the EXR too); |EV| <= 40.",
+    ),
+]
 WorkersOpt = Annotated[
     int | None,
     typer.Option(help="Start a Dask LocalCluster of N worker processes (docs/cluster.md)."),
@@ -431,13 +438,7 @@ def render(
         bool,
         typer.Option(help="An unreadable texture is an error (exit 1), not a warning."),
     ] = False,
-    exposure: Annotated[
-        float | None,
-        typer.Option(
-            metavar="EV",
-            help="Scale the image radiance by 2^EV before writing (the EXR too); |EV| <= 40.",
-        ),
-    ] = None,
+    exposure: ExposureOpt = None,
     threads: ThreadsOpt = None,
     gl: GlOpt = None,
     workers: WorkersOpt = None,
@@ -590,6 +591,7 @@ def sweep(
         float | None, typer.Option(help="I (default: the first stage's setting).")
     ] = None,
     out: Annotated[Path, typer.Option("--out", "-o", help="Output directory.")] = Path("sweep"),
+    exposure: ExposureOpt = None,
     threads: ThreadsOpt = None,
     gl: GlOpt = None,
     workers: WorkersOpt = None,
@@ -636,6 +638,7 @@ def sweep(
             resolutions=parse_resolution_list(resolutions),
             **({} if threads is None else {"threads": parse_threads(threads)}),
             **({} if gl is None else {"gl": check_gl(gl)}),
+            **({} if exposure is None else {"exposure": exposure}),
         )
         progress = _progress()
         with progress:

@@ -24,9 +24,11 @@ from typer.testing import CliRunner
 
 import phrt_usd
 from phrt_usd.cli import app
+from phrt_usd.evaluate.sweep import SweepSpec, run_sweep
 from phrt_usd.render.renderer import FrameRenderer, RenderOptions
 from phrt_usd.render.shading import environment_radiance
 from phrt_usd.run.images import read_frame_exr
+from phrt_usd.usd import schema
 from phrt_usd.usd.blackbody import REC709_LUMINANCE, blackbody_rec709, blackbody_xyz
 from phrt_usd.usd.default_lights import DOME_RADIANCE, HEADLIGHT_IRRADIANCE
 from phrt_usd.usd.inspection import inspect_stage
@@ -174,16 +176,20 @@ def test_normalize_keeps_an_area_light_size_independent_and_off_it_grows_with_ar
         return float(_render(stage, mode)[0][CENTRE][0])
 
     for kind in (UsdLux.RectLight, UsdLux.DiskLight, UsdLux.SphereLight):
-        small, big = centre(0.1, False, kind), centre(0.2, False, kind)
-        if kind is not UsdLux.SphereLight:  # area x 4 → 4 x the light (off: no division)
-            # The range window (shading.range_window) differs by < 1e-3 between the two.
-            assert big / small == pytest.approx(4.0, rel=2e-3)
+        normalized = centre(0.1, True, kind)
         # normalize: luminance / area, so the power, and the lighting, stay the same.
-        assert centre(0.2, True, kind) == pytest.approx(centre(0.1, True, kind), rel=1e-6)
-    # A 0.1 m rect of luminance 100: intensity 100 x 0.01 = 1; normalized, the
-    # luminance itself, 100 (float32 sums: relative 1e-5).
-    assert centre(0.1, False) == pytest.approx(_point_lit_centre(1.0), rel=1e-5)
-    assert centre(0.1, True) == pytest.approx(_point_lit_centre(100.0), rel=1e-5)
+        assert centre(0.2, True, kind) == pytest.approx(normalized, rel=1e-6)
+        if kind is UsdLux.SphereLight:  # off: the emission is the point's intensity
+            continue
+        small, big = centre(0.1, False, kind), centre(0.2, False, kind)
+        # Off: area x 4 → 4 x the light (the range window, shading.range_window,
+        # differs by < 1e-3 between the two).
+        assert big / small == pytest.approx(4.0, rel=2e-3)
+        if kind is UsdLux.RectLight:
+            # A 0.1 m rect of luminance 100: intensity 100 x 0.01 = 1; normalized, the
+            # luminance itself, 100 (float32 sums: relative 1e-5).
+            assert small == pytest.approx(_point_lit_centre(1.0), rel=1e-5)
+            assert normalized == pytest.approx(_point_lit_centre(100.0), rel=1e-5)
 
 
 def _point_lit_centre(intensity: float) -> float:
@@ -381,3 +387,27 @@ def test_cli_exposure_scales_the_exr_by_2_to_the_ev_and_warns_when_clipped(tmp_p
     # brings the median to 0.5: 3 + log2(0.5 / 2) = 1.
     assert len(lines) == 1 and "/World/Sun" in lines[0] and "--exposure 1.0" in lines[0]
     assert lines[0].startswith("warning: ") and "Traceback" not in stderr[3.0]
+
+
+def test_sweep_exposure_scales_every_config_image(tmp_path):
+    stage = _stage()
+    _sun(stage).CreateIntensityAttr(1.0)  # centre 0.25 (module docstring)
+    mirror = UsdGeom.Mesh.Define(stage, "/World/Mirror")  # a sweep needs a reflector
+    mirror.CreatePointsAttr([(0.6, 0.4, 0.01), (0.9, 0.4, 0.01), (0.9, 0.7, 0.01),
+                             (0.6, 0.7, 0.01)])  # fmt: skip
+    mirror.CreateFaceVertexCountsAttr([4])
+    mirror.CreateFaceVertexIndicesAttr([0, 1, 2, 3])
+    schema.apply_reflector(mirror.GetPrim(), priority=1.0, reflectivity=0.5)
+    path = tmp_path / "s.usda"
+    stage.GetRootLayer().Export(str(path))
+    out = tmp_path / "sweep"
+    spec = SweepSpec(stages=[path], heuristics=["heu1"], budgets_rays=[0], frames="1",
+                     width=W, height=H, out=out, exposure=1.0)  # fmt: skip
+    assert run_sweep(spec)["exposure"] == 1.0
+    previews = [p for p in sorted(out.rglob("*.png")) if p.parent.name == "1"
+                and not p.stem.endswith(("flip", "temporal"))]  # fmt: skip
+    assert len(previews) >= 3, previews  # heu1, and the all and rt references
+    for png in previews:
+        red = oiio.ImageBuf(str(png)).getpixel(CENTRE[1], CENTRE[0])[0]
+        # 0.25 x 2^1 = 0.5, sRGB-encoded: code 188 (+-1 of 8-bit rounding).
+        assert red * 255 == pytest.approx(188, abs=1.5), png.name

@@ -133,6 +133,9 @@ class SweepSpec:
     #: Every renderer's thread setting and OpenGL platform (``RenderOptions``).
     threads: int = DEFAULT_THREADS
     gl: str = DEFAULT_GL
+    #: ``--exposure EV`` of every renderer (``RenderOptions.exposure``): images, and the
+    #: FLIP / PSNR of their tone-mapped previews, are of the scaled radiance.
+    exposure: float = 0.0
 
     def variants(self) -> list[Variant]:
         """Every resolution × bounce limit, resolutions outer, in the order given."""
@@ -234,6 +237,7 @@ class _ConfigState:
             selection_weight=spec.selection_weight,
             threads=spec.threads,
             gl=spec.gl,
+            exposure=spec.exposure,
         )
         self.previous_image: np.ndarray | None = None
         self.previous: tuple[np.ndarray, np.ndarray] | None = None
@@ -278,7 +282,7 @@ def check_spec(spec: SweepSpec) -> None:
         # RenderOptions states the valid ranges (bounce limit, resolution) once.
         RenderOptions(
             width=variant.width, height=variant.height, bounce_limit=variant.bounce_limit,
-            threads=spec.threads, gl=spec.gl,
+            threads=spec.threads, gl=spec.gl, exposure=spec.exposure,
         )  # fmt: skip
 
 
@@ -303,6 +307,7 @@ def finish_sweep(spec: SweepSpec, rows: list[dict], timeline: dict, interrupted:
         ],
         "interrupted": interrupted,
         "threads": spec.threads,
+        "exposure": spec.exposure,
         "files": [
             SWEEP_CSV, TIMELINE_JSON, SUMMARY_MD, SUMMARY_CSV, ERROR_VS_TIME_PNG, REPORT_HTML,
         ],  # fmt: skip
@@ -348,6 +353,7 @@ class _Resolution:
             mode="hybrid", heuristic="all", width=first.width, height=first.height,
             budget_ms=None, budget_rays=None, bounce_limit=first.bounce_limit,
             selection_weight=spec.selection_weight, threads=spec.threads, gl=spec.gl,
+            exposure=spec.exposure,
         )  # fmt: skip
         self.hybrid = FrameRenderer(stage, base)
         self.hybrid.plan(times)
