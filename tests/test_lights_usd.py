@@ -91,8 +91,8 @@ def test_unauthored_sun_is_the_fallback_50000_and_warned_once_not_white_in_silen
     _sun(stage)  # inputs:intensity unauthored: the schema's DistantLight fallback
     beauty, _, scene = _render(stage, mode, frames=(1.0, 2.0))
     # Our convention (docs/usd-support.md "Lights"): the intensity is the irradiance of
-    # a surface facing the light: 0.5 x 50000 x cos 60 = 12500 (highlight 1e-4 x E:
-    # below the float32 rounding of 12500 x 1e-6, bound 2 for it).
+    # a surface facing the light: 0.5 x 50000 x cos 60 = 12500, plus the highlight
+    # 0.25 x 25000 x (n.h)^64 with n.h = cos(30 +- 0.7 deg): 0.6 to 0.9 (bound 2).
     assert beauty[CENTRE] == pytest.approx([12500.0] * 3, abs=2.0)
     (line,) = _clipping(scene.warnings)  # once per run, not once per frame
     assert "/World/Sun" in line and "--exposure" in line and "fallback 50000" in line
@@ -114,7 +114,7 @@ def test_light_exposure_render_exposure_and_camera_exposure_each_double(mode):
         return _render(stage, mode, **options)[0][CENTRE]
 
     base = centre()
-    # 0.5 x 1 x cos 60 = 0.25 (+ the 1e-4 highlight: bound 1e-4 x 1.25).
+    # 0.5 x 1 x cos 60 = 0.25, plus the highlight 0.25 x 0.5 x (n.h)^64 < 2e-5.
     assert base == pytest.approx([0.25] * 3, abs=2e-4)
     # Each is an exact power of two on the same float32 sums: relative 1e-6.
     np.testing.assert_allclose(centre(light_exposure=1.0), 2.0 * base, rtol=1e-6)
