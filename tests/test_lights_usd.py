@@ -220,7 +220,7 @@ def test_spot_cone_lights_inside_and_not_outside_with_the_schema_softness(mode):
 
     hard, soft = render(0.0), render(0.5)
     inside, outside, edge = CENTRE, (12, 28), (12, 22)
-    # Centre: 1.8 degrees off the axis, lit: 0.5 x 4 x cos^3(1.8 deg) ~ 2 (+ highlight).
+    # Centre: 2.5 degrees off the axis, lit: 0.5 x 4 x cos^3(2.5 deg) ~ 2 (+ highlight).
     assert hard[inside][0] > 1.9
     # Column 28 sees x = 0.78 m: 38 degrees off the axis, beyond the 30 degree cone;
     # nothing else lights it (black dome): exactly 0.
