@@ -150,9 +150,11 @@ def test_scale_bias_and_missing_alpha(tmp_path):
         tex.CreateOutput("a", Sdf.ValueTypeNames.Float)
     )
     surf.CreateInput("opacityThreshold", Sdf.ValueTypeNames.Float).Set(0.5)
-    np.testing.assert_allclose(_albedo_at(stage, "raster", -0.5), (0.75, 0.0, 0.0), atol=1e-6)
-    out, camera = _render(stage, "rt")
-    assert out.gbuffer.element_id[_pixel(camera, (-0.5, 0.0, 0.0))] == 0  # not cut
+    stage.GetRootLayer().Save()
+    out, camera = _render(stage, "rt")  # rt: no shadow maps to peel, a quicker test
+    p = _pixel(camera, (-0.5, 0.0, 0.0))
+    assert out.gbuffer.element_id[p] == 0  # not cut
+    np.testing.assert_allclose(out.gbuffer.albedo[p], (0.75, 0.0, 0.0), atol=1e-6)
 
 
 @pytest.mark.parametrize("mode", ["raster", "rt"])
