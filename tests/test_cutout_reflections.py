@@ -80,8 +80,10 @@ def test_the_mirror_shows_the_wall_through_the_cut_half(tmp_path, mode):
     assert b[solid][0] > 2 * max(b[solid][1], b[solid][2]), b[solid]
 
 
-def test_a_local_light_shines_through_the_cut_half_in_raster(tmp_path):
-    """The cube shadow maps of a SphereLight are peeled like the distant maps: the
+@pytest.mark.parametrize("mode", ["raster", "rt"])
+def test_a_local_light_shines_through_the_cut_half(tmp_path, mode):
+    """The cube shadow maps of a SphereLight are peeled like the distant maps, and its
+    finite shadow rays (rt) pass the holes with the rest of their length: the
     test_cutouts stage lit by a small SphereLight at (0, 0, 1) instead of the sun. Wall
     point (-0.5, 0, -1), seen through the hole, reaches the light through the quad's
     plane at x = -0.25 (cut half): lit exactly as with no quad; wall point (1.5, 0, -1),
@@ -103,8 +105,8 @@ def test_a_local_light_shines_through_the_cut_half_in_raster(tmp_path):
     cut = lit_by_bulb(cutout_stage(tmp_path / "cut"))
     bare = lit_by_bulb(cutout_stage(tmp_path / "bare"))
     UsdGeom.Imageable(bare.GetPrimAtPath("/Quad")).MakeInvisible()
-    out, camera = _render(cut, "raster")
-    ref, _ = _render(bare, "raster")
+    out, camera = _render(cut, mode)
+    ref, _ = _render(bare, mode)
     through = _pixel(camera, (-0.5, 0.0, -1.0))
     np.testing.assert_allclose(out.beauty[through], ref.beauty[through], rtol=1e-5)
     shadowed = _pixel(camera, (1.5, 0.0, -1.0))
