@@ -1,12 +1,15 @@
 """The one surface rule: what a point on a triangle looks like, for raster and tracer alike.
 
 A point on a surface is (triangle id, barycentric weights). From it come the position,
-the shading normal (with the side rule below), the albedo and the texture colour, all
-through this module, so the raster G-buffer (``render.raster.gbuffer``) and the tracer's
-hits (``render.trace.tracer``, the ``rt`` G-buffer included) agree by construction. It
-follows OpenUSD hdEmbree's ``meshSamplers`` (one ``Sample(element, u, v)`` per
-interpolation, used by normals and primvars alike) and pbrt-v4's ``SurfaceInteraction``
-(which owns the shading-normal rule).
+the shading normal (with the side rule below, then a tangent-space normal map:
+``NormalMaps``), the albedo and the texture colour (``sample_input``: UsdUVTexture wrap
+modes, UsdTransform2d, scale / bias), the emission, and whether the point is there at
+all (``Cutouts``: opacityThreshold), all through this module, so the raster G-buffer
+(``render.raster.gbuffer``) and the tracer's hits (``render.trace.tracer``, the ``rt``
+G-buffer included) agree by construction. It follows OpenUSD hdEmbree's
+``meshSamplers`` (one ``Sample(element, u, v)`` per interpolation, used by normals and
+primvars alike) and pbrt-v4's ``SurfaceInteraction`` (which owns the shading-normal
+rule).
 
 Spaces and shapes: "rel" is world metres minus ``Scene.origin``, float64. T triangles,
 m points. Barycentric weights are (m, 3) float32, the weights of corners 0, 1, 2 (sum 1);

@@ -204,12 +204,13 @@ def _texel_rays(inverse: np.ndarray, texels: np.ndarray, size: int):
     """Rel origins (m, 3) on the near plane and unit directions (m, 3) through the
     centres of ``texels`` (m,) (flat, OpenGL row order) of a ``size``² render whose
     clip_from_rel inverse is ``inverse`` (4, 4)."""
-    x = (texels % size + 0.5) / size * 2.0 - 1.0
-    y = (texels // size + 0.5) / size * 2.0 - 1.0
+    x = (texels % size + 0.5) * (2.0 / size) - 1.0
+    y = (texels // size + 0.5) * (2.0 / size) - 1.0
+    # inverse @ (x, y, z, 1) per texel, as sums of columns (no (m, 4) operand).
+    xy = x[:, None] * inverse[:, 0] + y[:, None] * inverse[:, 1]
     ends = []
     for z in (-1.0, 1.0):
-        ndc = np.stack([x, y, np.full_like(x, z), np.ones_like(x)], axis=1)
-        p = ndc @ inverse.T
+        p = xy + (z * inverse[:, 2] + inverse[:, 3])
         ends.append(p[:, :3] / p[:, 3:4])
     d = ends[1] - ends[0]
     d /= np.linalg.norm(d, axis=1, keepdims=True)
