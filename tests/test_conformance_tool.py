@@ -95,3 +95,17 @@ def test_wrapper_camera_sheet_and_a_broken_asset(tmp_path):
     assert quad["agreement"] == 1.0  # raster and rt cover the same pixels
     assert "| [quad](quad.png) | ok | wrapper |" in index
     assert "| broken | failed | – |" in index
+
+
+def test_list_file_gives_an_asset_its_exposure(tmp_path):
+    listed = tmp_path / "assets.txt"
+    listed.write_text("# comment\nA | a.usda\nB | b.usda | | | 0,0 | -13.5\n")
+    a, b = conformance.read_list(tmp_path, listed)
+    assert (a.exposure, b.exposure, b.view) == (0.0, -13.5, (0.0, 0.0))
+    listed.write_text("B | b.usda | | | | inf\n")
+    try:
+        conformance.read_list(tmp_path, listed)
+    except SystemExit as stop:
+        assert "EV 'inf' is not a finite number" in str(stop)
+    else:
+        raise AssertionError("a non-finite EV was accepted")

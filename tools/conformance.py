@@ -73,6 +73,7 @@ class Asset:
     reference: Path | None
     variants: tuple[str, ...] = ()  # "PRIM:SET=NAME" selections the wrapper authors
     view: tuple[float, float] | None = None  # the wrapper camera's (azimuth, elevation)
+    exposure: float = 0.0  # EV, ``--exposure`` of the render (the render's warning's advice)
 
 
 @dataclass
@@ -91,6 +92,7 @@ class AssetResult:
     reference: str | None
     camera: str = ""  # "own", "wrapper" or "" (not reached)
     variants: list[str] = field(default_factory=list)
+    exposure: float = 0.0
     time_code: float | None = None
     warnings: list[str] = field(default_factory=list)
     modes: list[ModeResult] = field(default_factory=list)
@@ -112,9 +114,10 @@ class AssetResult:
 
 
 def read_list(assets_dir: Path, list_file: Path) -> list[Asset]:
-    """The assets of a list file: ``NAME | STAGE | REFERENCE | VARIANTS | VIEW`` lines
-    (VARIANTS: ``PRIM:SET=NAME`` selections separated by spaces; VIEW: ``AZ,EL`` degrees
-    of the wrapper camera, else ``--view``)."""
+    """The assets of a list file: ``NAME | STAGE | REFERENCE | VARIANTS | VIEW | EV``
+    lines (VARIANTS: ``PRIM:SET=NAME`` selections separated by spaces; VIEW: ``AZ,EL``
+    degrees of the wrapper camera, else ``--view``; EV: the render's ``--exposure``, 0
+    when empty)."""
     assets = []
     for number, line in enumerate(list_file.read_text().splitlines(), 1):
         line = line.split("#", 1)[0].strip()
@@ -122,7 +125,9 @@ def read_list(assets_dir: Path, list_file: Path) -> list[Asset]:
             continue
         cells = [c.strip() for c in line.split("|")]
         if len(cells) < 2 or not cells[0] or not cells[1]:
-            sys.exit(f"{list_file}:{number}: expected NAME | STAGE [| REF [| VARIANTS [| VIEW]]]")
+            sys.exit(
+                f"{list_file}:{number}: expected NAME | STAGE [| REF [| VARIANTS [| VIEW [| EV]]]]"
+            )
         stage = assets_dir / cells[1]
         reference = assets_dir / cells[2] if len(cells) > 2 and cells[2] else None
         variants = tuple(cells[3].split()) if len(cells) > 3 else ()
@@ -132,7 +137,15 @@ def read_list(assets_dir: Path, list_file: Path) -> list[Asset]:
         view = parse_view(cells[4]) if len(cells) > 4 and cells[4] else None
         if len(cells) > 4 and cells[4] and view is None:
             sys.exit(f"{list_file}:{number}: view {cells[4]!r} is not AZ,EL (|EL| < 89)")
-        assets.append(Asset(cells[0], stage, reference or find_reference(stage), variants, view))
+        try:
+            exposure = float(cells[5]) if len(cells) > 5 and cells[5] else 0.0
+        except ValueError:
+            exposure = math.nan
+        if not math.isfinite(exposure):
+            sys.exit(f"{list_file}:{number}: EV {cells[5]!r} is not a finite number")
+        assets.append(
+            Asset(cells[0], stage, reference or find_reference(stage), variants, view, exposure)
+        )
     return assets
 
 
@@ -357,6 +370,7 @@ def render_asset(asset: Asset, out: Path, resolution, modes, view) -> AssetResul
         if source is None:
             raise RuntimeError(f"{asset.stage}: USD cannot open it")
         result.variants = list(asset.variants)
+        result.exposure = asset.exposure
         stage = wrapper_stage(source, asset.stage, asset.variants) if asset.variants else source
         if has_camera(stage):
             camera, result.camera = None, "own"
@@ -385,6 +399,7 @@ def render_asset(asset: Asset, out: Path, resolution, modes, view) -> AssetResul
             with phrt_usd.open(
                 str(stage_file), frames=[result.time_code], mode=mode,
                 resolution=resolution, camera=camera, budget_ms=math.inf,
+                exposure=asset.exposure,
             ) as renderer:  # fmt: skip
                 frame = renderer.render(result.time_code)
                 for warning in renderer.stage_scene.warnings:
@@ -423,7 +438,7 @@ def render_isolated(asset: Asset, out: Path, resolution, modes, view, timeout) -
     record.parent.mkdir(parents=True, exist_ok=True)
     record.unlink(missing_ok=True)
     job = {"asset": [asset.name, str(asset.stage), str(asset.reference or ""),
-                     list(asset.variants), asset.view],
+                     list(asset.variants), asset.view, asset.exposure],
            "out": str(out), "resolution": list(resolution), "modes": list(modes),
            "view": list(view), "record": str(record)}  # fmt: skip
     command = [sys.executable, str(Path(__file__).resolve()), "--one", json.dumps(job)]
@@ -448,9 +463,9 @@ def render_isolated(asset: Asset, out: Path, resolution, modes, view, timeout) -
 
 def run_one(job_text: str) -> None:
     job = json.loads(job_text)
-    name, stage, reference, variants, own_view = job["asset"]
+    name, stage, reference, variants, own_view, exposure = job["asset"]
     asset = Asset(name, Path(stage), Path(reference) if reference else None, tuple(variants),
-                  tuple(own_view) if own_view else None)  # fmt: skip
+                  tuple(own_view) if own_view else None, exposure)  # fmt: skip
     result = render_asset(
         asset, Path(job["out"]), tuple(job["resolution"]), job["modes"], tuple(job["view"])
     )
@@ -541,12 +556,13 @@ def read_picture(path: Path) -> np.ndarray | None:
 
 def write_index(out: Path, results: list[AssetResult], settings: dict) -> None:
     rows = [
-        "| asset | status | camera | warnings | " + " | ".join(
+        "| asset | status | camera | EV | warnings | " + " | ".join(
             f"{m} s / covered" for m in settings["modes"]) + " | coverage agrees |",
-        "|---|---|---|---|" + "---|" * (len(settings["modes"]) + 1),
+        "|---|---|---|---|---|" + "---|" * (len(settings["modes"]) + 1),
     ]  # fmt: skip
     for r in results:
-        cells = [f"[{r.name}]({r.sheet})" if r.sheet else r.name, r.status, r.camera or "–"]
+        cells = [f"[{r.name}]({r.sheet})" if r.sheet else r.name, r.status, r.camera or "–",
+                 f"{r.exposure:g}"]  # fmt: skip
         notes = [r.error] if r.error else []
         notes += [f"{m.mode}: {m.error}" for m in r.modes if m.error]
         notes += r.warnings
@@ -567,8 +583,9 @@ def write_index(out: Path, results: list[AssetResult], settings: dict) -> None:
         f"({', '.join(settings['modes'])}), commit {settings['commit']}, "
         f"{settings['date']}. Time: wall seconds of reading the stage and rendering one "
         "frame (a shared machine: indicative only; raster includes creating the OpenGL "
-        "context). Covered: pixels with geometry. Coverage agrees: pixels covered in both "
-        "of the first two modes or in neither.",
+        "context). EV: the render's `--exposure` from the asset list (where the render's "
+        "clipping warning advised one). Covered: pixels with geometry. Coverage agrees: "
+        "pixels covered in both of the first two modes or in neither.",
         "",
     ]
     (out / "index.md").write_text("\n".join(header + rows) + "\n")
