@@ -173,7 +173,11 @@ def run_alternate(args: argparse.Namespace) -> None:
     """Write a synthetic configuration that pops on purpose: frames taken alternately
     ``period`` at a time from two render outputs A and B (A first), with a stats.json
     whose per-frame entries (selection, timings) are those of the frames' sources, so
-    ``ours`` counts its transitions. The popping control of docs/temporal-error.md."""
+    ``ours`` counts its transitions. The popping control of docs/temporal-error.md.
+
+    With ``--blend``, its steady counterpart instead: every frame is the mean of A's and
+    B's linear beauty (no switch, about the same per-frame error as alternating), with
+    B's per-frame stats (the project's env: it writes EXR and PNG with phrt_usd)."""
     import shutil
 
     first, second, out = Path(args.first), Path(args.second), Path(args.out)
@@ -184,7 +188,12 @@ def run_alternate(args: argparse.Namespace) -> None:
         fail(f"{first} and {second}: stats.json frames do not match frames/*.exr")
     (out / "frames").mkdir(parents=True, exist_ok=True)
     frames = []
-    for index, name in enumerate(names):
+    label = f"blend {first.name}/{second.name}" if args.blend else (
+        f"alternate {first.name}/{second.name} every {args.period}")
+    if args.blend:
+        _write_blend(first, second, out, names)
+        frames = stats[1]["frames"]
+    for index, name in enumerate([] if args.blend else names):
         source = (index // args.period) % 2
         directory = (first, second)[source]
         for suffix in ("exr", "png"):
@@ -193,11 +202,26 @@ def run_alternate(args: argparse.Namespace) -> None:
                             out / "frames" / f"{stem}.{suffix}")
         frames.append(stats[source]["frames"][index])
     run = dict(stats[1]["run"])
-    run["heuristic"] = f"alternate {first.name}/{second.name} every {args.period}"
+    run["heuristic"] = label
     run["budget_rays"] = None
     run["budget_ms"] = None
     (out / "stats.json").write_text(json.dumps({"run": run, "frames": frames}, indent=1))
     print(f"wrote {out}", file=sys.stderr)
+
+
+def _write_blend(first: Path, second: Path, out: Path, names: list[str]) -> None:
+    """frames/<name>.exr and .png under ``out``: the mean of A's and B's linear beauty
+    (other channels: A's)."""
+    from phrt_usd.run.images import read_frame_exr, write_frame_exr, write_preview_png
+
+    for name in names:
+        a = read_frame_exr(first / "frames" / name)
+        b = read_frame_exr(second / "frames" / name)
+        beauty = np.float32(0.5) * (a["beauty"] + b["beauty"])
+        stem = name.removesuffix(".exr")
+        write_frame_exr(out / "frames" / f"{stem}.exr", beauty, a["alpha"], a["depth"],
+                        a["element_id"], a["traced_mask"])
+        write_preview_png(out / "frames" / f"{stem}.png", beauty)
 
 
 # --- step 2: cvvdp (separate venv) --------------------------------------------------------
@@ -308,6 +332,8 @@ def main(argv: list[str] | None = None) -> None:
     alt.add_argument("first", help="render output A (e.g. the `all` reference)")
     alt.add_argument("second", help="render output B (e.g. raster-only `none`)")
     alt.add_argument("--period", type=int, default=1, help="frames taken from each in turn")
+    alt.add_argument("--blend", action="store_true",
+                     help="every frame the mean of A and B instead (the steady counterpart)")
     alt.add_argument("--out", required=True, help="output directory")
     args = parser.parse_args(argv)
     if args.step == "alternate" and args.period < 1:
