@@ -103,6 +103,8 @@ def environment(cached: bool) -> dict[str, str]:
     if cached:
         env.pop("PYTHONDONTWRITEBYTECODE", None)
         env["PYTHONPYCACHEPREFIX"] = str(PYCACHE)
+    elif env.get("PYTHONPYCACHEPREFIX") == str(PYCACHE):
+        del env["PYTHONPYCACHEPREFIX"]  # "as is" must not read this tool's cache
     return env
 
 
