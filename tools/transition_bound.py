@@ -16,6 +16,13 @@ makes them more constrained. ``mean_selected`` defaults to HEU2's on the same bu
 
     uv run python tools/transition_bound.py runs/replay/farm.json.gz --budgets 500,1000,2000,4000
 
+``--max-transitions 2,4,9`` solves the other side of the trade instead: the most rays any
+selection traces (mean over frames with visible reflectors of traced rays / B, the
+``budget use`` of ``policy_replay.py replay``) with at most that many transitions:
+
+    maximise    sum_{f,r} rays[f,r] * x[f,r]
+    subject to  the budget per frame as above,  transitions <= K
+
 The recording is read with ``policy_replay.load_recording`` (plain JSON data, never
 unpickled); a file that is not one is refused with one line.
 """
@@ -111,11 +118,72 @@ def fewest_transitions(
     return float(counts["transitions"]), float(counts["mean_selected"]), status
 
 
+def most_rays(
+    rays: np.ndarray, visible: np.ndarray, budget: float, max_transitions: int, time_limit: float
+) -> tuple[float, int, float, str]:
+    """(budget use, transitions, mean selected, solver status) of the selection that
+    traces the most rays within ``budget`` per frame with at most ``max_transitions``
+    transitions (or of the best found within ``time_limit`` seconds)."""
+    F, R = rays.shape
+    n_x = F * R
+    x_index = np.arange(n_x).reshape(F, R)
+    pairs = np.argwhere(visible[1:] & visible[:-1])
+    m = len(pairs)
+    t_index = n_x + np.arange(m)
+    rows, cols, vals, lo, hi = [], [], [], [], []
+    row = 0
+    for f in range(F):
+        ks = np.flatnonzero(visible[f])
+        rows += [row] * len(ks)
+        cols += x_index[f, ks].tolist()
+        vals += rays[f, ks].tolist()
+        lo.append(-np.inf)
+        hi.append(budget)
+        row += 1
+    for j, (f0, k) in enumerate(pairs):
+        a, b = x_index[f0, k], x_index[f0 + 1, k]
+        for sign in (1.0, -1.0):
+            rows += [row, row, row]
+            cols += [t_index[j], a, b]
+            vals += [1.0, sign, -sign]
+            lo.append(0.0)
+            hi.append(np.inf)
+            row += 1
+    rows += [row] * m
+    cols += t_index.tolist()
+    vals += [1.0] * m
+    lo.append(-np.inf)
+    hi.append(float(max_transitions))
+    row += 1
+    A = coo_matrix((vals, (rows, cols)), shape=(row, n_x + m)).tocsr()
+    upper = np.concatenate([visible.reshape(-1).astype(float), np.ones(m)])
+    integrality = np.concatenate([np.ones(n_x), np.zeros(m)])
+    cost = np.concatenate([-rays.reshape(-1), np.zeros(m)])
+    res = milp(
+        cost,
+        constraints=LinearConstraint(A, lo, hi),
+        integrality=integrality,
+        bounds=Bounds(np.zeros(n_x + m), upper),
+        options={"time_limit": time_limit},
+    )
+    if res.x is None:
+        return float("nan"), -1, float("nan"), res.message
+    x = np.round(res.x[:n_x]).reshape(F, R).astype(bool)
+    counts = transition_counts(x, visible)
+    seen = visible.any(axis=1)
+    use = float(np.mean((rays * x).sum(axis=1)[seen] / budget)) if seen.any() else float("nan")
+    status = "optimal" if res.status == 0 else f"best found ({res.message})"
+    return use, int(counts["transitions"]), float(counts["mean_selected"]), status
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("recording", type=Path)
     ap.add_argument("--budgets", required=True, help="comma list of rays budgets")
     ap.add_argument("--time-limit", type=float, default=120.0, help="seconds per budget")
+    ap.add_argument(
+        "--max-transitions", default="", help="comma list of K: most rays with <= K transitions"
+    )
     args = ap.parse_args(argv)
     try:
         data = load_recording(args.recording)
@@ -123,6 +191,16 @@ def main(argv: list[str] | None = None) -> int:
         print(f"transition_bound: {error}", file=sys.stderr)
         return 1
     rays, visible = recorded_costs(data)
+    if args.max_transitions:
+        print(
+            "| budget | at most K transitions | budget use | transitions | mean selected | solver |"
+        )
+        print("|---|---|---|---|---|---|")
+        for budget in (int(b) for b in args.budgets.split(",")):
+            for k in (int(k) for k in args.max_transitions.split(",")):
+                use, t, mean, status = most_rays(rays, visible, budget, k, args.time_limit)
+                print(f"| {budget} | {k} | {use:.3f} | {t} | {mean:.2f} | {status} |", flush=True)
+        return 0
     print(
         "| budget | HEU2 transitions | HEU2 mean selected | fewest transitions at that mean "
         "(offline) | its mean selected | solver |"
