@@ -10,7 +10,8 @@ import numpy as np
 from test_heuristic import camera, element, run_frame, scene, transitions, view
 
 from phrt_usd.model.frame import Budget
-from phrt_usd.select.policies import ADMISSION_MARGIN, LOOKAHEAD_FRAMES, RAYS_SAFETY, make_policy
+from phrt_usd.select.heu1_policy import LOOKAHEAD_FRAMES
+from phrt_usd.select.policies import ADMISSION_MARGIN, RAYS_SAFETY, make_policy
 
 
 def heu1():

@@ -22,8 +22,15 @@ from phrt_usd.model.scene import (
     MaterialTable,
     Scene,
 )
-from phrt_usd.select import policies as heuristic
+from phrt_usd.select import heu1_policy as heuristic
 from phrt_usd.select.cost_model import TIME_SAFETY_MIN, TraceTimeModel
+from phrt_usd.select.heu1_policy import (
+    FORECAST_HORIZON,
+    LOOKAHEAD_BATCH,
+    LOOKAHEAD_FRAMES,
+    UPCOMING_CAMERAS,
+    Heu1Policy,
+)
 from phrt_usd.select.metrics import (
     D_MIN,
     box_screen_area,
@@ -36,12 +43,7 @@ from phrt_usd.select.metrics import (
 )
 from phrt_usd.select.policies import (
     ADMISSION_MARGIN,
-    FORECAST_HORIZON,
-    LOOKAHEAD_BATCH,
-    LOOKAHEAD_FRAMES,
     RAYS_SAFETY,
-    UPCOMING_CAMERAS,
-    Heu1Policy,
     Heu2Policy,
     make_policy,
 )

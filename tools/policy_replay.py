@@ -73,7 +73,8 @@ from phrt_usd.render.renderer import (
     RenderOptions,
 )
 from phrt_usd.run.frames import parse_frames
-from phrt_usd.select.policies import UPCOMING_CAMERAS, AllPolicy, make_policy
+from phrt_usd.select.heu1_policy import UPCOMING_CAMERAS
+from phrt_usd.select.policies import AllPolicy, make_policy
 from phrt_usd.usd.schema import read_render_params
 from phrt_usd.usd.stage import open_stage
 

@@ -104,7 +104,7 @@ class FrameView:
     screen_boxes: (E, 4) float64 pixel bounds (col_min, row_min, col_max, row_max) of
         each reflector's visible pixels, NaN where it has none; None if not computed.
     upcoming_cameras: the cameras of the next frames of the render, in order (at most
-        ``select.policies.UPCOMING_CAMERAS``; empty when the renderer does not know them, e.g.
+        ``select.heu1_policy.UPCOMING_CAMERAS``; empty when the renderer does not know them, e.g.
         for the last frame or a single-frame render). A stage's camera path is known in
         advance, so HEU1 can forecast a reflector's cost from it.
     """

@@ -42,7 +42,8 @@ from phrt_usd.render.compositing import (
 )
 from phrt_usd.render.lighting import shade_gbuffer
 from phrt_usd.render.raster.gl_platform import DEFAULT_GL, check_gl
-from phrt_usd.select.policies import UPCOMING_CAMERAS, make_policy
+from phrt_usd.select.heu1_policy import UPCOMING_CAMERAS
+from phrt_usd.select.policies import make_policy
 from phrt_usd.threads import DEFAULT_THREADS, apply_threads, check_threads
 from phrt_usd.usd.default_lights import aim_headlight
 from phrt_usd.usd.lights import intensity_note

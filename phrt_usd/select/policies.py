@@ -1,13 +1,12 @@
-"""Which reflectors to ray-trace each frame: the paper's HEU1, the HEU2 baseline, and the
-fixed policies ``all``, ``none`` and ``list`` (``phrt_usd.model.frame.SelectionPolicy``),
-and ``make_policy`` to pick one by name.
+"""Which reflectors to ray-trace each frame: what every policy shares (``BudgetedPolicy``),
+the HEU2 baseline, the fixed policies ``all``, ``none`` and ``list``
+(``phrt_usd.model.frame.SelectionPolicy``), and ``make_policy`` to pick one by name (the
+paper's HEU1 is ``phrt_usd.select.heu1_policy``, HEU3 ``benefit_policy``).
 
 Every policy computes the Table 1 metrics of the frame's candidates
 (``phrt_usd.select.metrics``) and remembers across frames what tracing taught it: Q, rays
 per pixel, which reflector reflects which, the previous selection (saved and restored as
-plain data through ``phrt_usd.select.policy_memory``). HEU1 selects on a Selection Graph
-(``phrt_usd.select.selection_graph``) with hysteresis and a lookahead over the camera
-path (docs/heuristic.md, "Transition-aware selection").
+plain data through ``phrt_usd.select.policy_memory``).
 
 Budget: ``C`` has no unit. What the budget is checked against is a calibrated prediction
 of the rays tracing a candidate costs (``pixels * rays per pixel * RAYS_SAFETY``) and of
@@ -25,10 +24,9 @@ import numpy as np
 
 from phrt_usd.errors import PhrtError
 from phrt_usd.model.frame import Budget, FrameView, ReflectorMetrics, SelectionPolicy, TraceRecord
-from phrt_usd.model.scene import CameraFrame, Scene
+from phrt_usd.model.scene import Scene
 from phrt_usd.select.cost_model import TIME_MODEL_DECAY, TraceTimeModel
 from phrt_usd.select.metrics import (
-    box_screen_area,
     camera_distance,
     centrality,
     clip_weight,
@@ -39,7 +37,6 @@ from phrt_usd.select.metrics import (
     visible_area,
 )
 from phrt_usd.select.policy_memory import from_plain, same_shape, to_plain
-from phrt_usd.select.selection_graph import Node, SelectionGraph
 
 #: Predicted rays are multiplied by this: rays per pixel learned in earlier frames
 #: under-predict when a reflector starts reflecting more reflectors (deeper bounces).
@@ -57,36 +54,6 @@ MIN_RAYS_PER_PIXEL = 1.0
 #: without a margin, a selection whose total hovers at the budget drops one reflector
 #: and takes it back on alternate frames.
 ADMISSION_MARGIN = 0.1
-
-#: HEU1's growth forecast (ours, docs/heuristic.md "Transition-aware selection"): a
-#: reflector's predicted rays are extrapolated FORECAST_HORIZON frames (1 s at 24 fps)
-#: ahead from the growth of its pixel count over the last GROWTH_WINDOW frames it was in
-#: view: the geometric mean growth per frame, clamped to [1, GROWTH_MAX] (a shrinking
-#: reflector is forecast at its current cost; one glitchy frame cannot forecast infinity).
-FORECAST_HORIZON = 24
-GROWTH_WINDOW = 4
-GROWTH_MAX = 2.0
-#: A pixel history counts as a trend when its net change (in log pixels) is at least this
-#: share of its total up-and-down travel (1: monotone).
-TREND_MIN = 0.5
-#: Forecasts (rays) are capped here so that sums of them stay finite.
-FORECAST_MAX = 1e300
-
-#: HEU1's lookahead: when the renderer knows the frames to come
-#: (``FrameView.upcoming_cameras``: a stage's camera path is known before the render
-#: starts), the forecast is instead the largest cost over the next LOOKAHEAD_FRAMES frames,
-#: scaled from the current cost by the screen area of the reflector's bounding box
-#: (``box_screen_area``; each upcoming camera's areas are computed once and reused by the
-#: following frames). Measured on both stages (docs/heuristic.md): 48 frames gave fewer
-#: transitions than 24 at the same mean selected count; longer ones shut out reflectors
-#: that grow late.
-LOOKAHEAD_FRAMES = 48
-#: Box areas are computed for LOOKAHEAD_BATCH cameras at a time (one array pass instead of
-#: one per frame: the per-call overhead was ~0.2 ms of HEU1's selection time per frame);
-#: renderers pass UPCOMING_CAMERAS upcoming cameras so that a batch is computed before the
-#: window reaches it.
-LOOKAHEAD_BATCH = 48
-UPCOMING_CAMERAS = LOOKAHEAD_FRAMES + LOOKAHEAD_BATCH
 
 
 @dataclass
@@ -456,255 +423,6 @@ class BudgetedPolicy(ABC):
         return self._frame
 
 
-class Heu1Policy(BudgetedPolicy):
-    """The paper's heuristic on a Selection Graph rebuilt from the untraced candidates
-    every round, made transition-aware (docs/heuristic.md):
-
-    * reflectors selected in the previous frame keep their claim while no candidate that
-      could be taken is more relevant (R with the paper's S·I bonus), and the claimed
-      ones are kept cheapest first, as many as fit (when they no longer all fit, the
-      fewest are dropped);
-    * the others are taken by relevance R among those whose predicted cost fits, with
-      the admission margin; a reflector already in view in the previous frame (so that
-      taking it is a transition) must in addition not be shrinking, and its cost forecast
-      FORECAST_HORIZON frames ahead must fit the budget left by the forecasts of the
-      reflectors taken before it. A reflector entering the view is taken freely, unless
-      (entering) the lookahead forecasts it to cost more than the whole budget while its
-      box is on screen: it would be dropped in view, a transition for a few frames;
-    * with a lookahead (upcoming cameras) a forecast is a curve, one predicted cost per
-      upcoming frame (box screen area there / now), and the horizon budget is checked
-      frame by frame against the sum of the selection's curves, not against the sum of
-      their peaks (reflectors that peak at different frames, or leave the view, can be
-      kept together); a kept reflector forecast to outgrow the budget charges its curve
-      only up to that frame;
-    * leftover: rounds after the first fill what the measured rounds left of T, and the
-      admission margin there is a share of that leftover, not of the whole budget (with
-      a time budget the first round plans only ~1/(1.1 x safety) of T, and a margin of
-      10 % of T took most of what was left).
-
-    Deviations from the paper (§4.2: the most relevant nodes whose cost fits, S·I as
-    the only hysteresis): the keep step, the admission margin, the forecasts and the
-    shrinking/outgrowing rules above are ours (docs/heuristic.md, "Transition-aware
-    selection"); the relevance R, the Selection Graph walk and the rounds while time
-    remains are the paper's.
-    """
-
-    name = "heu1"
-
-    def __init__(self, *, selection_weight: float, bounce_limit: int) -> None:
-        super().__init__(selection_weight=selection_weight, bounce_limit=bounce_limit)
-        #: Pixel counts of each reflector in view over its last consecutive frames in view
-        #: (at most GROWTH_WINDOW + 1, oldest first, the current frame last).
-        self.pixel_history: dict[int, list[int]] = {}
-        #: Reflectors with pixels in the previous frame.
-        self.previous_visible: set[int] = set()
-        #: Reflectors the keep step could not fit while in view, not selected since and
-        #: still in view: they are no challengers of kept reflectors (``Node.challenger``).
-        self.forced_out: set[int] = set()
-        #: This frame's lookahead growth per reflector in view (element id → largest
-        #: bounding-box screen area over the upcoming cameras / the current one, >= 1);
-        #: empty when the view has no upcoming cameras.
-        self.lookahead_growth: dict[int, float] = {}
-        #: Screen area of every reflector's box per camera of the path, computed once per
-        #: camera (the renderer passes the same CameraFrame objects frame after frame, the
-        #: current one included): id(camera) → (camera, (R,) float64 pixels, in the order
-        #: of the reflector ids). The camera is held so that its id cannot be reused while
-        #: cached. Boxes are those of the frame that computed the batch (animation is not
-        #: forecast), the current camera's too, so growth compares like with like.
-        self._box_areas: dict[int, tuple[CameraFrame, np.ndarray]] = {}
-        self._box_areas_key: tuple = ()  # (width, height, reflector count) of the cache
-        #: This frame's lookahead per reflector in view: element id → (W,) float64 screen
-        #: area of its box at each of the next W <= LOOKAHEAD_FRAMES upcoming cameras / its
-        #: area now (>= 0, finite; 0 where the box is off-screen); {} without upcoming
-        #: cameras.
-        self._growth_curves: dict[int, np.ndarray] = {}
-
-    def begin_frame(self, view: FrameView, scene: Scene) -> None:
-        super().begin_frame(view, scene)
-        frame = self._require_frame()
-        history = {}
-        for e in np.flatnonzero(frame.pixels > 0).tolist():
-            history[e] = [*self.pixel_history.get(e, [])[-GROWTH_WINDOW:], int(frame.pixels[e])]
-        self.pixel_history = history  # a reflector out of view starts afresh
-        self._growth_curves = self._lookahead_curves(view, scene, np.fromiter(history, int))
-        self.lookahead_growth = {
-            e: float(max(curve.max(initial=1.0), 1.0)) for e, curve in self._growth_curves.items()
-        }
-
-    def _lookahead_curves(
-        self, view: FrameView, scene: Scene, ids: np.ndarray
-    ) -> dict[int, np.ndarray]:
-        """Element id → (W,) float64 screen area of its box at each of the next W <=
-        LOOKAHEAD_FRAMES upcoming cameras / its area now (>= 0, finite), for the reflectors
-        ``ids`` in view; {} without upcoming cameras."""
-        ahead = view.upcoming_cameras[:LOOKAHEAD_FRAMES]
-        if not ahead or len(ids) == 0:
-            return {}
-        refl = self._reflectors_of(scene)  # ascending element ids
-        w, h = view.width, view.height
-        if self._box_areas_key != (w, h, len(refl)):
-            self._box_areas, self._box_areas_key = {}, (w, h, len(refl))
-        cached = self._box_areas
-        if any(id(c) not in cached for c in (view.camera, *ahead)):
-            # One call for every camera of the view not cached yet, the ones beyond the
-            # window included: with the renderer's UPCOMING_CAMERAS that is one call per
-            # LOOKAHEAD_BATCH frames.
-            path = {id(c): c for c in (view.camera, *view.upcoming_cameras)}
-            new = {k: c for k, c in path.items() if k not in cached}
-            lo = np.array([scene.elements[i].bounds_min for i in refl], dtype=np.float64)
-            hi = np.array([scene.elements[i].bounds_max for i in refl], dtype=np.float64)
-            areas = box_screen_area(lo, hi, list(new.values()), w, h)
-            cached = {k: v for k, v in cached.items() if k in path}  # drop cameras passed
-            cached.update(zip(new, zip(new.values(), areas, strict=True), strict=True))
-            self._box_areas = cached
-        cols = np.searchsorted(refl, ids)
-        now = cached[id(view.camera)][1][cols]
-        later = np.stack([cached[id(c)][1] for c in ahead])[:, cols]  # (W, n)
-        # A reflector in view has pixels, so a box area under one pixel is a sliver at
-        # the image edge: growth is measured from one pixel, which keeps it finite.
-        growth = later / np.maximum(now, 1.0)
-        growth = np.clip(np.nan_to_num(growth, nan=0.0, posinf=FORECAST_MAX), 0.0, FORECAST_MAX)
-        return {e: growth[:, k] for k, e in enumerate(ids.tolist())}
-
-    def end_frame(self) -> dict[int, ReflectorMetrics]:
-        frame = self._require_frame()
-        visible = set(np.flatnonzero(frame.pixels > 0).tolist())
-        self.forced_out = ((self.forced_out | frame.unfit_claims) & visible) - set(frame.traced)
-        self.previous_visible = visible
-        return super().end_frame()
-
-    def growth(self, element: int) -> float:
-        """Per-frame growth of ``element``'s pixel count: the geometric mean over its
-        recent frames in view when they show a trend (net change in log pixels at least
-        TREND_MIN of the up-and-down travel), else 1 (also with fewer than two frames).
-        Finite, > 0.
-
-        Only a steady trend counts: a camera moving smoothly makes a reflector's pixel
-        count grow or shrink steadily, while counts that jitter (partial occlusion,
-        animation) would otherwise extrapolate to a wildly wrong forecast."""
-        growth = self._require_frame().growth  # the history is fixed within a frame
-        if element not in growth:
-            growth[element] = self._pixel_growth(element)
-        return growth[element]
-
-    def _pixel_growth(self, element: int) -> float:
-        """``growth`` computed from the pixel history."""
-        h = self.pixel_history.get(element, [])  # at most GROWTH_WINDOW + 1 counts: scalars
-        if len(h) < 2 or h[0] <= 0:
-            return 1.0
-        logs = [math.log(max(c, 1.0)) for c in h]
-        steps = [b - a for a, b in zip(logs, logs[1:], strict=False)]
-        travel = sum(abs(d) for d in steps)
-        if travel > 0.0 and abs(sum(steps)) < TREND_MIN * travel:
-            return 1.0  # up and down more than it moved: no trend to extrapolate
-        return float((h[-1] / h[0]) ** (1.0 / (len(h) - 1)))
-
-    def forecast_rays(self, element: int) -> float:
-        """Predicted rays within the forecast's horizon: with upcoming cameras,
-        ``predicted_rays`` times the lookahead growth (LOOKAHEAD_FRAMES ahead); otherwise
-        ``predicted_rays * g**H`` with the pixel growth g clamped to [1, GROWTH_MAX] and
-        H = FORECAST_HORIZON. Finite (<= FORECAST_MAX)."""
-        growth = self.lookahead_growth.get(element)
-        if growth is None:
-            growth = min(max(self.growth(element), 1.0), GROWTH_MAX) ** FORECAST_HORIZON
-        return float(min(self.predicted_rays(element) * growth, FORECAST_MAX))
-
-    def forecast_curve(self, element: int) -> float | np.ndarray:
-        """With upcoming cameras: (W,) float64 predicted rays at each of the next W
-        frames (``predicted_rays`` scaled by its box's screen area there over now: 0 once
-        the box is off-screen); without: ``forecast_rays`` (one number)."""
-        curve = self._growth_curves.get(element)
-        if curve is None:
-            return self.forecast_rays(element)
-        return np.minimum(self.predicted_rays(element) * curve, FORECAST_MAX)
-
-    def _node(self, e: int, reserve: float, budget: float) -> Node:
-        frame = self._require_frame()
-        kept = e in self.previous_selection
-        forecast = self.forecast_curve(e)
-        over = np.asarray(forecast) > budget
-        if kept and over.any():
-            # It will outgrow the whole budget within the horizon and be dropped whatever
-            # is decided now: what it holds of the budget is not a lasting commitment
-            # (with a lookahead: from the frame it outgrows the budget on).
-            forecast = 0.0 if np.ndim(forecast) == 0 else np.where(np.cumsum(over), 0.0, forecast)
-        return Node(
-            element=e,
-            R=self.relevance_R(e),
-            cost=self.predicted_rays(e),
-            traceable=bool(frame.pixels[e] > 0),
-            reserve=0.0 if kept else reserve,
-            kept=kept,
-            forecast=forecast,
-            admission=not kept and e in self.previous_visible,
-            challenger=e not in self.forced_out,
-        )
-
-    def graph(self, reserve: float = 0.0, budget: float = math.inf) -> SelectionGraph:
-        """The Selection Graph of the untraced candidates, as of now. Candidates not
-        selected in the previous frame need ``reserve`` budget left beyond their cost;
-        ``budget`` is the frame's whole budget (a kept reflector forecast beyond it
-        charges no forecast). Left out: candidates in view in the previous frame, not
-        selected then, and shrinking now (taking one would be a transition for a
-        reflector that is on its way out of the view), and, with a lookahead, candidates
-        entering the view whose forecast outgrows ``budget`` while their box is on
-        screen (``_outgrows``)."""
-        frame = self._require_frame()
-        done = set(frame.traced)
-        return SelectionGraph(
-            self._node(e, reserve, budget)
-            for e in self.candidates()
-            if e not in done and not self._leaving(e) and not self._outgrows(e, budget)
-        )
-
-    def _outgrows(self, e: int, budget: float) -> bool:
-        """Entering the view (not in view in the previous frame, so not selected then),
-        and with a lookahead forecast to cost more than ``budget`` in one of the next
-        LOOKAHEAD_FRAMES frames: it would be dropped while in view, one transition for
-        a few frames of tracing (class docstring, "entering")."""
-        if e in self.previous_visible or e in self.previous_selection:
-            return False
-        curve = self._growth_curves.get(e)
-        return curve is not None and bool(np.any(self.predicted_rays(e) * curve > budget))
-
-    def _leaving(self, e: int) -> bool:
-        """In view in the previous frame, not selected then, and shrinking now."""
-        return (
-            e in self.previous_visible and e not in self.previous_selection and self.growth(e) < 1.0
-        )
-
-    def _choose(self, budget: Budget) -> list[int]:
-        frame = self._require_frame()
-        allowance = self.ray_allowance(budget)
-        if not allowance > 0.0:
-            return []
-        if frame.first_allowance is None:
-            frame.first_allowance = allowance
-        elif all(self.predicted_rays(e) > allowance for e in self._untraced_visible()):
-            # A later round in which nothing fits: no graph needed (the first round's is,
-            # for the claims the keep step could not fit).
-            return []
-        # The horizon budget is the whole frame's budget, also in later rounds; the margin
-        # is a share of what this round may spend (class docstring, "leftover").
-        reserve = ADMISSION_MARGIN * allowance
-        graph = self.graph(reserve=reserve, budget=frame.first_allowance)
-        ids = graph.select(allowance, horizon_budget=frame.first_allowance - frame.forecast_used)
-        if not ids and not frame.traced:
-            # The admission margin would leave the whole budget idle (and the cost model
-            # without a round to learn from: a still shot then never traced again). Once
-            # taken, a reflector is kept without margin, so this delays no more than the
-            # margin's first admission.
-            graph = self.graph(reserve=0.0, budget=frame.first_allowance)
-            ids = graph.select(allowance, horizon_budget=frame.first_allowance)
-        if not frame.traced:
-            # The first round's keep step decides which claims cost pushes out; in later
-            # rounds, kept reflectors not taken yet are ones that already lost or missed.
-            frame.unfit_claims.update(graph.unfit_claims)
-        for e in ids:
-            frame.forecast_used = frame.forecast_used + graph.nodes[e].forecast
-        return ids
-
-
 class Heu2Policy(BudgetedPolicy):
     """The paper's distance baseline: the visible reflectors nearest the camera
     (bounding-box centre distance, ties by id) that fit the budget, skipping any that
@@ -783,15 +501,13 @@ def make_policy(
     parameters."""
     key = name.strip().lower()
     common = {"selection_weight": selection_weight, "bounce_limit": bounce_limit}
-    if key == "heu1":
-        return Heu1Policy(**common)
     if key == "heu2":
         return Heu2Policy(**common)
     if key == "all":
         return AllPolicy(**common)
     if key == "none":
         return NonePolicy(**common)
-    if key in REGISTERED_POLICIES:  # heu3: select/benefit_policy.py
+    if key in REGISTERED_POLICIES:  # heu1: select/heu1_policy.py, heu3: benefit_policy.py
         return REGISTERED_POLICIES[key](**common)
     if key == "list":
         if explicit is None:
