@@ -138,3 +138,16 @@ def test_cli_both_budgets_is_a_one_line_error(tmp_path):
     assert result.exit_code == 2
     assert "--budget-ms and --target-fps both given" in result.output
     assert "Traceback" not in result.output
+
+
+@pytest.mark.parametrize(("name", "reported"), [("heu1", True), ("all", False), ("none", False)])
+def test_budget_use_only_for_policies_that_follow_the_budget(tmp_path, name, reported):
+    """all and none trace what they trace whatever T: a share of T would mislead (a
+    render with all once printed "1076 % of T")."""
+    import phrt_usd
+
+    stage = mirror_gallery_stage(tmp_path / "g.usda", frames=2)
+    run = phrt_usd.render(stage, tmp_path / "out", frames="1:2", mode="hybrid", heuristic=name,
+                          budget_ms=10.0, resolution=(64, 48))  # fmt: skip
+    assert all((f.budget_use is not None) == reported for f in run.frames if f.visible)
+    assert any(f.visible for f in run.frames)

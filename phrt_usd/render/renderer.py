@@ -464,7 +464,8 @@ class FrameRenderer:
         # The calibration runs once per run and is reported apart (FrameStats.calibration).
         frame_ms = prep.prepare_ms + _ms(t_finish) - phase.get("calibrate", 0.0)
         budget_use = None
-        if frame_budget_ms is not None and frame_budget_ms > 0 and visible_ids:
+        follows = getattr(policy, "follows_budget", True)  # not all/none/list
+        if frame_budget_ms is not None and frame_budget_ms > 0 and visible_ids and follows:
             budget_use = trace_ms / frame_budget_ms
         elements = scene.elements
         stats = FrameStats(

@@ -94,6 +94,9 @@ class BudgetedPolicy(ABC):
     #: True when ``record`` reads ``TraceRecord.fallback_error`` (the renderer fills it
     #: only then: it costs a pass over the traced pixels).
     observes_fallback_error = False
+    #: False for the fixed policies (all, none, list): what they trace does not depend on
+    #: the budget, so the renderer reports no budget use for them.
+    follows_budget = True
 
     def __init__(self, *, selection_weight: float, bounce_limit: int) -> None:
         if not (math.isfinite(selection_weight) and selection_weight >= 0.0):
@@ -446,6 +449,7 @@ class AllPolicy(BudgetedPolicy):
     """Every visible reflector, in one round, whatever the budget (the reference)."""
 
     name = "all"
+    follows_budget = False
 
     def _choose(self, budget: Budget) -> list[int]:
         return self._untraced_visible()
@@ -455,6 +459,7 @@ class NonePolicy(BudgetedPolicy):
     """Nothing is traced (raster only)."""
 
     name = "none"
+    follows_budget = False
 
     def _choose(self, budget: Budget) -> list[int]:
         return []
@@ -465,6 +470,7 @@ class ListPolicy(BudgetedPolicy):
     budget."""
 
     name = "list"
+    follows_budget = False
 
     def __init__(self, explicit: list[int], *, selection_weight: float, bounce_limit: int):
         super().__init__(selection_weight=selection_weight, bounce_limit=bounce_limit)
