@@ -340,7 +340,8 @@ KINDS: tuple[SupportKind, ...] = (
     SupportKind(
         "rough_reflector", "reflectors with roughness > 0",
         "approximated: perfect-mirror reflections",
-        "traced reflections are perfect mirrors; roughness only shapes the local highlight",
+        "traced reflections are perfect mirrors and the highlight's exponent is one for "
+        "every material (render/shading.py SHININESS): roughness is not used",
         _rough_reflector,
     ),
     SupportKind(
