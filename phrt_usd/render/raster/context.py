@@ -84,6 +84,29 @@ def check_framebuffer(name: str) -> None:
         raise RuntimeError(f"OpenGL {name} framebuffer incomplete (status {status:#x})")
 
 
+def id_framebuffer(width: int, height: int, name: str):
+    """A single-sampled framebuffer of ``width`` x ``height`` with an RGBA8 colour (the
+    ids) and a float depth renderbuffer, checked (``name`` in the message), unbound
+    again. Returns (renderbuffers (2,), framebuffer) for the caller to delete."""
+    rb = GL.glGenRenderbuffers(2)
+    GL.glBindRenderbuffer(GL.GL_RENDERBUFFER, rb[0])
+    GL.glRenderbufferStorage(GL.GL_RENDERBUFFER, GL.GL_RGBA8, width, height)
+    GL.glBindRenderbuffer(GL.GL_RENDERBUFFER, rb[1])
+    GL.glRenderbufferStorage(GL.GL_RENDERBUFFER, GL.GL_DEPTH_COMPONENT32F, width, height)
+    fb = GL.glGenFramebuffers(1)
+    GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, fb)
+    GL.glFramebufferRenderbuffer(
+        GL.GL_FRAMEBUFFER, GL.GL_COLOR_ATTACHMENT0, GL.GL_RENDERBUFFER, rb[0]
+    )
+    GL.glFramebufferRenderbuffer(
+        GL.GL_FRAMEBUFFER, GL.GL_DEPTH_ATTACHMENT, GL.GL_RENDERBUFFER, rb[1]
+    )
+    check_framebuffer(name)
+    GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, 0)
+    GL.glBindRenderbuffer(GL.GL_RENDERBUFFER, 0)
+    return rb, fb
+
+
 @dataclass
 class GeometryChange:
     """What ``RasterContext.update_geometry`` changed.
@@ -294,27 +317,10 @@ class RasterContext:
 
     def _create_id_framebuffer(self) -> None:
         """Single-sampled id framebuffer (RGBA8 + float depth) at the image size."""
-        self._id_rb = GL.glGenRenderbuffers(2)
-        GL.glBindRenderbuffer(GL.GL_RENDERBUFFER, self._id_rb[0])
-        GL.glRenderbufferStorage(GL.GL_RENDERBUFFER, GL.GL_RGBA8, self.width, self.height)
-        GL.glBindRenderbuffer(GL.GL_RENDERBUFFER, self._id_rb[1])
-        GL.glRenderbufferStorage(
-            GL.GL_RENDERBUFFER, GL.GL_DEPTH_COMPONENT32F, self.width, self.height
-        )
-        self._id_fb = GL.glGenFramebuffers(1)
-        GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, self._id_fb)
-        GL.glFramebufferRenderbuffer(
-            GL.GL_FRAMEBUFFER, GL.GL_COLOR_ATTACHMENT0, GL.GL_RENDERBUFFER, self._id_rb[0]
-        )
-        GL.glFramebufferRenderbuffer(
-            GL.GL_FRAMEBUFFER, GL.GL_DEPTH_ATTACHMENT, GL.GL_RENDERBUFFER, self._id_rb[1]
-        )
-        check_framebuffer("id")
+        self._id_rb, self._id_fb = id_framebuffer(self.width, self.height, "id")
         r = self.renderer
         r._main_fb = r._main_fb_ms = self._id_fb
         r._main_fb_dims = (self.width, self.height)
-        GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, 0)
-        GL.glBindRenderbuffer(GL.GL_RENDERBUFFER, 0)
 
     def read_ids(self) -> np.ndarray:
         """(H, W) uint32 id image (triangle index + 1, 0 = background), row 0 at top."""

@@ -26,7 +26,7 @@ import numpy as np
 from OpenGL import GL
 
 from phrt_usd.model import surface
-from phrt_usd.render.raster.context import RasterContext, check_framebuffer
+from phrt_usd.render.raster.context import RasterContext, id_framebuffer
 
 #: Texture unit of the previous layer's (id, depth) image in ``peel.frag`` (the last of
 #: the 16 units OpenGL 3.3 guarantees; no other pass of ours binds it).
@@ -41,24 +41,7 @@ class IdLayers:
         self._ctx = ctx
         self.width, self.height = int(width), int(height)
         ctx.make_current()
-        self._rb = GL.glGenRenderbuffers(2)
-        GL.glBindRenderbuffer(GL.GL_RENDERBUFFER, self._rb[0])
-        GL.glRenderbufferStorage(GL.GL_RENDERBUFFER, GL.GL_RGBA8, self.width, self.height)
-        GL.glBindRenderbuffer(GL.GL_RENDERBUFFER, self._rb[1])
-        GL.glRenderbufferStorage(
-            GL.GL_RENDERBUFFER, GL.GL_DEPTH_COMPONENT32F, self.width, self.height
-        )
-        self._fb = GL.glGenFramebuffers(1)
-        GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, self._fb)
-        GL.glFramebufferRenderbuffer(
-            GL.GL_FRAMEBUFFER, GL.GL_COLOR_ATTACHMENT0, GL.GL_RENDERBUFFER, self._rb[0]
-        )
-        GL.glFramebufferRenderbuffer(
-            GL.GL_FRAMEBUFFER, GL.GL_DEPTH_ATTACHMENT, GL.GL_RENDERBUFFER, self._rb[1]
-        )
-        check_framebuffer("cut-out id")
-        GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, 0)
-        GL.glBindRenderbuffer(GL.GL_RENDERBUFFER, 0)
+        self._rb, self._fb = id_framebuffer(self.width, self.height, "cut-out id")
         self._previous = GL.glGenTextures(1)
         GL.glBindTexture(GL.GL_TEXTURE_2D, self._previous)
         for name in (GL.GL_TEXTURE_MIN_FILTER, GL.GL_TEXTURE_MAG_FILTER):
