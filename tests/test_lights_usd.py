@@ -411,3 +411,27 @@ def test_sweep_exposure_scales_every_config_image(tmp_path):
         red = oiio.ImageBuf(str(png)).getpixel(CENTRE[1], CENTRE[0])[0]
         # 0.25 x 2^1 = 0.5, sRGB-encoded: code 188 (+-1 of 8-bit rounding).
         assert red * 255 == pytest.approx(188, abs=1.5), png.name
+
+
+def test_validate_warns_of_the_unauthored_sun_and_an_unsupported_dome_format(tmp_path):
+    """What the render warns of while rendering, validate warns of before: the fallback
+    sun (it clips) and a dome format read untextured; an authored sun is no warning."""
+    from phrt_usd.usd.validation import validate_stage
+
+    stage = _stage(dome=False)
+    _sun(stage)
+    dome = UsdLux.DomeLight.Define(stage, "/World/Sky")
+    dome.CreateTextureFileAttr(_latlong(tmp_path / "sky.exr", (1, 0, 0), (0, 0, 1)))
+    dome.CreateTextureFormatAttr("angular")
+    report = validate_stage(stage)
+    lines = [i.line() for i in report.warnings]
+    assert any(
+        line.startswith("WARNING /World/Sun.inputs:intensity: unauthored: UsdLux's fallback 50000")
+        and "--exposure" in line
+        for line in lines
+    ), lines
+    dome_line = "WARNING /World/Sky.inputs:texture:format: 'angular'"
+    assert any(line.startswith(dome_line) for line in lines), lines
+    UsdLux.DistantLight(stage.GetPrimAtPath("/World/Sun")).CreateIntensityAttr(1.0)
+    after = [i.line() for i in validate_stage(stage).issues]
+    assert not any("/World/Sun" in line for line in after), after

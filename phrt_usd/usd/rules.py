@@ -55,6 +55,7 @@ from phrt_usd.errors import PhrtError
 from phrt_usd.usd import schema
 from phrt_usd.usd.camera_path import camera_path_problems, find_camera_path_prim, read_camera_path
 from phrt_usd.usd.composition import CompositionProblem, composition_problems
+from phrt_usd.usd.lights import intensity_note
 from phrt_usd.usd.meshes import RENDERED_GPRIM_TYPES, mesh_area, mesh_problems_in_range
 from phrt_usd.usd.render_settings import included_purposes
 from phrt_usd.usd.stage import (
@@ -80,6 +81,7 @@ CAMERA_PATH = "CameraPath"
 GEOMETRY = "Geometry"
 READ = "Read"
 RENDER_SETTINGS = "RenderSettings"
+LIGHTS = "Lights"
 
 
 @dataclass(frozen=True)
@@ -261,6 +263,27 @@ def _gprim_issues(stage: Usd.Stage, frames: tuple[float, float]) -> list[Issue]:
     return issues
 
 
+def _light_issues(stage: Usd.Stage, scene) -> list[Issue]:
+    """Warnings for the lights as the render reads them: what the light readers read
+    with a fallback (``StageScene.light_warnings``), and a DistantLight whose
+    ``inputs:intensity`` is UsdLux's fallback (50000: in phrt's units a sun that clips
+    the frame, the render's clipping warning; ``lights.intensity_note``)."""
+    issues = [Issue.of(WARNING, w, LIGHTS) for w in scene.light_warnings]
+    for light in scene.scene.lights.distant:
+        note = intensity_note(stage, light.path)
+        if note:
+            issues.append(
+                Issue(
+                    WARNING,
+                    f"{light.path}.inputs:intensity",
+                    f"{note.removeprefix('; inputs:intensity ')}: a sun that clips the frame "
+                    "in phrt's units; author inputs:intensity or render with --exposure",
+                    LIGHTS,
+                )
+            )
+    return issues
+
+
 def render_issues(stage: Usd.Stage) -> list[Issue]:
     """The render's own rules but composition (module doc): an error for each refusal,
     with the render's message; warnings for what it accepts with doubts."""
@@ -297,6 +320,7 @@ def render_issues(stage: Usd.Stage) -> list[Issue]:
         if last.line() not in lines:
             issues.append(last)
     else:
+        issues += _light_issues(stage, scene)
         # A texture the render cannot read renders with the input's fallback (a
         # warning there); validation, like ``--strict``, calls it an error.
         issues += [Issue.of(ERROR, m, READ) for m in scene.texture_problems]

@@ -406,6 +406,8 @@ class StageScene:
         bank = MaterialBank(ctx.code, self.binding_purposes)
         probe = AnimationProbe()
         lights = Lights()
+        #: What the light readers read with a fallback (also in ``warnings``).
+        light_warnings: list[str] = []
         parts: list[_Part] = []
         elements: list[Element] = []
         mesh_cache: dict[tuple, LocalMesh] = {}
@@ -456,7 +458,7 @@ class StageScene:
             if kind == "PointInstancer":
                 expand_instancer(prim, ctx, probe, bank, prototype_gprims, add)
             elif kind == "Light":
-                read_light(prim, ctx, self.meters_per_unit, lights, self.up_axis, self.warnings)
+                read_light(prim, ctx, self.meters_per_unit, lights, self.up_axis, light_warnings)
             elif (skin := skinning.skinned(prim, kind)) is not None:
                 # Skinned: skeleton-space points placed by the skeleton (usd/skinning.py).
                 mesh = local_mesh(prim, kind)
@@ -482,6 +484,8 @@ class StageScene:
                     probe.xform_varies(prim),
                 )
 
+        self.light_warnings = light_warnings
+        self.warnings += light_warnings
         self._parts = parts
         self._animated = [p for p in parts if p.animated]
         self.subdivided_meshes: list[str] = list(subdivided)
