@@ -509,6 +509,8 @@ def render(
                             on_frame=lambda done, total: on_frame(done, total, None),
                             **_cluster_args(chunk_frames, warmup),
                         )
+                    found = summary.pop("render_warnings", [])
+                    scene.warnings += [w for w in found if w not in scene.warnings]
             except RenderInterrupted as exc:
                 raise fail(f"interrupted: {exc}", EXIT_INTERRUPTED, json_out) from None
     for warning in scene.warnings[warned:]:  # found while rendering (e.g. clipping)

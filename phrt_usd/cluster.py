@@ -38,7 +38,7 @@ import secrets
 import sys
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -117,11 +117,14 @@ class SweepChunkResult:
 
 @dataclass
 class RenderChunkResult:
-    """What a render chunk sends back: the recorded frames' stats, in frame order."""
+    """What a render chunk sends back: the recorded frames' stats, in frame order, and
+    the warnings the render found while rendering (e.g. the clipping warning), which the
+    client's stage never sees otherwise."""
 
     chunk: Chunk
     frames: list[FrameStats]
     worker_pid: int
+    warnings: list[str] = field(default_factory=list)
 
 
 def sweep_chunk(chunk: Chunk, spec: SweepSpec) -> SweepChunkResult:
@@ -151,6 +154,7 @@ def render_chunk(chunk: Chunk, job: RenderJob) -> RenderChunkResult:
     times = parse_frames(job.frames, scene.frame_range)
     renderer = FrameRenderer(scene, job.options)
     renderer.plan(times[chunk.first_rendered : chunk.stop])
+    known = len(scene.warnings)  # those of reading the stage: the client has them too
     frames = []
     out = Path(job.out_dir) if job.write_images else None
     try:
@@ -161,7 +165,7 @@ def render_chunk(chunk: Chunk, job: RenderJob) -> RenderChunkResult:
                 frames.append(render_frame(renderer, times[i], out, images))
     finally:
         renderer.close()
-    return RenderChunkResult(chunk, frames, os.getpid())
+    return RenderChunkResult(chunk, frames, os.getpid(), scene.warnings[known:])
 
 
 class PhrtWorkerSetup(WorkerPlugin):
@@ -442,6 +446,9 @@ def run_sweep_on_cluster(
         _remove_stale_temporaries(spec.out)
         summary = finish_sweep(spec, _sweep_rows(chunks, results), timeline, interrupted=False)
     summary["chunk_pids"] = [results[c.index].worker_pid for c in chunks]
+    # Warnings found while rendering, once each, in chunk order (``render_warnings``).
+    found = [w for c in chunks for w in results[c.index].warnings]
+    summary["render_warnings"] = list(dict.fromkeys(found))
     return summary
 
 

@@ -121,6 +121,27 @@ def test_chunked_render_equals_unchunked_after_warmup(gallery, tmp_path):
                 assert getattr(m, name) == pytest.approx(theirs["metrics"][path][name], rel=1e-9)
 
 
+def test_a_chunk_sends_back_what_the_render_warned_of(tmp_path):
+    """The clipping warning is found while rendering, on the worker: the chunk's result
+    carries it (the client's stage never renders), and only it (not the reading's)."""
+    from pxr import Usd, UsdGeom, UsdLux
+
+    stage = Usd.Stage.CreateNew(str(tmp_path / "sun.usda"))
+    quad = UsdGeom.Mesh.Define(stage, "/World/Quad")
+    quad.CreatePointsAttr([(-1, -1, 0), (1, -1, 0), (1, 1, 0), (-1, 1, 0)])
+    quad.CreateFaceVertexCountsAttr([4])
+    quad.CreateFaceVertexIndicesAttr([0, 1, 2, 3])
+    UsdGeom.Camera.Define(stage, "/World/Cam").AddTranslateOp().Set((0, 0, 3))
+    UsdLux.DistantLight.Define(stage, "/World/Sun")  # UsdLux's fallback 50000: clips
+    stage.GetRootLayer().Save()
+    job = _render_job(tmp_path / "sun.usda", tmp_path / "out", frames="0:1")
+    job.write_images = False
+    [chunk] = plan_chunks(str(tmp_path / "sun.usda"), 2, 6, 0)
+    result = render_chunk(chunk, job)
+    [warning] = result.warnings
+    assert "clipped" in warning and "/World/Sun" in warning and "--exposure" in warning
+
+
 # --------------------------------------------------------------------------- cluster
 
 
