@@ -446,9 +446,6 @@ def run_sweep_on_cluster(
         _remove_stale_temporaries(spec.out)
         summary = finish_sweep(spec, _sweep_rows(chunks, results), timeline, interrupted=False)
     summary["chunk_pids"] = [results[c.index].worker_pid for c in chunks]
-    # Warnings found while rendering, once each, in chunk order (``render_warnings``).
-    found = [w for c in chunks for w in results[c.index].warnings]
-    summary["render_warnings"] = list(dict.fromkeys(found))
     return summary
 
 
@@ -505,6 +502,9 @@ def run_render_on_cluster(
         RunRecord(out, layer_path, ordered, passes, images if job.write_images else None)
     )
     summary["chunk_pids"] = [results[c.index].worker_pid for c in chunks]
+    # Warnings found while rendering, once each, in chunk order (``render_warnings``).
+    found = [w for c in chunks for w in results[c.index].warnings]
+    summary["render_warnings"] = list(dict.fromkeys(found))
     return summary
 
 
