@@ -134,7 +134,7 @@ class GBufferPass:
         """All per-triangle tables, after the context uploaded ``scene``'s topology."""
         n = scene.geometry.triangle_count
         self._table = surface.TriangleTable(n)
-        self._fill_tables(scene, np.arange(n))
+        self._fill_tables(scene, slice(None))  # a slice: no gather over every row
         self._textured(scene)
         geo = scene.geometry
         #: The cut-out rule of the uploaded triangles (``surface.Cutouts``).
@@ -166,9 +166,9 @@ class GBufferPass:
             if len(rows):
                 self._fill_tables(scene, rows)
 
-    def _fill_tables(self, scene: Scene, rows: np.ndarray) -> None:
+    def _fill_tables(self, scene: Scene, rows: np.ndarray | slice) -> None:
         """Recompute the per-triangle tables (``_table``, a ``surface.TriangleTable``,
-        rel space) of triangles ``rows``."""
+        rel space) of triangles ``rows`` (index array or slice)."""
         geo = scene.geometry
         self._table.fill(
             geo.vertices, geo.triangles, self._origin, geo.corner_normals, geo.corner_albedo, rows
