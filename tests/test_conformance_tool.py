@@ -95,6 +95,7 @@ def test_wrapper_camera_sheet_and_a_broken_asset(tmp_path):
     assert quad["agreement"] == 1.0  # raster and rt cover the same pixels
     assert "| [quad](quad.png) | ok | wrapper |" in index
     assert "| broken | failed | – |" in index
+    assert str(out) not in index and str(assets) not in index  # OUT/..., ASSETS/...
 
 
 def test_list_file_gives_an_asset_its_exposure(tmp_path):

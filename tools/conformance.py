@@ -554,7 +554,20 @@ def read_picture(path: Path) -> np.ndarray | None:
 # --- the index ---------------------------------------------------------------------------
 
 
-def write_index(out: Path, results: list[AssetResult], settings: dict) -> None:
+def write_index(
+    out: Path, results: list[AssetResult], settings: dict, assets_dir: Path | None = None
+) -> None:
+    """``out/index.md`` and ``out/results.json``. In the index, paths under ``out`` and
+    ``assets_dir`` read ``OUT/...`` and ``ASSETS/...`` (the run's folders, wherever they
+    were), so a committed index names no machine's paths."""
+
+    def named(text: str) -> str:
+        for folder, name in ((out, "OUT"), (assets_dir, "ASSETS")):
+            if folder is not None:
+                for form in {str(folder.resolve()), str(folder)}:
+                    text = text.replace(form + "/", name + "/")
+        return text
+
     rows = [
         "| asset | status | camera | EV | warnings | " + " | ".join(
             f"{m} s / covered" for m in settings["modes"]) + " | coverage agrees |",
@@ -566,7 +579,7 @@ def write_index(out: Path, results: list[AssetResult], settings: dict) -> None:
         notes = [r.error] if r.error else []
         notes += [f"{m.mode}: {m.error}" for m in r.modes if m.error]
         notes += r.warnings
-        cells.append("<br>".join(md(n) for n in notes) if notes else "none")
+        cells.append("<br>".join(md(named(n)) for n in notes) if notes else "none")
         by_mode = {m.mode: m for m in r.modes}
         for mode in settings["modes"]:
             m = by_mode.get(mode)
@@ -583,7 +596,8 @@ def write_index(out: Path, results: list[AssetResult], settings: dict) -> None:
         f"({', '.join(settings['modes'])}), commit {settings['commit']}, "
         f"{settings['date']}. Time: wall seconds of reading the stage and rendering one "
         "frame (a shared machine: indicative only; raster includes creating the OpenGL "
-        "context). EV: the render's `--exposure` from the asset list (where the render's "
+        "context). OUT and ASSETS: the run's output and asset folders. "
+        "EV: the render's `--exposure` from the asset list (where the render's "
         "clipping warning advised one). Covered: pixels with geometry. Coverage agrees: "
         "pixels covered in both of the first two modes or in neither.",
         "",
@@ -679,7 +693,7 @@ def main(argv: list[str] | None = None) -> int:
         "resolution": "x".join(map(str, args.resolution)), "modes": modes,
         "view": list(view), "commit": git_commit(), "date": time.strftime("%Y-%m-%d"),
     }  # fmt: skip
-    write_index(out, results, settings)
+    write_index(out, results, settings, args.assets_dir)
     return 0
 
 
