@@ -11,9 +11,9 @@ radiance L reflects albedo * L, so the centre pixel's linear colour is the albed
 from __future__ import annotations
 
 import numpy as np
-import OpenImageIO as oiio
 import pytest
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux, UsdRender, UsdShade, UsdUtils
+from test_materials_usd import _png  # a 4 x 4 8-bit PNG of one colour
 
 from phrt_usd.render.renderer import FrameRenderer, RenderOptions
 from phrt_usd.usd.stage import read_stage
@@ -25,16 +25,6 @@ MODES = ("raster", "rt")
 #: (0 and 255 decode exactly).
 TOLERANCE = 0.02
 RED, GREEN_HALF, BLUE, GREEN = (1.0, 0.0, 0.0), (0.0, 0.5, 0.0), (0.0, 0.0, 1.0), (0.0, 1.0, 0.0)
-
-
-def _png(path, rgb) -> None:
-    """A 4 x 4 8-bit PNG of one colour."""
-    img = np.zeros((4, 4, 3), np.uint8)
-    img[:] = np.array(rgb) * 255
-    out = oiio.ImageOutput.create(str(path))
-    out.open(str(path), oiio.ImageSpec(4, 4, 3, oiio.UINT8))
-    out.write_image(img)
-    out.close()
 
 
 def _material(stage, path: str, colour=None, texture: str | None = None) -> UsdShade.Material:

@@ -209,12 +209,19 @@ def read_light(
         lights.dome = _dome(prim, code, m, up_axis, warnings)
 
 
-def intensity_note(stage: Usd.Stage, path: str) -> str:
-    """``"; inputs:intensity unauthored: UsdLux's fallback N"`` when the light at
-    ``path`` reads its intensity from the schema's fallback (DistantLight's is 50000,
-    a sun for a physically based renderer), else ``""`` (no such prim: ``""``)."""
+def fallback_intensity(stage: Usd.Stage, path: str) -> float | None:
+    """The schema's fallback ``inputs:intensity`` the light at ``path`` reads because
+    none is authored (DistantLight's is 50000, a sun for a physically based renderer),
+    else None (authored, or no such prim)."""
     prim = stage.GetPrimAtPath(path) if path.startswith("/") else None
     attr = prim.GetAttribute("inputs:intensity") if prim else None
     if not attr or attr.HasAuthoredValue():
-        return ""
-    return f"; inputs:intensity unauthored: UsdLux's fallback {attr.Get():g}"
+        return None
+    return float(attr.Get())
+
+
+def intensity_note(stage: Usd.Stage, path: str) -> str:
+    """``"; inputs:intensity unauthored: UsdLux's fallback N"`` when the light at
+    ``path`` reads its intensity from the schema's fallback, else ``""``."""
+    value = fallback_intensity(stage, path)
+    return "" if value is None else f"; inputs:intensity unauthored: UsdLux's fallback {value:g}"

@@ -55,7 +55,7 @@ from phrt_usd.errors import PhrtError
 from phrt_usd.usd import schema
 from phrt_usd.usd.camera_path import camera_path_problems, find_camera_path_prim, read_camera_path
 from phrt_usd.usd.composition import CompositionProblem, composition_problems
-from phrt_usd.usd.lights import intensity_note
+from phrt_usd.usd.lights import fallback_intensity
 from phrt_usd.usd.meshes import RENDERED_GPRIM_TYPES, mesh_area, mesh_problems_in_range
 from phrt_usd.usd.render_settings import included_purposes
 from phrt_usd.usd.stage import (
@@ -267,16 +267,16 @@ def _light_issues(stage: Usd.Stage, scene) -> list[Issue]:
     """Warnings for the lights as the render reads them: what the light readers read
     with a fallback (``StageScene.light_warnings``), and a DistantLight whose
     ``inputs:intensity`` is UsdLux's fallback (50000: in phrt's units a sun that clips
-    the frame, the render's clipping warning; ``lights.intensity_note``)."""
+    the frame, the render's clipping warning; ``lights.fallback_intensity``)."""
     issues = [Issue.of(WARNING, w, LIGHTS) for w in scene.light_warnings]
     for light in scene.scene.lights.distant:
-        note = intensity_note(stage, light.path)
-        if note:
+        value = fallback_intensity(stage, light.path)
+        if value is not None:
             issues.append(
                 Issue(
                     WARNING,
                     f"{light.path}.inputs:intensity",
-                    f"{note.removeprefix('; inputs:intensity ')}: a sun that clips the frame "
+                    f"unauthored: UsdLux's fallback {value:g}: a sun that clips the frame "
                     "in phrt's units; author inputs:intensity or render with --exposure",
                     LIGHTS,
                 )
