@@ -15,7 +15,6 @@ construction (GL context and upload, BVH build).
 from __future__ import annotations
 
 import argparse
-import datetime
 import os
 import statistics
 import sys
@@ -35,9 +34,10 @@ MODES = (
 
 def make_stage(path: Path, cells: int, frames: int, resolution: tuple[int, int]) -> Path:
     """Write the big stage (see the module docstring) to ``path`` (usdc: 1M triangles)."""
-    from pxr import Gf, Usd, UsdGeom, UsdLux, UsdRender, Vt
+    from pxr import Usd, UsdGeom, Vt
 
     import phrt_usd  # noqa: F401  (registers the schema)
+    from phrt_usd.bench.bench_stage import add_lights_and_camera
     from phrt_usd.usd import schema
 
     stage = Usd.Stage.CreateNew(str(path))
@@ -65,24 +65,7 @@ def make_stage(path: Path, cells: int, frames: int, resolution: tuple[int, int])
     mirror.CreateDisplayColorAttr([(0.2, 0.2, 0.2)])
     mirror.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
     schema.apply_reflector(mirror.GetPrim(), priority=1.0, reflectivity=1.0)
-    sun = UsdLux.DistantLight.Define(stage, "/World/Sun")
-    sun.CreateIntensityAttr(2.0)
-    UsdGeom.Xformable(sun).AddRotateXYZOp().Set(Gf.Vec3f(-50, 30, 0))
-    UsdLux.DomeLight.Define(stage, "/World/Sky").CreateIntensityAttr(0.5)
-    cam = UsdGeom.Camera.Define(stage, "/World/Camera")
-    cam.CreateFocalLengthAttr(24.0)
-    cam.CreateHorizontalApertureAttr(36.0)
-    cam.CreateVerticalApertureAttr(36.0 * resolution[1] / resolution[0])
-    move = UsdGeom.Xformable(cam).AddTranslateOp()
-    for t in range(1, frames + 1):
-        move.Set(Gf.Vec3d(-2.0 + 4.0 * (t - 1) / max(frames - 1, 1), 2.0, 6.0), t)
-    UsdGeom.Xformable(cam).AddRotateXOp().Set(-12.0)
-    settings = UsdRender.Settings.Define(stage, "/Render/Settings")
-    settings.CreateResolutionAttr(Gf.Vec2i(*resolution))
-    settings.CreateCameraRel().SetTargets([cam.GetPath()])
-    stage.SetMetadata("renderSettingsPrimPath", "/Render/Settings")
-    stage.SetStartTimeCode(1)
-    stage.SetEndTimeCode(frames)
+    add_lights_and_camera(stage, frames, resolution, (-2.0, 2.0), 2.0, 6.0, -12.0, (-50, 30, 0))
     stage.GetRootLayer().Save()
     return path
 
@@ -156,11 +139,10 @@ def main(argv: list[str] | None = None) -> int:
     text = markdown(triangles, read_s, rows, args.resolution, args.frames)
     print(text)
     if args.append:
-        stamp = datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M UTC")
+        from phrt_usd.bench.bench_stage import append_log
+
         command = "uv run python tools/bench_big_mesh.py " + " ".join(argv or sys.argv[1:])
-        with args.append.open("a") as log:
-            log.write(f"\n### Big mesh, {stage_note()}{stamp}, {os.cpu_count()} cores\n\n"
-                      f"`{command}`\n\n{text}")  # fmt: skip
+        append_log(args.append, f"Big mesh, {stage_note()}".rstrip(", "), command, text)
     return 0
 
 

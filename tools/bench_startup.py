@@ -27,7 +27,6 @@ along +x over the frames, 320x240: a few dozen triangles.
 from __future__ import annotations
 
 import argparse
-import datetime
 import json
 import os
 import resource
@@ -47,9 +46,10 @@ PYCACHE = Path(tempfile.gettempdir()) / "phrt-bench-startup-pycache"
 
 def make_stage(path: Path, frames: int) -> Path:
     """Write the small stage (see the module docstring) to ``path``."""
-    from pxr import Gf, Usd, UsdGeom, UsdLux, UsdRender
+    from pxr import Gf, Usd, UsdGeom
 
     import phrt_usd  # noqa: F401  (registers the schema)
+    from phrt_usd.bench.bench_stage import add_lights_and_camera
     from phrt_usd.usd import schema
 
     stage = Usd.Stage.CreateNew(str(path))
@@ -67,24 +67,7 @@ def make_stage(path: Path, frames: int) -> Path:
     box.CreateSizeAttr(1.0)
     box.CreateDisplayColorAttr([(0.8, 0.2, 0.1)])
     UsdGeom.Xformable(box).AddTranslateOp().Set(Gf.Vec3d(0, 0.5, 0))
-    sun = UsdLux.DistantLight.Define(stage, "/World/Sun")
-    sun.CreateIntensityAttr(2.0)
-    UsdGeom.Xformable(sun).AddRotateXYZOp().Set(Gf.Vec3f(-60, 30, 0))
-    UsdLux.DomeLight.Define(stage, "/World/Sky").CreateIntensityAttr(0.5)
-    cam = UsdGeom.Camera.Define(stage, "/World/Camera")
-    cam.CreateFocalLengthAttr(24.0)
-    cam.CreateHorizontalApertureAttr(36.0)
-    cam.CreateVerticalApertureAttr(36.0 * RESOLUTION[1] / RESOLUTION[0])
-    move = UsdGeom.Xformable(cam).AddTranslateOp()
-    for t in range(1, frames + 1):
-        move.Set(Gf.Vec3d(-1.0 + 2.0 * (t - 1) / max(frames - 1, 1), 1.5, 5.0), t)
-    UsdGeom.Xformable(cam).AddRotateXOp().Set(-15.0)
-    settings = UsdRender.Settings.Define(stage, "/Render/Settings")
-    settings.CreateResolutionAttr(Gf.Vec2i(*RESOLUTION))
-    settings.CreateCameraRel().SetTargets([cam.GetPath()])
-    stage.SetMetadata("renderSettingsPrimPath", "/Render/Settings")
-    stage.SetStartTimeCode(1)
-    stage.SetEndTimeCode(frames)
+    add_lights_and_camera(stage, frames, RESOLUTION, (-1.0, 1.0), 1.5, 5.0, -15.0, (-60, 30, 0))
     stage.GetRootLayer().Save()
     return path
 
@@ -203,10 +186,10 @@ def main(argv: list[str] | None = None) -> int:
     text = markdown(rows, args.runs, args.frames, extra)
     print(text)
     if args.append:
-        stamp = datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M UTC")
+        from phrt_usd.bench.bench_stage import append_log
+
         command = "uv run python tools/bench_startup.py " + " ".join(argv or sys.argv[1:])
-        with args.append.open("a") as log:
-            log.write(f"\n### Startup, {stamp}, {os.cpu_count()} cores\n\n`{command}`\n\n{text}")
+        append_log(args.append, "Startup", command, text)
     return 0
 
 

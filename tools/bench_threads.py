@@ -20,7 +20,6 @@ other processes take cores from the threads being measured.
 from __future__ import annotations
 
 import argparse
-import datetime
 import json
 import os
 import statistics
@@ -142,11 +141,10 @@ def main(argv: list[str] | None = None) -> int:
     note = f"load average (1 min) {before} before, {load()} after"
     print(note)
     if args.append:
-        stamp = datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M UTC")
+        from phrt_usd.bench.bench_stage import append_log
+
         command = "uv run python tools/bench_threads.py " + " ".join(argv or sys.argv[1:])
-        with args.append.open("a") as log:
-            log.write(f"\n### Threads, {stamp}, {os.cpu_count()} cores\n\n`{command}`\n\n"
-                      f"{note}\n\n" + "\n".join(blocks))  # fmt: skip
+        append_log(args.append, "Threads", command, f"{note}\n\n" + "\n".join(blocks))
     return 0
 
 
