@@ -55,22 +55,20 @@ def recorded_costs(data: dict) -> tuple[np.ndarray, np.ndarray]:
     return rays, visible
 
 
-def fewest_transitions(
-    rays: np.ndarray, visible: np.ndarray, budget: float, mean_selected: float, time_limit: float
-) -> tuple[float, float, str]:
-    """(transitions, mean selected, solver status) of the optimum (or of the best
-    solution found within ``time_limit`` seconds; the status says which)."""
+def _shared_rows(rays: np.ndarray, visible: np.ndarray, budget: float):
+    """The constraints both programs share, as COO lists over the variables x[f, k]
+    (reflector k traced in frame f: binary, index ``f * R + k``) and t[j] (pair j changes
+    state: in [0, 1], index ``F * R + j``): each frame's traced rays fit ``budget``, and
+    t[j] >= |x[f, k] - x[f - 1, k]| for every reflector visible in both frames (``pairs``,
+    (m, 2): frame - 1, reflector). Returns (rows, cols, vals, lo, hi, pairs, t_index)."""
     F, R = rays.shape
     n_x = F * R
     x_index = np.arange(n_x).reshape(F, R)
-    pairs = np.argwhere(visible[1:] & visible[:-1])  # (m, 2): frame - 1, reflector
-    m = len(pairs)
-    t_index = n_x + np.arange(m)
-    cost = np.concatenate([np.zeros(n_x), np.ones(m)])
+    pairs = np.argwhere(visible[1:] & visible[:-1])
+    t_index = n_x + np.arange(len(pairs))
     rows, cols, vals, lo, hi = [], [], [], [], []
     row = 0
-    # Budget per frame.
-    for f in range(F):
+    for f in range(F):  # budget per frame
         ks = np.flatnonzero(visible[f])
         rows += [row] * len(ks)
         cols += x_index[f, ks].tolist()
@@ -78,8 +76,7 @@ def fewest_transitions(
         lo.append(-np.inf)
         hi.append(budget)
         row += 1
-    # t >= x[f] - x[f-1] and t >= x[f-1] - x[f].
-    for j, (f0, k) in enumerate(pairs):
+    for j, (f0, k) in enumerate(pairs):  # t >= x[f] - x[f-1] and t >= x[f-1] - x[f]
         a, b = x_index[f0, k], x_index[f0 + 1, k]
         for sign in (1.0, -1.0):
             rows += [row, row, row]
@@ -88,6 +85,20 @@ def fewest_transitions(
             lo.append(0.0)
             hi.append(np.inf)
             row += 1
+    return rows, cols, vals, lo, hi, pairs, t_index
+
+
+def fewest_transitions(
+    rays: np.ndarray, visible: np.ndarray, budget: float, mean_selected: float, time_limit: float
+) -> tuple[float, float, str]:
+    """(transitions, mean selected, solver status) of the optimum (or of the best
+    solution found within ``time_limit`` seconds; the status says which)."""
+    F, R = rays.shape
+    n_x = F * R
+    rows, cols, vals, lo, hi, pairs, _ = _shared_rows(rays, visible, budget)
+    m = len(pairs)
+    row = len(lo)
+    cost = np.concatenate([np.zeros(n_x), np.ones(m)])
     # Enough selections on average.
     ks = np.flatnonzero(visible.reshape(-1))
     rows += [row] * len(ks)
@@ -126,29 +137,9 @@ def most_rays(
     transitions (or of the best found within ``time_limit`` seconds)."""
     F, R = rays.shape
     n_x = F * R
-    x_index = np.arange(n_x).reshape(F, R)
-    pairs = np.argwhere(visible[1:] & visible[:-1])
+    rows, cols, vals, lo, hi, pairs, t_index = _shared_rows(rays, visible, budget)
     m = len(pairs)
-    t_index = n_x + np.arange(m)
-    rows, cols, vals, lo, hi = [], [], [], [], []
-    row = 0
-    for f in range(F):
-        ks = np.flatnonzero(visible[f])
-        rows += [row] * len(ks)
-        cols += x_index[f, ks].tolist()
-        vals += rays[f, ks].tolist()
-        lo.append(-np.inf)
-        hi.append(budget)
-        row += 1
-    for j, (f0, k) in enumerate(pairs):
-        a, b = x_index[f0, k], x_index[f0 + 1, k]
-        for sign in (1.0, -1.0):
-            rows += [row, row, row]
-            cols += [t_index[j], a, b]
-            vals += [1.0, sign, -sign]
-            lo.append(0.0)
-            hi.append(np.inf)
-            row += 1
+    row = len(lo)
     rows += [row] * m
     cols += t_index.tolist()
     vals += [1.0] * m
