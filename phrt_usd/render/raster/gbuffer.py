@@ -5,11 +5,13 @@
    ``phrt_usd/render/raster/shaders``, whose ``flat.frag`` writes ``gl_PrimitiveID + 1``
    (= triangle index + 1, 0 = background) as four exact bytes into the single-sampled
    id framebuffer. Read back: the id image only.
-2. **Derivation** (numpy, covered pixels only, on the context's worker threads). The
-   pixel ray (same pixel centres as ``CameraFrame.pixel_rays``) is intersected with its
-   triangle's plane in float64: position (exact, not limited by depth-buffer precision),
-   view depth, barycentrics → interpolated shading normal and albedo (texture lookup
-   when the material has one).
+2. **Derivation** (``model.surface_kernels.derive``: one compiled loop over the
+   pixels, in row blocks on the context's worker threads). The pixel ray (same pixel
+   centres as ``CameraFrame.pixel_rays``) is intersected with its triangle's plane in
+   float64: position (exact, not limited by depth-buffer precision), view depth,
+   barycentrics → interpolated shading normal (the side rule) and albedo. Texture
+   lookups, normal maps and cut-out holes follow in numpy (``model.surface``) at the
+   pixels whose material has them, from the weights the kernel kept.
 
 Coordinate spaces as in ``context``: "world" is ``Scene`` world metres (float64); "rel"
 is world minus ``Scene.origin``.
@@ -35,14 +37,10 @@ import pyrender
 from pyrender.constants import RenderFlags
 
 from phrt_usd.errors import PhrtError
-from phrt_usd.model import surface
+from phrt_usd.model import surface, surface_kernels
 from phrt_usd.model.frame import GBuffer
 from phrt_usd.model.scene import NO_HIT, CameraFrame, Scene
-from phrt_usd.render.raster.context import (
-    CLIP_PADDING,
-    RasterContext,
-    transform_rows,
-)
+from phrt_usd.render.raster.context import CLIP_PADDING, RasterContext
 from phrt_usd.render.raster.cutout_layers import IdLayers
 
 #: Smallest allowed near / far ratio of the perspective projection. The depth buffer
@@ -54,11 +52,11 @@ from phrt_usd.render.raster.cutout_layers import IdLayers
 #: only need the depth order of surfaces; positions never come from the depth buffer.
 MIN_NEAR_OVER_FAR = 1e-6
 
-#: Denominator floor (relative to |face normal|) of the ray-plane intersection. A pixel
-#: is only covered by a triangle the rasterizer saw with non-zero screen area, so the ray
-#: is not parallel to its plane; the floor only guards against rounding, and the
-#: resulting distance is clamped to the near/far range the rasterizer used.
-GRAZING_EPS = 1e-12
+#: The kernels' empty arguments: no pixel list, no id map (id k of the id pass is
+#: triangle k - 1), no id image.
+_NONE = np.zeros(0, dtype=np.int64)
+_NO_MAP = _NONE
+_NO_IDS = np.zeros(0, dtype=np.uint32)
 
 
 class _ExactPerspective(pyrender.camera.Camera):
@@ -94,7 +92,9 @@ def perspective_matrix(
 
 @dataclass
 class _Outputs:
-    """The G-buffer arrays being filled, flat over pixels (H*W rows); see ``GBuffer``."""
+    """The G-buffer arrays being filled, flat over pixels (H*W rows); see ``GBuffer``.
+    bary : (H*W, 3) float32 each covered pixel's barycentric weights, or (0, 3) when no
+    surface input needs them (``GBufferPass._needs_weights``)."""
 
     triangle_id: np.ndarray
     element_id: np.ndarray
@@ -102,6 +102,8 @@ class _Outputs:
     position: np.ndarray
     normal: np.ndarray
     albedo: np.ndarray
+    view_dir: np.ndarray
+    bary: np.ndarray
     hole: np.ndarray | None = None  # (H*W,) bool: the derived point is a cut-out hole
 
 
@@ -135,6 +137,7 @@ class GBufferPass:
         n = scene.geometry.triangle_count
         self._table = surface.TriangleTable(n)
         self._fill_tables(scene, slice(None))  # a slice: no gather over every row
+        self._tri_element = np.ascontiguousarray(scene.geometry.tri_element, dtype=np.int64)
         self._textured(scene)
         geo = scene.geometry
         #: The cut-out rule of the uploaded triangles (``surface.Cutouts``).
@@ -214,24 +217,18 @@ class GBufferPass:
         near = max(near, far * MIN_NEAR_OVER_FAR)
         return near, far
 
-    def _world_dirs(self, camera: CameraFrame, rot: np.ndarray) -> np.ndarray:
-        """(H*W, 3) float64 unit world directions through pixel centres, in the order
-        and with the formula of ``CameraFrame.pixel_rays``, for the camera-to-world
-        rotation ``rot`` (3, 3). Pixel (row, col) is ``(ys[row] rot_y + xs[col] rot_x -
-        rot_z) / |(xs[col], ys[row], -1)|``: one broadcast sum of a per-row and a
-        per-column term, the lengths cached per field of view."""
+    def _pixel_grid(self, camera: CameraFrame) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """xs (W,), ys (H,) float64 pixel-plane coordinates (``CameraFrame.pixel_plane``)
+        and inv_len (H, W) float64 = 1 / |(xs[col], ys[row], -1)|: with the camera's
+        rotation they give every pixel's unit world direction (the kernels'
+        ``_pixel_dir``). Cached per field of view."""
         key = camera.image_window(self.width, self.height)
         if key != self._dirs_key:
             xs, ys = camera.pixel_plane(self.width, self.height)
             inv_len = 1.0 / np.sqrt(xs[None, :] ** 2 + ys[:, None] ** 2 + 1.0)
-            self._dirs_grid = (xs, ys, inv_len[:, :, None])
+            self._dirs_grid = (xs, ys, np.ascontiguousarray(inv_len))
             self._dirs_key = key
-        xs, ys, inv_len = self._dirs_grid
-        per_row = ys[:, None] * rot[:, 1] - rot[:, 2]  # (H, 3)
-        per_col = xs[:, None] * rot[:, 0]  # (W, 3)
-        d = per_row[:, None, :] + per_col[None, :, :]
-        d *= inv_len
-        return d.reshape(-1, 3)
+        return self._dirs_grid
 
     # ------------------------------------------------------------------ render
 
@@ -241,7 +238,7 @@ class GBufferPass:
         albedo 0."""
         h, w = self.height, self.width
         cam = np.asarray(camera.world_from_camera, dtype=np.float64)
-        rot = cam[:3, :3]
+        rot = np.ascontiguousarray(cam[:3, :3])
         eye_rel = cam[:3, 3] - self._origin
         window = camera.image_window(w, h)
         tx, ty = camera.tan_half_fov(w, h)
@@ -252,6 +249,7 @@ class GBufferPass:
                 "field of view"
             )
         clip = self._clip_range(camera, eye_rel) if self._ctx.mesh_node is not None else None
+        tri_map = _NO_MAP  # id k is triangle k - 1
         if clip is not None:
             near, far = clip
             pose = cam.copy()
@@ -261,7 +259,9 @@ class GBufferPass:
             if self.cutouts.any:
                 clip_from_rel = self._pcamera.matrix @ np.linalg.inv(pose)
                 layer = self._layers.render(clip_from_rel, w, h)
-                ids, layer_depth = (a[::-1].reshape(-1) for a in layer)  # row 0 = top
+                ids, layer_depth = (np.ascontiguousarray(a[::-1]).reshape(-1) for a in layer)
+                # Layer ids number the static triangles, then the animated ones.
+                tri_map = self._layers.batch_triangles(("static", "dynamic")).astype(np.int64)
             else:
                 self._ctx.pscene.set_pose(self._cam_node, pose)
                 self._ctx.make_current()
@@ -271,59 +271,117 @@ class GBufferPass:
             near, far = 0.0, 0.0
             ids = np.zeros(h * w, dtype=np.uint32)
 
-        # Directions: rotate the cached unit camera-space rays (as pixel_rays does; a
-        # camera transform with scale or shear needs the normalisation again).
-        d = self._world_dirs(camera, rot)
-        if not np.allclose(rot.T @ rot, np.eye(3), rtol=0.0, atol=1e-12):
-            d /= np.linalg.norm(d, axis=1, keepdims=True)
-
-        covered = np.flatnonzero((ids > 0) & (ids <= len(self._table)))
-        tid = ids[covered].astype(np.int64) - 1
-        if clip is not None and self.cutouts.any:  # layer ids number static, then animated
-            tid = self._layers.batch_triangles(("static", "dynamic"))[tid]
-
-        triangle_id = np.full(h * w, NO_HIT, dtype=np.int32)
-        element_id = np.full(h * w, NO_HIT, dtype=np.int32)
-        depth = np.full(h * w, np.inf, dtype=np.float32)
-        position = np.zeros((h * w, 3), dtype=np.float64)
-        view_dir = d.astype(np.float32)
-        normal = -view_dir
-        albedo = np.zeros((h * w, 3), dtype=np.float32)
-
-        out = _Outputs(triangle_id, element_id, depth, position, normal, albedo)
-        fwd = -rot[:, 2] / np.linalg.norm(rot[:, 2])
+        n = h * w
+        # Rows the kernel leaves alone at background pixels start as the background.
+        out = _Outputs(
+            triangle_id=np.full(n, NO_HIT, dtype=np.int32),
+            element_id=np.full(n, NO_HIT, dtype=np.int32),
+            depth=np.full(n, np.inf, dtype=np.float32),
+            position=np.zeros((n, 3), dtype=np.float64),
+            normal=np.empty((n, 3), dtype=np.float32),
+            albedo=np.zeros((n, 3), dtype=np.float32),
+            view_dir=np.empty((n, 3), dtype=np.float32),
+            bary=np.empty((n if self._needs_weights() else 0, 3), dtype=np.float32),
+        )
         if self.cutouts.any:
-            out.hole = np.zeros(h * w, dtype=bool)
-        derive = (d, eye_rel, near, far, fwd, out)
-        self._derive_all(covered, tid, derive)
+            out.hole = np.zeros(n, dtype=bool)
+        fwd = -rot[:, 2] / np.linalg.norm(rot[:, 2])
+        # Directions: rotated unit camera-space rays (as pixel_rays); a camera transform
+        # with scale or shear needs the normalisation again.
+        renormalise = not np.allclose(rot.T @ rot, np.eye(3), rtol=0.0, atol=1e-12)
+        view = (
+            *self._pixel_grid(camera), rot, renormalise, eye_rel, float(near), float(far), fwd,
+        )  # fmt: skip
+        self._derive_frame(np.ascontiguousarray(ids, dtype=np.uint32), tri_map, view, out)
+        if self._needs_weights():
+            covered = np.flatnonzero(out.triangle_id >= 0)
+            self._surface_inputs(covered, out)
         if clip is not None and self.cutouts.any:
-            self._peel(clip_from_rel, ids, layer_depth, out, derive)
+            self._peel(clip_from_rel, ids, layer_depth, tri_map, view, out)
 
         return GBuffer(
-            element_id=element_id.reshape(h, w),
-            triangle_id=triangle_id.reshape(h, w),
-            depth=depth.reshape(h, w),
-            position=position.reshape(h, w, 3),
-            normal=normal.reshape(h, w, 3),
-            albedo=albedo.reshape(h, w, 3),
-            view_dir=view_dir.reshape(h, w, 3),
+            element_id=out.element_id.reshape(h, w),
+            triangle_id=out.triangle_id.reshape(h, w),
+            depth=out.depth.reshape(h, w),
+            position=out.position.reshape(h, w, 3),
+            normal=out.normal.reshape(h, w, 3),
+            albedo=out.albedo.reshape(h, w, 3),
+            view_dir=out.view_dir.reshape(h, w, 3),
         )
 
-    def _derive_all(self, covered: np.ndarray, tid: np.ndarray, derive: tuple) -> None:
-        """``_derive`` of pixels ``covered`` (n,) with triangles ``tid`` (n,) in chunks
-        on the worker threads; ``derive``: the rest of its arguments."""
-        chunks = [c for c in np.array_split(np.arange(len(covered)), self._ctx.threads) if len(c)]
-        jobs = [self._pool.submit(self._derive, covered[c], tid[c], *derive) for c in chunks]
+    def _needs_weights(self) -> bool:
+        """Some surface input is looked up per pixel after the kernel (textures, normal
+        maps, cut-out holes): the kernel then keeps each pixel's barycentric weights."""
+        return bool(self._tri_textured.any() or self.normal_maps.any or self.cutouts.any)
+
+    def _tables(self) -> tuple:
+        """The kernels' per-triangle arguments: plane, corners, frame, tri_element."""
+        return (self._table.plane, self._table.corners, self._table.frame, self._tri_element)
+
+    def _outputs(self, out: _Outputs) -> tuple:
+        """The kernels' output arguments (``surface_kernels.derive``)."""
+        return (out.triangle_id, out.element_id, out.depth, out.position, out.normal,
+                out.albedo)  # fmt: skip
+
+    def _derive_frame(self, ids: np.ndarray, tri_map: np.ndarray, view: tuple, out) -> None:
+        """Every pixel of ``out`` from the id image ``ids`` (H*W,) uint32
+        (``surface_kernels.derive``), in contiguous row blocks on the worker threads
+        (the kernel releases the GIL; each block writes its own pixels)."""
+        n = len(ids)
+        view = (ids, tri_map, *view, self._origin, *self._tables())
+        outs = (*self._outputs(out), out.view_dir, out.bary)
+        bounds = np.linspace(0, n, self._ctx.threads + 1).astype(np.int64)
+        jobs = [
+            self._pool.submit(surface_kernels.derive, _NONE, _NONE, int(lo), int(hi), *view, *outs)
+            for lo, hi in zip(bounds[:-1], bounds[1:], strict=True)
+            if hi > lo
+        ]
         for job in jobs:
             job.result()  # re-raises a worker's exception here
 
-    def _peel(self, clip_from_rel, ids, layer_depth, out: _Outputs, derive: tuple) -> None:
+    def _derive_pixels(self, pixels: np.ndarray, tid: np.ndarray, view: tuple, out) -> None:
+        """Pixels ``pixels`` (k,) re-derived on triangles ``tid`` (k,) (the surface behind
+        a cut-out hole), then their surface inputs."""
+        surface_kernels.derive(
+            pixels.astype(np.int64), tid.astype(np.int64), 0, 0, _NO_IDS, _NONE, *view,
+            self._origin, *self._tables(), *self._outputs(out), out.view_dir, out.bary,
+        )  # fmt: skip
+        self._surface_inputs(pixels, out)
+
+    def _surface_inputs(self, covered: np.ndarray, out: _Outputs) -> None:
+        """What the kernel leaves to ``model.surface`` at covered pixels (k,): texture
+        albedo, normal maps, cut-out holes, from each pixel's triangle and weights."""
+        if len(covered) == 0:
+            return
+        geo = self._scene.geometry
+        tid = np.take(out.triangle_id, covered).astype(np.int64)
+        bary = np.take(out.bary, covered, axis=0)
+        if self.normal_maps.any:
+            incoming = np.take(out.view_dir, covered, axis=0).astype(np.float64)
+            n = np.take(out.normal, covered, axis=0)
+            out.normal[covered] = self.normal_maps.apply(n, tid, bary, incoming, self._table)
+        textured = np.flatnonzero(self._tri_textured[tid])
+        if len(textured):
+            rows = covered[textured]
+            out.albedo[rows] = surface.texture_albedo(
+                np.take(out.albedo, rows, axis=0),
+                tid[textured],
+                bary[textured],
+                geo.tri_material,
+                geo.corner_uv,
+                self._scene.materials.textures,
+                inputs=self._scene.materials.texture_inputs,
+            )
+        if out.hole is not None:
+            out.hole[covered] = self.cutouts.holes(tid, bary)
+
+    def _peel(self, clip_from_rel, ids, layer_depth, tri_map, view, out: _Outputs) -> None:
         """Cut-out holes (``out.hole``) peeled (module, step 3): pixels showing a hole
         get the next surface behind it, derived again, until none is a hole or
         ``surface.MAX_CUTOUT_LAYERS`` layers were peeled. ids, layer_depth : (H*W,) the
-        layer's encoded ids and window depths (row 0 = top), updated in place."""
+        layer's encoded ids and window depths (row 0 = top), updated in place; tri_map:
+        the layers' id → triangle map."""
         h, w = self.height, self.width
-        tri_of = np.append(self._layers.batch_triangles(("static", "dynamic")), -1)
         pending = np.flatnonzero(out.hole)
         for _ in range(surface.MAX_CUTOUT_LAYERS):
             if len(pending) == 0:
@@ -335,93 +393,18 @@ class GBufferPass:
             previous = (prev_ids.reshape(h, w)[::-1], prev_depth.reshape(h, w)[::-1])
             layer = self._layers.render(clip_from_rel, w, h, previous=previous)
             ids2, depth2 = (a[::-1].reshape(-1) for a in layer)
-            _background(out, pending, derive[0])
+            _background(out, pending)
             found = pending[ids2[pending] > 0]
             ids[found], layer_depth[found] = ids2[found], depth2[found]
             if len(found):
-                self._derive_all(found, tri_of[ids[found].astype(np.int64) - 1], derive)
+                self._derive_pixels(found, tri_map[ids[found].astype(np.int64) - 1], view, out)
             pending = found[out.hole[found]]
-        _background(out, pending, derive[0])  # still in holes after the bound: nothing (module)
-
-    def _derive(
-        self,
-        covered: np.ndarray,
-        tid: np.ndarray,
-        d: np.ndarray,
-        eye_rel: np.ndarray,
-        near: float,
-        far: float,
-        fwd: np.ndarray,
-        out: _Outputs,
-    ) -> None:
-        """Fill ``out`` at flat pixel indices ``covered`` (n,) from their triangle ids
-        ``tid`` (n,): ray-plane hit, barycentrics, interpolated normal and albedo.
-
-        d : (H*W, 3) float64 unit world directions; eye_rel : (3,) rel metres;
-        near, far : the projection's clip range; fwd : (3,) unit view direction.
-        Runs on chunks of pixels in worker threads (numpy releases the GIL), writing
-        disjoint pixels.
-        """
-        geo = self._scene.geometry
-        # np.take: several times faster than fancy indexing for row gathers.
-        dc = np.take(d, covered, axis=0)
-        tab = np.take(self._table.plane, tid, axis=0)  # (n, 13), see surface.TriangleTable
-        ng = tab[:, 8:11]
-        # Ray-plane intersection in float64, rel space: t = (h - n·o) / n·d.
-        den = np.einsum("ij,ij->i", ng, dc)
-        floor = GRAZING_EPS * tab[:, 12]
-        den = np.where(np.abs(den) < floor, np.where(den < 0, -floor, floor), den)
-        den[den == 0.0] = 1.0  # zero-area triangle: t is clamped just below
-        t = np.clip((tab[:, 11] - transform_rows(ng, eye_rel[None])[:, 0]) / den, near, far)
-        p_rel = eye_rel + t[:, None] * dc
-
-        # Barycentrics of p, clamped onto the triangle (pixel centres on an edge may
-        # lie a rounding error outside) and renormalised; float32 from here on.
-        bv = np.einsum("ij,ij->i", p_rel, tab[:, 0:3]) - tab[:, 3]
-        bw = np.einsum("ij,ij->i", p_rel, tab[:, 4:7]) - tab[:, 7]
-        b0 = np.clip(1.0 - bv - bw, 0.0, 1.0)
-        b1 = np.clip(bv, 0.0, 1.0)
-        b2 = np.clip(bw, 0.0, 1.0)
-        bary = np.stack([b0, b1, b2], axis=1)
-        bary /= np.maximum(b0 + b1 + b2, 1e-12)[:, None]
-        bary = bary.astype(np.float32)  # (n, 3)
-
-        # (n, 6): interpolated normal then albedo (corners (n, 3, 6), surface.TriangleTable),
-        # the normal turned by the side rule (the sign of den = n_g·d decides the side).
-        values = surface.interpolate(np.take(self._table.corners, tid, axis=0), bary)
-        side = surface.viewer_side(den)
-        n = surface.orient_shading_normals(values[:, :3], side, dc, self._table, tid)
-        self.normal_maps.apply(n, tid, bary, dc, self._table)
-        col = values[:, 3:]
-        textured = self._tri_textured[tid]
-        if textured.any():
-            col[textured] = surface.texture_albedo(
-                col[textured],
-                tid[textured],
-                bary[textured],
-                geo.tri_material,
-                geo.corner_uv,
-                self._scene.materials.textures,
-                inputs=self._scene.materials.texture_inputs,
-            )
-        if out.hole is not None:
-            out.hole[covered] = self.cutouts.holes(tid, bary)
-        # Sorted pixel indices without gaps (every pixel of an enclosed view is covered):
-        # slice writes, much faster than scattering.
-        if covered[-1] - covered[0] + 1 == len(covered):
-            covered = slice(int(covered[0]), int(covered[-1]) + 1)
-        out.normal[covered] = n
-        out.albedo[covered] = col
-        out.triangle_id[covered] = tid
-        out.element_id[covered] = np.take(geo.tri_element, tid)
-        out.position[covered] = p_rel + self._origin
-        out.depth[covered] = t * transform_rows(dc, fwd[None])[:, 0]
+        _background(out, pending)  # still in holes after the bound: nothing (module)
 
 
-def _background(out: _Outputs, pixels: np.ndarray, dirs: np.ndarray) -> None:
-    """Reset ``pixels`` (k,) of ``out`` to the background (``GBufferPass.render``);
-    dirs : (H*W, 3) the pixels' unit world directions."""
-    out.normal[pixels] = -np.take(dirs, pixels, axis=0)
+def _background(out: _Outputs, pixels: np.ndarray) -> None:
+    """Reset ``pixels`` (k,) of ``out`` to the background (``GBufferPass.render``)."""
+    out.normal[pixels] = -np.take(out.view_dir, pixels, axis=0)
     out.triangle_id[pixels] = NO_HIT
     out.element_id[pixels] = NO_HIT
     out.depth[pixels] = np.inf
