@@ -14,6 +14,7 @@ PHASES = {
     "errors": 0,
     "atomic": 0,
     "threads": 0,
+    "kernels": 0,
     "model": 1,
     "usd": 2,
     "select": 3,

@@ -19,9 +19,9 @@ float32 weights and corner data), so results agree to rounding of a sum's order.
 Spaces and shapes as in ``model.surface``: rel = world metres minus ``Scene.origin``
 (float64); T triangles; pixels flat over an H x W image (row 0 = top).
 
-Compiled on first use and cached on disk (numba ``cache=True``, beside this file);
-``warm_up`` compiles every kernel once (the set-up runs it, so a render's start does not
-wait for the compiler).
+Callers take the kernels through ``phrt_usd.kernels.load`` (ahead of time when built,
+else numba JIT with its disk cache); ``warm_up`` compiles each once with the argument
+types the renderer passes.
 """
 
 from __future__ import annotations
@@ -31,6 +31,7 @@ import math
 import numpy as np
 from numba import njit
 
+from phrt_usd.kernels import KERNEL_OPTIONS
 from phrt_usd.model.surface import MIN_NORMAL_LENGTH
 
 #: Denominator floor (relative to |face normal|) of the ray-plane intersection. A pixel
@@ -49,7 +50,7 @@ _MIN_LEN32 = np.float32(MIN_NORMAL_LENGTH)
 # references of an array handed to another compiled function (two atomic operations per
 # array per call), which in a per-point helper cost more than the arithmetic. The
 # helpers take and return scalars.
-_KERNEL = {"nogil": True, "cache": True, "error_model": "numpy"}
+_KERNEL = KERNEL_OPTIONS
 _HELPER = {**_KERNEL, "inline": "always"}
 
 

@@ -36,12 +36,16 @@ import numpy as np
 import pyrender
 from pyrender.constants import RenderFlags
 
+from phrt_usd import kernels
 from phrt_usd.errors import PhrtError
-from phrt_usd.model import surface, surface_kernels
+from phrt_usd.model import surface
 from phrt_usd.model.frame import GBuffer
 from phrt_usd.model.scene import NO_HIT, CameraFrame, Scene
 from phrt_usd.render.raster.context import CLIP_PADDING, RasterContext
 from phrt_usd.render.raster.cutout_layers import IdLayers
+
+#: The compiled surface rule (``model.surface_kernels``, through ``phrt_usd.kernels``).
+_SURFACE = kernels.load("phrt_usd.model.surface_kernels")
 
 #: Smallest allowed near / far ratio of the perspective projection. The depth buffer
 #: resolves view depth z to about z**2 / (near * 2**24); as near → 0 that diverges and
@@ -51,6 +55,12 @@ from phrt_usd.render.raster.cutout_layers import IdLayers
 #: nearer than 1e-6 * far (1 mm at far = 1 km) and keeps depth resolution finite. Ids
 #: only need the depth order of surfaces; positions never come from the depth buffer.
 MIN_NEAR_OVER_FAR = 1e-6
+
+#: Pixel blocks per worker thread of the derivation. Covered pixels cost ~20x a
+#: background pixel, and sky or floor fill whole bands of rows, so one block per thread
+#: leaves a thread idle (farm, 640x480: 2 threads no faster than 1); 4 blocks each even
+#: out the bands for a few microseconds of scheduling.
+DERIVE_BLOCKS_PER_THREAD = 4
 
 #: The kernels' empty arguments: no pixel list, no id map (id k of the id pass is
 #: triangle k - 1), no id image.
@@ -325,14 +335,16 @@ class GBufferPass:
 
     def _derive_frame(self, ids: np.ndarray, tri_map: np.ndarray, view: tuple, out) -> None:
         """Every pixel of ``out`` from the id image ``ids`` (H*W,) uint32
-        (``surface_kernels.derive``), in contiguous row blocks on the worker threads
-        (the kernel releases the GIL; each block writes its own pixels)."""
+        (``surface_kernels.derive``), in DERIVE_BLOCKS_PER_THREAD contiguous pixel blocks
+        per worker thread (the kernel releases the GIL; each block writes its own
+        pixels)."""
         n = len(ids)
         view = (ids, tri_map, *view, self._origin, *self._tables())
         outs = (*self._outputs(out), out.view_dir, out.bary)
-        bounds = np.linspace(0, n, self._ctx.threads + 1).astype(np.int64)
+        blocks = self._ctx.threads * DERIVE_BLOCKS_PER_THREAD if self._ctx.threads > 1 else 1
+        bounds = np.linspace(0, n, blocks + 1).astype(np.int64)
         jobs = [
-            self._pool.submit(surface_kernels.derive, _NONE, _NONE, int(lo), int(hi), *view, *outs)
+            self._pool.submit(_SURFACE.derive, _NONE, _NONE, int(lo), int(hi), *view, *outs)
             for lo, hi in zip(bounds[:-1], bounds[1:], strict=True)
             if hi > lo
         ]
@@ -342,7 +354,7 @@ class GBufferPass:
     def _derive_pixels(self, pixels: np.ndarray, tid: np.ndarray, view: tuple, out) -> None:
         """Pixels ``pixels`` (k,) re-derived on triangles ``tid`` (k,) (the surface behind
         a cut-out hole), then their surface inputs."""
-        surface_kernels.derive(
+        _SURFACE.derive(
             pixels.astype(np.int64), tid.astype(np.int64), 0, 0, _NO_IDS, _NONE, *view,
             self._origin, *self._tables(), *self._outputs(out), out.view_dir, out.bary,
         )  # fmt: skip

@@ -22,9 +22,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from phrt_usd.model import surface, surface_kernels
+from phrt_usd import kernels
+from phrt_usd.model import surface
 from phrt_usd.model.scene import Scene
 from phrt_usd.render.trace.bvh import Bvh, Hits
+
+#: The compiled surface rule (``model.surface_kernels``, through ``phrt_usd.kernels``).
+_SURFACE = kernels.load("phrt_usd.model.surface_kernels")
 
 #: Smallest index of refraction used (ior ≤ 0 is meaningless; Snell's law stays finite).
 MIN_IOR = 1e-3
@@ -161,7 +165,7 @@ class HitSurfaces:
         incoming = np.ascontiguousarray(incoming, dtype=np.float64)
         pos, ng = np.empty((m, 3)), np.empty((m, 3))
         ns = np.empty((m, 3), dtype=np.float32)
-        surface_kernels.hit_geometry(tri, u, v, incoming, table.frame, table.corners, pos, ng, ns)
+        _SURFACE.hit_geometry(tri, u, v, incoming, table.frame, table.corners, pos, ng, ns)
         if self.normal_maps.any:
             self.normal_maps.apply(ns, tri, surface.weights_from_uv(u, v), incoming, table)
         return pos, ng, ns
@@ -173,7 +177,7 @@ class HitSurfaces:
         u = np.ascontiguousarray(u, dtype=np.float32)
         v = np.ascontiguousarray(v, dtype=np.float32)
         albedo = np.empty((len(tri), 3), dtype=np.float32)
-        surface_kernels.hit_albedo(tri, u, v, self._bvh.table.corners, albedo)
+        _SURFACE.hit_albedo(tri, u, v, self._bvh.table.corners, albedo)
         uv = self._scene.geometry.corner_uv
         if self._textures or self._textured_emission:
             weights = surface.weights_from_uv(u, v)

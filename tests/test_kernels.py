@@ -1,0 +1,69 @@
+"""The two compiled forms of the kernels (``phrt_usd.kernels``): the ahead-of-time build
+is the JIT kernels' own code, found only for the sources it was built from."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from phrt_usd import kernels
+from phrt_usd.model import surface_kernels
+
+
+@pytest.fixture(scope="module")
+def aot():
+    """The ahead-of-time build of the current sources (built here when missing: the
+    set-up normally has)."""
+    kernels.build_aot()
+    kernels._loaded.clear()
+    yield kernels.load("phrt_usd.model.surface_kernels")
+    kernels._loaded.clear()
+
+
+def test_load_prefers_the_build_of_these_sources(aot):
+    assert kernels.form("phrt_usd.model.surface_kernels") == "aot"
+    # Every kernel the module's warm-up compiles is in the build.
+    assert {"derive", "hit_geometry", "hit_albedo"} <= set(vars(aot))
+
+
+def test_aot_and_jit_give_the_same_bits(aot):
+    """Same source, same numba, same options: identical results on random hits."""
+    rng = np.random.default_rng(11)
+    n_tri, m = 50, 3000
+    frame = rng.normal(size=(n_tri, 4, 3))
+    frame[:, 3] /= np.linalg.norm(frame[:, 3], axis=1, keepdims=True)
+    corners = rng.normal(size=(n_tri, 3, 6)).astype(np.float32)
+    tri = rng.integers(0, n_tri, m).astype(np.int64)
+    u = rng.uniform(0, 0.5, m).astype(np.float32)
+    v = rng.uniform(0, 0.5, m).astype(np.float32)
+    d = rng.normal(size=(m, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    results = []
+    for form in (aot, surface_kernels):
+        pos, ng = np.empty((m, 3)), np.empty((m, 3))
+        ns, alb = np.empty((m, 3), np.float32), np.empty((m, 3), np.float32)
+        form.hit_geometry(tri, u, v, d, frame, corners, pos, ng, ns)
+        form.hit_albedo(tri, u, v, corners, alb)
+        results.append((pos, ng, ns, alb))
+    for a, b in zip(*results, strict=True):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_a_changed_source_names_another_build(monkeypatch, tmp_path):
+    """The build's name hashes every source: an edited kernel never loads an old build."""
+    before = kernels.source_hash()
+    edited = tmp_path / "surface_kernels.py"
+    original = kernels._source_path("phrt_usd.model.surface_kernels")
+    edited.write_bytes(original.read_bytes() + b"\n# edited\n")
+    real = kernels._source_path
+    monkeypatch.setattr(
+        kernels,
+        "_source_path",
+        lambda name: edited if name == "phrt_usd.model.surface_kernels" else real(name),
+    )
+    assert kernels.source_hash() != before
+
+
+def test_only_kernel_modules_load():
+    with pytest.raises(ValueError):
+        kernels.load("phrt_usd.model.surface")
