@@ -31,7 +31,8 @@ prints: the report of the run's selection layer (``phrt_usd.evaluate.report.buil
 frames, mean_fps, median_frame_ms, mean_selected, transitions, reflectors, budget_ms,
 budget_overruns, ...) plus ``out``, ``selection_layer``, the ``passes`` its frames ran, and
 how it ran: ``threads`` (the setting), ``gl`` (the OpenGL platform of its raster phase,
-None in ``rt`` mode) and ``llvmpipe_threads`` (llvmpipe's render threads, None without).
+None in ``rt`` mode), ``llvmpipe_threads`` (llvmpipe's render threads, None without) and
+``kernels`` (``aot`` or ``jit``: the compiled kernels' form, ``phrt_usd.kernels``).
 """
 
 from __future__ import annotations

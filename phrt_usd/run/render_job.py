@@ -39,6 +39,7 @@ from contextlib import contextmanager, suppress
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
+from phrt_usd import kernels
 from phrt_usd.atomic import write_text_atomic
 from phrt_usd.errors import PhrtError
 from phrt_usd.model.frame import FrameStats
@@ -297,13 +298,16 @@ class _Run:
 def runtime_settings(renderer: FrameRenderer) -> dict:
     """How ``renderer``'s frames run, beside the settings that identify the run (a resumed
     run may run otherwise and make the same pixels): ``threads`` (the setting), ``gl`` (the
-    OpenGL platform of the raster phase, None without one) and ``llvmpipe_threads``
-    (llvmpipe's render threads in this process, None without llvmpipe)."""
+    OpenGL platform of the raster phase, None without one), ``llvmpipe_threads``
+    (llvmpipe's render threads in this process, None without llvmpipe) and ``kernels``
+    (the compiled form of the surface kernels: "aot", the set-up's build, or "jit",
+    ``phrt_usd.kernels``)."""
     gl = renderer.gl
     return {
         "threads": renderer.options.threads,
         "gl": gl,
         "llvmpipe_threads": llvmpipe_threads() if gl is not None else None,
+        "kernels": kernels.form("phrt_usd.model.surface_kernels"),
     }
 
 

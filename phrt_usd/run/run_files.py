@@ -300,6 +300,7 @@ _RUN_INFO_TYPES: dict[str, tuple[type, ...]] = {
     "threads": (int,),  # how the run ran (run.render_job.runtime_settings)
     "gl": (str,),
     "llvmpipe_threads": (int,),
+    "kernels": (str,),
 }
 
 
