@@ -278,12 +278,27 @@ class FrameRenderer:
         """Tell the renderer the time codes it will render, in order. Each frame's
         ``FrameView`` then carries the cameras of the next UPCOMING_CAMERAS planned
         frames, which HEU1 uses to forecast a reflector's cost (a stage's camera path is
-        known before the render starts). Without a plan, views have no upcoming cameras."""
+        known before the render starts). Without a plan, views have no upcoming cameras.
+        With a raster phase, the first planned frame is prepared once here
+        (``warm_up``)."""
         self._planned = [float(t) for t in times]
         self._planned_index = {}
         for k, t in enumerate(self._planned):
             self._planned_index.setdefault(t, k)
         self._cameras = {}
+        if self._planned and self._rasterizer is not None:
+            self.warm_up(self._planned[0])
+
+    def warm_up(self, time_code: float) -> None:
+        """The one-time work of the raster phase, done before the first frame as a
+        renderer's load step: phases 1-3 at ``time_code``, their result discarded. That
+        compiles the OpenGL programs, uploads the geometry, renders the static shadow
+        maps and starts the pools, so the first frame costs what a steady frame does
+        (it took 8x one before, most of it the first shadow maps and light pass).
+        Selection and tracing are not run: the policy and its cost model learn from
+        rendered frames only, and the image of any frame is the same with or without
+        this (everything it leaves behind is a cache of the scene at a time code)."""
+        self.prepare(time_code)
 
     def _path_cameras(self, time_code: float) -> tuple[CameraFrame, tuple[CameraFrame, ...]]:
         """The camera at ``time_code`` and those of the planned frames after it (at most
