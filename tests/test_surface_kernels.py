@@ -153,9 +153,10 @@ def test_derive_matches_numpy_reference():
     fwd = -rot[:, 2]
     n = width * height
     ids = rng.integers(0, 33, n).astype(np.uint32)  # 0: background
-    outs = [np.full(n, -1, np.int32), np.full(n, -1, np.int32), np.full(n, np.inf, np.float32),
-            np.zeros((n, 3)), np.empty((n, 3), np.float32), np.zeros((n, 3), np.float32),
-            np.empty((n, 3), np.float32), np.empty((n, 3), np.float32)]  # fmt: skip
+    # Garbage-filled outputs: the kernel must write every row of every pixel.
+    outs = [np.full(n, 7, np.int32), np.full(n, 7, np.int32), np.full(n, 7, np.float32),
+            np.full((n, 3), 7.0), np.full((n, 3), 7, np.float32), np.full((n, 3), 7, np.float32),
+            np.full((n, 3), 7, np.float32), np.full((n, 3), 7, np.float32)]  # fmt: skip
     none = np.zeros(0, np.int64)
     tri_element = np.arange(32, dtype=np.int64) // 4
     surface_kernels.derive(none, none, 0, n, ids, none, xs, ys, inv_len, rot, False, eye,
@@ -168,7 +169,8 @@ def test_derive_matches_numpy_reference():
     cov = np.flatnonzero(ids > 0)
     bg = np.flatnonzero(ids == 0)
     np.testing.assert_array_equal(normal[bg], -view[bg])
-    assert np.all(tri[bg] == -1) and np.all(np.isinf(depth[bg]))
+    assert np.all(tri[bg] == -1) and np.all(elem[bg] == -1) and np.all(np.isinf(depth[bg]))
+    assert not pos[bg].any() and not albedo[bg].any()
     tid = ids[cov].astype(np.int64) - 1
     np.testing.assert_array_equal(tri[cov], tid)
     np.testing.assert_array_equal(elem[cov], tri_element[tid])
@@ -189,3 +191,45 @@ def test_warm_up_compiles_every_kernel():
     for kernel in (surface_kernels.derive, surface_kernels.hit_geometry,
                    surface_kernels.hit_albedo):  # fmt: skip
         assert kernel.signatures, kernel
+
+
+@settings(max_examples=30, deadline=None)
+@given(
+    far=st.sampled_from([0.0, 1e6, -3e7]),
+    scale=st.sampled_from([1e-3, 1.0, 1e3]),
+    grazing=st.booleans(),
+    seed=st.integers(0, 2**31 - 1),
+)
+def test_derive_extremes_stay_finite(far, scale, grazing, seed):
+    """A view of random triangles far from the origin, tiny or huge, seen head-on or
+    at grazing angles (the camera in a triangle's plane): every written row is finite,
+    depths inside the clip range, normals unit."""
+    rng = np.random.default_rng(seed)
+    table, origin = _random_table(rng, 8, spread=scale, far=far)
+    width, height = 8, 6
+    xs = np.linspace(-0.5, 0.5, width)
+    ys = np.linspace(0.4, -0.4, height)
+    inv_len = 1.0 / np.sqrt(xs[None, :] ** 2 + ys[:, None] ** 2 + 1.0)
+    rot = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    # Grazing: the eye on triangle 3's plane (n·d = 0 for rays in the plane).
+    eye = table.frame[3, 0] + (table.frame[3, 1] * 0.3 if grazing else table.frame[3, 3] * scale)
+    near, far_clip = 1e-6 * scale, 100.0 * scale
+    n = width * height
+    ids = rng.integers(0, 9, n).astype(np.uint32)
+    outs = [np.empty(n, np.int32), np.empty(n, np.int32), np.empty(n, np.float32),
+            np.empty((n, 3)), np.empty((n, 3), np.float32), np.empty((n, 3), np.float32),
+            np.empty((n, 3), np.float32), np.empty((n, 3), np.float32)]  # fmt: skip
+    none = np.zeros(0, np.int64)
+    surface_kernels.derive(none, none, 0, n, ids, none, xs, ys, inv_len, rot, False, eye,
+                           near, far_clip, -rot[:, 2], origin, table.plane, table.corners,
+                           table.frame, np.zeros(8, np.int64), *outs)  # fmt: skip
+    tri, _, depth, pos, normal, albedo, view, bary = outs
+    cov = ids > 0
+    assert np.all(np.isfinite(pos)) and np.all(np.isfinite(normal)) and np.all(np.isfinite(view))
+    assert np.all(np.isfinite(depth[cov])) and np.all(np.isfinite(bary[cov]))
+    # Distances along the rays lie in the clip range, up to the float64 rounding of world
+    # positions this far from the world origin (a few ulps of |origin| + |eye|).
+    dist = np.linalg.norm(pos[cov] - origin - eye, axis=1)
+    tol = 8 * np.finfo(np.float64).eps * (np.abs(origin).max() + np.abs(eye).max() + far_clip)
+    assert np.all(dist <= far_clip + tol) and np.all(dist >= near - tol)
+    np.testing.assert_allclose(np.linalg.norm(normal, axis=1), 1.0, atol=ABS32)

@@ -32,6 +32,7 @@ import numpy as np
 from numba import njit
 
 from phrt_usd.kernels import KERNEL_OPTIONS
+from phrt_usd.model.scene import NO_HIT
 from phrt_usd.model.surface import MIN_NORMAL_LENGTH
 
 #: Denominator floor (relative to |face normal|) of the ray-plane intersection. A pixel
@@ -116,8 +117,9 @@ def derive(
     Writes per pixel out_tri / out_elem (H*W,) int32, out_depth (H*W,) float32 view
     depth, out_pos (H*W, 3) float64 world, out_normal and out_albedo (H*W, 3) float32,
     out_view (H*W, 3) float32 unit view directions, out_bary (H*W, 3) float32 weights
-    (only when it has rows). A background pixel gets its view direction and normal =
-    -view direction; its other rows are left as they are (the caller's fill)."""
+    (only when it has rows). A background pixel of the id image gets ids NO_HIT, depth
+    inf, position and albedo 0, its view direction and normal = -view direction (its
+    weights are not written)."""
     width = xs.shape[0]
     listed = pixels.shape[0] > 0
     count = pixels.shape[0] if listed else hi - lo
@@ -136,8 +138,14 @@ def derive(
             vx, vy, vz = np.float32(dx), np.float32(dy), np.float32(dz)
             out_view[p, 0], out_view[p, 1], out_view[p, 2] = vx, vy, vz
             k = np.int64(ids[p])
-            if k <= 0 or k > n_ids:
+            if k <= 0 or k > n_ids:  # background (see the docstring)
                 out_normal[p, 0], out_normal[p, 1], out_normal[p, 2] = -vx, -vy, -vz
+                out_tri[p] = NO_HIT
+                out_elem[p] = NO_HIT
+                out_depth[p] = np.inf
+                for j in range(3):
+                    out_pos[p, j] = 0.0
+                    out_albedo[p, j] = 0.0
                 continue
             t = tri_map[k - 1] if tri_map.shape[0] else k - 1
         # Ray-plane intersection in float64, rel space: dist = (h - n·o) / n·d.

@@ -282,14 +282,14 @@ class GBufferPass:
             ids = np.zeros(h * w, dtype=np.uint32)
 
         n = h * w
-        # Rows the kernel leaves alone at background pixels start as the background.
+        # Every row of every pixel is written by the kernel (background too).
         out = _Outputs(
-            triangle_id=np.full(n, NO_HIT, dtype=np.int32),
-            element_id=np.full(n, NO_HIT, dtype=np.int32),
-            depth=np.full(n, np.inf, dtype=np.float32),
-            position=np.zeros((n, 3), dtype=np.float64),
+            triangle_id=np.empty(n, dtype=np.int32),
+            element_id=np.empty(n, dtype=np.int32),
+            depth=np.empty(n, dtype=np.float32),
+            position=np.empty((n, 3), dtype=np.float64),
             normal=np.empty((n, 3), dtype=np.float32),
-            albedo=np.zeros((n, 3), dtype=np.float32),
+            albedo=np.empty((n, 3), dtype=np.float32),
             view_dir=np.empty((n, 3), dtype=np.float32),
             bary=np.empty((n if self._needs_weights() else 0, 3), dtype=np.float32),
         )
