@@ -33,10 +33,13 @@ import hashlib
 import importlib
 import importlib.machinery
 import importlib.util
+import json
 import sys
 import time
 from pathlib import Path
 from types import ModuleType, SimpleNamespace
+
+import numpy as np
 
 #: Modules holding numba kernels, each with a ``warm_up()``.
 KERNEL_MODULES = ("phrt_usd.model.surface_kernels",)
@@ -80,21 +83,65 @@ def _export_name(module_name: str, kernel: str) -> str:
     return f"{module_name.rsplit('.', 1)[-1]}__{kernel}"
 
 
-def _aot_module() -> ModuleType | None:
-    """The ahead-of-time build of the current sources, or None."""
+def _aot_module() -> tuple[ModuleType, dict] | None:
+    """The ahead-of-time build of the current sources and its array signatures
+    (``build_aot``'s sidecar), or None."""
     if "aot" in _loaded:
         return _loaded["aot"]
-    path, module = _aot_file(), None
-    if path.is_file():
+    path, found = _aot_file(), None
+    arrays = path.with_name(_aot_name() + ".json")
+    if path.is_file() and arrays.is_file():
         spec = importlib.util.spec_from_file_location(_aot_name(), path)
         if spec is not None and spec.loader is not None:
             try:
                 module = importlib.util.module_from_spec(spec)
                 spec.loader.exec_module(module)
-            except ImportError:
-                module = None  # e.g. built for another machine: the JIT form serves
-    _loaded["aot"] = module
-    return module
+                found = module, json.loads(arrays.read_text())
+            except (ImportError, ValueError):
+                found = None  # e.g. built for another machine: the JIT form serves
+    _loaded["aot"] = found
+    return found
+
+
+class _Guarded:
+    """An ahead-of-time kernel behind a check of its array arguments.
+
+    The compiled wrapper trusts an array's memory to be of the dtype, rank and layout it
+    was built for (an int32 array where int64 is expected reads past the buffer), so
+    every array argument is checked against the build's signature first; on a mismatch
+    the call goes to the JIT kernel, which compiles for those types, and the mismatch is
+    noted in ``FALLBACKS`` (the test suite fails on any). Scalars are converted by the
+    wrapper itself. The check costs ~0.2 us an argument."""
+
+    def __init__(self, function, module_name: str, name: str, arrays: list) -> None:
+        self._function = function
+        self._module_name, self.__name__ = module_name, name
+        #: per argument None (a scalar) or (numpy dtype, ndim, must be C-contiguous)
+        self._arrays = [None if a is None else (np.dtype(a[0]), a[1], a[2] == "C")
+                        for a in arrays]  # fmt: skip
+
+    def __call__(self, *args):
+        if len(args) == len(self._arrays):
+            for value, expected in zip(args, self._arrays, strict=True):
+                if expected is None:
+                    continue
+                if not (
+                    type(value) is np.ndarray
+                    and value.dtype == expected[0]
+                    and value.ndim == expected[1]
+                    and (value.flags.c_contiguous or not expected[2])
+                ):
+                    break
+            else:
+                return self._function(*args)
+        FALLBACKS.add(f"{self._module_name}.{self.__name__}")
+        jit = getattr(importlib.import_module(self._module_name), self.__name__)
+        return jit(*args)
+
+
+#: Kernels called with argument types their ahead-of-time build was not made for
+#: ("module.kernel"): each such call ran the JIT kernel instead (``_Guarded``).
+FALLBACKS: set[str] = set()
 
 
 def load(module_name: str):
@@ -108,10 +155,14 @@ def load(module_name: str):
     aot = _aot_module()
     found = None
     if aot is not None:
+        module, signatures = aot
         prefix = _export_name(module_name, "")
-        names = [n[len(prefix):] for n in dir(aot) if n.startswith(prefix)]
+        names = {k[len(prefix):]: v for k, v in signatures.items() if k.startswith(prefix)}
         if names:
-            found = SimpleNamespace(**{n: getattr(aot, prefix + n) for n in names})
+            found = SimpleNamespace(**{
+                n: _Guarded(getattr(module, prefix + n), module_name, n, arrays)
+                for n, arrays in names.items()
+            })  # fmt: skip
             found.compiled = "aot"
     if found is None:
         found = importlib.import_module(module_name)
@@ -151,15 +202,17 @@ def build_aot() -> Path:
     ``pycc`` (setuptools and a C compiler). Each kernel is exported with the single
     signature its module's ``warm_up`` compiled."""
     target = _aot_file()
-    if target.is_file():
+    if target.is_file() and target.with_name(_aot_name() + ".json").is_file():
         return target
     warm_up()
     import numba.pycc.compiler as pycc_compiler
+    from numba.core import types
     from numba.pycc import CC
 
     cc = CC(_aot_name())
     cc.output_dir = str(AOT_DIR)
     cc.verbose = False
+    signatures = {}  # export name → per argument None or [dtype, ndim, layout]
     for module_name in KERNEL_MODULES:
         module = importlib.import_module(module_name)
         for name, dispatcher in _kernels(module).items():
@@ -170,7 +223,13 @@ def build_aot() -> Path:
                 )
             (args,) = dispatcher.signatures
             result = dispatcher.overloads[args].signature.return_type
-            cc.export(_export_name(module_name, name), result(*args))(dispatcher.py_func)
+            export = _export_name(module_name, name)
+            cc.export(export, result(*args))(dispatcher.py_func)
+            signatures[export] = [
+                [str(np.dtype(str(a.dtype))), a.ndim, a.layout]
+                if isinstance(a, types.Array) else None
+                for a in args
+            ]  # fmt: skip
     AOT_DIR.mkdir(exist_ok=True)
     # pycc compiles with numba's default flags; the kernels' own options (GIL released,
     # numpy's division rules) are set on them for this build.
@@ -187,8 +246,10 @@ def build_aot() -> Path:
         cc.compile()
     finally:
         pycc_compiler.Flags = original
+    sidecar = target.with_name(_aot_name() + ".json")
+    sidecar.write_text(json.dumps(signatures, indent=1))
     for old in AOT_DIR.glob("phrt_kernels_*"):
-        if old != target:
+        if old not in (target, sidecar):
             old.unlink()
     return target
 

@@ -49,6 +49,25 @@ def test_aot_and_jit_give_the_same_bits(aot):
         np.testing.assert_array_equal(a, b)
 
 
+def test_other_argument_types_run_the_jit_kernel(aot):
+    """The build reads an array as the dtype it was built for: an int32 index array
+    where int64 is expected must not reach it (it would read past the buffer). The
+    guard sends the call to the JIT kernel instead and notes it."""
+    corners = np.arange(2 * 3 * 6, dtype=np.float32).reshape(2, 3, 6)
+    out = np.zeros((2, 3), np.float32)
+    zeros = np.zeros(2, np.float32)
+    try:
+        aot.hit_albedo(np.array([1, 0], np.int32), zeros, zeros, corners, out)
+        assert kernels.FALLBACKS == {"phrt_usd.model.surface_kernels.hit_albedo"}
+    finally:
+        kernels.FALLBACKS.clear()  # this test's own, expected fallback
+    np.testing.assert_array_equal(out, corners[[1, 0], 0, 3:])  # weights (1, 0, 0)
+    out[:] = 0
+    aot.hit_albedo(np.array([1, 0], np.int64), zeros, zeros, corners, out)
+    np.testing.assert_array_equal(out, corners[[1, 0], 0, 3:])
+    assert not kernels.FALLBACKS
+
+
 def test_a_changed_source_names_another_build(monkeypatch, tmp_path):
     """The build's name hashes every source: an edited kernel never loads an old build."""
     before = kernels.source_hash()
