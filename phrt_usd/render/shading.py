@@ -1,7 +1,9 @@
 """Local shading shared by the raster path and the ray tracer, so both agree exactly.
 
-Everything here is pure numpy on world-space arrays (metres, linear RGB float32, no tone
-mapping). The model, deliberately simple and the same everywhere:
+Everything here works on world-space arrays (metres, linear RGB float32, no tone mapping);
+the per-point work runs in compiled kernels (numba, ``nogil``: ``_shade_kernel``,
+``_latlong_bilinear``; their numpy reference is ``tests/shading_reference.py``). The model,
+deliberately simple and the same everywhere:
 
     colour = Σ_lights  visibility * E_light * (albedo * max(n·l, 0)
                                                + SPECULAR_STRENGTH * max(n·h, 0)**SHININESS)
@@ -31,9 +33,11 @@ row 0 latitude +π/2; longitude 0 points to +Z and longitude +π/2 to +X.
 
 from __future__ import annotations
 
+import math
 from concurrent.futures import ThreadPoolExecutor
 from typing import NamedTuple
 
+import numba
 import numpy as np
 
 from phrt_usd.model.scene import DEFAULT_ENVIRONMENT, DomeLight, Lights, LocalLight
@@ -55,13 +59,14 @@ LIGHT_CUTOFF_IRRADIANCE = 0.02
 #: Blinn-Phong exponent of the specular highlight (one value for every material).
 SHININESS = 64.0
 
-#: SHININESS = 2**k: the highlight's power is computed as k squarings (else with pow).
-_SHININESS_SQUARINGS = (
+#: SHININESS = 2**k: the highlight's power is computed as k squarings (else with pow:
+#: -1).
+_SQUARINGS = (
     int(np.log2(SHININESS))
     if SHININESS >= 1
     and float(SHININESS).is_integer()
     and (int(SHININESS) & (int(SHININESS) - 1)) == 0
-    else None
+    else -1
 )
 
 #: Weight of the white Blinn-Phong highlight relative to the diffuse term.
@@ -113,54 +118,6 @@ def pair_directions(
     return (to_light / dist[:, None]).astype(np.float32), dist
 
 
-def _safe_normalize(v: np.ndarray, fallback: np.ndarray) -> np.ndarray:
-    """Rows of ``v`` (n, 3) scaled to unit length; rows of (near) zero length or
-    non-finite become ``fallback`` (3,). Returns float64 (n, 3)."""
-    v = np.asarray(v, dtype=np.float64)
-    length2 = np.einsum("ij,ij->i", v, v)
-    if np.all((length2 > _MIN_DIRECTION_LENGTH**2) & (length2 < np.inf)):
-        # The usual case (finite, not tiny, |v|² not overflowing): plain division.
-        return v / np.sqrt(length2)[:, None]
-    finite = np.all(np.isfinite(v), axis=1)
-    v = np.where(finite[:, None], v, 0.0)
-    # Scale by the largest component first so huge vectors do not overflow when squared.
-    big = np.max(np.abs(v), axis=1)
-    ok = big > _MIN_DIRECTION_LENGTH
-    v = v / np.where(ok, big, 1.0)[:, None]
-    norm = np.linalg.norm(v, axis=1)
-    out = v / np.where(ok, norm, 1.0)[:, None]
-    out[~ok] = fallback
-    return out
-
-
-def _bilinear(texture: np.ndarray, x: np.ndarray, y: np.ndarray, wrap_y: bool) -> np.ndarray:
-    """Bilinear sample at continuous pixel coordinates (x: column, y: row; texel centres
-    at integer + 0.5 - 0.5 = integers). x always wraps; y wraps or clamps."""
-    h, w = texture.shape[:2]
-    x0 = np.floor(x)
-    y0 = np.floor(y)
-    fx = (x - x0)[:, None].astype(np.float32)
-    fy = (y - y0)[:, None].astype(np.float32)
-    x0 = x0.astype(np.int64)
-    y0 = y0.astype(np.int64)
-    c0 = x0 % w
-    c1 = (x0 + 1) % w
-    if wrap_y:
-        r0 = y0 % h
-        r1 = (y0 + 1) % h
-    else:
-        r0 = np.clip(y0, 0, h - 1)
-        r1 = np.clip(y0 + 1, 0, h - 1)
-    # Gathers from the flattened texture (1-D takes are several times faster than
-    # 2-D fancy indexing).
-    flat = np.ascontiguousarray(texture, dtype=np.float32).reshape(h * w, -1)
-    r0 *= w
-    r1 *= w
-    top = flat.take(r0 + c0, axis=0) * (1.0 - fx) + flat.take(r0 + c1, axis=0) * fx
-    bottom = flat.take(r1 + c0, axis=0) * (1.0 - fx) + flat.take(r1 + c1, axis=0) * fx
-    return top * (1.0 - fy) + bottom * fy
-
-
 def _dome_colour(dome: DomeLight) -> np.ndarray:
     return np.asarray(dome.color, dtype=np.float32).reshape(3)
 
@@ -180,16 +137,62 @@ def environment_radiance(lights: Lights, directions: np.ndarray) -> np.ndarray:
     colour = _dome_colour(dome)
     if dome.texture is None:
         return np.broadcast_to(colour, (n, 3)).copy()
-    # World → dome space: world_from_light is a rotation, so its inverse is its transpose;
-    # for row vectors d_light = d_world @ world_from_light.
-    d = _safe_normalize(directions, np.array([0.0, 1.0, 0.0]) @ dome.world_from_light.T)
-    d = d @ np.asarray(dome.world_from_light, dtype=np.float64)
+    texture = np.ascontiguousarray(dome.texture, dtype=np.float32)
+    rotation = np.ascontiguousarray(dome.world_from_light, dtype=np.float64)
+    d = np.empty((n, 3))
+    _dome_directions(directions, rotation, d)
+    # The angles by numpy's vectorised arcsin / arctan2 (~3x faster than scalar libm
+    # calls in a kernel).
     latitude = np.arcsin(np.clip(d[:, 1], -1.0, 1.0))
     longitude = np.arctan2(d[:, 0], d[:, 2])
-    h, w = dome.texture.shape[:2]
-    x = (np.pi - longitude) / (2.0 * np.pi) * w - 0.5
-    y = (0.5 * np.pi - latitude) / np.pi * h - 0.5
-    return _bilinear(dome.texture, x, y, wrap_y=False) * colour
+    out = np.empty((n, 3), np.float32)
+    _latlong_bilinear(latitude, longitude, texture, colour.astype(np.float64), out)
+    return out
+
+
+@numba.njit(nogil=True, cache=True)
+def _dome_directions(directions, rotation, out):  # pragma: no cover - compiled
+    """World directions (n, 3) (any length) as unit directions (n, 3) float64 in the
+    dome's space (``rotation`` = ``world_from_light`` (3, 3), a rotation: its inverse is
+    its transpose); zero, tiny or non-finite ones become the dome's +Y pole."""
+    for i in range(directions.shape[0]):
+        x, y, z = float(directions[i, 0]), float(directions[i, 1]), float(directions[i, 2])
+        big = max(abs(x), abs(y), abs(z))
+        finite = math.isfinite(x) and math.isfinite(y) and math.isfinite(z)
+        if not (finite and big > _MIN_DIRECTION_LENGTH):  # no direction: the pole
+            out[i, 0], out[i, 1], out[i, 2] = 0.0, 1.0, 0.0
+            continue
+        # Scaled by the largest component first so huge vectors do not overflow.
+        x, y, z = x / big, y / big, z / big
+        norm = math.sqrt(x * x + y * y + z * z)
+        x, y, z = x / norm, y / norm, z / norm
+        for c in range(3):
+            out[i, c] = x * rotation[0, c] + y * rotation[1, c] + z * rotation[2, c]
+
+
+@numba.njit(nogil=True, cache=True)
+def _latlong_bilinear(latitude, longitude, texture, colour, out):  # pragma: no cover
+    """Bilinear samples (n, 3) of the lat-long ``texture`` (h, w, 3) (the module's
+    convention) at ``latitude``, ``longitude`` (n,) radians, times ``colour`` (3,):
+    columns wrap, rows clamp at the poles."""
+    h, wd = texture.shape[0], texture.shape[1]
+    for i in range(latitude.shape[0]):
+        col = (math.pi - longitude[i]) / (2.0 * math.pi) * wd - 0.5
+        row = (0.5 * math.pi - latitude[i]) / math.pi * h - 0.5
+        c0f, r0f = math.floor(col), math.floor(row)
+        fx, fy = col - c0f, row - r0f
+        # col in [-0.5, wd - 0.5] (longitude in [-pi, pi]): c0 in [-1, wd - 1].
+        c0 = int(c0f)
+        c0 = c0 + wd if c0 < 0 else c0
+        c1 = c0 + 1 if c0 + 1 < wd else 0
+        r0 = min(max(int(r0f), 0), h - 1)
+        r1 = min(max(int(r0f) + 1, 0), h - 1)
+        w00, w01 = (1.0 - fy) * (1.0 - fx), (1.0 - fy) * fx
+        w10, w11 = fy * (1.0 - fx), fy * fx
+        for c in range(3):
+            v = texture[r0, c0, c] * w00 + texture[r0, c1, c] * w01
+            v += texture[r1, c0, c] * w10 + texture[r1, c1, c] * w11
+            out[i, c] = v * colour[c]
 
 
 def ambient_radiance(lights: Lights) -> np.ndarray:
@@ -257,18 +260,20 @@ def light_ranges(lights: Lights) -> np.ndarray:
     return np.concatenate([np.full(len(lights.distant), np.inf), ranges])
 
 
-def _window(distance: np.ndarray, light_range: np.ndarray) -> np.ndarray:
-    """``range_window`` with a range per distance (both (m,) float64; ranges > 0)."""
-    x = (distance / light_range) ** 2
-    return np.clip(1.0 - x * x, 0.0, 1.0) ** 2
-
-
-def _window_sq(distance2: np.ndarray, light_range: float) -> np.ndarray:
-    """``range_window`` from squared distances (m,) float64 (saves the square root)."""
+@numba.njit(nogil=True, cache=True, inline="always")
+def window_at(distance2, light_range):  # pragma: no cover - compiled
+    """``range_window`` of one squared distance (metres²) and range (metres)."""
     if not light_range > 0.0:
-        return np.zeros(np.shape(distance2))
+        return 0.0
     x = distance2 / (light_range * light_range)
-    return np.clip(1.0 - x * x, 0.0, 1.0) ** 2
+    w = min(max(1.0 - x * x, 0.0), 1.0)
+    return w * w
+
+
+@numba.njit(nogil=True, cache=True)
+def _window_kernel(distance, light_range, out):  # pragma: no cover - compiled
+    for i in range(distance.shape[0]):
+        out[i] = window_at(distance[i] * distance[i], light_range)
 
 
 def range_window(distance: np.ndarray, light_range: float) -> np.ndarray:
@@ -276,7 +281,38 @@ def range_window(distance: np.ndarray, light_range: float) -> np.ndarray:
     metres: ``clamp(1 - (d / r)**4, 0, 1)**2`` (the Frostbite / Unreal window): 1 near
     the light, falling to exactly 0 at and beyond ``light_range`` with zero slope there,
     so no ring marks the range. ``light_range`` <= 0 gives 0 everywhere."""
-    return _window_sq(np.asarray(distance, dtype=np.float64) ** 2, light_range)
+    distance = np.asarray(distance, dtype=np.float64)
+    out = np.empty(distance.size)
+    _window_kernel(distance.reshape(-1), float(light_range), out)
+    return out.reshape(distance.shape)
+
+
+@numba.njit(nogil=True, cache=True, inline="always")
+def cone_at(cos, cone_angle, softness, focus):  # pragma: no cover - compiled
+    """``cone_falloff`` of one emission: ``cos`` the cosine between the light's axis and
+    the direction it emits to the point; cone angle in degrees, softness, focus."""
+    cos = min(max(cos, -1.0), 1.0)
+    factor = 1.0
+    if cone_angle < 180.0:
+        theta = math.acos(cos)
+        cutoff = math.radians(cone_angle)
+        if theta > cutoff:
+            return 0.0
+        start = cutoff * (1.0 - softness)
+        width = cutoff - start
+        if width > 0.0:
+            x = min(max((theta - start) / width, 0.0), 1.0)
+            factor = 1.0 - x * x * (3.0 - 2.0 * x)
+    if focus > 0.0:
+        factor *= abs(cos) ** focus
+    return factor
+
+
+@numba.njit(nogil=True, cache=True)
+def _cone_kernel(emission, axis, cone_angle, softness, focus, out):  # pragma: no cover
+    for i in range(emission.shape[0]):
+        cos = emission[i, 0] * axis[0] + emission[i, 1] * axis[1] + emission[i, 2] * axis[2]
+        out[i] = cone_at(cos, cone_angle, softness, focus)
 
 
 def cone_falloff(light: LocalLight, emission: np.ndarray) -> np.ndarray:
@@ -292,20 +328,16 @@ def cone_falloff(light: LocalLight, emission: np.ndarray) -> np.ndarray:
     m = len(emission)
     if not light.shaped:
         return np.ones(m, dtype=np.float32)
-    cos = np.clip(np.asarray(emission, np.float64) @ np.asarray(light.axis, np.float64), -1, 1)
-    factor = np.ones(m)
-    if light.cone_angle < 180.0:
-        theta = np.arccos(cos)
-        cutoff = np.radians(light.cone_angle)
-        start = cutoff * (1.0 - light.cone_softness)
-        width = cutoff - start
-        if width > 0.0:
-            x = np.clip((theta - start) / width, 0.0, 1.0)
-            factor = 1.0 - x * x * (3.0 - 2.0 * x)
-        factor = np.where(theta > cutoff, 0.0, factor)
-    if light.focus > 0.0:
-        factor = factor * np.abs(cos) ** light.focus
-    return factor.astype(np.float32)
+    out = np.empty(m, np.float32)
+    _cone_kernel(
+        np.asarray(emission, np.float64).reshape(m, 3),
+        np.asarray(light.axis, np.float64).reshape(3),
+        float(light.cone_angle),
+        float(light.cone_softness),
+        float(light.focus),
+        out,
+    )
+    return out
 
 
 def shaped_lights(lights: Lights) -> bool:
@@ -325,110 +357,190 @@ def _shade_chunk(
     local_pairs: LightPairs | tuple | None = None,
     lit_sums: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> np.ndarray:
-    """``shade_local`` on one chunk of points (same arguments and result)."""
-    positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+    """``shade_local`` on one chunk of points (same arguments and result), by
+    ``_shade_kernel``."""
+    positions = np.ascontiguousarray(positions, dtype=np.float64).reshape(-1, 3)
     n = positions.shape[0]
-    normals = np.asarray(normals, dtype=np.float32).reshape(n, 3)
-    albedo = np.asarray(albedo, dtype=np.float32).reshape(n, 3)
-    to_eye = -np.asarray(view_dirs, dtype=np.float32).reshape(n, 3)
-    colour = albedo * ambient_radiance(lights)[None, :]
-    colour += np.broadcast_to(np.asarray(emissive, dtype=np.float32), (n, 3))
-    if lit_sums is not None:
-        colour += albedo * lit_sums[0] + lit_sums[1]
-    if not lights.has_direct or n == 0:
-        return colour.astype(np.float32)
-    # Per point and light colour: the summed diffuse weights (cosine x fall-off x
-    # visibility) and highlight weights of the lights of that radiance, times the
-    # radiance once at the end (lamps usually share a colour: the sewer's 13 lights
-    # have 2, so 2 instead of 13 (n, 3) products).
-    radiance, group = np.unique(
-        np.array(
-            [li.radiance for li in lights.distant] + [li.radiance for li in lights.local],
-            dtype=np.float32,
-        ).reshape(-1, 3),
-        axis=0,
-        return_inverse=True,
-    )
-    group = group.reshape(-1)
-    diffuse = np.zeros((len(radiance), n), dtype=np.float32)
-    highlight = np.zeros((len(radiance), n), dtype=np.float32)
-    for j, light in enumerate(lights.distant):
-        d = np.asarray(light.direction, dtype=np.float64)
-        l_dir = (d / max(np.linalg.norm(d), _MIN_DIRECTION_LENGTH)).astype(np.float32)
-        lit = np.maximum(normals @ l_dir, 0.0)
-        if visibility is not None:
-            lit = lit * visibility[:, j]
-        idx = np.flatnonzero(lit > 0.0)
-        lit = lit[idx]
-        diffuse[group[j], idx] += lit
-        highlight[group[j], idx] += lit * _highlight(
-            np.take(normals, idx, axis=0), np.take(to_eye, idx, axis=0), l_dir[None, :]
+    f32 = np.float32
+
+    def rows(a, dtype=f32, width=3):
+        return np.ascontiguousarray(a, dtype=dtype).reshape(-1, width)
+
+    emissive = rows(emissive)
+    if len(emissive) != 1:
+        emissive = emissive.reshape(n, 3)
+    distant, local = lights.distant, lights.local
+    d_dir = np.array([li.direction for li in distant], np.float64).reshape(-1, 3)
+    d_dir /= np.maximum(np.linalg.norm(d_dir, axis=1, keepdims=True), _MIN_DIRECTION_LENGTH)
+    cone = np.array(
+        [[*li.axis, li.cone_angle, li.cone_softness, li.focus, li.shaped] for li in local],
+        np.float64,
+    ).reshape(-1, 7)
+    pairs = _NO_PAIRS if local_pairs is None else LightPairs(*local_pairs)
+    has_weight = pairs.weight is not None
+    out = np.empty((n, 3), np.float32)
+    if n:
+        _shade_kernel(
+            positions,
+            rows(normals).reshape(n, 3),
+            rows(albedo).reshape(n, 3),
+            rows(view_dirs).reshape(n, 3),
+            emissive,
+            ambient_radiance(lights).astype(np.float64),
+            *(rows(s) for s in (lit_sums if lit_sums is not None else (_NO_ROWS, _NO_ROWS))),
+            d_dir,
+            np.array([li.radiance for li in distant], np.float64).reshape(-1, 3),
+            _NO_VISIBILITY if visibility is None else rows(visibility, width=1).reshape(n, -1),
+            np.array([li.position for li in local], np.float64).reshape(-1, 3),
+            np.array([li.radiance for li in local], np.float64).reshape(-1, 3),
+            light_ranges(lights)[len(distant) :],
+            cone,
+            local_pairs is None and lit_sums is None,
+            np.ascontiguousarray(pairs.point, np.int64),
+            np.ascontiguousarray(pairs.light, np.int64),
+            rows(pairs.l_dir),
+            np.ascontiguousarray(pairs.dist, np.float64),
+            np.ascontiguousarray(pairs.weight if has_weight else _NO_WEIGHT, np.float32),
+            has_weight,
+            out,
         )
-    n_distant = len(lights.distant)
-    ranges = light_ranges(lights)
-    if local_pairs is not None:
-        point, light, l_dir, dist, weight = LightPairs(*local_pairs)
-        j = n_distant + np.asarray(light, np.int64)
-        nrm = np.take(normals, point, axis=0)
-        l_dir = np.asarray(l_dir, np.float32)
-        dist = np.maximum(np.asarray(dist, np.float64), MIN_LIGHT_DISTANCE)
-        n_dot_l = np.maximum(np.einsum("ij,ij->i", nrm, l_dir), 0.0)
-        lit = (n_dot_l * _window(dist, ranges[j]) / dist**2).astype(np.float32)
-        if weight is not None:
-            lit *= weight
-        if shaped_lights(lights):  # the cone of each shaped light on its own pairs
-            for k in np.unique(light).tolist():
-                if lights.local[k].shaped:
-                    on = np.flatnonzero(light == k)
-                    lit[on] *= cone_falloff(lights.local[k], -l_dir[on])
-        spec = lit * _highlight(nrm, np.take(to_eye, point, axis=0), l_dir)
-        # Pairs of one light never repeat a point, but several lights share a colour
-        # group: sum with bincount over (group, point).
-        key = group[j] * n + point
-        size = len(radiance) * n
-        diffuse += np.bincount(key, weights=lit, minlength=size).reshape(-1, n)
-        highlight += np.bincount(key, weights=spec, minlength=size).reshape(-1, n)
-    # Light-major visibility: each light's column becomes one contiguous row.
-    vis_rows = None if visibility is None else np.ascontiguousarray(visibility.T)
-    skip_local = local_pairs is not None or lit_sums is not None
-    for k, light in enumerate([] if skip_local else lights.local):
-        j = n_distant + k
-        # Only points that see the light (visibility > 0), within its range (the window
-        # is exactly 0 beyond) and on the lit side of their normal are shaded.
-        if vis_rows is None:
-            idx = np.arange(n)
-            to_light = np.asarray(light.position, dtype=np.float64) - positions
-        else:
-            idx = np.flatnonzero(vis_rows[j] > 0.0)
-            to_light = np.asarray(light.position, dtype=np.float64) - np.take(
-                positions, idx, axis=0
-            )
-        dist2 = np.einsum("ij,ij->i", to_light, to_light)
-        near = dist2 < ranges[j] ** 2
-        if not near.all():  # shadow maps already zero these: usually nothing to drop
-            idx, to_light, dist2 = idx[near], to_light[near], dist2[near]
-        dist2 = np.maximum(dist2, MIN_LIGHT_DISTANCE**2)
-        inv_dist = 1.0 / np.sqrt(dist2)
-        l_dir = (to_light * inv_dist[:, None]).astype(np.float32)
-        nrm = np.take(normals, idx, axis=0)
-        n_dot_l = np.einsum("ij,ij->i", nrm, l_dir)
-        front = n_dot_l > 0.0
-        if not front.all():
-            idx, nrm, l_dir = idx[front], nrm[front], l_dir[front]
-            dist2, n_dot_l = dist2[front], n_dot_l[front]
-        # Window and 1/d² in float64: d up to ~1e154 stays finite, and the float32 cast
-        # of a tiny fall-off underflows to 0 instead of overflowing d² to Inf.
-        lit = (n_dot_l * (_window_sq(dist2, ranges[j]) / dist2)).astype(np.float32)
-        if vis_rows is not None:
-            lit *= vis_rows[j, idx]
-        if light.shaped:
-            lit *= cone_falloff(light, -l_dir)
-        # idx has no repeats, so the buffered fancy-index += is exact.
-        diffuse[group[j], idx] += lit
-        highlight[group[j], idx] += lit * _highlight(nrm, np.take(to_eye, idx, axis=0), l_dir)
-    for g, rad in enumerate(radiance):
-        colour += (albedo * diffuse[g][:, None] + highlight[g][:, None]) * rad
-    return colour.astype(np.float32)
+    return out
+
+
+_NO_ROWS = np.zeros((0, 3), np.float32)
+_NO_VISIBILITY = np.zeros((0, 0), np.float32)
+_NO_WEIGHT = np.zeros(0, np.float32)
+_NO_PAIRS = LightPairs(np.zeros(0, np.int64), np.zeros(0, np.int64), _NO_ROWS, np.zeros(0))
+
+
+@numba.njit(nogil=True, cache=True, inline="always")
+def highlight_at(n0, n1, n2, e0, e1, e2, l0, l1, l2):  # pragma: no cover - compiled
+    """Blinn-Phong highlight SPECULAR_STRENGTH * max(n·h, 0)**SHININESS of unit normal
+    n, direction to the eye e and direction to the light l (world, unit)."""
+    h0, h1, h2 = l0 + e0, l1 + e1, l2 + e2
+    length = math.sqrt(h0 * h0 + h1 * h1 + h2 * h2)
+    # l and the eye direction exactly opposite: no meaningful half vector, no highlight.
+    x = max((n0 * h0 + n1 * h1 + n2 * h2) / max(length, 1e-12), 0.0)
+    if _SQUARINGS >= 0:  # x**64 as 6 squarings: several times faster than pow
+        for _ in range(_SQUARINGS):
+            x *= x
+    else:
+        x = x**SHININESS
+    return SPECULAR_STRENGTH * x
+
+
+@numba.njit(nogil=True, cache=True)
+def _shade_kernel(
+    positions,
+    normals,
+    albedo,
+    view_dirs,
+    emissive,
+    ambient,
+    sum_diffuse,
+    sum_highlight,
+    d_dir,
+    d_radiance,
+    visibility,
+    l_pos,
+    l_radiance,
+    l_range,
+    l_cone,
+    local_columns,
+    p_point,
+    p_light,
+    p_dir,
+    p_dist,
+    p_weight,
+    has_weight,
+    out,
+):  # pragma: no cover - compiled
+    """The shading model of the module docstring, per point (see ``shade_local``).
+
+    positions (n, 3) float64 world metres; normals, albedo, view_dirs (n, 3) float32;
+    emissive (1 or n, 3); ambient (3,); sum_diffuse, sum_highlight (n, 3) or (0, 3):
+    ``lit_sums``; d_dir (D, 3) unit, d_radiance (D, 3); visibility (n, D + P) or (0, 0):
+    all lit; l_pos (P, 3) world metres, l_radiance (P, 3), l_range (P,) metres, l_cone
+    (P, 7) (axis, cone angle, softness, focus, shaped); local_columns: shade every
+    LocalLight from its visibility column (else only the pairs); pairs p_point (m,),
+    p_light (m,), p_dir (m, 3) unit, p_dist (m,) metres, p_weight (m,) if has_weight.
+    Writes out (n, 3) float32. Sums in float64 per point."""
+    n = positions.shape[0]
+    n_distant = d_dir.shape[0]
+    has_vis = visibility.shape[0] > 0
+    has_sums = sum_diffuse.shape[0] > 0
+    one_emissive = emissive.shape[0] == 1
+    min_d2 = MIN_LIGHT_DISTANCE * MIN_LIGHT_DISTANCE
+    for i in range(n):
+        n0, n1, n2 = float(normals[i, 0]), float(normals[i, 1]), float(normals[i, 2])
+        e0, e1, e2 = -float(view_dirs[i, 0]), -float(view_dirs[i, 1]), -float(view_dirs[i, 2])
+        em = 0 if one_emissive else i
+        # Radiance-weighted Lambert terms of the lights (d) and their highlights (s), RGB.
+        d0 = d1 = d2 = s0 = s1 = s2 = 0.0
+        for j in range(n_distant):
+            lit = n0 * d_dir[j, 0] + n1 * d_dir[j, 1] + n2 * d_dir[j, 2]
+            if has_vis:
+                lit *= visibility[i, j]
+            if not lit > 0.0:
+                continue
+            hl = lit * highlight_at(n0, n1, n2, e0, e1, e2, d_dir[j, 0], d_dir[j, 1], d_dir[j, 2])
+            r, g, b = d_radiance[j, 0], d_radiance[j, 1], d_radiance[j, 2]
+            d0, d1, d2 = d0 + r * lit, d1 + g * lit, d2 + b * lit
+            s0, s1, s2 = s0 + r * hl, s1 + g * hl, s2 + b * hl
+        for k in range(l_pos.shape[0] if local_columns else 0):
+            vis = visibility[i, n_distant + k] if has_vis else 1.0
+            if not vis > 0.0:
+                continue
+            t0 = l_pos[k, 0] - positions[i, 0]
+            t1 = l_pos[k, 1] - positions[i, 1]
+            t2 = l_pos[k, 2] - positions[i, 2]
+            dist2 = t0 * t0 + t1 * t1 + t2 * t2
+            # Beyond the range (or non-finite) the window is 0: nothing to add, and no
+            # direction computed from an overflowed distance.
+            if not dist2 < l_range[k] * l_range[k]:
+                continue
+            dist2 = max(dist2, min_d2)
+            inv = 1.0 / math.sqrt(dist2)
+            l0, l1, l2 = t0 * inv, t1 * inv, t2 * inv
+            lit = n0 * l0 + n1 * l1 + n2 * l2
+            if not lit > 0.0:
+                continue
+            lit *= window_at(dist2, l_range[k]) / dist2 * vis
+            if l_cone[k, 6] > 0.0:
+                cos = -(l0 * l_cone[k, 0] + l1 * l_cone[k, 1] + l2 * l_cone[k, 2])
+                lit *= cone_at(cos, l_cone[k, 3], l_cone[k, 4], l_cone[k, 5])
+            hl = lit * highlight_at(n0, n1, n2, e0, e1, e2, l0, l1, l2)
+            r, g, b = l_radiance[k, 0], l_radiance[k, 1], l_radiance[k, 2]
+            d0, d1, d2 = d0 + r * lit, d1 + g * lit, d2 + b * lit
+            s0, s1, s2 = s0 + r * hl, s1 + g * hl, s2 + b * hl
+        if has_sums:
+            d0, d1, d2 = d0 + sum_diffuse[i, 0], d1 + sum_diffuse[i, 1], d2 + sum_diffuse[i, 2]
+            s0 += sum_highlight[i, 0]
+            s1 += sum_highlight[i, 1]
+            s2 += sum_highlight[i, 2]
+        a0, a1, a2 = float(albedo[i, 0]), float(albedo[i, 1]), float(albedo[i, 2])
+        out[i, 0] = a0 * (ambient[0] + d0) + s0 + emissive[em, 0]
+        out[i, 1] = a1 * (ambient[1] + d1) + s1 + emissive[em, 1]
+        out[i, 2] = a2 * (ambient[2] + d2) + s2 + emissive[em, 2]
+    for q in range(p_point.shape[0]):  # lit LocalLight pairs, any order
+        i, k = p_point[q], p_light[q]
+        l0, l1, l2 = float(p_dir[q, 0]), float(p_dir[q, 1]), float(p_dir[q, 2])
+        n0, n1, n2 = float(normals[i, 0]), float(normals[i, 1]), float(normals[i, 2])
+        lit = n0 * l0 + n1 * l1 + n2 * l2
+        if not lit > 0.0:
+            continue
+        dist2 = max(p_dist[q] * p_dist[q], min_d2)
+        lit *= window_at(dist2, l_range[k]) / dist2
+        if has_weight:
+            lit *= p_weight[q]
+        if l_cone[k, 6] > 0.0:
+            cos = -(l0 * l_cone[k, 0] + l1 * l_cone[k, 1] + l2 * l_cone[k, 2])
+            lit *= cone_at(cos, l_cone[k, 3], l_cone[k, 4], l_cone[k, 5])
+        e0, e1, e2 = -float(view_dirs[i, 0]), -float(view_dirs[i, 1]), -float(view_dirs[i, 2])
+        hl = lit * highlight_at(n0, n1, n2, e0, e1, e2, l0, l1, l2)
+        out[i, 0] += l_radiance[k, 0] * (float(albedo[i, 0]) * lit + hl)
+        out[i, 1] += l_radiance[k, 1] * (float(albedo[i, 1]) * lit + hl)
+        out[i, 2] += l_radiance[k, 2] * (float(albedo[i, 2]) * lit + hl)
 
 
 def shade_local(
@@ -469,7 +581,7 @@ def shade_local(
 
     Points are independent: large batches are split into ``_shade_threads()`` contiguous
     chunks (``local_pairs`` with them, when sorted by point) shaded on a thread pool
-    (numpy releases the GIL).
+    (the kernel releases the GIL).
     """
     positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
     n = positions.shape[0]
@@ -545,19 +657,3 @@ def _shade_pool(threads: int) -> ThreadPoolExecutor:
         _POOL.clear()
         pool = _POOL[threads] = ThreadPoolExecutor(threads, thread_name_prefix="phrt-shade")
     return pool
-
-
-def _highlight(normals: np.ndarray, to_eye: np.ndarray, l_dir: np.ndarray) -> np.ndarray:
-    """(m,) float32 Blinn-Phong highlight SPECULAR_STRENGTH * max(n·h, 0)**SHININESS for
-    unit normals, directions to the eye (m, 3) and to the light (m, 3) or (1, 3)."""
-    half = l_dir + to_eye
-    half_len = np.sqrt(np.einsum("ij,ij->i", half, half))
-    # l and the eye direction exactly opposite: no meaningful half vector, no highlight.
-    n_dot_h = np.einsum("ij,ij->i", normals, half) / np.maximum(half_len, 1e-12)
-    x = np.maximum(n_dot_h, 0.0)
-    if _SHININESS_SQUARINGS is not None:  # x**64 as 6 squarings: ~10x faster than pow
-        for _ in range(_SHININESS_SQUARINGS):
-            x *= x
-    else:
-        x = x**SHININESS
-    return SPECULAR_STRENGTH * x

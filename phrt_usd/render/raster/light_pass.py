@@ -10,7 +10,7 @@ LOOKUP_LIGHTS_PER_PASS LocalLights. Outputs (``LightPass.lookup``): either a cod
 (point, LocalLight) pair (LOOKUP_LIT / LOOKUP_SHADOWED / LOOKUP_UNCERTAIN), or the
 diffuse and highlight sums over the lit pairs with bits flagging the uncertain ones,
 which the caller resolves (``map_lighting``). The test is ``shadow_maps.cube_visibility``'s
-and ``shadow_maps.filtered_visibility``'s, the shading ``shading._shade_chunk``'s: keep
+and ``shadow_maps.filtered_visibility``'s, the shading ``shading._shade_kernel``'s: keep
 the shader and those in step.
 
 Measured on the sewer (13 lights, 320x240): the lookup takes ~20-25 ms of CPU time per

@@ -24,7 +24,7 @@
 //             of DistantLight k's static / animated orthographic map (as
 //             shadow_maps.ShadowMap; the test of shadow_maps.filtered_visibility)
 // Output code per light: 1 lit, 0 shadowed / out of range / facing away, 2 uncertain.
-// Also the local shading of the lit pairs (shading._shade_chunk's model, keep in step):
+// Also the local shading of the lit pairs (shading._shade_kernel's model, keep in step):
 //   diffuse   : rgb = sum over lit lights of radiance * n.l * window / d^2 (DistantLights:
 //               radiance * n.l), a = bit j set where LocalLight j is uncertain, bit
 //               16 + k where DistantLight k is (exact in float up to 2^24)
