@@ -13,7 +13,6 @@ Images: (H, W, 3) float32 linear RGB, row 0 at the top.
 
 from __future__ import annotations
 
-import numba
 import numpy as np
 
 from phrt_usd.model.frame import GBuffer, ReflectionResult
@@ -52,7 +51,9 @@ def base_image(
     dome = scene.lights.dome
     background = dome is None or dome.camera_visible
     f = np.ascontiguousarray(reflectivity, np.float32).reshape(-1)
-    pixels, directions = _fallback_rays(
+    from phrt_usd.render import shade_kernels  # compiled; numba loads on first use
+
+    pixels, directions = shade_kernels.fallback_rays(
         np.ascontiguousarray(gbuffer.covered).reshape(-1),
         f,
         np.ascontiguousarray(gbuffer.view_dir, np.float32).reshape(-1, 3),
@@ -61,53 +62,10 @@ def base_image(
     )
     env = environment_radiance(scene.lights, directions)
     image = np.empty((h, w, 3), np.float32)
-    _blend(
+    shade_kernels.blend(
         np.ascontiguousarray(local, np.float32).reshape(-1, 3), f, pixels, env, image.reshape(-1, 3)
     )
     return image
-
-
-@numba.njit(nogil=True, cache=True)
-def _fallback_rays(covered, reflectivity, view, normal, background):  # pragma: no cover
-    """The pixels whose colour comes from the environment: (m,) int64 flat indices of
-    the reflector pixels (F > 0) and, with ``background``, the uncovered ones, and their
-    (m, 3) float32 world directions (the view direction mirrored about the normal,
-    ``reflect``; the view direction itself). covered (P,) bool, reflectivity (P,), view
-    and normal (P, 3) of the P = H W pixels."""
-    m = 0
-    for i in range(covered.shape[0]):
-        if reflectivity[i] > 0.0 or (background and not covered[i]):
-            m += 1
-    pixels = np.empty(m, np.int64)
-    directions = np.empty((m, 3), np.float32)
-    q = 0
-    for i in range(covered.shape[0]):
-        if reflectivity[i] > 0.0:
-            dn = 2.0 * (
-                view[i, 0] * normal[i, 0] + view[i, 1] * normal[i, 1] + view[i, 2] * normal[i, 2]
-            )
-            for c in range(3):
-                directions[q, c] = view[i, c] - dn * normal[i, c]
-        elif background and not covered[i]:
-            for c in range(3):
-                directions[q, c] = view[i, c]
-        else:
-            continue
-        pixels[q] = i
-        q += 1
-    return pixels, directions
-
-
-@numba.njit(nogil=True, cache=True)
-def _blend(local, reflectivity, pixels, env, out):  # pragma: no cover - compiled
-    """out (P, 3) = local (P, 3), except at ``pixels`` (m,): ``(1 - F) local + F env``
-    for reflector pixels, ``env`` (m, 3) for the background (F = 0 there, local 0)."""
-    out[:] = local
-    for q in range(pixels.shape[0]):
-        i = pixels[q]
-        f = reflectivity[i]
-        for c in range(3):
-            out[i, c] = (1.0 - f) * local[i, c] + f * env[q, c] if f > 0.0 else env[q, c]
 
 
 def apply_traced(

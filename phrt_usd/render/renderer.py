@@ -40,7 +40,6 @@ from phrt_usd.render.compositing import (
     observe_fallback_error,
     pixel_reflectivity,
 )
-from phrt_usd.render.frame_pixels import clipped_share, screen_boxes
 from phrt_usd.render.lighting import shade_gbuffer
 from phrt_usd.render.raster.gl_platform import DEFAULT_GL, check_gl
 from phrt_usd.select.heu1_policy import UPCOMING_CAMERAS
@@ -553,6 +552,8 @@ class FrameRenderer:
     def _screen_boxes(self, gb: GBuffer) -> np.ndarray:
         """(E, 4) pixel bounds (col_min, row_min, col_max, row_max) of every reflector's
         visible pixels, NaN for elements without any (see FrameView.screen_boxes)."""
+        from phrt_usd.render.frame_pixels import screen_boxes  # compiled: numba on use
+
         return screen_boxes(gb.element_id, self._reflector_ids, len(self.scene.elements))
 
     def _check_clipping(self, image: np.ndarray, gb: GBuffer, t: float, ev: float) -> None:
@@ -563,6 +564,8 @@ class FrameRenderer:
         pixels' median to SUGGESTED_MEDIAN."""
         if self._clipping_warned:
             return
+        from phrt_usd.render.frame_pixels import clipped_share  # compiled: numba on use
+
         step = CLIP_SAMPLE_STRIDE
         covered = gb.covered
         share = clipped_share(image, covered, step, CLIP_LEVEL)

@@ -1,9 +1,8 @@
 """Local shading shared by the raster path and the ray tracer, so both agree exactly.
 
 Everything here works on world-space arrays (metres, linear RGB float32, no tone mapping);
-the per-point work runs in compiled kernels (numba, ``nogil``: ``_shade_kernel``,
-``_latlong_bilinear``; their numpy reference is ``tests/shading_reference.py``). The model,
-deliberately simple and the same everywhere:
+the per-point work runs in compiled kernels (``shade_kernels``: numba, ``nogil``,
+imported on first use). The model, deliberately simple and the same everywhere:
 
     colour = Σ_lights  visibility * E_light * (albedo * max(n·l, 0)
                                                + SPECULAR_STRENGTH * max(n·h, 0)**SHININESS)
@@ -33,11 +32,9 @@ row 0 latitude +π/2; longitude 0 points to +Z and longitude +π/2 to +X.
 
 from __future__ import annotations
 
-import math
 from concurrent.futures import ThreadPoolExecutor
 from typing import NamedTuple
 
-import numba
 import numpy as np
 
 from phrt_usd.model.scene import DEFAULT_ENVIRONMENT, DomeLight, Lights, LocalLight
@@ -139,60 +136,16 @@ def environment_radiance(lights: Lights, directions: np.ndarray) -> np.ndarray:
         return np.broadcast_to(colour, (n, 3)).copy()
     texture = np.ascontiguousarray(dome.texture, dtype=np.float32)
     rotation = np.ascontiguousarray(dome.world_from_light, dtype=np.float64)
+    kernels = _kernels()
     d = np.empty((n, 3))
-    _dome_directions(directions, rotation, d)
+    kernels.dome_directions(directions, rotation, _MIN_DIRECTION_LENGTH, d)
     # The angles by numpy's vectorised arcsin / arctan2 (~3x faster than scalar libm
     # calls in a kernel).
     latitude = np.arcsin(np.clip(d[:, 1], -1.0, 1.0))
     longitude = np.arctan2(d[:, 0], d[:, 2])
     out = np.empty((n, 3), np.float32)
-    _latlong_bilinear(latitude, longitude, texture, colour.astype(np.float64), out)
+    kernels.latlong_bilinear(latitude, longitude, texture, colour.astype(np.float64), out)
     return out
-
-
-@numba.njit(nogil=True, cache=True)
-def _dome_directions(directions, rotation, out):  # pragma: no cover - compiled
-    """World directions (n, 3) (any length) as unit directions (n, 3) float64 in the
-    dome's space (``rotation`` = ``world_from_light`` (3, 3), a rotation: its inverse is
-    its transpose); zero, tiny or non-finite ones become the dome's +Y pole."""
-    for i in range(directions.shape[0]):
-        x, y, z = float(directions[i, 0]), float(directions[i, 1]), float(directions[i, 2])
-        big = max(abs(x), abs(y), abs(z))
-        finite = math.isfinite(x) and math.isfinite(y) and math.isfinite(z)
-        if not (finite and big > _MIN_DIRECTION_LENGTH):  # no direction: the pole
-            out[i, 0], out[i, 1], out[i, 2] = 0.0, 1.0, 0.0
-            continue
-        # Scaled by the largest component first so huge vectors do not overflow.
-        x, y, z = x / big, y / big, z / big
-        norm = math.sqrt(x * x + y * y + z * z)
-        x, y, z = x / norm, y / norm, z / norm
-        for c in range(3):
-            out[i, c] = x * rotation[0, c] + y * rotation[1, c] + z * rotation[2, c]
-
-
-@numba.njit(nogil=True, cache=True)
-def _latlong_bilinear(latitude, longitude, texture, colour, out):  # pragma: no cover
-    """Bilinear samples (n, 3) of the lat-long ``texture`` (h, w, 3) (the module's
-    convention) at ``latitude``, ``longitude`` (n,) radians, times ``colour`` (3,):
-    columns wrap, rows clamp at the poles."""
-    h, wd = texture.shape[0], texture.shape[1]
-    for i in range(latitude.shape[0]):
-        col = (math.pi - longitude[i]) / (2.0 * math.pi) * wd - 0.5
-        row = (0.5 * math.pi - latitude[i]) / math.pi * h - 0.5
-        c0f, r0f = math.floor(col), math.floor(row)
-        fx, fy = col - c0f, row - r0f
-        # col in [-0.5, wd - 0.5] (longitude in [-pi, pi]): c0 in [-1, wd - 1].
-        c0 = int(c0f)
-        c0 = c0 + wd if c0 < 0 else c0
-        c1 = c0 + 1 if c0 + 1 < wd else 0
-        r0 = min(max(int(r0f), 0), h - 1)
-        r1 = min(max(int(r0f) + 1, 0), h - 1)
-        w00, w01 = (1.0 - fy) * (1.0 - fx), (1.0 - fy) * fx
-        w10, w11 = fy * (1.0 - fx), fy * fx
-        for c in range(3):
-            v = texture[r0, c0, c] * w00 + texture[r0, c1, c] * w01
-            v += texture[r1, c0, c] * w10 + texture[r1, c1, c] * w11
-            out[i, c] = v * colour[c]
 
 
 def ambient_radiance(lights: Lights) -> np.ndarray:
@@ -260,22 +213,6 @@ def light_ranges(lights: Lights) -> np.ndarray:
     return np.concatenate([np.full(len(lights.distant), np.inf), ranges])
 
 
-@numba.njit(nogil=True, cache=True, inline="always")
-def window_at(distance2, light_range):  # pragma: no cover - compiled
-    """``range_window`` of one squared distance (metres²) and range (metres)."""
-    if not light_range > 0.0:
-        return 0.0
-    x = distance2 / (light_range * light_range)
-    w = min(max(1.0 - x * x, 0.0), 1.0)
-    return w * w
-
-
-@numba.njit(nogil=True, cache=True)
-def _window_kernel(distance, light_range, out):  # pragma: no cover - compiled
-    for i in range(distance.shape[0]):
-        out[i] = window_at(distance[i] * distance[i], light_range)
-
-
 def range_window(distance: np.ndarray, light_range: float) -> np.ndarray:
     """Smooth cut-off factor (n,) float64 in [0, 1] of a LocalLight at ``distance`` (n,)
     metres: ``clamp(1 - (d / r)**4, 0, 1)**2`` (the Frostbite / Unreal window): 1 near
@@ -283,36 +220,8 @@ def range_window(distance: np.ndarray, light_range: float) -> np.ndarray:
     so no ring marks the range. ``light_range`` <= 0 gives 0 everywhere."""
     distance = np.asarray(distance, dtype=np.float64)
     out = np.empty(distance.size)
-    _window_kernel(distance.reshape(-1), float(light_range), out)
+    _kernels().window_kernel(distance.reshape(-1), float(light_range), out)
     return out.reshape(distance.shape)
-
-
-@numba.njit(nogil=True, cache=True, inline="always")
-def cone_at(cos, cone_angle, softness, focus):  # pragma: no cover - compiled
-    """``cone_falloff`` of one emission: ``cos`` the cosine between the light's axis and
-    the direction it emits to the point; cone angle in degrees, softness, focus."""
-    cos = min(max(cos, -1.0), 1.0)
-    factor = 1.0
-    if cone_angle < 180.0:
-        theta = math.acos(cos)
-        cutoff = math.radians(cone_angle)
-        if theta > cutoff:
-            return 0.0
-        start = cutoff * (1.0 - softness)
-        width = cutoff - start
-        if width > 0.0:
-            x = min(max((theta - start) / width, 0.0), 1.0)
-            factor = 1.0 - x * x * (3.0 - 2.0 * x)
-    if focus > 0.0:
-        factor *= abs(cos) ** focus
-    return factor
-
-
-@numba.njit(nogil=True, cache=True)
-def _cone_kernel(emission, axis, cone_angle, softness, focus, out):  # pragma: no cover
-    for i in range(emission.shape[0]):
-        cos = emission[i, 0] * axis[0] + emission[i, 1] * axis[1] + emission[i, 2] * axis[2]
-        out[i] = cone_at(cos, cone_angle, softness, focus)
 
 
 def cone_falloff(light: LocalLight, emission: np.ndarray) -> np.ndarray:
@@ -329,7 +238,7 @@ def cone_falloff(light: LocalLight, emission: np.ndarray) -> np.ndarray:
     if not light.shaped:
         return np.ones(m, dtype=np.float32)
     out = np.empty(m, np.float32)
-    _cone_kernel(
+    _kernels().cone_kernel(
         np.asarray(emission, np.float64).reshape(m, 3),
         np.asarray(light.axis, np.float64).reshape(3),
         float(light.cone_angle),
@@ -358,7 +267,7 @@ def _shade_chunk(
     lit_sums: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> np.ndarray:
     """``shade_local`` on one chunk of points (same arguments and result), by
-    ``_shade_kernel``."""
+    ``shade_kernels.shade_kernel``."""
     positions = np.ascontiguousarray(positions, dtype=np.float64).reshape(-1, 3)
     n = positions.shape[0]
     f32 = np.float32
@@ -380,14 +289,14 @@ def _shade_chunk(
     has_weight = pairs.weight is not None
     out = np.empty((n, 3), np.float32)
     if n:
-        _shade_kernel(
+        _kernels().shade_kernel(
             positions,
             rows(normals).reshape(n, 3),
             rows(albedo).reshape(n, 3),
             rows(view_dirs).reshape(n, 3),
             emissive,
             ambient_radiance(lights).astype(np.float64),
-            *(rows(s) for s in (lit_sums if lit_sums is not None else (_NO_ROWS, _NO_ROWS))),
+            *(_sums(s, n) for s in (lit_sums if lit_sums is not None else (None, None))),
             d_dir,
             np.array([li.radiance for li in distant], np.float64).reshape(-1, 3),
             _NO_VISIBILITY if visibility is None else rows(visibility, width=1).reshape(n, -1),
@@ -402,145 +311,28 @@ def _shade_chunk(
             np.ascontiguousarray(pairs.dist, np.float64),
             np.ascontiguousarray(pairs.weight if has_weight else _NO_WEIGHT, np.float32),
             has_weight,
+            _MODEL,
             out,
         )
     return out
 
 
 _NO_ROWS = np.zeros((0, 3), np.float32)
+#: The model's constants as ``shade_kernels.shade_kernel`` takes them.
+_MODEL = np.array([MIN_LIGHT_DISTANCE, SPECULAR_STRENGTH, SHININESS, _SQUARINGS], np.float64)
+
+
+def _sums(a: np.ndarray | None, n: int) -> np.ndarray:
+    """A ``lit_sums`` array as ``shade_kernels.shade_kernel`` reads it: (n, 3 or 4) float32 C order,
+    channels 0-2 used ((0, 3): none)."""
+    if a is None:
+        return _NO_ROWS
+    return np.ascontiguousarray(a, np.float32).reshape(n, -1)
+
+
 _NO_VISIBILITY = np.zeros((0, 0), np.float32)
 _NO_WEIGHT = np.zeros(0, np.float32)
 _NO_PAIRS = LightPairs(np.zeros(0, np.int64), np.zeros(0, np.int64), _NO_ROWS, np.zeros(0))
-
-
-@numba.njit(nogil=True, cache=True, inline="always")
-def highlight_at(n0, n1, n2, e0, e1, e2, l0, l1, l2):  # pragma: no cover - compiled
-    """Blinn-Phong highlight SPECULAR_STRENGTH * max(n·h, 0)**SHININESS of unit normal
-    n, direction to the eye e and direction to the light l (world, unit)."""
-    h0, h1, h2 = l0 + e0, l1 + e1, l2 + e2
-    length = math.sqrt(h0 * h0 + h1 * h1 + h2 * h2)
-    # l and the eye direction exactly opposite: no meaningful half vector, no highlight.
-    x = max((n0 * h0 + n1 * h1 + n2 * h2) / max(length, 1e-12), 0.0)
-    if _SQUARINGS >= 0:  # x**64 as 6 squarings: several times faster than pow
-        for _ in range(_SQUARINGS):
-            x *= x
-    else:
-        x = x**SHININESS
-    return SPECULAR_STRENGTH * x
-
-
-@numba.njit(nogil=True, cache=True)
-def _shade_kernel(
-    positions,
-    normals,
-    albedo,
-    view_dirs,
-    emissive,
-    ambient,
-    sum_diffuse,
-    sum_highlight,
-    d_dir,
-    d_radiance,
-    visibility,
-    l_pos,
-    l_radiance,
-    l_range,
-    l_cone,
-    local_columns,
-    p_point,
-    p_light,
-    p_dir,
-    p_dist,
-    p_weight,
-    has_weight,
-    out,
-):  # pragma: no cover - compiled
-    """The shading model of the module docstring, per point (see ``shade_local``).
-
-    positions (n, 3) float64 world metres; normals, albedo, view_dirs (n, 3) float32;
-    emissive (1 or n, 3); ambient (3,); sum_diffuse, sum_highlight (n, 3) or (0, 3):
-    ``lit_sums``; d_dir (D, 3) unit, d_radiance (D, 3); visibility (n, D + P) or (0, 0):
-    all lit; l_pos (P, 3) world metres, l_radiance (P, 3), l_range (P,) metres, l_cone
-    (P, 7) (axis, cone angle, softness, focus, shaped); local_columns: shade every
-    LocalLight from its visibility column (else only the pairs); pairs p_point (m,),
-    p_light (m,), p_dir (m, 3) unit, p_dist (m,) metres, p_weight (m,) if has_weight.
-    Writes out (n, 3) float32. Sums in float64 per point."""
-    n = positions.shape[0]
-    n_distant = d_dir.shape[0]
-    has_vis = visibility.shape[0] > 0
-    has_sums = sum_diffuse.shape[0] > 0
-    one_emissive = emissive.shape[0] == 1
-    min_d2 = MIN_LIGHT_DISTANCE * MIN_LIGHT_DISTANCE
-    for i in range(n):
-        n0, n1, n2 = float(normals[i, 0]), float(normals[i, 1]), float(normals[i, 2])
-        e0, e1, e2 = -float(view_dirs[i, 0]), -float(view_dirs[i, 1]), -float(view_dirs[i, 2])
-        em = 0 if one_emissive else i
-        # Radiance-weighted Lambert terms of the lights (d) and their highlights (s), RGB.
-        d0 = d1 = d2 = s0 = s1 = s2 = 0.0
-        for j in range(n_distant):
-            lit = n0 * d_dir[j, 0] + n1 * d_dir[j, 1] + n2 * d_dir[j, 2]
-            if has_vis:
-                lit *= visibility[i, j]
-            if not lit > 0.0:
-                continue
-            hl = lit * highlight_at(n0, n1, n2, e0, e1, e2, d_dir[j, 0], d_dir[j, 1], d_dir[j, 2])
-            r, g, b = d_radiance[j, 0], d_radiance[j, 1], d_radiance[j, 2]
-            d0, d1, d2 = d0 + r * lit, d1 + g * lit, d2 + b * lit
-            s0, s1, s2 = s0 + r * hl, s1 + g * hl, s2 + b * hl
-        for k in range(l_pos.shape[0] if local_columns else 0):
-            vis = visibility[i, n_distant + k] if has_vis else 1.0
-            if not vis > 0.0:
-                continue
-            t0 = l_pos[k, 0] - positions[i, 0]
-            t1 = l_pos[k, 1] - positions[i, 1]
-            t2 = l_pos[k, 2] - positions[i, 2]
-            dist2 = t0 * t0 + t1 * t1 + t2 * t2
-            # Beyond the range (or non-finite) the window is 0: nothing to add, and no
-            # direction computed from an overflowed distance.
-            if not dist2 < l_range[k] * l_range[k]:
-                continue
-            dist2 = max(dist2, min_d2)
-            inv = 1.0 / math.sqrt(dist2)
-            l0, l1, l2 = t0 * inv, t1 * inv, t2 * inv
-            lit = n0 * l0 + n1 * l1 + n2 * l2
-            if not lit > 0.0:
-                continue
-            lit *= window_at(dist2, l_range[k]) / dist2 * vis
-            if l_cone[k, 6] > 0.0:
-                cos = -(l0 * l_cone[k, 0] + l1 * l_cone[k, 1] + l2 * l_cone[k, 2])
-                lit *= cone_at(cos, l_cone[k, 3], l_cone[k, 4], l_cone[k, 5])
-            hl = lit * highlight_at(n0, n1, n2, e0, e1, e2, l0, l1, l2)
-            r, g, b = l_radiance[k, 0], l_radiance[k, 1], l_radiance[k, 2]
-            d0, d1, d2 = d0 + r * lit, d1 + g * lit, d2 + b * lit
-            s0, s1, s2 = s0 + r * hl, s1 + g * hl, s2 + b * hl
-        if has_sums:
-            d0, d1, d2 = d0 + sum_diffuse[i, 0], d1 + sum_diffuse[i, 1], d2 + sum_diffuse[i, 2]
-            s0 += sum_highlight[i, 0]
-            s1 += sum_highlight[i, 1]
-            s2 += sum_highlight[i, 2]
-        a0, a1, a2 = float(albedo[i, 0]), float(albedo[i, 1]), float(albedo[i, 2])
-        out[i, 0] = a0 * (ambient[0] + d0) + s0 + emissive[em, 0]
-        out[i, 1] = a1 * (ambient[1] + d1) + s1 + emissive[em, 1]
-        out[i, 2] = a2 * (ambient[2] + d2) + s2 + emissive[em, 2]
-    for q in range(p_point.shape[0]):  # lit LocalLight pairs, any order
-        i, k = p_point[q], p_light[q]
-        l0, l1, l2 = float(p_dir[q, 0]), float(p_dir[q, 1]), float(p_dir[q, 2])
-        n0, n1, n2 = float(normals[i, 0]), float(normals[i, 1]), float(normals[i, 2])
-        lit = n0 * l0 + n1 * l1 + n2 * l2
-        if not lit > 0.0:
-            continue
-        dist2 = max(p_dist[q] * p_dist[q], min_d2)
-        lit *= window_at(dist2, l_range[k]) / dist2
-        if has_weight:
-            lit *= p_weight[q]
-        if l_cone[k, 6] > 0.0:
-            cos = -(l0 * l_cone[k, 0] + l1 * l_cone[k, 1] + l2 * l_cone[k, 2])
-            lit *= cone_at(cos, l_cone[k, 3], l_cone[k, 4], l_cone[k, 5])
-        e0, e1, e2 = -float(view_dirs[i, 0]), -float(view_dirs[i, 1]), -float(view_dirs[i, 2])
-        hl = lit * highlight_at(n0, n1, n2, e0, e1, e2, l0, l1, l2)
-        out[i, 0] += l_radiance[k, 0] * (float(albedo[i, 0]) * lit + hl)
-        out[i, 1] += l_radiance[k, 1] * (float(albedo[i, 1]) * lit + hl)
-        out[i, 2] += l_radiance[k, 2] * (float(albedo[i, 2]) * lit + hl)
 
 
 def shade_local(
@@ -569,7 +361,8 @@ def shade_local(
                  in front of the normal (the tracer has them from its shadow rays).
                  They replace the LocalLight columns of ``visibility``, and the same
                  model is evaluated on them without recomputing directions.
-    lit_sums   : optional (diffuse (n, 3), highlight (n, 3)) float32: the terms of
+    lit_sums   : optional (diffuse, highlight) (n, 3) float32 (or (n, 4), channel 3
+                 ignored: the GPU's readback as it is): the terms of
                  (point, light) pairs already shaded elsewhere (``LightTerms.lit_sums``
                  of ``render.raster.map_lighting``, on the GPU), per pair
                  ``radiance * n·l`` (LocalLights also ``* window / d²``) and that times
@@ -657,3 +450,11 @@ def _shade_pool(threads: int) -> ThreadPoolExecutor:
         _POOL.clear()
         pool = _POOL[threads] = ThreadPoolExecutor(threads, thread_name_prefix="phrt-shade")
     return pool
+
+
+def _kernels():
+    """The compiled kernels (``shade_kernels``), imported on first use: importing this
+    module (the renderer, the API) does not load numba."""
+    from phrt_usd.render import shade_kernels
+
+    return shade_kernels
