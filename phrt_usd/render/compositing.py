@@ -47,20 +47,24 @@ def base_image(
     reflectivity : (H, W) float32 F per pixel
     Returns (H, W, 3) float32.
     """
-    # Flat pixel indices and np.take: several times faster than boolean-mask indexing.
-    image = np.array(local, dtype=np.float32)  # local is zero where uncovered
-    flat = image.reshape(-1, 3)
-    view = gbuffer.view_dir.reshape(-1, 3)
-    background = np.flatnonzero(~gbuffer.covered.reshape(-1))
+    h, w = gbuffer.shape
     dome = scene.lights.dome
-    if len(background) and (dome is None or dome.camera_visible):
-        flat[background] = environment_radiance(scene.lights, np.take(view, background, axis=0))
-    mirror = np.flatnonzero(reflectivity.reshape(-1) > 0.0)
-    if len(mirror):
-        f = np.take(reflectivity.reshape(-1), mirror)[:, None]
-        normals = np.take(gbuffer.normal.reshape(-1, 3), mirror, axis=0)
-        env = environment_radiance(scene.lights, reflect(np.take(view, mirror, axis=0), normals))
-        flat[mirror] = (1.0 - f) * np.take(flat, mirror, axis=0) + f * env
+    background = dome is None or dome.camera_visible
+    f = np.ascontiguousarray(reflectivity, np.float32).reshape(-1)
+    from phrt_usd.render import shade_kernels  # compiled; numba loads on first use
+
+    pixels, directions = shade_kernels.fallback_rays(
+        np.ascontiguousarray(gbuffer.covered).reshape(-1),
+        f,
+        np.ascontiguousarray(gbuffer.view_dir, np.float32).reshape(-1, 3),
+        np.ascontiguousarray(gbuffer.normal, np.float32).reshape(-1, 3),
+        background,
+    )
+    env = environment_radiance(scene.lights, directions)
+    image = np.empty((h, w, 3), np.float32)
+    shade_kernels.blend(
+        np.ascontiguousarray(local, np.float32).reshape(-1, 3), f, pixels, env, image.reshape(-1, 3)
+    )
     return image
 
 

@@ -567,37 +567,9 @@ class FrameRenderer:
     def _screen_boxes(self, gb: GBuffer) -> np.ndarray:
         """(E, 4) pixel bounds (col_min, row_min, col_max, row_max) of every reflector's
         visible pixels, NaN for elements without any (see FrameView.screen_boxes)."""
-        n = len(self.scene.elements)
-        boxes = np.full((n, 4), np.nan)
-        refl = np.asarray(self._reflector_ids, dtype=np.int64)
-        if len(refl) == 0:
-            return boxes
-        # Reflector index per element id (index -1, the background, maps to -1).
-        index = np.full(n + 1, -1, dtype=np.int64)
-        index[refl] = np.arange(len(refl))
-        k = index[gb.element_id]
-        rows, cols = np.nonzero(k >= 0)
-        if len(rows) == 0:
-            return boxes
-        k = k[rows, cols]
-        h, w = gb.shape
-        # (H, R) / (W, R) occupancy: a reflector's first and last occupied row and
-        # column are its box (argmax finds the first True).
-        in_row = np.zeros((h, len(refl)), dtype=bool)
-        in_row[rows, k] = True
-        in_col = np.zeros((w, len(refl)), dtype=bool)
-        in_col[cols, k] = True
-        seen = in_row.any(axis=0)
-        boxes[refl[seen]] = np.stack(
-            [
-                in_col.argmax(axis=0),
-                in_row.argmax(axis=0),
-                w - 1 - in_col[::-1].argmax(axis=0),
-                h - 1 - in_row[::-1].argmax(axis=0),
-            ],
-            axis=1,
-        )[seen]
-        return boxes
+        from phrt_usd.render.frame_pixels import screen_boxes  # compiled: numba on use
+
+        return screen_boxes(gb.element_id, self._reflector_ids, len(self.scene.elements))
 
     def _check_clipping(self, image: np.ndarray, gb: GBuffer, t: float, ev: float) -> None:
         """Once per run: when more than CLIPPED_SHARE of the covered pixels of ``image``
@@ -607,14 +579,15 @@ class FrameRenderer:
         pixels' median to SUGGESTED_MEDIAN."""
         if self._clipping_warned:
             return
+        from phrt_usd.render.frame_pixels import clipped_share  # compiled: numba on use
+
         step = CLIP_SAMPLE_STRIDE
-        covered = gb.covered[::step, ::step]
-        if not covered.any():
-            return
-        peak = image[::step, ::step][covered].max(axis=1)
-        share = float(np.mean(peak > CLIP_LEVEL))
+        covered = gb.covered
+        share = clipped_share(image, covered, step, CLIP_LEVEL)
         if share <= CLIPPED_SHARE:
             return
+        covered = covered[::step, ::step]
+        peak = image[::step, ::step][covered].max(axis=1)
         self._clipping_warned = True
         median = float(np.median(peak))
         suggest = ev + float(np.log2(SUGGESTED_MEDIAN / median)) if median > 0 else ev

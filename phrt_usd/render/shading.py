@@ -1,7 +1,8 @@
 """Local shading shared by the raster path and the ray tracer, so both agree exactly.
 
-Everything here is pure numpy on world-space arrays (metres, linear RGB float32, no tone
-mapping). The model, deliberately simple and the same everywhere:
+Everything here works on world-space arrays (metres, linear RGB float32, no tone mapping);
+the per-point work runs in compiled kernels (``shade_kernels``: numba, ``nogil``,
+imported on first use). The model, deliberately simple and the same everywhere:
 
     colour = Σ_lights  visibility * E_light * (albedo * max(n·l, 0)
                                                + SPECULAR_STRENGTH * max(n·h, 0)**SHININESS)
@@ -55,13 +56,14 @@ LIGHT_CUTOFF_IRRADIANCE = 0.02
 #: Blinn-Phong exponent of the specular highlight (one value for every material).
 SHININESS = 64.0
 
-#: SHININESS = 2**k: the highlight's power is computed as k squarings (else with pow).
-_SHININESS_SQUARINGS = (
+#: SHININESS = 2**k: the highlight's power is computed as k squarings (else with pow:
+#: -1).
+_SQUARINGS = (
     int(np.log2(SHININESS))
     if SHININESS >= 1
     and float(SHININESS).is_integer()
     and (int(SHININESS) & (int(SHININESS) - 1)) == 0
-    else None
+    else -1
 )
 
 #: Weight of the white Blinn-Phong highlight relative to the diffuse term.
@@ -113,54 +115,6 @@ def pair_directions(
     return (to_light / dist[:, None]).astype(np.float32), dist
 
 
-def _safe_normalize(v: np.ndarray, fallback: np.ndarray) -> np.ndarray:
-    """Rows of ``v`` (n, 3) scaled to unit length; rows of (near) zero length or
-    non-finite become ``fallback`` (3,). Returns float64 (n, 3)."""
-    v = np.asarray(v, dtype=np.float64)
-    length2 = np.einsum("ij,ij->i", v, v)
-    if np.all((length2 > _MIN_DIRECTION_LENGTH**2) & (length2 < np.inf)):
-        # The usual case (finite, not tiny, |v|² not overflowing): plain division.
-        return v / np.sqrt(length2)[:, None]
-    finite = np.all(np.isfinite(v), axis=1)
-    v = np.where(finite[:, None], v, 0.0)
-    # Scale by the largest component first so huge vectors do not overflow when squared.
-    big = np.max(np.abs(v), axis=1)
-    ok = big > _MIN_DIRECTION_LENGTH
-    v = v / np.where(ok, big, 1.0)[:, None]
-    norm = np.linalg.norm(v, axis=1)
-    out = v / np.where(ok, norm, 1.0)[:, None]
-    out[~ok] = fallback
-    return out
-
-
-def _bilinear(texture: np.ndarray, x: np.ndarray, y: np.ndarray, wrap_y: bool) -> np.ndarray:
-    """Bilinear sample at continuous pixel coordinates (x: column, y: row; texel centres
-    at integer + 0.5 - 0.5 = integers). x always wraps; y wraps or clamps."""
-    h, w = texture.shape[:2]
-    x0 = np.floor(x)
-    y0 = np.floor(y)
-    fx = (x - x0)[:, None].astype(np.float32)
-    fy = (y - y0)[:, None].astype(np.float32)
-    x0 = x0.astype(np.int64)
-    y0 = y0.astype(np.int64)
-    c0 = x0 % w
-    c1 = (x0 + 1) % w
-    if wrap_y:
-        r0 = y0 % h
-        r1 = (y0 + 1) % h
-    else:
-        r0 = np.clip(y0, 0, h - 1)
-        r1 = np.clip(y0 + 1, 0, h - 1)
-    # Gathers from the flattened texture (1-D takes are several times faster than
-    # 2-D fancy indexing).
-    flat = np.ascontiguousarray(texture, dtype=np.float32).reshape(h * w, -1)
-    r0 *= w
-    r1 *= w
-    top = flat.take(r0 + c0, axis=0) * (1.0 - fx) + flat.take(r0 + c1, axis=0) * fx
-    bottom = flat.take(r1 + c0, axis=0) * (1.0 - fx) + flat.take(r1 + c1, axis=0) * fx
-    return top * (1.0 - fy) + bottom * fy
-
-
 def _dome_colour(dome: DomeLight) -> np.ndarray:
     return np.asarray(dome.color, dtype=np.float32).reshape(3)
 
@@ -180,16 +134,18 @@ def environment_radiance(lights: Lights, directions: np.ndarray) -> np.ndarray:
     colour = _dome_colour(dome)
     if dome.texture is None:
         return np.broadcast_to(colour, (n, 3)).copy()
-    # World → dome space: world_from_light is a rotation, so its inverse is its transpose;
-    # for row vectors d_light = d_world @ world_from_light.
-    d = _safe_normalize(directions, np.array([0.0, 1.0, 0.0]) @ dome.world_from_light.T)
-    d = d @ np.asarray(dome.world_from_light, dtype=np.float64)
+    texture = np.ascontiguousarray(dome.texture, dtype=np.float32)
+    rotation = np.ascontiguousarray(dome.world_from_light, dtype=np.float64)
+    kernels = _kernels()
+    d = np.empty((n, 3))
+    kernels.dome_directions(directions, rotation, _MIN_DIRECTION_LENGTH, d)
+    # The angles by numpy's vectorised arcsin / arctan2 (~3x faster than scalar libm
+    # calls in a kernel).
     latitude = np.arcsin(np.clip(d[:, 1], -1.0, 1.0))
     longitude = np.arctan2(d[:, 0], d[:, 2])
-    h, w = dome.texture.shape[:2]
-    x = (np.pi - longitude) / (2.0 * np.pi) * w - 0.5
-    y = (0.5 * np.pi - latitude) / np.pi * h - 0.5
-    return _bilinear(dome.texture, x, y, wrap_y=False) * colour
+    out = np.empty((n, 3), np.float32)
+    kernels.latlong_bilinear(latitude, longitude, texture, colour.astype(np.float64), out)
+    return out
 
 
 def ambient_radiance(lights: Lights) -> np.ndarray:
@@ -257,26 +213,15 @@ def light_ranges(lights: Lights) -> np.ndarray:
     return np.concatenate([np.full(len(lights.distant), np.inf), ranges])
 
 
-def _window(distance: np.ndarray, light_range: np.ndarray) -> np.ndarray:
-    """``range_window`` with a range per distance (both (m,) float64; ranges > 0)."""
-    x = (distance / light_range) ** 2
-    return np.clip(1.0 - x * x, 0.0, 1.0) ** 2
-
-
-def _window_sq(distance2: np.ndarray, light_range: float) -> np.ndarray:
-    """``range_window`` from squared distances (m,) float64 (saves the square root)."""
-    if not light_range > 0.0:
-        return np.zeros(np.shape(distance2))
-    x = distance2 / (light_range * light_range)
-    return np.clip(1.0 - x * x, 0.0, 1.0) ** 2
-
-
 def range_window(distance: np.ndarray, light_range: float) -> np.ndarray:
     """Smooth cut-off factor (n,) float64 in [0, 1] of a LocalLight at ``distance`` (n,)
     metres: ``clamp(1 - (d / r)**4, 0, 1)**2`` (the Frostbite / Unreal window): 1 near
     the light, falling to exactly 0 at and beyond ``light_range`` with zero slope there,
     so no ring marks the range. ``light_range`` <= 0 gives 0 everywhere."""
-    return _window_sq(np.asarray(distance, dtype=np.float64) ** 2, light_range)
+    distance = np.asarray(distance, dtype=np.float64)
+    out = np.empty(distance.size)
+    _kernels().window_kernel(distance.reshape(-1), float(light_range), out)
+    return out.reshape(distance.shape)
 
 
 def cone_falloff(light: LocalLight, emission: np.ndarray) -> np.ndarray:
@@ -292,20 +237,16 @@ def cone_falloff(light: LocalLight, emission: np.ndarray) -> np.ndarray:
     m = len(emission)
     if not light.shaped:
         return np.ones(m, dtype=np.float32)
-    cos = np.clip(np.asarray(emission, np.float64) @ np.asarray(light.axis, np.float64), -1, 1)
-    factor = np.ones(m)
-    if light.cone_angle < 180.0:
-        theta = np.arccos(cos)
-        cutoff = np.radians(light.cone_angle)
-        start = cutoff * (1.0 - light.cone_softness)
-        width = cutoff - start
-        if width > 0.0:
-            x = np.clip((theta - start) / width, 0.0, 1.0)
-            factor = 1.0 - x * x * (3.0 - 2.0 * x)
-        factor = np.where(theta > cutoff, 0.0, factor)
-    if light.focus > 0.0:
-        factor = factor * np.abs(cos) ** light.focus
-    return factor.astype(np.float32)
+    out = np.empty(m, np.float32)
+    _kernels().cone_kernel(
+        np.asarray(emission, np.float64).reshape(m, 3),
+        np.asarray(light.axis, np.float64).reshape(3),
+        float(light.cone_angle),
+        float(light.cone_softness),
+        float(light.focus),
+        out,
+    )
+    return out
 
 
 def shaped_lights(lights: Lights) -> bool:
@@ -325,110 +266,73 @@ def _shade_chunk(
     local_pairs: LightPairs | tuple | None = None,
     lit_sums: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> np.ndarray:
-    """``shade_local`` on one chunk of points (same arguments and result)."""
-    positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+    """``shade_local`` on one chunk of points (same arguments and result), by
+    ``shade_kernels.shade_kernel``."""
+    positions = np.ascontiguousarray(positions, dtype=np.float64).reshape(-1, 3)
     n = positions.shape[0]
-    normals = np.asarray(normals, dtype=np.float32).reshape(n, 3)
-    albedo = np.asarray(albedo, dtype=np.float32).reshape(n, 3)
-    to_eye = -np.asarray(view_dirs, dtype=np.float32).reshape(n, 3)
-    colour = albedo * ambient_radiance(lights)[None, :]
-    colour += np.broadcast_to(np.asarray(emissive, dtype=np.float32), (n, 3))
-    if lit_sums is not None:
-        colour += albedo * lit_sums[0] + lit_sums[1]
-    if not lights.has_direct or n == 0:
-        return colour.astype(np.float32)
-    # Per point and light colour: the summed diffuse weights (cosine x fall-off x
-    # visibility) and highlight weights of the lights of that radiance, times the
-    # radiance once at the end (lamps usually share a colour: the sewer's 13 lights
-    # have 2, so 2 instead of 13 (n, 3) products).
-    radiance, group = np.unique(
-        np.array(
-            [li.radiance for li in lights.distant] + [li.radiance for li in lights.local],
-            dtype=np.float32,
-        ).reshape(-1, 3),
-        axis=0,
-        return_inverse=True,
-    )
-    group = group.reshape(-1)
-    diffuse = np.zeros((len(radiance), n), dtype=np.float32)
-    highlight = np.zeros((len(radiance), n), dtype=np.float32)
-    for j, light in enumerate(lights.distant):
-        d = np.asarray(light.direction, dtype=np.float64)
-        l_dir = (d / max(np.linalg.norm(d), _MIN_DIRECTION_LENGTH)).astype(np.float32)
-        lit = np.maximum(normals @ l_dir, 0.0)
-        if visibility is not None:
-            lit = lit * visibility[:, j]
-        idx = np.flatnonzero(lit > 0.0)
-        lit = lit[idx]
-        diffuse[group[j], idx] += lit
-        highlight[group[j], idx] += lit * _highlight(
-            np.take(normals, idx, axis=0), np.take(to_eye, idx, axis=0), l_dir[None, :]
+    f32 = np.float32
+
+    def rows(a, dtype=f32, width=3):
+        return np.ascontiguousarray(a, dtype=dtype).reshape(-1, width)
+
+    emissive = rows(emissive)
+    if len(emissive) != 1:
+        emissive = emissive.reshape(n, 3)
+    distant, local = lights.distant, lights.local
+    d_dir = np.array([li.direction for li in distant], np.float64).reshape(-1, 3)
+    d_dir /= np.maximum(np.linalg.norm(d_dir, axis=1, keepdims=True), _MIN_DIRECTION_LENGTH)
+    cone = np.array(
+        [[*li.axis, li.cone_angle, li.cone_softness, li.focus, li.shaped] for li in local],
+        np.float64,
+    ).reshape(-1, 7)
+    pairs = _NO_PAIRS if local_pairs is None else LightPairs(*local_pairs)
+    has_weight = pairs.weight is not None
+    out = np.empty((n, 3), np.float32)
+    if n:
+        _kernels().shade_kernel(
+            positions,
+            rows(normals).reshape(n, 3),
+            rows(albedo).reshape(n, 3),
+            rows(view_dirs).reshape(n, 3),
+            emissive,
+            ambient_radiance(lights).astype(np.float64),
+            *(_sums(s, n) for s in (lit_sums if lit_sums is not None else (None, None))),
+            d_dir,
+            np.array([li.radiance for li in distant], np.float64).reshape(-1, 3),
+            _NO_VISIBILITY if visibility is None else rows(visibility, width=1).reshape(n, -1),
+            np.array([li.position for li in local], np.float64).reshape(-1, 3),
+            np.array([li.radiance for li in local], np.float64).reshape(-1, 3),
+            light_ranges(lights)[len(distant) :],
+            cone,
+            local_pairs is None and lit_sums is None,
+            np.ascontiguousarray(pairs.point, np.int64),
+            np.ascontiguousarray(pairs.light, np.int64),
+            rows(pairs.l_dir),
+            np.ascontiguousarray(pairs.dist, np.float64),
+            np.ascontiguousarray(pairs.weight if has_weight else _NO_WEIGHT, np.float32),
+            has_weight,
+            _MODEL,
+            out,
         )
-    n_distant = len(lights.distant)
-    ranges = light_ranges(lights)
-    if local_pairs is not None:
-        point, light, l_dir, dist, weight = LightPairs(*local_pairs)
-        j = n_distant + np.asarray(light, np.int64)
-        nrm = np.take(normals, point, axis=0)
-        l_dir = np.asarray(l_dir, np.float32)
-        dist = np.maximum(np.asarray(dist, np.float64), MIN_LIGHT_DISTANCE)
-        n_dot_l = np.maximum(np.einsum("ij,ij->i", nrm, l_dir), 0.0)
-        lit = (n_dot_l * _window(dist, ranges[j]) / dist**2).astype(np.float32)
-        if weight is not None:
-            lit *= weight
-        if shaped_lights(lights):  # the cone of each shaped light on its own pairs
-            for k in np.unique(light).tolist():
-                if lights.local[k].shaped:
-                    on = np.flatnonzero(light == k)
-                    lit[on] *= cone_falloff(lights.local[k], -l_dir[on])
-        spec = lit * _highlight(nrm, np.take(to_eye, point, axis=0), l_dir)
-        # Pairs of one light never repeat a point, but several lights share a colour
-        # group: sum with bincount over (group, point).
-        key = group[j] * n + point
-        size = len(radiance) * n
-        diffuse += np.bincount(key, weights=lit, minlength=size).reshape(-1, n)
-        highlight += np.bincount(key, weights=spec, minlength=size).reshape(-1, n)
-    # Light-major visibility: each light's column becomes one contiguous row.
-    vis_rows = None if visibility is None else np.ascontiguousarray(visibility.T)
-    skip_local = local_pairs is not None or lit_sums is not None
-    for k, light in enumerate([] if skip_local else lights.local):
-        j = n_distant + k
-        # Only points that see the light (visibility > 0), within its range (the window
-        # is exactly 0 beyond) and on the lit side of their normal are shaded.
-        if vis_rows is None:
-            idx = np.arange(n)
-            to_light = np.asarray(light.position, dtype=np.float64) - positions
-        else:
-            idx = np.flatnonzero(vis_rows[j] > 0.0)
-            to_light = np.asarray(light.position, dtype=np.float64) - np.take(
-                positions, idx, axis=0
-            )
-        dist2 = np.einsum("ij,ij->i", to_light, to_light)
-        near = dist2 < ranges[j] ** 2
-        if not near.all():  # shadow maps already zero these: usually nothing to drop
-            idx, to_light, dist2 = idx[near], to_light[near], dist2[near]
-        dist2 = np.maximum(dist2, MIN_LIGHT_DISTANCE**2)
-        inv_dist = 1.0 / np.sqrt(dist2)
-        l_dir = (to_light * inv_dist[:, None]).astype(np.float32)
-        nrm = np.take(normals, idx, axis=0)
-        n_dot_l = np.einsum("ij,ij->i", nrm, l_dir)
-        front = n_dot_l > 0.0
-        if not front.all():
-            idx, nrm, l_dir = idx[front], nrm[front], l_dir[front]
-            dist2, n_dot_l = dist2[front], n_dot_l[front]
-        # Window and 1/d² in float64: d up to ~1e154 stays finite, and the float32 cast
-        # of a tiny fall-off underflows to 0 instead of overflowing d² to Inf.
-        lit = (n_dot_l * (_window_sq(dist2, ranges[j]) / dist2)).astype(np.float32)
-        if vis_rows is not None:
-            lit *= vis_rows[j, idx]
-        if light.shaped:
-            lit *= cone_falloff(light, -l_dir)
-        # idx has no repeats, so the buffered fancy-index += is exact.
-        diffuse[group[j], idx] += lit
-        highlight[group[j], idx] += lit * _highlight(nrm, np.take(to_eye, idx, axis=0), l_dir)
-    for g, rad in enumerate(radiance):
-        colour += (albedo * diffuse[g][:, None] + highlight[g][:, None]) * rad
-    return colour.astype(np.float32)
+    return out
+
+
+_NO_ROWS = np.zeros((0, 3), np.float32)
+#: The model's constants as ``shade_kernels.shade_kernel`` takes them.
+_MODEL = np.array([MIN_LIGHT_DISTANCE, SPECULAR_STRENGTH, SHININESS, _SQUARINGS], np.float64)
+
+
+def _sums(a: np.ndarray | None, n: int) -> np.ndarray:
+    """A ``lit_sums`` array as ``shade_kernels.shade_kernel`` reads it: (n, 3 or 4) float32 C order,
+    channels 0-2 used ((0, 3): none)."""
+    if a is None:
+        return _NO_ROWS
+    return np.ascontiguousarray(a, np.float32).reshape(n, -1)
+
+
+_NO_VISIBILITY = np.zeros((0, 0), np.float32)
+_NO_WEIGHT = np.zeros(0, np.float32)
+_NO_PAIRS = LightPairs(np.zeros(0, np.int64), np.zeros(0, np.int64), _NO_ROWS, np.zeros(0))
 
 
 def shade_local(
@@ -457,7 +361,8 @@ def shade_local(
                  in front of the normal (the tracer has them from its shadow rays).
                  They replace the LocalLight columns of ``visibility``, and the same
                  model is evaluated on them without recomputing directions.
-    lit_sums   : optional (diffuse (n, 3), highlight (n, 3)) float32: the terms of
+    lit_sums   : optional (diffuse, highlight) (n, 3) float32 (or (n, 4), channel 3
+                 ignored: the GPU's readback as it is): the terms of
                  (point, light) pairs already shaded elsewhere (``LightTerms.lit_sums``
                  of ``render.raster.map_lighting``, on the GPU), per pair
                  ``radiance * n·l`` (LocalLights also ``* window / d²``) and that times
@@ -469,7 +374,7 @@ def shade_local(
 
     Points are independent: large batches are split into ``_shade_threads()`` contiguous
     chunks (``local_pairs`` with them, when sorted by point) shaded on a thread pool
-    (numpy releases the GIL).
+    (the kernel releases the GIL).
     """
     positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
     n = positions.shape[0]
@@ -547,17 +452,9 @@ def _shade_pool(threads: int) -> ThreadPoolExecutor:
     return pool
 
 
-def _highlight(normals: np.ndarray, to_eye: np.ndarray, l_dir: np.ndarray) -> np.ndarray:
-    """(m,) float32 Blinn-Phong highlight SPECULAR_STRENGTH * max(n·h, 0)**SHININESS for
-    unit normals, directions to the eye (m, 3) and to the light (m, 3) or (1, 3)."""
-    half = l_dir + to_eye
-    half_len = np.sqrt(np.einsum("ij,ij->i", half, half))
-    # l and the eye direction exactly opposite: no meaningful half vector, no highlight.
-    n_dot_h = np.einsum("ij,ij->i", normals, half) / np.maximum(half_len, 1e-12)
-    x = np.maximum(n_dot_h, 0.0)
-    if _SHININESS_SQUARINGS is not None:  # x**64 as 6 squarings: ~10x faster than pow
-        for _ in range(_SHININESS_SQUARINGS):
-            x *= x
-    else:
-        x = x**SHININESS
-    return SPECULAR_STRENGTH * x
+def _kernels():
+    """The compiled kernels (``shade_kernels``), imported on first use: importing this
+    module (the renderer, the API) does not load numba."""
+    from phrt_usd.render import shade_kernels
+
+    return shade_kernels

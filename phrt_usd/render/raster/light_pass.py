@@ -2,7 +2,7 @@
 light's shadow maps in one fragment per point, and the shading of the (point, light)
 pairs the maps decide are lit.
 
-Inputs are textures: the points, their normals and directions to the eye (RGBA32F,
+Inputs are textures: the points, their normals and directions to the eye (RGB32F,
 LOOKUP_TEXTURE_WIDTH points a row), the LocalLights' cube maps (``shadow_maps.CubeMap``
 (min, max) texels in one RG32F 2D array) and up to LOOKUP_MAX_DISTANT DistantLights'
 orthographic maps (``shadow_maps.ShadowMap``, RG32F each); a pass handles
@@ -10,7 +10,7 @@ LOOKUP_LIGHTS_PER_PASS LocalLights. Outputs (``LightPass.lookup``): either a cod
 (point, LocalLight) pair (LOOKUP_LIT / LOOKUP_SHADOWED / LOOKUP_UNCERTAIN), or the
 diffuse and highlight sums over the lit pairs with bits flagging the uncertain ones,
 which the caller resolves (``map_lighting``). The test is ``shadow_maps.cube_visibility``'s
-and ``shadow_maps.filtered_visibility``'s, the shading ``shading._shade_chunk``'s: keep
+and ``shadow_maps.filtered_visibility``'s, the shading ``shade_kernels.shade_kernel``'s: keep
 the shader and those in step.
 
 Measured on the sewer (13 lights, 320x240): the lookup takes ~20-25 ms of CPU time per
@@ -24,6 +24,7 @@ from __future__ import annotations
 import os
 from collections.abc import Callable
 
+import numba
 import numpy as np
 from OpenGL import GL
 from OpenGL.GL import shaders as gl_shaders
@@ -252,28 +253,31 @@ class LightPass:
 
     def lookup(
         self,
-        rel: np.ndarray,
+        points: np.ndarray,
         normals: np.ndarray,
         cubes: list[tuple[CubeMap | None, CubeMap | None]],
         ranges: np.ndarray,
         to_eye: np.ndarray | None = None,
         distant: list[tuple[ShadowMap | None, ShadowMap | None]] | None = None,
+        origin: np.ndarray | None = None,
     ) -> np.ndarray | tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Every point against every LocalLight's cube maps on the GPU (the test of
         ``shadow_maps.cube_visibility``, in ``shaders/cube_lookup.frag``).
 
-        rel : (n, 3) float64 rel metres; normals : (n, 3) unit, facing the viewer;
-        ranges : (len(cubes),) light ranges in metres.
+        points : (n, 3) float64 rel metres, or world metres with ``origin`` (3,) (the
+        ``Scene.origin``; subtracted in float64 as the points are packed for the GPU);
+        normals : (n, 3) unit, facing the viewer; ranges : (len(cubes),) light ranges in
+        metres.
         Without ``to_eye``: returns (n, len(cubes)) uint8 codes: LOOKUP_LIT,
         LOOKUP_SHADOWED (also out of range / facing away) or LOOKUP_UNCERTAIN.
         With ``to_eye`` (n, 3) unit directions to the viewer: the lit pairs are also
-        shaded on the GPU; returns diffuse (n, 3) and highlight (n, 3) float32 sums over
-        the lit pairs (``shading.shade_local``'s ``lit_sums``) and (n, passes) uint32
-        uncertain pairs (not in the sums): bit j of pass p is LocalLight
-        p * LOOKUP_LIGHTS_PER_PASS + j. ``distant`` (with ``to_eye`` only): the
-        (static, animated) maps of up to LOOKUP_MAX_DISTANT DistantLights, looked up
+        shaded on the GPU; returns diffuse (n, 4) and highlight (n, 4) float32 sums over
+        the lit pairs in channels 0-2 (``shading.shade_local``'s ``lit_sums``) and
+        (n, passes) uint32 uncertain pairs (not in the sums): bit j of pass p is
+        LocalLight p * LOOKUP_LIGHTS_PER_PASS + j. ``distant`` (with ``to_eye`` only):
+        the (static, animated) maps of up to LOOKUP_MAX_DISTANT DistantLights, looked up
         and shaded in the first pass too (uncertain: bit 16 + k of pass 0)."""
-        n, n_local = len(rel), len(cubes)
+        n, n_local = len(points), len(cubes)
         self._ctx.make_current()
         self._setup()
         first = self._upload_cubes(cubes)
@@ -285,21 +289,15 @@ class LightPass:
         GL.glPixelStorei(GL.GL_UNPACK_ALIGNMENT, 1)
         shading = to_eye is not None
         # Without shading the to_eye texture is never read for a result: send no data.
-        inputs = (rel, normals, to_eye if shading else np.zeros((0, 3)))
-        for tex, data in zip(self._point_tex, inputs, strict=True):
-            texels = np.zeros((rows * width if len(data) else 1, 4), dtype=np.float32)
-            texels[: len(data), :3] = data
+        offset = None if origin is None else np.asarray(origin, np.float64)
+        inputs = ((points, offset), (normals, None), (to_eye if shading else None, None))
+        for tex, (data, minus) in zip(self._point_tex, inputs, strict=True):
+            size = (width, rows) if data is not None and len(data) else (1, 1)
+            texels = np.empty((size[0] * size[1], 3), dtype=np.float32)
+            _pack_texels(_NO_POINTS if data is None else data, minus, texels)
             GL.glBindTexture(GL.GL_TEXTURE_2D, tex)
             GL.glTexImage2D(
-                GL.GL_TEXTURE_2D,
-                0,
-                GL.GL_RGBA32F,
-                width if len(data) else 1,
-                rows if len(data) else 1,
-                0,
-                GL.GL_RGBA,
-                GL.GL_FLOAT,
-                texels,
+                GL.GL_TEXTURE_2D, 0, GL.GL_RGB32F, *size, 0, GL.GL_RGB, GL.GL_FLOAT, texels
             )
         GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, self._lookup_fb)
         GL.glViewport(0, 0, width, rows)
@@ -317,10 +315,15 @@ class LightPass:
         GL.glBindVertexArray(self._lookup_vao)
         passes = max(-(-n_local // LOOKUP_LIGHTS_PER_PASS), 1 if distant else 0)
         if shading:
-            diffuse = np.zeros((n, 3), dtype=np.float32)
-            highlight = np.zeros((n, 3), dtype=np.float32)
-            bits = np.zeros((n, passes), dtype=np.uint32)
-            sums = np.empty((rows, width, 4), dtype=np.float32)
+            # Read back straight into the results (one pass: no sums, no copies): diffuse
+            # and highlight RGBA rows, of which the first n are the points'.
+            diffuse = np.empty((rows * width, 4), dtype=np.float32)
+            highlight = np.empty((rows * width, 4), dtype=np.float32)
+            bits = np.empty((n, passes), dtype=np.uint32)
+            sums = np.empty((rows * width, 4), dtype=np.float32) if passes > 1 else None
+            if passes == 0:  # nothing for the GPU to shade (DistantLights in numpy)
+                diffuse[:] = 0.0
+                highlight[:] = 0.0
         else:
             out = np.zeros((n, n_local), dtype=np.uint8)
             # One byte per light, 16 per texel (see the shader): the readback viewed as
@@ -389,14 +392,14 @@ class LightPass:
             )
             GL.glDrawArrays(GL.GL_TRIANGLES, 0, 3)
             if shading:
-                GL.glReadBuffer(GL.GL_COLOR_ATTACHMENT1)
-                GL.glReadPixels(0, 0, width, rows, GL.GL_RGBA, GL.GL_FLOAT, sums)
-                flat = sums.reshape(-1, 4)[:n]
-                diffuse += flat[:, :3]
-                bits[:, p] = flat[:, 3]
-                GL.glReadBuffer(GL.GL_COLOR_ATTACHMENT2)
-                GL.glReadPixels(0, 0, width, rows, GL.GL_RGBA, GL.GL_FLOAT, sums)
-                highlight += sums.reshape(-1, 4)[:n, :3]
+                for attachment, total in ((1, diffuse), (2, highlight)):
+                    GL.glReadBuffer(GL.GL_COLOR_ATTACHMENT0 + attachment)
+                    into = total if p == 0 else sums
+                    GL.glReadPixels(0, 0, width, rows, GL.GL_RGBA, GL.GL_FLOAT, into)
+                    if attachment == 1:  # channel 3: the pass's uncertain bits
+                        bits[:, p] = into[:n, 3]
+                    if p > 0:
+                        total[:, :3] += sums[:, :3]
             else:
                 GL.glReadBuffer(GL.GL_COLOR_ATTACHMENT0)
                 GL.glReadPixels(0, 0, width, rows, GL.GL_RGBA_INTEGER, GL.GL_UNSIGNED_INT, readback)
@@ -411,5 +414,23 @@ class LightPass:
         GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, 0)
         GL.glEnable(GL.GL_DEPTH_TEST)
         if shading:
-            return diffuse, highlight, bits
+            return diffuse[:n], highlight[:n], bits
         return out
+
+
+@numba.njit(nogil=True, cache=True)
+def _pack_texels(data, minus, out):  # pragma: no cover - compiled
+    """``data`` (n, 3) (less ``minus`` (3,), in float64, if given) as float32 texels
+    into ``out`` (>= n, 3); the rows after n (the last texture row's rest) are 0."""
+    n = data.shape[0]
+    for i in range(n):
+        for c in range(3):
+            v = float(data[i, c])
+            if minus is not None:
+                v -= minus[c]
+            out[i, c] = v
+    out[n:] = 0.0
+
+
+#: An empty point array (``_pack_texels`` of a texture that holds no points).
+_NO_POINTS = np.zeros((0, 3), np.float32)

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 from phrt_usd.model.scene import Lights
@@ -118,7 +119,9 @@ class MapVisibility:
 class PendingLightTerms:
     """``LightTerms`` before the undecided pairs are settled (``MapLighting.light_terms``).
 
-    positions, normals, rel : (n, 3) float64 world metres, unit normals, rel metres
+    positions       : (n, 3) float64 world metres
+    normals         : (n, 3) unit normals (float32 or float64), facing the viewer
+    origin          : (3,) ``Scene.origin``: rel = positions - origin
     lights          : the scene's lights at the lookup
     distant         : (n, D) float32 DistantLight visibility (0 where in ``lit_sums``)
     distant_unsure  : (n, D) bool, the DistantLight pairs the maps could not decide
@@ -134,7 +137,7 @@ class PendingLightTerms:
 
     positions: np.ndarray
     normals: np.ndarray
-    rel: np.ndarray
+    origin: np.ndarray
     lights: Lights
     distant: np.ndarray
     distant_unsure: np.ndarray
@@ -149,51 +152,116 @@ class PendingLightTerms:
         rows = self.rows
         if not len(rows):
             return None
-        pairs = np.concatenate([self.distant_unsure[rows], self.local_unsure], axis=1)
-        return UncertainPairs(self.positions[rows], self.normals[rows], pairs)
+        return UncertainPairs(self.positions[rows], self.normals[rows], self._pairs())
+
+    def _pairs(self) -> np.ndarray:
+        """(m, L) bool: the undecided pairs of ``rows``, DistantLights first."""
+        return np.concatenate([self.distant_unsure[self.rows], self.local_unsure], axis=1)
 
     def resolved(self, exact: np.ndarray) -> LightTerms:
         """The light terms with ``exact`` (m, L), an exact test's answer for
         ``uncertain_pairs()``, at the undecided pairs."""
         rows, distant = self.rows, self.distant
         n_distant = distant.shape[1]
-        at, light = np.nonzero(self.local_unsure)
-        pairs = np.concatenate([self.distant_unsure[rows], self.local_unsure], axis=1)
-        exact = np.asarray(exact, dtype=np.float32).reshape(pairs.shape)
-        distant[rows] = np.where(pairs[:, :n_distant], exact[:, :n_distant], distant[rows])
-        weight = exact[:, n_distant:][at, light]
-        return self._terms(rows[at], light, weight)
+        exact = np.asarray(exact, dtype=np.float32).reshape(len(rows), -1)
+        if n_distant:
+            pairs = self.distant_unsure[rows]
+            distant[rows] = np.where(pairs, exact[:, :n_distant], distant[rows])
+        point, light, weight = _lit_local_pairs(
+            rows, self.local_unsure, np.ascontiguousarray(exact[:, n_distant:])
+        )
+        return self._terms(point, light, weight)
 
     def filtered(self) -> LightTerms:
         """The light terms with the maps' PCF at the undecided pairs."""
         if self.lit_sums is None:
             return LightTerms(self.distant, None, None)
-        rel, normals, distant = self.rel, self.normals, self.distant
+        normals, distant = self.normals, self.distant
+
+        def rel_normals(at: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            """rel metres and float64 normals of the points ``at``."""
+            return self.positions[at] - self.origin, normals[at].astype(np.float64)
+
         for k, pair in enumerate(self.maps):  # the uncertain DistantLight pairs
             on = np.flatnonzero(self.distant_unsure[:, k])
             distant[on, k] = 1.0
             for mp in pair:
                 if mp is not None and len(on):
-                    distant[on, k] *= filtered_visibility(mp, rel[on], normals[on])[0]
+                    distant[on, k] *= filtered_visibility(mp, *rel_normals(on))[0]
         at, light = np.nonzero(self.local_unsure)
         point = self.rows[at]
         weight = np.zeros(len(point), dtype=np.float32)
         for k, pair in enumerate(self.cubes):
             on = np.flatnonzero(light == k)
             if len(on):
-                p = point[on]
-                weight[on] = cube_pair_visibility(pair, rel[p], normals[p], True)[0]
-        return self._terms(point, light, weight)
+                weight[on] = cube_pair_visibility(pair, *rel_normals(point[on]), True)[0]
+        lit = np.flatnonzero(weight > 0.0)
+        return self._terms(point[lit], light[lit], weight[lit])
 
     def _terms(self, point: np.ndarray, light: np.ndarray, weight: np.ndarray) -> LightTerms:
-        """LightTerms with the LocalLight pairs (``point``, ``light``) (k,) of visibility
-        ``weight`` (k,) float32 that let light by."""
-        lit = np.flatnonzero(weight > 0.0)
-        point, light, weight = point[lit], light[lit], weight[lit]
+        """LightTerms with the lit LocalLight pairs (``point``, ``light``) (k,) of
+        visibility ``weight`` (k,) float32 in (0, 1]."""
         l_dir, dist = pair_directions(self.lights, self.positions, point, light)
         return LightTerms(
             self.distant, self.lit_sums, LightPairs(point, light, l_dir, dist, weight)
         )
+
+
+@numba.njit(nogil=True, cache=True)
+def _lit_local_pairs(rows, unsure, exact):  # pragma: no cover - compiled
+    """The undecided LocalLight pairs an exact test found lit, in point order: point
+    (k,) int64 (of ``rows`` (m,)), light (k,) int64 and weight (k,) float32 in (0, 1],
+    from ``unsure`` (m, P) bool and the test's ``exact`` (m, P) visibility."""
+    k = 0
+    for r in range(unsure.shape[0]):
+        for j in range(unsure.shape[1]):
+            if unsure[r, j] and exact[r, j] > 0.0:
+                k += 1
+    point = np.empty(k, np.int64)
+    light = np.empty(k, np.int64)
+    weight = np.empty(k, np.float32)
+    k = 0
+    for r in range(unsure.shape[0]):
+        for j in range(unsure.shape[1]):
+            if unsure[r, j] and exact[r, j] > 0.0:
+                point[k], light[k], weight[k] = rows[r], j, exact[r, j]
+                k += 1
+    return point, light, weight
+
+
+@numba.njit(nogil=True, cache=True)
+def _undecided(bits, n_local, gpu_distant, distant_unsure):  # pragma: no cover - compiled
+    """The points with a pair the maps could not decide, from the GPU lookup's ``bits``
+    (n, passes) uint32 (bit j of pass p: LocalLight LOOKUP_LIGHTS_PER_PASS p + j; bit
+    16 + k of pass 0: DistantLight k, when ``gpu_distant``, written into
+    ``distant_unsure`` (n, D) bool; else that array holds the numpy lookups' answer).
+    Returns rows (m,) int64 and their undecided LocalLight pairs (m, n_local) bool."""
+    n, passes = bits.shape
+    n_distant = distant_unsure.shape[1]
+    unsure = np.zeros(n, np.bool_)
+    m = 0
+    for i in range(n):
+        any_bit = False
+        for p in range(passes):
+            any_bit = any_bit or bits[i, p] != 0
+        for k in range(n_distant):
+            if gpu_distant:
+                distant_unsure[i, k] = (bits[i, 0] >> (16 + k)) & 1 != 0
+            any_bit = any_bit or distant_unsure[i, k]
+        unsure[i] = any_bit
+        m += any_bit
+    rows = np.empty(m, np.int64)
+    local = np.zeros((m, n_local), np.bool_)
+    r = 0
+    for i in range(n):
+        if not unsure[i]:
+            continue
+        rows[r] = i
+        for j in range(n_local):
+            p, b = j // LOOKUP_LIGHTS_PER_PASS, j % LOOKUP_LIGHTS_PER_PASS
+            local[r, j] = (bits[i, p] >> b) & 1 != 0
+        r += 1
+    return rows, local
 
 
 class MapLighting:
@@ -308,17 +376,17 @@ class MapLighting:
         viewer; to_eye : (n, 3) unit directions from the points to the viewer.
         """
         positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
-        normals = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
+        normals = np.asarray(normals).reshape(-1, 3)
         lights = self._ctx.scene.lights
         n, n_distant = len(positions), len(lights.distant)
         distant = np.ones((n, n_distant), dtype=np.float32)
         distant_unsure = np.zeros((n, n_distant), dtype=bool)
-        rel = positions - self._ctx.origin
+        origin = np.asarray(self._ctx.origin, np.float64)
         if n == 0 or not lights.has_direct:  # nothing to look up: ``distant`` is all
             return PendingLightTerms(
                 positions,
                 normals,
-                rel,
+                origin,
                 lights,
                 distant,
                 distant_unsure,
@@ -333,12 +401,16 @@ class MapLighting:
         gpu_distant = n_distant <= LOOKUP_MAX_DISTANT
         maps = self._maps.distant_maps() if gpu_distant and n_distant else []
         jobs = (
-            [] if gpu_distant else self._maps.distant_lookups(rel, normals, distant, distant_unsure)
+            []
+            if gpu_distant
+            else self._maps.distant_lookups(
+                positions - origin, normals.astype(np.float64), distant, distant_unsure
+            )
         )
         cubes = self._maps.cube_maps() if lights.local else []
         ranges = light_ranges(lights)[n_distant:]
         diffuse, highlight, bits = self._light_pass.lookup(
-            rel, normals, cubes, ranges, to_eye, maps
+            positions, normals, cubes, ranges, to_eye, maps, origin=origin
         )
         for job in jobs:
             job.result()
@@ -346,24 +418,14 @@ class MapLighting:
             # Lit pairs are in the sums already: ``distant`` keeps only what shade_local
             # must still add, the uncertain pairs once resolved.
             distant[:] = 0.0
-            shifts = 16 + np.arange(n_distant, dtype=np.uint32)
-            distant_unsure = (bits[:, :1] >> shifts) & 1 > 0
         # The pairs the maps could not decide, on the few rows that have any: the
         # LocalLight ones are shaded from their visibility (exact, else the maps' PCF),
         # the DistantLight ones are corrected in ``distant``.
-        unsure_rows = bits.any(axis=1)
-        if n_distant:
-            unsure_rows |= distant_unsure.any(axis=1)
-        rows = np.flatnonzero(unsure_rows)
-        local_unsure = np.zeros((len(rows), len(cubes)), dtype=bool)
-        for p, start in enumerate(range(0, len(cubes), LOOKUP_LIGHTS_PER_PASS)):
-            count = min(LOOKUP_LIGHTS_PER_PASS, len(cubes) - start)
-            shifts = np.arange(count, dtype=np.uint32)
-            local_unsure[:, start : start + count] = (bits[rows, p, None] >> shifts) & 1 > 0
+        rows, local_unsure = _undecided(bits, len(cubes), bool(maps), distant_unsure)
         return PendingLightTerms(
             positions,
             normals,
-            rel,
+            origin,
             lights,
             distant,
             distant_unsure,

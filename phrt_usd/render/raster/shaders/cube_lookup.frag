@@ -14,17 +14,17 @@
 // layout); keep the two in step.
 //
 // Inputs (textures, texelFetch only):
-//   points  : RGBA32F, (x, y, z) origin-relative world metres of point k at texel
+//   points  : RGB32F, (x, y, z) origin-relative world metres of point k at texel
 //             (k % width, k / width)
-//   normals : RGBA32F, (x, y, z) unit shading normal facing the viewer, same layout
+//   normals : RGB32F, (x, y, z) unit shading normal facing the viewer, same layout
 //   cubes   : RG32F 2D array, (min, max) caster forward distance over the texel
 //             neighbourhood; layer = cube's first layer + face
-//   to_eye  : RGBA32F, (x, y, z) unit direction from the point to the viewer, same layout
+//   to_eye  : RGB32F, (x, y, z) unit direction from the point to the viewer, same layout
 //   dmap_s<k>, dmap_d<k> : RG32F, (min, max) caster depth over the texel neighbourhood
 //             of DistantLight k's static / animated orthographic map (as
 //             shadow_maps.ShadowMap; the test of shadow_maps.filtered_visibility)
 // Output code per light: 1 lit, 0 shadowed / out of range / facing away, 2 uncertain.
-// Also the local shading of the lit pairs (shading._shade_chunk's model, keep in step):
+// Also the local shading of the lit pairs (shade_kernels.shade_kernel's model, keep in step):
 //   diffuse   : rgb = sum over lit lights of radiance * n.l * window / d^2 (DistantLights:
 //               radiance * n.l), a = bit j set where LocalLight j is uncertain, bit
 //               16 + k where DistantLight k is (exact in float up to 2^24)

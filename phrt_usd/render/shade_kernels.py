@@ -1,0 +1,286 @@
+"""The compiled per-pixel kernels of the render phase (numba, ``nogil``, ``cache``):
+the local shading model and the lat-long environment of ``shading``, the raster fallback
+of ``compositing``. Imported on first use only (by those modules' functions), so that
+importing the renderer does not load numba; the numpy-facing functions, their
+arguments, shapes and coordinate spaces are those modules'. The constants of the model
+come in as arguments (a kernel's on-disk cache only knows this file). The numpy code
+these kernels replaced is ``tests/shading_reference.py``, checked against them in
+``tests/test_shading_kernels.py``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+
+@numba.njit(nogil=True, cache=True)
+def dome_directions(directions, rotation, min_length, out):  # pragma: no cover - compiled
+    """World directions (n, 3) (any length) as unit directions (n, 3) float64 in the
+    dome's space (``rotation`` = ``world_from_light`` (3, 3), a rotation: its inverse is
+    its transpose); zero, shorter than ``min_length`` or non-finite ones become the
+    dome's +Y pole."""
+    for i in range(directions.shape[0]):
+        x, y, z = float(directions[i, 0]), float(directions[i, 1]), float(directions[i, 2])
+        big = max(abs(x), abs(y), abs(z))
+        finite = math.isfinite(x) and math.isfinite(y) and math.isfinite(z)
+        if not (finite and big > min_length):  # no direction: the pole
+            out[i, 0], out[i, 1], out[i, 2] = 0.0, 1.0, 0.0
+            continue
+        # Scaled by the largest component first so huge vectors do not overflow.
+        x, y, z = x / big, y / big, z / big
+        norm = math.sqrt(x * x + y * y + z * z)
+        x, y, z = x / norm, y / norm, z / norm
+        for c in range(3):
+            out[i, c] = x * rotation[0, c] + y * rotation[1, c] + z * rotation[2, c]
+
+
+@numba.njit(nogil=True, cache=True)
+def latlong_bilinear(latitude, longitude, texture, colour, out):  # pragma: no cover
+    """Bilinear samples (n, 3) of the lat-long ``texture`` (h, w, 3) (the module's
+    convention) at ``latitude``, ``longitude`` (n,) radians, times ``colour`` (3,):
+    columns wrap, rows clamp at the poles."""
+    h, wd = texture.shape[0], texture.shape[1]
+    for i in range(latitude.shape[0]):
+        col = (math.pi - longitude[i]) / (2.0 * math.pi) * wd - 0.5
+        row = (0.5 * math.pi - latitude[i]) / math.pi * h - 0.5
+        c0f, r0f = math.floor(col), math.floor(row)
+        fx, fy = col - c0f, row - r0f
+        # col in [-0.5, wd - 0.5] (longitude in [-pi, pi]): c0 in [-1, wd - 1].
+        c0 = int(c0f)
+        c0 = c0 + wd if c0 < 0 else c0
+        c1 = c0 + 1 if c0 + 1 < wd else 0
+        r0 = min(max(int(r0f), 0), h - 1)
+        r1 = min(max(int(r0f) + 1, 0), h - 1)
+        w00, w01 = (1.0 - fy) * (1.0 - fx), (1.0 - fy) * fx
+        w10, w11 = fy * (1.0 - fx), fy * fx
+        for c in range(3):
+            v = texture[r0, c0, c] * w00 + texture[r0, c1, c] * w01
+            v += texture[r1, c0, c] * w10 + texture[r1, c1, c] * w11
+            out[i, c] = v * colour[c]
+
+
+@numba.njit(nogil=True, cache=True, inline="always")
+def window_at(distance2, light_range):  # pragma: no cover - compiled
+    """``range_window`` of one squared distance (metres²) and range (metres)."""
+    if not light_range > 0.0:
+        return 0.0
+    x = distance2 / (light_range * light_range)
+    w = min(max(1.0 - x * x, 0.0), 1.0)
+    return w * w
+
+
+@numba.njit(nogil=True, cache=True)
+def window_kernel(distance, light_range, out):  # pragma: no cover - compiled
+    for i in range(distance.shape[0]):
+        out[i] = window_at(distance[i] * distance[i], light_range)
+
+
+@numba.njit(nogil=True, cache=True, inline="always")
+def cone_at(cos, cone_angle, softness, focus):  # pragma: no cover - compiled
+    """``cone_falloff`` of one emission: ``cos`` the cosine between the light's axis and
+    the direction it emits to the point; cone angle in degrees, softness, focus."""
+    cos = min(max(cos, -1.0), 1.0)
+    factor = 1.0
+    if cone_angle < 180.0:
+        theta = math.acos(cos)
+        cutoff = math.radians(cone_angle)
+        if theta > cutoff:
+            return 0.0
+        start = cutoff * (1.0 - softness)
+        width = cutoff - start
+        if width > 0.0:
+            x = min(max((theta - start) / width, 0.0), 1.0)
+            factor = 1.0 - x * x * (3.0 - 2.0 * x)
+    if focus > 0.0:
+        factor *= abs(cos) ** focus
+    return factor
+
+
+@numba.njit(nogil=True, cache=True)
+def cone_kernel(emission, axis, cone_angle, softness, focus, out):  # pragma: no cover
+    for i in range(emission.shape[0]):
+        cos = emission[i, 0] * axis[0] + emission[i, 1] * axis[1] + emission[i, 2] * axis[2]
+        out[i] = cone_at(cos, cone_angle, softness, focus)
+
+
+@numba.njit(nogil=True, cache=True, inline="always")
+def highlight_at(n0, n1, n2, e0, e1, e2, l0, l1, l2, model):  # pragma: no cover - compiled
+    """Blinn-Phong highlight ``strength * max(n·h, 0)**shininess`` of unit normal n,
+    direction to the eye e and direction to the light l (world, unit); ``model`` as
+    ``shade_kernel``'s."""
+    strength, shininess, squarings = model[1], model[2], int(model[3])
+    h0, h1, h2 = l0 + e0, l1 + e1, l2 + e2
+    length = math.sqrt(h0 * h0 + h1 * h1 + h2 * h2)
+    # l and the eye direction exactly opposite: no meaningful half vector, no highlight.
+    x = max((n0 * h0 + n1 * h1 + n2 * h2) / max(length, 1e-12), 0.0)
+    if squarings >= 0:  # x**64 as 6 squarings: several times faster than pow
+        for _ in range(squarings):
+            x *= x
+    else:
+        x = x**shininess
+    return strength * x
+
+
+@numba.njit(nogil=True, cache=True)
+def shade_kernel(
+    positions,
+    normals,
+    albedo,
+    view_dirs,
+    emissive,
+    ambient,
+    sum_diffuse,
+    sum_highlight,
+    d_dir,
+    d_radiance,
+    visibility,
+    l_pos,
+    l_radiance,
+    l_range,
+    l_cone,
+    local_columns,
+    p_point,
+    p_light,
+    p_dir,
+    p_dist,
+    p_weight,
+    has_weight,
+    model,
+    out,
+):  # pragma: no cover - compiled
+    """The shading model of the module docstring, per point (see ``shade_local``).
+
+    positions (n, 3) float64 world metres; normals, albedo, view_dirs (n, 3) float32;
+    emissive (1 or n, 3); ambient (3,); sum_diffuse, sum_highlight (n, 3) or (0, 3):
+    ``lit_sums``; d_dir (D, 3) unit, d_radiance (D, 3); visibility (n, D + P) or (0, 0):
+    all lit; l_pos (P, 3) world metres, l_radiance (P, 3), l_range (P,) metres, l_cone
+    (P, 7) (axis, cone angle, softness, focus, shaped); local_columns: shade every
+    LocalLight from its visibility column (else only the pairs); pairs p_point (m,),
+    p_light (m,), p_dir (m, 3) unit, p_dist (m,) metres, p_weight (m,) if has_weight;
+    model (4,) float64: the shading module's MIN_LIGHT_DISTANCE, SPECULAR_STRENGTH,
+    SHININESS and its squarings (-1: pow). Writes out (n, 3) float32. Sums in float64
+    per point."""
+    n = positions.shape[0]
+    n_distant = d_dir.shape[0]
+    has_vis = visibility.shape[0] > 0
+    has_sums = sum_diffuse.shape[0] > 0
+    one_emissive = emissive.shape[0] == 1
+    min_d2 = model[0] * model[0]
+    for i in range(n):
+        n0, n1, n2 = float(normals[i, 0]), float(normals[i, 1]), float(normals[i, 2])
+        e0, e1, e2 = -float(view_dirs[i, 0]), -float(view_dirs[i, 1]), -float(view_dirs[i, 2])
+        em = 0 if one_emissive else i
+        # Radiance-weighted Lambert terms of the lights (d) and their highlights (s), RGB.
+        d0 = d1 = d2 = s0 = s1 = s2 = 0.0
+        for j in range(n_distant):
+            lit = n0 * d_dir[j, 0] + n1 * d_dir[j, 1] + n2 * d_dir[j, 2]
+            if has_vis:
+                lit *= visibility[i, j]
+            if not lit > 0.0:
+                continue
+            hl = lit * highlight_at(
+                n0, n1, n2, e0, e1, e2, d_dir[j, 0], d_dir[j, 1], d_dir[j, 2], model
+            )
+            r, g, b = d_radiance[j, 0], d_radiance[j, 1], d_radiance[j, 2]
+            d0, d1, d2 = d0 + r * lit, d1 + g * lit, d2 + b * lit
+            s0, s1, s2 = s0 + r * hl, s1 + g * hl, s2 + b * hl
+        for k in range(l_pos.shape[0] if local_columns else 0):
+            vis = visibility[i, n_distant + k] if has_vis else 1.0
+            if not vis > 0.0:
+                continue
+            t0 = l_pos[k, 0] - positions[i, 0]
+            t1 = l_pos[k, 1] - positions[i, 1]
+            t2 = l_pos[k, 2] - positions[i, 2]
+            dist2 = t0 * t0 + t1 * t1 + t2 * t2
+            # Beyond the range (or non-finite) the window is 0: nothing to add, and no
+            # direction computed from an overflowed distance.
+            if not dist2 < l_range[k] * l_range[k]:
+                continue
+            dist2 = max(dist2, min_d2)
+            inv = 1.0 / math.sqrt(dist2)
+            l0, l1, l2 = t0 * inv, t1 * inv, t2 * inv
+            lit = n0 * l0 + n1 * l1 + n2 * l2
+            if not lit > 0.0:
+                continue
+            lit *= window_at(dist2, l_range[k]) / dist2 * vis
+            if l_cone[k, 6] > 0.0:
+                cos = -(l0 * l_cone[k, 0] + l1 * l_cone[k, 1] + l2 * l_cone[k, 2])
+                lit *= cone_at(cos, l_cone[k, 3], l_cone[k, 4], l_cone[k, 5])
+            hl = lit * highlight_at(n0, n1, n2, e0, e1, e2, l0, l1, l2, model)
+            r, g, b = l_radiance[k, 0], l_radiance[k, 1], l_radiance[k, 2]
+            d0, d1, d2 = d0 + r * lit, d1 + g * lit, d2 + b * lit
+            s0, s1, s2 = s0 + r * hl, s1 + g * hl, s2 + b * hl
+        if has_sums:
+            d0, d1, d2 = d0 + sum_diffuse[i, 0], d1 + sum_diffuse[i, 1], d2 + sum_diffuse[i, 2]
+            s0 += sum_highlight[i, 0]
+            s1 += sum_highlight[i, 1]
+            s2 += sum_highlight[i, 2]
+        a0, a1, a2 = float(albedo[i, 0]), float(albedo[i, 1]), float(albedo[i, 2])
+        out[i, 0] = a0 * (ambient[0] + d0) + s0 + emissive[em, 0]
+        out[i, 1] = a1 * (ambient[1] + d1) + s1 + emissive[em, 1]
+        out[i, 2] = a2 * (ambient[2] + d2) + s2 + emissive[em, 2]
+    for q in range(p_point.shape[0]):  # lit LocalLight pairs, any order
+        i, k = p_point[q], p_light[q]
+        l0, l1, l2 = float(p_dir[q, 0]), float(p_dir[q, 1]), float(p_dir[q, 2])
+        n0, n1, n2 = float(normals[i, 0]), float(normals[i, 1]), float(normals[i, 2])
+        lit = n0 * l0 + n1 * l1 + n2 * l2
+        if not lit > 0.0:
+            continue
+        dist2 = max(p_dist[q] * p_dist[q], min_d2)
+        lit *= window_at(dist2, l_range[k]) / dist2
+        if has_weight:
+            lit *= p_weight[q]
+        if l_cone[k, 6] > 0.0:
+            cos = -(l0 * l_cone[k, 0] + l1 * l_cone[k, 1] + l2 * l_cone[k, 2])
+            lit *= cone_at(cos, l_cone[k, 3], l_cone[k, 4], l_cone[k, 5])
+        e0, e1, e2 = -float(view_dirs[i, 0]), -float(view_dirs[i, 1]), -float(view_dirs[i, 2])
+        hl = lit * highlight_at(n0, n1, n2, e0, e1, e2, l0, l1, l2, model)
+        out[i, 0] += l_radiance[k, 0] * (float(albedo[i, 0]) * lit + hl)
+        out[i, 1] += l_radiance[k, 1] * (float(albedo[i, 1]) * lit + hl)
+        out[i, 2] += l_radiance[k, 2] * (float(albedo[i, 2]) * lit + hl)
+
+
+@numba.njit(nogil=True, cache=True)
+def fallback_rays(covered, reflectivity, view, normal, background):  # pragma: no cover
+    """The pixels whose colour comes from the environment: (m,) int64 flat indices of
+    the reflector pixels (F > 0) and, with ``background``, the uncovered ones, and their
+    (m, 3) float32 world directions (the view direction mirrored about the normal,
+    ``reflect``; the view direction itself). covered (P,) bool, reflectivity (P,), view
+    and normal (P, 3) of the P = H W pixels."""
+    m = 0
+    for i in range(covered.shape[0]):
+        if reflectivity[i] > 0.0 or (background and not covered[i]):
+            m += 1
+    pixels = np.empty(m, np.int64)
+    directions = np.empty((m, 3), np.float32)
+    q = 0
+    for i in range(covered.shape[0]):
+        if reflectivity[i] > 0.0:
+            dn = 2.0 * (
+                view[i, 0] * normal[i, 0] + view[i, 1] * normal[i, 1] + view[i, 2] * normal[i, 2]
+            )
+            for c in range(3):
+                directions[q, c] = view[i, c] - dn * normal[i, c]
+        elif background and not covered[i]:
+            for c in range(3):
+                directions[q, c] = view[i, c]
+        else:
+            continue
+        pixels[q] = i
+        q += 1
+    return pixels, directions
+
+
+@numba.njit(nogil=True, cache=True)
+def blend(local, reflectivity, pixels, env, out):  # pragma: no cover - compiled
+    """out (P, 3) = local (P, 3), except at ``pixels`` (m,): ``(1 - F) local + F env``
+    for reflector pixels, ``env`` (m, 3) for the background (F = 0 there, local 0)."""
+    out[:] = local
+    for q in range(pixels.shape[0]):
+        i = pixels[q]
+        f = reflectivity[i]
+        for c in range(3):
+            out[i, c] = (1.0 - f) * local[i, c] + f * env[q, c] if f > 0.0 else env[q, c]
