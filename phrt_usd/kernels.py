@@ -14,7 +14,7 @@ import importlib
 import time
 
 #: Modules holding numba kernels, each with a ``warm_up()``.
-KERNEL_MODULES = ("phrt_usd.model.surface_kernels",)
+KERNEL_MODULES = ("phrt_usd.model.surface_kernels", "phrt_usd.render.trace.trace_kernels")
 
 
 def warm_up() -> dict[str, float]:

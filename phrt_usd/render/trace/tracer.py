@@ -41,9 +41,10 @@ import numpy as np
 
 from phrt_usd.model.frame import GBuffer, ReflectionResult
 from phrt_usd.model.scene import NO_HIT, CameraFrame, Lights, Scene
+from phrt_usd.render.trace import trace_kernels
 from phrt_usd.render.trace.bvh import Bvh
 from phrt_usd.render.trace.hit_surfaces import HitSurfaces
-from phrt_usd.render.trace.paths import PathTracer, refract, unit
+from phrt_usd.render.trace.paths import PathTracer, refract
 from phrt_usd.render.trace.shadow_rays import ShadowRays
 from phrt_usd.threads import DEFAULT_THREADS
 
@@ -239,9 +240,8 @@ class Tracer:
         start = time.perf_counter()
         self.last_rays = []
         sources = [int(s) for s in sources]
-        pix, src, tri, rel, ng, ns, view = self._source_pixels(gbuffer, sources, None)
-        d = unit(view - 2.0 * np.einsum("ij,ij->i", view, ns)[:, None] * ns)
-        origins = self.bvh.boundary.offset(rel, ng, d)
+        first = self._source_pixels(gbuffer, sources, None, reflect=True)
+        pix, src, d, origins = first["pix"], first["src"], first["dir"], first["org"]
         return self._run_paths(pix, src, origins, d, sources, bounce_limit, "reflection", start)
 
     def trace_refraction(
@@ -268,9 +268,12 @@ class Tracer:
         if elements is not None:
             clear &= np.isin(elem_flat, np.asarray(elements, dtype=np.int64))
         sources = [int(e) for e in np.unique(elem_flat[clear])]
-        pix, src, tri, rel, ng_front, ns, view = self._source_pixels(gbuffer, sources, clear)
-        d = refract(view, ns, ng_front, surfaces.ior[tri_material[tri]])
-        origins = self.bvh.boundary.offset(rel, ng_front, d)
+        first = self._source_pixels(gbuffer, sources, clear, reflect=False)
+        pix, src, tri, ng_front = first["pix"], first["src"], first["tri"], first["ng"]
+        ior = surfaces.ior[tri_material[tri]]
+        # Directions are float32 from here on (Embree's precision for them anyway).
+        d = refract(first["view"], first["ns"], ng_front, ior).astype(np.float32)
+        origins = self.bvh.boundary.offset_rays(first["rel"], ng_front, d)
         return self._run_paths(pix, src, origins, d, sources, bounce_limit, "refraction", start)
 
     def _run_paths(self, pix, src, origins, dirs, sources, bounce_limit, first_kind, start):
@@ -283,14 +286,17 @@ class Tracer:
         )  # fmt: skip
 
     def _reflector_pixels(self, element_id: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Flat indices (m,) and element ids (m,) of the pixels of ``element_id`` (H, W)
-        showing a reflector. Cached for the latest id image (a G-buffer is never
-        modified once made; the cache holds the array, so its identity stays unique)."""
+        """The pixels of ``element_id`` (H, W) showing a reflector, grouped by element:
+        flat indices (m,) int64 (row-major within an element) and offsets (E + 1,) int64,
+        element e's pixels being ``[offsets[e], offsets[e + 1])``. Cached for the latest
+        id image (a G-buffer is never modified once made; the cache holds the array, so
+        its identity stays unique)."""
         cached = self._pixel_cache
         if cached is not None and cached[0] is element_id:
             return cached[1], cached[2]
         elem = element_id.reshape(-1)
         ids = self._reflector_ids
+        n_elem = len(self._element_reflector)
         if len(ids):
             # A range test first (two cheap compares over the image), the table lookup
             # only on the pixels in the reflector id range.
@@ -298,39 +304,71 @@ class Tracer:
             cand_elem = np.take(elem, cand)
             keep = np.flatnonzero(np.take(self._element_reflector, cand_elem))
             cand, cand_elem = np.take(cand, keep), np.take(cand_elem, keep)
+            order = np.argsort(cand_elem, kind="stable")
+            cand = np.take(cand, order)
+            counts = np.bincount(cand_elem, minlength=n_elem)
         else:
-            cand = cand_elem = np.zeros(0, np.int64)
-        self._pixel_cache = (element_id, cand, cand_elem)
-        return cand, cand_elem
+            cand, counts = np.zeros(0, np.int64), np.zeros(n_elem, np.int64)
+        offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+        self._pixel_cache = (element_id, cand, offsets)
+        return cand, offsets
 
-    def _source_pixels(self, gbuffer: GBuffer, sources: list[int], mask):
-        """Pixels to start paths from: flat indices (n,), index into ``sources`` (n,),
-        triangle ids (n,), snapped rel positions (n, 3) float64, unit front-face
-        triangle normals (n, 3), unit shading normals facing the viewer (n, 3) float32,
-        unit view directions (n, 3) float32."""
+    def _source_pixels(self, gbuffer: GBuffer, sources: list[int], mask, reflect: bool):
+        """Pixels to start paths from (``trace_kernels.source_rays``), a dict of arrays:
+        pix (n,) flat indices, src (n,) index into ``sources``, tri (n,) triangle ids,
+        rel (n, 3) float64 positions snapped onto their triangle, ng (n, 3) float64 unit
+        front-face triangle normals, ns (n, 3) float32 unit shading normals facing the
+        viewer, view (n, 3) float32 unit view directions; with ``reflect`` also dir
+        (n, 3) float32 mirror directions and org (n, 3) float32 offset origins."""
         # Element id → index in ``sources`` (-1: not a source); the last slot serves id -1.
         n_elem = len(self.scene.elements)
-        table = np.full(max(n_elem, max(sources, default=0) + 1) + 1, -1)
+        table = np.full(max(n_elem, max(sources, default=0) + 1) + 1, -1, np.int64)
         table[[s for s in sources if s >= 0]] = [i for i, s in enumerate(sources) if s >= 0]
         if mask is None and all(0 <= s < n_elem and self._element_reflector[s] for s in sources):
             # Reflector sources (the renderer's case): look only at the G-buffer's
-            # reflector pixels, found once per G-buffer (later rounds reuse them).
-            cand, cand_elem = self._reflector_pixels(gbuffer.element_id)
-            keep = np.flatnonzero(np.take(table, cand_elem) >= 0)
-            pix = np.take(cand, keep)
-            src = np.take(table, np.take(cand_elem, keep))
+            # reflector pixels, found once per G-buffer and grouped by element (later
+            # rounds reuse them): each source's pixels are one slice.
+            pixels, offsets = self._reflector_pixels(gbuffer.element_id)
+            ranges = [(offsets[s], offsets[s + 1]) for s in dict.fromkeys(sources)]
+            cand = _cat([pixels[lo:hi] for lo, hi in ranges])
+            cand_elem = np.repeat(
+                np.fromiter(dict.fromkeys(sources), np.int64), [hi - lo for lo, hi in ranges]
+            )
         else:
             elem = gbuffer.element_id.reshape(-1)
             chosen = np.take(table >= 0, elem)
             if mask is not None:
                 chosen &= mask
-            pix = np.flatnonzero(chosen)
-            src = np.take(table, np.take(elem, pix))
-        tri = np.take(gbuffer.triangle_id.reshape(-1), pix).astype(np.int64)
-        # Directions and normals stay float32 (Embree's precision for directions anyway).
-        view = unit(np.take(gbuffer.view_dir.reshape(-1, 3), pix, axis=0).astype(np.float32))
-        ns = unit(np.take(gbuffer.normal.reshape(-1, 3), pix, axis=0).astype(np.float32))
-        ns *= np.where(np.einsum("ij,ij->i", ns, view) > 0, -1.0, 1.0).astype(np.float32)[:, None]
-        position = np.take(gbuffer.position.reshape(-1, 3), pix, axis=0)
-        rel, ng = self.surfaces.snap(position - self.bvh.boundary.origin, tri, ns)
-        return pix, src, tri, rel, ng, ns, view
+            cand = np.flatnonzero(chosen)
+            cand_elem = np.take(elem, cand)
+        k = len(cand)
+        out = {
+            "pix": np.empty(k, np.int64), "src": np.empty(k, np.int64),
+            "tri": np.empty(k, np.int64), "rel": np.empty((k, 3)), "ng": np.empty((k, 3)),
+            "ns": np.empty((k, 3), np.float32), "view": np.empty((k, 3), np.float32),
+            "dir": np.empty((k if reflect else 0, 3), np.float32),
+            "org": np.empty((k if reflect else 0, 3), np.float32),
+        }  # fmt: skip
+        floor, relative = self.bvh.boundary.offset_factors()
+        n = trace_kernels.source_rays(
+            np.asarray(cand, np.int64), np.asarray(cand_elem, np.int64), table,
+            _flat(gbuffer.triangle_id, np.int32, 1), _flat(gbuffer.position, np.float64, 3),
+            _flat(gbuffer.normal, np.float32, 3), _flat(gbuffer.view_dir, np.float32, 3),
+            self.bvh.boundary.origin, self.bvh.table.frame, floor, relative, reflect,
+            *out.values(),
+        )  # fmt: skip
+        return {name: a[:n] for name, a in out.items()}
+
+
+def _cat(parts: list[np.ndarray]) -> np.ndarray:
+    """np.concatenate without a copy for a single part (int64, empty for none)."""
+    if len(parts) == 1:
+        return parts[0]
+    return np.concatenate(parts) if parts else np.zeros(0, np.int64)
+
+
+def _flat(image: np.ndarray, dtype, channels: int) -> np.ndarray:
+    """A G-buffer image (H, W[, C]) as contiguous (H*W[, C]) of ``dtype`` (no copy when
+    it already is)."""
+    shape = (-1,) if channels == 1 else (-1, channels)
+    return np.ascontiguousarray(image, dtype=dtype).reshape(shape)
