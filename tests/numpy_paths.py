@@ -290,3 +290,43 @@ def numpy_trace_reflections(tracer, gbuffer, sources: list[int], bounce_limit: i
         pix, src, origins, d, sources, bounce_limit, "reflection", start,
         tracer._relative_lights(), len(tracer.scene.elements), tracer.rays_cast,
     )  # fmt: skip
+
+
+def numpy_primary_gbuffer(tracer, camera, width: int, height: int):
+    """``Tracer.primary_gbuffer`` as numpy computed it (``CameraFrame.pixel_rays``)."""
+    from phrt_usd.model.frame import GBuffer  # noqa: PLC0415
+    from phrt_usd.model.scene import NO_HIT  # noqa: PLC0415
+
+    origin = tracer.bvh.boundary.origin
+    origins, dirs = camera.pixel_rays(width, height)
+    n = origins.shape[0]
+    cos = np.maximum(dirs @ camera.forward, 1e-6)
+    start = max(float(camera.near), 0.0) / cos
+    hits, _ = tracer.surfaces.intersect(origins - origin + dirs * start[:, None], dirs)
+    element = np.full(n, NO_HIT, np.int32)
+    triangle = np.full(n, NO_HIT, np.int32)
+    depth = np.full(n, np.inf, np.float32)
+    position = np.zeros((n, 3))
+    normal = np.zeros((n, 3), np.float32)
+    albedo = np.zeros((n, 3), np.float32)
+    r = hits.ray
+    rel, _, ns, alb, _ = tracer.surfaces.at(hits.tri, hits.u, hits.v, dirs[r])
+    hit_depth = (rel - (camera.position - origin)) @ camera.forward
+    keep = hit_depth <= float(camera.far)
+    r, tri = r[keep], hits.tri[keep]
+    element[r] = tracer.bvh.tri_element[tri]
+    triangle[r] = tri
+    position[r] = rel[keep] + origin
+    normal[r] = ns[keep]
+    albedo[r] = alb[keep]
+    depth[r] = hit_depth[keep]
+    shape = (height, width)
+    return GBuffer(
+        element_id=element.reshape(shape),
+        triangle_id=triangle.reshape(shape),
+        depth=depth.reshape(shape),
+        position=position.reshape(shape + (3,)),
+        normal=normal.reshape(shape + (3,)),
+        albedo=albedo.reshape(shape + (3,)),
+        view_dir=dirs.astype(np.float32).reshape(shape + (3,)),
+    )

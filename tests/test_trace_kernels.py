@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import trimesh
-from numpy_paths import numpy_first_rays, numpy_trace_reflections
+from numpy_paths import numpy_first_rays, numpy_primary_gbuffer, numpy_trace_reflections
 from scenes import box_between, look_at, parts_scene, sphere
 from test_cutout_reflections import _stage
 
@@ -219,3 +219,32 @@ def test_kernels_finite_for_extreme_inputs():
     assert k == n
     for a in out[3:]:
         assert np.all(np.isfinite(a[:k]))
+
+
+@pytest.mark.parametrize("offset", [(0.0, 0.0, 0.0), (1e6, 0.0, -1e6)])
+def test_primary_gbuffer_matches_numpy(offset, monkeypatch):
+    """The compiled pixel rays and G-buffer rows against ``pixel_rays`` + numpy scatter:
+    the directions differ only by the order of the normalisation's rounding, so ids
+    agree but for a few edge pixels and the rest to rounding; split over the pool (rows
+    threshold lowered) the same bits as on one thread."""
+    import phrt_usd.render.trace.tracer as tracer_module  # noqa: PLC0415
+
+    scene = lit_scene(np.asarray(offset), glass=True)
+    camera = look_at(np.array([0.0, 4.0, 7.0]) + offset, np.array([0.0, 0.5, 0.0]) + offset)
+    one = Tracer(scene, threads=1).primary_gbuffer(camera, 64, 48)
+    ref = numpy_primary_gbuffer(Tracer(scene, threads=1), camera, 64, 48)
+    same = one.element_id == ref.element_id
+    assert same.mean() > 0.998 and (one.element_id >= 0).sum() > 1000
+    both = same & (one.element_id >= 0)
+    np.testing.assert_allclose(one.view_dir, ref.view_dir, atol=1e-7)
+    np.testing.assert_allclose(one.depth[both], ref.depth[both], rtol=1e-5)
+    np.testing.assert_allclose(
+        one.position[both] - offset, ref.position[both] - offset, atol=1e-5
+    )  # fmt: skip
+    np.testing.assert_allclose(one.normal[both], ref.normal[both], atol=1e-4)
+    np.testing.assert_allclose(one.albedo[both], ref.albedo[both], atol=1e-5)
+    assert np.all(np.isinf(one.depth[one.element_id < 0]))
+    monkeypatch.setattr(tracer_module, "PARALLEL_MIN_KERNEL_ROWS", 16)
+    two = Tracer(scene, threads=2).primary_gbuffer(camera, 64, 48)
+    for name in ("element_id", "depth", "position", "normal", "albedo", "view_dir"):
+        np.testing.assert_array_equal(getattr(two, name), getattr(one, name))

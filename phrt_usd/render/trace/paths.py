@@ -18,9 +18,9 @@ no refraction work is done. Where a hit's local term has no weight (F = 1 mirror
 Fixed cost per call: hybrid batches are small (farm: 50-8,000 rays), so the loop only
 follows paths, each depth's per-ray work in one compiled pass (``trace_kernels.bounce``,
 into buffers allocated per depth); environment lookups, shadow rays and local shading
-of all bounces are gathered and evaluated once per call (``_gather``). Local shading of a call's hits is
-split over the pool from ``shadow_rays.PARALLEL_MIN_SHADE_RAYS`` shadow rays on (numpy
-releases the GIL on large arrays, embreex inside ``run``).
+of all bounces are gathered and evaluated once per call (``_gather``). Local shading of
+a call's hits is split over the pool from ``shadow_rays.PARALLEL_MIN_SHADE_RAYS`` shadow
+rays on (numpy releases the GIL on large arrays, embreex inside ``run``).
 
 Records: one ``TraceRecord`` per source reflector (pixels, rays, reflectors hit,
 reflector bounces, time share), what the selection heuristic reads.

@@ -16,7 +16,9 @@ callers), writing into buffers the caller allocates:
   misses, the local-shading entries, reflector keys, the reflector chains, and the
   children (mirror and refracted rays with their offset origins);
 - ``accumulate``: the gathered radiance summed per pixel;
-- ``source_tallies``: the per-source figures of ``TraceRecord``.
+- ``source_tallies``: the per-source figures of ``TraceRecord``;
+- ``primary_rays`` / ``primary_fill``: the ``rt`` mode's pixel rays (the raster
+  G-buffer's direction rule, ``surface_kernels._pixel_dir``) and its G-buffer rows.
 
 The numpy forms these replace are the tests' reference (``tests/test_trace_kernels.py``):
 same operations in the same precision (float64 positions and offsets, float32
@@ -33,6 +35,8 @@ import math
 
 import numpy as np
 from numba import njit
+
+from phrt_usd.model.surface_kernels import _pixel_dir
 
 _KERNEL = {"nogil": True, "cache": True, "error_model": "numpy"}
 _HELPER = {**_KERNEL, "inline": "always"}
@@ -330,6 +334,59 @@ def source_tallies(src, chain_pix, shadow_src, shadow_rays, pixels, chain_sum, c
         rays_src[shadow_src[i]] += shadow_rays[i]
 
 
+@njit(**_KERNEL)
+def primary_rays(xs, ys, rot, renormalise, eye, fwd, near, lo, hi, d64, o32, d32):
+    """Rays through the centres of flat pixels lo..hi (row-major, width = len(xs)).
+
+    xs (W,), ys (H,) float64 the pixel plane (``CameraFrame.pixel_plane``); rot (3, 3)
+    the camera-to-world rotation, ``renormalise`` when it has scale or shear; eye (3,)
+    rel; fwd (3,) unit view direction; near: the clipping distance (metres of view
+    depth) where rays start. Writes per pixel p the unit direction d64[p] (float64,
+    the raster G-buffer's rule) and the float32 rays: d32[p] and o32[p] = eye + d * near
+    / max(d·fwd, 1e-6) (view depth grows by d·fwd per metre along the ray)."""
+    width = xs.shape[0]
+    start = max(near, 0.0)
+    for p in range(lo, hi):
+        row, col = p // width, p % width
+        x, y = xs[col], ys[row]
+        s = 1.0 / math.sqrt(x * x + y * y + 1.0)
+        dx, dy, dz = _pixel_dir(
+            y, x, s, rot[0, 0], rot[0, 1], rot[0, 2], rot[1, 0], rot[1, 1], rot[1, 2],
+            rot[2, 0], rot[2, 1], rot[2, 2], renormalise,
+        )  # fmt: skip
+        d64[p, 0], d64[p, 1], d64[p, 2] = dx, dy, dz
+        d32[p, 0], d32[p, 1], d32[p, 2] = dx, dy, dz
+        t = start / max(dx * fwd[0] + dy * fwd[1] + dz * fwd[2], 1e-6)
+        o32[p, 0], o32[p, 1], o32[p, 2] = eye[0] + dx * t, eye[1] + dy * t, eye[2] + dz * t
+
+
+@njit(**_KERNEL)
+def primary_fill(
+    ray, tri, rel, ns, albedo, eye, fwd, far, origin, tri_element,
+    out_elem, out_tri, out_depth, out_pos, out_normal, out_albedo,
+):  # fmt: skip
+    """The ``rt`` G-buffer rows of m primary hits: ray (m,) int64 pixel, tri (m,) int64,
+    rel (m, 3) float64 hit positions, ns and albedo (m, 3) float32 (``HitSurfaces.at``);
+    eye (3,) rel, fwd (3,) unit view direction, far: the clipping distance (a hit
+    deeper is a miss, as is a NaN depth); origin (3,) ``Scene.origin``. Writes the
+    pixel's element and triangle (int32), view depth (float32), world position
+    (float64), normal and albedo (float32); pixels not written keep the caller's fill."""
+    for h in range(ray.shape[0]):
+        px, py, pz = rel[h, 0], rel[h, 1], rel[h, 2]
+        depth = (px - eye[0]) * fwd[0] + (py - eye[1]) * fwd[1] + (pz - eye[2]) * fwd[2]
+        if not (depth <= far):
+            continue
+        p = ray[h]
+        t = tri[h]
+        out_elem[p] = tri_element[t]
+        out_tri[p] = t
+        out_depth[p] = depth
+        out_pos[p, 0], out_pos[p, 1], out_pos[p, 2] = px + origin[0], py + origin[1], pz + origin[2]
+        for c in range(3):
+            out_normal[p, c] = ns[h, c]
+            out_albedo[p, c] = albedo[h, c]
+
+
 def warm_up() -> None:
     """Compile (or load from the disk cache) every kernel on tiny inputs of the types
     the tracer passes."""
@@ -354,6 +411,11 @@ def warm_up() -> None:
     for split in (False, True):
         bounce(*hits, *state, *tables, split, False, 1e-6, 1e-5, 1, i64.copy(), i64.copy(),
                *env, *lit, *child)  # fmt: skip
+    primary_rays(f64, f64, np.eye(3), False, np.zeros(3), np.ones(3), 0.1, 0, 1, v64.copy(),
+                 v32.copy(), v32.copy())  # fmt: skip
+    gb_rows = (i32.copy(), i32.copy(), f32.copy(), v64.copy(), v32.copy(), v32.copy())
+    primary_fill(i64, i64, v64, v32, v32, np.zeros(3), np.ones(3), 1.0, np.zeros(3), i64,
+                 *gb_rows)  # fmt: skip
     accumulate(np.zeros((1, 3)), i64, f64, v32)
     accumulate(np.zeros((1, 3)), i64, f64, v64)
     source_tallies(i64, i64, i64, i64, i64.copy(), f64.copy(), i64.copy(), i64.copy())

@@ -48,6 +48,10 @@ from phrt_usd.render.trace.paths import PathTracer, refract
 from phrt_usd.render.trace.shadow_rays import ShadowRays
 from phrt_usd.threads import DEFAULT_THREADS
 
+#: Compiled per-pixel loops over fewer rows than this run on the calling thread (below
+#: it handing chunks to the pool costs more than it saves).
+PARALLEL_MIN_KERNEL_ROWS = 16384
+
 
 class Tracer:
     """Ray tracing against one ``Scene``.
@@ -191,13 +195,21 @@ class Tracer:
         nearest hit deeper than ``far`` is a miss."""
         self.last_rays = []
         origin = self.bvh.boundary.origin
-        origins, dirs = camera.pixel_rays(width, height)
-        n = origins.shape[0]
-        # View depth grows by cos (dir . forward) per metre along a ray; pixel rays are
-        # in front of the camera, so cos > 0 (floored against a degenerate window).
-        cos = np.maximum(dirs @ camera.forward, 1e-6)
-        start = max(float(camera.near), 0.0) / cos
-        hits, recast = self.surfaces.intersect(origins - origin + dirs * start[:, None], dirs)
+        n = width * height
+        xs, ys = camera.pixel_plane(width, height)
+        cam = np.asarray(camera.world_from_camera, dtype=np.float64)
+        rot = np.ascontiguousarray(cam[:3, :3])
+        # A camera transform with scale or shear needs the directions normalised again.
+        renormalise = not np.allclose(rot.T @ rot, np.eye(3), rtol=0.0, atol=1e-12)
+        eye = cam[:3, 3] - origin
+        fwd = np.ascontiguousarray(camera.forward, dtype=np.float64)
+        dirs = np.empty((n, 3))
+        o32, d32 = np.empty((n, 3), np.float32), np.empty((n, 3), np.float32)
+        self._split(
+            trace_kernels.primary_rays, n, xs, ys, rot, renormalise, eye, fwd,
+            float(camera.near), out=(dirs, o32, d32),
+        )  # fmt: skip
+        hits, recast = self.surfaces.intersect(o32, d32)
         self.rays_cast["primary"] += n + len(recast)  # cut-out re-casts: primary rays too
         element = np.full(n, NO_HIT, np.int32)
         triangle = np.full(n, NO_HIT, np.int32)
@@ -205,17 +217,17 @@ class Tracer:
         position = np.zeros((n, 3))
         normal = np.zeros((n, 3), np.float32)
         albedo = np.zeros((n, 3), np.float32)
-        r = hits.ray
-        rel, _, ns, alb, _ = self.surfaces.at(hits.tri, hits.u, hits.v, dirs[r])
-        hit_depth = (rel - (camera.position - origin)) @ camera.forward
-        keep = hit_depth <= float(camera.far)  # also drops NaN depths
-        r, tri = r[keep], hits.tri[keep]
-        element[r] = self.bvh.tri_element[tri]
-        triangle[r] = tri
-        position[r] = rel[keep] + origin
-        normal[r] = ns[keep]
-        albedo[r] = alb[keep]
-        depth[r] = hit_depth[keep]
+        rows = (element, triangle, depth, position, normal, albedo)
+
+        def fill(lo: int, hi: int) -> None:  # the G-buffer rows of hits lo..hi
+            r, tri, u, v = (a[lo:hi] for a in (hits.ray, hits.tri, hits.u, hits.v))
+            rel, _, ns, alb, _ = self.surfaces.at(tri, u, v, np.take(dirs, r, axis=0))
+            trace_kernels.primary_fill(
+                r, tri, rel, ns, alb, eye, fwd, float(camera.far), origin,
+                self.bvh.tri_element, *rows,
+            )  # fmt: skip
+
+        self._split(fill, len(hits.ray), out=())
         shape = (height, width)
         return GBuffer(
             element_id=element.reshape(shape),
@@ -224,8 +236,22 @@ class Tracer:
             position=position.reshape(shape + (3,)),
             normal=normal.reshape(shape + (3,)),
             albedo=albedo.reshape(shape + (3,)),
-            view_dir=dirs.astype(np.float32).reshape(shape + (3,)),
+            view_dir=d32.reshape(shape + (3,)),
         )
+
+    def _split(self, kernel, n: int, *args, out: tuple) -> None:
+        """``kernel(*args, lo, hi, *out)`` over rows 0..n, in ``threads`` chunks on the
+        pool from PARALLEL_MIN_KERNEL_ROWS rows on (the kernels release the GIL)."""
+        if self._pool is None or n < PARALLEL_MIN_KERNEL_ROWS:
+            kernel(*args, 0, n, *out)
+            return
+        edges = np.linspace(0, n, self.threads + 1).astype(int).tolist()
+        jobs = [
+            self._pool.submit(kernel, *args, lo, hi, *out)
+            for lo, hi in zip(edges[:-1], edges[1:], strict=True)
+        ]
+        for job in jobs:
+            job.result()
 
     # ------------------------------------------------------------------ paths
 
