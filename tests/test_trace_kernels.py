@@ -115,7 +115,7 @@ def test_first_rays_match_numpy(offset):
     camera = look_at(np.array([0.0, 4.0, 7.0]) + offset, np.array([0.0, 0.5, 0.0]) + offset)
     gb = tracer.primary_gbuffer(camera, 48, 36)
     sources = [3, 0]
-    first = tracer._source_pixels(gb, sources, None, reflect=True)
+    first = tracer._source_pixels(gb, sources, None, reflect=True, surface=True)
     pix, src, origins, d, rel, ng, ns, view = numpy_first_rays(tracer, gb, sources)
     order = np.argsort(first["pix"], kind="stable")
     np.testing.assert_array_equal(first["pix"][order], pix)
@@ -208,17 +208,15 @@ def test_kernels_finite_for_extreme_inputs():
     frame = np.zeros((1, 4, 3))
     frame[0, 3] = (0.0, 1.0, 0.0)
     n = len(view)
-    out = [np.empty(n, np.int64), np.empty(n, np.int64), np.empty(n, np.int64),
-           np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3), np.float32),
+    out = [np.empty(n, np.int64), np.empty(n, np.int64), np.empty((n, 3)), np.empty((n, 3)),
            np.empty((n, 3), np.float32), np.empty((n, 3), np.float32),
-           np.empty((n, 3), np.float32)]  # fmt: skip
-    k = trace_kernels.source_rays(
+           np.empty((n, 3), np.float32), np.empty((n, 3), np.float32)]  # fmt: skip
+    trace_kernels.source_rays(
         np.arange(n), np.zeros(n, np.int64), np.array([0, -1]), np.array([-1, 0, -1, 0], np.int32),
-        pos, nrm, view, np.zeros(3), frame, 1e-6, RAY_OFFSET_RELATIVE, True, *out,
+        pos, nrm, view, np.zeros(3), frame, 1e-6, RAY_OFFSET_RELATIVE, 0, n, *out,
     )  # fmt: skip
-    assert k == n
-    for a in out[3:]:
-        assert np.all(np.isfinite(a[:k]))
+    for a in out[2:]:
+        assert np.all(np.isfinite(a))
 
 
 @pytest.mark.parametrize("offset", [(0.0, 0.0, 0.0), (1e6, 0.0, -1e6)])
@@ -248,3 +246,18 @@ def test_primary_gbuffer_matches_numpy(offset, monkeypatch):
     two = Tracer(scene, threads=2).primary_gbuffer(camera, 64, 48)
     for name in ("element_id", "depth", "position", "normal", "albedo", "view_dir"):
         np.testing.assert_array_equal(getattr(two, name), getattr(one, name))
+
+
+def test_first_rays_split_over_the_pool_match_one_thread(monkeypatch):
+    import phrt_usd.render.trace.tracer as tracer_module  # noqa: PLC0415
+
+    scene = lit_scene()
+    camera = look_at((0.0, 4.0, 7.0), (0.0, 0.5, 0.0))
+    one = Tracer(scene, threads=1)
+    gb = one.primary_gbuffer(camera, 64, 48)
+    expected = one.trace_reflections(gb, [0, 1, 3], 3)
+    monkeypatch.setattr(tracer_module, "PARALLEL_MIN_KERNEL_ROWS", 16)
+    got = Tracer(scene, threads=2).trace_reflections(gb, [0, 1, 3], 3)
+    np.testing.assert_array_equal(got.pixel_index, expected.pixel_index)
+    np.testing.assert_array_equal(got.radiance, expected.radiance)
+    assert [r.rays for r in got.records] == [r.rays for r in expected.records]

@@ -98,28 +98,26 @@ def offset_origins(rel, normals, dirs, floor, relative, out):
 @njit(**_KERNEL)
 def source_rays(
     cand, cand_elem, table, tri_img, pos_img, nrm_img, view_img, origin, frame, floor,
-    relative, reflect, out_pix, out_src, out_tri, out_rel, out_ng, out_ns, out_view,
-    out_dir, out_org,
+    relative, lo, hi, out_src, out_tri, out_rel, out_ng, out_ns, out_view, out_dir, out_org,
 ):  # fmt: skip
-    """The first rays of paths from G-buffer pixels; returns n, the rows written.
+    """The first rays of paths from G-buffer pixels cand[lo:hi] into rows lo..hi.
 
-    cand (k,) int64 flat pixels to consider, cand_elem (k,) their element ids; table
-    (E + 1,) int64 element → index into the sources (-1: not a source). Images flat over
-    H*W: tri_img int32, pos_img (·, 3) float64 world, nrm_img and view_img (·, 3)
-    float32. origin (3,) ``Scene.origin``; frame ``TriangleTable.frame``; floor,
-    relative: the offset epsilon (``Float32Boundary``).
+    cand (k,) int64 flat pixels of sources, cand_elem (k,) their element ids; table
+    (E + 1,) int64 element → index into the sources. Images flat over H*W: tri_img
+    int32, pos_img (·, 3) float64 world, nrm_img and view_img (·, 3) float32. origin (3,)
+    ``Scene.origin``; frame ``TriangleTable.frame``; floor, relative: the offset epsilon
+    (``Float32Boundary``).
 
-    Per source pixel (in ``cand`` order): out_pix, out_src, out_tri (n,) int64; out_rel
-    (n, 3) float64 the position snapped onto its triangle's plane; out_ng (n, 3) float64
-    the triangle's unit front normal (the shading normal where there is no triangle);
-    out_ns (n, 3) float32 the unit shading normal turned to face the viewer; out_view
-    (n, 3) float32 unit view direction. With ``reflect``: out_dir (n, 3) float32 the
-    mirror direction and out_org (n, 3) float32 its offset origin."""
-    n = 0
-    for i in range(cand.shape[0]):
-        s = table[cand_elem[i]]
-        if s < 0:
-            continue
+    Per pixel: out_src, out_tri (k,) int64. The surface, written when out_rel has rows:
+    out_rel (k, 3) float64 the position snapped onto its triangle's plane; out_ng (k, 3)
+    float64 the triangle's unit front normal (the shading normal where there is no
+    triangle); out_ns (k, 3) float32 the unit shading normal turned to face the viewer;
+    out_view (k, 3) float32 unit view direction. The mirror ray, written when out_dir
+    has rows: out_dir (k, 3) float32 the mirror direction and out_org (k, 3) float32 its
+    offset origin."""
+    surface = out_rel.shape[0] > 0
+    reflect = out_dir.shape[0] > 0
+    for i in range(lo, hi):
         p = cand[i]
         t = np.int64(tri_img[p])
         vx, vy, vz = _unit32(view_img[p, 0], view_img[p, 1], view_img[p, 2])
@@ -138,19 +136,18 @@ def source_rays(
             pz = oz - dist * gz + frame[t, 0, 2]
         else:
             gx, gy, gz = float(nx), float(ny), float(nz)
-        out_pix[n], out_src[n], out_tri[n] = p, s, t
-        out_rel[n, 0], out_rel[n, 1], out_rel[n, 2] = px, py, pz
-        out_ng[n, 0], out_ng[n, 1], out_ng[n, 2] = gx, gy, gz
-        out_ns[n, 0], out_ns[n, 1], out_ns[n, 2] = nx, ny, nz
-        out_view[n, 0], out_view[n, 1], out_view[n, 2] = vx, vy, vz
+        out_src[i], out_tri[i] = table[cand_elem[i]], t
+        if surface:
+            out_rel[i, 0], out_rel[i, 1], out_rel[i, 2] = px, py, pz
+            out_ng[i, 0], out_ng[i, 1], out_ng[i, 2] = gx, gy, gz
+            out_ns[i, 0], out_ns[i, 1], out_ns[i, 2] = nx, ny, nz
+            out_view[i, 0], out_view[i, 1], out_view[i, 2] = vx, vy, vz
         if reflect:
             k = _TWO32 * (vx * nx + vy * ny + vz * nz)
             dx, dy, dz = _unit32(vx - k * nx, vy - k * ny, vz - k * nz)
-            out_dir[n, 0], out_dir[n, 1], out_dir[n, 2] = dx, dy, dz
+            out_dir[i, 0], out_dir[i, 1], out_dir[i, 2] = dx, dy, dz
             e = _side(_epsilon(px, py, pz, floor, relative), dx, dy, dz, gx, gy, gz)
-            out_org[n, 0], out_org[n, 1], out_org[n, 2] = px + e * gx, py + e * gy, pz + e * gz
-        n += 1
-    return n
+            out_org[i, 0], out_org[i, 1], out_org[i, 2] = px + e * gx, py + e * gy, pz + e * gz
 
 
 @njit(**_KERNEL)
@@ -397,9 +394,9 @@ def warm_up() -> None:
     b = np.zeros(1, bool)
     offset_origins(v64, v64, v32, 1e-6, 1e-5, v32.copy())
     offset_origins(v64, v64, v64, 1e-6, 1e-5, v32.copy())
-    source_rays(i64, i64, i64, i32, v64, v32, v32, np.zeros(3), frame, 1e-6, 1e-5, True,
-                i64.copy(), i64.copy(), i64.copy(), v64.copy(), v64.copy(), v32.copy(),
-                v32.copy(), v32.copy(), v32.copy())  # fmt: skip
+    source_rays(i64, i64, i64, i32, v64, v32, v32, np.zeros(3), frame, 1e-6, 1e-5, 0, 1,
+                i64.copy(), i64.copy(), v64.copy(), v64.copy(), v32.copy(), v32.copy(),
+                v32.copy(), v32.copy())  # fmt: skip
     split_hits(i32, f32, f32, i64.copy(), i64.copy(), f32.copy(), f32.copy(), i64.copy())
     split_hits(i64, f32, f32, i64.copy(), i64.copy(), f32.copy(), f32.copy(), i64.copy())
     hits = (i64, i64[:0], i64, v64, v64, v32)

@@ -266,7 +266,7 @@ class Tracer:
         start = time.perf_counter()
         self.last_rays = []
         sources = [int(s) for s in sources]
-        first = self._source_pixels(gbuffer, sources, None, reflect=True)
+        first = self._source_pixels(gbuffer, sources, None, reflect=True, surface=False)
         pix, src, d, origins = first["pix"], first["src"], first["dir"], first["org"]
         return self._run_paths(pix, src, origins, d, sources, bounce_limit, "reflection", start)
 
@@ -294,7 +294,7 @@ class Tracer:
         if elements is not None:
             clear &= np.isin(elem_flat, np.asarray(elements, dtype=np.int64))
         sources = [int(e) for e in np.unique(elem_flat[clear])]
-        first = self._source_pixels(gbuffer, sources, clear, reflect=False)
+        first = self._source_pixels(gbuffer, sources, clear, reflect=False, surface=True)
         pix, src, tri, ng_front = first["pix"], first["src"], first["tri"], first["ng"]
         ior = surfaces.ior[tri_material[tri]]
         # Directions are float32 from here on (Embree's precision for them anyway).
@@ -339,13 +339,16 @@ class Tracer:
         self._pixel_cache = (element_id, cand, offsets)
         return cand, offsets
 
-    def _source_pixels(self, gbuffer: GBuffer, sources: list[int], mask, reflect: bool):
+    def _source_pixels(
+        self, gbuffer: GBuffer, sources: list[int], mask, reflect: bool, surface: bool
+    ) -> dict[str, np.ndarray]:
         """Pixels to start paths from (``trace_kernels.source_rays``), a dict of arrays:
-        pix (n,) flat indices, src (n,) index into ``sources``, tri (n,) triangle ids,
-        rel (n, 3) float64 positions snapped onto their triangle, ng (n, 3) float64 unit
-        front-face triangle normals, ns (n, 3) float32 unit shading normals facing the
-        viewer, view (n, 3) float32 unit view directions; with ``reflect`` also dir
-        (n, 3) float32 mirror directions and org (n, 3) float32 offset origins."""
+        pix (n,) flat indices, src (n,) index into ``sources``, tri (n,) triangle ids;
+        with ``surface`` rel (n, 3) float64 positions snapped onto their triangle, ng
+        (n, 3) float64 unit front-face triangle normals, ns (n, 3) float32 unit shading
+        normals facing the viewer, view (n, 3) float32 unit view directions; with
+        ``reflect`` dir (n, 3) float32 mirror directions and org (n, 3) float32 offset
+        origins (the arrays not asked for have no rows)."""
         # Element id → index in ``sources`` (-1: not a source); the last slot serves id -1.
         n_elem = len(self.scene.elements)
         table = np.full(max(n_elem, max(sources, default=0) + 1) + 1, -1, np.int64)
@@ -355,35 +358,35 @@ class Tracer:
             # reflector pixels, found once per G-buffer and grouped by element (later
             # rounds reuse them): each source's pixels are one slice.
             pixels, offsets = self._reflector_pixels(gbuffer.element_id)
-            ranges = [(offsets[s], offsets[s + 1]) for s in dict.fromkeys(sources)]
-            cand = _cat([pixels[lo:hi] for lo, hi in ranges])
-            cand_elem = np.repeat(
-                np.fromiter(dict.fromkeys(sources), np.int64), [hi - lo for lo, hi in ranges]
-            )
+            unique = list(dict.fromkeys(sources))
+            counts = [int(offsets[s + 1] - offsets[s]) for s in unique]
+            cand = _cat([pixels[offsets[s] : offsets[s + 1]] for s in unique])
+            cand_elem = np.repeat(np.array(unique, np.int64), counts)
         else:
             elem = gbuffer.element_id.reshape(-1)
             chosen = np.take(table >= 0, elem)
             if mask is not None:
                 chosen &= mask
             cand = np.flatnonzero(chosen)
-            cand_elem = np.take(elem, cand)
+            cand_elem = np.take(elem, cand).astype(np.int64)
         k = len(cand)
+        ks, kr = (k if surface else 0), (k if reflect else 0)
         out = {
-            "pix": np.empty(k, np.int64), "src": np.empty(k, np.int64),
-            "tri": np.empty(k, np.int64), "rel": np.empty((k, 3)), "ng": np.empty((k, 3)),
-            "ns": np.empty((k, 3), np.float32), "view": np.empty((k, 3), np.float32),
-            "dir": np.empty((k if reflect else 0, 3), np.float32),
-            "org": np.empty((k if reflect else 0, 3), np.float32),
+            "src": np.empty(k, np.int64), "tri": np.empty(k, np.int64),
+            "rel": np.empty((ks, 3)), "ng": np.empty((ks, 3)),
+            "ns": np.empty((ks, 3), np.float32), "view": np.empty((ks, 3), np.float32),
+            "dir": np.empty((kr, 3), np.float32), "org": np.empty((kr, 3), np.float32),
         }  # fmt: skip
         floor, relative = self.bvh.boundary.offset_factors()
-        n = trace_kernels.source_rays(
-            np.asarray(cand, np.int64), np.asarray(cand_elem, np.int64), table,
+        self._split(
+            trace_kernels.source_rays, k, cand, cand_elem, table,
             _flat(gbuffer.triangle_id, np.int32, 1), _flat(gbuffer.position, np.float64, 3),
             _flat(gbuffer.normal, np.float32, 3), _flat(gbuffer.view_dir, np.float32, 3),
-            self.bvh.boundary.origin, self.bvh.table.frame, floor, relative, reflect,
-            *out.values(),
+            self.bvh.boundary.origin, self.bvh.table.frame, floor, relative,
+            out=tuple(out.values()),
         )  # fmt: skip
-        return {name: a[:n] for name, a in out.items()}
+        out["pix"] = cand
+        return out
 
 
 def _cat(parts: list[np.ndarray]) -> np.ndarray:
