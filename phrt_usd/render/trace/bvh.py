@@ -9,7 +9,8 @@ edited, so the split is the cheap way to move a few hundred triangles among 50k.
 
 ``Float32Boundary`` is the one place where float64 world metres meet Embree's float32
 (cf. trimesh's ``ray_pyembree._EmbreeWrap``): positions are taken relative to
-``Scene.origin`` in float64 ("rel"), cast to float32 only at the Embree call, and ray
+``Scene.origin`` in float64 ("rel"), cast to float32 only at the Embree call or where
+the compiled offset writes a ray's origin (``offset_rays``, ``trace_kernels``), and ray
 origins are offset off their surface by an epsilon that survives that cast.
 
 The opt-in ray log (``Bvh.record_rays`` / ``last_rays`` / ``replay_raw``) keeps the exact
@@ -57,6 +58,10 @@ FAR = 1e30
 
 class Float32Boundary:
     """Render-relative float64 on our side, float32 on Embree's.
+
+    The rule here has a compiled form for the per-ray loops (``trace_kernels``: the
+    offset from ``offset_factors``, the float32 origins written in the same pass); the
+    numpy methods stay for the rest of the tracer and as the tests' reference.
 
     origin : (3,) float64 world metres (``Scene.origin``); rel = world - origin.
     extent : the scene's diagonal in metres (kept by ``Bvh``), for the offset epsilon.

@@ -22,10 +22,15 @@ G-buffer), turns them into first rays, and keeps the ray counters.
 
 Coordinate spaces: every array crossing this module's API is world space, metres,
 float64 positions. Inside, everything is rel (world minus ``Scene.origin``, float64);
-Embree sees float32 rel coordinates, cast only at the Embree call. Robustness: G-buffer
-positions (possibly from a depth buffer) are first projected onto their triangle's plane
-(``HitSurfaces.snap``), then every ray origin is offset along the geometric normal on
-the side the ray leaves to (``bvh.Float32Boundary.offset``).
+Embree sees float32 rel coordinates, cast where the ray origins are made (the offset
+rule of ``bvh.Float32Boundary``, compiled in ``trace_kernels``) or at the Embree call.
+Robustness: G-buffer positions (possibly from a depth buffer) are first projected onto
+their triangle's plane (as ``HitSurfaces.snap``), then every ray origin is offset along
+the geometric normal on the side the ray leaves to (``bvh.Float32Boundary.offset``).
+
+The per-pixel and per-ray work is compiled (``trace_kernels``: first rays from pixels,
+the ``rt`` pixel rays and G-buffer rows), split over the pool from
+``PARALLEL_MIN_KERNEL_ROWS`` rows on.
 
 Limits: mirror reflections only (roughness is ignored), no refit (embreex has none: the
 animated BVH is rebuilt when it moves), shadows are hard (light size ignored).
