@@ -42,7 +42,10 @@ from types import ModuleType, SimpleNamespace
 import numpy as np
 
 #: Modules holding numba kernels, each with a ``warm_up()``.
-KERNEL_MODULES = ("phrt_usd.model.surface_kernels",)
+KERNEL_MODULES = (
+    "phrt_usd.model.surface_kernels",
+    "phrt_usd.render.trace.trace_kernels",
+)
 #: Sources the compiled kernels depend on (the kernels and the constants they read):
 #: their hash names the ahead-of-time build.
 SOURCE_MODULES = (*KERNEL_MODULES, "phrt_usd.model.surface", "phrt_usd.kernels")

@@ -9,7 +9,8 @@ edited, so the split is the cheap way to move a few hundred triangles among 50k.
 
 ``Float32Boundary`` is the one place where float64 world metres meet Embree's float32
 (cf. trimesh's ``ray_pyembree._EmbreeWrap``): positions are taken relative to
-``Scene.origin`` in float64 ("rel"), cast to float32 only at the Embree call, and ray
+``Scene.origin`` in float64 ("rel"), cast to float32 only at the Embree call or where
+the compiled offset writes a ray's origin (``offset_rays``, ``trace_kernels``), and ray
 origins are offset off their surface by an epsilon that survives that cast.
 
 The opt-in ray log (``Bvh.record_rays`` / ``last_rays`` / ``replay_raw``) keeps the exact
@@ -33,6 +34,7 @@ from embreex.mesh_construction import TriangleMesh
 
 from phrt_usd.model.scene import NO_HIT, Scene
 from phrt_usd.model.surface import TriangleTable
+from phrt_usd.render.trace import trace_kernels
 
 #: Ray-origin offset along the geometric normal, in two parts (the larger one wins)::
 #:
@@ -56,6 +58,10 @@ FAR = 1e30
 
 class Float32Boundary:
     """Render-relative float64 on our side, float32 on Embree's.
+
+    The rule here has a compiled form for the per-ray loops (``trace_kernels``: the
+    offset from ``offset_factors``, the float32 origins written in the same pass); the
+    numpy methods stay for the rest of the tracer and as the tests' reference.
 
     origin : (3,) float64 world metres (``Scene.origin``); rel = world - origin.
     extent : the scene's diagonal in metres (kept by ``Bvh``), for the offset epsilon.
@@ -92,12 +98,29 @@ class Float32Boundary:
         largest = np.maximum(np.maximum(a[:, 0], a[:, 1]), a[:, 2])
         return np.maximum(RAY_OFFSET_ABSOLUTE * self.extent, RAY_OFFSET_RELATIVE * largest)
 
+    def offset_factors(self) -> tuple[float, float]:
+        """(floor, relative) of ``epsilon`` = max(floor, relative * |rel|_max): what the
+        compiled offset (``trace_kernels``) takes instead of this object."""
+        return RAY_OFFSET_ABSOLUTE * self.extent, RAY_OFFSET_RELATIVE
+
     def offset(self, rel: np.ndarray, normals: np.ndarray, dirs: np.ndarray, eps=None):
-        """Rel origins (n, 3) moved off the surface by the offset epsilon (``eps`` (n,),
-        computed when None) along ``normals`` (n, 3), on the side ``dirs`` leave to."""
+        """Rel origins (n, 3) float64 moved off the surface by the offset epsilon (``eps``
+        (n,), computed when None) along ``normals`` (n, 3), on the side ``dirs`` leave
+        to. (``offset_rays`` is the same rule compiled, cast for Embree.)"""
         eps = self.epsilon(rel) if eps is None else eps
         side = np.where(np.einsum("ij,ij->i", dirs, normals) >= 0, eps, -eps)
         return rel + side[:, None] * normals
+
+    def offset_rays(self, rel: np.ndarray, normals: np.ndarray, dirs: np.ndarray):
+        """``offset`` in one compiled pass (``trace_kernels.offset_origins``), returned as
+        the float32 origins (n, 3) Embree takes: rel (n, 3) float64, normals (n, 3)
+        float64 unit, dirs (n, 3) float32 or float64."""
+        rel = np.ascontiguousarray(rel, np.float64)
+        normals = np.ascontiguousarray(normals, np.float64)
+        out = np.empty(rel.shape, np.float32)
+        floor, relative = self.offset_factors()
+        trace_kernels.offset_origins(rel, normals, np.ascontiguousarray(dirs), floor, relative, out)
+        return out
 
 
 @dataclass
@@ -368,16 +391,11 @@ class Bvh:
     def intersect(self, origins: np.ndarray, dirs: np.ndarray) -> Hits:
         """Nearest hits of rays from rel ``origins`` (n, 3) along unit ``dirs`` (n, 3)."""
         prim, u, v = self.run("INTERSECT", origins, dirs)
-        hit = prim >= 0
-        ray = np.flatnonzero(hit)
-        every = len(ray) == len(prim)
-        return Hits(
-            ray=ray,
-            tri=(prim if every else np.take(prim, ray)).astype(np.int64, copy=False),
-            u=u if every else np.take(u, ray),
-            v=v if every else np.take(v, ray),
-            miss=ray[:0] if every else np.flatnonzero(~hit),
-        )
+        n = len(prim)
+        ray, tri, miss = np.empty(n, np.int64), np.empty(n, np.int64), np.empty(n, np.int64)
+        hu, hv = np.empty(n, np.float32), np.empty(n, np.float32)
+        h = trace_kernels.split_hits(prim, u, v, ray, tri, hu, hv, miss)
+        return Hits(ray=ray[:h], tri=tri[:h], u=hu[:h], v=hv[:h], miss=miss[: n - h])
 
     def replay_raw(self, threads: int | None = None) -> tuple[int, float]:
         """Re-run raw embreex on exactly the batches in ``last_rays`` (same float32

@@ -15,11 +15,12 @@ it runs only when the stage has transmissive materials, otherwise α = 1 everywh
 no refraction work is done. Where a hit's local term has no weight (F = 1 mirrors,
 α = 0 glass) neither shading nor shadow rays are computed.
 
-Fixed cost per call: hybrid batches are small (farm: 50-5,000 rays), so the loop only
-follows paths; environment lookups, shadow rays and local shading of all bounces are
-gathered and evaluated once per call (``_gather``). Local shading of a call's hits is
-split over the pool from ``shadow_rays.PARALLEL_MIN_SHADE_RAYS`` shadow rays on (numpy
-releases the GIL on large arrays, embreex inside ``run``).
+Fixed cost per call: hybrid batches are small (farm: 50-8,000 rays), so the loop only
+follows paths, each depth's per-ray work in one compiled pass (``trace_kernels.bounce``,
+into buffers allocated per depth); environment lookups, shadow rays and local shading
+of all bounces are gathered and evaluated once per call (``_gather``). Local shading of
+a call's hits is split over the pool from ``shadow_rays.PARALLEL_MIN_SHADE_RAYS`` shadow
+rays on (numpy releases the GIL on large arrays, embreex inside ``run``).
 
 Records: one ``TraceRecord`` per source reflector (pixels, rays, reflectors hit,
 reflector bounces, time share), what the selection heuristic reads.
@@ -28,7 +29,8 @@ Rays meet surfaces through ``HitSurfaces.intersect``: cut-out holes are passed t
 (re-cast from just past them, bounded by ``model.surface.MAX_CUTOUT_LAYERS``; the re-cast
 rays are counted with their kind and source).
 
-Arrays: positions rel float64 (``bvh.Float32Boundary``), directions (n, 3) unit.
+Arrays: positions rel float64 (``bvh.Float32Boundary``), directions (n, 3) unit float32,
+ray origins float32 (cast by the compiled offset, the boundary's rule).
 Limits: mirror reflections only (roughness is ignored).
 """
 
@@ -41,6 +43,7 @@ import numpy as np
 from phrt_usd.model.frame import ReflectionResult, TraceRecord
 from phrt_usd.model.scene import Lights
 from phrt_usd.render import shading
+from phrt_usd.render.trace import trace_kernels
 from phrt_usd.render.trace.bvh import Bvh
 from phrt_usd.render.trace.hit_surfaces import HitSurfaces
 from phrt_usd.render.trace.shadow_rays import ShadowRays
@@ -68,26 +71,31 @@ class PathTracer:
         n_elements,
         counters,
     ):
-        """The bounce loop. pix (n,) flat pixel per starting ray, src (n,) source index,
-        origins (n, 3) render-relative float64 already offset, dirs (n, 3) unit.
+        """The bounce loop. pix (n,) flat pixel per starting ray, src (n,) int64 source
+        index, origins (n, 3) render-relative already offset (float32 as Embree takes
+        them, or float64), dirs (n, 3) unit (float32 from here on).
 
-        The loop only follows paths (intersect, surface geometry, children). What a
-        path collects — environment radiance at misses and at the bounce limit, local
-        shading (with its shadow rays) at hits — does not steer it, so it is gathered
-        over all bounces and evaluated once per call: one environment lookup, one shadow
-        batch, one ``shade_local``, one accumulation (fixed per-call cost, not
-        per-bounce; hybrid batches are small, 50-5,000 rays).
+        The loop only follows paths: per depth one ``HitSurfaces.intersect``, the surface
+        geometry at the hits and one ``trace_kernels.bounce`` (environment entries,
+        local-shading entries, reflector keys and chains, the children with their offset
+        origins). What a path collects — environment radiance at misses and at the
+        bounce limit, local shading (with its shadow rays) at hits — does not steer it,
+        so it is gathered over all bounces and evaluated once per call: one environment
+        lookup, one shadow batch, one ``shade_local``, one accumulation (fixed per-call
+        cost, not per-bounce; hybrid batches are small, 50-8,000 rays).
 
         sources : the source ids (``TraceRecord.source``); first_kind : "reflection"
         or "refraction" (the kind of the starting rays); start : ``perf_counter`` at the
         call's start; lights : rel lights; n_elements : the scene's element count;
         counters : the tracer's ``rays_cast``, updated here."""
+        surfaces, bvh = self._surfaces, self._bvh
         n_pix, n_src = len(pix), len(sources)
-        split = self._surfaces.transmission
-        chain_pix = np.zeros(n_pix, np.int64)  # reflector hits along the longest path
-        hit_keys: list[np.ndarray] = []  # source * E + element, one per reflector hit
+        split = surfaces.transmission
         n_elem = max(n_elements, 1)
-        cast_src: list[np.ndarray] = []  # source of every ray cast, per bounce
+        floor, relative = bvh.boundary.offset_factors()
+        src = np.asarray(src, np.int64)
+        chain_pix = np.zeros(n_pix, np.int64)  # reflector hits along the longest path
+        key_parts: list[np.ndarray] = []  # source * E + element, one per reflector hit
         # Deferred work, one entry per bounce: environment (slot, weight, dir) and local
         # shading (slot, weight, source, tri, u, v, position, ng, ns, incoming dir).
         env_parts: list[tuple] = []
@@ -97,110 +105,80 @@ class PathTracer:
         r_src = src
         weight = np.ones(n_pix)
         chain = np.zeros(n_pix, np.int64)
+        dirs = np.ascontiguousarray(dirs, np.float32)
         refracted = np.full(n_pix, first_kind == "refraction")
+        n_refr = n_pix if first_kind == "refraction" else 0
+        rays_src = np.zeros(n_src, np.int64)  # path rays cast per source
         if bounce_limit < 1:
             env_parts.append((slot, weight, dirs))
             slot = slot[:0]
+        elif n_pix:
+            rays_src += np.bincount(src, minlength=n_src)
+        tables = (
+            surfaces.tri_reflector, surfaces.tri_f, bvh.tri_material, bvh.tri_element,
+            surfaces.opacity, surfaces.ior, bvh.table.frame,
+        )  # fmt: skip
         for depth in range(max(bounce_limit, 0)):
-            if len(slot) == 0:
+            k = len(slot)
+            if k == 0:
                 break
-            n_refr = int(np.count_nonzero(refracted))
             counters["refraction"] += n_refr
-            counters["reflection"] += len(slot) - n_refr
-            cast_src.append(r_src)
-            hits, recast = self._surfaces.intersect(origins, dirs)
+            counters["reflection"] += k - n_refr
+            hits, recast = surfaces.intersect(origins, dirs)
             if len(recast):  # re-casts through cut-out holes (HitSurfaces.intersect)
-                cast_src.append(r_src[recast])
-                n_refr = int(np.count_nonzero(refracted[recast]))
-                counters["refraction"] += n_refr
-                counters["reflection"] += len(recast) - n_refr
-            r = hits.ray
-            m = hits.miss
-            if len(m):
-                env_parts.append((slot[m], weight[m], np.take(dirs, m, axis=0)))
-            if len(r) == 0:
-                break
-            every = len(r) == len(slot)  # all rays hit: no gathers needed
-            d_in = dirs if every else np.take(dirs, r, axis=0)
-            rel, ng, ns = self._surfaces.geometry(hits.tri, hits.u, hits.v, d_in)
-            refl = np.take(self._surfaces.tri_reflector, hits.tri)
-            f = np.take(self._surfaces.tri_f, hits.tri)
-            if split:
-                mat = self._bvh.tri_material[hits.tri]
-                alpha = self._surfaces.opacity[mat]
-            else:
-                alpha = 1.0
-            w = weight if every else weight[r]
-            slot_r = slot if every else slot[r]
-            src_r = r_src if every else r_src[r]
-            # Local shading (and its shadow rays) only where it carries weight: a perfect
-            # mirror (F = 1) or clear glass (α = 0) shows none of its own surface.
-            w_local = w * alpha * (1.0 - f)
-            lit = np.flatnonzero(w_local > 0)
-            if len(lit) == len(r):
-                shade_parts.append(
-                    (slot_r, w_local, src_r, hits.tri, hits.u, hits.v, rel, ng, ns, d_in)
-                )
-            elif len(lit):
-                shade_parts.append(
-                    (slot_r[lit], w_local[lit], src_r[lit], hits.tri[lit], hits.u[lit])
-                    + (hits.v[lit],)
-                    + tuple(np.take(a, lit, axis=0) for a in (rel, ng, ns, d_in))
-                )
-            ch = chain if every else chain[r]
-            ch = ch + refl
-            if split:
-                np.maximum.at(chain_pix, slot_r, ch)
-            else:
-                chain_pix[slot_r] = ch  # chains only grow along a path
-            if refl.any():
-                hit_keys.append(src_r[refl] * n_elem + self._bvh.tri_element[hits.tri[refl]])
-            # Children: reflected rays (weight w α F), refracted rays (weight w (1 - α)).
-            w_refl = w * alpha * f
-            go = np.flatnonzero(w_refl > 0)
-            if not split and len(go) == 0:
-                break
-            # Mirror of a unit vector about a unit normal: unit already, no renormalising.
-            d_go = np.take(d_in, go, axis=0)
-            ns_go = np.take(ns, go, axis=0)
-            c_dir = d_go - (2.0 * np.einsum("ij,ij->i", d_go, ns_go))[:, None] * ns_go
-            c_idx, c_w = go, w_refl[go]
-            c_refr = np.zeros(len(go), dtype=bool)
-            if split:
-                w_refr = w * (1.0 - alpha)
-                gi = np.flatnonzero(w_refr > 0)
-                if len(gi):
-                    tri_g = hits.tri[gi]
-                    front = self._bvh.table.frame[tri_g, 3]
-                    d_refr = refract(d_in[gi], ns[gi], front, self._surfaces.ior[mat[gi]])
-                    c_dir = np.concatenate([c_dir, d_refr.astype(c_dir.dtype)])
-                    c_idx = np.concatenate([c_idx, gi])
-                    c_w = np.concatenate([c_w, w_refr[gi]])
-                    c_refr = np.concatenate([c_refr, np.ones(len(gi), dtype=bool)])
-            if depth + 1 >= bounce_limit:
-                if len(c_idx):
-                    env_parts.append((slot_r[c_idx], c_w, c_dir))
-                break
-            origins = self._bvh.boundary.offset(
-                np.take(rel, c_idx, axis=0), np.take(ng, c_idx, axis=0), c_dir
+                rays_src += np.bincount(r_src[recast], minlength=n_src)
+                recast_refr = int(np.count_nonzero(refracted[recast]))
+                counters["refraction"] += recast_refr
+                counters["reflection"] += len(recast) - recast_refr
+            m = len(hits.ray)
+            d_in = dirs if m == k else np.take(dirs, hits.ray, axis=0)
+            rel, ng, ns = surfaces.geometry(hits.tri, hits.u, hits.v, d_in)
+            last = depth + 1 >= bounce_limit
+            n_out = 2 * m if split else m
+            env = (
+                np.empty(k + n_out, np.int64),
+                np.empty(k + n_out),
+                np.empty((k + n_out, 3), np.float32),
             )
-            dirs = c_dir
-            slot = slot_r[c_idx]
-            r_src = src_r[c_idx]
-            weight = c_w
-            chain = ch[c_idx]
-            refracted = c_refr
-        radiance, rays_src = self._gather(
-            env_parts, shade_parts, cast_src, lights, n_pix, n_src, counters
+            lit = (np.empty(m, np.int64), np.empty(m), np.empty(m, np.int64), np.empty(m, np.int64))
+            keys = np.empty(m, np.int64)
+            child = (
+                np.empty(n_out, np.int64), np.empty(n_out, np.int64), np.empty(n_out),
+                np.empty(n_out, np.int64), np.empty(n_out, bool),
+                np.empty((n_out, 3), np.float32), np.empty((n_out, 3), np.float32),
+            )  # fmt: skip
+            n_env, n_lit, n_keys, n_child, n_child_refr = trace_kernels.bounce(
+                hits.ray, hits.miss, hits.tri, rel, ng, ns, slot, r_src, weight, chain, dirs,
+                *tables, split, last, floor, relative, n_elem, chain_pix, rays_src,
+                *env, *lit, keys, *child,
+            )  # fmt: skip
+            if n_env:
+                env_parts.append(tuple(a[:n_env] for a in env))
+            if n_lit:
+                rows, w_local, lit_slot, lit_src = (a[:n_lit] for a in lit)
+                hit_rows = (hits.tri, hits.u, hits.v, rel, ng, ns, d_in)
+                if n_lit < m:
+                    hit_rows = tuple(np.take(a, rows, axis=0) for a in hit_rows)
+                shade_parts.append((lit_slot, w_local, lit_src, *hit_rows))
+            if n_keys:
+                key_parts.append(keys[:n_keys])
+            if last or n_child == 0:
+                break
+            slot, r_src, weight, chain, refracted, dirs, origins = (a[:n_child] for a in child)
+            n_refr = n_child_refr
+        radiance, shadow_src, shadow_rays = self._gather(
+            env_parts, shade_parts, lights, n_pix, counters
         )
         seconds = time.perf_counter() - start
+        records, rays = self._records(
+            sources, src, chain_pix, rays_src, shadow_src, shadow_rays, key_parts, n_elem,
+            bounce_limit, seconds,
+        )  # fmt: skip
         return ReflectionResult(
-            pixel_index=pix.astype(np.int64),
+            pixel_index=np.asarray(pix, np.int64),
             radiance=radiance,
-            records=self._records(
-                sources, src, chain_pix, rays_src, hit_keys, n_elem, bounce_limit, seconds
-            ),
-            rays=int(rays_src.sum()),
+            records=records,
+            rays=rays,
             seconds=seconds,
         )
 
@@ -214,17 +192,18 @@ class PathTracer:
         # The caller updates ``rays_cast`` (a dict ``+=`` from pool threads could race).
         return local, shadow_rays
 
-    def _gather(self, env_parts, shade_parts, cast_src, lights, n_pix, n_src, counters):
-        """The deferred part of ``run``: environment and local shading of every
-        bounce at once. Returns radiance (n_pix, 3) float32 and rays cast per source
-        (n_src,) int64 (path rays + shadow rays)."""
-        rays_src = _bincount(cast_src, None, n_src).astype(np.int64)
-        slots, values = [], []
+    def _gather(self, env_parts, shade_parts, lights, n_pix, counters):
+        """The deferred part of ``run``: environment and local shading of every bounce
+        at once. Returns radiance (n_pix, 3) float32, and the source (m,) int64 and
+        shadow rays cast (m,) int64 of every shaded point (empty without direct
+        lights)."""
+        total = np.zeros((n_pix, 3))
         if env_parts:
             slot, weight, dirs = (_cat(p) for p in zip(*env_parts, strict=True))
             env = shading.environment_radiance(lights, dirs)
-            slots.append(slot)
-            values.append(weight[:, None] * env)
+            trace_kernels.accumulate(total, slot, weight, env)
+        no_shadows = np.zeros(0, np.int64)
+        shadow_src, shadow_rays = no_shadows, no_shadows
         if shade_parts:
             slot, w, src, tri, u, v, rel, ng, ns, d_in = (
                 _cat(p) for p in zip(*shade_parts, strict=True)
@@ -232,7 +211,7 @@ class PathTracer:
             n_lights = len(lights.distant) + len(lights.local)
             bounds = self._shadows.split(len(slot) * max(n_lights, 1), len(slot))
             if bounds is None:
-                local, shadow_rays = self._shade_points(tri, u, v, rel, ng, ns, d_in, lights)
+                local, rays = self._shade_points(tri, u, v, rel, ng, ns, d_in, lights)
             else:
                 # Large batches (the sewer: 13 lights, ~300k shadow rays): the whole
                 # shading, numpy included, runs in chunks on the pool (numpy and embreex
@@ -248,63 +227,61 @@ class PathTracer:
                 ]
                 done = [f.result() for f in parts]
                 local = np.concatenate([d[0] for d in done])
-                shadow_rays = np.concatenate([d[1] for d in done])
+                rays = np.concatenate([d[1] for d in done])
             if lights.has_direct:
-                rays_src += np.bincount(src, weights=shadow_rays, minlength=n_src).astype(np.int64)
+                shadow_src, shadow_rays = src, np.asarray(rays, np.int64)
                 counters["shadow"] += int(shadow_rays.sum())
-            slots.append(slot)
-            values.append(w[:, None] * local)
-        radiance = np.zeros((n_pix, 3), np.float32)
-        if slots:
-            slot = _cat(slots)
-            value = _cat(values)
-            # Slots repeat across bounces (and refraction splits paths): sum per channel.
-            for c in range(3):
-                radiance[:, c] = np.bincount(slot, weights=value[:, c], minlength=n_pix)
-        return radiance, rays_src
+            trace_kernels.accumulate(total, slot, w, np.ascontiguousarray(local, np.float32))
+        return total.astype(np.float32), shadow_src, shadow_rays
 
     @staticmethod
-    def _records(sources, src, chain_pix, rays_src, hit_keys, n_elem, bounce_limit, seconds):
-        """One TraceRecord per source (see ``frame.TraceRecord``); seconds are shared out
-        by each source's share of the rays."""
+    def _records(
+        sources, src, chain_pix, rays_src, shadow_src, shadow_rays, key_parts, n_elem,
+        bounce_limit, seconds,
+    ):  # fmt: skip
+        """One TraceRecord per source (see ``frame.TraceRecord``) and the call's total
+        rays. rays_src (sources,) int64: path rays cast per source; shadow_src,
+        shadow_rays (m,): each shaded point's source and shadow rays. Seconds are shared
+        out by each source's share of the rays."""
         n_src = len(sources)
+        pixels = np.zeros(n_src, np.int64)
+        chain_sum = np.zeros(n_src)
+        chain_max = np.zeros(n_src, np.int64)
+        rays_src = rays_src.copy()
+        trace_kernels.source_tallies(
+            src, chain_pix, shadow_src, shadow_rays, pixels, chain_sum, chain_max, rays_src
+        )
         total = int(rays_src.sum())
         per_source: list[dict[int, int]] = [{} for _ in range(n_src)]
-        if hit_keys:
+        if key_parts:
             # Hits per (source, element) key: a bincount over the n_src * E keys (small),
             # then one dict entry per non-zero count.
-            counts = np.bincount(_cat(hit_keys), minlength=n_src * n_elem)
+            counts = np.bincount(_cat(key_parts), minlength=n_src * n_elem)
             keys = np.flatnonzero(counts)
             for key, count in zip(keys.tolist(), counts[keys].tolist(), strict=True):
                 per_source[key // n_elem][key % n_elem] = count
-        pixels = np.bincount(src, minlength=n_src)
-        chain_sum = np.bincount(src, weights=chain_pix, minlength=n_src)
-        chain_max = np.zeros(n_src, np.int64)
-        np.maximum.at(chain_max, src, chain_pix)
-        return [
+        limit = max(bounce_limit, 0)
+        records = [
             TraceRecord(
                 source=s,
-                pixels=int(pixels[i]),
-                rays=int(rays_src[i]),
+                pixels=p,
+                rays=r,
                 hits=per_source[i],
-                max_reflector_bounces=int(min(chain_max[i], max(bounce_limit, 0))),
-                mean_reflector_bounces=float(chain_sum[i] / max(pixels[i], 1)),
-                seconds=seconds * float(rays_src[i]) / total if total else 0.0,
+                max_reflector_bounces=min(c, limit),
+                mean_reflector_bounces=cs / max(p, 1),
+                seconds=seconds * r / total if total else 0.0,
             )
-            for i, s in enumerate(sources)
-        ]
+            for i, (s, p, r, c, cs) in enumerate(
+                zip(sources, pixels.tolist(), rays_src.tolist(), chain_max.tolist(),
+                    chain_sum.tolist(), strict=True)
+            )
+        ]  # fmt: skip
+        return records, total
 
 
 def _cat(parts) -> np.ndarray:
     """np.concatenate without a copy for a single part."""
     return parts[0] if len(parts) == 1 else np.concatenate(parts)
-
-
-def _bincount(parts: list[np.ndarray], weights, size: int) -> np.ndarray:
-    """np.bincount over concatenated index arrays ``parts`` (empty list: zeros)."""
-    if not parts:
-        return np.zeros(size, np.int64)
-    return np.bincount(_cat(parts), weights=weights, minlength=size)
 
 
 def unit(v: np.ndarray) -> np.ndarray:

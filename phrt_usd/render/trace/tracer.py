@@ -22,10 +22,15 @@ G-buffer), turns them into first rays, and keeps the ray counters.
 
 Coordinate spaces: every array crossing this module's API is world space, metres,
 float64 positions. Inside, everything is rel (world minus ``Scene.origin``, float64);
-Embree sees float32 rel coordinates, cast only at the Embree call. Robustness: G-buffer
-positions (possibly from a depth buffer) are first projected onto their triangle's plane
-(``HitSurfaces.snap``), then every ray origin is offset along the geometric normal on
-the side the ray leaves to (``bvh.Float32Boundary.offset``).
+Embree sees float32 rel coordinates, cast where the ray origins are made (the offset
+rule of ``bvh.Float32Boundary``, compiled in ``trace_kernels``) or at the Embree call.
+Robustness: G-buffer positions (possibly from a depth buffer) are first projected onto
+their triangle's plane (as ``HitSurfaces.snap``), then every ray origin is offset along
+the geometric normal on the side the ray leaves to (``bvh.Float32Boundary.offset``).
+
+The per-pixel and per-ray work is compiled (``trace_kernels``: first rays from pixels,
+the ``rt`` pixel rays and G-buffer rows), split over the pool from
+``PARALLEL_MIN_KERNEL_ROWS`` rows on.
 
 Limits: mirror reflections only (roughness is ignored), no refit (embreex has none: the
 animated BVH is rebuilt when it moves), shadows are hard (light size ignored).
@@ -41,11 +46,16 @@ import numpy as np
 
 from phrt_usd.model.frame import GBuffer, ReflectionResult
 from phrt_usd.model.scene import NO_HIT, CameraFrame, Lights, Scene
+from phrt_usd.render.trace import trace_kernels
 from phrt_usd.render.trace.bvh import Bvh
 from phrt_usd.render.trace.hit_surfaces import HitSurfaces
-from phrt_usd.render.trace.paths import PathTracer, refract, unit
+from phrt_usd.render.trace.paths import PathTracer, refract
 from phrt_usd.render.trace.shadow_rays import ShadowRays
 from phrt_usd.threads import DEFAULT_THREADS
+
+#: Compiled per-pixel loops over fewer rows than this run on the calling thread (below
+#: it handing chunks to the pool costs more than it saves).
+PARALLEL_MIN_KERNEL_ROWS = 16384
 
 
 class Tracer:
@@ -190,13 +200,21 @@ class Tracer:
         nearest hit deeper than ``far`` is a miss."""
         self.last_rays = []
         origin = self.bvh.boundary.origin
-        origins, dirs = camera.pixel_rays(width, height)
-        n = origins.shape[0]
-        # View depth grows by cos (dir . forward) per metre along a ray; pixel rays are
-        # in front of the camera, so cos > 0 (floored against a degenerate window).
-        cos = np.maximum(dirs @ camera.forward, 1e-6)
-        start = max(float(camera.near), 0.0) / cos
-        hits, recast = self.surfaces.intersect(origins - origin + dirs * start[:, None], dirs)
+        n = width * height
+        xs, ys = camera.pixel_plane(width, height)
+        cam = np.asarray(camera.world_from_camera, dtype=np.float64)
+        rot = np.ascontiguousarray(cam[:3, :3])
+        # A camera transform with scale or shear needs the directions normalised again.
+        renormalise = not np.allclose(rot.T @ rot, np.eye(3), rtol=0.0, atol=1e-12)
+        eye = cam[:3, 3] - origin
+        fwd = np.ascontiguousarray(camera.forward, dtype=np.float64)
+        dirs = np.empty((n, 3))
+        o32, d32 = np.empty((n, 3), np.float32), np.empty((n, 3), np.float32)
+        self._split(
+            trace_kernels.primary_rays, n, xs, ys, rot, renormalise, eye, fwd,
+            float(camera.near), out=(dirs, o32, d32),
+        )  # fmt: skip
+        hits, recast = self.surfaces.intersect(o32, d32)
         self.rays_cast["primary"] += n + len(recast)  # cut-out re-casts: primary rays too
         element = np.full(n, NO_HIT, np.int32)
         triangle = np.full(n, NO_HIT, np.int32)
@@ -204,17 +222,17 @@ class Tracer:
         position = np.zeros((n, 3))
         normal = np.zeros((n, 3), np.float32)
         albedo = np.zeros((n, 3), np.float32)
-        r = hits.ray
-        rel, _, ns, alb, _ = self.surfaces.at(hits.tri, hits.u, hits.v, dirs[r])
-        hit_depth = (rel - (camera.position - origin)) @ camera.forward
-        keep = hit_depth <= float(camera.far)  # also drops NaN depths
-        r, tri = r[keep], hits.tri[keep]
-        element[r] = self.bvh.tri_element[tri]
-        triangle[r] = tri
-        position[r] = rel[keep] + origin
-        normal[r] = ns[keep]
-        albedo[r] = alb[keep]
-        depth[r] = hit_depth[keep]
+        rows = (element, triangle, depth, position, normal, albedo)
+
+        def fill(lo: int, hi: int) -> None:  # the G-buffer rows of hits lo..hi
+            r, tri, u, v = (a[lo:hi] for a in (hits.ray, hits.tri, hits.u, hits.v))
+            rel, _, ns, alb, _ = self.surfaces.at(tri, u, v, np.take(dirs, r, axis=0))
+            trace_kernels.primary_fill(
+                r, tri, rel, ns, alb, eye, fwd, float(camera.far), origin,
+                self.bvh.tri_element, *rows,
+            )  # fmt: skip
+
+        self._split(fill, len(hits.ray), out=())
         shape = (height, width)
         return GBuffer(
             element_id=element.reshape(shape),
@@ -223,8 +241,22 @@ class Tracer:
             position=position.reshape(shape + (3,)),
             normal=normal.reshape(shape + (3,)),
             albedo=albedo.reshape(shape + (3,)),
-            view_dir=dirs.astype(np.float32).reshape(shape + (3,)),
+            view_dir=d32.reshape(shape + (3,)),
         )
+
+    def _split(self, kernel, n: int, *args, out: tuple) -> None:
+        """``kernel(*args, lo, hi, *out)`` over rows 0..n, in ``threads`` chunks on the
+        pool from PARALLEL_MIN_KERNEL_ROWS rows on (the kernels release the GIL)."""
+        if self._pool is None or n < PARALLEL_MIN_KERNEL_ROWS:
+            kernel(*args, 0, n, *out)
+            return
+        edges = np.linspace(0, n, self.threads + 1).astype(int).tolist()
+        jobs = [
+            self._pool.submit(kernel, *args, lo, hi, *out)
+            for lo, hi in zip(edges[:-1], edges[1:], strict=True)
+        ]
+        for job in jobs:
+            job.result()
 
     # ------------------------------------------------------------------ paths
 
@@ -239,9 +271,8 @@ class Tracer:
         start = time.perf_counter()
         self.last_rays = []
         sources = [int(s) for s in sources]
-        pix, src, tri, rel, ng, ns, view = self._source_pixels(gbuffer, sources, None)
-        d = unit(view - 2.0 * np.einsum("ij,ij->i", view, ns)[:, None] * ns)
-        origins = self.bvh.boundary.offset(rel, ng, d)
+        first = self._source_pixels(gbuffer, sources, None, reflect=True, surface=False)
+        pix, src, d, origins = first["pix"], first["src"], first["dir"], first["org"]
         return self._run_paths(pix, src, origins, d, sources, bounce_limit, "reflection", start)
 
     def trace_refraction(
@@ -268,9 +299,12 @@ class Tracer:
         if elements is not None:
             clear &= np.isin(elem_flat, np.asarray(elements, dtype=np.int64))
         sources = [int(e) for e in np.unique(elem_flat[clear])]
-        pix, src, tri, rel, ng_front, ns, view = self._source_pixels(gbuffer, sources, clear)
-        d = refract(view, ns, ng_front, surfaces.ior[tri_material[tri]])
-        origins = self.bvh.boundary.offset(rel, ng_front, d)
+        first = self._source_pixels(gbuffer, sources, clear, reflect=False, surface=True)
+        pix, src, tri, ng_front = first["pix"], first["src"], first["tri"], first["ng"]
+        ior = surfaces.ior[tri_material[tri]]
+        # Directions are float32 from here on (Embree's precision for them anyway).
+        d = refract(first["view"], first["ns"], ng_front, ior).astype(np.float32)
+        origins = self.bvh.boundary.offset_rays(first["rel"], ng_front, d)
         return self._run_paths(pix, src, origins, d, sources, bounce_limit, "refraction", start)
 
     def _run_paths(self, pix, src, origins, dirs, sources, bounce_limit, first_kind, start):
@@ -283,14 +317,17 @@ class Tracer:
         )  # fmt: skip
 
     def _reflector_pixels(self, element_id: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Flat indices (m,) and element ids (m,) of the pixels of ``element_id`` (H, W)
-        showing a reflector. Cached for the latest id image (a G-buffer is never
-        modified once made; the cache holds the array, so its identity stays unique)."""
+        """The pixels of ``element_id`` (H, W) showing a reflector, grouped by element:
+        flat indices (m,) int64 (row-major within an element) and offsets (E + 1,) int64,
+        element e's pixels being ``[offsets[e], offsets[e + 1])``. Cached for the latest
+        id image (a G-buffer is never modified once made; the cache holds the array, so
+        its identity stays unique)."""
         cached = self._pixel_cache
         if cached is not None and cached[0] is element_id:
             return cached[1], cached[2]
         elem = element_id.reshape(-1)
         ids = self._reflector_ids
+        n_elem = len(self._element_reflector)
         if len(ids):
             # A range test first (two cheap compares over the image), the table lookup
             # only on the pixels in the reflector id range.
@@ -298,39 +335,74 @@ class Tracer:
             cand_elem = np.take(elem, cand)
             keep = np.flatnonzero(np.take(self._element_reflector, cand_elem))
             cand, cand_elem = np.take(cand, keep), np.take(cand_elem, keep)
+            order = np.argsort(cand_elem, kind="stable")
+            cand = np.take(cand, order)
+            counts = np.bincount(cand_elem, minlength=n_elem)
         else:
-            cand = cand_elem = np.zeros(0, np.int64)
-        self._pixel_cache = (element_id, cand, cand_elem)
-        return cand, cand_elem
+            cand, counts = np.zeros(0, np.int64), np.zeros(n_elem, np.int64)
+        offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+        self._pixel_cache = (element_id, cand, offsets)
+        return cand, offsets
 
-    def _source_pixels(self, gbuffer: GBuffer, sources: list[int], mask):
-        """Pixels to start paths from: flat indices (n,), index into ``sources`` (n,),
-        triangle ids (n,), snapped rel positions (n, 3) float64, unit front-face
-        triangle normals (n, 3), unit shading normals facing the viewer (n, 3) float32,
-        unit view directions (n, 3) float32."""
+    def _source_pixels(
+        self, gbuffer: GBuffer, sources: list[int], mask, reflect: bool, surface: bool
+    ) -> dict[str, np.ndarray]:
+        """Pixels to start paths from (``trace_kernels.source_rays``), a dict of arrays:
+        pix (n,) flat indices, src (n,) index into ``sources``, tri (n,) triangle ids;
+        with ``surface`` rel (n, 3) float64 positions snapped onto their triangle, ng
+        (n, 3) float64 unit front-face triangle normals, ns (n, 3) float32 unit shading
+        normals facing the viewer, view (n, 3) float32 unit view directions; with
+        ``reflect`` dir (n, 3) float32 mirror directions and org (n, 3) float32 offset
+        origins (the arrays not asked for have no rows)."""
         # Element id → index in ``sources`` (-1: not a source); the last slot serves id -1.
         n_elem = len(self.scene.elements)
-        table = np.full(max(n_elem, max(sources, default=0) + 1) + 1, -1)
+        table = np.full(max(n_elem, max(sources, default=0) + 1) + 1, -1, np.int64)
         table[[s for s in sources if s >= 0]] = [i for i, s in enumerate(sources) if s >= 0]
         if mask is None and all(0 <= s < n_elem and self._element_reflector[s] for s in sources):
             # Reflector sources (the renderer's case): look only at the G-buffer's
-            # reflector pixels, found once per G-buffer (later rounds reuse them).
-            cand, cand_elem = self._reflector_pixels(gbuffer.element_id)
-            keep = np.flatnonzero(np.take(table, cand_elem) >= 0)
-            pix = np.take(cand, keep)
-            src = np.take(table, np.take(cand_elem, keep))
+            # reflector pixels, found once per G-buffer and grouped by element (later
+            # rounds reuse them): each source's pixels are one slice.
+            pixels, offsets = self._reflector_pixels(gbuffer.element_id)
+            unique = list(dict.fromkeys(sources))
+            counts = [int(offsets[s + 1] - offsets[s]) for s in unique]
+            cand = _cat([pixels[offsets[s] : offsets[s + 1]] for s in unique])
+            cand_elem = np.repeat(np.array(unique, np.int64), counts)
         else:
             elem = gbuffer.element_id.reshape(-1)
             chosen = np.take(table >= 0, elem)
             if mask is not None:
                 chosen &= mask
-            pix = np.flatnonzero(chosen)
-            src = np.take(table, np.take(elem, pix))
-        tri = np.take(gbuffer.triangle_id.reshape(-1), pix).astype(np.int64)
-        # Directions and normals stay float32 (Embree's precision for directions anyway).
-        view = unit(np.take(gbuffer.view_dir.reshape(-1, 3), pix, axis=0).astype(np.float32))
-        ns = unit(np.take(gbuffer.normal.reshape(-1, 3), pix, axis=0).astype(np.float32))
-        ns *= np.where(np.einsum("ij,ij->i", ns, view) > 0, -1.0, 1.0).astype(np.float32)[:, None]
-        position = np.take(gbuffer.position.reshape(-1, 3), pix, axis=0)
-        rel, ng = self.surfaces.snap(position - self.bvh.boundary.origin, tri, ns)
-        return pix, src, tri, rel, ng, ns, view
+            cand = np.flatnonzero(chosen)
+            cand_elem = np.take(elem, cand).astype(np.int64)
+        k = len(cand)
+        ks, kr = (k if surface else 0), (k if reflect else 0)
+        out = {
+            "src": np.empty(k, np.int64), "tri": np.empty(k, np.int64),
+            "rel": np.empty((ks, 3)), "ng": np.empty((ks, 3)),
+            "ns": np.empty((ks, 3), np.float32), "view": np.empty((ks, 3), np.float32),
+            "dir": np.empty((kr, 3), np.float32), "org": np.empty((kr, 3), np.float32),
+        }  # fmt: skip
+        floor, relative = self.bvh.boundary.offset_factors()
+        self._split(
+            trace_kernels.source_rays, k, cand, cand_elem, table,
+            _flat(gbuffer.triangle_id, np.int32, 1), _flat(gbuffer.position, np.float64, 3),
+            _flat(gbuffer.normal, np.float32, 3), _flat(gbuffer.view_dir, np.float32, 3),
+            self.bvh.boundary.origin, self.bvh.table.frame, floor, relative,
+            out=tuple(out.values()),
+        )  # fmt: skip
+        out["pix"] = cand
+        return out
+
+
+def _cat(parts: list[np.ndarray]) -> np.ndarray:
+    """np.concatenate without a copy for a single part (int64, empty for none)."""
+    if len(parts) == 1:
+        return parts[0]
+    return np.concatenate(parts) if parts else np.zeros(0, np.int64)
+
+
+def _flat(image: np.ndarray, dtype, channels: int) -> np.ndarray:
+    """A G-buffer image (H, W[, C]) as contiguous (H*W[, C]) of ``dtype`` (no copy when
+    it already is)."""
+    shape = (-1,) if channels == 1 else (-1, channels)
+    return np.ascontiguousarray(image, dtype=dtype).reshape(shape)
