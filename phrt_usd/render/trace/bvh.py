@@ -32,9 +32,12 @@ from embreex import rtcore as rtc
 from embreex import rtcore_scene as rtcs
 from embreex.mesh_construction import TriangleMesh
 
+from phrt_usd import kernels
 from phrt_usd.model.scene import NO_HIT, Scene
 from phrt_usd.model.surface import TriangleTable
-from phrt_usd.render.trace import trace_kernels
+
+#: The compiled trace kernels (``trace_kernels``, through ``phrt_usd.kernels``).
+trace_kernels = kernels.load("phrt_usd.render.trace.trace_kernels")
 
 #: Ray-origin offset along the geometric normal, in two parts (the larger one wins)::
 #:

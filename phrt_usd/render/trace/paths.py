@@ -40,13 +40,16 @@ import time
 
 import numpy as np
 
+from phrt_usd import kernels
 from phrt_usd.model.frame import ReflectionResult, TraceRecord
 from phrt_usd.model.scene import Lights
 from phrt_usd.render import shading
-from phrt_usd.render.trace import trace_kernels
 from phrt_usd.render.trace.bvh import Bvh
 from phrt_usd.render.trace.hit_surfaces import HitSurfaces
 from phrt_usd.render.trace.shadow_rays import ShadowRays
+
+#: The compiled trace kernels (``trace_kernels``, through ``phrt_usd.kernels``).
+trace_kernels = kernels.load("phrt_usd.render.trace.trace_kernels")
 
 
 class PathTracer:
