@@ -18,10 +18,10 @@ one of two compiled forms of that same source:
 Both are compiled by numba from the same functions with the same options: the GIL is
 released while a kernel runs (callers split work over their own thread pools; numba's
 ``parallel`` is never used), and division follows numpy's rules (``error_model``). The
-build exports each kernel with the one signature its ``warm_up`` compiled, so a call
-with other argument types is a TypeError in the ahead-of-time form: callers pass
-exactly the dtypes and layouts their docstrings give (``tests/test_kernels.py`` checks
-both forms agree).
+build exports each kernel for the signatures its ``warm_up`` compiled, and a call whose
+arrays match none of them runs the JIT kernel instead (``_Guarded``; the test suite
+fails on any such call): callers pass the dtypes and layouts their docstrings give
+(``tests/test_kernels.py`` checks both forms agree).
 
 A base module: it names kernel modules by string and imports them only when asked, so
 it sits below every phase.
@@ -111,32 +111,34 @@ class _Guarded:
 
     The compiled wrapper trusts an array's memory to be of the dtype, rank and layout it
     was built for (an int32 array where int64 is expected reads past the buffer), so
-    every array argument is checked against the build's signature first; on a mismatch
-    the call goes to the JIT kernel, which compiles for those types, and the mismatch is
-    noted in ``FALLBACKS`` (the test suite fails on any). Scalars are converted by the
-    wrapper itself. The check costs ~0.2 us an argument."""
+    every array argument is checked against the build's signatures first (a kernel the
+    warm-up compiled for several argument types has one build of each, tried in order);
+    when none matches, the call goes to the JIT kernel, which compiles for those types,
+    and the mismatch is noted in ``FALLBACKS`` (the test suite fails on any). Scalars
+    are converted by the wrapper itself. The check costs ~0.2 us an argument."""
 
-    def __init__(self, function, module_name: str, name: str, arrays: list) -> None:
-        self._function = function
+    def __init__(self, variants: list, module_name: str, name: str) -> None:
         self._module_name, self.__name__ = module_name, name
-        #: per argument None (a scalar) or (numpy dtype, ndim, must be C-contiguous)
-        self._arrays = [None if a is None else (np.dtype(a[0]), a[1], a[2] == "C")
-                        for a in arrays]  # fmt: skip
+        #: (function, per argument None (a scalar) or (dtype, ndim, C-contiguous)) each
+        self._variants = [
+            (function, [None if a is None else (np.dtype(a[0]), a[1], a[2] == "C")
+                        for a in arrays])
+            for function, arrays in variants
+        ]  # fmt: skip
 
     def __call__(self, *args):
-        if len(args) == len(self._arrays):
-            for value, expected in zip(args, self._arrays, strict=True):
-                if expected is None:
-                    continue
-                if not (
+        for function, arrays in self._variants:
+            if len(args) == len(arrays) and all(
+                expected is None
+                or (
                     type(value) is np.ndarray
                     and value.dtype == expected[0]
                     and value.ndim == expected[1]
                     and (value.flags.c_contiguous or not expected[2])
-                ):
-                    break
-            else:
-                return self._function(*args)
+                )
+                for value, expected in zip(args, arrays, strict=True)
+            ):
+                return function(*args)
         FALLBACKS.add(f"{self._module_name}.{self.__name__}")
         jit = getattr(importlib.import_module(self._module_name), self.__name__)
         return jit(*args)
@@ -163,8 +165,13 @@ def load(module_name: str):
         names = {k[len(prefix):]: v for k, v in signatures.items() if k.startswith(prefix)}
         if names:
             found = SimpleNamespace(**{
-                n: _Guarded(getattr(module, prefix + n), module_name, n, arrays)
-                for n, arrays in names.items()
+                n: _Guarded(
+                    [(getattr(module, f"{prefix}{n}__{k}"), arrays)
+                     for k, arrays in enumerate(variants)],
+                    module_name,
+                    n,
+                )
+                for n, variants in names.items()
             })  # fmt: skip
             found.compiled = "aot"
     if found is None:
@@ -202,8 +209,8 @@ def _kernels(module: ModuleType) -> dict[str, object]:
 def build_aot() -> Path:
     """Build the ahead-of-time module of the current sources into AOT_DIR (removing
     older builds) and return its path; nothing to do when it exists. Needs numba's
-    ``pycc`` (setuptools and a C compiler). Each kernel is exported with the single
-    signature its module's ``warm_up`` compiled."""
+    ``pycc`` (setuptools and a C compiler). Each kernel is exported once for each
+    signature its module's ``warm_up`` compiled (``name__0``, ``name__1``, ...)."""
     target = _aot_file()
     if target.is_file() and target.with_name(_aot_name() + ".json").is_file():
         return target
@@ -215,24 +222,20 @@ def build_aot() -> Path:
     cc = CC(_aot_name())
     cc.output_dir = str(AOT_DIR)
     cc.verbose = False
-    signatures = {}  # export name → per argument None or [dtype, ndim, layout]
+    signatures = {}  # export name → per variant, per argument None or [dtype, ndim, layout]
     for module_name in KERNEL_MODULES:
         module = importlib.import_module(module_name)
         for name, dispatcher in _kernels(module).items():
-            if len(dispatcher.signatures) != 1:
-                raise RuntimeError(
-                    f"{module_name}.{name} was compiled for {len(dispatcher.signatures)} "
-                    "signatures; its callers must pass one set of argument types"
-                )
-            (args,) = dispatcher.signatures
-            result = dispatcher.overloads[args].signature.return_type
             export = _export_name(module_name, name)
-            cc.export(export, result(*args))(dispatcher.py_func)
-            signatures[export] = [
-                [str(np.dtype(str(a.dtype))), a.ndim, a.layout]
-                if isinstance(a, types.Array) else None
-                for a in args
-            ]  # fmt: skip
+            signatures[export] = []
+            for k, args in enumerate(dispatcher.signatures):
+                result = dispatcher.overloads[args].signature.return_type
+                cc.export(f"{export}__{k}", result(*args))(dispatcher.py_func)
+                signatures[export].append([
+                    [str(np.dtype(str(a.dtype))), a.ndim, a.layout]
+                    if isinstance(a, types.Array) else None
+                    for a in args
+                ])  # fmt: skip
     AOT_DIR.mkdir(exist_ok=True)
     # pycc compiles with numba's default flags; the kernels' own options (GIL released,
     # numpy's division rules) are set on them for this build.
