@@ -229,6 +229,12 @@ def build_aot() -> Path:
     for module_name in KERNEL_MODULES:
         module = importlib.import_module(module_name)
         for name, dispatcher in _kernels(module).items():
+            options = {k: dispatcher.targetoptions.get(k) for k in ("nogil", "error_model")}
+            if options != {k: KERNEL_OPTIONS[k] for k in options}:
+                raise RuntimeError(
+                    f"{module_name}.{name} is compiled with {options}: the build applies "
+                    f"KERNEL_OPTIONS to every kernel, so its JIT form must use them too"
+                )
             export = _export_name(module_name, name)
             signatures[export] = []
             for k, args in enumerate(dispatcher.signatures):
