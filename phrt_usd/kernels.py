@@ -119,29 +119,35 @@ class _Guarded:
 
     def __init__(self, variants: list, module_name: str, name: str) -> None:
         self._module_name, self.__name__ = module_name, name
-        #: (function, per argument None (a scalar) or (dtype, ndim, C-contiguous)) each
+        #: (function, per argument "scalar", "none" or (dtype, ndim, C-contiguous)) each
         self._variants = [
-            (function, [None if a is None else (np.dtype(a[0]), a[1], a[2] == "C")
+            (function, [a if isinstance(a, str) else (np.dtype(a[0]), a[1], a[2] == "C")
                         for a in arrays])
             for function, arrays in variants
         ]  # fmt: skip
 
     def __call__(self, *args):
         for function, arrays in self._variants:
-            if len(args) == len(arrays) and all(
-                expected is None
-                or (
-                    type(value) is np.ndarray
-                    and value.dtype == expected[0]
-                    and value.ndim == expected[1]
-                    and (value.flags.c_contiguous or not expected[2])
-                )
-                for value, expected in zip(args, arrays, strict=True)
-            ):
+            if len(args) == len(arrays) and all(map(_matches, args, arrays)):
                 return function(*args)
         FALLBACKS.add(f"{self._module_name}.{self.__name__}")
         jit = getattr(importlib.import_module(self._module_name), self.__name__)
         return jit(*args)
+
+
+def _matches(value, expected) -> bool:
+    """``value`` fits one argument of a build: an array of its dtype, rank and layout,
+    None where it was built for None (an optional array left out), else a scalar."""
+    if expected == "scalar":
+        return value is not None and type(value) is not np.ndarray
+    if expected == "none":
+        return value is None
+    return (
+        type(value) is np.ndarray
+        and value.dtype == expected[0]
+        and value.ndim == expected[1]
+        and (value.flags.c_contiguous or not expected[2])
+    )
 
 
 #: Kernels called with argument types their ahead-of-time build was not made for
@@ -222,10 +228,16 @@ def build_aot() -> Path:
     cc = CC(_aot_name())
     cc.output_dir = str(AOT_DIR)
     cc.verbose = False
-    signatures = {}  # export name → per variant, per argument None or [dtype, ndim, layout]
+    signatures = {}  # export name → per variant, per argument "scalar", "none" or an array
     for module_name in KERNEL_MODULES:
         module = importlib.import_module(module_name)
         for name, dispatcher in _kernels(module).items():
+            options = {k: dispatcher.targetoptions.get(k) for k in ("nogil", "error_model")}
+            if options != {k: KERNEL_OPTIONS[k] for k in options}:
+                raise RuntimeError(
+                    f"{module_name}.{name} is compiled with {options}: the build applies "
+                    f"KERNEL_OPTIONS to every kernel, so its JIT form must use them too"
+                )
             export = _export_name(module_name, name)
             signatures[export] = []
             for k, args in enumerate(dispatcher.signatures):
@@ -233,7 +245,8 @@ def build_aot() -> Path:
                 cc.export(f"{export}__{k}", result(*args))(dispatcher.py_func)
                 signatures[export].append([
                     [str(np.dtype(str(a.dtype))), a.ndim, a.layout]
-                    if isinstance(a, types.Array) else None
+                    if isinstance(a, types.Array)
+                    else "none" if isinstance(a, types.NoneType) else "scalar"
                     for a in args
                 ])  # fmt: skip
     AOT_DIR.mkdir(exist_ok=True)

@@ -65,7 +65,6 @@ DERIVE_BLOCKS_PER_THREAD = 4
 #: The kernels' empty arguments: no pixel list, no id map (id k of the id pass is
 #: triangle k - 1), no id image.
 _NONE = np.zeros(0, dtype=np.int64)
-_NO_MAP = _NONE
 _NO_IDS = np.zeros(0, dtype=np.uint32)
 
 
@@ -104,7 +103,7 @@ def perspective_matrix(
 class _Outputs:
     """The G-buffer arrays being filled, flat over pixels (H*W rows); see ``GBuffer``.
     bary : (H*W, 3) float32 each covered pixel's barycentric weights, or (0, 3) when no
-    surface input needs them (``GBufferPass._needs_weights``)."""
+    surface input needs them (``GBufferPass.upload``)."""
 
     triangle_id: np.ndarray
     element_id: np.ndarray
@@ -153,6 +152,11 @@ class GBufferPass:
         #: The cut-out rule of the uploaded triangles (``surface.Cutouts``).
         self.cutouts = surface.Cutouts(scene.materials, geo.tri_material, geo.corner_uv)
         self.normal_maps = surface.NormalMaps(scene.materials, geo.tri_material, geo.corner_uv)
+        #: Some surface input is looked up per pixel after the kernel (textures, normal
+        #: maps, cut-out holes): the kernel then keeps each pixel's barycentric weights.
+        self._needs_weights = bool(
+            self._tri_textured.any() or self.normal_maps.any or self.cutouts.any
+        )
         if self.cutouts.any and self._layers is None:
             self._layers = IdLayers(self._ctx, self.width, self.height)
 
@@ -259,7 +263,7 @@ class GBufferPass:
                 "field of view"
             )
         clip = self._clip_range(camera, eye_rel) if self._ctx.mesh_node is not None else None
-        tri_map = _NO_MAP  # id k is triangle k - 1
+        tri_map = _NONE  # no id map: id k is triangle k - 1
         if clip is not None:
             near, far = clip
             pose = cam.copy()
@@ -291,7 +295,7 @@ class GBufferPass:
             normal=np.empty((n, 3), dtype=np.float32),
             albedo=np.empty((n, 3), dtype=np.float32),
             view_dir=np.empty((n, 3), dtype=np.float32),
-            bary=np.empty((n if self._needs_weights() else 0, 3), dtype=np.float32),
+            bary=np.empty((n if self._needs_weights else 0, 3), dtype=np.float32),
         )
         if self.cutouts.any:
             out.hole = np.zeros(n, dtype=bool)
@@ -303,7 +307,7 @@ class GBufferPass:
             *self._pixel_grid(camera), rot, renormalise, eye_rel, float(near), float(far), fwd,
         )  # fmt: skip
         self._derive_frame(np.ascontiguousarray(ids, dtype=np.uint32), tri_map, view, out)
-        if self._needs_weights():
+        if self._needs_weights:
             covered = np.flatnonzero(out.triangle_id >= 0)
             self._surface_inputs(covered, out)
         if clip is not None and self.cutouts.any:
@@ -318,11 +322,6 @@ class GBufferPass:
             albedo=out.albedo.reshape(h, w, 3),
             view_dir=out.view_dir.reshape(h, w, 3),
         )
-
-    def _needs_weights(self) -> bool:
-        """Some surface input is looked up per pixel after the kernel (textures, normal
-        maps, cut-out holes): the kernel then keeps each pixel's barycentric weights."""
-        return bool(self._tri_textured.any() or self.normal_maps.any or self.cutouts.any)
 
     def _tables(self) -> tuple:
         """The kernels' per-triangle arguments: plane, corners, frame, tri_element."""
