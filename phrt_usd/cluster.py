@@ -125,6 +125,9 @@ class RenderChunkResult:
     frames: list[FrameStats]
     worker_pid: int
     warnings: list[str] = field(default_factory=list)
+    #: How the worker's frames ran (``render_job.runtime_settings``: threads, gl,
+    #: llvmpipe_threads, kernels).
+    runtime: dict = field(default_factory=dict)
 
 
 def sweep_chunk(chunk: Chunk, spec: SweepSpec) -> SweepChunkResult:
@@ -146,7 +149,7 @@ def render_chunk(chunk: Chunk, job: RenderJob) -> RenderChunkResult:
     to ``job.out_dir`` when ``job.write_images``."""
     from phrt_usd.render.renderer import FrameRenderer
     from phrt_usd.run.frames import parse_frames
-    from phrt_usd.run.render_job import prepare_job, render_frame
+    from phrt_usd.run.render_job import prepare_job, render_frame, runtime_settings
     from phrt_usd.usd.stage import open_stage
 
     scene = open_stage(chunk.stage, camera=job.camera, controls=job.controls, settings=job.settings)
@@ -163,9 +166,10 @@ def render_chunk(chunk: Chunk, job: RenderJob) -> RenderChunkResult:
                 renderer.render(times[i])  # warm-up: the policy learns, nothing is kept
             else:
                 frames.append(render_frame(renderer, times[i], out, images))
+        runtime = runtime_settings(renderer)
     finally:
         renderer.close()
-    return RenderChunkResult(chunk, frames, os.getpid(), scene.warnings[known:])
+    return RenderChunkResult(chunk, frames, os.getpid(), scene.warnings[known:], runtime)
 
 
 class PhrtWorkerSetup(WorkerPlugin):
@@ -498,8 +502,12 @@ def run_render_on_cluster(
         _remove_stale_temporaries(out)
     passes = sorted({p for s in frames for p in s.passes})
     ordered = sorted(frames, key=lambda s: s.time)
+    # How the frames ran, as a one-process render reports it: the first chunk's worker
+    # (every worker runs the same options).
+    runtime = results[chunks[0].index].runtime if chunks else {}
     summary = summary_of(
-        RunRecord(out, layer_path, ordered, passes, images if job.write_images else None)
+        RunRecord(out, layer_path, ordered, passes, images if job.write_images else None,
+                  runtime=runtime)  # fmt: skip
     )
     summary["chunk_pids"] = [results[c.index].worker_pid for c in chunks]
     # Warnings found while rendering, once each, in chunk order (``render_warnings``).

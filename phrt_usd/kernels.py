@@ -34,12 +34,16 @@ import importlib
 import importlib.machinery
 import importlib.util
 import json
+import shutil
 import sys
+import tempfile
 import time
 from pathlib import Path
 from types import ModuleType, SimpleNamespace
 
 import numpy as np
+
+from phrt_usd.atomic import write_bytes_atomic, write_text_atomic
 
 #: Modules holding numba kernels, each with a ``warm_up()``.
 KERNEL_MODULES = (
@@ -225,8 +229,12 @@ def build_aot() -> Path:
     from numba.core import types
     from numba.pycc import CC
 
+    AOT_DIR.mkdir(exist_ok=True)
+    # Built in a folder of its own, then published with the atomic writer: a render
+    # starting meanwhile, or a second build, never loads a half-written module.
+    building = Path(tempfile.mkdtemp(prefix=".build-", dir=AOT_DIR))
     cc = CC(_aot_name())
-    cc.output_dir = str(AOT_DIR)
+    cc.output_dir = str(building)
     cc.verbose = False
     signatures = {}  # export name → per variant, per argument "scalar", "none" or an array
     for module_name in KERNEL_MODULES:
@@ -249,7 +257,6 @@ def build_aot() -> Path:
                     else "none" if isinstance(a, types.NoneType) else "scalar"
                     for a in args
                 ])  # fmt: skip
-    AOT_DIR.mkdir(exist_ok=True)
     # pycc compiles with numba's default flags; the kernels' own options (GIL released,
     # numpy's division rules) are set on them for this build.
     original = pycc_compiler.Flags
@@ -263,10 +270,12 @@ def build_aot() -> Path:
     pycc_compiler.Flags = KernelFlags
     try:
         cc.compile()
+        sidecar = target.with_name(_aot_name() + ".json")
+        write_text_atomic(sidecar, json.dumps(signatures, indent=1))
+        write_bytes_atomic(target, (building / target.name).read_bytes())
     finally:
         pycc_compiler.Flags = original
-    sidecar = target.with_name(_aot_name() + ".json")
-    sidecar.write_text(json.dumps(signatures, indent=1))
+        shutil.rmtree(building, ignore_errors=True)
     for old in AOT_DIR.glob("phrt_kernels_*"):
         if old not in (target, sidecar):
             old.unlink()

@@ -159,7 +159,12 @@ def test_two_worker_cluster_matches_single_process(gallery, tmp_path):
         summary = run_sweep_on_cluster(
             _sweep_spec(gallery, multi / "sweep"), client, chunk_frames=4
         )
-        run_render_on_cluster(_render_job(gallery, multi / "render"), client, chunk_frames=6)
+        rendered = run_render_on_cluster(
+            _render_job(gallery, multi / "render"), client, chunk_frames=6
+        )
+    # How the workers ran, as a one-process render reports it.
+    assert rendered["kernels"] in ("aot", "jit") and rendered["gl"] in ("egl", "osmesa")
+    assert rendered["threads"] >= 1
     assert summary["rows"] == 12 * 5  # raster, heu1, heu2, all, rt
     assert len(set(summary["chunk_pids"])) == 2  # both workers took part
     assert _rows_without_timings(multi / "sweep" / "sweep.csv") == _rows_without_timings(

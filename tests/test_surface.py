@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from phrt_usd.model import surface
+from phrt_usd.model import surface, surface_kernels
 
 #: float32 ulp at 1.0.
 EPS32 = float(np.finfo(np.float32).eps)
@@ -37,15 +37,20 @@ def _table(normals=CORNER_NORMALS, albedo=CORNER_ALBEDO) -> surface.TriangleTabl
 
 
 def _shading_normal(table, weights, incoming) -> np.ndarray:
-    """The rule end to end for one point: interpolate, then orient."""
-    tri = np.zeros(len(weights), np.int64)
-    frame = np.take(table.frame, tri, axis=0)
-    facing = np.einsum("ij,ij->i", frame[:, 3], incoming)
-    corners = np.take(table.corners, tri, axis=0)[:, :, :3]
-    normals = surface.interpolate(corners, weights)
-    return surface.orient_shading_normals(
-        normals, surface.viewer_side(facing), incoming, table, tri
-    )
+    """The rule end to end for points on triangle 0 at ``weights`` (m, 3) seen along
+    ``incoming`` (m, 3): the compiled hit geometry (``surface_kernels.hit_geometry``,
+    the rule of raster and trace alike) from Embree-style barycentrics."""
+    m = len(weights)
+    tri = np.zeros(m, np.int64)
+    u = np.ascontiguousarray(weights[:, 1], np.float32)
+    v = np.ascontiguousarray(weights[:, 2], np.float32)
+    pos, ng = np.empty((m, 3)), np.empty((m, 3))
+    ns = np.empty((m, 3), np.float32)
+    surface_kernels.hit_geometry(
+        tri, u, v, np.ascontiguousarray(incoming, np.float64), table.frame, table.corners,
+        pos, ng, ns,
+    )  # fmt: skip
+    return ns
 
 
 def test_table_frame_and_plane_describe_the_triangle():

@@ -1,8 +1,8 @@
 """The compiled surface rule (``model.surface_kernels``) against its numpy reference.
 
 The reference is the numpy arithmetic the kernels replaced (``model.surface``'s
-``interpolate``, ``viewer_side``, ``orient_shading_normals``, ``positions`` and the
-G-buffer's ray-plane derivation, written out below as it stood). Both use the same
+``interpolate`` and ``positions``, the side rule in ``tests/surface_reference.py`` and
+the G-buffer's ray-plane derivation, written out below as it stood). Both use the same
 operations in the same precision; only the order of a sum's terms may differ, so:
 
 * float64 results (positions, depths) agree to ``REL64`` relative to the scene's reach;
@@ -16,6 +16,7 @@ operations in the same precision; only the order of a sum's terms may differ, so
 from __future__ import annotations
 
 import numpy as np
+import surface_reference as reference
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -52,11 +53,11 @@ def _reference_hits(table, tri, u, v, incoming):
     """The tracer's numpy hit geometry as it stood (``HitSurfaces.geometry``)."""
     g = np.take(table.frame, tri, axis=0)
     pos = surface.positions(g, u, v)
-    side = surface.viewer_side(np.einsum("ij,ij->i", g[:, 3], incoming))
+    side = reference.viewer_side(np.einsum("ij,ij->i", g[:, 3], incoming))
     ng = g[:, 3] * side[:, None]
     corners = np.take(table.corners, tri, axis=0)
     ns = surface.interpolate(corners[:, :, :3], surface.weights_from_uv(u, v))
-    ns = surface.orient_shading_normals(ns, side, incoming, table, tri)
+    ns = reference.orient_shading_normals(ns, side, incoming, table, tri)
     albedo = surface.interpolate(corners[:, :, 3:], surface.weights_from_uv(u, v))
     return pos, ng, ns, albedo
 
@@ -134,7 +135,7 @@ def _reference_derive(table, tid, d, eye, near, far, fwd):
     b = np.stack([np.clip(1 - bv - bw, 0, 1), np.clip(bv, 0, 1), np.clip(bw, 0, 1)], axis=1)
     b = (b / np.maximum(b.sum(axis=1), 1e-12)[:, None]).astype(np.float32)
     values = surface.interpolate(np.take(table.corners, tid, axis=0), b)
-    n = surface.orient_shading_normals(values[:, :3], surface.viewer_side(den), d, table, tid)
+    n = reference.orient_shading_normals(values[:, :3], reference.viewer_side(den), d, table, tid)
     return p, t * (d @ fwd), b, n, values[:, 3:]
 
 

@@ -15,11 +15,14 @@ Spaces and shapes: "rel" is world metres minus ``Scene.origin``, float64. T tria
 m points. Barycentric weights are (m, 3) float32, the weights of corners 0, 1, 2 (sum 1);
 Embree's (u, v) are the weights of corners 1 and 2 (``weights_from_uv``).
 
-The shading-normal side rule (``orient_shading_normals``): the geometric normal is
-turned to face the viewer (against the incoming ray); the interpolated shading normal is
-flipped to that same side of the triangle; where it then still faces along the ray (a
-smooth normal bent past the silhouette) or is degenerate (shorter than
-``MIN_NORMAL_LENGTH``, or NaN) the geometric normal replaces it.
+The shading-normal side rule: the geometric normal is turned to face the viewer
+(against the incoming ray); the interpolated shading normal is flipped to that same side
+of the triangle; where it then still faces along the ray (a smooth normal bent past the
+silhouette) or is degenerate (shorter than ``MIN_NORMAL_LENGTH``, or NaN) the geometric
+normal replaces it. The per-point loops of the rule, the G-buffer's derivation and the
+tracer's hit geometry (position, side, interpolated normal and albedo) are compiled in
+``model.surface_kernels``; what follows them per point (normal maps, textures,
+emission, cut-outs) is here.
 
 Plain numpy: no USD, OpenGL or Embree here.
 """
@@ -137,29 +140,6 @@ def positions(frame: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
     """(m, 3) float64 rel points v0 + u e1 + v e2 of gathered ``TriangleTable.frame``
     rows (m, 4, 3) at barycentrics u, v (m,)."""
     return frame[:, 0] + u[:, None] * frame[:, 1] + v[:, None] * frame[:, 2]
-
-
-def viewer_side(facing: np.ndarray) -> np.ndarray:
-    """(m,) float64: -1 where the viewer sees a triangle's back face, else +1, from
-    ``facing`` (m,) = front-face normal · incoming ray direction as the caller's hit
-    computed it (> 0: the ray runs along the normal, so the back face is seen)."""
-    return np.where(facing > 0.0, -1.0, 1.0)
-
-
-def orient_shading_normals(normals, side, incoming, table: TriangleTable, tri) -> np.ndarray:
-    """The side rule (module docstring), in place on ``normals`` (m, 3) float32, the
-    interpolated corner normals of triangles ``tri`` (m,): returns them unit and facing
-    the viewer. side : (m,) ``viewer_side``; incoming : (m, 3) unit ray directions."""
-    normals *= side.astype(np.float32)[:, None]
-    length = np.sqrt(np.einsum("ij,ij->i", normals, normals))
-    # ``~(length >= ...)`` also catches a NaN interpolated normal.
-    bad = ~(length >= MIN_NORMAL_LENGTH) | (np.einsum("ij,ij->i", normals, incoming) >= 0.0)
-    normals /= np.maximum(length, MIN_NORMAL_LENGTH)[:, None]
-    if bad.any():
-        rows = np.flatnonzero(bad)
-        front = np.take(table.frame, np.take(tri, rows), axis=0)[:, 3]
-        normals[rows] = front * side[rows][:, None]
-    return normals
 
 
 class NormalMaps:
