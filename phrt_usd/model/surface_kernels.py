@@ -64,9 +64,9 @@ def _weighted(w0, w1, w2, a0, a1, a2):
 
 @njit(**_HELPER)
 def _orient(nx, ny, nz, side, dx, dy, dz, fx, fy, fz):
-    """The side rule (``model.surface``'s docstring) for one point: the
-    interpolated corner normal (nx, ny, nz) float32 turned to the viewer's ``side``
-    (+1 / -1: -1 where the ray runs along the front normal) and made unit; where it is degenerate (shorter
+    """The side rule (``model.surface``'s docstring) for one point: the interpolated
+    corner normal (nx, ny, nz) float32 turned to the viewer's ``side`` (+1, or -1 where
+    the ray runs along the front normal) and made unit; where it is degenerate (shorter
     than MIN_NORMAL_LENGTH, or NaN) or still faces along the unit incoming ray (dx, dy,
     dz) float64, the triangle's unit front normal (fx, fy, fz) times ``side``. Returns
     three float32."""
