@@ -174,7 +174,7 @@ class NormalMaps:
 
     def apply(self, normals, tri, weights, incoming, table: TriangleTable) -> np.ndarray:
         """In place on ``normals`` (m, 3) float32, unit and facing the viewer (after
-        ``orient_shading_normals``) at points on triangles ``tri`` (m,) with weights
+        the side rule, ``surface_kernels``) at points on triangles ``tri`` (m,) with weights
         (m, 3), seen along unit ``incoming`` (m, 3); returns them."""
         if not self.any or len(tri) == 0:
             return normals

@@ -10,9 +10,9 @@ only thread setting; numba's ``parallel`` is not used, its default threading lay
 not safe for concurrent callers).
 
 One rule, one implementation: the side rule of every shading normal (raster and trace)
-is ``_orient`` below, the interpolation ``_interpolate3``. ``model.surface`` keeps the
-numpy forms of the same arithmetic (``interpolate``, ``orient_shading_normals``) for the
-rest of its API (normal maps, textures) and as the reference the tests compare against:
+is ``_orient`` below, the corner interpolation ``_weighted``. ``model.surface`` keeps
+the numpy interpolation for the rest of its API (normal maps, textures); the numpy form
+of the side rule these replaced is the tests' reference (``tests/surface_reference.py``):
 the same operations in the same order and precision (float64 planes and positions,
 float32 weights and corner data), so results agree to rounding of a sum's order.
 
@@ -64,9 +64,9 @@ def _weighted(w0, w1, w2, a0, a1, a2):
 
 @njit(**_HELPER)
 def _orient(nx, ny, nz, side, dx, dy, dz, fx, fy, fz):
-    """The side rule (``surface.orient_shading_normals``) for one point: the
-    interpolated corner normal (nx, ny, nz) float32 turned to the viewer's ``side``
-    (+1 / -1, ``surface.viewer_side``) and made unit; where it is degenerate (shorter
+    """The side rule (``model.surface``'s docstring) for one point: the interpolated
+    corner normal (nx, ny, nz) float32 turned to the viewer's ``side`` (+1, or -1 where
+    the ray runs along the front normal) and made unit; where it is degenerate (shorter
     than MIN_NORMAL_LENGTH, or NaN) or still faces along the unit incoming ray (dx, dy,
     dz) float64, the triangle's unit front normal (fx, fy, fz) times ``side``. Returns
     three float32."""
@@ -156,7 +156,7 @@ def derive(
             den = -floor if den < 0.0 else floor
         if den == 0.0:
             den = 1.0  # zero-area triangle: dist is clamped just below
-        side = -1.0 if den > 0.0 else 1.0  # surface.viewer_side of n_g · d
+        side = -1.0 if den > 0.0 else 1.0  # the back face is seen where n_g · d > 0
         dist = (plane[t, 11] - (ngx * eye[0] + ngy * eye[1] + ngz * eye[2])) / den
         dist = min(max(dist, near), far)
         px, py, pz = eye[0] + dist * dx, eye[1] + dist * dy, eye[2] + dist * dz
