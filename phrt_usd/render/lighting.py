@@ -62,6 +62,7 @@ def shade_gbuffer(
 
     pos = take(gb.position)
     nrm = take(gb.normal)
+    view = take(gb.view_dir)
     lights = scene.lights
     n_lights = len(lights.distant) + len(lights.local)
     shadow_pass = None
@@ -76,8 +77,7 @@ def shade_gbuffer(
             # Lit pairs shaded in the GPU lookup pass; the rest comes back as
             # DistantLight visibility and the LocalLight pairs the maps could not
             # decide.
-            to_eye = -take(gb.view_dir)
-            terms = _settled(rasterizer.map_light_terms(pos, nrm, to_eye), tracer)
+            terms = _settled(rasterizer.map_light_terms(pos, nrm, np.negative(view)), tracer)
             visibility = terms.distant_visibility
             local_pairs, lit_sums = terms.local_pairs, terms.lit_sums
         else:  # all lights, distant then local (the order shade_local expects); also
@@ -91,7 +91,7 @@ def shade_gbuffer(
         pos,
         nrm,
         take(gb.albedo),
-        take(gb.view_dir),
+        view,
         emissive,
         lights,
         visibility,

@@ -110,9 +110,19 @@ def pair_directions(
     ``MIN_LIGHT_DISTANCE``) from ``positions[point]`` ((n, 3) world metres) to
     ``lights.local[light]``, for m pairs."""
     centres = np.array([li.position for li in lights.local], dtype=np.float64).reshape(-1, 3)
-    to_light = np.take(centres, light, axis=0) - np.take(positions, point, axis=0)
-    dist = np.maximum(np.sqrt(np.einsum("ij,ij->i", to_light, to_light)), MIN_LIGHT_DISTANCE)
-    return (to_light / dist[:, None]).astype(np.float32), dist
+    m = len(point)
+    l_dir, dist = np.empty((m, 3), np.float32), np.empty(m)
+    if m:
+        _kernels().pair_directions(
+            centres,
+            np.ascontiguousarray(positions, np.float64),
+            np.asarray(point, np.int64),
+            np.asarray(light, np.int64),
+            MIN_LIGHT_DISTANCE,
+            l_dir,
+            dist,
+        )
+    return l_dir, dist
 
 
 def _dome_colour(dome: DomeLight) -> np.ndarray:
