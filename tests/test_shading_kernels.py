@@ -243,3 +243,15 @@ def test_pair_directions_kernel_matches_numpy_reference():
         (0, 3),
         (0,),
     ]
+
+
+def test_threaded_environment_matches_one_chunk(monkeypatch):
+    """Large environment batches are split over the shading pool: same texels."""
+    rng = np.random.default_rng(12)
+    tex = rng.uniform(0.0, 2.0, (32, 64, 3)).astype(np.float32)
+    lights = Lights(dome=DomeLight(color=np.ones(3), texture=tex))
+    dirs = rng.normal(size=(3 * shading.SHADE_MIN_THREADED_POINTS + 7, 3))
+    monkeypatch.setattr(shading, "SHADE_THREADS", 3)
+    threaded = shading.environment_radiance(lights, dirs)
+    monkeypatch.setattr(shading, "SHADE_THREADS", 1)
+    np.testing.assert_array_equal(threaded, shading.environment_radiance(lights, dirs))
