@@ -49,9 +49,8 @@ def shade_gbuffer(
     """
     h, w = gb.shape
     covered = gb.covered.reshape(-1)
-    local = np.zeros((h * w, 3), dtype=np.float32)
     if not covered.any():
-        return local.reshape(h, w, 3), None
+        return np.zeros((h, w, 3), dtype=np.float32), None
     # Covered pixels as flat indices (enclosed stages cover every pixel: then plain
     # reshapes, no gather at all).
     pix = slice(None) if covered.all() else np.flatnonzero(covered)
@@ -87,7 +86,7 @@ def shade_gbuffer(
         shadow_pass = "shadow_map" if tracer is None else "shadow_map+rays"
     tri = take(gb.triangle_id)
     emissive = surface.emissive_at(scene, tri, pos)  # textured emissiveColor too
-    local[pix] = shade_local(
+    shaded = shade_local(
         pos,
         nrm,
         take(gb.albedo),
@@ -98,6 +97,10 @@ def shade_gbuffer(
         local_pairs=local_pairs,
         lit_sums=lit_sums,
     )
+    if isinstance(pix, slice):  # every pixel covered: the shading is the image
+        return shaded.reshape(h, w, 3), shadow_pass
+    local = np.zeros((h * w, 3), dtype=np.float32)
+    local[pix] = shaded
     return local.reshape(h, w, 3), shadow_pass
 
 
