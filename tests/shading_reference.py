@@ -319,3 +319,15 @@ def base_image(
         env = environment_radiance(scene.lights, reflect(np.take(view, mirror, axis=0), normals))
         flat[mirror] = (1.0 - f) * np.take(flat, mirror, axis=0) + f * env
     return image
+
+
+def pair_directions(
+    lights: Lights, positions: np.ndarray, point: np.ndarray, light: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Unit directions (m, 3) float32 and distances (m,) float64 metres (clamped to
+    ``MIN_LIGHT_DISTANCE``) from ``positions[point]`` ((n, 3) world metres) to
+    ``lights.local[light]``, for m pairs."""
+    centres = np.array([li.position for li in lights.local], dtype=np.float64).reshape(-1, 3)
+    to_light = np.take(centres, light, axis=0) - np.take(positions, point, axis=0)
+    dist = np.maximum(np.sqrt(np.einsum("ij,ij->i", to_light, to_light)), MIN_LIGHT_DISTANCE)
+    return (to_light / dist[:, None]).astype(np.float32), dist

@@ -222,3 +222,36 @@ def test_base_image_kernel_matches_numpy_reference(dome):
     got = compositing.base_image(gb, scene, local, f)
     assert got.dtype == np.float32 and got.shape == (h, w, 3)
     np.testing.assert_allclose(got, ref.base_image(gb, scene, local, f), rtol=RTOL, atol=ATOL)
+
+
+def test_pair_directions_kernel_matches_numpy_reference():
+    rng = np.random.default_rng(8)
+    pos, *_ = _points(rng, 300, 5.0)
+    lights = _lights(shaped=False)
+    pos[0] = lights.local[1].position  # a point on a light: the clamped distance
+    point = rng.integers(0, 300, 900)
+    point[0] = 0
+    light = rng.integers(0, 3, 900)
+    light[0] = 1
+    got = shading.pair_directions(lights, pos, point, light)
+    want = ref.pair_directions(lights, pos, point, light)
+    for g, w in zip(got, want, strict=True):
+        assert g.dtype == w.dtype
+        # Equal up to the rounding of the sum of squares (numpy's einsum sums with SIMD).
+        np.testing.assert_allclose(g, w, rtol=1e-12 if g.dtype == np.float64 else 1e-7)
+    assert [a.shape for a in shading.pair_directions(lights, pos, point[:0], light[:0])] == [
+        (0, 3),
+        (0,),
+    ]
+
+
+def test_threaded_environment_matches_one_chunk(monkeypatch):
+    """Large environment batches are split over the shading pool: same texels."""
+    rng = np.random.default_rng(12)
+    tex = rng.uniform(0.0, 2.0, (32, 64, 3)).astype(np.float32)
+    lights = Lights(dome=DomeLight(color=np.ones(3), texture=tex))
+    dirs = rng.normal(size=(3 * shading.SHADE_MIN_THREADED_POINTS + 7, 3))
+    monkeypatch.setattr(shading, "SHADE_THREADS", 3)
+    threaded = shading.environment_radiance(lights, dirs)
+    monkeypatch.setattr(shading, "SHADE_THREADS", 1)
+    np.testing.assert_array_equal(threaded, shading.environment_radiance(lights, dirs))

@@ -49,9 +49,8 @@ def shade_gbuffer(
     """
     h, w = gb.shape
     covered = gb.covered.reshape(-1)
-    local = np.zeros((h * w, 3), dtype=np.float32)
     if not covered.any():
-        return local.reshape(h, w, 3), None
+        return np.zeros((h, w, 3), dtype=np.float32), None
     # Covered pixels as flat indices (enclosed stages cover every pixel: then plain
     # reshapes, no gather at all).
     pix = slice(None) if covered.all() else np.flatnonzero(covered)
@@ -62,6 +61,7 @@ def shade_gbuffer(
 
     pos = take(gb.position)
     nrm = take(gb.normal)
+    view = take(gb.view_dir)
     lights = scene.lights
     n_lights = len(lights.distant) + len(lights.local)
     shadow_pass = None
@@ -76,8 +76,7 @@ def shade_gbuffer(
             # Lit pairs shaded in the GPU lookup pass; the rest comes back as
             # DistantLight visibility and the LocalLight pairs the maps could not
             # decide.
-            to_eye = -take(gb.view_dir)
-            terms = _settled(rasterizer.map_light_terms(pos, nrm, to_eye), tracer)
+            terms = _settled(rasterizer.map_light_terms(pos, nrm, np.negative(view)), tracer)
             visibility = terms.distant_visibility
             local_pairs, lit_sums = terms.local_pairs, terms.lit_sums
         else:  # all lights, distant then local (the order shade_local expects); also
@@ -87,17 +86,21 @@ def shade_gbuffer(
         shadow_pass = "shadow_map" if tracer is None else "shadow_map+rays"
     tri = take(gb.triangle_id)
     emissive = surface.emissive_at(scene, tri, pos)  # textured emissiveColor too
-    local[pix] = shade_local(
+    shaded = shade_local(
         pos,
         nrm,
         take(gb.albedo),
-        take(gb.view_dir),
+        view,
         emissive,
         lights,
         visibility,
         local_pairs=local_pairs,
         lit_sums=lit_sums,
     )
+    if isinstance(pix, slice):  # every pixel covered: the shading is the image
+        return shaded.reshape(h, w, 3), shadow_pass
+    local = np.zeros((h * w, 3), dtype=np.float32)
+    local[pix] = shaded
     return local.reshape(h, w, 3), shadow_pass
 
 

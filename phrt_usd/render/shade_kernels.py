@@ -284,3 +284,20 @@ def blend(local, reflectivity, pixels, env, out):  # pragma: no cover - compiled
         f = reflectivity[i]
         for c in range(3):
             out[i, c] = (1.0 - f) * local[i, c] + f * env[q, c] if f > 0.0 else env[q, c]
+
+
+@numba.njit(nogil=True, cache=True)
+def pair_directions(
+    centres, positions, point, light, min_distance, l_dir, dist
+):  # pragma: no cover - compiled
+    """``shading.pair_directions``: for m pairs, the unit direction l_dir (m, 3)
+    float32 and distance dist (m,) (clamped to ``min_distance``) from
+    ``positions[point]`` to ``centres[light]`` (world metres)."""
+    for q in range(point.shape[0]):
+        i, k = point[q], light[q]
+        t0 = centres[k, 0] - positions[i, 0]
+        t1 = centres[k, 1] - positions[i, 1]
+        t2 = centres[k, 2] - positions[i, 2]
+        d = max(math.sqrt(t0 * t0 + t1 * t1 + t2 * t2), min_distance)
+        l_dir[q, 0], l_dir[q, 1], l_dir[q, 2] = t0 / d, t1 / d, t2 / d
+        dist[q] = d

@@ -110,9 +110,19 @@ def pair_directions(
     ``MIN_LIGHT_DISTANCE``) from ``positions[point]`` ((n, 3) world metres) to
     ``lights.local[light]``, for m pairs."""
     centres = np.array([li.position for li in lights.local], dtype=np.float64).reshape(-1, 3)
-    to_light = np.take(centres, light, axis=0) - np.take(positions, point, axis=0)
-    dist = np.maximum(np.sqrt(np.einsum("ij,ij->i", to_light, to_light)), MIN_LIGHT_DISTANCE)
-    return (to_light / dist[:, None]).astype(np.float32), dist
+    m = len(point)
+    l_dir, dist = np.empty((m, 3), np.float32), np.empty(m)
+    if m:
+        _kernels().pair_directions(
+            centres,
+            np.ascontiguousarray(positions, np.float64),
+            np.asarray(point, np.int64),
+            np.asarray(light, np.int64),
+            MIN_LIGHT_DISTANCE,
+            l_dir,
+            dist,
+        )
+    return l_dir, dist
 
 
 def _dome_colour(dome: DomeLight) -> np.ndarray:
@@ -124,7 +134,8 @@ def environment_radiance(lights: Lights, directions: np.ndarray) -> np.ndarray:
 
     directions : (n, 3) world-space directions (any length; zero or non-finite ones look
                  up the dome's +Y pole instead of producing NaN)
-    Returns (n, 3) float32 linear RGB.
+    Returns (n, 3) float32 linear RGB. Large batches of a textured dome are split over
+    the shading pool, as ``shade_local``'s.
     """
     directions = np.asarray(directions).reshape(-1, 3)
     n = directions.shape[0]
@@ -137,14 +148,18 @@ def environment_radiance(lights: Lights, directions: np.ndarray) -> np.ndarray:
     texture = np.ascontiguousarray(dome.texture, dtype=np.float32)
     rotation = np.ascontiguousarray(dome.world_from_light, dtype=np.float64)
     kernels = _kernels()
-    d = np.empty((n, 3))
-    kernels.dome_directions(directions, rotation, _MIN_DIRECTION_LENGTH, d)
-    # The angles by numpy's vectorised arcsin / arctan2 (~3x faster than scalar libm
-    # calls in a kernel).
-    latitude = np.arcsin(np.clip(d[:, 1], -1.0, 1.0))
-    longitude = np.arctan2(d[:, 0], d[:, 2])
     out = np.empty((n, 3), np.float32)
-    kernels.latlong_bilinear(latitude, longitude, texture, colour.astype(np.float64), out)
+
+    def run(part: slice) -> None:
+        d = np.empty((len(out[part]), 3))
+        kernels.dome_directions(directions[part], rotation, _MIN_DIRECTION_LENGTH, d)
+        # The angles by numpy's vectorised arcsin / arctan2 (~3x faster than scalar
+        # libm calls in a kernel).
+        latitude = np.arcsin(np.clip(d[:, 1], -1.0, 1.0))
+        longitude = np.arctan2(d[:, 0], d[:, 2])
+        kernels.latlong_bilinear(latitude, longitude, texture, colour.astype(np.float64), out[part])
+
+    _on_pool(run, n)
     return out
 
 
@@ -423,16 +438,26 @@ def shade_local(
             None if lit_sums is None else (lit_sums[0][part], lit_sums[1][part]),
         )
 
+    _on_pool(run, n)
+    return out
+
+
+_POOL: dict[int, ThreadPoolExecutor] = {}  # the shading pool, by its thread count
+
+
+def _on_pool(run, n: int) -> None:
+    """``run(part)`` over ``n`` independent points: on ``_shade_threads()`` contiguous
+    slices on the shading pool from SHADE_MIN_THREADED_POINTS points on, else at once
+    (compiled kernels and large numpy calls release the GIL)."""
     threads = _shade_threads()
+    if threads < 2 or n < SHADE_MIN_THREADED_POINTS:
+        run(slice(0, n))
+        return
     bounds = np.linspace(0, n, threads + 1).astype(int)
     pool = _shade_pool(threads)
     jobs = [pool.submit(run, slice(a, b)) for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
     for job in jobs:
         job.result()
-    return out
-
-
-_POOL: dict[int, ThreadPoolExecutor] = {}  # the shading pool, by its thread count
 
 
 def _shade_threads() -> int:

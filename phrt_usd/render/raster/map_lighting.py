@@ -152,11 +152,16 @@ class PendingLightTerms:
         rows = self.rows
         if not len(rows):
             return None
-        return UncertainPairs(self.positions[rows], self.normals[rows], self._pairs())
+        # np.take: several times faster than fancy indexing for row gathers.
+        positions, normals = (np.take(a, rows, axis=0) for a in (self.positions, self.normals))
+        return UncertainPairs(positions, normals, self._pairs())
 
     def _pairs(self) -> np.ndarray:
         """(m, L) bool: the undecided pairs of ``rows``, DistantLights first."""
-        return np.concatenate([self.distant_unsure[self.rows], self.local_unsure], axis=1)
+        if not self.distant_unsure.shape[1]:
+            return self.local_unsure
+        distant = np.take(self.distant_unsure, self.rows, axis=0)
+        return np.concatenate([distant, self.local_unsure], axis=1)
 
     def resolved(self, exact: np.ndarray) -> LightTerms:
         """The light terms with ``exact`` (m, L), an exact test's answer for

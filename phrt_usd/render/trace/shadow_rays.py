@@ -4,7 +4,8 @@
 (geometric) and shading normals and answers (n, L) visibility, light order distant then
 local. Rays go only where they can matter: to lights in front of the shading normal and,
 for LocalLights, within their range (``shading.light_ranges``); all (point, light) pairs
-of a batch are chosen on (n, L) arrays and built into one float32 Embree batch. Origins
+of a batch are chosen and built into one float32 Embree batch in one compiled pass
+(``_shadow_rays``: numba, ``nogil``, so the pool's chunks run side by side). Origins
 are offset by the boundary's epsilon along the offset normal, on the side the ray
 leaves to. Shadows are hard (light size ignored); transmissive surfaces are opaque;
 cut-out holes let light through (``HitSurfaces.occluded``, given ``surfaces``).
@@ -12,8 +13,10 @@ cut-out holes let light through (``HitSurfaces.occluded``, given ``surfaces``).
 
 from __future__ import annotations
 
+import math
 from concurrent.futures import ThreadPoolExecutor
 
+import numba
 import numpy as np
 
 from phrt_usd.model.scene import Lights
@@ -104,95 +107,112 @@ class ShadowRays:
         the light's range (``shading.light_ranges``; beyond it the light contributes 0).
         Such pairs, and pairs outside ``pairs`` ((n, L) bool, None = all), report 0.
 
-        All (point, light) pairs are tested at once on (n, L) arrays (with ``pairs``,
-        only the wanted pairs, one by one), then one Embree batch is built in float32
-        directly (no per-light passes, no extra copies)."""
+        The (point, light) pairs are chosen and their rays built in one compiled pass
+        (``_shadow_rays``: float32 Embree batch, point-major, so the lit LocalLight
+        pairs come out sorted by point), then cast as one batch."""
         n = rel.shape[0]
         n_distant = len(lights.distant)
         n_lights = n_distant + len(lights.local)
         if not lights.has_direct or n == 0:
             return np.ones((n, n_lights), np.float32), np.zeros(n, np.int64), None
-        rel = np.asarray(rel, np.float64)
-        ns = np.asarray(shading_normals, np.float32)
+        rel = np.ascontiguousarray(rel, np.float64)
         dirs, pos, ranges = self.light_arrays(lights)
-        # Facing: n·l > 0. For LocalLights n·(p_L - p) = n·p_L - n·p, with the squared
-        # distance |p_L|² - 2 p·p_L + |p|² (render-relative: |p| is at most the scene
-        # extent, so the cancellation error stays ~1e-16 extent², far below any range²).
-        # Written per column (_columns), not as a BLAS product (see _columns).
-        if pairs is not None:
-            # Only the wanted pairs (e.g. a shadow map's uncertain few per cent): facing
-            # and range are tested per pair further down, not on (n, L) arrays.
-            want = np.asarray(pairs, dtype=bool).reshape(n, n_lights)
-        else:
-            want = np.empty((n, n_lights), dtype=bool)
-            if n_distant:
-                want[:, :n_distant] = _columns(ns, dirs.astype(np.float32)) > 0.0
-            if len(pos):
-                n_dot_p = np.einsum("ij,ij->i", ns, rel.astype(np.float32))
-                want[:, n_distant:] = _columns(ns, pos.astype(np.float32)) > n_dot_p[:, None]
-                dist2 = (
-                    np.einsum("ij,ij->i", pos, pos)[None, :]
-                    - 2.0 * _columns(rel, pos)
-                    + np.einsum("ij,ij->i", rel, rel)[:, None]
-                )
-                want[:, n_distant:] &= dist2 < (ranges**2)[None, :]
-        vis = np.zeros((n, n_lights), np.float32)
-        # Per pair, float32 is enough: positions are render-relative (|p| <= extent) and
-        # the offset epsilon is >= 160 float32 ulps of |p| (RAY_OFFSET_RELATIVE), so the
-        # offset survives the rounding; Embree sees float32 anyway.
-        rel32 = rel.astype(np.float32)
-        ng32 = np.asarray(offset_normals, np.float32)
-        eps = self._bvh.boundary.epsilon(rel).astype(np.float32)
-        batches = []  # (point, light, dirs (m, 3), tfar (m,), p (m, 3), eps (m,)) per kind
-        local = None
-        if n_distant:
-            point, light = np.nonzero(want[:, :n_distant])
-            d = np.take(dirs.astype(np.float32), light, axis=0)
-            if pairs is not None:  # facing (see above), per wanted pair
-                front = np.flatnonzero(np.einsum("ij,ij->i", np.take(ns, point, axis=0), d) > 0)
-                point, light, d = point[front], light[front], d[front]
-            far = np.full(len(point), FAR, np.float32)
-            batches.append((point, light, d, far, np.take(rel32, point, axis=0), eps[point]))
-        if len(pos):
-            point, light = np.nonzero(want[:, n_distant:])
-            # np.take: ~3x faster than fancy indexing for row gathers.
-            p = np.take(rel32, point, axis=0)
-            e = np.take(eps, point)
-            to = np.take(pos.astype(np.float32), light, axis=0)
-            to -= p
-            if pairs is not None:  # facing and range (see above), per wanted pair
-                keep = np.einsum("ij,ij->i", np.take(ns, point, axis=0), to) > 0.0
-                keep &= np.einsum("ij,ij->i", to, to) < np.take(ranges**2, light)
-                keep = np.flatnonzero(keep)
-                point, light, p, e, to = point[keep], light[keep], p[keep], e[keep], to[keep]
-            dist = np.sqrt(np.einsum("ij,ij->i", to, to))
-            np.maximum(dist, np.float32(shading.MIN_LIGHT_DISTANCE), out=dist)
-            to /= dist[:, None]
-            local = shading.LightPairs(point, light, to, dist)
-            # Stop short of the light by the offset so the light's own position is free.
-            tfar = np.maximum(dist - e, np.float32(0.0))
-            batches.append((point, light + n_distant, to, tfar, p, e))
-        point, light, d, tfar, p, e = (
-            np.concatenate(parts) if len(batches) > 1 else parts[0]
-            for parts in zip(*batches, strict=True)
+        want = _ALL_PAIRS if pairs is None else np.asarray(pairs, dtype=bool).reshape(n, n_lights)
+        eps = self._bvh.boundary.epsilon(rel)
+        point, light, origins, d, tfar, dist = _shadow_rays(
+            rel,
+            np.ascontiguousarray(offset_normals, np.float32),
+            np.ascontiguousarray(shading_normals, np.float32),
+            dirs,
+            pos,
+            ranges,
+            np.ascontiguousarray(want),
+            eps,
+            shading.MIN_LIGHT_DISTANCE,
+            FAR,
         )
-        m = len(point)
-        if m:
-            ng = np.take(ng32, point, axis=0)
-            ng *= np.where(np.einsum("ij,ij->i", d, ng) >= 0.0, e, -e)[:, None]
-            ng += p  # the offset origins
+        vis = np.zeros((n, n_lights), np.float32)
+        local = None
+        if len(point):
             if self._surfaces is None:
-                occluded = self._bvh.run("OCCLUDED", ng, d, tfar, threads)
+                occluded = self._bvh.run("OCCLUDED", origins, d, tfar, threads)
             else:
-                occluded = self._surfaces.occluded(ng, d, tfar, threads)
+                occluded = self._surfaces.occluded(origins, d, tfar, threads)
             vis.reshape(-1)[point * n_lights + light] = ~occluded
-            if local is not None:  # the lit LocalLight pairs, for shade_local
-                free = np.flatnonzero(~occluded[len(point) - len(local[0]) :])
-                local = shading.LightPairs(*(np.take(a, free, axis=0) for a in local[:4]))
+        else:
+            occluded = np.zeros(0, bool)
+        if len(pos):  # the lit LocalLight pairs, for shade_local
+            free = np.flatnonzero(~occluded & (light >= n_distant))
+            local = shading.LightPairs(
+                point[free], light[free] - n_distant, d[free], dist[free].astype(np.float64)
+            )
         return vis, np.bincount(point, minlength=n).astype(np.int64), local
 
 
-def _columns(v: np.ndarray, m: np.ndarray) -> np.ndarray:
-    """(n, k) = v (n, 3) @ m (k, 3).T, written per coordinate: numpy hands such skinny
-    products to the multithreaded BLAS, whose threads then compete with Embree's."""
-    return v[:, 0:1] * m[:, 0][None] + v[:, 1:2] * m[:, 1][None] + v[:, 2:3] * m[:, 2][None]
+#: ``_shadow_rays``' "every pair wanted" (an empty mask).
+_ALL_PAIRS = np.zeros((0, 0), bool)
+
+
+@numba.njit(nogil=True, cache=True)
+def _shadow_rays(
+    rel, ng, ns, dirs, pos, ranges, want, eps, min_distance, far
+):  # pragma: no cover - compiled
+    """The shadow rays of ``ShadowRays.cast``: for each point i (rel (n, 3) float64,
+    offset normal ng and shading normal ns (n, 3) float32, offset epsilon eps (n,)
+    metres) and each light j (DistantLights dirs (D, 3) unit, then LocalLights pos
+    (P, 3) rel metres of range ranges (P,)) wanted (``want`` (n, D + P) bool, or (0, 0):
+    all) whose light can matter there (in front of ns; LocalLights: within range),
+    one ray. Returns point (k,) int64, light (k,) int64 (distant then local index),
+    origins (k, 3), dirs (k, 3), tfar (k,) float32 and dist (k,) float32 (LocalLights:
+    metres to the light, >= ``min_distance``; DistantLights: ``far``), point-major.
+    Origins leave the surface by eps along ng on the ray's side; LocalLight rays stop
+    eps short of the light."""
+    n, n_distant, n_local = rel.shape[0], dirs.shape[0], pos.shape[0]
+    n_lights = n_distant + n_local
+    every = want.shape[0] == 0
+    take = np.zeros((n, n_lights), np.bool_)
+    k = 0
+    for i in range(n):
+        for j in range(n_lights):
+            if not (every or want[i, j]):
+                continue
+            if j < n_distant:
+                nl = ns[i, 0] * dirs[j, 0] + ns[i, 1] * dirs[j, 1] + ns[i, 2] * dirs[j, 2]
+                ok = nl > 0.0
+            else:
+                q = j - n_distant
+                t0, t1, t2 = pos[q, 0] - rel[i, 0], pos[q, 1] - rel[i, 1], pos[q, 2] - rel[i, 2]
+                nl = ns[i, 0] * t0 + ns[i, 1] * t1 + ns[i, 2] * t2
+                ok = nl > 0.0 and t0 * t0 + t1 * t1 + t2 * t2 < ranges[q] * ranges[q]
+            take[i, j] = ok
+            k += ok
+    point = np.empty(k, np.int64)
+    light = np.empty(k, np.int64)
+    origins = np.empty((k, 3), np.float32)
+    out_dirs = np.empty((k, 3), np.float32)
+    tfar = np.empty(k, np.float32)
+    dist = np.empty(k, np.float32)
+    r = 0
+    for i in range(n):
+        for j in range(n_lights):
+            if not take[i, j]:
+                continue
+            e = eps[i]
+            if j < n_distant:
+                d0, d1, d2 = dirs[j, 0], dirs[j, 1], dirs[j, 2]
+                length = far
+                stop = far
+            else:
+                q = j - n_distant
+                t0, t1, t2 = pos[q, 0] - rel[i, 0], pos[q, 1] - rel[i, 1], pos[q, 2] - rel[i, 2]
+                length = max(math.sqrt(t0 * t0 + t1 * t1 + t2 * t2), min_distance)
+                d0, d1, d2 = t0 / length, t1 / length, t2 / length
+                # Stop short of the light by the offset so the light's own position is free.
+                stop = max(length - e, 0.0)
+            side = e if d0 * ng[i, 0] + d1 * ng[i, 1] + d2 * ng[i, 2] >= 0.0 else -e
+            for c in range(3):
+                origins[r, c] = rel[i, c] + side * ng[i, c]
+            out_dirs[r, 0], out_dirs[r, 1], out_dirs[r, 2] = d0, d1, d2
+            point[r], light[r], tfar[r], dist[r] = i, j, stop, length
+            r += 1
+    return point, light, origins, out_dirs, tfar, dist
