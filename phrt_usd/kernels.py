@@ -49,6 +49,7 @@ from phrt_usd.atomic import write_bytes_atomic, write_text_atomic
 KERNEL_MODULES = (
     "phrt_usd.model.surface_kernels",
     "phrt_usd.render.trace.trace_kernels",
+    "phrt_usd.render.shade_kernels",
 )
 #: Sources the compiled kernels depend on (the kernels and the constants they read):
 #: their hash names the ahead-of-time build.

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from phrt_usd.render.raster.light_pass import LOOKUP_LIGHTS_PER_PASS
-from phrt_usd.render.raster.map_lighting import _lit_local_pairs, _undecided
+from phrt_usd.render.shade_kernels import lit_local_pairs, undecided_rows
 
 
 def _reference_undecided(bits, n_local, gpu_distant, distant_unsure):
@@ -45,7 +45,7 @@ def test_undecided_matches_numpy_reference(n_local, n_distant, gpu_distant):
             bits[:, 0] |= (rng.uniform(size=n) < 0.05).astype(np.uint32) << (16 + k)
     numpy_unsure = rng.uniform(size=(n, n_distant)) < (0.0 if gpu_distant else 0.05)
     got_distant = numpy_unsure.copy()
-    rows, local = _undecided(bits, n_local, gpu_distant, got_distant)
+    rows, local = undecided_rows(bits, n_local, LOOKUP_LIGHTS_PER_PASS, gpu_distant, got_distant)
     want_rows, want_local, want_distant = _reference_undecided(
         bits, n_local, gpu_distant, numpy_unsure
     )
@@ -60,7 +60,7 @@ def test_lit_local_pairs_match_numpy_reference():
     rows = np.sort(rng.choice(10_000, m, replace=False))
     unsure = rng.uniform(size=(m, lights)) < 0.3
     exact = np.where(rng.uniform(size=(m, lights)) < 0.5, 0.0, 1.0).astype(np.float32)
-    point, light, weight = _lit_local_pairs(rows, unsure, exact)
+    point, light, weight = lit_local_pairs(rows, unsure, exact)
     at, want_light = np.nonzero(unsure)
     want_weight = exact[at, want_light]
     lit = want_weight > 0.0

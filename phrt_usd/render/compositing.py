@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from phrt_usd import kernels
 from phrt_usd.model.frame import GBuffer, ReflectionResult
 from phrt_usd.model.scene import Scene
 from phrt_usd.render.shading import environment_radiance
@@ -51,7 +52,7 @@ def base_image(
     dome = scene.lights.dome
     background = dome is None or dome.camera_visible
     f = np.ascontiguousarray(reflectivity, np.float32).reshape(-1)
-    from phrt_usd.render import shade_kernels  # compiled; numba loads on first use
+    shade_kernels = kernels.load("phrt_usd.render.shade_kernels")  # compiled, on first use
 
     pixels, directions = shade_kernels.fallback_rays(
         np.ascontiguousarray(gbuffer.covered).reshape(-1),

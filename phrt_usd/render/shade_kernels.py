@@ -1,8 +1,11 @@
-"""The compiled per-pixel kernels of the render phase (numba, ``nogil``, ``cache``):
-the local shading model and the lat-long environment of ``shading``, the raster fallback
-of ``compositing``. Imported on first use only (by those modules' functions), so that
-importing the renderer does not load numba; the numpy-facing functions, their
-arguments, shapes and coordinate spaces are those modules'. The constants of the model
+"""The compiled per-pixel kernels of the render phase (numba, ``phrt_usd.kernels``): the
+local shading model and the lat-long environment of ``shading``, the raster fallback of
+``compositing``, the frame's reflector boxes and clipped share (``frame_pixels``), the
+light pass's texel packing (``raster.light_pass``) and its undecided pairs
+(``raster.map_lighting``). Taken through ``phrt_usd.kernels.load`` on first use (by
+those modules' functions), so that importing the renderer does not load numba; the
+numpy-facing functions, their arguments, shapes and coordinate spaces are those
+modules'. The constants of the model
 come in as arguments (a kernel's on-disk cache only knows this file). The numpy code
 these kernels replaced is ``tests/shading_reference.py``, checked against them in
 ``tests/test_shading_kernels.py``.
@@ -11,13 +14,19 @@ these kernels replaced is ``tests/shading_reference.py``, checked against them i
 from __future__ import annotations
 
 import math
+import re
 
-import numba
 import numpy as np
+from numba import njit
+
+from phrt_usd.kernels import KERNEL_OPTIONS
+
+_KERNEL = KERNEL_OPTIONS
+_HELPER = {**_KERNEL, "inline": "always"}
 
 
-@numba.njit(nogil=True, cache=True)
-def dome_directions(directions, rotation, min_length, out):  # pragma: no cover - compiled
+@njit(**_KERNEL)
+def dome_directions(directions, rotation, min_length, out):
     """World directions (n, 3) (any length) as unit directions (n, 3) float64 in the
     dome's space (``rotation`` = ``world_from_light`` (3, 3), a rotation: its inverse is
     its transpose); zero, shorter than ``min_length`` or non-finite ones become the
@@ -37,8 +46,8 @@ def dome_directions(directions, rotation, min_length, out):  # pragma: no cover 
             out[i, c] = x * rotation[0, c] + y * rotation[1, c] + z * rotation[2, c]
 
 
-@numba.njit(nogil=True, cache=True)
-def latlong_bilinear(latitude, longitude, texture, colour, out):  # pragma: no cover
+@njit(**_KERNEL)
+def latlong_bilinear(latitude, longitude, texture, colour, out):
     """Bilinear samples (n, 3) of the lat-long ``texture`` (h, w, 3) (the module's
     convention) at ``latitude``, ``longitude`` (n,) radians, times ``colour`` (3,):
     columns wrap, rows clamp at the poles."""
@@ -62,8 +71,8 @@ def latlong_bilinear(latitude, longitude, texture, colour, out):  # pragma: no c
             out[i, c] = v * colour[c]
 
 
-@numba.njit(nogil=True, cache=True, inline="always")
-def window_at(distance2, light_range):  # pragma: no cover - compiled
+@njit(**_HELPER)
+def window_at(distance2, light_range):
     """``range_window`` of one squared distance (metres²) and range (metres)."""
     if not light_range > 0.0:
         return 0.0
@@ -72,14 +81,14 @@ def window_at(distance2, light_range):  # pragma: no cover - compiled
     return w * w
 
 
-@numba.njit(nogil=True, cache=True)
-def window_kernel(distance, light_range, out):  # pragma: no cover - compiled
+@njit(**_KERNEL)
+def window_kernel(distance, light_range, out):
     for i in range(distance.shape[0]):
         out[i] = window_at(distance[i] * distance[i], light_range)
 
 
-@numba.njit(nogil=True, cache=True, inline="always")
-def cone_at(cos, cone_angle, softness, focus):  # pragma: no cover - compiled
+@njit(**_HELPER)
+def cone_at(cos, cone_angle, softness, focus):
     """``cone_falloff`` of one emission: ``cos`` the cosine between the light's axis and
     the direction it emits to the point; cone angle in degrees, softness, focus."""
     cos = min(max(cos, -1.0), 1.0)
@@ -99,15 +108,15 @@ def cone_at(cos, cone_angle, softness, focus):  # pragma: no cover - compiled
     return factor
 
 
-@numba.njit(nogil=True, cache=True)
-def cone_kernel(emission, axis, cone_angle, softness, focus, out):  # pragma: no cover
+@njit(**_KERNEL)
+def cone_kernel(emission, axis, cone_angle, softness, focus, out):
     for i in range(emission.shape[0]):
         cos = emission[i, 0] * axis[0] + emission[i, 1] * axis[1] + emission[i, 2] * axis[2]
         out[i] = cone_at(cos, cone_angle, softness, focus)
 
 
-@numba.njit(nogil=True, cache=True, inline="always")
-def highlight_at(n0, n1, n2, e0, e1, e2, l0, l1, l2, model):  # pragma: no cover - compiled
+@njit(**_HELPER)
+def highlight_at(n0, n1, n2, e0, e1, e2, l0, l1, l2, model):
     """Blinn-Phong highlight ``strength * max(n·h, 0)**shininess`` of unit normal n,
     direction to the eye e and direction to the light l (world, unit); ``model`` as
     ``shade_kernel``'s."""
@@ -124,7 +133,7 @@ def highlight_at(n0, n1, n2, e0, e1, e2, l0, l1, l2, model):  # pragma: no cover
     return strength * x
 
 
-@numba.njit(nogil=True, cache=True)
+@njit(**_KERNEL)
 def shade_kernel(
     positions,
     normals,
@@ -150,7 +159,7 @@ def shade_kernel(
     has_weight,
     model,
     out,
-):  # pragma: no cover - compiled
+):
     """The shading model of the module docstring, per point (see ``shade_local``).
 
     positions (n, 3) float64 world metres; normals, albedo, view_dirs (n, 3) float32;
@@ -243,8 +252,8 @@ def shade_kernel(
         out[i, 2] += l_radiance[k, 2] * (float(albedo[i, 2]) * lit + hl)
 
 
-@numba.njit(nogil=True, cache=True)
-def fallback_rays(covered, reflectivity, view, normal, background):  # pragma: no cover
+@njit(**_KERNEL)
+def fallback_rays(covered, reflectivity, view, normal, background):
     """The pixels whose colour comes from the environment: (m,) int64 flat indices of
     the reflector pixels (F > 0) and, with ``background``, the uncovered ones, and their
     (m, 3) float32 world directions (the view direction mirrored about the normal,
@@ -274,8 +283,8 @@ def fallback_rays(covered, reflectivity, view, normal, background):  # pragma: n
     return pixels, directions
 
 
-@numba.njit(nogil=True, cache=True)
-def blend(local, reflectivity, pixels, env, out):  # pragma: no cover - compiled
+@njit(**_KERNEL)
+def blend(local, reflectivity, pixels, env, out):
     """out (P, 3) = local (P, 3), except at ``pixels`` (m,): ``(1 - F) local + F env``
     for reflector pixels, ``env`` (m, 3) for the background (F = 0 there, local 0)."""
     out[:] = local
@@ -286,10 +295,10 @@ def blend(local, reflectivity, pixels, env, out):  # pragma: no cover - compiled
             out[i, c] = (1.0 - f) * local[i, c] + f * env[q, c] if f > 0.0 else env[q, c]
 
 
-@numba.njit(nogil=True, cache=True)
+@njit(**_KERNEL)
 def pair_directions(
     centres, positions, point, light, min_distance, l_dir, dist
-):  # pragma: no cover - compiled
+):
     """``shading.pair_directions``: for m pairs, the unit direction l_dir (m, 3)
     float32 and distance dist (m,) (clamped to ``min_distance``) from
     ``positions[point]`` to ``centres[light]`` (world metres)."""
@@ -301,3 +310,162 @@ def pair_directions(
         d = max(math.sqrt(t0 * t0 + t1 * t1 + t2 * t2), min_distance)
         l_dir[q, 0], l_dir[q, 1], l_dir[q, 2] = t0 / d, t1 / d, t2 / d
         dist[q] = d
+
+
+@njit(**_KERNEL)
+def screen_box_bounds(element_id, index, n_reflectors):
+    """(R, 4) int64 (col_min, row_min, col_max, row_max) of the pixels whose element has
+    reflector index ``index[id]`` >= 0; col_max -1 for a reflector without pixels."""
+    h, w = element_id.shape
+    found = np.empty((n_reflectors, 4), np.int64)
+    found[:, 0], found[:, 1], found[:, 2], found[:, 3] = w, h, -1, -1
+    for row in range(h):
+        for col in range(w):
+            e = element_id[row, col]
+            if e < 0:
+                continue
+            k = index[e]
+            if k < 0:
+                continue
+            found[k, 0] = min(found[k, 0], col)
+            found[k, 1] = min(found[k, 1], row)
+            found[k, 2] = max(found[k, 2], col)
+            found[k, 3] = max(found[k, 3], row)
+    return found
+
+
+@njit(**_KERNEL)
+def clipped_counts(image, covered, step, level):
+    """(covered, clipped) pixel counts of ``clipped_share``."""
+    covered_n = clipped_n = 0
+    for row in range(0, image.shape[0], step):
+        for col in range(0, image.shape[1], step):
+            if not covered[row, col]:
+                continue
+            covered_n += 1
+            r, g, b = image[row, col, 0], image[row, col, 1], image[row, col, 2]
+            if r != r or g != g or b != b:  # NaN: numpy's max would be NaN, not > level
+                continue
+            if max(r, g, b) > level:
+                clipped_n += 1
+    return covered_n, clipped_n
+
+
+@njit(**_KERNEL)
+def pack_texels(data, minus, out):
+    """``data`` (n, 3) (less ``minus`` (3,), in float64, if given) as float32 texels
+    into ``out`` (>= n, 3); the rows after n (the last texture row's rest) are 0."""
+    n = data.shape[0]
+    for i in range(n):
+        for c in range(3):
+            v = float(data[i, c])
+            if minus is not None:
+                v -= minus[c]
+            out[i, c] = v
+    out[n:] = 0.0
+
+
+@njit(**_KERNEL)
+def lit_local_pairs(rows, unsure, exact):
+    """The undecided LocalLight pairs an exact test found lit, in point order: point
+    (k,) int64 (of ``rows`` (m,)), light (k,) int64 and weight (k,) float32 in (0, 1],
+    from ``unsure`` (m, P) bool and the test's ``exact`` (m, P) visibility."""
+    k = 0
+    for r in range(unsure.shape[0]):
+        for j in range(unsure.shape[1]):
+            if unsure[r, j] and exact[r, j] > 0.0:
+                k += 1
+    point = np.empty(k, np.int64)
+    light = np.empty(k, np.int64)
+    weight = np.empty(k, np.float32)
+    k = 0
+    for r in range(unsure.shape[0]):
+        for j in range(unsure.shape[1]):
+            if unsure[r, j] and exact[r, j] > 0.0:
+                point[k], light[k], weight[k] = rows[r], j, exact[r, j]
+                k += 1
+    return point, light, weight
+
+
+@njit(**_KERNEL)
+def undecided_rows(bits, n_local, per_pass, gpu_distant, distant_unsure):
+    """The points with a pair the maps could not decide, from the GPU lookup's ``bits``
+    (n, passes) uint32 (bit j of pass p: LocalLight ``per_pass`` p + j; bit
+    16 + k of pass 0: DistantLight k, when ``gpu_distant``, written into
+    ``distant_unsure`` (n, D) bool; else that array holds the numpy lookups' answer).
+    Returns rows (m,) int64 and their undecided LocalLight pairs (m, n_local) bool."""
+    n, passes = bits.shape
+    n_distant = distant_unsure.shape[1]
+    unsure = np.zeros(n, np.bool_)
+    m = 0
+    for i in range(n):
+        any_bit = False
+        for p in range(passes):
+            any_bit = any_bit or bits[i, p] != 0
+        for k in range(n_distant):
+            if gpu_distant:
+                distant_unsure[i, k] = (bits[i, 0] >> (16 + k)) & 1 != 0
+            any_bit = any_bit or distant_unsure[i, k]
+        unsure[i] = any_bit
+        m += any_bit
+    rows = np.empty(m, np.int64)
+    local = np.zeros((m, n_local), np.bool_)
+    r = 0
+    for i in range(n):
+        if not unsure[i]:
+            continue
+        rows[r] = i
+        for j in range(n_local):
+            p, b = j // per_pass, j % per_pass
+            local[r, j] = (bits[i, p] >> b) & 1 != 0
+        r += 1
+    return rows, local
+
+
+#: The argument types each kernel is compiled for (``warm_up``), as the render phase
+#: passes them: the ahead-of-time build exports exactly these. A scalar type name or an
+#: array ``dtype[:, ::1]`` (C-contiguous, one ``:`` per dimension), ``none`` for an
+#: optional array left out.
+SIGNATURES = {
+    "dome_directions": ["f4[:, ::1], f8[:, ::1], f8, f8[:, ::1]"],
+    "latlong_bilinear": ["f8[::1], f8[::1], f4[:, :, ::1], f8[::1], f4[:, ::1]"],
+    "window_kernel": ["f8[::1], f8, f8[::1]"],
+    "cone_kernel": ["f8[:, ::1], f8[::1], f8, f8, f8, f4[::1]"],
+    "shade_kernel": [
+        "f8[:, ::1], f4[:, ::1], f4[:, ::1], f4[:, ::1], f4[:, ::1], f8[::1], f4[:, ::1], "
+        "f4[:, ::1], f8[:, ::1], f8[:, ::1], f4[:, ::1], f8[:, ::1], f8[:, ::1], f8[::1], "
+        "f8[:, ::1], b1, i8[::1], i8[::1], f4[:, ::1], f8[::1], f4[::1], b1, f8[::1], "
+        "f4[:, ::1]"
+    ],
+    "fallback_rays": ["b1[::1], f4[::1], f4[:, ::1], f4[:, ::1], b1"],
+    "blend": ["f4[:, ::1], f4[::1], i8[::1], f4[:, ::1], f4[:, ::1]"],
+    "pair_directions": ["f8[:, ::1], f8[:, ::1], i8[::1], i8[::1], f8, f4[:, ::1], f8[::1]"],
+    "screen_box_bounds": ["i4[:, ::1], i8[::1], i8"],
+    "clipped_counts": ["f4[:, :, ::1], b1[:, ::1], i8, f8"],
+    "pack_texels": ["f8[:, ::1], f8[::1], f4[:, ::1]", "f4[:, ::1], none, f4[:, ::1]"],
+    "lit_local_pairs": ["i8[::1], b1[:, ::1], f4[:, ::1]"],
+    "undecided_rows": ["u4[:, ::1], i8, i8, b1, b1[:, ::1]"],
+}
+
+
+_SCALARS = {"f8": "float64", "f4": "float32", "i8": "int64", "i4": "int32", "u4": "uint32",
+            "b1": "boolean", "none": "none"}  # fmt: skip
+
+
+def _numba_type(text: str):
+    """The numba type of one SIGNATURES entry, e.g. ``f4[:, ::1]`` or ``i8``."""
+    from numba.core import types
+
+    name, _, dims = text.strip().partition("[")
+    scalar = getattr(types, _SCALARS[name])
+    if not dims:
+        return scalar
+    return types.Array(scalar, dims.count(":") - dims.count("::1"), "C")
+
+
+def warm_up() -> None:
+    """Compile every kernel for its SIGNATURES (or load them from numba's disk cache)."""
+    for name, signatures in SIGNATURES.items():
+        for signature in signatures:
+            args = re.findall(r"\w+(?:\[[^\]]*\])?", signature)  # "f4[:, ::1]" stays one
+            globals()[name].compile(tuple(_numba_type(t) for t in args))

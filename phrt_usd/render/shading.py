@@ -37,6 +37,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from phrt_usd import kernels
 from phrt_usd.model.scene import DEFAULT_ENVIRONMENT, DomeLight, Lights, LocalLight
 from phrt_usd.threads import current_threads
 
@@ -478,8 +479,6 @@ def _shade_pool(threads: int) -> ThreadPoolExecutor:
 
 
 def _kernels():
-    """The compiled kernels (``shade_kernels``), imported on first use: importing this
-    module (the renderer, the API) does not load numba."""
-    from phrt_usd.render import shade_kernels
-
-    return shade_kernels
+    """The compiled kernels (``shade_kernels`` through ``phrt_usd.kernels``), taken on
+    first use: importing this module (the renderer, the API) loads no kernel."""
+    return kernels.load("phrt_usd.render.shade_kernels")

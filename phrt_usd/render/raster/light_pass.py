@@ -26,11 +26,11 @@ from __future__ import annotations
 import os
 from collections.abc import Callable
 
-import numba
 import numpy as np
 from OpenGL import GL
 from OpenGL.GL import shaders as gl_shaders
 
+from phrt_usd import kernels
 from phrt_usd.render.raster.context import SHADER_DIR, RasterContext, check_framebuffer
 from phrt_usd.render.raster.shadow_maps import (
     CUBE_GUARD_TEXELS,
@@ -296,7 +296,7 @@ class LightPass:
         for tex, (data, minus) in zip(self._point_tex, inputs, strict=True):
             size = (width, rows) if data is not None and len(data) else (1, 1)
             texels = np.empty((size[0] * size[1], 3), dtype=np.float32)
-            _pack_texels(_NO_POINTS if data is None else data, minus, texels)
+            _shade().pack_texels(_NO_POINTS if data is None else data, minus, texels)
             GL.glBindTexture(GL.GL_TEXTURE_2D, tex)
             GL.glTexImage2D(
                 GL.GL_TEXTURE_2D, 0, GL.GL_RGB32F, *size, 0, GL.GL_RGB, GL.GL_FLOAT, texels
@@ -420,19 +420,10 @@ class LightPass:
         return out
 
 
-@numba.njit(nogil=True, cache=True)
-def _pack_texels(data, minus, out):  # pragma: no cover - compiled
-    """``data`` (n, 3) (less ``minus`` (3,), in float64, if given) as float32 texels
-    into ``out`` (>= n, 3); the rows after n (the last texture row's rest) are 0."""
-    n = data.shape[0]
-    for i in range(n):
-        for c in range(3):
-            v = float(data[i, c])
-            if minus is not None:
-                v -= minus[c]
-            out[i, c] = v
-    out[n:] = 0.0
-
-
-#: An empty point array (``_pack_texels`` of a texture that holds no points).
+#: An empty point array (``pack_texels`` of a texture that holds no points).
 _NO_POINTS = np.zeros((0, 3), np.float32)
+
+
+def _shade():
+    """The compiled kernels (``shade_kernels``), taken on first use."""
+    return kernels.load("phrt_usd.render.shade_kernels")

@@ -19,9 +19,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numba
 import numpy as np
 
+from phrt_usd import kernels
 from phrt_usd.model.scene import Lights
 from phrt_usd.render.raster.context import RasterContext
 from phrt_usd.render.raster.light_pass import (
@@ -172,7 +172,7 @@ class PendingLightTerms:
         if n_distant:
             pairs = self.distant_unsure[rows]
             distant[rows] = np.where(pairs, exact[:, :n_distant], distant[rows])
-        point, light, weight = _lit_local_pairs(
+        point, light, weight = _shade().lit_local_pairs(
             rows, self.local_unsure, np.ascontiguousarray(exact[:, n_distant:])
         )
         return self._terms(point, light, weight)
@@ -210,63 +210,6 @@ class PendingLightTerms:
         return LightTerms(
             self.distant, self.lit_sums, LightPairs(point, light, l_dir, dist, weight)
         )
-
-
-@numba.njit(nogil=True, cache=True)
-def _lit_local_pairs(rows, unsure, exact):  # pragma: no cover - compiled
-    """The undecided LocalLight pairs an exact test found lit, in point order: point
-    (k,) int64 (of ``rows`` (m,)), light (k,) int64 and weight (k,) float32 in (0, 1],
-    from ``unsure`` (m, P) bool and the test's ``exact`` (m, P) visibility."""
-    k = 0
-    for r in range(unsure.shape[0]):
-        for j in range(unsure.shape[1]):
-            if unsure[r, j] and exact[r, j] > 0.0:
-                k += 1
-    point = np.empty(k, np.int64)
-    light = np.empty(k, np.int64)
-    weight = np.empty(k, np.float32)
-    k = 0
-    for r in range(unsure.shape[0]):
-        for j in range(unsure.shape[1]):
-            if unsure[r, j] and exact[r, j] > 0.0:
-                point[k], light[k], weight[k] = rows[r], j, exact[r, j]
-                k += 1
-    return point, light, weight
-
-
-@numba.njit(nogil=True, cache=True)
-def _undecided(bits, n_local, gpu_distant, distant_unsure):  # pragma: no cover - compiled
-    """The points with a pair the maps could not decide, from the GPU lookup's ``bits``
-    (n, passes) uint32 (bit j of pass p: LocalLight LOOKUP_LIGHTS_PER_PASS p + j; bit
-    16 + k of pass 0: DistantLight k, when ``gpu_distant``, written into
-    ``distant_unsure`` (n, D) bool; else that array holds the numpy lookups' answer).
-    Returns rows (m,) int64 and their undecided LocalLight pairs (m, n_local) bool."""
-    n, passes = bits.shape
-    n_distant = distant_unsure.shape[1]
-    unsure = np.zeros(n, np.bool_)
-    m = 0
-    for i in range(n):
-        any_bit = False
-        for p in range(passes):
-            any_bit = any_bit or bits[i, p] != 0
-        for k in range(n_distant):
-            if gpu_distant:
-                distant_unsure[i, k] = (bits[i, 0] >> (16 + k)) & 1 != 0
-            any_bit = any_bit or distant_unsure[i, k]
-        unsure[i] = any_bit
-        m += any_bit
-    rows = np.empty(m, np.int64)
-    local = np.zeros((m, n_local), np.bool_)
-    r = 0
-    for i in range(n):
-        if not unsure[i]:
-            continue
-        rows[r] = i
-        for j in range(n_local):
-            p, b = j // LOOKUP_LIGHTS_PER_PASS, j % LOOKUP_LIGHTS_PER_PASS
-            local[r, j] = (bits[i, p] >> b) & 1 != 0
-        r += 1
-    return rows, local
 
 
 class MapLighting:
@@ -426,7 +369,9 @@ class MapLighting:
         # The pairs the maps could not decide, on the few rows that have any: the
         # LocalLight ones are shaded from their visibility (exact, else the maps' PCF),
         # the DistantLight ones are corrected in ``distant``.
-        rows, local_unsure = _undecided(bits, len(cubes), bool(maps), distant_unsure)
+        rows, local_unsure = _shade().undecided_rows(
+            bits, len(cubes), LOOKUP_LIGHTS_PER_PASS, bool(maps), distant_unsure
+        )
         return PendingLightTerms(
             positions,
             normals,
@@ -440,3 +385,8 @@ class MapLighting:
             rows,
             local_unsure,
         )
+
+
+def _shade():
+    """The compiled kernels (``shade_kernels``), taken on first use."""
+    return kernels.load("phrt_usd.render.shade_kernels")

@@ -5,7 +5,7 @@
 local. Rays go only where they can matter: to lights in front of the shading normal and,
 for LocalLights, within their range (``shading.light_ranges``); all (point, light) pairs
 of a batch are chosen and built into one float32 Embree batch in one compiled pass
-(``_shadow_rays``: numba, ``nogil``, so the pool's chunks run side by side). Origins
+(``trace_kernels.shadow_rays``: numba, ``nogil``, so the pool's chunks run side by side). Origins
 are offset by the boundary's epsilon along the offset normal, on the side the ray
 leaves to. Shadows are hard (light size ignored); transmissive surfaces are opaque;
 cut-out holes let light through (``HitSurfaces.occluded``, given ``surfaces``).
@@ -13,12 +13,11 @@ cut-out holes let light through (``HitSurfaces.occluded``, given ``surfaces``).
 
 from __future__ import annotations
 
-import math
 from concurrent.futures import ThreadPoolExecutor
 
-import numba
 import numpy as np
 
+from phrt_usd import kernels
 from phrt_usd.model.scene import Lights
 from phrt_usd.render import shading
 from phrt_usd.render.trace.bvh import FAR, Bvh
@@ -108,7 +107,7 @@ class ShadowRays:
         Such pairs, and pairs outside ``pairs`` ((n, L) bool, None = all), report 0.
 
         The (point, light) pairs are chosen and their rays built in one compiled pass
-        (``_shadow_rays``: float32 Embree batch, point-major, so the lit LocalLight
+        (``trace_kernels.shadow_rays``: float32 Embree batch, point-major, so the lit LocalLight
         pairs come out sorted by point), then cast as one batch."""
         n = rel.shape[0]
         n_distant = len(lights.distant)
@@ -119,7 +118,9 @@ class ShadowRays:
         dirs, pos, ranges = self.light_arrays(lights)
         want = _ALL_PAIRS if pairs is None else np.asarray(pairs, dtype=bool).reshape(n, n_lights)
         eps = self._bvh.boundary.epsilon(rel)
-        point, light, origins, d, tfar, dist = _shadow_rays(
+        point, light, origins, d, tfar, dist = kernels.load(
+            "phrt_usd.render.trace.trace_kernels"
+        ).shadow_rays(
             rel,
             np.ascontiguousarray(offset_normals, np.float32),
             np.ascontiguousarray(shading_normals, np.float32),
@@ -149,70 +150,6 @@ class ShadowRays:
         return vis, np.bincount(point, minlength=n).astype(np.int64), local
 
 
-#: ``_shadow_rays``' "every pair wanted" (an empty mask).
+#: ``trace_kernels.shadow_rays``' "every pair wanted" (an empty mask).
 _ALL_PAIRS = np.zeros((0, 0), bool)
 
-
-@numba.njit(nogil=True, cache=True)
-def _shadow_rays(
-    rel, ng, ns, dirs, pos, ranges, want, eps, min_distance, far
-):  # pragma: no cover - compiled
-    """The shadow rays of ``ShadowRays.cast``: for each point i (rel (n, 3) float64,
-    offset normal ng and shading normal ns (n, 3) float32, offset epsilon eps (n,)
-    metres) and each light j (DistantLights dirs (D, 3) unit, then LocalLights pos
-    (P, 3) rel metres of range ranges (P,)) wanted (``want`` (n, D + P) bool, or (0, 0):
-    all) whose light can matter there (in front of ns; LocalLights: within range),
-    one ray. Returns point (k,) int64, light (k,) int64 (distant then local index),
-    origins (k, 3), dirs (k, 3), tfar (k,) float32 and dist (k,) float32 (LocalLights:
-    metres to the light, >= ``min_distance``; DistantLights: ``far``), point-major.
-    Origins leave the surface by eps along ng on the ray's side; LocalLight rays stop
-    eps short of the light."""
-    n, n_distant, n_local = rel.shape[0], dirs.shape[0], pos.shape[0]
-    n_lights = n_distant + n_local
-    every = want.shape[0] == 0
-    take = np.zeros((n, n_lights), np.bool_)
-    k = 0
-    for i in range(n):
-        for j in range(n_lights):
-            if not (every or want[i, j]):
-                continue
-            if j < n_distant:
-                nl = ns[i, 0] * dirs[j, 0] + ns[i, 1] * dirs[j, 1] + ns[i, 2] * dirs[j, 2]
-                ok = nl > 0.0
-            else:
-                q = j - n_distant
-                t0, t1, t2 = pos[q, 0] - rel[i, 0], pos[q, 1] - rel[i, 1], pos[q, 2] - rel[i, 2]
-                nl = ns[i, 0] * t0 + ns[i, 1] * t1 + ns[i, 2] * t2
-                ok = nl > 0.0 and t0 * t0 + t1 * t1 + t2 * t2 < ranges[q] * ranges[q]
-            take[i, j] = ok
-            k += ok
-    point = np.empty(k, np.int64)
-    light = np.empty(k, np.int64)
-    origins = np.empty((k, 3), np.float32)
-    out_dirs = np.empty((k, 3), np.float32)
-    tfar = np.empty(k, np.float32)
-    dist = np.empty(k, np.float32)
-    r = 0
-    for i in range(n):
-        for j in range(n_lights):
-            if not take[i, j]:
-                continue
-            e = eps[i]
-            if j < n_distant:
-                d0, d1, d2 = dirs[j, 0], dirs[j, 1], dirs[j, 2]
-                length = far
-                stop = far
-            else:
-                q = j - n_distant
-                t0, t1, t2 = pos[q, 0] - rel[i, 0], pos[q, 1] - rel[i, 1], pos[q, 2] - rel[i, 2]
-                length = max(math.sqrt(t0 * t0 + t1 * t1 + t2 * t2), min_distance)
-                d0, d1, d2 = t0 / length, t1 / length, t2 / length
-                # Stop short of the light by the offset so the light's own position is free.
-                stop = max(length - e, 0.0)
-            side = e if d0 * ng[i, 0] + d1 * ng[i, 1] + d2 * ng[i, 2] >= 0.0 else -e
-            for c in range(3):
-                origins[r, c] = rel[i, c] + side * ng[i, c]
-            out_dirs[r, 0], out_dirs[r, 1], out_dirs[r, 2] = d0, d1, d2
-            point[r], light[r], tfar[r], dist[r] = i, j, stop, length
-            r += 1
-    return point, light, origins, out_dirs, tfar, dist

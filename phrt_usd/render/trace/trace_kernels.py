@@ -36,9 +36,10 @@ import math
 import numpy as np
 from numba import njit
 
+from phrt_usd.kernels import KERNEL_OPTIONS
 from phrt_usd.model.surface_kernels import _pixel_dir
 
-_KERNEL = {"nogil": True, "cache": True, "error_model": "numpy"}
+_KERNEL = KERNEL_OPTIONS
 _HELPER = {**_KERNEL, "inline": "always"}
 
 _ZERO32 = np.float32(0.0)
@@ -416,3 +417,68 @@ def warm_up() -> None:
     accumulate(np.zeros((1, 3)), i64, f64, v32)
     accumulate(np.zeros((1, 3)), i64, f64, v64)
     source_tallies(i64, i64, i64, i64, i64.copy(), f64.copy(), i64.copy(), i64.copy())
+    shadow_rays(v64, v32, v32, np.array([[0.0, 1.0, 0.0]]), np.zeros((0, 3)), np.zeros(0),
+                np.zeros((0, 0), bool), f64 + 1e-6, 1e-3, 1e30)  # fmt: skip
+
+
+@njit(**_KERNEL)
+def shadow_rays(rel, ng, ns, dirs, pos, ranges, want, eps, min_distance, far):
+    """The shadow rays of ``ShadowRays.cast``: for each point i (rel (n, 3) float64,
+    offset normal ng and shading normal ns (n, 3) float32, offset epsilon eps (n,)
+    metres) and each light j (DistantLights dirs (D, 3) unit, then LocalLights pos
+    (P, 3) rel metres of range ranges (P,)) wanted (``want`` (n, D + P) bool, or (0, 0):
+    all) whose light can matter there (in front of ns; LocalLights: within range),
+    one ray. Returns point (k,) int64, light (k,) int64 (distant then local index),
+    origins (k, 3), dirs (k, 3), tfar (k,) float32 and dist (k,) float32 (LocalLights:
+    metres to the light, >= ``min_distance``; DistantLights: ``far``), point-major.
+    Origins leave the surface by eps along ng on the ray's side (``_side``, the
+    boundary's rule); LocalLight rays stop eps short of the light."""
+    n, n_distant, n_local = rel.shape[0], dirs.shape[0], pos.shape[0]
+    n_lights = n_distant + n_local
+    every = want.shape[0] == 0
+    take = np.zeros((n, n_lights), np.bool_)
+    k = 0
+    for i in range(n):
+        for j in range(n_lights):
+            if not (every or want[i, j]):
+                continue
+            if j < n_distant:
+                nl = ns[i, 0] * dirs[j, 0] + ns[i, 1] * dirs[j, 1] + ns[i, 2] * dirs[j, 2]
+                ok = nl > 0.0
+            else:
+                q = j - n_distant
+                t0, t1, t2 = pos[q, 0] - rel[i, 0], pos[q, 1] - rel[i, 1], pos[q, 2] - rel[i, 2]
+                nl = ns[i, 0] * t0 + ns[i, 1] * t1 + ns[i, 2] * t2
+                ok = nl > 0.0 and t0 * t0 + t1 * t1 + t2 * t2 < ranges[q] * ranges[q]
+            take[i, j] = ok
+            k += ok
+    point = np.empty(k, np.int64)
+    light = np.empty(k, np.int64)
+    origins = np.empty((k, 3), np.float32)
+    out_dirs = np.empty((k, 3), np.float32)
+    tfar = np.empty(k, np.float32)
+    dist = np.empty(k, np.float32)
+    r = 0
+    for i in range(n):
+        for j in range(n_lights):
+            if not take[i, j]:
+                continue
+            e = eps[i]
+            if j < n_distant:
+                d0, d1, d2 = dirs[j, 0], dirs[j, 1], dirs[j, 2]
+                length = far
+                stop = far
+            else:
+                q = j - n_distant
+                t0, t1, t2 = pos[q, 0] - rel[i, 0], pos[q, 1] - rel[i, 1], pos[q, 2] - rel[i, 2]
+                length = max(math.sqrt(t0 * t0 + t1 * t1 + t2 * t2), min_distance)
+                d0, d1, d2 = t0 / length, t1 / length, t2 / length
+                # Stop short of the light by the offset so the light's own position is free.
+                stop = max(length - e, 0.0)
+            side = _side(e, d0, d1, d2, ng[i, 0], ng[i, 1], ng[i, 2])
+            for c in range(3):
+                origins[r, c] = rel[i, c] + side * ng[i, c]
+            out_dirs[r, 0], out_dirs[r, 1], out_dirs[r, 2] = d0, d1, d2
+            point[r], light[r], tfar[r], dist[r] = i, j, stop, length
+            r += 1
+    return point, light, origins, out_dirs, tfar, dist
