@@ -58,7 +58,10 @@ def test_other_argument_types_run_the_jit_kernel(aot):
     zeros = np.zeros(2, np.float32)
     try:
         aot.hit_albedo(np.array([1, 0], np.int32), zeros, zeros, corners, out)
-        assert kernels.FALLBACKS == {"phrt_usd.model.surface_kernels.hit_albedo"}
+        assert kernels.FALLBACKS == {
+            "phrt_usd.model.surface_kernels.hit_albedo(int32[1d C], float32[1d C], "
+            "float32[1d C], float32[3d C], float32[2d C])"
+        }
     finally:
         kernels.FALLBACKS.clear()  # this test's own, expected fallback
     np.testing.assert_array_equal(out, corners[[1, 0], 0, 3:])  # weights (1, 0, 0)
