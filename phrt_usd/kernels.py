@@ -135,9 +135,19 @@ class _Guarded:
         for function, arrays in self._variants:
             if len(args) == len(arrays) and all(map(_matches, args, arrays)):
                 return function(*args)
-        FALLBACKS.add(f"{self._module_name}.{self.__name__}")
+        FALLBACKS.add(f"{self._module_name}.{self.__name__}({_describe(args)})")
         jit = getattr(importlib.import_module(self._module_name), self.__name__)
         return jit(*args)
+
+
+def _describe(args) -> str:
+    """The argument types of a call, as FALLBACKS names them (``float64[2d C]``)."""
+    return ", ".join(
+        f"{a.dtype}[{a.ndim}d {'C' if a.flags.c_contiguous else 'A'}]"
+        if type(a) is np.ndarray
+        else type(a).__name__
+        for a in args
+    )
 
 
 def _matches(value, expected) -> bool:
@@ -156,7 +166,8 @@ def _matches(value, expected) -> bool:
 
 
 #: Kernels called with argument types their ahead-of-time build was not made for
-#: ("module.kernel"): each such call ran the JIT kernel instead (``_Guarded``).
+#: ("module.kernel(argument types)"): each such call ran the JIT kernel instead
+#: (``_Guarded``).
 FALLBACKS: set[str] = set()
 
 
