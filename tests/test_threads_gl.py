@@ -57,10 +57,8 @@ def stage(tmp_path_factory) -> Path:
 def test_startup_loads_only_what_the_mode_needs(stage, tmp_path):
     """``import phrt_usd.cli`` (every command's start, ``--help`` included) loads none of
     HEAVY, ``import phrt_usd.api`` only the image library, and an ``rt`` render adds
-    Embree, and the compiled shading kernels' numba with the bare ``scipy`` package
-    (numba imports it to check its version), but no OpenGL, pyrender or its trimesh /
-    networkx (no raster phase: no GL context, ``gl`` None): the rest is imported by the
-    parts that need it."""
+    Embree but no OpenGL, pyrender or its trimesh / scipy / networkx (no raster phase:
+    no GL context, ``gl`` None): the rest is imported by the parts that need it."""
     done = _python(f"""
         import json, sys
         heavy = {HEAVY!r}
@@ -77,7 +75,7 @@ def test_startup_loads_only_what_the_mode_needs(stage, tmp_path):
     assert json.loads(done.stdout.splitlines()[-1]) == [
         [],
         ["OpenImageIO"],
-        ["OpenImageIO", "embreex", "scipy"],
+        ["OpenImageIO", "embreex"],
         None,
         None,
     ]
