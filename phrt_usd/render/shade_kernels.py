@@ -427,7 +427,8 @@ def undecided_rows(bits, n_local, per_pass, gpu_distant, distant_unsure):
 #: array ``dtype[:, ::1]`` (C-contiguous, one ``:`` per dimension), ``none`` for an
 #: optional array left out.
 SIGNATURES = {
-    "dome_directions": ["f4[:, ::1], f8[:, ::1], f8, f8[:, ::1]"],
+    "dome_directions": ["f4[:, ::1], f8[:, ::1], f8, f8[:, ::1]",
+                        "f8[:, ::1], f8[:, ::1], f8, f8[:, ::1]"],
     "latlong_bilinear": ["f8[::1], f8[::1], f4[:, :, ::1], f8[::1], f4[:, ::1]"],
     "window_kernel": ["f8[::1], f8, f8[::1]"],
     "cone_kernel": ["f8[:, ::1], f8[::1], f8, f8, f8, f4[::1]"],
@@ -442,7 +443,8 @@ SIGNATURES = {
     "pair_directions": ["f8[:, ::1], f8[:, ::1], i8[::1], i8[::1], f8, f4[:, ::1], f8[::1]"],
     "screen_box_bounds": ["i4[:, ::1], i8[::1], i8"],
     "clipped_counts": ["f4[:, :, ::1], b1[:, ::1], i8, f8"],
-    "pack_texels": ["f8[:, ::1], f8[::1], f4[:, ::1]", "f4[:, ::1], none, f4[:, ::1]"],
+    "pack_texels": ["f8[:, ::1], f8[::1], f4[:, ::1]", "f4[:, ::1], none, f4[:, ::1]",
+                    "f8[:, ::1], none, f4[:, ::1]"],
     "lit_local_pairs": ["i8[::1], b1[:, ::1], f4[:, ::1]"],
     "undecided_rows": ["u4[:, ::1], i8, i8, b1, b1[:, ::1]"],
 }
