@@ -235,12 +235,13 @@ def _lit_local_pairs(rows, unsure, exact):  # pragma: no cover - compiled
 
 
 @numba.njit(nogil=True, cache=True)
-def _undecided(bits, n_local, gpu_distant, distant_unsure):  # pragma: no cover - compiled
+def _undecided(bits, n_local, active, gpu_distant, distant_unsure):  # pragma: no cover
     """The points with a pair the maps could not decide, from the GPU lookup's ``bits``
-    (n, passes) uint32 (bit j of pass p: LocalLight LOOKUP_LIGHTS_PER_PASS p + j; bit
-    16 + k of pass 0: DistantLight k, when ``gpu_distant``, written into
-    ``distant_unsure`` (n, D) bool; else that array holds the numpy lookups' answer).
-    Returns rows (m,) int64 and their undecided LocalLight pairs (m, n_local) bool."""
+    (n, passes) uint32 (bit j of pass p: LocalLight ``active[LOOKUP_LIGHTS_PER_PASS p +
+    j]``, ``active`` (a,) int64 the lights looked up; bit 16 + k of pass 0: DistantLight
+    k, when ``gpu_distant``, written into ``distant_unsure`` (n, D) bool; else that
+    array holds the numpy lookups' answer). Returns rows (m,) int64 and their undecided
+    LocalLight pairs (m, n_local) bool."""
     n, passes = bits.shape
     n_distant = distant_unsure.shape[1]
     unsure = np.zeros(n, np.bool_)
@@ -262,9 +263,9 @@ def _undecided(bits, n_local, gpu_distant, distant_unsure):  # pragma: no cover 
         if not unsure[i]:
             continue
         rows[r] = i
-        for j in range(n_local):
+        for j in range(active.shape[0]):
             p, b = j // LOOKUP_LIGHTS_PER_PASS, j % LOOKUP_LIGHTS_PER_PASS
-            local[r, j] = (bits[i, p] >> b) & 1 != 0
+            local[r, active[j]] = (bits[i, p] >> b) & 1 != 0
         r += 1
     return rows, local
 
@@ -414,8 +415,12 @@ class MapLighting:
         )
         cubes = self._maps.cube_maps() if lights.local else []
         ranges = light_ranges(lights)[n_distant:]
+        # Only the LocalLights whose range reaches the points' bounding box are looked
+        # up (the others light none of them and have no pair to decide).
+        centres = np.array([li.position for li in lights.local], np.float64).reshape(-1, 3)
+        active = np.flatnonzero(_reaching(positions, centres, np.asarray(ranges, np.float64)))
         diffuse, highlight, bits = self._light_pass.lookup(
-            positions, normals, cubes, ranges, to_eye, maps, origin=origin
+            positions, normals, cubes, ranges, to_eye, maps, origin=origin, active=active
         )
         for job in jobs:
             job.result()
@@ -426,7 +431,7 @@ class MapLighting:
         # The pairs the maps could not decide, on the few rows that have any: the
         # LocalLight ones are shaded from their visibility (exact, else the maps' PCF),
         # the DistantLight ones are corrected in ``distant``.
-        rows, local_unsure = _undecided(bits, len(cubes), bool(maps), distant_unsure)
+        rows, local_unsure = _undecided(bits, len(cubes), active, bool(maps), distant_unsure)
         return PendingLightTerms(
             positions,
             normals,
@@ -440,3 +445,25 @@ class MapLighting:
             rows,
             local_unsure,
         )
+
+
+@numba.njit(nogil=True, cache=True)
+def _reaching(positions, centres, ranges):  # pragma: no cover - compiled
+    """(P,) bool: the LocalLights (centres (P, 3) world metres, ranges (P,) metres) whose
+    range reaches the bounding box of ``positions`` (n, 3) world metres (so possibly
+    some point; none when n = 0)."""
+    n = positions.shape[0]
+    lo = np.full(3, np.inf)
+    hi = np.full(3, -np.inf)
+    for i in range(n):
+        for c in range(3):
+            lo[c] = min(lo[c], positions[i, c])
+            hi[c] = max(hi[c], positions[i, c])
+    out = np.zeros(centres.shape[0], np.bool_)
+    for k in range(centres.shape[0]):
+        d2 = 0.0
+        for c in range(3):  # squared distance from the centre to the box
+            e = max(lo[c] - centres[k, c], 0.0, centres[k, c] - hi[c])
+            d2 += e * e
+        out[k] = n > 0 and d2 < ranges[k] * ranges[k]
+    return out
