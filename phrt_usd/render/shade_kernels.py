@@ -1,8 +1,8 @@
 """The compiled per-pixel kernels of the render phase (numba, ``phrt_usd.kernels``): the
 local shading model and the lat-long environment of ``shading``, the raster fallback of
 ``compositing``, the frame's reflector boxes and clipped share (``frame_pixels``), the
-light pass's texel packing (``raster.light_pass``) and its undecided pairs
-(``raster.map_lighting``). Taken through ``phrt_usd.kernels.load`` on first use (by
+light pass's texel packing (``raster.light_pass``), the lights it looks up and its
+undecided pairs (``raster.map_lighting``). Taken through ``phrt_usd.kernels.load`` on first use (by
 those modules' functions), so that importing the renderer does not load numba; the
 numpy-facing functions, their arguments, shapes and coordinate spaces are those
 modules'. The constants of the model
@@ -388,12 +388,13 @@ def lit_local_pairs(rows, unsure, exact):
 
 
 @njit(**_KERNEL)
-def undecided_rows(bits, n_local, per_pass, gpu_distant, distant_unsure):
+def undecided_rows(bits, n_local, active, per_pass, gpu_distant, distant_unsure):
     """The points with a pair the maps could not decide, from the GPU lookup's ``bits``
-    (n, passes) uint32 (bit j of pass p: LocalLight ``per_pass`` p + j; bit
-    16 + k of pass 0: DistantLight k, when ``gpu_distant``, written into
-    ``distant_unsure`` (n, D) bool; else that array holds the numpy lookups' answer).
-    Returns rows (m,) int64 and their undecided LocalLight pairs (m, n_local) bool."""
+    (n, passes) uint32 (bit j of pass p: LocalLight ``active[per_pass p + j]``,
+    ``active`` (a,) int64 the lights looked up; bit 16 + k of pass 0: DistantLight k,
+    when ``gpu_distant``, written into ``distant_unsure`` (n, D) bool; else that array
+    holds the numpy lookups' answer). Returns rows (m,) int64 and their undecided
+    LocalLight pairs (m, n_local) bool."""
     n, passes = bits.shape
     n_distant = distant_unsure.shape[1]
     unsure = np.zeros(n, np.bool_)
@@ -415,11 +416,33 @@ def undecided_rows(bits, n_local, per_pass, gpu_distant, distant_unsure):
         if not unsure[i]:
             continue
         rows[r] = i
-        for j in range(n_local):
+        for j in range(active.shape[0]):
             p, b = j // per_pass, j % per_pass
-            local[r, j] = (bits[i, p] >> b) & 1 != 0
+            local[r, active[j]] = (bits[i, p] >> b) & 1 != 0
         r += 1
     return rows, local
+
+
+@njit(**_KERNEL)
+def lights_reaching(positions, centres, ranges):
+    """(P,) bool: the LocalLights (centres (P, 3) world metres, ranges (P,) metres) whose
+    range reaches the bounding box of ``positions`` (n, 3) world metres (so possibly
+    some point; none when n = 0)."""
+    n = positions.shape[0]
+    lo = np.full(3, np.inf)
+    hi = np.full(3, -np.inf)
+    for i in range(n):
+        for c in range(3):
+            lo[c] = min(lo[c], positions[i, c])
+            hi[c] = max(hi[c], positions[i, c])
+    out = np.zeros(centres.shape[0], np.bool_)
+    for k in range(centres.shape[0]):
+        d2 = 0.0
+        for c in range(3):  # squared distance from the centre to the box
+            e = max(lo[c] - centres[k, c], 0.0, centres[k, c] - hi[c])
+            d2 += e * e
+        out[k] = n > 0 and d2 < ranges[k] * ranges[k]
+    return out
 
 
 #: The argument types each kernel is compiled for (``warm_up``), as the render phase
@@ -446,7 +469,8 @@ SIGNATURES = {
     "pack_texels": ["f8[:, ::1], f8[::1], f4[:, ::1]", "f4[:, ::1], none, f4[:, ::1]",
                     "f8[:, ::1], none, f4[:, ::1]"],
     "lit_local_pairs": ["i8[::1], b1[:, ::1], f4[:, ::1]"],
-    "undecided_rows": ["u4[:, ::1], i8, i8, b1, b1[:, ::1]"],
+    "undecided_rows": ["u4[:, ::1], i8, i8[::1], i8, b1, b1[:, ::1]"],
+    "lights_reaching": ["f8[:, ::1], f8[:, ::1], f8[::1]"],
 }
 
 

@@ -262,6 +262,7 @@ class LightPass:
         to_eye: np.ndarray | None = None,
         distant: list[tuple[ShadowMap | None, ShadowMap | None]] | None = None,
         origin: np.ndarray | None = None,
+        active: np.ndarray | None = None,
     ) -> np.ndarray | tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Every point against every LocalLight's cube maps on the GPU (the test of
         ``shadow_maps.cube_visibility``, in ``shaders/cube_lookup.frag``).
@@ -276,9 +277,12 @@ class LightPass:
         shaded on the GPU; returns diffuse (n, 4) and highlight (n, 4) float32 sums over
         the lit pairs in channels 0-2 (``shading.shade_local``'s ``lit_sums``) and
         (n, passes) uint32 uncertain pairs (not in the sums): bit j of pass p is
-        LocalLight p * LOOKUP_LIGHTS_PER_PASS + j. ``distant`` (with ``to_eye`` only):
-        the (static, animated) maps of up to LOOKUP_MAX_DISTANT DistantLights, looked up
-        and shaded in the first pass too (uncertain: bit 16 + k of pass 0)."""
+        LocalLight ``active[p * LOOKUP_LIGHTS_PER_PASS + j]``. ``active`` (with
+        ``to_eye`` only): the LocalLights (indices into ``cubes``) to look up and shade,
+        default all (lights that reach none of the points cost nothing when left out;
+        every cube stays uploaded). ``distant`` (with ``to_eye`` only): the (static,
+        animated) maps of up to LOOKUP_MAX_DISTANT DistantLights, looked up and shaded
+        in the first pass too (uncertain: bit 16 + k of pass 0)."""
         n, n_local = len(points), len(cubes)
         self._ctx.make_current()
         self._setup()
@@ -315,7 +319,8 @@ class LightPass:
             GL.glActiveTexture(GL.GL_TEXTURE0 + unit)
             GL.glBindTexture(target, tex)
         GL.glBindVertexArray(self._lookup_vao)
-        passes = max(-(-n_local // LOOKUP_LIGHTS_PER_PASS), 1 if distant else 0)
+        drawn = list(range(n_local)) if active is None or not shading else list(active)
+        passes = max(-(-len(drawn) // LOOKUP_LIGHTS_PER_PASS), 1 if distant else 0)
         if shading:
             # Read back straight into the results (one pass: no sums, no copies): diffuse
             # and highlight RGBA rows, of which the first n are the points'.
@@ -335,7 +340,7 @@ class LightPass:
         GL.glPixelStorei(GL.GL_PACK_ALIGNMENT, 1)
         for p in range(passes):
             start = p * LOOKUP_LIGHTS_PER_PASS
-            ks = list(range(start, min(start + LOOKUP_LIGHTS_PER_PASS, n_local)))
+            ks = [int(k) for k in drawn[start : start + LOOKUP_LIGHTS_PER_PASS]]
             n_distant = len(distant) if p == 0 else 0
             pad = LOOKUP_LIGHTS_PER_PASS - len(ks)
             pos = [self._maps.cube_keys[k][0] for k in ks]

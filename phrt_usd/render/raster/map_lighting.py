@@ -357,8 +357,13 @@ class MapLighting:
         )
         cubes = self._maps.cube_maps() if lights.local else []
         ranges = light_ranges(lights)[n_distant:]
+        # Only the LocalLights whose range reaches the points' bounding box are looked
+        # up (the others light none of them and have no pair to decide).
+        centres = np.array([li.position for li in lights.local], np.float64).reshape(-1, 3)
+        reaching = _shade().lights_reaching(positions, centres, np.asarray(ranges, np.float64))
+        active = np.flatnonzero(reaching)
         diffuse, highlight, bits = self._light_pass.lookup(
-            positions, normals, cubes, ranges, to_eye, maps, origin=origin
+            positions, normals, cubes, ranges, to_eye, maps, origin=origin, active=active
         )
         for job in jobs:
             job.result()
@@ -370,7 +375,7 @@ class MapLighting:
         # LocalLight ones are shaded from their visibility (exact, else the maps' PCF),
         # the DistantLight ones are corrected in ``distant``.
         rows, local_unsure = _shade().undecided_rows(
-            bits, len(cubes), LOOKUP_LIGHTS_PER_PASS, bool(maps), distant_unsure
+            bits, len(cubes), active, LOOKUP_LIGHTS_PER_PASS, bool(maps), distant_unsure
         )
         return PendingLightTerms(
             positions,
