@@ -184,12 +184,11 @@ def _bounce(tri, dirs, ng, ns, frame, ior):
     triangle) by ``trace_kernels.bounce``."""
     m = len(tri)
     i64 = np.zeros(m, np.int64)
+    n_i, n_w, n_v = trace_kernels.BOUNCE_ROWS
+    width = 3 * m
     outs = (
-        np.empty(3 * m, np.int64), np.empty(3 * m), np.empty((3 * m, 3), np.float32),
-        np.empty(m, np.int64), np.empty(m), np.empty(m, np.int64), np.empty(m, np.int64),
-        np.empty(m, np.int64), np.empty(2 * m, np.int64), np.empty(2 * m, np.int64),
-        np.empty(2 * m), np.empty(2 * m, np.int64), np.empty(2 * m, bool),
-        np.empty((2 * m, 3), np.float32), np.empty((2 * m, 3), np.float32),
+        np.empty((n_i, width), np.int64), np.empty((n_w, width)),
+        np.empty((n_v, width, 3), np.float32), np.empty(width, bool),
     )  # fmt: skip
     n = trace_kernels.bounce(
         tri, tri[:0], tri, np.zeros((m, 3)), ng, ns, tri, i64, np.ones(m), i64, dirs,
@@ -197,7 +196,7 @@ def _bounce(tri, dirs, ng, ns, frame, ior):
         1e-6, RAY_OFFSET_RELATIVE, 1, np.zeros(m, np.int64), np.zeros(1, np.int64), *outs,
     )  # fmt: skip
     assert n[3] == m and n[4] == m  # every hit refracts, none reflects (F = 0)
-    return outs[13][:m]
+    return outs[2][1][:m]  # the children's directions (c_dir)
 
 
 def test_kernels_finite_for_extreme_inputs():
@@ -261,3 +260,11 @@ def test_first_rays_split_over_the_pool_match_one_thread(monkeypatch):
     np.testing.assert_array_equal(got.pixel_index, expected.pixel_index)
     np.testing.assert_array_equal(got.radiance, expected.radiance)
     assert [r.rays for r in got.records] == [r.rays for r in expected.records]
+
+
+def test_bounce_buffer_rows_agree():
+    """The bounce loop allocates ``bounce``'s output buffers with the rows the kernel
+    module declares."""
+    from phrt_usd.render.trace import paths
+
+    assert (paths._ROWS_I, paths._ROWS_W, paths._ROWS_V) == trace_kernels.BOUNCE_ROWS

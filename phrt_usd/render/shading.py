@@ -271,6 +271,59 @@ def shaped_lights(lights: Lights) -> bool:
     return any(li.shaped for li in lights.local)
 
 
+class _LightTable(NamedTuple):
+    """The lights as ``shade_kernels.shade_kernel`` takes them (float64, light order
+    distant then local): ambient (3,), d_dir (D, 3) unit towards the light, d_radiance
+    (D, 3), l_position (K, 3) in the shaded points' space, l_radiance (K, 3), l_range
+    (K,) metres (``light_ranges``), cone (K, 7): axis, angle, softness, focus, shaped."""
+
+    ambient: np.ndarray
+    d_dir: np.ndarray
+    d_radiance: np.ndarray
+    l_position: np.ndarray
+    l_radiance: np.ndarray
+    l_range: np.ndarray
+    cone: np.ndarray
+
+
+#: The latest ``_light_table``: (identity key, table). One entry: a frame shades with one
+#: ``Lights`` (the tracer's rel copy or the scene's); rebuilding it per call was a fixed
+#: cost of every trace round.
+_LIGHT_TABLE_CACHE: list = [None]
+
+
+def _light_table(lights: Lights) -> _LightTable:
+    """``lights`` as the shading kernel's tables, cached while ``lights``, its dome and
+    every light object stay the same objects (identity, as the tracer's light caches:
+    lights are replaced, never modified in place, e.g. ``aim_headlight``)."""
+    key = (lights, lights.dome, *lights.distant, *lights.local)
+    cached = _LIGHT_TABLE_CACHE[0]
+    if (
+        cached is not None
+        and len(cached[0]) == len(key)
+        and all(a is b for a, b in zip(cached[0], key, strict=True))
+    ):
+        return cached[1]
+    distant, local = lights.distant, lights.local
+    d_dir = np.array([li.direction for li in distant], np.float64).reshape(-1, 3)
+    d_dir /= np.maximum(np.linalg.norm(d_dir, axis=1, keepdims=True), _MIN_DIRECTION_LENGTH)
+    cone = np.array(
+        [[*li.axis, li.cone_angle, li.cone_softness, li.focus, li.shaped] for li in local],
+        np.float64,
+    ).reshape(-1, 7)
+    table = _LightTable(
+        ambient_radiance(lights).astype(np.float64),
+        d_dir,
+        np.array([li.radiance for li in distant], np.float64).reshape(-1, 3),
+        np.array([li.position for li in local], np.float64).reshape(-1, 3),
+        np.array([li.radiance for li in local], np.float64).reshape(-1, 3),
+        np.ascontiguousarray(light_ranges(lights)[len(distant) :]),
+        cone,
+    )
+    _LIGHT_TABLE_CACHE[0] = (key, table)
+    return table
+
+
 def _shade_chunk(
     positions: np.ndarray,
     normals: np.ndarray,
@@ -294,13 +347,7 @@ def _shade_chunk(
     emissive = rows(emissive)
     if len(emissive) != 1:
         emissive = emissive.reshape(n, 3)
-    distant, local = lights.distant, lights.local
-    d_dir = np.array([li.direction for li in distant], np.float64).reshape(-1, 3)
-    d_dir /= np.maximum(np.linalg.norm(d_dir, axis=1, keepdims=True), _MIN_DIRECTION_LENGTH)
-    cone = np.array(
-        [[*li.axis, li.cone_angle, li.cone_softness, li.focus, li.shaped] for li in local],
-        np.float64,
-    ).reshape(-1, 7)
+    table = _light_table(lights)
     pairs = _NO_PAIRS if local_pairs is None else LightPairs(*local_pairs)
     has_weight = pairs.weight is not None
     out = np.empty((n, 3), np.float32)
@@ -311,15 +358,15 @@ def _shade_chunk(
             rows(albedo).reshape(n, 3),
             rows(view_dirs).reshape(n, 3),
             emissive,
-            ambient_radiance(lights).astype(np.float64),
+            table.ambient,
             *(_sums(s, n) for s in (lit_sums if lit_sums is not None else (None, None))),
-            d_dir,
-            np.array([li.radiance for li in distant], np.float64).reshape(-1, 3),
+            table.d_dir,
+            table.d_radiance,
             _NO_VISIBILITY if visibility is None else rows(visibility, width=1).reshape(n, -1),
-            np.array([li.position for li in local], np.float64).reshape(-1, 3),
-            np.array([li.radiance for li in local], np.float64).reshape(-1, 3),
-            light_ranges(lights)[len(distant) :],
-            cone,
+            table.l_position,
+            table.l_radiance,
+            table.l_range,
+            table.cone,
             local_pairs is None and lit_sums is None,
             np.ascontiguousarray(pairs.point, np.int64),
             np.ascontiguousarray(pairs.light, np.int64),

@@ -50,6 +50,9 @@ from phrt_usd.render.trace.shadow_rays import ShadowRays
 
 #: The compiled trace kernels (``trace_kernels``, through ``phrt_usd.kernels``).
 trace_kernels = kernels.load("phrt_usd.render.trace.trace_kernels")
+#: Rows of ``trace_kernels.bounce``'s int64, float64 and float32 output buffers (as the
+#: kernel module declares them; read without compiling it).
+_ROWS_I, _ROWS_W, _ROWS_V = 8, 3, 3
 
 
 class PathTracer:
@@ -138,23 +141,21 @@ class PathTracer:
             rel, ng, ns = surfaces.geometry(hits.tri, hits.u, hits.v, d_in)
             last = depth + 1 >= bounce_limit
             n_out = 2 * m if split else m
-            env = (
-                np.empty(k + n_out, np.int64),
-                np.empty(k + n_out),
-                np.empty((k + n_out, 3), np.float32),
-            )
-            lit = (np.empty(m, np.int64), np.empty(m), np.empty(m, np.int64), np.empty(m, np.int64))
-            keys = np.empty(m, np.int64)
-            child = (
-                np.empty(n_out, np.int64), np.empty(n_out, np.int64), np.empty(n_out),
-                np.empty(n_out, np.int64), np.empty(n_out, bool),
-                np.empty((n_out, 3), np.float32), np.empty((n_out, 3), np.float32),
-            )  # fmt: skip
+            # One buffer per dtype, rows as trace_kernels.BOUNCE_ROWS (views below).
+            width = k + n_out
+            out_i = np.empty((_ROWS_I, width), np.int64)
+            out_w = np.empty((_ROWS_W, width))
+            out_v = np.empty((_ROWS_V, width, 3), np.float32)
+            c_refr = np.empty(width, bool)
             n_env, n_lit, n_keys, n_child, n_child_refr = trace_kernels.bounce(
                 hits.ray, hits.miss, hits.tri, rel, ng, ns, slot, r_src, weight, chain, dirs,
                 *tables, split, last, floor, relative, n_elem, chain_pix, rays_src,
-                *env, *lit, keys, *child,
+                out_i, out_w, out_v, c_refr,
             )  # fmt: skip
+            env = (out_i[0], out_w[0], out_v[0])
+            lit = (out_i[1], out_w[1], out_i[2], out_i[3])
+            keys = out_i[4]
+            child = (out_i[5], out_i[6], out_w[2], out_i[7], c_refr, out_v[1], out_v[2])
             if n_env:
                 env_parts.append(tuple(a[:n_env] for a in env))
             if n_lit:

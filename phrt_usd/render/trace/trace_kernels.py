@@ -185,13 +185,15 @@ def _refract(dx, dy, dz, nx, ny, nz, fx, fy, fz, ior):
     return _unit64(eta * dx + c * nx, eta * dy + c * ny, eta * dz + c * nz)
 
 
+#: The rows of ``bounce``'s output buffers (int64, float64, float32 (·, 3)).
+BOUNCE_ROWS = (8, 3, 3)
+
+
 @njit(**_KERNEL)
 def bounce(
     ray, miss, tri, rel, ng, ns, slot, src, weight, chain, dirs,
     tri_reflector, tri_f, tri_material, tri_element, opacity, ior, frame,
-    split, last, floor, relative, n_elem, chain_pix, rays_src,
-    env_slot, env_w, env_dir, lit, lit_w, lit_slot, lit_src, keys,
-    c_slot, c_src, c_w, c_chain, c_refr, c_dir, c_org,
+    split, last, floor, relative, n_elem, chain_pix, rays_src, out_i, out_w, out_v, c_refr,
 ):  # fmt: skip
     """One depth of the bounce loop (``paths.PathTracer.run``) over k live rays, of
     which m hit (``ray`` (m,) rows, ``miss`` (k - m,) rows, int64).
@@ -213,7 +215,17 @@ def bounce(
     c_w, c_chain, c_refr (bool), c_dir float32 and c_org float32 (offset origins; not
     written at ``last``).
 
+    The outputs come as four buffers of L >= k + 2m columns (four arguments and four
+    allocations per depth instead of fifteen: a fixed cost of every depth): ``out_i``
+    (8, L) int64 rows env_slot, lit, lit_slot, lit_src, keys, c_slot, c_src, c_chain;
+    ``out_w`` (3, L) float64 rows env_w, lit_w, c_w; ``out_v`` (3, L, 3) float32
+    env_dir, c_dir, c_org; ``c_refr`` (L,) bool (``BOUNCE_ROWS``).
+
     Returns (environment entries, lit hits, keys, children, refracted children)."""
+    env_slot, lit, lit_slot, lit_src, keys = out_i[0], out_i[1], out_i[2], out_i[3], out_i[4]
+    c_slot, c_src, c_chain = out_i[5], out_i[6], out_i[7]
+    env_w, lit_w, c_w = out_w[0], out_w[1], out_w[2]
+    env_dir, c_dir, c_org = out_v[0], out_v[1], out_v[2]
     n_env = 0
     for j in range(miss.shape[0]):
         r = miss[j]
@@ -403,12 +415,11 @@ def warm_up() -> None:
     hits = (i64, i64[:0], i64, v64, v64, v32)
     state = (i64, i64, f64, i64, v32)
     tables = (b, f64, i64, i64, f64 + 1.0, f64 + 1.0, frame)
-    env = (i64.copy(), f64.copy(), v32.copy())
-    lit = (i64.copy(), f64.copy(), i64.copy(), i64.copy(), i64.copy())  # with keys
-    child = (i64.copy(), i64.copy(), f64.copy(), i64.copy(), b.copy(), v32.copy(), v32.copy())
+    n_i, n_w, n_v = BOUNCE_ROWS
+    out = (np.zeros((n_i, 3), np.int64), np.zeros((n_w, 3)), np.zeros((n_v, 3, 3), np.float32))
     for split in (False, True):
         bounce(*hits, *state, *tables, split, False, 1e-6, 1e-5, 1, i64.copy(), i64.copy(),
-               *env, *lit, *child)  # fmt: skip
+               *out, np.zeros(3, bool))  # fmt: skip
     primary_rays(f64, f64, np.eye(3), False, np.zeros(3), np.ones(3), 0.1, 0, 1, v64.copy(),
                  v32.copy(), v32.copy())  # fmt: skip
     gb_rows = (i32.copy(), i32.copy(), f32.copy(), v64.copy(), v32.copy(), v32.copy())
