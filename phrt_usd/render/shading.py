@@ -148,17 +148,18 @@ def environment_radiance(lights: Lights, directions: np.ndarray) -> np.ndarray:
         return np.broadcast_to(colour, (n, 3)).copy()
     texture = np.ascontiguousarray(dome.texture, dtype=np.float32)
     rotation = np.ascontiguousarray(dome.world_from_light, dtype=np.float64)
-    kernels = _kernels()
+    compiled = _kernels()
+    colour64 = np.asarray(colour, np.float64)
     out = np.empty((n, 3), np.float32)
 
     def run(part: slice) -> None:
         d = np.empty((len(out[part]), 3))
-        kernels.dome_directions(directions[part], rotation, _MIN_DIRECTION_LENGTH, d)
+        compiled.dome_directions(directions[part], rotation, _MIN_DIRECTION_LENGTH, d)
         # The angles by numpy's vectorised arcsin / arctan2 (~3x faster than scalar
         # libm calls in a kernel).
         latitude = np.arcsin(np.clip(d[:, 1], -1.0, 1.0))
         longitude = np.arctan2(d[:, 0], d[:, 2])
-        kernels.latlong_bilinear(latitude, longitude, texture, colour.astype(np.float64), out[part])
+        compiled.latlong_bilinear(latitude, longitude, texture, colour64, out[part])
 
     _on_pool(run, n)
     return out
