@@ -182,26 +182,7 @@ class NumpyPathTracer(PathTracer):
             slot, w, src, tri, u, v, rel, ng, ns, d_in = (
                 _cat(p) for p in zip(*shade_parts, strict=True)
             )
-            n_lights = len(lights.distant) + len(lights.local)
-            bounds = self._shadows.split(len(slot) * max(n_lights, 1), len(slot))
-            if bounds is None:
-                local, shadow_rays = self._shade_points(tri, u, v, rel, ng, ns, d_in, lights)
-            else:
-                # Large batches (the sewer: 13 lights, ~300k shadow rays): the whole
-                # shading, numpy included, runs in chunks on the pool (numpy and embreex
-                # release the GIL), each chunk's Embree batch on its own thread.
-                parts = [
-                    self._shadows.pool.submit(
-                        self._shade_points,
-                        *(a[lo:hi] for a in (tri, u, v, rel, ng, ns, d_in)),
-                        lights,
-                        1,
-                    )
-                    for lo, hi in bounds
-                ]
-                done = [f.result() for f in parts]
-                local = np.concatenate([d[0] for d in done])
-                shadow_rays = np.concatenate([d[1] for d in done])
+            local, shadow_rays = self._shade_hits(tri, u, v, rel, ng, ns, d_in, lights)
             if lights.has_direct:
                 rays_src += np.bincount(src, weights=shadow_rays, minlength=n_src).astype(np.int64)
                 counters["shadow"] += int(shadow_rays.sum())

@@ -196,6 +196,27 @@ class PathTracer:
         # The caller updates ``rays_cast`` (a dict ``+=`` from pool threads could race).
         return local, shadow_rays
 
+    def _shade_hits(self, tri, u, v, rel, ng, ns, d_in, lights: Lights):
+        """``_shade_points`` of every gathered hit: (m, 3) radiance and (m,) shadow rays
+        per hit. Large batches (the sewer: 13 lights, ~300k shadow rays) run in chunks
+        on the pool (the kernels and embreex release the GIL), each chunk's Embree batch
+        on its own thread."""
+        n_lights = len(lights.distant) + len(lights.local)
+        bounds = self._shadows.split(len(tri) * max(n_lights, 1), len(tri))
+        if bounds is None:
+            return self._shade_points(tri, u, v, rel, ng, ns, d_in, lights)
+        parts = [
+            self._shadows.pool.submit(
+                self._shade_points,
+                *(a[lo:hi] for a in (tri, u, v, rel, ng, ns, d_in)),
+                lights,
+                1,
+            )
+            for lo, hi in bounds
+        ]
+        done = [f.result() for f in parts]
+        return np.concatenate([d[0] for d in done]), np.concatenate([d[1] for d in done])
+
     def _gather(self, env_parts, shade_parts, lights, n_pix, counters):
         """The deferred part of ``run``: environment and local shading of every bounce
         at once. Returns radiance (n_pix, 3) float32, and the source (m,) int64 and
@@ -212,26 +233,7 @@ class PathTracer:
             slot, w, src, tri, u, v, rel, ng, ns, d_in = (
                 _cat(p) for p in zip(*shade_parts, strict=True)
             )
-            n_lights = len(lights.distant) + len(lights.local)
-            bounds = self._shadows.split(len(slot) * max(n_lights, 1), len(slot))
-            if bounds is None:
-                local, rays = self._shade_points(tri, u, v, rel, ng, ns, d_in, lights)
-            else:
-                # Large batches (the sewer: 13 lights, ~300k shadow rays): the whole
-                # shading, numpy included, runs in chunks on the pool (numpy and embreex
-                # release the GIL), each chunk's Embree batch on its own thread.
-                parts = [
-                    self._shadows.pool.submit(
-                        self._shade_points,
-                        *(a[lo:hi] for a in (tri, u, v, rel, ng, ns, d_in)),
-                        lights,
-                        1,
-                    )
-                    for lo, hi in bounds
-                ]
-                done = [f.result() for f in parts]
-                local = np.concatenate([d[0] for d in done])
-                rays = np.concatenate([d[1] for d in done])
+            local, rays = self._shade_hits(tri, u, v, rel, ng, ns, d_in, lights)
             if lights.has_direct:
                 shadow_src, shadow_rays = src, np.asarray(rays, np.int64)
                 counters["shadow"] += int(shadow_rays.sum())
