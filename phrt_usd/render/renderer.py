@@ -33,6 +33,7 @@ from phrt_usd.model.frame import (
     SelectionPolicy,
 )
 from phrt_usd.model.scene import CameraFrame, Scene
+from phrt_usd.render import frame_pixels
 from phrt_usd.render.compositing import (
     apply_traced,
     base_image,
@@ -294,7 +295,7 @@ class FrameRenderer:
         renderer's load step: phases 1-3 at ``time_code``, their result discarded. That
         compiles the OpenGL programs, uploads the geometry, renders the static shadow
         maps and starts the pools, so the first frame costs what a steady frame does
-        (it took 8x one before, most of it the first shadow maps and light pass).
+        (without this step it took 8x one, most of it the first shadow maps and light pass).
         Selection and tracing are not run: the policy and its cost model learn from
         rendered frames only, and the image of any frame is the same with or without
         this (everything it leaves behind is a cache of the scene at a time code)."""
@@ -567,9 +568,7 @@ class FrameRenderer:
     def _screen_boxes(self, gb: GBuffer) -> np.ndarray:
         """(E, 4) pixel bounds (col_min, row_min, col_max, row_max) of every reflector's
         visible pixels, NaN for elements without any (see FrameView.screen_boxes)."""
-        from phrt_usd.render.frame_pixels import screen_boxes  # compiled: numba on use
-
-        return screen_boxes(gb.element_id, self._reflector_ids, len(self.scene.elements))
+        return frame_pixels.screen_boxes(gb.element_id, self._reflector_ids, len(self.scene.elements))
 
     def _check_clipping(self, image: np.ndarray, gb: GBuffer, t: float, ev: float) -> None:
         """Once per run: when more than CLIPPED_SHARE of the covered pixels of ``image``
@@ -579,11 +578,9 @@ class FrameRenderer:
         pixels' median to SUGGESTED_MEDIAN."""
         if self._clipping_warned:
             return
-        from phrt_usd.render.frame_pixels import clipped_share  # compiled: numba on use
-
         step = CLIP_SAMPLE_STRIDE
         covered = gb.covered
-        share = clipped_share(image, covered, step, CLIP_LEVEL)
+        share = frame_pixels.clipped_share(image, covered, step, CLIP_LEVEL)
         if share <= CLIPPED_SHARE:
             return
         covered = covered[::step, ::step]
