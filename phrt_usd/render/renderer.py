@@ -568,7 +568,8 @@ class FrameRenderer:
     def _screen_boxes(self, gb: GBuffer) -> np.ndarray:
         """(E, 4) pixel bounds (col_min, row_min, col_max, row_max) of every reflector's
         visible pixels, NaN for elements without any (see FrameView.screen_boxes)."""
-        return frame_pixels.screen_boxes(gb.element_id, self._reflector_ids, len(self.scene.elements))
+        n_elements = len(self.scene.elements)
+        return frame_pixels.screen_boxes(gb.element_id, self._reflector_ids, n_elements)
 
     def _check_clipping(self, image: np.ndarray, gb: GBuffer, t: float, ev: float) -> None:
         """Once per run: when more than CLIPPED_SHARE of the covered pixels of ``image``
