@@ -52,6 +52,7 @@ from pxr import Usd
 from phrt_usd.errors import BadOption, PhrtError
 from phrt_usd.evaluate.report import build_report
 from phrt_usd.model.frame import FrameStats
+from phrt_usd.render.primary_source import check_primary
 from phrt_usd.render.raster.gl_platform import check_gl
 from phrt_usd.render.renderer import FrameOutput, FrameRenderer, RenderOptions
 from phrt_usd.run.frames import SAME_FRAME, parse_frames
@@ -130,6 +131,8 @@ def render_options(
         extra["threads"] = check_threads(given["threads"])
     if "gl" in given:
         extra["gl"] = check_gl(given["gl"])
+    if "primary" in given:
+        extra["primary"] = check_primary(given["primary"])
     if "exposure" in given:  # EV: the image's radiance x 2**exposure before writing
         extra["exposure"] = _real("exposure", given["exposure"])
     return RenderOptions(

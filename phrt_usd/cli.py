@@ -338,6 +338,14 @@ GlOpt = Annotated[
         "is found, else OSMesa).",
     ),
 ]
+PrimaryOpt = Annotated[
+    str | None,
+    typer.Option(
+        metavar="auto|raster|rays",
+        help="Source of the G-buffer: the raster id pass or Embree primary rays (auto: "
+        "both timed on the first frame, the clearly faster kept; rt mode: rays).",
+    ),
+]
 ExposureOpt = Annotated[
     float | None,
     typer.Option(
@@ -441,6 +449,7 @@ def render(
     exposure: ExposureOpt = None,
     threads: ThreadsOpt = None,
     gl: GlOpt = None,
+    primary: PrimaryOpt = None,
     workers: WorkersOpt = None,
     scheduler: SchedulerOpt = None,
     chunk_frames: ChunkFramesOpt = None,
@@ -484,6 +493,7 @@ def render(
             strict=strict,
             threads=None if threads is None else parse_threads(threads),
             gl=gl,
+            primary=primary,
             exposure=exposure,
         )
         for warning in scene.warnings:

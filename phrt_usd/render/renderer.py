@@ -3,7 +3,8 @@
 Per frame (``FrameRenderer.render``):
 
 1. ``set_time``   animated prims re-evaluated; rasterizer / Embree scene updated if moved.
-2. ``gbuffer``    raster G-buffer (pyrender) — or, in ``rt`` mode, primary rays (Embree).
+2. ``gbuffer``    raster G-buffer (the id pass) — or primary rays (Embree): always in
+                  ``rt`` mode, else where ``--primary`` chose them (``primary_source``).
 3. ``shade``      local shading of every covered pixel (shadow map in raster/hybrid,
                   shadow rays in ``rt``); reflectors get the environment fallback.
 4. ``select`` + ``trace``  rounds of: the selection policy picks reflectors that fit the
@@ -42,6 +43,7 @@ from phrt_usd.render.compositing import (
     pixel_reflectivity,
 )
 from phrt_usd.render.lighting import shade_gbuffer
+from phrt_usd.render.primary_source import DEFAULT_PRIMARY, check_primary, choose
 from phrt_usd.render.raster.gl_platform import DEFAULT_GL, check_gl
 from phrt_usd.select.heu1_policy import UPCOMING_CAMERAS
 from phrt_usd.select.policies import make_policy
@@ -121,6 +123,8 @@ class RenderOptions:
     threads: int = DEFAULT_THREADS
     #: OpenGL platform of the raster phase: auto | egl | osmesa (``render.raster.gl_platform``).
     gl: str = DEFAULT_GL
+    #: Source of the G-buffer: auto | raster | rays (``render.primary_source``).
+    primary: str = DEFAULT_PRIMARY
     #: Frame rate to hold (``--target-fps``): each frame's T is the frame period less the
     #: frame's measured raster and shading and the previous frame's selection, less
     #: TARGET_FPS_MARGIN of the period. Exclusive with ``budget_ms``.
@@ -132,8 +136,11 @@ class RenderOptions:
     def __post_init__(self) -> None:
         self.threads = check_threads(self.threads)
         self.gl = check_gl(self.gl)
+        self.primary = check_primary(self.primary)
         if self.mode not in MODES:
             raise BadOption(f"unknown mode {self.mode!r}; expected one of {', '.join(MODES)}")
+        if self.mode == "rt" and self.primary == "raster":
+            raise BadOption("--primary raster: rt mode traces every ray, its primary rays too")
         if self.heuristic not in HEURISTICS:
             raise BadOption(
                 f"unknown heuristic {self.heuristic!r}; expected one of {', '.join(HEURISTICS)}"
@@ -233,13 +240,21 @@ class FrameRenderer:
             from phrt_usd.render.raster.rasterizer import Rasterizer
 
             self._rasterizer = Rasterizer(scene, options.width, options.height)
-        # Embree is only needed to trace (reflectors in hybrid, everything in rt).
-        if options.mode == "rt" or (
-            options.mode == "hybrid" and len(self._reflector_ids) and options.heuristic != "none"
+        # Embree is only needed to trace (reflectors in hybrid, everything in rt), or for
+        # primary rays asked for by name.
+        traces = len(self._reflector_ids) and options.heuristic != "none"
+        if (
+            options.mode == "rt"
+            or options.primary == "rays"
+            or (options.mode == "hybrid" and traces)
         ):
             from phrt_usd.render.trace.tracer import Tracer
 
             self._tracer = Tracer(scene, threads=options.threads)
+        #: The G-buffer source in use, "raster" or "rays" (``primary_source``; ``auto``
+        #: decides in ``warm_up``), and the timings that decided it (None: not measured).
+        self.primary = "rays" if options.mode == "rt" or options.primary == "rays" else "raster"
+        self.primary_timings: dict[str, float] | None = None
         #: The frames this renderer will render, in order (``plan``), and the cameras of
         #: those looked up so far, by time code.
         self._planned: list[float] = []
@@ -298,8 +313,17 @@ class FrameRenderer:
         (without this step it took 8x one, most of it the first shadow maps and light pass).
         Selection and tracing are not run: the policy and its cost model learn from
         rendered frames only, and the image of any frame is the same with or without
-        this (everything it leaves behind is a cache of the scene at a time code)."""
+        this (everything it leaves behind is a cache of the scene at a time code).
+        With ``--primary auto`` and an Embree scene, both G-buffer sources are then timed
+        on this frame's camera and the faster is kept (``primary_source.choose``)."""
         self.prepare(time_code)
+        if self.options.primary == "auto" and self._tracer is not None:
+            camera = self.stage_scene.camera(time_code)
+            w, h = self.options.width, self.options.height
+            self.primary, self.primary_timings = choose(
+                lambda: self._rasterizer.render(camera),
+                lambda: self._tracer.primary_gbuffer(camera, w, h),
+            )
 
     def _path_cameras(self, time_code: float) -> tuple[CameraFrame, tuple[CameraFrame, ...]]:
         """The camera at ``time_code`` and those of the planned frames after it (at most
@@ -345,7 +369,7 @@ class FrameRenderer:
 
         scene = self.scene
         t = time.perf_counter()
-        if opts.mode == "rt":
+        if self.primary == "rays":
             gb = self._tracer.primary_gbuffer(camera, opts.width, opts.height)
             passes.append("primary_rays")
         else:

@@ -301,6 +301,8 @@ _RUN_INFO_TYPES: dict[str, tuple[type, ...]] = {
     "gl": (str,),
     "llvmpipe_threads": (int,),
     "kernels": (str,),
+    "primary": (str,),
+    "primary_ms": (dict,),
 }
 
 
