@@ -343,7 +343,8 @@ PrimaryOpt = Annotated[
     typer.Option(
         metavar="auto|raster|rays",
         help="Source of the G-buffer: the raster id pass or Embree primary rays (auto: "
-        "both timed on the first frame, the clearly faster kept; rt mode: rays).",
+        "rays on a software rasterizer for stages of more triangles than pixels; rt mode: "
+        "rays).",
     ),
 ]
 ExposureOpt = Annotated[

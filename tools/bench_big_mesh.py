@@ -10,8 +10,9 @@ a DomeLight, a camera moving along the mirror over ``frames`` frames. Each mode 
 in its own ``FrameRenderer`` (in this process; one warm-up frame untimed), timed per
 phase (``FrameStats.phase_ms``), median over the frames; set-up is the renderer's
 construction (GL context and upload, BVH build). "G-buffer" is the source each mode used
-(``--primary``: the hybrid's default ``auto`` times both at its load step); the hybrid
-is run a second time with the raster id pass asked for, to show what that costs.
+(``--primary``: the hybrid's default ``auto`` takes the rays here, on llvmpipe with more
+triangles than pixels); the hybrid is run a second time with the raster id pass asked
+for, to show what that costs.
 """
 
 from __future__ import annotations

@@ -6,40 +6,41 @@ the raster id pass (``render.raster.gbuffer``) and Embree's primary rays
 of covered pixels (they may differ where coplanar surfaces z-fight), so the images
 agree within the hybrid-against-rt thresholds whichever runs.
 
-Which is cheaper depends on the machine and the stage. On a GPU, or on llvmpipe with
-fewer triangles than pixels, the raster is (the paper stages at 640 x 480: 13 ms
-against 27-32 ms). With far more triangles than pixels on a software rasterizer the
-id pass pays for every triangle's vertices and setup, and the rays win (a 1M-triangle
-ground: 60-80 ms against 32 ms). So ``auto`` measures both once, at the renderer's
-load step (``FrameRenderer.warm_up``), and keeps the faster for the whole run.
+Which is cheaper depends on the rasterizer. A GPU draws triangles almost for free. A
+software rasterizer (Mesa's llvmpipe, the CPU OpenGL of a machine without a GPU) pays for
+every triangle's vertices and set-up, primary rays for every pixel. Measured here
+(2 cores, llvmpipe; G-buffer ms, raster / rays): the paper stages at 640 x 480 (0.15-0.18
+triangles a pixel) 12.9 / 29.1 and 14.0 / 25.2; at 320 x 240 (0.58-0.70) 7.3 / 7.3 and
+10.4 / 6.9; at 160 x 120 (2.3-2.8) 5.2 / 2.2 and 7.0 / 3.7; a 1M-triangle ground at
+640 x 480 (3.3) 60-80 / 32. The rays win from about half a triangle a pixel on.
 
-- ``raster``: the id pass (always, in ``raster`` and ``hybrid`` modes);
+- ``raster``: the id pass;
 - ``rays``: primary rays (an Embree scene is built for them if the mode has none);
-- ``auto``: ``raster`` unless the renderer has an Embree scene anyway and its primary
-  rays were measured clearly faster (``choose``).
+- ``auto``: ``rays`` where the raster phase runs on a software rasterizer, the renderer
+  has an Embree scene anyway, and the stage has more than RAYS_TRIANGLES_PER_PIXEL
+  triangles a pixel; ``raster`` otherwise (``choose``).
 
+``auto`` decides from the stage, the image size and the OpenGL renderer only, never from
+a timing: the same run on the same machine always takes the same source, so a rays
+budget stays deterministic and ``--resume`` continues with the pixels it began with.
 ``rt`` mode always traces its primary rays.
 """
 
 from __future__ import annotations
-
-import time
-from collections.abc import Callable
 
 from phrt_usd.errors import BadOption
 
 PRIMARY_SOURCES = ("auto", "raster", "rays")
 DEFAULT_PRIMARY = "auto"
 
-#: ``auto`` picks the rays only when they take less than 1 / RAYS_MARGIN of the raster's
-#: time. The two sources are not bit-identical (coplanar ties, see the module), so a
-#: run's pixels should not hinge on a near tie of two noisy timings: a 25 % lead is
-#: several times the run-to-run scatter of one G-buffer's time here.
-RAYS_MARGIN = 1.25
+#: ``auto`` takes the rays above this many triangles a pixel on a software rasterizer:
+#: twice the measured crossover (module docstring), so that near the crossover the
+#: paper's raster path stays (a run there loses at most what the crossover's scatter
+#: does; the stages that lose most, meshes of millions of triangles, are far above it).
+RAYS_TRIANGLES_PER_PIXEL = 1.0
 
-#: Timed calls of each source in ``choose``, alternating; the fastest of each counts (the
-#: minimum is the estimate least disturbed by other processes).
-TIMED_CALLS = 2
+#: Substrings of ``GL_RENDERER`` that name a software rasterizer (Mesa's).
+SOFTWARE_RENDERERS = ("llvmpipe", "softpipe", "swrast")
 
 
 def check_primary(value: object) -> str:
@@ -49,20 +50,18 @@ def check_primary(value: object) -> str:
     return value.lower()
 
 
-def choose(
-    raster: Callable[[], object],
-    rays: Callable[[], object],
-    clock: Callable[[], float] = time.perf_counter,
-) -> tuple[str, dict]:
-    """("raster" | "rays", timings) for ``auto``: each source called TIMED_CALLS times,
-    alternating, on the same camera; rays win if their fastest call is under the
-    raster's fastest / RAYS_MARGIN. timings: {"raster_ms": ..., "rays_ms": ...};
-    ``clock``: seconds (the tests give their own)."""
-    best = {"raster_ms": float("inf"), "rays_ms": float("inf")}
-    for _ in range(TIMED_CALLS):
-        for key, source in (("raster_ms", raster), ("rays_ms", rays)):
-            start = clock()
-            source()
-            best[key] = min(best[key], (clock() - start) * 1000.0)
-    chosen = "rays" if best["rays_ms"] * RAYS_MARGIN < best["raster_ms"] else "raster"
-    return chosen, best
+def is_software(gl_renderer: str) -> bool:
+    """True when the OpenGL renderer string names a software rasterizer."""
+    name = gl_renderer.lower()
+    return any(s in name for s in SOFTWARE_RENDERERS)
+
+
+def choose(option: str, has_tracer: bool, software_gl: bool, triangles: int, pixels: int) -> str:
+    """The source ("raster" or "rays") for ``option`` (one of PRIMARY_SOURCES) in a
+    raster or hybrid renderer: ``has_tracer`` whether it builds an Embree scene anyway,
+    ``software_gl`` whether its raster phase runs on a software rasterizer, and the
+    stage's ``triangles`` and the image's ``pixels``."""
+    if option != "auto":
+        return option
+    dense = triangles > RAYS_TRIANGLES_PER_PIXEL * max(pixels, 1)
+    return "rays" if has_tracer and software_gl and dense else "raster"

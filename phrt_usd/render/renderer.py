@@ -43,7 +43,7 @@ from phrt_usd.render.compositing import (
     pixel_reflectivity,
 )
 from phrt_usd.render.lighting import shade_gbuffer
-from phrt_usd.render.primary_source import DEFAULT_PRIMARY, check_primary, choose
+from phrt_usd.render.primary_source import DEFAULT_PRIMARY, check_primary, choose, is_software
 from phrt_usd.render.raster.gl_platform import DEFAULT_GL, check_gl
 from phrt_usd.select.heu1_policy import UPCOMING_CAMERAS
 from phrt_usd.select.policies import make_policy
@@ -251,10 +251,18 @@ class FrameRenderer:
             from phrt_usd.render.trace.tracer import Tracer
 
             self._tracer = Tracer(scene, threads=options.threads)
-        #: The G-buffer source in use, "raster" or "rays" (``primary_source``; ``auto``
-        #: decides in ``warm_up``), and the timings that decided it (None: not measured).
-        self.primary = "rays" if options.mode == "rt" or options.primary == "rays" else "raster"
-        self.primary_timings: dict[str, float] | None = None
+        #: The G-buffer source, "raster" or "rays" (``primary_source.choose``).
+        self.primary = (
+            "rays"
+            if self._rasterizer is None
+            else choose(
+                options.primary,
+                has_tracer=self._tracer is not None,
+                software_gl=is_software(self._rasterizer.gl_renderer),
+                triangles=scene.geometry.triangle_count,
+                pixels=options.width * options.height,
+            )
+        )
         #: The frames this renderer will render, in order (``plan``), and the cameras of
         #: those looked up so far, by time code.
         self._planned: list[float] = []
@@ -313,17 +321,8 @@ class FrameRenderer:
         (without this step it took 8x one, most of it the first shadow maps and light pass).
         Selection and tracing are not run: the policy and its cost model learn from
         rendered frames only, and the image of any frame is the same with or without
-        this (everything it leaves behind is a cache of the scene at a time code).
-        With ``--primary auto`` and an Embree scene, both G-buffer sources are then timed
-        on this frame's camera and the faster is kept (``primary_source.choose``)."""
+        this (everything it leaves behind is a cache of the scene at a time code)."""
         self.prepare(time_code)
-        if self.options.primary == "auto" and self._tracer is not None:
-            camera = self.stage_scene.camera(time_code)
-            w, h = self.options.width, self.options.height
-            self.primary, self.primary_timings = choose(
-                lambda: self._rasterizer.render(camera),
-                lambda: self._tracer.primary_gbuffer(camera, w, h),
-            )
 
     def _path_cameras(self, time_code: float) -> tuple[CameraFrame, tuple[CameraFrame, ...]]:
         """The camera at ``time_code`` and those of the planned frames after it (at most

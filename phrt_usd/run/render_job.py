@@ -208,14 +208,13 @@ class _Run:
         self.layer_path, self.run_dir, self.plan = layer_path, run_dir, plan
         self.done: list[FrameStats] = []
         self.renderer = FrameRenderer(scene, job.options)
-        self.runtime: dict = {}  # runtime_settings, once ``render`` planned the frames
+        self.runtime = runtime_settings(self.renderer)
+        self.run_info.update(self.runtime)  # stats.json and the layer record them
         self.memory = self.renderer.policy.memory()
 
     def render(self, times: list[float], on_frame) -> RunRecord:
         job, out, renderer = self.job, self.job.out_dir, self.renderer
-        renderer.plan(times)  # the load step: it decides --primary auto
-        self.runtime = runtime_settings(renderer)
-        self.run_info.update(self.runtime)  # stats.json and the layer record them
+        renderer.plan(times)
         stop = threading.Event()
         try:
             if job.resume and not self.run_dir.fresh:
@@ -302,9 +301,8 @@ def runtime_settings(renderer: FrameRenderer) -> dict:
     OpenGL platform of the raster phase, None without one), ``llvmpipe_threads``
     (llvmpipe's render threads in this process, None without llvmpipe), ``kernels``
     (the compiled form of the surface kernels: "aot", the set-up's build, or "jit",
-    ``phrt_usd.kernels``), ``primary`` (the G-buffer source in use, "raster" or "rays",
-    ``render.primary_source``) and ``primary_ms`` (the timings ``--primary auto`` chose
-    by, None when it measured nothing)."""
+    ``phrt_usd.kernels``) and ``primary`` (the G-buffer source, "raster" or "rays",
+    ``render.primary_source``)."""
     gl = renderer.gl
     return {
         "threads": renderer.options.threads,
@@ -312,7 +310,6 @@ def runtime_settings(renderer: FrameRenderer) -> dict:
         "llvmpipe_threads": llvmpipe_threads() if gl is not None else None,
         "kernels": kernels.form("phrt_usd.model.surface_kernels"),
         "primary": renderer.primary,
-        "primary_ms": renderer.primary_timings,
     }
 
 

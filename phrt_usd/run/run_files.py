@@ -302,7 +302,6 @@ _RUN_INFO_TYPES: dict[str, tuple[type, ...]] = {
     "llvmpipe_threads": (int,),
     "kernels": (str,),
     "primary": (str,),
-    "primary_ms": (dict,),
 }
 
 

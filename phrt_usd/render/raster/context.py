@@ -143,6 +143,9 @@ class RasterContext:
         self._platform.init_context()
         self._platform.make_current()
         self.renderer = pyrender.Renderer(self.width, self.height)
+        #: The OpenGL implementation's name (``GL_RENDERER``, e.g. "llvmpipe (LLVM 19.1.7,
+        #: 256 bits)" for Mesa's software rasterizer).
+        self.gl_renderer = GL.glGetString(GL.GL_RENDERER).decode("utf-8", "replace")
         self.renderer._program_cache = _ProgramCache(shader_dir=SHADER_DIR)
         self._create_id_framebuffer()
         # Our single-sampled framebuffer replaces pyrender's multisampled one.

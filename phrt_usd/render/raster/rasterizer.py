@@ -76,6 +76,11 @@ class Rasterizer:
         self._maps.use_cutouts(self._gbuffer.cutouts, self._gbuffer.table)
         self._maps.invalidate(static=True, dynamic=True)
 
+    @property
+    def gl_renderer(self) -> str:
+        """The OpenGL implementation's name (``GL_RENDERER``)."""
+        return self._ctx.gl_renderer
+
     def update_geometry(self, scene: Scene) -> None:
         """Re-upload geometry after animated prims moved.
 
