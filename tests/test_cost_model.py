@@ -11,6 +11,7 @@ import pytest
 from scenes import mirror_gallery_stage
 
 from phrt_usd.api import run_render
+from phrt_usd.errors import PhrtError
 from phrt_usd.render.renderer import RenderOptions
 from phrt_usd.run.render_job import RenderJob
 from phrt_usd.select.cost_model import TraceTimeModel
@@ -130,3 +131,7 @@ def test_rows_written_before_the_new_fields_still_read(tmp_path):
     assert stats.budget_ms is None and stats.untraced_reason is None
     with pytest.raises(Exception, match="untraced_reason"):
         frame_stats_from_row({**row, "untraced_reason": 3})
+    # A reflector's figures without their required fields (an empty table: found by
+    # tests/test_run_fuzz.py) are refused with the reader's one line, not a TypeError.
+    with pytest.raises(PhrtError, match="metrics of /World/Mirror0: not reflector figures"):
+        frame_stats_from_row({**row, "metrics": {"/World/Mirror0": {}}})

@@ -26,7 +26,7 @@ import json
 import math
 import os
 import platform
-from dataclasses import asdict, fields
+from dataclasses import MISSING, asdict, fields
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -178,8 +178,9 @@ def frame_stats_from_row(row: Any) -> FrameStats:
     if not isinstance(row["metrics"], dict) or not isinstance(row["phase_ms"], dict):
         raise PhrtError("frame record fields metrics / phase_ms: not tables")
     names = {f.name for f in fields(ReflectorMetrics)}
+    needed = {f.name for f in fields(ReflectorMetrics) if f.default is MISSING}
     for path, m in row["metrics"].items():
-        if not isinstance(m, dict) or not set(m) <= names:
+        if not isinstance(m, dict) or not needed <= set(m) <= names:
             raise PhrtError(f"frame record metrics of {path}: not reflector figures")
         metrics[path] = ReflectorMetrics(
             **{k: (bool(v) if k in ("S", "selected", "visible") else number(k, v))
