@@ -387,15 +387,26 @@ def summary_of(record: RunRecord) -> dict:
 
 
 def trace_summary(frames: Sequence[FrameStats]) -> dict:
-    """What a run's hybrid frames traced: ``untraced_frames`` (frames with visible
-    reflectors that traced nothing), ``mean_budget_use`` (trace ms / T over the
-    time-budgeted frames with visible reflectors, None without any),
-    ``trace_prediction_error`` (median |expected - measured| / measured trace ms after
-    the first three frames, None without traced frames) and ``trace_note``, one line when
-    hybrid frames with visible reflectors traced nothing (the first reason), else None."""
+    """What a run's hybrid frames traced:
+
+    - ``untraced_frames``: frames with visible reflectors that traced nothing;
+    - ``mean_budget_use``: trace ms / T over the time-budgeted frames with visible
+      reflectors (None without any);
+    - ``budget_bound_frames``, ``budget_bound_use``: those of them that left a visible
+      reflector untraced, and their mean use (budget idle there is budget the policy
+      chose not to spend; where all in view was traced, nothing was left to spend it on);
+    - ``trace_prediction_error``: median |expected - measured| / measured trace ms after
+      the first three frames (None without traced frames);
+    - ``trace_note``: one line when hybrid frames with visible reflectors traced nothing
+      (the first reason), else None."""
     seen = [f for f in frames if f.visible]
     untraced = [f for f in seen if not f.selected and f.untraced_reason is not None]
     uses = [f.budget_use for f in seen if f.budget_use is not None]
+    bound = [
+        f.budget_use
+        for f in seen
+        if f.budget_use is not None and not set(f.visible) <= set(f.selected)
+    ]
     errors = [
         abs(f.expected_trace_ms - f.trace_ms) / f.trace_ms
         for f in list(frames)[3:]
@@ -412,6 +423,8 @@ def trace_summary(frames: Sequence[FrameStats]) -> dict:
     return {
         "untraced_frames": len(untraced),
         "mean_budget_use": float(np.mean(uses)) if uses else None,
+        "budget_bound_frames": len(bound),
+        "budget_bound_use": float(np.mean(bound)) if bound else None,
         "trace_prediction_error": float(np.median(errors)) if errors else None,
         "trace_note": note,
     }

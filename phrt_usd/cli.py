@@ -542,7 +542,13 @@ def render(
             typer.echo(f"note: {summary['trace_note']}")
         if summary.get("mean_budget_use") is not None:
             use = summary["mean_budget_use"]
-            typer.echo(f"trace budget use: {use:.0%} of T (mean, frames with reflectors in view)")
+            line = f"trace budget use: {use:.0%} of T (mean, frames with reflectors in view)"
+            if summary.get("budget_bound_use") is not None:
+                line += (
+                    f"; {summary['budget_bound_use']:.0%} in the "
+                    f"{summary['budget_bound_frames']} frames that left one untraced"
+                )
+            typer.echo(line)
         typer.echo(_written(summary))
 
 

@@ -135,3 +135,23 @@ def test_rows_written_before_the_new_fields_still_read(tmp_path):
     # tests/test_run_fuzz.py) are refused with the reader's one line, not a TypeError.
     with pytest.raises(PhrtError, match="metrics of /World/Mirror0: not reflector figures"):
         frame_stats_from_row({**row, "metrics": {"/World/Mirror0": {}}})
+
+
+def test_budget_use_is_also_reported_where_the_policy_left_a_reflector_untraced():
+    """Budget idle in a frame that traced all in view had nothing to be spent on; the
+    summary reports apart the frames that left a visible reflector untraced."""
+    from phrt_usd.api import trace_summary
+    from phrt_usd.model.frame import FrameStats
+
+    def frame(t, visible, selected, use):
+        return FrameStats(time=t, phase_ms={}, frame_ms=1.0, trace_ms=1.0,
+                          predicted_trace_ms=1.0, rays=1, visible=visible, selected=selected,
+                          metrics={}, passes=[], budget_use=use)  # fmt: skip
+
+    frames = [frame(1.0, ["/a", "/b"], ["/a"], 0.4), frame(2.0, ["/a"], ["/a"], 0.2),
+              frame(3.0, [], [], None)]  # fmt: skip
+    summary = trace_summary(frames)
+    assert summary["mean_budget_use"] == pytest.approx(0.3)
+    assert summary["budget_bound_frames"] == 1
+    assert summary["budget_bound_use"] == pytest.approx(0.4)
+    assert trace_summary(frames[1:])["budget_bound_use"] is None

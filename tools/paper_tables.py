@@ -38,7 +38,7 @@ PAPER = {
 def run_pair(stage_path: Path, out: Path, args: argparse.Namespace) -> dict:
     stage = open_stage(stage_path)
     params = read_render_params(stage.stage)
-    runs = {}
+    runs, use = {}, {}
     for heuristic in ("heu1", "heu2"):
         run_dir = out / f"{stage_path.stem}-{heuristic}"
         options = RenderOptions(
@@ -57,10 +57,30 @@ def run_pair(stage_path: Path, out: Path, args: argparse.Namespace) -> dict:
             start, end = stage.frame_range
             frames = f"{start!r}:{end!r}:{(end - start) / (args.samples - 1)!r}"
         job = RenderJob(stage_path, run_dir, options, frames=frames, write_images=False)
-        run_render(job, stage_scene=stage)
+        summary = run_render(job, stage_scene=stage)
+        use[heuristic] = {k: summary[k] for k in BUDGET_USE_KEYS}
         runs[heuristic] = run_dir
         print(f"done {stage_path.stem} {heuristic}", file=sys.stderr)
-    return build_report(runs["heu1"], runs["heu2"])
+    report = build_report(runs["heu1"], runs["heu2"])
+    report["budget_use"] = use
+    return report
+
+
+#: The run summary's budget-use figures (``phrt_usd.api.trace_summary``).
+BUDGET_USE_KEYS = ("mean_budget_use", "budget_bound_frames", "budget_bound_use")
+
+
+def _use(figures: dict) -> str:
+    """"0.36 (0.43 in 360 frames that left a reflector untraced)", or "–" unbudgeted."""
+    if figures["mean_budget_use"] is None:
+        return "–"
+    text = f"{figures['mean_budget_use']:.3f}"
+    if figures["budget_bound_use"] is not None:
+        text += (
+            f" ({figures['budget_bound_use']:.3f} in the {figures['budget_bound_frames']} "
+            "frames that left a reflector untraced)"
+        )
+    return text
 
 
 def tables(reports: dict[str, dict]) -> str:
@@ -107,7 +127,8 @@ def main(argv: list[str] | None = None) -> int:
             f"\n{name}: HEU1 transition rate {r['transition_rate']}, HEU2 "
             f"{r['vs']['transition_rate']}; budget overruns HEU1 {r['budget_overruns']}, "
             f"HEU2 {r['vs']['budget_overruns']} (within T+10 %: {r['budget_within_pct']} % / "
-            f"{r['vs']['budget_within_pct']} %)\n"
+            f"{r['vs']['budget_within_pct']} %); budget use HEU1 "
+            f"{_use(r['budget_use']['heu1'])}, HEU2 {_use(r['budget_use']['heu2'])}\n"
         )
     print(text)
     if args.append:
