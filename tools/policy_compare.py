@@ -9,6 +9,14 @@ use, and writes them with per-frame rows as JSON.
 
 BUDGET is milliseconds (``--budget-ms``) or ``rN`` for N rays (``--budget-rays``).
 320x240, the schema's bounce limit and selection weight (docs/heuristic.md, "HEU3").
+
+``--oracle POLICY`` adds "oracle": in every frame, the selection a policy would make if it
+knew the truth, at the rays POLICY traced in that frame. Each visible reflector is traced
+alone and its FLIP gain against the reference measured (the image's mean FLIP drop);
+then reflectors are taken by gain per ray, skipping what does not fit, and the chosen
+set is traced and scored like any policy. It bounds what better estimates of a
+reflector's worth could buy at that ray count (whole reflectors, gains taken as
+additive: reflectors cover disjoint pixels).
 """
 
 from __future__ import annotations
@@ -21,6 +29,7 @@ import numpy as np
 
 from phrt_usd.evaluate.image_metrics import flip_map, mean_over
 from phrt_usd.evaluate.selection_metrics import transitions_per_frame
+from phrt_usd.render.compositing import apply_traced
 from phrt_usd.render.renderer import FrameRenderer, RenderOptions
 from phrt_usd.select.policies import make_policy
 from phrt_usd.usd.stage import open_stage
@@ -34,6 +43,7 @@ def main() -> None:
     ap.add_argument("budget", help="ms, or rN for N rays")
     ap.add_argument("policies", help="comma list, e.g. none,heu1,heu3")
     ap.add_argument("out", help="JSON file")
+    ap.add_argument("--oracle", metavar="POLICY", help="add the oracle at POLICY's rays")
     args = ap.parse_args()
     if args.budget.startswith("r"):
         budget = {"budget_ms": None, "budget_rays": int(args.budget[1:])}
@@ -55,6 +65,8 @@ def main() -> None:
     options = {n: replace(base, heuristic=n, **budget) for n in names}
     paths = [stage.scene.elements[i].path for i in stage.scene.reflector_ids]
     rows: dict[str, list[dict]] = {n: [] for n in names}
+    if args.oracle:
+        rows["oracle"] = []
     try:
         for t in times:
             prep = renderer.prepare(t)
@@ -67,10 +79,13 @@ def main() -> None:
                     "trace_ms": s.trace_ms, "rays": s.rays, "budget_use": s.budget_use,
                     "visible": [p in s.visible for p in paths],
                     "selected": [p in s.selected for p in paths]})  # fmt: skip
+            if args.oracle:
+                rays = rows[args.oracle][-1]["rays"]
+                rows["oracle"].append(oracle_row(renderer, prep, ref.beauty, rays, paths, t))
     finally:
         renderer.close()
     summary = {}
-    for n in names:
+    for n in rows:
         visible = np.array([r["visible"] for r in rows[n]])
         selected = np.array([r["selected"] for r in rows[n]])
         summary[n] = {
@@ -85,6 +100,39 @@ def main() -> None:
     print(json.dumps(summary, indent=1))
     with open(args.out, "w") as f:
         json.dump({"summary": summary, "rows": rows}, f)
+
+
+def oracle_row(renderer, prep, reference, rays: int, paths: list[str], t: float) -> dict:
+    """The oracle's row of frame ``prep`` (module docstring) within ``rays`` rays."""
+    tracer, gb = renderer.tracer, prep.gbuffer
+    bounce = renderer.options.bounce_limit
+
+    def traced_image(ids):
+        image = prep.image.copy()
+        result = tracer.trace_reflections(gb, ids, bounce)
+        apply_traced(image, prep.local, prep.reflectivity, result, np.zeros(gb.shape, bool))
+        return image, result
+
+    base = mean_over(flip_map(reference, prep.image))
+    gains = []
+    for e in (int(i) for i in renderer.scene.reflector_ids if prep.pixel_counts[i] > 0):
+        image, result = traced_image([e])
+        gains.append((base - mean_over(flip_map(reference, image)), result.rays, e))
+    chosen, used = [], 0
+    for _gain, cost, e in sorted(gains, key=lambda g: -g[0] / max(g[1], 1)):
+        if used + cost <= rays:
+            chosen.append(e)
+            used += cost
+    image, result = traced_image(chosen) if chosen else (prep.image, None)
+    ids = set(chosen)
+    visible = {int(i) for i in renderer.scene.reflector_ids if prep.pixel_counts[i] > 0}
+    by_path = {renderer.scene.elements[i].path: i for i in renderer.scene.reflector_ids}
+    return {
+        "time": t, "flip": mean_over(flip_map(reference, image)), "trace_ms": 0.0,
+        "rays": result.rays if result else 0, "budget_use": None,
+        "visible": [by_path[p] in visible for p in paths],
+        "selected": [by_path[p] in ids for p in paths],
+    }  # fmt: skip
 
 
 if __name__ == "__main__":
