@@ -9,7 +9,8 @@ The stage: a height-field ground of ``cells`` x ``cells`` quads (2 cells² trian
 a DomeLight, a camera moving along the mirror over ``frames`` frames. Each mode renders
 in its own ``FrameRenderer`` (in this process; one warm-up frame untimed), timed per
 phase (``FrameStats.phase_ms``), median over the frames; set-up is the renderer's
-construction (GL context and upload, BVH build). "G-buffer" is the source each mode used
+construction (GL context and upload, BVH build) and its load step (``plan``: the first
+frame's raster phases, shadow maps, tables). "G-buffer" is the source each mode used
 (``--primary``: the hybrid's default ``auto`` takes the rays here, on llvmpipe with more
 triangles than pixels); the hybrid is run a second time with the raster id pass asked
 for, to show what that costs.
@@ -91,8 +92,8 @@ def bench(stage_path: Path, width: int, height: int, frames: int, threads: int |
         options = RenderOptions(width=width, height=height, **opts, **extra)
         t = time.perf_counter()
         renderer = FrameRenderer(stage, options)
+        renderer.plan(times)  # the load step (FrameRenderer.warm_up) belongs to set-up
         setup_s = time.perf_counter() - t
-        renderer.plan(times)
         t = time.perf_counter()
         renderer.render(times[0])  # warm-up: shadow maps, caches
         first_ms = (time.perf_counter() - t) * 1000.0

@@ -142,10 +142,12 @@ class GBufferPass:
     # ------------------------------------------------------------------ tables
 
     def upload(self, scene: Scene) -> None:
-        """All per-triangle tables, after the context uploaded ``scene``'s topology."""
-        n = scene.geometry.triangle_count
-        self._table = surface.TriangleTable(n)
-        self._fill_tables(scene, slice(None))  # a slice: no gather over every row
+        """The per-triangle tables, after the context uploaded ``scene``'s topology (the
+        surface table on first use, ``table``)."""
+        # Built when the id pass or the cut-out maps first need it: a renderer whose
+        # G-buffer comes from primary rays (render.primary_source) may never (~0.6 s
+        # for 1M triangles).
+        self._table: surface.TriangleTable | None = None
         self._tri_element = np.ascontiguousarray(scene.geometry.tri_element, dtype=np.int64)
         self._textured(scene)
         geo = scene.geometry
@@ -162,7 +164,10 @@ class GBufferPass:
 
     @property
     def table(self) -> surface.TriangleTable:
-        """The per-triangle tables of the uploaded geometry (rel)."""
+        """The per-triangle tables of the uploaded geometry (rel), built on first use."""
+        if self._table is None:
+            self._table = surface.TriangleTable(self._scene.geometry.triangle_count)
+            self._fill_tables(self._scene, slice(None))  # a slice: no gather over every row
         return self._table
 
     def close(self) -> None:
@@ -173,6 +178,8 @@ class GBufferPass:
 
     def geometry_moved(self, scene: Scene, tri_moved: np.ndarray) -> None:
         """Refresh the tables of moved triangles ``tri_moved`` (T,) bool (same topology)."""
+        if self._table is None:  # not built yet: it will be from the geometry as it is
+            return
         geo = scene.geometry
         # Shading (normals, albedo) is re-read for moved and animated triangles only:
         # other elements' shading is static (materials are not animated).
@@ -325,7 +332,8 @@ class GBufferPass:
 
     def _tables(self) -> tuple:
         """The kernels' per-triangle arguments: plane, corners, frame, tri_element."""
-        return (self._table.plane, self._table.corners, self._table.frame, self._tri_element)
+        table = self.table
+        return (table.plane, table.corners, table.frame, self._tri_element)
 
     def _outputs(self, out: _Outputs) -> tuple:
         """The kernels' output arguments (``surface_kernels.derive``)."""
@@ -370,7 +378,7 @@ class GBufferPass:
         if self.normal_maps.any:
             incoming = np.take(out.view_dir, covered, axis=0).astype(np.float64)
             n = np.take(out.normal, covered, axis=0)
-            out.normal[covered] = self.normal_maps.apply(n, tid, bary, incoming, self._table)
+            out.normal[covered] = self.normal_maps.apply(n, tid, bary, incoming, self.table)
         textured = np.flatnonzero(self._tri_textured[tid])
         if len(textured):
             rows = covered[textured]

@@ -73,8 +73,14 @@ class Rasterizer:
     def _upload(self, scene: Scene) -> None:
         self._ctx.upload(scene)
         self._gbuffer.upload(scene)
-        self._maps.use_cutouts(self._gbuffer.cutouts, self._gbuffer.table)
+        self._use_cutouts()
         self._maps.invalidate(static=True, dynamic=True)
+
+    def _use_cutouts(self) -> None:
+        """The shadow maps render through the G-buffer's cut-outs (its surface table
+        only when there are any: ``GBufferPass.table`` is built on first use)."""
+        cutouts = self._gbuffer.cutouts
+        self._maps.use_cutouts(cutouts, self._gbuffer.table if cutouts.any else None)
 
     @property
     def gl_renderer(self) -> str:
@@ -93,7 +99,7 @@ class Rasterizer:
         change = self._ctx.update_geometry(scene)
         if change.rebuilt:
             self._gbuffer.upload(scene)
-            self._maps.use_cutouts(self._gbuffer.cutouts, self._gbuffer.table)
+            self._use_cutouts()
             self._maps.invalidate(static=True, dynamic=True)
             return
         self._gbuffer.geometry_moved(scene, change.tri_moved)
