@@ -14,6 +14,8 @@ import numpy as np
 import pytest
 import trimesh
 from embreex import mesh_construction, rtcore_scene
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from scenes import box, look_at, parts_scene, sphere
 
 from phrt_usd.errors import PhrtError
@@ -690,3 +692,23 @@ def test_local_light_animated_caster_updates_its_cube_only():
         np.testing.assert_array_equal(r.shadow_visibility(below, up)[:, 0], [1, 0])
         static_after, dynamic_after = r.cube_maps()[0]
         assert static_after is static_before and dynamic_after is not dynamic_before
+
+
+@settings(max_examples=50, deadline=None)
+@given(
+    n_vertices=st.integers(1, 40),
+    n_triangles=st.integers(0, 60),
+    seed=st.integers(0, 2**31 - 1),
+)
+def test_corner_index_finds_the_triangles_of_moved_vertices(n_vertices, n_triangles, seed):
+    """CornerIndex.triangles_of (O(moved corners)) equals the pass over every triangle it
+    replaces, for any topology (shared, isolated and unused vertices) and subset."""
+    from phrt_usd.render.raster.context import CornerIndex
+
+    rng = np.random.default_rng(seed)
+    triangles = rng.integers(0, n_vertices, size=(n_triangles, 3))
+    moved = np.unique(rng.integers(0, n_vertices, size=rng.integers(0, n_vertices + 1)))
+    expected = np.flatnonzero(np.isin(triangles, moved).any(axis=1))
+    found = CornerIndex(triangles, n_vertices).triangles_of(moved)
+    np.testing.assert_array_equal(found, expected)
+    assert found.dtype == np.int64

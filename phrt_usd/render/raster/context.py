@@ -107,16 +107,43 @@ def id_framebuffer(width: int, height: int, name: str):
     return rb, fb
 
 
+class CornerIndex:
+    """The triangles of each vertex (CSR over the triangle corners), so that the
+    triangles of the few vertices an animation moves are found without a pass over every
+    triangle. triangles : (T, 3) int64 vertex indices < ``n_vertices``."""
+
+    def __init__(self, triangles: np.ndarray, n_vertices: int) -> None:
+        corners = np.asarray(triangles, dtype=np.int64).reshape(-1)
+        #: The corners (flat index 3 * triangle + corner) sorted by vertex ...
+        self.corner_order = np.argsort(corners, kind="stable")
+        #: ... where vertex v's begin (vertex_start[v] .. vertex_start[v + 1] - 1).
+        self.vertex_start = np.searchsorted(corners[self.corner_order], np.arange(n_vertices + 1))
+
+    def triangles_of(self, vertices: np.ndarray) -> np.ndarray:
+        """(m,) int64 ascending indices of the triangles using any of ``vertices`` (k,)
+        int64, in O(their corners)."""
+        vertices = np.asarray(vertices, dtype=np.int64)
+        start, stop = self.vertex_start[vertices], self.vertex_start[vertices + 1]
+        counts = stop - start
+        total = int(counts.sum())
+        if total == 0:
+            return np.zeros(0, dtype=np.int64)
+        # The corner positions start[i] .. stop[i] - 1 of every vertex, one flat array.
+        offsets = np.arange(total) - np.repeat(np.cumsum(counts) - counts, counts)
+        corners = self.corner_order[np.repeat(start, counts) + offsets]
+        return np.unique(corners // 3)
+
+
 @dataclass
 class GeometryChange:
     """What ``RasterContext.update_geometry`` changed.
 
-    rebuilt   : the topology or origin changed: everything was uploaded anew
-    tri_moved : (T,) bool, triangles with a moved vertex (all True when rebuilt)
+    rebuilt    : the topology or origin changed: everything was uploaded anew
+    moved_rows : (m,) int64 ascending, the triangles with a moved vertex (all when rebuilt)
     """
 
     rebuilt: bool
-    tri_moved: np.ndarray
+    moved_rows: np.ndarray
 
 
 class RasterContext:
@@ -176,6 +203,7 @@ class RasterContext:
         rel = geo.vertices - self.origin
         self.uploaded = np.ascontiguousarray(rel, dtype=np.float32)
         self.triangles = np.array(geo.triangles, dtype=np.int64)
+        self._corners = CornerIndex(self.triangles, len(self.uploaded))
         self.delete_batches()
         if self.mesh_node is not None:
             self.pscene.remove_node(self.mesh_node)
@@ -205,6 +233,7 @@ class RasterContext:
             len(scene.elements),
         )
         self.animated_tri = flags[el]
+        self.animated_rows = np.flatnonzero(self.animated_tri)
         rel = self.uploaded
         static_vertices = np.unique(self.triangles[~self.animated_tri])
         if len(static_vertices):
@@ -249,11 +278,9 @@ class RasterContext:
         if not same_topology:
             self.origin = np.asarray(scene.origin, dtype=np.float64).copy()
             self.upload(scene)
-            return GeometryChange(True, np.ones(len(self.triangles), dtype=bool))
+            return GeometryChange(True, np.arange(len(self.triangles)))
         rel = np.ascontiguousarray(geo.vertices - self.origin, dtype=np.float32)
         changed = np.unique(np.flatnonzero(rel.reshape(-1) != self.uploaded.reshape(-1)) // 3)
-        moved = np.zeros(len(rel), dtype=bool)
-        moved[changed] = True
         if len(changed):
             first, last = int(changed[0]), int(changed[-1]) + 1
             self.uploaded = rel
@@ -263,17 +290,14 @@ class RasterContext:
                 GL.glBufferSubData(GL.GL_ARRAY_BUFFER, first * 12, chunk.nbytes, chunk)
                 GL.glBindBuffer(GL.GL_ARRAY_BUFFER, 0)
             self._primitive.positions = rel  # keeps pyrender's copy consistent
-        tri_moved = (
-            moved[self.triangles].any(axis=1)
-            if len(changed)
-            else np.zeros(len(self.triangles), dtype=bool)
-        )
+        moved_rows = self._corners.triangles_of(changed)
         self.scene = scene
         if len(changed):
             self._update_bounds()
-        if np.any(tri_moved & ~self.animated_tri):
+        if not self.animated_tri[moved_rows].all():
             self._static_bounds_stale()
-        return GeometryChange(False, tri_moved)
+        return GeometryChange(False, moved_rows)
+
 
     def _static_bounds_stale(self) -> None:
         """A non-animated vertex moved (the caller animated a prim not flagged as

@@ -176,17 +176,18 @@ class GBufferPass:
             self._layers.close()
             self._layers = None
 
-    def geometry_moved(self, scene: Scene, tri_moved: np.ndarray) -> None:
-        """Refresh the tables of moved triangles ``tri_moved`` (T,) bool (same topology)."""
+    def geometry_moved(self, scene: Scene, moved_rows: np.ndarray) -> None:
+        """Refresh the tables of the moved triangles ``moved_rows`` (m,) int64 ascending
+        (same topology)."""
         if self._table is None:  # not built yet: it will be from the geometry as it is
             return
         geo = scene.geometry
         # Shading (normals, albedo) is re-read for moved and animated triangles only:
         # other elements' shading is static (materials are not animated).
-        check = np.flatnonzero(tri_moved | self._ctx.animated_tri)
+        check = np.union1d(moved_rows, self._ctx.animated_rows)
         if len(check):
             differs = self._table.corners_differ(geo.corner_normals, geo.corner_albedo, check)
-            rows = check[tri_moved[check] | differs]
+            rows = check[np.isin(check, moved_rows, assume_unique=True) | differs]
             if len(rows):
                 self._fill_tables(scene, rows)
 

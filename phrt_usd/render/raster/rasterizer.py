@@ -102,12 +102,9 @@ class Rasterizer:
             self._use_cutouts()
             self._maps.invalidate(static=True, dynamic=True)
             return
-        self._gbuffer.geometry_moved(scene, change.tri_moved)
-        animated = self._ctx.animated_tri
-        self._maps.invalidate(
-            static=bool(np.any(change.tri_moved & ~animated)),
-            dynamic=bool(np.any(change.tri_moved & animated)),
-        )
+        self._gbuffer.geometry_moved(scene, change.moved_rows)
+        animated = self._ctx.animated_tri[change.moved_rows]
+        self._maps.invalidate(static=not animated.all(), dynamic=bool(animated.any()))
 
     def render(self, camera: CameraFrame) -> GBuffer:
         """Rasterize one frame (``GBufferPass.render``)."""
