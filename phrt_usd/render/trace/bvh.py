@@ -310,8 +310,8 @@ class Bvh:
         Returns (primID, u, v) with global triangle ids (INTERSECT) or (n,) bool
         occluded. The only cast of ray data to float32 (``Float32Boundary.rays``)."""
         o32, d32, t32 = Float32Boundary.rays(origins, dirs, tfar)
-        if self.record_rays:
-            self.last_rays.append((query, o32, d32, t32))
+        if self.record_rays:  # copies: callers reuse their ray buffers
+            self.last_rays.append((query, o32.copy(), d32.copy(), t32))
         return self._run_raw(query, o32, d32, t32, self.threads if threads is None else threads)
 
     def _run_raw(self, query, o32, d32, t32, threads, merge: bool = True):

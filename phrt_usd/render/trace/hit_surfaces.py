@@ -69,6 +69,13 @@ class HitSurfaces:
         self.cutouts = surface.Cutouts(mats, bvh.tri_material, scene.geometry.corner_uv)
         #: Tangent-space normal maps (``model.surface.NormalMaps``).
         self.normal_maps = surface.NormalMaps(mats, bvh.tri_material, scene.geometry.corner_uv)
+        #: The bounce loop's per-triangle figures in one (T, 4) float64 gather
+        #: (``trace_kernels.TRI_*`` columns): F, the material's opacity and ior, and the
+        #: element id of reflector triangles (-1 elsewhere).
+        self.tri_table = np.stack([
+            self.tri_f, self.opacity[bvh.tri_material], self.ior[bvh.tri_material],
+            np.where(self.tri_reflector, tri_element, -1),
+        ], axis=1).astype(np.float64).reshape(n_tri, 4)  # fmt: skip
 
     def intersect(self, origins: np.ndarray, dirs: np.ndarray) -> tuple[Hits, np.ndarray]:
         """Nearest hits that are there (``Bvh.intersect`` through cut-out holes, see the
@@ -102,6 +109,33 @@ class HitSurfaces:
             return Hits(ray, tri, u, v, hits.miss), recast
         miss = np.sort(np.concatenate([hits.miss, ray[~keep]]))
         return Hits(ray[keep], tri[keep], u[keep], v[keep], miss), recast
+
+    def nearest(self, origins: np.ndarray, dirs: np.ndarray):
+        """``intersect`` per ray, as the bounce kernel takes it: prim (n,) int32 / int64
+        triangle or < 0 (a miss), u, v (n,) float32, and the re-cast rays (k,) int64.
+        Without cut-outs Embree's answer as it comes (``Bvh.run``)."""
+        if not self.cutouts.any:
+            prim, u, v = self._bvh.run("INTERSECT", origins, dirs)
+            return prim, u, v, _NO_RAYS
+        hits, recast = self.intersect(origins, dirs)
+        n = len(origins)
+        prim = np.full(n, -1, np.int64)
+        u, v = np.zeros(n, np.float32), np.zeros(n, np.float32)
+        prim[hits.ray], u[hits.ray], v[hits.ray] = hits.tri, hits.u, hits.v
+        return prim, u, v, recast
+
+    def mapped_normals(self, prim, u, v, dirs) -> np.ndarray:
+        """Shading normals (n, 3) float32 of rays' hits (``nearest``'s prim, u, v along
+        unit ``dirs`` (n, 3) float32; miss rows zero) with the normal maps applied, for
+        the bounce kernel to use instead of its own surface rule; (0, 3) when the stage
+        has no normal map (the kernel's rule is the whole rule then)."""
+        if not self.normal_maps.any:
+            return _NO_NORMALS
+        hit = np.flatnonzero(prim >= 0)
+        _, _, ns = self.geometry(prim[hit], u[hit], v[hit], np.take(dirs, hit, axis=0))
+        out = np.zeros((len(prim), 3), np.float32)
+        out[hit] = ns
+        return out
 
     def occluded(self, origins, dirs, tfar, threads=None) -> np.ndarray:
         """(n,) bool: something that is there (not a cut-out hole) lies on each ray from
@@ -212,3 +246,8 @@ class HitSurfaces:
         out -= dist[:, None] * normal
         out += g[:, 0]
         return out, normal
+
+
+#: ``nearest``'s re-casts without cut-outs, ``mapped_normals`` without normal maps.
+_NO_RAYS = np.zeros(0, np.int64)
+_NO_NORMALS = np.zeros((0, 3), np.float32)

@@ -37,7 +37,7 @@ import numpy as np
 from numba import njit
 
 from phrt_usd.kernels import KERNEL_OPTIONS
-from phrt_usd.model.surface_kernels import _pixel_dir
+from phrt_usd.model.surface_kernels import _orient, _pixel_dir, _weighted
 
 _KERNEL = KERNEL_OPTIONS
 _HELPER = {**_KERNEL, "inline": "always"}
@@ -185,132 +185,178 @@ def _refract(dx, dy, dz, nx, ny, nz, fx, fy, fz, ior):
     return _unit64(eta * dx + c * nx, eta * dy + c * ny, eta * dz + c * nz)
 
 
-#: The rows of ``bounce``'s output buffers (int64, float64, float32 (·, 3)).
-BOUNCE_ROWS = (8, 3, 3)
+#: Columns of the per-triangle material table ``bounce`` reads (``HitSurfaces.tri_table``,
+#: (T, 4) float64): reflectivity F, the material's opacity α and ior, and the element id
+#: of a reflector triangle (-1: not a reflector).
+TRI_F, TRI_ALPHA, TRI_IOR, TRI_REFLECTOR = 0, 1, 2, 3
+#: Rows of ``bounce``'s live-ray state ``rays_i`` (int64): pixel slot, source, reflector
+#: chain, refracted (0 / 1); its float32 rays ``rays_v``: direction, offset origin.
+RAY_SLOT, RAY_SRC, RAY_CHAIN, RAY_REFRACTED = 0, 1, 2, 3
+RAY_DIR, RAY_ORIGIN = 0, 1
+#: The call's gathered entries (``bounce`` appends one depth's to them). ``g_i`` (int64)
+#: rows: environment slot, lit slot, lit source, lit triangle, reflector key; ``g_w``
+#: (float64) rows: environment weight, lit weight; ``g_x`` (float64 (·, 3)): lit
+#: position, lit geometric normal; ``g_v`` (float32 (·, 3)): environment direction, lit
+#: shading normal, lit incoming direction; ``g_uv`` (float32): lit u, v.
+G_ENV_SLOT, G_LIT_SLOT, G_LIT_SRC, G_LIT_TRI, G_KEY = 0, 1, 2, 3, 4
+G_ENV_W, G_LIT_W = 0, 1
+G_LIT_POS, G_LIT_NG = 0, 1
+G_ENV_DIR, G_LIT_NS, G_LIT_DIR = 0, 1, 2
+G_LIT_U, G_LIT_V = 0, 1
+#: ``tally`` (int64): the counts of gathered environment entries, lit hits and keys,
+#: then the rays cast per source (S), then the longest reflector chain per pixel slot.
+T_ENV, T_LIT, T_KEYS, T_SOURCES = 0, 1, 2, 3
 
 
 @njit(**_KERNEL)
 def bounce(
-    ray, miss, tri, rel, ng, ns, slot, src, weight, chain, dirs,
-    tri_reflector, tri_f, tri_material, tri_element, opacity, ior, frame,
-    split, last, floor, relative, n_elem, chain_pix, rays_src, out_i, out_w, out_v, c_refr,
+    prim, u, v, ns_given, rays_i, rays_w, rays_v, parity, k, tri_table, frame, corners,
+    split, last, floor, relative, n_elem, n_src, tally, g_i, g_w, g_x, g_v, g_uv,
 ):  # fmt: skip
-    """One depth of the bounce loop (``paths.PathTracer.run``) over k live rays, of
-    which m hit (``ray`` (m,) rows, ``miss`` (k - m,) rows, int64).
+    """One depth of the bounce loop (``paths.PathTracer.run``): Embree's answer for the
+    k live rays → the surface at the hits, what the paths gather, and the next rays.
 
-    Hits: tri (m,) int64; rel (m, 3) float64; ng (m, 3) float64 facing the ray; ns (m, 3)
-    float32 shading normals. Live rays: slot, src (k,) int64 pixel slot and source;
-    weight (k,) float64; chain (k,) int64 reflector hits so far; dirs (k, 3) float32.
-    Tables: per triangle reflector flag, F, material, element; per material opacity and
-    ior; frame (``TriangleTable``). split: the stage has transmissive materials (α and
-    refraction); last: this is the bounce limit's depth (children are not cast: they
-    read the environment); floor, relative: the offset epsilon; n_elem: key stride.
+    Embree's answer: prim (k,) int32 / int64 global triangle or < 0 (a miss), u, v (k,)
+    float32 barycentrics. ns_given (k, 3) float32 shading normals to use instead of the
+    surface rule's (normal-mapped stages), or (0, 3). Live rays (double-buffered: this
+    depth's in half ``parity``, the children written to half 1 - parity): rays_i (2, 4,
+    L) int64 (``RAY_*`` rows), rays_w (2, L) float64 path weight, rays_v (2, 2, L, 3)
+    float32 direction and origin, L >= 2k. Tables: tri_table (T, 4) float64 (``TRI_*``
+    columns); frame (T, 4, 3) float64 and corners (T, 3, 6) float32 (``TriangleTable``).
+    split: the stage has transmissive materials (α and refraction); last: the bounce
+    limit's depth (the children are not cast: they read the environment); floor,
+    relative: the offset epsilon (``Float32Boundary``); n_elem: key stride; n_src:
+    sources.
 
-    Updates chain_pix (pixels,) int64 (longest reflector chain per slot) and rays_src
-    (sources,) int64 (the children about to be cast, per source). Writes the
-    environment entries (misses, then at ``last`` the children) into env_slot, env_w,
-    env_dir (k + 2m); the hits whose local shading carries weight into lit (hit rows),
-    lit_w (their weight), lit_slot and lit_src (m); reflector keys src * n_elem +
-    element into keys (m); the children (m, or 2m with ``split``) into c_slot, c_src,
-    c_w, c_chain, c_refr (bool), c_dir float32 and c_org float32 (offset origins; not
-    written at ``last``).
-
-    The outputs come as four buffers of L >= k + 2m columns (four arguments and four
-    allocations per depth instead of fifteen: a fixed cost of every depth): ``out_i``
-    (8, L) int64 rows env_slot, lit, lit_slot, lit_src, keys, c_slot, c_src, c_chain;
-    ``out_w`` (3, L) float64 rows env_w, lit_w, c_w; ``out_v`` (3, L, 3) float32
-    env_dir, c_dir, c_org; ``c_refr`` (L,) bool (``BOUNCE_ROWS``).
-
-    Returns (environment entries, lit hits, keys, children, refracted children)."""
-    env_slot, lit, lit_slot, lit_src, keys = out_i[0], out_i[1], out_i[2], out_i[3], out_i[4]
-    c_slot, c_src, c_chain = out_i[5], out_i[6], out_i[7]
-    env_w, lit_w, c_w = out_w[0], out_w[1], out_w[2]
-    env_dir, c_dir, c_org = out_v[0], out_v[1], out_v[2]
-    n_env = 0
-    for j in range(miss.shape[0]):
-        r = miss[j]
-        env_slot[n_env], env_w[n_env] = slot[r], weight[r]
-        env_dir[n_env, 0], env_dir[n_env, 1], env_dir[n_env, 2] = dirs[r, 0], dirs[r, 1], dirs[r, 2]
-        n_env += 1
-    n_lit = 0
-    n_keys = 0
+    Per hit (the surface rule of ``surface_kernels.hit_geometry``: rel position, front
+    normal against the ray, shading normal by the side rule): a local-shading entry
+    where it carries weight (w α (1 - F) > 0), a reflector key source * n_elem +
+    element, the pixel slot's longest chain, a mirror child (w α F > 0) and, with
+    ``split``, a refracted child (w (1 - α) > 0; all after the mirror ones), each with
+    its origin offset off the surface (float32). Per miss, and at ``last`` per child, an
+    environment entry. Entries are appended to the gather buffers (``G_*`` rows, at the
+    counts in ``tally``; they have room for 2k more entries of each kind).
+    Returns (children, refracted children)."""
+    cur, nxt = parity, 1 - parity
+    n_env, n_lit, n_keys = tally[T_ENV], tally[T_LIT], tally[T_KEYS]
+    chains = T_SOURCES + n_src
+    given = ns_given.shape[0] > 0
+    for r in range(k):
+        if prim[r] < 0:
+            g_i[G_ENV_SLOT, n_env] = rays_i[cur, RAY_SLOT, r]
+            g_w[G_ENV_W, n_env] = rays_w[cur, r]
+            for c in range(3):
+                g_v[G_ENV_DIR, n_env, c] = rays_v[cur, RAY_DIR, r, c]
+            n_env += 1
     n_child = 0
     n_refr = 0
-    for h in range(ray.shape[0]):
-        r = ray[h]
-        t = tri[h]
-        alpha = opacity[tri_material[t]] if split else 1.0
-        f = tri_f[t]
-        w = weight[r]
-        s = src[r]
+    for r in range(k):
+        t = np.int64(prim[r])
+        if t < 0:
+            continue
+        slot = rays_i[cur, RAY_SLOT, r]
+        s = rays_i[cur, RAY_SRC, r]
+        w = rays_w[cur, r]
+        d = rays_v[cur, RAY_DIR, r]
+        dx, dy, dz = d[0], d[1], d[2]
+        fdx, fdy, fdz = float(dx), float(dy), float(dz)
+        # The surface (``surface_kernels.hit_geometry``).
+        w1, w2 = u[r], v[r]
+        fu, fv = float(w1), float(w2)
+        px = frame[t, 0, 0] + fu * frame[t, 1, 0] + fv * frame[t, 2, 0]
+        py = frame[t, 0, 1] + fu * frame[t, 1, 1] + fv * frame[t, 2, 1]
+        pz = frame[t, 0, 2] + fu * frame[t, 1, 2] + fv * frame[t, 2, 2]
+        fx, fy, fz = frame[t, 3, 0], frame[t, 3, 1], frame[t, 3, 2]
+        side = -1.0 if fx * fdx + fy * fdy + fz * fdz > 0.0 else 1.0
+        gx, gy, gz = fx * side, fy * side, fz * side
+        if given:
+            nx, ny, nz = ns_given[r, 0], ns_given[r, 1], ns_given[r, 2]
+        else:
+            w0 = _ONE32 - w1 - w2
+            nx, ny, nz = _orient(
+                _weighted(w0, w1, w2, corners[t, 0, 0], corners[t, 1, 0], corners[t, 2, 0]),
+                _weighted(w0, w1, w2, corners[t, 0, 1], corners[t, 1, 1], corners[t, 2, 1]),
+                _weighted(w0, w1, w2, corners[t, 0, 2], corners[t, 1, 2], corners[t, 2, 2]),
+                side, fdx, fdy, fdz, fx, fy, fz,
+            )  # fmt: skip
+        f = tri_table[t, TRI_F]
+        alpha = tri_table[t, TRI_ALPHA] if split else 1.0
         w_local = w * alpha * (1.0 - f)
         if w_local > 0.0:
-            lit[n_lit], lit_w[n_lit] = h, w_local
-            lit_slot[n_lit], lit_src[n_lit] = slot[r], s
+            g_i[G_LIT_SLOT, n_lit], g_i[G_LIT_SRC, n_lit], g_i[G_LIT_TRI, n_lit] = slot, s, t
+            g_w[G_LIT_W, n_lit] = w_local
+            g_uv[G_LIT_U, n_lit], g_uv[G_LIT_V, n_lit] = w1, w2
+            pos, ng = g_x[G_LIT_POS, n_lit], g_x[G_LIT_NG, n_lit]
+            ns, d_in = g_v[G_LIT_NS, n_lit], g_v[G_LIT_DIR, n_lit]
+            pos[0], pos[1], pos[2] = px, py, pz
+            ng[0], ng[1], ng[2] = gx, gy, gz
+            ns[0], ns[1], ns[2] = nx, ny, nz
+            d_in[0], d_in[1], d_in[2] = dx, dy, dz
             n_lit += 1
-        ch = chain[r]
-        if tri_reflector[t]:
+        ch = rays_i[cur, RAY_CHAIN, r]
+        element = np.int64(tri_table[t, TRI_REFLECTOR])
+        if element >= 0:
             ch += 1
-            keys[n_keys] = s * n_elem + tri_element[t]
+            g_i[G_KEY, n_keys] = s * n_elem + element
             n_keys += 1
-        if ch > chain_pix[slot[r]]:
-            chain_pix[slot[r]] = ch
-        dx, dy, dz = dirs[r, 0], dirs[r, 1], dirs[r, 2]
-        nx, ny, nz = ns[h, 0], ns[h, 1], ns[h, 2]
-        gx, gy, gz = ng[h, 0], ng[h, 1], ng[h, 2]
+        if ch > tally[chains + slot]:
+            tally[chains + slot] = ch
         w_refl = w * alpha * f
         if w_refl > 0.0:
             # Mirror of a unit vector about a unit normal (float32, as the first rays).
-            k = _TWO32 * (np.float32(dx) * nx + np.float32(dy) * ny + np.float32(dz) * nz)
-            cx, cy, cz = dx - k * nx, dy - k * ny, dz - k * nz
-            c_slot[n_child], c_src[n_child], c_w[n_child] = slot[r], s, w_refl
-            c_chain[n_child], c_refr[n_child] = ch, False
-            c_dir[n_child, 0], c_dir[n_child, 1], c_dir[n_child, 2] = cx, cy, cz
+            kk = _TWO32 * (dx * nx + dy * ny + dz * nz)
+            cx, cy, cz = dx - kk * nx, dy - kk * ny, dz - kk * nz
+            at = n_child
+            rays_i[nxt, RAY_SLOT, at], rays_i[nxt, RAY_SRC, at] = slot, s
+            rays_i[nxt, RAY_CHAIN, at], rays_i[nxt, RAY_REFRACTED, at] = ch, 0
+            rays_w[nxt, at] = w_refl
+            rays_v[nxt, RAY_DIR, at, 0], rays_v[nxt, RAY_DIR, at, 1] = cx, cy
+            rays_v[nxt, RAY_DIR, at, 2] = cz
             if not last:
-                px, py, pz = rel[h, 0], rel[h, 1], rel[h, 2]
                 e = _side(_epsilon(px, py, pz, floor, relative), cx, cy, cz, gx, gy, gz)
-                c_org[n_child, 0] = px + e * gx
-                c_org[n_child, 1] = py + e * gy
-                c_org[n_child, 2] = pz + e * gz
-                rays_src[s] += 1
+                rays_v[nxt, RAY_ORIGIN, at, 0] = px + e * gx
+                rays_v[nxt, RAY_ORIGIN, at, 1] = py + e * gy
+                rays_v[nxt, RAY_ORIGIN, at, 2] = pz + e * gz
             n_child += 1
-    if split:  # refracted children after all mirror ones (the numpy order)
-        for h in range(ray.shape[0]):
-            r = ray[h]
-            t = tri[h]
-            w_refr = weight[r] * (1.0 - opacity[tri_material[t]])
-            if not (w_refr > 0.0):
-                continue
-            ch = chain[r] + (1 if tri_reflector[t] else 0)
-            cx, cy, cz = _refract(
-                float(dirs[r, 0]), float(dirs[r, 1]), float(dirs[r, 2]),
-                float(ns[h, 0]), float(ns[h, 1]), float(ns[h, 2]),
-                frame[t, 3, 0], frame[t, 3, 1], frame[t, 3, 2], ior[tri_material[t]],
-            )  # fmt: skip
-            c_slot[n_child], c_src[n_child], c_w[n_child] = slot[r], src[r], w_refr
-            c_chain[n_child], c_refr[n_child] = ch, True
-            c_dir[n_child, 0], c_dir[n_child, 1], c_dir[n_child, 2] = cx, cy, cz
-            if not last:
-                gx, gy, gz = ng[h, 0], ng[h, 1], ng[h, 2]
-                px, py, pz = rel[h, 0], rel[h, 1], rel[h, 2]
-                dx32, dy32, dz32 = c_dir[n_child, 0], c_dir[n_child, 1], c_dir[n_child, 2]
-                e = _side(_epsilon(px, py, pz, floor, relative), dx32, dy32, dz32, gx, gy, gz)
-                c_org[n_child, 0] = px + e * gx
-                c_org[n_child, 1] = py + e * gy
-                c_org[n_child, 2] = pz + e * gz
-                rays_src[src[r]] += 1
-            n_child += 1
-            n_refr += 1
-    if last:  # the children read the environment
-        for c in range(n_child):
-            env_slot[n_env], env_w[n_env] = c_slot[c], c_w[c]
-            env_dir[n_env, 0], env_dir[n_env, 1], env_dir[n_env, 2] = (
-                c_dir[c, 0],
-                c_dir[c, 1],
-                c_dir[c, 2],
-            )
+        if split:
+            w_refr = w * (1.0 - tri_table[t, TRI_ALPHA])
+            if w_refr > 0.0:  # staged after the live rays, moved after the mirror ones
+                cx, cy, cz = _refract(
+                    fdx, fdy, fdz, float(nx), float(ny), float(nz), fx, fy, fz,
+                    tri_table[t, TRI_IOR],
+                )  # fmt: skip
+                cx, cy, cz = np.float32(cx), np.float32(cy), np.float32(cz)
+                at = k + n_refr
+                rays_i[nxt, RAY_SLOT, at], rays_i[nxt, RAY_SRC, at] = slot, s
+                rays_i[nxt, RAY_CHAIN, at], rays_i[nxt, RAY_REFRACTED, at] = ch, 1
+                rays_w[nxt, at] = w_refr
+                rays_v[nxt, RAY_DIR, at, 0], rays_v[nxt, RAY_DIR, at, 1] = cx, cy
+                rays_v[nxt, RAY_DIR, at, 2] = cz
+                if not last:
+                    e = _side(_epsilon(px, py, pz, floor, relative), cx, cy, cz, gx, gy, gz)
+                    rays_v[nxt, RAY_ORIGIN, at, 0] = px + e * gx
+                    rays_v[nxt, RAY_ORIGIN, at, 1] = py + e * gy
+                    rays_v[nxt, RAY_ORIGIN, at, 2] = pz + e * gz
+                n_refr += 1
+    for j in range(n_refr):  # the refracted children after all mirror ones
+        for row in range(4):
+            rays_i[nxt, row, n_child + j] = rays_i[nxt, row, k + j]
+        rays_w[nxt, n_child + j] = rays_w[nxt, k + j]
+        for c in range(3):
+            rays_v[nxt, RAY_DIR, n_child + j, c] = rays_v[nxt, RAY_DIR, k + j, c]
+            rays_v[nxt, RAY_ORIGIN, n_child + j, c] = rays_v[nxt, RAY_ORIGIN, k + j, c]
+    n_child += n_refr
+    for c in range(n_child):
+        if last:  # the children read the environment
+            g_i[G_ENV_SLOT, n_env] = rays_i[nxt, RAY_SLOT, c]
+            g_w[G_ENV_W, n_env] = rays_w[nxt, c]
+            for a in range(3):
+                g_v[G_ENV_DIR, n_env, a] = rays_v[nxt, RAY_DIR, c, a]
             n_env += 1
-    return n_env, n_lit, n_keys, n_child, n_refr
+        else:  # the children about to be cast, per source
+            tally[T_SOURCES + rays_i[nxt, RAY_SRC, c]] += 1
+    tally[T_ENV], tally[T_LIT], tally[T_KEYS] = n_env, n_lit, n_keys
+    return n_child, n_refr
 
 
 @njit(**_KERNEL)
@@ -404,7 +450,6 @@ def warm_up() -> None:
     v64, v32 = np.zeros((1, 3)), np.zeros((1, 3), np.float32)
     i32 = np.zeros(1, np.int32)
     frame = np.zeros((1, 4, 3))
-    b = np.zeros(1, bool)
     offset_origins(v64, v64, v32, 1e-6, 1e-5, v32.copy())
     offset_origins(v64, v64, v64, 1e-6, 1e-5, v32.copy())
     source_rays(i64, i64, i64, i32, v64, v32, v32, np.zeros(3), frame, 1e-6, 1e-5, 0, 1,
@@ -412,14 +457,14 @@ def warm_up() -> None:
                 v32.copy(), v32.copy())  # fmt: skip
     split_hits(i32, f32, f32, i64.copy(), i64.copy(), f32.copy(), f32.copy(), i64.copy())
     split_hits(i64, f32, f32, i64.copy(), i64.copy(), f32.copy(), f32.copy(), i64.copy())
-    hits = (i64, i64[:0], i64, v64, v64, v32)
-    state = (i64, i64, f64, i64, v32)
-    tables = (b, f64, i64, i64, f64 + 1.0, f64 + 1.0, frame)
-    n_i, n_w, n_v = BOUNCE_ROWS
-    out = (np.zeros((n_i, 3), np.int64), np.zeros((n_w, 3)), np.zeros((n_v, 3, 3), np.float32))
-    for split in (False, True):
-        bounce(*hits, *state, *tables, split, False, 1e-6, 1e-5, 1, i64.copy(), i64.copy(),
-               *out, np.zeros(3, bool))  # fmt: skip
+    rays = (np.zeros((2, 4, 2), np.int64), np.zeros((2, 2)), np.zeros((2, 2, 2, 3), np.float32))
+    tables = (np.zeros((1, 4)), frame, np.zeros((1, 3, 6), np.float32))
+    gather = (np.zeros((5, 3), np.int64), np.zeros((2, 3)), np.zeros((2, 3, 3)),
+              np.zeros((3, 3, 3), np.float32), np.zeros((2, 3), np.float32))  # fmt: skip
+    for prim in (i32, i64):
+        for split in (False, True):
+            bounce(prim, f32, f32, v32[:0], *rays, 0, 1, *tables, split, False, 1e-6, 1e-5, 1,
+                   1, np.zeros(5, np.int64), *gather)  # fmt: skip
     primary_rays(f64, f64, np.eye(3), False, np.zeros(3), np.ones(3), 0.1, 0, 1, v64.copy(),
                  v32.copy(), v32.copy())  # fmt: skip
     gb_rows = (i32.copy(), i32.copy(), f32.copy(), v64.copy(), v32.copy(), v32.copy())
