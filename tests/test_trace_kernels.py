@@ -14,7 +14,7 @@ from test_cutout_reflections import _stage
 
 from phrt_usd.model.scene import DistantLight, Lights, LocalLight
 from phrt_usd.render.trace import trace_kernels
-from phrt_usd.render.trace.bvh import RAY_OFFSET_RELATIVE
+from phrt_usd.render.trace.bvh import GLOBAL_IDS, NO_ANIMATED, RAY_OFFSET_RELATIVE
 from phrt_usd.render.trace.paths import refract
 from phrt_usd.render.trace.tracer import Tracer
 from phrt_usd.usd.stage import read_stage
@@ -194,8 +194,9 @@ def _bounce(tri, dirs, ns, frame, ior):
     )  # fmt: skip
     uv = np.zeros(m, np.float32)
     n = trace_kernels.bounce(
-        tri, uv, uv, ns, rays_i, np.ones((2, 2 * m)), rays_v, 0, m, tri_table, frame,
-        np.zeros((m, 3, 6), np.float32), True, False, 1e-6, RAY_OFFSET_RELATIVE, 1, 1,
+        tri, uv, uv, *NO_ANIMATED, GLOBAL_IDS, GLOBAL_IDS, ns, rays_i, np.ones((2, 2 * m)),
+        rays_v, 0, m, tri_table, frame, np.zeros((m, 3, 6), np.float32), True, False, 1e-6,
+        RAY_OFFSET_RELATIVE, 1, 1,
         np.zeros(4 + m, np.int64), *gather,
     )  # fmt: skip
     assert n == (m, m)  # every hit refracts, none reflects (F = 0)

@@ -25,7 +25,7 @@ import numpy as np
 from phrt_usd import kernels
 from phrt_usd.model import surface
 from phrt_usd.model.scene import Scene
-from phrt_usd.render.trace.bvh import Bvh, Hits
+from phrt_usd.render.trace.bvh import GLOBAL_IDS, NO_ANIMATED, Bvh, Hits
 
 #: The compiled surface rule (``model.surface_kernels``, through ``phrt_usd.kernels``).
 _SURFACE = kernels.load("phrt_usd.model.surface_kernels")
@@ -111,26 +111,27 @@ class HitSurfaces:
         return Hits(ray[keep], tri[keep], u[keep], v[keep], miss), recast
 
     def nearest(self, origins: np.ndarray, dirs: np.ndarray):
-        """``intersect`` per ray, as the bounce kernel takes it: prim (n,) int32 / int64
-        triangle or < 0 (a miss), u, v (n,) float32, and the re-cast rays (k,) int64.
-        Without cut-outs Embree's answer as it comes (``Bvh.run``)."""
+        """``intersect`` as the bounce kernel takes it: the eight arrays of
+        ``Bvh.answers`` (Embree's answers of both BVHs and their id maps; through cut-out
+        holes already merged into global ids, maps empty) and the batch index of every
+        re-cast ray (k,) int64."""
         if not self.cutouts.any:
-            prim, u, v = self._bvh.run("INTERSECT", origins, dirs)
-            return prim, u, v, _NO_RAYS
+            return self._bvh.answers(origins, dirs), _NO_RAYS
         hits, recast = self.intersect(origins, dirs)
         n = len(origins)
         prim = np.full(n, -1, np.int64)
         u, v = np.zeros(n, np.float32), np.zeros(n, np.float32)
         prim[hits.ray], u[hits.ray], v[hits.ray] = hits.tri, hits.u, hits.v
-        return prim, u, v, recast
+        return (prim, u, v, *NO_ANIMATED, GLOBAL_IDS, GLOBAL_IDS), recast
 
-    def mapped_normals(self, prim, u, v, dirs) -> np.ndarray:
-        """Shading normals (n, 3) float32 of rays' hits (``nearest``'s prim, u, v along
-        unit ``dirs`` (n, 3) float32; miss rows zero) with the normal maps applied, for
+    def mapped_normals(self, answer, dirs) -> np.ndarray:
+        """Shading normals (n, 3) float32 at the hits of ``nearest``'s ``answer`` along
+        unit ``dirs`` (n, 3) float32 (miss rows zero) with the normal maps applied, for
         the bounce kernel to use instead of its own surface rule; (0, 3) when the stage
         has no normal map (the kernel's rule is the whole rule then)."""
         if not self.normal_maps.any:
             return _NO_NORMALS
+        prim, u, v = self._bvh.merge(answer)
         hit = np.flatnonzero(prim >= 0)
         _, _, ns = self.geometry(prim[hit], u[hit], v[hit], np.take(dirs, hit, axis=0))
         out = np.zeros((len(prim), 3), np.float32)

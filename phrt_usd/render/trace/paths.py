@@ -187,7 +187,7 @@ class PathTracer:
             counters["refraction"] += n_refr
             counters["reflection"] += k - n_refr
             d32 = buf.rays_v[parity, RAY_DIR, :k]
-            prim, u, v, recast = surfaces.nearest(buf.rays_v[parity, RAY_ORIGIN, :k], d32)
+            answer, recast = surfaces.nearest(buf.rays_v[parity, RAY_ORIGIN, :k], d32)
             if len(recast):  # re-casts through cut-out holes (HitSurfaces.intersect)
                 live = buf.rays_i[parity]
                 rays_src += np.bincount(live[RAY_SRC, recast], minlength=n_src)
@@ -201,7 +201,7 @@ class PathTracer:
             used = max(tally[:T_SOURCES].tolist())
             buf.entries(used + 2 * k, used)
             n_child, n_refr = trace_kernels.bounce(
-                prim, u, v, surfaces.mapped_normals(prim, u, v, d32), buf.rays_i, buf.rays_w,
+                *answer, surfaces.mapped_normals(answer, d32), buf.rays_i, buf.rays_w,
                 buf.rays_v, parity, k, surfaces.tri_table, table.frame, table.corners, split,
                 last, floor, relative, n_elem, n_src, tally, *buf.gather,
             )  # fmt: skip

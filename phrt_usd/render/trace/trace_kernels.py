@@ -210,23 +210,28 @@ T_ENV, T_LIT, T_KEYS, T_SOURCES = 0, 1, 2, 3
 
 @njit(**_KERNEL)
 def bounce(
-    prim, u, v, ns_given, rays_i, rays_w, rays_v, parity, k, tri_table, frame, corners,
+    prim, u, v, far_prim, far_u, far_v, static_map, dynamic_map, ns_given, rays_i, rays_w,
+    rays_v, parity, k, tri_table, frame, corners,
     split, last, floor, relative, n_elem, n_src, tally, g_i, g_w, g_x, g_v, g_uv,
 ):  # fmt: skip
     """One depth of the bounce loop (``paths.PathTracer.run``): Embree's answer for the
     k live rays → the surface at the hits, what the paths gather, and the next rays.
 
-    Embree's answer: prim (k,) int32 / int64 global triangle or < 0 (a miss), u, v (k,)
-    float32 barycentrics. ns_given (k, 3) float32 shading normals to use instead of the
-    surface rule's (normal-mapped stages), or (0, 3). Live rays (double-buffered: this
-    depth's in half ``parity``, the children written to half 1 - parity): rays_i (2, 4,
-    L) int64 (``RAY_*`` rows), rays_w (2, L) float64 path weight, rays_v (2, 2, L, 3)
-    float32 direction and origin, L >= 2k. Tables: tri_table (T, 4) float64 (``TRI_*``
-    columns); frame (T, 4, 3) float64 and corners (T, 3, 6) float32 (``TriangleTable``).
-    split: the stage has transmissive materials (α and refraction); last: the bounce
-    limit's depth (the children are not cast: they read the environment); floor,
-    relative: the offset epsilon (``Float32Boundary``); n_elem: key stride; n_src:
-    sources.
+    Embree's answer (``bvh.Bvh.answers``, merged here by ``Bvh.merge``'s rule): prim (k,)
+    int32 / int64 triangle of the static BVH or < 0 (a miss), u, v (k,) float32
+    barycentrics; far_prim, far_u, far_v the same of the animated BVH (only nearer hits;
+    (0,) without one); static_map, dynamic_map (·,) int64 each BVH's global triangle ids
+    (static_map (0,): the static ids are global). ns_given (k, 3) float32 shading
+    normals to use instead of the surface rule's (normal-mapped stages), or (0, 3).
+
+    Live rays, double-buffered (this depth's in half ``parity``, the children written to
+    half 1 - parity): rays_i (2, 4, L) int64 (``RAY_*`` rows), rays_w (2, L) float64 path
+    weight, rays_v (2, 2, L, 3) float32 direction and origin, L >= 2k. Tables: tri_table
+    (T, 4) float64 (``TRI_*`` columns); frame (T, 4, 3) float64 and corners (T, 3, 6)
+    float32 (``TriangleTable``). split: the stage has transmissive materials (α and
+    refraction); last: the bounce limit's depth (the children are not cast: they read
+    the environment); floor, relative: the offset epsilon (``Float32Boundary``); n_elem:
+    key stride; n_src: sources.
 
     Per hit (the surface rule of ``surface_kernels.hit_geometry``: rel position, front
     normal against the ray, shading normal by the side rule): a local-shading entry
@@ -241,8 +246,10 @@ def bounce(
     n_env, n_lit, n_keys = tally[T_ENV], tally[T_LIT], tally[T_KEYS]
     chains = T_SOURCES + n_src
     given = ns_given.shape[0] > 0
+    animated = far_prim.shape[0] > 0
+    mapped = static_map.shape[0] > 0
     for r in range(k):
-        if prim[r] < 0:
+        if prim[r] < 0 and not (animated and far_prim[r] >= 0):
             g_i[G_ENV_SLOT, n_env] = rays_i[cur, RAY_SLOT, r]
             g_w[G_ENV_W, n_env] = rays_w[cur, r]
             for c in range(3):
@@ -251,8 +258,12 @@ def bounce(
     n_child = 0
     n_refr = 0
     for r in range(k):
-        t = np.int64(prim[r])
-        if t < 0:
+        if animated and far_prim[r] >= 0:
+            t, w1, w2 = dynamic_map[far_prim[r]], far_u[r], far_v[r]
+        elif prim[r] >= 0:
+            t = static_map[prim[r]] if mapped else np.int64(prim[r])
+            w1, w2 = u[r], v[r]
+        else:
             continue
         slot = rays_i[cur, RAY_SLOT, r]
         s = rays_i[cur, RAY_SRC, r]
@@ -261,7 +272,6 @@ def bounce(
         dx, dy, dz = d[0], d[1], d[2]
         fdx, fdy, fdz = float(dx), float(dy), float(dz)
         # The surface (``surface_kernels.hit_geometry``).
-        w1, w2 = u[r], v[r]
         fu, fv = float(w1), float(w2)
         px = frame[t, 0, 0] + fu * frame[t, 1, 0] + fv * frame[t, 2, 0]
         py = frame[t, 0, 1] + fu * frame[t, 1, 1] + fv * frame[t, 2, 1]
@@ -461,9 +471,11 @@ def warm_up() -> None:
     tables = (np.zeros((1, 4)), frame, np.zeros((1, 3, 6), np.float32))
     gather = (np.zeros((5, 3), np.int64), np.zeros((2, 3)), np.zeros((2, 3, 3)),
               np.zeros((3, 3, 3), np.float32), np.zeros((2, 3), np.float32))  # fmt: skip
-    for prim in (i32, i64):
+    answers = ((i32, f32, f32, i32, f32, f32, i64, i64),
+               (i64, f32, f32, i32[:0], f32[:0], f32[:0], i64[:0], i64[:0]))  # fmt: skip
+    for answer in answers:
         for split in (False, True):
-            bounce(prim, f32, f32, v32[:0], *rays, 0, 1, *tables, split, False, 1e-6, 1e-5, 1,
+            bounce(*answer, v32[:0], *rays, 0, 1, *tables, split, False, 1e-6, 1e-5, 1,
                    1, np.zeros(5, np.int64), *gather)  # fmt: skip
     primary_rays(f64, f64, np.eye(3), False, np.zeros(3), np.ones(3), 0.1, 0, 1, v64.copy(),
                  v32.copy(), v32.copy())  # fmt: skip
