@@ -23,6 +23,9 @@ from phrt_usd.render import shading
 from phrt_usd.render.trace.bvh import FAR, Bvh
 from phrt_usd.render.trace.hit_surfaces import HitSurfaces
 
+#: The compiled trace kernels (``trace_kernels``, through ``phrt_usd.kernels``).
+_TRACE = kernels.load("phrt_usd.render.trace.trace_kernels")
+
 #: Shading work (numpy + shadow rays) on many points is split over the pool only from
 #: this many shadow rays (points x lights) on: measured on the sewer (13 lights, 2
 #: cores), 10.6k rays take 2.2 ms split vs 1.9 ms on one thread, 349k rays 49 ms vs 63 ms.
@@ -117,10 +120,8 @@ class ShadowRays:
         rel = np.ascontiguousarray(rel, np.float64)
         dirs, pos, ranges = self.light_arrays(lights)
         want = _ALL_PAIRS if pairs is None else np.asarray(pairs, dtype=bool).reshape(n, n_lights)
-        eps = self._bvh.boundary.epsilon(rel)
-        point, light, origins, d, tfar, dist = kernels.load(
-            "phrt_usd.render.trace.trace_kernels"
-        ).shadow_rays(
+        floor, relative = self._bvh.boundary.offset_factors()
+        point, light, origins, d, tfar, dist = _TRACE.shadow_rays(
             rel,
             np.ascontiguousarray(offset_normals, np.float32),
             np.ascontiguousarray(shading_normals, np.float32),
@@ -128,26 +129,20 @@ class ShadowRays:
             pos,
             ranges,
             np.ascontiguousarray(want),
-            eps,
+            floor,
+            relative,
             shading.MIN_LIGHT_DISTANCE,
             FAR,
         )
-        vis = np.zeros((n, n_lights), np.float32)
-        local = None
-        if len(point):
-            if self._surfaces is None:
-                occluded = self._bvh.run("OCCLUDED", origins, d, tfar, threads)
-            else:
-                occluded = self._surfaces.occluded(origins, d, tfar, threads)
-            vis.reshape(-1)[point * n_lights + light] = ~occluded
+        if self._surfaces is None:
+            occluded = self._bvh.run("OCCLUDED", origins, d, tfar, threads)
         else:
-            occluded = np.zeros(0, bool)
-        if len(pos):  # the lit LocalLight pairs, for shade_local
-            free = np.flatnonzero(~occluded & (light >= n_distant))
-            local = shading.LightPairs(
-                point[free], light[free] - n_distant, d[free], dist[free].astype(np.float64)
-            )
-        return vis, np.bincount(point, minlength=n).astype(np.int64), local
+            occluded = self._surfaces.occluded(origins, d, tfar, threads)
+        vis, rays, *lit = _TRACE.shadow_results(
+            point, light, occluded, d, dist, n, n_lights, n_distant
+        )
+        # The lit LocalLight pairs, for shade_local.
+        return vis, rays, shading.LightPairs(*lit) if len(pos) else None
 
 
 #: ``trace_kernels.shadow_rays``' "every pair wanted" (an empty mask).

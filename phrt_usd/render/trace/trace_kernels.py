@@ -460,6 +460,7 @@ def warm_up() -> None:
     v64, v32 = np.zeros((1, 3)), np.zeros((1, 3), np.float32)
     i32 = np.zeros(1, np.int32)
     frame = np.zeros((1, 4, 3))
+    b = np.zeros(1, bool)
     offset_origins(v64, v64, v32, 1e-6, 1e-5, v32.copy())
     offset_origins(v64, v64, v64, 1e-6, 1e-5, v32.copy())
     source_rays(i64, i64, i64, i32, v64, v32, v32, np.zeros(3), frame, 1e-6, 1e-5, 0, 1,
@@ -486,21 +487,23 @@ def warm_up() -> None:
     accumulate(np.zeros((1, 3)), i64, f64, v64)
     source_tallies(i64, i64, i64, i64, i64.copy(), f64.copy(), i64.copy(), i64.copy())
     shadow_rays(v64, v32, v32, np.array([[0.0, 1.0, 0.0]]), np.zeros((0, 3)), np.zeros(0),
-                np.zeros((0, 0), bool), f64 + 1e-6, 1e-3, 1e30)  # fmt: skip
+                np.zeros((0, 0), bool), 1e-6, 1e-5, 1e-3, 1e30)  # fmt: skip
+    shadow_results(i64, i64, b, v32, f32, 1, 1, 1)
 
 
 @njit(**_KERNEL)
-def shadow_rays(rel, ng, ns, dirs, pos, ranges, want, eps, min_distance, far):
+def shadow_rays(rel, ng, ns, dirs, pos, ranges, want, floor, relative, min_distance, far):
     """The shadow rays of ``ShadowRays.cast``: for each point i (rel (n, 3) float64,
-    offset normal ng and shading normal ns (n, 3) float32, offset epsilon eps (n,)
-    metres) and each light j (DistantLights dirs (D, 3) unit, then LocalLights pos
-    (P, 3) rel metres of range ranges (P,)) wanted (``want`` (n, D + P) bool, or (0, 0):
+    offset normal ng and shading normal ns (n, 3) float32) and each light j
+    (DistantLights dirs (D, 3) unit, then LocalLights pos (P, 3) rel metres of range
+    ranges (P,)) wanted (``want`` (n, D + P) bool, or (0, 0):
     all) whose light can matter there (in front of ns; LocalLights: within range),
     one ray. Returns point (k,) int64, light (k,) int64 (distant then local index),
     origins (k, 3), dirs (k, 3), tfar (k,) float32 and dist (k,) float32 (LocalLights:
     metres to the light, >= ``min_distance``; DistantLights: ``far``), point-major.
-    Origins leave the surface by eps along ng on the ray's side (``_side``, the
-    boundary's rule); LocalLight rays stop eps short of the light."""
+    Origins leave the surface by the offset epsilon (floor, relative:
+    ``Float32Boundary``) along ng on the ray's side (``_side``, the boundary's rule);
+    LocalLight rays stop that epsilon short of the light."""
     n, n_distant, n_local = rel.shape[0], dirs.shape[0], pos.shape[0]
     n_lights = n_distant + n_local
     every = want.shape[0] == 0
@@ -531,7 +534,7 @@ def shadow_rays(rel, ng, ns, dirs, pos, ranges, want, eps, min_distance, far):
         for j in range(n_lights):
             if not take[i, j]:
                 continue
-            e = eps[i]
+            e = _epsilon(rel[i, 0], rel[i, 1], rel[i, 2], floor, relative)
             if j < n_distant:
                 d0, d1, d2 = dirs[j, 0], dirs[j, 1], dirs[j, 2]
                 length = far
@@ -550,3 +553,33 @@ def shadow_rays(rel, ng, ns, dirs, pos, ranges, want, eps, min_distance, far):
             point[r], light[r], tfar[r], dist[r] = i, j, stop, length
             r += 1
     return point, light, origins, out_dirs, tfar, dist
+
+
+@njit(**_KERNEL)
+def shadow_results(point, light, occluded, dirs, dist, n, n_lights, n_distant):
+    """What ``ShadowRays.cast`` answers from Embree's ``occluded`` (k,) bool on the rays
+    of ``shadow_rays`` (point, light (k,) int64, dirs (k, 3) float32, dist (k,) float32):
+    visibility (n, n_lights) float32 (1 = lit; pairs without a ray 0), shadow rays per
+    point (n,) int64, and the lit LocalLight pairs (``shading.LightPairs``): point (m,)
+    int64, LocalLight index (m,) int64, direction (m, 3) float32, distance (m,)
+    float64."""
+    vis = np.zeros((n, n_lights), np.float32)
+    rays = np.zeros(n, np.int64)
+    k = point.shape[0]
+    lit_point = np.empty(k, np.int64)
+    lit_light = np.empty(k, np.int64)
+    lit_dir = np.empty((k, 3), np.float32)
+    lit_dist = np.empty(k)
+    m = 0
+    for r in range(k):
+        i, j = point[r], light[r]
+        rays[i] += 1
+        if occluded[r]:
+            continue
+        vis[i, j] = _ONE32
+        if j >= n_distant:
+            lit_point[m], lit_light[m] = i, j - n_distant
+            lit_dir[m, 0], lit_dir[m, 1], lit_dir[m, 2] = dirs[r, 0], dirs[r, 1], dirs[r, 2]
+            lit_dist[m] = dist[r]
+            m += 1
+    return vis, rays, lit_point[:m], lit_light[:m], lit_dir[:m], lit_dist[:m]
