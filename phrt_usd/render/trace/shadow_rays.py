@@ -121,7 +121,11 @@ class ShadowRays:
         dirs, pos, ranges = self.light_arrays(lights)
         want = _ALL_PAIRS if pairs is None else np.asarray(pairs, dtype=bool).reshape(n, n_lights)
         floor, relative = self._bvh.boundary.offset_factors()
-        point, light, origins, d, tfar, dist = _TRACE.shadow_rays(
+        most = n * n_lights  # one ray per (point, light) pair at most
+        ray_i = np.empty((2, most), np.int64)  # point, light
+        ray_v = np.empty((2, most, 3), np.float32)  # origin, direction
+        ray_f = np.empty((2, most), np.float32)  # tfar, distance
+        k = _TRACE.shadow_rays(
             rel,
             np.ascontiguousarray(offset_normals, np.float32),
             np.ascontiguousarray(shading_normals, np.float32),
@@ -133,16 +137,24 @@ class ShadowRays:
             relative,
             shading.MIN_LIGHT_DISTANCE,
             FAR,
+            ray_i,
+            ray_v,
+            ray_f,
         )
+        origins, d, tfar = ray_v[0, :k], ray_v[1, :k], ray_f[0, :k]
         if self._surfaces is None:
             occluded = self._bvh.run("OCCLUDED", origins, d, tfar, threads)
         else:
             occluded = self._surfaces.occluded(origins, d, tfar, threads)
-        vis, rays, *lit = _TRACE.shadow_results(
-            point, light, occluded, d, dist, n, n_lights, n_distant
+        vis, rays = np.empty((n, n_lights), np.float32), np.empty(n, np.int64)
+        lit_i, lit_dir = np.empty((2, k), np.int64), np.empty((k, 3), np.float32)
+        lit_dist = np.empty(k)
+        m = _TRACE.shadow_results(
+            ray_i, ray_v, ray_f, occluded, n_distant, vis, rays, lit_i, lit_dir, lit_dist
         )
         # The lit LocalLight pairs, for shade_local.
-        return vis, rays, shading.LightPairs(*lit) if len(pos) else None
+        lit = shading.LightPairs(lit_i[0, :m], lit_i[1, :m], lit_dir[:m], lit_dist[:m])
+        return vis, rays, lit if len(pos) else None
 
 
 #: ``trace_kernels.shadow_rays``' "every pair wanted" (an empty mask).

@@ -486,100 +486,90 @@ def warm_up() -> None:
     accumulate(np.zeros((1, 3)), i64, f64, v32)
     accumulate(np.zeros((1, 3)), i64, f64, v64)
     source_tallies(i64, i64, i64, i64, i64.copy(), f64.copy(), i64.copy(), i64.copy())
+    shadow = (np.zeros((2, 1), np.int64), np.zeros((2, 1, 3), np.float32),
+              np.zeros((2, 1), np.float32))  # fmt: skip
     shadow_rays(v64, v32, v32, np.array([[0.0, 1.0, 0.0]]), np.zeros((0, 3)), np.zeros(0),
-                np.zeros((0, 0), bool), 1e-6, 1e-5, 1e-3, 1e30)  # fmt: skip
-    shadow_results(i64, i64, b, v32, f32, 1, 1, 1)
+                np.zeros((0, 0), bool), 1e-6, 1e-5, 1e-3, 1e30, *shadow)  # fmt: skip
+    shadow_results(*shadow, b, 1, np.zeros((1, 1), np.float32), i64.copy(),
+                   np.zeros((2, 1), np.int64), v32.copy(), f64.copy())  # fmt: skip
 
 
 @njit(**_KERNEL)
-def shadow_rays(rel, ng, ns, dirs, pos, ranges, want, floor, relative, min_distance, far):
+def shadow_rays(
+    rel, ng, ns, dirs, pos, ranges, want, floor, relative, min_distance, far, out_i, out_v,
+    out_f,
+):  # fmt: skip
     """The shadow rays of ``ShadowRays.cast``: for each point i (rel (n, 3) float64,
     offset normal ng and shading normal ns (n, 3) float32) and each light j
     (DistantLights dirs (D, 3) unit, then LocalLights pos (P, 3) rel metres of range
-    ranges (P,)) wanted (``want`` (n, D + P) bool, or (0, 0):
-    all) whose light can matter there (in front of ns; LocalLights: within range),
-    one ray. Returns point (k,) int64, light (k,) int64 (distant then local index),
-    origins (k, 3), dirs (k, 3), tfar (k,) float32 and dist (k,) float32 (LocalLights:
-    metres to the light, >= ``min_distance``; DistantLights: ``far``), point-major.
-    Origins leave the surface by the offset epsilon (floor, relative:
-    ``Float32Boundary``) along ng on the ray's side (``_side``, the boundary's rule);
-    LocalLight rays stop that epsilon short of the light."""
+    ranges (P,)) wanted (``want`` (n, D + P) bool, or (0, 0): all) whose light can
+    matter there (in front of ns; LocalLights: within range), one ray, point-major.
+
+    Writes ray r's point and light (distant then local index) into out_i (2, ·) int64,
+    its float32 origin and unit direction into out_v (2, ·, 3), its tfar and distance
+    into out_f (2, ·) float32 (LocalLights: metres to the light, >= ``min_distance``;
+    DistantLights: ``far``); the buffers have n (D + P) columns. Origins leave the
+    surface by the offset epsilon (floor, relative: ``Float32Boundary``) along ng on the
+    ray's side (``_side``, the boundary's rule); LocalLight rays stop that epsilon short
+    of the light. Returns the ray count."""
     n, n_distant, n_local = rel.shape[0], dirs.shape[0], pos.shape[0]
     n_lights = n_distant + n_local
     every = want.shape[0] == 0
-    take = np.zeros((n, n_lights), np.bool_)
-    k = 0
+    r = 0
     for i in range(n):
+        px, py, pz = rel[i, 0], rel[i, 1], rel[i, 2]
+        e = _epsilon(px, py, pz, floor, relative)
         for j in range(n_lights):
             if not (every or want[i, j]):
                 continue
             if j < n_distant:
-                nl = ns[i, 0] * dirs[j, 0] + ns[i, 1] * dirs[j, 1] + ns[i, 2] * dirs[j, 2]
-                ok = nl > 0.0
-            else:
-                q = j - n_distant
-                t0, t1, t2 = pos[q, 0] - rel[i, 0], pos[q, 1] - rel[i, 1], pos[q, 2] - rel[i, 2]
-                nl = ns[i, 0] * t0 + ns[i, 1] * t1 + ns[i, 2] * t2
-                ok = nl > 0.0 and t0 * t0 + t1 * t1 + t2 * t2 < ranges[q] * ranges[q]
-            take[i, j] = ok
-            k += ok
-    point = np.empty(k, np.int64)
-    light = np.empty(k, np.int64)
-    origins = np.empty((k, 3), np.float32)
-    out_dirs = np.empty((k, 3), np.float32)
-    tfar = np.empty(k, np.float32)
-    dist = np.empty(k, np.float32)
-    r = 0
-    for i in range(n):
-        for j in range(n_lights):
-            if not take[i, j]:
-                continue
-            e = _epsilon(rel[i, 0], rel[i, 1], rel[i, 2], floor, relative)
-            if j < n_distant:
                 d0, d1, d2 = dirs[j, 0], dirs[j, 1], dirs[j, 2]
+                if not (ns[i, 0] * d0 + ns[i, 1] * d1 + ns[i, 2] * d2 > 0.0):
+                    continue
                 length = far
                 stop = far
             else:
                 q = j - n_distant
-                t0, t1, t2 = pos[q, 0] - rel[i, 0], pos[q, 1] - rel[i, 1], pos[q, 2] - rel[i, 2]
-                length = max(math.sqrt(t0 * t0 + t1 * t1 + t2 * t2), min_distance)
+                t0, t1, t2 = pos[q, 0] - px, pos[q, 1] - py, pos[q, 2] - pz
+                nl = ns[i, 0] * t0 + ns[i, 1] * t1 + ns[i, 2] * t2
+                square = t0 * t0 + t1 * t1 + t2 * t2
+                if not (nl > 0.0 and square < ranges[q] * ranges[q]):
+                    continue
+                length = max(math.sqrt(square), min_distance)
                 d0, d1, d2 = t0 / length, t1 / length, t2 / length
                 # Stop short of the light by the offset so the light's own position is free.
                 stop = max(length - e, 0.0)
             side = _side(e, d0, d1, d2, ng[i, 0], ng[i, 1], ng[i, 2])
             for c in range(3):
-                origins[r, c] = rel[i, c] + side * ng[i, c]
-            out_dirs[r, 0], out_dirs[r, 1], out_dirs[r, 2] = d0, d1, d2
-            point[r], light[r], tfar[r], dist[r] = i, j, stop, length
+                out_v[0, r, c] = rel[i, c] + side * ng[i, c]
+            out_v[1, r, 0], out_v[1, r, 1], out_v[1, r, 2] = d0, d1, d2
+            out_i[0, r], out_i[1, r], out_f[0, r], out_f[1, r] = i, j, stop, length
             r += 1
-    return point, light, origins, out_dirs, tfar, dist
+    return r
 
 
 @njit(**_KERNEL)
-def shadow_results(point, light, occluded, dirs, dist, n, n_lights, n_distant):
-    """What ``ShadowRays.cast`` answers from Embree's ``occluded`` (k,) bool on the rays
-    of ``shadow_rays`` (point, light (k,) int64, dirs (k, 3) float32, dist (k,) float32):
-    visibility (n, n_lights) float32 (1 = lit; pairs without a ray 0), shadow rays per
-    point (n,) int64, and the lit LocalLight pairs (``shading.LightPairs``): point (m,)
-    int64, LocalLight index (m,) int64, direction (m, 3) float32, distance (m,)
-    float64."""
-    vis = np.zeros((n, n_lights), np.float32)
-    rays = np.zeros(n, np.int64)
-    k = point.shape[0]
-    lit_point = np.empty(k, np.int64)
-    lit_light = np.empty(k, np.int64)
-    lit_dir = np.empty((k, 3), np.float32)
-    lit_dist = np.empty(k)
+def shadow_results(rays_i, rays_v, rays_f, occluded, n_distant, vis, rays, lit_i, lit_dir,
+                   lit_dist):  # fmt: skip
+    """What ``ShadowRays.cast`` answers from Embree's ``occluded`` (k,) bool on the k
+    rays of ``shadow_rays`` (its out_i, out_v, out_f): visibility into ``vis`` (n, L)
+    float32 (1 = lit; pairs without a ray 0), shadow rays per point into ``rays`` (n,)
+    int64, and the lit LocalLight pairs (``shading.LightPairs``): point and LocalLight
+    index into lit_i (2, k) int64, direction into lit_dir (k, 3) float32, distance into
+    lit_dist (k,) float64. Returns the lit LocalLight pairs' count."""
+    vis[:] = 0.0
+    rays[:] = 0
     m = 0
-    for r in range(k):
-        i, j = point[r], light[r]
+    for r in range(occluded.shape[0]):
+        i, j = rays_i[0, r], rays_i[1, r]
         rays[i] += 1
         if occluded[r]:
             continue
         vis[i, j] = _ONE32
         if j >= n_distant:
-            lit_point[m], lit_light[m] = i, j - n_distant
-            lit_dir[m, 0], lit_dir[m, 1], lit_dir[m, 2] = dirs[r, 0], dirs[r, 1], dirs[r, 2]
-            lit_dist[m] = dist[r]
+            lit_i[0, m], lit_i[1, m] = i, j - n_distant
+            for c in range(3):
+                lit_dir[m, c] = rays_v[1, r, c]
+            lit_dist[m] = rays_f[1, r]
             m += 1
-    return vis, rays, lit_point[:m], lit_light[:m], lit_dir[:m], lit_dist[:m]
+    return m
