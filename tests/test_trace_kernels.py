@@ -211,14 +211,14 @@ def test_kernels_finite_for_extreme_inputs():
     frame = np.zeros((1, 4, 3))
     frame[0, 3] = (0.0, 1.0, 0.0)
     n = len(view)
-    out = [np.empty(n, np.int64), np.empty(n, np.int64), np.empty((n, 3)), np.empty((n, 3)),
+    out = [np.empty(n, np.int64), np.empty((n, 3)), np.empty((n, 3)),
            np.empty((n, 3), np.float32), np.empty((n, 3), np.float32),
            np.empty((n, 3), np.float32), np.empty((n, 3), np.float32)]  # fmt: skip
     trace_kernels.source_rays(
-        np.arange(n), np.zeros(n, np.int64), np.array([0, -1]), np.array([-1, 0, -1, 0], np.int32),
-        pos, nrm, view, np.zeros(3), frame, 1e-6, RAY_OFFSET_RELATIVE, 0, n, *out,
+        np.arange(n), np.array([-1, 0, -1, 0], np.int32), pos, nrm, view, np.zeros(3), frame,
+        1e-6, RAY_OFFSET_RELATIVE, 0, n, *out,
     )  # fmt: skip
-    for a in out[2:]:
+    for a in out[1:]:
         assert np.all(np.isfinite(a))
 
 

@@ -98,24 +98,23 @@ def offset_origins(rel, normals, dirs, floor, relative, out):
 
 @njit(**_KERNEL)
 def source_rays(
-    cand, cand_elem, table, tri_img, pos_img, nrm_img, view_img, origin, frame, floor,
-    relative, lo, hi, out_src, out_tri, out_rel, out_ng, out_ns, out_view, out_dir, out_org,
+    cand, tri_img, pos_img, nrm_img, view_img, origin, frame, floor, relative, lo, hi,
+    out_tri, out_rel, out_ng, out_ns, out_view, out_dir, out_org,
 ):  # fmt: skip
     """The first rays of paths from G-buffer pixels cand[lo:hi] into rows lo..hi.
 
-    cand (k,) int64 flat pixels of sources, cand_elem (k,) their element ids; table
-    (E + 1,) int64 element → index into the sources. Images flat over H*W: tri_img
-    int32, pos_img (·, 3) float64 world, nrm_img and view_img (·, 3) float32. origin (3,)
+    cand (k,) int64 flat pixels of sources. Images flat over H*W: tri_img int32, pos_img
+    (·, 3) float64 world, nrm_img and view_img (·, 3) float32. origin (3,)
     ``Scene.origin``; frame ``TriangleTable.frame``; floor, relative: the offset epsilon
     (``Float32Boundary``).
 
-    Per pixel: out_src, out_tri (k,) int64. The surface, written when out_rel has rows:
-    out_rel (k, 3) float64 the position snapped onto its triangle's plane; out_ng (k, 3)
-    float64 the triangle's unit front normal (the shading normal where there is no
-    triangle); out_ns (k, 3) float32 the unit shading normal turned to face the viewer;
-    out_view (k, 3) float32 unit view direction. The mirror ray, written when out_dir
-    has rows: out_dir (k, 3) float32 the mirror direction and out_org (k, 3) float32 its
-    offset origin."""
+    Per pixel: out_tri (k,) int64. The surface, written when out_rel has rows: out_rel
+    (k, 3) float64 the position snapped onto its triangle's plane; out_ng (k, 3) float64
+    the triangle's unit front normal (the shading normal where there is no triangle);
+    out_ns (k, 3) float32 the unit shading normal turned to face the viewer; out_view
+    (k, 3) float32 unit view direction. The mirror ray, written when out_dir has rows:
+    out_dir (k, 3) float32 the mirror direction and out_org (k, 3) float32 its offset
+    origin."""
     surface = out_rel.shape[0] > 0
     reflect = out_dir.shape[0] > 0
     for i in range(lo, hi):
@@ -137,7 +136,7 @@ def source_rays(
             pz = oz - dist * gz + frame[t, 0, 2]
         else:
             gx, gy, gz = float(nx), float(ny), float(nz)
-        out_src[i], out_tri[i] = table[cand_elem[i]], t
+        out_tri[i] = t
         if surface:
             out_rel[i, 0], out_rel[i, 1], out_rel[i, 2] = px, py, pz
             out_ng[i, 0], out_ng[i, 1], out_ng[i, 2] = gx, gy, gz
@@ -463,9 +462,8 @@ def warm_up() -> None:
     b = np.zeros(1, bool)
     offset_origins(v64, v64, v32, 1e-6, 1e-5, v32.copy())
     offset_origins(v64, v64, v64, 1e-6, 1e-5, v32.copy())
-    source_rays(i64, i64, i64, i32, v64, v32, v32, np.zeros(3), frame, 1e-6, 1e-5, 0, 1,
-                i64.copy(), i64.copy(), v64.copy(), v64.copy(), v32.copy(), v32.copy(),
-                v32.copy(), v32.copy())  # fmt: skip
+    source_rays(i64, i32, v64, v32, v32, np.zeros(3), frame, 1e-6, 1e-5, 0, 1, i64.copy(),
+                v64.copy(), v64.copy(), v32.copy(), v32.copy(), v32.copy(), v32.copy())  # fmt: skip
     split_hits(i32, f32, f32, i64.copy(), i64.copy(), f32.copy(), f32.copy(), i64.copy())
     split_hits(i64, f32, f32, i64.copy(), i64.copy(), f32.copy(), f32.copy(), i64.copy())
     rays = (np.zeros((2, 4, 2), np.int64), np.zeros((2, 2)), np.zeros((2, 2, 2, 3), np.float32))
