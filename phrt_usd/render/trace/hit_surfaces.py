@@ -64,6 +64,10 @@ class HitSurfaces:
         self._has_emission = bool(np.any(emissive != 0)) or self._textured_emission
         self._emissive = emissive
         self._textures = list(mats.textures) if scene.geometry.corner_uv is not None else []
+        textured = np.array([t is not None for t in self._textures] + [False], bool)
+        #: Per triangle: its material has an albedo texture (``colour`` skips the texture
+        #: lookup when no hit has).
+        self._tri_textured = textured[bvh.tri_material] if self._textures else textured[:0]
         self._inputs = mats.texture_inputs
         #: The cut-out rule of this scene's triangles (``model.surface.Cutouts``).
         self.cutouts = surface.Cutouts(mats, bvh.tri_material, scene.geometry.corner_uv)
@@ -214,9 +218,10 @@ class HitSurfaces:
         albedo = np.empty((len(tri), 3), dtype=np.float32)
         _SURFACE.hit_albedo(tri, u, v, self._bvh.table.corners, albedo)
         uv = self._scene.geometry.corner_uv
-        if self._textures or self._textured_emission:
+        textured = len(self._tri_textured) and np.take(self._tri_textured, tri).any()
+        if textured or self._textured_emission:
             weights = surface.weights_from_uv(u, v)
-        if self._textures:
+        if textured:
             surface.texture_albedo(
                 albedo, tri, weights, self._bvh.tri_material, uv, self._textures,
                 inputs=self._inputs,

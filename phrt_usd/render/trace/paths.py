@@ -158,9 +158,10 @@ class PathTracer:
         n_elem = max(n_elements, 1)
         floor, relative = bvh.boundary.offset_factors()
         src = np.asarray(src, np.int64)
+        # Gathered counts, path rays cast per source after the first, longest reflector
+        # chain per path (trace_kernels.T_*).
         tally = np.zeros(T_SOURCES + n_src + n_pix, np.int64)
-        rays_src = tally[T_SOURCES : T_SOURCES + n_src]  # path rays cast per source
-        chain_pix = tally[T_SOURCES + n_src :]  # reflector hits along the longest path
+        rays_src = tally[T_SOURCES : T_SOURCES + n_src]
         k = n_pix if bounce_limit >= 1 else 0
         buf.rays(k, 0, 0)
         buf.entries(n_pix - k, 0)
@@ -171,12 +172,12 @@ class PathTracer:
             g_v[G_ENV_DIR, :n_pix] = dirs
             tally[T_ENV] = n_pix
         elif k:  # the first rays into live half 0
-            rays_src += np.bincount(src, minlength=n_src)
             live = buf.rays_i[0]
             live[RAY_SLOT, :k] = np.arange(k)
             live[RAY_SRC, :k] = src
-            live[RAY_CHAIN, :k] = 0
-            live[RAY_REFRACTED, :k] = first_kind == "refraction"
+            live[RAY_CHAIN:, :k] = 0
+            if first_kind == "refraction":
+                live[RAY_REFRACTED, :k] = 1
             buf.rays_w[0, :k] = 1.0
             buf.rays_v[0, RAY_DIR, :k] = dirs
             buf.rays_v[0, RAY_ORIGIN, :k] = origins
@@ -212,7 +213,7 @@ class PathTracer:
         radiance, shadow_src, shadow_rays = self._gather(n_env, n_lit, lights, n_pix, counters)
         seconds = time.perf_counter() - start
         records, rays = self._records(
-            sources, src, chain_pix, rays_src, shadow_src, shadow_rays,
+            sources, src, tally, bounce_limit >= 1, shadow_src, shadow_rays,
             buf.gather[0][G_KEY, :n_keys], n_elem, bounce_limit, seconds,
         )  # fmt: skip
         return ReflectionResult(
@@ -280,22 +281,18 @@ class PathTracer:
 
     @staticmethod
     def _records(
-        sources, src, chain_pix, rays_src, shadow_src, shadow_rays, keys, n_elem,
-        bounce_limit, seconds,
+        sources, src, tally, first_cast, shadow_src, shadow_rays, keys, n_elem, bounce_limit,
+        seconds,
     ):  # fmt: skip
         """One TraceRecord per source (see ``frame.TraceRecord``) and the call's total
-        rays. rays_src (sources,) int64: path rays cast per source; shadow_src,
-        shadow_rays (m,): each shaded point's source and shadow rays. Seconds are shared
-        out by each source's share of the rays."""
+        rays (``trace_kernels.source_tallies`` of ``tally`` and the shadow rays:
+        shadow_src, shadow_rays (m,), each shaded point's source and shadow rays). Seconds
+        are shared out by each source's share of the rays."""
         n_src = len(sources)
-        pixels = np.zeros(n_src, np.int64)
-        chain_sum = np.zeros(n_src)
-        chain_max = np.zeros(n_src, np.int64)
-        rays_src = rays_src.copy()
-        trace_kernels.source_tallies(
-            src, chain_pix, shadow_src, shadow_rays, pixels, chain_sum, chain_max, rays_src
-        )
-        total = int(rays_src.sum())
+        figures = np.empty((4, n_src), np.int64)
+        trace_kernels.source_tallies(src, tally, first_cast, shadow_src, shadow_rays, figures)
+        pixels, chain_sum, chain_max, rays_src = figures.tolist()
+        total = sum(rays_src)
         per_source: list[dict[int, int]] = [{} for _ in range(n_src)]
         if len(keys):
             # Hits per (source, element) key: a bincount over the n_src * E keys (small),
@@ -316,10 +313,9 @@ class PathTracer:
                 seconds=seconds * r / total if total else 0.0,
             )
             for i, (s, p, r, c, cs) in enumerate(
-                zip(sources, pixels.tolist(), rays_src.tolist(), chain_max.tolist(),
-                    chain_sum.tolist(), strict=True)
+                zip(sources, pixels, rays_src, chain_max, chain_sum, strict=True)
             )
-        ]  # fmt: skip
+        ]
         return records, total
 
 

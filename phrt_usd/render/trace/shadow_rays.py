@@ -159,4 +159,3 @@ class ShadowRays:
 
 #: ``trace_kernels.shadow_rays``' "every pair wanted" (an empty mask).
 _ALL_PAIRS = np.zeros((0, 0), bool)
-

@@ -383,20 +383,26 @@ def accumulate(total, slot, weight, value):
 
 
 @njit(**_KERNEL)
-def source_tallies(src, chain_pix, shadow_src, shadow_rays, pixels, chain_sum, chain_max,
-                   rays_src):  # fmt: skip
-    """Per-source figures of ``TraceRecord``: pixels (sources,) int64, chain_sum float64,
-    chain_max int64 from the paths' src (n,) and chain_pix (n,) int64, and rays_src
-    (sources,) int64 += shadow_rays (m,) int64 per shading point of source shadow_src
-    (m,) int64."""
+def source_tallies(src, tally, first_cast, shadow_src, shadow_rays, out):
+    """Per-source figures of ``TraceRecord`` into ``out`` (4, S) int64 rows: pixels,
+    the sum and the longest of their reflector chains, rays cast. From the paths' src
+    (n,) int64 and ``bounce``'s ``tally`` (rays cast per source after the first rays,
+    longest chain per path); ``first_cast``: the first rays were cast (one per path);
+    shadow_rays (m,) int64 cast per shading point of source shadow_src (m,) int64."""
+    n_src = out.shape[1]
+    out[:] = 0
+    for s in range(n_src):
+        out[3, s] = tally[T_SOURCES + s]
+    chains = T_SOURCES + n_src
     for i in range(src.shape[0]):
         s = src[i]
-        pixels[s] += 1
-        chain_sum[s] += chain_pix[i]
-        if chain_pix[i] > chain_max[s]:
-            chain_max[s] = chain_pix[i]
+        out[0, s] += 1
+        out[1, s] += tally[chains + i]
+        out[2, s] = max(out[2, s], tally[chains + i])
+        if first_cast:
+            out[3, s] += 1
     for i in range(shadow_src.shape[0]):
-        rays_src[shadow_src[i]] += shadow_rays[i]
+        out[3, shadow_src[i]] += shadow_rays[i]
 
 
 @njit(**_KERNEL)
@@ -483,7 +489,7 @@ def warm_up() -> None:
                  *gb_rows)  # fmt: skip
     accumulate(np.zeros((1, 3)), i64, f64, v32)
     accumulate(np.zeros((1, 3)), i64, f64, v64)
-    source_tallies(i64, i64, i64, i64, i64.copy(), f64.copy(), i64.copy(), i64.copy())
+    source_tallies(i64, np.zeros(5, np.int64), True, i64, i64, np.zeros((4, 1), np.int64))
     shadow = (np.zeros((2, 1), np.int64), np.zeros((2, 1, 3), np.float32),
               np.zeros((2, 1), np.float32))  # fmt: skip
     shadow_rays(v64, v32, v32, np.array([[0.0, 1.0, 0.0]]), np.zeros((0, 3)), np.zeros(0),
