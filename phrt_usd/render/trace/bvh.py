@@ -402,6 +402,8 @@ class Bvh:
         o32, d32, _ = Float32Boundary.rays(origins, dirs, None)
         if self.record_rays:  # copies: callers reuse their ray buffers
             self.last_rays.append(("INTERSECT", o32.copy(), d32.copy(), None))
+        if 0 < len(o32) < PARALLEL_MIN_RAYS:  # one chunk, on this thread
+            return self._cast("ANSWERS", o32, d32, None, True) + self._maps
         return self._run_raw("ANSWERS", o32, d32, None, self.threads) + self._maps
 
     @staticmethod

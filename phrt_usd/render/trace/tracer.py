@@ -399,13 +399,16 @@ class Tracer:
             cand = np.flatnonzero(chosen)
             cand_src = np.take(table, np.take(elem, cand))
         k = len(cand)
-        ks, kr = (k if surface else 0), (k if reflect else 0)
-        out = {
-            "tri": np.empty(k, np.int64),
-            "rel": np.empty((ks, 3)), "ng": np.empty((ks, 3)),
-            "ns": np.empty((ks, 3), np.float32), "view": np.empty((ks, 3), np.float32),
-            "dir": np.empty((kr, 3), np.float32), "org": np.empty((kr, 3), np.float32),
-        }  # fmt: skip
+        out = {"tri": np.empty(k, np.int64)}
+        if surface:
+            out["rel"], out["ng"] = np.empty((k, 3)), np.empty((k, 3))
+            out["ns"], out["view"] = np.empty((k, 3), np.float32), np.empty((k, 3), np.float32)
+        else:
+            out["rel"], out["ng"], out["ns"], out["view"] = _NO_SURFACE
+        if reflect:
+            out["dir"], out["org"] = np.empty((k, 3), np.float32), np.empty((k, 3), np.float32)
+        else:
+            out["dir"], out["org"] = _NO_RAYS
         floor, relative = self.bvh.boundary.offset_factors()
         self._split(
             trace_kernels.source_rays, k, cand, *self._images(gbuffer),
@@ -414,6 +417,13 @@ class Tracer:
         )  # fmt: skip
         out["pix"], out["src"] = cand, cand_src
         return out
+
+
+#: ``_source_pixels``' outputs not asked for (no rows): the surface (rel, ng, ns, view)
+#: and the mirror rays (dir, org).
+_NO_SURFACE = (np.empty((0, 3)), np.empty((0, 3)), np.empty((0, 3), np.float32),
+               np.empty((0, 3), np.float32))  # fmt: skip
+_NO_RAYS = (np.empty((0, 3), np.float32), np.empty((0, 3), np.float32))
 
 
 def _cat(parts: list[np.ndarray]) -> np.ndarray:
