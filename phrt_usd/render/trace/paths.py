@@ -76,6 +76,7 @@ class _Buffers:
     g_i, g_w, g_x, g_v, g_uv, G columns each (``trace_kernels.G_*``)."""
 
     def __init__(self) -> None:
+        self.room = 0  # gathered entries the buffers hold
         self.rays_i = np.empty((2, _RAY_ROWS, 0), np.int64)
         self.rays_w = np.empty((2, 0))
         self.rays_v = np.empty((2, 2, 0, 3), np.float32)
@@ -104,9 +105,10 @@ class _Buffers:
 
     def entries(self, need: int, used: int) -> None:
         """Room for ``need`` gathered entries, keeping the first ``used``."""
-        if need <= self.gather[0].shape[1]:
+        if need <= self.room:
             return
-        fresh = self._gather_arrays(max(need, 2 * self.gather[0].shape[1]))
+        self.room = max(need, 2 * self.room)
+        fresh = self._gather_arrays(self.room)
         for old, new in zip(self.gather, fresh, strict=True):
             new[:, :used] = old[:, :used]
         self.gather = fresh
@@ -164,7 +166,7 @@ class PathTracer:
         rays_src = tally[T_SOURCES : T_SOURCES + n_src]
         k = n_pix if bounce_limit >= 1 else 0
         buf.rays(k, 0, 0)
-        buf.entries(n_pix - k, 0)
+        buf.entries(n_pix - k, 0)  # the environment entries without rays
         if k < n_pix:  # no rays: the environment in the first directions
             g_i, g_w, _, g_v, _ = buf.gather
             g_i[G_ENV_SLOT, :n_pix] = np.arange(n_pix)
@@ -182,33 +184,40 @@ class PathTracer:
             buf.rays_v[0, RAY_DIR, :k] = dirs
             buf.rays_v[0, RAY_ORIGIN, :k] = origins
         n_refr = k if first_kind == "refraction" else 0
-        table = bvh.table
+        cast = [0, 0]  # reflection, refraction rays (the counters, once at the end)
+        tables = (surfaces.tri_table, bvh.table.frame, bvh.table.corners)
+        bound = n_pix - k  # gathered entries can reach this
+        if split:  # room for children (refracted ones staged after the live rays)
+            buf.rays(2 * k, 0, k)
         parity = 0
         for depth in range(bounce_limit if k else 0):
-            counters["refraction"] += n_refr
-            counters["reflection"] += k - n_refr
-            d32 = buf.rays_v[parity, RAY_DIR, :k]
-            answer, recast = surfaces.nearest(buf.rays_v[parity, RAY_ORIGIN, :k], d32)
+            cast[0] += k - n_refr
+            cast[1] += n_refr
+            rays_v = buf.rays_v
+            d32 = rays_v[parity, RAY_DIR, :k]
+            answer, recast = surfaces.nearest(rays_v[parity, RAY_ORIGIN, :k], d32)
             if len(recast):  # re-casts through cut-out holes (HitSurfaces.intersect)
                 live = buf.rays_i[parity]
                 rays_src += np.bincount(live[RAY_SRC, recast], minlength=n_src)
                 recast_refr = int(np.count_nonzero(live[RAY_REFRACTED, recast]))
-                counters["refraction"] += recast_refr
-                counters["reflection"] += len(recast) - recast_refr
+                cast[0] += len(recast) - recast_refr
+                cast[1] += recast_refr
             last = depth + 1 >= bounce_limit
-            # Room for this depth's children (refracted ones staged after the live rays)
-            # and entries (misses and children, hits).
-            buf.rays(2 * k if split else k, parity, k)
-            used = max(tally[:T_SOURCES].tolist())
-            buf.entries(used + 2 * k, used)
+            bound += 2 * k  # misses and children, hits
+            if bound > buf.room:
+                buf.entries(bound, max(tally[:T_SOURCES].tolist()))
             n_child, n_refr = trace_kernels.bounce(
-                *answer, surfaces.mapped_normals(answer, d32), buf.rays_i, buf.rays_w,
-                buf.rays_v, parity, k, surfaces.tri_table, table.frame, table.corners, split,
-                last, floor, relative, n_elem, n_src, tally, *buf.gather,
+                *answer, surfaces.mapped_normals(answer, d32), buf.rays_i, buf.rays_w, rays_v,
+                parity, k, *tables, split, last, floor, relative, n_elem, n_src, tally,
+                *buf.gather,
             )  # fmt: skip
             if last or n_child == 0:
                 break
             parity, k = 1 - parity, n_child
+            if split:
+                buf.rays(2 * k, parity, k)
+        counters["reflection"] += cast[0]
+        counters["refraction"] += cast[1]
         n_env, n_lit, n_keys = tally[:T_SOURCES].tolist()
         radiance, shadow_src, shadow_rays = self._gather(n_env, n_lit, lights, n_pix, counters)
         seconds = time.perf_counter() - start
