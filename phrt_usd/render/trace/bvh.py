@@ -391,15 +391,15 @@ class Bvh:
         answer += NO_ANIMATED if far is None else (far["primID"], far["u"], far["v"])
         return answer if query == "ANSWERS" else self.merge(answer + self._maps)
 
-    def answers(self, origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, ...]:
-        """Nearest hits of rays from rel ``origins`` (n, 3) along unit ``dirs`` (n, 3) as
+    def answers(self, o32: np.ndarray, d32: np.ndarray) -> tuple[np.ndarray, ...]:
+        """Nearest hits of rays from rel origins ``o32`` along unit directions ``d32``
+        ((n, 3) float32 C-contiguous, as Embree takes them: the bounce loop's buffers) as
         the two BVHs gave them, for a compiled caller to merge (``merge`` is the rule):
         static (prim (n,) int32 ids of the static BVH, NO_HIT for a miss, u, v (n,)
         float32), animated (the same, only hits nearer than the static ones; three empty
         arrays when there is no animated BVH), then the two BVHs' id maps (int64, per
         BVH triangle its global id, then NO_HIT; the static one empty when Embree's
         static ids are the global ones)."""
-        o32, d32, _ = Float32Boundary.rays(origins, dirs, None)
         if self.record_rays:  # copies: callers reuse their ray buffers
             self.last_rays.append(("INTERSECT", o32.copy(), d32.copy(), None))
         if 0 < len(o32) < PARALLEL_MIN_RAYS:  # one chunk, on this thread

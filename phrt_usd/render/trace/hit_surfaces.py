@@ -115,7 +115,8 @@ class HitSurfaces:
         return Hits(ray[keep], tri[keep], u[keep], v[keep], miss), recast
 
     def nearest(self, origins: np.ndarray, dirs: np.ndarray):
-        """``intersect`` as the bounce kernel takes it: the eight arrays of
+        """``intersect`` as the bounce kernel takes it, for rays from rel ``origins``
+        along unit ``dirs`` ((n, 3) float32 C-contiguous): the eight arrays of
         ``Bvh.answers`` (Embree's answers of both BVHs and their id maps; through cut-out
         holes already merged into global ids, maps empty) and the batch index of every
         re-cast ray (k,) int64."""

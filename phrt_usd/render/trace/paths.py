@@ -15,17 +15,21 @@ it runs only when the stage has transmissive materials, otherwise α = 1 everywh
 no refraction work is done. Where a hit's local term has no weight (F = 1 mirrors,
 α = 0 glass) neither shading nor shadow rays are computed.
 
-Fixed cost per call: hybrid batches are small (farm: 50-8,000 rays), so the loop only
-follows paths, each depth's per-ray work in one compiled pass (``trace_kernels.bounce``,
-into buffers allocated per depth); environment lookups, shadow rays and local shading
-of all bounces are gathered and evaluated once per call (``_gather``). Local shading of
-a call's hits is split over the pool from ``shadow_rays.PARALLEL_MIN_SHADE_RAYS`` shadow
-rays on (numpy releases the GIL on large arrays, embreex inside ``run``).
+Fixed cost per call: hybrid batches are small (farm: 14-8,000 rays), so the loop only
+follows paths, each depth one Embree query and one compiled pass over its answer
+(``trace_kernels.bounce``: hits and misses, the surface at the hits, what the paths
+gather, the next rays), in buffers a ``PathTracer`` keeps from call to call
+(``_Buffers``); environment lookups, shadow rays and local shading of all bounces are
+gathered and evaluated once per call (``_gather``). Every compiled call is a fixed cost
+(its arguments are checked, ``phrt_usd.kernels``), so there are few per depth. Local
+shading of a call's hits is split over the pool from
+``shadow_rays.PARALLEL_MIN_SHADE_RAYS`` shadow rays on (numpy releases the GIL on large
+arrays, embreex inside ``run``).
 
 Records: one ``TraceRecord`` per source reflector (pixels, rays, reflectors hit,
 reflector bounces, time share), what the selection heuristic reads.
 
-Rays meet surfaces through ``HitSurfaces.intersect``: cut-out holes are passed through
+Rays meet surfaces through ``HitSurfaces.nearest``: cut-out holes are passed through
 (re-cast from just past them, bounded by ``model.surface.MAX_CUTOUT_LAYERS``; the re-cast
 rays are counted with their kind and source).
 

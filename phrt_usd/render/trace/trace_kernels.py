@@ -12,11 +12,14 @@ callers), writing into buffers the caller allocates:
 - ``offset_origins``: the ray-origin offset rule (``bvh.Float32Boundary``) with the
   float32 cast of the result;
 - ``split_hits``: Embree's answer → hit rows and miss rows (``bvh.Hits``);
-- ``bounce``: what the bounce loop does at one depth's hits — environment entries of
-  misses, the local-shading entries, reflector keys, the reflector chains, and the
-  children (mirror and refracted rays with their offset origins);
+- ``bounce``: one depth of the bounce loop from Embree's answers of both BVHs — the
+  surface at the hits, environment entries of misses, the local-shading entries,
+  reflector keys, the reflector chains, and the children (mirror and refracted rays
+  with their offset origins), appended to the caller's call-long buffers;
 - ``accumulate``: the gathered radiance summed per pixel;
 - ``source_tallies``: the per-source figures of ``TraceRecord``;
+- ``shadow_rays`` / ``shadow_results``: the shadow rays of (point, light) pairs, and
+  visibility and the lit LocalLight pairs from Embree's answer;
 - ``primary_rays`` / ``primary_fill``: the ``rt`` mode's pixel rays (the raster
   G-buffer's direction rule, ``surface_kernels._pixel_dir``) and its G-buffer rows.
 
@@ -26,7 +29,9 @@ directions and shading normals), so results agree to the rounding of a sum's ord
 
 Array arguments are read and written only in the kernels themselves (numba counts the
 references of an array handed to another compiled function); the helpers take and
-return scalars. Spaces: rel = world metres minus ``Scene.origin`` (float64).
+return scalars. Kernels return counts, never arrays (boxing a returned array costs ~1
+us, more than a small kernel's work). Spaces: rel = world metres minus
+``Scene.origin`` (float64).
 """
 
 from __future__ import annotations
