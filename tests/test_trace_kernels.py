@@ -190,7 +190,7 @@ def _bounce(tri, dirs, ns, frame, ior):
     tri_table[:, 2], tri_table[:, 3] = ior, -1.0
     gather = (
         np.zeros((5, 2 * m), np.int64), np.zeros((2, 2 * m)), np.zeros((2, 2 * m, 3)),
-        np.zeros((3, 2 * m, 3), np.float32), np.zeros((2, 2 * m), np.float32),
+        np.zeros((4, 2 * m, 3), np.float32), np.zeros((2, 2 * m), np.float32),
     )  # fmt: skip
     uv = np.zeros(m, np.float32)
     n = trace_kernels.bounce(
@@ -272,6 +272,6 @@ def test_bounce_buffer_layout_agrees():
     from phrt_usd.render.trace import paths
 
     shared = [n for n in vars(trace_kernels) if n.split("_")[0] in ("RAY", "G", "T")]
-    assert len(shared) == 24
+    assert len(shared) == 25
     for name in shared:
         assert getattr(paths, name) == getattr(trace_kernels, name), name

@@ -210,14 +210,17 @@ class HitSurfaces:
             self.normal_maps.apply(ns, tri, surface.weights_from_uv(u, v), incoming, table)
         return pos, ng, ns
 
-    def colour(self, tri, u, v):
+    def colour(self, tri, u, v, albedo=None):
         """``at``'s albedo (m, 3) float32 (texture lookup where the material has one) and
-        emissive ((m, 3) float32, or (3,) zeros without emission)."""
-        tri = np.ascontiguousarray(tri, dtype=np.int64)
-        u = np.ascontiguousarray(u, dtype=np.float32)
-        v = np.ascontiguousarray(v, dtype=np.float32)
-        albedo = np.empty((len(tri), 3), dtype=np.float32)
-        _SURFACE.hit_albedo(tri, u, v, self._bvh.table.corners, albedo)
+        emissive ((m, 3) float32, or (3,) zeros without emission). ``albedo``: the
+        interpolated corner albedo (m, 3) float32 when the caller has it (the bounce
+        kernel's), textures are then applied to it in place."""
+        if albedo is None:
+            tri = np.ascontiguousarray(tri, dtype=np.int64)
+            u = np.ascontiguousarray(u, dtype=np.float32)
+            v = np.ascontiguousarray(v, dtype=np.float32)
+            albedo = np.empty((len(tri), 3), dtype=np.float32)
+            _SURFACE.hit_albedo(tri, u, v, self._bvh.table.corners, albedo)
         uv = self._scene.geometry.corner_uv
         textured = len(self._tri_textured) and np.take(self._tri_textured, tri).any()
         if textured or self._textured_emission:

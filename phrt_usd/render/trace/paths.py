@@ -62,11 +62,11 @@ RAY_DIR, RAY_ORIGIN = 0, 1
 G_ENV_SLOT, G_LIT_SLOT, G_LIT_SRC, G_LIT_TRI, G_KEY = 0, 1, 2, 3, 4
 G_ENV_W, G_LIT_W = 0, 1
 G_LIT_POS, G_LIT_NG = 0, 1
-G_ENV_DIR, G_LIT_NS, G_LIT_DIR = 0, 1, 2
+G_ENV_DIR, G_LIT_NS, G_LIT_DIR, G_LIT_ALBEDO = 0, 1, 2, 3
 G_LIT_U, G_LIT_V = 0, 1
 T_ENV, T_LIT, T_KEYS, T_SOURCES = 0, 1, 2, 3
 _RAY_ROWS = RAY_REFRACTED + 1
-_G_ROWS = (G_KEY + 1, G_LIT_W + 1, G_LIT_NG + 1, G_LIT_DIR + 1, G_LIT_V + 1)
+_G_ROWS = (G_KEY + 1, G_LIT_W + 1, G_LIT_NG + 1, G_LIT_ALBEDO + 1, G_LIT_V + 1)
 #: ``_gather``'s shadow figures when nothing was shaded.
 _NO_SHADOWS = np.zeros(0, np.int64)
 
@@ -237,17 +237,18 @@ class PathTracer:
             seconds=seconds,
         )
 
-    def _shade_points(self, tri, u, v, rel, ng, ns, d_in, lights: Lights, threads=None):
+    def _shade_points(self, tri, u, v, rel, ng, ns, d_in, albedo, lights: Lights, threads=None):
         """Local shading with ray-traced shadows at hits (tri, u, v (m,); rel, ng, ns,
-        d_in (m, 3), see ``HitSurfaces.at``): (m, 3) float32 radiance and (m,) int64 shadow
-        rays cast per point. Safe to run on the pool with ``threads`` = 1."""
-        albedo, emissive = self._surfaces.colour(tri, u, v)
+        d_in (m, 3), see ``HitSurfaces.at``; albedo (m, 3) float32 corner albedo or None,
+        ``HitSurfaces.colour``): (m, 3) float32 radiance and (m,) int64 shadow rays cast
+        per point. Safe to run on the pool with ``threads`` = 1."""
+        albedo, emissive = self._surfaces.colour(tri, u, v, albedo)
         vis, shadow_rays, lit_pairs = self._shadows.cast(rel, ng, ns, lights, threads=threads)
         local = shading.shade_local(rel, ns, albedo, d_in, emissive, lights, vis, lit_pairs)
         # The caller updates ``rays_cast`` (a dict ``+=`` from pool threads could race).
         return local, shadow_rays
 
-    def _shade_hits(self, tri, u, v, rel, ng, ns, d_in, lights: Lights):
+    def _shade_hits(self, tri, u, v, rel, ng, ns, d_in, lights: Lights, albedo=None):
         """``_shade_points`` of every gathered hit: (m, 3) radiance and (m,) shadow rays
         per hit. Large batches (the sewer: 13 lights, ~300k shadow rays) run in chunks
         on the pool (the kernels and embreex release the GIL), each chunk's Embree batch
@@ -255,11 +256,12 @@ class PathTracer:
         n_lights = len(lights.distant) + len(lights.local)
         bounds = self._shadows.split(len(tri) * max(n_lights, 1), len(tri))
         if bounds is None:
-            return self._shade_points(tri, u, v, rel, ng, ns, d_in, lights)
+            return self._shade_points(tri, u, v, rel, ng, ns, d_in, albedo, lights)
         parts = [
             self._shadows.pool.submit(
                 self._shade_points,
                 *(a[lo:hi] for a in (tri, u, v, rel, ng, ns, d_in)),
+                None if albedo is None else albedo[lo:hi],
                 lights,
                 1,
             )
@@ -284,7 +286,8 @@ class PathTracer:
             tri, u, v = g_i[G_LIT_TRI, :n_lit], g_uv[G_LIT_U, :n_lit], g_uv[G_LIT_V, :n_lit]
             rel, ng = g_x[G_LIT_POS, :n_lit], g_x[G_LIT_NG, :n_lit]
             ns, d_in = g_v[G_LIT_NS, :n_lit], g_v[G_LIT_DIR, :n_lit]
-            local, rays = self._shade_hits(tri, u, v, rel, ng, ns, d_in, lights)
+            albedo = g_v[G_LIT_ALBEDO, :n_lit]
+            local, rays = self._shade_hits(tri, u, v, rel, ng, ns, d_in, lights, albedo)
             if lights.has_direct:
                 shadow_src, shadow_rays = src, np.asarray(rays, np.int64)
                 counters["shadow"] += int(shadow_rays.sum())

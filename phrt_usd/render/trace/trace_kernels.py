@@ -201,11 +201,12 @@ RAY_DIR, RAY_ORIGIN = 0, 1
 #: rows: environment slot, lit slot, lit source, lit triangle, reflector key; ``g_w``
 #: (float64) rows: environment weight, lit weight; ``g_x`` (float64 (·, 3)): lit
 #: position, lit geometric normal; ``g_v`` (float32 (·, 3)): environment direction, lit
-#: shading normal, lit incoming direction; ``g_uv`` (float32): lit u, v.
+#: shading normal, lit incoming direction, lit corner albedo; ``g_uv`` (float32): lit u,
+#: v.
 G_ENV_SLOT, G_LIT_SLOT, G_LIT_SRC, G_LIT_TRI, G_KEY = 0, 1, 2, 3, 4
 G_ENV_W, G_LIT_W = 0, 1
 G_LIT_POS, G_LIT_NG = 0, 1
-G_ENV_DIR, G_LIT_NS, G_LIT_DIR = 0, 1, 2
+G_ENV_DIR, G_LIT_NS, G_LIT_DIR, G_LIT_ALBEDO = 0, 1, 2, 3
 G_LIT_U, G_LIT_V = 0, 1
 #: ``tally`` (int64): the counts of gathered environment entries, lit hits and keys,
 #: then the rays cast per source (S), then the longest reflector chain per pixel slot.
@@ -239,7 +240,8 @@ def bounce(
 
     Per hit (the surface rule of ``surface_kernels.hit_geometry``: rel position, front
     normal against the ray, shading normal by the side rule): a local-shading entry
-    where it carries weight (w α (1 - F) > 0), a reflector key source * n_elem +
+    where it carries weight (w α (1 - F) > 0; with the corner albedo, as
+    ``surface_kernels.hit_albedo``), a reflector key source * n_elem +
     element, the pixel slot's longest chain, a mirror child (w α F > 0) and, with
     ``split``, a refracted child (w (1 - α) > 0; all after the mirror ones), each with
     its origin offset off the surface (float32). Per miss, and at ``last`` per child, an
@@ -283,10 +285,10 @@ def bounce(
         fx, fy, fz = frame[t, 3, 0], frame[t, 3, 1], frame[t, 3, 2]
         side = -1.0 if fx * fdx + fy * fdy + fz * fdz > 0.0 else 1.0
         gx, gy, gz = fx * side, fy * side, fz * side
+        w0 = _ONE32 - w1 - w2
         if given:
             nx, ny, nz = ns_given[r, 0], ns_given[r, 1], ns_given[r, 2]
         else:
-            w0 = _ONE32 - w1 - w2
             nx, ny, nz = _orient(
                 _weighted(w0, w1, w2, corners[t, 0, 0], corners[t, 1, 0], corners[t, 2, 0]),
                 _weighted(w0, w1, w2, corners[t, 0, 1], corners[t, 1, 1], corners[t, 2, 1]),
@@ -306,6 +308,11 @@ def bounce(
             ng[0], ng[1], ng[2] = gx, gy, gz
             ns[0], ns[1], ns[2] = nx, ny, nz
             d_in[0], d_in[1], d_in[2] = dx, dy, dz
+            albedo = g_v[G_LIT_ALBEDO, n_lit]  # ``surface_kernels.hit_albedo``
+            for j in range(3):
+                albedo[j] = _weighted(
+                    w0, w1, w2, corners[t, 0, 3 + j], corners[t, 1, 3 + j], corners[t, 2, 3 + j]
+                )
             n_lit += 1
         ch = rays_i[cur, RAY_CHAIN, r]
         element = np.int64(tri_table[t, TRI_REFLECTOR])
@@ -480,7 +487,7 @@ def warm_up() -> None:
     rays = (np.zeros((2, 4, 2), np.int64), np.zeros((2, 2)), np.zeros((2, 2, 2, 3), np.float32))
     tables = (np.zeros((1, 4)), frame, np.zeros((1, 3, 6), np.float32))
     gather = (np.zeros((5, 3), np.int64), np.zeros((2, 3)), np.zeros((2, 3, 3)),
-              np.zeros((3, 3, 3), np.float32), np.zeros((2, 3), np.float32))  # fmt: skip
+              np.zeros((4, 3, 3), np.float32), np.zeros((2, 3), np.float32))  # fmt: skip
     answers = ((i32, f32, f32, i32, f32, f32, i64, i64),
                (i64, f32, f32, i32[:0], f32[:0], f32[:0], i64[:0], i64[:0]))  # fmt: skip
     for answer in answers:
