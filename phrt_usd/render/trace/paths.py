@@ -119,7 +119,9 @@ class _Buffers:
 
 
 class PathTracer:
-    """The bounce loop over one ``Bvh``, its ``HitSurfaces`` and ``ShadowRays``."""
+    """The bounce loop over one ``Bvh``, its ``HitSurfaces`` and ``ShadowRays``; one call
+    at a time (its buffers are reused from call to call; the tracer's callers trace
+    round after round)."""
 
     def __init__(self, bvh: Bvh, surfaces: HitSurfaces, shadows: ShadowRays) -> None:
         self._bvh = bvh
