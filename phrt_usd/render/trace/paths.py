@@ -147,14 +147,15 @@ class PathTracer:
         index, origins (n, 3) render-relative already offset (float32 as Embree takes
         them, or float64), dirs (n, 3) unit (float32 from here on).
 
-        The loop only follows paths: per depth one ``HitSurfaces.intersect``, the surface
-        geometry at the hits and one ``trace_kernels.bounce`` (environment entries,
-        local-shading entries, reflector keys and chains, the children with their offset
-        origins). What a path collects — environment radiance at misses and at the
+        The loop only follows paths: per depth one ``HitSurfaces.nearest`` (Embree) and
+        one ``trace_kernels.bounce`` over its answer (the surface at the hits,
+        environment entries, local-shading entries with their corner albedo, reflector
+        keys and chains, the children with their offset origins), appended to the
+        ``_Buffers``. What a path collects — environment radiance at misses and at the
         bounce limit, local shading (with its shadow rays) at hits — does not steer it,
         so it is gathered over all bounces and evaluated once per call: one environment
         lookup, one shadow batch, one ``shade_local``, one accumulation (fixed per-call
-        cost, not per-bounce; hybrid batches are small, 50-8,000 rays).
+        cost, not per-bounce; hybrid batches are small, 14-8,000 rays).
 
         sources : the source ids (``TraceRecord.source``); first_kind : "reflection"
         or "refraction" (the kind of the starting rays); start : ``perf_counter`` at the
