@@ -14,7 +14,7 @@ from test_cutout_reflections import _stage
 
 from phrt_usd.model.scene import DistantLight, Lights, LocalLight
 from phrt_usd.render.trace import trace_kernels
-from phrt_usd.render.trace.bvh import RAY_OFFSET_RELATIVE
+from phrt_usd.render.trace.bvh import GLOBAL_IDS, NO_ANIMATED, RAY_OFFSET_RELATIVE
 from phrt_usd.render.trace.paths import refract
 from phrt_usd.render.trace.tracer import Tracer
 from phrt_usd.usd.stage import read_stage
@@ -173,30 +173,34 @@ def test_refraction_kernel_matches_snell():
     frame = np.zeros((m, 4, 3))
     frame[:, 3] = front
     idx = np.arange(m)
-    ng = np.where((np.einsum("ij,ij->i", d, front) > 0)[:, None], -front, front)
-    out = _bounce(idx, d.astype(np.float32), ng, ns, frame, ior)
+    out = _bounce(idx, d.astype(np.float32), ns, frame, ior)
     expected = refract(d.astype(np.float32).astype(np.float64), ns.astype(np.float64), front, ior)
     np.testing.assert_allclose(out, expected.astype(np.float32), atol=2e-6)
 
 
-def _bounce(tri, dirs, ng, ns, frame, ior):
+def _bounce(tri, dirs, ns, frame, ior):
     """Refracted child directions (m, 3) of m glass hits (opacity 0, one material per
-    triangle) by ``trace_kernels.bounce``."""
+    triangle, shading normals ``ns`` given) by ``trace_kernels.bounce``."""
     m = len(tri)
-    i64 = np.zeros(m, np.int64)
-    n_i, n_w, n_v = trace_kernels.BOUNCE_ROWS
-    width = 3 * m
-    outs = (
-        np.empty((n_i, width), np.int64), np.empty((n_w, width)),
-        np.empty((n_v, width, 3), np.float32), np.empty(width, bool),
+    rays_i = np.zeros((2, 4, 2 * m), np.int64)
+    rays_i[0, 0, :m] = np.arange(m)
+    rays_v = np.zeros((2, 2, 2 * m, 3), np.float32)
+    rays_v[0, 0, :m] = dirs
+    tri_table = np.zeros((m, 4))
+    tri_table[:, 2], tri_table[:, 3] = ior, -1.0
+    gather = (
+        np.zeros((5, 2 * m), np.int64), np.zeros((2, 2 * m)), np.zeros((2, 2 * m, 3)),
+        np.zeros((4, 2 * m, 3), np.float32), np.zeros((2, 2 * m), np.float32),
     )  # fmt: skip
+    uv = np.zeros(m, np.float32)
     n = trace_kernels.bounce(
-        tri, tri[:0], tri, np.zeros((m, 3)), ng, ns, tri, i64, np.ones(m), i64, dirs,
-        np.zeros(m, bool), np.zeros(m), tri, i64, np.zeros(m), ior, frame, True, False,
-        1e-6, RAY_OFFSET_RELATIVE, 1, np.zeros(m, np.int64), np.zeros(1, np.int64), *outs,
+        tri, uv, uv, *NO_ANIMATED, GLOBAL_IDS, GLOBAL_IDS, ns, rays_i, np.ones((2, 2 * m)),
+        rays_v, 0, m, tri_table, frame, np.zeros((m, 3, 6), np.float32), True, False, 1e-6,
+        RAY_OFFSET_RELATIVE, 1, 1,
+        np.zeros(4 + m, np.int64), *gather,
     )  # fmt: skip
-    assert n[3] == m and n[4] == m  # every hit refracts, none reflects (F = 0)
-    return outs[2][1][:m]  # the children's directions (c_dir)
+    assert n == (m, m)  # every hit refracts, none reflects (F = 0)
+    return rays_v[1, 0, :m]  # the children's directions
 
 
 def test_kernels_finite_for_extreme_inputs():
@@ -207,14 +211,14 @@ def test_kernels_finite_for_extreme_inputs():
     frame = np.zeros((1, 4, 3))
     frame[0, 3] = (0.0, 1.0, 0.0)
     n = len(view)
-    out = [np.empty(n, np.int64), np.empty(n, np.int64), np.empty((n, 3)), np.empty((n, 3)),
+    out = [np.empty(n, np.int64), np.empty((n, 3)), np.empty((n, 3)),
            np.empty((n, 3), np.float32), np.empty((n, 3), np.float32),
            np.empty((n, 3), np.float32), np.empty((n, 3), np.float32)]  # fmt: skip
     trace_kernels.source_rays(
-        np.arange(n), np.zeros(n, np.int64), np.array([0, -1]), np.array([-1, 0, -1, 0], np.int32),
-        pos, nrm, view, np.zeros(3), frame, 1e-6, RAY_OFFSET_RELATIVE, 0, n, *out,
+        np.arange(n), np.array([-1, 0, -1, 0], np.int32), pos, nrm, view, np.zeros(3), frame,
+        1e-6, RAY_OFFSET_RELATIVE, 0, n, *out,
     )  # fmt: skip
-    for a in out[2:]:
+    for a in out[1:]:
         assert np.all(np.isfinite(a))
 
 
@@ -262,9 +266,12 @@ def test_first_rays_split_over_the_pool_match_one_thread(monkeypatch):
     assert [r.rays for r in got.records] == [r.rays for r in expected.records]
 
 
-def test_bounce_buffer_rows_agree():
-    """The bounce loop allocates ``bounce``'s output buffers with the rows the kernel
+def test_bounce_buffer_layout_agrees():
+    """The bounce loop reads and writes ``bounce``'s buffers with the layout the kernel
     module declares."""
     from phrt_usd.render.trace import paths
 
-    assert (paths._ROWS_I, paths._ROWS_W, paths._ROWS_V) == trace_kernels.BOUNCE_ROWS
+    shared = [n for n in vars(trace_kernels) if n.split("_")[0] in ("RAY", "G", "T")]
+    assert len(shared) == 25
+    for name in shared:
+        assert getattr(paths, name) == getattr(trace_kernels, name), name

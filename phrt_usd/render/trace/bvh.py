@@ -58,6 +58,11 @@ PARALLEL_MIN_RAYS = 8192
 #: Embree ray length for "infinite" rays (DistantLight shadow rays); finite in float32.
 FAR = 1e30
 
+#: ``answers``' animated part without an animated BVH, and its static map when Embree's
+#: static ids are the global ones.
+NO_ANIMATED = (np.zeros(0, np.int32), np.zeros(0, np.float32), np.zeros(0, np.float32))
+GLOBAL_IDS = np.zeros(0, np.int64)
+
 
 class Float32Boundary:
     """Render-relative float64 on our side, float32 on Embree's.
@@ -230,12 +235,12 @@ class Bvh:
         self._fill(geo, slice(None))
         # Global ids of each BVH's triangles, with a trailing NO_HIT so that
         # ``np.take(ids, primID)`` maps Embree's miss (-1) to NO_HIT too. The static map
-        # is None when every triangle is static (Embree's ids are the global ones).
+        # is empty when every triangle is static (Embree's ids are the global ones).
         static_ids = np.flatnonzero(~self._tri_animated)
         self._dynamic_ids = np.flatnonzero(self._tri_animated)
         every_static = len(static_ids) == n_tri
-        self._static_map = None if every_static else np.append(static_ids, NO_HIT)
-        self._dynamic_map = np.append(self._dynamic_ids, NO_HIT)
+        static_map = GLOBAL_IDS if every_static else np.append(static_ids, NO_HIT)
+        self._maps = (static_map, np.append(self._dynamic_ids, NO_HIT))
         rel = self.boundary.relative(self._vertices)
         self.static = self._new_bvh(
             np.ascontiguousarray(rel, dtype=np.float32),
@@ -310,8 +315,8 @@ class Bvh:
         Returns (primID, u, v) with global triangle ids (INTERSECT) or (n,) bool
         occluded. The only cast of ray data to float32 (``Float32Boundary.rays``)."""
         o32, d32, t32 = Float32Boundary.rays(origins, dirs, tfar)
-        if self.record_rays:
-            self.last_rays.append((query, o32, d32, t32))
+        if self.record_rays:  # copies: callers reuse their ray buffers
+            self.last_rays.append((query, o32.copy(), d32.copy(), t32))
         return self._run_raw(query, o32, d32, t32, self.threads if threads is None else threads)
 
     def _run_raw(self, query, o32, d32, t32, threads, merge: bool = True):
@@ -319,13 +324,13 @@ class Bvh:
         the batch is large enough (embreex releases the GIL inside ``run``). ``merge``
         False: only the embreex calls, no answer (``replay_raw``)."""
         n = o32.shape[0]
-        intersect = query == "INTERSECT"
         if n == 0 or (self.static is None and self.dynamic is None):
             if not merge:
                 return None
-            if not intersect:
+            if query == "OCCLUDED":
                 return np.zeros(n, dtype=bool)
-            return np.full(n, NO_HIT, np.int32), np.zeros(n, np.float32), np.zeros(n, np.float32)
+            miss = np.full(n, NO_HIT, np.int32), np.zeros(n, np.float32), np.zeros(n, np.float32)
+            return miss if query == "INTERSECT" else miss + NO_ANIMATED
         if threads > 1 and self._pool is not None and n >= PARALLEL_MIN_RAYS:
             bounds = np.linspace(0, n, min(threads, self.threads) + 1).astype(int)
             futures = [
@@ -342,8 +347,8 @@ class Bvh:
             parts = [f.result() for f in futures]
             if not merge:
                 return None
-            if intersect:
-                return tuple(np.concatenate([p[k] for p in parts]) for k in range(3))
+            if isinstance(parts[0], tuple):
+                return tuple(np.concatenate(p) for p in zip(*parts, strict=True))
             return np.concatenate(parts)
         return self._cast(query, o32, d32, t32, merge)
 
@@ -352,11 +357,12 @@ class Bvh:
 
         INTERSECT: the animated BVH gets the static hits' distances as ``tfar`` (embreex
         writes each hit's t into ``dists``), so it reports only nearer hits, which then
-        replace the static ones. OCCLUDED: occluded if either BVH says so. Returns
-        (primID (n,) int32 / int64 global triangle ids or NO_HIT, u, v (n,) float32) or
-        (n,) bool occluded; None when not ``merge``."""
+        replace the static ones (``merge``). OCCLUDED: occluded if either BVH says so.
+        Returns (primID (n,) int32 / int64 global triangle ids or NO_HIT, u, v (n,)
+        float32) or (n,) bool occluded; ANSWERS: the two BVHs' answers unmerged
+        (``answers``); None when not ``merge``."""
         static, dynamic = self.static, self.dynamic
-        if query != "INTERSECT":
+        if query == "OCCLUDED":
             # OCCLUDED reads but never writes ``dists``: both calls share ``t32``.
             a = None if static is None else static.run(o32, d32, t32, query)
             b = None if dynamic is None else dynamic.run(o32, d32, t32, query)
@@ -371,24 +377,48 @@ class Bvh:
         tfar = None if t32 is None else t32.copy()
         near = None
         if static is not None:
-            near = static.run(o32, d32, tfar, query, 1)
+            near = static.run(o32, d32, tfar, "INTERSECT", 1)
             tfar = near["tfar"]
-        far = None if dynamic is None else dynamic.run(o32, d32, tfar, query, 1)
+        far = None if dynamic is None else dynamic.run(o32, d32, tfar, "INTERSECT", 1)
         if not merge:
             return None
-        if near is not None:
-            prim, u, v = near["primID"], near["u"], near["v"]
-            if self._static_map is not None:
-                prim = np.take(self._static_map, prim)
-        if far is not None:
-            far_prim = np.take(self._dynamic_map, far["primID"])
-            if near is None:
-                return far_prim, far["u"], far["v"]
+        if near is None:
+            n = o32.shape[0]
+            answer = (np.full(n, NO_HIT, np.int32), np.zeros(n, np.float32))
+            answer += (np.zeros(n, np.float32),)
+        else:
+            answer = (near["primID"], near["u"], near["v"])
+        answer += NO_ANIMATED if far is None else (far["primID"], far["u"], far["v"])
+        return answer if query == "ANSWERS" else self.merge(answer + self._maps)
+
+    def answers(self, o32: np.ndarray, d32: np.ndarray) -> tuple[np.ndarray, ...]:
+        """Nearest hits of rays from rel origins ``o32`` along unit directions ``d32``
+        ((n, 3) float32 C-contiguous, as Embree takes them: the bounce loop's buffers) as
+        the two BVHs gave them, for a compiled caller to merge (``merge`` is the rule):
+        static (prim (n,) int32 ids of the static BVH, NO_HIT for a miss, u, v (n,)
+        float32), animated (the same, only hits nearer than the static ones; three empty
+        arrays when there is no animated BVH), then the two BVHs' id maps (int64, per
+        BVH triangle its global id, then NO_HIT; the static one empty when Embree's
+        static ids are the global ones)."""
+        if self.record_rays:  # copies: callers reuse their ray buffers
+            self.last_rays.append(("INTERSECT", o32.copy(), d32.copy(), None))
+        if 0 < len(o32) < PARALLEL_MIN_RAYS:  # one chunk, on this thread
+            return self._cast("ANSWERS", o32, d32, None, True) + self._maps
+        return self._run_raw("ANSWERS", o32, d32, None, self.threads) + self._maps
+
+    @staticmethod
+    def merge(answer) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``answers``' eight arrays → (prim (n,) global triangle ids or NO_HIT, u, v)."""
+        prim, u, v, far_prim, far_u, far_v, static_map, dynamic_map = answer
+        if len(static_map):
+            prim = np.take(static_map, prim)
+        if len(far_prim):
+            far_prim = np.take(dynamic_map, far_prim)
             nearer = far_prim >= 0
             if nearer.any():
                 prim = np.where(nearer, far_prim, prim)
-                u = np.where(nearer, far["u"], u)
-                v = np.where(nearer, far["v"], v)
+                u = np.where(nearer, far_u, u)
+                v = np.where(nearer, far_v, v)
         return prim, u, v
 
     def intersect(self, origins: np.ndarray, dirs: np.ndarray) -> Hits:

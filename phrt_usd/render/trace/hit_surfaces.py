@@ -25,7 +25,7 @@ import numpy as np
 from phrt_usd import kernels
 from phrt_usd.model import surface
 from phrt_usd.model.scene import Scene
-from phrt_usd.render.trace.bvh import Bvh, Hits
+from phrt_usd.render.trace.bvh import GLOBAL_IDS, NO_ANIMATED, Bvh, Hits
 
 #: The compiled surface rule (``model.surface_kernels``, through ``phrt_usd.kernels``).
 _SURFACE = kernels.load("phrt_usd.model.surface_kernels")
@@ -64,11 +64,22 @@ class HitSurfaces:
         self._has_emission = bool(np.any(emissive != 0)) or self._textured_emission
         self._emissive = emissive
         self._textures = list(mats.textures) if scene.geometry.corner_uv is not None else []
+        textured = np.array([t is not None for t in self._textures] + [False], bool)
+        #: Per triangle: its material has an albedo texture (``colour`` skips the texture
+        #: lookup when no hit has).
+        self._tri_textured = textured[bvh.tri_material] if self._textures else textured[:0]
         self._inputs = mats.texture_inputs
         #: The cut-out rule of this scene's triangles (``model.surface.Cutouts``).
         self.cutouts = surface.Cutouts(mats, bvh.tri_material, scene.geometry.corner_uv)
         #: Tangent-space normal maps (``model.surface.NormalMaps``).
         self.normal_maps = surface.NormalMaps(mats, bvh.tri_material, scene.geometry.corner_uv)
+        #: The bounce loop's per-triangle figures in one (T, 4) float64 gather
+        #: (``trace_kernels.TRI_*`` columns): F, the material's opacity and ior, and the
+        #: element id of reflector triangles (-1 elsewhere).
+        self.tri_table = np.stack([
+            self.tri_f, self.opacity[bvh.tri_material], self.ior[bvh.tri_material],
+            np.where(self.tri_reflector, tri_element, -1),
+        ], axis=1).astype(np.float64).reshape(n_tri, 4)  # fmt: skip
 
     def intersect(self, origins: np.ndarray, dirs: np.ndarray) -> tuple[Hits, np.ndarray]:
         """Nearest hits that are there (``Bvh.intersect`` through cut-out holes, see the
@@ -102,6 +113,35 @@ class HitSurfaces:
             return Hits(ray, tri, u, v, hits.miss), recast
         miss = np.sort(np.concatenate([hits.miss, ray[~keep]]))
         return Hits(ray[keep], tri[keep], u[keep], v[keep], miss), recast
+
+    def nearest(self, origins: np.ndarray, dirs: np.ndarray):
+        """``intersect`` as the bounce kernel takes it, for rays from rel ``origins``
+        along unit ``dirs`` ((n, 3) float32 C-contiguous): the eight arrays of
+        ``Bvh.answers`` (Embree's answers of both BVHs and their id maps; through cut-out
+        holes already merged into global ids, maps empty) and the batch index of every
+        re-cast ray (k,) int64."""
+        if not self.cutouts.any:
+            return self._bvh.answers(origins, dirs), _NO_RAYS
+        hits, recast = self.intersect(origins, dirs)
+        n = len(origins)
+        prim = np.full(n, -1, np.int64)
+        u, v = np.zeros(n, np.float32), np.zeros(n, np.float32)
+        prim[hits.ray], u[hits.ray], v[hits.ray] = hits.tri, hits.u, hits.v
+        return (prim, u, v, *NO_ANIMATED, GLOBAL_IDS, GLOBAL_IDS), recast
+
+    def mapped_normals(self, answer, dirs) -> np.ndarray:
+        """Shading normals (n, 3) float32 at the hits of ``nearest``'s ``answer`` along
+        unit ``dirs`` (n, 3) float32 (miss rows zero) with the normal maps applied, for
+        the bounce kernel to use instead of its own surface rule; (0, 3) when the stage
+        has no normal map (the kernel's rule is the whole rule then)."""
+        if not self.normal_maps.any:
+            return _NO_NORMALS
+        prim, u, v = self._bvh.merge(answer)
+        hit = np.flatnonzero(prim >= 0)
+        _, _, ns = self.geometry(prim[hit], u[hit], v[hit], np.take(dirs, hit, axis=0))
+        out = np.zeros((len(prim), 3), np.float32)
+        out[hit] = ns
+        return out
 
     def occluded(self, origins, dirs, tfar, threads=None) -> np.ndarray:
         """(n,) bool: something that is there (not a cut-out hole) lies on each ray from
@@ -170,18 +210,22 @@ class HitSurfaces:
             self.normal_maps.apply(ns, tri, surface.weights_from_uv(u, v), incoming, table)
         return pos, ng, ns
 
-    def colour(self, tri, u, v):
+    def colour(self, tri, u, v, albedo=None):
         """``at``'s albedo (m, 3) float32 (texture lookup where the material has one) and
-        emissive ((m, 3) float32, or (3,) zeros without emission)."""
-        tri = np.ascontiguousarray(tri, dtype=np.int64)
-        u = np.ascontiguousarray(u, dtype=np.float32)
-        v = np.ascontiguousarray(v, dtype=np.float32)
-        albedo = np.empty((len(tri), 3), dtype=np.float32)
-        _SURFACE.hit_albedo(tri, u, v, self._bvh.table.corners, albedo)
+        emissive ((m, 3) float32, or (3,) zeros without emission). ``albedo``: the
+        interpolated corner albedo (m, 3) float32 when the caller has it (the bounce
+        kernel's), textures are then applied to it in place."""
+        if albedo is None:
+            tri = np.ascontiguousarray(tri, dtype=np.int64)
+            u = np.ascontiguousarray(u, dtype=np.float32)
+            v = np.ascontiguousarray(v, dtype=np.float32)
+            albedo = np.empty((len(tri), 3), dtype=np.float32)
+            _SURFACE.hit_albedo(tri, u, v, self._bvh.table.corners, albedo)
         uv = self._scene.geometry.corner_uv
-        if self._textures or self._textured_emission:
+        textured = len(self._tri_textured) and np.take(self._tri_textured, tri).any()
+        if textured or self._textured_emission:
             weights = surface.weights_from_uv(u, v)
-        if self._textures:
+        if textured:
             surface.texture_albedo(
                 albedo, tri, weights, self._bvh.tri_material, uv, self._textures,
                 inputs=self._inputs,
@@ -212,3 +256,8 @@ class HitSurfaces:
         out -= dist[:, None] * normal
         out += g[:, 0]
         return out, normal
+
+
+#: ``nearest``'s re-casts without cut-outs, ``mapped_normals`` without normal maps.
+_NO_RAYS = np.zeros(0, np.int64)
+_NO_NORMALS = np.zeros((0, 3), np.float32)

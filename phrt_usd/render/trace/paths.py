@@ -15,17 +15,21 @@ it runs only when the stage has transmissive materials, otherwise α = 1 everywh
 no refraction work is done. Where a hit's local term has no weight (F = 1 mirrors,
 α = 0 glass) neither shading nor shadow rays are computed.
 
-Fixed cost per call: hybrid batches are small (farm: 50-8,000 rays), so the loop only
-follows paths, each depth's per-ray work in one compiled pass (``trace_kernels.bounce``,
-into buffers allocated per depth); environment lookups, shadow rays and local shading
-of all bounces are gathered and evaluated once per call (``_gather``). Local shading of
-a call's hits is split over the pool from ``shadow_rays.PARALLEL_MIN_SHADE_RAYS`` shadow
-rays on (numpy releases the GIL on large arrays, embreex inside ``run``).
+Fixed cost per call: hybrid batches are small (farm: 14-8,000 rays), so the loop only
+follows paths, each depth one Embree query and one compiled pass over its answer
+(``trace_kernels.bounce``: hits and misses, the surface at the hits, what the paths
+gather, the next rays), in buffers a ``PathTracer`` keeps from call to call
+(``_Buffers``); environment lookups, shadow rays and local shading of all bounces are
+gathered and evaluated once per call (``_gather``). Every compiled call is a fixed cost
+(its arguments are checked, ``phrt_usd.kernels``), so there are few per depth. Local
+shading of a call's hits is split over the pool from
+``shadow_rays.PARALLEL_MIN_SHADE_RAYS`` shadow rays on (numpy releases the GIL on large
+arrays, embreex inside ``run``).
 
 Records: one ``TraceRecord`` per source reflector (pixels, rays, reflectors hit,
 reflector bounces, time share), what the selection heuristic reads.
 
-Rays meet surfaces through ``HitSurfaces.intersect``: cut-out holes are passed through
+Rays meet surfaces through ``HitSurfaces.nearest``: cut-out holes are passed through
 (re-cast from just past them, bounded by ``model.surface.MAX_CUTOUT_LAYERS``; the re-cast
 rays are counted with their kind and source).
 
@@ -50,18 +54,80 @@ from phrt_usd.render.trace.shadow_rays import ShadowRays
 
 #: The compiled trace kernels (``trace_kernels``, through ``phrt_usd.kernels``).
 trace_kernels = kernels.load("phrt_usd.render.trace.trace_kernels")
-#: Rows of ``trace_kernels.bounce``'s int64, float64 and float32 output buffers (as the
-#: kernel module declares them; read without compiling it).
-_ROWS_I, _ROWS_W, _ROWS_V = 8, 3, 3
+#: ``trace_kernels.bounce``'s buffer layout, as the kernel module declares it (read here
+#: without compiling it; ``tests/test_trace_kernels.py`` checks the two agree): live-ray
+#: rows (``RAY_*``), gather rows (``G_*``), ``tally`` entries (``T_*``).
+RAY_SLOT, RAY_SRC, RAY_CHAIN, RAY_REFRACTED = 0, 1, 2, 3
+RAY_DIR, RAY_ORIGIN = 0, 1
+G_ENV_SLOT, G_LIT_SLOT, G_LIT_SRC, G_LIT_TRI, G_KEY = 0, 1, 2, 3, 4
+G_ENV_W, G_LIT_W = 0, 1
+G_LIT_POS, G_LIT_NG = 0, 1
+G_ENV_DIR, G_LIT_NS, G_LIT_DIR, G_LIT_ALBEDO = 0, 1, 2, 3
+G_LIT_U, G_LIT_V = 0, 1
+T_ENV, T_LIT, T_KEYS, T_SOURCES = 0, 1, 2, 3
+_RAY_ROWS = RAY_REFRACTED + 1
+_G_ROWS = (G_KEY + 1, G_LIT_W + 1, G_LIT_NG + 1, G_LIT_ALBEDO + 1, G_LIT_V + 1)
+#: ``_gather``'s shadow figures when nothing was shaded.
+_NO_SHADOWS = np.zeros(0, np.int64)
+
+
+class _Buffers:
+    """``trace_kernels.bounce``'s buffers, kept by a ``PathTracer`` from call to call:
+    allocated only when a call needs more room than any before it, never per depth.
+
+    rays_i (2, 4, L) int64, rays_w (2, L) float64, rays_v (2, 2, L, 3) float32: the live
+    rays, double-buffered (``trace_kernels.RAY_*``); gather: the call's gathered entries
+    g_i, g_w, g_x, g_v, g_uv, G columns each (``trace_kernels.G_*``)."""
+
+    def __init__(self) -> None:
+        self.room = 0  # gathered entries the buffers hold
+        self.rays_i = np.empty((2, _RAY_ROWS, 0), np.int64)
+        self.rays_w = np.empty((2, 0))
+        self.rays_v = np.empty((2, 2, 0, 3), np.float32)
+        self.gather = self._gather_arrays(0)
+
+    @staticmethod
+    def _gather_arrays(n: int) -> tuple[np.ndarray, ...]:
+        rows_i, rows_w, rows_x, rows_v, rows_uv = _G_ROWS
+        return (
+            np.empty((rows_i, n), np.int64), np.empty((rows_w, n)), np.empty((rows_x, n, 3)),
+            np.empty((rows_v, n, 3), np.float32), np.empty((rows_uv, n), np.float32),
+        )  # fmt: skip
+
+    def rays(self, need: int, parity: int, k: int) -> None:
+        """Room for ``need`` rays per half, keeping half ``parity``'s first k."""
+        if need <= self.rays_w.shape[1]:
+            return
+        n = max(need, 2 * self.rays_w.shape[1])
+        old = (self.rays_i, self.rays_w, self.rays_v)
+        self.rays_i = np.empty((2, _RAY_ROWS, n), np.int64)
+        self.rays_w = np.empty((2, n))
+        self.rays_v = np.empty((2, 2, n, 3), np.float32)
+        self.rays_i[parity, :, :k] = old[0][parity, :, :k]
+        self.rays_w[parity, :k] = old[1][parity, :k]
+        self.rays_v[parity, :, :k] = old[2][parity, :, :k]
+
+    def entries(self, need: int, used: int) -> None:
+        """Room for ``need`` gathered entries, keeping the first ``used``."""
+        if need <= self.room:
+            return
+        self.room = max(need, 2 * self.room)
+        fresh = self._gather_arrays(self.room)
+        for old, new in zip(self.gather, fresh, strict=True):
+            new[:, :used] = old[:, :used]
+        self.gather = fresh
 
 
 class PathTracer:
-    """The bounce loop over one ``Bvh``, its ``HitSurfaces`` and ``ShadowRays``."""
+    """The bounce loop over one ``Bvh``, its ``HitSurfaces`` and ``ShadowRays``; one call
+    at a time (its buffers are reused from call to call; the tracer's callers trace
+    round after round)."""
 
     def __init__(self, bvh: Bvh, surfaces: HitSurfaces, shadows: ShadowRays) -> None:
         self._bvh = bvh
         self._surfaces = surfaces
         self._shadows = shadows
+        self._buffers = _Buffers()
 
     def run(
         self,
@@ -81,102 +147,90 @@ class PathTracer:
         index, origins (n, 3) render-relative already offset (float32 as Embree takes
         them, or float64), dirs (n, 3) unit (float32 from here on).
 
-        The loop only follows paths: per depth one ``HitSurfaces.intersect``, the surface
-        geometry at the hits and one ``trace_kernels.bounce`` (environment entries,
-        local-shading entries, reflector keys and chains, the children with their offset
-        origins). What a path collects — environment radiance at misses and at the
+        The loop only follows paths: per depth one ``HitSurfaces.nearest`` (Embree) and
+        one ``trace_kernels.bounce`` over its answer (the surface at the hits,
+        environment entries, local-shading entries with their corner albedo, reflector
+        keys and chains, the children with their offset origins), appended to the
+        ``_Buffers``. What a path collects — environment radiance at misses and at the
         bounce limit, local shading (with its shadow rays) at hits — does not steer it,
         so it is gathered over all bounces and evaluated once per call: one environment
         lookup, one shadow batch, one ``shade_local``, one accumulation (fixed per-call
-        cost, not per-bounce; hybrid batches are small, 50-8,000 rays).
+        cost, not per-bounce; hybrid batches are small, 14-8,000 rays).
 
         sources : the source ids (``TraceRecord.source``); first_kind : "reflection"
         or "refraction" (the kind of the starting rays); start : ``perf_counter`` at the
         call's start; lights : rel lights; n_elements : the scene's element count;
         counters : the tracer's ``rays_cast``, updated here."""
-        surfaces, bvh = self._surfaces, self._bvh
+        surfaces, bvh, buf = self._surfaces, self._bvh, self._buffers
         n_pix, n_src = len(pix), len(sources)
         split = surfaces.transmission
         n_elem = max(n_elements, 1)
         floor, relative = bvh.boundary.offset_factors()
         src = np.asarray(src, np.int64)
-        chain_pix = np.zeros(n_pix, np.int64)  # reflector hits along the longest path
-        key_parts: list[np.ndarray] = []  # source * E + element, one per reflector hit
-        # Deferred work, one entry per bounce: environment (slot, weight, dir) and local
-        # shading (slot, weight, source, tri, u, v, position, ng, ns, incoming dir).
-        env_parts: list[tuple] = []
-        shade_parts: list[tuple] = []
-        # Live ray state (k rays): pixel slot, source, weight, reflector chain, kind.
-        slot = np.arange(n_pix)
-        r_src = src
-        weight = np.ones(n_pix)
-        chain = np.zeros(n_pix, np.int64)
-        dirs = np.ascontiguousarray(dirs, np.float32)
-        refracted = np.full(n_pix, first_kind == "refraction")
-        n_refr = n_pix if first_kind == "refraction" else 0
-        rays_src = np.zeros(n_src, np.int64)  # path rays cast per source
-        if bounce_limit < 1:
-            env_parts.append((slot, weight, dirs))
-            slot = slot[:0]
-        elif n_pix:
-            rays_src += np.bincount(src, minlength=n_src)
-        tables = (
-            surfaces.tri_reflector, surfaces.tri_f, bvh.tri_material, bvh.tri_element,
-            surfaces.opacity, surfaces.ior, bvh.table.frame,
-        )  # fmt: skip
-        for depth in range(max(bounce_limit, 0)):
-            k = len(slot)
-            if k == 0:
-                break
-            counters["refraction"] += n_refr
-            counters["reflection"] += k - n_refr
-            hits, recast = surfaces.intersect(origins, dirs)
+        # Gathered counts, path rays cast per source after the first, longest reflector
+        # chain per path (trace_kernels.T_*).
+        tally = np.zeros(T_SOURCES + n_src + n_pix, np.int64)
+        rays_src = tally[T_SOURCES : T_SOURCES + n_src]
+        k = n_pix if bounce_limit >= 1 else 0
+        buf.rays(k, 0, 0)
+        buf.entries(n_pix - k, 0)  # the environment entries without rays
+        if k < n_pix:  # no rays: the environment in the first directions
+            g_i, g_w, _, g_v, _ = buf.gather
+            g_i[G_ENV_SLOT, :n_pix] = np.arange(n_pix)
+            g_w[G_ENV_W, :n_pix] = 1.0
+            g_v[G_ENV_DIR, :n_pix] = dirs
+            tally[T_ENV] = n_pix
+        elif k:  # the first rays into live half 0
+            live = buf.rays_i[0]
+            live[RAY_SLOT, :k] = np.arange(k)
+            live[RAY_SRC, :k] = src
+            live[RAY_CHAIN:, :k] = 0
+            if first_kind == "refraction":
+                live[RAY_REFRACTED, :k] = 1
+            buf.rays_w[0, :k] = 1.0
+            buf.rays_v[0, RAY_DIR, :k] = dirs
+            buf.rays_v[0, RAY_ORIGIN, :k] = origins
+        n_refr = k if first_kind == "refraction" else 0
+        cast = [0, 0]  # reflection, refraction rays (the counters, once at the end)
+        tables = (surfaces.tri_table, bvh.table.frame, bvh.table.corners)
+        bound = n_pix - k  # gathered entries can reach this
+        if split:  # room for children (refracted ones staged after the live rays)
+            buf.rays(2 * k, 0, k)
+        parity = 0
+        for depth in range(bounce_limit if k else 0):
+            cast[0] += k - n_refr
+            cast[1] += n_refr
+            rays_v = buf.rays_v
+            d32 = rays_v[parity, RAY_DIR, :k]
+            answer, recast = surfaces.nearest(rays_v[parity, RAY_ORIGIN, :k], d32)
             if len(recast):  # re-casts through cut-out holes (HitSurfaces.intersect)
-                rays_src += np.bincount(r_src[recast], minlength=n_src)
-                recast_refr = int(np.count_nonzero(refracted[recast]))
-                counters["refraction"] += recast_refr
-                counters["reflection"] += len(recast) - recast_refr
-            m = len(hits.ray)
-            d_in = dirs if m == k else np.take(dirs, hits.ray, axis=0)
-            rel, ng, ns = surfaces.geometry(hits.tri, hits.u, hits.v, d_in)
+                live = buf.rays_i[parity]
+                rays_src += np.bincount(live[RAY_SRC, recast], minlength=n_src)
+                recast_refr = int(np.count_nonzero(live[RAY_REFRACTED, recast]))
+                cast[0] += len(recast) - recast_refr
+                cast[1] += recast_refr
             last = depth + 1 >= bounce_limit
-            n_out = 2 * m if split else m
-            # One buffer per dtype, rows as trace_kernels.BOUNCE_ROWS (views below).
-            width = k + n_out
-            out_i = np.empty((_ROWS_I, width), np.int64)
-            out_w = np.empty((_ROWS_W, width))
-            out_v = np.empty((_ROWS_V, width, 3), np.float32)
-            c_refr = np.empty(width, bool)
-            n_env, n_lit, n_keys, n_child, n_child_refr = trace_kernels.bounce(
-                hits.ray, hits.miss, hits.tri, rel, ng, ns, slot, r_src, weight, chain, dirs,
-                *tables, split, last, floor, relative, n_elem, chain_pix, rays_src,
-                out_i, out_w, out_v, c_refr,
+            bound += 2 * k  # misses and children, hits
+            if bound > buf.room:
+                buf.entries(bound, max(tally[:T_SOURCES].tolist()))
+            n_child, n_refr = trace_kernels.bounce(
+                *answer, surfaces.mapped_normals(answer, d32), buf.rays_i, buf.rays_w, rays_v,
+                parity, k, *tables, split, last, floor, relative, n_elem, n_src, tally,
+                *buf.gather,
             )  # fmt: skip
-            env = (out_i[0], out_w[0], out_v[0])
-            lit = (out_i[1], out_w[1], out_i[2], out_i[3])
-            keys = out_i[4]
-            child = (out_i[5], out_i[6], out_w[2], out_i[7], c_refr, out_v[1], out_v[2])
-            if n_env:
-                env_parts.append(tuple(a[:n_env] for a in env))
-            if n_lit:
-                rows, w_local, lit_slot, lit_src = (a[:n_lit] for a in lit)
-                hit_rows = (hits.tri, hits.u, hits.v, rel, ng, ns, d_in)
-                if n_lit < m:
-                    hit_rows = tuple(np.take(a, rows, axis=0) for a in hit_rows)
-                shade_parts.append((lit_slot, w_local, lit_src, *hit_rows))
-            if n_keys:
-                key_parts.append(keys[:n_keys])
             if last or n_child == 0:
                 break
-            slot, r_src, weight, chain, refracted, dirs, origins = (a[:n_child] for a in child)
-            n_refr = n_child_refr
-        radiance, shadow_src, shadow_rays = self._gather(
-            env_parts, shade_parts, lights, n_pix, counters
-        )
+            parity, k = 1 - parity, n_child
+            if split:
+                buf.rays(2 * k, parity, k)
+        counters["reflection"] += cast[0]
+        counters["refraction"] += cast[1]
+        n_env, n_lit, n_keys = tally[:T_SOURCES].tolist()
+        radiance, shadow_src, shadow_rays = self._gather(n_env, n_lit, lights, n_pix, counters)
         seconds = time.perf_counter() - start
         records, rays = self._records(
-            sources, src, chain_pix, rays_src, shadow_src, shadow_rays, key_parts, n_elem,
-            bounce_limit, seconds,
+            sources, src, tally, bounce_limit >= 1, shadow_src, shadow_rays,
+            buf.gather[0][G_KEY, :n_keys], n_elem, bounce_limit, seconds,
         )  # fmt: skip
         return ReflectionResult(
             pixel_index=np.asarray(pix, np.int64),
@@ -186,17 +240,18 @@ class PathTracer:
             seconds=seconds,
         )
 
-    def _shade_points(self, tri, u, v, rel, ng, ns, d_in, lights: Lights, threads=None):
+    def _shade_points(self, tri, u, v, rel, ng, ns, d_in, albedo, lights: Lights, threads=None):
         """Local shading with ray-traced shadows at hits (tri, u, v (m,); rel, ng, ns,
-        d_in (m, 3), see ``HitSurfaces.at``): (m, 3) float32 radiance and (m,) int64 shadow
-        rays cast per point. Safe to run on the pool with ``threads`` = 1."""
-        albedo, emissive = self._surfaces.colour(tri, u, v)
+        d_in (m, 3), see ``HitSurfaces.at``; albedo (m, 3) float32 corner albedo or None,
+        ``HitSurfaces.colour``): (m, 3) float32 radiance and (m,) int64 shadow rays cast
+        per point. Safe to run on the pool with ``threads`` = 1."""
+        albedo, emissive = self._surfaces.colour(tri, u, v, albedo)
         vis, shadow_rays, lit_pairs = self._shadows.cast(rel, ng, ns, lights, threads=threads)
         local = shading.shade_local(rel, ns, albedo, d_in, emissive, lights, vis, lit_pairs)
         # The caller updates ``rays_cast`` (a dict ``+=`` from pool threads could race).
         return local, shadow_rays
 
-    def _shade_hits(self, tri, u, v, rel, ng, ns, d_in, lights: Lights):
+    def _shade_hits(self, tri, u, v, rel, ng, ns, d_in, lights: Lights, albedo=None):
         """``_shade_points`` of every gathered hit: (m, 3) radiance and (m,) shadow rays
         per hit. Large batches (the sewer: 13 lights, ~300k shadow rays) run in chunks
         on the pool (the kernels and embreex release the GIL), each chunk's Embree batch
@@ -204,11 +259,12 @@ class PathTracer:
         n_lights = len(lights.distant) + len(lights.local)
         bounds = self._shadows.split(len(tri) * max(n_lights, 1), len(tri))
         if bounds is None:
-            return self._shade_points(tri, u, v, rel, ng, ns, d_in, lights)
+            return self._shade_points(tri, u, v, rel, ng, ns, d_in, albedo, lights)
         parts = [
             self._shadows.pool.submit(
                 self._shade_points,
                 *(a[lo:hi] for a in (tri, u, v, rel, ng, ns, d_in)),
+                None if albedo is None else albedo[lo:hi],
                 lights,
                 1,
             )
@@ -217,52 +273,50 @@ class PathTracer:
         done = [f.result() for f in parts]
         return np.concatenate([d[0] for d in done]), np.concatenate([d[1] for d in done])
 
-    def _gather(self, env_parts, shade_parts, lights, n_pix, counters):
+    def _gather(self, n_env, n_lit, lights, n_pix, counters):
         """The deferred part of ``run``: environment and local shading of every bounce
-        at once. Returns radiance (n_pix, 3) float32, and the source (m,) int64 and
-        shadow rays cast (m,) int64 of every shaded point (empty without direct
-        lights)."""
+        at once, from the first ``n_env`` / ``n_lit`` gathered entries. Returns radiance
+        (n_pix, 3) float32, and the source (m,) int64 and shadow rays cast (m,) int64 of
+        every shaded point (empty without direct lights)."""
+        g_i, g_w, g_x, g_v, g_uv = self._buffers.gather
         total = np.zeros((n_pix, 3))
-        if env_parts:
-            slot, weight, dirs = (_cat(p) for p in zip(*env_parts, strict=True))
-            env = shading.environment_radiance(lights, dirs)
-            trace_kernels.accumulate(total, slot, weight, env)
-        no_shadows = np.zeros(0, np.int64)
-        shadow_src, shadow_rays = no_shadows, no_shadows
-        if shade_parts:
-            slot, w, src, tri, u, v, rel, ng, ns, d_in = (
-                _cat(p) for p in zip(*shade_parts, strict=True)
-            )
-            local, rays = self._shade_hits(tri, u, v, rel, ng, ns, d_in, lights)
+        if n_env:
+            env = shading.environment_radiance(lights, g_v[G_ENV_DIR, :n_env])
+            trace_kernels.accumulate(total, g_i[G_ENV_SLOT, :n_env], g_w[G_ENV_W, :n_env], env)
+        shadow_src = shadow_rays = _NO_SHADOWS
+        if n_lit:
+            slot, src = g_i[G_LIT_SLOT, :n_lit], g_i[G_LIT_SRC, :n_lit]
+            tri, u, v = g_i[G_LIT_TRI, :n_lit], g_uv[G_LIT_U, :n_lit], g_uv[G_LIT_V, :n_lit]
+            rel, ng = g_x[G_LIT_POS, :n_lit], g_x[G_LIT_NG, :n_lit]
+            ns, d_in = g_v[G_LIT_NS, :n_lit], g_v[G_LIT_DIR, :n_lit]
+            albedo = g_v[G_LIT_ALBEDO, :n_lit]
+            local, rays = self._shade_hits(tri, u, v, rel, ng, ns, d_in, lights, albedo)
             if lights.has_direct:
                 shadow_src, shadow_rays = src, np.asarray(rays, np.int64)
                 counters["shadow"] += int(shadow_rays.sum())
-            trace_kernels.accumulate(total, slot, w, np.ascontiguousarray(local, np.float32))
+            local = np.ascontiguousarray(local, np.float32)
+            trace_kernels.accumulate(total, slot, g_w[G_LIT_W, :n_lit], local)
         return total.astype(np.float32), shadow_src, shadow_rays
 
     @staticmethod
     def _records(
-        sources, src, chain_pix, rays_src, shadow_src, shadow_rays, key_parts, n_elem,
-        bounce_limit, seconds,
+        sources, src, tally, first_cast, shadow_src, shadow_rays, keys, n_elem, bounce_limit,
+        seconds,
     ):  # fmt: skip
         """One TraceRecord per source (see ``frame.TraceRecord``) and the call's total
-        rays. rays_src (sources,) int64: path rays cast per source; shadow_src,
-        shadow_rays (m,): each shaded point's source and shadow rays. Seconds are shared
-        out by each source's share of the rays."""
+        rays (``trace_kernels.source_tallies`` of ``tally`` and the shadow rays:
+        shadow_src, shadow_rays (m,), each shaded point's source and shadow rays). Seconds
+        are shared out by each source's share of the rays."""
         n_src = len(sources)
-        pixels = np.zeros(n_src, np.int64)
-        chain_sum = np.zeros(n_src)
-        chain_max = np.zeros(n_src, np.int64)
-        rays_src = rays_src.copy()
-        trace_kernels.source_tallies(
-            src, chain_pix, shadow_src, shadow_rays, pixels, chain_sum, chain_max, rays_src
-        )
-        total = int(rays_src.sum())
+        figures = np.empty((4, n_src), np.int64)
+        trace_kernels.source_tallies(src, tally, first_cast, shadow_src, shadow_rays, figures)
+        pixels, chain_sum, chain_max, rays_src = figures.tolist()
+        total = sum(rays_src)
         per_source: list[dict[int, int]] = [{} for _ in range(n_src)]
-        if key_parts:
+        if len(keys):
             # Hits per (source, element) key: a bincount over the n_src * E keys (small),
             # then one dict entry per non-zero count.
-            counts = np.bincount(_cat(key_parts), minlength=n_src * n_elem)
+            counts = np.bincount(keys, minlength=n_src * n_elem)
             keys = np.flatnonzero(counts)
             for key, count in zip(keys.tolist(), counts[keys].tolist(), strict=True):
                 per_source[key // n_elem][key % n_elem] = count
@@ -278,16 +332,10 @@ class PathTracer:
                 seconds=seconds * r / total if total else 0.0,
             )
             for i, (s, p, r, c, cs) in enumerate(
-                zip(sources, pixels.tolist(), rays_src.tolist(), chain_max.tolist(),
-                    chain_sum.tolist(), strict=True)
+                zip(sources, pixels, rays_src, chain_max, chain_sum, strict=True)
             )
-        ]  # fmt: skip
+        ]
         return records, total
-
-
-def _cat(parts) -> np.ndarray:
-    """np.concatenate without a copy for a single part."""
-    return parts[0] if len(parts) == 1 else np.concatenate(parts)
 
 
 def unit(v: np.ndarray) -> np.ndarray:

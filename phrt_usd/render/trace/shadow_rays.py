@@ -23,6 +23,9 @@ from phrt_usd.render import shading
 from phrt_usd.render.trace.bvh import FAR, Bvh
 from phrt_usd.render.trace.hit_surfaces import HitSurfaces
 
+#: The compiled trace kernels (``trace_kernels``, through ``phrt_usd.kernels``).
+_TRACE = kernels.load("phrt_usd.render.trace.trace_kernels")
+
 #: Shading work (numpy + shadow rays) on many points is split over the pool only from
 #: this many shadow rays (points x lights) on: measured on the sewer (13 lights, 2
 #: cores), 10.6k rays take 2.2 ms split vs 1.9 ms on one thread, 349k rays 49 ms vs 63 ms.
@@ -117,10 +120,12 @@ class ShadowRays:
         rel = np.ascontiguousarray(rel, np.float64)
         dirs, pos, ranges = self.light_arrays(lights)
         want = _ALL_PAIRS if pairs is None else np.asarray(pairs, dtype=bool).reshape(n, n_lights)
-        eps = self._bvh.boundary.epsilon(rel)
-        point, light, origins, d, tfar, dist = kernels.load(
-            "phrt_usd.render.trace.trace_kernels"
-        ).shadow_rays(
+        floor, relative = self._bvh.boundary.offset_factors()
+        most = n * n_lights  # one ray per (point, light) pair at most
+        ray_i = np.empty((2, most), np.int64)  # point, light
+        ray_v = np.empty((2, most, 3), np.float32)  # origin, direction
+        ray_f = np.empty((2, most), np.float32)  # tfar, distance
+        k = _TRACE.shadow_rays(
             rel,
             np.ascontiguousarray(offset_normals, np.float32),
             np.ascontiguousarray(shading_normals, np.float32),
@@ -128,28 +133,29 @@ class ShadowRays:
             pos,
             ranges,
             np.ascontiguousarray(want),
-            eps,
+            floor,
+            relative,
             shading.MIN_LIGHT_DISTANCE,
             FAR,
+            ray_i,
+            ray_v,
+            ray_f,
         )
-        vis = np.zeros((n, n_lights), np.float32)
-        local = None
-        if len(point):
-            if self._surfaces is None:
-                occluded = self._bvh.run("OCCLUDED", origins, d, tfar, threads)
-            else:
-                occluded = self._surfaces.occluded(origins, d, tfar, threads)
-            vis.reshape(-1)[point * n_lights + light] = ~occluded
+        origins, d, tfar = ray_v[0, :k], ray_v[1, :k], ray_f[0, :k]
+        if self._surfaces is None:
+            occluded = self._bvh.run("OCCLUDED", origins, d, tfar, threads)
         else:
-            occluded = np.zeros(0, bool)
-        if len(pos):  # the lit LocalLight pairs, for shade_local
-            free = np.flatnonzero(~occluded & (light >= n_distant))
-            local = shading.LightPairs(
-                point[free], light[free] - n_distant, d[free], dist[free].astype(np.float64)
-            )
-        return vis, np.bincount(point, minlength=n).astype(np.int64), local
+            occluded = self._surfaces.occluded(origins, d, tfar, threads)
+        vis, rays = np.empty((n, n_lights), np.float32), np.empty(n, np.int64)
+        lit_i, lit_dir = np.empty((2, k), np.int64), np.empty((k, 3), np.float32)
+        lit_dist = np.empty(k)
+        m = _TRACE.shadow_results(
+            ray_i, ray_v, ray_f, occluded, n_distant, vis, rays, lit_i, lit_dir, lit_dist
+        )
+        # The lit LocalLight pairs, for shade_local.
+        lit = shading.LightPairs(lit_i[0, :m], lit_i[1, :m], lit_dir[:m], lit_dist[:m])
+        return vis, rays, lit if len(pos) else None
 
 
 #: ``trace_kernels.shadow_rays``' "every pair wanted" (an empty mask).
 _ALL_PAIRS = np.zeros((0, 0), bool)
-

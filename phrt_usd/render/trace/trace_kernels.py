@@ -12,11 +12,14 @@ callers), writing into buffers the caller allocates:
 - ``offset_origins``: the ray-origin offset rule (``bvh.Float32Boundary``) with the
   float32 cast of the result;
 - ``split_hits``: Embree's answer → hit rows and miss rows (``bvh.Hits``);
-- ``bounce``: what the bounce loop does at one depth's hits — environment entries of
-  misses, the local-shading entries, reflector keys, the reflector chains, and the
-  children (mirror and refracted rays with their offset origins);
+- ``bounce``: one depth of the bounce loop from Embree's answers of both BVHs — the
+  surface at the hits, environment entries of misses, the local-shading entries,
+  reflector keys, the reflector chains, and the children (mirror and refracted rays
+  with their offset origins), appended to the caller's call-long buffers;
 - ``accumulate``: the gathered radiance summed per pixel;
 - ``source_tallies``: the per-source figures of ``TraceRecord``;
+- ``shadow_rays`` / ``shadow_results``: the shadow rays of (point, light) pairs, and
+  visibility and the lit LocalLight pairs from Embree's answer;
 - ``primary_rays`` / ``primary_fill``: the ``rt`` mode's pixel rays (the raster
   G-buffer's direction rule, ``surface_kernels._pixel_dir``) and its G-buffer rows.
 
@@ -26,7 +29,9 @@ directions and shading normals), so results agree to the rounding of a sum's ord
 
 Array arguments are read and written only in the kernels themselves (numba counts the
 references of an array handed to another compiled function); the helpers take and
-return scalars. Spaces: rel = world metres minus ``Scene.origin`` (float64).
+return scalars. Kernels return counts, never arrays (boxing a returned array costs ~1
+us, more than a small kernel's work). Spaces: rel = world metres minus
+``Scene.origin`` (float64).
 """
 
 from __future__ import annotations
@@ -37,7 +42,7 @@ import numpy as np
 from numba import njit
 
 from phrt_usd.kernels import KERNEL_OPTIONS
-from phrt_usd.model.surface_kernels import _pixel_dir
+from phrt_usd.model.surface_kernels import _orient, _pixel_dir, _weighted
 
 _KERNEL = KERNEL_OPTIONS
 _HELPER = {**_KERNEL, "inline": "always"}
@@ -98,24 +103,23 @@ def offset_origins(rel, normals, dirs, floor, relative, out):
 
 @njit(**_KERNEL)
 def source_rays(
-    cand, cand_elem, table, tri_img, pos_img, nrm_img, view_img, origin, frame, floor,
-    relative, lo, hi, out_src, out_tri, out_rel, out_ng, out_ns, out_view, out_dir, out_org,
+    cand, tri_img, pos_img, nrm_img, view_img, origin, frame, floor, relative, lo, hi,
+    out_tri, out_rel, out_ng, out_ns, out_view, out_dir, out_org,
 ):  # fmt: skip
     """The first rays of paths from G-buffer pixels cand[lo:hi] into rows lo..hi.
 
-    cand (k,) int64 flat pixels of sources, cand_elem (k,) their element ids; table
-    (E + 1,) int64 element → index into the sources. Images flat over H*W: tri_img
-    int32, pos_img (·, 3) float64 world, nrm_img and view_img (·, 3) float32. origin (3,)
+    cand (k,) int64 flat pixels of sources. Images flat over H*W: tri_img int32, pos_img
+    (·, 3) float64 world, nrm_img and view_img (·, 3) float32. origin (3,)
     ``Scene.origin``; frame ``TriangleTable.frame``; floor, relative: the offset epsilon
     (``Float32Boundary``).
 
-    Per pixel: out_src, out_tri (k,) int64. The surface, written when out_rel has rows:
-    out_rel (k, 3) float64 the position snapped onto its triangle's plane; out_ng (k, 3)
-    float64 the triangle's unit front normal (the shading normal where there is no
-    triangle); out_ns (k, 3) float32 the unit shading normal turned to face the viewer;
-    out_view (k, 3) float32 unit view direction. The mirror ray, written when out_dir
-    has rows: out_dir (k, 3) float32 the mirror direction and out_org (k, 3) float32 its
-    offset origin."""
+    Per pixel: out_tri (k,) int64. The surface, written when out_rel has rows: out_rel
+    (k, 3) float64 the position snapped onto its triangle's plane; out_ng (k, 3) float64
+    the triangle's unit front normal (the shading normal where there is no triangle);
+    out_ns (k, 3) float32 the unit shading normal turned to face the viewer; out_view
+    (k, 3) float32 unit view direction. The mirror ray, written when out_dir has rows:
+    out_dir (k, 3) float32 the mirror direction and out_org (k, 3) float32 its offset
+    origin."""
     surface = out_rel.shape[0] > 0
     reflect = out_dir.shape[0] > 0
     for i in range(lo, hi):
@@ -137,7 +141,7 @@ def source_rays(
             pz = oz - dist * gz + frame[t, 0, 2]
         else:
             gx, gy, gz = float(nx), float(ny), float(nz)
-        out_src[i], out_tri[i] = table[cand_elem[i]], t
+        out_tri[i] = t
         if surface:
             out_rel[i, 0], out_rel[i, 1], out_rel[i, 2] = px, py, pz
             out_ng[i, 0], out_ng[i, 1], out_ng[i, 2] = gx, gy, gz
@@ -185,132 +189,195 @@ def _refract(dx, dy, dz, nx, ny, nz, fx, fy, fz, ior):
     return _unit64(eta * dx + c * nx, eta * dy + c * ny, eta * dz + c * nz)
 
 
-#: The rows of ``bounce``'s output buffers (int64, float64, float32 (·, 3)).
-BOUNCE_ROWS = (8, 3, 3)
+#: Columns of the per-triangle material table ``bounce`` reads (``HitSurfaces.tri_table``,
+#: (T, 4) float64): reflectivity F, the material's opacity α and ior, and the element id
+#: of a reflector triangle (-1: not a reflector).
+TRI_F, TRI_ALPHA, TRI_IOR, TRI_REFLECTOR = 0, 1, 2, 3
+#: Rows of ``bounce``'s live-ray state ``rays_i`` (int64): pixel slot, source, reflector
+#: chain, refracted (0 / 1); its float32 rays ``rays_v``: direction, offset origin.
+RAY_SLOT, RAY_SRC, RAY_CHAIN, RAY_REFRACTED = 0, 1, 2, 3
+RAY_DIR, RAY_ORIGIN = 0, 1
+#: The call's gathered entries (``bounce`` appends one depth's to them). ``g_i`` (int64)
+#: rows: environment slot, lit slot, lit source, lit triangle, reflector key; ``g_w``
+#: (float64) rows: environment weight, lit weight; ``g_x`` (float64 (·, 3)): lit
+#: position, lit geometric normal; ``g_v`` (float32 (·, 3)): environment direction, lit
+#: shading normal, lit incoming direction, lit corner albedo; ``g_uv`` (float32): lit u,
+#: v.
+G_ENV_SLOT, G_LIT_SLOT, G_LIT_SRC, G_LIT_TRI, G_KEY = 0, 1, 2, 3, 4
+G_ENV_W, G_LIT_W = 0, 1
+G_LIT_POS, G_LIT_NG = 0, 1
+G_ENV_DIR, G_LIT_NS, G_LIT_DIR, G_LIT_ALBEDO = 0, 1, 2, 3
+G_LIT_U, G_LIT_V = 0, 1
+#: ``tally`` (int64): the counts of gathered environment entries, lit hits and keys,
+#: then the rays cast per source (S), then the longest reflector chain per pixel slot.
+T_ENV, T_LIT, T_KEYS, T_SOURCES = 0, 1, 2, 3
 
 
 @njit(**_KERNEL)
 def bounce(
-    ray, miss, tri, rel, ng, ns, slot, src, weight, chain, dirs,
-    tri_reflector, tri_f, tri_material, tri_element, opacity, ior, frame,
-    split, last, floor, relative, n_elem, chain_pix, rays_src, out_i, out_w, out_v, c_refr,
+    prim, u, v, far_prim, far_u, far_v, static_map, dynamic_map, ns_given, rays_i, rays_w,
+    rays_v, parity, k, tri_table, frame, corners,
+    split, last, floor, relative, n_elem, n_src, tally, g_i, g_w, g_x, g_v, g_uv,
 ):  # fmt: skip
-    """One depth of the bounce loop (``paths.PathTracer.run``) over k live rays, of
-    which m hit (``ray`` (m,) rows, ``miss`` (k - m,) rows, int64).
+    """One depth of the bounce loop (``paths.PathTracer.run``): Embree's answer for the
+    k live rays → the surface at the hits, what the paths gather, and the next rays.
 
-    Hits: tri (m,) int64; rel (m, 3) float64; ng (m, 3) float64 facing the ray; ns (m, 3)
-    float32 shading normals. Live rays: slot, src (k,) int64 pixel slot and source;
-    weight (k,) float64; chain (k,) int64 reflector hits so far; dirs (k, 3) float32.
-    Tables: per triangle reflector flag, F, material, element; per material opacity and
-    ior; frame (``TriangleTable``). split: the stage has transmissive materials (α and
-    refraction); last: this is the bounce limit's depth (children are not cast: they
-    read the environment); floor, relative: the offset epsilon; n_elem: key stride.
+    Embree's answer (``bvh.Bvh.answers``, merged here by ``Bvh.merge``'s rule): prim (k,)
+    int32 / int64 triangle of the static BVH or < 0 (a miss), u, v (k,) float32
+    barycentrics; far_prim, far_u, far_v the same of the animated BVH (only nearer hits;
+    (0,) without one); static_map, dynamic_map (·,) int64 each BVH's global triangle ids
+    (static_map (0,): the static ids are global). ns_given (k, 3) float32 shading
+    normals to use instead of the surface rule's (normal-mapped stages), or (0, 3).
 
-    Updates chain_pix (pixels,) int64 (longest reflector chain per slot) and rays_src
-    (sources,) int64 (the children about to be cast, per source). Writes the
-    environment entries (misses, then at ``last`` the children) into env_slot, env_w,
-    env_dir (k + 2m); the hits whose local shading carries weight into lit (hit rows),
-    lit_w (their weight), lit_slot and lit_src (m); reflector keys src * n_elem +
-    element into keys (m); the children (m, or 2m with ``split``) into c_slot, c_src,
-    c_w, c_chain, c_refr (bool), c_dir float32 and c_org float32 (offset origins; not
-    written at ``last``).
+    Live rays, double-buffered (this depth's in half ``parity``, the children written to
+    half 1 - parity): rays_i (2, 4, L) int64 (``RAY_*`` rows), rays_w (2, L) float64 path
+    weight, rays_v (2, 2, L, 3) float32 direction and origin, L >= 2k. Tables: tri_table
+    (T, 4) float64 (``TRI_*`` columns); frame (T, 4, 3) float64 and corners (T, 3, 6)
+    float32 (``TriangleTable``). split: the stage has transmissive materials (α and
+    refraction); last: the bounce limit's depth (the children are not cast: they read
+    the environment); floor, relative: the offset epsilon (``Float32Boundary``); n_elem:
+    key stride; n_src: sources.
 
-    The outputs come as four buffers of L >= k + 2m columns (four arguments and four
-    allocations per depth instead of fifteen: a fixed cost of every depth): ``out_i``
-    (8, L) int64 rows env_slot, lit, lit_slot, lit_src, keys, c_slot, c_src, c_chain;
-    ``out_w`` (3, L) float64 rows env_w, lit_w, c_w; ``out_v`` (3, L, 3) float32
-    env_dir, c_dir, c_org; ``c_refr`` (L,) bool (``BOUNCE_ROWS``).
-
-    Returns (environment entries, lit hits, keys, children, refracted children)."""
-    env_slot, lit, lit_slot, lit_src, keys = out_i[0], out_i[1], out_i[2], out_i[3], out_i[4]
-    c_slot, c_src, c_chain = out_i[5], out_i[6], out_i[7]
-    env_w, lit_w, c_w = out_w[0], out_w[1], out_w[2]
-    env_dir, c_dir, c_org = out_v[0], out_v[1], out_v[2]
-    n_env = 0
-    for j in range(miss.shape[0]):
-        r = miss[j]
-        env_slot[n_env], env_w[n_env] = slot[r], weight[r]
-        env_dir[n_env, 0], env_dir[n_env, 1], env_dir[n_env, 2] = dirs[r, 0], dirs[r, 1], dirs[r, 2]
-        n_env += 1
-    n_lit = 0
-    n_keys = 0
+    Per hit (the surface rule of ``surface_kernels.hit_geometry``: rel position, front
+    normal against the ray, shading normal by the side rule): a local-shading entry
+    where it carries weight (w α (1 - F) > 0; with the corner albedo, as
+    ``surface_kernels.hit_albedo``), a reflector key source * n_elem +
+    element, the pixel slot's longest chain, a mirror child (w α F > 0) and, with
+    ``split``, a refracted child (w (1 - α) > 0; all after the mirror ones), each with
+    its origin offset off the surface (float32). Per miss, and at ``last`` per child, an
+    environment entry. Entries are appended to the gather buffers (``G_*`` rows, at the
+    counts in ``tally``; they have room for 2k more entries of each kind).
+    Returns (children, refracted children)."""
+    cur, nxt = parity, 1 - parity
+    n_env, n_lit, n_keys = tally[T_ENV], tally[T_LIT], tally[T_KEYS]
+    chains = T_SOURCES + n_src
+    given = ns_given.shape[0] > 0
+    animated = far_prim.shape[0] > 0
+    mapped = static_map.shape[0] > 0
+    for r in range(k):
+        if prim[r] < 0 and not (animated and far_prim[r] >= 0):
+            g_i[G_ENV_SLOT, n_env] = rays_i[cur, RAY_SLOT, r]
+            g_w[G_ENV_W, n_env] = rays_w[cur, r]
+            for c in range(3):
+                g_v[G_ENV_DIR, n_env, c] = rays_v[cur, RAY_DIR, r, c]
+            n_env += 1
     n_child = 0
     n_refr = 0
-    for h in range(ray.shape[0]):
-        r = ray[h]
-        t = tri[h]
-        alpha = opacity[tri_material[t]] if split else 1.0
-        f = tri_f[t]
-        w = weight[r]
-        s = src[r]
+    for r in range(k):
+        if animated and far_prim[r] >= 0:
+            t, w1, w2 = dynamic_map[far_prim[r]], far_u[r], far_v[r]
+        elif prim[r] >= 0:
+            t = static_map[prim[r]] if mapped else np.int64(prim[r])
+            w1, w2 = u[r], v[r]
+        else:
+            continue
+        slot = rays_i[cur, RAY_SLOT, r]
+        s = rays_i[cur, RAY_SRC, r]
+        w = rays_w[cur, r]
+        d = rays_v[cur, RAY_DIR, r]
+        dx, dy, dz = d[0], d[1], d[2]
+        fdx, fdy, fdz = float(dx), float(dy), float(dz)
+        # The surface (``surface_kernels.hit_geometry``).
+        fu, fv = float(w1), float(w2)
+        px = frame[t, 0, 0] + fu * frame[t, 1, 0] + fv * frame[t, 2, 0]
+        py = frame[t, 0, 1] + fu * frame[t, 1, 1] + fv * frame[t, 2, 1]
+        pz = frame[t, 0, 2] + fu * frame[t, 1, 2] + fv * frame[t, 2, 2]
+        fx, fy, fz = frame[t, 3, 0], frame[t, 3, 1], frame[t, 3, 2]
+        side = -1.0 if fx * fdx + fy * fdy + fz * fdz > 0.0 else 1.0
+        gx, gy, gz = fx * side, fy * side, fz * side
+        w0 = _ONE32 - w1 - w2
+        if given:
+            nx, ny, nz = ns_given[r, 0], ns_given[r, 1], ns_given[r, 2]
+        else:
+            nx, ny, nz = _orient(
+                _weighted(w0, w1, w2, corners[t, 0, 0], corners[t, 1, 0], corners[t, 2, 0]),
+                _weighted(w0, w1, w2, corners[t, 0, 1], corners[t, 1, 1], corners[t, 2, 1]),
+                _weighted(w0, w1, w2, corners[t, 0, 2], corners[t, 1, 2], corners[t, 2, 2]),
+                side, fdx, fdy, fdz, fx, fy, fz,
+            )  # fmt: skip
+        f = tri_table[t, TRI_F]
+        alpha = tri_table[t, TRI_ALPHA] if split else 1.0
         w_local = w * alpha * (1.0 - f)
         if w_local > 0.0:
-            lit[n_lit], lit_w[n_lit] = h, w_local
-            lit_slot[n_lit], lit_src[n_lit] = slot[r], s
+            g_i[G_LIT_SLOT, n_lit], g_i[G_LIT_SRC, n_lit], g_i[G_LIT_TRI, n_lit] = slot, s, t
+            g_w[G_LIT_W, n_lit] = w_local
+            g_uv[G_LIT_U, n_lit], g_uv[G_LIT_V, n_lit] = w1, w2
+            pos, ng = g_x[G_LIT_POS, n_lit], g_x[G_LIT_NG, n_lit]
+            ns, d_in = g_v[G_LIT_NS, n_lit], g_v[G_LIT_DIR, n_lit]
+            pos[0], pos[1], pos[2] = px, py, pz
+            ng[0], ng[1], ng[2] = gx, gy, gz
+            ns[0], ns[1], ns[2] = nx, ny, nz
+            d_in[0], d_in[1], d_in[2] = dx, dy, dz
+            albedo = g_v[G_LIT_ALBEDO, n_lit]  # ``surface_kernels.hit_albedo``
+            for j in range(3):
+                albedo[j] = _weighted(
+                    w0, w1, w2, corners[t, 0, 3 + j], corners[t, 1, 3 + j], corners[t, 2, 3 + j]
+                )
             n_lit += 1
-        ch = chain[r]
-        if tri_reflector[t]:
+        ch = rays_i[cur, RAY_CHAIN, r]
+        element = np.int64(tri_table[t, TRI_REFLECTOR])
+        if element >= 0:
             ch += 1
-            keys[n_keys] = s * n_elem + tri_element[t]
+            g_i[G_KEY, n_keys] = s * n_elem + element
             n_keys += 1
-        if ch > chain_pix[slot[r]]:
-            chain_pix[slot[r]] = ch
-        dx, dy, dz = dirs[r, 0], dirs[r, 1], dirs[r, 2]
-        nx, ny, nz = ns[h, 0], ns[h, 1], ns[h, 2]
-        gx, gy, gz = ng[h, 0], ng[h, 1], ng[h, 2]
+        if ch > tally[chains + slot]:
+            tally[chains + slot] = ch
         w_refl = w * alpha * f
         if w_refl > 0.0:
             # Mirror of a unit vector about a unit normal (float32, as the first rays).
-            k = _TWO32 * (np.float32(dx) * nx + np.float32(dy) * ny + np.float32(dz) * nz)
-            cx, cy, cz = dx - k * nx, dy - k * ny, dz - k * nz
-            c_slot[n_child], c_src[n_child], c_w[n_child] = slot[r], s, w_refl
-            c_chain[n_child], c_refr[n_child] = ch, False
-            c_dir[n_child, 0], c_dir[n_child, 1], c_dir[n_child, 2] = cx, cy, cz
+            kk = _TWO32 * (dx * nx + dy * ny + dz * nz)
+            cx, cy, cz = dx - kk * nx, dy - kk * ny, dz - kk * nz
+            at = n_child
+            rays_i[nxt, RAY_SLOT, at], rays_i[nxt, RAY_SRC, at] = slot, s
+            rays_i[nxt, RAY_CHAIN, at], rays_i[nxt, RAY_REFRACTED, at] = ch, 0
+            rays_w[nxt, at] = w_refl
+            rays_v[nxt, RAY_DIR, at, 0], rays_v[nxt, RAY_DIR, at, 1] = cx, cy
+            rays_v[nxt, RAY_DIR, at, 2] = cz
             if not last:
-                px, py, pz = rel[h, 0], rel[h, 1], rel[h, 2]
                 e = _side(_epsilon(px, py, pz, floor, relative), cx, cy, cz, gx, gy, gz)
-                c_org[n_child, 0] = px + e * gx
-                c_org[n_child, 1] = py + e * gy
-                c_org[n_child, 2] = pz + e * gz
-                rays_src[s] += 1
+                rays_v[nxt, RAY_ORIGIN, at, 0] = px + e * gx
+                rays_v[nxt, RAY_ORIGIN, at, 1] = py + e * gy
+                rays_v[nxt, RAY_ORIGIN, at, 2] = pz + e * gz
             n_child += 1
-    if split:  # refracted children after all mirror ones (the numpy order)
-        for h in range(ray.shape[0]):
-            r = ray[h]
-            t = tri[h]
-            w_refr = weight[r] * (1.0 - opacity[tri_material[t]])
-            if not (w_refr > 0.0):
-                continue
-            ch = chain[r] + (1 if tri_reflector[t] else 0)
-            cx, cy, cz = _refract(
-                float(dirs[r, 0]), float(dirs[r, 1]), float(dirs[r, 2]),
-                float(ns[h, 0]), float(ns[h, 1]), float(ns[h, 2]),
-                frame[t, 3, 0], frame[t, 3, 1], frame[t, 3, 2], ior[tri_material[t]],
-            )  # fmt: skip
-            c_slot[n_child], c_src[n_child], c_w[n_child] = slot[r], src[r], w_refr
-            c_chain[n_child], c_refr[n_child] = ch, True
-            c_dir[n_child, 0], c_dir[n_child, 1], c_dir[n_child, 2] = cx, cy, cz
-            if not last:
-                gx, gy, gz = ng[h, 0], ng[h, 1], ng[h, 2]
-                px, py, pz = rel[h, 0], rel[h, 1], rel[h, 2]
-                dx32, dy32, dz32 = c_dir[n_child, 0], c_dir[n_child, 1], c_dir[n_child, 2]
-                e = _side(_epsilon(px, py, pz, floor, relative), dx32, dy32, dz32, gx, gy, gz)
-                c_org[n_child, 0] = px + e * gx
-                c_org[n_child, 1] = py + e * gy
-                c_org[n_child, 2] = pz + e * gz
-                rays_src[src[r]] += 1
-            n_child += 1
-            n_refr += 1
-    if last:  # the children read the environment
-        for c in range(n_child):
-            env_slot[n_env], env_w[n_env] = c_slot[c], c_w[c]
-            env_dir[n_env, 0], env_dir[n_env, 1], env_dir[n_env, 2] = (
-                c_dir[c, 0],
-                c_dir[c, 1],
-                c_dir[c, 2],
-            )
+        if split:
+            w_refr = w * (1.0 - tri_table[t, TRI_ALPHA])
+            if w_refr > 0.0:  # staged after the live rays, moved after the mirror ones
+                cx, cy, cz = _refract(
+                    fdx, fdy, fdz, float(nx), float(ny), float(nz), fx, fy, fz,
+                    tri_table[t, TRI_IOR],
+                )  # fmt: skip
+                cx, cy, cz = np.float32(cx), np.float32(cy), np.float32(cz)
+                at = k + n_refr
+                rays_i[nxt, RAY_SLOT, at], rays_i[nxt, RAY_SRC, at] = slot, s
+                rays_i[nxt, RAY_CHAIN, at], rays_i[nxt, RAY_REFRACTED, at] = ch, 1
+                rays_w[nxt, at] = w_refr
+                rays_v[nxt, RAY_DIR, at, 0], rays_v[nxt, RAY_DIR, at, 1] = cx, cy
+                rays_v[nxt, RAY_DIR, at, 2] = cz
+                if not last:
+                    e = _side(_epsilon(px, py, pz, floor, relative), cx, cy, cz, gx, gy, gz)
+                    rays_v[nxt, RAY_ORIGIN, at, 0] = px + e * gx
+                    rays_v[nxt, RAY_ORIGIN, at, 1] = py + e * gy
+                    rays_v[nxt, RAY_ORIGIN, at, 2] = pz + e * gz
+                n_refr += 1
+    for j in range(n_refr):  # the refracted children after all mirror ones
+        for row in range(4):
+            rays_i[nxt, row, n_child + j] = rays_i[nxt, row, k + j]
+        rays_w[nxt, n_child + j] = rays_w[nxt, k + j]
+        for c in range(3):
+            rays_v[nxt, RAY_DIR, n_child + j, c] = rays_v[nxt, RAY_DIR, k + j, c]
+            rays_v[nxt, RAY_ORIGIN, n_child + j, c] = rays_v[nxt, RAY_ORIGIN, k + j, c]
+    n_child += n_refr
+    for c in range(n_child):
+        if last:  # the children read the environment
+            g_i[G_ENV_SLOT, n_env] = rays_i[nxt, RAY_SLOT, c]
+            g_w[G_ENV_W, n_env] = rays_w[nxt, c]
+            for a in range(3):
+                g_v[G_ENV_DIR, n_env, a] = rays_v[nxt, RAY_DIR, c, a]
             n_env += 1
-    return n_env, n_lit, n_keys, n_child, n_refr
+        else:  # the children about to be cast, per source
+            tally[T_SOURCES + rays_i[nxt, RAY_SRC, c]] += 1
+    tally[T_ENV], tally[T_LIT], tally[T_KEYS] = n_env, n_lit, n_keys
+    return n_child, n_refr
 
 
 @njit(**_KERNEL)
@@ -328,20 +395,26 @@ def accumulate(total, slot, weight, value):
 
 
 @njit(**_KERNEL)
-def source_tallies(src, chain_pix, shadow_src, shadow_rays, pixels, chain_sum, chain_max,
-                   rays_src):  # fmt: skip
-    """Per-source figures of ``TraceRecord``: pixels (sources,) int64, chain_sum float64,
-    chain_max int64 from the paths' src (n,) and chain_pix (n,) int64, and rays_src
-    (sources,) int64 += shadow_rays (m,) int64 per shading point of source shadow_src
-    (m,) int64."""
+def source_tallies(src, tally, first_cast, shadow_src, shadow_rays, out):
+    """Per-source figures of ``TraceRecord`` into ``out`` (4, S) int64 rows: pixels,
+    the sum and the longest of their reflector chains, rays cast. From the paths' src
+    (n,) int64 and ``bounce``'s ``tally`` (rays cast per source after the first rays,
+    longest chain per path); ``first_cast``: the first rays were cast (one per path);
+    shadow_rays (m,) int64 cast per shading point of source shadow_src (m,) int64."""
+    n_src = out.shape[1]
+    out[:] = 0
+    for s in range(n_src):
+        out[3, s] = tally[T_SOURCES + s]
+    chains = T_SOURCES + n_src
     for i in range(src.shape[0]):
         s = src[i]
-        pixels[s] += 1
-        chain_sum[s] += chain_pix[i]
-        if chain_pix[i] > chain_max[s]:
-            chain_max[s] = chain_pix[i]
+        out[0, s] += 1
+        out[1, s] += tally[chains + i]
+        out[2, s] = max(out[2, s], tally[chains + i])
+        if first_cast:
+            out[3, s] += 1
     for i in range(shadow_src.shape[0]):
-        rays_src[shadow_src[i]] += shadow_rays[i]
+        out[3, shadow_src[i]] += shadow_rays[i]
 
 
 @njit(**_KERNEL)
@@ -407,19 +480,20 @@ def warm_up() -> None:
     b = np.zeros(1, bool)
     offset_origins(v64, v64, v32, 1e-6, 1e-5, v32.copy())
     offset_origins(v64, v64, v64, 1e-6, 1e-5, v32.copy())
-    source_rays(i64, i64, i64, i32, v64, v32, v32, np.zeros(3), frame, 1e-6, 1e-5, 0, 1,
-                i64.copy(), i64.copy(), v64.copy(), v64.copy(), v32.copy(), v32.copy(),
-                v32.copy(), v32.copy())  # fmt: skip
+    source_rays(i64, i32, v64, v32, v32, np.zeros(3), frame, 1e-6, 1e-5, 0, 1, i64.copy(),
+                v64.copy(), v64.copy(), v32.copy(), v32.copy(), v32.copy(), v32.copy())  # fmt: skip
     split_hits(i32, f32, f32, i64.copy(), i64.copy(), f32.copy(), f32.copy(), i64.copy())
     split_hits(i64, f32, f32, i64.copy(), i64.copy(), f32.copy(), f32.copy(), i64.copy())
-    hits = (i64, i64[:0], i64, v64, v64, v32)
-    state = (i64, i64, f64, i64, v32)
-    tables = (b, f64, i64, i64, f64 + 1.0, f64 + 1.0, frame)
-    n_i, n_w, n_v = BOUNCE_ROWS
-    out = (np.zeros((n_i, 3), np.int64), np.zeros((n_w, 3)), np.zeros((n_v, 3, 3), np.float32))
-    for split in (False, True):
-        bounce(*hits, *state, *tables, split, False, 1e-6, 1e-5, 1, i64.copy(), i64.copy(),
-               *out, np.zeros(3, bool))  # fmt: skip
+    rays = (np.zeros((2, 4, 2), np.int64), np.zeros((2, 2)), np.zeros((2, 2, 2, 3), np.float32))
+    tables = (np.zeros((1, 4)), frame, np.zeros((1, 3, 6), np.float32))
+    gather = (np.zeros((5, 3), np.int64), np.zeros((2, 3)), np.zeros((2, 3, 3)),
+              np.zeros((4, 3, 3), np.float32), np.zeros((2, 3), np.float32))  # fmt: skip
+    answers = ((i32, f32, f32, i32, f32, f32, i64, i64),
+               (i64, f32, f32, i32[:0], f32[:0], f32[:0], i64[:0], i64[:0]))  # fmt: skip
+    for answer in answers:
+        for split in (False, True):
+            bounce(*answer, v32[:0], *rays, 0, 1, *tables, split, False, 1e-6, 1e-5, 1,
+                   1, np.zeros(5, np.int64), *gather)  # fmt: skip
     primary_rays(f64, f64, np.eye(3), False, np.zeros(3), np.ones(3), 0.1, 0, 1, v64.copy(),
                  v32.copy(), v32.copy())  # fmt: skip
     gb_rows = (i32.copy(), i32.copy(), f32.copy(), v64.copy(), v32.copy(), v32.copy())
@@ -427,69 +501,91 @@ def warm_up() -> None:
                  *gb_rows)  # fmt: skip
     accumulate(np.zeros((1, 3)), i64, f64, v32)
     accumulate(np.zeros((1, 3)), i64, f64, v64)
-    source_tallies(i64, i64, i64, i64, i64.copy(), f64.copy(), i64.copy(), i64.copy())
+    source_tallies(i64, np.zeros(5, np.int64), True, i64, i64, np.zeros((4, 1), np.int64))
+    shadow = (np.zeros((2, 1), np.int64), np.zeros((2, 1, 3), np.float32),
+              np.zeros((2, 1), np.float32))  # fmt: skip
     shadow_rays(v64, v32, v32, np.array([[0.0, 1.0, 0.0]]), np.zeros((0, 3)), np.zeros(0),
-                np.zeros((0, 0), bool), f64 + 1e-6, 1e-3, 1e30)  # fmt: skip
+                np.zeros((0, 0), bool), 1e-6, 1e-5, 1e-3, 1e30, *shadow)  # fmt: skip
+    shadow_results(*shadow, b, 1, np.zeros((1, 1), np.float32), i64.copy(),
+                   np.zeros((2, 1), np.int64), v32.copy(), f64.copy())  # fmt: skip
 
 
 @njit(**_KERNEL)
-def shadow_rays(rel, ng, ns, dirs, pos, ranges, want, eps, min_distance, far):
+def shadow_rays(
+    rel, ng, ns, dirs, pos, ranges, want, floor, relative, min_distance, far, out_i, out_v,
+    out_f,
+):  # fmt: skip
     """The shadow rays of ``ShadowRays.cast``: for each point i (rel (n, 3) float64,
-    offset normal ng and shading normal ns (n, 3) float32, offset epsilon eps (n,)
-    metres) and each light j (DistantLights dirs (D, 3) unit, then LocalLights pos
-    (P, 3) rel metres of range ranges (P,)) wanted (``want`` (n, D + P) bool, or (0, 0):
-    all) whose light can matter there (in front of ns; LocalLights: within range),
-    one ray. Returns point (k,) int64, light (k,) int64 (distant then local index),
-    origins (k, 3), dirs (k, 3), tfar (k,) float32 and dist (k,) float32 (LocalLights:
-    metres to the light, >= ``min_distance``; DistantLights: ``far``), point-major.
-    Origins leave the surface by eps along ng on the ray's side (``_side``, the
-    boundary's rule); LocalLight rays stop eps short of the light."""
+    offset normal ng and shading normal ns (n, 3) float32) and each light j
+    (DistantLights dirs (D, 3) unit, then LocalLights pos (P, 3) rel metres of range
+    ranges (P,)) wanted (``want`` (n, D + P) bool, or (0, 0): all) whose light can
+    matter there (in front of ns; LocalLights: within range), one ray, point-major.
+
+    Writes ray r's point and light (distant then local index) into out_i (2, ·) int64,
+    its float32 origin and unit direction into out_v (2, ·, 3), its tfar and distance
+    into out_f (2, ·) float32 (LocalLights: metres to the light, >= ``min_distance``;
+    DistantLights: ``far``); the buffers have n (D + P) columns. Origins leave the
+    surface by the offset epsilon (floor, relative: ``Float32Boundary``) along ng on the
+    ray's side (``_side``, the boundary's rule); LocalLight rays stop that epsilon short
+    of the light. Returns the ray count."""
     n, n_distant, n_local = rel.shape[0], dirs.shape[0], pos.shape[0]
     n_lights = n_distant + n_local
     every = want.shape[0] == 0
-    take = np.zeros((n, n_lights), np.bool_)
-    k = 0
+    r = 0
     for i in range(n):
+        px, py, pz = rel[i, 0], rel[i, 1], rel[i, 2]
+        e = _epsilon(px, py, pz, floor, relative)
         for j in range(n_lights):
             if not (every or want[i, j]):
                 continue
             if j < n_distant:
-                nl = ns[i, 0] * dirs[j, 0] + ns[i, 1] * dirs[j, 1] + ns[i, 2] * dirs[j, 2]
-                ok = nl > 0.0
-            else:
-                q = j - n_distant
-                t0, t1, t2 = pos[q, 0] - rel[i, 0], pos[q, 1] - rel[i, 1], pos[q, 2] - rel[i, 2]
-                nl = ns[i, 0] * t0 + ns[i, 1] * t1 + ns[i, 2] * t2
-                ok = nl > 0.0 and t0 * t0 + t1 * t1 + t2 * t2 < ranges[q] * ranges[q]
-            take[i, j] = ok
-            k += ok
-    point = np.empty(k, np.int64)
-    light = np.empty(k, np.int64)
-    origins = np.empty((k, 3), np.float32)
-    out_dirs = np.empty((k, 3), np.float32)
-    tfar = np.empty(k, np.float32)
-    dist = np.empty(k, np.float32)
-    r = 0
-    for i in range(n):
-        for j in range(n_lights):
-            if not take[i, j]:
-                continue
-            e = eps[i]
-            if j < n_distant:
                 d0, d1, d2 = dirs[j, 0], dirs[j, 1], dirs[j, 2]
+                if not (ns[i, 0] * d0 + ns[i, 1] * d1 + ns[i, 2] * d2 > 0.0):
+                    continue
                 length = far
                 stop = far
             else:
                 q = j - n_distant
-                t0, t1, t2 = pos[q, 0] - rel[i, 0], pos[q, 1] - rel[i, 1], pos[q, 2] - rel[i, 2]
-                length = max(math.sqrt(t0 * t0 + t1 * t1 + t2 * t2), min_distance)
+                t0, t1, t2 = pos[q, 0] - px, pos[q, 1] - py, pos[q, 2] - pz
+                nl = ns[i, 0] * t0 + ns[i, 1] * t1 + ns[i, 2] * t2
+                square = t0 * t0 + t1 * t1 + t2 * t2
+                if not (nl > 0.0 and square < ranges[q] * ranges[q]):
+                    continue
+                length = max(math.sqrt(square), min_distance)
                 d0, d1, d2 = t0 / length, t1 / length, t2 / length
                 # Stop short of the light by the offset so the light's own position is free.
                 stop = max(length - e, 0.0)
             side = _side(e, d0, d1, d2, ng[i, 0], ng[i, 1], ng[i, 2])
             for c in range(3):
-                origins[r, c] = rel[i, c] + side * ng[i, c]
-            out_dirs[r, 0], out_dirs[r, 1], out_dirs[r, 2] = d0, d1, d2
-            point[r], light[r], tfar[r], dist[r] = i, j, stop, length
+                out_v[0, r, c] = rel[i, c] + side * ng[i, c]
+            out_v[1, r, 0], out_v[1, r, 1], out_v[1, r, 2] = d0, d1, d2
+            out_i[0, r], out_i[1, r], out_f[0, r], out_f[1, r] = i, j, stop, length
             r += 1
-    return point, light, origins, out_dirs, tfar, dist
+    return r
+
+
+@njit(**_KERNEL)
+def shadow_results(rays_i, rays_v, rays_f, occluded, n_distant, vis, rays, lit_i, lit_dir,
+                   lit_dist):  # fmt: skip
+    """What ``ShadowRays.cast`` answers from Embree's ``occluded`` (k,) bool on the k
+    rays of ``shadow_rays`` (its out_i, out_v, out_f): visibility into ``vis`` (n, L)
+    float32 (1 = lit; pairs without a ray 0), shadow rays per point into ``rays`` (n,)
+    int64, and the lit LocalLight pairs (``shading.LightPairs``): point and LocalLight
+    index into lit_i (2, k) int64, direction into lit_dir (k, 3) float32, distance into
+    lit_dist (k,) float64. Returns the lit LocalLight pairs' count."""
+    vis[:] = 0.0
+    rays[:] = 0
+    m = 0
+    for r in range(occluded.shape[0]):
+        i, j = rays_i[0, r], rays_i[1, r]
+        rays[i] += 1
+        if occluded[r]:
+            continue
+        vis[i, j] = _ONE32
+        if j >= n_distant:
+            lit_i[0, m], lit_i[1, m] = i, j - n_distant
+            for c in range(3):
+                lit_dir[m, c] = rays_v[1, r, c]
+            lit_dist[m] = rays_f[1, r]
+            m += 1
+    return m

@@ -134,7 +134,9 @@ class Tracer:
         is_reflector = np.array([e.is_reflector for e in scene.elements], dtype=bool)
         self._element_reflector = is_reflector
         self._reflector_ids = np.flatnonzero(is_reflector)
+        self._reflector_set = set(self._reflector_ids.tolist())
         self._pixel_cache: tuple | None = None
+        self._image_cache: tuple | None = None
         self._lights_key: tuple | None = None
 
     def _relative_lights(self) -> Lights:
@@ -319,9 +321,9 @@ class Tracer:
             lights, n_elements, self.rays_cast,
         )  # fmt: skip
 
-    def _reflector_pixels(self, element_id: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _reflector_pixels(self, element_id: np.ndarray) -> tuple[np.ndarray, list[int]]:
         """The pixels of ``element_id`` (H, W) showing a reflector, grouped by element:
-        flat indices (m,) int64 (row-major within an element) and offsets (E + 1,) int64,
+        flat indices (m,) int64 (row-major within an element) and offsets (E + 1 ints),
         element e's pixels being ``[offsets[e], offsets[e + 1])``. Cached for the latest
         id image (a G-buffer is never modified once made; the cache holds the array, so
         its identity stays unique)."""
@@ -343,9 +345,24 @@ class Tracer:
             counts = np.bincount(cand_elem, minlength=n_elem)
         else:
             cand, counts = np.zeros(0, np.int64), np.zeros(n_elem, np.int64)
-        offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+        offsets = [0, *np.cumsum(counts).tolist()]
         self._pixel_cache = (element_id, cand, offsets)
         return cand, offsets
+
+    def _images(self, gbuffer: GBuffer) -> tuple[np.ndarray, ...]:
+        """``gbuffer``'s triangle, position, normal and view images flat as
+        ``trace_kernels.source_rays`` reads them (``_flat``), cached for the latest
+        G-buffer's arrays (never modified once made, see ``_reflector_pixels``)."""
+        images = (gbuffer.triangle_id, gbuffer.position, gbuffer.normal, gbuffer.view_dir)
+        cached = self._image_cache
+        if cached is not None and all(a is b for a, b in zip(cached[0], images, strict=True)):
+            return cached[1]
+        flat = (
+            _flat(gbuffer.triangle_id, np.int32, 1), _flat(gbuffer.position, np.float64, 3),
+            _flat(gbuffer.normal, np.float32, 3), _flat(gbuffer.view_dir, np.float32, 3),
+        )  # fmt: skip
+        self._image_cache = (images, flat)
+        return flat
 
     def _source_pixels(
         self, gbuffer: GBuffer, sources: list[int], mask, reflect: bool, surface: bool
@@ -356,45 +373,57 @@ class Tracer:
         (n, 3) float64 unit front-face triangle normals, ns (n, 3) float32 unit shading
         normals facing the viewer, view (n, 3) float32 unit view directions; with
         ``reflect`` dir (n, 3) float32 mirror directions and org (n, 3) float32 offset
-        origins (the arrays not asked for have no rows)."""
-        # Element id → index in ``sources`` (-1: not a source); the last slot serves id -1.
-        n_elem = len(self.scene.elements)
-        table = np.full(max(n_elem, max(sources, default=0) + 1) + 1, -1, np.int64)
-        table[[s for s in sources if s >= 0]] = [i for i, s in enumerate(sources) if s >= 0]
-        if mask is None and all(0 <= s < n_elem and self._element_reflector[s] for s in sources):
+        origins (the arrays not asked for have no rows). A source listed twice takes
+        the index of its last entry."""
+        index = {s: i for i, s in enumerate(sources)}
+        if mask is None and all(s in self._reflector_set for s in index):
             # Reflector sources (the renderer's case): look only at the G-buffer's
             # reflector pixels, found once per G-buffer and grouped by element (later
             # rounds reuse them): each source's pixels are one slice.
             pixels, offsets = self._reflector_pixels(gbuffer.element_id)
-            unique = list(dict.fromkeys(sources))
-            counts = [int(offsets[s + 1] - offsets[s]) for s in unique]
-            cand = _cat([pixels[offsets[s] : offsets[s + 1]] for s in unique])
-            cand_elem = np.repeat(np.array(unique, np.int64), counts)
+            cand = _cat([pixels[offsets[s] : offsets[s + 1]] for s in index])
+            cand_src = np.repeat(
+                np.array(list(index.values()), np.int64),
+                [offsets[s + 1] - offsets[s] for s in index],
+            )
         else:
+            # Element id → index in ``sources`` (-1: not a source); the last slot serves
+            # id -1.
+            n_elem = len(self.scene.elements)
+            table = np.full(max(n_elem, max(sources, default=0) + 1) + 1, -1, np.int64)
+            table[[s for s in index if s >= 0]] = [i for s, i in index.items() if s >= 0]
             elem = gbuffer.element_id.reshape(-1)
             chosen = np.take(table >= 0, elem)
             if mask is not None:
                 chosen &= mask
             cand = np.flatnonzero(chosen)
-            cand_elem = np.take(elem, cand).astype(np.int64)
+            cand_src = np.take(table, np.take(elem, cand))
         k = len(cand)
-        ks, kr = (k if surface else 0), (k if reflect else 0)
-        out = {
-            "src": np.empty(k, np.int64), "tri": np.empty(k, np.int64),
-            "rel": np.empty((ks, 3)), "ng": np.empty((ks, 3)),
-            "ns": np.empty((ks, 3), np.float32), "view": np.empty((ks, 3), np.float32),
-            "dir": np.empty((kr, 3), np.float32), "org": np.empty((kr, 3), np.float32),
-        }  # fmt: skip
+        out = {"tri": np.empty(k, np.int64)}
+        if surface:
+            out["rel"], out["ng"] = np.empty((k, 3)), np.empty((k, 3))
+            out["ns"], out["view"] = np.empty((k, 3), np.float32), np.empty((k, 3), np.float32)
+        else:
+            out["rel"], out["ng"], out["ns"], out["view"] = _NO_SURFACE
+        if reflect:
+            out["dir"], out["org"] = np.empty((k, 3), np.float32), np.empty((k, 3), np.float32)
+        else:
+            out["dir"], out["org"] = _NO_RAYS
         floor, relative = self.bvh.boundary.offset_factors()
         self._split(
-            trace_kernels.source_rays, k, cand, cand_elem, table,
-            _flat(gbuffer.triangle_id, np.int32, 1), _flat(gbuffer.position, np.float64, 3),
-            _flat(gbuffer.normal, np.float32, 3), _flat(gbuffer.view_dir, np.float32, 3),
+            trace_kernels.source_rays, k, cand, *self._images(gbuffer),
             self.bvh.boundary.origin, self.bvh.table.frame, floor, relative,
             out=tuple(out.values()),
         )  # fmt: skip
-        out["pix"] = cand
+        out["pix"], out["src"] = cand, cand_src
         return out
+
+
+#: ``_source_pixels``' outputs not asked for (no rows): the surface (rel, ng, ns, view)
+#: and the mirror rays (dir, org).
+_NO_SURFACE = (np.empty((0, 3)), np.empty((0, 3)), np.empty((0, 3), np.float32),
+               np.empty((0, 3), np.float32))  # fmt: skip
+_NO_RAYS = (np.empty((0, 3), np.float32), np.empty((0, 3), np.float32))
 
 
 def _cat(parts: list[np.ndarray]) -> np.ndarray:
