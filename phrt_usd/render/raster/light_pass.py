@@ -4,7 +4,7 @@ pairs the maps decide are lit.
 
 Inputs are textures: the points, their normals and directions to the eye (RGB32F,
 LOOKUP_TEXTURE_WIDTH points a row), the LocalLights' cube maps (``shadow_maps.CubeMap``
-(min, max) texels in one RG32F 2D array) and up to LOOKUP_MAX_DISTANT DistantLights'
+(min, max) texels in one RG32F buffer texture) and up to LOOKUP_MAX_DISTANT DistantLights'
 orthographic maps (``shadow_maps.ShadowMap``, RG32F each); a pass handles
 LOOKUP_LIGHTS_PER_PASS LocalLights. Outputs (``LightPass.lookup``): either a code per
 (point, LocalLight) pair (LOOKUP_LIT / LOOKUP_SHADOWED / LOOKUP_UNCERTAIN), or the
@@ -51,6 +51,8 @@ LOOKUP_TEXTURE_WIDTH = 1024
 LOOKUP_LIGHTS_PER_PASS = 16
 #: DistantLights the GPU lookup pass shades itself (more are looked up in numpy).
 LOOKUP_MAX_DISTANT = 2
+#: Bytes of one cube texel on the GPU: (min, max) float32 (RG32F).
+CUBE_TEXEL_BYTES = 8
 #: Per-light codes the GPU lookup packs one byte each (``shaders/cube_lookup.frag``).
 LOOKUP_SHADOWED, LOOKUP_LIT, LOOKUP_UNCERTAIN = 0, 1, 2
 
@@ -66,7 +68,8 @@ class LightPass:
         self._dmap_tex: list[int] = []  # DistantLight map textures (``_upload_distant``)
         self._dmap_held: list[ShadowMap | None] = []
         self._lookup_vao: int | None = None
-        self._cube_tex: int | None = None
+        self._cube_tex: int | None = None  # buffer texture of ``_cube_buf``
+        self._cube_buf: int | None = None
         self._cube_tex_layers = 0
         self._cube_tex_held: list[CubeMap | None] = []
         self._point_tex: list[int] = []
@@ -114,60 +117,53 @@ class LightPass:
         GL.glBindTexture(GL.GL_TEXTURE_2D, 0)
 
     def _upload_cubes(self, cubes: list[tuple[CubeMap | None, CubeMap | None]]) -> list[int]:
-        """Cube (min, max) texels into the RG32F texture array, re-sending only cubes
-        that changed. Layout: static cube of light k at layers 6 k, animated cube at
-        6 (L + k) when the scene has animated triangles. Returns the first layer of
-        every held cube in that order (static block then animated block), -1 = none."""
+        """Cube (min, max) texels into the RG32F buffer texture, re-sending only cubes
+        that changed. Layout: ``CUBE_MAP_SIZE``² texels per face, row-major, face
+        after face; the static cube of light k holds faces 6 k .. 6 k + 5, the animated
+        cube 6 (L + k) .. when the scene has animated triangles. Returns the first face
+        of every held cube in that order (static block then animated block), -1 = none.
+
+        A buffer texture rather than a 2D array texture: llvmpipe's buffer fetch has no
+        layer, level or 2D addressing to do, ~13 % less time for the whole sewer pass
+        (13 lights, 640x480)."""
         n = len(cubes)
         blocks = [c[0] for c in cubes] + (
             [c[1] for c in cubes] if self._ctx.animated_tri.any() else []
         )
+        face_texels = CUBE_MAP_SIZE * CUBE_MAP_SIZE
+        face_bytes = face_texels * CUBE_TEXEL_BYTES
         layers = 6 * len(blocks)
-        size = CUBE_MAP_SIZE
         if self._cube_tex is None or layers != self._cube_tex_layers:
+            limit = int(GL.glGetIntegerv(GL.GL_MAX_TEXTURE_BUFFER_SIZE))
+            if layers * face_texels > limit:
+                raise RuntimeError(
+                    f"{len(blocks)} cube shadow maps of {CUBE_MAP_SIZE}² texels a face "
+                    f"exceed the OpenGL buffer texture limit of {limit} texels "
+                    f"({limit // (6 * face_texels)} cubes)"
+                )
             if self._cube_tex is not None:
                 GL.glDeleteTextures(1, [self._cube_tex])
-            self._cube_tex = int(GL.glGenTextures(1))
-            GL.glBindTexture(GL.GL_TEXTURE_2D_ARRAY, self._cube_tex)
-            GL.glTexParameteri(GL.GL_TEXTURE_2D_ARRAY, GL.GL_TEXTURE_MIN_FILTER, GL.GL_NEAREST)
-            GL.glTexParameteri(GL.GL_TEXTURE_2D_ARRAY, GL.GL_TEXTURE_MAG_FILTER, GL.GL_NEAREST)
-            GL.glTexImage3D(
-                GL.GL_TEXTURE_2D_ARRAY,
-                0,
-                GL.GL_RG32F,
-                size,
-                size,
-                max(layers, 1),
-                0,
-                GL.GL_RG,
-                GL.GL_FLOAT,
-                None,
+                GL.glDeleteBuffers(1, [self._cube_buf])
+            self._cube_buf = int(GL.glGenBuffers(1))
+            GL.glBindBuffer(GL.GL_TEXTURE_BUFFER, self._cube_buf)
+            GL.glBufferData(
+                GL.GL_TEXTURE_BUFFER, max(layers, 1) * face_bytes, None, GL.GL_STATIC_DRAW
             )
+            self._cube_tex = int(GL.glGenTextures(1))
+            GL.glBindTexture(GL.GL_TEXTURE_BUFFER, self._cube_tex)
+            GL.glTexBuffer(GL.GL_TEXTURE_BUFFER, GL.GL_RG32F, self._cube_buf)
+            GL.glBindTexture(GL.GL_TEXTURE_BUFFER, 0)
             self._cube_tex_layers = layers
             self._cube_tex_held = [None] * len(blocks)
-        GL.glBindTexture(GL.GL_TEXTURE_2D_ARRAY, self._cube_tex)
-        GL.glPixelStorei(GL.GL_UNPACK_ALIGNMENT, 1)
+        GL.glBindBuffer(GL.GL_TEXTURE_BUFFER, self._cube_buf)
         for b, cube in enumerate(blocks):
             if cube is not None and self._cube_tex_held[b] is not cube:
-                for f in range(6):
-                    texels = np.ascontiguousarray(
-                        np.stack([cube.depth_min[f], cube.depth_max[f]], axis=-1), np.float32
-                    )
-                    GL.glTexSubImage3D(
-                        GL.GL_TEXTURE_2D_ARRAY,
-                        0,
-                        0,
-                        0,
-                        6 * b + f,
-                        size,
-                        size,
-                        1,
-                        GL.GL_RG,
-                        GL.GL_FLOAT,
-                        texels,
-                    )
+                texels = np.ascontiguousarray(
+                    np.stack([cube.depth_min, cube.depth_max], axis=-1), np.float32
+                )
+                GL.glBufferSubData(GL.GL_TEXTURE_BUFFER, 6 * b * face_bytes, 6 * face_bytes, texels)
             self._cube_tex_held[b] = cube
-        GL.glBindTexture(GL.GL_TEXTURE_2D_ARRAY, 0)
+        GL.glBindBuffer(GL.GL_TEXTURE_BUFFER, 0)
         first = [6 * b if cube is not None else -1 for b, cube in enumerate(blocks)]
         return first[:n] + (first[n:] if len(first) > n else [-1] * n)
 
@@ -311,7 +307,7 @@ class LightPass:
         GL.glDisable(GL.GL_SCISSOR_TEST)
         GL.glDisable(GL.GL_BLEND)
         GL.glDisable(GL.GL_CULL_FACE)
-        targets = [GL.GL_TEXTURE_2D, GL.GL_TEXTURE_2D, GL.GL_TEXTURE_2D_ARRAY, GL.GL_TEXTURE_2D]
+        targets = [GL.GL_TEXTURE_2D, GL.GL_TEXTURE_2D, GL.GL_TEXTURE_BUFFER, GL.GL_TEXTURE_2D]
         textures = [self._point_tex[0], self._point_tex[1], self._cube_tex, self._point_tex[2]]
         targets += [GL.GL_TEXTURE_2D] * 2 * len(distant)  # units 4 + 2 k (+1): maps
         textures += self._dmap_tex[: 2 * len(distant)]
@@ -349,7 +345,7 @@ class LightPass:
                 for c in (cubes[k] for k in ks)
             ]
             # A light without any cube (no casters at all) is lit within its range:
-            # its layers stay -1 and cube_test answers 1.
+            # its first faces stay -1 and cube_test answers 1.
             prog = self._program_for(len(ks), n_distant, shading)
 
             def loc(name: str, prog: int = prog) -> int:
@@ -388,12 +384,12 @@ class LightPass:
                 loc("light_near"), LOOKUP_LIGHTS_PER_PASS, np.array(near + [0.0] * pad, np.float32)
             )
             GL.glUniform1iv(
-                loc("static_layer"),
+                loc("static_face"),
                 LOOKUP_LIGHTS_PER_PASS,
                 np.array([first[k] for k in ks] + [-1] * pad, np.int32),
             )
             GL.glUniform1iv(
-                loc("dynamic_layer"),
+                loc("dynamic_face"),
                 LOOKUP_LIGHTS_PER_PASS,
                 np.array([first[n_local + k] for k in ks] + [-1] * pad, np.int32),
             )

@@ -17,8 +17,9 @@
 //   points  : RGB32F, (x, y, z) origin-relative world metres of point k at texel
 //             (k % width, k / width)
 //   normals : RGB32F, (x, y, z) unit shading normal facing the viewer, same layout
-//   cubes   : RG32F 2D array, (min, max) caster forward distance over the texel
-//             neighbourhood; layer = cube's first layer + face
+//   cubes   : RG32F buffer texture, (min, max) caster forward distance over the texel
+//             neighbourhood; texel (column, row) of face f of a cube whose first face
+//             is F at ((F + f) * size + row) * size + column
 //   to_eye  : RGB32F, (x, y, z) unit direction from the point to the viewer, same layout
 //   dmap_s<k>, dmap_d<k> : RG32F, (min, max) caster depth over the texel neighbourhood
 //             of DistantLight k's static / animated orthographic map (as
@@ -32,14 +33,14 @@
 
 uniform sampler2D points;
 uniform sampler2D normals;
-uniform sampler2DArray cubes;
+uniform samplerBuffer cubes;
 uniform int n_points;
 uniform int width;
 uniform vec3 light_pos[16];     // origin-relative metres
 uniform float light_range[16];  // metres; 0 = the light reaches nothing
 uniform float light_near[16];   // the cube faces' near plane, metres
-uniform int static_layer[16];   // first layer of the static casters' cube, -1 = none
-uniform int dynamic_layer[16];  // first layer of the animated casters' cube, -1 = none
+uniform int static_face[16];    // first face of the static casters' cube, -1 = none
+uniform int dynamic_face[16];   // first face of the animated casters' cube, -1 = none
 uniform int size;               // texels per face side
 uniform float tan_half;         // tangent of a face's half field of view
 uniform float bias_texels;      // SHADOW_BIAS_TEXELS
@@ -75,12 +76,17 @@ layout(location = 0) out uvec4 codes;
 layout(location = 1) out vec4 diffuse;
 layout(location = 2) out vec4 highlight;
 
-float cube_test(int layer, int face, ivec2 texel_xy, float test)
+// One cube (first face ``first``, -1 = none): 1 lit, 0 shadowed, -1 uncertain. Only
+// ``wanted`` pairs read their texel; the others (masked lanes, which llvmpipe runs all
+// the same) read texel 0, which stays in cache: the cubes (12 MB a light) far exceed
+// the caches, and such misses were ~10 % of the sewer's pass.
+float cube_test(int first, int face, ivec2 texel_xy, float test, bool wanted)
 {
-    if (layer < 0) {
+    if (first < 0) {
         return 1.0;
     }
-    vec2 mm = texelFetch(cubes, ivec3(texel_xy, layer + face), 0).rg;
+    int at = wanted ? ((first + face) * size + texel_xy.y) * size + texel_xy.x : 0;
+    vec2 mm = texelFetch(cubes, at).rg;
     if (test <= mm.x) {
         return 1.0;
     }
@@ -95,9 +101,9 @@ float lookup(int j, vec3 p, vec3 n)
     vec3 v = p - light_pos[j];
     float r = light_range[j];
     float ndv = dot(n, v);
-    if (dot(v, v) >= r * r || ndv >= 0.0) {
-        return 0.0;  // out of range, or the light is behind the surface
-    }
+    // Out of range or the light behind the surface: 0; nearer than the near plane: 1.
+    // Selected at the end, not returned early, so that the fetches know (cube_test).
+    bool reach = dot(v, v) < r * r && ndv < 0.0;
     vec3 a = abs(v);
     int axis;
     float w;
@@ -111,9 +117,8 @@ float lookup(int j, vec3 p, vec3 n)
     } else {
         axis = 2; w = a.z; major = v.z; bc = v.xy; nbc = n.xy;
     }
-    if (w <= light_near[j]) {
-        return 1.0;
-    }
+    bool beyond_near = w > light_near[j];
+    bool wanted = reach && beyond_near;
     int face = 2 * axis + (major < 0.0 ? 1 : 0);
     float texel = 2.0 * tan_half * w / float(size);
     float slope = min(texel * w * (abs(nbc.x) + abs(nbc.y)) / max(-ndv, 1e-30),
@@ -121,16 +126,14 @@ float lookup(int j, vec3 p, vec3 n)
     float test = w - texel * bias_texels - box_radius * slope;
     vec2 f = floor(bc / w * (0.5 * float(size) / tan_half) + 0.5 * float(size));
     ivec2 t = clamp(ivec2(f), ivec2(0), ivec2(size - 1));
-    float vs = cube_test(static_layer[j], face, t, test);
+    float vs = cube_test(static_face[j], face, t, test, wanted);
 #if HAS_DYNAMIC
-    float vd = cube_test(dynamic_layer[j], face, t, test);
-    if (vs == 0.0 || vd == 0.0) {
-        return 0.0;
-    }
-    return min(vs, vd);  // -1 if either is uncertain, else 1
+    float vd = cube_test(dynamic_face[j], face, t, test, wanted);
+    float vis = (vs == 0.0 || vd == 0.0) ? 0.0 : min(vs, vd);  // -1: either uncertain
 #else
-    return vs;
+    float vis = vs;
 #endif
+    return reach ? (beyond_near ? vis : 1.0) : 0.0;
 }
 
 uint code(float r)
