@@ -89,11 +89,13 @@ class LightPass:
             with open(os.path.join(SHADER_DIR, "cube_lookup.frag")) as f:
                 version, frag = f.read().split("\n", 1)
             squarings = np.log2(SHININESS) if SHININESS >= 1.0 else 0.5
+            tan_half = CUBE_MAP_SIZE / (CUBE_MAP_SIZE - 2.0 * CUBE_GUARD_TEXELS)
             defines = (
                 f"#define N_LIGHTS {n_lights}\n#define N_DISTANT {n_distant}\n"
                 f"#define HAS_DYNAMIC {int(has_dynamic)}\n"
                 f"#define SHADE {int(shade)}\n"
                 f"#define SQUARINGS {int(squarings) if squarings % 1 == 0 else -1}\n"
+                f"#define CUBE_SIZE {CUBE_MAP_SIZE}\n#define TAN_HALF {tan_half!r}\n"
             )
             self._lookup_programs[key] = int(
                 gl_shaders.compileProgram(
@@ -358,9 +360,6 @@ class LightPass:
             GL.glUniform1i(loc("to_eye"), 3)
             GL.glUniform1i(loc("n_points"), n)
             GL.glUniform1i(loc("width"), width)
-            GL.glUniform1i(loc("size"), CUBE_MAP_SIZE)
-            tan_half = CUBE_MAP_SIZE / (CUBE_MAP_SIZE - 2.0 * CUBE_GUARD_TEXELS)
-            GL.glUniform1f(loc("tan_half"), tan_half)
             GL.glUniform1f(loc("bias_texels"), SHADOW_BIAS_TEXELS)
             GL.glUniform1f(loc("box_radius"), SHADOW_REFINE_RADIUS + 0.5)
             GL.glUniform1f(loc("slope_clamp"), 1.0 / SHADOW_MIN_COS)

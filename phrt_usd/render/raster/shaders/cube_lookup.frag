@@ -7,6 +7,10 @@
 //   HAS_DYNAMIC  1 when the scene has animated casters (a second cube per light)
 //   SHADE        1 to also shade the lit pairs (diffuse / highlight outputs)
 //   SQUARINGS    log2(shading.SHININESS) when that is an integer, else -1 (pow)
+//   CUBE_SIZE    texels per cube face side (shadow_maps.CUBE_MAP_SIZE)
+//   TAN_HALF     tangent of a cube face's half field of view (its guard band)
+// (constants rather than uniforms: the expressions of them fold at compile time instead
+// of running per fragment)
 // LocalLight shadow lookups, fragment stage: one fragment per query point, up to 16
 // lights per pass, packed as one byte each into one RGBA32UI attachment (light j in
 // channel j / 4, bits 8 (j % 4) .. 8 (j % 4) + 7: little-endian bytes in light order).
@@ -19,7 +23,7 @@
 //   normals : RGB32F, (x, y, z) unit shading normal facing the viewer, same layout
 //   cubes   : RG32F buffer texture, (min, max) caster forward distance over the texel
 //             neighbourhood; texel (column, row) of face f of a cube whose first face
-//             is F at ((F + f) * size + row) * size + column
+//             is F at ((F + f) * CUBE_SIZE + row) * CUBE_SIZE + column
 //   to_eye  : RGB32F, (x, y, z) unit direction from the point to the viewer, same layout
 //   dmap_s<k>, dmap_d<k> : RG32F, (min, max) caster depth over the texel neighbourhood
 //             of DistantLight k's static / animated orthographic map (as
@@ -41,8 +45,6 @@ uniform float light_range[16];  // metres; 0 = the light reaches nothing
 uniform float light_near[16];   // the cube faces' near plane, metres
 uniform int static_face[16];    // first face of the static casters' cube, -1 = none
 uniform int dynamic_face[16];   // first face of the animated casters' cube, -1 = none
-uniform int size;               // texels per face side
-uniform float tan_half;         // tangent of a face's half field of view
 uniform float bias_texels;      // SHADOW_BIAS_TEXELS
 uniform float box_radius;       // SHADOW_REFINE_RADIUS + 0.5 (nearest-texel offset)
 uniform float slope_clamp;      // 1 / SHADOW_MIN_COS
@@ -85,7 +87,7 @@ float cube_test(int first, int face, ivec2 texel_xy, float test, bool wanted)
     if (first < 0) {
         return 1.0;
     }
-    int at = wanted ? ((first + face) * size + texel_xy.y) * size + texel_xy.x : 0;
+    int at = wanted ? ((first + face) * CUBE_SIZE + texel_xy.y) * CUBE_SIZE + texel_xy.x : 0;
     vec2 mm = texelFetch(cubes, at).rg;
     if (test <= mm.x) {
         return 1.0;
@@ -120,12 +122,12 @@ float lookup(int j, vec3 p, vec3 n)
     bool beyond_near = w > light_near[j];
     bool wanted = reach && beyond_near;
     int face = 2 * axis + (major < 0.0 ? 1 : 0);
-    float texel = 2.0 * tan_half * w / float(size);
+    float texel = w * (2.0 * TAN_HALF / float(CUBE_SIZE));  // texel width at w, metres
     float slope = min(texel * w * (abs(nbc.x) + abs(nbc.y)) / max(-ndv, 1e-30),
                       slope_clamp * texel);
     float test = w - texel * bias_texels - box_radius * slope;
-    vec2 f = floor(bc / w * (0.5 * float(size) / tan_half) + 0.5 * float(size));
-    ivec2 t = clamp(ivec2(f), ivec2(0), ivec2(size - 1));
+    vec2 f = floor(bc * ((0.5 * float(CUBE_SIZE) / TAN_HALF) / w) + 0.5 * float(CUBE_SIZE));
+    ivec2 t = clamp(ivec2(f), ivec2(0), ivec2(CUBE_SIZE - 1));
     float vs = cube_test(static_face[j], face, t, test, wanted);
 #if HAS_DYNAMIC
     float vd = cube_test(dynamic_face[j], face, t, test, wanted);
@@ -145,7 +147,7 @@ uint code(float r)
 float highlight_of(vec3 n, vec3 e, vec3 l)
 {
     vec3 h = l + e;
-    float x = max(dot(n, h) / max(length(h), 1e-12), 0.0);
+    float x = max(dot(n, h) * inversesqrt(max(dot(h, h), 1e-24)), 0.0);
 #if SQUARINGS >= 0
     for (int i = 0; i < SQUARINGS; ++i) {  // x^(2^k) as k squarings, as shading does
         x *= x;
