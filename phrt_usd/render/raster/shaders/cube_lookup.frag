@@ -98,14 +98,15 @@ float cube_test(int first, int face, ivec2 texel_xy, float test, bool wanted)
     return -1.0;
 }
 
-float lookup(int j, vec3 p, vec3 n)
+// Light j's shadow test at a point v (from the light to the point, d2 = |v|²) with
+// normal n: 1 lit, 0 shadowed / out of range / facing away, -1 uncertain.
+float lookup(int j, vec3 v, float d2, vec3 n)
 {
-    vec3 v = p - light_pos[j];
     float r = light_range[j];
     float ndv = dot(n, v);
     // Out of range or the light behind the surface: 0; nearer than the near plane: 1.
     // Selected at the end, not returned early, so that the fetches know (cube_test).
-    bool reach = dot(v, v) < r * r && ndv < 0.0;
+    bool reach = d2 < r * r && ndv < 0.0;
     vec3 a = abs(v);
     int axis;
     float w;
@@ -202,16 +203,17 @@ void distant(int k, float vs, float vd, vec3 n, vec3 e,
 }
 #endif
 
-// Adds light j's contribution at a point it lights (the shadow test said lit).
-void shade(int j, vec3 p, vec3 n, vec3 e, inout vec3 d_sum, inout vec3 h_sum)
+// Adds light j's contribution at a point it lights (the shadow test said lit); v and d2
+// as in lookup (shared: the compiler would not match light - p with p - light).
+void shade(int j, vec3 v, float d2, vec3 n, vec3 e, inout vec3 d_sum, inout vec3 h_sum)
 {
-    vec3 to_light = light_pos[j] - p;
     float r2 = light_range[j] * light_range[j];
-    float dist2 = max(dot(to_light, to_light), min_light_distance * min_light_distance);
-    vec3 l = to_light * inversesqrt(dist2);
+    float dist2 = max(d2, min_light_distance * min_light_distance);
+    float inv_d = inversesqrt(dist2);
+    vec3 l = -v * inv_d;
     float q = dist2 / r2;
     float window = clamp(1.0 - q * q, 0.0, 1.0);
-    float lit = max(dot(n, l), 0.0) * window * window / dist2;
+    float lit = max(dot(n, l), 0.0) * window * window * (inv_d * inv_d);
     d_sum += light_radiance[j] * lit;
     h_sum += light_radiance[j] * (lit * highlight_of(n, e, l));
 }
@@ -248,10 +250,12 @@ void main()
         }
 #endif
         for (int j = 0; j < N_LIGHTS; ++j) {
-            result[j] = lookup(j, p, n);
+            vec3 v = p - light_pos[j];
+            float d2 = dot(v, v);
+            result[j] = lookup(j, v, d2, n);
 #if SHADE
             if (result[j] > 0.5) {
-                shade(j, p, n, e, d_sum, h_sum);
+                shade(j, v, d2, n, e, d_sum, h_sum);
             } else if (result[j] < -0.5) {
                 unsure += float(1 << j);
             }
