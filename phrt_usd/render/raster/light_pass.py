@@ -98,6 +98,8 @@ class LightPass:
                 f"#define SHADE {int(shade)}\n"
                 f"#define SQUARINGS {int(squarings) if squarings % 1 == 0 else -1}\n"
                 f"#define CUBE_SIZE {CUBE_MAP_SIZE}\n#define TAN_HALF {tan_half!r}\n"
+                f"#define LINE_W {CUBE_LINE_TILE[0]}u\n#define LINE_H {CUBE_LINE_TILE[1]}u\n"
+                f"#define PAGE_W {CUBE_PAGE_TILE[0]}u\n#define PAGE_H {CUBE_PAGE_TILE[1]}u\n"
             )
             self._lookup_programs[key] = int(
                 gl_shaders.compileProgram(
@@ -122,7 +124,7 @@ class LightPass:
 
     def _upload_cubes(self, cubes: list[tuple[CubeMap | None, CubeMap | None]]) -> list[int]:
         """Cube (min, max) texels into the RG32F buffer texture, re-sending only cubes
-        that changed. Layout: ``CUBE_MAP_SIZE``² texels per face, row-major, face
+        that changed. Layout: ``CUBE_MAP_SIZE``² texels per face (``_tiled``), face
         after face; the static cube of light k holds faces 6 k .. 6 k + 5, the animated
         cube 6 (L + k) .. when the scene has animated triangles. Returns the first face
         of every held cube in that order (static block then animated block), -1 = none.
@@ -162,9 +164,7 @@ class LightPass:
         GL.glBindBuffer(GL.GL_TEXTURE_BUFFER, self._cube_buf)
         for b, cube in enumerate(blocks):
             if cube is not None and self._cube_tex_held[b] is not cube:
-                texels = np.ascontiguousarray(
-                    np.stack([cube.depth_min, cube.depth_max], axis=-1), np.float32
-                )
+                texels = _tiled(np.stack([cube.depth_min, cube.depth_max], axis=-1))
                 GL.glBufferSubData(GL.GL_TEXTURE_BUFFER, 6 * b * face_bytes, 6 * face_bytes, texels)
             self._cube_tex_held[b] = cube
         GL.glBindBuffer(GL.GL_TEXTURE_BUFFER, 0)
@@ -430,6 +430,29 @@ class LightPass:
         if shading:
             return diffuse[:n], highlight[:n], bits
         return out
+
+
+#: The texel tiles of the cube buffer (``_tiled``): (columns, rows) of a 64-byte cache
+#: line and of a 4 KB page of RG32F texels.
+CUBE_LINE_TILE = (4, 2)
+CUBE_PAGE_TILE = (32, 16)
+
+
+def _tiled(texels: np.ndarray) -> np.ndarray:
+    """(6, S, S, 2) float cube faces (``CubeMap`` order: face, row, column, (min, max))
+    as the GPU's buffer holds them (S = CUBE_MAP_SIZE, a multiple of 32): per face,
+    pages of CUBE_PAGE_TILE texels row-major, in each page lines of CUBE_LINE_TILE
+    texels row-major, in each line its texels row-major (``cube_test`` in
+    ``shaders/cube_lookup.frag`` addresses it). Texels near each other on a face share
+    a line or a page, as neighbouring pixels' lookups do (sewer 640x480: ~3 % less
+    time for the pass than row-major faces). Returns (6 S², 2) float32."""
+    size = texels.shape[1]
+    (lx, ly), (px, py) = CUBE_LINE_TILE, CUBE_PAGE_TILE
+    blocks = texels.reshape(6, size // py, py // ly, ly, size // px, px // lx, lx, 2)
+    # (face, page row, line row, row, page column, line column, column) ->
+    # (face, page row, page column, line row, line column, row, column)
+    order = blocks.transpose(0, 1, 4, 2, 5, 3, 6, 7)
+    return np.ascontiguousarray(order, np.float32).reshape(-1, 2)
 
 
 #: An empty point array (``pack_texels`` of a texture that holds no points).

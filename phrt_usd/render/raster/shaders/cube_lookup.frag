@@ -9,6 +9,8 @@
 //   SQUARINGS    log2(shading.SHININESS) when that is an integer, else -1 (pow)
 //   CUBE_SIZE    texels per cube face side (shadow_maps.CUBE_MAP_SIZE)
 //   TAN_HALF     tangent of a cube face's half field of view (its guard band)
+//   LINE_W, LINE_H, PAGE_W, PAGE_H  (columns, rows) of the cube buffer's tiles, unsigned
+//                (light_pass.CUBE_LINE_TILE, CUBE_PAGE_TILE)
 // (constants rather than uniforms: the expressions of them fold at compile time instead
 // of running per fragment)
 // LocalLight shadow lookups, fragment stage: one fragment per query point, up to 16
@@ -22,8 +24,8 @@
 //             (k % width, k / width)
 //   normals : RGB32F, (x, y, z) unit shading normal facing the viewer, same layout
 //   cubes   : RG32F buffer texture, (min, max) caster forward distance over the texel
-//             neighbourhood; texel (column, row) of face f of a cube whose first face
-//             is F at ((F + f) * CUBE_SIZE + row) * CUBE_SIZE + column
+//             neighbourhood; face f of a cube whose first face is F at
+//             (F + f) * CUBE_SIZE², its texels in tiles (light_pass._tiled, cube_test)
 //   to_eye  : RGB32F, (x, y, z) unit direction from the point to the viewer, same layout
 //   dmap_s<k>, dmap_d<k> : RG32F, (min, max) caster depth over the texel neighbourhood
 //             of DistantLight k's static / animated orthographic map (as
@@ -87,7 +89,15 @@ float cube_test(int first, int face, ivec2 texel_xy, float test, bool wanted)
     if (first < 0) {
         return 1.0;
     }
-    int at = wanted ? ((first + face) * CUBE_SIZE + texel_xy.y) * CUBE_SIZE + texel_xy.x : 0;
+    // light_pass._tiled: pages (row-major), in them lines (row-major), in them texels
+    // (row-major); unsigned, so that the power-of-two divisions compile to shifts.
+    uint x = uint(texel_xy.x);
+    uint y = uint(texel_xy.y);
+    uint page = (y / PAGE_H) * (uint(CUBE_SIZE) / PAGE_W) + x / PAGE_W;
+    uint line = (y % PAGE_H / LINE_H) * (PAGE_W / LINE_W) + x % PAGE_W / LINE_W;
+    uint in_face = (page * (PAGE_H / LINE_H) * (PAGE_W / LINE_W) + line) * (LINE_W * LINE_H)
+        + (y % LINE_H) * LINE_W + x % LINE_W;
+    int at = wanted ? (first + face) * (CUBE_SIZE * CUBE_SIZE) + int(in_face) : 0;
     vec2 mm = texelFetch(cubes, at).rg;
     if (test <= mm.x) {
         return 1.0;
