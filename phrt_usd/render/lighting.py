@@ -84,8 +84,10 @@ def shade_gbuffer(
             pending = rasterizer.map_visibility(pos, nrm, filtered=tracer is None)
             visibility = _settled(pending, tracer)
         shadow_pass = "shadow_map" if tracer is None else "shadow_map+rays"
-    tri = take(gb.triangle_id)
-    emissive = surface.emissive_at(scene, tri, pos)  # textured emissiveColor too
+    if _emits(scene):
+        emissive = surface.emissive_at(scene, take(gb.triangle_id), pos)  # textured too
+    else:  # one zero for every point: no per-pixel gathers
+        emissive = _NO_EMISSION
     shaded = shade_local(
         pos,
         nrm,
@@ -102,6 +104,16 @@ def shade_gbuffer(
     local = np.zeros((h * w, 3), dtype=np.float32)
     local[pix] = shaded
     return local.reshape(h, w, 3), shadow_pass
+
+
+#: ``shade_local``'s emission of every point in a scene whose materials emit nothing.
+_NO_EMISSION = np.zeros(3, np.float32)
+
+
+def _emits(scene: Scene) -> bool:
+    """Some material of ``scene`` has a non-zero or textured emissiveColor."""
+    materials = scene.materials
+    return bool(np.any(materials.emissive)) or surface.has_texture_input(materials, "emissiveColor")
 
 
 def _settled(pending, tracer: Tracer | None):
