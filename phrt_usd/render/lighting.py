@@ -27,7 +27,7 @@ import numpy as np
 from phrt_usd.model import surface
 from phrt_usd.model.frame import GBuffer
 from phrt_usd.model.scene import Scene
-from phrt_usd.render.shading import shade_local, shaped_lights
+from phrt_usd.render.shading import gather_rows, shade_local, shaped_lights
 
 if TYPE_CHECKING:  # the raster and trace halves import OpenGL / Embree: only if used
     from phrt_usd.render.raster.rasterizer import Rasterizer
@@ -57,7 +57,7 @@ def shade_gbuffer(
 
     def take(a: np.ndarray) -> np.ndarray:
         flat = a.reshape(h * w, *a.shape[2:])
-        return flat if isinstance(pix, slice) else np.take(flat, pix, axis=0)
+        return flat if isinstance(pix, slice) else gather_rows(flat, pix)
 
     pos = take(gb.position)
     nrm = take(gb.normal)
