@@ -14,10 +14,10 @@ pairs with bits flagging the uncertain ones, which the caller resolves
 ``shadow_maps.filtered_visibility``'s, the shading ``shade_kernels.shade_kernel``'s:
 keep the shader and those in step.
 
-Measured on the sewer (13 lights): the lookup takes ~12 ms of CPU time per frame at
-320x240 and ~52 ms at 640x480 (llvmpipe spreads it over the cores), nearly all of it the
-fragment shader (llvmpipe runs every branch under masks, so every light costs every
-point; the cube texel fetches ~1/3); packing, uploads and readback ~4 ms at 640x480.
+Measured on the sewer (13 lights, 640x480): the lookup takes ~45 ms of CPU time per
+frame (llvmpipe spreads it over the cores), nearly all of it the fragment shader
+(llvmpipe runs every branch under masks, so every light costs every point; the cube
+texel fetches, mostly cache misses, ~1/4); packing, uploads and readback ~4 ms.
 
 Coordinate spaces as in ``context``: "rel" is world minus ``Scene.origin``, metres.
 """
