@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -258,3 +259,16 @@ def test_threaded_shade_local_matches_one_chunk(monkeypatch):
             )
         )
     np.testing.assert_allclose(runs[0], runs[1], rtol=1e-6, atol=1e-7)
+
+
+@pytest.mark.parametrize("threads", [1, 3])
+def test_gather_rows_is_take(monkeypatch, threads):
+    """``gather_rows`` on the shading pool (uneven slices) gives np.take's rows."""
+    monkeypatch.setattr(shading, "SHADE_THREADS", threads)
+    rng = np.random.default_rng(5)
+    n = 3 * shading.SHADE_MIN_THREADED_POINTS
+    for a in (rng.normal(size=(n, 3)), rng.integers(0, 9, n).astype(np.int32)):
+        index = np.flatnonzero(rng.uniform(size=n) < 0.9)
+        got = shading.gather_rows(a, index)
+        assert got.dtype == a.dtype
+        np.testing.assert_array_equal(got, np.take(a, index, axis=0))

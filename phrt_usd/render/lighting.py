@@ -27,7 +27,7 @@ import numpy as np
 from phrt_usd.model import surface
 from phrt_usd.model.frame import GBuffer
 from phrt_usd.model.scene import Scene
-from phrt_usd.render.shading import shade_local, shaped_lights
+from phrt_usd.render.shading import gather_rows, shade_local, shaped_lights
 
 if TYPE_CHECKING:  # the raster and trace halves import OpenGL / Embree: only if used
     from phrt_usd.render.raster.rasterizer import Rasterizer
@@ -57,7 +57,7 @@ def shade_gbuffer(
 
     def take(a: np.ndarray) -> np.ndarray:
         flat = a.reshape(h * w, *a.shape[2:])
-        return flat if isinstance(pix, slice) else np.take(flat, pix, axis=0)
+        return flat if isinstance(pix, slice) else gather_rows(flat, pix)
 
     pos = take(gb.position)
     nrm = take(gb.normal)
@@ -84,8 +84,10 @@ def shade_gbuffer(
             pending = rasterizer.map_visibility(pos, nrm, filtered=tracer is None)
             visibility = _settled(pending, tracer)
         shadow_pass = "shadow_map" if tracer is None else "shadow_map+rays"
-    tri = take(gb.triangle_id)
-    emissive = surface.emissive_at(scene, tri, pos)  # textured emissiveColor too
+    if _emits(scene):
+        emissive = surface.emissive_at(scene, take(gb.triangle_id), pos)  # textured too
+    else:  # one zero for every point: no per-pixel gathers
+        emissive = _NO_EMISSION
     shaded = shade_local(
         pos,
         nrm,
@@ -102,6 +104,16 @@ def shade_gbuffer(
     local = np.zeros((h * w, 3), dtype=np.float32)
     local[pix] = shaded
     return local.reshape(h, w, 3), shadow_pass
+
+
+#: ``shade_local``'s emission of every point in a scene whose materials emit nothing.
+_NO_EMISSION = np.zeros(3, np.float32)
+
+
+def _emits(scene: Scene) -> bool:
+    """Some material of ``scene`` has a non-zero or textured emissiveColor."""
+    materials = scene.materials
+    return bool(np.any(materials.emissive)) or surface.has_texture_input(materials, "emissiveColor")
 
 
 def _settled(pending, tracer: Tracer | None):

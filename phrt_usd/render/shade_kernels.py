@@ -397,9 +397,9 @@ def undecided_rows(bits, n_local, active, per_pass, gpu_distant, distant_unsure)
     LocalLight pairs (m, n_local) bool."""
     n, passes = bits.shape
     n_distant = distant_unsure.shape[1]
-    unsure = np.zeros(n, np.bool_)
+    rows = np.empty(n, np.int64)
     m = 0
-    for i in range(n):
+    for i in range(n):  # branch-free: row i is kept by counting it
         any_bit = False
         for p in range(passes):
             any_bit = any_bit or bits[i, p] != 0
@@ -407,19 +407,20 @@ def undecided_rows(bits, n_local, active, per_pass, gpu_distant, distant_unsure)
             if gpu_distant:
                 distant_unsure[i, k] = (bits[i, 0] >> (16 + k)) & 1 != 0
             any_bit = any_bit or distant_unsure[i, k]
-        unsure[i] = any_bit
+        rows[m] = i
         m += any_bit
-    rows = np.empty(m, np.int64)
-    local = np.zeros((m, n_local), np.bool_)
-    r = 0
-    for i in range(n):
-        if not unsure[i]:
-            continue
-        rows[r] = i
-        for j in range(active.shape[0]):
-            p, b = j // per_pass, j % per_pass
-            local[r, active[j]] = (bits[i, p] >> b) & 1 != 0
-        r += 1
+    rows = rows[:m].copy()
+    n_active = active.shape[0]
+    # Every column is written below when every light was looked up (active = all).
+    every = n_active == n_local
+    local = np.empty((m, n_local), np.bool_) if every else np.zeros((m, n_local), np.bool_)
+    for r in range(m):
+        i = rows[r]
+        for p in range(passes):  # branch-free over each pass's bits (no divisions)
+            word = bits[i, p]
+            base = p * per_pass
+            for b in range(min(per_pass, n_active - base)):
+                local[r, active[base + b]] = (word >> b) & 1 != 0
     return rows, local
 
 

@@ -161,7 +161,7 @@ def environment_radiance(lights: Lights, directions: np.ndarray) -> np.ndarray:
         longitude = np.arctan2(d[:, 0], d[:, 2])
         compiled.latlong_bilinear(latitude, longitude, texture, colour64, out[part])
 
-    _on_pool(run, n)
+    on_pool(run, n)
     return out
 
 
@@ -487,14 +487,14 @@ def shade_local(
             None if lit_sums is None else (lit_sums[0][part], lit_sums[1][part]),
         )
 
-    _on_pool(run, n)
+    on_pool(run, n)
     return out
 
 
 _POOL: dict[int, ThreadPoolExecutor] = {}  # the shading pool, by its thread count
 
 
-def _on_pool(run, n: int) -> None:
+def on_pool(run, n: int) -> None:
     """``run(part)`` over ``n`` independent points: on ``_shade_threads()`` contiguous
     slices on the shading pool from SHADE_MIN_THREADED_POINTS points on, else at once
     (compiled kernels and large numpy calls release the GIL)."""
@@ -507,6 +507,19 @@ def _on_pool(run, n: int) -> None:
     jobs = [pool.submit(run, slice(a, b)) for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
     for job in jobs:
         job.result()
+
+
+def gather_rows(a: np.ndarray, index: np.ndarray) -> np.ndarray:
+    """``np.take(a, index, axis=0)`` (m, ...) for ``index`` (m,) valid int64 rows of
+    ``a`` (n, ...), gathered in slices on the shading pool (``on_pool``: np.take
+    releases the GIL; mode "clip" as the indices are valid: "raise" buffers ``out``)."""
+    out = np.empty((len(index), *a.shape[1:]), a.dtype)
+
+    def run(part: slice) -> None:
+        np.take(a, index[part], axis=0, out=out[part], mode="clip")
+
+    on_pool(run, len(index))
+    return out
 
 
 def _shade_threads() -> int:

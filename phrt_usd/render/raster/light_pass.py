@@ -2,21 +2,22 @@
 light's shadow maps in one fragment per point, and the shading of the (point, light)
 pairs the maps decide are lit.
 
-Inputs are textures: the points, their normals and directions to the eye (RGB32F,
-LOOKUP_TEXTURE_WIDTH points a row), the LocalLights' cube maps (``shadow_maps.CubeMap``
-(min, max) texels in one RG32F 2D array) and up to LOOKUP_MAX_DISTANT DistantLights'
-orthographic maps (``shadow_maps.ShadowMap``, RG32F each); a pass handles
-LOOKUP_LIGHTS_PER_PASS LocalLights. Outputs (``LightPass.lookup``): either a code per
-(point, LocalLight) pair (LOOKUP_LIT / LOOKUP_SHADOWED / LOOKUP_UNCERTAIN), or the
-diffuse and highlight sums over the lit pairs with bits flagging the uncertain ones,
-which the caller resolves (``map_lighting``). The test is ``shadow_maps.cube_visibility``'s
-and ``shadow_maps.filtered_visibility``'s, the shading ``shade_kernels.shade_kernel``'s: keep
-the shader and those in step.
+Inputs are textures: the points, their normals and directions to the eye (RGB32F, as
+many points a row as the frame has pixels, ``LightPass.row_width``), the LocalLights'
+cube maps (``shadow_maps.CubeMap`` (min, max) texels in one RG32F buffer texture) and
+up to LOOKUP_MAX_DISTANT DistantLights' orthographic maps (``shadow_maps.ShadowMap``,
+RG32F each); a pass handles LOOKUP_LIGHTS_PER_PASS LocalLights. Outputs
+(``LightPass.lookup``): either a code per (point, LocalLight) pair (LOOKUP_LIT /
+LOOKUP_SHADOWED / LOOKUP_UNCERTAIN), or the diffuse and highlight sums over the lit
+pairs with bits flagging the uncertain ones, which the caller resolves
+(``map_lighting``). The test is ``shadow_maps.cube_visibility``'s and
+``shadow_maps.filtered_visibility``'s, the shading ``shade_kernels.shade_kernel``'s:
+keep the shader and those in step.
 
-Measured on the sewer (13 lights): the lookup takes ~12 ms of CPU time per frame at
-320x240 and ~52 ms at 640x480 (llvmpipe spreads it over the cores), nearly all of it the
-fragment shader (llvmpipe runs every branch under masks, so every light costs every
-point; the cube texel fetches ~1/3); packing, uploads and readback ~4 ms at 640x480.
+Measured on the sewer (13 lights, 640x480): the lookup takes ~45 ms of CPU time per
+frame (llvmpipe spreads it over the cores), nearly all of it the fragment shader
+(llvmpipe runs every branch under masks, so every light costs every point; the cube
+texel fetches, mostly cache misses, ~1/4); packing, uploads and readback ~4 ms.
 
 Coordinate spaces as in ``context``: "rel" is world minus ``Scene.origin``, metres.
 """
@@ -45,12 +46,15 @@ from phrt_usd.render.raster.shadow_maps import (
 )
 from phrt_usd.render.shading import MIN_LIGHT_DISTANCE, SHININESS, SPECULAR_STRENGTH
 
-#: Query points per row of the GPU lookup pass's point texture (rows as needed).
-LOOKUP_TEXTURE_WIDTH = 1024
+#: Most rows of the GPU lookup pass's point texture (llvmpipe's largest renderbuffer
+#: side); more points than the frame's width times this make the rows wider.
+LOOKUP_MAX_ROWS = 16384
 #: LocalLights per GPU lookup pass (one RGBA32UI colour attachment, one byte each).
 LOOKUP_LIGHTS_PER_PASS = 16
 #: DistantLights the GPU lookup pass shades itself (more are looked up in numpy).
 LOOKUP_MAX_DISTANT = 2
+#: Bytes of one cube texel on the GPU: (min, max) float32 (RG32F).
+CUBE_TEXEL_BYTES = 8
 #: Per-light codes the GPU lookup packs one byte each (``shaders/cube_lookup.frag``).
 LOOKUP_SHADOWED, LOOKUP_LIT, LOOKUP_UNCERTAIN = 0, 1, 2
 
@@ -66,13 +70,14 @@ class LightPass:
         self._dmap_tex: list[int] = []  # DistantLight map textures (``_upload_distant``)
         self._dmap_held: list[ShadowMap | None] = []
         self._lookup_vao: int | None = None
-        self._cube_tex: int | None = None
+        self._cube_tex: int | None = None  # buffer texture of ``_cube_buf``
+        self._cube_buf: int | None = None
         self._cube_tex_layers = 0
         self._cube_tex_held: list[CubeMap | None] = []
         self._point_tex: list[int] = []
         self._lookup_fb: int | None = None
         self._lookup_rb: list[int] = []
-        self._lookup_rows = 0
+        self._lookup_size = (0, 0)  # (width, rows) of ``_lookup_fb``
 
     def _program_for(self, n_lights: int, n_distant: int, shade: bool) -> int:
         """The lookup program for a pass of ``n_lights`` LocalLights and ``n_distant``
@@ -86,11 +91,15 @@ class LightPass:
             with open(os.path.join(SHADER_DIR, "cube_lookup.frag")) as f:
                 version, frag = f.read().split("\n", 1)
             squarings = np.log2(SHININESS) if SHININESS >= 1.0 else 0.5
+            tan_half = CUBE_MAP_SIZE / (CUBE_MAP_SIZE - 2.0 * CUBE_GUARD_TEXELS)
             defines = (
                 f"#define N_LIGHTS {n_lights}\n#define N_DISTANT {n_distant}\n"
                 f"#define HAS_DYNAMIC {int(has_dynamic)}\n"
                 f"#define SHADE {int(shade)}\n"
                 f"#define SQUARINGS {int(squarings) if squarings % 1 == 0 else -1}\n"
+                f"#define CUBE_SIZE {CUBE_MAP_SIZE}\n#define TAN_HALF {tan_half!r}\n"
+                f"#define LINE_W {CUBE_LINE_TILE[0]}u\n#define LINE_H {CUBE_LINE_TILE[1]}u\n"
+                f"#define PAGE_W {CUBE_PAGE_TILE[0]}u\n#define PAGE_H {CUBE_PAGE_TILE[1]}u\n"
             )
             self._lookup_programs[key] = int(
                 gl_shaders.compileProgram(
@@ -114,60 +123,51 @@ class LightPass:
         GL.glBindTexture(GL.GL_TEXTURE_2D, 0)
 
     def _upload_cubes(self, cubes: list[tuple[CubeMap | None, CubeMap | None]]) -> list[int]:
-        """Cube (min, max) texels into the RG32F texture array, re-sending only cubes
-        that changed. Layout: static cube of light k at layers 6 k, animated cube at
-        6 (L + k) when the scene has animated triangles. Returns the first layer of
-        every held cube in that order (static block then animated block), -1 = none."""
+        """Cube (min, max) texels into the RG32F buffer texture, re-sending only cubes
+        that changed. Layout: ``CUBE_MAP_SIZE``² texels per face (``_tiled``), face
+        after face; the static cube of light k holds faces 6 k .. 6 k + 5, the animated
+        cube 6 (L + k) .. when the scene has animated triangles. Returns the first face
+        of every held cube in that order (static block then animated block), -1 = none.
+
+        A buffer texture rather than a 2D array texture: llvmpipe's buffer fetch has no
+        layer, level or 2D addressing to do, ~13 % less time for the whole sewer pass
+        (13 lights, 640x480)."""
         n = len(cubes)
         blocks = [c[0] for c in cubes] + (
             [c[1] for c in cubes] if self._ctx.animated_tri.any() else []
         )
+        face_texels = CUBE_MAP_SIZE * CUBE_MAP_SIZE
+        face_bytes = face_texels * CUBE_TEXEL_BYTES
         layers = 6 * len(blocks)
-        size = CUBE_MAP_SIZE
         if self._cube_tex is None or layers != self._cube_tex_layers:
+            limit = int(GL.glGetIntegerv(GL.GL_MAX_TEXTURE_BUFFER_SIZE))
+            if layers * face_texels > limit:
+                raise RuntimeError(
+                    f"{len(blocks)} cube shadow maps of {CUBE_MAP_SIZE}² texels a face "
+                    f"exceed the OpenGL buffer texture limit of {limit} texels "
+                    f"({limit // (6 * face_texels)} cubes)"
+                )
             if self._cube_tex is not None:
                 GL.glDeleteTextures(1, [self._cube_tex])
-            self._cube_tex = int(GL.glGenTextures(1))
-            GL.glBindTexture(GL.GL_TEXTURE_2D_ARRAY, self._cube_tex)
-            GL.glTexParameteri(GL.GL_TEXTURE_2D_ARRAY, GL.GL_TEXTURE_MIN_FILTER, GL.GL_NEAREST)
-            GL.glTexParameteri(GL.GL_TEXTURE_2D_ARRAY, GL.GL_TEXTURE_MAG_FILTER, GL.GL_NEAREST)
-            GL.glTexImage3D(
-                GL.GL_TEXTURE_2D_ARRAY,
-                0,
-                GL.GL_RG32F,
-                size,
-                size,
-                max(layers, 1),
-                0,
-                GL.GL_RG,
-                GL.GL_FLOAT,
-                None,
+                GL.glDeleteBuffers(1, [self._cube_buf])
+            self._cube_buf = int(GL.glGenBuffers(1))
+            GL.glBindBuffer(GL.GL_TEXTURE_BUFFER, self._cube_buf)
+            GL.glBufferData(
+                GL.GL_TEXTURE_BUFFER, max(layers, 1) * face_bytes, None, GL.GL_STATIC_DRAW
             )
+            self._cube_tex = int(GL.glGenTextures(1))
+            GL.glBindTexture(GL.GL_TEXTURE_BUFFER, self._cube_tex)
+            GL.glTexBuffer(GL.GL_TEXTURE_BUFFER, GL.GL_RG32F, self._cube_buf)
+            GL.glBindTexture(GL.GL_TEXTURE_BUFFER, 0)
             self._cube_tex_layers = layers
             self._cube_tex_held = [None] * len(blocks)
-        GL.glBindTexture(GL.GL_TEXTURE_2D_ARRAY, self._cube_tex)
-        GL.glPixelStorei(GL.GL_UNPACK_ALIGNMENT, 1)
+        GL.glBindBuffer(GL.GL_TEXTURE_BUFFER, self._cube_buf)
         for b, cube in enumerate(blocks):
             if cube is not None and self._cube_tex_held[b] is not cube:
-                for f in range(6):
-                    texels = np.ascontiguousarray(
-                        np.stack([cube.depth_min[f], cube.depth_max[f]], axis=-1), np.float32
-                    )
-                    GL.glTexSubImage3D(
-                        GL.GL_TEXTURE_2D_ARRAY,
-                        0,
-                        0,
-                        0,
-                        6 * b + f,
-                        size,
-                        size,
-                        1,
-                        GL.GL_RG,
-                        GL.GL_FLOAT,
-                        texels,
-                    )
+                texels = _tiled(np.stack([cube.depth_min, cube.depth_max], axis=-1))
+                GL.glBufferSubData(GL.GL_TEXTURE_BUFFER, 6 * b * face_bytes, 6 * face_bytes, texels)
             self._cube_tex_held[b] = cube
-        GL.glBindTexture(GL.GL_TEXTURE_2D_ARRAY, 0)
+        GL.glBindBuffer(GL.GL_TEXTURE_BUFFER, 0)
         first = [6 * b if cube is not None else -1 for b, cube in enumerate(blocks)]
         return first[:n] + (first[n:] if len(first) > n else [-1] * n)
 
@@ -228,23 +228,33 @@ class LightPass:
             GL.glUniform1i(loc(f"dmap_s{k}"), 4 + 2 * k)
             GL.glUniform1i(loc(f"dmap_d{k}"), 5 + 2 * k)
 
-    def _framebuffer(self, rows: int) -> None:
-        """The outputs of ``shaders/cube_lookup.frag``, LOOKUP_TEXTURE_WIDTH x >= ``rows``
-        each: RGBA32UI packed per-light codes, RGBA32F diffuse sums (+ uncertain bits),
+    def row_width(self, n: int) -> int:
+        """Points a row of the lookup pass's textures for ``n`` points: the frame's width,
+        so that the G-buffer's points (row-major, in pixel order, the few uncovered
+        pixels left out) lie on the texture as on the image. llvmpipe shades 4 x 4
+        fragment blocks: neighbouring pixels then read neighbouring cube texels, which
+        share cache lines (sewer 640x480: ~15 % less time for the pass than with rows of
+        1024 points, whose blocks spanned four distant image regions)."""
+        return max(self._ctx.width, -(-n // LOOKUP_MAX_ROWS))
+
+    def _framebuffer(self, width: int, rows: int) -> None:
+        """The outputs of ``shaders/cube_lookup.frag``, >= ``width`` x ``rows`` each:
+        RGBA32UI packed per-light codes, RGBA32F diffuse sums (+ uncertain bits),
         RGBA32F highlight sums."""
-        if self._lookup_fb is not None and rows <= self._lookup_rows:
-            return
+        held_width, held_rows = self._lookup_size
+        if self._lookup_fb is not None and width <= held_width and rows <= held_rows:
+            return  # the pass draws into the lower left width x rows
         if self._lookup_fb is not None:
             GL.glDeleteFramebuffers(1, [self._lookup_fb])
             GL.glDeleteRenderbuffers(len(self._lookup_rb), self._lookup_rb)
-        self._lookup_rows = rows
+        self._lookup_size = (width, rows)
         self._lookup_rb = [int(rb) for rb in GL.glGenRenderbuffers(3)]
         self._lookup_fb = int(GL.glGenFramebuffers(1))
         GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, self._lookup_fb)
         formats = (GL.GL_RGBA32UI, GL.GL_RGBA32F, GL.GL_RGBA32F)
         for i, (rb, fmt) in enumerate(zip(self._lookup_rb, formats, strict=True)):
             GL.glBindRenderbuffer(GL.GL_RENDERBUFFER, rb)
-            GL.glRenderbufferStorage(GL.GL_RENDERBUFFER, fmt, LOOKUP_TEXTURE_WIDTH, rows)
+            GL.glRenderbufferStorage(GL.GL_RENDERBUFFER, fmt, width, rows)
             GL.glFramebufferRenderbuffer(
                 GL.GL_FRAMEBUFFER, GL.GL_COLOR_ATTACHMENT0 + i, GL.GL_RENDERBUFFER, rb
             )
@@ -289,9 +299,9 @@ class LightPass:
         first = self._upload_cubes(cubes)
         distant = distant if to_eye is not None and distant else []
         self._upload_distant(distant)
-        width = LOOKUP_TEXTURE_WIDTH
+        width = self.row_width(n)
         rows = -(-n // width)
-        self._framebuffer(rows)
+        self._framebuffer(width, rows)
         GL.glPixelStorei(GL.GL_UNPACK_ALIGNMENT, 1)
         shading = to_eye is not None
         # Without shading the to_eye texture is never read for a result: send no data.
@@ -311,7 +321,7 @@ class LightPass:
         GL.glDisable(GL.GL_SCISSOR_TEST)
         GL.glDisable(GL.GL_BLEND)
         GL.glDisable(GL.GL_CULL_FACE)
-        targets = [GL.GL_TEXTURE_2D, GL.GL_TEXTURE_2D, GL.GL_TEXTURE_2D_ARRAY, GL.GL_TEXTURE_2D]
+        targets = [GL.GL_TEXTURE_2D, GL.GL_TEXTURE_2D, GL.GL_TEXTURE_BUFFER, GL.GL_TEXTURE_2D]
         textures = [self._point_tex[0], self._point_tex[1], self._cube_tex, self._point_tex[2]]
         targets += [GL.GL_TEXTURE_2D] * 2 * len(distant)  # units 4 + 2 k (+1): maps
         textures += self._dmap_tex[: 2 * len(distant)]
@@ -349,7 +359,7 @@ class LightPass:
                 for c in (cubes[k] for k in ks)
             ]
             # A light without any cube (no casters at all) is lit within its range:
-            # its layers stay -1 and cube_test answers 1.
+            # its first faces stay -1 and cube_test answers 1.
             prog = self._program_for(len(ks), n_distant, shading)
 
             def loc(name: str, prog: int = prog) -> int:
@@ -362,9 +372,6 @@ class LightPass:
             GL.glUniform1i(loc("to_eye"), 3)
             GL.glUniform1i(loc("n_points"), n)
             GL.glUniform1i(loc("width"), width)
-            GL.glUniform1i(loc("size"), CUBE_MAP_SIZE)
-            tan_half = CUBE_MAP_SIZE / (CUBE_MAP_SIZE - 2.0 * CUBE_GUARD_TEXELS)
-            GL.glUniform1f(loc("tan_half"), tan_half)
             GL.glUniform1f(loc("bias_texels"), SHADOW_BIAS_TEXELS)
             GL.glUniform1f(loc("box_radius"), SHADOW_REFINE_RADIUS + 0.5)
             GL.glUniform1f(loc("slope_clamp"), 1.0 / SHADOW_MIN_COS)
@@ -388,12 +395,12 @@ class LightPass:
                 loc("light_near"), LOOKUP_LIGHTS_PER_PASS, np.array(near + [0.0] * pad, np.float32)
             )
             GL.glUniform1iv(
-                loc("static_layer"),
+                loc("static_face"),
                 LOOKUP_LIGHTS_PER_PASS,
                 np.array([first[k] for k in ks] + [-1] * pad, np.int32),
             )
             GL.glUniform1iv(
-                loc("dynamic_layer"),
+                loc("dynamic_face"),
                 LOOKUP_LIGHTS_PER_PASS,
                 np.array([first[n_local + k] for k in ks] + [-1] * pad, np.int32),
             )
@@ -423,6 +430,29 @@ class LightPass:
         if shading:
             return diffuse[:n], highlight[:n], bits
         return out
+
+
+#: The texel tiles of the cube buffer (``_tiled``): (columns, rows) of a 64-byte cache
+#: line and of a 4 KB page of RG32F texels.
+CUBE_LINE_TILE = (4, 2)
+CUBE_PAGE_TILE = (32, 16)
+
+
+def _tiled(texels: np.ndarray) -> np.ndarray:
+    """(6, S, S, 2) float cube faces (``CubeMap`` order: face, row, column, (min, max))
+    as the GPU's buffer holds them (S = CUBE_MAP_SIZE, a multiple of 32): per face,
+    pages of CUBE_PAGE_TILE texels row-major, in each page lines of CUBE_LINE_TILE
+    texels row-major, in each line its texels row-major (``cube_test`` in
+    ``shaders/cube_lookup.frag`` addresses it). Texels near each other on a face share
+    a line or a page, as neighbouring pixels' lookups do (sewer 640x480: ~3 % less
+    time for the pass than row-major faces). Returns (6 S², 2) float32."""
+    size = texels.shape[1]
+    (lx, ly), (px, py) = CUBE_LINE_TILE, CUBE_PAGE_TILE
+    blocks = texels.reshape(6, size // py, py // ly, ly, size // px, px // lx, lx, 2)
+    # (face, page row, line row, row, page column, line column, column) ->
+    # (face, page row, page column, line row, line column, row, column)
+    order = blocks.transpose(0, 1, 4, 2, 5, 3, 6, 7)
+    return np.ascontiguousarray(order, np.float32).reshape(-1, 2)
 
 
 #: An empty point array (``pack_texels`` of a texture that holds no points).

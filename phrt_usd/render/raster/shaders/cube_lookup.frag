@@ -7,6 +7,12 @@
 //   HAS_DYNAMIC  1 when the scene has animated casters (a second cube per light)
 //   SHADE        1 to also shade the lit pairs (diffuse / highlight outputs)
 //   SQUARINGS    log2(shading.SHININESS) when that is an integer, else -1 (pow)
+//   CUBE_SIZE    texels per cube face side (shadow_maps.CUBE_MAP_SIZE)
+//   TAN_HALF     tangent of a cube face's half field of view (its guard band)
+//   LINE_W, LINE_H, PAGE_W, PAGE_H  (columns, rows) of the cube buffer's tiles, unsigned
+//                (light_pass.CUBE_LINE_TILE, CUBE_PAGE_TILE)
+// (constants rather than uniforms: the expressions of them fold at compile time instead
+// of running per fragment)
 // LocalLight shadow lookups, fragment stage: one fragment per query point, up to 16
 // lights per pass, packed as one byte each into one RGBA32UI attachment (light j in
 // channel j / 4, bits 8 (j % 4) .. 8 (j % 4) + 7: little-endian bytes in light order).
@@ -17,8 +23,9 @@
 //   points  : RGB32F, (x, y, z) origin-relative world metres of point k at texel
 //             (k % width, k / width)
 //   normals : RGB32F, (x, y, z) unit shading normal facing the viewer, same layout
-//   cubes   : RG32F 2D array, (min, max) caster forward distance over the texel
-//             neighbourhood; layer = cube's first layer + face
+//   cubes   : RG32F buffer texture, (min, max) caster forward distance over the texel
+//             neighbourhood; face f of a cube whose first face is F at
+//             (F + f) * CUBE_SIZE², its texels in tiles (light_pass._tiled, cube_test)
 //   to_eye  : RGB32F, (x, y, z) unit direction from the point to the viewer, same layout
 //   dmap_s<k>, dmap_d<k> : RG32F, (min, max) caster depth over the texel neighbourhood
 //             of DistantLight k's static / animated orthographic map (as
@@ -32,16 +39,14 @@
 
 uniform sampler2D points;
 uniform sampler2D normals;
-uniform sampler2DArray cubes;
+uniform samplerBuffer cubes;
 uniform int n_points;
 uniform int width;
 uniform vec3 light_pos[16];     // origin-relative metres
 uniform float light_range[16];  // metres; 0 = the light reaches nothing
 uniform float light_near[16];   // the cube faces' near plane, metres
-uniform int static_layer[16];   // first layer of the static casters' cube, -1 = none
-uniform int dynamic_layer[16];  // first layer of the animated casters' cube, -1 = none
-uniform int size;               // texels per face side
-uniform float tan_half;         // tangent of a face's half field of view
+uniform int static_face[16];    // first face of the static casters' cube, -1 = none
+uniform int dynamic_face[16];   // first face of the animated casters' cube, -1 = none
 uniform float bias_texels;      // SHADOW_BIAS_TEXELS
 uniform float box_radius;       // SHADOW_REFINE_RADIUS + 0.5 (nearest-texel offset)
 uniform float slope_clamp;      // 1 / SHADOW_MIN_COS
@@ -75,12 +80,25 @@ layout(location = 0) out uvec4 codes;
 layout(location = 1) out vec4 diffuse;
 layout(location = 2) out vec4 highlight;
 
-float cube_test(int layer, int face, ivec2 texel_xy, float test)
+// One cube (first face ``first``, -1 = none): 1 lit, 0 shadowed, -1 uncertain. Only
+// ``wanted`` pairs read their texel; the others (masked lanes, which llvmpipe runs all
+// the same) read texel 0, which stays in cache: the cubes (12 MB a light) far exceed
+// the caches, and such misses were ~10 % of the sewer's pass.
+float cube_test(int first, int face, ivec2 texel_xy, float test, bool wanted)
 {
-    if (layer < 0) {
+    if (first < 0) {
         return 1.0;
     }
-    vec2 mm = texelFetch(cubes, ivec3(texel_xy, layer + face), 0).rg;
+    // light_pass._tiled: pages (row-major), in them lines (row-major), in them texels
+    // (row-major); unsigned, so that the power-of-two divisions compile to shifts.
+    uint x = uint(texel_xy.x);
+    uint y = uint(texel_xy.y);
+    uint page = (y / PAGE_H) * (uint(CUBE_SIZE) / PAGE_W) + x / PAGE_W;
+    uint line = (y % PAGE_H / LINE_H) * (PAGE_W / LINE_W) + x % PAGE_W / LINE_W;
+    uint in_face = (page * (PAGE_H / LINE_H) * (PAGE_W / LINE_W) + line) * (LINE_W * LINE_H)
+        + (y % LINE_H) * LINE_W + x % LINE_W;
+    int at = wanted ? (first + face) * (CUBE_SIZE * CUBE_SIZE) + int(in_face) : 0;
+    vec2 mm = texelFetch(cubes, at).rg;
     if (test <= mm.x) {
         return 1.0;
     }
@@ -90,14 +108,15 @@ float cube_test(int layer, int face, ivec2 texel_xy, float test)
     return -1.0;
 }
 
-float lookup(int j, vec3 p, vec3 n)
+// Light j's shadow test at a point v (from the light to the point, d2 = |v|²) with
+// normal n: 1 lit, 0 shadowed / out of range / facing away, -1 uncertain.
+float lookup(int j, vec3 v, float d2, vec3 n)
 {
-    vec3 v = p - light_pos[j];
     float r = light_range[j];
     float ndv = dot(n, v);
-    if (dot(v, v) >= r * r || ndv >= 0.0) {
-        return 0.0;  // out of range, or the light is behind the surface
-    }
+    // Out of range or the light behind the surface: 0; nearer than the near plane: 1.
+    // Selected at the end, not returned early, so that the fetches know (cube_test).
+    bool reach = d2 < r * r && ndv < 0.0;
     vec3 a = abs(v);
     int axis;
     float w;
@@ -111,26 +130,23 @@ float lookup(int j, vec3 p, vec3 n)
     } else {
         axis = 2; w = a.z; major = v.z; bc = v.xy; nbc = n.xy;
     }
-    if (w <= light_near[j]) {
-        return 1.0;
-    }
+    bool beyond_near = w > light_near[j];
+    bool wanted = reach && beyond_near;
     int face = 2 * axis + (major < 0.0 ? 1 : 0);
-    float texel = 2.0 * tan_half * w / float(size);
+    float texel = w * (2.0 * TAN_HALF / float(CUBE_SIZE));  // texel width at w, metres
     float slope = min(texel * w * (abs(nbc.x) + abs(nbc.y)) / max(-ndv, 1e-30),
                       slope_clamp * texel);
     float test = w - texel * bias_texels - box_radius * slope;
-    vec2 f = floor(bc / w * (0.5 * float(size) / tan_half) + 0.5 * float(size));
-    ivec2 t = clamp(ivec2(f), ivec2(0), ivec2(size - 1));
-    float vs = cube_test(static_layer[j], face, t, test);
+    vec2 f = floor(bc * ((0.5 * float(CUBE_SIZE) / TAN_HALF) / w) + 0.5 * float(CUBE_SIZE));
+    ivec2 t = clamp(ivec2(f), ivec2(0), ivec2(CUBE_SIZE - 1));
+    float vs = cube_test(static_face[j], face, t, test, wanted);
 #if HAS_DYNAMIC
-    float vd = cube_test(dynamic_layer[j], face, t, test);
-    if (vs == 0.0 || vd == 0.0) {
-        return 0.0;
-    }
-    return min(vs, vd);  // -1 if either is uncertain, else 1
+    float vd = cube_test(dynamic_face[j], face, t, test, wanted);
+    float vis = (vs == 0.0 || vd == 0.0) ? 0.0 : min(vs, vd);  // -1: either uncertain
 #else
-    return vs;
+    float vis = vs;
 #endif
+    return reach ? (beyond_near ? vis : 1.0) : 0.0;
 }
 
 uint code(float r)
@@ -142,7 +158,7 @@ uint code(float r)
 float highlight_of(vec3 n, vec3 e, vec3 l)
 {
     vec3 h = l + e;
-    float x = max(dot(n, h) / max(length(h), 1e-12), 0.0);
+    float x = max(dot(n, h) * inversesqrt(max(dot(h, h), 1e-24)), 0.0);
 #if SQUARINGS >= 0
     for (int i = 0; i < SQUARINGS; ++i) {  // x^(2^k) as k squarings, as shading does
         x *= x;
@@ -197,16 +213,17 @@ void distant(int k, float vs, float vd, vec3 n, vec3 e,
 }
 #endif
 
-// Adds light j's contribution at a point it lights (the shadow test said lit).
-void shade(int j, vec3 p, vec3 n, vec3 e, inout vec3 d_sum, inout vec3 h_sum)
+// Adds light j's contribution at a point it lights (the shadow test said lit); v and d2
+// as in lookup (shared: the compiler would not match light - p with p - light).
+void shade(int j, vec3 v, float d2, vec3 n, vec3 e, inout vec3 d_sum, inout vec3 h_sum)
 {
-    vec3 to_light = light_pos[j] - p;
     float r2 = light_range[j] * light_range[j];
-    float dist2 = max(dot(to_light, to_light), min_light_distance * min_light_distance);
-    vec3 l = to_light * inversesqrt(dist2);
+    float dist2 = max(d2, min_light_distance * min_light_distance);
+    float inv_d = inversesqrt(dist2);
+    vec3 l = -v * inv_d;
     float q = dist2 / r2;
     float window = clamp(1.0 - q * q, 0.0, 1.0);
-    float lit = max(dot(n, l), 0.0) * window * window / dist2;
+    float lit = max(dot(n, l), 0.0) * window * window * (inv_d * inv_d);
     d_sum += light_radiance[j] * lit;
     h_sum += light_radiance[j] * (lit * highlight_of(n, e, l));
 }
@@ -243,10 +260,12 @@ void main()
         }
 #endif
         for (int j = 0; j < N_LIGHTS; ++j) {
-            result[j] = lookup(j, p, n);
+            vec3 v = p - light_pos[j];
+            float d2 = dot(v, v);
+            result[j] = lookup(j, v, d2, n);
 #if SHADE
             if (result[j] > 0.5) {
-                shade(j, p, n, e, d_sum, h_sum);
+                shade(j, v, d2, n, e, d_sum, h_sum);
             } else if (result[j] < -0.5) {
                 unsure += float(1 << j);
             }
