@@ -174,6 +174,25 @@ def split_hits(prim, u, v, out_ray, out_tri, out_u, out_v, out_miss):
 
 
 @njit(**_HELPER)
+def _child(rays_i, rays_w, rays_v, nxt, at, slot, s, ch, refracted, w, cx, cy, cz, last,
+           px, py, pz, gx, gy, gz, floor, relative):  # fmt: skip
+    """Write child ray ``at`` of the next live-ray buffers ``nxt`` (``bounce``): its
+    slot, source, chain, kind (``refracted`` 0 / 1), weight ``w``, direction (cx, cy, cz)
+    and, unless this is the ``last`` depth, its origin offset from the hit (px, py, pz)
+    along the geometric normal (gx, gy, gz) to the side it leaves to."""
+    rays_i[nxt, RAY_SLOT, at], rays_i[nxt, RAY_SRC, at] = slot, s
+    rays_i[nxt, RAY_CHAIN, at], rays_i[nxt, RAY_REFRACTED, at] = ch, refracted
+    rays_w[nxt, at] = w
+    rays_v[nxt, RAY_DIR, at, 0], rays_v[nxt, RAY_DIR, at, 1] = cx, cy
+    rays_v[nxt, RAY_DIR, at, 2] = cz
+    if not last:
+        e = _side(_epsilon(px, py, pz, floor, relative), cx, cy, cz, gx, gy, gz)
+        rays_v[nxt, RAY_ORIGIN, at, 0] = px + e * gx
+        rays_v[nxt, RAY_ORIGIN, at, 1] = py + e * gy
+        rays_v[nxt, RAY_ORIGIN, at, 2] = pz + e * gz
+
+
+@njit(**_HELPER)
 def _refract(dx, dy, dz, nx, ny, nz, fx, fy, fz, ior):
     """Snell refraction of one unit direction (``paths.refract``): shading normal n
     (either side), outward front normal f, ior; float64 result, made unit. Total
@@ -327,17 +346,8 @@ def bounce(
             # Mirror of a unit vector about a unit normal (float32, as the first rays).
             kk = _TWO32 * (dx * nx + dy * ny + dz * nz)
             cx, cy, cz = dx - kk * nx, dy - kk * ny, dz - kk * nz
-            at = n_child
-            rays_i[nxt, RAY_SLOT, at], rays_i[nxt, RAY_SRC, at] = slot, s
-            rays_i[nxt, RAY_CHAIN, at], rays_i[nxt, RAY_REFRACTED, at] = ch, 0
-            rays_w[nxt, at] = w_refl
-            rays_v[nxt, RAY_DIR, at, 0], rays_v[nxt, RAY_DIR, at, 1] = cx, cy
-            rays_v[nxt, RAY_DIR, at, 2] = cz
-            if not last:
-                e = _side(_epsilon(px, py, pz, floor, relative), cx, cy, cz, gx, gy, gz)
-                rays_v[nxt, RAY_ORIGIN, at, 0] = px + e * gx
-                rays_v[nxt, RAY_ORIGIN, at, 1] = py + e * gy
-                rays_v[nxt, RAY_ORIGIN, at, 2] = pz + e * gz
+            _child(rays_i, rays_w, rays_v, nxt, n_child, slot, s, ch, 0, w_refl, cx, cy, cz,
+                   last, px, py, pz, gx, gy, gz, floor, relative)  # fmt: skip
             n_child += 1
         if split:
             w_refr = w * (1.0 - tri_table[t, TRI_ALPHA])
@@ -347,17 +357,8 @@ def bounce(
                     tri_table[t, TRI_IOR],
                 )  # fmt: skip
                 cx, cy, cz = np.float32(cx), np.float32(cy), np.float32(cz)
-                at = k + n_refr
-                rays_i[nxt, RAY_SLOT, at], rays_i[nxt, RAY_SRC, at] = slot, s
-                rays_i[nxt, RAY_CHAIN, at], rays_i[nxt, RAY_REFRACTED, at] = ch, 1
-                rays_w[nxt, at] = w_refr
-                rays_v[nxt, RAY_DIR, at, 0], rays_v[nxt, RAY_DIR, at, 1] = cx, cy
-                rays_v[nxt, RAY_DIR, at, 2] = cz
-                if not last:
-                    e = _side(_epsilon(px, py, pz, floor, relative), cx, cy, cz, gx, gy, gz)
-                    rays_v[nxt, RAY_ORIGIN, at, 0] = px + e * gx
-                    rays_v[nxt, RAY_ORIGIN, at, 1] = py + e * gy
-                    rays_v[nxt, RAY_ORIGIN, at, 2] = pz + e * gz
+                _child(rays_i, rays_w, rays_v, nxt, k + n_refr, slot, s, ch, 1, w_refr, cx, cy,
+                       cz, last, px, py, pz, gx, gy, gz, floor, relative)  # fmt: skip
                 n_refr += 1
     for j in range(n_refr):  # the refracted children after all mirror ones
         for row in range(4):
