@@ -54,6 +54,9 @@ KERNEL_MODULES = (
 #: Sources the compiled kernels depend on (the kernels and the constants they read):
 #: their hash names the ahead-of-time build.
 SOURCE_MODULES = (*KERNEL_MODULES, "phrt_usd.model.surface", "phrt_usd.kernels")
+#: The C source of the argument check in front of the ahead-of-time kernels (``_Guarded``),
+#: built with them and named by the same hash.
+GUARD_SOURCE = Path(__file__).resolve().parent / "kernel_guard.c"
 #: Where the ahead-of-time builds go (not in version control).
 AOT_DIR = Path(__file__).resolve().parent / "_aot"
 #: The numba options of every kernel (``@njit(**KERNEL_OPTIONS)``); the ahead-of-time
@@ -70,10 +73,11 @@ def _source_path(module_name: str) -> Path:
 
 
 def source_hash() -> str:
-    """12 hex digits of the SHA-256 of every source in SOURCE_MODULES."""
+    """12 hex digits of the SHA-256 of every source in SOURCE_MODULES and GUARD_SOURCE."""
     digest = hashlib.sha256()
     for name in SOURCE_MODULES:
         digest.update(name.encode() + b"\0" + _source_path(name).read_bytes())
+    digest.update(b"guard\0" + GUARD_SOURCE.read_bytes())
     return digest.hexdigest()[:12]
 
 
@@ -86,58 +90,89 @@ def _aot_file() -> Path:
     return AOT_DIR / f"{_aot_name()}{suffix}"
 
 
+#: The guard's module name (its ``PyInit_`` function); its file carries the build's hash.
+_GUARD_MODULE = "phrt_kernel_guard"
+
+
+def _guard_file() -> Path:
+    suffix = importlib.machinery.EXTENSION_SUFFIXES[0]
+    return AOT_DIR / f"{_GUARD_MODULE}_{source_hash()}{suffix}"
+
+
+def _extension(name: str, path: Path) -> ModuleType:
+    """Extension module ``name`` loaded from ``path`` (ImportError when it cannot be)."""
+    spec = importlib.util.spec_from_file_location(name, path)
+    if spec is None or spec.loader is None:
+        raise ImportError(f"cannot load {path}")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
 def _export_name(module_name: str, kernel: str) -> str:
     """The ahead-of-time module's name of kernel ``kernel`` of ``module_name``."""
     return f"{module_name.rsplit('.', 1)[-1]}__{kernel}"
 
 
-def _aot_module() -> tuple[ModuleType, dict] | None:
-    """The ahead-of-time build of the current sources and its array signatures
-    (``build_aot``'s sidecar), or None."""
+def _aot_module() -> tuple[ModuleType, dict, object] | None:
+    """The ahead-of-time build of the current sources, its array signatures
+    (``build_aot``'s sidecar) and its guard's ``fits``, or None."""
     if "aot" in _loaded:
         return _loaded["aot"]
-    path, found = _aot_file(), None
+    path, guard, found = _aot_file(), _guard_file(), None
     arrays = path.with_name(_aot_name() + ".json")
-    if path.is_file() and arrays.is_file():
-        spec = importlib.util.spec_from_file_location(_aot_name(), path)
-        if spec is not None and spec.loader is not None:
-            try:
-                module = importlib.util.module_from_spec(spec)
-                spec.loader.exec_module(module)
-                found = module, json.loads(arrays.read_text())
-            except (ImportError, ValueError):
-                found = None  # e.g. built for another machine: the JIT form serves
+    if path.is_file() and arrays.is_file() and guard.is_file():
+        try:
+            module = _extension(_aot_name(), path)
+            fits = _extension(_GUARD_MODULE, guard).fits
+            found = module, json.loads(arrays.read_text()), fits
+        except (ImportError, ValueError):
+            found = None  # e.g. built for another machine: the JIT form serves
     _loaded["aot"] = found
     return found
 
 
 class _Guarded:
-    """An ahead-of-time kernel behind a check of its array arguments.
+    """An ahead-of-time kernel behind a check of its arguments.
 
     The compiled wrapper trusts an array's memory to be of the dtype, rank and layout it
-    was built for (an int32 array where int64 is expected reads past the buffer), so
-    every array argument is checked against the build's signatures first (a kernel the
-    warm-up compiled for several argument types has one build of each, tried in order);
-    when none matches, the call goes to the JIT kernel, which compiles for those types,
-    and the mismatch is noted in ``FALLBACKS`` (the test suite fails on any). Scalars
-    are converted by the wrapper itself. The check costs ~0.2 us an argument."""
+    was built for (numba checks only the item size: an int32 array where int64 is
+    expected reads past the buffer), so every call's arguments are checked against the
+    build's signatures first, by ``kernel_guard.c``'s ``fits`` (one C call: ~0.1 us; a
+    kernel the warm-up compiled for several argument types has one build of each, tried
+    in order); when none fits, the call goes to the JIT kernel, which compiles for those
+    types, and the mismatch is noted in ``FALLBACKS`` (the test suite fails on any).
+    Scalars are converted by the wrapper itself."""
 
-    def __init__(self, variants: list, module_name: str, name: str) -> None:
+    def __init__(self, variants: list, module_name: str, name: str, fits) -> None:
         self._module_name, self.__name__ = module_name, name
-        #: (function, per argument "scalar", "none" or (dtype, ndim, C-contiguous)) each
-        self._variants = [
-            (function, [a if isinstance(a, str) else (np.dtype(a[0]), a[1], a[2] == "C")
-                        for a in arrays])
-            for function, arrays in variants
-        ]  # fmt: skip
+        self._fits = fits
+        #: (function, its arguments as ``fits`` takes them) per build
+        self._variants = [(function, guard_spec(arrays)) for function, arrays in variants]
 
     def __call__(self, *args):
-        for function, arrays in self._variants:
-            if len(args) == len(arrays) and all(map(_matches, args, arrays)):
+        for function, spec in self._variants:
+            if self._fits(args, spec):
                 return function(*args)
         FALLBACKS.add(f"{self._module_name}.{self.__name__}({_describe(args)})")
         jit = getattr(importlib.import_module(self._module_name), self.__name__)
         return jit(*args)
+
+
+def guard_spec(arguments: list) -> bytes:
+    """A build's arguments (the sidecar's per argument "scalar", "none" or [dtype,
+    ndim, layout]) as ``kernel_guard.fits`` takes them: 4 bytes an argument, kind
+    (0 scalar, 1 None, 2 array), then for an array its numpy type number, its rank and
+    1 when it must be C-contiguous."""
+    spec = bytearray()
+    for a in arguments:
+        if a == "scalar":
+            spec += bytes((0, 0, 0, 0))
+        elif a == "none":
+            spec += bytes((1, 0, 0, 0))
+        else:
+            spec += bytes((2, np.dtype(a[0]).num, a[1], int(a[2] == "C")))
+    return bytes(spec)
 
 
 def _describe(args) -> str:
@@ -147,21 +182,6 @@ def _describe(args) -> str:
         if type(a) is np.ndarray
         else type(a).__name__
         for a in args
-    )
-
-
-def _matches(value, expected) -> bool:
-    """``value`` fits one argument of a build: an array of its dtype, rank and layout,
-    None where it was built for None (an optional array left out), else a scalar."""
-    if expected == "scalar":
-        return value is not None and type(value) is not np.ndarray
-    if expected == "none":
-        return value is None
-    return (
-        type(value) is np.ndarray
-        and value.dtype == expected[0]
-        and value.ndim == expected[1]
-        and (value.flags.c_contiguous or not expected[2])
     )
 
 
@@ -182,7 +202,7 @@ def load(module_name: str):
     aot = _aot_module()
     found = None
     if aot is not None:
-        module, signatures = aot
+        module, signatures, fits = aot
         prefix = _export_name(module_name, "")
         names = {k[len(prefix):]: v for k, v in signatures.items() if k.startswith(prefix)}
         if names:
@@ -192,6 +212,7 @@ def load(module_name: str):
                      for k, arrays in enumerate(variants)],
                     module_name,
                     n,
+                    fits,
                 )
                 for n, variants in names.items()
             })  # fmt: skip
@@ -229,12 +250,14 @@ def _kernels(module: ModuleType) -> dict[str, object]:
 
 
 def build_aot() -> Path:
-    """Build the ahead-of-time module of the current sources into AOT_DIR (removing
-    older builds) and return its path; nothing to do when it exists. Needs numba's
-    ``pycc`` (setuptools and a C compiler). Each kernel is exported once for each
-    signature its module's ``warm_up`` compiled (``name__0``, ``name__1``, ...)."""
-    target = _aot_file()
-    if target.is_file() and target.with_name(_aot_name() + ".json").is_file():
+    """Build the ahead-of-time module of the current sources and its guard
+    (``kernel_guard.c``) into AOT_DIR (removing older builds) and return the module's
+    path; nothing to do when they exist. Needs numba's ``pycc`` (setuptools and a C
+    compiler). Each kernel is exported once for each signature its module's
+    ``warm_up`` compiled (``name__0``, ``name__1``, ...)."""
+    target, guard = _aot_file(), _guard_file()
+    sidecar = target.with_name(_aot_name() + ".json")
+    if target.is_file() and sidecar.is_file() and guard.is_file():
         return target
     warm_up()
     import numba.pycc.compiler as pycc_compiler
@@ -282,16 +305,34 @@ def build_aot() -> Path:
     pycc_compiler.Flags = KernelFlags
     try:
         cc.compile()
-        sidecar = target.with_name(_aot_name() + ".json")
+        _build_guard(building / guard.name)
+        # The guard first: a module and sidecar are only ever found beside their guard.
+        write_bytes_atomic(guard, (building / guard.name).read_bytes())
         write_text_atomic(sidecar, json.dumps(signatures, indent=1))
         write_bytes_atomic(target, (building / target.name).read_bytes())
     finally:
         pycc_compiler.Flags = original
         shutil.rmtree(building, ignore_errors=True)
-    for old in AOT_DIR.glob("phrt_kernels_*"):
-        if old not in (target, sidecar):
+    for old in [*AOT_DIR.glob("phrt_kernels_*"), *AOT_DIR.glob(f"{_GUARD_MODULE}_*")]:
+        if old not in (target, sidecar, guard):
             old.unlink()
     return target
+
+
+def _build_guard(output: Path) -> None:
+    """Compile ``kernel_guard.c`` into extension ``output`` with the toolchain pycc
+    uses (the Python and numpy headers)."""
+    from numba.pycc.platform import Toolchain
+
+    toolchain = Toolchain()
+    objects = toolchain.compile_objects(
+        [str(GUARD_SOURCE)], str(output.parent / "guard"),
+        include_dirs=toolchain.get_python_include_dirs(), extra_cflags=["-O2"],
+    )  # fmt: skip
+    toolchain.link_shared(
+        str(output), objects, toolchain.get_python_libraries(),
+        toolchain.get_python_library_dirs(),
+    )  # fmt: skip
 
 
 def main() -> int:

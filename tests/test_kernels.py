@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from phrt_usd import kernels
 from phrt_usd.model import surface_kernels
@@ -69,6 +71,74 @@ def test_other_argument_types_run_the_jit_kernel(aot):
     aot.hit_albedo(np.array([1, 0], np.int64), zeros, zeros, corners, out)
     np.testing.assert_array_equal(out, corners[[1, 0], 0, 3:])
     assert kernels.FALLBACKS == earlier
+
+
+#: What a build's argument can be: an array of a dtype, rank and required layout, None,
+#: or a scalar (the sidecar's "scalar" / "none" / [dtype, ndim, layout]).
+_DTYPES = ["float32", "float64", "int32", "int64", "uint32", "bool"]
+_EXPECTED = st.one_of(
+    st.just("scalar"),
+    st.just("none"),
+    st.tuples(st.sampled_from(_DTYPES), st.integers(1, 3), st.sampled_from(["C", "A"])),
+)
+
+
+def _value(kind):
+    """An argument value built from ``kind`` = (what, dtype, ndim, strided)."""
+    what, dtype, ndim, strided = kind
+    if what == "array":
+        a = np.zeros((4,) * ndim, dtype)
+        return a[::2] if strided else a
+    return {"none": None, "int": 3, "float": 0.5, "float32": np.float32(1),
+            "swapped": np.zeros(4, ">f8"), "longlong": np.zeros(4, np.longlong),
+            "subclass": np.zeros((3, 3)).view(np.matrix)}[what]  # fmt: skip
+
+
+def _fits_one_by_one(args, expected) -> bool:
+    """The guard's rule, argument by argument in Python: the reference for
+    ``kernel_guard.c``'s ``fits`` (numpy's dtype equality, exact rank and class)."""
+    if len(args) != len(expected):
+        return False
+    for value, e in zip(args, expected, strict=True):
+        if e == "scalar":
+            ok = value is not None and type(value) is not np.ndarray
+        elif e == "none":
+            ok = value is None
+        else:
+            ok = (type(value) is np.ndarray and value.dtype == np.dtype(e[0])
+                  and value.ndim == e[1] and (value.flags.c_contiguous or e[2] != "C"))  # fmt: skip
+        if not ok:
+            return False
+    return True
+
+
+_KIND = st.tuples(
+    st.sampled_from(["array", "array", "none", "int", "float", "float32", "swapped",
+                     "longlong", "subclass"]),
+    st.sampled_from(_DTYPES),
+    st.integers(1, 3),
+    st.booleans(),
+)  # fmt: skip
+
+
+@settings(max_examples=400, deadline=None)
+@given(st.lists(_EXPECTED, max_size=8), st.data())
+def test_guard_is_the_argument_by_argument_rule(aot, expected, data):
+    """The C guard accepts exactly the calls the per-argument rule accepts: a wrong
+    dtype, byte order, rank, layout, None, array subclass or argument count never
+    reaches a build (near misses are drawn: each argument often of its expected kind)."""
+    fits = kernels._aot_module()[2]
+    kinds = []
+    for e in expected:
+        near = (("array", e[0], e[1], data.draw(st.booleans())) if isinstance(e, tuple)
+                else ("none", "float32", 1, False) if e == "none"
+                else ("float", "float32", 1, False))  # fmt: skip
+        kinds.append(data.draw(st.one_of(st.just(near), _KIND)))
+    extra = data.draw(st.integers(-1, 1))
+    args = tuple(map(_value, kinds))
+    args = args[:-1] if extra < 0 else args + (0.0,) * extra
+    spec = kernels.guard_spec([list(e) if isinstance(e, tuple) else e for e in expected])
+    assert fits(args, spec) == _fits_one_by_one(args, expected)
 
 
 def test_a_changed_source_names_another_build(monkeypatch, tmp_path):
