@@ -6,8 +6,9 @@ the renderer's argument types). A render takes them through ``load(module_name)`
 one of two compiled forms of that same source:
 
 * **ahead of time** (the set-up's ``python -m phrt_usd.kernels`` builds it): one
-  extension module in ``phrt_usd/_aot/``, named by a hash of the kernel sources
-  (``SOURCE_MODULES``), so an edited kernel can never load an old build. Importing it
+  extension module in ``phrt_usd/_aot/`` with its argument check beside it (from
+  ``kernel_guard.c``), named by a hash of the sources (``SOURCE_MODULES``,
+  ``GUARD_SOURCE``), so an edited kernel can never load an old build. Importing it
   costs ~0.07 s and no numba import at all; a JIT start (numba's import, type
   registries, its disk cache) costs ~0.6 s of every render's start and of its first
   frame (measured 2026-12-03: first image of a small stage 1.14 s without kernels,
@@ -19,7 +20,7 @@ Both are compiled by numba from the same functions with the same options: the GI
 released while a kernel runs (callers split work over their own thread pools; numba's
 ``parallel`` is never used), and division follows numpy's rules (``error_model``). The
 build exports each kernel for the signatures its ``warm_up`` compiled, and a call whose
-arrays match none of them runs the JIT kernel instead (``_Guarded``; the test suite
+arguments match none of them runs the JIT kernel instead (``_Guarded``; the test suite
 fails on any such call): callers pass the dtypes and layouts their docstrings give
 (``tests/test_kernels.py`` checks both forms agree).
 
