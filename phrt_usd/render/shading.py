@@ -32,6 +32,7 @@ row 0 latitude +π/2; longitude 0 points to +Z and longitude +π/2 to +X.
 
 from __future__ import annotations
 
+import operator
 from concurrent.futures import ThreadPoolExecutor
 from typing import NamedTuple
 
@@ -299,11 +300,7 @@ def _light_table(lights: Lights) -> _LightTable:
     lights are replaced, never modified in place, e.g. ``aim_headlight``)."""
     key = (lights, lights.dome, *lights.distant, *lights.local)
     cached = _LIGHT_TABLE_CACHE[0]
-    if (
-        cached is not None
-        and len(cached[0]) == len(key)
-        and all(a is b for a, b in zip(cached[0], key, strict=True))
-    ):
+    if cached is not None and len(cached[0]) == len(key) and all(map(operator.is_, cached[0], key)):
         return cached[1]
     distant, local = lights.distant, lights.local
     d_dir = np.array([li.direction for li in distant], np.float64).reshape(-1, 3)

@@ -39,6 +39,7 @@ animated BVH is rebuilt when it moves), shadows are hard (light size ignored).
 from __future__ import annotations
 
 import dataclasses
+import operator
 import time
 from concurrent.futures import ThreadPoolExecutor
 
@@ -148,11 +149,7 @@ class Tracer:
         # their ids from being reused.
         key = (lights, *lights.local)
         cached = self._lights_key
-        if (
-            cached is None
-            or len(cached) != len(key)
-            or any(a is not b for a, b in zip(cached, key, strict=True))
-        ):
+        if cached is None or len(cached) != len(key) or any(map(operator.is_not, cached, key)):
             origin = self.bvh.boundary.origin
             local = [
                 dataclasses.replace(li, position=np.asarray(li.position, np.float64) - origin)
@@ -355,7 +352,7 @@ class Tracer:
         G-buffer's arrays (never modified once made, see ``_reflector_pixels``)."""
         images = (gbuffer.triangle_id, gbuffer.position, gbuffer.normal, gbuffer.view_dir)
         cached = self._image_cache
-        if cached is not None and all(a is b for a, b in zip(cached[0], images, strict=True)):
+        if cached is not None and all(map(operator.is_, cached[0], images)):
             return cached[1]
         flat = (
             _flat(gbuffer.triangle_id, np.int32, 1), _flat(gbuffer.position, np.float64, 3),
