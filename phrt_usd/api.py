@@ -16,12 +16,14 @@ Options (``**options``; ``None`` means "not given": the stage's render settings 
 ``selection_weight``, ``threads`` (1..1024, default: the cores this process may use; every
 pool, llvmpipe, OpenBLAS, numba: ``phrt_usd.threads``), ``gl`` (``auto`` | ``egl`` |
 ``osmesa``: the raster phase's OpenGL platform,
-``phrt_usd.render.raster.gl_platform``), ``exposure`` (EV, default 0.0: every image's radiance
-times 2**exposure, EXR included) (the ``RenderOptions`` fields), and for ``render`` the
-``RenderJob`` fields ``camera``, ``selection_layer``, ``resume``, ``overwrite``,
-``write_images``, ``checkpoint_every``; ``strict`` (an unreadable texture is an error,
-not a warning and the input's fallback); and how a stage file is composed: ``session_layers``
-(files, strongest first), ``variants`` (``{"/World/Car": {"paint": "red"}}`` or
+``phrt_usd.render.raster.gl_platform``), ``primary`` (``auto`` | ``raster`` | ``rays``: the
+G-buffer's source), ``trace_density`` (``full`` | ``half``: the pixels of a traced reflector
+that start rays, ``phrt_usd.render.trace.sparse_pixels``), ``exposure`` (EV, default 0.0:
+every image's radiance times 2**exposure, EXR included) (the ``RenderOptions`` fields),
+and for ``render`` the ``RenderJob`` fields ``camera``, ``selection_layer``, ``resume``,
+``overwrite``, ``write_images``, ``checkpoint_every``; ``strict`` (an unreadable texture
+is an error, not a warning and the input's fallback); and how a stage file is composed:
+``session_layers`` (files, strongest first), ``variants`` (``{"/World/Car": {"paint": "red"}}`` or
 ``["/World/Car:paint=red"]``), ``mask`` (prim paths the stage is populated with). An
 unknown name or a bad value raises
 ``BadOption`` (one line) before anything is read or written. See ``docs/api.md``.
@@ -55,6 +57,7 @@ from phrt_usd.model.frame import FrameStats
 from phrt_usd.render.primary_source import check_primary
 from phrt_usd.render.raster.gl_platform import check_gl
 from phrt_usd.render.renderer import FrameOutput, FrameRenderer, RenderOptions
+from phrt_usd.render.trace.sparse_pixels import check_density
 from phrt_usd.run.frames import SAME_FRAME, parse_frames
 from phrt_usd.run.images import read_frame_exr
 from phrt_usd.run.render_job import RenderJob, RunRecord, render_to_directory
@@ -133,6 +136,8 @@ def render_options(
         extra["gl"] = check_gl(given["gl"])
     if "primary" in given:
         extra["primary"] = check_primary(given["primary"])
+    if "trace_density" in given:
+        extra["trace_density"] = check_density(given["trace_density"])
     if "exposure" in given:  # EV: the image's radiance x 2**exposure before writing
         extra["exposure"] = _real("exposure", given["exposure"])
     return RenderOptions(

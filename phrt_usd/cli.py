@@ -347,6 +347,15 @@ PrimaryOpt = Annotated[
         "rays).",
     ),
 ]
+TraceDensityOpt = Annotated[
+    str | None,
+    typer.Option(
+        metavar="full|half",
+        help="Pixels of a traced reflector that start rays: every one, or (half) a "
+        "checkerboard of reflectors of 256+ pixels, the others filled from their traced "
+        "neighbours (hybrid mode).",
+    ),
+]
 ExposureOpt = Annotated[
     float | None,
     typer.Option(
@@ -451,6 +460,7 @@ def render(
     threads: ThreadsOpt = None,
     gl: GlOpt = None,
     primary: PrimaryOpt = None,
+    trace_density: TraceDensityOpt = None,
     workers: WorkersOpt = None,
     scheduler: SchedulerOpt = None,
     chunk_frames: ChunkFramesOpt = None,
@@ -495,6 +505,7 @@ def render(
             threads=None if threads is None else parse_threads(threads),
             gl=gl,
             primary=primary,
+            trace_density=trace_density,
             exposure=exposure,
         )
         for warning in scene.warnings:

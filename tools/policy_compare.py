@@ -9,6 +9,8 @@ use, and writes them with per-frame rows as JSON.
 
 BUDGET is milliseconds (``--budget-ms``) or ``rN`` for N rays (``--budget-rays``).
 320x240, the schema's bounce limit and selection weight (docs/heuristic.md, "HEU3").
+A policy named ``NAME@half`` traces at half density (``--trace-density half``; the
+reference ``all`` always at full density).
 
 ``--oracle POLICY`` adds "oracle": in every frame, the selection a policy would make if it
 knew the truth, at the rays POLICY traced in that frame. Each visible reflector is traced
@@ -61,8 +63,12 @@ def main() -> None:
                            bounce_limit=base.bounce_limit)  # fmt: skip
 
     reference = policy("all")
-    policies = {n: policy(n) for n in names}
-    options = {n: replace(base, heuristic=n, **budget) for n in names}
+    policies = {n: policy(n.split("@")[0]) for n in names}
+    options = {
+        n: replace(base, heuristic=n.split("@")[0], **budget,
+                   trace_density=n.split("@")[1] if "@" in n else "full")
+        for n in names
+    }  # fmt: skip
     paths = [stage.scene.elements[i].path for i in stage.scene.reflector_ids]
     rows: dict[str, list[dict]] = {n: [] for n in names}
     if args.oracle:

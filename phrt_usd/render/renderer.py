@@ -45,6 +45,7 @@ from phrt_usd.render.compositing import (
 from phrt_usd.render.lighting import shade_gbuffer
 from phrt_usd.render.primary_source import DEFAULT_PRIMARY, check_primary, choose, is_software
 from phrt_usd.render.raster.gl_platform import DEFAULT_GL, check_gl
+from phrt_usd.render.trace.sparse_pixels import check_density
 from phrt_usd.select.heu1_policy import UPCOMING_CAMERAS
 from phrt_usd.select.policies import make_policy
 from phrt_usd.threads import DEFAULT_THREADS, apply_threads, check_threads
@@ -125,6 +126,9 @@ class RenderOptions:
     gl: str = DEFAULT_GL
     #: Source of the G-buffer: auto | raster | rays (``render.primary_source``).
     primary: str = DEFAULT_PRIMARY
+    #: Pixels of a traced reflector that start rays: full | half (large reflectors on a
+    #: checkerboard, the others filled from their neighbours: ``trace.sparse_pixels``).
+    trace_density: str = "full"
     #: Frame rate to hold (``--target-fps``): each frame's T is the frame period less the
     #: frame's measured raster and shading and the previous frame's selection, less
     #: TARGET_FPS_MARGIN of the period. Exclusive with ``budget_ms``.
@@ -137,10 +141,13 @@ class RenderOptions:
         self.threads = check_threads(self.threads)
         self.gl = check_gl(self.gl)
         self.primary = check_primary(self.primary)
+        self.trace_density = check_density(self.trace_density)
         if self.mode not in MODES:
             raise BadOption(f"unknown mode {self.mode!r}; expected one of {', '.join(MODES)}")
         if self.mode == "rt" and self.primary == "raster":
             raise BadOption("--primary raster: rt mode traces every ray, its primary rays too")
+        if self.mode == "rt" and self.trace_density != "full":
+            raise BadOption("--trace-density half: rt mode traces every pixel (hybrid only)")
         if self.heuristic not in HEURISTICS:
             raise BadOption(
                 f"unknown heuristic {self.heuristic!r}; expected one of {', '.join(HEURISTICS)}"
@@ -458,7 +465,9 @@ class FrameRenderer:
                 if not ids:
                     break
                 t = time.perf_counter()
-                result = self._tracer.trace_reflections(gb, ids, opts.bounce_limit)
+                result = self._tracer.trace_reflections(
+                    gb, ids, opts.bounce_limit, opts.trace_density
+                )
                 apply_traced(image, prep.local, prep.reflectivity, result, traced_mask)
                 round_ms = _ms(t)
                 trace_ms += round_ms

@@ -292,6 +292,7 @@ _RUN_INFO_TYPES: dict[str, tuple[type, ...]] = {
     "budget_rays": (int,),
     "target_fps": (int, float),
     "exposure": (int, float),
+    "trace_density": (str,),
     "bounce_limit": (int,),
     "selection_weight": (int, float),
     "time_codes_per_second": (int, float),

@@ -471,6 +471,41 @@ def primary_fill(
             out_albedo[p, c] = albedo[h, c]
 
 
+@njit(**_KERNEL)
+def fill_skipped(row_of, traced_pix, traced_src, radiance, skipped_pix, skipped_src, width,
+                 height, out_pix, out_rad):  # fmt: skip
+    """``sparse_pixels.fill_skipped``: each skipped pixel (skipped_pix, skipped_src (m,)
+    int64) with traced 4-neighbours of its own source (traced_pix, traced_src (n,) int64,
+    their radiance (n, 3) float32) gets their mean, written with the pixel to out_pix (m,)
+    int64 / out_rad (m, 3) float32 in order. row_of (width * height,) int32 is all -1 on
+    entry and again on return (the caller keeps it from round to round). Returns how many
+    were written."""
+    for i in range(traced_pix.shape[0]):
+        row_of[traced_pix[i]] = i
+    k = 0
+    for j in range(skipped_pix.shape[0]):
+        p, s = skipped_pix[j], skipped_src[j]
+        row, col = p // width, p % width
+        r = g = b = 0.0
+        count = 0
+        for q, inside in ((p - width, row > 0), (p + width, row < height - 1),
+                          (p - 1, col > 0), (p + 1, col < width - 1)):  # fmt: skip
+            if inside:
+                at = row_of[q]
+                if at >= 0 and traced_src[at] == s:
+                    r += radiance[at, 0]
+                    g += radiance[at, 1]
+                    b += radiance[at, 2]
+                    count += 1
+        if count:
+            out_pix[k] = p
+            out_rad[k, 0], out_rad[k, 1], out_rad[k, 2] = r / count, g / count, b / count
+            k += 1
+    for i in range(traced_pix.shape[0]):
+        row_of[traced_pix[i]] = -1
+    return k
+
+
 def warm_up() -> None:
     """Compile (or load from the disk cache) every kernel on tiny inputs of the types
     the tracer passes."""
@@ -509,6 +544,8 @@ def warm_up() -> None:
                 np.zeros((0, 0), bool), 1e-6, 1e-5, 1e-3, 1e30, *shadow)  # fmt: skip
     shadow_results(*shadow, b, 1, np.zeros((1, 1), np.float32), i64.copy(),
                    np.zeros((2, 1), np.int64), v32.copy(), f64.copy())  # fmt: skip
+    fill_skipped(np.full(4, -1, np.int32), i64, i64, v32, i64 + 1, i64, 2, 2, i64.copy(),
+                 v32.copy())  # fmt: skip
 
 
 @njit(**_KERNEL)

@@ -48,6 +48,7 @@ import numpy as np
 from phrt_usd import kernels
 from phrt_usd.model.frame import GBuffer, ReflectionResult
 from phrt_usd.model.scene import NO_HIT, CameraFrame, Lights, Scene
+from phrt_usd.render.trace import sparse_pixels
 from phrt_usd.render.trace.bvh import Bvh
 from phrt_usd.render.trace.hit_surfaces import HitSurfaces
 from phrt_usd.render.trace.paths import PathTracer, refract
@@ -139,6 +140,8 @@ class Tracer:
         self._pixel_cache: tuple | None = None
         self._image_cache: tuple | None = None
         self._lights_key: tuple | None = None
+        #: ``sparse_pixels.fill_skipped``'s pixel table, kept for the G-buffer size.
+        self._fill_table: np.ndarray | None = None
 
     def _relative_lights(self) -> Lights:
         """The scene's lights with LocalLight positions rel (what shading sees, since it
@@ -263,19 +266,66 @@ class Tracer:
     # ------------------------------------------------------------------ paths
 
     def trace_reflections(
-        self, gbuffer: GBuffer, sources: list[int], bounce_limit: int
+        self, gbuffer: GBuffer, sources: list[int], bounce_limit: int, density: str = "full"
     ) -> ReflectionResult:
         """Mirror-reflection radiance for every G-buffer pixel whose element is in
         ``sources`` (no primary rays: rays start at the G-buffer position / normal /
         view_dir). ``bounce_limit`` is the most reflection rays along one path; a
         reflector hit at the last one reads the environment for its reflected part
-        (``bounce_limit`` < 1: no rays, the environment in the mirror direction)."""
+        (``bounce_limit`` < 1: no rays, the environment in the mirror direction).
+
+        ``density`` "half": large reflectors start rays on a checkerboard of their
+        pixels and fill the others from traced neighbours (``sparse_pixels``); their
+        records then count every covered pixel, so rays per pixel stay what a frame's
+        pixel counts predict (hits scaled alike)."""
         start = time.perf_counter()
         self.last_rays = []
         sources = [int(s) for s in sources]
         first = self._source_pixels(gbuffer, sources, None, reflect=True, surface=False)
         pix, src, d, origins = first["pix"], first["src"], first["dir"], first["org"]
-        return self._run_paths(pix, src, origins, d, sources, bounce_limit, "reflection", start)
+        keep = None
+        if sparse_pixels.check_density(density) == "half":
+            keep = sparse_pixels.traced_subset(pix, src, len(sources), gbuffer.shape[1])
+            if keep.all():
+                keep = None  # only small reflectors: traced whole
+        if keep is None:
+            return self._run_paths(
+                pix, src, origins, d, sources, bounce_limit, "reflection", start
+            )
+        result = self._run_paths(
+            pix[keep], src[keep], origins[keep], d[keep], sources, bounce_limit,
+            "reflection", start,
+        )  # fmt: skip
+        return self._with_skipped(result, pix, src, keep, gbuffer.shape, start)
+
+    def _with_skipped(self, result, pix, src, keep, shape, start) -> ReflectionResult:
+        """A half-density ``result`` with its skipped pixels filled
+        (``sparse_pixels.fill_skipped``) and its records counting every covered pixel:
+        pix, src (n,) the round's pixels and sources, keep (n,) bool the traced ones,
+        shape (H, W) of the G-buffer."""
+        height, width = shape
+        if self._fill_table is None or len(self._fill_table) != width * height:
+            self._fill_table = np.full(width * height, -1, np.int32)
+        fill_pix, fill_radiance = sparse_pixels.fill_skipped(
+            result.pixel_index, src[keep], result.radiance, pix[~keep], src[~keep],
+            width, height, self._fill_table,
+        )  # fmt: skip
+        covered = np.bincount(src, minlength=len(result.records)).tolist()
+        records = [
+            dataclasses.replace(
+                record,
+                pixels=c,
+                hits={e: round(n * c / max(record.pixels, 1)) for e, n in record.hits.items()},
+            )
+            for record, c in zip(result.records, covered, strict=True)
+        ]
+        return ReflectionResult(
+            pixel_index=np.concatenate([result.pixel_index, fill_pix]),
+            radiance=np.concatenate([result.radiance, fill_radiance]),
+            records=records,
+            rays=result.rays,
+            seconds=time.perf_counter() - start,
+        )
 
     def trace_refraction(
         self, gbuffer: GBuffer, bounce_limit: int, elements: list[int] | None = None
