@@ -281,36 +281,31 @@ class Tracer:
         start = time.perf_counter()
         self.last_rays = []
         sources = [int(s) for s in sources]
-        first = self._source_pixels(gbuffer, sources, None, reflect=True, surface=False)
-        pix, src, d, origins = first["pix"], first["src"], first["dir"], first["org"]
-        keep = None
-        if sparse_pixels.check_density(density) == "half":
-            keep = sparse_pixels.traced_subset(pix, src, len(sources), gbuffer.shape[1])
-            if keep.all():
-                keep = None  # only small reflectors: traced whole
-        if keep is None:
-            return self._run_paths(
-                pix, src, origins, d, sources, bounce_limit, "reflection", start
-            )
-        result = self._run_paths(
-            pix[keep], src[keep], origins[keep], d[keep], sources, bounce_limit,
-            "reflection", start,
+        first = self._source_pixels(
+            gbuffer, sources, None, reflect=True, surface=False,
+            density=sparse_pixels.check_density(density),
         )  # fmt: skip
-        return self._with_skipped(result, pix, src, keep, gbuffer.shape, start)
+        pix, src, d, origins = first["pix"], first["src"], first["dir"], first["org"]
+        result = self._run_paths(pix, src, origins, d, sources, bounce_limit, "reflection", start)
+        if first["skipped"] is None:
+            return result
+        return self._with_skipped(result, src, first["skipped"], gbuffer.shape, start)
 
-    def _with_skipped(self, result, pix, src, keep, shape, start) -> ReflectionResult:
+    def _with_skipped(self, result, src, skipped, shape, start) -> ReflectionResult:
         """A half-density ``result`` with its skipped pixels filled
         (``sparse_pixels.fill_skipped``) and its records counting every covered pixel:
-        pix, src (n,) the round's pixels and sources, keep (n,) bool the traced ones,
-        shape (H, W) of the G-buffer."""
+        src (n,) the traced pixels' sources, skipped (pixels (m,), their sources (m,),
+        covered pixels per source) from ``_source_pixels``, shape (H, W) of the
+        G-buffer."""
         height, width = shape
+        skipped_pix, skipped_src, covered = skipped
         if self._fill_table is None or len(self._fill_table) != width * height:
             self._fill_table = np.full(width * height, -1, np.int32)
         fill_pix, fill_radiance = sparse_pixels.fill_skipped(
-            result.pixel_index, src[keep], result.radiance, pix[~keep], src[~keep],
+            result.pixel_index, src, result.radiance, skipped_pix, skipped_src,
             width, height, self._fill_table,
         )  # fmt: skip
-        covered = np.bincount(src, minlength=len(result.records)).tolist()
+        covered = covered.tolist()
         records = [
             dataclasses.replace(
                 record,
@@ -412,8 +407,9 @@ class Tracer:
         return flat
 
     def _source_pixels(
-        self, gbuffer: GBuffer, sources: list[int], mask, reflect: bool, surface: bool
-    ) -> dict[str, np.ndarray]:
+        self, gbuffer: GBuffer, sources: list[int], mask, reflect: bool, surface: bool,
+        density: str = "full",
+    ) -> dict:
         """Pixels to start paths from (``trace_kernels.source_rays``), a dict of arrays:
         pix (n,) flat indices, src (n,) index into ``sources``, tri (n,) triangle ids;
         with ``surface`` rel (n, 3) float64 positions snapped onto their triangle, ng
@@ -421,7 +417,9 @@ class Tracer:
         normals facing the viewer, view (n, 3) float32 unit view directions; with
         ``reflect`` dir (n, 3) float32 mirror directions and org (n, 3) float32 offset
         origins (the arrays not asked for have no rows). A source listed twice takes
-        the index of its last entry."""
+        the index of its last entry. ``density`` "half": only the pixels
+        ``sparse_pixels.traced_subset`` keeps, and "skipped" the others (pixels (m,),
+        their sources (m,), covered pixels per source (len(sources),)), else None."""
         index = {s: i for i, s in enumerate(sources)}
         if mask is None and all(s in self._reflector_set for s in index):
             # Reflector sources (the renderer's case): look only at the G-buffer's
@@ -445,6 +443,13 @@ class Tracer:
                 chosen &= mask
             cand = np.flatnonzero(chosen)
             cand_src = np.take(table, np.take(elem, cand))
+        skipped = None
+        if density == "half":
+            keep = sparse_pixels.traced_subset(cand, cand_src, len(sources), gbuffer.shape[1])
+            if not keep.all():  # only small reflectors: traced whole
+                covered = np.bincount(cand_src, minlength=len(sources))
+                skipped = (cand[~keep], cand_src[~keep], covered)
+                cand, cand_src = cand[keep], cand_src[keep]
         k = len(cand)
         out = {"tri": np.empty(k, np.int64)}
         if surface:
@@ -462,7 +467,7 @@ class Tracer:
             self.bvh.boundary.origin, self.bvh.table.frame, floor, relative,
             out=tuple(out.values()),
         )  # fmt: skip
-        out["pix"], out["src"] = cand, cand_src
+        out["pix"], out["src"], out["skipped"] = cand, cand_src, skipped
         return out
 
 
