@@ -17,7 +17,8 @@ Options (``**options``; ``None`` means "not given": the stage's render settings 
 pool, llvmpipe, OpenBLAS, numba: ``phrt_usd.threads``), ``gl`` (``auto`` | ``egl`` |
 ``osmesa``: the raster phase's OpenGL platform,
 ``phrt_usd.render.raster.gl_platform``), ``primary`` (``auto`` | ``raster`` | ``rays``: the
-G-buffer's source), ``trace_density`` (``full`` | ``half``: the pixels of a traced reflector
+G-buffer's source), ``trace_density`` (``full`` | ``half`` | ``quarter``: the pixels of a
+traced reflector
 that start rays, ``phrt_usd.render.trace.sparse_pixels``), ``exposure`` (EV, default 0.0:
 every image's radiance times 2**exposure, EXR included) (the ``RenderOptions`` fields),
 and for ``render`` the ``RenderJob`` fields ``camera``, ``selection_layer``, ``resume``,

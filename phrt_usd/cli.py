@@ -350,10 +350,10 @@ PrimaryOpt = Annotated[
 TraceDensityOpt = Annotated[
     str | None,
     typer.Option(
-        metavar="full|half",
-        help="Pixels of a traced reflector that start rays: every one, or (half) a "
-        "checkerboard of reflectors of 256+ pixels, the others filled from their traced "
-        "neighbours (hybrid mode).",
+        metavar="full|half|quarter",
+        help="Pixels of a traced reflector that start rays: every one, or for reflectors "
+        "of 256+ pixels a checkerboard (half) or one in each 2x2 block (quarter), the "
+        "others filled from their traced neighbours (hybrid mode).",
     ),
 ]
 ExposureOpt = Annotated[

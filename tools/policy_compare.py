@@ -9,8 +9,8 @@ use, and writes them with per-frame rows as JSON.
 
 BUDGET is milliseconds (``--budget-ms``) or ``rN`` for N rays (``--budget-rays``).
 320x240, the schema's bounce limit and selection weight (docs/heuristic.md, "HEU3").
-A policy named ``NAME@half`` traces at half density (``--trace-density half``; the
-reference ``all`` always at full density).
+A policy named ``NAME@DENSITY`` traces at that density (``--trace-density``, e.g.
+``heu3@quarter``; the reference ``all`` always at full density).
 
 ``--oracle POLICY`` adds "oracle": in every frame, the selection a policy would make if it
 knew the truth, at the rays POLICY traced in that frame. Each visible reflector is traced

@@ -126,8 +126,8 @@ class RenderOptions:
     gl: str = DEFAULT_GL
     #: Source of the G-buffer: auto | raster | rays (``render.primary_source``).
     primary: str = DEFAULT_PRIMARY
-    #: Pixels of a traced reflector that start rays: full | half (large reflectors on a
-    #: checkerboard, the others filled from their neighbours: ``trace.sparse_pixels``).
+    #: Pixels of a traced reflector that start rays: full | half | quarter (of large
+    #: reflectors; the others filled from their neighbours: ``trace.sparse_pixels``).
     trace_density: str = "full"
     #: Frame rate to hold (``--target-fps``): each frame's T is the frame period less the
     #: frame's measured raster and shading and the previous frame's selection, less
@@ -147,7 +147,9 @@ class RenderOptions:
         if self.mode == "rt" and self.primary == "raster":
             raise BadOption("--primary raster: rt mode traces every ray, its primary rays too")
         if self.mode == "rt" and self.trace_density != "full":
-            raise BadOption("--trace-density half: rt mode traces every pixel (hybrid only)")
+            raise BadOption(
+                f"--trace-density {self.trace_density}: rt mode traces every pixel (hybrid only)"
+            )
         if self.heuristic not in HEURISTICS:
             raise BadOption(
                 f"unknown heuristic {self.heuristic!r}; expected one of {', '.join(HEURISTICS)}"

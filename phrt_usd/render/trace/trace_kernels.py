@@ -475,11 +475,11 @@ def primary_fill(
 def fill_skipped(row_of, traced_pix, traced_src, radiance, skipped_pix, skipped_src, width,
                  height, out_pix, out_rad):  # fmt: skip
     """``sparse_pixels.fill_skipped``: each skipped pixel (skipped_pix, skipped_src (m,)
-    int64) with traced 4-neighbours of its own source (traced_pix, traced_src (n,) int64,
-    their radiance (n, 3) float32) gets their mean, written with the pixel to out_pix (m,)
-    int64 / out_rad (m, 3) float32 in order. row_of (width * height,) int32 is all -1 on
-    entry and again on return (the caller keeps it from round to round). Returns how many
-    were written."""
+    int64) with traced pixels of its own source among its 8 neighbours (traced_pix,
+    traced_src (n,) int64, their radiance (n, 3) float32) gets their mean, written with
+    the pixel to out_pix (m,) int64 / out_rad (m, 3) float32 in order. row_of
+    (width * height,) int32 is all -1 on entry and again on return (the caller keeps it
+    from round to round). Returns how many were written."""
     for i in range(traced_pix.shape[0]):
         row_of[traced_pix[i]] = i
     k = 0
@@ -488,15 +488,16 @@ def fill_skipped(row_of, traced_pix, traced_src, radiance, skipped_pix, skipped_
         row, col = p // width, p % width
         r = g = b = 0.0
         count = 0
-        for q, inside in ((p - width, row > 0), (p + width, row < height - 1),
-                          (p - 1, col > 0), (p + 1, col < width - 1)):  # fmt: skip
-            if inside:
-                at = row_of[q]
-                if at >= 0 and traced_src[at] == s:
-                    r += radiance[at, 0]
-                    g += radiance[at, 1]
-                    b += radiance[at, 2]
-                    count += 1
+        for dy in range(-1, 2):
+            for dx in range(-1, 2):
+                y, x = row + dy, col + dx
+                if (dy or dx) and 0 <= y < height and 0 <= x < width:
+                    at = row_of[y * width + x]
+                    if at >= 0 and traced_src[at] == s:
+                        r += radiance[at, 0]
+                        g += radiance[at, 1]
+                        b += radiance[at, 2]
+                        count += 1
         if count:
             out_pix[k] = p
             out_rad[k, 0], out_rad[k, 1], out_rad[k, 2] = r / count, g / count, b / count

@@ -274,10 +274,10 @@ class Tracer:
         reflector hit at the last one reads the environment for its reflected part
         (``bounce_limit`` < 1: no rays, the environment in the mirror direction).
 
-        ``density`` "half": large reflectors start rays on a checkerboard of their
-        pixels and fill the others from traced neighbours (``sparse_pixels``); their
-        records then count every covered pixel, so rays per pixel stay what a frame's
-        pixel counts predict (hits scaled alike)."""
+        ``density`` "half" / "quarter": large reflectors start rays on a pattern of
+        their pixels and fill the others from traced neighbours (``sparse_pixels``);
+        their records then count every covered pixel, so rays per pixel stay what a
+        frame's pixel counts predict (hits scaled alike)."""
         start = time.perf_counter()
         self.last_rays = []
         sources = [int(s) for s in sources]
@@ -292,7 +292,7 @@ class Tracer:
         return self._with_skipped(result, src, first["skipped"], gbuffer.shape, start)
 
     def _with_skipped(self, result, src, skipped, shape, start) -> ReflectionResult:
-        """A half-density ``result`` with its skipped pixels filled
+        """A reduced-density ``result`` with its skipped pixels filled
         (``sparse_pixels.fill_skipped``) and its records counting every covered pixel:
         src (n,) the traced pixels' sources, skipped (pixels (m,), their sources (m,),
         covered pixels per source) from ``_source_pixels``, shape (H, W) of the
@@ -417,7 +417,7 @@ class Tracer:
         normals facing the viewer, view (n, 3) float32 unit view directions; with
         ``reflect`` dir (n, 3) float32 mirror directions and org (n, 3) float32 offset
         origins (the arrays not asked for have no rows). A source listed twice takes
-        the index of its last entry. ``density`` "half": only the pixels
+        the index of its last entry. ``density`` other than "full": only the pixels
         ``sparse_pixels.traced_subset`` keeps, and "skipped" the others (pixels (m,),
         their sources (m,), covered pixels per source (len(sources),)), else None."""
         index = {s: i for i, s in enumerate(sources)}
@@ -444,8 +444,9 @@ class Tracer:
             cand = np.flatnonzero(chosen)
             cand_src = np.take(table, np.take(elem, cand))
         skipped = None
-        if density == "half":
-            keep = sparse_pixels.traced_subset(cand, cand_src, len(sources), gbuffer.shape[1])
+        if density != "full":
+            width = gbuffer.shape[1]
+            keep = sparse_pixels.traced_subset(cand, cand_src, len(sources), width, density)
             if not keep.all():  # only small reflectors: traced whole
                 covered = np.bincount(cand_src, minlength=len(sources))
                 skipped = (cand[~keep], cand_src[~keep], covered)
