@@ -214,7 +214,8 @@ def write_frame_exr(
     alpha       : (H, W) float in [0, 1], coverage
     depth       : (H, W) float view depth in metres, ``inf`` for background (NaN raises)
     element_id  : (H, W) int32 element ids, -1 for background
-    traced_mask : (H, W) bool, pixels whose reflection was ray-traced
+    traced_mask : (H, W) bool, pixels whose reflection was ray-traced (or, at a reduced
+                  ``--trace-density``, filled from traced neighbours)
     metadata    : extra header attributes (see ``write_exr``), e.g. ``{"phrt/timeCode": 12.0}``
     manifest    : element id → prim path of the ids in the frame (``MANIFEST_ATTR``)
     window      : the pixels the file holds (``DataWindow``; None: all)
