@@ -617,6 +617,12 @@ def sweep(
         typer.Option(help="Comma list of WxH to sweep (e.g. 160x120,320x240); replaces "
                      "--resolution."),
     ] = None,
+    trace_densities: Annotated[
+        str | None,
+        typer.Option(help="Comma list of trace densities to sweep (full,half,quarter; "
+                     "default full): the policies' hybrid frames; the references trace "
+                     "every pixel."),
+    ] = None,
     selection_weight: Annotated[
         float | None, typer.Option(help="I (default: the first stage's setting).")
     ] = None,
@@ -630,8 +636,9 @@ def sweep(
     warmup: WarmupOpt = None,
     json_out: JsonOpt = False,
 ) -> None:
-    """Error against run time: every heuristic x budget (x bounce limit x resolution)
-    against the `all` and `rt` references of the same bounce limit and resolution: per
+    """Error against run time: every heuristic x budget (x bounce limit x resolution x
+    trace density) against the `all` and `rt` references of the same bounce limit and
+    resolution: per
     frame FLIP, PSNR, the temporal error (popping) and transitions; writes sweep.csv,
     summary.md, error_vs_time.png and report.html."""
     from phrt_usd.evaluate.sweep import (
@@ -642,6 +649,7 @@ def sweep(
         run_sweep,
     )
     from phrt_usd.render.raster.gl_platform import check_gl
+    from phrt_usd.render.trace.sparse_pixels import check_density
     from phrt_usd.threads import parse_threads
     from phrt_usd.usd.schema import read_render_params
 
@@ -666,6 +674,9 @@ def sweep(
             out=out,
             bounce_limits=parse_int_list(bounce_limits, "--bounce-limits"),
             resolutions=parse_resolution_list(resolutions),
+            trace_densities=[
+                check_density(d.strip()) for d in (trace_densities or "").split(",") if d.strip()
+            ],
             **({} if threads is None else {"threads": parse_threads(threads)}),
             **({} if gl is None else {"gl": check_gl(gl)}),
             **({} if exposure is None else {"exposure": exposure}),

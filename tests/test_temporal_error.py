@@ -11,6 +11,7 @@ from __future__ import annotations
 import csv
 import json
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -266,3 +267,41 @@ def test_sweep_over_two_bounce_limits(tmp_path):
     assert not (frames[0] / "heu1@600rays b2_temporal.png").exists()
     assert (frames[1] / "heu1@600rays b2_temporal.png").is_file()
     assert f"images/gallery/{frames[1].name}/heu1%40600rays%20b2_temporal.png" in html
+
+
+def test_sweep_over_trace_densities(tmp_path):
+    """3 frames at full and quarter density (160x120, the gallery's mirrors, every visible
+    reflector traced): each density's references are full-density frames (zero error
+    between the two variants' ``all``), the quarter-density frames trace fewer rays and
+    differ from the reference by a little, and the CSV and summary name the density."""
+    stage = mirror_gallery_stage(tmp_path / "gallery.usda", frames=3)
+    out = tmp_path / "sweep"
+    spec = SweepSpec(
+        stages=[stage], heuristics=["heu1"], budgets_ms=[None], frames="1:3",
+        width=160, height=120, trace_densities=["full", "quarter"], out=out,
+    )  # fmt: skip
+    summary = run_sweep(spec)
+    labels = ["raster", "heu1@inf", "all", "rt"]
+    assert summary["configs"] == [f"{c} {d}" for d in ("full", "quarter") for c in labels]
+    with (out / "sweep.csv").open(newline="") as handle:
+        rows = {(r["config"], r["frame"]): r for r in csv.DictReader(handle)}
+    for frame in ("1.0", "2.0", "3.0"):
+        full, quarter = rows[("heu1@inf full", frame)], rows[("heu1@inf quarter", frame)]
+        assert full["trace_density"] == "full" and quarter["trace_density"] == "quarter"
+        assert rows[("all quarter", frame)]["trace_density"] == "quarter"  # the variant's
+        # The references trace every pixel in both variants: the same frame.
+        assert rows[("all quarter", frame)]["rays"] == rows[("all full", frame)]["rays"]
+        assert 0 < int(quarter["rays"]) < int(full["rays"])
+        # Unbounded HEU1 traces what all traces: no error at full density; at a quarter
+        # of the pixels the fill's blur (none where the mirrors show smooth content),
+        # less than the raster fallback's.
+        assert float(full["flip"]) == 0.0
+        assert float(quarter["flip"]) < float(rows[("raster quarter", frame)]["flip"])
+    assert sum(float(rows[("heu1@inf quarter", f)]["flip"]) for f in ("1.0", "2.0", "3.0")) > 0
+    text = (out / "summary.md").read_text()
+    header = next(line for line in text.splitlines() if line.startswith("| config"))
+    assert " trace density |" in header
+    with pytest.raises(BadOption, match="--trace-densities: a value is given twice"):
+        check_spec(replace(spec, trace_densities=["half", "half"]))
+    with pytest.raises(BadOption, match="trace density must be one of"):
+        check_spec(replace(spec, trace_densities=["eighth"]))

@@ -1,8 +1,9 @@
 """Error against run time: every heuristic × budget on the same frames, in one process.
 
-A sweep's *variants* are the other knobs a user turns: every resolution × bounce limit
-(``SweepSpec.resolutions``, ``SweepSpec.bounce_limits``; one variant by default). Per
-stage and frame, in frame order, per resolution:
+A sweep's *variants* are the other knobs a user turns: every resolution × bounce limit ×
+trace density (``SweepSpec.resolutions``, ``SweepSpec.bounce_limits``,
+``SweepSpec.trace_densities``; one variant by default). Per stage and frame, in frame
+order, per resolution:
 
 1. the raster G-buffer and local shading are made once (``FrameRenderer.prepare``), and
    so are the ``rt`` mode's primary rays;
@@ -65,7 +66,8 @@ from phrt_usd.usd.stage import open_stage
 
 CSV_COLUMNS = [
     "stage", "config", "heuristic", "mode", "budget_ms", "budget_rays", "resolution",
-    "bounce_limit", "frame", "frame_ms", "gbuffer_ms", "shade_ms", "select_ms", "trace_ms",
+    "bounce_limit", "trace_density", "frame", "frame_ms", "gbuffer_ms", "shade_ms",
+    "select_ms", "trace_ms",
     "predicted_trace_ms", "rays", "visible", "selected", "transitions", "flip",
     "flip_reflectors", "psnr", "flip_rt", "psnr_rt", "temporal_error",
     "temporal_error_reflectors",
@@ -77,14 +79,16 @@ REPORT_FRAMES = 3
 
 @dataclass(frozen=True)
 class Variant:
-    """One setting of the knobs besides heuristic and budget: resolution and bounce limit.
-    ``label`` names the knobs that vary in the sweep (e.g. ``"b2 320x240"``; ``""`` when
-    the sweep has a single variant) and is appended to the configurations' labels."""
+    """One setting of the knobs besides heuristic and budget: resolution, bounce limit and
+    trace density (of the policies' hybrid frames; the references trace every pixel).
+    ``label`` names the knobs that vary in the sweep (e.g. ``"b2 320x240 half"``; ``""``
+    when the sweep has a single variant) and is appended to the configurations' labels."""
 
     width: int
     height: int
     bounce_limit: int
     label: str = ""
+    trace_density: str = "full"
 
     @property
     def resolution(self) -> str:
@@ -126,10 +130,11 @@ class SweepSpec:
     bounce_limit: int = DEFAULT_BOUNCE_LIMIT
     selection_weight: float = DEFAULT_SELECTION_WEIGHT
     out: Path = Path("sweep")
-    #: Knob sweeps: every bounce limit × resolution (WxH); empty = ``bounce_limit`` and
-    #: (``width``, ``height``) alone.
+    #: Knob sweeps: every bounce limit × resolution (WxH) × trace density; empty =
+    #: ``bounce_limit``, (``width``, ``height``) and full density alone.
     bounce_limits: list[int] = field(default_factory=list)
     resolutions: list[tuple[int, int]] = field(default_factory=list)
+    trace_densities: list[str] = field(default_factory=list)
     #: Every renderer's thread setting and OpenGL platform (``RenderOptions``).
     threads: int = DEFAULT_THREADS
     gl: str = DEFAULT_GL
@@ -138,16 +143,21 @@ class SweepSpec:
     exposure: float = 0.0
 
     def variants(self) -> list[Variant]:
-        """Every resolution × bounce limit, resolutions outer, in the order given."""
+        """Every resolution × bounce limit × trace density, resolutions outer, in the
+        order given."""
         limits = self.bounce_limits or [self.bounce_limit]
         sizes = self.resolutions or [(self.width, self.height)]
+        densities = self.trace_densities or ["full"]
         variants = []
         for w, h in sizes:
             for b in limits:
-                parts = ([f"b{b}"] if len(limits) > 1 else []) + (
-                    [f"{w}x{h}"] if len(sizes) > 1 else []
-                )
-                variants.append(Variant(w, h, b, " ".join(parts)))
+                for d in densities:
+                    parts = (
+                        ([f"b{b}"] if len(limits) > 1 else [])
+                        + ([f"{w}x{h}"] if len(sizes) > 1 else [])
+                        + ([d] if len(densities) > 1 else [])
+                    )
+                    variants.append(Variant(w, h, b, " ".join(parts), d))
         return variants
 
 
@@ -226,6 +236,8 @@ class _ConfigState:
         self.policy = make_policy(
             policy, selection_weight=spec.selection_weight, bounce_limit=variant.bounce_limit
         )
+        # The references (all, rt) trace every pixel: errors are against full density.
+        density = variant.trace_density if policy not in ("all", "none") else "full"
         self.options = RenderOptions(
             mode=config.mode,
             heuristic=config.heuristic,
@@ -238,6 +250,7 @@ class _ConfigState:
             threads=spec.threads,
             gl=spec.gl,
             exposure=spec.exposure,
+            trace_density=density,
         )
         self.previous_image: np.ndarray | None = None
         self.previous: tuple[np.ndarray, np.ndarray] | None = None
@@ -274,15 +287,20 @@ def check_spec(spec: SweepSpec) -> None:
             raise BadOption(f"--heuristics: {h!r} is not heu1 or heu2")
     if not spec.budgets_ms and not spec.budgets_rays:
         raise BadOption("give --budgets-ms or --budgets-rays")
-    knobs = (("--bounce-limits", spec.bounce_limits), ("--resolutions", spec.resolutions))
+    knobs = (
+        ("--bounce-limits", spec.bounce_limits),
+        ("--resolutions", spec.resolutions),
+        ("--trace-densities", spec.trace_densities),
+    )
     for option, values in knobs:
         if len(set(values)) != len(values):
             raise BadOption(f"{option}: a value is given twice")
     for variant in spec.variants():
-        # RenderOptions states the valid ranges (bounce limit, resolution) once.
+        # RenderOptions states the valid values (bounce limit, resolution, density) once.
         RenderOptions(
             width=variant.width, height=variant.height, bounce_limit=variant.bounce_limit,
             threads=spec.threads, gl=spec.gl, exposure=spec.exposure,
+            trace_density=variant.trace_density,
         )  # fmt: skip
 
 
@@ -529,6 +547,8 @@ def _row(
         "budget_rays": _blank(cfg.budget_rays),
         "resolution": f"{state.options.width}x{state.options.height}",
         "bounce_limit": state.options.bounce_limit,
+        # The variant's density: its references (all, rt) trace every pixel whatever it is.
+        "trace_density": (cfg.variant.trace_density if cfg.variant else "full"),
         "frame": st.time,
         "frame_ms": round(st.frame_ms, 3),
         "gbuffer_ms": round(st.phase_ms.get("gbuffer", 0.0), 3),

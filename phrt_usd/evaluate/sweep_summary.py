@@ -92,7 +92,7 @@ REQUIRED_COLUMNS = (
     "temporal_error",
 )
 #: Columns read when present (sweeps of one variant before knob sweeps lack them).
-OPTIONAL_COLUMNS = ("resolution", "bounce_limit", "temporal_error_reflectors")
+OPTIONAL_COLUMNS = ("resolution", "bounce_limit", "trace_density", "temporal_error_reflectors")
 
 #: Display order of config kinds in tables and legends.
 KIND_ORDER = {"raster": 0, "heuristic": 1, "reference": 2, "rt": 3}
@@ -239,6 +239,7 @@ def summarize(
     transition_rate (transitions / chances, None without chances), chances_from
     ("timeline" | "csv"), mean_selected, mean_visible, mean_temporal_error,
     mean_temporal_error_reflectors, resolution ("WxH" or ""), bounce_limit (int or None),
+    trace_density (the variant's: "full", "half", "quarter"; "" without the column),
     variant (e.g. "320x240, bounce 2"; "" without those columns), pareto (bool, see
     ``mark_pareto``). Means skip empty cells and are None when every cell is empty.
 
@@ -304,11 +305,14 @@ def mark_pareto(summary: list[dict[str, Any]]) -> None:
             entry["pareto"] = on_front
 
 
-def variant_label(resolution: str, bounce_limit: int | None) -> str:
-    """'320x240, bounce 2' (parts that are known), '' when neither is."""
+def variant_label(resolution: str, bounce_limit: int | None, trace_density: str = "") -> str:
+    """'320x240, bounce 2, half density' (parts that are known; full density is not
+    named), '' when none is."""
     parts = ([resolution] if resolution else []) + (
         [f"bounce {bounce_limit}"] if bounce_limit is not None else []
     )
+    if trace_density and trace_density != "full":
+        parts.append(f"{trace_density} density")
     return ", ".join(parts)
 
 
@@ -341,6 +345,9 @@ def _summarize_config(
         _constant(group, "bounce_limit", stage, config)
         value = csv_number(group[0], "bounce_limit")
         bounce = None if value is None else int(value)
+    density = ""
+    if "trace_density" in group[0]:
+        density = _constant(group, "trace_density", stage, config)
 
     ordered = sorted(group, key=lambda row: csv_number(row, "frame") or 0.0)
     frame_ms = [csv_number(r, "frame_ms") for r in ordered]
@@ -385,7 +392,8 @@ def _summarize_config(
         ),
         "resolution": resolution,
         "bounce_limit": bounce,
-        "variant": variant_label(resolution, bounce),
+        "trace_density": density,
+        "variant": variant_label(resolution, bounce, density),
         "pareto": False,
     }
 
@@ -433,6 +441,7 @@ TABLE_COLUMNS: tuple[tuple[str, str, Any], ...] = (
     ("budget", "budget", str),
     ("resolution", "resolution", format_optional),
     ("bounce limit", "bounce_limit", format_optional),
+    ("trace density", "trace_density", format_optional),
     ("frames", "frames", str),
     ("mean frame ms", "mean_frame_ms", format_fixed(2)),
     ("median frame ms", "median_frame_ms", format_fixed(2)),
@@ -668,7 +677,8 @@ def write_summary_md(
 #: Columns of summary.csv: the summary entry's keys, numbers unrounded.
 SUMMARY_CSV_KEYS = (
     "stage", "config", "heuristic", "mode", "kind", "budget", "budget_ms", "budget_rays",
-    "resolution", "bounce_limit", "frames", "mean_frame_ms", "median_frame_ms", "mean_fps",
+    "resolution", "bounce_limit", "trace_density", "frames", "mean_frame_ms",
+    "median_frame_ms", "mean_fps",
     "mean_trace_ms", "mean_rays", "mean_flip", "mean_flip_reflectors", "mean_psnr",
     "transitions", "transition_chances", "transition_rate", "chances_from",
     "mean_selected", "mean_visible", "mean_temporal_error",
