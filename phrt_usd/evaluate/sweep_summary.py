@@ -110,7 +110,8 @@ DEFINITIONS = (
     "(0 = changes as the reference does; popping between raster and ray tracing scores "
     "high; docs/temporal-error.md). Pareto: not beaten on all of frame time, FLIP and "
     "temporal error by another config of the same stage and variant (resolution, bounce "
-    "limit), whose reference the errors are measured against."
+    "limit, trace density), whose reference the errors are measured against (the "
+    "references trace every pixel at any trace density)."
 )
 
 
