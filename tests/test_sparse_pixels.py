@@ -9,6 +9,8 @@ import math
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from scenes import look_at, mirror_floor_stage, parts_scene, sphere
 from test_tracer import quad, ray_sphere_hit
 from typer.testing import CliRunner
@@ -148,3 +150,37 @@ def test_the_cli_and_the_api_run_at_half_density_and_record_it(tmp_path):
     lines = bad.stderr.strip().splitlines()
     assert len(lines) == 1 and "trace density must be one of full, half, quarter" in lines[0], lines
     assert not (tmp_path / "bad").exists()
+
+
+@settings(max_examples=150, deadline=None)
+@given(st.integers(1, 9), st.integers(1, 9), st.integers(0, 2**32 - 1))
+def test_fill_is_the_mean_of_traced_same_source_neighbours_on_any_layout(width, height, seed):
+    """Any image size, any sources, any traced subset (not only the patterns), traced
+    pixels in any order, a reused table: each skipped pixel with a traced pixel of its
+    source among its 8 neighbours gets their mean, the others none; the table is left
+    all -1."""
+    rng = np.random.default_rng(seed)
+    n = width * height
+    pix = rng.permutation(n)[: rng.integers(0, n + 1)].astype(np.int64)
+    src = rng.integers(0, 3, len(pix)).astype(np.int64)
+    traced = rng.random(len(pix)) < 0.5
+    radiance = rng.random((int(traced.sum()), 3)).astype(np.float32)
+    table = np.full(n, -1, np.int32)
+    filled, got = fill_skipped(
+        pix[traced], src[traced], radiance, pix[~traced], src[~traced], width, height, table
+    )
+    assert (table == -1).all()
+    where = {int(p): (int(s), radiance[i]) for i, (p, s) in enumerate(
+        zip(pix[traced], src[traced], strict=True))}  # fmt: skip
+    want_pix, want = [], []
+    for p, s in zip(pix[~traced].tolist(), src[~traced].tolist(), strict=True):
+        r, c = divmod(p, width)
+        near = [where[q][1] for q in (y * width + x for y in (r - 1, r, r + 1)
+                                      for x in (c - 1, c, c + 1)
+                                      if 0 <= y < height and 0 <= x < width)
+                if q in where and where[q][0] == s]  # fmt: skip
+        if near:
+            want_pix.append(p)
+            want.append(np.mean(near, axis=0))
+    np.testing.assert_array_equal(filled, np.array(want_pix, np.int64))
+    np.testing.assert_allclose(got, np.array(want, np.float32).reshape(-1, 3), rtol=1e-5)
