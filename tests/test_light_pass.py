@@ -57,3 +57,48 @@ def test_texel_free_pairs_match_the_numpy_reference(offset):
     inside_near = facing & (distance < near)  # w <= |v| < near: nothing rendered there
     assert inside_near.any() and np.all(gpu.visibility[inside_near, 0] == 1.0)
     assert not gpu.uncertain[out | inside_near].any()
+
+
+def test_many_lights_shade_like_the_visibility_matrix():
+    """20 LocalLights (two passes of the shading lookup, which walks each fragment's
+    lights as bit masks) around a slab with casters, some out of reach of parts of it,
+    some below it: the GPU's sums over the lit pairs plus the undecided pairs' PCF shade
+    as the (n, L) visibility matrix does in numpy."""
+    from scenes import look_at
+
+    rng = np.random.default_rng(11)
+    positions = rng.uniform([-4.0, -1.0, -4.0], [4.0, 3.0, 4.0], size=(20, 3))
+    power = np.exp(rng.uniform(np.log(0.05), np.log(3.0), 20))  # ranges ~1.5 to 12 m
+    pairs = zip(positions, power, strict=True)
+    lights = Lights(local=[LocalLight(p, np.full(3, s)) for p, s in pairs])
+    parts = [
+        {"mesh": box((8.0, 0.2, 8.0), (0.0, -0.1, 0.0)), "albedo": (0.6, 0.6, 0.6)},
+        {"mesh": box((1.0, 0.8, 1.0), (0.5, 0.4, 0.0)), "albedo": (0.8, 0.2, 0.2)},
+        {"mesh": box((0.1, 1.5, 0.1), (-1.5, 0.75, 1.0)), "albedo": (0.2, 0.8, 0.2)},
+    ]
+    scene = parts_scene(parts, lights=lights)
+    cam = look_at(np.array([0.0, 6.0, 7.0]), np.zeros(3))
+    with Rasterizer(scene, 96, 72) as r:
+        r.cube_lookup_on_gpu = True
+        g = r.render(cam)
+        cov = g.covered
+        pos, nrm = g.position[cov], g.normal[cov]
+        albedo, view = g.albedo[cov], g.view_dir[cov]
+        vis = r.shadow_visibility(pos, nrm)
+        terms = r.light_terms(pos, nrm, -view)
+    lit = vis > 0.0
+    assert lit.sum(axis=1).min() < lit.sum(axis=1).max()  # points differ in their lights
+    assert 0.2 < lit.mean() < 0.8
+    expected = shading.shade_local(pos, nrm, albedo, view, np.zeros(3), lights, vis)
+    got = shading.shade_local(
+        pos,
+        nrm,
+        albedo,
+        view,
+        np.zeros(3),
+        lights,
+        terms.distant_visibility,
+        local_pairs=terms.local_pairs,
+        lit_sums=terms.lit_sums,
+    )
+    np.testing.assert_allclose(got, expected, rtol=1e-4, atol=1e-5)

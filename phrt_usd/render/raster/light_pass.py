@@ -16,8 +16,10 @@ keep the shader and those in step.
 
 Measured on the sewer (13 lights, 640x480): the lookup takes ~45 ms of CPU time per
 frame (llvmpipe spreads it over the cores), nearly all of it the fragment shader
-(llvmpipe runs every branch under masks, so every light costs every point; the cube
-texel fetches, mostly cache misses, ~1/4); packing, uploads and readback ~4 ms.
+(llvmpipe runs every branch under masks; the shading pass walks only the lights a
+fragment group can see and then those that light it, as bit-mask loops, which end
+when no lane goes on; the cube texel fetches, mostly cache misses, ~1/4); packing,
+uploads and readback ~4 ms.
 
 Coordinate spaces as in ``context``: "rel" is world minus ``Scene.origin``, metres.
 """
