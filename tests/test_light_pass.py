@@ -102,3 +102,38 @@ def test_many_lights_shade_like_the_visibility_matrix():
         lit_sums=terms.lit_sums,
     )
     np.testing.assert_allclose(got, expected, rtol=1e-4, atol=1e-5)
+
+
+def test_float32_rows_are_sent_as_they_are():
+    """Normals and view directions that already are the texture (float32 rows, as many
+    as the texture's texels: a fully covered frame) are uploaded without packing, with
+    the same results as float64 ones that are packed."""
+    from phrt_usd.render.raster import light_pass
+
+    light = LocalLight(np.array([0.0, 2.0, 0.0]), np.full(3, 2.0))
+    parts = [
+        {"mesh": box((8.0, 0.2, 8.0), (0.0, -0.1, 0.0)), "albedo": (0.5, 0.5, 0.5)},
+        {"mesh": box((0.4, 0.4, 0.4), (0.5, 1.0, 0.0)), "albedo": (0.8, 0.2, 0.2)},
+    ]
+    scene = parts_scene(parts, lights=Lights(local=[light]))
+    rng = np.random.default_rng(5)
+    n = 64 * 40  # whole rows of the 64-pixel-wide frame's lookup texture
+    positions = np.column_stack(
+        [rng.uniform(-4.0, 4.0, n), np.zeros(n), rng.uniform(-4.0, 4.0, n)]
+    )
+    normals = np.tile(np.array([0.0, 1.0, 0.0], np.float32), (n, 1))
+    to_eye = rng.normal(size=(n, 3)).astype(np.float32)
+    to_eye /= np.linalg.norm(to_eye, axis=1, keepdims=True)
+    assert light_pass._texels_already(normals, None, (64, 40))
+    assert not light_pass._texels_already(normals.astype(np.float64), None, (64, 40))
+    assert not light_pass._texels_already(normals[:-1], None, (64, 40))
+    with Rasterizer(scene, 64, 48) as r:
+        r.cube_lookup_on_gpu = True
+        direct = r.map_light_terms(positions, normals, to_eye)
+        packed = r.map_light_terms(
+            positions, normals.astype(np.float64), to_eye.astype(np.float64)
+        )
+    assert np.count_nonzero(direct.lit_sums[1][:, :3]) > n  # highlights: to_eye is read
+    for got, want in zip(direct.lit_sums, packed.lit_sums, strict=True):
+        np.testing.assert_array_equal(got, want)
+    np.testing.assert_array_equal(direct.rows, packed.rows)

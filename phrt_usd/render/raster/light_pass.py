@@ -311,8 +311,11 @@ class LightPass:
         inputs = ((points, offset), (normals, None), (to_eye if shading else None, None))
         for tex, (data, minus) in zip(self._point_tex, inputs, strict=True):
             size = (width, rows) if data is not None and len(data) else (1, 1)
-            texels = np.empty((size[0] * size[1], 3), dtype=np.float32)
-            _shade().pack_texels(_NO_POINTS if data is None else data, minus, texels)
+            if _texels_already(data, minus, size):
+                texels = data  # float32 rows filling the texture: sent as they are
+            else:
+                texels = np.empty((size[0] * size[1], 3), dtype=np.float32)
+                _shade().pack_texels(_NO_POINTS if data is None else data, minus, texels)
             GL.glBindTexture(GL.GL_TEXTURE_2D, tex)
             GL.glTexImage2D(
                 GL.GL_TEXTURE_2D, 0, GL.GL_RGB32F, *size, 0, GL.GL_RGB, GL.GL_FLOAT, texels
@@ -459,6 +462,19 @@ def _tiled(texels: np.ndarray) -> np.ndarray:
 
 #: An empty point array (``pack_texels`` of a texture that holds no points).
 _NO_POINTS = np.zeros((0, 3), np.float32)
+
+
+def _texels_already(data: np.ndarray | None, minus: np.ndarray | None, size) -> bool:
+    """``data`` (n, 3) is a texture of ``size`` (width, rows) as it is: float32,
+    C-contiguous, nothing to subtract, one row per texel (a frame covering every pixel:
+    its normals and view directions need no packing copy)."""
+    return (
+        data is not None
+        and minus is None
+        and data.dtype == np.float32
+        and data.flags.c_contiguous
+        and data.shape == (size[0] * size[1], 3)
+    )
 
 
 def _shade():
