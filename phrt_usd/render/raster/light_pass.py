@@ -334,6 +334,14 @@ class LightPass:
             GL.glActiveTexture(GL.GL_TEXTURE0 + unit)
             GL.glBindTexture(target, tex)
         GL.glBindVertexArray(self._lookup_vao)
+        # Only the attachments this pass writes are drawn to (llvmpipe stores every
+        # drawn attachment of every fragment, written by the shader or not: the codes
+        # are 16 of the shading pass's 48 bytes a point).
+        attachments = [GL.GL_COLOR_ATTACHMENT0 + i for i in range(3)]
+        if shading:
+            GL.glDrawBuffers(3, [GL.GL_NONE, *attachments[1:]])
+        else:
+            GL.glDrawBuffers(3, [attachments[0], GL.GL_NONE, GL.GL_NONE])
         drawn = list(range(n_local)) if active is None or not shading else list(active)
         passes = max(-(-len(drawn) // LOOKUP_LIGHTS_PER_PASS), 1 if distant else 0)
         if shading:
