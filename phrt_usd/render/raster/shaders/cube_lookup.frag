@@ -274,8 +274,10 @@ void main()
             todo |= (dot(v, v) < r * r && dot(n, v) < 0.0) ? (1u << j) : 0u;
         }
         uint lit = 0u;
+        // (Lanes already done run the loop masked with findLSB(0) = -1: ``& 15`` keeps
+        // their uniform reads inside the arrays; what they compute is discarded.)
         while (todo != 0u) {
-            int j = findLSB(todo);
+            int j = findLSB(todo) & 15;
             todo &= todo - 1u;
             vec3 v = p - light_pos[j];
             float vis = lookup(j, v, dot(v, v), n);
@@ -286,7 +288,7 @@ void main()
             }
         }
         while (lit != 0u) {
-            int j = findLSB(lit);
+            int j = findLSB(lit) & 15;
             lit &= lit - 1u;
             vec3 v = p - light_pos[j];
             shade(j, v, dot(v, v), n, e, d_sum, h_sum);
