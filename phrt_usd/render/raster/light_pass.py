@@ -16,8 +16,10 @@ keep the shader and those in step.
 
 Measured on the sewer (13 lights, 640x480): the lookup takes ~45 ms of CPU time per
 frame (llvmpipe spreads it over the cores), nearly all of it the fragment shader
-(llvmpipe runs every branch under masks, so every light costs every point; the cube
-texel fetches, mostly cache misses, ~1/4); packing, uploads and readback ~4 ms.
+(llvmpipe runs every branch under masks; the shading pass walks only the lights a
+fragment group can see and then those that light it, as bit-mask loops, which end
+when no lane goes on; the cube texel fetches, mostly cache misses, ~1/4); packing,
+uploads and readback ~4 ms.
 
 Coordinate spaces as in ``context``: "rel" is world minus ``Scene.origin``, metres.
 """
@@ -309,8 +311,11 @@ class LightPass:
         inputs = ((points, offset), (normals, None), (to_eye if shading else None, None))
         for tex, (data, minus) in zip(self._point_tex, inputs, strict=True):
             size = (width, rows) if data is not None and len(data) else (1, 1)
-            texels = np.empty((size[0] * size[1], 3), dtype=np.float32)
-            _shade().pack_texels(_NO_POINTS if data is None else data, minus, texels)
+            if _texels_already(data, minus, size):
+                texels = data  # float32 rows filling the texture: sent as they are
+            else:
+                texels = np.empty((size[0] * size[1], 3), dtype=np.float32)
+                _shade().pack_texels(_NO_POINTS if data is None else data, minus, texels)
             GL.glBindTexture(GL.GL_TEXTURE_2D, tex)
             GL.glTexImage2D(
                 GL.GL_TEXTURE_2D, 0, GL.GL_RGB32F, *size, 0, GL.GL_RGB, GL.GL_FLOAT, texels
@@ -329,6 +334,14 @@ class LightPass:
             GL.glActiveTexture(GL.GL_TEXTURE0 + unit)
             GL.glBindTexture(target, tex)
         GL.glBindVertexArray(self._lookup_vao)
+        # Only the attachments this pass writes are drawn to (llvmpipe stores every
+        # drawn attachment of every fragment, written by the shader or not: the codes
+        # are 16 of the shading pass's 48 bytes a point).
+        attachments = [GL.GL_COLOR_ATTACHMENT0 + i for i in range(3)]
+        if shading:
+            GL.glDrawBuffers(3, [GL.GL_NONE, *attachments[1:]])
+        else:
+            GL.glDrawBuffers(3, [attachments[0], GL.GL_NONE, GL.GL_NONE])
         drawn = list(range(n_local)) if active is None or not shading else list(active)
         passes = max(-(-len(drawn) // LOOKUP_LIGHTS_PER_PASS), 1 if distant else 0)
         if shading:
@@ -457,6 +470,19 @@ def _tiled(texels: np.ndarray) -> np.ndarray:
 
 #: An empty point array (``pack_texels`` of a texture that holds no points).
 _NO_POINTS = np.zeros((0, 3), np.float32)
+
+
+def _texels_already(data: np.ndarray | None, minus: np.ndarray | None, size) -> bool:
+    """``data`` (n, 3) is a texture of ``size`` (width, rows) as it is: float32,
+    C-contiguous, nothing to subtract, one row per texel (a frame covering every pixel:
+    its normals and view directions need no packing copy)."""
+    return (
+        data is not None
+        and minus is None
+        and data.dtype == np.float32
+        and data.flags.c_contiguous
+        and data.shape == (size[0] * size[1], 3)
+    )
 
 
 def _shade():
