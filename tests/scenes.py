@@ -377,3 +377,17 @@ def look_at(
     m = np.eye(4)
     m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = r, u, -f, eye
     return CameraFrame(m, focal, aperture, near=near, far=far)
+
+
+def shaded_both_ways(pos, nrm, albedo, view, lights: Lights, vis, terms):
+    """``shading.shade_local`` of points (n, 3 each) from a visibility matrix ``vis``
+    (n, L) and from the shadow maps' light ``terms`` (``Rasterizer.light_terms``): the
+    two (n, 3) radiances, which must agree."""
+    from phrt_usd.render import shading
+
+    expected = shading.shade_local(pos, nrm, albedo, view, np.zeros(3), lights, vis)
+    got = shading.shade_local(
+        pos, nrm, albedo, view, np.zeros(3), lights, terms.distant_visibility,
+        local_pairs=terms.local_pairs, lit_sums=terms.lit_sums,
+    )  # fmt: skip
+    return expected, got

@@ -16,7 +16,7 @@ import trimesh
 from embreex import mesh_construction, rtcore_scene
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from scenes import box, look_at, parts_scene, sphere
+from scenes import box, look_at, parts_scene, shaded_both_ways, sphere
 
 from phrt_usd.errors import PhrtError
 from phrt_usd.model.frame import GBuffer
@@ -615,7 +615,6 @@ def test_gpu_light_terms_shade_like_the_visibility_matrix(use_refine, with_local
     numpy: a DistantLight with and without LocalLights, with and without shadow-ray
     refinement."""
     from phrt_usd.model.scene import LocalLight
-    from phrt_usd.render import shading
     from phrt_usd.render.trace.tracer import Tracer
 
     lights = Lights(
@@ -651,18 +650,7 @@ def test_gpu_light_terms_shade_like_the_visibility_matrix(use_refine, with_local
     assert (len(terms.local_pairs.point) > 0) == with_local
     # The table's shadow edge is uncertain in the map: resolved outside the sums.
     assert np.count_nonzero(terms.distant_visibility) > 0
-    expected = shading.shade_local(pos, nrm, albedo, view, np.zeros(3), lights, vis)
-    got = shading.shade_local(
-        pos,
-        nrm,
-        albedo,
-        view,
-        np.zeros(3),
-        lights,
-        terms.distant_visibility,
-        local_pairs=terms.local_pairs,
-        lit_sums=terms.lit_sums,
-    )
+    expected, got = shaded_both_ways(pos, nrm, albedo, view, lights, vis, terms)
     assert np.all(np.isfinite(got))
     np.testing.assert_allclose(got, expected, rtol=1e-4, atol=1e-5)
 

@@ -9,7 +9,7 @@ import os
 
 import numpy as np
 import pytest
-from scenes import box, parts_scene
+from scenes import box, parts_scene, shaded_both_ways
 
 from phrt_usd.model.scene import Lights, LocalLight
 from phrt_usd.render import shading
@@ -89,18 +89,7 @@ def test_many_lights_shade_like_the_visibility_matrix():
     lit = vis > 0.0
     assert lit.sum(axis=1).min() < lit.sum(axis=1).max()  # points differ in their lights
     assert 0.2 < lit.mean() < 0.8
-    expected = shading.shade_local(pos, nrm, albedo, view, np.zeros(3), lights, vis)
-    got = shading.shade_local(
-        pos,
-        nrm,
-        albedo,
-        view,
-        np.zeros(3),
-        lights,
-        terms.distant_visibility,
-        local_pairs=terms.local_pairs,
-        lit_sums=terms.lit_sums,
-    )
+    expected, got = shaded_both_ways(pos, nrm, albedo, view, lights, vis, terms)
     np.testing.assert_allclose(got, expected, rtol=1e-4, atol=1e-5)
 
 
