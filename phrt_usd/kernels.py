@@ -54,7 +54,12 @@ KERNEL_MODULES = (
 )
 #: Sources the compiled kernels depend on (the kernels and the constants they read):
 #: their hash names the ahead-of-time build.
-SOURCE_MODULES = (*KERNEL_MODULES, "phrt_usd.model.surface", "phrt_usd.kernels")
+SOURCE_MODULES = (
+    *KERNEL_MODULES,
+    "phrt_usd.model.surface",
+    "phrt_usd.render.trace.bounce_layout",
+    "phrt_usd.kernels",
+)
 #: The C source of the argument check in front of the ahead-of-time kernels (``_Guarded``),
 #: built with them and named by the same hash.
 GUARD_SOURCE = Path(__file__).resolve().parent / "kernel_guard.c"

@@ -264,14 +264,3 @@ def test_first_rays_split_over_the_pool_match_one_thread(monkeypatch):
     np.testing.assert_array_equal(got.pixel_index, expected.pixel_index)
     np.testing.assert_array_equal(got.radiance, expected.radiance)
     assert [r.rays for r in got.records] == [r.rays for r in expected.records]
-
-
-def test_bounce_buffer_layout_agrees():
-    """The bounce loop reads and writes ``bounce``'s buffers with the layout the kernel
-    module declares."""
-    from phrt_usd.render.trace import paths
-
-    shared = [n for n in vars(trace_kernels) if n.split("_")[0] in ("RAY", "G", "T")]
-    assert len(shared) == 25
-    for name in shared:
-        assert getattr(paths, name) == getattr(trace_kernels, name), name

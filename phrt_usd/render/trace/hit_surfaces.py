@@ -25,6 +25,13 @@ import numpy as np
 from phrt_usd import kernels
 from phrt_usd.model import surface
 from phrt_usd.model.scene import Scene
+from phrt_usd.render.trace.bounce_layout import (
+    TRI_ALPHA,
+    TRI_COLUMNS,
+    TRI_F,
+    TRI_IOR,
+    TRI_REFLECTOR,
+)
 from phrt_usd.render.trace.bvh import GLOBAL_IDS, NO_ANIMATED, Bvh, Hits
 
 #: The compiled surface rule (``model.surface_kernels``, through ``phrt_usd.kernels``).
@@ -73,13 +80,14 @@ class HitSurfaces:
         self.cutouts = surface.Cutouts(mats, bvh.tri_material, scene.geometry.corner_uv)
         #: Tangent-space normal maps (``model.surface.NormalMaps``).
         self.normal_maps = surface.NormalMaps(mats, bvh.tri_material, scene.geometry.corner_uv)
-        #: The bounce loop's per-triangle figures in one (T, 4) float64 gather
-        #: (``trace_kernels.TRI_*`` columns): F, the material's opacity and ior, and the
+        #: The bounce loop's per-triangle figures in one (T, TRI_COLUMNS) float64 gather
+        #: (``bounce_layout.TRI_*`` columns): F, the material's opacity and ior, and the
         #: element id of reflector triangles (-1 elsewhere).
-        self.tri_table = np.stack([
-            self.tri_f, self.opacity[bvh.tri_material], self.ior[bvh.tri_material],
-            np.where(self.tri_reflector, tri_element, -1),
-        ], axis=1).astype(np.float64).reshape(n_tri, 4)  # fmt: skip
+        self.tri_table = np.empty((n_tri, TRI_COLUMNS))
+        self.tri_table[:, TRI_F] = self.tri_f
+        self.tri_table[:, TRI_ALPHA] = self.opacity[bvh.tri_material]
+        self.tri_table[:, TRI_IOR] = self.ior[bvh.tri_material]
+        self.tri_table[:, TRI_REFLECTOR] = np.where(self.tri_reflector, tri_element, -1)
 
     def intersect(self, origins: np.ndarray, dirs: np.ndarray) -> tuple[Hits, np.ndarray]:
         """Nearest hits that are there (``Bvh.intersect`` through cut-out holes, see the

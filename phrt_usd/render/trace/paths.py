@@ -48,25 +48,39 @@ from phrt_usd import kernels
 from phrt_usd.model.frame import ReflectionResult, TraceRecord
 from phrt_usd.model.scene import Lights
 from phrt_usd.render import shading
+from phrt_usd.render.trace.bounce_layout import (
+    G_ENV_DIR,
+    G_ENV_SLOT,
+    G_ENV_W,
+    G_KEY,
+    G_LIT_ALBEDO,
+    G_LIT_DIR,
+    G_LIT_NG,
+    G_LIT_NS,
+    G_LIT_POS,
+    G_LIT_SLOT,
+    G_LIT_SRC,
+    G_LIT_TRI,
+    G_LIT_U,
+    G_LIT_V,
+    G_LIT_W,
+    G_ROWS,
+    RAY_CHAIN,
+    RAY_DIR,
+    RAY_ORIGIN,
+    RAY_REFRACTED,
+    RAY_ROWS,
+    RAY_SLOT,
+    RAY_SRC,
+    T_ENV,
+    T_SOURCES,
+)
 from phrt_usd.render.trace.bvh import Bvh
 from phrt_usd.render.trace.hit_surfaces import HitSurfaces
 from phrt_usd.render.trace.shadow_rays import ShadowRays
 
 #: The compiled trace kernels (``trace_kernels``, through ``phrt_usd.kernels``).
 trace_kernels = kernels.load("phrt_usd.render.trace.trace_kernels")
-#: ``trace_kernels.bounce``'s buffer layout, as the kernel module declares it (read here
-#: without compiling it; ``tests/test_trace_kernels.py`` checks the two agree): live-ray
-#: rows (``RAY_*``), gather rows (``G_*``), ``tally`` entries (``T_*``).
-RAY_SLOT, RAY_SRC, RAY_CHAIN, RAY_REFRACTED = 0, 1, 2, 3
-RAY_DIR, RAY_ORIGIN = 0, 1
-G_ENV_SLOT, G_LIT_SLOT, G_LIT_SRC, G_LIT_TRI, G_KEY = 0, 1, 2, 3, 4
-G_ENV_W, G_LIT_W = 0, 1
-G_LIT_POS, G_LIT_NG = 0, 1
-G_ENV_DIR, G_LIT_NS, G_LIT_DIR, G_LIT_ALBEDO = 0, 1, 2, 3
-G_LIT_U, G_LIT_V = 0, 1
-T_ENV, T_LIT, T_KEYS, T_SOURCES = 0, 1, 2, 3
-_RAY_ROWS = RAY_REFRACTED + 1
-_G_ROWS = (G_KEY + 1, G_LIT_W + 1, G_LIT_NG + 1, G_LIT_ALBEDO + 1, G_LIT_V + 1)
 #: ``_gather``'s shadow figures when nothing was shaded.
 _NO_SHADOWS = np.zeros(0, np.int64)
 
@@ -76,19 +90,19 @@ class _Buffers:
     allocated only when a call needs more room than any before it, never per depth.
 
     rays_i (2, 4, L) int64, rays_w (2, L) float64, rays_v (2, 2, L, 3) float32: the live
-    rays, double-buffered (``trace_kernels.RAY_*``); gather: the call's gathered entries
-    g_i, g_w, g_x, g_v, g_uv, G columns each (``trace_kernels.G_*``)."""
+    rays, double-buffered (``bounce_layout.RAY_*``); gather: the call's gathered entries
+    g_i, g_w, g_x, g_v, g_uv, G columns each (``bounce_layout.G_*``)."""
 
     def __init__(self) -> None:
         self.room = 0  # gathered entries the buffers hold
-        self.rays_i = np.empty((2, _RAY_ROWS, 0), np.int64)
+        self.rays_i = np.empty((2, RAY_ROWS, 0), np.int64)
         self.rays_w = np.empty((2, 0))
         self.rays_v = np.empty((2, 2, 0, 3), np.float32)
         self.gather = self._gather_arrays(0)
 
     @staticmethod
     def _gather_arrays(n: int) -> tuple[np.ndarray, ...]:
-        rows_i, rows_w, rows_x, rows_v, rows_uv = _G_ROWS
+        rows_i, rows_w, rows_x, rows_v, rows_uv = G_ROWS
         return (
             np.empty((rows_i, n), np.int64), np.empty((rows_w, n)), np.empty((rows_x, n, 3)),
             np.empty((rows_v, n, 3), np.float32), np.empty((rows_uv, n), np.float32),
@@ -100,7 +114,7 @@ class _Buffers:
             return
         n = max(need, 2 * self.rays_w.shape[1])
         old = (self.rays_i, self.rays_w, self.rays_v)
-        self.rays_i = np.empty((2, _RAY_ROWS, n), np.int64)
+        self.rays_i = np.empty((2, RAY_ROWS, n), np.int64)
         self.rays_w = np.empty((2, n))
         self.rays_v = np.empty((2, 2, n, 3), np.float32)
         self.rays_i[parity, :, :k] = old[0][parity, :, :k]
@@ -168,7 +182,7 @@ class PathTracer:
         floor, relative = bvh.boundary.offset_factors()
         src = np.asarray(src, np.int64)
         # Gathered counts, path rays cast per source after the first, longest reflector
-        # chain per path (trace_kernels.T_*).
+        # chain per path (bounce_layout.T_*).
         tally = np.zeros(T_SOURCES + n_src + n_pix, np.int64)
         rays_src = tally[T_SOURCES : T_SOURCES + n_src]
         k = n_pix if bounce_limit >= 1 else 0

@@ -43,6 +43,37 @@ from numba import njit
 
 from phrt_usd.kernels import KERNEL_OPTIONS
 from phrt_usd.model.surface_kernels import _orient, _pixel_dir, _weighted
+from phrt_usd.render.trace.bounce_layout import (
+    G_ENV_DIR,
+    G_ENV_SLOT,
+    G_ENV_W,
+    G_KEY,
+    G_LIT_ALBEDO,
+    G_LIT_DIR,
+    G_LIT_NG,
+    G_LIT_NS,
+    G_LIT_POS,
+    G_LIT_SLOT,
+    G_LIT_SRC,
+    G_LIT_TRI,
+    G_LIT_U,
+    G_LIT_V,
+    G_LIT_W,
+    RAY_CHAIN,
+    RAY_DIR,
+    RAY_ORIGIN,
+    RAY_REFRACTED,
+    RAY_SLOT,
+    RAY_SRC,
+    T_ENV,
+    T_KEYS,
+    T_LIT,
+    T_SOURCES,
+    TRI_ALPHA,
+    TRI_F,
+    TRI_IOR,
+    TRI_REFLECTOR,
+)
 
 _KERNEL = KERNEL_OPTIONS
 _HELPER = {**_KERNEL, "inline": "always"}
@@ -208,28 +239,7 @@ def _refract(dx, dy, dz, nx, ny, nz, fx, fy, fz, ior):
     return _unit64(eta * dx + c * nx, eta * dy + c * ny, eta * dz + c * nz)
 
 
-#: Columns of the per-triangle material table ``bounce`` reads (``HitSurfaces.tri_table``,
-#: (T, 4) float64): reflectivity F, the material's opacity α and ior, and the element id
-#: of a reflector triangle (-1: not a reflector).
-TRI_F, TRI_ALPHA, TRI_IOR, TRI_REFLECTOR = 0, 1, 2, 3
-#: Rows of ``bounce``'s live-ray state ``rays_i`` (int64): pixel slot, source, reflector
-#: chain, refracted (0 / 1); its float32 rays ``rays_v``: direction, offset origin.
-RAY_SLOT, RAY_SRC, RAY_CHAIN, RAY_REFRACTED = 0, 1, 2, 3
-RAY_DIR, RAY_ORIGIN = 0, 1
-#: The call's gathered entries (``bounce`` appends one depth's to them). ``g_i`` (int64)
-#: rows: environment slot, lit slot, lit source, lit triangle, reflector key; ``g_w``
-#: (float64) rows: environment weight, lit weight; ``g_x`` (float64 (·, 3)): lit
-#: position, lit geometric normal; ``g_v`` (float32 (·, 3)): environment direction, lit
-#: shading normal, lit incoming direction, lit corner albedo; ``g_uv`` (float32): lit u,
-#: v.
-G_ENV_SLOT, G_LIT_SLOT, G_LIT_SRC, G_LIT_TRI, G_KEY = 0, 1, 2, 3, 4
-G_ENV_W, G_LIT_W = 0, 1
-G_LIT_POS, G_LIT_NG = 0, 1
-G_ENV_DIR, G_LIT_NS, G_LIT_DIR, G_LIT_ALBEDO = 0, 1, 2, 3
-G_LIT_U, G_LIT_V = 0, 1
-#: ``tally`` (int64): the counts of gathered environment entries, lit hits and keys,
-#: then the rays cast per source (S), then the longest reflector chain per pixel slot.
-T_ENV, T_LIT, T_KEYS, T_SOURCES = 0, 1, 2, 3
+# The buffers' layout (TRI_*, RAY_*, G_*, T_*): ``bounce_layout``.
 
 
 @njit(**_KERNEL)
