@@ -63,12 +63,12 @@ def main() -> None:
                            bounce_limit=base.bounce_limit)  # fmt: skip
 
     reference = policy("all")
-    policies = {n: policy(n.split("@")[0]) for n in names}
+    # NAME@DENSITY: policy NAME at that trace density (full without one).
+    spec = {n: (n.partition("@")[0], n.partition("@")[2] or "full") for n in names}
+    policies = {n: policy(h) for n, (h, _d) in spec.items()}
     options = {
-        n: replace(base, heuristic=n.split("@")[0], **budget,
-                   trace_density=n.split("@")[1] if "@" in n else "full")
-        for n in names
-    }  # fmt: skip
+        n: replace(base, heuristic=h, trace_density=d, **budget) for n, (h, d) in spec.items()
+    }
     paths = [stage.scene.elements[i].path for i in stage.scene.reflector_ids]
     rows: dict[str, list[dict]] = {n: [] for n in names}
     if args.oracle:
