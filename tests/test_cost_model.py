@@ -14,7 +14,7 @@ from phrt_usd.api import run_render
 from phrt_usd.errors import PhrtError
 from phrt_usd.render.renderer import RenderOptions
 from phrt_usd.run.render_job import RenderJob
-from phrt_usd.select.cost_model import TraceTimeModel
+from phrt_usd.select.cost_model import JITTER_WINDOW, TraceTimeModel
 
 
 def true_ms(rays, rng=None, overhead=0.3, per_ray=4e-4, jitter=0.05):
@@ -155,3 +155,53 @@ def test_budget_use_is_also_reported_where_the_policy_left_a_reflector_untraced(
     assert summary["budget_bound_frames"] == 1
     assert summary["budget_bound_use"] == pytest.approx(0.4)
     assert trace_summary(frames[1:])["budget_bound_use"] is None
+
+
+def test_safety_forgets_a_loaded_spell_within_its_window():
+    """A spell of rounds at 3x their time raises the factor at once, and the spell is
+    forgotten JITTER_WINDOW rounds after it ends (the tracker it replaced took ~60
+    frames, during which kept reflectors were predicted over the budget)."""
+    rng = np.random.default_rng(6)
+    model = TraceTimeModel()
+    model.calibrate([(500, true_ms(500)), (4000, true_ms(4000))])
+
+    def rounds(n, slow=1.0):
+        for _ in range(n):
+            rays = int(rng.uniform(20000, 40000))
+            model.learn(rays, true_ms(rays, rng) * slow)
+
+    rounds(100)
+    quiet = model.safety
+    # 1.2: the 95 % quantile of 5 % lognormal jitter is ~1.09.
+    assert quiet < 1.2
+    rounds(10, slow=3.0)
+    assert model.safety > 1.8  # 10 of the window's 64 rounds (~3x): above its 95 % quantile
+    rounds(JITTER_WINDOW)
+    assert model.safety == pytest.approx(quiet, abs=0.1)
+
+
+def test_safety_weighs_rounds_by_their_time():
+    """Sub-millisecond rounds at 4x their model (a tail seen on the sewer) must not set
+    the margin of 10 ms rounds: the quantile is of milliseconds, not of rounds."""
+    rng = np.random.default_rng(7)
+    model = TraceTimeModel()
+    model.calibrate([(500, true_ms(500)), (4000, true_ms(4000))])
+    for k in range(200):
+        rays = 200 if k % 5 == 0 else 25000  # one round in five tiny and 4x slow
+        model.learn(rays, true_ms(rays, rng) * (4.0 if rays == 200 else 1.0))
+    # 1.2 as above: the tiny rounds hold ~1 % of the window's milliseconds.
+    assert model.safety < 1.2
+
+
+def test_safety_covers_the_ray_prediction_error():
+    """Rounds that cast 20 % more rays than planned: the factor is measured against the
+    planned rays, so it grows to cover them, while the fit learns the rays cast."""
+    rng = np.random.default_rng(8)
+    model = TraceTimeModel()
+    model.calibrate([(500, true_ms(500)), (4000, true_ms(4000))])
+    for _ in range(100):
+        planned = rng.uniform(20000, 40000)
+        rays = int(1.2 * planned)
+        model.learn(rays, true_ms(rays, rng), planned_rays=planned)
+    assert model.expected_ms(30000) == pytest.approx(true_ms(30000), rel=0.10)
+    assert model.safety > 1.15  # ~1.2 x the jitter's quantile, less the fixed cost's share

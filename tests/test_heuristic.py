@@ -626,7 +626,7 @@ def test_initial_rays_per_pixel_guess_counts_lights():
     sc = scene([element((0, 0, -5))], lights=2)
     policy = policy_of("heu1")
     policy.begin_frame(view([100]), sc)
-    assert policy.predicted_rays(0) == pytest.approx(100 * 3 * RAYS_SAFETY)
+    assert policy.predicted_rays(0) == pytest.approx(100 * 3)
     policy.end_frame()
 
 

@@ -13,20 +13,30 @@ import math
 
 #: Predicted trace milliseconds are multiplied by a time safety factor: wall time jitters
 #: from round to round (caches, the OS, other processes on the two cores). The factor is
-#: the JITTER_QUANTILE quantile of measured / modelled round time, tracked online, and
-#: never below TIME_SAFETY_MIN: on a quiet machine it settles near 1.1 (with RAYS_SAFETY
-#: the selection then plans to use ~1 / 1.2 = 83 % of the budget); on a loaded machine
-#: it grows so that rounds still end within the budget. Ratios (measured / modelled ms).
+#: the JITTER_QUANTILE quantile of measured / modelled round time over the last
+#: JITTER_WINDOW rounds, each round weighted by its modelled milliseconds, and never below
+#: TIME_SAFETY_MIN. Weighted by time because what the budget must absorb is milliseconds:
+#: a 0.05 ms round taking 4x its model costs less than a 10 ms round taking 1.1x (on the
+#: sewer at T = 16 ms the few sub-millisecond rounds ran at 3-4x their model, the others'
+#: 97 % quantile was 1.17-1.29). Over a window, so that a loaded spell raises the factor
+#: within a few rounds and is forgotten JITTER_WINDOW rounds after it ends (the online
+#: quantile tracker this replaces fell by 0.006 a round: ~60 frames after a burst, during
+#: which kept reflectors were predicted over the budget and dropped). On a quiet machine
+#: it settles near 1.1-1.2: the selection then plans to use ~85-90 % of the budget.
+#: Ratios (measured / modelled ms).
 TIME_SAFETY_MIN = 1.05
-#: The factor until measured rounds move it: where it settles on a quiet machine.
+#: The factor until JITTER_MIN_ROUNDS rounds were measured, and its floor until then:
+#: where it settles on a quiet machine.
 TIME_SAFETY_INITIAL = 1.1
-#: Upper clamp of the factor: every slow round raises it by JITTER_STEP * JITTER_QUANTILE,
-#: without bound otherwise over a long loaded spell.
+JITTER_MIN_ROUNDS = 8
+#: Upper clamp of the factor: a round stuck behind another process (10-100x its model)
+#: would otherwise plan nothing at all for JITTER_WINDOW rounds.
 TIME_SAFETY_MAX = 10.0
-JITTER_QUANTILE = 0.97
-#: Step of the online quantile tracker (ratio units): +STEP*q on a round slower than
-#: the factor predicts, -STEP*(1-q) otherwise, so ~3 % of rounds exceed it.
-JITTER_STEP = 0.2
+#: 95 %, not 99 %: the frame's later rounds spend what the measured rounds left of the
+#: budget, so one slow round costs the frame its leftover rounds, not the budget.
+JITTER_QUANTILE = 0.95
+#: Rounds in the window: a tracing frame makes 1-3 rounds, so 2-3 s of frames at 24 fps.
+JITTER_WINDOW = 64
 #: When the time budget lets nothing at all be traced in a frame, the safety factor is
 #: multiplied by this. Otherwise a noisy spell could raise it so far that nothing is ever
 #: traced again, and without rounds there is nothing to learn from: the factor creeps back
@@ -90,9 +100,10 @@ class TraceTimeModel:
     only its tilt. A negative fixed cost is replaced by a line through the origin, a
     non-positive slope by the prior's per-ray cost (noise dominating small rounds).
 
-    Predictions are multiplied by ``safety``, an online estimate of the JITTER_QUANTILE
-    quantile of (measured / modelled) round time, clamped to [TIME_SAFETY_MIN,
-    TIME_SAFETY_MAX]; ``expected_ms`` is the central estimate without it.
+    Predictions are multiplied by ``safety``: the JITTER_QUANTILE quantile of (measured /
+    modelled) round time over the last JITTER_WINDOW rounds, weighted by the rounds'
+    modelled ms, clamped to [TIME_SAFETY_MIN, TIME_SAFETY_MAX]; ``expected_ms`` is the
+    central estimate without it.
     """
 
     def __init__(self) -> None:
@@ -100,6 +111,10 @@ class TraceTimeModel:
         self.ms_per_ray = INITIAL_MS_PER_RAY
         self.rounds = 0
         self.safety = TIME_SAFETY_INITIAL
+        #: The window of the safety factor, oldest first: measured / modelled ms of each
+        #: round, and its weight (the modelled ms).
+        self.jitter_ratios: list[float] = []
+        self.jitter_weights: list[float] = []
         #: The prior line (ms, ms per ray) and its current weight.
         self.prior_overhead_ms = INITIAL_ROUND_MS
         self.prior_ms_per_ray = INITIAL_MS_PER_RAY
@@ -131,19 +146,23 @@ class TraceTimeModel:
         self.calibrated = True
         self._fit()
 
-    def learn(self, rays: int, ms: float) -> None:
-        """One round: ``rays`` cast in ``ms`` wall-clock milliseconds."""
+    def learn(self, rays: int, ms: float, planned_rays: float = 0.0) -> None:
+        """One round: ``rays`` cast in ``ms`` wall-clock milliseconds. ``planned_rays``
+        (> 0): the rays the round was predicted to cast; the safety factor's ratio is then
+        measured against the time modelled for them, so it also covers the error of the
+        ray prediction (the fit itself always learns the rays cast)."""
         if rays <= 0 or not math.isfinite(ms) or ms < 0.0:
             return
         x, m = float(rays) / RAY_UNIT, float(ms)
         if self.rounds > 0 or self.calibrated:
             # (Uncalibrated, the first round only tells how wrong the initial guess was.)
-            expected = max(self.expected_ms(rays), 1e-9)
-            ratio = m / expected
-            q = JITTER_QUANTILE
-            step = JITTER_STEP * (q if ratio > self.safety else -(1.0 - q))
-            self.safety = min(max(self.safety + step, TIME_SAFETY_MIN), TIME_SAFETY_MAX)
-            m = min(max(m, expected / OUTLIER_RATIO), expected * OUTLIER_RATIO)
+            planned = planned_rays if planned_rays > 0.0 and math.isfinite(planned_rays) else rays
+            expected = max(self.expected_ms(planned), 1e-9)
+            self.jitter_ratios = [*self.jitter_ratios[1 - JITTER_WINDOW :], m / expected]
+            self.jitter_weights = [*self.jitter_weights[1 - JITTER_WINDOW :], expected]
+            self._update_safety()
+            actual = max(self.expected_ms(rays), 1e-9)
+            m = min(max(m, actual / OUTLIER_RATIO), actual * OUTLIER_RATIO)
         k = TIME_MODEL_DECAY
         if not self.calibrated and self.rounds == 0:
             # The initial guess is a guess: the first measured round replaces it at once.
@@ -156,6 +175,20 @@ class TraceTimeModel:
         self._rm = k * self._rm + x * m
         self.rounds += 1
         self._fit()
+
+    def _update_safety(self) -> None:
+        """``safety`` from the window: its weighted JITTER_QUANTILE quantile (the smallest
+        ratio with at least that share of the window's weight at or below it), clamped."""
+        pairs = sorted(zip(self.jitter_ratios, self.jitter_weights, strict=True))
+        total = sum(w for _r, w in pairs)
+        quantile, below = pairs[-1][0], 0.0
+        for ratio, w in pairs:
+            below += w
+            if below >= JITTER_QUANTILE * total:
+                quantile = ratio
+                break
+        floor = TIME_SAFETY_INITIAL if len(pairs) < JITTER_MIN_ROUNDS else TIME_SAFETY_MIN
+        self.safety = min(max(quantile, floor), TIME_SAFETY_MAX)
 
     def _fit(self) -> None:
         """Weighted least squares of the rounds and the prior's two pseudo-rounds."""
@@ -179,8 +212,9 @@ class TraceTimeModel:
         self.ms_per_ray = max(float(per_unit) / RAY_UNIT, MIN_MS_PER_RAY)
 
     def relax(self) -> None:
-        """Nothing fitted the time budget this frame: lower the safety factor a little,
-        and once it is at its minimum, the modelled times (STARVED_SCALE)."""
+        """Nothing fitted the time budget this frame: lower the safety factor a little
+        (every ratio of its window, STARVED_RELAX), and once it is at its minimum, the
+        modelled times (STARVED_SCALE)."""
         if self.safety <= TIME_SAFETY_MIN:
             k = STARVED_SCALE
             self.prior_overhead_ms *= k
@@ -188,6 +222,7 @@ class TraceTimeModel:
             self._m *= k
             self._rm *= k
             self._fit()
+        self.jitter_ratios = [r * STARVED_RELAX for r in self.jitter_ratios]
         self.safety = max(self.safety * STARVED_RELAX, TIME_SAFETY_MIN)
 
     def expected_ms(self, rays: float) -> float:
