@@ -71,7 +71,7 @@ class Heu1Policy(BudgetedPolicy):
       only up to that frame;
     * leftover: rounds after the first fill what the measured rounds left of T, and the
       admission margin there is a share of that leftover, not of the whole budget (with
-      a time budget the first round plans only ~1/(1.1 x safety) of T, and a margin of
+      a time budget the first round plans only ~1/safety of T, and a margin of
       10 % of T took most of what was left).
 
     Deviations from the paper (§4.2: the most relevant nodes whose cost fits, S·I as
