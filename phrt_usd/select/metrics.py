@@ -124,8 +124,10 @@ def box_screen_area(
         ndc_y = (pc[..., 1].reshape(m, n, 8) - centre[:, 1, None, None] * safe) / (
             safe * tan[:, 1, None, None]
         )
-    x = np.clip(np.nan_to_num((ndc_x + 1.0) * 0.5 * width, nan=0.0), 0.0, float(width))
-    y = np.clip(np.nan_to_num((1.0 - ndc_y) * 0.5 * height, nan=0.0), 0.0, float(height))
+        # Near-overflow NDC (a corner almost on the eye plane) overflows to inf here:
+        # clipped to the image like any corner beyond its edge.
+        x = np.clip(np.nan_to_num((ndc_x + 1.0) * 0.5 * width, nan=0.0), 0.0, float(width))
+        y = np.clip(np.nan_to_num((1.0 - ndc_y) * 0.5 * height, nan=0.0), 0.0, float(height))
     area = (x.max(axis=2) - x.min(axis=2)) * (y.max(axis=2) - y.min(axis=2))
     area = np.where(straddles, float(width) * float(height), area)
     return np.where(in_front, area, 0.0)
