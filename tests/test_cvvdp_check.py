@@ -88,9 +88,12 @@ def test_alternate_and_ours_on_synthetic_outputs(tmp_path):
     assert result["frames_per_second"] == 24.0
     same, steady, popping = result["configs"]
     assert same["flip"] == 0.0 and same["temporal_error"] == 0.0 and same["transitions"] == 0
-    assert steady["flip"] > 0.0 and steady["temporal_error"] == 0.0
+    # A still, steady error: its temporal error is its per-frame FLIP (nothing flickers).
+    assert steady["flip"] > 0.0
+    assert steady["temporal_error"] == pytest.approx(steady["flip"], rel=1e-3)
     assert steady["transitions"] == 0
     assert popping["flip"] == pytest.approx(steady["flip"] / 2, rel=1e-6)
-    # a 0.2 -> 0.8 switch of a quarter of the frame: its FLIP is far above float noise
+    # a 0.2 -> 0.8 switch of a quarter of the frame every frame: its flicker adds far more
+    # than float noise to what the eye integrates (measured 0.122 against 0.137 per frame)
     assert popping["temporal_error"] > 0.01
     assert popping["transitions"] == len(REFLECTORS) * (FRAMES - 1)

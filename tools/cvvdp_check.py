@@ -104,24 +104,25 @@ def _check_same_frames(reference: Path, directory: Path, suffix: str) -> list[st
 # --- step 1: our metrics (project environment) ------------------------------------------
 
 
-def our_metrics(reference: Path, directory: Path) -> dict:
-    """Per-configuration figures of ``directory`` against ``reference`` (render outputs):
-    mean per-frame FLIP, mean temporal error over the frame pairs, transitions, mean
-    frame ms and rays per frame (from stats.json)."""
-    from phrt_usd.evaluate.image_metrics import flip_map, mean_over, temporal_error_map
+def our_metrics(reference: Path, directory: Path, frames_per_second: float) -> dict:
+    """Per-configuration figures of ``directory`` against ``reference`` (render outputs of
+    a sequence at ``frames_per_second``): mean per-frame FLIP, mean temporal error,
+    transitions, mean frame ms and rays per frame (from stats.json)."""
+    from phrt_usd.evaluate.image_metrics import flip_map, mean_over
     from phrt_usd.evaluate.selection_metrics import selection_metrics
+    from phrt_usd.evaluate.temporal_error import TemporalChannels, temporal_error_map
     from phrt_usd.run.images import read_frame_exr
 
     names = _check_same_frames(reference, directory, "exr")
     flips, temporals = [], []
-    ref_prev = test_prev = None
+    ref_channels = TemporalChannels(frames_per_second)
+    test_channels = TemporalChannels(frames_per_second)
     for name in names:
         ref = read_frame_exr(reference / "frames" / name)["beauty"]
         test = read_frame_exr(directory / "frames" / name)["beauty"]
         flips.append(mean_over(flip_map(ref, test)))
-        if ref_prev is not None:
-            temporals.append(mean_over(temporal_error_map(ref_prev, ref, test_prev, test)))
-        ref_prev, test_prev = ref, test
+        error = temporal_error_map(ref_channels.push(ref), test_channels.push(test))
+        temporals.append(mean_over(error))
     stats = json.loads((directory / "stats.json").read_text())
     frames = stats["frames"]
     reflectors = stats["run"]["reflectors"]
@@ -140,7 +141,7 @@ def our_metrics(reference: Path, directory: Path) -> dict:
         "budget_ms": run["budget_ms"] if run["budget_rays"] is None else None,
         "frames": len(names),
         "flip": float(np.mean(flips)),
-        "temporal_error": float(np.mean(temporals)) if temporals else None,
+        "temporal_error": float(np.mean(temporals)),
         "transitions": selection_metrics(selected, visible)["transitions"],
         "frame_ms": float(np.mean([fr["frame_ms"] for fr in frames])),
         "rays": float(np.mean([fr["rays"] for fr in frames])),
@@ -153,8 +154,9 @@ def run_ours(args: argparse.Namespace) -> None:
     if run["heuristic"] != "all":
         fail(f"{reference}: the reference must be rendered with --heuristic all")
     configs = []
+    fps = float(run["time_codes_per_second"])  # the frames are consecutive time codes
     for directory in args.configs:
-        configs.append(our_metrics(reference, Path(directory)))
+        configs.append(our_metrics(reference, Path(directory), fps))
         print(f"{configs[-1]['label']}: FLIP {configs[-1]['flip']:.4f} temporal "
               f"{configs[-1]['temporal_error']:.4f}", file=sys.stderr)
     result = {

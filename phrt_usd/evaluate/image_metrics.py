@@ -1,5 +1,5 @@
-"""Image error against a reference: NVIDIA FLIP and PSNR, whole frame or under a mask,
-and the temporal error of a sequence (``temporal_error_map``, docs/temporal-error.md).
+"""Image error against a reference: NVIDIA FLIP and PSNR, whole frame or under a mask (the
+temporal error of a sequence, built on FLIP, is ``temporal_error``).
 
 Both compare *LDR* images: linear renders go through ``images.tonemap_ldr`` (the same
 tone map as the PNG previews) first, so the error is what a viewer of the previews sees.
@@ -17,14 +17,6 @@ from phrt_usd.run.images import tonemap_ldr
 
 #: PSNR reported for identical images (the true value is +inf, which JSON/CSV cannot hold).
 PSNR_IDENTICAL_DB = 100.0
-
-
-#: Display mapping of a frame-to-frame change: a change ``d`` in [-1, 1] (difference of two
-#: sRGB-encoded frames) is shown as ``CHANGE_GREY + CHANGE_SCALE * d`` in [0, 1], i.e. on
-#: a mid-grey at half amplitude, so that every possible change fits the display range
-#: without clipping (docs/temporal-error.md).
-CHANGE_GREY = 0.5
-CHANGE_SCALE = 0.5
 
 
 def _check_pair(reference: np.ndarray, test: np.ndarray) -> None:
@@ -58,42 +50,6 @@ def _flip_display(reference: np.ndarray, test: np.ndarray) -> np.ndarray:
     )
     error = np.asarray(error, dtype=np.float32)
     return error[..., 0] if error.ndim == 3 else error
-
-
-def change_image(previous: np.ndarray, current: np.ndarray) -> np.ndarray:
-    """(H, W, 3) float32 display image of the change from ``previous`` to ``current``
-    (linear (H, W, 3) frames): ``CHANGE_GREY + CHANGE_SCALE * (ldr(current) -
-    ldr(previous))`` with ``ldr = tonemap_ldr``; in [0, 1] by construction (each ldr value
-    is in [0, 1], so the difference is in [-1, 1])."""
-    delta = tonemap_ldr(current).astype(np.float32) - tonemap_ldr(previous).astype(np.float32)
-    return np.float32(CHANGE_GREY) + np.float32(CHANGE_SCALE) * delta
-
-
-def temporal_error_map(
-    reference_previous: np.ndarray,
-    reference: np.ndarray,
-    test_previous: np.ndarray,
-    test: np.ndarray,
-) -> np.ndarray:
-    """(H, W) float32 temporal error in [0, 1] of frame t of a test sequence.
-
-    The LDR-FLIP between the reference's frame-to-frame change and the test's, each shown
-    as a display image by ``change_image``::
-
-        T_t = FLIP(change_image(R_{t-1}, R_t), change_image(H_{t-1}, H_t))
-
-    0 where the test changes exactly as the reference does (identical sequences, or an
-    error that stays the same from frame to frame); high where the test pops (a change
-    the reference does not have, e.g. a reflector switching between raster and traced).
-    All four images: (H, W, 3) linear RGB, finite, one size (PhrtError otherwise).
-    See docs/temporal-error.md for the reasoning and limits.
-    """
-    _check_pair(reference, test)
-    _check_pair(reference, reference_previous)
-    _check_pair(reference, test_previous)
-    return _flip_display(
-        change_image(reference_previous, reference), change_image(test_previous, test)
-    )
 
 
 def mean_over(values: np.ndarray, mask: np.ndarray | None = None) -> float:

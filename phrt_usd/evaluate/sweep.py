@@ -13,9 +13,10 @@ order, per resolution:
 3. the pure ``rt`` mode finishes the frame at that bounce limit as a second reference;
 4. each configuration's image is compared with its variant's references: FLIP (LDR
    after ``images.tonemap_ldr``) and PSNR, over the frame and over reflector pixels only,
-   and the temporal error (``image_metrics.temporal_error_map``, docs/temporal-error.md):
-   FLIP between the configuration's frame-to-frame change and the reference's, which sees
-   the popping of a reflector switching between raster and traced.
+   and the temporal error (``temporal_error``, docs/temporal-error.md): FLIP between the
+   configuration's and the reference's sequences as the eye integrates them (sustained)
+   plus FLIP between their flicker (transient), which sees the popping of a reflector
+   switching between raster and traced.
 
 Frame times are measured per configuration in the same run: G-buffer and shading
 phases (shared) plus that configuration's own selection and trace phases.
@@ -40,7 +41,7 @@ import numpy as np
 
 from phrt_usd.atomic import write_text_atomic
 from phrt_usd.errors import BadOption
-from phrt_usd.evaluate.image_metrics import flip_map, mean_over, psnr, temporal_error_map
+from phrt_usd.evaluate.image_metrics import flip_map, mean_over, psnr
 from phrt_usd.evaluate.selection_metrics import transitions_per_frame
 from phrt_usd.evaluate.sweep_files import (
     ERROR_VS_TIME_PNG,
@@ -52,6 +53,11 @@ from phrt_usd.evaluate.sweep_files import (
     SWEEP_CSV,
     TEMPORAL_MAP_SUFFIX,
     TIMELINE_JSON,
+)
+from phrt_usd.evaluate.temporal_error import (
+    TemporalChannels,
+    sequence_frames_per_second,
+    temporal_error_map,
 )
 from phrt_usd.render.raster.gl_platform import DEFAULT_GL
 from phrt_usd.render.renderer import FrameOutput, FrameRenderer, RenderOptions
@@ -223,12 +229,14 @@ def sweep_configs(spec: SweepSpec, variant: Variant | None = None) -> list[Sweep
 
 
 class _ConfigState:
-    """Per-configuration memory across frames: policy, previous image and selection.
+    """Per-configuration memory across frames: policy, the temporal error's channels of
+    its sequence (at ``frames_per_second``, the recorded sequence's rate), and the previous
+    frame's selection.
 
     ``previous``: the last rendered frame's (selected, visible), each (R,) bool over the
     stage's reflectors (``StageSweep.reflectors`` order); None before the first frame."""
 
-    def __init__(self, config: SweepConfig, spec: SweepSpec):
+    def __init__(self, config: SweepConfig, spec: SweepSpec, frames_per_second: float):
         self.config = config
         variant = config.variant or spec.variants()[0]
         # rt traces everything: its renderer finishes frames with the ``all`` policy.
@@ -252,7 +260,7 @@ class _ConfigState:
             exposure=spec.exposure,
             trace_density=density,
         )
-        self.previous_image: np.ndarray | None = None
+        self.temporal = TemporalChannels(frames_per_second)
         self.previous: tuple[np.ndarray, np.ndarray] | None = None
         self.timeline_selected: list[list[bool]] = []
         self.timeline_visible: list[list[bool]] = []
@@ -351,11 +359,12 @@ def _sweep_stage(stage_path, spec, rows, timeline, stop, on_frame) -> None:
 class _VariantStates:
     """One variant's configurations and its two references (``all`` hybrid, ``rt``)."""
 
-    def __init__(self, variant: Variant, spec: SweepSpec):
+    def __init__(self, variant: Variant, spec: SweepSpec, frames_per_second: float):
         self.variant = variant
-        self.states = [_ConfigState(c, spec) for c in sweep_configs(spec, variant)]
-        self.reference = _ConfigState(SweepConfig("all", variant=variant), spec)
-        self.rt_state = _ConfigState(SweepConfig("all", mode="rt", variant=variant), spec)
+        fps = frames_per_second
+        self.states = [_ConfigState(c, spec, fps) for c in sweep_configs(spec, variant)]
+        self.reference = _ConfigState(SweepConfig("all", variant=variant), spec, fps)
+        self.rt_state = _ConfigState(SweepConfig("all", mode="rt", variant=variant), spec, fps)
 
     def all_states(self) -> list[_ConfigState]:
         return [*self.states, self.reference, self.rt_state]
@@ -394,10 +403,11 @@ class StageSweep:
         self.name = Path(stage_path).stem
         #: Every time code of this stage's sweep (the chunk's frames are a slice of it).
         self.times = parse_frames(spec.frames, self.stage.frame_range)
+        fps = sequence_frames_per_second(self.times, self.stage.time_codes_per_second)
         by_size: dict[tuple[int, int], list[_VariantStates]] = {}
         for variant in spec.variants():
             key = (variant.width, variant.height)
-            by_size.setdefault(key, []).append(_VariantStates(variant, spec))
+            by_size.setdefault(key, []).append(_VariantStates(variant, spec, fps))
         self.resolutions = [
             _Resolution(self.stage, self.times, spec, vs) for vs in by_size.values()
         ]
@@ -452,14 +462,16 @@ class StageSweep:
                 rt_out = res.rt.finish(rt_prep, rt_state.policy, rt_state.options)
                 outputs = [(s, res.hybrid.finish(prep, s.policy, s.options)) for s in group.states]
                 outputs += [(reference, ref_out), (rt_state, rt_out)]
+                # Every sequence advances by this frame, warm-up frames included.
+                channels = {id(s): s.temporal.push(out.beauty) for s, out in outputs}
                 references = _References(
-                    ref_out, reference.previous_image, rt_out, reflector_px, temporal_px
+                    ref_out, channels[id(reference)], rt_out, reflector_px, temporal_px
                 )
                 for state, output in outputs:
                     selection = _selection_row(output, self.reflectors)
                     if record:
                         error = flip_map(ref_out.beauty, output.beauty)
-                        temporal = _temporal_map(state, output, references)
+                        temporal = temporal_error_map(references.ref_channels, channels[id(state)])
                         rows.append(
                             _row(self.name, state, output, error, temporal, references, selection)
                         )
@@ -469,8 +481,8 @@ class StageSweep:
                                 self.spec.out, self.name, t, label, output, error, temporal
                             )
                     state.pending = (output, selection)
-                # Every row of this frame is made before any memory advances: the rows
-                # need the reference's previous image.
+                # Every row of this frame is made before any selection memory advances:
+                # a row's transitions are from the previous frame's selection.
                 for state in group.all_states():
                     _remember(state, *state.pending, record)
                     state.pending = None
@@ -498,12 +510,12 @@ class StageSweep:
 @dataclass
 class _References:
     """What one variant's rows are measured against in a frame: the ``all`` reference's
-    output and its previous frame's beauty (None on the first frame), the ``rt`` output,
-    the reflector pixels of this frame and those of this or the previous frame ((H, W)
-    bool, the latter for the temporal error)."""
+    output and the temporal error's (sustained, transient) channels of its sequence at
+    this frame, the ``rt`` output, the reflector pixels of this frame and those of this or
+    the previous frame ((H, W) bool, the latter for the temporal error)."""
 
     ref: FrameOutput
-    ref_previous: np.ndarray | None
+    ref_channels: tuple[np.ndarray, np.ndarray]
     rt: FrameOutput
     reflector_px: np.ndarray
     temporal_px: np.ndarray
@@ -514,13 +526,13 @@ def _row(
     state: _ConfigState,
     output: FrameOutput,
     flip_ref: np.ndarray,
-    temporal_map: np.ndarray | None,
+    temporal_map: np.ndarray,
     refs: _References,
     selection: tuple[np.ndarray, np.ndarray],
 ) -> dict:
     """One CSV row. flip_ref: (H, W) FLIP of this output against the ``all`` reference
-    ``refs.ref``; temporal_map: ``_temporal_map`` of this output (None on the first
-    frame: ``temporal_error`` cells empty); selection: this frame's (selected, visible),
+    ``refs.ref``; temporal_map: (H, W) ``temporal_error_map`` of this output's sequence
+    against the reference's at this frame; selection: this frame's (selected, visible),
     see ``_selection_row``. ``transitions``: from the configuration's previous frame into
     this one (``selection_metrics``; 0 on its first frame)."""
     st = output.stats
@@ -533,10 +545,6 @@ def _row(
                 np.stack([selected_before, selected]), np.stack([visible_before, visible])
             )[-1]
         )
-    temporal = temporal_reflectors = None
-    if temporal_map is not None:
-        temporal = round(mean_over(temporal_map), 6)
-        temporal_reflectors = round(mean_over(temporal_map, refs.temporal_px), 6)
     heuristic = {"rt": "all", "raster": "none"}.get(cfg.mode, cfg.heuristic)
     return {
         "stage": stage,
@@ -565,25 +573,13 @@ def _row(
         "psnr": round(psnr(refs.ref.beauty, output.beauty), 4),
         "flip_rt": round(mean_over(flip_map(refs.rt.beauty, output.beauty)), 6),
         "psnr_rt": round(psnr(refs.rt.beauty, output.beauty), 4),
-        "temporal_error": _blank(temporal),
-        "temporal_error_reflectors": _blank(temporal_reflectors),
+        "temporal_error": round(mean_over(temporal_map), 6),
+        "temporal_error_reflectors": round(mean_over(temporal_map, refs.temporal_px), 6),
     }
 
 
-def _temporal_map(
-    state: _ConfigState, output: FrameOutput, refs: _References
-) -> np.ndarray | None:
-    """(H, W) ``temporal_error_map`` of this configuration from its previous frame into
-    this one, against the reference's change over the same frames; None on the first."""
-    if state.previous_image is None or refs.ref_previous is None:
-        return None
-    return temporal_error_map(
-        refs.ref_previous, refs.ref.beauty, state.previous_image, output.beauty
-    )
-
-
 def _blank(value):
-    """CSV cell: empty for None (unbounded budget, no previous frame)."""
+    """CSV cell: empty for None (an unbounded budget)."""
     return "" if value is None else value
 
 
@@ -593,10 +589,9 @@ def _remember(
     selection: tuple[np.ndarray, np.ndarray],
     record: bool = True,
 ) -> None:
-    """Keep this frame's image and (selected, visible) for the next frame's row."""
+    """Keep this frame's (selected, visible) for the next frame's row."""
     selected, visible = selection
     state.previous = selection
-    state.previous_image = output.beauty
     if record:
         state.timeline_selected.append(selected.tolist())
         state.timeline_visible.append(visible.tolist())
@@ -618,19 +613,17 @@ def _write_report_images(
     label: str,
     output: FrameOutput,
     error: np.ndarray,
-    temporal: np.ndarray | None,
+    temporal: np.ndarray,
 ) -> None:
-    """Preview PNG, FLIP error map and (after the first frame) temporal error map (both
-    (H, W) in [0, 1], magma) of one configuration's frame."""
+    """Preview PNG, FLIP error map ((H, W) in [0, 1]) and temporal error map ((H, W) in
+    [0, 1 + TRANSIENT_WEIGHT], shown clipped to [0, 1]) of one configuration's frame, in
+    magma."""
     import matplotlib
 
     folder = out / IMAGES_DIR / stage / f"{t:g}"
     folder.mkdir(parents=True, exist_ok=True)
     write_preview_png(folder / f"{label}.png", output.beauty)
-    maps = [(FLIP_MAP_SUFFIX, error)]
-    if temporal is not None:
-        maps.append((TEMPORAL_MAP_SUFFIX, temporal))
-    for suffix, values in maps:
+    for suffix, values in ((FLIP_MAP_SUFFIX, error), (TEMPORAL_MAP_SUFFIX, temporal)):
         magma = matplotlib.colormaps["magma"](np.clip(values, 0.0, 1.0))[..., :3]
         # The error map is already display-referred: written without the tone map.
         _write_display_png(folder / f"{label}{suffix}.png", magma.astype(np.float32))

@@ -191,7 +191,7 @@ def _images_section(
                     _figure(
                         out_dir,
                         temporal_map,
-                        f"temporal error of {config}: its change from the previous frame "
+                        f"temporal error of {config}: its sequence as seen over time "
                         f"vs {reference_name}'s (magma)",
                     )
                 )

@@ -24,10 +24,12 @@ Definitions used in the tables (all means are over the config's frames):
   CSV's frame count) the chances are approximated from the CSV's per-frame visible counts
   after the first frame, which also counts reflectors that just entered the view; the
   summary says which was used.
-- *temporal error* = mean over the config's frame pairs of ``image_metrics.
-  temporal_error_map``: FLIP between the config's frame-to-frame change and the
-  reference's (docs/temporal-error.md); 0 for a config that changes exactly as the
-  reference does, high where a reflector pops between raster and traced.
+- *temporal error* = mean over the config's frames of ``temporal_error.
+  temporal_error_map``: FLIP between the config's sequence and the reference's as the eye
+  integrates them (sustained) plus FLIP between their flicker (transient), ColorVideoVDP's
+  channels (docs/temporal-error.md); 0 for a config whose frames equal the reference's,
+  about the per-frame FLIP for a steady error, more where a reflector pops between raster
+  and traced.
 - *variant* = the resolution and bounce limit of a config (``sweep.Variant``); errors are
   measured against the reference of the same variant, so comparisons (equal time, the
   Pareto front) stay within one stage and variant.
@@ -291,7 +293,7 @@ def pareto_front(points: list[tuple[float, ...]]) -> list[bool]:
 def mark_pareto(summary: list[dict[str, Any]]) -> None:
     """Set each entry's ``pareto``: on the Pareto front of ``PARETO_OBJECTIVES`` among the
     entries of its stage and variant. An objective some entry of the group lacks (e.g.
-    the temporal error of a one-frame sweep) is left out for the whole group."""
+    the temporal error of a CSV without one) is left out for the whole group."""
     groups: dict[tuple[str, str], list[dict[str, Any]]] = {}
     for entry in summary:
         groups.setdefault((entry["stage"], entry["variant"]), []).append(entry)
