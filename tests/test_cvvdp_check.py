@@ -97,3 +97,25 @@ def test_alternate_and_ours_on_synthetic_outputs(tmp_path):
     # than float noise to what the eye integrates (measured 0.122 against 0.137 per frame)
     assert popping["temporal_error"] > 0.01
     assert popping["transitions"] == len(REFLECTORS) * (FRAMES - 1)
+
+
+def test_synthetic_sequences_are_render_outputs(tmp_path):
+    """The ``synthetic`` step writes the six sequences as render outputs: the patch's
+    linear radiance is what each sequence promises in the frames checked."""
+    from phrt_usd.run.images import read_frame_exr
+
+    cvvdp_check.main(["synthetic", "--out", str(tmp_path)])
+    names = ("reference", "steady", "blend", "pop1", "pop2", "pop4")
+    for name in names:
+        stats = json.loads((tmp_path / name / "stats.json").read_text())
+        assert len(stats["frames"]) == cvvdp_check.SYNTHETIC_FRAMES
+    def patch(name, frame):
+        exr = read_frame_exr(tmp_path / name / "frames" / f"{frame:04d}.exr")["beauty"]
+        ref = read_frame_exr(tmp_path / "reference" / "frames" / f"{frame:04d}.exr")["beauty"]
+        return float((exr - ref)[120, 160, 0])  # the middle of the 320x240 frame
+
+    p, half = cvvdp_check.SYNTHETIC_PATCH, 1e-3  # the beauty is stored in half floats
+    assert patch("steady", 1) == pytest.approx(p, abs=half)
+    assert patch("blend", 1) == pytest.approx(p / 2, abs=half)
+    # pop2: off in frames 1-2 (t = 0, 1), on in frames 3-4
+    assert patch("pop2", 2) == 0.0 and patch("pop2", 3) == pytest.approx(p, abs=half)

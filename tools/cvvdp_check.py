@@ -226,6 +226,54 @@ def _write_blend(first: Path, second: Path, out: Path, names: list[str]) -> None
         write_preview_png(out / "frames" / f"{stem}.png", beauty)
 
 
+#: The synthetic sequences of ``synthetic`` (docs/temporal-error.md, "Synthetic
+#: sequences"): 320x240, 24 frames at 24 fps, a sine background (still or shifting 0.7 rad
+#: a frame), a patch of +PATCH linear radiance on its middle quarter.
+SYNTHETIC_SIZE = (320, 240)
+SYNTHETIC_FRAMES = 24
+SYNTHETIC_PATCH = 0.3
+
+
+def run_synthetic(args: argparse.Namespace) -> None:
+    """Write render-like outputs (frames/*.exr, *.png, stats.json) of synthetic sequences
+    under ``--out``: the background alone (``reference``, as if rendered with ``all``),
+    the patch in every frame (``steady``), half the patch in every frame (``blend``), and
+    the patch switched on and off every 1, 2 and 4 frames (``pop1`` 12 Hz, ``pop2`` 6 Hz,
+    ``pop4`` 3 Hz); ``--moving`` shifts the background every frame."""
+    from phrt_usd.run.images import write_frame_exr, write_preview_png
+
+    width, height = SYNTHETIC_SIZE
+    x = np.arange(width, dtype=np.float32)
+    patch = (slice(height // 4, 3 * height // 4), slice(width // 4, 3 * width // 4))
+    amounts = {"reference": lambda t: 0.0, "steady": lambda t: SYNTHETIC_PATCH,
+               "blend": lambda t: SYNTHETIC_PATCH / 2}
+    for period in (1, 2, 4):
+        amounts[f"pop{period}"] = (
+            lambda t, p=period: SYNTHETIC_PATCH if (t // p) % 2 else 0.0)
+    ids = np.full((height, width), -1, dtype=np.int32)
+    ids[patch] = 0
+    for name, amount in amounts.items():
+        out = Path(args.out) / name
+        (out / "frames").mkdir(parents=True, exist_ok=True)
+        frames = []
+        for t in range(SYNTHETIC_FRAMES):
+            row = 0.25 + 0.15 * np.sin(x / 30.0 + (0.7 * t if args.moving else 0.0))
+            beauty = np.repeat(np.repeat(row[None, :, None], height, 0), 3, 2)
+            beauty[patch] += amount(t)
+            stem = f"{1 + t:04d}"
+            write_frame_exr(out / "frames" / f"{stem}.exr", beauty, np.ones((height, width)),
+                            np.full((height, width), 2.0), ids, ids >= 0)
+            write_preview_png(out / "frames" / f"{stem}.png", beauty)
+            frames.append({"frame_ms": 0.0, "rays": 0, "visible": ["/Patch"],
+                           "selected": ["/Patch"] if amount(t) == 0.0 else []})
+        run = {"stage": "synthetic", "heuristic": "all" if name == "reference" else name,
+               "budget_ms": None, "budget_rays": None, "resolution": [width, height],
+               "frame_range": [1.0, float(SYNTHETIC_FRAMES)], "time_codes_per_second": 24.0,
+               "reflectors": ["/Patch"]}
+        (out / "stats.json").write_text(json.dumps({"run": run, "frames": frames}, indent=1))
+    print(f"wrote {args.out}", file=sys.stderr)
+
+
 # --- step 2: cvvdp (separate venv) --------------------------------------------------------
 
 
@@ -337,10 +385,15 @@ def main(argv: list[str] | None = None) -> None:
     alt.add_argument("--blend", action="store_true",
                      help="every frame the mean of A and B instead (the steady counterpart)")
     alt.add_argument("--out", required=True, help="output directory")
+    syn = sub.add_parser("synthetic", help="synthetic steady, blended and popping sequences")
+    syn.add_argument("--moving", action="store_true", help="shift the background every frame")
+    syn.add_argument("--out", required=True, help="output directory")
     args = parser.parse_args(argv)
     if args.step == "alternate" and args.period < 1:
         fail(f"--period must be >= 1, got {args.period}")
-    {"ours": run_ours, "cvvdp": run_cvvdp, "alternate": run_alternate}[args.step](args)
+    steps = {"ours": run_ours, "cvvdp": run_cvvdp, "alternate": run_alternate,
+             "synthetic": run_synthetic}
+    steps[args.step](args)
 
 
 if __name__ == "__main__":
