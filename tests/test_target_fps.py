@@ -80,7 +80,7 @@ def test_target_fps_holds_the_frame_time_with_jitter(name):
         frame_ms.append(raster + last_select + elapsed)
         use.append(elapsed / T if T > 0 else 0.0)
     frame_ms = np.array(frame_ms)
-    # 95 %: the time model's safety is the 97 % quantile of round jitter; the selection
+    # 95 %: the time model's safety is the 95 % quantile of round jitter; the selection
     # estimate (the previous frame's) may be short on some frames.
     assert np.mean(frame_ms <= period) >= 0.95
     # Not idle: the median frame uses at least 60 % of its T (planning ~83 % of it, see
