@@ -70,9 +70,10 @@ from phrt_usd.usd.render_settings import CameraSettings, read_render_settings
 from phrt_usd.usd.stage import StageScene, choose_camera, open_stage, read_stage
 from phrt_usd.usd.stage_controls import StageControls
 
-#: Identifies checkpoint files; bump the version when their content changes meaning.
+#: Identifies checkpoint files; bump the version when their content changes meaning
+#: (2: the cost model's safety factor is a window of rounds, not one tracked number).
 CHECKPOINT_FORMAT = "phrt-checkpoint"
-CHECKPOINT_VERSION = 1
+CHECKPOINT_VERSION = 2
 #: Largest checkpoint read back (bytes): a 100,000-frame run's is ~100 MB; anything
 #: larger is not one of ours and is refused before it is parsed.
 CHECKPOINT_MAX_BYTES = 1 << 30
@@ -445,7 +446,9 @@ def _load_checkpoint(out: Path, run_info: dict, renderer: FrameRenderer) -> list
     if not isinstance(state, dict) or state.get("format") != CHECKPOINT_FORMAT:
         raise PhrtError(f'{path}: not a phrt checkpoint (no "format": "{CHECKPOINT_FORMAT}")')
     if state.get("version") != CHECKPOINT_VERSION:
-        raise PhrtError(f"{path}: checkpoint version {state.get('version')!r}, expected 1")
+        raise PhrtError(
+            f"{path}: checkpoint version {state.get('version')!r}, expected {CHECKPOINT_VERSION}"
+        )
     _check_same_run(out, state.get("identity"), run_info["identity"])
     frames = state.get("frames")
     if not isinstance(frames, list):
