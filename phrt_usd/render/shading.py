@@ -273,7 +273,7 @@ def shaped_lights(lights: Lights) -> bool:
     return any(li.shaped for li in lights.local)
 
 
-class _LightTable(NamedTuple):
+class LightTable(NamedTuple):
     """The lights as ``shade_kernels.shade_kernel`` takes them (float64, light order
     distant then local): ambient (3,), d_dir (D, 3) unit towards the light, d_radiance
     (D, 3), l_position (K, 3) in the shaded points' space, l_radiance (K, 3), l_range
@@ -288,13 +288,13 @@ class _LightTable(NamedTuple):
     cone: np.ndarray
 
 
-#: The latest ``_light_table``: (identity key, table). One entry: a frame shades with one
+#: The latest ``light_table``: (identity key, table). One entry: a frame shades with one
 #: ``Lights`` (the tracer's rel copy or the scene's); rebuilding it per call was a fixed
 #: cost of every trace round.
 _LIGHT_TABLE_CACHE: list = [None]
 
 
-def _light_table(lights: Lights) -> _LightTable:
+def light_table(lights: Lights) -> LightTable:
     """``lights`` as the shading kernel's tables, cached while ``lights``, its dome and
     every light object stay the same objects (identity, as the tracer's light caches:
     lights are replaced, never modified in place, e.g. ``aim_headlight``)."""
@@ -309,7 +309,7 @@ def _light_table(lights: Lights) -> _LightTable:
         [[*li.axis, li.cone_angle, li.cone_softness, li.focus, li.shaped] for li in local],
         np.float64,
     ).reshape(-1, 7)
-    table = _LightTable(
+    table = LightTable(
         ambient_radiance(lights).astype(np.float64),
         d_dir,
         np.array([li.radiance for li in distant], np.float64).reshape(-1, 3),
@@ -340,7 +340,7 @@ def _shade_chunk(
     emissive = _rows(emissive, _F32, -1, 3)
     if len(emissive) != 1:
         emissive = _rows(emissive, _F32, n, 3)
-    table = _light_table(lights)
+    table = light_table(lights)
     pairs = _NO_PAIRS if local_pairs is None else LightPairs(*local_pairs)
     has_weight = pairs.weight is not None
     m = len(pairs.point)
@@ -370,7 +370,7 @@ def _shade_chunk(
             _rows(pairs.dist, _F64, m),
             _rows(pairs.weight, _F32, m) if has_weight else _NO_WEIGHT,
             has_weight,
-            _MODEL,
+            MODEL,
             out,
         )
     return out
@@ -396,7 +396,7 @@ def _rows(a, dtype: np.dtype, *shape: int) -> np.ndarray:
 
 _NO_ROWS = np.zeros((0, 3), np.float32)
 #: The model's constants as ``shade_kernels.shade_kernel`` takes them.
-_MODEL = np.array([MIN_LIGHT_DISTANCE, SPECULAR_STRENGTH, SHININESS, _SQUARINGS], np.float64)
+MODEL = np.array([MIN_LIGHT_DISTANCE, SPECULAR_STRENGTH, SHININESS, _SQUARINGS], np.float64)
 
 
 def _sums(a: np.ndarray | None, n: int) -> np.ndarray:

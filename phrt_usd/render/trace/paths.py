@@ -168,8 +168,9 @@ class PathTracer:
         ``_Buffers``. What a path collects — environment radiance at misses and at the
         bounce limit, local shading (with its shadow rays) at hits — does not steer it,
         so it is gathered over all bounces and evaluated once per call: one environment
-        lookup, one shadow batch, one ``shade_local``, one accumulation (fixed per-call
-        cost, not per-bounce; hybrid batches are small, 14-8,000 rays).
+        lookup, one shadow batch shaded by one compiled call (``ShadowRays.shade``), one
+        accumulation (fixed per-call cost, not per-bounce; hybrid batches are small,
+        14-8,000 rays).
 
         sources : the source ids (``TraceRecord.source``); first_kind : "reflection"
         or "refraction" (the kind of the starting rays); start : ``perf_counter`` at the
@@ -257,17 +258,16 @@ class PathTracer:
     def _shade_points(self, tri, u, v, rel, ng, ns, d_in, albedo, lights: Lights, threads=None):
         """Local shading with ray-traced shadows at hits (tri, u, v (m,); rel, ng, ns,
         d_in (m, 3), see ``HitSurfaces.at``; albedo (m, 3) float32 corner albedo or None,
-        ``HitSurfaces.colour``): (m, 3) float32 radiance and (m,) int64 shadow rays cast
-        per point. Safe to run on the pool with ``threads`` = 1."""
+        ``HitSurfaces.colour``): (m, 3) float32 radiance, (m,) int64 shadow rays cast
+        per point and their sum (``ShadowRays.shade``). Safe to run on the pool with
+        ``threads`` = 1."""
         albedo, emissive = self._surfaces.colour(tri, u, v, albedo)
-        vis, shadow_rays, lit_pairs = self._shadows.cast(rel, ng, ns, lights, threads=threads)
-        local = shading.shade_local(rel, ns, albedo, d_in, emissive, lights, vis, lit_pairs)
         # The caller updates ``rays_cast`` (a dict ``+=`` from pool threads could race).
-        return local, shadow_rays
+        return self._shadows.shade(rel, ng, ns, d_in, albedo, emissive, lights, threads=threads)
 
     def _shade_hits(self, tri, u, v, rel, ng, ns, d_in, lights: Lights, albedo=None):
-        """``_shade_points`` of every gathered hit: (m, 3) radiance and (m,) shadow rays
-        per hit. Large batches (the sewer: 13 lights, ~300k shadow rays) run in chunks
+        """``_shade_points`` of every gathered hit: (m, 3) radiance, (m,) shadow rays per
+        hit and their sum. Large batches (the sewer: 13 lights, ~300k shadow rays) run in chunks
         on the pool (the kernels and embreex release the GIL), each chunk's Embree batch
         on its own thread."""
         n_lights = len(lights.distant) + len(lights.local)
@@ -285,7 +285,8 @@ class PathTracer:
             for lo, hi in bounds
         ]
         done = [f.result() for f in parts]
-        return np.concatenate([d[0] for d in done]), np.concatenate([d[1] for d in done])
+        local, rays = (np.concatenate([d[i] for d in done]) for i in (0, 1))
+        return local, rays, sum(d[2] for d in done)
 
     def _gather(self, n_env, n_lit, lights, n_pix, counters):
         """The deferred part of ``run``: environment and local shading of every bounce
@@ -304,11 +305,10 @@ class PathTracer:
             rel, ng = g_x[G_LIT_POS, :n_lit], g_x[G_LIT_NG, :n_lit]
             ns, d_in = g_v[G_LIT_NS, :n_lit], g_v[G_LIT_DIR, :n_lit]
             albedo = g_v[G_LIT_ALBEDO, :n_lit]
-            local, rays = self._shade_hits(tri, u, v, rel, ng, ns, d_in, lights, albedo)
-            if lights.has_direct:
-                shadow_src, shadow_rays = src, np.asarray(rays, np.int64)
-                counters["shadow"] += int(shadow_rays.sum())
-            local = np.ascontiguousarray(local, np.float32)
+            local, rays, cast = self._shade_hits(tri, u, v, rel, ng, ns, d_in, lights, albedo)
+            if cast:
+                shadow_src, shadow_rays = src, rays
+                counters["shadow"] += cast
             trace_kernels.accumulate(total, slot, g_w[G_LIT_W, :n_lit], local)
         return total.astype(np.float32), shadow_src, shadow_rays
 

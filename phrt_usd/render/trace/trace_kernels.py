@@ -19,7 +19,8 @@ callers), writing into buffers the caller allocates:
 - ``accumulate``: the gathered radiance summed per pixel;
 - ``source_tallies``: the per-source figures of ``TraceRecord``;
 - ``shadow_rays`` / ``shadow_results``: the shadow rays of (point, light) pairs, and
-  visibility and the lit LocalLight pairs from Embree's answer;
+  visibility and the lit LocalLight pairs from Embree's answer; ``shadow_shade``: those
+  results shaded at once (``shade_kernels.shade_kernel``);
 - ``primary_rays`` / ``primary_fill``: the ``rt`` mode's pixel rays (the raster
   G-buffer's direction rule, ``surface_kernels._pixel_dir``) and its G-buffer rows.
 
@@ -43,6 +44,7 @@ from numba import njit
 
 from phrt_usd.kernels import KERNEL_OPTIONS
 from phrt_usd.model.surface_kernels import _orient, _pixel_dir, _weighted
+from phrt_usd.render.shade_kernels import _shade_points
 from phrt_usd.render.trace.bounce_layout import (
     G_ENV_DIR,
     G_ENV_SLOT,
@@ -557,6 +559,10 @@ def warm_up() -> None:
                    np.zeros((2, 1), np.int64), v32.copy(), f64.copy())  # fmt: skip
     fill_skipped(np.full(4, -1, np.int32), i64, i64, v32, i64 + 1, i64, 2, 2, i64.copy(),
                  v32.copy())  # fmt: skip
+    light = (np.zeros(3), np.array([[0.0, 1.0, 0.0]]), np.ones((1, 3)), np.zeros((0, 3)),
+             np.zeros((0, 3)), np.zeros(0), np.zeros((0, 7)))  # fmt: skip
+    shadow_shade(*shadow, b, v64, v32, v32, v32, v32, *light, np.zeros(4),
+                 v32.copy(), i64.copy())  # fmt: skip
 
 
 @njit(**_KERNEL)
@@ -638,3 +644,34 @@ def shadow_results(rays_i, rays_v, rays_f, occluded, n_distant, vis, rays, lit_i
             lit_dist[m] = rays_f[1, r]
             m += 1
     return m
+
+
+@njit(**_KERNEL)
+def shadow_shade(
+    rays_i, rays_v, rays_f, occluded, positions, normals, albedo, view_dirs, emissive,
+    ambient, d_dir, d_radiance, l_pos, l_radiance, l_range, l_cone, model, out, rays,
+):  # fmt: skip
+    """``shadow_results`` of Embree's ``occluded`` (k,) bool on the k rays of
+    ``shadow_rays`` (rays_i, rays_v, rays_f) for n points, then the shading model of the
+    points with that visibility and those lit LocalLight pairs
+    (``shade_kernels.shade_kernel``, as ``shading.shade_local`` calls it with
+    ``local_pairs``): one call instead of two and the Python between them, the same
+    code (to float32 rounding). positions (n, 3) float64 rel; normals, albedo, view_dirs (n, 3)
+    float32; emissive (1 or n, 3) float32; the lights as ``shading.LightTable`` (light
+    order distant then local); model ``shading.MODEL``. Writes out (n, 3) float32 and
+    the shadow rays per point into rays (n,) int64."""
+    n, k = positions.shape[0], occluded.shape[0]
+    n_distant = d_dir.shape[0]
+    vis = np.empty((n, n_distant + l_pos.shape[0]), np.float32)
+    lit_i = np.empty((2, k), np.int64)
+    lit_dir = np.empty((k, 3), np.float32)
+    lit_dist = np.empty(k)
+    m = shadow_results(rays_i, rays_v, rays_f, occluded, n_distant, vis, rays, lit_i, lit_dir,
+                       lit_dist)  # fmt: skip
+    no_sums = np.empty((0, 3), np.float32)
+    _shade_points(
+        positions, normals, albedo, view_dirs, emissive, ambient, no_sums, no_sums, d_dir,
+        d_radiance, vis, l_pos, l_radiance, l_range, l_cone, False,
+        lit_i[0, :m], lit_i[1, :m], lit_dir[:m], lit_dist[:m],
+        np.empty(0, np.float32), False, model, out,
+    )  # fmt: skip
