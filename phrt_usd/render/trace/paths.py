@@ -65,12 +65,10 @@ from phrt_usd.render.trace.bounce_layout import (
     G_LIT_V,
     G_LIT_W,
     G_ROWS,
-    RAY_CHAIN,
     RAY_DIR,
     RAY_ORIGIN,
     RAY_REFRACTED,
     RAY_ROWS,
-    RAY_SLOT,
     RAY_SRC,
     T_ENV,
     T_SOURCES,
@@ -196,15 +194,11 @@ class PathTracer:
             g_v[G_ENV_DIR, :n_pix] = dirs
             tally[T_ENV] = n_pix
         elif k:  # the first rays into live half 0
-            live = buf.rays_i[0]
-            live[RAY_SLOT, :k] = np.arange(k)
-            live[RAY_SRC, :k] = src
-            live[RAY_CHAIN:, :k] = 0
-            if first_kind == "refraction":
-                live[RAY_REFRACTED, :k] = 1
-            buf.rays_w[0, :k] = 1.0
-            buf.rays_v[0, RAY_DIR, :k] = dirs
-            buf.rays_v[0, RAY_ORIGIN, :k] = origins
+            trace_kernels.start_rays(
+                src, np.ascontiguousarray(dirs, np.float32),
+                np.ascontiguousarray(origins, np.float32), int(first_kind == "refraction"),
+                buf.rays_i, buf.rays_w, buf.rays_v,
+            )  # fmt: skip
         n_refr = k if first_kind == "refraction" else 0
         cast = [0, 0]  # reflection, refraction rays (the counters, once at the end)
         tables = (surfaces.tri_table, bvh.table.frame, bvh.table.corners)
@@ -323,16 +317,15 @@ class PathTracer:
         are shared out by each source's share of the rays."""
         n_src = len(sources)
         figures = np.empty((4, n_src), np.int64)
-        trace_kernels.source_tallies(src, tally, first_cast, shadow_src, shadow_rays, figures)
+        found = np.empty((2, len(keys)), np.int64)  # key, hits
+        n_found = trace_kernels.source_tallies(
+            src, tally, first_cast, shadow_src, shadow_rays, keys, n_src * n_elem, figures, found
+        )
         pixels, chain_sum, chain_max, rays_src = figures.tolist()
         total = sum(rays_src)
         per_source: list[dict[int, int]] = [{} for _ in range(n_src)]
-        if len(keys):
-            # Hits per (source, element) key: a bincount over the n_src * E keys (small),
-            # then one dict entry per non-zero count.
-            counts = np.bincount(keys, minlength=n_src * n_elem)
-            keys = np.flatnonzero(counts)
-            for key, count in zip(keys.tolist(), counts[keys].tolist(), strict=True):
+        if n_found:  # hits per (source, element) key: one dict entry per key found
+            for key, count in zip(*found[:, :n_found].tolist(), strict=True):
                 per_source[key // n_elem][key % n_elem] = count
         limit = max(bounce_limit, 0)
         records = [

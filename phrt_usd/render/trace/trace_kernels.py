@@ -12,7 +12,8 @@ callers), writing into buffers the caller allocates:
 - ``offset_origins``: the ray-origin offset rule (``bvh.Float32Boundary``) with the
   float32 cast of the result;
 - ``split_hits``: Embree's answer → hit rows and miss rows (``bvh.Hits``);
-- ``bounce``: one depth of the bounce loop from Embree's answers of both BVHs — the
+- ``start_rays`` / ``bounce``: the first rays into the bounce loop's buffers; one
+  depth of the bounce loop from Embree's answers of both BVHs — the
   surface at the hits, environment entries of misses, the local-shading entries,
   reflector keys, the reflector chains, and the children (mirror and refracted rays
   with their offset origins), appended to the caller's call-long buffers;
@@ -204,6 +205,21 @@ def split_hits(prim, u, v, out_ray, out_tri, out_u, out_v, out_miss):
             out_miss[m] = i
             m += 1
     return h
+
+
+@njit(**_KERNEL)
+def start_rays(src, dirs, origins, refracted, rays_i, rays_w, rays_v):
+    """The first rays of ``paths.PathTracer.run`` into live half 0 of ``bounce``'s
+    buffers (rays_i, rays_w, rays_v, ``RAY_*`` rows): ray i starts pixel slot i of
+    source src[i] (k,) int64, weight 1, no reflector chain yet, ``refracted`` 0 / 1,
+    along dirs (k, 3) float32 from origins (k, 3) float32 (already offset)."""
+    for i in range(src.shape[0]):
+        rays_i[0, RAY_SLOT, i], rays_i[0, RAY_SRC, i] = i, src[i]
+        rays_i[0, RAY_CHAIN, i], rays_i[0, RAY_REFRACTED, i] = 0, refracted
+        rays_w[0, i] = 1.0
+        for c in range(3):
+            rays_v[0, RAY_DIR, i, c] = dirs[i, c]
+            rays_v[0, RAY_ORIGIN, i, c] = origins[i, c]
 
 
 @njit(**_HELPER)
@@ -408,12 +424,16 @@ def accumulate(total, slot, weight, value):
 
 
 @njit(**_KERNEL)
-def source_tallies(src, tally, first_cast, shadow_src, shadow_rays, out):
+def source_tallies(src, tally, first_cast, shadow_src, shadow_rays, keys, n_keys, out,
+                   out_keys):  # fmt: skip
     """Per-source figures of ``TraceRecord`` into ``out`` (4, S) int64 rows: pixels,
     the sum and the longest of their reflector chains, rays cast. From the paths' src
     (n,) int64 and ``bounce``'s ``tally`` (rays cast per source after the first rays,
     longest chain per path); ``first_cast``: the first rays were cast (one per path);
-    shadow_rays (m,) int64 cast per shading point of source shadow_src (m,) int64."""
+    shadow_rays (m,) int64 cast per shading point of source shadow_src (m,) int64.
+    The reflector keys (h,) int64 (``bounce``'s, each < n_keys) counted: each key that
+    occurs and its count into out_keys (2, h) int64, in ascending key order. Returns how
+    many distinct keys."""
     n_src = out.shape[1]
     out[:] = 0
     for s in range(n_src):
@@ -428,6 +448,17 @@ def source_tallies(src, tally, first_cast, shadow_src, shadow_rays, out):
             out[3, s] += 1
     for i in range(shadow_src.shape[0]):
         out[3, shadow_src[i]] += shadow_rays[i]
+    if keys.shape[0] == 0:
+        return 0
+    counts = np.zeros(n_keys, np.int64)
+    for i in range(keys.shape[0]):
+        counts[keys[i]] += 1
+    found = 0
+    for key in range(n_keys):
+        if counts[key]:
+            out_keys[0, found], out_keys[1, found] = key, counts[key]
+            found += 1
+    return found
 
 
 @njit(**_KERNEL)
@@ -534,6 +565,7 @@ def warm_up() -> None:
     split_hits(i32, f32, f32, i64.copy(), i64.copy(), f32.copy(), f32.copy(), i64.copy())
     split_hits(i64, f32, f32, i64.copy(), i64.copy(), f32.copy(), f32.copy(), i64.copy())
     rays = (np.zeros((2, 4, 2), np.int64), np.zeros((2, 2)), np.zeros((2, 2, 2, 3), np.float32))
+    start_rays(i64, v32, v32, 0, *rays)
     tables = (np.zeros((1, 4)), frame, np.zeros((1, 3, 6), np.float32))
     gather = (np.zeros((5, 3), np.int64), np.zeros((2, 3)), np.zeros((2, 3, 3)),
               np.zeros((4, 3, 3), np.float32), np.zeros((2, 3), np.float32))  # fmt: skip
@@ -550,7 +582,8 @@ def warm_up() -> None:
                  *gb_rows)  # fmt: skip
     accumulate(np.zeros((1, 3)), i64, f64, v32)
     accumulate(np.zeros((1, 3)), i64, f64, v64)
-    source_tallies(i64, np.zeros(5, np.int64), True, i64, i64, np.zeros((4, 1), np.int64))
+    source_tallies(i64, np.zeros(5, np.int64), True, i64, i64, i64, 1, np.zeros((4, 1), np.int64),
+                   np.zeros((2, 1), np.int64))  # fmt: skip
     shadow = (np.zeros((2, 1), np.int64), np.zeros((2, 1, 3), np.float32),
               np.zeros((2, 1), np.float32))  # fmt: skip
     shadow_rays(v64, v32, v32, np.array([[0.0, 1.0, 0.0]]), np.zeros((0, 3)), np.zeros(0),
