@@ -230,7 +230,7 @@ class HitSurfaces:
             albedo = np.empty((len(tri), 3), dtype=np.float32)
             _SURFACE.hit_albedo(tri, u, v, self._bvh.table.corners, albedo)
         uv = self._scene.geometry.corner_uv
-        textured = len(self._tri_textured) and np.take(self._tri_textured, tri).any()
+        textured = len(self._tri_textured) and self._tri_textured[tri].any()
         if textured or self._textured_emission:
             weights = surface.weights_from_uv(u, v)
         if textured:

@@ -328,18 +328,14 @@ class PathTracer:
             for key, count in zip(*found[:, :n_found].tolist(), strict=True):
                 per_source[key // n_elem][key % n_elem] = count
         limit = max(bounce_limit, 0)
+        # Positional in TraceRecord's field order (source, pixels, rays, hits, max and
+        # mean reflector bounces, seconds): keywords cost ~0.4 us a record.
         records = [
             TraceRecord(
-                source=s,
-                pixels=p,
-                rays=r,
-                hits=per_source[i],
-                max_reflector_bounces=min(c, limit),
-                mean_reflector_bounces=cs / max(p, 1),
-                seconds=seconds * r / total if total else 0.0,
+                s, p, r, hits, min(c, limit), cs / max(p, 1), seconds * r / total if total else 0.0
             )
-            for i, (s, p, r, c, cs) in enumerate(
-                zip(sources, pixels, rays_src, chain_max, chain_sum, strict=True)
+            for s, p, r, hits, c, cs in zip(
+                sources, pixels, rays_src, per_source, chain_max, chain_sum, strict=True
             )
         ]
         return records, total
