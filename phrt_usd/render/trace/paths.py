@@ -183,7 +183,6 @@ class PathTracer:
         # Gathered counts, path rays cast per source after the first, longest reflector
         # chain per path (bounce_layout.T_*).
         tally = np.zeros(T_SOURCES + n_src + n_pix, np.int64)
-        rays_src = tally[T_SOURCES : T_SOURCES + n_src]
         k = n_pix if bounce_limit >= 1 else 0
         buf.rays(k, 0, 0)
         buf.entries(n_pix - k, 0)  # the environment entries without rays
@@ -214,6 +213,7 @@ class PathTracer:
             answer, recast = surfaces.nearest(rays_v[parity, RAY_ORIGIN, :k], d32)
             if len(recast):  # re-casts through cut-out holes (HitSurfaces.intersect)
                 live = buf.rays_i[parity]
+                rays_src = tally[T_SOURCES : T_SOURCES + n_src]
                 rays_src += np.bincount(live[RAY_SRC, recast], minlength=n_src)
                 recast_refr = int(np.count_nonzero(live[RAY_REFRACTED, recast]))
                 cast[0] += len(recast) - recast_refr
