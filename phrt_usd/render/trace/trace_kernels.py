@@ -11,6 +11,7 @@ callers), writing into buffers the caller allocates:
   float32 origin of the first ray;
 - ``offset_origins``: the ray-origin offset rule (``bvh.Float32Boundary``) with the
   float32 cast of the result;
+- ``gather_spans``: the pixels of several sources, one slice each, and their source;
 - ``split_hits``: Embree's answer → hit rows and miss rows (``bvh.Hits``);
 - ``start_rays`` / ``bounce``: the first rays into the bounce loop's buffers; one
   depth of the bounce loop from Embree's answers of both BVHs — the
@@ -187,6 +188,19 @@ def source_rays(
             out_dir[i, 0], out_dir[i, 1], out_dir[i, 2] = dx, dy, dz
             e = _side(_epsilon(px, py, pz, floor, relative), dx, dy, dz, gx, gy, gz)
             out_org[i, 0], out_org[i, 1], out_org[i, 2] = px + e * gx, py + e * gy, pz + e * gz
+
+
+@njit(**_KERNEL)
+def gather_spans(pixels, spans, out_pix, out_src):
+    """Slices of ``pixels`` (m,) int64 one after the other into out_pix, each row's
+    ``spans`` (S, 3) int64 (start, stop, value) value into out_src (both (k,) int64,
+    k the slices' total length)."""
+    at = 0
+    for j in range(spans.shape[0]):
+        for p in range(spans[j, 0], spans[j, 1]):
+            out_pix[at] = pixels[p]
+            out_src[at] = spans[j, 2]
+            at += 1
 
 
 @njit(**_KERNEL)
@@ -562,6 +576,7 @@ def warm_up() -> None:
     offset_origins(v64, v64, v64, 1e-6, 1e-5, v32.copy())
     source_rays(i64, i32, v64, v32, v32, np.zeros(3), frame, 1e-6, 1e-5, 0, 1, i64.copy(),
                 v64.copy(), v64.copy(), v32.copy(), v32.copy(), v32.copy(), v32.copy())  # fmt: skip
+    gather_spans(i64, np.zeros((1, 3), np.int64), i64.copy(), i64.copy())
     split_hits(i32, f32, f32, i64.copy(), i64.copy(), f32.copy(), f32.copy(), i64.copy())
     split_hits(i64, f32, f32, i64.copy(), i64.copy(), f32.copy(), f32.copy(), i64.copy())
     rays = (np.zeros((2, 4, 2), np.int64), np.zeros((2, 2)), np.zeros((2, 2, 2, 3), np.float32))
