@@ -249,25 +249,30 @@ class PathTracer:
             seconds=seconds,
         )
 
-    def _shade_points(self, tri, u, v, rel, ng, ns, d_in, albedo, lights: Lights, threads=None):
+    def _shade_points(
+        self, tri, u, v, rel, ng, ns, d_in, albedo, lights: Lights, threads=None, into=None
+    ):
         """Local shading with ray-traced shadows at hits (tri, u, v (m,); rel, ng, ns,
         d_in (m, 3), see ``HitSurfaces.at``; albedo (m, 3) float32 corner albedo or None,
         ``HitSurfaces.colour``): (m, 3) float32 radiance, (m,) int64 shadow rays cast
-        per point and their sum (``ShadowRays.shade``). Safe to run on the pool with
-        ``threads`` = 1."""
+        per point and their sum (``ShadowRays.shade``, ``into`` as its). Safe to run on
+        the pool with ``threads`` = 1 and no ``into``."""
         albedo, emissive = self._surfaces.colour(tri, u, v, albedo)
         # The caller updates ``rays_cast`` (a dict ``+=`` from pool threads could race).
-        return self._shadows.shade(rel, ng, ns, d_in, albedo, emissive, lights, threads=threads)
+        return self._shadows.shade(
+            rel, ng, ns, d_in, albedo, emissive, lights, threads=threads, into=into
+        )
 
-    def _shade_hits(self, tri, u, v, rel, ng, ns, d_in, lights: Lights, albedo=None):
+    def _shade_hits(self, tri, u, v, rel, ng, ns, d_in, lights: Lights, albedo=None, into=None):
         """``_shade_points`` of every gathered hit: (m, 3) radiance, (m,) shadow rays per
-        hit and their sum. Large batches (the sewer: 13 lights, ~300k shadow rays) run in chunks
-        on the pool (the kernels and embreex release the GIL), each chunk's Embree batch
-        on its own thread."""
+        hit and their sum; with ``into`` (total, slot, weight) the radiance times weight
+        also added to total[slot] (``trace_kernels.accumulate``). Large batches (the
+        sewer: 13 lights, ~300k shadow rays) run in chunks on the pool (the kernels and
+        embreex release the GIL), each chunk's Embree batch on its own thread."""
         n_lights = len(lights.distant) + len(lights.local)
         bounds = self._shadows.split(len(tri) * max(n_lights, 1), len(tri))
         if bounds is None:
-            return self._shade_points(tri, u, v, rel, ng, ns, d_in, albedo, lights)
+            return self._shade_points(tri, u, v, rel, ng, ns, d_in, albedo, lights, into=into)
         parts = [
             self._shadows.pool.submit(
                 self._shade_points,
@@ -280,6 +285,8 @@ class PathTracer:
         ]
         done = [f.result() for f in parts]
         local, rays = (np.concatenate([d[i] for d in done]) for i in (0, 1))
+        if into is not None:  # the chunks' sums could race: one pass over them all
+            trace_kernels.accumulate(*into, local)
         return local, rays, sum(d[2] for d in done)
 
     def _gather(self, n_env, n_lit, lights, n_pix, counters):
@@ -299,11 +306,11 @@ class PathTracer:
             rel, ng = g_x[G_LIT_POS, :n_lit], g_x[G_LIT_NG, :n_lit]
             ns, d_in = g_v[G_LIT_NS, :n_lit], g_v[G_LIT_DIR, :n_lit]
             albedo = g_v[G_LIT_ALBEDO, :n_lit]
-            local, rays, cast = self._shade_hits(tri, u, v, rel, ng, ns, d_in, lights, albedo)
+            into = (total, slot, g_w[G_LIT_W, :n_lit])
+            _, rays, cast = self._shade_hits(tri, u, v, rel, ng, ns, d_in, lights, albedo, into)
             if cast:
                 shadow_src, shadow_rays = src, rays
                 counters["shadow"] += cast
-            trace_kernels.accumulate(total, slot, g_w[G_LIT_W, :n_lit], local)
         return total.astype(np.float32), shadow_src, shadow_rays
 
     @staticmethod

@@ -49,6 +49,7 @@ class ShadowRays:
         self.pool = pool
         self.threads = threads
         self._light_cache: tuple | None = None
+        self._table_cache: tuple | None = None
 
     def split(self, work: int, n: int) -> list[tuple[int, int]] | None:
         """(start, stop) chunks of ``n`` points to shade over the pool, or None when
@@ -99,6 +100,16 @@ class ShadowRays:
         self._light_cache = (lights, (dirs, pos, ranges))
         return dirs, pos, ranges
 
+    def light_table(self, lights: Lights) -> shading.LightTable:
+        """``shading.light_table`` of ``lights``, cached for the latest ``Lights`` object
+        as ``light_arrays`` (its own identity check of every light: ~0.7 us a round)."""
+        cached = self._table_cache
+        if cached is not None and cached[0] is lights:
+            return cached[1]
+        table = shading.light_table(lights)
+        self._table_cache = (lights, table)
+        return table
+
     def cast(self, rel, offset_normals, shading_normals, lights: Lights, pairs=None, threads=None):
         """(n, L) float32 visibility, (n,) int64 shadow rays cast per point and the lit
         LocalLight pairs (``shading.shade_local``'s ``local_pairs``, or None), for
@@ -133,17 +144,19 @@ class ShadowRays:
         return vis, rays, lit if len(lights.local) else None
 
     def shade(self, rel, offset_normals, shading_normals, view_dirs, albedo, emissive,
-              lights: Lights, threads=None):  # fmt: skip
+              lights: Lights, threads=None, into=None):  # fmt: skip
         """``shading.shade_local`` of rel points ``rel`` (n, 3) float64 with the
         visibility and lit LocalLight pairs of ``cast`` (every pair wanted), in one
         compiled call after Embree's (``trace_kernels.shadow_shade``: the same kernel
         code without the Python between them; the compiler may round differently, the
         farm and sewer rounds agree within 1e-6): offset_normals (n, 3) float64,
         shading_normals, view_dirs and albedo (n, 3) float32 C-contiguous (the bounce
-        loop's gathered rows), emissive (n, 3) or (3,) float32. Returns (n, 3) float32
-        radiance, (n,) int64 shadow rays cast per point and their sum."""
+        loop's gathered rows), emissive (n, 3) or (3,) float32. ``into``: (total (P, 3)
+        float64, slot (n,) int64, weight (n,) float64) to add weight times the radiance
+        to total[slot] in the same call (``trace_kernels.accumulate``), or None. Returns
+        (n, 3) float32 radiance, (n,) int64 shadow rays cast per point and their sum."""
         n = rel.shape[0]
-        table = shading.light_table(lights)
+        table = self.light_table(lights)
         if lights.has_direct and n:
             ray_i, ray_v, ray_f, occluded = self._trace(
                 rel, offset_normals, shading_normals, lights, _ALL_PAIRS, threads
@@ -157,7 +170,7 @@ class ShadowRays:
             np.ascontiguousarray(shading_normals, f32), np.ascontiguousarray(albedo, f32),
             np.ascontiguousarray(view_dirs, f32),
             np.ascontiguousarray(emissive, f32).reshape(-1, 3), *table, shading.MODEL, out,
-            rays,
+            rays, *(_NO_TOTAL if into is None else into),
         )  # fmt: skip
         return out, rays, len(occluded)
 
@@ -199,6 +212,8 @@ class ShadowRays:
 
 #: ``trace_kernels.shadow_rays``' "every pair wanted" (an empty mask).
 _ALL_PAIRS = np.zeros((0, 0), bool)
+#: ``shade``'s ``into`` when the caller sums the radiance itself.
+_NO_TOTAL = (np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros(0))
 #: ``_trace``'s answer without rays.
 _NO_SHADOW_RAYS = (np.zeros((2, 0), np.int64), np.zeros((2, 0, 3), np.float32),
                    np.zeros((2, 0), np.float32), np.zeros(0, bool))  # fmt: skip

@@ -610,7 +610,7 @@ def warm_up() -> None:
     light = (np.zeros(3), np.array([[0.0, 1.0, 0.0]]), np.ones((1, 3)), np.zeros((0, 3)),
              np.zeros((0, 3)), np.zeros(0), np.zeros((0, 7)))  # fmt: skip
     shadow_shade(*shadow, b, v64, v32, v32, v32, v32, *light, np.zeros(4),
-                 v32.copy(), i64.copy())  # fmt: skip
+                 v32.copy(), i64.copy(), np.zeros((1, 3)), i64, f64)  # fmt: skip
 
 
 @njit(**_KERNEL)
@@ -698,6 +698,7 @@ def shadow_results(rays_i, rays_v, rays_f, occluded, n_distant, vis, rays, lit_i
 def shadow_shade(
     rays_i, rays_v, rays_f, occluded, positions, normals, albedo, view_dirs, emissive,
     ambient, d_dir, d_radiance, l_pos, l_radiance, l_range, l_cone, model, out, rays,
+    total, slot, weight,
 ):  # fmt: skip
     """``shadow_results`` of Embree's ``occluded`` (k,) bool on the k rays of
     ``shadow_rays`` (rays_i, rays_v, rays_f) for n points, then the shading model of the
@@ -707,7 +708,9 @@ def shadow_shade(
     code (to float32 rounding). positions (n, 3) float64 rel; normals, albedo, view_dirs (n, 3)
     float32; emissive (1 or n, 3) float32; the lights as ``shading.LightTable`` (light
     order distant then local); model ``shading.MODEL``. Writes out (n, 3) float32 and
-    the shadow rays per point into rays (n,) int64."""
+    the shadow rays per point into rays (n,) int64; when ``total`` (P, 3) float64 has
+    rows, also adds weight (n,) float64 times out into its rows slot (n,) int64, as
+    ``accumulate``."""
     n, k = positions.shape[0], occluded.shape[0]
     n_distant = d_dir.shape[0]
     vis = np.empty((n, n_distant + l_pos.shape[0]), np.float32)
@@ -723,3 +726,5 @@ def shadow_shade(
         lit_i[0, :m], lit_i[1, :m], lit_dir[:m], lit_dist[:m],
         np.empty(0, np.float32), False, model, out,
     )  # fmt: skip
+    if total.shape[0] > 0:
+        accumulate(total, slot, weight, out)
