@@ -9,6 +9,11 @@ of a batch are chosen and built into one float32 Embree batch in one compiled pa
 are offset by the boundary's epsilon along the offset normal, on the side the ray
 leaves to. Shadows are hard (light size ignored); transmissive surfaces are opaque;
 cut-out holes let light through (``HitSurfaces.occluded``, given ``surfaces``).
+
+``ShadowRays.shade`` is the bounce loop's use: the same rays, then Embree's answer shaded
+at once (``trace_kernels.shadow_shade``: visibility, lit LocalLight pairs and
+``shading``'s model in one compiled call, the radiance optionally summed into the
+paths' pixels), so a trace round pays one compiled call for its local shading.
 """
 
 from __future__ import annotations
