@@ -234,8 +234,10 @@ class PathTracer:
                 buf.rays(2 * k, parity, k)
         counters["reflection"] += cast[0]
         counters["refraction"] += cast[1]
-        n_env, n_lit, n_keys = tally[:T_SOURCES].tolist()
-        radiance, shadow_src, shadow_rays = self._gather(n_env, n_lit, lights, n_pix, counters)
+        n_env, n_lit, n_keys, n_textured = tally[:T_SOURCES].tolist()
+        radiance, shadow_src, shadow_rays = self._gather(
+            n_env, n_lit, n_textured > 0, lights, n_pix, counters
+        )
         seconds = time.perf_counter() - start
         records, rays = self._records(
             sources, src, tally, bounce_limit >= 1, shadow_src, shadow_rays,
@@ -250,29 +252,37 @@ class PathTracer:
         )
 
     def _shade_points(
-        self, tri, u, v, rel, ng, ns, d_in, albedo, lights: Lights, threads=None, into=None
-    ):
+        self, tri, u, v, rel, ng, ns, d_in, albedo, lights: Lights, threads=None, into=None,
+        textured=None,
+    ):  # fmt: skip
         """Local shading with ray-traced shadows at hits (tri, u, v (m,); rel, ng, ns,
         d_in (m, 3), see ``HitSurfaces.at``; albedo (m, 3) float32 corner albedo or None,
         ``HitSurfaces.colour``): (m, 3) float32 radiance, (m,) int64 shadow rays cast
-        per point and their sum (``ShadowRays.shade``, ``into`` as its). Safe to run on
-        the pool with ``threads`` = 1 and no ``into``."""
-        albedo, emissive = self._surfaces.colour(tri, u, v, albedo)
+        per point and their sum (``ShadowRays.shade``, ``into`` as its; ``textured`` as
+        ``HitSurfaces.colour``'s). Safe to run on the pool with ``threads`` = 1 and no
+        ``into``."""
+        albedo, emissive = self._surfaces.colour(tri, u, v, albedo, textured)
         # The caller updates ``rays_cast`` (a dict ``+=`` from pool threads could race).
         return self._shadows.shade(
             rel, ng, ns, d_in, albedo, emissive, lights, threads=threads, into=into
         )
 
-    def _shade_hits(self, tri, u, v, rel, ng, ns, d_in, lights: Lights, albedo=None, into=None):
+    def _shade_hits(
+        self, tri, u, v, rel, ng, ns, d_in, lights: Lights, albedo=None, into=None,
+        textured=None,
+    ):  # fmt: skip
         """``_shade_points`` of every gathered hit: (m, 3) radiance, (m,) shadow rays per
         hit and their sum; with ``into`` (total, slot, weight) the radiance times weight
-        also added to total[slot] (``trace_kernels.accumulate``). Large batches (the
+        also added to total[slot] (``trace_kernels.accumulate``); ``textured``: some hit
+        is on a textured material (None: unknown). Large batches (the
         sewer: 13 lights, ~300k shadow rays) run in chunks on the pool (the kernels and
         embreex release the GIL), each chunk's Embree batch on its own thread."""
         n_lights = len(lights.distant) + len(lights.local)
         bounds = self._shadows.split(len(tri) * max(n_lights, 1), len(tri))
         if bounds is None:
-            return self._shade_points(tri, u, v, rel, ng, ns, d_in, albedo, lights, into=into)
+            return self._shade_points(
+                tri, u, v, rel, ng, ns, d_in, albedo, lights, into=into, textured=textured
+            )
         parts = [
             self._shadows.pool.submit(
                 self._shade_points,
@@ -280,6 +290,8 @@ class PathTracer:
                 None if albedo is None else albedo[lo:hi],
                 lights,
                 1,
+                None,
+                None if textured else textured,  # a chunk looks its own textures up
             )
             for lo, hi in bounds
         ]
@@ -289,9 +301,10 @@ class PathTracer:
             trace_kernels.accumulate(*into, local)
         return local, rays, sum(d[2] for d in done)
 
-    def _gather(self, n_env, n_lit, lights, n_pix, counters):
+    def _gather(self, n_env, n_lit, textured, lights, n_pix, counters):
         """The deferred part of ``run``: environment and local shading of every bounce
-        at once, from the first ``n_env`` / ``n_lit`` gathered entries. Returns radiance
+        at once, from the first ``n_env`` / ``n_lit`` gathered entries (``textured``:
+        some lit entry's material has an albedo texture). Returns radiance
         (n_pix, 3) float32, and the source (m,) int64 and shadow rays cast (m,) int64 of
         every shaded point (empty without direct lights)."""
         g_i, g_w, g_x, g_v, g_uv = self._buffers.gather
@@ -307,7 +320,9 @@ class PathTracer:
             ns, d_in = g_v[G_LIT_NS, :n_lit], g_v[G_LIT_DIR, :n_lit]
             albedo = g_v[G_LIT_ALBEDO, :n_lit]
             into = (total, slot, g_w[G_LIT_W, :n_lit])
-            _, rays, cast = self._shade_hits(tri, u, v, rel, ng, ns, d_in, lights, albedo, into)
+            _, rays, cast = self._shade_hits(
+                tri, u, v, rel, ng, ns, d_in, lights, albedo, into, textured
+            )
             if cast:
                 shadow_src, shadow_rays = src, rays
                 counters["shadow"] += cast

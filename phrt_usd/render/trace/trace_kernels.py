@@ -73,10 +73,12 @@ from phrt_usd.render.trace.bounce_layout import (
     T_KEYS,
     T_LIT,
     T_SOURCES,
+    T_TEXTURED,
     TRI_ALPHA,
     TRI_F,
     TRI_IOR,
     TRI_REFLECTOR,
+    TRI_TEXTURED,
 )
 
 _KERNEL = KERNEL_OPTIONS
@@ -293,7 +295,7 @@ def bounce(
     Live rays, double-buffered (this depth's in half ``parity``, the children written to
     half 1 - parity): rays_i (2, 4, L) int64 (``RAY_*`` rows), rays_w (2, L) float64 path
     weight, rays_v (2, 2, L, 3) float32 direction and origin, L >= 2k. Tables: tri_table
-    (T, 4) float64 (``TRI_*`` columns); frame (T, 4, 3) float64 and corners (T, 3, 6)
+    (T, 5) float64 (``TRI_*`` columns); frame (T, 4, 3) float64 and corners (T, 3, 6)
     float32 (``TriangleTable``). split: the stage has transmissive materials (α and
     refraction); last: the bounce limit's depth (the children are not cast: they read
     the environment); floor, relative: the offset epsilon (``Float32Boundary``); n_elem:
@@ -361,6 +363,8 @@ def bounce(
         w_local = w * alpha * (1.0 - f)
         if w_local > 0.0:
             g_i[G_LIT_SLOT, n_lit], g_i[G_LIT_SRC, n_lit], g_i[G_LIT_TRI, n_lit] = slot, s, t
+            if tri_table[t, TRI_TEXTURED] > 0.0:
+                tally[T_TEXTURED] += 1
             g_w[G_LIT_W, n_lit] = w_local
             g_uv[G_LIT_U, n_lit], g_uv[G_LIT_V, n_lit] = w1, w2
             pos, ng = g_x[G_LIT_POS, n_lit], g_x[G_LIT_NG, n_lit]
@@ -581,7 +585,7 @@ def warm_up() -> None:
     split_hits(i64, f32, f32, i64.copy(), i64.copy(), f32.copy(), f32.copy(), i64.copy())
     rays = (np.zeros((2, 4, 2), np.int64), np.zeros((2, 2)), np.zeros((2, 2, 2, 3), np.float32))
     start_rays(i64, v32, v32, 0, *rays)
-    tables = (np.zeros((1, 4)), frame, np.zeros((1, 3, 6), np.float32))
+    tables = (np.zeros((1, 5)), frame, np.zeros((1, 3, 6), np.float32))
     gather = (np.zeros((5, 3), np.int64), np.zeros((2, 3)), np.zeros((2, 3, 3)),
               np.zeros((4, 3, 3), np.float32), np.zeros((2, 3), np.float32))  # fmt: skip
     answers = ((i32, f32, f32, i32, f32, f32, i64, i64),
@@ -589,7 +593,7 @@ def warm_up() -> None:
     for answer in answers:
         for split in (False, True):
             bounce(*answer, v32[:0], *rays, 0, 1, *tables, split, False, 1e-6, 1e-5, 1,
-                   1, np.zeros(5, np.int64), *gather)  # fmt: skip
+                   1, np.zeros(6, np.int64), *gather)  # fmt: skip
     primary_rays(f64, f64, np.eye(3), False, np.zeros(3), np.ones(3), 0.1, 0, 1, v64.copy(),
                  v32.copy(), v32.copy())  # fmt: skip
     gb_rows = (i32.copy(), i32.copy(), f32.copy(), v64.copy(), v32.copy(), v32.copy())
@@ -597,7 +601,7 @@ def warm_up() -> None:
                  *gb_rows)  # fmt: skip
     accumulate(np.zeros((1, 3)), i64, f64, v32)
     accumulate(np.zeros((1, 3)), i64, f64, v64)
-    source_tallies(i64, np.zeros(5, np.int64), True, i64, i64, i64, 1, np.zeros((4, 1), np.int64),
+    source_tallies(i64, np.zeros(6, np.int64), True, i64, i64, i64, 1, np.zeros((4, 1), np.int64),
                    np.zeros((2, 1), np.int64))  # fmt: skip
     shadow = (np.zeros((2, 1), np.int64), np.zeros((2, 1, 3), np.float32),
               np.zeros((2, 1), np.float32))  # fmt: skip
