@@ -182,7 +182,11 @@ class NumpyPathTracer(PathTracer):
             slot, w, src, tri, u, v, rel, ng, ns, d_in = (
                 _cat(p) for p in zip(*shade_parts, strict=True)
             )
-            local, shadow_rays = self._shade_hits(tri, u, v, rel, ng, ns, d_in, lights)
+            # Shading as before ``ShadowRays.shade``: visibility and lit pairs from
+            # ``cast``, then ``shade_local``.
+            albedo, emissive = self._surfaces.colour(tri, u, v)
+            vis, shadow_rays, lit_pairs = self._shadows.cast(rel, ng, ns, lights)
+            local = shading.shade_local(rel, ns, albedo, d_in, emissive, lights, vis, lit_pairs)
             if lights.has_direct:
                 rays_src += np.bincount(src, weights=shadow_rays, minlength=n_src).astype(np.int64)
                 counters["shadow"] += int(shadow_rays.sum())

@@ -245,6 +245,26 @@ def test_pair_directions_kernel_matches_numpy_reference():
     ]
 
 
+def test_one_pass_environment_matches_the_numpy_angles(monkeypatch):
+    """Small environment batches run as one compiled pass (scalar libm angles): the
+    texels of the numpy route, for float32 and float64 directions, poles and the seam
+    included, a rotated dome."""
+    rng = np.random.default_rng(13)
+    tex = rng.uniform(0.0, 2.0, (32, 64, 3)).astype(np.float32)
+    rot = np.array([[1.0, 0, 0], [0, 0, -1.0], [0, 1.0, 0]])
+    lights = Lights(dome=DomeLight(color=np.array([0.5, 1.0, 2.0]), texture=tex,
+                                   world_from_light=rot))  # fmt: skip
+    edge = [[0, 0, 1], [0, 0, -1], [1, 0, 0], [-1e-3, 1, 0], [0, 0, 0], [np.nan, 1, 0]]
+    dirs = np.concatenate([rng.normal(size=(shading.ENV_ONE_PASS_MAX - len(edge), 3)), edge])
+    for d in (dirs, dirs.astype(np.float32)):
+        one_pass = shading.environment_radiance(lights, d)
+        monkeypatch.setattr(shading, "ENV_ONE_PASS_MAX", -1)
+        numpy_angles = shading.environment_radiance(lights, d)
+        monkeypatch.undo()
+        assert one_pass.dtype == np.float32 and np.all(np.isfinite(one_pass))
+        np.testing.assert_allclose(one_pass, numpy_angles, rtol=1e-6, atol=1e-6)
+
+
 def test_threaded_environment_matches_one_chunk(monkeypatch):
     """Large environment batches are split over the shading pool: same texels."""
     rng = np.random.default_rng(12)

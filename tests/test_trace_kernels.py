@@ -14,6 +14,7 @@ from test_cutout_reflections import _stage
 
 from phrt_usd.model.scene import DistantLight, Lights, LocalLight
 from phrt_usd.render.trace import trace_kernels
+from phrt_usd.render.trace.bounce_layout import T_SOURCES, TRI_COLUMNS, TRI_IOR, TRI_REFLECTOR
 from phrt_usd.render.trace.bvh import GLOBAL_IDS, NO_ANIMATED, RAY_OFFSET_RELATIVE
 from phrt_usd.render.trace.paths import refract
 from phrt_usd.render.trace.tracer import Tracer
@@ -186,8 +187,8 @@ def _bounce(tri, dirs, ns, frame, ior):
     rays_i[0, 0, :m] = np.arange(m)
     rays_v = np.zeros((2, 2, 2 * m, 3), np.float32)
     rays_v[0, 0, :m] = dirs
-    tri_table = np.zeros((m, 4))
-    tri_table[:, 2], tri_table[:, 3] = ior, -1.0
+    tri_table = np.zeros((m, TRI_COLUMNS))
+    tri_table[:, TRI_IOR], tri_table[:, TRI_REFLECTOR] = ior, -1.0
     gather = (
         np.zeros((5, 2 * m), np.int64), np.zeros((2, 2 * m)), np.zeros((2, 2 * m, 3)),
         np.zeros((4, 2 * m, 3), np.float32), np.zeros((2, 2 * m), np.float32),
@@ -197,7 +198,7 @@ def _bounce(tri, dirs, ns, frame, ior):
         tri, uv, uv, *NO_ANIMATED, GLOBAL_IDS, GLOBAL_IDS, ns, rays_i, np.ones((2, 2 * m)),
         rays_v, 0, m, tri_table, frame, np.zeros((m, 3, 6), np.float32), True, False, 1e-6,
         RAY_OFFSET_RELATIVE, 1, 1,
-        np.zeros(4 + m, np.int64), *gather,
+        np.zeros(T_SOURCES + 1 + m, np.int64), *gather,
     )  # fmt: skip
     assert n == (m, m)  # every hit refracts, none reflects (F = 0)
     return rays_v[1, 0, :m]  # the children's directions

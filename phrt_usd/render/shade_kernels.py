@@ -71,6 +71,22 @@ def latlong_bilinear(latitude, longitude, texture, colour, out):
             out[i, c] = v * colour[c]
 
 
+@njit(**_KERNEL)
+def latlong_lookup(directions, rotation, min_length, texture, colour, out):
+    """``dome_directions``, the angles and ``latlong_bilinear`` in one call, for small
+    batches (``shading.ENV_ONE_PASS_MAX``): directions (n, 3), rotation (3, 3), texture
+    (h, w, 3), colour (3,) as theirs; writes out (n, 3) float32. The angles by scalar
+    libm calls, within 1e-15 rad of numpy's vectorised ones."""
+    n = directions.shape[0]
+    d = np.empty((n, 3))
+    dome_directions(directions, rotation, min_length, d)
+    latitude, longitude = np.empty(n), np.empty(n)
+    for i in range(n):
+        latitude[i] = math.asin(min(max(d[i, 1], -1.0), 1.0))
+        longitude[i] = math.atan2(d[i, 0], d[i, 2])
+    latlong_bilinear(latitude, longitude, texture, colour, out)
+
+
 @njit(**_HELPER)
 def window_at(distance2, light_range):
     """``range_window`` of one squared distance (metres²) and range (metres)."""
@@ -135,6 +151,44 @@ def highlight_at(n0, n1, n2, e0, e1, e2, l0, l1, l2, model):
 
 @njit(**_KERNEL)
 def shade_kernel(
+    positions,
+    normals,
+    albedo,
+    view_dirs,
+    emissive,
+    ambient,
+    sum_diffuse,
+    sum_highlight,
+    d_dir,
+    d_radiance,
+    visibility,
+    l_pos,
+    l_radiance,
+    l_range,
+    l_cone,
+    local_columns,
+    p_point,
+    p_light,
+    p_dir,
+    p_dist,
+    p_weight,
+    has_weight,
+    model,
+    out,
+):
+    """The shading model of the module docstring, per point (see ``shade_local``):
+    ``_shade_points``, whose arguments these are (a helper: a caller in another kernel
+    module compiles its own variant of it, never an exported one)."""
+    _shade_points(
+        positions, normals, albedo, view_dirs, emissive, ambient, sum_diffuse,
+        sum_highlight, d_dir, d_radiance, visibility, l_pos, l_radiance, l_range,
+        l_cone, local_columns, p_point, p_light, p_dir, p_dist, p_weight,
+        has_weight, model, out,
+    )  # fmt: skip
+
+
+@njit(**_KERNEL)
+def _shade_points(
     positions,
     normals,
     albedo,
@@ -454,6 +508,10 @@ SIGNATURES = {
     "dome_directions": ["f4[:, ::1], f8[:, ::1], f8, f8[:, ::1]",
                         "f8[:, ::1], f8[:, ::1], f8, f8[:, ::1]"],
     "latlong_bilinear": ["f8[::1], f8[::1], f4[:, :, ::1], f8[::1], f4[:, ::1]"],
+    "latlong_lookup": [
+        "f4[:, ::1], f8[:, ::1], f8, f4[:, :, ::1], f8[::1], f4[:, ::1]",
+        "f8[:, ::1], f8[:, ::1], f8, f4[:, :, ::1], f8[::1], f4[:, ::1]",
+    ],
     "window_kernel": ["f8[::1], f8, f8[::1]"],
     "cone_kernel": ["f8[:, ::1], f8[::1], f8, f8, f8, f4[::1]"],
     "shade_kernel": [

@@ -8,10 +8,11 @@ numba). The ahead-of-time build hashes this file with the kernels
 from __future__ import annotations
 
 #: Columns of the per-triangle material table ``bounce`` reads (``HitSurfaces.tri_table``,
-#: (T, 4) float64): reflectivity F, the material's opacity α and ior, and the element id
-#: of a reflector triangle (-1: not a reflector).
-TRI_F, TRI_ALPHA, TRI_IOR, TRI_REFLECTOR = 0, 1, 2, 3
-TRI_COLUMNS = 4
+#: (T, 5) float64): reflectivity F, the material's opacity α and ior, the element id
+#: of a reflector triangle (-1: not a reflector), and 1 where the material has an albedo
+#: texture (else 0).
+TRI_F, TRI_ALPHA, TRI_IOR, TRI_REFLECTOR, TRI_TEXTURED = 0, 1, 2, 3, 4
+TRI_COLUMNS = 5
 #: Rows of ``bounce``'s live-ray state ``rays_i`` (int64): pixel slot, source, reflector
 #: chain, refracted (0 / 1); its float32 rays ``rays_v``: direction, offset origin.
 RAY_SLOT, RAY_SRC, RAY_CHAIN, RAY_REFRACTED = 0, 1, 2, 3
@@ -30,6 +31,7 @@ G_ENV_DIR, G_LIT_NS, G_LIT_DIR, G_LIT_ALBEDO = 0, 1, 2, 3
 G_LIT_U, G_LIT_V = 0, 1
 #: Rows of g_i, g_w, g_x, g_v, g_uv.
 G_ROWS = (G_KEY + 1, G_LIT_W + 1, G_LIT_NG + 1, G_LIT_ALBEDO + 1, G_LIT_V + 1)
-#: ``tally`` (int64): the counts of gathered environment entries, lit hits and keys,
-#: then the rays cast per source (S), then the longest reflector chain per pixel slot.
-T_ENV, T_LIT, T_KEYS, T_SOURCES = 0, 1, 2, 3
+#: ``tally`` (int64): the counts of gathered environment entries, lit hits, keys and lit
+#: hits on textured materials, then the rays cast per source (S), then the longest
+#: reflector chain per pixel slot.
+T_ENV, T_LIT, T_KEYS, T_TEXTURED, T_SOURCES = 0, 1, 2, 3, 4

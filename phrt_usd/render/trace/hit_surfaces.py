@@ -31,6 +31,7 @@ from phrt_usd.render.trace.bounce_layout import (
     TRI_F,
     TRI_IOR,
     TRI_REFLECTOR,
+    TRI_TEXTURED,
 )
 from phrt_usd.render.trace.bvh import GLOBAL_IDS, NO_ANIMATED, Bvh, Hits
 
@@ -81,13 +82,14 @@ class HitSurfaces:
         #: Tangent-space normal maps (``model.surface.NormalMaps``).
         self.normal_maps = surface.NormalMaps(mats, bvh.tri_material, scene.geometry.corner_uv)
         #: The bounce loop's per-triangle figures in one (T, TRI_COLUMNS) float64 gather
-        #: (``bounce_layout.TRI_*`` columns): F, the material's opacity and ior, and the
-        #: element id of reflector triangles (-1 elsewhere).
+        #: (``bounce_layout.TRI_*`` columns): F, the material's opacity and ior, the
+        #: element id of reflector triangles (-1 elsewhere), 1 where textured.
         self.tri_table = np.empty((n_tri, TRI_COLUMNS))
         self.tri_table[:, TRI_F] = self.tri_f
         self.tri_table[:, TRI_ALPHA] = self.opacity[bvh.tri_material]
         self.tri_table[:, TRI_IOR] = self.ior[bvh.tri_material]
         self.tri_table[:, TRI_REFLECTOR] = np.where(self.tri_reflector, tri_element, -1)
+        self.tri_table[:, TRI_TEXTURED] = self._tri_textured if self._textures else 0.0
 
     def intersect(self, origins: np.ndarray, dirs: np.ndarray) -> tuple[Hits, np.ndarray]:
         """Nearest hits that are there (``Bvh.intersect`` through cut-out holes, see the
@@ -218,11 +220,13 @@ class HitSurfaces:
             self.normal_maps.apply(ns, tri, surface.weights_from_uv(u, v), incoming, table)
         return pos, ng, ns
 
-    def colour(self, tri, u, v, albedo=None):
+    def colour(self, tri, u, v, albedo=None, textured=None):
         """``at``'s albedo (m, 3) float32 (texture lookup where the material has one) and
         emissive ((m, 3) float32, or (3,) zeros without emission). ``albedo``: the
         interpolated corner albedo (m, 3) float32 when the caller has it (the bounce
-        kernel's), textures are then applied to it in place."""
+        kernel's), textures are then applied to it in place. ``textured``: whether some
+        hit's material has an albedo texture, when the caller knows (the bounce kernel
+        counts them), else None (looked up here)."""
         if albedo is None:
             tri = np.ascontiguousarray(tri, dtype=np.int64)
             u = np.ascontiguousarray(u, dtype=np.float32)
@@ -230,7 +234,8 @@ class HitSurfaces:
             albedo = np.empty((len(tri), 3), dtype=np.float32)
             _SURFACE.hit_albedo(tri, u, v, self._bvh.table.corners, albedo)
         uv = self._scene.geometry.corner_uv
-        textured = len(self._tri_textured) and np.take(self._tri_textured, tri).any()
+        if textured is None:
+            textured = len(self._tri_textured) and self._tri_textured[tri].any()
         if textured or self._textured_emission:
             weights = surface.weights_from_uv(u, v)
         if textured:

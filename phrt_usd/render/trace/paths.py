@@ -65,12 +65,10 @@ from phrt_usd.render.trace.bounce_layout import (
     G_LIT_V,
     G_LIT_W,
     G_ROWS,
-    RAY_CHAIN,
     RAY_DIR,
     RAY_ORIGIN,
     RAY_REFRACTED,
     RAY_ROWS,
-    RAY_SLOT,
     RAY_SRC,
     T_ENV,
     T_SOURCES,
@@ -168,8 +166,9 @@ class PathTracer:
         ``_Buffers``. What a path collects — environment radiance at misses and at the
         bounce limit, local shading (with its shadow rays) at hits — does not steer it,
         so it is gathered over all bounces and evaluated once per call: one environment
-        lookup, one shadow batch, one ``shade_local``, one accumulation (fixed per-call
-        cost, not per-bounce; hybrid batches are small, 14-8,000 rays).
+        lookup, one shadow batch shaded by one compiled call (``ShadowRays.shade``), one
+        accumulation (fixed per-call cost, not per-bounce; hybrid batches are small,
+        14-8,000 rays).
 
         sources : the source ids (``TraceRecord.source``); first_kind : "reflection"
         or "refraction" (the kind of the starting rays); start : ``perf_counter`` at the
@@ -184,7 +183,6 @@ class PathTracer:
         # Gathered counts, path rays cast per source after the first, longest reflector
         # chain per path (bounce_layout.T_*).
         tally = np.zeros(T_SOURCES + n_src + n_pix, np.int64)
-        rays_src = tally[T_SOURCES : T_SOURCES + n_src]
         k = n_pix if bounce_limit >= 1 else 0
         buf.rays(k, 0, 0)
         buf.entries(n_pix - k, 0)  # the environment entries without rays
@@ -195,15 +193,11 @@ class PathTracer:
             g_v[G_ENV_DIR, :n_pix] = dirs
             tally[T_ENV] = n_pix
         elif k:  # the first rays into live half 0
-            live = buf.rays_i[0]
-            live[RAY_SLOT, :k] = np.arange(k)
-            live[RAY_SRC, :k] = src
-            live[RAY_CHAIN:, :k] = 0
-            if first_kind == "refraction":
-                live[RAY_REFRACTED, :k] = 1
-            buf.rays_w[0, :k] = 1.0
-            buf.rays_v[0, RAY_DIR, :k] = dirs
-            buf.rays_v[0, RAY_ORIGIN, :k] = origins
+            trace_kernels.start_rays(
+                src, np.ascontiguousarray(dirs, np.float32),
+                np.ascontiguousarray(origins, np.float32), int(first_kind == "refraction"),
+                buf.rays_i, buf.rays_w, buf.rays_v,
+            )  # fmt: skip
         n_refr = k if first_kind == "refraction" else 0
         cast = [0, 0]  # reflection, refraction rays (the counters, once at the end)
         tables = (surfaces.tri_table, bvh.table.frame, bvh.table.corners)
@@ -219,6 +213,7 @@ class PathTracer:
             answer, recast = surfaces.nearest(rays_v[parity, RAY_ORIGIN, :k], d32)
             if len(recast):  # re-casts through cut-out holes (HitSurfaces.intersect)
                 live = buf.rays_i[parity]
+                rays_src = tally[T_SOURCES : T_SOURCES + n_src]
                 rays_src += np.bincount(live[RAY_SRC, recast], minlength=n_src)
                 recast_refr = int(np.count_nonzero(live[RAY_REFRACTED, recast]))
                 cast[0] += len(recast) - recast_refr
@@ -239,8 +234,10 @@ class PathTracer:
                 buf.rays(2 * k, parity, k)
         counters["reflection"] += cast[0]
         counters["refraction"] += cast[1]
-        n_env, n_lit, n_keys = tally[:T_SOURCES].tolist()
-        radiance, shadow_src, shadow_rays = self._gather(n_env, n_lit, lights, n_pix, counters)
+        n_env, n_lit, n_keys, n_textured = tally[:T_SOURCES].tolist()
+        radiance, shadow_src, shadow_rays = self._gather(
+            n_env, n_lit, n_textured > 0, lights, n_pix, counters
+        )
         seconds = time.perf_counter() - start
         records, rays = self._records(
             sources, src, tally, bounce_limit >= 1, shadow_src, shadow_rays,
@@ -254,26 +251,38 @@ class PathTracer:
             seconds=seconds,
         )
 
-    def _shade_points(self, tri, u, v, rel, ng, ns, d_in, albedo, lights: Lights, threads=None):
+    def _shade_points(
+        self, tri, u, v, rel, ng, ns, d_in, albedo, lights: Lights, threads=None, into=None,
+        textured=None,
+    ):  # fmt: skip
         """Local shading with ray-traced shadows at hits (tri, u, v (m,); rel, ng, ns,
         d_in (m, 3), see ``HitSurfaces.at``; albedo (m, 3) float32 corner albedo or None,
-        ``HitSurfaces.colour``): (m, 3) float32 radiance and (m,) int64 shadow rays cast
-        per point. Safe to run on the pool with ``threads`` = 1."""
-        albedo, emissive = self._surfaces.colour(tri, u, v, albedo)
-        vis, shadow_rays, lit_pairs = self._shadows.cast(rel, ng, ns, lights, threads=threads)
-        local = shading.shade_local(rel, ns, albedo, d_in, emissive, lights, vis, lit_pairs)
+        ``HitSurfaces.colour``): (m, 3) float32 radiance, (m,) int64 shadow rays cast
+        per point and their sum (``ShadowRays.shade``, ``into`` as its; ``textured`` as
+        ``HitSurfaces.colour``'s). Safe to run on the pool with ``threads`` = 1 and no
+        ``into``."""
+        albedo, emissive = self._surfaces.colour(tri, u, v, albedo, textured)
         # The caller updates ``rays_cast`` (a dict ``+=`` from pool threads could race).
-        return local, shadow_rays
+        return self._shadows.shade(
+            rel, ng, ns, d_in, albedo, emissive, lights, threads=threads, into=into
+        )
 
-    def _shade_hits(self, tri, u, v, rel, ng, ns, d_in, lights: Lights, albedo=None):
-        """``_shade_points`` of every gathered hit: (m, 3) radiance and (m,) shadow rays
-        per hit. Large batches (the sewer: 13 lights, ~300k shadow rays) run in chunks
-        on the pool (the kernels and embreex release the GIL), each chunk's Embree batch
-        on its own thread."""
+    def _shade_hits(
+        self, tri, u, v, rel, ng, ns, d_in, lights: Lights, albedo=None, into=None,
+        textured=None,
+    ):  # fmt: skip
+        """``_shade_points`` of every gathered hit: (m, 3) radiance, (m,) shadow rays per
+        hit and their sum; with ``into`` (total, slot, weight) the radiance times weight
+        also added to total[slot] (``trace_kernels.accumulate``); ``textured``: some hit
+        is on a textured material (None: unknown). Large batches (the
+        sewer: 13 lights, ~300k shadow rays) run in chunks on the pool (the kernels and
+        embreex release the GIL), each chunk's Embree batch on its own thread."""
         n_lights = len(lights.distant) + len(lights.local)
         bounds = self._shadows.split(len(tri) * max(n_lights, 1), len(tri))
         if bounds is None:
-            return self._shade_points(tri, u, v, rel, ng, ns, d_in, albedo, lights)
+            return self._shade_points(
+                tri, u, v, rel, ng, ns, d_in, albedo, lights, into=into, textured=textured
+            )
         parts = [
             self._shadows.pool.submit(
                 self._shade_points,
@@ -281,15 +290,21 @@ class PathTracer:
                 None if albedo is None else albedo[lo:hi],
                 lights,
                 1,
+                None,
+                None if textured else textured,  # a chunk looks its own textures up
             )
             for lo, hi in bounds
         ]
         done = [f.result() for f in parts]
-        return np.concatenate([d[0] for d in done]), np.concatenate([d[1] for d in done])
+        local, rays = (np.concatenate([d[i] for d in done]) for i in (0, 1))
+        if into is not None:  # the chunks' sums could race: one pass over them all
+            trace_kernels.accumulate(*into, local)
+        return local, rays, sum(d[2] for d in done)
 
-    def _gather(self, n_env, n_lit, lights, n_pix, counters):
+    def _gather(self, n_env, n_lit, textured, lights, n_pix, counters):
         """The deferred part of ``run``: environment and local shading of every bounce
-        at once, from the first ``n_env`` / ``n_lit`` gathered entries. Returns radiance
+        at once, from the first ``n_env`` / ``n_lit`` gathered entries (``textured``:
+        some lit entry's material has an albedo texture). Returns radiance
         (n_pix, 3) float32, and the source (m,) int64 and shadow rays cast (m,) int64 of
         every shaded point (empty without direct lights)."""
         g_i, g_w, g_x, g_v, g_uv = self._buffers.gather
@@ -304,12 +319,13 @@ class PathTracer:
             rel, ng = g_x[G_LIT_POS, :n_lit], g_x[G_LIT_NG, :n_lit]
             ns, d_in = g_v[G_LIT_NS, :n_lit], g_v[G_LIT_DIR, :n_lit]
             albedo = g_v[G_LIT_ALBEDO, :n_lit]
-            local, rays = self._shade_hits(tri, u, v, rel, ng, ns, d_in, lights, albedo)
-            if lights.has_direct:
-                shadow_src, shadow_rays = src, np.asarray(rays, np.int64)
-                counters["shadow"] += int(shadow_rays.sum())
-            local = np.ascontiguousarray(local, np.float32)
-            trace_kernels.accumulate(total, slot, g_w[G_LIT_W, :n_lit], local)
+            into = (total, slot, g_w[G_LIT_W, :n_lit])
+            _, rays, cast = self._shade_hits(
+                tri, u, v, rel, ng, ns, d_in, lights, albedo, into, textured
+            )
+            if cast:
+                shadow_src, shadow_rays = src, rays
+                counters["shadow"] += cast
         return total.astype(np.float32), shadow_src, shadow_rays
 
     @staticmethod
@@ -323,30 +339,25 @@ class PathTracer:
         are shared out by each source's share of the rays."""
         n_src = len(sources)
         figures = np.empty((4, n_src), np.int64)
-        trace_kernels.source_tallies(src, tally, first_cast, shadow_src, shadow_rays, figures)
+        found = np.empty((2, len(keys)), np.int64)  # key, hits
+        n_found = trace_kernels.source_tallies(
+            src, tally, first_cast, shadow_src, shadow_rays, keys, n_src * n_elem, figures, found
+        )
         pixels, chain_sum, chain_max, rays_src = figures.tolist()
         total = sum(rays_src)
         per_source: list[dict[int, int]] = [{} for _ in range(n_src)]
-        if len(keys):
-            # Hits per (source, element) key: a bincount over the n_src * E keys (small),
-            # then one dict entry per non-zero count.
-            counts = np.bincount(keys, minlength=n_src * n_elem)
-            keys = np.flatnonzero(counts)
-            for key, count in zip(keys.tolist(), counts[keys].tolist(), strict=True):
+        if n_found:  # hits per (source, element) key: one dict entry per key found
+            for key, count in zip(*found[:, :n_found].tolist(), strict=True):
                 per_source[key // n_elem][key % n_elem] = count
         limit = max(bounce_limit, 0)
+        # Positional in TraceRecord's field order (source, pixels, rays, hits, max and
+        # mean reflector bounces, seconds): keywords cost ~0.4 us a record.
         records = [
             TraceRecord(
-                source=s,
-                pixels=p,
-                rays=r,
-                hits=per_source[i],
-                max_reflector_bounces=min(c, limit),
-                mean_reflector_bounces=cs / max(p, 1),
-                seconds=seconds * r / total if total else 0.0,
+                s, p, r, hits, min(c, limit), cs / max(p, 1), seconds * r / total if total else 0.0
             )
-            for i, (s, p, r, c, cs) in enumerate(
-                zip(sources, pixels, rays_src, chain_max, chain_sum, strict=True)
+            for s, p, r, hits, c, cs in zip(
+                sources, pixels, rays_src, per_source, chain_max, chain_sum, strict=True
             )
         ]
         return records, total

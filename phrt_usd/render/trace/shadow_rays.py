@@ -9,6 +9,11 @@ of a batch are chosen and built into one float32 Embree batch in one compiled pa
 are offset by the boundary's epsilon along the offset normal, on the side the ray
 leaves to. Shadows are hard (light size ignored); transmissive surfaces are opaque;
 cut-out holes let light through (``HitSurfaces.occluded``, given ``surfaces``).
+
+``ShadowRays.shade`` is the bounce loop's use: the same rays, then Embree's answer shaded
+at once (``trace_kernels.shadow_shade``: visibility, lit LocalLight pairs and
+``shading``'s model in one compiled call, the radiance optionally summed into the
+paths' pixels), so a trace round pays one compiled call for its local shading.
 """
 
 from __future__ import annotations
@@ -49,6 +54,7 @@ class ShadowRays:
         self.pool = pool
         self.threads = threads
         self._light_cache: tuple | None = None
+        self._table_cache: tuple | None = None
 
     def split(self, work: int, n: int) -> list[tuple[int, int]] | None:
         """(start, stop) chunks of ``n`` points to shade over the pool, or None when
@@ -99,6 +105,16 @@ class ShadowRays:
         self._light_cache = (lights, (dirs, pos, ranges))
         return dirs, pos, ranges
 
+    def light_table(self, lights: Lights) -> shading.LightTable:
+        """``shading.light_table`` of ``lights``, cached for the latest ``Lights`` object
+        as ``light_arrays`` (its own identity check of every light: ~0.7 us a round)."""
+        cached = self._table_cache
+        if cached is not None and cached[0] is lights:
+            return cached[1]
+        table = shading.light_table(lights)
+        self._table_cache = (lights, table)
+        return table
+
     def cast(self, rel, offset_normals, shading_normals, lights: Lights, pairs=None, threads=None):
         """(n, L) float32 visibility, (n,) int64 shadow rays cast per point and the lit
         LocalLight pairs (``shading.shade_local``'s ``local_pairs``, or None), for
@@ -117,16 +133,66 @@ class ShadowRays:
         n_lights = n_distant + len(lights.local)
         if not lights.has_direct or n == 0:
             return np.ones((n, n_lights), np.float32), np.zeros(n, np.int64), None
-        rel = np.ascontiguousarray(rel, np.float64)
-        dirs, pos, ranges = self.light_arrays(lights)
         want = _ALL_PAIRS if pairs is None else np.asarray(pairs, dtype=bool).reshape(n, n_lights)
+        ray_i, ray_v, ray_f, occluded = self._trace(
+            rel, offset_normals, shading_normals, lights, want, threads
+        )
+        k = len(occluded)
+        vis, rays = np.empty((n, n_lights), np.float32), np.empty(n, np.int64)
+        lit_i, lit_dir = np.empty((2, k), np.int64), np.empty((k, 3), np.float32)
+        lit_dist = np.empty(k)
+        m = _TRACE.shadow_results(
+            ray_i, ray_v, ray_f, occluded, n_distant, vis, rays, lit_i, lit_dir, lit_dist
+        )
+        # The lit LocalLight pairs, for shade_local.
+        lit = shading.LightPairs(lit_i[0, :m], lit_i[1, :m], lit_dir[:m], lit_dist[:m])
+        return vis, rays, lit if len(lights.local) else None
+
+    def shade(self, rel, offset_normals, shading_normals, view_dirs, albedo, emissive,
+              lights: Lights, threads=None, into=None):  # fmt: skip
+        """``shading.shade_local`` of rel points ``rel`` (n, 3) float64 with the
+        visibility and lit LocalLight pairs of ``cast`` (every pair wanted), in one
+        compiled call after Embree's (``trace_kernels.shadow_shade``: the same kernel
+        code without the Python between them; the compiler may round differently, the
+        farm and sewer rounds agree within 1e-6): offset_normals (n, 3) float64,
+        shading_normals, view_dirs and albedo (n, 3) float32 C-contiguous (the bounce
+        loop's gathered rows), emissive (n, 3) or (3,) float32. ``into``: (total (P, 3)
+        float64, slot (n,) int64, weight (n,) float64) to add weight times the radiance
+        to total[slot] in the same call (``trace_kernels.accumulate``), or None. Returns
+        (n, 3) float32 radiance, (n,) int64 shadow rays cast per point and their sum."""
+        n = rel.shape[0]
+        table = self.light_table(lights)
+        if lights.has_direct and n:
+            ray_i, ray_v, ray_f, occluded = self._trace(
+                rel, offset_normals, shading_normals, lights, _ALL_PAIRS, threads
+            )
+        else:  # no lights (or no points): no rays, ambient and emission only
+            ray_i, ray_v, ray_f, occluded = _NO_SHADOW_RAYS
+        out, rays = np.empty((n, 3), np.float32), np.empty(n, np.int64)
+        f32 = np.float32
+        _TRACE.shadow_shade(
+            ray_i, ray_v, ray_f, occluded, np.ascontiguousarray(rel, np.float64),
+            np.ascontiguousarray(shading_normals, f32), np.ascontiguousarray(albedo, f32),
+            np.ascontiguousarray(view_dirs, f32),
+            np.ascontiguousarray(emissive, f32).reshape(-1, 3), *table, shading.MODEL, out,
+            rays, *(_NO_TOTAL if into is None else into),
+        )  # fmt: skip
+        return out, rays, len(occluded)
+
+    def _trace(self, rel, offset_normals, shading_normals, lights: Lights, want, threads):
+        """The shadow rays of (point, light) pairs (``trace_kernels.shadow_rays``; ``want``
+        (n, L) bool or ``_ALL_PAIRS``) and Embree's answer: rays' point and light (2, k)
+        int64, origin and direction (2, k, 3) float32, tfar and distance (2, k) float32
+        (columns beyond k unused), occluded (k,) bool."""
+        n, n_lights = rel.shape[0], len(lights.distant) + len(lights.local)
+        dirs, pos, ranges = self.light_arrays(lights)
         floor, relative = self._bvh.boundary.offset_factors()
         most = n * n_lights  # one ray per (point, light) pair at most
         ray_i = np.empty((2, most), np.int64)  # point, light
         ray_v = np.empty((2, most, 3), np.float32)  # origin, direction
         ray_f = np.empty((2, most), np.float32)  # tfar, distance
         k = _TRACE.shadow_rays(
-            rel,
+            np.ascontiguousarray(rel, np.float64),
             np.ascontiguousarray(offset_normals, np.float32),
             np.ascontiguousarray(shading_normals, np.float32),
             dirs,
@@ -146,16 +212,13 @@ class ShadowRays:
             occluded = self._bvh.run("OCCLUDED", origins, d, tfar, threads)
         else:
             occluded = self._surfaces.occluded(origins, d, tfar, threads)
-        vis, rays = np.empty((n, n_lights), np.float32), np.empty(n, np.int64)
-        lit_i, lit_dir = np.empty((2, k), np.int64), np.empty((k, 3), np.float32)
-        lit_dist = np.empty(k)
-        m = _TRACE.shadow_results(
-            ray_i, ray_v, ray_f, occluded, n_distant, vis, rays, lit_i, lit_dir, lit_dist
-        )
-        # The lit LocalLight pairs, for shade_local.
-        lit = shading.LightPairs(lit_i[0, :m], lit_i[1, :m], lit_dir[:m], lit_dist[:m])
-        return vis, rays, lit if len(pos) else None
+        return ray_i, ray_v, ray_f, occluded
 
 
 #: ``trace_kernels.shadow_rays``' "every pair wanted" (an empty mask).
 _ALL_PAIRS = np.zeros((0, 0), bool)
+#: ``shade``'s ``into`` when the caller sums the radiance itself.
+_NO_TOTAL = (np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros(0))
+#: ``_trace``'s answer without rays.
+_NO_SHADOW_RAYS = (np.zeros((2, 0), np.int64), np.zeros((2, 0, 3), np.float32),
+                   np.zeros((2, 0), np.float32), np.zeros(0, bool))  # fmt: skip

@@ -11,15 +11,18 @@ callers), writing into buffers the caller allocates:
   float32 origin of the first ray;
 - ``offset_origins``: the ray-origin offset rule (``bvh.Float32Boundary``) with the
   float32 cast of the result;
+- ``gather_spans``: the pixels of several sources, one slice each, and their source;
 - ``split_hits``: Embree's answer → hit rows and miss rows (``bvh.Hits``);
-- ``bounce``: one depth of the bounce loop from Embree's answers of both BVHs — the
+- ``start_rays`` / ``bounce``: the first rays into the bounce loop's buffers; one
+  depth of the bounce loop from Embree's answers of both BVHs — the
   surface at the hits, environment entries of misses, the local-shading entries,
   reflector keys, the reflector chains, and the children (mirror and refracted rays
   with their offset origins), appended to the caller's call-long buffers;
 - ``accumulate``: the gathered radiance summed per pixel;
 - ``source_tallies``: the per-source figures of ``TraceRecord``;
 - ``shadow_rays`` / ``shadow_results``: the shadow rays of (point, light) pairs, and
-  visibility and the lit LocalLight pairs from Embree's answer;
+  visibility and the lit LocalLight pairs from Embree's answer; ``shadow_shade``: those
+  results shaded at once (``shade_kernels.shade_kernel``);
 - ``primary_rays`` / ``primary_fill``: the ``rt`` mode's pixel rays (the raster
   G-buffer's direction rule, ``surface_kernels._pixel_dir``) and its G-buffer rows.
 
@@ -43,6 +46,7 @@ from numba import njit
 
 from phrt_usd.kernels import KERNEL_OPTIONS
 from phrt_usd.model.surface_kernels import _orient, _pixel_dir, _weighted
+from phrt_usd.render.shade_kernels import _shade_points
 from phrt_usd.render.trace.bounce_layout import (
     G_ENV_DIR,
     G_ENV_SLOT,
@@ -69,10 +73,12 @@ from phrt_usd.render.trace.bounce_layout import (
     T_KEYS,
     T_LIT,
     T_SOURCES,
+    T_TEXTURED,
     TRI_ALPHA,
     TRI_F,
     TRI_IOR,
     TRI_REFLECTOR,
+    TRI_TEXTURED,
 )
 
 _KERNEL = KERNEL_OPTIONS
@@ -187,6 +193,19 @@ def source_rays(
 
 
 @njit(**_KERNEL)
+def gather_spans(pixels, spans, out_pix, out_src):
+    """Slices of ``pixels`` (m,) int64 one after the other into out_pix, each row's
+    ``spans`` (S, 3) int64 (start, stop, value) value into out_src (both (k,) int64,
+    k the slices' total length)."""
+    at = 0
+    for j in range(spans.shape[0]):
+        for p in range(spans[j, 0], spans[j, 1]):
+            out_pix[at] = pixels[p]
+            out_src[at] = spans[j, 2]
+            at += 1
+
+
+@njit(**_KERNEL)
 def split_hits(prim, u, v, out_ray, out_tri, out_u, out_v, out_miss):
     """Embree's answer for n rays (prim (n,) int32 / int64 triangle or < 0, u, v (n,)
     float32) into hit rows (out_ray, out_tri (n,) int64, out_u, out_v (n,) float32) and
@@ -202,6 +221,21 @@ def split_hits(prim, u, v, out_ray, out_tri, out_u, out_v, out_miss):
             out_miss[m] = i
             m += 1
     return h
+
+
+@njit(**_KERNEL)
+def start_rays(src, dirs, origins, refracted, rays_i, rays_w, rays_v):
+    """The first rays of ``paths.PathTracer.run`` into live half 0 of ``bounce``'s
+    buffers (rays_i, rays_w, rays_v, ``RAY_*`` rows): ray i starts pixel slot i of
+    source src[i] (k,) int64, weight 1, no reflector chain yet, ``refracted`` 0 / 1,
+    along dirs (k, 3) float32 from origins (k, 3) float32 (already offset)."""
+    for i in range(src.shape[0]):
+        rays_i[0, RAY_SLOT, i], rays_i[0, RAY_SRC, i] = i, src[i]
+        rays_i[0, RAY_CHAIN, i], rays_i[0, RAY_REFRACTED, i] = 0, refracted
+        rays_w[0, i] = 1.0
+        for c in range(3):
+            rays_v[0, RAY_DIR, i, c] = dirs[i, c]
+            rays_v[0, RAY_ORIGIN, i, c] = origins[i, c]
 
 
 @njit(**_HELPER)
@@ -261,7 +295,7 @@ def bounce(
     Live rays, double-buffered (this depth's in half ``parity``, the children written to
     half 1 - parity): rays_i (2, 4, L) int64 (``RAY_*`` rows), rays_w (2, L) float64 path
     weight, rays_v (2, 2, L, 3) float32 direction and origin, L >= 2k. Tables: tri_table
-    (T, 4) float64 (``TRI_*`` columns); frame (T, 4, 3) float64 and corners (T, 3, 6)
+    (T, 5) float64 (``TRI_*`` columns); frame (T, 4, 3) float64 and corners (T, 3, 6)
     float32 (``TriangleTable``). split: the stage has transmissive materials (α and
     refraction); last: the bounce limit's depth (the children are not cast: they read
     the environment); floor, relative: the offset epsilon (``Float32Boundary``); n_elem:
@@ -329,6 +363,8 @@ def bounce(
         w_local = w * alpha * (1.0 - f)
         if w_local > 0.0:
             g_i[G_LIT_SLOT, n_lit], g_i[G_LIT_SRC, n_lit], g_i[G_LIT_TRI, n_lit] = slot, s, t
+            if tri_table[t, TRI_TEXTURED] > 0.0:
+                tally[T_TEXTURED] += 1
             g_w[G_LIT_W, n_lit] = w_local
             g_uv[G_LIT_U, n_lit], g_uv[G_LIT_V, n_lit] = w1, w2
             pos, ng = g_x[G_LIT_POS, n_lit], g_x[G_LIT_NG, n_lit]
@@ -406,12 +442,16 @@ def accumulate(total, slot, weight, value):
 
 
 @njit(**_KERNEL)
-def source_tallies(src, tally, first_cast, shadow_src, shadow_rays, out):
+def source_tallies(src, tally, first_cast, shadow_src, shadow_rays, keys, n_keys, out,
+                   out_keys):  # fmt: skip
     """Per-source figures of ``TraceRecord`` into ``out`` (4, S) int64 rows: pixels,
     the sum and the longest of their reflector chains, rays cast. From the paths' src
     (n,) int64 and ``bounce``'s ``tally`` (rays cast per source after the first rays,
     longest chain per path); ``first_cast``: the first rays were cast (one per path);
-    shadow_rays (m,) int64 cast per shading point of source shadow_src (m,) int64."""
+    shadow_rays (m,) int64 cast per shading point of source shadow_src (m,) int64.
+    The reflector keys (h,) int64 (``bounce``'s, each < n_keys) counted: each key that
+    occurs and its count into out_keys (2, h) int64, in ascending key order. Returns how
+    many distinct keys."""
     n_src = out.shape[1]
     out[:] = 0
     for s in range(n_src):
@@ -426,6 +466,17 @@ def source_tallies(src, tally, first_cast, shadow_src, shadow_rays, out):
             out[3, s] += 1
     for i in range(shadow_src.shape[0]):
         out[3, shadow_src[i]] += shadow_rays[i]
+    if keys.shape[0] == 0:
+        return 0
+    counts = np.zeros(n_keys, np.int64)
+    for i in range(keys.shape[0]):
+        counts[keys[i]] += 1
+    found = 0
+    for key in range(n_keys):
+        if counts[key]:
+            out_keys[0, found], out_keys[1, found] = key, counts[key]
+            found += 1
+    return found
 
 
 @njit(**_KERNEL)
@@ -529,10 +580,12 @@ def warm_up() -> None:
     offset_origins(v64, v64, v64, 1e-6, 1e-5, v32.copy())
     source_rays(i64, i32, v64, v32, v32, np.zeros(3), frame, 1e-6, 1e-5, 0, 1, i64.copy(),
                 v64.copy(), v64.copy(), v32.copy(), v32.copy(), v32.copy(), v32.copy())  # fmt: skip
+    gather_spans(i64, np.zeros((1, 3), np.int64), i64.copy(), i64.copy())
     split_hits(i32, f32, f32, i64.copy(), i64.copy(), f32.copy(), f32.copy(), i64.copy())
     split_hits(i64, f32, f32, i64.copy(), i64.copy(), f32.copy(), f32.copy(), i64.copy())
     rays = (np.zeros((2, 4, 2), np.int64), np.zeros((2, 2)), np.zeros((2, 2, 2, 3), np.float32))
-    tables = (np.zeros((1, 4)), frame, np.zeros((1, 3, 6), np.float32))
+    start_rays(i64, v32, v32, 0, *rays)
+    tables = (np.zeros((1, 5)), frame, np.zeros((1, 3, 6), np.float32))
     gather = (np.zeros((5, 3), np.int64), np.zeros((2, 3)), np.zeros((2, 3, 3)),
               np.zeros((4, 3, 3), np.float32), np.zeros((2, 3), np.float32))  # fmt: skip
     answers = ((i32, f32, f32, i32, f32, f32, i64, i64),
@@ -540,7 +593,7 @@ def warm_up() -> None:
     for answer in answers:
         for split in (False, True):
             bounce(*answer, v32[:0], *rays, 0, 1, *tables, split, False, 1e-6, 1e-5, 1,
-                   1, np.zeros(5, np.int64), *gather)  # fmt: skip
+                   1, np.zeros(6, np.int64), *gather)  # fmt: skip
     primary_rays(f64, f64, np.eye(3), False, np.zeros(3), np.ones(3), 0.1, 0, 1, v64.copy(),
                  v32.copy(), v32.copy())  # fmt: skip
     gb_rows = (i32.copy(), i32.copy(), f32.copy(), v64.copy(), v32.copy(), v32.copy())
@@ -548,7 +601,8 @@ def warm_up() -> None:
                  *gb_rows)  # fmt: skip
     accumulate(np.zeros((1, 3)), i64, f64, v32)
     accumulate(np.zeros((1, 3)), i64, f64, v64)
-    source_tallies(i64, np.zeros(5, np.int64), True, i64, i64, np.zeros((4, 1), np.int64))
+    source_tallies(i64, np.zeros(6, np.int64), True, i64, i64, i64, 1, np.zeros((4, 1), np.int64),
+                   np.zeros((2, 1), np.int64))  # fmt: skip
     shadow = (np.zeros((2, 1), np.int64), np.zeros((2, 1, 3), np.float32),
               np.zeros((2, 1), np.float32))  # fmt: skip
     shadow_rays(v64, v32, v32, np.array([[0.0, 1.0, 0.0]]), np.zeros((0, 3)), np.zeros(0),
@@ -557,6 +611,10 @@ def warm_up() -> None:
                    np.zeros((2, 1), np.int64), v32.copy(), f64.copy())  # fmt: skip
     fill_skipped(np.full(4, -1, np.int32), i64, i64, v32, i64 + 1, i64, 2, 2, i64.copy(),
                  v32.copy())  # fmt: skip
+    light = (np.zeros(3), np.array([[0.0, 1.0, 0.0]]), np.ones((1, 3)), np.zeros((0, 3)),
+             np.zeros((0, 3)), np.zeros(0), np.zeros((0, 7)))  # fmt: skip
+    shadow_shade(*shadow, b, v64, v32, v32, v32, v32, *light, np.zeros(4),
+                 v32.copy(), i64.copy(), np.zeros((1, 3)), i64, f64)  # fmt: skip
 
 
 @njit(**_KERNEL)
@@ -638,3 +696,39 @@ def shadow_results(rays_i, rays_v, rays_f, occluded, n_distant, vis, rays, lit_i
             lit_dist[m] = rays_f[1, r]
             m += 1
     return m
+
+
+@njit(**_KERNEL)
+def shadow_shade(
+    rays_i, rays_v, rays_f, occluded, positions, normals, albedo, view_dirs, emissive,
+    ambient, d_dir, d_radiance, l_pos, l_radiance, l_range, l_cone, model, out, rays,
+    total, slot, weight,
+):  # fmt: skip
+    """``shadow_results`` of Embree's ``occluded`` (k,) bool on the k rays of
+    ``shadow_rays`` (rays_i, rays_v, rays_f) for n points, then the shading model of the
+    points with that visibility and those lit LocalLight pairs
+    (``shade_kernels.shade_kernel``, as ``shading.shade_local`` calls it with
+    ``local_pairs``): one call instead of two and the Python between them, the same
+    code (to float32 rounding). positions (n, 3) float64 rel; normals, albedo, view_dirs (n, 3)
+    float32; emissive (1 or n, 3) float32; the lights as ``shading.LightTable`` (light
+    order distant then local); model ``shading.MODEL``. Writes out (n, 3) float32 and
+    the shadow rays per point into rays (n,) int64; when ``total`` (P, 3) float64 has
+    rows, also adds weight (n,) float64 times out into its rows slot (n,) int64, as
+    ``accumulate``."""
+    n, k = positions.shape[0], occluded.shape[0]
+    n_distant = d_dir.shape[0]
+    vis = np.empty((n, n_distant + l_pos.shape[0]), np.float32)
+    lit_i = np.empty((2, k), np.int64)
+    lit_dir = np.empty((k, 3), np.float32)
+    lit_dist = np.empty(k)
+    m = shadow_results(rays_i, rays_v, rays_f, occluded, n_distant, vis, rays, lit_i, lit_dir,
+                       lit_dist)  # fmt: skip
+    no_sums = np.empty((0, 3), np.float32)
+    _shade_points(
+        positions, normals, albedo, view_dirs, emissive, ambient, no_sums, no_sums, d_dir,
+        d_radiance, vis, l_pos, l_radiance, l_range, l_cone, False,
+        lit_i[0, :m], lit_i[1, :m], lit_dir[:m], lit_dist[:m],
+        np.empty(0, np.float32), False, model, out,
+    )  # fmt: skip
+    if total.shape[0] > 0:
+        accumulate(total, slot, weight, out)

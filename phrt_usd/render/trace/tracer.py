@@ -426,11 +426,16 @@ class Tracer:
             # reflector pixels, found once per G-buffer and grouped by element (later
             # rounds reuse them): each source's pixels are one slice.
             pixels, offsets = self._reflector_pixels(gbuffer.element_id)
-            cand = _cat([pixels[offsets[s] : offsets[s + 1]] for s in index])
-            cand_src = np.repeat(
-                np.array(list(index.values()), np.int64),
-                [offsets[s + 1] - offsets[s] for s in index],
-            )
+            if len(index) == 1:  # one slice, source index 0
+                (s,) = index
+                cand = pixels[offsets[s] : offsets[s + 1]]
+                cand_src = np.zeros(len(cand), np.int64)
+            else:  # the slices gathered in one compiled pass (numpy: ~2 us a source)
+                spans = [(offsets[s], offsets[s + 1], i) for s, i in index.items()]
+                spans = np.array(spans, np.int64).reshape(-1, 3)
+                k = sum(offsets[s + 1] - offsets[s] for s in index)
+                cand, cand_src = np.empty(k, np.int64), np.empty(k, np.int64)
+                trace_kernels.gather_spans(pixels, spans, cand, cand_src)
         else:
             # Element id → index in ``sources`` (-1: not a source); the last slot serves
             # id -1.
@@ -477,13 +482,6 @@ class Tracer:
 _NO_SURFACE = (np.empty((0, 3)), np.empty((0, 3)), np.empty((0, 3), np.float32),
                np.empty((0, 3), np.float32))  # fmt: skip
 _NO_RAYS = (np.empty((0, 3), np.float32), np.empty((0, 3), np.float32))
-
-
-def _cat(parts: list[np.ndarray]) -> np.ndarray:
-    """np.concatenate without a copy for a single part (int64, empty for none)."""
-    if len(parts) == 1:
-        return parts[0]
-    return np.concatenate(parts) if parts else np.zeros(0, np.int64)
 
 
 def _flat(image: np.ndarray, dtype, channels: int) -> np.ndarray:
