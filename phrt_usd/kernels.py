@@ -255,6 +255,21 @@ def _kernels(module: ModuleType) -> dict[str, object]:
     }
 
 
+def exported_signatures(dispatcher) -> list[tuple]:
+    """The argument types ``dispatcher`` is exported for: every signature it compiled but
+    those with a literal argument. numba compiles such a variant when another kernel calls
+    this one with a constant (``True``), folding the constant in; the C guard tells
+    arguments apart by dtype, rank and layout only, so it would hand any value of that
+    argument to the folded code."""
+    from numba.core import types
+
+    return [
+        args
+        for args in dispatcher.signatures
+        if not any(isinstance(a, types.Literal) for a in args)
+    ]
+
+
 def build_aot() -> Path:
     """Build the ahead-of-time module of the current sources and its guard
     (``kernel_guard.c``) into AOT_DIR (removing older builds) and return the module's
@@ -289,7 +304,7 @@ def build_aot() -> Path:
                 )
             export = _export_name(module_name, name)
             signatures[export] = []
-            for k, args in enumerate(dispatcher.signatures):
+            for k, args in enumerate(exported_signatures(dispatcher)):
                 result = dispatcher.overloads[args].signature.return_type
                 cc.export(f"{export}__{k}", result(*args))(dispatcher.py_func)
                 signatures[export].append([

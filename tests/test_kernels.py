@@ -159,3 +159,26 @@ def test_a_changed_source_names_another_build(monkeypatch, tmp_path):
 def test_only_kernel_modules_load():
     with pytest.raises(ValueError):
         kernels.load("phrt_usd.model.surface")
+
+
+def test_literal_variants_are_not_exported():
+    """A kernel called from another with a constant gets a variant with that constant
+    folded in; the ahead-of-time build must not export it (the C guard cannot tell a
+    literal True from any other bool, so it would run the folded code for False too)."""
+    import numba
+
+    from phrt_usd.kernels import exported_signatures
+
+    @numba.njit
+    def pick(x, flag):
+        return x + 1.0 if flag else x - 1.0
+
+    @numba.njit
+    def caller(x):
+        return pick(x, True)
+
+    caller(1.0)  # compiles pick with a literal flag folded in
+    pick(1.0, False)  # the variant a Python call compiles
+    literal = numba.core.types.Literal
+    assert any(isinstance(a, literal) for args in pick.signatures for a in args)
+    assert exported_signatures(pick) == [(numba.float64, numba.boolean)]
