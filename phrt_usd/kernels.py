@@ -245,13 +245,17 @@ def warm_up() -> dict[str, float]:
 
 
 def _kernels(module: ModuleType) -> dict[str, object]:
-    """The numba dispatchers of ``module`` that its warm-up compiled, by name."""
+    """The numba dispatchers defined in ``module`` (not imported into it from another
+    kernel module, which exports its own) that its warm-up compiled, by name."""
     from numba.core.registry import CPUDispatcher
 
     return {
         name: value
         for name, value in vars(module).items()
-        if isinstance(value, CPUDispatcher) and value.signatures and not name.startswith("_")
+        if isinstance(value, CPUDispatcher)
+        and value.signatures
+        and not name.startswith("_")
+        and value.py_func.__module__ == module.__name__
     }
 
 

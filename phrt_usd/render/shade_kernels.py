@@ -176,44 +176,6 @@ def shade_kernel(
     model,
     out,
 ):
-    """The shading model of the module docstring, per point (see ``shade_local``):
-    ``_shade_points``, whose arguments these are (a helper: a caller in another kernel
-    module compiles its own variant of it, never an exported one)."""
-    _shade_points(
-        positions, normals, albedo, view_dirs, emissive, ambient, sum_diffuse,
-        sum_highlight, d_dir, d_radiance, visibility, l_pos, l_radiance, l_range,
-        l_cone, local_columns, p_point, p_light, p_dir, p_dist, p_weight,
-        has_weight, model, out,
-    )  # fmt: skip
-
-
-@njit(**_KERNEL)
-def _shade_points(
-    positions,
-    normals,
-    albedo,
-    view_dirs,
-    emissive,
-    ambient,
-    sum_diffuse,
-    sum_highlight,
-    d_dir,
-    d_radiance,
-    visibility,
-    l_pos,
-    l_radiance,
-    l_range,
-    l_cone,
-    local_columns,
-    p_point,
-    p_light,
-    p_dir,
-    p_dist,
-    p_weight,
-    has_weight,
-    model,
-    out,
-):
     """The shading model of the module docstring, per point (see ``shade_local``).
 
     positions (n, 3) float64 world metres; normals, albedo, view_dirs (n, 3) float32;

@@ -46,7 +46,7 @@ from numba import njit
 
 from phrt_usd.kernels import KERNEL_OPTIONS
 from phrt_usd.model.surface_kernels import _orient, _pixel_dir, _weighted
-from phrt_usd.render.shade_kernels import _shade_points
+from phrt_usd.render.shade_kernels import shade_kernel
 from phrt_usd.render.trace.bounce_layout import (
     G_ENV_DIR,
     G_ENV_SLOT,
@@ -724,7 +724,7 @@ def shadow_shade(
     m = shadow_results(rays_i, rays_v, rays_f, occluded, n_distant, vis, rays, lit_i, lit_dir,
                        lit_dist)  # fmt: skip
     no_sums = np.empty((0, 3), np.float32)
-    _shade_points(
+    shade_kernel(
         positions, normals, albedo, view_dirs, emissive, ambient, no_sums, no_sums, d_dir,
         d_radiance, vis, l_pos, l_radiance, l_range, l_cone, False,
         lit_i[0, :m], lit_i[1, :m], lit_dir[:m], lit_dist[:m],
