@@ -19,8 +19,9 @@ from phrt_usd.run.images import tonemap_ldr
 PSNR_IDENTICAL_DB = 100.0
 
 
-def _check_pair(reference: np.ndarray, test: np.ndarray) -> None:
-    # flip_evaluator calls sys.exit on bad arguments: validate everything first.
+def check_pair(reference: np.ndarray, test: np.ndarray) -> None:
+    """PhrtError unless both are finite (H, W, 3) images of one size, at least 2x2: what
+    ``flip_display`` needs (flip_evaluator calls sys.exit on bad arguments)."""
     if reference.shape != test.shape or reference.ndim != 3 or reference.shape[2] != 3:
         raise PhrtError(
             f"image metrics need two (H, W, 3) images of one size, got {reference.shape} "
@@ -35,11 +36,11 @@ def _check_pair(reference: np.ndarray, test: np.ndarray) -> None:
 
 def flip_map(reference: np.ndarray, test: np.ndarray) -> np.ndarray:
     """(H, W) float32 FLIP error in [0, 1] between two linear images (after tone mapping)."""
-    _check_pair(reference, test)
-    return _flip_display(tonemap_ldr(reference), tonemap_ldr(test))
+    check_pair(reference, test)
+    return flip_display(tonemap_ldr(reference), tonemap_ldr(test))
 
 
-def _flip_display(reference: np.ndarray, test: np.ndarray) -> np.ndarray:
+def flip_display(reference: np.ndarray, test: np.ndarray) -> np.ndarray:
     """(H, W) float32 LDR-FLIP of two checked (H, W, 3) sRGB-encoded images in [0, 1]."""
     import flip_evaluator
 
@@ -64,7 +65,7 @@ def psnr(reference: np.ndarray, test: np.ndarray, mask: np.ndarray | None = None
 
     Identical images (or an empty mask) give ``PSNR_IDENTICAL_DB``.
     """
-    _check_pair(reference, test)
+    check_pair(reference, test)
     diff = (tonemap_ldr(reference) - tonemap_ldr(test)).astype(np.float64)
     sq = np.mean(diff * diff, axis=2)
     mse = mean_over(sq, mask)

@@ -24,7 +24,7 @@ from collections import deque
 import numpy as np
 
 from phrt_usd.errors import PhrtError
-from phrt_usd.evaluate.image_metrics import _check_pair, _flip_display
+from phrt_usd.evaluate.image_metrics import check_pair, flip_display
 from phrt_usd.run.images import tonemap_ldr
 
 #: Support of the temporal filters in seconds (ColorVideoVDP's 250 ms, over which its
@@ -150,11 +150,11 @@ def temporal_error_map(
     reference scores its per-frame FLIP; a reflector switching between raster and traced
     scores the error of what the eye integrates plus its flicker, most near 5 Hz."""
     (ref_s, ref_t), (test_s, test_t) = reference, test
-    _check_pair(ref_s, test_s)
-    _check_pair(ref_s, ref_t)
-    _check_pair(ref_s, test_t)
-    sustained = _flip_display(ref_s, test_s)
-    transient = _flip_display(
+    check_pair(ref_s, test_s)
+    check_pair(ref_s, ref_t)
+    check_pair(ref_s, test_t)
+    sustained = flip_display(ref_s, test_s)
+    transient = flip_display(
         CHANGE_GREY + CHANGE_SCALE * ref_t, CHANGE_GREY + CHANGE_SCALE * test_t
     )
     return sustained + np.float32(TRANSIENT_WEIGHT) * transient
