@@ -46,7 +46,8 @@ def _render_dir(root: Path, name: str, patch: float, heuristic: str) -> Path:
         write_frame_exr(out / "frames" / f"{stem}.exr", beauty, np.ones((H, W)),
                         np.full((H, W), 2.0), ids, ids >= 0)
         write_preview_png(out / "frames" / f"{stem}.png", beauty)
-        frames.append({"frame_ms": 10.0, "rays": 100 if heuristic == "all" else 0,
+        frames.append({"time": float(241 + f), "frame_ms": 10.0,
+                       "rays": 100 if heuristic == "all" else 0,
                        "visible": REFLECTORS,
                        "selected": REFLECTORS if heuristic == "all" else []})
     run = {"stage": "synthetic.usda", "heuristic": heuristic, "budget_ms": None,

@@ -28,7 +28,9 @@ therefore given an SDR display model with the sRGB EOTF (``standard_4k``'s photo
 [0, 1]. An HDR model (PQ, absolute luminance) would judge linear radiance above 1 that the
 previews and our metrics clamp away. The display geometry is a fixed ``PIXELS_PER_DEGREE``
 so that cvvdp views the frames under FLIP's viewing condition. The frame rate given to
-cvvdp is the stage's ``timeCodesPerSecond`` as recorded in the reference's stats.json.
+cvvdp and to our temporal error is the recorded sequence's
+(``temporal_error.sequence_frames_per_second`` of the reference's stats.json: the stage's
+``timeCodesPerSecond`` for consecutive time codes), as the sweep takes it.
 
 Spearman's rho is taken between our error and ``-JOD`` (JOD is higher-better, our errors
 lower-better), so rho = +1 means the same ranking.
@@ -149,12 +151,18 @@ def our_metrics(reference: Path, directory: Path, frames_per_second: float) -> d
 
 
 def run_ours(args: argparse.Namespace) -> None:
+    from phrt_usd.evaluate.temporal_error import sequence_frames_per_second
+
     reference = Path(args.reference)
-    run = json.loads((reference / "stats.json").read_text())["run"]
+    stats = json.loads((reference / "stats.json").read_text())
+    run = stats["run"]
     if run["heuristic"] != "all":
         fail(f"{reference}: the reference must be rendered with --heuristic all")
     configs = []
-    fps = float(run["time_codes_per_second"])  # the frames are consecutive time codes
+    # The recorded sequence's rate, as the sweep takes it (every 2nd time code: half).
+    fps = sequence_frames_per_second(
+        [frame["time"] for frame in stats["frames"]], run["time_codes_per_second"]
+    )
     for directory in args.configs:
         configs.append(our_metrics(reference, Path(directory), fps))
         print(f"{configs[-1]['label']}: FLIP {configs[-1]['flip']:.4f} temporal "
@@ -164,7 +172,7 @@ def run_ours(args: argparse.Namespace) -> None:
         "stage": run["stage"],
         "frame_range": run["frame_range"],
         "resolution": run["resolution"],
-        "frames_per_second": run["time_codes_per_second"],
+        "frames_per_second": fps,
         "configs": configs,
     }
     Path(args.out).write_text(json.dumps(result, indent=1))
@@ -264,7 +272,8 @@ def run_synthetic(args: argparse.Namespace) -> None:
             write_frame_exr(out / "frames" / f"{stem}.exr", beauty, np.ones((height, width)),
                             np.full((height, width), 2.0), ids, ids >= 0)
             write_preview_png(out / "frames" / f"{stem}.png", beauty)
-            frames.append({"frame_ms": 0.0, "rays": 0, "visible": ["/Patch"],
+            frames.append({"time": float(1 + t), "frame_ms": 0.0, "rays": 0,
+                           "visible": ["/Patch"],
                            "selected": ["/Patch"] if amount(t) == 0.0 else []})
         run = {"stage": "synthetic", "heuristic": "all" if name == "reference" else name,
                "budget_ms": None, "budget_rays": None, "resolution": [width, height],
