@@ -520,7 +520,9 @@ def test_records_count_every_ray_cast_per_source():
 
 def test_shading_split_over_threads_matches_one_thread(monkeypatch):
     """Local shading of large batches runs in chunks on the pool: same radiance, ray
-    counts and shadow visibility as on one thread (threshold lowered to force it)."""
+    counts and shadow visibility as on one thread (threshold lowered to force it). The
+    chunks' shadow batches, cast side by side, are kept for the raw replay as one batch
+    per query: the same batches as on one thread (``Bvh.merge_recorded``)."""
     import phrt_usd.render.trace.shadow_rays as tracer_module
     from phrt_usd.model.scene import LocalLight
 
@@ -541,11 +543,15 @@ def test_shading_split_over_threads_matches_one_thread(monkeypatch):
         tracer = Tracer(scene, threads=threads)
         gb = tracer.primary_gbuffer(camera, 48, 36)
         tracer.reset_counters()
+        tracer.record_rays = True
         res = tracer.trace_reflections(gb, [0, 1], 3)
+        batches = [(q, len(o), t is None) for q, o, _, t in tracer.last_rays]
         pts = gb.position[gb.covered]
         vis = tracer.shadow_visibility(pts, gb.normal[gb.covered])
-        results.append((res, dict(tracer.rays_cast), vis))
-    (one, cast_one, vis_one), (two, cast_two, vis_two) = results
+        batches.append([(q, len(o)) for q, o, _, _ in tracer.last_rays])
+        results.append((res, dict(tracer.rays_cast), vis, batches))
+    (one, cast_one, vis_one, rec_one), (two, cast_two, vis_two, rec_two) = results
+    assert rec_two == rec_one and sum(n for _, n, _ in rec_one[:-1]) == one.rays
     np.testing.assert_allclose(two.radiance, one.radiance, atol=1e-6)
     assert two.rays == one.rays and cast_two == cast_one and cast_one["shadow"] > 0
     assert [r.rays for r in two.records] == [r.rays for r in one.records]

@@ -430,6 +430,24 @@ class Bvh:
         h = trace_kernels.split_hits(prim, u, v, ray, tri, hu, hv, miss)
         return Hits(ray=ray[:h], tri=tri[:h], u=hu[:h], v=hv[:h], miss=miss[: n - h])
 
+    def merge_recorded(self, since: int) -> None:
+        """The batches recorded from ``last_rays[since]`` on ran side by side (chunks of
+        one batch on the pool, each cast with one thread): keep them as one batch per
+        query, so ``replay_raw`` gives raw embreex the same rays under its own splitting
+        rule rather than replaying the chunks one after another. A chunk's later casts
+        (cut-out re-casts) join the same batch: raw embreex pays fewer calls than we did,
+        never more."""
+        if not self.record_rays or len(self.last_rays) - since < 2:
+            return
+        groups: dict[tuple[str, bool], list] = {}
+        for query, o32, d32, t32 in self.last_rays[since:]:
+            groups.setdefault((query, t32 is None), []).append((o32, d32, t32))
+        self.last_rays[since:] = [
+            (query, *(np.concatenate([p[i] for p in parts]) for i in (0, 1)),
+             None if no_tfar else np.concatenate([p[2] for p in parts]))
+            for (query, no_tfar), parts in groups.items()
+        ]  # fmt: skip
+
     def replay_raw(self, threads: int | None = None) -> tuple[int, float]:
         """Re-run raw embreex on exactly the batches in ``last_rays`` (same float32
         arrays, same splitting rule, ``threads`` defaults to this object's). Returns

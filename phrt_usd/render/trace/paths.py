@@ -23,8 +23,8 @@ gather, the next rays), in buffers a ``PathTracer`` keeps from call to call
 gathered and evaluated once per call (``_gather``). Every compiled call is a fixed cost
 (its arguments are checked, ``phrt_usd.kernels``), so there are few per depth. Local
 shading of a call's hits is split over the pool from
-``shadow_rays.PARALLEL_MIN_SHADE_RAYS`` shadow rays on (numpy releases the GIL on large
-arrays, embreex inside ``run``).
+``shadow_rays.PARALLEL_MIN_SHADE_RAYS`` shadow rays on (the kernels release the GIL,
+embreex inside ``run``).
 
 Records: one ``TraceRecord`` per source reflector (pixels, rays, reflectors hit,
 reflector bounces, time share), what the selection heuristic reads.
@@ -283,6 +283,7 @@ class PathTracer:
             return self._shade_points(
                 tri, u, v, rel, ng, ns, d_in, albedo, lights, into=into, textured=textured
             )
+        since = len(self._bvh.last_rays)
         parts = [
             self._shadows.pool.submit(
                 self._shade_points,
@@ -296,6 +297,7 @@ class PathTracer:
             for lo, hi in bounds
         ]
         done = [f.result() for f in parts]
+        self._bvh.merge_recorded(since)
         local, rays = (np.concatenate([d[i] for d in done]) for i in (0, 1))
         if into is not None:  # the chunks' sums could race: one pass over them all
             trace_kernels.accumulate(*into, local)

@@ -31,10 +31,13 @@ from phrt_usd.render.trace.hit_surfaces import HitSurfaces
 #: The compiled trace kernels (``trace_kernels``, through ``phrt_usd.kernels``).
 _TRACE = kernels.load("phrt_usd.render.trace.trace_kernels")
 
-#: Shading work (numpy + shadow rays) on many points is split over the pool only from
-#: this many shadow rays (points x lights) on: measured on the sewer (13 lights, 2
-#: cores), 10.6k rays take 2.2 ms split vs 1.9 ms on one thread, 349k rays 49 ms vs 63 ms.
-PARALLEL_MIN_SHADE_RAYS = 32768
+#: Shading work (shadow-ray kernel, Embree, shading kernel) on many points is split over
+#: the pool, each chunk on its own thread, only from this many possible shadow rays
+#: (points x lights) on. Measured on the sewer (13 lights, 2 cores, compiled kernels,
+#: ``tools/bench_trace_batches.py``): a 6,312-ray round takes 0.46 ms split against
+#: 0.57 ms on one thread, a 12,690-ray round 0.85 against 0.91 ms; but a 486-ray round
+#: 0.19 against 0.075 ms (the pool's hand-over costs more than the chunks save).
+PARALLEL_MIN_SHADE_RAYS = 4096
 
 
 class ShadowRays:
@@ -71,10 +74,12 @@ class ShadowRays:
         Embree work of each chunk on its own thread). Returns (n, L) float32 visibility
         and (n,) int64 shadow rays cast per point."""
         n, n_lights = len(rel), len(lights.distant) + len(lights.local)
-        bounds = self.split(n * max(n_lights, 1), n)
+        wanted = n * max(n_lights, 1) if pairs is None else int(np.count_nonzero(pairs))
+        bounds = self.split(wanted, n)
         if bounds is None:
             vis, rays, _ = self.cast(rel, normals, normals, lights, pairs)
             return vis, rays
+        since = len(self._bvh.last_rays)
         parts = [
             self.pool.submit(
                 self.cast,
@@ -88,6 +93,7 @@ class ShadowRays:
             for lo, hi in bounds
         ]
         done = [f.result() for f in parts]
+        self._bvh.merge_recorded(since)
         return np.concatenate([d[0] for d in done]), np.concatenate([d[1] for d in done])
 
     def light_arrays(self, lights: Lights) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
