@@ -55,10 +55,10 @@ from pxr import Usd
 from phrt_usd.errors import BadOption, PhrtError
 from phrt_usd.evaluate.report import build_report
 from phrt_usd.model.frame import FrameStats
+from phrt_usd.model.trace_density import check_density
 from phrt_usd.render.primary_source import check_primary
 from phrt_usd.render.raster.gl_platform import check_gl
 from phrt_usd.render.renderer import FrameOutput, FrameRenderer, RenderOptions
-from phrt_usd.render.trace.sparse_pixels import check_density
 from phrt_usd.run.frames import SAME_FRAME, parse_frames
 from phrt_usd.run.images import read_frame_exr
 from phrt_usd.run.render_job import RenderJob, RunRecord, render_to_directory

@@ -648,8 +648,8 @@ def sweep(
         parse_resolution_list,
         run_sweep,
     )
+    from phrt_usd.model.trace_density import check_density
     from phrt_usd.render.raster.gl_platform import check_gl
-    from phrt_usd.render.trace.sparse_pixels import check_density
     from phrt_usd.threads import parse_threads
     from phrt_usd.usd.schema import read_render_params
 

@@ -27,19 +27,22 @@ def test_still_camera_budget_that_fits_three_reflectors_is_mostly_spent_without_
     sc = scene([element((1.5 * i - 5.0, 0.0, -8.0)) for i in range(n)], lights=1)
     rng = np.random.default_rng(3)
     policy = heu1()
-    selections, uses = [], []
+    selections, uses, levels = [], [], []
     for t in range(100):
         pixels = (1000 * rng.uniform(0.98, 1.02, n)).astype(np.int64)
         metrics, rounds = run_frame(policy, sc, view(pixels, time=t), budget_rays=budget,
                                     rays_per_pixel=2.0)  # fmt: skip
         chosen = {e for ids in rounds for e in ids}
         selections.append(chosen)
+        levels.append(dict(policy.previous_levels))
         uses.append(sum(2 * int(pixels[e]) for e in chosen) / budget)
     # Spent: three whole reflectors are 0.78-0.82 of the budget every frame; 0.75 leaves
     # only the pixel jitter. Nothing idle for want of a candidate that fits.
     assert min(uses) >= 0.75 and max(uses) <= 1.0
-    # Stable: the 2 % jitter must not switch a reflector (hysteresis, admission margin).
+    # Stable: the 2 % jitter must not switch a reflector (hysteresis, admission margin),
+    # nor step a trace density.
     assert transitions(selections, range(n)) == 0
+    assert all(lv == levels[0] for lv in levels)
 
 
 def test_leftover_of_the_first_round_is_filled_with_a_margin_of_the_leftover():
@@ -58,18 +61,27 @@ def test_entering_reflector_forecast_to_outgrow_the_whole_budget_is_not_taken():
     # Reflector 1 enters the view with 300 pixels (330 predicted rays of a 1000 budget).
     # The upcoming cameras approach it: its box will cover over 3 times its area now,
     # more than the whole budget, so it would be dropped while in view (a transition):
-    # with the lookahead it is not taken; without upcoming cameras, or when the
-    # cameras stay put, it is.
+    # with the lookahead it is not taken at full density; without upcoming cameras, or
+    # when the cameras stay put, it is. With density steps (the render at full density)
+    # it is taken at the finest coarser density its forecast fits at.
     sc = scene([element((0.0, 0.0, -8.0)), element((1.0, 0.0, -8.0))])
     approach = tuple(camera((0.8, 0.0, -5.0 * k / LOOKAHEAD_FRAMES)) for k in range(1, 40))
     still = tuple(camera() for _ in range(1, 40))
-    for upcoming, taken in (((), True), (still, True), (approach, False)):
+    for upcoming, taken, density in (
+        ((), "full", "full"), (still, "full", "full"), (approach, None, "half"),
+        (approach, "half", "full"),
+    ):  # fmt: skip
         policy = heu1()
-        fv = view([0, 300])
+        fv = view([0, 300], trace_density=density)
         fv.upcoming_cameras = upcoming
         policy.begin_frame(fv, sc)
+        growth = policy.lookahead_growth.get(1, 1.0)
         if upcoming is approach:
-            assert policy.lookahead_growth[1] * policy.predicted_rays(1) > 1000
+            assert growth * policy.predicted_rays(1) > 1000
         ids = policy.next_round(Budget(rays=1000))
+        assert (1 in ids) is (taken is not None), (len(upcoming), ids)
+        if taken is not None:
+            assert policy.round_densities([1]) == [taken]
+        if taken == "half":
+            assert growth * policy.predicted_rays(1) * 0.5 <= 1000
         policy.end_frame()
-        assert (1 in ids) is taken, (len(upcoming), ids)

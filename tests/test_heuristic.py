@@ -22,6 +22,7 @@ from phrt_usd.model.scene import (
     MaterialTable,
     Scene,
 )
+from phrt_usd.model.trace_density import traced_fraction
 from phrt_usd.select import heu1_policy as heuristic
 from phrt_usd.select.cost_model import TIME_SAFETY_MIN, TraceTimeModel
 from phrt_usd.select.heu1_policy import (
@@ -94,8 +95,22 @@ def scene(elements, lights=0) -> Scene:
     return Scene(elements, geometry, materials, light_list, origin=np.zeros(3))
 
 
-def view(pixels, cam=None, time=0.0) -> FrameView:
-    return FrameView(time, cam or camera(), W, H, np.asarray(pixels, dtype=np.int64))
+def view(pixels, cam=None, time=0.0, trace_density="full") -> FrameView:
+    pixels = np.asarray(pixels, dtype=np.int64)
+    return FrameView(time, cam or camera(), W, H, pixels, trace_density=trace_density)
+
+
+def traced_rays(policy, ids, pixels, rays_per_pixel) -> list[int]:
+    """A fake tracer's rays for a round's ``ids``: pixels times rays per pixel (a number
+    or one per element), times the share a density the policy chose traces (HEU1's
+    density steps; at the view's own density a record counts every covered pixel)."""
+    view_density = policy._require_frame().view.trace_density
+    rpp = np.broadcast_to(np.asarray(rays_per_pixel, dtype=np.float64), (len(pixels),))
+    out = []
+    for e, d in zip(ids, policy.round_densities(ids), strict=True):
+        share = traced_fraction(pixels[e], d) if d != view_density else 1.0
+        out.append(int(math.ceil(pixels[e] * rpp[e] * share)))
+    return out
 
 
 def run_frame(policy, sc, fv, budget_rays=None, rays_per_pixel=1.0, hits=None, bounces=None):
@@ -112,10 +127,11 @@ def run_frame(policy, sc, fv, budget_rays=None, rays_per_pixel=1.0, hits=None, b
             break
         rounds.append(ids)
         records = []
-        for e in ids:
-            px = int(fv.pixel_counts[e])
-            rays = int(math.ceil(px * rays_per_pixel))
-            records.append(TraceRecord(e, px, rays, dict(hits.get(e, {})), bounces.get(e, 0), 0.0))
+        px = fv.pixel_counts
+        for e, rays in zip(ids, traced_rays(policy, ids, px, rays_per_pixel), strict=True):
+            records.append(
+                TraceRecord(e, int(px[e]), rays, dict(hits.get(e, {})), bounces.get(e, 0), 0.0)
+            )
         policy.record(records, 1e-3)
         if remaining is not None:
             remaining -= sum(r.rays for r in records)
@@ -281,10 +297,10 @@ def test_round_cost_within_ray_budget_and_finite(frame, name, weight, budget):
               bounces=dict.fromkeys(reflectors, 9))  # fmt: skip
     policy.begin_frame(view(pixels), sc)
     ids = policy.next_round(Budget(rays=budget))
-    predicted = sum(policy.predicted_rays(e) for e in ids)
-    assert predicted <= budget
     assert all(pixels[e] > 0 and sc.elements[e].is_reflector for e in ids)
     metrics = policy.end_frame()
+    # At the density each was taken at (HEU1's density steps trace some more coarsely).
+    assert sum(metrics[e].predicted_rays for e in ids) <= budget
     for m in metrics.values():
         for x in (m.V, m.C, m.R, m.Q, m.predicted_rays):
             assert math.isfinite(x) and x >= 0.0
@@ -575,15 +591,28 @@ def test_lookahead_reuses_each_upcoming_cameras_areas_without_changing_them(monk
 
 def test_kept_selection_drops_the_fewest_when_it_no_longer_fits():
     # Three kept reflectors; the largest grows past what the budget holds with the two
-    # small ones: it is the one dropped (one transition), not the two small ones, even
-    # though it is the most relevant.
+    # small ones: at a fixed trace density it is the one dropped (one transition), not
+    # the two small ones, even though it is the most relevant; with density steps (the
+    # render at full density) it is kept at half density instead, and steps back to full
+    # once it shrinks enough.
     sc = scene([element((0.0, 0.0, -4.0)), element((1.0, 0.0, -8.0)), element((-1.0, 0.0, -8.0))])
-    policy = policy_of("heu1")
-    m, _ = run_frame(policy, sc, view([500, 100, 100]), budget_rays=1000)
-    assert {e for e, x in m.items() if x.selected} == {0, 1, 2}
-    m, _ = run_frame(policy, sc, view([800, 100, 100]), budget_rays=1000)
-    assert m[0].R > m[1].R
-    assert {e for e, x in m.items() if x.selected} == {1, 2}
+    for density in ("half", "full"):
+        policy = policy_of("heu1")
+        m, _ = run_frame(policy, sc, view([500, 100, 100], trace_density=density), 1000)
+        assert {e for e, x in m.items() if x.selected} == {0, 1, 2}
+        m, _ = run_frame(policy, sc, view([800, 100, 100], trace_density=density), 1000)
+        assert m[0].R > m[1].R
+        if density == "half":
+            assert {e for e, x in m.items() if x.selected} == {1, 2}
+            continue
+        assert {e for e, x in m.items() if x.selected} == {0, 1, 2}
+        assert policy.previous_levels == {0: 1}  # element 0 at half density
+        # 800 pixels at half density: 400 predicted rays (1 ray a pixel) beside 200.
+        assert m[0].predicted_rays == pytest.approx(800 * 0.5 * 1.0)
+        run_frame(policy, sc, view([800, 100, 100]), 1000)
+        assert policy.previous_levels == {0: 1}  # no room to step up: it stays at half
+        m, _ = run_frame(policy, sc, view([500, 100, 100]), 1000)
+        assert all(x.selected for x in m.values()) and policy.previous_levels == {}
 
 
 def test_shrinking_reflector_in_view_is_not_admitted_but_one_entering_is():
@@ -654,7 +683,8 @@ def test_time_budget_holds_with_a_simulated_tracer(name):
             ids = policy.next_round(Budget(ms=T - elapsed))
             if not ids:
                 break
-            records = [TraceRecord(e, int(pixels[e]), int(pixels[e] * rpp[e])) for e in ids]
+            rays = traced_rays(policy, ids, pixels, rpp)
+            records = [TraceRecord(e, int(pixels[e]), r) for e, r in zip(ids, rays, strict=True)]
             rays = sum(r.rays for r in records)
             ms = (0.4 + 0.0015 * rays) * rng.lognormal(0.0, 0.05)
             elapsed += ms
@@ -752,7 +782,9 @@ def test_a_reflector_cost_pushed_out_does_not_displace_the_ones_kept_instead():
     selections = []
     pixels = [[500, 300]] + [[700, 300]] * 12 + [[700, 0]] * 2
     for t, px in enumerate(pixels):
-        metrics, _ = run_frame(policy, sc, view(px, time=t), budget_rays=budget)
+        # A fixed density: no density steps (B would be kept at half density).
+        fv = view(px, time=t, trace_density="half")
+        metrics, _ = run_frame(policy, sc, fv, budget_rays=budget)
         selections.append({e for e, m in metrics.items() if m.selected})
     assert selections[0] == {0, 1}  # both enter the view and fit
     assert selections[1] == {1}  # B grew: both no longer fit, the dearer one is dropped

@@ -224,6 +224,7 @@ def test_stats_round_trip_atomic_and_json_safe(tmp_path: Path) -> None:
         "budget_use",
         "untraced_reason",
         "calibration",
+        "densities",
     }
     (tmp_path / "stats.json").write_text("{}")
     with pytest.raises(PhrtError, match="not a phrt stats file"):

@@ -18,9 +18,9 @@ from typer.testing import CliRunner
 import phrt_usd
 from phrt_usd.cli import app
 from phrt_usd.errors import BadOption
+from phrt_usd.model.trace_density import SPARSE_MIN_PIXELS, check_density
 from phrt_usd.render.renderer import RenderOptions
-from phrt_usd.render.trace import sparse_pixels
-from phrt_usd.render.trace.sparse_pixels import SPARSE_MIN_PIXELS, fill_skipped, traced_subset
+from phrt_usd.render.trace.sparse_pixels import fill_skipped, traced_subset
 from phrt_usd.render.trace.tracer import Tracer
 
 
@@ -79,7 +79,7 @@ def test_a_skipped_pixel_without_traced_neighbours_keeps_the_fallback():
 
 
 def test_density_is_checked_and_refused_in_rt_mode():
-    assert sparse_pixels.check_density("HALF") == "half"
+    assert check_density("HALF") == "half"
     with pytest.raises(BadOption, match="trace density"):
         RenderOptions(trace_density="eighth")
     with pytest.raises(BadOption, match="rt mode"):
@@ -123,6 +123,28 @@ def test_mirror_floor_at_reduced_density_traces_its_share_and_the_same_reflectio
     by_pixel[full.pixel_index] = full.radiance
     diff = np.abs(by_pixel[half.pixel_index[same]] - half.radiance[same]).max(axis=1)
     assert np.mean(diff < 1e-4) >= 0.95
+
+
+def test_densities_per_source_trace_each_source_as_its_own_density_would():
+    """HEU1's density steps trace a round's sources at different densities: each source's
+    pixels, rays and radiance are those of a round at that source's density alone."""
+    parts = [
+        dict(mesh=quad(60.0), F=1.0),
+        dict(mesh=sphere(0.6, (0.3, 1.0, -0.5), 5), F=0.8, smooth=True),
+    ]
+    tracer = Tracer(parts_scene(parts))
+    gb = tracer.primary_gbuffer(look_at((0.0, 3.0, 6.0), (0.0, 0.0, 0.0)), 160, 120)
+    assert min((gb.element_id == e).sum() for e in (0, 1)) >= SPARSE_MIN_PIXELS
+    mixed = tracer.trace_reflections(gb, [0, 1], 5, density=["quarter", "full"])
+    alone = [tracer.trace_reflections(gb, [0], 5, density="quarter"),
+             tracer.trace_reflections(gb, [1], 5, density="full")]  # fmt: skip
+    for record, single in zip(mixed.records, alone, strict=True):
+        assert (record.pixels, record.rays) == (single.records[0].pixels, single.rays)
+    by_pixel = np.zeros((gb.element_id.size, 3), np.float32)
+    by_pixel[mixed.pixel_index] = mixed.radiance
+    for single in alone:
+        np.testing.assert_allclose(by_pixel[single.pixel_index], single.radiance, atol=1e-5)
+    assert len(mixed.pixel_index) == sum(len(r.pixel_index) for r in alone)
 
 
 def test_the_cli_and_the_api_run_at_half_density_and_record_it(tmp_path):

@@ -128,7 +128,9 @@ def main(argv: list[str] | None = None) -> int:
             f"{r['vs']['transition_rate']}; budget overruns HEU1 {r['budget_overruns']}, "
             f"HEU2 {r['vs']['budget_overruns']} (within T+10 %: {r['budget_within_pct']} % / "
             f"{r['vs']['budget_within_pct']} %); budget use HEU1 "
-            f"{_use(r['budget_use']['heu1'])}, HEU2 {_use(r['budget_use']['heu2'])}\n"
+            f"{_use(r['budget_use']['heu1'])}, HEU2 {_use(r['budget_use']['heu2'])}; "
+            f"HEU1 density steps {r['density_steps']} (not transitions: a traced "
+            f"reflector's trace density changed)\n"
         )
     print(text)
     if args.append:

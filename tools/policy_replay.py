@@ -33,16 +33,17 @@ against ``all`` of each policy's images composed from the recording (``compose``
 0.00422 both ways).
 
 A recording is plain data: JSON (gzip-compressed when its name ends in ``.gz``) with
-``"format": "phrt-replay-recording"`` and ``"version": 1``, read back by ``load_recording``
-(shared with ``tools/transition_bound.py``). Its objects are a closed list of known types
-(``CameraFrame``, ``FrameView``, ``TraceRecord``, ``DistantLight``, ``LocalLight``, a
-frame's element table), each read field by field with its type checked; numpy arrays are
-``{"dtype", "shape", "data"}`` with a few numeric dtypes and ``data`` the flat values in C
-order. Floats are written by ``repr`` (NaN and infinities as JSON's ``NaN`` /
-``Infinity`` extension), so they read back bit for bit and a replay of the file selects
-exactly what a replay of the capture in memory does. Reading never unpickles, imports or
-evaluates anything: a file that is not such a recording is refused with one line, as is an
-``--images`` npz that is not a capture's (loaded with ``allow_pickle=False``).
+``"format": "phrt-replay-recording"`` and ``"version"`` (``RECORDING_VERSION``), read
+back by ``load_recording`` (shared with ``tools/transition_bound.py``). Its objects are
+a closed list of known types (``CameraFrame``, ``FrameView``, ``TraceRecord``,
+``DistantLight``, ``LocalLight``, a frame's element table), each read field by field
+with its type checked; numpy arrays are ``{"dtype", "shape", "data"}`` with a few
+numeric dtypes and ``data`` the flat values in C order. Floats are written by ``repr``
+(NaN and infinities as JSON's ``NaN`` / ``Infinity`` extension), so they read back bit
+for bit and a replay of the file selects exactly what a replay of the capture in memory
+does. Reading never unpickles, imports or evaluates anything: a file that is not such a
+recording is refused with one line, as is an ``--images`` npz that is not a capture's
+(loaded with ``allow_pickle=False``).
 """
 
 from __future__ import annotations
@@ -66,6 +67,7 @@ from phrt_usd.evaluate.image_metrics import flip_map
 from phrt_usd.evaluate.selection_metrics import admissions_and_drops, selection_metrics
 from phrt_usd.model.frame import Budget, FrameView, TraceRecord
 from phrt_usd.model.scene import CameraFrame, DistantLight, LocalLight
+from phrt_usd.model.trace_density import traced_fraction
 from phrt_usd.render.renderer import (
     CALIBRATION_PIXELS,
     CALIBRATION_REPEATS,
@@ -165,9 +167,10 @@ def capture(
 
 #: The ``format`` and ``version`` a recording file names; any other is refused.
 RECORDING_FORMAT = "phrt-replay-recording"
-#: 4: CameraFrame.exposure_scale, the lights' path and LocalLight's cone; 3:
-#: TraceRecord.fallback_error; 2: CameraFrame's vertical aperture, offsets, conform policy.
-RECORDING_VERSION = 4
+#: 5: FrameView.trace_density; 4: CameraFrame.exposure_scale, the lights' path and
+#: LocalLight's cone; 3: TraceRecord.fallback_error; 2: CameraFrame's vertical aperture,
+#: offsets, conform policy.
+RECORDING_VERSION = 5
 
 
 class RecordingError(PhrtError):
@@ -227,6 +230,7 @@ _SCHEMAS: dict[type, dict[str, object]] = {
         "pixel_counts": _Array(("int64",), None),
         "screen_boxes": _Optional(_Array(_F8, None, 4)),
         "upcoming_cameras": _Tuple(CameraFrame),
+        "trace_density": str,
     },
     TraceRecord: {
         "source": int,
@@ -695,7 +699,7 @@ def replay(
     lookahead: bool = True,
     budget_ms: float | None = None,
     sim: SimulatedTime | None = None,
-    trace_ms: list | None = None,
+    spent: list | None = None,
 ):
     """Run ``heuristic`` over the recorded frames with a rays budget, the way
     ``FrameRenderer.finish`` does; with ``lookahead`` each view gets the next recorded
@@ -704,8 +708,9 @@ def replay(
 
     With ``budget_ms`` (and ``budget_rays`` None) the budget is a time T per frame and
     rounds take ``sim``'s synthetic time (calibrated on the first frame with visible
-    reflectors, as the renderer does); ``trace_ms``, if given, receives each frame's
-    simulated trace time."""
+    reflectors, as the renderer does); ``spent``, if given, receives each frame's
+    (simulated trace ms, traced rays): a reflector traced at a reduced density casts
+    that share of its recorded rays."""
     weight = data["selection_weight"] if selection_weight is None else selection_weight
     policy = make_policy(heuristic, selection_weight=weight, bounce_limit=data["bounce_limit"])
     refl = data["reflectors"]
@@ -734,7 +739,13 @@ def replay(
             ids = [i for i in ids if counts[i] > 0 and i not in chosen]
             if not ids:
                 break
-            records = [frame.records[i] for i in ids]
+            # A reflector the policy traces at a reduced density casts that share of
+            # its recorded (full-density) rays.
+            records = [
+                replace(frame.records[i], rays=round(frame.records[i].rays
+                                                     * traced_fraction(counts[i], d)))
+                for i, d in zip(ids, policy.round_densities(ids), strict=True)
+            ]  # fmt: skip
             round_rays = sum(r.rays for r in records)
             rays += round_rays
             chosen.extend(ids)
@@ -742,8 +753,8 @@ def replay(
             elapsed += ms
             policy.record(records, ms / 1000.0)
         policy.end_frame()
-        if trace_ms is not None:
-            trace_ms.append(elapsed)
+        if spent is not None:
+            spent.append((elapsed, rays))
         for e in chosen:
             selected[f, column[e]] = True
         for e in refl:
@@ -848,17 +859,18 @@ def main(argv: list[str] | None = None) -> int:
             selected, visible = replay(
                 data, h, budget if kind == "rays" else None, args.selection_weight,
                 lookahead=lookahead, budget_ms=budget if kind == "ms" else None, sim=sim,
-                trace_ms=times,
+                spent=times,
             )  # fmt: skip
             out[h] = c = transition_counts(selected, visible)
             flip = (
                 "" if images is None else f"{mean_flip(images, selected, data['reflectors']):.5f}"
             )
-            use = budget_use(data, selected, visible, budget, times if kind == "ms" else None)
+            use = budget_use(data, selected, visible, budget,
+                             [t[0 if kind == "ms" else 1] for t in times])  # fmt: skip
             print(
                 f"| {label} | {h} | {c['transitions']} ({c['admissions']} + {c['drops']}) "
                 f"| {c['entered_selected']} | {c['mean_selected']:.2f} "
-                f"| {mean_rays(data, selected):.0f} | {use:.3f} | {flip} |"
+                f"| {np.mean([t[1] for t in times]):.0f} | {use:.3f} | {flip} |"
             )
         if "heu1" in out and "heu2" in out and out["heu2"]["transitions"]:
             pct = 100.0 * out["heu1"]["transitions"] / out["heu2"]["transitions"]
@@ -868,8 +880,9 @@ def main(argv: list[str] | None = None) -> int:
 
 def budget_use(data: dict, selected: np.ndarray, visible: np.ndarray, budget, times=None) -> float:
     """Mean over the frames with visible reflectors of the share of the budget spent:
-    traced rays / the rays budget, or (``times``: each frame's trace ms) trace ms / T,
-    as ``stats.json``'s ``budget_use``."""
+    traced rays / the rays budget (the recorded records' rays), or with ``times`` (each
+    frame's trace ms or traced rays, ``replay``'s ``spent``) times / budget, as
+    ``stats.json``'s ``budget_use``."""
     seen = visible.any(axis=1)
     if not seen.any():
         return float("nan")

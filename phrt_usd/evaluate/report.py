@@ -24,7 +24,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from phrt_usd.errors import PhrtError
-from phrt_usd.evaluate.selection_metrics import selection_metrics
+from phrt_usd.evaluate.selection_metrics import density_steps, selection_metrics
+from phrt_usd.model.trace_density import TRACE_DENSITIES
 from phrt_usd.run.run_files import read_stats, selection_layer_path, stats_path
 
 if TYPE_CHECKING:  # rich is imported where the tables are drawn (a cheap start)
@@ -142,6 +143,7 @@ def _single_report(run: Path) -> tuple[dict[str, Any], np.ndarray]:
         "resolution": run_info.get("resolution"),
     }
     report.update(selection_metrics(record.selected, record.visible))
+    report["density_steps"] = _density_steps(record, stats_rows)
 
     frame_ms, trace_ms, source = _timings(record, stats_rows)
     report.update(timing_metrics(frame_ms, trace_ms, report["budget_ms"]))
@@ -150,6 +152,22 @@ def _single_report(run: Path) -> tuple[dict[str, Any], np.ndarray]:
     if report["mean_selected"] is None:
         raise PhrtError(f"selection layer {layer}: no rendered frames in it")
     return _clean(report), record.times
+
+
+def _density_steps(record: SelectionRecord, stats_rows: list[dict[str, Any]]) -> int | None:
+    """``density_steps`` of the run, from its stats.json's per-frame densities (None
+    without stats.json)."""
+    if not stats_rows:
+        return None
+    column = {path: r for r, path in enumerate(record.reflectors)}
+    row_of = {t: f for f, t in enumerate(record.times.tolist())}
+    levels = np.zeros(record.selected.shape, np.int64)
+    for row in stats_rows:
+        f = row_of.get(row.get("time"))
+        for path, density in (row.get("densities") or {}).items():
+            if f is not None and path in column:
+                levels[f, column[path]] = TRACE_DENSITIES.index(density)
+    return density_steps(record.selected, record.visible, levels)
 
 
 def _locate(run: Path) -> tuple[Path, Path | None]:

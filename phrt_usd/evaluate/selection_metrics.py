@@ -62,6 +62,18 @@ def admissions_and_drops(selected: np.ndarray, visible: np.ndarray) -> tuple[int
     return admissions, int(np.count_nonzero(switched)) - admissions
 
 
+def density_steps(selected: np.ndarray, visible: np.ndarray, levels: np.ndarray) -> int:
+    """Density steps: a reflector traced in two consecutive frames, in view in both, at
+    another trace density in the later one (HEU1's density steps; not transitions, the
+    reflection stays ray-traced and only its sharpness changes).
+
+    selected, visible : (F, R) bool; levels : (F, R) int64 trace density of each traced
+    reflector (index into ``model.trace_density.TRACE_DENSITIES``; 0 where not traced).
+    """
+    both = transition_chances(visible) & selected[1:] & selected[:-1]
+    return int(np.count_nonzero(both & (levels[1:] != levels[:-1])))
+
+
 def selection_metrics(selected: np.ndarray, visible: np.ndarray) -> dict[str, Any]:
     """Selection figures of F frames (rows, in time order) × R reflectors (columns).
 

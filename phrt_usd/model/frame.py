@@ -107,6 +107,8 @@ class FrameView:
         ``select.heu1_policy.UPCOMING_CAMERAS``; empty when the renderer does not know them, e.g.
         for the last frame or a single-frame render). A stage's camera path is known in
         advance, so HEU1 can forecast a reflector's cost from it.
+    trace_density: the render's trace density (``--trace-density``); only at "full" may
+        a policy trace some reflectors more coarsely (HEU1's density steps).
     """
 
     time: float
@@ -116,6 +118,7 @@ class FrameView:
     pixel_counts: np.ndarray
     screen_boxes: np.ndarray | None = None
     upcoming_cameras: tuple[CameraFrame, ...] = ()
+    trace_density: str = "full"
 
 
 @dataclass
@@ -194,3 +197,6 @@ class FrameStats:
     #: The run's trace-time calibration, on the frame that ran it: rays, ms of each timed
     #: round, the fitted fixed ms and ms per ray, its wall ms (not in frame_ms).
     calibration: dict | None = None
+    #: Selected reflectors traced at another density than the render's (HEU1's density
+    #: steps): prim path → "half" or "quarter".
+    densities: dict[str, str] = field(default_factory=dict)

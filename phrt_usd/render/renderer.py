@@ -34,6 +34,7 @@ from phrt_usd.model.frame import (
     SelectionPolicy,
 )
 from phrt_usd.model.scene import CameraFrame, Scene
+from phrt_usd.model.trace_density import check_density
 from phrt_usd.render import frame_pixels
 from phrt_usd.render.compositing import (
     apply_traced,
@@ -45,7 +46,6 @@ from phrt_usd.render.compositing import (
 from phrt_usd.render.lighting import shade_gbuffer
 from phrt_usd.render.primary_source import DEFAULT_PRIMARY, check_primary, choose, is_software
 from phrt_usd.render.raster.gl_platform import DEFAULT_GL, check_gl
-from phrt_usd.render.trace.sparse_pixels import check_density
 from phrt_usd.select.heu1_policy import UPCOMING_CAMERAS
 from phrt_usd.select.policies import make_policy
 from phrt_usd.threads import DEFAULT_THREADS, apply_threads, check_threads
@@ -430,6 +430,7 @@ class FrameRenderer:
         rays = 0
         metrics: dict[int, ReflectorMetrics] = {}
         selected: list[int] = []
+        densities: dict[str, str] = {}  # reflectors traced at another density
         frame_budget_ms = self._frame_budget_ms(prep, policy, opts)
         untraced_reason = None
         calibration = None
@@ -447,6 +448,7 @@ class FrameRenderer:
                 pixel_counts,
                 prep.screen_boxes,
                 prep.upcoming_cameras,
+                opts.trace_density,
             )
             t = time.perf_counter()
             policy.begin_frame(view, scene)
@@ -467,9 +469,13 @@ class FrameRenderer:
                 if not ids:
                     break
                 t = time.perf_counter()
-                result = self._tracer.trace_reflections(
-                    gb, ids, opts.bounce_limit, opts.trace_density
-                )
+                chosen = getattr(policy, "round_densities", None)
+                density = opts.trace_density if chosen is None else chosen(ids)
+                result = self._tracer.trace_reflections(gb, ids, opts.bounce_limit, density)
+                if not isinstance(density, str):
+                    for e, d in zip(ids, density, strict=True):
+                        if d != opts.trace_density:
+                            densities[scene.elements[e].path] = d
                 apply_traced(image, prep.local, prep.reflectivity, result, traced_mask)
                 round_ms = _ms(t)
                 trace_ms += round_ms
@@ -534,6 +540,7 @@ class FrameRenderer:
             budget_use=budget_use,
             untraced_reason=untraced_reason if opts.mode == "hybrid" else None,
             calibration=calibration,
+            densities=densities,
         )
         return FrameOutput(image, alpha, gb, traced_mask, stats)
 

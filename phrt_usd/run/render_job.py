@@ -71,9 +71,10 @@ from phrt_usd.usd.stage import StageScene, choose_camera, open_stage, read_stage
 from phrt_usd.usd.stage_controls import StageControls
 
 #: Identifies checkpoint files; bump the version when their content changes meaning
-#: (2: the cost model's safety factor is a window of rounds, not one tracked number).
+#: (2: the cost model's safety factor is a window of rounds, not one tracked number; 3: the
+#: policies remember the densities of the previous selection).
 CHECKPOINT_FORMAT = "phrt-checkpoint"
-CHECKPOINT_VERSION = 2
+CHECKPOINT_VERSION = 3
 #: Largest checkpoint read back (bytes): a 100,000-frame run's is ~100 MB; anything
 #: larger is not one of ours and is refused before it is parsed.
 CHECKPOINT_MAX_BYTES = 1 << 30

@@ -37,6 +37,7 @@ from phrt_usd import __version__
 from phrt_usd.atomic import write_text_atomic
 from phrt_usd.errors import PhrtError
 from phrt_usd.model.frame import FrameStats, ReflectorMetrics
+from phrt_usd.model.trace_density import TRACE_DENSITIES
 
 FRAMES_DIR = "frames"
 STATS_FILE = "stats.json"
@@ -208,6 +209,7 @@ def frame_stats_from_row(row: Any) -> FrameStats:
 #: FrameStats fields that rows written before they existed lack (read as their defaults).
 _OPTIONAL_FRAME_FIELDS = (
     "budget_ms", "expected_trace_ms", "budget_use", "untraced_reason", "calibration",
+    "densities",
 )  # fmt: skip
 
 
@@ -227,13 +229,20 @@ def _optional_frame_fields(row: dict, number) -> dict[str, Any]:
     if calibration is not None and not isinstance(calibration, dict):
         raise PhrtError("frame record field calibration: not a table")
     out["calibration"] = calibration
+    densities = row.get("densities", {})
+    if not isinstance(densities, dict) or not all(
+        isinstance(k, str) and v in TRACE_DENSITIES for k, v in densities.items()
+    ):
+        raise PhrtError("frame record field densities: not a table of trace densities")
+    out["densities"] = dict(densities)
     return out
 
 
 def frame_stats_row(frame: FrameStats) -> dict[str, Any]:
     """One stats.json row: time, phase_ms, frame_ms, trace_ms, predicted_trace_ms, rays,
     visible, selected, metrics (prim path → ReflectorMetrics fields), passes, budget_ms
-    (the frame's T), expected_trace_ms, budget_use, untraced_reason, calibration."""
+    (the frame's T), expected_trace_ms, budget_use, untraced_reason, calibration,
+    densities."""
     return to_json_value(asdict(frame))
 
 

@@ -12,6 +12,7 @@ import numpy as np
 
 from phrt_usd.model.frame import Budget, FrameView, ReflectorMetrics
 from phrt_usd.model.scene import CameraFrame, Scene
+from phrt_usd.model.trace_density import TRACE_DENSITIES
 from phrt_usd.select.metrics import box_screen_area
 from phrt_usd.select.policies import ADMISSION_MARGIN, BudgetedPolicy, register_policy
 from phrt_usd.select.selection_graph import Node, SelectionGraph
@@ -69,16 +70,23 @@ class Heu1Policy(BudgetedPolicy):
       their peaks (reflectors that peak at different frames, or leave the view, can be
       kept together); a kept reflector forecast to outgrow the budget charges its curve
       only up to that frame;
+    * density steps (when the render traces at full density): a kept reflector that no
+      longer fits is traced at half or a quarter of its pixels (``sparse_pixels``)
+      instead of being dropped, a reflector entering the view that does not fit (or
+      would outgrow the budget) is taken at such a density, and a reflector below full
+      density steps back one density finer once that fits with the admission margin
+      and its forecast stays within the budget. A step changes how sharp a reflection
+      is, not whether it is traced (no transition: docs/heuristic.md);
     * leftover: rounds after the first fill what the measured rounds left of T, and the
       admission margin there is a share of that leftover, not of the whole budget (with
       a time budget the first round plans only ~1/safety of T, and a margin of
       10 % of T took most of what was left).
 
     Deviations from the paper (§4.2: the most relevant nodes whose cost fits, S·I as
-    the only hysteresis): the keep step, the admission margin, the forecasts and the
-    shrinking/outgrowing rules above are ours (docs/heuristic.md, "Transition-aware
-    selection"); the relevance R, the Selection Graph walk and the rounds while time
-    remains are the paper's.
+    the only hysteresis): the keep step, the admission margin, the forecasts, the
+    shrinking/outgrowing rules and the density steps above are ours (docs/heuristic.md,
+    "Transition-aware selection"); the relevance R, the Selection Graph walk and the
+    rounds while time remains are the paper's.
     """
 
     name = "heu1"
@@ -210,10 +218,27 @@ class Heu1Policy(BudgetedPolicy):
             return self.forecast_rays(element)
         return np.minimum(self.predicted_rays(element) * curve, FORECAST_MAX)
 
+    def _steps(self) -> bool:
+        """Density steps are on: the render traces at full density (``FrameView``)."""
+        return self._require_frame().view.trace_density == "full"
+
+    def _level(self, e: int) -> int:
+        """The density level ``e`` is offered at: a kept reflector's previous one (index
+        into TRACE_DENSITIES), else full."""
+        kept = e in self.previous_selection and self._steps()
+        return self.previous_levels.get(e, 0) if kept else 0
+
+    def _level_forecast(self, e: int, level: int) -> float | np.ndarray:
+        """``forecast_curve`` of ``e`` traced at ``level`` (the density's share of it)."""
+        full = self.predicted_rays(e)
+        share = self.level_rays(e, level) / full if full > 0.0 else 1.0
+        return self.forecast_curve(e) * share
+
     def _node(self, e: int, reserve: float, budget: float) -> Node:
         frame = self._require_frame()
         kept = e in self.previous_selection
-        forecast = self.forecast_curve(e)
+        level = self._level(e)
+        forecast = self._level_forecast(e, level)
         over = np.asarray(forecast) > budget
         if kept and over.any():
             # It will outgrow the whole budget within the horizon and be dropped whatever
@@ -223,7 +248,7 @@ class Heu1Policy(BudgetedPolicy):
         return Node(
             element=e,
             R=self.relevance_R(e),
-            cost=self.predicted_rays(e),
+            cost=self.level_rays(e, level),
             traceable=bool(frame.pixels[e] > 0),
             reserve=0.0 if kept else reserve,
             kept=kept,
@@ -249,15 +274,15 @@ class Heu1Policy(BudgetedPolicy):
             if e not in done and not self._leaving(e) and not self._outgrows(e, budget)
         )
 
-    def _outgrows(self, e: int, budget: float) -> bool:
+    def _outgrows(self, e: int, budget: float, level: int = 0) -> bool:
         """Entering the view (not in view in the previous frame, so not selected then),
-        and with a lookahead forecast to cost more than ``budget`` in one of the next
-        LOOKAHEAD_FRAMES frames: it would be dropped while in view, one transition for
-        a few frames of tracing (class docstring, "entering")."""
+        and with a lookahead forecast to cost more than ``budget`` at density ``level``
+        in one of the next LOOKAHEAD_FRAMES frames: it would be dropped while in view,
+        one transition for a few frames of tracing (class docstring, "entering")."""
         if e in self.previous_visible or e in self.previous_selection:
             return False
         curve = self._growth_curves.get(e)
-        return curve is not None and bool(np.any(self.predicted_rays(e) * curve > budget))
+        return curve is not None and bool(np.any(self.level_rays(e, level) * curve > budget))
 
     def _leaving(self, e: int) -> bool:
         """In view in the previous frame, not selected then, and shrinking now."""
@@ -288,10 +313,72 @@ class Heu1Policy(BudgetedPolicy):
             # margin's first admission.
             graph = self.graph(reserve=0.0, budget=frame.first_allowance)
             ids = graph.select(allowance, horizon_budget=frame.first_allowance)
+        for e in ids:
+            frame.forecast_used = frame.forecast_used + graph.nodes[e].forecast
+            if self._level(e):
+                frame.levels[e] = self._level(e)
+        unfit = list(graph.unfit_claims)
+        if self._steps():
+            spent = sum(graph.nodes[e].cost for e in ids)
+            ids += self._density_steps(ids, unfit, allowance - spent, reserve)
+            unfit = [e for e in unfit if e not in ids]
         if not frame.traced:
             # The first round's keep step decides which claims cost pushes out; in later
             # rounds, kept reflectors not taken yet are ones that already lost or missed.
-            frame.unfit_claims.update(graph.unfit_claims)
-        for e in ids:
-            frame.forecast_used = frame.forecast_used + graph.nodes[e].forecast
+            frame.unfit_claims.update(unfit)
         return ids
+
+    def _density_steps(
+        self, ids: list[int], unfit: list[int], remaining: float, reserve: float
+    ) -> list[int]:
+        """HEU1's density steps (ours, class docstring): after the graph's choice ``ids``
+        (``remaining`` rays of the round's allowance left), a claim the keep step could
+        not fit (``unfit``, cheapest first) is taken at the finest coarser density that
+        fits instead of being dropped, and a reflector entering the view that was not
+        taken at full density (too costly now, or forecast to outgrow the budget) at the
+        finest coarser one that fits with ``reserve`` to spare and is not forecast to
+        outgrow it. Then a reflector taken below full density steps one density finer when
+        the extra rays fit with ``reserve`` to spare and its finer forecast stays within
+        the budget over the lookahead (so it will not have to step back). Returns the
+        reflectors taken here; records their levels and forecasts in the frame."""
+        frame = self._require_frame()
+        budget = frame.first_allowance
+        coarser = range(1, len(TRACE_DENSITIES))
+        taken: list[int] = []
+
+        def take(e: int, level: int) -> None:
+            nonlocal remaining
+            remaining -= self.level_rays(e, level)
+            frame.levels[e] = level
+            frame.forecast_used = frame.forecast_used + self._level_forecast(e, level)
+            taken.append(e)
+
+        for e in unfit:
+            level = next((v for v in coarser if v > self._level(e)
+                          and self.level_rays(e, v) <= remaining), None)  # fmt: skip
+            if level is not None:
+                take(e, level)
+        chosen = set(ids)
+        entering = [e for e in self._untraced_visible()
+                    if e not in chosen and e not in self.previous_visible]  # fmt: skip
+        for e in sorted(entering, key=lambda e: (-self.relevance_R(e), e)):
+            level = next((v for v in coarser
+                          if self.level_rays(e, v) + reserve <= remaining
+                          and not self._outgrows(e, budget, v)), None)  # fmt: skip
+            if level is not None:
+                take(e, level)
+        for e in ids:
+            level = frame.levels.get(e, 0)
+            if not level:
+                continue
+            extra = self.level_rays(e, level - 1) - self.level_rays(e, level)
+            lasting = bool(np.all(self._level_forecast(e, level - 1) <= budget))
+            if extra + reserve <= remaining and lasting:
+                remaining -= extra
+                frame.forecast_used = (frame.forecast_used + self._level_forecast(e, level - 1)
+                                       - self._level_forecast(e, level))  # fmt: skip
+                if level - 1:
+                    frame.levels[e] = level - 1
+                else:
+                    del frame.levels[e]
+        return taken

@@ -25,6 +25,7 @@ import numpy as np
 from phrt_usd.errors import PhrtError
 from phrt_usd.model.frame import Budget, FrameView, ReflectorMetrics, SelectionPolicy, TraceRecord
 from phrt_usd.model.scene import Scene
+from phrt_usd.model.trace_density import TRACE_DENSITIES, traced_fraction
 from phrt_usd.select.cost_model import TIME_MODEL_DECAY, TraceTimeModel
 from phrt_usd.select.metrics import (
     camera_distance,
@@ -88,6 +89,9 @@ class _FrameState:
     #: ``record`` learns rays per pixel; every round asks for it per candidate).
     rays: dict[int, float] = field(default_factory=dict)
     growth: dict[int, float] = field(default_factory=dict)  # HEU1: growth() of this frame
+    #: Trace density of each reflector taken at other than full density (index into
+    #: ``model.trace_density.TRACE_DENSITIES``; HEU1's density steps); absent: full.
+    levels: dict[int, int] = field(default_factory=dict)
 
 
 class BudgetedPolicy(ABC):
@@ -119,6 +123,9 @@ class BudgetedPolicy(ABC):
         self.reflects: dict[int, dict[int, float]] = {}  # source → {reflector: f}
         self.discovered: set[int] = set()  # reflectors hit by secondary rays, ever
         self.previous_selection: set[int] = set()
+        #: The previous frame's selection traced at other than full density: element id
+        #: → index into ``model.trace_density.TRACE_DENSITIES`` (HEU1's density steps).
+        self.previous_levels: dict[int, int] = {}
         self._global_rays = 0.0  # decayed sums for the mean rays per pixel
         self._global_pixels = 0.0
         self._frame: _FrameState | None = None
@@ -228,7 +235,7 @@ class BudgetedPolicy(ABC):
             if self._starved_by_time(budget):
                 self.time_model.relax()
         for e in ids:
-            frame.predicted_rays[e] = self.predicted_rays(e)
+            frame.predicted_rays[e] = self.level_rays(e, frame.levels.get(e, 0))
         if ids:
             # The round's predicted time (fixed overhead included), shared among its
             # reflectors by rays, so that summing predicted_ms over a frame's selection
@@ -258,12 +265,16 @@ class BudgetedPolicy(ABC):
             # Q = 1 + bounces, capped at the bounce limit (Q >= 1 even for a limit of 0).
             self.Q[src] = float(min(1 + bounces, max(self.bounce_limit, 1)))
             if rec.pixels > 0 and rec.rays >= 0:
-                rpp = max(rec.rays / rec.pixels, MIN_RAYS_PER_PIXEL)
+                # Rays per pixel at full density: a record counts every covered pixel,
+                # rays start at the density's share of them.
+                level = frame.levels.get(src, 0)
+                pixels = rec.pixels * traced_fraction(rec.pixels, TRACE_DENSITIES[level])
+                rpp = max(rec.rays / pixels, MIN_RAYS_PER_PIXEL)
                 old = self.rays_per_pixel.get(src)
                 a = RAYS_PER_PIXEL_ALPHA
                 self.rays_per_pixel[src] = rpp if old is None else a * rpp + (1 - a) * old
                 self._global_rays = TIME_MODEL_DECAY * self._global_rays + rec.rays
-                self._global_pixels = TIME_MODEL_DECAY * self._global_pixels + rec.pixels
+                self._global_pixels = TIME_MODEL_DECAY * self._global_pixels + pixels
             # The latest trace of a source replaces what it was seen to reflect before.
             hits = {}
             for j, count in rec.hits.items():
@@ -279,6 +290,7 @@ class BudgetedPolicy(ABC):
         frame = self._require_frame()
         metrics = self.metrics()
         self.previous_selection = set(frame.traced)
+        self.previous_levels = {e: v for e, v in frame.levels.items() if e in frame.traced}
         self.last_predicted_trace_ms = frame.predicted_trace_ms
         self.last_frame_note = {
             "expected_trace_ms": frame.expected_trace_ms,
@@ -351,6 +363,21 @@ class BudgetedPolicy(ABC):
                 rpp = self.q_of(element) * (1 + len(lights.distant) + len(lights.local))
         frame.rays[element] = rays = pixels * max(rpp, MIN_RAYS_PER_PIXEL)
         return rays
+
+    def level_rays(self, element: int, level: int) -> float:
+        """``predicted_rays`` of ``element`` traced at density TRACE_DENSITIES[level]."""
+        if level == 0:
+            return self.predicted_rays(element)
+        pixels = float(self._require_frame().pixels[element])
+        return self.predicted_rays(element) * traced_fraction(pixels, TRACE_DENSITIES[level])
+
+    def round_densities(self, ids: list[int]) -> list[str]:
+        """The trace density of each of a round's ``ids`` (the renderer's argument to
+        ``Tracer.trace_reflections``): the view's, unless the policy chose a coarser one."""
+        frame = self._require_frame()
+        levels = frame.levels
+        return [TRACE_DENSITIES[levels[e]] if e in levels else frame.view.trace_density
+                for e in ids]  # fmt: skip
 
     def predicted_ms(self, rays: float) -> float:
         """Milliseconds a candidate's ``rays`` add to a round (time safety included; the

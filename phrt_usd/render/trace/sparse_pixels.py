@@ -26,39 +26,25 @@ from __future__ import annotations
 import numpy as np
 
 from phrt_usd import kernels
-from phrt_usd.errors import BadOption
-
-#: Reflectors with fewer pixels than this in a frame are traced at every pixel. 256
-#: pixels is a 16 x 16 patch: below it most pixels lie on the reflector's edge, where a
-#: skipped pixel has fewer traced neighbours, and the rays saved are a few hundred.
-SPARSE_MIN_PIXELS = 256
-
-#: The trace densities: every pixel; the checkerboard or one pixel in four of large
-#: reflectors.
-TRACE_DENSITIES = ("full", "half", "quarter")
-
-
-def check_density(value: object) -> str:
-    """``value`` as one of TRACE_DENSITIES; BadOption (one line) otherwise."""
-    if not isinstance(value, str) or value.lower() not in TRACE_DENSITIES:
-        raise BadOption(
-            f"trace density must be one of {', '.join(TRACE_DENSITIES)}, got {value!r}"
-        )
-    return value.lower()
+from phrt_usd.model.trace_density import SPARSE_MIN_PIXELS, TRACE_DENSITIES
 
 
 def traced_subset(
-    pix: np.ndarray, src: np.ndarray, n_sources: int, width: int, density: str
+    pix: np.ndarray, src: np.ndarray, n_sources: int, width: int, density
 ) -> np.ndarray:
     """(n,) bool: which of the round's pixels ``pix`` (n,) int64 of sources ``src`` (n,)
-    int64 start rays at ``density`` ("half" or "quarter"): every pixel of a source with
+    int64 start rays at ``density``, one of TRACE_DENSITIES for every source or a
+    sequence of them, one per source: every pixel of a source traced at "full" or with
     fewer than SPARSE_MIN_PIXELS pixels, the pattern's pixels of the others."""
     counts = np.bincount(src, minlength=n_sources)
     row, col = np.divmod(pix, width)
-    if density == "half":
-        on_pattern = (row + col) % 2 == 0
-    else:
-        on_pattern = (row % 2 == 0) & (col % 2 == 0)
+    level = np.array(
+        [TRACE_DENSITIES.index(d) for d in
+         ([density] * n_sources if isinstance(density, str) else density)], np.int64,
+    )[src] if n_sources else np.zeros(0, np.int64)  # fmt: skip
+    half = (row + col) % 2 == 0
+    quarter = (row % 2 == 0) & (col % 2 == 0)
+    on_pattern = np.where(level == 1, half, quarter) | (level == 0)
     return (counts[src] < SPARSE_MIN_PIXELS) | on_pattern
 
 

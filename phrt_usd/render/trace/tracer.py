@@ -48,6 +48,7 @@ import numpy as np
 from phrt_usd import kernels
 from phrt_usd.model.frame import GBuffer, ReflectionResult
 from phrt_usd.model.scene import NO_HIT, CameraFrame, Lights, Scene
+from phrt_usd.model.trace_density import check_density
 from phrt_usd.render.trace import sparse_pixels
 from phrt_usd.render.trace.bvh import Bvh
 from phrt_usd.render.trace.hit_surfaces import HitSurfaces
@@ -266,7 +267,7 @@ class Tracer:
     # ------------------------------------------------------------------ paths
 
     def trace_reflections(
-        self, gbuffer: GBuffer, sources: list[int], bounce_limit: int, density: str = "full"
+        self, gbuffer: GBuffer, sources: list[int], bounce_limit: int, density="full"
     ) -> ReflectionResult:
         """Mirror-reflection radiance for every G-buffer pixel whose element is in
         ``sources`` (no primary rays: rays start at the G-buffer position / normal /
@@ -274,17 +275,25 @@ class Tracer:
         reflector hit at the last one reads the environment for its reflected part
         (``bounce_limit`` < 1: no rays, the environment in the mirror direction).
 
-        ``density`` "half" / "quarter": large reflectors start rays on a pattern of
-        their pixels and fill the others from traced neighbours (``sparse_pixels``);
-        their records then count every covered pixel, so rays per pixel stay what a
-        frame's pixel counts predict (hits scaled alike)."""
+        ``density`` "half" / "quarter" (for every source, or a sequence of densities,
+        one per source): large reflectors start rays on a pattern of their pixels and
+        fill the others from traced neighbours (``sparse_pixels``); their records then
+        count every covered pixel, so rays per pixel stay what a frame's pixel counts
+        predict at that density (hits scaled alike)."""
         start = time.perf_counter()
         self.last_rays = []
         sources = [int(s) for s in sources]
+        if isinstance(density, str):
+            density = check_density(density)
+        else:
+            density = [check_density(d) for d in density]
+            if len(density) != len(sources):
+                raise ValueError(f"{len(density)} densities for {len(sources)} sources")
+            if all(d == "full" for d in density):
+                density = "full"
         first = self._source_pixels(
-            gbuffer, sources, None, reflect=True, surface=False,
-            density=sparse_pixels.check_density(density),
-        )  # fmt: skip
+            gbuffer, sources, None, reflect=True, surface=False, density=density
+        )
         pix, src, d, origins = first["pix"], first["src"], first["dir"], first["org"]
         result = self._run_paths(pix, src, origins, d, sources, bounce_limit, "reflection", start)
         if first["skipped"] is None:
@@ -408,7 +417,7 @@ class Tracer:
 
     def _source_pixels(
         self, gbuffer: GBuffer, sources: list[int], mask, reflect: bool, surface: bool,
-        density: str = "full",
+        density="full",
     ) -> dict:
         """Pixels to start paths from (``trace_kernels.source_rays``), a dict of arrays:
         pix (n,) flat indices, src (n,) index into ``sources``, tri (n,) triangle ids;
@@ -417,7 +426,8 @@ class Tracer:
         normals facing the viewer, view (n, 3) float32 unit view directions; with
         ``reflect`` dir (n, 3) float32 mirror directions and org (n, 3) float32 offset
         origins (the arrays not asked for have no rows). A source listed twice takes
-        the index of its last entry. ``density`` other than "full": only the pixels
+        the index of its last entry. ``density`` other than "full" (one for every
+        source, or one per source, as ``trace_reflections``'): only the pixels
         ``sparse_pixels.traced_subset`` keeps, and "skipped" the others (pixels (m,),
         their sources (m,), covered pixels per source (len(sources),)), else None."""
         index = {s: i for i, s in enumerate(sources)}

@@ -1,0 +1,34 @@
+"""Trace densities: how many of a reflector's pixels start rays (``--trace-density``,
+HEU1's density steps). The patterns themselves and the fill of the skipped pixels are
+``render.trace.sparse_pixels``; the policies need only the shares, to predict rays.
+"""
+
+from __future__ import annotations
+
+from phrt_usd.errors import BadOption
+
+#: Reflectors with fewer pixels than this in a frame are traced at every pixel. 256
+#: pixels is a 16 x 16 patch: below it most pixels lie on the reflector's edge, where a
+#: skipped pixel has fewer traced neighbours, and the rays saved are a few hundred.
+SPARSE_MIN_PIXELS = 256
+
+#: The trace densities: every pixel; the checkerboard or one pixel in four of large
+#: reflectors. Finest first (HEU1's density steps walk them in this order).
+TRACE_DENSITIES = ("full", "half", "quarter")
+#: Share of a large reflector's pixels each density starts rays at (the patterns').
+DENSITY_FRACTION = {"full": 1.0, "half": 0.5, "quarter": 0.25}
+
+
+def traced_fraction(pixels: float, density: str) -> float:
+    """Share of a reflector's ``pixels`` that start rays at ``density`` (1 below
+    SPARSE_MIN_PIXELS: small reflectors are traced whole)."""
+    return 1.0 if pixels < SPARSE_MIN_PIXELS else DENSITY_FRACTION[density]
+
+
+def check_density(value: object) -> str:
+    """``value`` as one of TRACE_DENSITIES; BadOption (one line) otherwise."""
+    if not isinstance(value, str) or value.lower() not in TRACE_DENSITIES:
+        raise BadOption(
+            f"trace density must be one of {', '.join(TRACE_DENSITIES)}, got {value!r}"
+        )
+    return value.lower()
