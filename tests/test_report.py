@@ -114,6 +114,26 @@ def test_selection_metrics_on_a_hand_made_sequence() -> None:
     assert metrics["frames"] == 4 and metrics["reflectors"] == 3
 
 
+def test_density_steps_count_traced_reflectors_changing_density_in_view(tmp_path: Path) -> None:
+    # R0 traced in frames 1-4 at full, half, half, quarter: 2 steps. R1 traced at half,
+    # then not traced (a transition, not a step), then at quarter: 0 steps. R2 traced at
+    # half, out of view, traced at full: 0 steps (not in view in both frames).
+    frames = random_frames(seed=5, count=4)
+    plan = {
+        "/World/R0": ("full", "half", "half", "quarter"),
+        "/World/R1": ("half", None, "quarter", "quarter"),
+        "/World/R2": ("half", "out", "full", "full"),
+    }
+    for f, frame in enumerate(frames):
+        frame.visible = [p for p, row in plan.items() if row[f] != "out"]
+        frame.selected = [p for p, row in plan.items() if row[f] not in (None, "out")]
+        frame.densities = {p: row[f] for p, row in plan.items() if row[f] in ("half", "quarter")}
+        frame.metrics = {}
+    report = build_report(write_run(tmp_path / "run", frames))
+    assert report["density_steps"] == 2
+    assert report["transitions"] == 2  # R1 dropped and taken back
+
+
 def test_timing_metrics_follow_their_definitions(tmp_path: Path) -> None:
     frames = random_frames(seed=2)
     report = build_report(write_run(tmp_path / "run", frames))

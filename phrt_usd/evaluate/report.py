@@ -43,9 +43,10 @@ def build_report(run_dir_or_layer: Path, vs: Path | None = None) -> dict[str, An
     """The report as one JSON-ready object (no NaN/Inf; unknown figures are ``None``).
 
     Keys: frames, reflectors, mean_selected, mean_visible, transitions,
-    transition_pairs, transition_rate, mean_fps, median_frame_ms, mean_frame_ms,
-    median_trace_ms, budget_ms, budget_overruns, budget_within_pct, mode, heuristic,
-    median_phase_ms, timing_source, layer, stats. With ``vs``: also ``vs`` (the other
+    transition_pairs, transition_rate, density_steps (None without stats.json),
+    mean_fps, median_frame_ms, mean_frame_ms, median_trace_ms, budget_ms,
+    budget_overruns, budget_within_pct, mode, heuristic, median_phase_ms, timing_source,
+    layer, stats. With ``vs``: also ``vs`` (the other
     run's report) and ``comparison`` (ratios and differences, this run vs the other).
     """
     report, times = _single_report(Path(run_dir_or_layer))
@@ -257,6 +258,7 @@ _ROWS = (
     ("mean_visible", "mean visible", "{:.2f}"),
     ("transitions", "transitions", "{:d}"),
     ("transition_rate", "transition rate", "{:.2%}"),
+    ("density_steps", "density steps (not transitions)", "{:d}"),
     ("mean_fps", "mean fps", "{:.1f}"),
     ("median_frame_ms", "median frame (ms)", "{:.2f}"),
     ("median_trace_ms", "median trace (ms)", "{:.2f}"),
