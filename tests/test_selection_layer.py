@@ -45,6 +45,7 @@ def make_frames(
                     S=bool(rng.random() < 0.5),
                     selected=selected,
                     visible=True,
+                    trace_density=float(rng.choice([1.0, 0.5, 0.25])) if selected else np.nan,
                 )
         frames.append(
             FrameStats(
@@ -141,7 +142,9 @@ def test_figures_only_in_candidate_frames(tmp_path: Path) -> None:
             metrics = frame.metrics.get(reflector)
             for name, _, key in FIGURE_ATTRIBUTES:
                 value = prim.GetAttribute(name).Get(frame.time)
-                if metrics is None:
+                # A figure not computed (no candidate, or NaN: phrt:traceDensity of a
+                # reflector not traced) is blocked, never interpolated.
+                if metrics is None or np.isnan(float(getattr(metrics, key))):
                     assert value is None, f"{name} interpolated into {frame.time}"
                     seen_blocked = True
                 else:

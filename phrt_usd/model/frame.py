@@ -11,6 +11,7 @@ Images are (H, W, ...) arrays, row 0 at the top, in linear RGB.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -147,6 +148,10 @@ class ReflectorMetrics:
     visible: bool
     predicted_rays: float = 0.0
     predicted_ms: float = 0.0
+    #: Share of the reflector's pixels that started rays, at the density it was traced
+    #: at (1 full, 0.5 half, 0.25 quarter; 1 under 256 pixels: traced whole); NaN when it
+    #: was not traced.
+    trace_density: float = math.nan
 
 
 class SelectionPolicy(Protocol):

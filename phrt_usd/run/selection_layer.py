@@ -7,9 +7,10 @@ rendered stage without defining or changing any renderable prim:
   time samples at every rendered frame's time code:
   ``bool phrt:selected``, ``bool phrt:visible`` (every frame), and ``float phrt:V``,
   ``phrt:C``, ``phrt:R``, ``phrt:Q``, ``bool phrt:S`` (the heuristic's figures, paper
-  Table 1) in frames where the reflector was a selection candidate, a value block
-  (``None``) in the others — so ``Get(t)`` never interpolates a figure into a frame where
-  it was not computed;
+  Table 1) in frames where the reflector was a selection candidate, ``float
+  phrt:traceDensity`` (the share of its pixels that started rays) where it was traced, a
+  value block (``None``) in the others — so ``Get(t)`` never interpolates a figure into a
+  frame where it was not computed;
 * a reflector inside an instance cannot take opinions at its own path (an instance proxy
   of a scene-graph instance, ``/World/Tree_3/Leaves``; USD ignores opinions below an
   instanceable prim) or has no prim path at all (a PointInstancer instance,
@@ -64,6 +65,7 @@ FIGURE_ATTRIBUTES: tuple[tuple[str, Any, str], ...] = (
     ("phrt:R", Sdf.ValueTypeNames.Float, "R"),
     ("phrt:Q", Sdf.ValueTypeNames.Float, "Q"),
     ("phrt:S", Sdf.ValueTypeNames.Bool, "S"),
+    ("phrt:traceDensity", Sdf.ValueTypeNames.Float, "trace_density"),
 )
 
 #: Per-frame statistics on the stats prim: attribute name, value type, value of a frame.

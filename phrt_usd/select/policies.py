@@ -437,6 +437,7 @@ class BudgetedPolicy(ABC):
         candidates = self.candidates()
         C = self.costs_C(candidates)
         out = {}
+        densities = dict(zip(frame.traced, self.round_densities(frame.traced), strict=True))
         for e in candidates:
             rays = frame.predicted_rays.get(e, self.predicted_rays(e))
             out[e] = ReflectorMetrics(
@@ -449,7 +450,9 @@ class BudgetedPolicy(ABC):
                 visible=bool(frame.pixels[e] > 0),
                 predicted_rays=rays,
                 predicted_ms=frame.predicted_ms.get(e, self.predicted_ms(rays)),
-            )
+                trace_density=(traced_fraction(frame.pixels[e], densities[e])
+                               if e in densities else math.nan),
+            )  # fmt: skip
         return out
 
     # ---- for subclasses
