@@ -64,7 +64,11 @@ import numpy as np
 from phrt_usd.atomic import atomic_path, write_bytes_atomic
 from phrt_usd.errors import PhrtError
 from phrt_usd.evaluate.image_metrics import flip_map
-from phrt_usd.evaluate.selection_metrics import admissions_and_drops, selection_metrics
+from phrt_usd.evaluate.selection_metrics import (
+    admissions_and_drops,
+    density_steps,
+    selection_metrics,
+)
 from phrt_usd.model.frame import Budget, FrameView, TraceRecord
 from phrt_usd.model.scene import CameraFrame, DistantLight, LocalLight
 from phrt_usd.model.trace_density import traced_fraction
@@ -709,8 +713,9 @@ def replay(
     With ``budget_ms`` (and ``budget_rays`` None) the budget is a time T per frame and
     rounds take ``sim``'s synthetic time (calibrated on the first frame with visible
     reflectors, as the renderer does); ``spent``, if given, receives each frame's
-    (simulated trace ms, traced rays): a reflector traced at a reduced density casts
-    that share of its recorded rays."""
+    (simulated trace ms, traced rays, {element: density level} of the reflectors traced
+    below full density): a reflector traced at a reduced density casts that share of its
+    recorded rays."""
     weight = data["selection_weight"] if selection_weight is None else selection_weight
     policy = make_policy(heuristic, selection_weight=weight, bounce_limit=data["bounce_limit"])
     refl = data["reflectors"]
@@ -754,7 +759,7 @@ def replay(
             policy.record(records, ms / 1000.0)
         policy.end_frame()
         if spent is not None:
-            spent.append((elapsed, rays))
+            spent.append((elapsed, rays, dict(getattr(policy, "previous_levels", {}))))
         for e in chosen:
             selected[f, column[e]] = True
         for e in refl:
@@ -847,9 +852,9 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     print(
         "| budget | heuristic | transitions (adm + drop) | entered selected | mean selected "
-        "| mean rays | budget use | mean FLIP |"
+        "| mean rays | budget use | density steps | mean FLIP |"
     )
-    print("|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|")
     for kind, budget in budgets:
         out = {}
         label = f"{budget} rays" if kind == "rays" else f"{budget:g} ms"
@@ -867,14 +872,20 @@ def main(argv: list[str] | None = None) -> int:
             )
             use = budget_use(data, selected, visible, budget,
                              [t[0 if kind == "ms" else 1] for t in times])  # fmt: skip
+            levels = np.zeros(selected.shape, np.int64)
+            column = {e: k for k, e in enumerate(data["reflectors"])}
+            for f, (_, _, frame_levels) in enumerate(times):
+                for e, level in frame_levels.items():
+                    levels[f, column[e]] = level
+            steps = density_steps(selected, visible, levels)
             print(
                 f"| {label} | {h} | {c['transitions']} ({c['admissions']} + {c['drops']}) "
                 f"| {c['entered_selected']} | {c['mean_selected']:.2f} "
-                f"| {np.mean([t[1] for t in times]):.0f} | {use:.3f} | {flip} |"
+                f"| {np.mean([t[1] for t in times]):.0f} | {use:.3f} | {steps} | {flip} |"
             )
         if "heu1" in out and "heu2" in out and out["heu2"]["transitions"]:
             pct = 100.0 * out["heu1"]["transitions"] / out["heu2"]["transitions"]
-            print(f"| {label} | heu1/heu2 | {pct:.1f} % | | | | | |")
+            print(f"| {label} | heu1/heu2 | {pct:.1f} % | | | | | | |")
     return 0
 
 
