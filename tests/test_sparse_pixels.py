@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from pxr import Usd
 from scenes import look_at, mirror_floor_stage, parts_scene, sphere
 from test_tracer import quad, ray_sphere_hit
 from typer.testing import CliRunner
@@ -206,3 +207,32 @@ def test_fill_is_the_mean_of_traced_same_source_neighbours_on_any_layout(width, 
             want.append(np.mean(near, axis=0))
     np.testing.assert_array_equal(filled, np.array(want_pix, np.int64))
     np.testing.assert_allclose(got, np.array(want, np.float32).reshape(-1, 3), rtol=1e-5)
+
+
+def test_heu1_takes_a_reflector_too_large_for_its_budget_at_a_coarser_density(tmp_path):
+    """End to end (API, then CLI): HEU1 with a rays budget that holds the mirror floor
+    only at a reduced density traces it at that density (the floor enters the view in
+    the first frame: no transition), records the density in stats.json and the share in
+    the selection layer's ``phrt:traceDensity``; at a fixed density (``--trace-density
+    half``) it makes no density steps of its own."""
+    stage = mirror_floor_stage(tmp_path / "mirror.usda")
+    every = {"frames": "1", "heuristic": "all", "budget_ms": math.inf}
+    phrt_usd.render(stage, tmp_path / "all", **every)
+    first = json.loads((tmp_path / "all" / "stats.json").read_text())["frames"][0]
+    # A fresh policy's first prediction of the floor (its prior), the same for HEU1: 40 %
+    # of it fits a quarter of the floor with the admission margin, not half of it.
+    predicted = first["metrics"]["/World/Floor"]["predicted_rays"]
+    budget = int(0.4 * predicted)
+    argv = ["render", str(stage), "--out", str(tmp_path / "heu1"), "--frames", "1",
+            "--heuristic", "heu1", "--budget-rays", str(budget), "--json"]  # fmt: skip
+    cli = CliRunner().invoke(app, argv)
+    assert cli.exit_code == 0, cli.stderr
+    frame = json.loads((tmp_path / "heu1" / "stats.json").read_text())["frames"][0]
+    assert frame["densities"] == {"/World/Floor": "quarter"}
+    assert 0 < frame["rays"] <= budget
+    layer = Usd.Stage.Open(str(tmp_path / "heu1" / "selection.usda"))
+    assert layer.GetPrimAtPath("/World/Floor").GetAttribute("phrt:traceDensity").Get(1) == 0.25
+    phrt_usd.render(stage, tmp_path / "fixed", frames="1", heuristic="heu1",
+                    budget_rays=budget, trace_density="half")  # fmt: skip
+    fixed = json.loads((tmp_path / "fixed" / "stats.json").read_text())["frames"][0]
+    assert fixed["densities"] == {}

@@ -222,6 +222,9 @@ class Heu1Policy(BudgetedPolicy):
         """Density steps are on: the render traces at full density (``FrameView``)."""
         return self._require_frame().view.trace_density == "full"
 
+    def fewest_rays(self, element: int) -> float:
+        return self.level_rays(element, len(TRACE_DENSITIES) - 1 if self._steps() else 0)
+
     def _level(self, e: int) -> int:
         """The density level ``e`` is offered at: a kept reflector's previous one (index
         into TRACE_DENSITIES), else full."""

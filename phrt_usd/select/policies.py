@@ -371,6 +371,11 @@ class BudgetedPolicy(ABC):
         pixels = float(self._require_frame().pixels[element])
         return self.predicted_rays(element) * traced_fraction(pixels, TRACE_DENSITIES[level])
 
+    def fewest_rays(self, element: int) -> float:
+        """The fewest predicted rays this policy could trace ``element`` with: at full
+        density (HEU1: at its coarsest density step)."""
+        return self.predicted_rays(element)
+
     def round_densities(self, ids: list[int]) -> list[str]:
         """The trace density of each of a round's ``ids`` (the renderer's argument to
         ``Tracer.trace_reflections``): the view's, unless the policy chose a coarser one."""
@@ -411,8 +416,8 @@ class BudgetedPolicy(ABC):
         visible = self._untraced_visible()
         if not visible:
             return None
-        e = min(visible, key=lambda v: (self.predicted_rays(v), v))
-        rays = self.predicted_rays(e)
+        e = min(visible, key=lambda v: (self.fewest_rays(v), v))
+        rays = self.fewest_rays(e)
         ms = self.time_model.predicted_ms(rays)
         name = getattr(frame.scene.elements[e], "path", f"element {e}")
         what = f"{name}, {rays:.0f} rays, {ms:.2f} ms"
@@ -426,7 +431,7 @@ class BudgetedPolicy(ABC):
         """True if a visible candidate would fit the rays budget but not the time one."""
         if budget.ms is None or not budget.ms > 0.0 or not self._untraced_visible():
             return False
-        cheapest = min(self.predicted_rays(e) for e in self._untraced_visible())
+        cheapest = min(self.fewest_rays(e) for e in self._untraced_visible())
         rays_ok = cheapest <= self._rays_budget_allowance(budget)
         return rays_ok and cheapest > self.time_model.rays_within(budget.ms)
 
