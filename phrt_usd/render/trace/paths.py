@@ -283,21 +283,11 @@ class PathTracer:
             return self._shade_points(
                 tri, u, v, rel, ng, ns, d_in, albedo, lights, into=into, textured=textured
             )
-        since = len(self._bvh.last_rays)
-        parts = [
-            self._shadows.pool.submit(
-                self._shade_points,
-                *(a[lo:hi] for a in (tri, u, v, rel, ng, ns, d_in)),
-                None if albedo is None else albedo[lo:hi],
-                lights,
-                1,
-                None,
-                None if textured else textured,  # a chunk looks its own textures up
-            )
-            for lo, hi in bounds
-        ]
-        done = [f.result() for f in parts]
-        self._bvh.merge_recorded(since)
+        chunk_textured = None if textured else textured  # a chunk looks its own textures up
+        done = self._shadows.in_chunks(
+            lambda *rows: self._shade_points(*rows, lights, 1, None, chunk_textured),
+            bounds, tri, u, v, rel, ng, ns, d_in, albedo,
+        )  # fmt: skip
         local, rays = (np.concatenate([d[i] for d in done]) for i in (0, 1))
         if into is not None:  # the chunks' sums could race: one pass over them all
             trace_kernels.accumulate(*into, local)

@@ -79,22 +79,24 @@ class ShadowRays:
         if bounds is None:
             vis, rays, _ = self.cast(rel, normals, normals, lights, pairs)
             return vis, rays
+        done = self.in_chunks(
+            lambda r, nrm, p: self.cast(r, nrm, nrm, lights, p, 1), bounds, rel, normals, pairs
+        )
+        return np.concatenate([d[0] for d in done]), np.concatenate([d[1] for d in done])
+
+    def in_chunks(self, call, bounds, *arrays) -> list:
+        """``call(*(a[lo:hi] for a in arrays))`` for each (lo, hi) of ``bounds`` (``split``)
+        on the pool, results in chunk order; a None array stays None. The chunks' Embree
+        batches were cast side by side, so the ray log keeps them as one batch per query
+        (``Bvh.merge_recorded``: raw embreex replays them under its own splitting rule)."""
         since = len(self._bvh.last_rays)
         parts = [
-            self.pool.submit(
-                self.cast,
-                rel[lo:hi],
-                normals[lo:hi],
-                normals[lo:hi],
-                lights,
-                None if pairs is None else pairs[lo:hi],
-                1,
-            )
+            self.pool.submit(call, *(None if a is None else a[lo:hi] for a in arrays))
             for lo, hi in bounds
         ]
         done = [f.result() for f in parts]
         self._bvh.merge_recorded(since)
-        return np.concatenate([d[0] for d in done]), np.concatenate([d[1] for d in done])
+        return done
 
     def light_arrays(self, lights: Lights) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(D, 3) unit DistantLight directions, (P, 3) LocalLight positions (both
