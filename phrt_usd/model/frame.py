@@ -161,7 +161,7 @@ class SelectionPolicy(Protocol):
 
         policy.begin_frame(view, scene)
         while (ids := policy.next_round(budget)):   # budget shrinks after each round
-            result = tracer.trace(...ids...)
+            result = tracer.trace(...ids..., policy.round_densities(ids))
             policy.record(result.records, result.seconds)
         metrics = policy.end_frame()                # element id → ReflectorMetrics
     """
@@ -169,6 +169,8 @@ class SelectionPolicy(Protocol):
     def begin_frame(self, view: FrameView, scene: Scene) -> None: ...
 
     def next_round(self, budget: Budget) -> list[int]: ...
+
+    def round_densities(self, ids: list[int]) -> list[str]: ...
 
     def record(self, records: list[TraceRecord], seconds: float) -> None: ...
 

@@ -469,13 +469,11 @@ class FrameRenderer:
                 if not ids:
                     break
                 t = time.perf_counter()
-                chosen = getattr(policy, "round_densities", None)
-                density = opts.trace_density if chosen is None else chosen(ids)
+                density = policy.round_densities(ids)
                 result = self._tracer.trace_reflections(gb, ids, opts.bounce_limit, density)
-                if not isinstance(density, str):
-                    for e, d in zip(ids, density, strict=True):
-                        if d != opts.trace_density:
-                            densities[scene.elements[e].path] = d
+                for e, d in zip(ids, density, strict=True):
+                    if d != opts.trace_density:
+                        densities[scene.elements[e].path] = d
                 apply_traced(image, prep.local, prep.reflectivity, result, traced_mask)
                 round_ms = _ms(t)
                 trace_ms += round_ms

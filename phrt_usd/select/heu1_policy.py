@@ -233,9 +233,7 @@ class Heu1Policy(BudgetedPolicy):
 
     def _level_forecast(self, e: int, level: int) -> float | np.ndarray:
         """``forecast_curve`` of ``e`` traced at ``level`` (the density's share of it)."""
-        full = self.predicted_rays(e)
-        share = self.level_rays(e, level) / full if full > 0.0 else 1.0
-        return self.forecast_curve(e) * share
+        return self.forecast_curve(e) * self.level_share(e, level)
 
     def _node(self, e: int, reserve: float, budget: float) -> Node:
         frame = self._require_frame()
@@ -318,8 +316,8 @@ class Heu1Policy(BudgetedPolicy):
             ids = graph.select(allowance, horizon_budget=frame.first_allowance)
         for e in ids:
             frame.forecast_used = frame.forecast_used + graph.nodes[e].forecast
-            if self._level(e):
-                frame.levels[e] = self._level(e)
+            if level := self._level(e):
+                frame.levels[e] = level
         unfit = list(graph.unfit_claims)
         if self._steps():
             spent = sum(graph.nodes[e].cost for e in ids)

@@ -364,12 +364,15 @@ class BudgetedPolicy(ABC):
         frame.rays[element] = rays = pixels * max(rpp, MIN_RAYS_PER_PIXEL)
         return rays
 
+    def level_share(self, element: int, level: int) -> float:
+        """Share of ``element``'s pixels this frame that start rays at density
+        TRACE_DENSITIES[level] (``traced_fraction``)."""
+        pixels = float(self._require_frame().pixels[element])
+        return traced_fraction(pixels, TRACE_DENSITIES[level])
+
     def level_rays(self, element: int, level: int) -> float:
         """``predicted_rays`` of ``element`` traced at density TRACE_DENSITIES[level]."""
-        if level == 0:
-            return self.predicted_rays(element)
-        pixels = float(self._require_frame().pixels[element])
-        return self.predicted_rays(element) * traced_fraction(pixels, TRACE_DENSITIES[level])
+        return self.predicted_rays(element) * self.level_share(element, level)
 
     def fewest_rays(self, element: int) -> float:
         """The fewest predicted rays this policy could trace ``element`` with: at full
