@@ -870,8 +870,7 @@ def main(argv: list[str] | None = None) -> int:
             flip = (
                 "" if images is None else f"{mean_flip(images, selected, data['reflectors']):.5f}"
             )
-            use = budget_use(data, selected, visible, budget,
-                             [t[0 if kind == "ms" else 1] for t in times])  # fmt: skip
+            use = budget_use(visible, [t[0 if kind == "ms" else 1] for t in times], budget)
             levels = np.zeros(selected.shape, np.int64)
             column = {e: k for k, e in enumerate(data["reflectors"])}
             for f, (_, _, frame_levels) in enumerate(times):
@@ -889,23 +888,14 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-def budget_use(data: dict, selected: np.ndarray, visible: np.ndarray, budget, times=None) -> float:
-    """Mean over the frames with visible reflectors of the share of the budget spent:
-    traced rays / the rays budget (the recorded records' rays), or with ``times`` (each
-    frame's trace ms or traced rays, ``replay``'s ``spent``) times / budget, as
-    ``stats.json``'s ``budget_use``."""
+def budget_use(visible: np.ndarray, spent: list[float], budget) -> float:
+    """Mean over the frames with visible reflectors (``visible`` (F, R) bool) of the
+    share of the budget spent: ``spent`` (F,) each frame's simulated trace ms or traced
+    rays (``replay``'s), over ``budget``, as ``stats.json``'s ``budget_use``."""
     seen = visible.any(axis=1)
     if not seen.any():
         return float("nan")
-    if times is not None:
-        return float(np.mean(np.asarray(times)[seen] / budget))
-    refl = data["reflectors"]
-    spent = [
-        sum(frame.records[refl[r]].rays for r in np.flatnonzero(row))
-        for frame, row in zip(data["frames"], selected, strict=True)
-    ]
     return float(np.mean(np.asarray(spent, dtype=np.float64)[seen] / budget))
-
 
 if __name__ == "__main__":
     raise SystemExit(main())
