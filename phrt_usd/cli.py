@@ -350,10 +350,11 @@ PrimaryOpt = Annotated[
 TraceDensityOpt = Annotated[
     str | None,
     typer.Option(
-        metavar="full|half|quarter",
+        metavar="full|half|quarter|sixteenth",
         help="Pixels of a traced reflector that start rays: every one, or for reflectors "
-        "of 256+ pixels a checkerboard (half) or one in each 2x2 block (quarter), the "
-        "others filled from their traced neighbours (hybrid mode).",
+        "of 256+ pixels a checkerboard (half), one in each 2x2 block (quarter) or one in "
+        "each 4x4 block (sixteenth), the others interpolated from their traced "
+        "neighbours (hybrid mode).",
     ),
 ]
 ExposureOpt = Annotated[

@@ -423,7 +423,9 @@ def oscillating_pair(t: int):
 def selections_over_sequence(policy, frames_=60, budget=1500):
     out = []
     for t in range(frames_):
-        metrics, _ = run_frame(policy, oscillating_pair(t), view([1000, 1000]), budget)
+        # At a fixed density (no density steps): the selection rules alone.
+        fv = view([1000, 1000], trace_density="half")
+        metrics, _ = run_frame(policy, oscillating_pair(t), fv, budget)
         out.append({e for e, m in metrics.items() if m.selected})
     return out
 
@@ -616,13 +618,17 @@ def test_kept_selection_drops_the_fewest_when_it_no_longer_fits():
 
 
 def test_shrinking_reflector_in_view_is_not_admitted_but_one_entering_is():
+    # At a fixed density (half: reflectors of 256+ pixels start rays at half of them), so
+    # that no density step takes reflector 1 at entry.
     sc = scene([element((0.0, 0.0, -8.0)), element((1.0, 0.0, -8.0)), element((2.0, 0.0, -8.0))])
     policy = policy_of("heu1")
     # Reflector 1 is too large to trace next to 0 and shrinks while in view.
     for t, px in enumerate((3000, 2500, 2000, 1500)):
-        m, _ = run_frame(policy, sc, view([200, px, 0], time=t), budget_rays=1000)
+        fv = view([200, px, 0], time=t, trace_density="half")
+        m, _ = run_frame(policy, sc, fv, budget_rays=1000)
         assert not m[1].selected
-    m, _ = run_frame(policy, sc, view([200, 300, 300], time=4), budget_rays=1000)
+    fv = view([200, 300, 300], time=4, trace_density="half")
+    m, _ = run_frame(policy, sc, fv, budget_rays=1000)
     assert not m[1].selected  # in view, shrinking: taking it would be a transition
     assert m[2].selected  # entering the view: free, and it fits
 
@@ -632,22 +638,25 @@ def test_stiff_selection_weight_keeps_selection_but_fills_leftover_budget():
     near = element((0.2, 0.0, -2.0), path="/near")
     sc = scene([far, near])
     policy = policy_of("heu1", weight=1e9)
-    _, rounds = run_frame(policy, sc, view([1000, 0]), budget_rays=1500)
+    # At a fixed density (no density steps).
+    _, rounds = run_frame(policy, sc, view([1000, 0], trace_density="half"), budget_rays=1500)
     assert rounds == [[0]]
     # The near reflector enters the view with a much larger V: it cannot displace the
     # kept one when the budget fits only one ...
-    m, rounds = run_frame(policy, sc, view([1000, 1000]), budget_rays=1500)
+    both = view([1000, 1000], trace_density="half")
+    m, rounds = run_frame(policy, sc, both, budget_rays=1500)
     assert rounds == [[0]] and m[1].V > 10 * m[0].V
     # ... but is added when there is budget left after the kept one.
-    _, rounds = run_frame(policy, sc, view([1000, 1000]), budget_rays=2500)
+    _, rounds = run_frame(policy, sc, both, budget_rays=2500)
     assert rounds == [[0, 1]]
 
 
 def test_zero_priority_only_with_leftover_budget():
     sc = scene([element((0.0, 0.0, -2.0), K=0.0), element((2.0, 0.0, -20.0), K=1.0)])
-    _, rounds = run_frame(policy_of("heu1"), sc, view([1000, 1000]), budget_rays=1500)
+    both = view([1000, 1000], trace_density="half")  # a fixed density: no density steps
+    _, rounds = run_frame(policy_of("heu1"), sc, both, budget_rays=1500)
     assert rounds == [[1]]
-    _, rounds = run_frame(policy_of("heu1"), sc, view([1000, 1000]), budget_rays=2500)
+    _, rounds = run_frame(policy_of("heu1"), sc, both, budget_rays=2500)
     assert rounds == [[1, 0]]
 
 
@@ -700,7 +709,7 @@ def test_time_budget_holds_with_a_simulated_tracer(name):
 
 def test_time_model_fits_overhead_and_per_ray_cost():
     model = TraceTimeModel()
-    for k in range(60):
+    for k in range(100):  # the safety factor's window filled with real rounds
         rays = 500 + 400 * (k % 7)
         model.learn(rays, 0.5 + 0.002 * rays)
     assert model.overhead_ms == pytest.approx(0.5, rel=1e-6)
@@ -718,10 +727,17 @@ def test_time_model_fits_overhead_and_per_ray_cost():
 def test_time_safety_grows_with_jitter_and_relaxes_when_starved():
     model = TraceTimeModel()
     rng = np.random.default_rng(1)
-    for _ in range(200):  # one round in four takes 3x the usual time
+    over = 0
+    for k in range(200):  # one round in four takes 3x the usual time
         rays = int(rng.integers(500, 3000))
-        model.learn(rays, (0.5 + 0.002 * rays) * (3.0 if rng.random() < 0.25 else 1.0))
-    assert model.safety > 1.5
+        ms = (0.5 + 0.002 * rays) * (3.0 if rng.random() < 0.25 else 1.0)
+        over += k >= 100 and ms > model.predicted_ms(rays)
+        model.learn(rays, ms)
+    # The factor covers the slow rounds: once the window is full, ~5 % of the rounds (its
+    # quantile) exceed their prediction where a quarter are 3x slow; 12 of 100 allows for
+    # the fit moving between runs of slow rounds (9 here; 31 with the factor held at 1.05).
+    assert over <= 12
+    assert model.safety > 1.3
     high = model.safety
     model.relax()
     assert TIME_SAFETY_MIN <= model.safety < high

@@ -1,5 +1,5 @@
 """Reduced-density tracing (``render/trace/sparse_pixels.py``, ``--trace-density
-half|quarter``): which pixels start rays, how the others are filled, and what the tracer
+half|quarter|sixteenth``): which pixels start rays, how the others are filled, and what the tracer
 and the run report."""
 
 from __future__ import annotations
@@ -21,16 +21,34 @@ from phrt_usd.cli import app
 from phrt_usd.errors import BadOption
 from phrt_usd.model.trace_density import SPARSE_MIN_PIXELS, check_density
 from phrt_usd.render.renderer import RenderOptions
-from phrt_usd.render.trace.sparse_pixels import fill_skipped, traced_subset
+from phrt_usd.render.trace.sparse_pixels import PATTERN_SPACING, fill_skipped, traced_subset
 from phrt_usd.render.trace.tracer import Tracer
 
 
 def _pattern(row, col, density):
     """The pixels a large reflector traces at ``density``."""
-    return (row + col) % 2 == 0 if density == "half" else (row % 2 == 0) & (col % 2 == 0)
+    if density == "half":
+        return (row + col) % 2 == 0
+    step = PATTERN_SPACING[density]
+    return (row % step == 0) & (col % step == 0)
 
 
-@pytest.mark.parametrize("density", ["half", "quarter"])
+def _bilinear(value_of, r, c, step, width, height, same):
+    """The tent-weighted mean the fill computes for pixel (r, c): traced pixels q within
+    step - 1 rows and columns with ``same(y, x)``, weighted (step - |dy|)(step - |dx|);
+    ``value_of(q)`` their radiance or None when not traced. None without any."""
+    total, acc = 0.0, 0.0
+    for y in range(r - step + 1, r + step):
+        for x in range(c - step + 1, c + step):
+            if (y, x) != (r, c) and 0 <= y < height and 0 <= x < width and same(y, x):
+                v = value_of(y * width + x)
+                if v is not None:
+                    w = (step - abs(y - r)) * (step - abs(x - c))
+                    acc, total = acc + w * np.asarray(v, np.float64), total + w
+    return None if total == 0.0 else acc / total
+
+
+@pytest.mark.parametrize("density", ["half", "quarter", "sixteenth"])
 def test_large_reflectors_start_rays_on_the_pattern_small_ones_everywhere(density):
     width, height = 40, 30
     pix = np.arange(width * height, dtype=np.int64)
@@ -42,33 +60,38 @@ def test_large_reflectors_start_rays_on_the_pattern_small_ones_everywhere(densit
     np.testing.assert_array_equal(keep[src == 1], _pattern(row, col, density))
 
 
-@pytest.mark.parametrize("density", ["half", "quarter"])
-def test_skipped_pixels_take_the_mean_of_their_traced_neighbours_of_the_same_source(density):
-    """On a radiance linear in (row, col) the mean of the traced neighbours of an interior
-    skipped pixel (symmetric about it on either pattern) is the value itself. Edge pixels
-    average the traced neighbours they have among their 8; a neighbour of another source
-    is never used, and the input order of the traced pixels does not matter."""
-    width, height = 12, 10
+@pytest.mark.parametrize("density", ["half", "quarter", "sixteenth"])
+def test_skipped_pixels_interpolate_their_traced_neighbours_of_the_same_source(density):
+    """On a radiance linear in (row, col) the bilinear interpolation of an interior
+    skipped pixel's traced neighbours (symmetric about it on every pattern) is the value
+    itself. Edge pixels weigh the traced neighbours they have; a neighbour of another
+    source is never used, and the input order of the traced pixels does not matter."""
+    step = PATTERN_SPACING[density]
+    width, height = 6 * step, 5 * step
+    split = 3 * step  # two sources side by side, each starting on the grid
     pix = np.arange(width * height, dtype=np.int64)
     row, col = np.divmod(pix, width)
-    src = (col >= 6).astype(np.int64)  # two sources side by side
+    src = (col >= split).astype(np.int64)
     value = np.stack([row, col, 100.0 * src + row + col], axis=1).astype(np.float32)
     traced = _pattern(row, col, density)
     order = np.random.default_rng(3).permutation(int(traced.sum()))
     args = (pix[traced][order], src[traced][order], value[traced][order])
-    filled, radiance = fill_skipped(*args, pix[~traced], src[~traced], width, height)
+    filled, radiance = fill_skipped(
+        *args, pix[~traced], src[~traced], width, height, density=density
+    )
     np.testing.assert_array_equal(filled, pix[~traced])  # every one has a neighbour
     got = dict(zip(filled.tolist(), radiance.tolist(), strict=True))
     for p in filled.tolist():
         r, c = divmod(p, width)
-        near = [(r + dr, c + dc) for dr in (-1, 0, 1) for dc in (-1, 0, 1) if dr or dc]
-        near = [(y, x) for y, x in near
-                if 0 <= y < height and 0 <= x < width and (x >= 6) == (c >= 6)
-                and traced[y * width + x]]  # fmt: skip
-        want = np.mean([value[y * width + x] for y, x in near], axis=0)
+        want = _bilinear(
+            lambda q: value[q] if traced[q] else None, r, c, step, width, height,
+            lambda y, x, c=c: (x >= split) == (c >= split),
+        )  # fmt: skip
         np.testing.assert_allclose(got[p], want, rtol=1e-6)
-        if 0 < r < height - 1 and c not in (0, 5, 6, width - 1):  # interior: exact
-            np.testing.assert_allclose(got[p], value[p], rtol=1e-6)
+        # Interior: its whole window in the image and on its source.
+        lo, hi = (0, split) if c < split else (split, width)
+        if step - 1 <= r < height - step + 1 and lo + step - 1 <= c < hi - step + 1:
+            np.testing.assert_allclose(got[p], value[p], rtol=1e-5)
 
 
 def test_a_skipped_pixel_without_traced_neighbours_keeps_the_fallback():
@@ -87,7 +110,9 @@ def test_density_is_checked_and_refused_in_rt_mode():
         RenderOptions(mode="rt", trace_density="half")
 
 
-@pytest.mark.parametrize(("density", "share"), [("half", 0.5), ("quarter", 0.25)])
+@pytest.mark.parametrize(
+    ("density", "share"), [("half", 0.5), ("quarter", 0.25), ("sixteenth", 1 / 16)]
+)
 def test_mirror_floor_at_reduced_density_traces_its_share_and_the_same_reflection(
     density, share
 ):
@@ -176,12 +201,17 @@ def test_the_cli_and_the_api_run_at_half_density_and_record_it(tmp_path):
 
 
 @settings(max_examples=150, deadline=None)
-@given(st.integers(1, 9), st.integers(1, 9), st.integers(0, 2**32 - 1))
-def test_fill_is_the_mean_of_traced_same_source_neighbours_on_any_layout(width, height, seed):
+@given(
+    st.integers(1, 9), st.integers(1, 9), st.integers(0, 2**32 - 1),
+    st.sampled_from(["quarter", "sixteenth"]),
+)  # fmt: skip
+def test_fill_is_the_weighted_mean_of_traced_same_source_neighbours_on_any_layout(
+    width, height, seed, density
+):
     """Any image size, any sources, any traced subset (not only the patterns), traced
     pixels in any order, a reused table: each skipped pixel with a traced pixel of its
-    source among its 8 neighbours gets their mean, the others none; the table is left
-    all -1."""
+    source within the pattern's spacing - 1 gets their tent-weighted mean, the others
+    none; the table is left all -1."""
     rng = np.random.default_rng(seed)
     n = width * height
     pix = rng.permutation(n)[: rng.integers(0, n + 1)].astype(np.int64)
@@ -190,21 +220,22 @@ def test_fill_is_the_mean_of_traced_same_source_neighbours_on_any_layout(width, 
     radiance = rng.random((int(traced.sum()), 3)).astype(np.float32)
     table = np.full(n, -1, np.int32)
     filled, got = fill_skipped(
-        pix[traced], src[traced], radiance, pix[~traced], src[~traced], width, height, table
-    )
+        pix[traced], src[traced], radiance, pix[~traced], src[~traced], width, height, table,
+        density,
+    )  # fmt: skip
     assert (table == -1).all()
     where = {int(p): (int(s), radiance[i]) for i, (p, s) in enumerate(
         zip(pix[traced], src[traced], strict=True))}  # fmt: skip
     want_pix, want = [], []
     for p, s in zip(pix[~traced].tolist(), src[~traced].tolist(), strict=True):
         r, c = divmod(p, width)
-        near = [where[q][1] for q in (y * width + x for y in (r - 1, r, r + 1)
-                                      for x in (c - 1, c, c + 1)
-                                      if 0 <= y < height and 0 <= x < width)
-                if q in where and where[q][0] == s]  # fmt: skip
-        if near:
+        mean = _bilinear(
+            lambda q, s=s: where[q][1] if q in where and where[q][0] == s else None,
+            r, c, PATTERN_SPACING[density], width, height, lambda y, x: True,
+        )  # fmt: skip
+        if mean is not None:
             want_pix.append(p)
-            want.append(np.mean(near, axis=0))
+            want.append(mean)
     np.testing.assert_array_equal(filled, np.array(want_pix, np.int64))
     np.testing.assert_allclose(got, np.array(want, np.float32).reshape(-1, 3), rtol=1e-5)
 

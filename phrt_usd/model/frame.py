@@ -205,5 +205,5 @@ class FrameStats:
     #: round, the fitted fixed ms and ms per ray, its wall ms (not in frame_ms).
     calibration: dict | None = None
     #: Selected reflectors traced at another density than the render's (HEU1's density
-    #: steps): prim path → "half" or "quarter".
+    #: steps): prim path → "half", "quarter" or "sixteenth".
     densities: dict[str, str] = field(default_factory=dict)

@@ -12,11 +12,14 @@ from phrt_usd.errors import BadOption
 #: skipped pixel has fewer traced neighbours, and the rays saved are a few hundred.
 SPARSE_MIN_PIXELS = 256
 
-#: The trace densities: every pixel; the checkerboard or one pixel in four of large
-#: reflectors. Finest first (HEU1's density steps walk them in this order).
-TRACE_DENSITIES = ("full", "half", "quarter")
+#: The trace densities: every pixel; the checkerboard, one pixel in each 2 x 2 block or
+#: one in each 4 x 4 block of large reflectors. Finest first (HEU1's density steps walk
+#: them in this order). "sixteenth" is a last step before dropping a reflector: on the
+#: farm at T = 1 ms, reflectors already at a quarter grew to 4x the budget's rays near the
+#: path's end, and a drop there is a transition.
+TRACE_DENSITIES = ("full", "half", "quarter", "sixteenth")
 #: Share of a large reflector's pixels each density starts rays at (the patterns').
-DENSITY_FRACTION = {"full": 1.0, "half": 0.5, "quarter": 0.25}
+DENSITY_FRACTION = {"full": 1.0, "half": 0.5, "quarter": 0.25, "sixteenth": 1.0 / 16.0}
 
 
 def traced_fraction(pixels: float, density: str) -> float:

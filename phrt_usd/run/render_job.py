@@ -72,9 +72,10 @@ from phrt_usd.usd.stage_controls import StageControls
 
 #: Identifies checkpoint files; bump the version when their content changes meaning
 #: (2: the cost model's safety factor is a window of rounds, not one tracked number; 3: the
-#: policies remember the densities of the previous selection).
+#: policies remember the densities of the previous selection; 4: the safety factor's window
+#: holds measured ms and planned rays, its ratios are taken against the current fit).
 CHECKPOINT_FORMAT = "phrt-checkpoint"
-CHECKPOINT_VERSION = 3
+CHECKPOINT_VERSION = 4
 #: Largest checkpoint read back (bytes): a 100,000-frame run's is ~100 MB; anything
 #: larger is not one of ours and is refused before it is parsed.
 CHECKPOINT_MAX_BYTES = 1 << 30

@@ -15,20 +15,31 @@ import math
 #: from round to round (caches, the OS, other processes on the two cores). The factor is
 #: the JITTER_QUANTILE quantile of measured / modelled round time over the last
 #: JITTER_WINDOW rounds, each round weighted by its modelled milliseconds, and never below
-#: TIME_SAFETY_MIN. Weighted by time because what the budget must absorb is milliseconds:
-#: a 0.05 ms round taking 4x its model costs less than a 10 ms round taking 1.1x (on the
-#: sewer at T = 16 ms the few sub-millisecond rounds ran at 3-4x their model, the others'
-#: 97 % quantile was 1.17-1.29). Over a window, so that a loaded spell raises the factor
-#: within a few rounds and is forgotten JITTER_WINDOW rounds after it ends (the online
-#: quantile tracker this replaces fell by 0.006 a round: ~60 frames after a burst, during
-#: which kept reflectors were predicted over the budget and dropped). On a quiet machine
-#: it settles near 1.1-1.2: the selection then plans to use ~85-90 % of the budget.
-#: Ratios (measured / modelled ms).
+#: TIME_SAFETY_MIN.
+#: - Modelled by the current fit, recomputed after every round: the factor covers the
+#:   error of the model that predicts the next round, not the start-up error of a model
+#:   since corrected (the farm's first rounds took 4x the calibration's fixed cost;
+#:   measured against the model of their time, those ratios held the factor near 4 and
+#:   starved every frame for ~30 frames after the fit had learned the fixed cost).
+#: - Weighted by time because what the budget must absorb is milliseconds: a 0.05 ms
+#:   round taking 4x its model costs less than a 10 ms round taking 1.1x (on the sewer at
+#:   T = 16 ms the few sub-millisecond rounds ran at 3-4x their model, the others' 97 %
+#:   quantile was 1.17-1.29).
+#: - Over a window, so that a loaded spell raises the factor within a few rounds and is
+#:   forgotten JITTER_WINDOW rounds after it ends (the online quantile tracker this
+#:   replaces fell by 0.006 a round: ~60 frames after a burst, during which kept
+#:   reflectors were predicted over the budget and dropped).
+#: - A window not full yet is filled up with rounds at TIME_SAFETY_INITIAL, each of the
+#:   real rounds' mean weight: one slow round must not be the quantile of a young window
+#:   (on the farm at T = 1 ms, the 14th round took 25x its model, set the factor to its
+#:   maximum and starved ~60 frames), while a few slow rounds in a full window still
+#:   raise it.
+#: On a quiet machine it settles near 1.1-1.2: the selection then plans to use ~85-90 % of
+#: the budget. Ratios (measured / modelled ms).
 TIME_SAFETY_MIN = 1.05
-#: The factor until JITTER_MIN_ROUNDS rounds were measured, and its floor until then:
-#: where it settles on a quiet machine.
+#: The factor before any round was measured, and the ratio of the rounds that fill up a
+#: young window: where it settles on a quiet machine.
 TIME_SAFETY_INITIAL = 1.1
-JITTER_MIN_ROUNDS = 8
 #: Upper clamp of the factor: a round stuck behind another process (10-100x its model)
 #: would otherwise plan nothing at all for JITTER_WINDOW rounds.
 TIME_SAFETY_MAX = 10.0
@@ -111,10 +122,10 @@ class TraceTimeModel:
         self.ms_per_ray = INITIAL_MS_PER_RAY
         self.rounds = 0
         self.safety = TIME_SAFETY_INITIAL
-        #: The window of the safety factor, oldest first: measured / modelled ms of each
-        #: round, and its weight (the modelled ms).
-        self.jitter_ratios: list[float] = []
-        self.jitter_weights: list[float] = []
+        #: The window of the safety factor, oldest first: each round's measured ms and the
+        #: rays it was predicted to cast (``learn``'s ``planned_rays``, else its rays).
+        self.jitter_ms: list[float] = []
+        self.jitter_rays: list[float] = []
         #: The prior line (ms, ms per ray) and its current weight.
         self.prior_overhead_ms = INITIAL_ROUND_MS
         self.prior_ms_per_ray = INITIAL_MS_PER_RAY
@@ -157,10 +168,8 @@ class TraceTimeModel:
         if self.rounds > 0 or self.calibrated:
             # (Uncalibrated, the first round only tells how wrong the initial guess was.)
             planned = planned_rays if planned_rays > 0.0 and math.isfinite(planned_rays) else rays
-            expected = max(self.expected_ms(planned), 1e-9)
-            self.jitter_ratios = [*self.jitter_ratios[1 - JITTER_WINDOW :], m / expected]
-            self.jitter_weights = [*self.jitter_weights[1 - JITTER_WINDOW :], expected]
-            self._update_safety()
+            self.jitter_ms = [*self.jitter_ms[1 - JITTER_WINDOW :], m]
+            self.jitter_rays = [*self.jitter_rays[1 - JITTER_WINDOW :], float(planned)]
             actual = max(self.expected_ms(rays), 1e-9)
             m = min(max(m, actual / OUTLIER_RATIO), actual * OUTLIER_RATIO)
         k = TIME_MODEL_DECAY
@@ -175,11 +184,20 @@ class TraceTimeModel:
         self._rm = k * self._rm + x * m
         self.rounds += 1
         self._fit()
+        self._update_safety()
 
     def _update_safety(self) -> None:
-        """``safety`` from the window: its weighted JITTER_QUANTILE quantile (the smallest
-        ratio with at least that share of the window's weight at or below it), clamped."""
-        pairs = sorted(zip(self.jitter_ratios, self.jitter_weights, strict=True))
+        """``safety`` from the window (none: unchanged): the weighted JITTER_QUANTILE
+        quantile (the smallest ratio with at least that share of the window's weight at or
+        below it) of measured / modelled ms, modelled by the current fit for the rays
+        each round was predicted to cast and weighted by those ms, the window filled up
+        to JITTER_WINDOW rounds at TIME_SAFETY_INITIAL, clamped."""
+        if not self.jitter_ms:
+            return
+        modelled = [max(self.expected_ms(r), 1e-9) for r in self.jitter_rays]
+        pairs = [(m / e, e) for m, e in zip(self.jitter_ms, modelled, strict=True)]
+        padding = JITTER_WINDOW - len(pairs)  # the young window's prior rounds
+        pairs = sorted([*pairs, *[(TIME_SAFETY_INITIAL, sum(modelled) / len(pairs))] * padding])
         total = sum(w for _r, w in pairs)
         quantile, below = pairs[-1][0], 0.0
         for ratio, w in pairs:
@@ -187,8 +205,7 @@ class TraceTimeModel:
             if below >= JITTER_QUANTILE * total:
                 quantile = ratio
                 break
-        floor = TIME_SAFETY_INITIAL if len(pairs) < JITTER_MIN_ROUNDS else TIME_SAFETY_MIN
-        self.safety = min(max(quantile, floor), TIME_SAFETY_MAX)
+        self.safety = min(max(quantile, TIME_SAFETY_MIN), TIME_SAFETY_MAX)
 
     def _fit(self) -> None:
         """Weighted least squares of the rounds and the prior's two pseudo-rounds."""
@@ -213,8 +230,8 @@ class TraceTimeModel:
 
     def relax(self) -> None:
         """Nothing fitted the time budget this frame: lower the safety factor a little
-        (every ratio of its window, STARVED_RELAX), and once it is at its minimum, the
-        modelled times (STARVED_SCALE)."""
+        (every measured ms of its window, STARVED_RELAX), and once it is at its minimum,
+        the modelled times (STARVED_SCALE)."""
         if self.safety <= TIME_SAFETY_MIN:
             k = STARVED_SCALE
             self.prior_overhead_ms *= k
@@ -222,7 +239,9 @@ class TraceTimeModel:
             self._m *= k
             self._rm *= k
             self._fit()
-        self.jitter_ratios = [r * STARVED_RELAX for r in self.jitter_ratios]
+            # The window's rounds scale with the model, so their ratios to it stay.
+            self.jitter_ms = [m * k for m in self.jitter_ms]
+        self.jitter_ms = [m * STARVED_RELAX for m in self.jitter_ms]
         self.safety = max(self.safety * STARVED_RELAX, TIME_SAFETY_MIN)
 
     def expected_ms(self, rays: float) -> float:

@@ -182,8 +182,8 @@ class BudgetedPolicy(ABC):
             or not same_shape(state, {k: v for k, v in expected.items() if k != "time_model"})
         ):
             raise PhrtError(f"saved {self.name} policy memory has other fields or types")
-        if not same_shape(model, vars(self.time_model)) or len(model["jitter_ratios"]) != len(
-            model["jitter_weights"]
+        if not same_shape(model, vars(self.time_model)) or len(model["jitter_ms"]) != len(
+            model["jitter_rays"]
         ):
             raise PhrtError(f"saved {self.name} cost model has other fields or types")
         vars(self).update(state)

@@ -533,35 +533,40 @@ def primary_fill(
 
 
 @njit(**_KERNEL)
-def fill_skipped(row_of, traced_pix, traced_src, radiance, skipped_pix, skipped_src, width,
-                 height, out_pix, out_rad):  # fmt: skip
+def fill_skipped(row_of, traced_pix, traced_src, radiance, skipped_pix, skipped_src, spacing,
+                 width, height, out_pix, out_rad):  # fmt: skip
     """``sparse_pixels.fill_skipped``: each skipped pixel (skipped_pix, skipped_src (m,)
-    int64) with traced pixels of its own source among its 8 neighbours (traced_pix,
-    traced_src (n,) int64, their radiance (n, 3) float32) gets their mean, written with
-    the pixel to out_pix (m,) int64 / out_rad (m, 3) float32 in order. row_of
-    (width * height,) int32 is all -1 on entry and again on return (the caller keeps it
-    from round to round). Returns how many were written."""
+    int64, the spacing s (m,) int64 >= 2 of its source's pattern) with traced pixels of
+    its own source within s - 1 rows and columns (traced_pix, traced_src (n,) int64,
+    their radiance (n, 3) float32) gets their mean weighted by (s - |dy|) (s - |dx|),
+    written with the pixel to out_pix (m,) int64 / out_rad (m, 3) float32 in order.
+    row_of (width * height,) int32 is all -1 on entry and again on return (the caller
+    keeps it from round to round). Returns how many were written."""
     for i in range(traced_pix.shape[0]):
         row_of[traced_pix[i]] = i
     k = 0
     for j in range(skipped_pix.shape[0]):
-        p, s = skipped_pix[j], skipped_src[j]
+        p, s, step = skipped_pix[j], skipped_src[j], spacing[j]
         row, col = p // width, p % width
         r = g = b = 0.0
-        count = 0
-        for dy in range(-1, 2):
-            for dx in range(-1, 2):
-                y, x = row + dy, col + dx
-                if (dy or dx) and 0 <= y < height and 0 <= x < width:
+        total = 0.0
+        for dy in range(1 - step, step):
+            y = row + dy
+            if y < 0 or y >= height:
+                continue
+            for dx in range(1 - step, step):
+                x = col + dx
+                if (dy or dx) and 0 <= x < width:
                     at = row_of[y * width + x]
                     if at >= 0 and traced_src[at] == s:
-                        r += radiance[at, 0]
-                        g += radiance[at, 1]
-                        b += radiance[at, 2]
-                        count += 1
-        if count:
+                        w = float((step - abs(dy)) * (step - abs(dx)))
+                        r += w * radiance[at, 0]
+                        g += w * radiance[at, 1]
+                        b += w * radiance[at, 2]
+                        total += w
+        if total > 0.0:
             out_pix[k] = p
-            out_rad[k, 0], out_rad[k, 1], out_rad[k, 2] = r / count, g / count, b / count
+            out_rad[k, 0], out_rad[k, 1], out_rad[k, 2] = r / total, g / total, b / total
             k += 1
     for i in range(traced_pix.shape[0]):
         row_of[traced_pix[i]] = -1
@@ -609,8 +614,8 @@ def warm_up() -> None:
                 np.zeros((0, 0), bool), 1e-6, 1e-5, 1e-3, 1e30, *shadow)  # fmt: skip
     shadow_results(*shadow, b, 1, np.zeros((1, 1), np.float32), i64.copy(),
                    np.zeros((2, 1), np.int64), v32.copy(), f64.copy())  # fmt: skip
-    fill_skipped(np.full(4, -1, np.int32), i64, i64, v32, i64 + 1, i64, 2, 2, i64.copy(),
-                 v32.copy())  # fmt: skip
+    fill_skipped(np.full(4, -1, np.int32), i64, i64, v32, i64 + 1, i64, i64 + 2, 2, 2,
+                 i64.copy(), v32.copy())  # fmt: skip
     light = (np.zeros(3), np.array([[0.0, 1.0, 0.0]]), np.ones((1, 3)), np.zeros((0, 3)),
              np.zeros((0, 3)), np.zeros(0), np.zeros((0, 7)))  # fmt: skip
     shadow_shade(*shadow, b, v64, v32, v32, v32, v32, *light, np.zeros(4),

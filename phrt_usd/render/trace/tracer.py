@@ -275,8 +275,8 @@ class Tracer:
         reflector hit at the last one reads the environment for its reflected part
         (``bounce_limit`` < 1: no rays, the environment in the mirror direction).
 
-        ``density`` "half" / "quarter" (for every source, or a sequence of densities,
-        one per source): large reflectors start rays on a pattern of their pixels and
+        ``density`` "half" / "quarter" / "sixteenth" (for every source, or a sequence of
+        densities, one per source): large reflectors start rays on a pattern of their pixels and
         fill the others from traced neighbours (``sparse_pixels``); their records then
         count every covered pixel, so rays per pixel stay what a frame's pixel counts
         predict at that density (hits scaled alike)."""
@@ -298,21 +298,23 @@ class Tracer:
         result = self._run_paths(pix, src, origins, d, sources, bounce_limit, "reflection", start)
         if first["skipped"] is None:
             return result
-        return self._with_skipped(result, src, first["skipped"], gbuffer.shape, start)
+        return self._with_skipped(
+            result, src, first["skipped"], gbuffer.shape, density, start
+        )
 
-    def _with_skipped(self, result, src, skipped, shape, start) -> ReflectionResult:
+    def _with_skipped(self, result, src, skipped, shape, density, start) -> ReflectionResult:
         """A reduced-density ``result`` with its skipped pixels filled
         (``sparse_pixels.fill_skipped``) and its records counting every covered pixel:
         src (n,) the traced pixels' sources, skipped (pixels (m,), their sources (m,),
         covered pixels per source) from ``_source_pixels``, shape (H, W) of the
-        G-buffer."""
+        G-buffer, density as ``trace_reflections``'."""
         height, width = shape
         skipped_pix, skipped_src, covered = skipped
         if self._fill_table is None or len(self._fill_table) != width * height:
             self._fill_table = np.full(width * height, -1, np.int32)
         fill_pix, fill_radiance = sparse_pixels.fill_skipped(
             result.pixel_index, src, result.radiance, skipped_pix, skipped_src,
-            width, height, self._fill_table,
+            width, height, self._fill_table, density,
         )  # fmt: skip
         covered = covered.tolist()
         records = [
