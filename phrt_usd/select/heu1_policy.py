@@ -36,14 +36,10 @@ FORECAST_MAX = 1e300
 #: starts), the forecast is instead the largest cost over the next LOOKAHEAD_FRAMES frames,
 #: scaled from the current cost by the screen area of the reflector's bounding box
 #: (``box_screen_area``; each upcoming camera's areas are computed once and reused by the
-#: following frames). Measured on both stages (docs/heuristic.md): before the density
-#: steps, 48 frames gave fewer transitions than 24 at the same mean selected count and
-#: longer ones shut out reflectors that grow late. With the steps (replays of the
-#: 720-frame paths, the farm at a simulated 1 ms like its real rounds), 96 frames (4 s) is
-#: the shortest window that sees the farm's barrels grow together beyond the budget near
-#: the path's end: 2-3 transitions where 48-84 frames made 6-8, for 13 % fewer reflectors
-#: selected there and 5-9 % fewer on the sewer; 120+ frames shut out far more.
-LOOKAHEAD_FRAMES = 96
+#: following frames). Measured on both stages (docs/heuristic.md): 48 frames gave fewer
+#: transitions than 24 at the same mean selected count; longer ones shut out reflectors
+#: that grow late.
+LOOKAHEAD_FRAMES = 48
 #: Box areas are computed for LOOKAHEAD_BATCH cameras at a time (one array pass instead of
 #: one per frame: the per-call overhead was ~0.2 ms of HEU1's selection time per frame);
 #: renderers pass UPCOMING_CAMERAS upcoming cameras so that a batch is computed before the
