@@ -53,9 +53,11 @@ def test_leftover_of_the_first_round_is_filled_with_a_margin_of_the_leftover():
     # does not fit beside it with the margin (880 + 110 + 100 > 1000). A traces 800 rays,
     # so round 2 has 200 left: B fits with a margin of 10 % of that leftover (110 + 20),
     # not with one of 10 % of the whole budget (110 + 100 > 200).
+    # At a fixed density (no density step of A makes room for B in round 1).
     sc = scene([element((0.0, 0.0, -8.0)), element((1.0, 0.0, -8.0))])
     policy = heu1()
-    _metrics, rounds = run_frame(policy, sc, view([800, 100]), budget_rays=1000)
+    fv = view([800, 100], trace_density="half")
+    _metrics, rounds = run_frame(policy, sc, fv, budget_rays=1000)
     assert rounds == [[0], [1]]
     assert 110 + ADMISSION_MARGIN * 1000 > 200 >= 110 + ADMISSION_MARGIN * 200
 
@@ -88,3 +90,37 @@ def test_entering_reflector_forecast_to_outgrow_the_whole_budget_is_not_taken():
         if taken == "half":
             assert growth * policy.predicted_rays(1) * 0.5 <= 1000
         policy.end_frame()
+
+
+def test_density_steps_make_room_for_a_reflector_entering_the_view():
+    # Reflector 0 (2000 pixels) fills most of a 2500-ray budget (2272 predicted rays with
+    # RAYS_SAFETY). Reflector 1 enters with 250 pixels (traced whole: under 256): beside
+    # 0 at full density it does not fit with the admission margin (2000 + 250 + 227 >
+    # 2272), so HEU1 steps 0 to half density and takes 1 as it enters; taken later, while
+    # in view, it would be a transition. At a fixed density nothing steps, and 0 tracing
+    # 20 % more rays than predicted leaves no round for 1: it stays out.
+    sc = scene([element((0.0, 0.0, -8.0)), element((1.0, 0.0, -8.0))])
+    for density, taken in (("full", True), ("half", False)):
+        policy = heu1()
+        run_frame(policy, sc, view([2000, 0], trace_density=density), budget_rays=2500)
+        m, rounds = run_frame(policy, sc, view([2000, 250], trace_density=density), 2500, 1.2)
+        assert m[1].selected is taken
+        if taken:
+            assert rounds == [[0, 1]]  # one round: the room is made before it is traced
+            assert policy.previous_levels == {0: 1}  # 0 at half, 1 whole (no level)
+            assert m[1].trace_density == 1.0
+
+
+def test_room_steps_the_reflector_that_frees_the_fewest_rays_that_suffice():
+    # Three reflectors at full density, 4000 / 1000 / 600 pixels (1 ray a pixel): a step
+    # to half frees 2000 / 500 / 300 rays. 400 needed: the 1000-pixel one (500, the
+    # fewest that suffice); 2500: the largest first, then the 1000-pixel one;
+    # more than every step to a sixteenth frees: none.
+    sc = scene([element((0.0, 0.0, -8.0)), element((1.0, 0.0, -8.0)), element((2.0, 0.0, -8.0))])
+    policy = heu1()
+    policy.begin_frame(view([4000, 1000, 600]), sc)
+    assert policy._room([0, 1, 2], 0.0) == {}
+    assert policy._room([0, 1, 2], 400.0) == {1: 1}
+    assert policy._room([0, 1, 2], 2500.0) == {0: 1, 1: 1}
+    assert policy._room([0, 1, 2], 5600.0 * (15 / 16) + 1.0) is None
+    policy.end_frame()

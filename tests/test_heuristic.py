@@ -369,7 +369,8 @@ def test_high_priority_pond_at_the_edge_beats_near_barrel():
     budget = int(6000 * RAYS_SAFETY / (1.0 - ADMISSION_MARGIN)) + 100
     assert budget < 8000 * RAYS_SAFETY
     heu1 = policy_of("heu1")
-    metrics, rounds = run_frame(heu1, sc, view(pixels), budget_rays=budget)
+    # At a fixed density: the paper's choice, without density steps making room.
+    metrics, rounds = run_frame(heu1, sc, view(pixels, trace_density="half"), budget_rays=budget)
     assert rounds == [[0]]
     assert metrics[0].R > metrics[1].R and metrics[0].V < metrics[1].V
     assert metrics[0].selected and not metrics[1].selected
@@ -489,13 +490,15 @@ def test_growing_reflector_in_view_is_not_admitted_when_its_forecast_does_not_fi
     # frame, its forecast 24 frames ahead does not, so HEU1 does not switch it to ray
     # tracing (it would be forced back to raster soon: two transitions). Static, it is
     # admitted.
+    # At a fixed density (no density step makes room for reflector 1 at entry).
     sc = scene([element((0.0, 0.0, -8.0)), element((1.0, 0.0, -8.0))])
     for growth, admitted in ((1.10, False), (1.0, True)):
         policy = policy_of("heu1")
         for t in range(6):
-            m, _ = run_frame(policy, sc, view([800, int(300 * growth**t)]), budget_rays=1000)
+            fv = view([800, int(300 * growth**t)], trace_density="half")
+            m, _ = run_frame(policy, sc, fv, budget_rays=1000)
             assert m[0].selected and not m[1].selected
-        policy.begin_frame(view([0, int(300 * growth**6)]), sc)
+        policy.begin_frame(view([0, int(300 * growth**6)], trace_density="half"), sc)
         assert policy.growth(1) == pytest.approx(growth, rel=0.02)
         forecast = policy.forecast_rays(1)
         assert forecast == pytest.approx(
@@ -549,9 +552,11 @@ def test_lookahead_keeps_out_a_reflector_the_camera_will_approach():
     for upcoming, admitted in (((), True), (approach, False)):
         policy = policy_of("heu1")
         for t in range(6):
-            m, _ = run_frame(policy, sc, view([800, 300], time=t), budget_rays=1000)
+            # At a fixed density: no density step makes room for reflector 1.
+            fv = view([800, 300], time=t, trace_density="half")
+            m, _ = run_frame(policy, sc, fv, budget_rays=1000)
             assert m[0].selected and not m[1].selected
-        fv = view([0, 300], time=6)
+        fv = view([0, 300], time=6, trace_density="half")
         fv.upcoming_cameras = upcoming
         policy.begin_frame(fv, sc)
         growth = policy.lookahead_growth.get(1)

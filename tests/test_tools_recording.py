@@ -191,8 +191,10 @@ def test_replay_of_the_file_equals_replay_in_memory(heuristic: str, budget: int)
         assert np.array_equal(sel, sel2) and np.array_equal(vis, vis2)
         assert pr.transition_counts(sel, vis) == pr.transition_counts(sel2, vis2)
         assert pr.mean_rays(data, sel) == pr.mean_rays(back, sel2)
-    if budget == 1200 and heuristic != "all":
-        assert 0 < sel.sum() < vis.sum()  # the budget bites: a selection, not everything
+    # A budget that bites: a selection, not everything (HEU1 takes large reflectors at a
+    # reduced density, so every visible one fits its 1200 rays; 300 do not).
+    if budget == {"heu1": 300, "heu2": 1200}.get(heuristic):
+        assert 0 < sel.sum() < vis.sum()
 
 
 class _Planted:

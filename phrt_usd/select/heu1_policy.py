@@ -71,12 +71,15 @@ class Heu1Policy(BudgetedPolicy):
       kept together); a kept reflector forecast to outgrow the budget charges its curve
       only up to that frame;
     * density steps (when the render traces at full density): a kept reflector that no
-      longer fits is traced at half or a quarter of its pixels (``sparse_pixels``)
-      instead of being dropped, a reflector entering the view that does not fit (or
-      would outgrow the budget) is taken at such a density, and a reflector below full
-      density steps back one density finer once that fits with the admission margin
-      and its forecast stays within the budget. A step changes how sharp a reflection
-      is, not whether it is traced (no transition: docs/heuristic.md);
+      longer fits is traced at half, a quarter or a sixteenth of its pixels
+      (``sparse_pixels``) instead of being dropped, a reflector entering the view that
+      does not fit (or would outgrow the budget) is taken at such a density; when even
+      its coarsest density does not fit, reflectors of the round step coarser to make
+      room for it (for a claim, or one entering the view: taken later it would be a
+      transition); a reflector below full density steps back one density finer once
+      that fits with the admission margin and its forecast stays within the budget. A
+      step changes how sharp a reflection is, not whether it is traced (no transition:
+      docs/heuristic.md);
     * leftover: rounds after the first fill what the measured rounds left of T, and the
       admission margin there is a share of that leftover, not of the whole budget (with
       a time budget the first round plans only ~1/safety of T, and a margin of
@@ -338,10 +341,13 @@ class Heu1Policy(BudgetedPolicy):
         fits instead of being dropped, and a reflector entering the view that was not
         taken at full density (too costly now, or forecast to outgrow the budget) at the
         finest coarser one that fits with ``reserve`` to spare and is not forecast to
-        outgrow it. Then a reflector taken below full density steps one density finer when
-        the extra rays fit with ``reserve`` to spare and its finer forecast stays within
-        the budget over the lookahead (so it will not have to step back). Returns the
-        reflectors taken here; records their levels and forecasts in the frame."""
+        outgrow it. When even a reflector's coarsest density does not fit, reflectors of
+        this round step coarser to make room for it (``_room``), if that frees enough.
+        Then a reflector taken below full density (and not stepped to make room) steps one
+        density finer when the extra rays fit with ``reserve`` to spare and its finer
+        forecast stays within the budget over the lookahead (so it will not have to step
+        back). Returns the reflectors taken here; records their levels and forecasts in
+        the frame."""
         frame = self._require_frame()
         budget = frame.first_allowance
         coarser = range(1, len(TRACE_DENSITIES))
@@ -349,14 +355,39 @@ class Heu1Policy(BudgetedPolicy):
 
         def take(e: int, level: int) -> None:
             nonlocal remaining
+            # The finest density as cheap as ``level``: full below SPARSE_MIN_PIXELS, where
+            # every density traces every pixel (no step to report).
+            level = next(v for v in range(level + 1)
+                         if self.level_rays(e, v) <= self.level_rays(e, level))  # fmt: skip
             remaining -= self.level_rays(e, level)
-            frame.levels[e] = level
+            if level:
+                frame.levels[e] = level
             frame.forecast_used = frame.forecast_used + self._level_forecast(e, level)
             taken.append(e)
 
+        squeezed: set[int] = set()  # stepped coarser to make room: no step back this round
+
+        def make_room(cost: float) -> bool:
+            """Step reflectors of this round coarser until ``cost`` fits what remains."""
+            nonlocal remaining
+            freed = self._room(ids + taken, cost - remaining)
+            if freed is None:
+                return False
+            squeezed.update(freed)
+            for c, level in freed.items():
+                was = frame.levels.get(c, 0)
+                remaining += self.level_rays(c, was) - self.level_rays(c, level)
+                frame.forecast_used = (frame.forecast_used + self._level_forecast(c, level)
+                                       - self._level_forecast(c, was))  # fmt: skip
+                frame.levels[c] = level
+            return True
+
+        last = len(TRACE_DENSITIES) - 1
         for e in unfit:
             level = next((v for v in coarser if v > self._level(e)
                           and self.level_rays(e, v) <= remaining), None)  # fmt: skip
+            if level is None and make_room(self.level_rays(e, last)):
+                level = last
             if level is not None:
                 take(e, level)
         chosen = set(ids)
@@ -366,11 +397,14 @@ class Heu1Policy(BudgetedPolicy):
             level = next((v for v in coarser
                           if self.level_rays(e, v) + reserve <= remaining
                           and not self._outgrows(e, budget, v)), None)  # fmt: skip
+            if level is None and not self._outgrows(e, budget, last):
+                if make_room(self.level_rays(e, last) + reserve):
+                    level = last
             if level is not None:
                 take(e, level)
         for e in ids:
             level = frame.levels.get(e, 0)
-            if not level:
+            if not level or e in squeezed:
                 continue
             extra = self.level_rays(e, level - 1) - self.level_rays(e, level)
             lasting = bool(np.all(self._level_forecast(e, level - 1) <= budget))
@@ -383,3 +417,30 @@ class Heu1Policy(BudgetedPolicy):
                 else:
                     del frame.levels[e]
         return taken
+
+    def _room(self, traced: list[int], need: float) -> dict[int, int] | None:
+        """Density steps down of reflectors of this round (``traced``: taken in it, not
+        traced yet) that free at least ``need`` predicted rays: element id → its new
+        level, one step at a time, each time the step that frees the fewest rays among
+        those that free enough, else the one that frees the most. {} if nothing is needed;
+        None (nothing stepped) if even every step to the coarsest density frees too
+        little."""
+        if need <= 0.0:
+            return {}
+        frame = self._require_frame()
+        last = len(TRACE_DENSITIES) - 1
+        levels = {c: frame.levels.get(c, 0) for c in traced}
+        steps: dict[int, int] = {}
+        while need > 0.0:
+            saving = {c: self.level_rays(c, v) - self.level_rays(c, v + 1)
+                      for c, v in levels.items() if v < last}  # fmt: skip
+            saving = {c: x for c, x in saving.items() if x > 0.0}
+            if not saving:
+                return None
+            enough = [c for c, x in saving.items() if x >= need]
+            c = min(enough, key=lambda c: (saving[c], c)) if enough else max(
+                saving, key=lambda c: (saving[c], -c))
+            levels[c] += 1
+            steps[c] = levels[c]
+            need -= saving[c]
+        return steps
