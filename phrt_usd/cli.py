@@ -352,7 +352,7 @@ TraceDensityOpt = Annotated[
     typer.Option(
         metavar="full|half|quarter|sixteenth",
         help="Pixels of a traced reflector that start rays: every one, or for reflectors "
-        "of 256+ pixels a checkerboard (half), one in each 2x2 block (quarter) or one in "
+        "of 64+ pixels a checkerboard (half), one in each 2x2 block (quarter) or one in "
         "each 4x4 block (sixteenth), the others interpolated from their traced "
         "neighbours (hybrid mode).",
     ),

@@ -93,17 +93,17 @@ def test_entering_reflector_forecast_to_outgrow_the_whole_budget_is_not_taken():
 
 
 def test_density_steps_make_room_for_a_reflector_entering_the_view():
-    # Reflector 0 (2000 pixels) fills most of a 2500-ray budget (2272 predicted rays with
-    # RAYS_SAFETY). Reflector 1 enters with 250 pixels (traced whole: under 256): beside
-    # 0 at full density it does not fit with the admission margin (2000 + 250 + 227 >
-    # 2272), so HEU1 steps 0 to half density and takes 1 as it enters; taken later, while
+    # Reflector 0 (2000 pixels) fills most of a 2300-ray budget (2091 predicted rays with
+    # RAYS_SAFETY). Reflector 1 enters with 60 pixels (traced whole: under 64): beside 0
+    # at full density it does not fit with the admission margin (2000 + 60 + 209 >
+    # 2091), so HEU1 steps 0 to half density and takes 1 as it enters; taken later, while
     # in view, it would be a transition. At a fixed density nothing steps, and 0 tracing
     # 20 % more rays than predicted leaves no round for 1: it stays out.
     sc = scene([element((0.0, 0.0, -8.0)), element((1.0, 0.0, -8.0))])
     for density, taken in (("full", True), ("half", False)):
         policy = heu1()
-        run_frame(policy, sc, view([2000, 0], trace_density=density), budget_rays=2500)
-        m, rounds = run_frame(policy, sc, view([2000, 250], trace_density=density), 2500, 1.2)
+        run_frame(policy, sc, view([2000, 0], trace_density=density), budget_rays=2300)
+        m, rounds = run_frame(policy, sc, view([2000, 60], trace_density=density), 2300, 1.2)
         assert m[1].selected is taken
         if taken:
             assert rounds == [[0, 1]]  # one round: the room is made before it is traced

@@ -623,7 +623,7 @@ def test_kept_selection_drops_the_fewest_when_it_no_longer_fits():
 
 
 def test_shrinking_reflector_in_view_is_not_admitted_but_one_entering_is():
-    # At a fixed density (half: reflectors of 256+ pixels start rays at half of them), so
+    # At a fixed density (half: reflectors of 64+ pixels start rays at half of them), so
     # that no density step takes reflector 1 at entry.
     sc = scene([element((0.0, 0.0, -8.0)), element((1.0, 0.0, -8.0)), element((2.0, 0.0, -8.0))])
     policy = policy_of("heu1")

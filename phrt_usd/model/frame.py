@@ -149,8 +149,8 @@ class ReflectorMetrics:
     predicted_rays: float = 0.0
     predicted_ms: float = 0.0
     #: Share of the reflector's pixels that started rays, at the density it was traced
-    #: at (1 full, 0.5 half, 0.25 quarter; 1 under 256 pixels: traced whole); NaN when it
-    #: was not traced.
+    #: at (1 full, 0.5 half, 0.25 quarter, 0.0625 sixteenth; 1 under 64 pixels: traced
+    #: whole); NaN when it was not traced.
     trace_density: float = math.nan
 
 

@@ -7,10 +7,14 @@ from __future__ import annotations
 
 from phrt_usd.errors import BadOption
 
-#: Reflectors with fewer pixels than this in a frame are traced at every pixel. 256
-#: pixels is a 16 x 16 patch: below it most pixels lie on the reflector's edge, where a
-#: skipped pixel has fewer traced neighbours, and the rays saved are a few hundred.
-SPARSE_MIN_PIXELS = 256
+#: Reflectors with fewer pixels than this in a frame are traced at every pixel: below an
+#: 8 x 8 patch the rays saved are a few dozen and most pixels lie on the reflector's
+#: edge, where a skipped pixel has fewer traced neighbours. 256 until HEU1 made room by
+#: stepping reflectors coarser (2026-12-03): the farm's barrels, 64-255 pixels near its
+#: path's end, were then dropped whole where they can now be traced coarser (replays:
+#: farm at 500 rays 8 -> 3 transitions, sewer at 10k rays 22 -> 19 at 3.97 -> 5.32
+#: reflectors traced a frame; the wet tunnel's FLIP at T = 16 ms 0.045 -> 0.042).
+SPARSE_MIN_PIXELS = 64
 
 #: The trace densities: every pixel; the checkerboard, one pixel in each 2 x 2 block or
 #: one in each 4 x 4 block of large reflectors. Finest first (HEU1's density steps walk
