@@ -33,7 +33,8 @@ from phrt_usd.evaluate.sweep_summary import (
 COLUMNS = [
     "stage", "config", "heuristic", "mode", "budget_ms", "budget_rays", "frame", "frame_ms",
     "gbuffer_ms", "shade_ms", "select_ms", "trace_ms", "predicted_trace_ms", "rays",
-    "visible", "selected", "transitions", "flip", "flip_reflectors", "psnr", "flip_rt",
+    "visible", "selected", "transitions", "density_steps", "flip", "flip_reflectors", "psnr",
+    "flip_rt",
     "psnr_rt", "temporal_error", "temporal_error_reflectors",
 ]  # fmt: skip
 
@@ -113,6 +114,7 @@ def write_synthetic_sweep(out: Path, seed: int = 7, configs=CONFIGS) -> Path:
                         "visible": int(visible[f].sum()),
                         "selected": int(selected[f].sum()),
                         "transitions": int(switched.sum()),
+                        "density_steps": int(rng.integers(0, 3)),
                         "flip": flip,
                         "flip_reflectors": 0.0 if is_ref else float(rng.uniform(0.0, 0.5)),
                         "psnr": 100.0 if is_ref else float(rng.uniform(20, 45)),
@@ -183,6 +185,7 @@ def expected_from_csv(
         rows.sort(key=lambda r: float(r["frame"]))
         frame_ms = [float(r["frame_ms"]) for r in rows]
         transitions = sum(int(r["transitions"]) for r in rows)
+        steps = sum(int(r["density_steps"]) for r in rows)
         if timeline is None:
             chances = sum(int(r["visible"]) for r in rows[1:])
         else:
@@ -204,6 +207,7 @@ def expected_from_csv(
             "mean PSNR dB": mean(rows, "psnr"),
             "transitions": transitions,
             "transition rate": 100.0 * transitions / chances if chances else None,
+            "density steps": steps,
             "mean selected": mean(rows, "selected"),
             "temporal error": mean(rows, "temporal_error"),
             "temporal error reflectors": mean(rows, "temporal_error_reflectors"),
@@ -262,7 +266,7 @@ def test_summary_md_agrees_with_csv(report_dir):
                 cell = row[column]
                 if value is None:
                     assert cell == "—", (stage, row["config"], column)
-                elif column in ("frames", "transitions"):
+                elif column in ("frames", "transitions", "density steps"):
                     assert int(cell) == value, (stage, row["config"], column)
                 else:
                     assert_printed_close(cell, value, f"{stage} {row['config']} {column}")

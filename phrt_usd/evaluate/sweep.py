@@ -42,7 +42,7 @@ import numpy as np
 from phrt_usd.atomic import write_text_atomic
 from phrt_usd.errors import BadOption
 from phrt_usd.evaluate.image_metrics import flip_map, mean_over, psnr
-from phrt_usd.evaluate.selection_metrics import transitions_per_frame
+from phrt_usd.evaluate.selection_metrics import density_steps, transitions_per_frame
 from phrt_usd.evaluate.sweep_files import (
     ERROR_VS_TIME_PNG,
     FLIP_MAP_SUFFIX,
@@ -59,6 +59,7 @@ from phrt_usd.evaluate.temporal_error import (
     sequence_frames_per_second,
     temporal_error_map,
 )
+from phrt_usd.model.trace_density import TRACE_DENSITIES
 from phrt_usd.render.raster.gl_platform import DEFAULT_GL
 from phrt_usd.render.renderer import FrameOutput, FrameRenderer, RenderOptions
 from phrt_usd.run.frames import parse_frames
@@ -74,7 +75,7 @@ CSV_COLUMNS = [
     "stage", "config", "heuristic", "mode", "budget_ms", "budget_rays", "resolution",
     "bounce_limit", "trace_density", "frame", "frame_ms", "gbuffer_ms", "shade_ms",
     "select_ms", "trace_ms",
-    "predicted_trace_ms", "rays", "visible", "selected", "transitions", "flip",
+    "predicted_trace_ms", "rays", "visible", "selected", "transitions", "density_steps", "flip",
     "flip_reflectors", "psnr", "flip_rt", "psnr_rt", "temporal_error",
     "temporal_error_reflectors",
 ]  # fmt: skip
@@ -261,11 +262,11 @@ class _ConfigState:
             trace_density=density,
         )
         self.temporal = TemporalChannels(frames_per_second)
-        self.previous: tuple[np.ndarray, np.ndarray] | None = None
+        self.previous: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self.timeline_selected: list[list[bool]] = []
         self.timeline_visible: list[list[bool]] = []
         #: This frame's (output, selection) between making the rows and remembering.
-        self.pending: tuple[FrameOutput, tuple[np.ndarray, np.ndarray]] | None = None
+        self.pending: tuple[FrameOutput, tuple[np.ndarray, np.ndarray, np.ndarray]] | None = None
 
 
 def run_sweep(spec: SweepSpec, on_frame: Callable[[str, int, int], None] | None = None) -> dict:
@@ -528,23 +529,22 @@ def _row(
     flip_ref: np.ndarray,
     temporal_map: np.ndarray,
     refs: _References,
-    selection: tuple[np.ndarray, np.ndarray],
+    selection: tuple[np.ndarray, np.ndarray, np.ndarray],
 ) -> dict:
     """One CSV row. flip_ref: (H, W) FLIP of this output against the ``all`` reference
     ``refs.ref``; temporal_map: (H, W) ``temporal_error_map`` of this output's sequence
-    against the reference's at this frame; selection: this frame's (selected, visible),
-    see ``_selection_row``. ``transitions``: from the configuration's previous frame into
-    this one (``selection_metrics``; 0 on its first frame)."""
+    against the reference's at this frame; selection: this frame's (selected, visible,
+    levels), see ``_selection_row``. ``transitions`` and ``density_steps``: from the
+    configuration's previous frame into this one (``selection_metrics``; 0 on its first
+    frame)."""
     st = output.stats
     cfg = state.config
-    transitions = 0
+    transitions = steps = 0
     if state.previous is not None:
-        (selected_before, visible_before), (selected, visible) = state.previous, selection
-        transitions = int(
-            transitions_per_frame(
-                np.stack([selected_before, selected]), np.stack([visible_before, visible])
-            )[-1]
-        )
+        pairs = zip(state.previous, selection, strict=True)
+        selected, visible, levels = (np.stack(pair) for pair in pairs)
+        transitions = int(transitions_per_frame(selected, visible)[-1])
+        steps = density_steps(selected, visible, levels)
     heuristic = {"rt": "all", "raster": "none"}.get(cfg.mode, cfg.heuristic)
     return {
         "stage": stage,
@@ -568,6 +568,7 @@ def _row(
         "visible": len(set(st.visible)),
         "selected": len(set(st.selected)),
         "transitions": transitions,
+        "density_steps": steps,
         "flip": round(mean_over(flip_ref), 6),
         "flip_reflectors": round(mean_over(flip_ref, refs.reflector_px), 6),
         "psnr": round(psnr(refs.ref.beauty, output.beauty), 4),
@@ -586,23 +587,30 @@ def _blank(value):
 def _remember(
     state: _ConfigState,
     output: FrameOutput,
-    selection: tuple[np.ndarray, np.ndarray],
+    selection: tuple[np.ndarray, np.ndarray, np.ndarray],
     record: bool = True,
 ) -> None:
-    """Keep this frame's (selected, visible) for the next frame's row."""
-    selected, visible = selection
+    """Keep this frame's (selected, visible, levels) for the next frame's row."""
+    selected, visible, _levels = selection
     state.previous = selection
     if record:
         state.timeline_selected.append(selected.tolist())
         state.timeline_visible.append(visible.tolist())
 
 
-def _selection_row(output: FrameOutput, reflectors: list[str]) -> tuple[np.ndarray, np.ndarray]:
-    """(selected, visible) of one rendered frame, each (R,) bool over ``reflectors``."""
+def _selection_row(
+    output: FrameOutput, reflectors: list[str]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(selected, visible) of one rendered frame, each (R,) bool over ``reflectors``, and
+    (R,) int64 levels: the index in TRACE_DENSITIES of the density a reflector was traced
+    at where HEU1's density steps chose one (``FrameStats.densities``), else 0."""
     selected, visible = set(output.stats.selected), set(output.stats.visible)
+    densities = output.stats.densities
     return (
         np.array([p in selected for p in reflectors], dtype=bool),
         np.array([p in visible for p in reflectors], dtype=bool),
+        np.array([TRACE_DENSITIES.index(densities[p]) if p in densities else 0
+                  for p in reflectors], dtype=np.int64),  # fmt: skip
     )
 
 

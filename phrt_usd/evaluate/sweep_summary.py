@@ -240,11 +240,13 @@ def summarize(
     mean_frame_ms, median_frame_ms, mean_fps, mean_trace_ms, mean_rays, mean_flip,
     mean_flip_reflectors, mean_psnr, transitions (sum, int), transition_chances (int),
     transition_rate (transitions / chances, None without chances), chances_from
-    ("timeline" | "csv"), mean_selected, mean_visible, mean_temporal_error,
-    mean_temporal_error_reflectors, resolution ("WxH" or ""), bounce_limit (int or None),
-    trace_density (the variant's: "full", "half", "quarter"; "" without the column),
-    variant (e.g. "320x240, bounce 2"; "" without those columns), pareto (bool, see
-    ``mark_pareto``). Means skip empty cells and are None when every cell is empty.
+    ("timeline" | "csv"), density_steps (sum, int: a traced reflector's trace density
+    changed, not a transition; 0 without the column), mean_selected, mean_visible,
+    mean_temporal_error, mean_temporal_error_reflectors, resolution ("WxH" or ""),
+    bounce_limit (int or None), trace_density (the variant's, one of TRACE_DENSITIES; ""
+    without the column), variant (e.g. "320x240, bounce 2"; "" without those columns),
+    pareto (bool, see ``mark_pareto``). Means skip empty cells and are None when every
+    cell is empty.
 
     timeline : timeline.json's object; when it has the config with as many frames as the
                CSV, chances to switch are counted exactly from it (see module doc).
@@ -364,6 +366,8 @@ def _summarize_config(
         chances = int(round(sum(csv_number(r, "visible") or 0.0 for r in ordered[1:])))
         chances_from = "csv"
     total_transitions = int(round(sum(transitions)))
+    # Absent from sweeps written before the column: 0.
+    steps = int(round(sum(csv_number(r, "density_steps") or 0.0 for r in ordered)))
     return {
         "stage": stage,
         "config": config,
@@ -387,6 +391,7 @@ def _summarize_config(
         "transition_chances": chances,
         "transition_rate": total_transitions / chances if chances > 0 else None,
         "chances_from": chances_from,
+        "density_steps": steps,
         "mean_selected": _mean(csv_number(r, "selected") for r in ordered),
         "mean_visible": _mean(csv_number(r, "visible") for r in ordered),
         "mean_temporal_error": _mean(csv_number(r, "temporal_error") for r in ordered),
@@ -456,6 +461,7 @@ TABLE_COLUMNS: tuple[tuple[str, str, Any], ...] = (
     ("mean PSNR dB", "mean_psnr", format_fixed(2)),
     ("transitions", "transitions", str),
     ("transition rate", "transition_rate", format_percent),
+    ("density steps", "density_steps", str),
     ("mean selected", "mean_selected", format_fixed(2)),
     ("temporal error", "mean_temporal_error", format_significant3),
     ("temporal error reflectors", "mean_temporal_error_reflectors", format_significant3),
@@ -683,7 +689,7 @@ SUMMARY_CSV_KEYS = (
     "resolution", "bounce_limit", "trace_density", "frames", "mean_frame_ms",
     "median_frame_ms", "mean_fps",
     "mean_trace_ms", "mean_rays", "mean_flip", "mean_flip_reflectors", "mean_psnr",
-    "transitions", "transition_chances", "transition_rate", "chances_from",
+    "transitions", "transition_chances", "transition_rate", "chances_from", "density_steps",
     "mean_selected", "mean_visible", "mean_temporal_error",
     "mean_temporal_error_reflectors", "pareto",
 )  # fmt: skip
