@@ -9,8 +9,8 @@ from __future__ import annotations
 import numpy as np
 from test_heuristic import camera, element, run_frame, scene, transitions, view
 
-from phrt_usd.model.frame import Budget
-from phrt_usd.model.trace_density import DENSITY_FRACTION, TRACE_DENSITIES
+from phrt_usd.model.frame import Budget, TraceRecord
+from phrt_usd.model.trace_density import DENSITY_FRACTION, TRACE_DENSITIES, traced_fraction
 from phrt_usd.select.heu1_policy import LOOKAHEAD_FRAMES
 from phrt_usd.select.policies import ADMISSION_MARGIN, RAYS_SAFETY, make_policy
 
@@ -124,3 +124,36 @@ def test_room_steps_the_reflector_that_frees_the_fewest_rays_that_suffice():
     assert policy._room([0, 1, 2], 2500.0) == {0: 1, 1: 1}
     assert policy._room([0, 1, 2], 5600.0 * (15 / 16) + 1.0) is None
     policy.end_frame()
+
+
+def test_a_frame_the_time_model_starves_holds_the_claims_once():
+    # Two reflectors traced in frame 0 (60 and 2000 pixels, 0.001 ms a ray: 2.06 ms of a
+    # 10 ms budget). Then a slow spell puts even the cheapest above 0.5 ms (safety 10: 60
+    # rays 0.6 ms, the large one's sixteenth 125 rays 1.25 ms):
+    # the first starved frame traces both all the same, the large one at its coarsest
+    # density (the hold); a second starved frame in a row drops them. A frame whose
+    # selection fits is no hold, so the next starved frame holds again.
+    sc = scene([element((0.0, 0.0, -8.0)), element((1.0, 0.0, -8.0))])
+    policy = heu1()
+    policy.time_model.calibrate([(100, 0.1), (1000, 1.0)])
+
+    def frame(ms, safety=1.1):
+        """One frame at a safety factor of ``safety``: {traced id: its density}."""
+        pixels = [60, 2000]
+        policy.begin_frame(view(pixels), sc)
+        policy.time_model.safety = safety
+        ids = policy.next_round(Budget(ms=ms))
+        traced = dict(zip(ids, policy.round_densities(ids), strict=True))
+        if ids:  # one ray a traced pixel, 0.001 ms a ray
+            rays = {e: round(pixels[e] * traced_fraction(pixels[e], d)) for e, d in traced.items()}
+            policy.record([TraceRecord(e, pixels[e], rays[e], {}, 0, 0.0) for e in ids],
+                          1e-6 * sum(rays.values()))  # fmt: skip
+        policy.end_frame()
+        return traced
+
+    full = {0: "full", 1: "full"}
+    assert frame(10.0) == full
+    assert frame(0.5, safety=10.0) == {0: "full", 1: "sixteenth"}  # held
+    assert frame(0.5, safety=10.0) == {}  # starved again: dropped
+    assert frame(10.0) == full
+    assert set(frame(0.5, safety=10.0)) == {0, 1}

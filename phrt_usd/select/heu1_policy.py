@@ -80,6 +80,13 @@ class Heu1Policy(BudgetedPolicy):
       that fits with the admission margin and its forecast stays within the budget. A
       step changes how sharp a reflection is, not whether it is traced (no transition:
       docs/heuristic.md);
+    * hold: when the time model lets none of the previous frame's selection be traced
+      (a slow spell it has just learned: even the cheapest claim is predicted above T)
+      while the rays budget would, the claims still in view are traced at their
+      coarsest density all the same, for one frame. Dropping them all would cost two
+      transitions each once the spell passes (on the farm at T = 1 ms, 13 of a run's 14);
+      holding costs that frame's overrun, and its measured round corrects the model. A
+      second starved frame in a row drops them;
     * leftover: rounds after the first fill what the measured rounds left of T, and the
       admission margin there is a share of that leftover, not of the whole budget (with
       a time budget the first round plans only ~1/safety of T, and a margin of
@@ -87,7 +94,7 @@ class Heu1Policy(BudgetedPolicy):
 
     Deviations from the paper (§4.2: the most relevant nodes whose cost fits, S·I as
     the only hysteresis): the keep step, the admission margin, the forecasts, the
-    shrinking/outgrowing rules and the density steps above are ours (docs/heuristic.md,
+    shrinking/outgrowing rules, the density steps and the hold above are ours (docs/heuristic.md,
     "Transition-aware selection"); the relevance R, the Selection Graph walk and the
     rounds while time remains are the paper's.
     """
@@ -104,6 +111,8 @@ class Heu1Policy(BudgetedPolicy):
         #: Reflectors the keep step could not fit while in view, not selected since and
         #: still in view: they are no challengers of kept reflectors (``Node.challenger``).
         self.forced_out: set[int] = set()
+        #: The previous frame held its claims (``_hold``): this one may not.
+        self.held = False
         #: This frame's lookahead growth per reflector in view (element id → largest
         #: bounding-box screen area over the upcoming cameras / the current one, >= 1);
         #: empty when the view has no upcoming cameras.
@@ -174,6 +183,7 @@ class Heu1Policy(BudgetedPolicy):
         visible = set(np.flatnonzero(frame.pixels > 0).tolist())
         self.forced_out = ((self.forced_out | frame.unfit_claims) & visible) - set(frame.traced)
         self.previous_visible = visible
+        self.held = frame.held
         return super().end_frame()
 
     def growth(self, element: int) -> float:
@@ -295,6 +305,30 @@ class Heu1Policy(BudgetedPolicy):
         )
 
     def _choose(self, budget: Budget) -> list[int]:
+        frame = self._require_frame()
+        ids = self._choose_within(budget)
+        if not ids and not frame.traced:
+            ids = self._hold(budget)
+        return ids
+
+    def _hold(self, budget: Budget) -> list[int]:
+        """HEU1's hold (ours, class docstring): the previous frame's selection still in
+        view, each at its coarsest density, when the time model lets none of them be
+        traced in this frame (``_starved_by_time``) and the previous frame was no hold;
+        else []."""
+        frame = self._require_frame()
+        claims = sorted(e for e in self.previous_selection if frame.pixels[e] > 0)
+        if self.held or not claims or not self._starved_by_time(budget):
+            return []
+        level = len(TRACE_DENSITIES) - 1 if self._steps() else 0
+        for e in claims:
+            if self.level_share(e, level) < 1.0:
+                frame.levels[e] = level
+        frame.held = True
+        return claims
+
+    def _choose_within(self, budget: Budget) -> list[int]:
+        """The round's selection within ``budget`` (class docstring)."""
         frame = self._require_frame()
         allowance = self.ray_allowance(budget)
         if not allowance > 0.0:

@@ -85,6 +85,7 @@ class _FrameState:
     #: HEU1: forecasts of this frame's selection, summed (a number, or per lookahead frame).
     forecast_used: float | np.ndarray = 0.0
     unfit_claims: set[int] = field(default_factory=set)  # HEU1: kept, claimed, did not fit
+    held: bool = False  # HEU1: the previous selection was held through a starved frame
     #: ``predicted_rays`` per element as of the last recorded round (it changes only when
     #: ``record`` learns rays per pixel; every round asks for it per candidate).
     rays: dict[int, float] = field(default_factory=dict)
