@@ -78,7 +78,7 @@ def fill_skipped(
     density : the density the sources were traced at, one of TRACE_DENSITIES but "full"
         for every source, or a sequence of them, one per source (index ``skipped_src``)
     Returns (k,) int64 the skipped pixels with at least one traced neighbour and (k, 3)
-    float32 the mean radiance of those neighbours (the others keep the fallback)."""
+    float32 their interpolated radiance (the others keep the fallback)."""
     if row_of is None:
         row_of = np.full(width * height, -1, np.int32)
     m = len(skipped_pix)
