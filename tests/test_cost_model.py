@@ -210,3 +210,23 @@ def test_safety_covers_the_ray_prediction_error():
         model.learn(rays, true_ms(rays, rng), planned_rays=planned)
     assert model.expected_ms(30000) == pytest.approx(true_ms(30000), rel=0.10)
     assert model.safety > 1.15  # ~1.2 x the jitter's quantile, less the fixed cost's share
+
+
+def test_the_fixed_cost_is_bounded_by_the_windows_median_round():
+    """Rounds that all take 1 ms whatever their rays (a slow spell) fit a flat line at
+    1 ms: every reflector, however small, would be priced at the whole 1 ms budget. While
+    the spell is under half the window, the fixed cost stays at the median round's time
+    (0.4 ms; the spell raises the safety factor instead); once it is most of the window,
+    the model follows it."""
+    rng = np.random.default_rng(4)
+    model = TraceTimeModel()
+    model.calibrate([(64, 0.076), (512, 0.167)])
+    for _ in range(JITTER_WINDOW // 2 + 2):
+        model.learn(300, 0.4)
+    for _ in range(JITTER_WINDOW // 2 - 2):
+        model.learn(int(rng.integers(200, 1400)), 1.0)
+    assert model.overhead_ms == pytest.approx(0.4)  # the flat line's would be ~0.88
+    assert model.predicted_ms(20) < 0.8
+    for _ in range(JITTER_WINDOW // 2):
+        model.learn(int(rng.integers(200, 1400)), 1.0)
+    assert model.expected_ms(20) > 0.8

@@ -10,6 +10,7 @@ those rays take (``TraceTimeModel`` here).
 from __future__ import annotations
 
 import math
+import statistics
 
 #: Predicted trace milliseconds are multiplied by a time safety factor: wall time jitters
 #: from round to round (caches, the OS, other processes on the two cores). The factor is
@@ -109,7 +110,9 @@ class TraceTimeModel:
     converges to the measured time also when every round traces about the same rays (a
     still or turntable shot): the rounds fix the line's height where they are, the prior
     only its tilt. A negative fixed cost is replaced by a line through the origin, a
-    non-positive slope by the prior's per-ray cost (noise dominating small rounds).
+    non-positive slope by the prior's per-ray cost (noise dominating small rounds), and a
+    fixed cost above the median round time of the safety factor's window by that median
+    (``_fit``).
 
     Predictions are multiplied by ``safety``: the JITTER_QUANTILE quantile of (measured /
     modelled) round time over the last JITTER_WINDOW rounds, weighted by the rounds'
@@ -225,6 +228,21 @@ class TraceTimeModel:
         else:  # time does not grow with rays: the prior's per-ray cost, height from the mean
             per_unit = b0
             overhead = max((m - per_unit * r) / w, 0.0)
+        typical = statistics.median(self.jitter_ms) if self.jitter_ms else math.inf
+        if overhead > typical:
+            # Every round costs the fixed cost and more, so the window's median round time
+            # bounds it: the line through that bound that fits the rounds best. Without
+            # this, a spell of slow rounds of about the same rays (no spread to tell the
+            # fixed cost from the per-ray cost) fitted a flat line at their time, and
+            # every reflector, however small, was predicted above the budget (on the farm
+            # at T = 1 ms all eight claims dropped for a frame, twice in one run). The
+            # median, not the fastest round: a frame's first round also groups the
+            # G-buffer's reflector pixels, so later rounds' fixed cost is lower (capped at
+            # the fastest, the farm's prediction error rose from 12 to 35 %). A lasting
+            # rise of the fixed cost is followed once it fills half the window (~32
+            # rounds); until then the safety factor covers it.
+            overhead = typical
+            per_unit = max((rm - overhead * r) / rr, 0.0) if rr > 0.0 else b0
         self.overhead_ms = float(overhead)
         self.ms_per_ray = max(float(per_unit) / RAY_UNIT, MIN_MS_PER_RAY)
 
@@ -238,9 +256,9 @@ class TraceTimeModel:
             self.prior_ms_per_ray = max(self.prior_ms_per_ray * k, MIN_MS_PER_RAY)
             self._m *= k
             self._rm *= k
-            self._fit()
             # The window's rounds scale with the model, so their ratios to it stay.
             self.jitter_ms = [m * k for m in self.jitter_ms]
+            self._fit()
         self.jitter_ms = [m * STARVED_RELAX for m in self.jitter_ms]
         self.safety = max(self.safety * STARVED_RELAX, TIME_SAFETY_MIN)
 
