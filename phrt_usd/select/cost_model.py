@@ -47,8 +47,13 @@ TIME_SAFETY_MAX = 10.0
 #: 95 %, not 99 %: the frame's later rounds spend what the measured rounds left of the
 #: budget, so one slow round costs the frame its leftover rounds, not the budget.
 JITTER_QUANTILE = 0.95
-#: Rounds in the window: a tracing frame makes 1-3 rounds, so 2-3 s of frames at 24 fps.
-JITTER_WINDOW = 64
+#: Rounds in the window: a tracing frame makes 1-3 rounds, so 3-8 s of frames at 24 fps.
+#: 192 rather than 64: with sub-millisecond rounds (the farm at T = 1 ms, ±30-50 % round
+#: jitter) the quantile of 64 rounds swung with every slow round entering or leaving it,
+#: and the frame's ray allowance with it; six runs each made 1-6 transitions against
+#: 2-7, selecting more (docs/bench-log). A loaded spell is forgotten 192 rounds after it
+#: ends.
+JITTER_WINDOW = 192
 #: When the time budget lets nothing at all be traced in a frame, the safety factor is
 #: multiplied by this. Otherwise a noisy spell could raise it so far that nothing is ever
 #: traced again, and without rounds there is nothing to learn from: the factor creeps back
@@ -239,7 +244,7 @@ class TraceTimeModel:
             # median, not the fastest round: a frame's first round also groups the
             # G-buffer's reflector pixels, so later rounds' fixed cost is lower (capped at
             # the fastest, the farm's prediction error rose from 12 to 35 %). A lasting
-            # rise of the fixed cost is followed once it fills half the window (~32
+            # rise of the fixed cost is followed once it fills half the window (~96
             # rounds); until then the safety factor covers it.
             overhead = typical
             per_unit = max((rm - overhead * r) / rr, 0.0) if rr > 0.0 else b0
