@@ -22,6 +22,8 @@ SPARSE_MIN_PIXELS = 64
 #: farm at T = 1 ms, reflectors already at a quarter grew to 4x the budget's rays near the
 #: path's end, and a drop there is a transition.
 TRACE_DENSITIES = ("full", "half", "quarter", "sixteenth")
+#: Index of the coarsest density in TRACE_DENSITIES.
+COARSEST = len(TRACE_DENSITIES) - 1
 #: Share of a large reflector's pixels each density starts rays at (the patterns').
 DENSITY_FRACTION = {"full": 1.0, "half": 0.5, "quarter": 0.25, "sixteenth": 1.0 / 16.0}
 

@@ -12,7 +12,7 @@ import numpy as np
 
 from phrt_usd.model.frame import Budget, FrameView, ReflectorMetrics
 from phrt_usd.model.scene import CameraFrame, Scene
-from phrt_usd.model.trace_density import TRACE_DENSITIES
+from phrt_usd.model.trace_density import COARSEST
 from phrt_usd.select.metrics import box_screen_area
 from phrt_usd.select.policies import ADMISSION_MARGIN, BudgetedPolicy, register_policy
 from phrt_usd.select.selection_graph import Node, SelectionGraph
@@ -236,11 +236,11 @@ class Heu1Policy(BudgetedPolicy):
         return self._require_frame().view.trace_density == "full"
 
     def fewest_rays(self, element: int) -> float:
-        return self.level_rays(element, len(TRACE_DENSITIES) - 1 if self._steps() else 0)
+        return self.level_rays(element, COARSEST if self._steps() else 0)
 
     def _level(self, e: int) -> int:
         """The density level ``e`` is offered at: a kept reflector's previous one (index
-        into TRACE_DENSITIES), else full."""
+        into ``model.trace_density.TRACE_DENSITIES``), else full."""
         kept = e in self.previous_selection and self._steps()
         return self.previous_levels.get(e, 0) if kept else 0
 
@@ -320,7 +320,7 @@ class Heu1Policy(BudgetedPolicy):
         claims = sorted(e for e in self.previous_selection if frame.pixels[e] > 0)
         if self.held or not claims or not self._starved_by_time(budget):
             return []
-        level = len(TRACE_DENSITIES) - 1 if self._steps() else 0
+        level = COARSEST if self._steps() else 0
         for e in claims:
             if self.level_share(e, level) < 1.0:
                 frame.levels[e] = level
@@ -384,7 +384,7 @@ class Heu1Policy(BudgetedPolicy):
         the frame."""
         frame = self._require_frame()
         budget = frame.first_allowance
-        coarser = range(1, len(TRACE_DENSITIES))
+        coarser = range(1, COARSEST + 1)
         taken: list[int] = []
 
         def take(e: int, level: int) -> None:
@@ -393,10 +393,7 @@ class Heu1Policy(BudgetedPolicy):
             # every density traces every pixel (no step to report).
             level = next(v for v in range(level + 1)
                          if self.level_rays(e, v) <= self.level_rays(e, level))  # fmt: skip
-            remaining -= self.level_rays(e, level)
-            if level:
-                frame.levels[e] = level
-            frame.forecast_used = frame.forecast_used + self._level_forecast(e, level)
+            remaining -= self._set_level(e, level)
             taken.append(e)
 
         squeezed: set[int] = set()  # stepped coarser to make room: no step back this round
@@ -409,19 +406,14 @@ class Heu1Policy(BudgetedPolicy):
                 return False
             squeezed.update(freed)
             for c, level in freed.items():
-                was = frame.levels.get(c, 0)
-                remaining += self.level_rays(c, was) - self.level_rays(c, level)
-                frame.forecast_used = (frame.forecast_used + self._level_forecast(c, level)
-                                       - self._level_forecast(c, was))  # fmt: skip
-                frame.levels[c] = level
+                remaining -= self._set_level(c, level, was=frame.levels.get(c, 0))
             return True
 
-        last = len(TRACE_DENSITIES) - 1
         for e in unfit:
             level = next((v for v in coarser if v > self._level(e)
                           and self.level_rays(e, v) <= remaining), None)  # fmt: skip
-            if level is None and make_room(self.level_rays(e, last)):
-                level = last
+            if level is None and make_room(self.level_rays(e, COARSEST)):
+                level = COARSEST
             if level is not None:
                 take(e, level)
         chosen = set(ids)
@@ -431,9 +423,9 @@ class Heu1Policy(BudgetedPolicy):
             level = next((v for v in coarser
                           if self.level_rays(e, v) + reserve <= remaining
                           and not self._outgrows(e, budget, v)), None)  # fmt: skip
-            if level is None and not self._outgrows(e, budget, last):
-                if make_room(self.level_rays(e, last) + reserve):
-                    level = last
+            if level is None and not self._outgrows(e, budget, COARSEST):
+                if make_room(self.level_rays(e, COARSEST) + reserve):
+                    level = COARSEST
             if level is not None:
                 take(e, level)
         for e in ids:
@@ -443,14 +435,25 @@ class Heu1Policy(BudgetedPolicy):
             extra = self.level_rays(e, level - 1) - self.level_rays(e, level)
             lasting = bool(np.all(self._level_forecast(e, level - 1) <= budget))
             if extra + reserve <= remaining and lasting:
-                remaining -= extra
-                frame.forecast_used = (frame.forecast_used + self._level_forecast(e, level - 1)
-                                       - self._level_forecast(e, level))  # fmt: skip
-                if level - 1:
-                    frame.levels[e] = level - 1
-                else:
-                    del frame.levels[e]
+                remaining -= self._set_level(e, level - 1, was=level)
         return taken
+
+    def _set_level(self, e: int, level: int, was: int | None = None) -> float:
+        """Record ``e`` traced at density ``level`` in this frame, in place of density
+        ``was`` (None: not taken yet): its level (absent at full density) and its
+        forecast in the frame's ``forecast_used``. Returns the predicted rays this adds
+        to the round (negative when it frees some)."""
+        frame = self._require_frame()
+        if level:
+            frame.levels[e] = level
+        else:
+            frame.levels.pop(e, None)
+        frame.forecast_used = frame.forecast_used + self._level_forecast(e, level)
+        added = self.level_rays(e, level)
+        if was is not None:
+            frame.forecast_used = frame.forecast_used - self._level_forecast(e, was)
+            added -= self.level_rays(e, was)
+        return added
 
     def _room(self, traced: list[int], need: float) -> dict[int, int] | None:
         """Density steps down of reflectors of this round (``traced``: taken in it, not
@@ -462,12 +465,11 @@ class Heu1Policy(BudgetedPolicy):
         if need <= 0.0:
             return {}
         frame = self._require_frame()
-        last = len(TRACE_DENSITIES) - 1
         levels = {c: frame.levels.get(c, 0) for c in traced}
         steps: dict[int, int] = {}
         while need > 0.0:
             saving = {c: self.level_rays(c, v) - self.level_rays(c, v + 1)
-                      for c, v in levels.items() if v < last}  # fmt: skip
+                      for c, v in levels.items() if v < COARSEST}  # fmt: skip
             saving = {c: x for c, x in saving.items() if x > 0.0}
             if not saving:
                 return None
