@@ -24,8 +24,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from phrt_usd.errors import PhrtError
-from phrt_usd.evaluate.selection_metrics import density_steps, selection_metrics
-from phrt_usd.model.trace_density import TRACE_DENSITIES
+from phrt_usd.evaluate.selection_metrics import density_levels, density_steps, selection_metrics
 from phrt_usd.run.run_files import read_stats, selection_layer_path, stats_path
 
 if TYPE_CHECKING:  # rich is imported where the tables are drawn (a cheap start)
@@ -160,14 +159,12 @@ def _density_steps(record: SelectionRecord, stats_rows: list[dict[str, Any]]) ->
     without stats.json)."""
     if not stats_rows:
         return None
-    column = {path: r for r, path in enumerate(record.reflectors)}
     row_of = {t: f for f, t in enumerate(record.times.tolist())}
     levels = np.zeros(record.selected.shape, np.int64)
     for row in stats_rows:
         f = row_of.get(row.get("time"))
-        for path, density in (row.get("densities") or {}).items():
-            if f is not None and path in column:
-                levels[f, column[path]] = TRACE_DENSITIES.index(density)
+        if f is not None:
+            levels[f] = density_levels(row.get("densities") or {}, record.reflectors)
     return density_steps(record.selected, record.visible, levels)
 
 

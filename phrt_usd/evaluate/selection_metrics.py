@@ -21,9 +21,12 @@ reflector is selected in the later frame, a *drop* when it is not.
 
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
+
+from phrt_usd.model.trace_density import TRACE_DENSITIES
 
 
 def transition_chances(visible: np.ndarray) -> np.ndarray:
@@ -60,6 +63,14 @@ def admissions_and_drops(selected: np.ndarray, visible: np.ndarray) -> tuple[int
     switched = transition_mask(selected, visible)
     admissions = int(np.count_nonzero(switched & selected[1:]))
     return admissions, int(np.count_nonzero(switched)) - admissions
+
+
+def density_levels(densities: Mapping[str, str], reflectors: Sequence[str]) -> np.ndarray:
+    """(R,) int64 levels of one frame for ``density_steps``: the index in
+    ``model.trace_density.TRACE_DENSITIES`` of each of ``reflectors`` (prim paths) that
+    ``densities`` (a frame's ``FrameStats.densities``: path → density) names, else 0."""
+    return np.array([TRACE_DENSITIES.index(densities[p]) if p in densities else 0
+                     for p in reflectors], dtype=np.int64).reshape(-1)  # fmt: skip
 
 
 def density_steps(selected: np.ndarray, visible: np.ndarray, levels: np.ndarray) -> int:

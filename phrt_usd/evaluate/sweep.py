@@ -42,7 +42,11 @@ import numpy as np
 from phrt_usd.atomic import write_text_atomic
 from phrt_usd.errors import BadOption
 from phrt_usd.evaluate.image_metrics import flip_map, mean_over, psnr
-from phrt_usd.evaluate.selection_metrics import density_steps, transitions_per_frame
+from phrt_usd.evaluate.selection_metrics import (
+    density_levels,
+    density_steps,
+    transitions_per_frame,
+)
 from phrt_usd.evaluate.sweep_files import (
     ERROR_VS_TIME_PNG,
     FLIP_MAP_SUFFIX,
@@ -59,7 +63,6 @@ from phrt_usd.evaluate.temporal_error import (
     sequence_frames_per_second,
     temporal_error_map,
 )
-from phrt_usd.model.trace_density import TRACE_DENSITIES
 from phrt_usd.render.raster.gl_platform import DEFAULT_GL
 from phrt_usd.render.renderer import FrameOutput, FrameRenderer, RenderOptions
 from phrt_usd.run.frames import parse_frames
@@ -602,15 +605,12 @@ def _selection_row(
     output: FrameOutput, reflectors: list[str]
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(selected, visible) of one rendered frame, each (R,) bool over ``reflectors``, and
-    (R,) int64 levels: the index in TRACE_DENSITIES of the density a reflector was traced
-    at where HEU1's density steps chose one (``FrameStats.densities``), else 0."""
+    (R,) int64 levels (``selection_metrics.density_levels``)."""
     selected, visible = set(output.stats.selected), set(output.stats.visible)
-    densities = output.stats.densities
     return (
         np.array([p in selected for p in reflectors], dtype=bool),
         np.array([p in visible for p in reflectors], dtype=bool),
-        np.array([TRACE_DENSITIES.index(densities[p]) if p in densities else 0
-                  for p in reflectors], dtype=np.int64),  # fmt: skip
+        density_levels(output.stats.densities, reflectors),
     )
 
 
