@@ -34,6 +34,18 @@ from phrt_usd.model.trace_density import SPARSE_MIN_PIXELS, TRACE_DENSITIES
 #: Spacing of each reduced density's traced pixels: a skipped pixel's traced neighbours
 #: lie within spacing - 1 rows and columns (the checkerboard's within 1, as at quarter).
 PATTERN_SPACING = {"half": 2, "quarter": 2, "sixteenth": 4}
+#: PATTERN_SPACING by index of TRACE_DENSITIES (1 at full density: every pixel traced).
+_SPACING = np.array([PATTERN_SPACING.get(d, 1) for d in TRACE_DENSITIES], np.int64)
+
+
+def _pixel_levels(density, src: np.ndarray) -> np.ndarray:
+    """(n,) int64 index in TRACE_DENSITIES of the density of each pixel's source (``src``
+    (n,) int64): ``density`` one of TRACE_DENSITIES for every source, or a sequence of
+    them, one per source."""
+    if isinstance(density, str):
+        return np.full(len(src), TRACE_DENSITIES.index(density), np.int64)
+    levels = np.array([TRACE_DENSITIES.index(d) for d in density], np.int64)
+    return levels[src] if len(levels) else np.zeros(len(src), np.int64)
 
 
 def traced_subset(
@@ -45,11 +57,8 @@ def traced_subset(
     fewer than SPARSE_MIN_PIXELS pixels, the pattern's pixels of the others."""
     counts = np.bincount(src, minlength=n_sources)
     row, col = np.divmod(pix, width)
-    level = np.array(
-        [TRACE_DENSITIES.index(d) for d in
-         ([density] * n_sources if isinstance(density, str) else density)], np.int64,
-    )[src] if n_sources else np.zeros(0, np.int64)  # fmt: skip
-    step = np.array([PATTERN_SPACING.get(d, 1) for d in TRACE_DENSITIES], np.int64)[level]
+    level = _pixel_levels(density, src)
+    step = _SPACING[level]
     on_grid = (row % step == 0) & (col % step == 0)
     on_pattern = np.where(level == TRACE_DENSITIES.index("half"), (row + col) % 2 == 0, on_grid)
     return (counts[src] < SPARSE_MIN_PIXELS) | on_pattern
@@ -82,10 +91,7 @@ def fill_skipped(
     if row_of is None:
         row_of = np.full(width * height, -1, np.int32)
     m = len(skipped_pix)
-    per_source = [density] if isinstance(density, str) else list(density)
-    spacing = np.array([PATTERN_SPACING.get(d, 1) for d in per_source], np.int64)
-    spacing = spacing[0] if isinstance(density, str) else spacing[_int64(skipped_src)]
-    spacing = np.broadcast_to(spacing, (m,)).astype(np.int64)
+    spacing = _SPACING[_pixel_levels(density, _int64(skipped_src))]
     out_pix, out_rad = np.empty(m, np.int64), np.empty((m, 3), np.float32)
     k = _trace_kernels().fill_skipped(
         row_of, _int64(traced_pix), _int64(traced_src),
