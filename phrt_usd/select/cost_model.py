@@ -10,7 +10,8 @@ those rays take (``TraceTimeModel`` here).
 from __future__ import annotations
 
 import math
-import statistics
+
+import numpy as np
 
 #: Predicted trace milliseconds are multiplied by a time safety factor: wall time jitters
 #: from round to round (caches, the OS, other processes on the two cores). The factor is
@@ -202,17 +203,18 @@ class TraceTimeModel:
         to JITTER_WINDOW rounds at TIME_SAFETY_INITIAL, clamped."""
         if not self.jitter_ms:
             return
-        modelled = [max(self.expected_ms(r), 1e-9) for r in self.jitter_rays]
-        pairs = [(m / e, e) for m, e in zip(self.jitter_ms, modelled, strict=True)]
-        padding = JITTER_WINDOW - len(pairs)  # the young window's prior rounds
-        pairs = sorted([*pairs, *[(TIME_SAFETY_INITIAL, sum(modelled) / len(pairs))] * padding])
-        total = sum(w for _r, w in pairs)
-        quantile, below = pairs[-1][0], 0.0
-        for ratio, w in pairs:
-            below += w
-            if below >= JITTER_QUANTILE * total:
-                quantile = ratio
-                break
+        # One array pass (this runs after every round, over up to JITTER_WINDOW rounds).
+        modelled = np.maximum(self.overhead_ms + self.ms_per_ray * np.asarray(self.jitter_rays),
+                              1e-9)  # fmt: skip
+        ratios, weights = np.asarray(self.jitter_ms) / modelled, modelled
+        padding = JITTER_WINDOW - len(ratios)  # the young window's prior rounds, as one
+        if padding > 0:
+            ratios = np.append(ratios, TIME_SAFETY_INITIAL)
+            weights = np.append(weights, padding * modelled.mean())
+        order = np.argsort(ratios, kind="stable")
+        below = np.cumsum(weights[order])
+        at = int(np.searchsorted(below, JITTER_QUANTILE * below[-1]))
+        quantile = float(ratios[order[min(at, len(order) - 1)]])
         self.safety = min(max(quantile, TIME_SAFETY_MIN), TIME_SAFETY_MAX)
 
     def _fit(self) -> None:
@@ -233,7 +235,7 @@ class TraceTimeModel:
         else:  # time does not grow with rays: the prior's per-ray cost, height from the mean
             per_unit = b0
             overhead = max((m - per_unit * r) / w, 0.0)
-        typical = statistics.median(self.jitter_ms) if self.jitter_ms else math.inf
+        typical = float(np.median(self.jitter_ms)) if self.jitter_ms else math.inf
         if overhead > typical:
             # Every round costs the fixed cost and more, so the window's median round time
             # bounds it: the line through that bound that fits the rounds best. Without
