@@ -1,50 +1,48 @@
-"""The compiled (numba) kernels of the per-pixel and per-ray code: how a frame gets them.
+"""The compiled (numba) kernels of the per-pixel and per-ray code: where they are compiled
+to and how a render gets them.
 
-Kernels are written once, as numba ``@njit`` functions in the modules of
-``KERNEL_MODULES`` (each with a ``warm_up()`` that calls every kernel on tiny inputs of
-the renderer's argument types). A render takes them through ``load(module_name)``, in
-one of two compiled forms of that same source:
+Kernels are written once, as numba ``@njit(**KERNEL_OPTIONS)`` functions in the modules of
+``KERNEL_MODULES`` (each with a ``warm_up()`` that compiles every kernel for the argument
+types the renderer passes). numba compiles them to machine code on first use and keeps
+that code in a disk cache, so only the very first render of an installation compiles
+(about half a minute on 2 cores); every later one loads the code (~0.5 s with numba's
+import). Nothing needs a C compiler, and an installed wheel behaves as a checkout.
 
-* **ahead of time** (the set-up's ``python -m phrt_usd.kernels`` builds it): one
-  extension module in ``phrt_usd/_aot/`` with its argument check beside it (from
-  ``kernel_guard.c``), named by a hash of the sources (``SOURCE_MODULES``,
-  ``GUARD_SOURCE``), so an edited kernel can never load an old build. Importing it
-  costs ~0.07 s and no numba import at all; a JIT start (numba's import, type
-  registries, its disk cache) costs ~0.6 s of every render's start and of its first
-  frame (measured 2026-12-03: first image of a small stage 1.14 s without kernels,
-  1.89 s with JIT-loaded ones).
-* **just in time** (numba, cached on disk beside the module): when no build matches the
-  sources (a fresh checkout before the set-up, an install without a C toolchain).
+The cache (``cache_dir()``) is phrt's own, not numba's default beside the sources:
 
-Both are compiled by numba from the same functions with the same options: the GIL is
-released while a kernel runs (callers split work over their own thread pools; numba's
-``parallel`` is never used), and division follows numpy's rules (``error_model``). The
-build exports each kernel for the signatures its ``warm_up`` compiled, and a call whose
-arguments match none of them runs the JIT kernel instead (``_Guarded``; the test suite
-fails on any such call): callers pass the dtypes and layouts their docstrings give
-(``tests/test_kernels.py`` checks both forms agree).
+* it is named by a hash of every source the kernels depend on (``SOURCE_MODULES``: the
+  kernels and the constants they read from other modules) and numba's version. numba's
+  own cache checks only the kernel's file and bytecode, so an edited constant in
+  ``model/surface.py`` would load stale code; here it names another directory.
+* it lives in the user's cache directory (``$PHRT_CACHE_DIR``, else
+  ``$XDG_CACHE_HOME/phrt-usd``, else ``~/.cache/phrt-usd``), so a read-only install
+  (a system site-packages, a container image) still caches; when that directory cannot
+  be written either, the system's temporary directory serves.
 
-A base module: it names kernel modules by string and imports them only when asked, so
-it sits below every phase.
+When a render is about to compile (no cache of these sources yet), one line on stderr
+says so and names ``phrt kernels``, which compiles ahead of time (the set-up runs it).
+``phrt kernels --check`` says whether every kernel loads from the cache.
+
+Every kernel releases the GIL (callers split work over their own thread pools; numba's
+``parallel`` is never used) and divides by numpy's rules (``error_model``).
+
+A base module below every phase: it names kernel modules by string and imports them only
+when asked. Importing it installs the cache locator (numba's import: ~0.25 s), which
+every render needs anyway.
 """
 
 from __future__ import annotations
 
 import hashlib
 import importlib
-import importlib.machinery
-import importlib.util
-import json
-import shutil
+import os
 import sys
 import tempfile
 import time
 from pathlib import Path
-from types import ModuleType, SimpleNamespace
 
-import numpy as np
-
-from phrt_usd.atomic import write_bytes_atomic, write_text_atomic
+import numba
+from numba.core import caching
 
 #: Modules holding numba kernels, each with a ``warm_up()``.
 KERNEL_MODULES = (
@@ -53,189 +51,154 @@ KERNEL_MODULES = (
     "phrt_usd.render.shade_kernels",
 )
 #: Sources the compiled kernels depend on (the kernels and the constants they read):
-#: their hash names the ahead-of-time build.
+#: their hash names the cache directory.
 SOURCE_MODULES = (
     *KERNEL_MODULES,
     "phrt_usd.model.surface",
+    "phrt_usd.model.scene",
     "phrt_usd.render.trace.bounce_layout",
     "phrt_usd.kernels",
 )
-#: The C source of the argument check in front of the ahead-of-time kernels (``_Guarded``),
-#: built with them and named by the same hash.
-GUARD_SOURCE = Path(__file__).resolve().parent / "kernel_guard.c"
-#: Where the ahead-of-time builds go (not in version control).
-AOT_DIR = Path(__file__).resolve().parent / "_aot"
-#: The numba options of every kernel (``@njit(**KERNEL_OPTIONS)``); the ahead-of-time
-#: build applies the same two to its compile flags.
+#: The numba options of every kernel (``@njit(**KERNEL_OPTIONS)``); ``cache`` puts the
+#: compiled code in ``cache_dir()`` (``_KernelCacheLocator``).
 KERNEL_OPTIONS = {"nogil": True, "cache": True, "error_model": "numpy"}
+#: The environment variable that overrides the cache's parent directory.
+CACHE_ENV = "PHRT_CACHE_DIR"
 
+_PACKAGE = Path(__file__).resolve().parent
 _loaded: dict[str, object] = {}
+_announced = False
 
 
 def _source_path(module_name: str) -> Path:
     """The file of ``phrt_usd`` module ``module_name`` (without importing it)."""
     parts = module_name.split(".")[1:]
-    return Path(__file__).resolve().parent.joinpath(*parts).with_suffix(".py")
+    return _PACKAGE.joinpath(*parts).with_suffix(".py")
 
 
 def source_hash() -> str:
-    """12 hex digits of the SHA-256 of every source in SOURCE_MODULES and GUARD_SOURCE."""
-    digest = hashlib.sha256()
+    """12 hex digits of the SHA-256 of numba's version and every source in SOURCE_MODULES."""
+    digest = hashlib.sha256(numba.__version__.encode())
     for name in SOURCE_MODULES:
-        digest.update(name.encode() + b"\0" + _source_path(name).read_bytes())
-    digest.update(b"guard\0" + GUARD_SOURCE.read_bytes())
+        digest.update(b"\0" + name.encode() + b"\0" + _source_path(name).read_bytes())
     return digest.hexdigest()[:12]
 
 
-def _aot_name() -> str:
-    return f"phrt_kernels_{source_hash()}"
+def _writable(path: Path) -> bool:
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+        tempfile.TemporaryFile(dir=path).close()
+        return True
+    except OSError:
+        return False
 
 
-def _aot_file() -> Path:
-    suffix = importlib.machinery.EXTENSION_SUFFIXES[0]
-    return AOT_DIR / f"{_aot_name()}{suffix}"
+def _parent_dir() -> Path:
+    """The directory phrt caches in (module docstring): the first writable of
+    ``$PHRT_CACHE_DIR``, the user's cache directory, the system's temporary directory."""
+    if os.environ.get(CACHE_ENV):
+        candidates = [Path(os.environ[CACHE_ENV])]
+    else:
+        xdg = os.environ.get("XDG_CACHE_HOME")
+        candidates = [Path(xdg) / "phrt-usd" if xdg else Path.home() / ".cache" / "phrt-usd"]
+    candidates.append(Path(tempfile.gettempdir()) / f"phrt-usd-{os.getuid()}")
+    for candidate in candidates:
+        if _writable(candidate):
+            return candidate
+    return candidates[-1]  # numba then warns that it cannot cache, and compiles each run
 
 
-#: The guard's module name (its ``PyInit_`` function); its file carries the build's hash.
-_GUARD_MODULE = "phrt_kernel_guard"
+_cache_dir: Path | None = None
 
 
-def _guard_file() -> Path:
-    suffix = importlib.machinery.EXTENSION_SUFFIXES[0]
-    return AOT_DIR / f"{_GUARD_MODULE}_{source_hash()}{suffix}"
+def cache_dir() -> Path:
+    """The directory of this installation's compiled kernels:
+    ``<parent>/kernels/<source_hash()>``."""
+    global _cache_dir
+    if _cache_dir is None:
+        _cache_dir = _parent_dir() / "kernels" / source_hash()
+    return _cache_dir
 
 
-def _extension(name: str, path: Path) -> ModuleType:
-    """Extension module ``name`` loaded from ``path`` (ImportError when it cannot be)."""
-    spec = importlib.util.spec_from_file_location(name, path)
-    if spec is None or spec.loader is None:
-        raise ImportError(f"cannot load {path}")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+class _KernelCacheLocator(caching._CacheLocator):
+    """numba's cache locator for phrt's kernels: ``cache_dir()``, stamped by the sources'
+    hash (every other function keeps numba's own locators)."""
+
+    def __init__(self, py_file: str) -> None:
+        self._name = Path(py_file).stem
+
+    @classmethod
+    def from_function(cls, py_func, py_file):
+        module = getattr(py_func, "__module__", "") or ""
+        return cls(py_file) if module in KERNEL_MODULES else None
+
+    def get_cache_path(self) -> str:
+        return str(cache_dir())
+
+    def get_source_stamp(self) -> str:
+        return cache_dir().name
+
+    def get_disambiguator(self) -> str:
+        return self._name
 
 
-def _export_name(module_name: str, kernel: str) -> str:
-    """The ahead-of-time module's name of kernel ``kernel`` of ``module_name``."""
-    return f"{module_name.rsplit('.', 1)[-1]}__{kernel}"
+#: numba's cache implementation (``CacheImpl`` from numba 0.62, ``_CacheImpl`` before),
+#: whose first locator to accept a function caches it.
+_CACHE_IMPL = getattr(caching, "CacheImpl", None) or caching._CacheImpl
+if not any(c.__name__ == _KernelCacheLocator.__name__ for c in _CACHE_IMPL._locator_classes):
+    _CACHE_IMPL._locator_classes.insert(0, _KernelCacheLocator)
 
 
-def _aot_module() -> tuple[ModuleType, dict, object] | None:
-    """The ahead-of-time build of the current sources, its array signatures
-    (``build_aot``'s sidecar) and its guard's ``fits``, or None."""
-    if "aot" in _loaded:
-        return _loaded["aot"]
-    path, guard, found = _aot_file(), _guard_file(), None
-    arrays = path.with_name(_aot_name() + ".json")
-    if path.is_file() and arrays.is_file() and guard.is_file():
-        try:
-            module = _extension(_aot_name(), path)
-            fits = _extension(_GUARD_MODULE, guard).fits
-            found = module, json.loads(arrays.read_text()), fits
-        except (ImportError, ValueError):
-            found = None  # e.g. built for another machine: the JIT form serves
-    _loaded["aot"] = found
-    return found
+def _dispatchers(module) -> dict[str, object]:
+    """The numba dispatchers defined in ``module`` (not imported into it), by name."""
+    from numba.core.registry import CPUDispatcher
+
+    return {
+        name: value
+        for name, value in vars(module).items()
+        if isinstance(value, CPUDispatcher) and value.py_func.__module__ == module.__name__
+    }
 
 
-class _Guarded:
-    """An ahead-of-time kernel behind a check of its arguments.
-
-    The compiled wrapper trusts an array's memory to be of the dtype, rank and layout it
-    was built for (numba checks only the item size: an int32 array where int64 is
-    expected reads past the buffer), so every call's arguments are checked against the
-    build's signatures first, by ``kernel_guard.c``'s ``fits`` (one C call: ~0.1 us; a
-    kernel the warm-up compiled for several argument types has one build of each, tried
-    in order); when none fits, the call goes to the JIT kernel, which compiles for those
-    types, and the mismatch is noted in ``FALLBACKS`` (the test suite fails on any).
-    Scalars are converted by the wrapper itself."""
-
-    def __init__(self, variants: list, module_name: str, name: str, fits) -> None:
-        self._module_name, self.__name__ = module_name, name
-        self._fits = fits
-        #: (function, its arguments as ``fits`` takes them) per build
-        self._variants = [(function, guard_spec(arrays)) for function, arrays in variants]
-
-    def __call__(self, *args):
-        for function, spec in self._variants:
-            if self._fits(args, spec):
-                return function(*args)
-        FALLBACKS.add(f"{self._module_name}.{self.__name__}({_describe(args)})")
-        jit = getattr(importlib.import_module(self._module_name), self.__name__)
-        return jit(*args)
-
-
-def guard_spec(arguments: list) -> bytes:
-    """A build's arguments (the sidecar's per argument "scalar", "none" or [dtype,
-    ndim, layout]) as ``kernel_guard.fits`` takes them: 4 bytes an argument, kind
-    (0 scalar, 1 None, 2 array), then for an array its numpy type number, its rank and
-    1 when it must be C-contiguous."""
-    spec = bytearray()
-    for a in arguments:
-        if a == "scalar":
-            spec += bytes((0, 0, 0, 0))
-        elif a == "none":
-            spec += bytes((1, 0, 0, 0))
-        else:
-            spec += bytes((2, np.dtype(a[0]).num, a[1], int(a[2] == "C")))
-    return bytes(spec)
-
-
-def _describe(args) -> str:
-    """The argument types of a call, as FALLBACKS names them (``float64[2d C]``)."""
-    return ", ".join(
-        f"{a.dtype}[{a.ndim}d {'C' if a.flags.c_contiguous else 'A'}]"
-        if type(a) is np.ndarray
-        else type(a).__name__
-        for a in args
-    )
-
-
-#: Kernels called with argument types their ahead-of-time build was not made for
-#: ("module.kernel(argument types)"): each such call ran the JIT kernel instead
-#: (``_Guarded``).
-FALLBACKS: set[str] = set()
+def is_cached(module_name: str) -> bool:
+    """Whether every kernel of ``module_name`` has compiled code in ``cache_dir()``."""
+    module = importlib.import_module(module_name)
+    for dispatcher in _dispatchers(module).values():
+        index = Path(dispatcher._cache._cache_file._index_path)
+        if not index.is_file():
+            return False
+    return True
 
 
 def load(module_name: str):
-    """The kernels of ``module_name`` (one of KERNEL_MODULES): the ahead-of-time build's
-    functions when one matches the sources, else the module itself (numba JIT). Either
-    way an object with the kernels as attributes."""
+    """The kernels of ``module_name`` (one of KERNEL_MODULES): the module, whose numba
+    dispatchers load their code from ``cache_dir()`` or compile it there on first call.
+    The first module found uncompiled says so on stderr, once a process."""
+    global _announced
     if module_name not in KERNEL_MODULES:
         raise ValueError(f"{module_name} is not a kernel module")
-    if module_name in _loaded:
-        return _loaded[module_name]
-    aot = _aot_module()
-    found = None
-    if aot is not None:
-        module, signatures, fits = aot
-        prefix = _export_name(module_name, "")
-        names = {k[len(prefix):]: v for k, v in signatures.items() if k.startswith(prefix)}
-        if names:
-            found = SimpleNamespace(**{
-                n: _Guarded(
-                    [(getattr(module, f"{prefix}{n}__{k}"), arrays)
-                     for k, arrays in enumerate(variants)],
-                    module_name,
-                    n,
-                    fits,
-                )
-                for n, variants in names.items()
-            })  # fmt: skip
-            found.compiled = "aot"
-    if found is None:
-        found = importlib.import_module(module_name)
-    _loaded[module_name] = found
-    return found
+    if module_name not in _loaded:
+        module = importlib.import_module(module_name)
+        if not _announced and not is_cached(module_name):
+            _announced = True
+            print(
+                f"phrt: compiling the renderer's kernels into {cache_dir()} (once, about "
+                "30 s; `phrt kernels` does it ahead of time)",
+                file=sys.stderr,
+            )
+        _loaded[module_name] = module
+    return _loaded[module_name]
 
 
-def form(module_name: str) -> str:
-    """"aot" or "jit": which compiled form ``load`` gives for ``module_name``."""
-    return getattr(load(module_name), "compiled", "jit")
+def form() -> str:
+    """How this process's kernels run: "cached" when every kernel module has compiled
+    code in ``cache_dir()``, else "compiled" (this process compiles what is missing)."""
+    return "cached" if all(is_cached(m) for m in KERNEL_MODULES) else "compiled"
 
 
 def warm_up() -> dict[str, float]:
-    """Compile (or load from numba's disk cache) every JIT kernel; seconds per module."""
+    """Compile every kernel for its warm-up's argument types, or load it from the cache;
+    seconds per module."""
     seconds = {}
     for name in KERNEL_MODULES:
         start = time.perf_counter()
@@ -244,134 +207,42 @@ def warm_up() -> dict[str, float]:
     return seconds
 
 
-def _kernels(module: ModuleType) -> dict[str, object]:
-    """The numba dispatchers defined in ``module`` (not imported into it from another
-    kernel module, which exports its own) that its warm-up compiled, by name."""
-    from numba.core.registry import CPUDispatcher
-
+def signatures() -> dict[str, set]:
+    """The argument types each kernel (``module.kernel``) has compiled code for in this
+    process."""
     return {
-        name: value
-        for name, value in vars(module).items()
-        if isinstance(value, CPUDispatcher)
-        and value.signatures
-        and not name.startswith("_")
-        and value.py_func.__module__ == module.__name__
+        f"{name}.{kernel}": set(dispatcher.signatures)
+        for name in KERNEL_MODULES
+        for kernel, dispatcher in _dispatchers(importlib.import_module(name)).items()
     }
 
 
-def exported_signatures(dispatcher) -> list[tuple]:
-    """The argument types ``dispatcher`` is exported for: every signature it compiled but
-    those with a literal argument. numba compiles such a variant when another kernel calls
-    this one with a constant (``True``), folding the constant in; the C guard tells
-    arguments apart by dtype, rank and layout only, so it would hand any value of that
-    argument to the folded code."""
-    from numba.core import types
-
-    return [
-        args
-        for args in dispatcher.signatures
-        if not any(isinstance(a, types.Literal) for a in args)
-    ]
+def cache_misses() -> list[str]:
+    """The kernels (``module.kernel``) that ``warm_up`` compiled in this process rather
+    than loaded from the cache: empty when every kernel was there."""
+    missed = []
+    for name in KERNEL_MODULES:
+        for kernel, dispatcher in _dispatchers(importlib.import_module(name)).items():
+            if sum(dispatcher.stats.cache_misses.values()):
+                missed.append(f"{name}.{kernel}")
+    return missed
 
 
-def build_aot() -> Path:
-    """Build the ahead-of-time module of the current sources and its guard
-    (``kernel_guard.c``) into AOT_DIR (removing older builds) and return the module's
-    path; nothing to do when they exist. Needs numba's ``pycc`` (setuptools and a C
-    compiler). Each kernel is exported once for each signature its module's
-    ``warm_up`` compiled (``name__0``, ``name__1``, ...)."""
-    target, guard = _aot_file(), _guard_file()
-    sidecar = target.with_name(_aot_name() + ".json")
-    if target.is_file() and sidecar.is_file() and guard.is_file():
-        return target
-    warm_up()
-    import numba.pycc.compiler as pycc_compiler
-    from numba.core import types
-    from numba.pycc import CC
-
-    AOT_DIR.mkdir(exist_ok=True)
-    # Built in a folder of its own, then published with the atomic writer: a render
-    # starting meanwhile, or a second build, never loads a half-written module.
-    building = Path(tempfile.mkdtemp(prefix=".build-", dir=AOT_DIR))
-    cc = CC(_aot_name())
-    cc.output_dir = str(building)
-    cc.verbose = False
-    signatures = {}  # export name → per variant, per argument "scalar", "none" or an array
-    for module_name in KERNEL_MODULES:
-        module = importlib.import_module(module_name)
-        for name, dispatcher in _kernels(module).items():
-            options = {k: dispatcher.targetoptions.get(k) for k in ("nogil", "error_model")}
-            if options != {k: KERNEL_OPTIONS[k] for k in options}:
-                raise RuntimeError(
-                    f"{module_name}.{name} is compiled with {options}: the build applies "
-                    f"KERNEL_OPTIONS to every kernel, so its JIT form must use them too"
-                )
-            export = _export_name(module_name, name)
-            signatures[export] = []
-            for k, args in enumerate(exported_signatures(dispatcher)):
-                result = dispatcher.overloads[args].signature.return_type
-                cc.export(f"{export}__{k}", result(*args))(dispatcher.py_func)
-                signatures[export].append([
-                    [str(np.dtype(str(a.dtype))), a.ndim, a.layout]
-                    if isinstance(a, types.Array)
-                    else "none" if isinstance(a, types.NoneType) else "scalar"
-                    for a in args
-                ])  # fmt: skip
-    # pycc compiles with numba's default flags; the kernels' own options (GIL released,
-    # numpy's division rules) are set on them for this build.
-    original = pycc_compiler.Flags
-
-    class KernelFlags(original):
-        def __init__(self, *args, **kwargs):
-            super().__init__(*args, **kwargs)
-            self.release_gil = KERNEL_OPTIONS["nogil"]
-            self.error_model = KERNEL_OPTIONS["error_model"]
-
-    pycc_compiler.Flags = KernelFlags
-    try:
-        cc.compile()
-        _build_guard(building / guard.name)
-        # The guard first: a module and sidecar are only ever found beside their guard.
-        write_bytes_atomic(guard, (building / guard.name).read_bytes())
-        write_text_atomic(sidecar, json.dumps(signatures, indent=1))
-        write_bytes_atomic(target, (building / target.name).read_bytes())
-    finally:
-        pycc_compiler.Flags = original
-        shutil.rmtree(building, ignore_errors=True)
-    for old in [*AOT_DIR.glob("phrt_kernels_*"), *AOT_DIR.glob(f"{_GUARD_MODULE}_*")]:
-        if old not in (target, sidecar, guard):
-            old.unlink()
-    return target
-
-
-def _build_guard(output: Path) -> None:
-    """Compile ``kernel_guard.c`` into extension ``output`` with the toolchain pycc
-    uses (the Python and numpy headers)."""
-    from numba.pycc.platform import Toolchain
-
-    toolchain = Toolchain()
-    objects = toolchain.compile_objects(
-        [str(GUARD_SOURCE)], str(output.parent / "guard"),
-        include_dirs=toolchain.get_python_include_dirs(), extra_cflags=["-O2"],
-    )  # fmt: skip
-    toolchain.link_shared(
-        str(output), objects, toolchain.get_python_libraries(),
-        toolchain.get_python_library_dirs(),
-    )  # fmt: skip
-
-
-def main() -> int:
-    """``python -m phrt_usd.kernels``: warm the JIT cache, build the ahead-of-time module."""
+def main(argv: list[str] | None = None) -> int:
+    """``python -m phrt_usd.kernels [--check]``: compile every kernel into the cache
+    (``--check``: exit 1, naming them, when any was not there already)."""
+    argv = sys.argv[1:] if argv is None else argv
     for module, took in warm_up().items():
-        print(f"{module}: JIT {took:.2f} s")
-    try:
-        start = time.perf_counter()
-        path = build_aot()
-        print(f"ahead of time: {path.name} ({time.perf_counter() - start:.1f} s)")
-    except Exception as error:  # no toolchain: renders use the JIT form
-        print(f"ahead of time: not built ({type(error).__name__}: {error}); JIT kernels serve")
+        print(f"{module}: {took:.2f} s")
+    missed = cache_misses()
+    print(f"kernels: {cache_dir()}")
+    if "--check" in argv and missed:
+        print(f"not in the cache before this run: {', '.join(missed)}", file=sys.stderr)
+        return 1
     return 0
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from phrt_usd import kernels  # the package's module, whose locator numba uses
+
+    sys.exit(kernels.main())

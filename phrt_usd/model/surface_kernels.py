@@ -19,9 +19,9 @@ float32 weights and corner data), so results agree to rounding of a sum's order.
 Spaces and shapes as in ``model.surface``: rel = world metres minus ``Scene.origin``
 (float64); T triangles; pixels flat over an H x W image (row 0 = top).
 
-Callers take the kernels through ``phrt_usd.kernels.load`` (ahead of time when built,
-else numba JIT with its disk cache); ``warm_up`` compiles each once with the argument
-types the renderer passes.
+Callers take the kernels through ``phrt_usd.kernels.load`` (numba, compiled once into
+phrt's kernel cache); ``warm_up`` compiles each with the argument types the renderer
+passes.
 """
 
 from __future__ import annotations

@@ -463,7 +463,7 @@ def lights_reaching(positions, centres, ranges):
 
 
 #: The argument types each kernel is compiled for (``warm_up``), as the render phase
-#: passes them: the ahead-of-time build exports exactly these. A scalar type name or an
+#: passes them: ``phrt kernels`` compiles exactly these. A scalar type name or an
 #: array ``dtype[:, ::1]`` (C-contiguous, one ``:`` per dimension), ``none`` for an
 #: optional array left out.
 SIGNATURES = {

@@ -139,7 +139,7 @@ def render_to_directory(
     )
     job, scene, plan = prepare_job(job, scene)
     times = parse_frames(job.frames, scene.frame_range)
-    plan.check_frame_count(len(times))
+    plan.check_files(times)
     layer_path = job.selection_layer or out / SELECTION_LAYER_FILE
     run_info = job_run_info(job, scene, times, plan)
     with RunDirectory(
@@ -303,15 +303,15 @@ def runtime_settings(renderer: FrameRenderer) -> dict:
     run may run otherwise and make the same pixels): ``threads`` (the setting), ``gl`` (the
     OpenGL platform of the raster phase, None without one), ``llvmpipe_threads``
     (llvmpipe's render threads in this process, None without llvmpipe), ``kernels``
-    (the compiled form of the surface kernels: "aot", the set-up's build, or "jit",
-    ``phrt_usd.kernels``) and ``primary`` (the G-buffer source, "raster" or "rays",
+    ("cached": every compiled kernel came from the cache; "compiled": this process
+    compiled some, ``phrt_usd.kernels.form``) and ``primary`` (the G-buffer source, "raster" or "rays",
     ``render.primary_source``)."""
     gl = renderer.gl
     return {
         "threads": renderer.options.threads,
         "gl": gl,
         "llvmpipe_threads": llvmpipe_threads() if gl is not None else None,
-        "kernels": kernels.form("phrt_usd.model.surface_kernels"),
+        "kernels": kernels.form(),
         "primary": renderer.primary,
     }
 

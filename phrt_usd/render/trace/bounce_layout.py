@@ -1,7 +1,7 @@
 """The layout of the buffers ``trace_kernels.bounce`` reads and writes, declared once for
 the kernel and for the bounce loop that owns the buffers (``paths``): plain constants, so
 ``paths`` reads them without compiling the kernel module (only kernel modules import
-numba). The ahead-of-time build hashes this file with the kernels
+numba). The kernel cache's name hashes this file with the kernels
 (``phrt_usd.kernels.SOURCE_MODULES``): the kernel reads these values as constants.
 """
 
