@@ -9,20 +9,31 @@ Accepted, in stage time codes, both ends included:
 
 Frames are rendered once each, in increasing time order (a policy's memory, transitions
 and the selection layer all follow time), whatever order the list gives.
+
+File names write a time code with ``frame_text``: rounded to 1/1000 of a time code
+(``FRAME_DECIMALS``), an integral one as an integer (zero-padded to the digits asked:
+``0012``, ``-003``), another with its 3 decimals (``0012.500``). Two frames that round to
+the same 1/1000 would write the same files, so a render refuses them (one line naming
+both frames, exit 2) before its first frame (``products.ImagePlan.check_files``); frames
+1/1000 of a time code or more apart always get distinct names.
 """
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from pxr import Tf, UsdUtils
 
-from phrt_usd.errors import BadOption, usd_error_reason
+from phrt_usd.errors import BadOption, PhrtError, usd_error_reason
 
 #: Most frames one render may list (``--frames``): a million frames of stats already
 #: make a stats.json of ~1 GB.
 MAX_FRAMES = 1_000_000
 #: Time codes closer than this are the same frame (a stride of 0.1 summed ten times).
 SAME_FRAME = 1e-9
+#: Decimals of a time code in file names: frames are told apart to 1/1000 of a time code.
+FRAME_DECIMALS = 3
 
 
 def parse_frames(spec: str | None, default: tuple[float, float]) -> list[float]:
@@ -81,3 +92,16 @@ def _unique_sorted(times: list[float]) -> list[float]:
         if not out or t - out[-1] > SAME_FRAME:
             out.append(t)
     return out
+
+
+def frame_text(time: float, width: int = 0) -> str:
+    """Time code ``time`` as file names write it (module docstring): rounded to
+    ``FRAME_DECIMALS`` decimals, zero-padded to ``width`` digits before the point (0: as
+    many as it takes), without decimals when the rounded value is integral. PhrtError if
+    ``time`` is not finite."""
+    if not math.isfinite(time):
+        raise PhrtError(f"frame time code {time} is not finite")
+    text = f"{time:.{FRAME_DECIMALS}f}"
+    if text.endswith("." + "0" * FRAME_DECIMALS):
+        return f"{int(round(time)):0{width}d}" if width else str(int(round(time)))
+    return f"{time:0{width + 1 + FRAME_DECIMALS}.{FRAME_DECIMALS}f}" if width else text

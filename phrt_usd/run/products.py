@@ -5,16 +5,19 @@ into an ``ImagePlan``; ``write_frame_images`` writes one frame of it.
 
 **Files.** Every RenderProduct of the settings is one file per frame, named by its
 ``productName`` with the frame tokens expanded (``$F``, ``$F4``, ``${F4}``, ``####``,
-``%04d``, ``%d``: the time code, zero-padded to the digits asked; a fractional time code
-keeps 3 decimals, ``0012.500``). Names are relative to ``--out``; an absolute name must
+``%04d``, ``%d``: the time code rounded to 1/1000, zero-padded to the digits asked; a
+fractional one keeps 3 decimals, ``0012.500``; ``frames.frame_text``). Names are relative to ``--out``; an absolute name must
 lie inside ``--out``, and ``..`` is refused: the run directory is the one place a render
 writes, locks and clears (``run_directory``), so a product outside it is refused rather
 than moved. ``.exr`` products hold their vars' channels, ``.png`` products the 8-bit sRGB
 preview of ``color`` (and nothing else). ``--image TEMPLATE`` replaces the products with
 one file named TEMPLATE holding the first product's vars (or the default channels). With
 neither, the default layout: ``frames/$F4.exr`` (``CHANNELS`` of ``images``) and its
-preview ``frames/$F4.png``. A name without a frame token is refused for a render of more
-than one frame.
+preview ``frames/$F4.png``. No two frames of a run may write one file: a name without a
+frame token for more than one frame, two names that expand to one file at some frame
+(``img.$F4.exr`` and ``img.####.exr``, ``$F`` and ``$F4`` from frame 1000) and two frames
+that round to the same 1/1000 are refused before the first frame renders
+(``ImagePlan.check_files``: compared by the expanded names of every frame, exit 2).
 
 **Vars → channels.** A RenderVar's ``sourceName`` picks what it holds:
 
@@ -61,12 +64,13 @@ identical renders write identical bytes.
 
 from __future__ import annotations
 
-import math
 import os
 import re
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from datetime import UTC, datetime
 from fractions import Fraction
+from functools import lru_cache
 from pathlib import Path, PurePosixPath
 
 import numpy as np
@@ -76,6 +80,7 @@ from phrt_usd.errors import BadOption, PhrtError
 from phrt_usd.model.scene import CameraFrame, Scene
 from phrt_usd.render.compositing import element_reflectivity, pixel_reflectivity
 from phrt_usd.render.renderer import FrameOutput
+from phrt_usd.run.frames import FRAME_DECIMALS, frame_text
 from phrt_usd.run.images import (
     DataWindow,
     check_beauty,
@@ -85,6 +90,7 @@ from phrt_usd.run.images import (
     write_exr,
     write_preview_png,
 )
+from phrt_usd.run.run_files import FRAME_DIGITS, FRAMES_DIR
 from phrt_usd.usd.render_settings import RenderSettingsSpec, RenderVarSpec
 
 # --- sources ------------------------------------------------------------------------------
@@ -121,8 +127,8 @@ HALF_TYPES = frozenset(
 )
 INT_TYPES = frozenset("int uint int64 uint64 bool uchar".split())
 #: The default layout's file name templates, relative to the run directory.
-DEFAULT_TEMPLATE = "frames/$F4.exr"
-DEFAULT_PREVIEW = "frames/$F4.png"
+DEFAULT_TEMPLATE = f"{FRAMES_DIR}/$F{FRAME_DIGITS}.exr"
+DEFAULT_PREVIEW = f"{FRAMES_DIR}/$F{FRAME_DIGITS}.png"
 IMAGE_SUFFIXES = (".exr", ".png")
 
 
@@ -201,36 +207,37 @@ def has_frame_token(template: str) -> bool:
     return _TOKEN.search(template) is not None
 
 
-def _frame_text(time: float, width: int) -> str:
-    nearest = round(time)
-    if abs(time - nearest) < 1e-6:
-        return f"{int(nearest):0{width}d}" if width else str(int(nearest))
-    return f"{time:0{width + 4}.3f}" if width else f"{time:.3f}"
+@lru_cache(maxsize=256)
+def _split(template: str) -> tuple[tuple[str, ...], tuple[int, ...]]:
+    """(literal texts, token widths) of ``template``: one more literal than tokens, a
+    token's width the digits it pads to (0: none)."""
+    literals, widths, last = [], [], 0
+    for match in _TOKEN.finditer(template):
+        braced, dollar, hashes, printf = match.groups()
+        digits = braced if braced is not None else dollar if dollar is not None else printf
+        literals.append(template[last : match.start()])
+        widths.append(len(hashes) if hashes is not None else int(digits) if digits else 0)
+        last = match.end()
+    literals.append(template[last:])
+    return tuple(literals), tuple(widths)
 
 
 def expand(template: str, time: float) -> str:
-    """``template`` with its frame tokens replaced by time code ``time`` (module doc)."""
-    if not math.isfinite(time):
-        raise PhrtError(f"frame time code {time} is not finite")
-
-    def token(match: re.Match) -> str:
-        braced, dollar, hashes, printf = match.groups()
-        if hashes is not None:
-            return _frame_text(time, len(hashes))
-        digits = braced if braced is not None else dollar if dollar is not None else printf
-        return _frame_text(time, int(digits) if digits else 0)
-
-    return _TOKEN.sub(token, template)
+    """``template`` with its frame tokens replaced by time code ``time`` (module doc,
+    ``frames.frame_text``)."""
+    frame_text(time)  # PhrtError if not finite, even without a token
+    literals, widths = _split(template)
+    pieces = [literals[0]]
+    for width, literal in zip(widths, literals[1:], strict=True):
+        pieces += [frame_text(time, width), literal]
+    return "".join(pieces)
 
 
 def template_pattern(template: str) -> re.Pattern:
-    """A regex matching every name ``template`` expands to (for clearing old files)."""
-    parts, last = [], 0
-    for match in _TOKEN.finditer(template):
-        parts += [re.escape(template[last : match.start()]), r"-?\d+(?:\.\d{3})?"]
-        last = match.end()
-    parts.append(re.escape(template[last:]))
-    return re.compile("^" + "".join(parts) + "$")
+    """A regex matching every name ``template`` expands to, whatever the frame."""
+    literals, _ = _split(template)
+    frame = rf"-?\d+(?:\.\d{{{FRAME_DECIMALS}}})?"
+    return re.compile("^" + frame.join(re.escape(literal) for literal in literals) + "$")
 
 
 def relative_template(out: Path, template: str, where: str, error=PhrtError) -> str:
@@ -258,6 +265,11 @@ def relative_template(out: Path, template: str, where: str, error=PhrtError) -> 
 
 
 # --- the plan -----------------------------------------------------------------------------
+
+
+def _shown(time: float) -> str:
+    """A time code as errors show it: ``1000``, ``1.0002``."""
+    return f"{time:.12g}"
 
 
 @dataclass(frozen=True)
@@ -301,19 +313,57 @@ class ImagePlan:
     timestamp: bool = False  # capDate / utcOffset in EXR headers
     image: bool = False  # the one product is --image's
 
-    def check_frame_count(self, count: int) -> None:
-        """A name without a frame token would write every frame to one file: PhrtError
-        naming the product (BadOption for ``--image``) when ``count`` > 1."""
-        if count <= 1:
-            return
-        for product in self.products:
-            if not has_frame_token(product.template):
-                where = f"--image {product.template!r}" if self.image else (
-                    f"{product.product}.productName {product.template!r}"
-                )  # fmt: skip
-                error = BadOption if self.image else PhrtError
-                raise error(f"{where}: no frame token ($F4, ####, %04d) for {count} frames")
+    def check_files(self, times: Sequence[float]) -> None:
+        """Refuse, before any frame renders, a run that would write one file twice (each
+        frame's files replacing another's): BadOption (exit 2), one line naming the
+        products (their prim paths, or ``--image``) and the frames, when
 
+        * a name has no frame token and there is more than one frame;
+        * two frames round to the same 1/1000 of a time code (``frames.frame_text``), so
+          every name writes them alike;
+        * two names expand to the same file (``img.$F4.exr`` and ``img.####.exr`` at
+          every frame, ``$F`` and ``$F4`` from frame 1000 on, ``a.1$F3.exr`` at 1 and
+          ``a.$F4.exr`` at 1001): compared by the expanded names of every frame of
+          ``times``."""
+        named = self._named_templates()
+        if len(times) > 1:
+            for template, who in named:
+                if not has_frame_token(template):
+                    raise BadOption(
+                        f"{who}: no frame token ($F4, ####, %04d) for {len(times)} frames"
+                    )
+        ordered = sorted(times)
+        # frame_text rounds, so a frame's text never decreases with its time: two frames
+        # written alike are neighbours in time.
+        texts = [frame_text(t) for t in ordered]
+        for i in range(1, len(ordered)):
+            if texts[i] == texts[i - 1]:
+                name = expand(self.templates()[0], ordered[i])
+                raise BadOption(
+                    f"--frames: frames {_shown(ordered[i - 1])} and {_shown(ordered[i])} both "
+                    f"write {name} (file names tell time codes apart to 1/1000); render "
+                    "frames at least 0.001 apart"
+                )
+        by_suffix: dict[str, list[tuple[str, str]]] = {}
+        for template, who in named:  # names that differ in extension never meet
+            by_suffix.setdefault(PurePosixPath(template).suffix, []).append((template, who))
+        for group in by_suffix.values():
+            if len(group) > 1:
+                _check_distinct(group, ordered)
+
+    def _named_templates(self) -> list[tuple[str, str]]:
+        """(template, the product writing it as errors name it) of every file name of a
+        frame, in the order of ``templates``."""
+        named = []
+        for product in self.products:
+            if self.image:
+                who = f"--image {product.template!r}"
+            elif product.product:
+                who = f"{product.product}.productName {product.template!r}"
+            else:
+                who = repr(product.template)
+            named.append((product.template, who))
+        return named + [(p.preview, repr(p.preview)) for p in self.products if p.preview]
     def templates(self) -> list[str]:
         """Every file name template of the run (products and previews)."""
         names = [p.template for p in self.products]
@@ -326,6 +376,45 @@ class ImagePlan:
     def describe(self) -> dict[str, dict]:
         """File name template → ``ProductPlan.describe()`` of every product."""
         return {p.template: p.describe() for p in self.products}
+
+
+def _check_distinct(named: list[tuple[str, str]], times: list[float]) -> None:
+    """BadOption naming the first frame at which two of the (template, who) ``named``
+    write one file (``ImagePlan.check_files``). Each (template, frame) name is held as its
+    hash, so a million-frame run needs megabytes, not a million strings; equal hashes are
+    compared by their names."""
+    count = len(times)
+    texts: dict[int, list[str]] = {}  # token width -> every frame's text
+    hashes = np.empty(len(named) * count, np.int64)
+    for index, (template, _) in enumerate(named):
+        literals, widths = _split(template)
+        for width in widths:
+            if width not in texts:
+                texts[width] = [frame_text(t, width) for t in times]
+        rows = zip(*(texts[width] for width in widths), strict=True) if widths else [()] * count
+        hashes[index * count : (index + 1) * count] = [
+            hash(literals[0] + "".join(a + b for a, b in zip(row, literals[1:], strict=True)))
+            for row in rows
+        ]
+    order = np.argsort(hashes, kind="stable")
+    same = np.flatnonzero(hashes[order][1:] == hashes[order][:-1])
+    firsts, seconds = order[same], order[same + 1]
+    earliest = np.argsort(np.minimum(firsts % count, seconds % count), kind="stable")
+    for first, second in zip(firsts[earliest], seconds[earliest], strict=True):
+        (a, ta), (b, tb) = divmod(int(first), count), divmod(int(second), count)
+        if a == b:
+            continue  # one name's frames are distinct (checked before): a hash collision
+        name = expand(named[a][0], times[ta])
+        if name != expand(named[b][0], times[tb]):
+            continue
+        if ta == tb:
+            at = f"at frame {_shown(times[ta])}"
+        else:
+            at = f"at frames {_shown(times[ta])} and {_shown(times[tb])}"
+        raise BadOption(
+            f"{named[a][1]} and {named[b][1]} both write {name} {at}; give them names "
+            "that differ"
+        )
 
 
 def default_plan(aovs: tuple[str, ...] = ()) -> ImagePlan:
@@ -354,7 +443,7 @@ def plan_images(
 ) -> ImagePlan:
     """The images of a run into ``out`` (module docstring). PhrtError naming the product
     (BadOption for ``--image`` / ``--aovs``) for a name or var phrt cannot write; see also
-    ``ImagePlan.check_frame_count``."""
+    ``ImagePlan.check_files``."""
     specs = settings.products if settings is not None else ()
     for spec in specs:
         if spec.product_type != "raster":
@@ -382,12 +471,8 @@ def plan_images(
     base = ImagePlan((), settings.path if settings else None, stage=stage, timestamp=timestamp)
     if not products:
         return replace(base, products=default_plan(aovs).products)
-    seen: dict[str, str] = {}
-    for plan in products:
+    for plan in products:  # names that meet are refused by ImagePlan.check_files
         where = plan.product if image is None else "--image"
-        if plan.template in seen:
-            raise PhrtError(f"{where}: writes the same files as {seen[plan.template]}")
-        seen[plan.template] = where
         if plan.is_png and {c.source for c in plan.channels} - {"beauty", "alpha"}:
             raise PhrtError(f"{where}: a .png holds the color var only; name it .exr")
     return replace(

@@ -13,9 +13,10 @@ Layout of a render's output directory ``OUT``::
     OUT/.phrt.lock          held (flock) by the render writing OUT; names its pid
     OUT/.phrt.reserve       disk held back while rendering, so records fit on a full disk
 
-``NNNN`` is the frame's time code: integral time codes are zero-padded to 4 digits
-(``0012``, ``-003``), fractional ones keep 3 decimals (``0012.500``), so time codes are
-told apart to 1/1000 of a time code.
+``NNNN`` is the frame's time code (``frames.frame_text``): integral time codes are
+zero-padded to 4 digits (``0012``, ``-003``), fractional ones keep 3 decimals
+(``0012.500``), so time codes are told apart to 1/1000 of a time code (a render refuses
+frames closer than that before its first frame).
 
 Every file is written through ``phrt_usd.atomic`` (checked, fsynced, renamed into place).
 """
@@ -38,6 +39,7 @@ from phrt_usd.atomic import write_text_atomic
 from phrt_usd.errors import PhrtError
 from phrt_usd.model.frame import FrameStats, ReflectorMetrics
 from phrt_usd.model.trace_density import TRACE_DENSITIES
+from phrt_usd.run.frames import frame_text
 
 FRAMES_DIR = "frames"
 STATS_FILE = "stats.json"
@@ -45,13 +47,12 @@ SELECTION_LAYER_FILE = "selection.usda"
 CHECKPOINT_FILE = "checkpoint.json"
 LOCK_FILE = ".phrt.lock"
 RESERVE_FILE = ".phrt.reserve"
+#: Digits of the default layout's frame names (``frames/0012.exr``, ``$F4``).
+FRAME_DIGITS = 4
 
 #: Identifies stats.json files written by this module; bump the version on breaking change.
 STATS_FORMAT = "phrt-stats"
 STATS_VERSION = 1
-
-#: Time codes closer than this to an integer are named as that integer (``0012``).
-INTEGRAL_TIME_TOLERANCE = 1e-6
 
 
 # --- layout ----------------------------------------------------------------------------
@@ -59,12 +60,7 @@ INTEGRAL_TIME_TOLERANCE = 1e-6
 
 def frame_name(time: float) -> str:
     """File stem of the frame at time code ``time``: ``0012``, ``-003``, ``0012.500``."""
-    if not math.isfinite(time):
-        raise PhrtError(f"frame time code {time} is not finite")
-    nearest = round(time)
-    if abs(time - nearest) < INTEGRAL_TIME_TOLERANCE:
-        return f"{int(nearest):04d}"
-    return f"{time:08.3f}"
+    return frame_text(time, FRAME_DIGITS)
 
 
 def frame_image_paths(out: Path, time: float) -> tuple[Path, Path]:
