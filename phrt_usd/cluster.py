@@ -477,7 +477,7 @@ def run_render_on_cluster(
     )
     job, scene, images = prepare_job(job, scene)  # the products' camera and resolution
     times = parse_frames(job.frames, scene.frame_range)
-    images.check_frame_count(len(times))
+    images.check_files(times)
     layer_path = job.selection_layer or out / "selection.usda"
     run_info = job_run_info(job, scene, times, images)
     chunks = plan_chunks(stage_address(job.stage_path), len(times), chunk_frames, warmup)
