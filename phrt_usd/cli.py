@@ -19,17 +19,59 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
+from typer.core import TyperGroup
 
 import phrt_usd  # noqa: F401  (registers the schema plugin before any stage opens)
-from phrt_usd.errors import BadOption, PhrtError
+from phrt_usd.errors import BadOption, PhrtError, UnreadableInput
 from phrt_usd.usd.schema import DEFAULT_BOUNCE_LIMIT, DEFAULT_RESOLUTION
 
 EXIT_PROBLEMS = 1
 EXIT_UNREADABLE = 2
 EXIT_INTERRUPTED = 130
 
+
+
+class _Commands(TyperGroup):
+    """The ``phrt`` command group. With ``--json`` among the arguments, a usage error
+    (an unknown option or command, a missing or malformed value: what click would print
+    as a box) is the one JSON error object on stdout, exit 2, as every error of a
+    ``--json`` command is."""
+
+    def make_context(self, info_name, args, parent=None, **extra):
+        args = list(args)
+        json_out = "--json" in args
+        try:
+            ctx = super().make_context(info_name, args, parent=parent, **extra)
+        except _UsageError as error:
+            if json_out:
+                raise _usage_error(error) from None
+            raise
+        ctx.meta["phrt_json"] = json_out
+        return ctx
+
+    def invoke(self, ctx):
+        try:
+            return super().invoke(ctx)
+        except _UsageError as error:
+            if ctx.meta.get("phrt_json"):
+                raise _usage_error(error) from None
+            raise
+
+
+#: click's UsageError, of the click typer parses with (recent typer has its own copy).
+_UsageError = next(c for c in typer.BadParameter.__mro__ if c.__name__ == "UsageError")
+
+
+def _usage_error(error: Exception) -> typer.Exit:
+    """The JSON error object of a usage error (``_Commands``), naming the command."""
+    ctx = getattr(error, "ctx", None)
+    where = ctx.command_path if ctx is not None else "phrt"
+    return fail(f"{where}: {error.format_message()}", EXIT_UNREADABLE, json_out=True)
+
+
 app = typer.Typer(
     help="Heuristic hybrid rendering of USD stages (raster + selective ray-traced reflections).",
+    cls=_Commands,
     no_args_is_help=True,
     add_completion=False,
     pretty_exceptions_enable=False,
@@ -66,10 +108,6 @@ def main(
     _VERBOSITY["level"] = 0 if quiet else 2 if verbose else 1
 
 
-class UnreadableInput(PhrtError):
-    """The input cannot be read at all (exit 2)."""
-
-
 def fail(message: str, code: int, json_out: bool = False) -> typer.Exit:
     """Report ``message`` (one line: ``error: ...`` on stderr, or the JSON error object on
     stdout) and return the ``typer.Exit`` to raise."""
@@ -85,7 +123,8 @@ def fail(message: str, code: int, json_out: bool = False) -> typer.Exit:
 def user_errors(exit_code: int = EXIT_PROBLEMS, json_out: bool = False) -> Iterator[None]:
     """Turn an error raised inside the block into one line and an exit code (see the
     module docstring): UnreadableInput and BadOption exit 2, another PhrtError
-    ``exit_code``, an OSError (a file phrt could not read or write) 1, Ctrl-C 130."""
+    ``exit_code``, an OSError (a file phrt could not read or write) 1, memory running
+    out 1, Ctrl-C 130."""
     try:
         yield
     except (UnreadableInput, BadOption) as exc:
@@ -97,6 +136,9 @@ def user_errors(exit_code: int = EXIT_PROBLEMS, json_out: bool = False) -> Itera
         raise fail(f"{where}{exc.strerror or exc}", EXIT_PROBLEMS, json_out) from None
     except KeyboardInterrupt:
         raise fail("interrupted", EXIT_INTERRUPTED, json_out) from None
+    except MemoryError:
+        message = "memory ran out; free memory, or ask for less"
+        raise fail(message, EXIT_PROBLEMS, json_out) from None
 
 
 def open_input(path: Path, controls=None):
@@ -185,20 +227,24 @@ def author(
     ] = False,
 ) -> None:
     """Apply PhrtReflectorAPI with priority K to PRIMS, in a new layer over the stage."""
+    from phrt_usd.atomic import WriteFailed
     from phrt_usd.usd.authoring import author_reflectors
 
     with user_errors():
         open_input(stage)  # unreadable input -> exit 2 before anything else
-        result = author_reflectors(
-            stage,
-            prims,
-            priority,
-            reflectivity,
-            out=out,
-            in_place=in_place,
-            force=force,
-            on_prototype=on_prototype,
-        )
+        try:
+            result = author_reflectors(
+                stage,
+                prims,
+                priority,
+                reflectivity,
+                out=out,
+                in_place=in_place,
+                force=force,
+                on_prototype=on_prototype,
+            )
+        except WriteFailed as exc:  # its one output cannot be written: a bad --out, 2
+            raise BadOption(str(exc)) from None
     typer.echo(f"wrote {result.layer}: {len(result.prims)} reflector(s)")
 
 
@@ -265,8 +311,13 @@ def _print_summary(s: dict) -> None:
         console.print(f"  {line}", highlight=False, markup=False)
 
 
-#: The demo stage rendered when `phrt render` is given no stage.
-DEMO_STAGE = Path(__file__).resolve().parent.parent / "stages" / "farm.usda"
+#: The demo stage rendered when `phrt render` is given no stage: the package's copy
+#: (``phrt_usd/demo/``, which the wheel holds: pyproject.toml), else the checkout's.
+DEMO_STAGE = next(
+    (p for p in (Path(__file__).resolve().parent / "demo" / "farm.usda",
+                 Path(__file__).resolve().parent.parent / "stages" / "farm.usda") if p.is_file()),
+    Path(__file__).resolve().parent / "demo" / "farm.usda",
+)  # fmt: skip
 
 
 def _progress():
@@ -516,7 +567,10 @@ def render(
         with progress:
             task = progress.add_task(f"render {stage.name}", total=None)
 
+            finished = [0]  # frames done so far: where memory ran out, if it does
+
             def on_frame(done: int, total: int, _stats) -> None:
+                finished[0] = done
                 progress.update(task, completed=done, total=total)
 
             try:
@@ -536,6 +590,9 @@ def render(
                     scene.warnings += [w for w in found if w not in scene.warnings]
             except RenderInterrupted as exc:
                 raise fail(f"interrupted: {exc}", EXIT_INTERRUPTED, json_out) from None
+            except MemoryError:
+                message = _out_of_memory(job, scene, finished[0])
+                raise fail(message, EXIT_PROBLEMS, json_out) from None
     for warning in scene.warnings[warned:]:  # found while rendering (e.g. clipping)
         typer.echo(f"warning: {warning}", err=True)
     summary["warnings"] = list(scene.warnings)
@@ -562,6 +619,20 @@ def render(
                 )
             typer.echo(line)
         typer.echo(_written(summary))
+
+
+def _out_of_memory(job, scene, done: int) -> str:
+    """One line: memory ran out in the render of ``job``, at which frame (the one after
+    the ``done`` finished ones) and resolution, and what to do about it."""
+    from phrt_usd.run.frames import parse_frames
+
+    times = parse_frames(job.frames, scene.frame_range)
+    at = f"frame {times[done]:g}" if done < len(times) else "the run's records"
+    size = f"{job.options.width}x{job.options.height}"
+    return (
+        f"memory ran out rendering {at} at {size} ({done} of {len(times)} frames finished "
+        f"in {job.out_dir}); free memory or render at a smaller --resolution"
+    )
 
 
 def _written(summary: dict) -> str:
@@ -627,7 +698,14 @@ def sweep(
     selection_weight: Annotated[
         float | None, typer.Option(help="I (default: the first stage's setting).")
     ] = None,
-    out: Annotated[Path, typer.Option("--out", "-o", help="Output directory.")] = Path("sweep"),
+    out: Annotated[
+        Path, typer.Option("--out", "-o", help="Output directory (empty, or --overwrite).")
+    ] = Path("sweep"),
+    overwrite: Annotated[
+        bool,
+        typer.Option(help="Replace an earlier sweep's files in a non-empty OUT (others stay; "
+                     "a sweep cannot be resumed)."),
+    ] = False,
     exposure: ExposureOpt = None,
     threads: ThreadsOpt = None,
     gl: GlOpt = None,
@@ -641,14 +719,16 @@ def sweep(
     trace density) against the `all` and `rt` references of the same bounce limit and
     resolution: per
     frame FLIP, PSNR, the temporal error (popping) and transitions; writes sweep.csv,
-    summary.md, error_vs_time.png and report.html."""
+    provenance.json, summary.md, error_vs_time.png and report.html."""
     from phrt_usd.evaluate.sweep import (
         SweepSpec,
+        interruption_note,
         parse_budget_list,
         parse_int_list,
         parse_resolution_list,
         run_sweep,
     )
+    from phrt_usd.evaluate.sweep_output import claim_sweep_out
     from phrt_usd.model.trace_density import check_density
     from phrt_usd.render.raster.gl_platform import check_gl
     from phrt_usd.threads import parse_threads
@@ -673,6 +753,7 @@ def sweep(
             bounce_limit=bounce_limit,
             selection_weight=weight,
             out=out,
+            overwrite=overwrite,
             bounce_limits=parse_int_list(bounce_limits, "--bounce-limits"),
             resolutions=parse_resolution_list(resolutions),
             trace_densities=[
@@ -696,6 +777,7 @@ def sweep(
             else:
                 from phrt_usd.cluster import dask_client, run_sweep_on_cluster
 
+                claim_sweep_out(spec.out, spec.overwrite)  # refused or cleared before a cluster
                 with dask_client(workers, scheduler) as client:
                     summary = run_sweep_on_cluster(
                         spec,
@@ -703,9 +785,23 @@ def sweep(
                         on_chunk=lambda done, total: on_frame("chunks", done, total),
                         **_cluster_args(chunk_frames, warmup),
                     )
+    if summary["interrupted"]:
+        raise fail(f"interrupted: {interruption_note(summary)}", EXIT_INTERRUPTED, json_out)
     if json_out:
         print_json(summary)
     else:
         typer.echo(f"wrote {summary['rows']} rows and the report to {summary['out']}")
-    if summary["interrupted"]:
-        raise typer.Exit(EXIT_INTERRUPTED)
+
+
+@app.command()
+def kernels(
+    check: Annotated[
+        bool, typer.Option("--check", help="Exit 1 when a kernel was not compiled already.")
+    ] = False,
+) -> None:
+    """Compile the renderer's kernels into their cache ahead of the first render (once per
+    installation, about 30 s), or check that they are there."""
+    from phrt_usd import kernels as compiled
+
+    raise typer.Exit(compiled.main(["--check"] if check else []))
+

@@ -150,13 +150,17 @@ if not any(c.__name__ == _KernelCacheLocator.__name__ for c in _CACHE_IMPL._loca
 
 
 def _dispatchers(module) -> dict[str, object]:
-    """The numba dispatchers defined in ``module`` (not imported into it), by name."""
+    """The numba dispatchers defined in ``module`` (not imported into it) that compile
+    code of their own, by name (helpers with ``inline="always"`` are compiled into the
+    kernels calling them)."""
     from numba.core.registry import CPUDispatcher
 
     return {
         name: value
         for name, value in vars(module).items()
-        if isinstance(value, CPUDispatcher) and value.py_func.__module__ == module.__name__
+        if isinstance(value, CPUDispatcher)
+        and value.py_func.__module__ == module.__name__
+        and value.targetoptions.get("inline") != "always"
     }
 
 

@@ -72,6 +72,8 @@ def test_a_new_process_loads_every_kernel_from_the_cache():
     )  # fmt: skip
     assert done.returncode == 0, done.stderr
     assert str(kernels.cache_dir()) in done.stdout
+    assert _python("from phrt_usd import kernels; print(kernels.form())", dict(os.environ)
+                   ).stdout.strip() == "cached"  # fmt: skip
 
 
 def test_an_empty_cache_is_announced_once(tmp_path):

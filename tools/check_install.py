@@ -1,0 +1,254 @@
+"""Install phrt-usd as a user would and check it keeps its promises there.
+
+    python3 tools/check_install.py [--python python3] [--work DIR] [--compare]
+
+Builds the wheel (``uv build``), installs it with pip (the strict resolver) into a new
+venv with nothing else (no dev group, no extras), and there:
+
+1. ``phrt --version``;
+2. ``phrt kernels`` into an empty kernel cache (``PHRT_CACHE_DIR``): the first use
+   compiles; then ``phrt kernels --check``: every kernel loads from the cache;
+3. ``phrt render`` of two frames of the shipped demo stage (no stage given), whose
+   ``--json`` summary says ``"kernels": "cached"``;
+4. a throw-away project's pytest test through the plugin: a reference written with
+   ``--phrt-update-references``, the unchanged render then passing, and a changed stage
+   failing with its failure images written.
+
+``--compare``: also time the first two-frame render of the demo (``--frames 521:522``)
+in the installed copy and in this checkout's environment (``uv run phrt``), three runs
+each, alternating; printed as medians (BENCHMARKS.md, "installed").
+
+Exit 0 when every step holds, else 1 naming the step. CI runs it (``.ci/run``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parent.parent
+
+#: The throw-away project's stage: a mirror floor under a lit box, a camera, two frames.
+STAGE = """#usda 1.0
+(
+    defaultPrim = "World"
+    endTimeCode = 2
+    metersPerUnit = 1
+    startTimeCode = 1
+    upAxis = "Y"
+)
+
+def Xform "World"
+{
+    def Mesh "Floor" (
+        prepend apiSchemas = ["PhrtReflectorAPI", "MaterialBindingAPI"]
+    )
+    {
+        int[] faceVertexCounts = [4]
+        int[] faceVertexIndices = [0, 1, 2, 3]
+        point3f[] points = [(-3, 0, -3), (-3, 0, 3), (3, 0, 3), (3, 0, -3)]
+        float phrt:priority = 1
+        rel material:binding = </World/Looks/Mirror>
+    }
+
+    def Cube "Box" (
+        prepend apiSchemas = ["MaterialBindingAPI"]
+    )
+    {
+        double size = 1
+        double3 xformOp:translate = (0, 0.5, 0)
+        uniform token[] xformOpOrder = ["xformOp:translate"]
+        rel material:binding = </World/Looks/Paint>
+    }
+
+    def Scope "Looks"
+    {
+        def Material "Mirror"
+        {
+            token outputs:surface.connect = </World/Looks/Mirror/Surface.outputs:surface>
+            def Shader "Surface"
+            {
+                uniform token info:id = "UsdPreviewSurface"
+                color3f inputs:diffuseColor = (0.1, 0.1, 0.1)
+                float inputs:metallic = 1
+                float inputs:roughness = 0
+                token outputs:surface
+            }
+        }
+
+        def Material "Paint"
+        {
+            token outputs:surface.connect = </World/Looks/Paint/Surface.outputs:surface>
+            def Shader "Surface"
+            {
+                uniform token info:id = "UsdPreviewSurface"
+                color3f inputs:diffuseColor = PAINT
+                token outputs:surface
+            }
+        }
+    }
+
+    def DistantLight "Sun"
+    {
+        float inputs:intensity = 3
+        float3 xformOp:rotateXYZ = (-50, 30, 0)
+        uniform token[] xformOpOrder = ["xformOp:rotateXYZ"]
+    }
+
+    def Camera "Cam"
+    {
+        float focalLength = 24
+        double3 xformOp:translate.timeSamples = {1: (0, 1.5, 5), 2: (0.2, 1.5, 5)}
+        float3 xformOp:rotateXYZ = (-15, 0, 0)
+        uniform token[] xformOpOrder = ["xformOp:translate", "xformOp:rotateXYZ"]
+    }
+}
+"""
+
+#: The throw-away project's test, as a pipeline would write it (docs/pipeline-tests.md).
+TEST = """from pathlib import Path
+
+from phrt_usd.pytest_plugin import assert_images_close
+
+STAGE = Path(__file__).parent / "shot.usda"
+
+
+def test_shot_renders_like_its_reference(phrt_render, phrt_reference):
+    result = phrt_render(STAGE, frames=1, budget_rays=100_000, resolution=(96, 72))
+    assert_images_close(result.read_frame(1)["beauty"], phrt_reference("frame1.exr"))
+"""
+
+
+class Failed(Exception):
+    """A step did not hold."""
+
+
+def run(cmd: list, step: str, ok=(0,), **kwargs) -> subprocess.CompletedProcess:
+    """Run ``cmd``; Failed (naming ``step``, with its output) when its exit code is not
+    one of ``ok``."""
+    done = subprocess.run(cmd, capture_output=True, text=True, **kwargs)
+    if done.returncode not in ok:
+        raise Failed(
+            f"{step}: exit {done.returncode} from {' '.join(map(str, cmd))}\n"
+            f"{done.stdout[-3000:]}\n{done.stderr[-3000:]}"
+        )
+    return done
+
+
+def build_wheel(work: Path) -> Path:
+    dist = work / "dist"
+    run(["uv", "build", "-q", "--wheel", "--out-dir", dist, str(REPO)], "build the wheel")
+    (wheel,) = dist.glob("phrt_usd-*.whl")
+    return wheel
+
+
+def install(python: str, wheel: Path, venv: Path) -> Path:
+    """A new venv with the wheel installed by pip (and pytest, which a project that tests
+    with the plugin has); its bin directory."""
+    run([python, "-m", "venv", venv], "make a venv")
+    pip = [venv / "bin" / "python", "-m", "pip", "install", "-q", "--disable-pip-version-check"]
+    run([*pip, wheel], "pip install the wheel")
+    run([*pip, "pytest"], "pip install pytest")
+    return venv / "bin"
+
+
+def check(bin_dir: Path, work: Path) -> None:
+    env = {**os.environ, "PHRT_CACHE_DIR": str(work / "cache")}
+    env.pop("VIRTUAL_ENV", None)
+    phrt = bin_dir / "phrt"
+    version = run([phrt, "--version"], "phrt --version", env=env).stdout.strip()
+    print(f"installed: {version}")
+
+    start = time.perf_counter()
+    first = run([phrt, "kernels"], "phrt kernels (first use compiles)", env=env)
+    took = time.perf_counter() - start
+    print(f"kernels compiled in {took:.1f} s: {first.stdout.splitlines()[-1]}")
+    run([phrt, "kernels", "--check"], "phrt kernels --check (all in the cache)", env=env)
+
+    out = work / "demo"
+    done = run(
+        [phrt, "-q", "render", "--frames", "521:522", "--out", out, "--json"],
+        "phrt render of the shipped demo",
+        env=env,
+    )
+    summary = json.loads(done.stdout)
+    if summary.get("frames") != 2 or summary.get("kernels") != "cached":
+        raise Failed(f"demo render: frames {summary.get('frames')}, kernels "
+                     f"{summary.get('kernels')} (expected 2 and cached)")  # fmt: skip
+    if "compiling" in done.stderr:
+        raise Failed(f"demo render compiled kernels: {done.stderr}")
+    print(f"demo: 2 frames, kernels cached, {len(list((out / 'frames').glob('*.exr')))} EXR")
+
+    project = work / "project"
+    project.mkdir()
+    (project / "shot.usda").write_text(STAGE.replace("PAINT", "(0.8, 0.3, 0.1)"))
+    (project / "test_shot.py").write_text(TEST)
+    pytest = [bin_dir / "python", "-m", "pytest", "-q", "-p", "no:cacheprovider", project]
+    run([*pytest, "--phrt-update-references"], "pytest --phrt-update-references", env=env,
+        cwd=project)  # fmt: skip
+    run(pytest, "pytest unchanged (must pass)", env=env, cwd=project)
+    (project / "shot.usda").write_text(STAGE.replace("PAINT", "(0.1, 0.3, 0.8)"))
+    run(pytest, "pytest on a changed stage (must fail)", ok=(1,), env=env, cwd=project)
+    failures = sorted(p.name for p in project.rglob("phrt-failures/*") if p.suffix != "")
+    if not failures:
+        raise Failed("pytest on a changed stage: no failure images written")
+    print(f"plugin: reference written, unchanged passes, changed fails ({', '.join(failures)})")
+
+
+def compare(bin_dir: Path, work: Path, runs: int = 3) -> None:
+    """The first two-frame render of the demo, installed against this checkout."""
+    commands = {
+        "installed": [bin_dir / "phrt"],
+        "checkout": ["uv", "run", "--project", REPO, "phrt"],
+    }
+    times: dict[str, list[float]] = {k: [] for k in commands}
+    for k in range(runs):
+        for name, phrt in commands.items():
+            out = work / f"time-{name}-{k}"
+            start = time.perf_counter()
+            run([*phrt, "-q", "render", "--frames", "521:522", "--out", out, "--json"],
+                f"timed render ({name})")  # fmt: skip
+            times[name].append(time.perf_counter() - start)
+    for name, values in times.items():
+        shown = ", ".join(f"{v:.2f}" for v in values)
+        print(f"first 2-frame demo render, {name}: median {statistics.median(values):.2f} s "
+              f"({shown})")  # fmt: skip
+    ratio = statistics.median(times["installed"]) / statistics.median(times["checkout"])
+    print(f"installed / checkout: {ratio:.2f}")
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--python", default="python3", help="the Python of the new venv")
+    parser.add_argument("--work", type=Path, help="keep the venv and outputs here")
+    parser.add_argument("--compare", action="store_true", help="time installed vs checkout")
+    args = parser.parse_args()
+    work = args.work or Path(tempfile.mkdtemp(prefix="phrt-install-"))
+    try:
+        start = time.perf_counter()
+        wheel = build_wheel(work)
+        bin_dir = install(args.python, wheel, work / "venv")
+        print(f"installed {wheel.name} with pip in {time.perf_counter() - start:.0f} s")
+        check(bin_dir, work)
+        if args.compare:
+            compare(bin_dir, work)
+    except Failed as failed:
+        print(f"install check failed: {failed}", file=sys.stderr)
+        return 1
+    finally:
+        if args.work is None:
+            shutil.rmtree(work, ignore_errors=True)
+    print("install check passed")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
