@@ -14,6 +14,9 @@ venv with nothing else (no dev group, no extras), and there:
    ``--phrt-update-references``, the unchanged render then passing, and a changed stage
    failing with its failure images written.
 
+``--lowest``: install every runtime requirement at the lower bound of its range (the
+oldest versions the package claims to work with) instead of the newest.
+
 ``--compare``: also time the first two-frame render of the demo (``--frames 521:522``)
 in the installed copy and in this checkout's environment (``uv run phrt``), three runs
 each, alternating; printed as medians (BENCHMARKS.md, "installed").
@@ -26,12 +29,14 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import shutil
 import statistics
 import subprocess
 import sys
 import tempfile
 import time
+import tomllib
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parent.parent
@@ -150,12 +155,28 @@ def build_wheel(work: Path) -> Path:
     return wheel
 
 
-def install(python: str, wheel: Path, venv: Path) -> Path:
+def lower_bounds() -> list[str]:
+    """``name==version`` of each runtime requirement's lower bound (pyproject.toml)."""
+    project = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]
+    pins = []
+    for requirement in project["dependencies"]:
+        found = re.match(r"([A-Za-z0-9_.-]+)>=([0-9][^,;]*)", requirement)
+        if found:
+            pins.append(f"{found[1]}=={found[2]}")
+    return pins
+
+
+def install(python: str, wheel: Path, venv: Path, lowest: bool = False) -> Path:
     """A new venv with the wheel installed by pip (and pytest, which a project that tests
-    with the plugin has); its bin directory."""
+    with the plugin has); its bin directory. ``lowest``: each requirement at its lower
+    bound."""
     run([python, "-m", "venv", venv], "make a venv")
     pip = [venv / "bin" / "python", "-m", "pip", "install", "-q", "--disable-pip-version-check"]
-    run([*pip, wheel], "pip install the wheel")
+    pins = []
+    if lowest:
+        pins = lower_bounds()
+        print(f"lower bounds: {' '.join(pins)}")
+    run([*pip, wheel, *pins], "pip install the wheel")
     run([*pip, "pytest"], "pip install pytest")
     return venv / "bin"
 
@@ -230,12 +251,13 @@ def main() -> int:
     parser.add_argument("--python", default="python3", help="the Python of the new venv")
     parser.add_argument("--work", type=Path, help="keep the venv and outputs here")
     parser.add_argument("--compare", action="store_true", help="time installed vs checkout")
+    parser.add_argument("--lowest", action="store_true", help="requirements at lower bounds")
     args = parser.parse_args()
     work = args.work or Path(tempfile.mkdtemp(prefix="phrt-install-"))
     try:
         start = time.perf_counter()
         wheel = build_wheel(work)
-        bin_dir = install(args.python, wheel, work / "venv")
+        bin_dir = install(args.python, wheel, work / "venv", args.lowest)
         print(f"installed {wheel.name} with pip in {time.perf_counter() - start:.0f} s")
         check(bin_dir, work)
         if args.compare:
