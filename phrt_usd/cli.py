@@ -775,9 +775,9 @@ def sweep(
             if workers is None and scheduler is None:
                 summary = run_sweep(spec, on_frame=on_frame)
             else:
+                claim_sweep_out(spec.out, spec.overwrite)  # refused or cleared before a cluster
                 from phrt_usd.cluster import dask_client, run_sweep_on_cluster
 
-                claim_sweep_out(spec.out, spec.overwrite)  # refused or cleared before a cluster
                 with dask_client(workers, scheduler) as client:
                     summary = run_sweep_on_cluster(
                         spec,

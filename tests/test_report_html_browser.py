@@ -164,7 +164,8 @@ def test_report_renders_without_console_errors(report, tmp_path):
     )
     assert messages == [], f"console messages: {messages}"
     assert "<title>phrt sweep: error against run time</title>" in dom
-    assert dom.count("<table>") == 2 and "heu1@20000rays" in dom
+    # Four tables per stage (sweep_tables.TABLES), two stages.
+    assert dom.count("<table>") == 8 and "heu1@20000rays" in dom
     # The page was laid out and painted: the screenshot is the window size, not blank.
     image = oiio.ImageInput.open(str(screenshot))
     assert image is not None, f"no screenshot: {oiio.geterror()}"

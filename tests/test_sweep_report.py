@@ -23,12 +23,8 @@ import pytest
 from phrt_usd.errors import PhrtError
 from phrt_usd.evaluate.sweep_plots import timeline_states
 from phrt_usd.evaluate.sweep_report import write_sweep_report
-from phrt_usd.evaluate.sweep_summary import (
-    PAPER_FIGURES,
-    equal_time_comparison,
-    frontier_flip_at,
-    summarize,
-)
+from phrt_usd.evaluate.sweep_summary import PAPER_FIGURES, summarize
+from phrt_usd.evaluate.sweep_tables import equal_time_comparison, frontier_flip_at
 
 COLUMNS = [
     "stage", "config", "heuristic", "mode", "budget_ms", "budget_rays", "frame", "frame_ms",
@@ -146,19 +142,31 @@ def write_synthetic_sweep(out: Path, seed: int = 7, configs=CONFIGS) -> Path:
 
 
 def parse_summary_md(text: str) -> dict[str, list[dict[str, str]]]:
-    """{stage: [row dict by header]} from summary.md's tables."""
+    """{stage: [row dict by header]} from summary.md's tables: a stage's tables (each
+    starting with the config column, rows in the same order) joined row by row."""
     tables: dict[str, list[dict[str, str]]] = {}
-    stage, header = None, None
+    stage, header, row_index = None, None, 0
     for line in text.splitlines():
-        if line.startswith("## Stage "):
-            stage, header = line.removeprefix("## Stage ").strip(), None
-            tables[stage] = []
-        elif line.startswith("|") and stage is not None:
+        if line.startswith("## "):
+            stage = line.removeprefix("## Stage ").strip() if line.startswith("## Stage ") else None
+            header = None
+            if stage is not None:
+                tables[stage] = []
+        elif not line.startswith("|"):
+            header = None  # a table ends at the first line that is not a row
+        elif stage is not None:
             cells = [c.strip() for c in line.strip().strip("|").split("|")]
             if header is None:
-                header = cells
+                header, row_index = cells, 0
             elif not set("".join(cells)) <= set("-:"):
-                tables[stage].append(dict(zip(header, cells, strict=True)))
+                row = dict(zip(header, cells, strict=True))
+                rows = tables[stage]
+                if row_index < len(rows):
+                    assert rows[row_index]["config"] == row["config"], "tables' rows disagree"
+                    rows[row_index].update(row)
+                else:
+                    rows.append(row)
+                row_index += 1
     return tables
 
 
@@ -180,6 +188,22 @@ def expected_from_csv(
         values = [float(r[column]) for r in rows if r[column] != ""]
         return sum(values) / len(values) if values else None
 
+    def quantile(rows, column, which):
+        """5th / 50th / 95th percentile, linear between order statistics (``inclusive``)."""
+        values = sorted(float(r[column]) for r in rows if r[column] != "")
+        if len(values) < 2:
+            return values[0] if values else None
+        return statistics.quantiles(values, n=20, method="inclusive")[which // 5 - 1]
+
+    def within(rows):
+        """Share of frames within the budget: trace ms <= 1.1 T, or rays <= the rays budget."""
+        budget_ms, budget_rays = rows[0]["budget_ms"], rows[0]["budget_rays"]
+        if budget_ms not in ("", "inf"):
+            return sum(float(r["trace_ms"]) <= 1.1 * float(budget_ms) for r in rows) / len(rows)
+        if budget_rays not in ("", "inf"):
+            return sum(float(r["rays"]) <= float(budget_rays) for r in rows) / len(rows)
+        return None
+
     expected = {}
     for key, rows in groups.items():
         rows.sort(key=lambda r: float(r["frame"]))
@@ -200,24 +224,34 @@ def expected_from_csv(
             "frames": len(rows),
             "mean frame ms": statistics.fmean(frame_ms),
             "median frame ms": statistics.median(frame_ms),
+            "p5 frame ms": quantile(rows, "frame_ms", 5),
+            "p95 frame ms": quantile(rows, "frame_ms", 95),
             "mean fps": 1000.0 / statistics.fmean(frame_ms),
             "mean trace ms": mean(rows, "trace_ms"),
+            "p95 trace ms": quantile(rows, "trace_ms", 95),
+            "within budget": within(rows),
             "mean FLIP": mean(rows, "flip"),
+            "median FLIP": quantile(rows, "flip", 50),
+            "p5 FLIP": quantile(rows, "flip", 5),
+            "p95 FLIP": quantile(rows, "flip", 95),
             "mean FLIP reflectors": mean(rows, "flip_reflectors"),
             "mean PSNR dB": mean(rows, "psnr"),
             "transitions": transitions,
             "transition rate": 100.0 * transitions / chances if chances else None,
             "density steps": steps,
             "mean selected": mean(rows, "selected"),
-            "temporal error": mean(rows, "temporal_error"),
-            "temporal error reflectors": mean(rows, "temporal_error_reflectors"),
+            "mean temporal error": mean(rows, "temporal_error"),
+            "median temporal error": quantile(rows, "temporal_error", 50),
+            "p5 temporal error": quantile(rows, "temporal_error", 5),
+            "p95 temporal error": quantile(rows, "temporal_error", 95),
+            "mean temporal error reflectors": mean(rows, "temporal_error_reflectors"),
         }
     return expected
 
 
 def assert_printed_close(text: str, value: float, what: str) -> None:
     """``text`` is ``value`` rounded as printed: fixed decimals or 3 significant digits."""
-    number = text.removesuffix("%").strip()
+    number = text.strip().removesuffix("%").strip()
     printed = float(number)
     mantissa = number.lstrip("-").split("e")[0]
     decimals = len(mantissa.split(".")[1]) if "." in mantissa else 0
@@ -264,7 +298,11 @@ def test_summary_md_agrees_with_csv(report_dir):
             want = expected[(stage, row["config"])]
             for column, value in want.items():
                 cell = row[column]
-                if value is None:
+                if column == "within budget":
+                    # One decimal of a percentage: half a step is 0.05 %.
+                    shown = "n/a" if value is None else f"{100.0 * value:.1f} %"
+                    assert cell == shown, (stage, row["config"], column)
+                elif value is None:
                     assert cell == "—", (stage, row["config"], column)
                 elif column in ("frames", "transitions", "density steps"):
                     assert int(cell) == value, (stage, row["config"], column)
@@ -498,7 +536,7 @@ def test_summary_csv_and_pareto_marks_agree_with_the_tables(report_dir):
     for row in rows:
         key = (row["stage"], row["config"])
         assert float(row["mean_temporal_error"]) == pytest.approx(
-            expected[key]["temporal error"], rel=1e-12
+            expected[key]["mean temporal error"], rel=1e-12
         )
         assert (row["pareto"] == "1") == marks[key], key
     for stage in STAGES:

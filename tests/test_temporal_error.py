@@ -291,8 +291,9 @@ def test_sweep_over_two_bounce_limits(tmp_path):
     assert set(timeline["gallery"]) == set(summary["configs"])
 
     text = (out / "summary.md").read_text()
-    header = next(line for line in text.splitlines() if line.startswith("| config"))
-    for column in ("temporal error", "Pareto", "bounce limit", "resolution"):
+    # The headers of a stage's tables (sweep_tables.TABLES), each starting with config.
+    header = " ".join(line for line in text.splitlines() if line.startswith("| config"))
+    for column in ("mean temporal error", "Pareto", "bounce limit", "resolution"):
         assert f" {column} |" in header
     table = [line for line in text.splitlines() if line.startswith("| ") and "b0 |" in line]
     assert any(PARETO_MARK in line for line in table)  # b0 has its own front
@@ -301,7 +302,7 @@ def test_sweep_over_two_bounce_limits(tmp_path):
     assert image is not None and (image.spec().width, image.spec().height) == (900, 1000)
     image.close()
     html = (out / "report.html").read_text()
-    assert "<th>temporal error</th>" in html and "<th>Pareto</th>" in html
+    assert "<th>mean temporal error</th>" in html and "<th>Pareto</th>" in html
     assert "images/gallery/1/all%20b2.png" in html  # b2's configs shown beside all b2
     assert "temporal error" in html and "vs all b2" in html
     # Every report frame carries a temporal error map.
@@ -341,7 +342,7 @@ def test_sweep_over_trace_densities(tmp_path):
         assert float(quarter["flip"]) < float(rows[("raster quarter", frame)]["flip"])
     assert sum(float(rows[("heu1@inf quarter", f)]["flip"]) for f in ("1.0", "2.0", "3.0")) > 0
     text = (out / "summary.md").read_text()
-    header = next(line for line in text.splitlines() if line.startswith("| config"))
+    header = " ".join(line for line in text.splitlines() if line.startswith("| config"))
     assert " trace density |" in header
     with pytest.raises(BadOption, match="--trace-densities: a value is given twice"):
         check_spec(replace(spec, trace_densities=["half", "half"]))

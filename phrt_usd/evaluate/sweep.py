@@ -21,9 +21,12 @@ order, per resolution:
 Frame times are measured per configuration in the same run: G-buffer and shading
 phases (shared) plus that configuration's own selection and trace phases.
 
-Outputs in ``OUT``: ``sweep.csv`` (rewritten atomically after every frame, so an
-interrupted sweep keeps its finished rows), ``timeline.json``, a few frames' images under
-``images/``, then ``summary.md``, ``error_vs_time.png`` and ``report.html``
+Outputs in ``OUT`` (an empty directory, or one an earlier sweep wrote with
+``overwrite``: ``sweep_output``): ``sweep.csv`` (rewritten atomically after every frame,
+so an interrupted sweep keeps its finished rows), ``timeline.json``, a few frames' images
+under ``images/``, then ``provenance.json`` (``provenance.collect``: version, commit,
+command, machine, threads, OpenGL, FLIP's viewing conditions, seeds, the sweep's
+settings), ``summary.md``, ``error_vs_time.png`` and ``report.html``
 (``phrt_usd.evaluate.sweep_report``).
 """
 
@@ -41,6 +44,7 @@ import numpy as np
 
 from phrt_usd.atomic import write_text_atomic
 from phrt_usd.errors import BadOption
+from phrt_usd.evaluate import provenance
 from phrt_usd.evaluate.image_metrics import flip_map, mean_over, psnr
 from phrt_usd.evaluate.selection_metrics import (
     density_levels,
@@ -51,6 +55,7 @@ from phrt_usd.evaluate.sweep_files import (
     ERROR_VS_TIME_PNG,
     FLIP_MAP_SUFFIX,
     IMAGES_DIR,
+    PROVENANCE_JSON,
     REPORT_HTML,
     SUMMARY_CSV,
     SUMMARY_MD,
@@ -58,6 +63,7 @@ from phrt_usd.evaluate.sweep_files import (
     TEMPORAL_MAP_SUFFIX,
     TIMELINE_JSON,
 )
+from phrt_usd.evaluate.sweep_output import SweepDirectory, check_out
 from phrt_usd.evaluate.temporal_error import (
     TemporalChannels,
     sequence_frames_per_second,
@@ -67,8 +73,7 @@ from phrt_usd.render.raster.gl_platform import DEFAULT_GL
 from phrt_usd.render.renderer import FrameOutput, FrameRenderer, RenderOptions
 from phrt_usd.run.frames import parse_frames
 from phrt_usd.run.images import write_png_atomic, write_preview_png
-from phrt_usd.run.render_job import stop_on_signals
-from phrt_usd.run.run_directory import DirectoryLock
+from phrt_usd.run.render_job import runtime_settings, stop_on_signals
 from phrt_usd.select.policies import make_policy
 from phrt_usd.threads import DEFAULT_THREADS
 from phrt_usd.usd.schema import DEFAULT_BOUNCE_LIMIT, DEFAULT_RESOLUTION, DEFAULT_SELECTION_WEIGHT
@@ -151,6 +156,9 @@ class SweepSpec:
     #: ``--exposure EV`` of every renderer (``RenderOptions.exposure``): images, and the
     #: FLIP / PSNR of their tone-mapped previews, are of the scaled radiance.
     exposure: float = 0.0
+    #: Replace an earlier sweep in ``out`` (its files only, ``sweep_output``); without
+    #: it a non-empty ``out`` is refused.
+    overwrite: bool = False
 
     def variants(self) -> list[Variant]:
         """Every resolution × bounce limit × trace density, resolutions outer, in the
@@ -273,25 +281,29 @@ class _ConfigState:
 
 
 def run_sweep(spec: SweepSpec, on_frame: Callable[[str, int, int], None] | None = None) -> dict:
-    """Run the sweep; returns a summary dict (rows written, output paths)."""
+    """Run the sweep; returns a summary dict (rows written, output paths, ``frames``:
+    per stage swept, the frames done and planned; ``interrupted`` when a signal stopped
+    it, after which every file holds the finished frames)."""
     check_spec(spec)
-    out = spec.out
-    if out.exists() and not out.is_dir():
-        raise BadOption(f"--out {out}: exists and is not a directory")
-    out.mkdir(parents=True, exist_ok=True)
     rows: list[dict] = []
     timeline: dict = {}
+    progress: dict[str, dict] = {}
+    runtime: dict = {}
     stop = threading.Event()
-    with DirectoryLock(out), stop_on_signals(stop):  # one sweep writes OUT at a time
+    # One sweep writes OUT at a time, and never over an earlier one unless asked to.
+    with SweepDirectory(spec.out, spec.overwrite), stop_on_signals(stop):
         for stage_path in spec.stages:
             if stop.is_set():
                 break
-            _sweep_stage(stage_path, spec, rows, timeline, stop, on_frame)
-        return finish_sweep(spec, rows, timeline, interrupted=stop.is_set())
+            _sweep_stage(stage_path, spec, rows, timeline, stop, on_frame, progress, runtime)
+        summary = finish_sweep(spec, rows, timeline, interrupted=stop.is_set(), runtime=runtime)
+    summary["frames"] = progress
+    return summary
 
 
 def check_spec(spec: SweepSpec) -> None:
-    """Raise PhrtError unless ``spec`` names heuristics and budgets the sweep knows."""
+    """Raise PhrtError unless ``spec`` names heuristics and budgets the sweep knows and
+    its ``out`` may be written (``sweep_output.check_out``: empty, or ``overwrite``)."""
     if not spec.heuristics:
         raise BadOption("--heuristics: give at least one of heu1, heu2")
     for h in spec.heuristics:
@@ -314,14 +326,26 @@ def check_spec(spec: SweepSpec) -> None:
             threads=spec.threads, gl=spec.gl, exposure=spec.exposure,
             trace_density=variant.trace_density,
         )  # fmt: skip
+    # Last: a bad option is named before what OUT holds.
+    check_out(spec.out, spec.overwrite)
 
 
-def finish_sweep(spec: SweepSpec, rows: list[dict], timeline: dict, interrupted: bool) -> dict:
-    """Write sweep.csv, timeline.json and the report into ``spec.out``; returns the
-    summary dict of ``run_sweep``."""
+def finish_sweep(
+    spec: SweepSpec,
+    rows: list[dict],
+    timeline: dict,
+    interrupted: bool,
+    runtime: dict | None = None,
+) -> dict:
+    """Write sweep.csv, timeline.json, provenance.json and the report into ``spec.out``;
+    returns the summary dict of ``run_sweep``. ``runtime``: how this process's renderers
+    ran (``gl``, ``gl_renderer``; ``_runtime_of``), None where none ran here (a cluster's
+    client)."""
     out = spec.out
     write_sweep_csv(out / SWEEP_CSV, rows)
     _write_json(out / TIMELINE_JSON, timeline)
+    record = sweep_provenance(spec, runtime or {}, interrupted)
+    _write_json(out / PROVENANCE_JSON, record)
     from phrt_usd.evaluate.sweep_report import write_sweep_report
 
     write_sweep_report(out)
@@ -338,19 +362,82 @@ def finish_sweep(spec: SweepSpec, rows: list[dict], timeline: dict, interrupted:
         "interrupted": interrupted,
         "threads": spec.threads,
         "exposure": spec.exposure,
+        "provenance": record,
         "files": [
-            SWEEP_CSV, TIMELINE_JSON, SUMMARY_MD, SUMMARY_CSV, ERROR_VS_TIME_PNG, REPORT_HTML,
+            SWEEP_CSV, TIMELINE_JSON, PROVENANCE_JSON, SUMMARY_MD, SUMMARY_CSV,
+            ERROR_VS_TIME_PNG, REPORT_HTML,
         ],  # fmt: skip
     }
 
 
-def _sweep_stage(stage_path, spec, rows, timeline, stop, on_frame) -> None:
+def interruption_note(summary: dict) -> str:
+    """What an interrupted sweep (``run_sweep``'s summary) did and left, in one line:
+    ``stopped after 3 of 40 frames of farm (not started: sewer); OUT holds sweep.csv (21
+    rows) and the report of the finished frames; a new sweep into OUT needs --overwrite``."""
+    progress = summary.get("frames") or {}
+    done = [f"{c['done']} of {c['total']} frames of {name}" for name, c in progress.items()]
+    waiting = [name for name in summary.get("stages", []) if name not in progress]
+    where = "; ".join(done) or "no frame"
+    if waiting:
+        where += f" (not started: {', '.join(waiting)})"
+    out = summary["out"]
+    return (
+        f"stopped after {where}; {out} holds {SWEEP_CSV} ({summary['rows']} rows) and the "
+        f"report of the finished frames ({SUMMARY_MD}, {REPORT_HTML}); a new sweep into "
+        f"{out} needs --overwrite"
+    )
+
+
+def sweep_provenance(spec: SweepSpec, runtime: dict, interrupted: bool = False) -> dict:
+    """provenance.json of a sweep: ``provenance.collect`` with the sweep's threads and
+    OpenGL (``runtime``: what its renderers used, when they ran in this process) and its
+    settings."""
+    settings = {
+        "stages": [str(s) for s in spec.stages],
+        "heuristics": list(spec.heuristics),
+        "budgets_ms": list(spec.budgets_ms),
+        "budgets_rays": list(spec.budgets_rays),
+        "frames": spec.frames,
+        "variants": [
+            {"resolution": v.resolution, "bounce_limit": v.bounce_limit,
+             "trace_density": v.trace_density}
+            for v in spec.variants()
+        ],  # fmt: skip
+        "selection_weight": spec.selection_weight,
+        "exposure": spec.exposure,
+        "interrupted": interrupted,
+    }
+    record = provenance.collect(
+        threads=spec.threads, gl=spec.gl, gl_renderer=runtime.get("gl_renderer"), extra=settings
+    )
+    if runtime.get("gl"):
+        record["gl"]["platform"] = runtime["gl"]
+    if runtime.get("llvmpipe_threads") is not None:
+        record["threads"]["llvmpipe"] = runtime["llvmpipe_threads"]
+    return record
+
+
+def _runtime_of(renderer: FrameRenderer) -> dict:
+    """How a sweep's hybrid renderer runs (``render_job.runtime_settings``: OpenGL
+    platform, llvmpipe's threads, ...) and its ``GL_RENDERER``."""
+    rasterizer = getattr(renderer, "_rasterizer", None)
+    gl_renderer = getattr(rasterizer, "gl_renderer", None)
+    return runtime_settings(renderer) | {"gl_renderer": gl_renderer}
+
+
+def _sweep_stage(stage_path, spec, rows, timeline, stop, on_frame, progress, runtime) -> None:
+    """Sweep one stage into ``rows`` and ``timeline``; ``progress[stage]`` counts its
+    frames (done, total); ``runtime`` gets its renderer's settings (``_runtime_of``)."""
     sweep = StageSweep(stage_path, spec)
+    count = progress[sweep.name] = {"done": 0, "total": len(sweep.times)}
     try:
         sweep.warm_up()
+        if not runtime and sweep.resolutions:  # llvmpipe's threads run once it has drawn
+            runtime.update(_runtime_of(sweep.resolutions[0].hybrid))
         for n, t in enumerate(sweep.times):
             rows.extend(sweep.frame(t, record=True))
             write_sweep_csv(spec.out / SWEEP_CSV, rows)
+            count["done"] = n + 1
             if on_frame is not None:
                 on_frame(sweep.name, n + 1, len(sweep.times))
             if stop.is_set():

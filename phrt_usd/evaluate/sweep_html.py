@@ -8,8 +8,14 @@ chosen frames' images the sweep wrote::
     OUT/images/<stage>/<frame>/<config>_temporal.png  temporal error map (magma)
     OUT/images/<stage>/<frame>/all.png            the reference (``all`` config)
 
-Limits: the page is static (no JavaScript); images are referenced by relative path, so
-``report.html`` must stay next to ``images/`` and the PNGs.
+and links the sweep's data files (sweep.csv, summary.csv, timeline.json, provenance.json,
+summary.md) by relative path. Its tables (``sweep_tables.TABLES``, config first) fit a
+laptop screen: the page is no wider than 1280 px (tests/test_report_html_browser.py
+checks it in Chromium); a table wider than the window scrolls inside its own box, its
+config column held in place.
+
+Limits: the page is static (no JavaScript); images and files are referenced by relative
+path, so ``report.html`` must stay next to ``images/``, the PNGs and the CSVs.
 """
 
 from __future__ import annotations
@@ -21,42 +27,63 @@ from typing import Any
 from urllib.parse import quote
 
 from phrt_usd.atomic import write_text_atomic
+from phrt_usd.evaluate.provenance import provenance_items
 from phrt_usd.evaluate.sweep_files import (
     ERROR_VS_TIME_PNG,
     FLIP_MAP_SUFFIX,
     IMAGES_DIR,
+    PROVENANCE_JSON,
     REPORT_HTML,
+    SUMMARY_CSV,
+    SUMMARY_MD,
+    SWEEP_CSV,
     TEMPORAL_MAP_SUFFIX,
+    TIMELINE_JSON,
     stage_plot_name,
     timeline_plot_name,
 )
-from phrt_usd.evaluate.sweep_summary import (
+from phrt_usd.evaluate.sweep_summary import PAPER_FIGURES, csv_number, stages_of
+from phrt_usd.evaluate.sweep_tables import (
     DEFINITIONS,
-    PAPER_FIGURES,
-    TABLE_COLUMNS,
-    csv_number,
-    equal_time_comparison,
+    NO_PROVENANCE,
+    TABLES,
+    Column,
     format_fixed,
     format_significant3,
-    paper_comparison,
-    stage_notes,
-    stages_of,
+    stage_note_lines,
     table_cells,
 )
 
 #: Name of the reference config (every reflector traced); FLIP/PSNR are measured against it.
 REFERENCE_CONFIG = "all"
 
+#: The data files the page links, with what each holds (only those present are linked).
+DATA_FILES = (
+    (SWEEP_CSV, "every frame of every config"),
+    (SUMMARY_CSV, "one row per stage and config: these tables' figures, unrounded"),
+    (TIMELINE_JSON, "which reflector each config traced in each frame"),
+    (PROVENANCE_JSON, "version, commit, command, machine, settings"),
+    (SUMMARY_MD, "these tables as markdown"),
+)
+
 
 _CSS = """
 body { font-family: sans-serif; margin: 1.5em; color: #222; max-width: 1400px; }
 h1 { font-size: 1.4em; } h2 { font-size: 1.2em; margin-top: 1.6em; }
 h3 { font-size: 1.0em; }
+div.table { max-width: 100%; overflow-x: auto; }
 table { border-collapse: collapse; font-size: 0.8em; margin: 0.5em 0; }
 th, td { border: 1px solid #ccc; padding: 2px 6px; text-align: right; }
-th { background: #f0f0f0; }
-td:nth-child(-n+3), th:nth-child(-n+3) { text-align: left; }
+th { background: #f0f0f0; font-weight: normal; }
+td:first-child, th:first-child { text-align: left; position: sticky; left: 0;
+  background: #fff; }
+th:first-child { background: #f0f0f0; }
 p.note { font-size: 0.85em; color: #555; max-width: 60em; }
+dl.provenance { font-size: 0.8em; display: grid; grid-template-columns: max-content 1fr;
+  gap: 1px 12px; max-width: 100%; }
+dl.provenance dt { font-weight: bold; }
+dl.provenance dd { margin: 0; overflow-wrap: anywhere; }
+ul.files { font-size: 0.85em; }
 div.frame { display: flex; flex-wrap: wrap; gap: 6px 28px; }
 div.row { display: flex; gap: 6px; margin-bottom: 8px; }
 figure { margin: 0; }
@@ -75,12 +102,38 @@ def _src(out_dir: Path, path: Path) -> str:
     return _esc(quote(path.relative_to(out_dir).as_posix()))
 
 
-def _html_table(entries: list[Mapping[str, Any]]) -> str:
-    head = "".join(f"<th>{_esc(h)}</th>" for h, _k, _f in TABLE_COLUMNS)
+def _html_table(entries: list[Mapping[str, Any]], columns: tuple[Column, ...]) -> str:
+    """One of ``TABLES`` in its own scrolling box (wider than the window, it scrolls
+    there, never the page)."""
+    head = "".join(f"<th>{_esc(h)}</th>" for h, _k, _f in columns)
     body = "".join(
-        "<tr>" + "".join(f"<td>{_esc(c)}</td>" for c in table_cells(e)) + "</tr>" for e in entries
+        "<tr>" + "".join(f"<td>{_esc(c)}</td>" for c in table_cells(e, columns)) + "</tr>"
+        for e in entries
     )
-    return f"<table><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>"
+    table = f"<table><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>"
+    return f'<div class="table">{table}</div>'
+
+
+def _provenance_section(provenance: Mapping[str, Any] | None) -> list[str]:
+    """Where the figures came from (``provenance.json``), as a definition list."""
+    parts = ["<h2>Provenance</h2>"]
+    if not provenance:
+        return parts + [f'<p class="note">{_esc(NO_PROVENANCE)}</p>']
+    items = "".join(
+        f"<dt>{_esc(label)}</dt><dd>{_esc(text)}</dd>"
+        for label, text in provenance_items(dict(provenance))
+    )
+    return parts + [f'<dl class="provenance">{items}</dl>']
+
+
+def _files_section(out_dir: Path) -> list[str]:
+    """Relative links to the sweep's data files (``DATA_FILES``) that exist."""
+    links = [
+        f'<li><a href="{_src(out_dir, out_dir / name)}">{_esc(name)}</a>: {_esc(what)}</li>'
+        for name, what in DATA_FILES
+        if (out_dir / name).is_file()
+    ]
+    return ["<h2>Data</h2>", f'<ul class="files">{"".join(links)}</ul>'] if links else []
 
 
 def _frame_dirs(stage_dir: Path) -> list[Path]:
@@ -212,16 +265,19 @@ def write_report_html(
     summary: list[Mapping[str, Any]],
     paper: Mapping[str, Mapping[str, float]] | None = None,
     rows: list[Mapping[str, Any]] | None = None,
+    provenance: Mapping[str, Any] | None = None,
 ) -> None:
     """Write OUT/report.html: one static page (inline CSS, no scripts, no external URLs).
 
-    Shows the error-vs-time plot(s) (per-frame FLIP, temporal error, transitions; the
-    Pareto front ringed), one table per stage (the Pareto column marks the front) with the
-    paper comparison, the
-    selection timeline PNG per stage, and per chosen frame each config's image beside the
-    reference and its FLIP map. Only files that exist in ``out_dir`` are referenced
-    (relative paths); the plots and timelines must be written first.
+    Shows the provenance and links to the data files, the error-vs-time plot(s)
+    (per-frame FLIP, temporal error, transitions; the Pareto front ringed), per stage the
+    ``TABLES`` (the Pareto column marks the front) with the notes (budget adherence, the
+    paper comparison, equal time), the selection timeline PNG per stage, and per chosen
+    frame each config's image beside the reference and its FLIP map. Only files that
+    exist in ``out_dir`` are referenced (relative paths); the plots and timelines must be
+    written first.
     rows : sweep.csv rows, for per-image FLIP/PSNR captions (optional).
+    provenance : provenance.json's record (None: not recorded).
     """
     out_dir = Path(out_dir)
     paper = PAPER_FIGURES if paper is None else paper
@@ -235,6 +291,8 @@ def write_report_html(
         f"<style>{_CSS}</style></head><body>",
         "<h1>phrt sweep: error against run time</h1>",
         f'<p class="note">{_esc(DEFINITIONS)}</p>',
+        *_provenance_section(provenance),
+        *_files_section(out_dir),
     ]
     plot = out_dir / ERROR_VS_TIME_PNG
     if plot.is_file():
@@ -251,12 +309,10 @@ def write_report_html(
                 f'<img class="plot" src="{_src(out_dir, stage_plot)}" '
                 f'alt="{_esc(f"mean FLIP against mean frame time, {stage}")}">'
             )
-        parts.append(_html_table(entries))
-        notes = [
-            *stage_notes(summary, stage),
-            *paper_comparison(summary, stage, paper),
-            *equal_time_comparison(summary, stage),
-        ]
+        for title, columns in TABLES:
+            parts.append(f"<h3>{_esc(title)}, {_esc(stage)}</h3>")
+            parts.append(_html_table(entries, columns))
+        notes = stage_note_lines(summary, stage, paper)
         parts += [f'<p class="note">{_esc(line)}</p>' for line in notes]
         timeline = out_dir / timeline_plot_name(stage)
         if timeline.is_file():

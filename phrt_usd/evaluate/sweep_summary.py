@@ -1,4 +1,4 @@
-"""Sweep results as figures: reading sweep.csv, per-config summaries, comparisons, summary.md.
+"""Sweep results as figures: reading sweep.csv, per-config summaries, summary.csv.
 
 Reads what ``phrt sweep`` (``sweep.py``) wrote into its output directory ``OUT``::
 
@@ -8,11 +8,17 @@ Reads what ``phrt sweep`` (``sweep.py``) wrote into its output directory ``OUT``
     OUT/paper.json       optional: the paper's figures per stage (else PAPER_FIGURES)
 
 ``read_sweep_csv`` → ``summarize`` (one dict per stage x config, in display order) →
-``write_summary_md`` (one table per stage + the paper's figures beside ours and the
-equal-time comparison of HEU1 and HEU2, ``equal_time_comparison``). The tables' cells
-(``table_cells``) and notes are shared with ``sweep_html``.
+``write_summary_csv``; ``sweep_tables`` writes the same figures as text (summary.md,
+and the tables and notes of report.html).
 
-Definitions used in the tables (all means are over the config's frames):
+Definitions used in the tables (all means and percentiles are over the config's frames):
+
+- *spread* = the mean, median, 5th and 95th percentile (``numpy.percentile``, linear
+  interpolation) of frame time, trace time, FLIP and temporal error (``SPREAD_COLUMNS``).
+- *budget adherence* = the share of a config's frames whose trace phase (``trace_ms``)
+  is within its time budget T + 10 % (``report.OVERRUN_FACTOR``, the design's target);
+  for a rays budget, the share whose traced rays are within it; None (n/a) without a
+  budget (raster, references, unbounded).
 
 - *mean fps* = 1000 / mean frame ms (frames per second of wall time over the whole path,
   not the mean of per-frame fps, which short frames would inflate).
@@ -43,7 +49,6 @@ import csv
 import io
 import json
 import math
-import statistics
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
@@ -52,6 +57,7 @@ import numpy as np
 
 from phrt_usd.atomic import write_text_atomic
 from phrt_usd.errors import PhrtError
+from phrt_usd.evaluate.report import OVERRUN_FACTOR
 from phrt_usd.evaluate.selection_metrics import transition_chances
 from phrt_usd.evaluate.sweep_files import PAPER_JSON
 
@@ -96,26 +102,26 @@ REQUIRED_COLUMNS = (
 #: Columns read when present (sweeps of one variant before knob sweeps lack them).
 OPTIONAL_COLUMNS = ("resolution", "bounce_limit", "trace_density", "temporal_error_reflectors")
 
+#: sweep.csv columns summarised by their spread (``spread``): column → summary key stem
+#: (``mean_<stem>``, ``median_<stem>``, ``p5_<stem>``, ``p95_<stem>``).
+SPREAD_COLUMNS = {
+    "frame_ms": "frame_ms",
+    "trace_ms": "trace_ms",
+    "flip": "flip",
+    "temporal_error": "temporal_error",
+}
+#: The percentiles of a spread besides the median, and their key prefixes.
+SPREAD_PERCENTILES = ((5.0, "p5"), (95.0, "p95"))
+#: Design target of budget adherence: the trace phase within T + 10 % in this share of
+#: frames (docs/design.md §3, "Budget"); a config below it is named under its table.
+BUDGET_TARGET = 0.99
+
 #: Display order of config kinds in tables and legends.
 KIND_ORDER = {"raster": 0, "heuristic": 1, "reference": 2, "rt": 3}
 #: Display order of heuristics at one budget; others follow alphabetically.
 HEURISTIC_ORDER = {"heu1": 0, "heu2": 1}
 
 MISSING = "—"
-
-#: How the tables' figures are defined; heads summary.md and report.html.
-DEFINITIONS = (
-    "FLIP and PSNR are measured against the `all` reference (every reflector ray-traced; "
-    "PSNR 100 dB = identical). Mean fps = 1000 / mean frame ms. Transition rate = "
-    "transitions / chances to switch (reflector visible in two consecutive frames). "
-    "Temporal error: FLIP between the config's frame-to-frame change and the reference's "
-    "(0 = changes as the reference does; popping between raster and ray tracing scores "
-    "high; docs/temporal-error.md). Pareto: not beaten on all of frame time, FLIP and "
-    "temporal error by another config of the same stage and variant (resolution, bounce "
-    "limit, trace density), whose reference the errors are measured against (the "
-    "references trace every pixel at any trace density)."
-)
-
 
 # --- reading ---------------------------------------------------------------------------
 
@@ -179,6 +185,38 @@ def _mean(values: Iterable[float | None]) -> float | None:
     return sum(present) / len(present) if present else None
 
 
+def spread(values: Iterable[float | None], stem: str) -> dict[str, float | None]:
+    """``mean_<stem>``, ``median_<stem>``, ``p5_<stem>``, ``p95_<stem>`` of the values
+    that are not None (all None when there are none)."""
+    present = np.array([v for v in values if v is not None], dtype=np.float64)
+    keys = [f"mean_{stem}", f"median_{stem}"] + [f"{p}_{stem}" for _q, p in SPREAD_PERCENTILES]
+    if present.size == 0:
+        return dict.fromkeys(keys)
+    # The mean as a plain sum, as everywhere else in the summary (the same float).
+    figures = [float(sum(present.tolist()) / present.size), float(np.median(present))]
+    figures += [float(np.percentile(present, q)) for q, _p in SPREAD_PERCENTILES]
+    return dict(zip(keys, figures, strict=True))
+
+
+def budget_adherence(
+    rows: list[Mapping[str, Any]], budget_ms: float | None, budget_rays: float | None
+) -> tuple[float | None, str]:
+    """(share of ``rows`` within the config's budget, what was checked): ``"time"`` for a
+    finite ms budget (``trace_ms`` <= budget x ``OVERRUN_FACTOR``), ``"rays"`` for a finite
+    rays budget (``rays`` <= budget), (None, ``""``) without a finite budget. A frame with
+    an empty cell does not count as within."""
+    if budget_ms is not None and math.isfinite(budget_ms):
+        limit, column, kind = budget_ms * OVERRUN_FACTOR, "trace_ms", "time"
+    elif budget_rays is not None and math.isfinite(budget_rays):
+        limit, column, kind = budget_rays, "rays", "rays"
+    else:
+        return None, ""
+    if not rows:
+        return None, kind
+    values = [csv_number(r, column) for r in rows]
+    return sum(v is not None and v <= limit for v in values) / len(rows), kind
+
+
 # --- summary ---------------------------------------------------------------------------
 
 
@@ -237,12 +275,15 @@ def summarize(
 
     stage, config, heuristic, mode, kind (see ``config_kind``), budget_ms / budget_rays
     (float, None = not used, inf = unbounded), budget (label), frames (count),
-    mean_frame_ms, median_frame_ms, mean_fps, mean_trace_ms, mean_rays, mean_flip,
-    mean_flip_reflectors, mean_psnr, transitions (sum, int), transition_chances (int),
+    mean_frame_ms, median_frame_ms, p5_frame_ms, p95_frame_ms, mean_fps, the same four
+    of trace_ms, flip and temporal_error (``spread``), budget_within (share of frames
+    within budget, ``budget_adherence``; None = n/a), budget_checked ("time" | "rays" |
+    ""), mean_rays, mean_flip_reflectors, mean_psnr, transitions (sum, int),
+    transition_chances (int),
     transition_rate (transitions / chances, None without chances), chances_from
     ("timeline" | "csv"), density_steps (sum, int: a traced reflector's trace density
     changed, not a transition; 0 without the column), mean_selected, mean_visible,
-    mean_temporal_error, mean_temporal_error_reflectors, resolution ("WxH" or ""),
+    mean_temporal_error_reflectors, resolution ("WxH" or ""),
     bounce_limit (int or None), trace_density (the variant's, one of TRACE_DENSITIES; ""
     without the column), variant (e.g. "320x240, bounce 2"; "" without those columns),
     pareto (bool, see ``mark_pareto``). Means skip empty cells and are None when every
@@ -278,6 +319,9 @@ def summarize(
 
 #: The objectives of the Pareto front (summary keys, all minimised).
 PARETO_OBJECTIVES = ("mean_frame_ms", "mean_flip", "mean_temporal_error")
+
+#: Table cell of a config on the Pareto front.
+PARETO_MARK = "◆"
 
 
 def pareto_front(points: list[tuple[float, ...]]) -> list[bool]:
@@ -359,6 +403,10 @@ def _summarize_config(
     if any(v is None for v in frame_ms):
         raise PhrtError(f"sweep.csv stage {stage!r} config {config!r}: empty frame_ms")
     mean_frame_ms = sum(frame_ms) / len(frame_ms)
+    within, checked = budget_adherence(ordered, budget_ms, budget_rays)
+    spreads: dict[str, float | None] = {}
+    for column, stem in SPREAD_COLUMNS.items():
+        spreads |= spread((csv_number(r, column) for r in ordered), stem)
     transitions = [csv_number(r, "transitions") or 0.0 for r in ordered]
     chances_from = "timeline"
     if chances is None:
@@ -378,13 +426,12 @@ def _summarize_config(
         "budget_rays": budget_rays,
         "budget": budget_label(kind, budget_ms, budget_rays),
         "frames": len(ordered),
-        "mean_frame_ms": mean_frame_ms,
-        "median_frame_ms": statistics.median(frame_ms),
+        **spreads,
         # A mean frame time of 0 ms (clock resolution) would give infinite fps.
         "mean_fps": 1000.0 / mean_frame_ms if mean_frame_ms > 0.0 else None,
-        "mean_trace_ms": _mean(csv_number(r, "trace_ms") for r in ordered),
+        "budget_within": within,
+        "budget_checked": checked,
         "mean_rays": _mean(csv_number(r, "rays") for r in ordered),
-        "mean_flip": _mean(csv_number(r, "flip") for r in ordered),
         "mean_flip_reflectors": _mean(csv_number(r, "flip_reflectors") for r in ordered),
         "mean_psnr": _mean(csv_number(r, "psnr") for r in ordered),
         "transitions": total_transitions,
@@ -394,7 +441,6 @@ def _summarize_config(
         "density_steps": steps,
         "mean_selected": _mean(csv_number(r, "selected") for r in ordered),
         "mean_visible": _mean(csv_number(r, "visible") for r in ordered),
-        "mean_temporal_error": _mean(csv_number(r, "temporal_error") for r in ordered),
         "mean_temporal_error_reflectors": _mean(
             csv_number(r, "temporal_error_reflectors") for r in ordered
         ),
@@ -411,287 +457,17 @@ def stages_of(summary: list[Mapping[str, Any]]) -> list[str]:
     return list(dict.fromkeys(e["stage"] for e in summary))
 
 
-# --- number formatting (shared by the markdown and the HTML tables) ---------------------
-
-
-def format_fixed(digits: int):
-    def fmt(value: float | None) -> str:
-        return MISSING if value is None else f"{value:.{digits}f}"
-
-    return fmt
-
-
-def format_significant3(value: float | None) -> str:
-    """3 significant digits: 0.0123, 0.123, 1.23 (FLIP is in [0, 1], often ≪ 1)."""
-    return MISSING if value is None else f"{value:.3g}"
-
-
-def format_percent(value: float | None) -> str:
-    return MISSING if value is None else f"{100.0 * value:.2f} %"
-
-
-def format_pareto(value: bool) -> str:
-    return PARETO_MARK if value else ""
-
-
-def format_optional(value: Any) -> str:
-    return MISSING if value is None or value == "" else str(value)
-
-
-#: Table cell of a config on the Pareto front.
-PARETO_MARK = "◆"
-
-
-#: (header, summary key, formatter) of every table column, in order.
-TABLE_COLUMNS: tuple[tuple[str, str, Any], ...] = (
-    ("config", "config", str),
-    ("heuristic", "heuristic", str),
-    ("budget", "budget", str),
-    ("resolution", "resolution", format_optional),
-    ("bounce limit", "bounce_limit", format_optional),
-    ("trace density", "trace_density", format_optional),
-    ("frames", "frames", str),
-    ("mean frame ms", "mean_frame_ms", format_fixed(2)),
-    ("median frame ms", "median_frame_ms", format_fixed(2)),
-    ("mean fps", "mean_fps", format_fixed(1)),
-    ("mean trace ms", "mean_trace_ms", format_fixed(2)),
-    ("mean rays", "mean_rays", format_fixed(0)),
-    ("mean FLIP", "mean_flip", format_significant3),
-    ("mean FLIP reflectors", "mean_flip_reflectors", format_significant3),
-    ("mean PSNR dB", "mean_psnr", format_fixed(2)),
-    ("transitions", "transitions", str),
-    ("transition rate", "transition_rate", format_percent),
-    ("density steps", "density_steps", str),
-    ("mean selected", "mean_selected", format_fixed(2)),
-    ("temporal error", "mean_temporal_error", format_significant3),
-    ("temporal error reflectors", "mean_temporal_error_reflectors", format_significant3),
-    ("Pareto", "pareto", format_pareto),
-)
-
-
-def table_cells(entry: Mapping[str, Any]) -> list[str]:
-    """The formatted cells of one summary entry, in ``TABLE_COLUMNS`` order."""
-    return [fmt(entry[key]) for _header, key, fmt in TABLE_COLUMNS]
-
-
-def stage_notes(summary: list[Mapping[str, Any]], stage: str) -> list[str]:
-    """Caveats of one stage's table: configs whose transition rate is approximated."""
-    approximated = [
-        e["config"] for e in summary if e["stage"] == stage and e["chances_from"] == "csv"
-    ]
-    if not approximated:
-        return []
-    return [
-        "Transition rate approximated from per-frame visible counts (no matching "
-        f"timeline.json entry) for: {', '.join(approximated)}."
-    ]
-
-
-def paper_comparison(
-    summary: list[Mapping[str, Any]], stage: str, paper: Mapping[str, Mapping[str, float]]
-) -> list[str]:
-    """Plain-text lines comparing the paper's HEU1/HEU2 figures with this sweep's.
-
-    Ours are given at every budget (and variant) where both HEU1 and HEU2 were run; the
-    transitions ratio is HEU1's transitions over HEU2's (as in the paper).
-    """
-    lines = []
-    figures = paper.get(stage)
-    if figures:
-
-        def figure(key: str, scale: float = 1.0, fmt: str = "g") -> str:
-            value = figures.get(key)
-            return MISSING if value is None else format(scale * value, fmt)
-
-        lines.append(
-            "Paper (GTX 760, OptiX): "
-            f"fps HEU1 {figure('heu1_fps')} / HEU2 {figure('heu2_fps')}; "
-            f"transitions HEU1/HEU2 {figure('transitions_ratio', 100.0, '.1f')} %; "
-            f"mean selected HEU1 {figure('heu1_selected')} / HEU2 {figure('heu2_selected')}."
-        )
-    else:
-        lines.append(f"The paper has no figures for stage {stage!r}.")
-    several = len(variants_of(summary, stage)) > 1
-    by_budget: dict[tuple[str, str], dict[str, Mapping[str, Any]]] = {}
-    for entry in summary:
-        if entry["stage"] == stage and entry["heuristic"] in ("heu1", "heu2"):
-            key = (entry.get("variant", ""), entry["budget"])
-            by_budget.setdefault(key, {})[entry["heuristic"]] = entry
-    for (variant, budget), pair in by_budget.items():
-        if len(pair) != 2:
-            continue
-        heu1, heu2 = pair["heu1"], pair["heu2"]
-        ratio = heu1["transitions"] / heu2["transitions"] if heu2["transitions"] else None
-        where = f"{budget}, {variant}" if several else budget
-        lines.append(
-            f"This sweep at budget {where}: fps HEU1 {format_fixed(1)(heu1['mean_fps'])} / "
-            f"HEU2 {format_fixed(1)(heu2['mean_fps'])}; transitions HEU1/HEU2 "
-            f"{format_percent(ratio)} ({heu1['transitions']} / {heu2['transitions']}); "
-            f"mean selected HEU1 {format_fixed(2)(heu1['mean_selected'])} / "
-            f"HEU2 {format_fixed(2)(heu2['mean_selected'])}."
-        )
-    return lines
-
-
-def frontier_flip_at(points: Iterable[tuple[float, float]], ms: float) -> float | None:
-    """The lowest mean FLIP a heuristic reached within a cost of ``ms`` (mean frame
-    milliseconds, or another cost such as mean traced rays), linearly interpolated:
-    ``points`` are its (mean cost, mean FLIP) over budgets.
-    The points are reduced to their Pareto frontier (a point slower *and* worse than
-    another is dropped: that time buys at least the faster point's error), interpolated
-    between neighbours, and held at the slowest point's error beyond it. None when
-    ``ms`` is faster than every point (no budget of it was that fast)."""
-    frontier: list[tuple[float, float]] = []
-    for t, e in sorted(points):
-        if not frontier or e < frontier[-1][1]:
-            frontier.append((t, e))
-    if not frontier or ms < frontier[0][0]:
-        return None
-    for (t0, e0), (t1, e1) in zip(frontier, frontier[1:], strict=False):
-        if ms <= t1:
-            # The line is what alternating the two budgets over frames would give.
-            return e0 + (e1 - e0) * (ms - t0) / (t1 - t0) if t1 > t0 else e1
-    return frontier[-1][1]
-
-
-#: The cost axes HEU1 and HEU2 are compared on: (summary key, its name, its unit). Frame
-#: time is the one that matters; traced rays are its deterministic part (a rays budget
-#: selects the same on every machine), free of the timing noise of a few-ms trace phase.
-COMPARISON_AXES = (
-    ("mean_frame_ms", "mean frame time", "ms"),
-    ("mean_rays", "mean traced rays", "rays"),
-)
-
-
-#: The errors HEU1 and HEU2 are compared on at equal cost: (summary key, its name).
-COMPARISON_ERRORS = (
-    ("mean_flip", "mean FLIP"),
-    ("mean_temporal_error", "temporal error"),
-)
-
-
-def variants_of(summary: list[Mapping[str, Any]], stage: str) -> list[str]:
-    """The variants (``variant`` labels) of one stage in summary order; [""] for entries
-    without one."""
-    return list(dict.fromkeys(e.get("variant", "") for e in summary if e["stage"] == stage))
-
-
-def equal_time_comparison(summary: list[Mapping[str, Any]], stage: str) -> list[str]:
-    """Lines comparing HEU1 and HEU2 at equal cost, per variant of the stage, per budget
-    kind (ms or rays budgets), per axis of ``COMPARISON_AXES`` (rays only for rays
-    budgets) and per error of ``COMPARISON_ERRORS`` (when every point has it): for each
-    HEU1 point with some budget, HEU2's frontier error at HEU1's cost
-    (``frontier_flip_at``), and the verdict. Lines of a stage with several variants start
-    with the variant in brackets."""
-    variants = variants_of(summary, stage)
-    lines = []
-    for variant in variants:
-        prefix = f"[{variant}] " if len(variants) > 1 else ""
-        entries = [
-            e for e in summary if e["stage"] == stage and e.get("variant", "") == variant
-        ]
-        lines += [prefix + line for line in _equal_cost_lines(entries)]
-    return lines
-
-
-def _equal_cost_lines(entries: list[Mapping[str, Any]]) -> list[str]:
-    """``equal_time_comparison``'s lines for the entries of one stage and variant."""
-    lines = []
-
-    def bounded(value: float | None) -> bool:
-        return value is not None and math.isfinite(value)
-
-    for kind, field in (("ms", "budget_ms"), ("rays", "budget_rays")):
-        for error, error_name in COMPARISON_ERRORS:
-            # Each curve: this kind's budgets plus the unbounded point (no budget at all).
-            curves: dict[str, list[Mapping[str, Any]]] = {"heu1": [], "heu2": []}
-            for e in entries:
-                if e["heuristic"] not in curves or e.get(error) is None:
-                    continue
-                unbounded = not bounded(e["budget_ms"]) and not bounded(e["budget_rays"])
-                if e[field] is not None or unbounded:
-                    curves[e["heuristic"]].append(e)
-            if not any(bounded(e[field]) for e in curves["heu1"]) or not curves["heu2"]:
-                continue
-            for axis, name, unit in COMPARISON_AXES:
-                if (kind == "ms" and unit == "rays") or any(
-                    e.get(axis) is None for e in curves["heu1"] + curves["heu2"]
-                ):
-                    continue
-                heu2 = [(e[axis], e[error]) for e in curves["heu2"]]
-                wins = compared = 0
-                parts = []
-                for e in curves["heu1"]:
-                    if not bounded(e[field]) or e[field] == 0.0:
-                        continue  # both heuristics do the same there (everything / nothing)
-                    other = frontier_flip_at(heu2, e[axis])
-                    if other is None:
-                        parts.append(f"{e['budget']}: cheaper than any HEU2 point")
-                        continue
-                    compared += 1
-                    wins += e[error] <= other
-                    cost = f"{e[axis]:.2f} ms" if unit == "ms" else f"{e[axis]:.0f} rays"
-                    parts.append(
-                        f"{e['budget']}: {format_significant3(e[error])} at {cost} "
-                        f"vs HEU2 {format_significant3(other)}"
-                    )
-                if parts:
-                    lines.append(
-                        f"Equal {name} ({kind} budgets; HEU2 interpolated on its error-"
-                        f"{unit} frontier): HEU1 {error_name} <= HEU2 at {wins} of "
-                        f"{compared}. " + "; ".join(parts) + "."
-                    )
-    return lines
-
-
-# --- summary.md ------------------------------------------------------------------------
-
-
-def _md_cell(text: str) -> str:
-    return text.replace("\\", "\\\\").replace("|", "\\|").replace("\n", " ")
-
-
-def write_summary_md(
-    summary: list[Mapping[str, Any]],
-    path: Path,
-    paper: Mapping[str, Mapping[str, float]] | None = None,
-) -> None:
-    """Write summary.md: per stage a heading, one markdown table, the paper comparison."""
-    paper = PAPER_FIGURES if paper is None else paper
-    lines = [
-        "# phrt sweep: error against run time",
-        "",
-        DEFINITIONS,
-        "",
-    ]
-    header = [h for h, _k, _f in TABLE_COLUMNS]
-    for stage in stages_of(summary):
-        lines += [f"## Stage {_md_cell(stage)}", ""]
-        lines.append("| " + " | ".join(header) + " |")
-        lines.append("|" + "|".join("---" for _ in header) + "|")
-        for entry in summary:
-            if entry["stage"] == stage:
-                lines.append("| " + " | ".join(_md_cell(c) for c in table_cells(entry)) + " |")
-        lines.append("")
-        notes = [
-            *stage_notes(summary, stage),
-            *paper_comparison(summary, stage, paper),
-            *equal_time_comparison(summary, stage),
-        ]
-        lines += [_md_cell(line) + "  " for line in notes]
-        lines.append("")
-    write_text_atomic(Path(path), "\n".join(lines))
-
-
 #: Columns of summary.csv: the summary entry's keys, numbers unrounded.
 SUMMARY_CSV_KEYS = (
     "stage", "config", "heuristic", "mode", "kind", "budget", "budget_ms", "budget_rays",
     "resolution", "bounce_limit", "trace_density", "frames", "mean_frame_ms",
-    "median_frame_ms", "mean_fps",
-    "mean_trace_ms", "mean_rays", "mean_flip", "mean_flip_reflectors", "mean_psnr",
+    "median_frame_ms", "p5_frame_ms", "p95_frame_ms", "mean_fps",
+    "mean_trace_ms", "median_trace_ms", "p5_trace_ms", "p95_trace_ms", "budget_within",
+    "budget_checked", "mean_rays",
+    "mean_flip", "median_flip", "p5_flip", "p95_flip", "mean_flip_reflectors", "mean_psnr",
     "transitions", "transition_chances", "transition_rate", "chances_from", "density_steps",
-    "mean_selected", "mean_visible", "mean_temporal_error",
-    "mean_temporal_error_reflectors", "pareto",
+    "mean_selected", "mean_visible", "mean_temporal_error", "median_temporal_error",
+    "p5_temporal_error", "p95_temporal_error", "mean_temporal_error_reflectors", "pareto",
 )  # fmt: skip
 
 
