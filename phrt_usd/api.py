@@ -59,8 +59,9 @@ from phrt_usd.model.trace_density import check_density
 from phrt_usd.render.primary_source import check_primary
 from phrt_usd.render.raster.gl_platform import check_gl
 from phrt_usd.render.renderer import FrameOutput, FrameRenderer, RenderOptions
+from phrt_usd.run.frame_reader import read_frame_files
 from phrt_usd.run.frames import SAME_FRAME, parse_frames
-from phrt_usd.run.images import read_frame_exr
+from phrt_usd.run.products import ImagePlan
 from phrt_usd.run.render_job import RenderJob, RunRecord, render_to_directory
 from phrt_usd.threads import check_threads
 from phrt_usd.usd.schema import read_render_params
@@ -476,6 +477,7 @@ class RenderResult:
     out: Path
     selection_layer: Path
     _temporary: tempfile.TemporaryDirectory | None = field(default=None, repr=False, compare=False)
+    _plan: ImagePlan | None = field(default=None, repr=False, compare=False)  # for read_frame
 
     @property
     def temporary(self) -> bool:
@@ -496,15 +498,16 @@ class RenderResult:
         raise PhrtError(f"no frame at time code {time:g} in this render ({shown}{more})")
 
     def read_frame(self, time: float | None = None) -> dict[str, np.ndarray]:
-        """The arrays of a frame's EXR (``run.images.read_frame_exr``): ``beauty`` (H, W, 3)
-        float32 linear RGB, ``alpha``, ``depth`` (inf for background), ``element_id``
-        (H, W) int32, ``traced_mask`` (H, W) bool."""
+        """The planes of a frame, read back from whatever files its RenderProducts (or the
+        default layout) wrote (``run.frame_reader.read_frame_files``): ``beauty`` (H, W, 3)
+        float32 linear RGB, and as the products hold them ``alpha``, ``depth`` (inf for
+        background), ``element_id`` (H, W) int32, ``traced_mask`` (H, W) bool,
+        ``normal``, ``position``, ``albedo``, ``reflectivity``. The default layout gives
+        beauty, alpha, depth, element_id and traced_mask."""
         images = self.image(time)
-        if images.exr is None:
-            raise PhrtError(
-                f"frame {images.time:g} wrote no EXR ({', '.join(map(str, images.files))})"
-            )
-        return read_frame_exr(images.exr)
+        if self._plan is None:
+            raise PhrtError(f"{self.out}: this result does not know its image files")
+        return read_frame_files(self._plan, self.out, images.time)
 
     def cleanup(self) -> None:
         """Remove the temporary run directory (nothing for a caller's ``out``)."""
@@ -575,6 +578,7 @@ def render(
         out=record.out,
         selection_layer=record.selection_layer,
         _temporary=temporary,
+        _plan=record.images,
     )
 
 
