@@ -4,10 +4,13 @@ a fresh pytest process; and assert_images_close's checks in this process."""
 
 from __future__ import annotations
 
+import os
 import re
+from pathlib import Path
 
 import numpy as np
 import pytest
+from pxr import Gf, Usd, UsdGeom
 from scenes import mirror_floor_stage
 
 # Imported before any pytester fixture: pytester removes the modules a test imported when
@@ -15,95 +18,231 @@ from scenes import mirror_floor_stage
 import phrt_usd.evaluate.image_metrics  # noqa: F401
 import phrt_usd.run.images  # noqa: F401
 from phrt_usd.errors import BadOption, PhrtError
-from phrt_usd.pytest_plugin import DEFAULT_MIN_PSNR, assert_images_close, load_image
+from phrt_usd.pytest_plugin import (
+    DEFAULT_MAX_MEAN_FLIP,
+    DEFAULT_MIN_PSNR,
+    MAX_STEM,
+    _short,
+    assert_images_close,
+    load_image,
+)
+from phrt_usd.run.images import srgb_oetf
+from phrt_usd.usd import schema
 
 pytest_plugins = ["pytester"]
 
-#: The throw-away project's test module: the worked example of docs/pipeline-tests.md.
-PIPELINE_TESTS = '''
+#: The user's cache folder, read before pytester points HOME at its temporary folder:
+#: the throw-away projects' renders load phrt's compiled kernels from the user's cache
+#: (``$XDG_CACHE_HOME/phrt-usd``) instead of compiling them afresh in every pytest run.
+USER_CACHE = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+#: The throw-away project's frame: small, so that each pytest run renders in a second.
+WIDTH, HEIGHT = 64, 48
+#: The backdrop's flat colour: 8-bit rounding of this wall as the stage lights it costs
+#: ~0.028 in mean FLIP on its own (measured over 40 random colours, the largest), above
+#: DEFAULT_MAX_MEAN_FLIP: a PNG reference of the frame fails an identical re-render
+#: unless the comparison takes the PNG's rounding out.
+WALL_COLOUR = (0.438, 0.892, 0.614)
+#: The changed stage's ball colour (red before): what a look change does to a shot.
+CHANGED_BALL = (0.05, 0.2, 0.9)
+
+#: The throw-away project's test module: the worked example of docs/pipeline-tests.md,
+#: its references in both kinds (the default EXR and a PNG preview).
+PIPELINE_TESTS = """
 from pathlib import Path
 
 from phrt_usd.pytest_plugin import assert_images_close
 
 STAGE = Path(__file__).parent / "shot.usda"
-RAYS = 1_000_000  # a rays budget: the same selection on every machine
 
 
-def test_hybrid_shot_matches_reference(phrt_render, phrt_reference_dir):
-    result = phrt_render(STAGE, budget_rays=RAYS)
+def test_shot_matches_its_reference(phrt_render):
+    result = phrt_render(STAGE)  # no time budget: the frame depends on the stage alone
     assert result.summary["frames"] == 1 and result.summary["mean_selected"] == 1
-    assert_images_close(result.read_frame()["beauty"], phrt_reference_dir / "shot.png")
+    figures = assert_images_close(result.read_frame()["beauty"])  # references/test_shot/
+    # An identical re-render: the same pixels, and the EXR reference holds them exactly.
+    assert figures.mean_flip in (None, 0.0)
 
 
-def test_raster_shot_matches_reference(phrt_render, phrt_reference_dir):
-    result = phrt_render(STAGE, mode="raster")  # no ray-traced mirror: must fail
-    assert_images_close(result.read_frame()["beauty"], phrt_reference_dir / "shot.png")
-'''
+def test_shot_matches_its_png_reference(phrt_render, phrt_reference):
+    figures = assert_images_close(
+        phrt_render(STAGE).read_frame()["beauty"], phrt_reference(suffix=".png")
+    )
+    # The PNG's 8-bit rounding is taken out of the comparison: exactly equal again.
+    assert figures.mean_flip in (None, 0.0)
+"""
+
+
+def shot_stage(path):
+    """mirror_floor_stage at WIDTH x HEIGHT with a flat WALL_COLOUR wall behind the ball
+    (the wall at z = -3, 40 m wide, from y = -5 to 20 m, facing the camera)."""
+    mirror_floor_stage(path, WIDTH, HEIGHT)
+    stage = Usd.Stage.Open(str(path))
+    wall = UsdGeom.Mesh.Define(stage, "/World/Wall")
+    wall.CreatePointsAttr([(-20, -5, -3), (20, -5, -3), (20, 20, -3), (-20, 20, -3)])
+    wall.CreateFaceVertexCountsAttr([4])
+    wall.CreateFaceVertexIndicesAttr([0, 1, 2, 3])
+    wall.CreateDisplayColorAttr([Gf.Vec3f(*WALL_COLOUR)])
+    stage.GetRootLayer().Save()
+    return path
 
 
 @pytest.fixture
-def pipeline(pytester):
-    """A pipeline repository: a stage (mirror floor, red sphere) and its tests."""
-    mirror_floor_stage(pytester.path / "shot.usda")
+def project(pytester, monkeypatch):
+    """An empty throw-away project whose pytest runs use the user's kernel cache."""
+    monkeypatch.setenv("XDG_CACHE_HOME", USER_CACHE)
+    return pytester
+
+
+@pytest.fixture
+def pipeline(project):
+    """A pipeline repository: a stage (mirror floor, red ball, flat wall) and its tests."""
+    pytester = project
+    shot_stage(pytester.path / "shot.usda")
     pytester.makepyfile(test_shot=PIPELINE_TESTS)
     return pytester
 
 
-def _failure_images(output: str) -> dict[str, str]:
-    return dict(re.findall(r"^E?\s+(actual|reference|error):\s+(\S+\.png)$", output, re.M))
+def _failure_images(output: str) -> dict[str, list[str]]:
+    found: dict[str, list[str]] = {}
+    for kind, path in re.findall(r"^E?\s+(actual|reference|error):\s+(\S+\.png)$", output, re.M):
+        found.setdefault(kind, []).append(path)
+    return found
 
 
-def test_pipeline_tests_with_references(pipeline):
-    references = pipeline.path / "references"
-    failures = pipeline.path / "phrt-failures"
+def test_update_then_identical_rerender_passes_then_changed_stage_fails(pipeline):
+    """The CI's sequence: references written by --phrt-update-references, the identical
+    render passing (PNG reference of flat colours included), a changed material colour
+    failing with the failure images."""
+    own = pipeline.path / "references" / "test_shot"
+    failures = pipeline.path / "phrt-failures" / "test_shot"
+    exr = own / "test_shot_matches_its_reference.exr"
+    png = own / "test_shot_matches_its_png_reference.png"
 
-    # 1. No reference yet: both tests fail, naming the option that writes them.
-    first = pipeline.runpytest_subprocess("-p", "no:cacheprovider")
-    first.assert_outcomes(failed=2)
-    first.stdout.fnmatch_lines(["*no reference image *shot.png (write it with pytest "
-                                "--phrt-update-references)*"])  # fmt: skip
-    assert (failures / "test_hybrid_shot_matches_reference.actual.png").is_file()
+    # 1. Write the references: each named after its test, in a folder of the module.
+    update = pipeline.runpytest_subprocess("--phrt-update-references", "-p", "no:cacheprovider")
+    update.assert_outcomes(passed=2)
+    update.stdout.fnmatch_lines(["*phrt references written*"])
+    update.stdout.fnmatch_lines([str(exr)])
+    update.stdout.fnmatch_lines([str(png)])
+    assert load_image(exr).shape == load_image(png).shape == (HEIGHT, WIDTH, 3)
+
+    # 2. The identical render passes against both (the throw-away tests assert mean FLIP 0).
+    pipeline.runpytest_subprocess("-p", "no:cacheprovider").assert_outcomes(passed=2)
+    assert not failures.exists()
+
+    # 3. A changed material colour fails both, each writing its three images.
+    stage = Usd.Stage.Open(str(pipeline.path / "shot.usda"))
+    UsdGeom.Gprim(stage.GetPrimAtPath("/World/Ball")).GetDisplayColorAttr().Set(
+        [Gf.Vec3f(*CHANGED_BALL)]
+    )
+    stage.GetRootLayer().Save()
+    changed = pipeline.runpytest_subprocess("-p", "no:cacheprovider")
+    changed.assert_outcomes(failed=2)
+    output = changed.stdout.str()
+    assert len(re.findall(r"images differ: .*PSNR \d+\.\d+ dB < 40 dB", output)) == 2
+    images = _failure_images(output)
+    for test, reference in (("test_shot_matches_its_reference", exr),
+                            ("test_shot_matches_its_png_reference", png)):  # fmt: skip
+        for kind in ("actual", "reference", "error"):
+            path = failures / f"{test}.{kind}.png"
+            assert str(path) in images[kind] and load_image(path).shape == (HEIGHT, WIDTH, 3)
+        actual = load_image(failures / f"{test}.actual.png")
+        # The failure's reference image is the reference file's preview (8-bit rounding:
+        # half a step of 255 after the sRGB encoding, compared encoded).
+        shown = srgb_oetf(load_image(failures / f"{test}.reference.png"))
+        assert np.abs(shown - srgb_oetf(load_image(reference))).max() <= 0.5 / 255 + 1e-6
+        assert not np.array_equal(actual, load_image(failures / f"{test}.reference.png"))
     assert (failures / ".gitignore").read_text().strip().endswith("*")
 
-    # 2. Regenerate the reference from the hybrid render.
-    update = pipeline.runpytest_subprocess("--phrt-update-references", "-k", "hybrid")
-    update.assert_outcomes(passed=1, deselected=1)
-    update.stdout.fnmatch_lines(["*phrt references written*", f"{references / 'shot.png'}"])
-    assert load_image(references / "shot.png").shape == (120, 160, 3)
 
-    # 3. Compare: the hybrid render passes (its stale failure image is removed), the
-    #    raster one, without the mirrored sphere, fails and writes the three images.
-    second = pipeline.runpytest_subprocess()
-    second.assert_outcomes(passed=1, failed=1)
-    output = second.stdout.str()
-    assert re.search(rf"images differ: .*PSNR \d+\.\d+ dB < {DEFAULT_MIN_PSNR:g} dB", output)
-    images = _failure_images(output)
-    assert set(images) == {"actual", "reference", "error"}
-    stem = failures / "test_raster_shot_matches_reference"
-    for kind, path in images.items():
-        assert path == f"{stem}.{kind}.png" and load_image(path).shape == (120, 160, 3)
-    assert not (failures / "test_hybrid_shot_matches_reference.actual.png").exists()
-    actual, reference = load_image(images["actual"]), load_image(images["reference"])
-    assert not np.array_equal(actual, reference)
-    np.testing.assert_array_equal(reference, load_image(references / "shot.png"))
+#: Two tests and more rendering one stage, each with its own reference, and two tests
+#: naming one file (the second fails, naming the first).
+PAIR_TESTS = """
+from pathlib import Path
 
-    # 4. The hybrid test alone passes: the run is green.
-    assert pipeline.runpytest_subprocess("-k", "hybrid").ret == 0
+import pytest
+
+from phrt_usd.pytest_plugin import assert_images_close
+
+STAGE = Path(__file__).parent / "shot.usda"
+
+
+def test_hybrid(phrt_render):
+    assert_images_close(phrt_render(STAGE).read_frame()["beauty"])
+
+
+def test_raster(phrt_render):
+    assert_images_close(phrt_render(STAGE, mode="raster").read_frame()["beauty"])
+
+
+@pytest.mark.parametrize("mode", ["hybrid", "raster"])
+def test_modes(phrt_render, mode):
+    assert_images_close(phrt_render(STAGE, mode=mode).read_frame()["beauty"])
+
+
+class TestShot:
+    def test_hybrid(self, phrt_render):
+        assert_images_close(phrt_render(STAGE).read_frame()["beauty"])
+
+
+def test_first_of_a_shared_file(phrt_render, phrt_reference_dir):
+    image = phrt_render(STAGE).read_frame()["beauty"]
+    assert_images_close(image, phrt_reference_dir / "shared.exr")
+
+
+def test_second_of_a_shared_file(phrt_render, phrt_reference_dir):
+    image = phrt_render(STAGE, mode="raster").read_frame()["beauty"]
+    assert_images_close(image, phrt_reference_dir / "shared.exr")
+"""
+
+
+def test_two_tests_rendering_one_stage_get_their_own_reference_files(project):
+    pytester = project
+    shot_stage(pytester.path / "shot.usda")
+    pytester.makepyfile(test_pair=PAIR_TESTS)
+    own = pytester.path / "references" / "test_pair"
+
+    update = pytester.runpytest_subprocess("--phrt-update-references", "-p", "no:cacheprovider")
+    update.assert_outcomes(passed=6, failed=1)
+    update.stdout.fnmatch_lines(["*shared.exr is already the reference of "
+                                 "test_pair.py::test_first_of_a_shared_file*"])  # fmt: skip
+    names = ["test_hybrid", "test_raster", "test_modes_hybrid_", "test_modes_raster_",
+             "TestShot.test_hybrid"]  # fmt: skip
+    assert sorted(p.name for p in own.iterdir()) == sorted(f"{n}.exr" for n in names)
+    # The raster render has no mirrored ball: the two files hold two different frames.
+    hybrid, raster = load_image(own / "test_hybrid.exr"), load_image(own / "test_raster.exr")
+    assert not np.array_equal(hybrid, raster)
+
+    # Each compares against its own: none was overwritten by another test's image.
+    compare = pytester.runpytest_subprocess("-k", "not shared", "-p", "no:cacheprovider")
+    compare.assert_outcomes(passed=5, deselected=2)
+
+
+#: A time budget no reflector fits in (ms): the stage's own budget selects nothing.
+TIGHT_BUDGET_MS = 0.001
 
 
 def test_fixtures_of_the_plugin(pipeline):
+    tight = Usd.Stage.Open(str(shot_stage(pipeline.path / "tight.usda")))
+    schema.apply_render_settings(tight.GetPrimAtPath("/Render/Settings"), budget_ms=TIGHT_BUDGET_MS)
+    tight.GetRootLayer().Save()
     pipeline.makepyfile(
         test_fixtures="""
         from pathlib import Path
 
-        def test_fixtures(phrt_render, phrt_open, phrt_reference_dir, phrt_update_references,
-                          tmp_path):
+        import phrt_usd
+
+        def test_fixtures(phrt_render, phrt_open, phrt_reference_dir, phrt_reference,
+                          phrt_update_references, tmp_path):
             stage = Path(__file__).parent / "shot.usda"
             first, second = phrt_render(stage, mode="raster"), phrt_render(stage, mode="raster")
             assert first.out.parent == second.out.parent == tmp_path != first.out
             renderer = phrt_open(stage, mode="raster", resolution=(32, 24))
             assert renderer.render(1).beauty.shape == (24, 32, 3)
             assert phrt_reference_dir == Path(__file__).parent / "refs"
+            own = phrt_reference_dir / "test_fixtures" / "test_fixtures"
+            assert phrt_reference() == own.with_suffix(".exr")
+            assert phrt_reference("1001", ".png") == own.parent / "test_fixtures.1001.png"
             assert phrt_update_references is False
             pytest_renderer.append(renderer)
 
@@ -111,10 +250,19 @@ def test_fixtures_of_the_plugin(pipeline):
 
         def test_renderer_closed_after_the_test():
             assert pytest_renderer[0].closed
+
+        def test_no_time_budget_unless_given(phrt_render, tmp_path):
+            tight = Path(__file__).parent / "tight.usda"
+            # The stage's own time budget: nothing fits, the mirror is not traced ...
+            assert phrt_usd.render(tight, tmp_path / "own").summary["mean_selected"] == 0
+            # ... the fixture's default: no time budget, the frame depends on the stage.
+            assert phrt_render(tight).summary["mean_selected"] == 1
+            # A rays budget given is kept (and is as deterministic).
+            assert phrt_render(tight, budget_rays=1).summary["mean_selected"] == 0
         """
     )
     pipeline.makeini("[pytest]\nphrt_reference_dir = refs\n")
-    pipeline.runpytest_subprocess("test_fixtures.py").assert_outcomes(passed=2)
+    pipeline.runpytest_subprocess("test_fixtures.py").assert_outcomes(passed=3)
 
 
 # ---- assert_images_close in this process ---------------------------------------------
@@ -189,7 +337,6 @@ def test_bad_thresholds_raise_bad_option(thresholds, message):
 
 def test_png_and_8_bit_images_are_srgb_and_exr_is_linear(tmp_path):
     from phrt_usd.pytest_plugin import write_reference
-    from phrt_usd.run.images import srgb_oetf
 
     image = _image(shape=(12, 16, 3))
     write_reference(tmp_path / "ref.png", image)
@@ -201,3 +348,40 @@ def test_png_and_8_bit_images_are_srgb_and_exr_is_linear(tmp_path):
     assert_images_close(image, tmp_path / "ref.png")  # quantisation stays within defaults
     with pytest.raises(BadOption, match="written as .png or .exr"):
         write_reference(tmp_path / "ref.jpg", image)
+
+
+#: A flat colour whose 8-bit rounding alone is ~0.039 in mean FLIP (the largest of 300
+#: random colours; their median is ~0.019): a PNG of it fails DEFAULT_MAX_MEAN_FLIP
+#: against the very frame it was written from, unless the rounding is taken out.
+FLAT_COLOUR = (0.0344, 0.987, 0.817)
+
+
+def test_stored_references_compare_equal_to_the_frame_they_were_written_from(tmp_path):
+    """A re-render of a frame against the reference written from it: no difference in
+    any storage (PNG, half EXR, 8/16-bit arrays); the rounding is taken out, not allowed for."""
+    from phrt_usd.evaluate.image_metrics import flip_map
+    from phrt_usd.pytest_plugin import write_reference
+
+    flat = np.broadcast_to(np.float32(FLAT_COLOUR), (24, 32, 3)).copy()
+    frame = np.clip(flat + _image(2, flat.shape) * 0.05, 0.0, None)  # a little texture
+    for image in (flat, frame):
+        write_reference(tmp_path / "ref.png", image)
+        write_reference(tmp_path / "ref.exr", image)
+        png = load_image(tmp_path / "ref.png")
+        if image is flat:  # what comparing as stored would give: the reported failure
+            assert flip_map(png, image).mean() > DEFAULT_MAX_MEAN_FLIP
+        for reference in (tmp_path / "ref.png", tmp_path / "ref.exr", image.astype(np.float16)):
+            figures = assert_images_close(image, reference, failure_dir=tmp_path)
+            assert (figures.mean_flip, figures.psnr) == (0.0, 100.0)
+        encoded = np.rint(srgb_oetf(image) * 65535).astype(np.uint16)
+        assert assert_images_close(image, encoded).mean_flip == 0.0  # 16-bit sRGB array
+        assert assert_images_close(tmp_path / "ref.png", image).mean_flip == 0.0  # either side
+    # A float reference is compared as it is: the 8-bit actual's rounding counts there.
+    with pytest.raises(AssertionError, match="mean FLIP"):
+        assert_images_close(tmp_path / "ref.png", frame * 0 + flat, failure_dir=tmp_path)
+
+
+def test_long_test_names_make_short_file_names_that_stay_distinct():
+    long_a, long_b = "test_" + "a" * 300, "test_" + "a" * 299 + "b"
+    assert len(_short(long_a)) == MAX_STEM and _short(long_a) != _short(long_b)
+    assert _short("test_shot_farm_200_") == "test_shot_farm_200_"
