@@ -431,12 +431,15 @@ WarmupOpt = Annotated[
 
 
 def _cluster_args(chunk_frames: int | None, warmup: int | None) -> dict:
-    from phrt_usd.cluster import DEFAULT_CHUNK_FRAMES, DEFAULT_WARMUP_FRAMES
+    """The chunking arguments of a cluster run (defaults filled in, values checked)."""
+    from phrt_usd.cluster import DEFAULT_CHUNK_FRAMES, DEFAULT_WARMUP_FRAMES, check_chunking
 
-    return {
+    args = {
         "chunk_frames": DEFAULT_CHUNK_FRAMES if chunk_frames is None else chunk_frames,
         "warmup": DEFAULT_WARMUP_FRAMES if warmup is None else warmup,
     }
+    check_chunking(**args)
+    return args
 
 
 @app.command()
@@ -529,6 +532,10 @@ def render(
 
     stage = stage or DEMO_STAGE
     with user_errors(json_out=json_out):
+        from phrt_usd.cluster import check_cluster_options
+
+        # Before anything renders or starts: exit 2 for a bad combination or value.
+        check_cluster_options(workers, scheduler, chunk_frames, warmup, resume)
         controls = StageControls.from_options(session_layer or (), variant or (), mask)
         job, scene = render_job(  # options as the Python API takes them (phrt_usd.api)
             open_input(stage, controls),

@@ -16,7 +16,7 @@ decides what one task does and puts the results back together. See ``docs/cluste
 * **Workers** open the stage themselves from its path (absolute; it must be readable on
   every worker: same machine or a shared file system) and write frame images straight
   into the output directory (same assumption), each file atomically. The schema plugin
-  is registered on every worker by ``PhrtWorkerSetup``.
+  is registered on every worker by the worker plugin of ``cluster_client``.
 * **Client** gathers each chunk's rows / frame stats in memory as chunks finish, keeps
   one result per chunk (a retried chunk cannot be counted twice), and rewrites the CSV /
   stats.json / selection layer atomically after every finished chunk, so a reader never
@@ -24,26 +24,33 @@ decides what one task does and puts the results back together. See ``docs/cluste
 * **Faults**: a worker that dies mid-chunk loses that chunk's task; the scheduler runs it
   again on another worker (Dask's ``allowed-failures``); an exception inside a chunk is
   retried ``TASK_RETRIES`` times. Either way the chunk's frames come back exactly once.
-* **Security**: a scheduler runs the code sent to it. The local cluster listens on
-  loopback only; ``--scheduler`` values are checked (``parse_scheduler_address``) and a
-  plain-tcp scheduler on another machine is warned about (``scheduler_warning``).
+* **Interrupts** (SIGINT / SIGTERM, Ctrl-C; or a caller's ``stop`` event): the client
+  cancels the chunks not finished, each running one stops before its next frame
+  (``_chunk_cancelled``), and once none runs (``STOP_WAIT_SECONDS`` at most) the files
+  hold exactly the finished chunks' frames: stats.json, the selection layer and the
+  images of the same frames (a render), the CSV and timeline (a sweep).
+* **Connecting** (``cluster_client``): Dask is imported only when a cluster is used
+  (the ``phrt-usd[cluster]`` extra); the local cluster authenticates its workers with
+  TLS, ``--scheduler`` is probed before distributed reads from it.
 """
 
 from __future__ import annotations
 
-import ipaddress
 import os
-import re
 import secrets
-import sys
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+import threading
+import time
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from distributed.diagnostics.plugin import WorkerPlugin
-
+from phrt_usd.cluster_client import (  # dask_client: the commands' way in
+    check_workers,
+    dask_client,  # noqa: F401
+    parse_scheduler_address,
+    require_distributed,
+)
 from phrt_usd.errors import BadOption, PhrtError
 from phrt_usd.model.frame import FrameStats
 
@@ -68,6 +75,12 @@ DEFAULT_WARMUP_FRAMES = 8
 #: scheduler's own ``distributed.scheduler.allowed-failures``, default 3).
 TASK_RETRIES = 2
 
+#: How often the client looks for a stop request while it waits for chunks (seconds).
+POLL_SECONDS = 0.1
+#: How long an interrupted run waits for its running chunks to stop (each stops before
+#: its next frame, so a frame's time) before it gives up waiting (seconds).
+STOP_WAIT_SECONDS = 60.0
+
 
 @dataclass(frozen=True)
 class Chunk:
@@ -86,14 +99,51 @@ class Chunk:
         return max(0, self.start - self.warmup)
 
 
+def check_chunking(chunk_frames: int, warmup: int) -> None:
+    """BadOption unless ``chunk_frames >= 1`` and ``warmup >= 0``."""
+    if chunk_frames < 1:
+        raise BadOption(f"--chunk-frames must be >= 1, got {chunk_frames}")
+    if warmup < 0:
+        raise BadOption(f"--warmup must be >= 0, got {warmup}")
+
+
+def check_cluster_options(
+    workers: int | None,
+    scheduler: str | None,
+    chunk_frames: int | None = None,
+    warmup: int | None = None,
+    resume: bool = False,
+) -> None:
+    """The cluster options of a command, checked before anything is rendered or
+    started: BadOption (exit 2) for ``--workers`` with ``--scheduler``, either with
+    ``--resume``, ``--chunk-frames`` / ``--warmup`` without either or out of range, a
+    ``--workers`` count out of ``max_local_workers``, and Dask not installed."""
+    option = "--workers" if workers is not None else "--scheduler"
+    if workers is None and scheduler is None:
+        if chunk_frames is not None or warmup is not None:
+            raise BadOption("--chunk-frames and --warmup apply to --workers / --scheduler only")
+        return
+    if workers is not None and scheduler is not None:
+        raise BadOption("give exactly one of --workers N or --scheduler ADDRESS")
+    if resume:
+        raise BadOption(f"--resume is not available with {option}: a cluster render is not "
+                        "checkpointed (run it again, or render without the cluster)")  # fmt: skip
+    check_chunking(
+        DEFAULT_CHUNK_FRAMES if chunk_frames is None else chunk_frames,
+        DEFAULT_WARMUP_FRAMES if warmup is None else warmup,
+    )
+    if workers is not None:
+        check_workers(workers)
+    else:
+        parse_scheduler_address(scheduler)
+    require_distributed(option)
+
+
 def plan_chunks(
     stage: str, n_frames: int, chunk_frames: int, warmup: int, first_index: int = 0
 ) -> list[Chunk]:
     """Cut ``n_frames`` frames into chunks of ``chunk_frames`` recorded frames."""
-    if chunk_frames < 1:
-        raise PhrtError(f"--chunk-frames must be >= 1, got {chunk_frames}")
-    if warmup < 0:
-        raise PhrtError(f"--warmup must be >= 0, got {warmup}")
+    check_chunking(chunk_frames, warmup)
     return [
         Chunk(stage, first_index + k, a, min(a + chunk_frames, n_frames), warmup)
         for k, a in enumerate(range(0, n_frames, chunk_frames))
@@ -138,6 +188,8 @@ def sweep_chunk(chunk: Chunk, spec: SweepSpec) -> SweepChunkResult:
     rows: list[dict] = []
     try:
         for i in range(chunk.first_rendered, chunk.stop):
+            if _chunk_cancelled():
+                break  # the run was interrupted: nothing of this chunk is kept
             rows.extend(sweep.frame(sweep.times[i], record=i >= chunk.start))
     finally:
         sweep.close()
@@ -162,6 +214,8 @@ def render_chunk(chunk: Chunk, job: RenderJob) -> RenderChunkResult:
     out = Path(job.out_dir) if job.write_images else None
     try:
         for i in range(chunk.first_rendered, chunk.stop):
+            if _chunk_cancelled():
+                break  # the run was interrupted: no more images of this chunk
             if i < chunk.start:
                 renderer.render(times[i])  # warm-up: the policy learns, nothing is kept
             else:
@@ -172,198 +226,21 @@ def render_chunk(chunk: Chunk, job: RenderJob) -> RenderChunkResult:
     return RenderChunkResult(chunk, frames, os.getpid(), scene.warnings[known:], runtime)
 
 
-class PhrtWorkerSetup(WorkerPlugin):
-    """Dask worker plugin: imports phrt_usd on every worker (present and future), which
-    selects the OSMesa platform and registers the Phrt schema plugin before any stage
-    is opened there."""
+def _chunk_cancelled() -> bool:
+    """On a worker: whether the client gave up the task running this chunk (a stopped
+    run; Dask cannot stop a running task, so the chunk checks before each frame). False
+    outside a Dask task (a chunk called directly)."""
+    try:
+        from distributed import get_worker
+        from distributed.worker import thread_state
 
-    name = "phrt-usd-setup"
-    idempotent = True
-
-    def setup(self, worker) -> None:
-        import phrt_usd  # noqa: F401
+        task = get_worker().state.tasks.get(thread_state.key)
+    except (ImportError, ValueError, AttributeError):
+        return False
+    return task is None or task.state == "cancelled"
 
 
 # --------------------------------------------------------------------------- client
-
-
-#: Where the local cluster listens: scheduler, nannies, workers and the scheduler's HTTP
-#: endpoint bind this loopback address only (port 0: any free port), so no other machine
-#: can reach them. Processes on this machine still can: see docs/cluster.md, "Security".
-LOOPBACK_HOST = "127.0.0.1"
-
-#: Schemes ``--scheduler`` accepts (a bare ``host:port`` is ``tcp://``, Dask's default).
-#: ``inproc://`` is left out: it names a scheduler inside the same process, which a new
-#: ``phrt`` process never has.
-SCHEDULER_SCHEMES = ("tcp", "tls")
-
-_HOSTNAME_LABEL = re.compile(r"(?!-)[A-Za-z0-9_-]{1,63}(?<!-)", re.ASCII)
-
-
-@dataclass(frozen=True)
-class SchedulerAddress:
-    """A parsed ``--scheduler`` value: ``scheme://host:port`` (IPv6 hosts without the
-    brackets)."""
-
-    scheme: str
-    host: str
-    port: int
-
-    def __str__(self) -> str:
-        host = f"[{self.host}]" if ":" in self.host else self.host
-        return f"{self.scheme}://{host}:{self.port}"
-
-    @property
-    def is_loopback(self) -> bool:
-        """True for ``localhost`` and literals in 127.0.0.0/8 or ::1; any other name is
-        taken as another machine (no name is looked up)."""
-        if self.host.lower().rstrip(".") == "localhost":
-            return True
-        try:
-            ip = ipaddress.ip_address(self.host)
-        except ValueError:
-            return False
-        if isinstance(ip, ipaddress.IPv6Address) and ip.ipv4_mapped is not None:
-            ip = ip.ipv4_mapped
-        return ip.is_loopback
-
-
-def _is_host_name_or_ipv4(host: str) -> bool:
-    """An IPv4 literal, or a name of dot-separated labels whose last is not all digits
-    (``10.0.0.300`` is a mistyped address, not a name)."""
-    try:
-        ipaddress.IPv4Address(host)
-        return True
-    except ValueError:
-        labels = host.removesuffix(".").split(".")
-        return all(_HOSTNAME_LABEL.fullmatch(label) for label in labels) and not (
-            labels[-1].isdigit()
-        )
-
-
-def parse_scheduler_address(address: str) -> SchedulerAddress:
-    """Check the form of a ``--scheduler`` value: ``tcp://host:port``, ``tls://host:port``
-    or ``host:port`` (tcp); host a name, an IPv4 literal or a bracketed IPv6 literal.
-    Anything else is a ``BadOption`` naming the option and the value. No name is
-    resolved here."""
-
-    def bad(why: str) -> BadOption:
-        return BadOption(
-            f"--scheduler {address!r}: {why}; expected tcp://HOST:PORT or tls://HOST:PORT"
-        )
-
-    scheme, sep, rest = address.strip().partition("://")
-    if not sep:
-        scheme, rest = "tcp", address.strip()
-    scheme = scheme.lower()
-    if scheme not in SCHEDULER_SCHEMES:
-        raise bad(f"scheme {scheme!r} not supported")
-    if rest.startswith("["):
-        host, bracket, tail = rest[1:].partition("]")
-        if not bracket or not tail.startswith(":"):
-            raise bad("an IPv6 host needs brackets and a port, like [::1]:8786")
-        port_text = tail[1:]
-        try:
-            if not isinstance(ipaddress.ip_address(host), ipaddress.IPv6Address):
-                raise ValueError(host)
-        except ValueError:
-            raise bad(f"{host!r} is not an IPv6 address") from None
-    else:
-        host, colon, port_text = rest.rpartition(":")
-        if not colon:
-            raise bad("missing :PORT")
-        if not host:
-            raise bad("missing host")
-        if ":" in host:
-            raise bad("an IPv6 host needs brackets, like [::1]:8786")
-        if not _is_host_name_or_ipv4(host):
-            raise bad(f"{host!r} is not a host name or IP address")
-    if not re.fullmatch(r"[0-9]{1,5}", port_text) or not 1 <= int(port_text) <= 65535:
-        raise bad(f"port {port_text!r} is not a number in 1..65535")
-    return SchedulerAddress(scheme, host, int(port_text))
-
-
-def tls_client_configured(security=None) -> bool:
-    """True when Dask's configuration (or ``security``, a ``distributed.Security``) gives
-    the client a CA file and a certificate: without them distributed cannot open a
-    ``tls://`` connection at all."""
-    if security is None:
-        from distributed import Security
-
-        security = Security()
-    return bool(security.tls_ca_file and security.tls_client_cert)
-
-
-def scheduler_warning(address: SchedulerAddress | str) -> str | None:
-    """The one-line warning printed before connecting to ``address``, or ``None``: a
-    loopback scheduler and a ``tls://`` one (mutual TLS: only holders of a certificate
-    of the cluster's CA can connect) get none."""
-    if isinstance(address, str):
-        address = parse_scheduler_address(address)
-    if address.is_loopback or address.scheme == "tls":
-        return None
-    return (
-        f"warning: --scheduler {address} is not on this machine and not encrypted: a Dask "
-        "scheduler runs the code sent to it, and anyone who can reach it can run code as "
-        "its workers' user; connect only to a cluster you control, over TLS (tls://, "
-        "see docs/cluster.md)"
-    )
-
-
-def _connect(address: SchedulerAddress) -> Client:
-    """A client of the scheduler at ``address`` (warning first, see ``scheduler_warning``)."""
-    from distributed import Client
-
-    if address.scheme == "tls" and not tls_client_configured():
-        raise BadOption(
-            f"--scheduler {address}: TLS is not configured: set Dask's "
-            "distributed.comm.tls.ca-file and distributed.comm.tls.client.cert (and .key) "
-            "(see docs/cluster.md)"
-        )
-    warning = scheduler_warning(address)
-    if warning is not None:
-        print(warning, file=sys.stderr)
-    try:
-        return Client(str(address), timeout="20s")
-    except OSError as exc:
-        raise PhrtError(f"--scheduler {address}: cannot connect ({exc})") from None
-
-
-@contextmanager
-def dask_client(workers: int | None = None, scheduler: str | None = None) -> Iterator[Client]:
-    """A ``distributed.Client``: connected to ``scheduler`` (``tcp://host:8786``,
-    ``tls://host:8786``; checked by ``parse_scheduler_address``, warned about by
-    ``scheduler_warning``), or to a ``LocalCluster`` of ``workers`` single-threaded
-    worker processes on this machine listening on loopback only (``LOOPBACK_HOST``, no
-    dashboard). The Phrt worker plugin is registered either way. Closed on exit."""
-    from distributed import Client, LocalCluster
-
-    if (workers is None) == (scheduler is None):
-        raise BadOption("give exactly one of --workers N or --scheduler ADDRESS")
-    if scheduler is not None:
-        client = _connect(parse_scheduler_address(scheduler))
-        cluster = None
-    else:
-        if workers < 1:
-            raise BadOption(f"--workers must be >= 1, got {workers}")
-        cluster = LocalCluster(
-            n_workers=workers,
-            threads_per_worker=1,  # one chunk at a time per process (OSMesa, Embree)
-            processes=True,
-            host=LOOPBACK_HOST,  # scheduler, nannies and workers (tcp, or tls if Dask's
-            # config sets distributed.comm.require-encryption)
-            dashboard_address=None,  # no dashboard; the workers' HTTP endpoints on host
-            # The scheduler's HTTP endpoint (metrics, no dashboard): loopback, any port.
-            scheduler_kwargs={"dashboard": False, "dashboard_address": f"{LOOPBACK_HOST}:0"},
-        )
-        client = Client(cluster)
-    try:
-        client.register_plugin(PhrtWorkerSetup())
-        yield client
-    finally:
-        client.close()
-        if cluster is not None:
-            cluster.close()
 
 
 def stage_address(stage: Path | str) -> str:
@@ -379,8 +256,12 @@ def _gather(
     chunks: list[Chunk],
     argument: object,
     on_result: Callable[[dict[int, object]], None],
-) -> dict[int, object]:
-    """Submit one task per chunk, call ``on_result(results so far)`` as each finishes."""
+    stop: threading.Event,
+) -> tuple[dict[int, object], bool | None]:
+    """Submit one task per chunk, call ``on_result(results so far)`` as each finishes;
+    returns the results by chunk index and None, or, when ``stop`` was set, the finished
+    chunks' results and whether every other chunk stopped in time: they are cancelled
+    and waited for until none runs (``_wait_until_stopped``)."""
     from distributed import as_completed
 
     token = secrets.token_hex(4)
@@ -396,18 +277,47 @@ def _gather(
         for chunk in chunks
     ]
     results: dict[int, object] = {}  # by chunk index: one per chunk, whatever was retried
+    finishing = as_completed(futures)
     try:
-        for future in as_completed(futures):
-            result = future.result()
-            if result.chunk.index in results:
-                continue  # a chunk comes back once; a duplicate would count frames twice
-            results[result.chunk.index] = result
-            future.release()
-            on_result(results)
+        while not finishing.is_empty() and not stop.is_set():
+            if not finishing.has_ready():
+                stop.wait(POLL_SECONDS)
+                continue
+            for future in finishing.next_batch(block=False):
+                result = future.result()
+                if result.chunk.index in results:
+                    continue  # a chunk comes back once; a duplicate would count frames twice
+                results[result.chunk.index] = result
+                future.release()
+                on_result(results)
     finally:
-        for future in futures:
-            future.cancel()
-    return results
+        client.cancel(futures)
+    if not stop.is_set():
+        return results, None
+    keys = {future.key for future in futures}
+    return results, _wait_until_stopped(client, keys, STOP_WAIT_SECONDS)
+
+
+def _wait_until_stopped(client: Client, keys: set, timeout: float) -> bool:
+    """Wait until no worker runs any task of ``keys`` (cancelled, each stops before its
+    next frame), at most ``timeout`` seconds; whether they all stopped. The keys are
+    looked for in every worker's running tasks (the scheduler forgets cancelled ones)."""
+    deadline = time.monotonic() + timeout
+    idle_polls = 0
+    while True:
+        try:
+            stacks = client.call_stack()
+        except OSError:
+            return False  # the scheduler is gone: nothing more can be known
+        running = {key for per_worker in stacks.values() for key in per_worker} & keys
+        idle_polls = 0 if running else idle_polls + 1
+        # Twice idle: a task a worker was about to start when the cancel arrived has
+        # started and checked by then.
+        if idle_polls >= 2:
+            return True
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(POLL_SECONDS)
 
 
 def run_sweep_on_cluster(
@@ -416,18 +326,23 @@ def run_sweep_on_cluster(
     chunk_frames: int = DEFAULT_CHUNK_FRAMES,
     warmup: int = DEFAULT_WARMUP_FRAMES,
     on_chunk: Callable[[int, int], None] | None = None,
+    stop: threading.Event | None = None,
 ) -> dict:
     """``run_sweep`` on a Dask cluster: same files, same rows (timings aside), same
     timeline as one process with a rays budget (docs/cluster.md). ``on_chunk(done,
-    total)`` after every finished chunk. Returns ``run_sweep``'s summary dict plus
-    ``chunk_pids``: the process id of the worker whose result was kept, per chunk."""
+    total)`` after every finished chunk. SIGINT / SIGTERM (or setting ``stop``) stops
+    it: the files then hold the finished chunks' rows, ``interrupted`` is True. Returns
+    ``run_sweep``'s summary dict plus ``chunk_pids``: the process id of the worker whose
+    result was kept, per chunk (None for a chunk not finished)."""
     from phrt_usd.evaluate.sweep import check_spec, finish_sweep, write_sweep_csv
     from phrt_usd.evaluate.sweep_files import SWEEP_CSV
     from phrt_usd.run.frames import parse_frames
+    from phrt_usd.run.render_job import stop_on_signals
     from phrt_usd.run.run_directory import DirectoryLock
     from phrt_usd.usd.stage import open_stage
 
     check_spec(spec)
+    check_chunking(chunk_frames, warmup)
     spec.out.mkdir(parents=True, exist_ok=True)
     chunks: list[Chunk] = []
     for stage in spec.stages:
@@ -441,15 +356,20 @@ def run_sweep_on_cluster(
 
     # Workers write report images into the output directory: give them an absolute path.
     worker_spec = replace(spec, out=spec.out.resolve())
-    with DirectoryLock(spec.out):  # one sweep writes OUT at a time
-        results = _gather(client, sweep_chunk, chunks, worker_spec, progress)
-        _check_complete(chunks, results)
+    stop = stop or threading.Event()
+    with DirectoryLock(spec.out), stop_on_signals(stop):  # one sweep writes OUT at a time
+        results, stopped = _gather(client, sweep_chunk, chunks, worker_spec, progress, stop)
+        interrupted = stopped is not None
+        if not interrupted:
+            _check_complete(chunks, results)
         timeline: dict = {}
         for chunk in chunks:
-            _merge_timeline(timeline, results[chunk.index])
+            if chunk.index in results:
+                _merge_timeline(timeline, results[chunk.index])
         _remove_stale_temporaries(spec.out)
-        summary = finish_sweep(spec, _sweep_rows(chunks, results), timeline, interrupted=False)
-    summary["chunk_pids"] = [results[c.index].worker_pid for c in chunks]
+        rows = _sweep_rows(chunks, results)
+        summary = finish_sweep(spec, rows, timeline, interrupted=interrupted)
+    summary["chunk_pids"] = [getattr(results.get(c.index), "worker_pid", None) for c in chunks]
     return summary
 
 
@@ -459,18 +379,30 @@ def run_render_on_cluster(
     chunk_frames: int = DEFAULT_CHUNK_FRAMES,
     warmup: int = DEFAULT_WARMUP_FRAMES,
     on_frame: Callable[[int, int], None] | None = None,
+    stop: threading.Event | None = None,
 ) -> dict:
     """``run_render`` on a Dask cluster (no checkpoint / ``--resume``: a lost chunk is
     re-run by the scheduler instead). ``on_frame(done, total)`` after every chunk.
-    Returns ``run_render``'s summary dict plus ``chunk_pids`` (see the sweep's)."""
+    SIGINT / SIGTERM (or setting ``stop``) stops it: RenderInterrupted, after which
+    stats.json, the selection layer and the images hold the same frames, those of the
+    finished chunks (``_keep_finished``). Returns ``run_render``'s summary dict plus
+    ``chunk_pids`` (see the sweep's)."""
     from phrt_usd.api import summary_of
     from phrt_usd.run.frames import parse_frames
-    from phrt_usd.run.render_job import RunRecord, job_run_info, prepare_job, write_run_records
+    from phrt_usd.run.render_job import (
+        RunRecord,
+        job_run_info,
+        prepare_job,
+        stop_on_signals,
+        write_run_records,
+    )
     from phrt_usd.run.run_directory import RunDirectory
     from phrt_usd.usd.stage import open_stage
 
     if job.resume:
-        raise PhrtError("--resume is not available with --workers / --scheduler")
+        raise BadOption("--resume is not available with --workers / --scheduler: a cluster "
+                        "render is not checkpointed")  # fmt: skip
+    check_chunking(chunk_frames, warmup)
     out = Path(job.out_dir)
     scene = open_stage(
         job.stage_path, camera=job.camera, controls=job.controls, settings=job.settings
@@ -492,9 +424,17 @@ def run_render_on_cluster(
         if on_frame is not None:
             on_frame(len(frames), len(times))
 
-    with RunDirectory(out, layer_path, scene, overwrite=job.overwrite, images=images.templates()):
+    stop = stop or threading.Event()
+    with (
+        RunDirectory(out, layer_path, scene, overwrite=job.overwrite, images=images.templates()),
+        stop_on_signals(stop),
+    ):
         worker_job = replace(job, out_dir=out.resolve())  # workers write images there
-        results = _gather(client, render_chunk, chunks, worker_job, progress)
+        results, stopped = _gather(client, render_chunk, chunks, worker_job, progress, stop)
+        if stopped is not None:
+            kept = write(results)
+            _keep_finished(out, images if job.write_images else None, times, kept)
+            raise _interrupted(out, kept, times, len(results), len(chunks), stopped)
         _check_complete(chunks, results)
         frames = write(results)
         if sorted(f.time for f in frames) != sorted(times):
@@ -514,6 +454,38 @@ def run_render_on_cluster(
     found = [w for c in chunks for w in results[c.index].warnings]
     summary["render_warnings"] = list(dict.fromkeys(found))
     return summary
+
+
+def _keep_finished(out: Path, images, times: list[float], kept: list[FrameStats]) -> None:
+    """After a stopped render whose records hold ``kept``: delete the image files
+    (``images``, an ``ImagePlan``; None without images) that stopped chunks wrote of
+    frames not kept, and temp files a stopped write left. Only this run's files are
+    named: the plan's file names of this run's frames inside ``out``, which was empty of
+    them when the run started (``RunDirectory``)."""
+    if images is not None:
+        finished = {f.time for f in kept}
+        for t in times:
+            if t not in finished:
+                for path in images.files(out, t):
+                    path.unlink(missing_ok=True)
+    _remove_stale_temporaries(out)
+
+
+def _interrupted(out: Path, kept: list, times: list, done: int, total: int, stopped: bool):
+    """The RenderInterrupted of a stopped cluster render: how many frames were kept."""
+    from phrt_usd.run.render_job import RenderInterrupted
+
+    message = (
+        f"stopped after {len(kept)} of {len(times)} frames ({done} of {total} chunks "
+        f"finished); stats.json, the selection layer and the images in {out} hold exactly "
+        "those frames"
+    )
+    if not stopped:
+        message += (
+            f"; chunks still running on the cluster after {STOP_WAIT_SECONDS:g} s may "
+            "still write images of other frames"
+        )
+    return RenderInterrupted(message)
 
 
 def _sweep_rows(chunks: list[Chunk], results: dict) -> list[dict]:

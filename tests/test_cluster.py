@@ -9,6 +9,8 @@ import csv
 import json
 import os
 import signal
+import socket
+import sys
 import threading
 import time
 from pathlib import Path
@@ -18,17 +20,21 @@ import numpy as np
 import psutil
 import pytest
 from scenes import mirror_gallery_stage
+from typer.testing import CliRunner
 
+from phrt_usd import cluster_client
 from phrt_usd.api import run_render
 from phrt_usd.cluster import (
     DEFAULT_WARMUP_FRAMES,
-    SchedulerAddress,
-    dask_client,
-    parse_scheduler_address,
     plan_chunks,
     render_chunk,
     run_render_on_cluster,
     run_sweep_on_cluster,
+)
+from phrt_usd.cluster_client import (
+    SchedulerAddress,
+    dask_client,
+    parse_scheduler_address,
     scheduler_warning,
     tls_client_configured,
 )
@@ -235,10 +241,21 @@ def _listening(process: psutil.Process) -> list[tuple[str, int]]:
     ]
 
 
+def _run_security(client) -> dict:
+    """Dask configuration that gives another client the run's certificate and key."""
+    security = client.security
+    return {
+        "distributed.comm.tls.ca-file": security.tls_ca_file,
+        "distributed.comm.tls.client.cert": security.tls_client_cert,
+        "distributed.comm.tls.client.key": security.tls_client_key,
+    }
+
+
 def test_local_cluster_listens_on_loopback_only(capsys):
     """Scheduler, nanny and worker addresses are 127.0.0.1, and no socket of this process
     (the scheduler runs here) or of the worker processes listens on another address; a
-    client of that scheduler (``--scheduler``, loopback) gets no warning."""
+    client of that scheduler holding the run's certificate (``--scheduler``, loopback,
+    TLS) gets no warning."""
     with dask_client(workers=1) as client:
         address = client.scheduler.address
         assert parse_scheduler_address(address).host == "127.0.0.1"
@@ -252,9 +269,54 @@ def test_local_cluster_listens_on_loopback_only(capsys):
         assert ("127.0.0.1", parse_scheduler_address(address).port) in sockets
         assert len(sockets) >= 3  # scheduler, its HTTP endpoint, nanny / worker
         assert all(ip == "127.0.0.1" for ip, _ in sockets), sockets
-        with dask_client(scheduler=address) as remote:
+        with dask.config.set(_run_security(client)), dask_client(scheduler=address) as remote:
             assert remote.scheduler_info()["workers"].keys() == workers.keys()
     assert capsys.readouterr().err == ""
+
+
+#: How long a refused connection may try (seconds): distributed retries a failed
+#: connection until its timeout, so this bounds each refusal's cost in the test.
+REFUSED_TIMEOUT = "1s"
+
+
+def test_probe_local_cluster_authenticates_workers():
+    """The --workers cluster speaks mutual TLS on certificates made for the run: a plain
+    tcp client and a TLS client holding another certificate (another user's, say) are
+    both refused, so neither can run code in the workers; the run's own client can."""
+    from distributed import Client, Security
+
+    with dask_client(workers=1) as client:
+        address = client.scheduler.address
+        assert address.startswith("tls://127.0.0.1:")
+        ran = []
+        for intruder in (
+            {"address": address.replace("tls://", "tcp://", 1)},
+            {"address": address, "security": Security.temporary()},
+        ):
+            with pytest.raises(OSError):  # refused during the handshake
+                with Client(**intruder, timeout=REFUSED_TIMEOUT) as other:
+                    ran.append(other.submit(os.getpid).result())
+        assert ran == []
+        for worker in client.scheduler_info()["workers"]:
+            assert worker.startswith("tls://")
+        assert client.submit(sum, [1, 2]).result() == 3
+
+
+def test_probe_local_cluster_without_cryptography_refuses(monkeypatch):
+    """Without the package that makes the certificates the local cluster does not start
+    unauthenticated: one line naming the package and the extra, before any process."""
+    import distributed
+
+    monkeypatch.setitem(sys.modules, "cryptography", None)  # import fails
+    started = []
+    monkeypatch.setattr(distributed, "LocalCluster", lambda *a, **k: started.append(k))
+    with pytest.raises(BadOption) as raised:
+        with dask_client(workers=1):
+            pass
+    message = str(raised.value)
+    assert "cryptography" in message and "pip install 'phrt-usd[cluster]'" in message
+    assert "\n" not in message
+    assert started == []
 
 
 @pytest.mark.parametrize(
@@ -319,14 +381,13 @@ def test_one_line_warning_for_remote_plain_tcp_scheduler(address):
 
 
 def test_dask_client_prints_the_warning_once_before_connecting(monkeypatch, capsys):
-    """No remote scheduler is contacted: the connection is made to fail."""
-    import distributed
+    """No remote scheduler is contacted: the probe is made to fail."""
 
-    def refuse(address, **kwargs):
-        raise OSError(f"refused {address}")
+    def refuse(address, timeout, security):
+        raise BadOption(f"--scheduler {address}: cannot connect (refused)")
 
-    monkeypatch.setattr(distributed, "Client", refuse)
-    with pytest.raises(PhrtError, match=r"^--scheduler tcp://10\.0\.0\.5:8786: cannot connect"):
+    monkeypatch.setattr(cluster_client, "probe_scheduler", refuse)
+    with pytest.raises(BadOption, match=r"^--scheduler tcp://10\.0\.0\.5:8786: cannot connect"):
         with dask_client(scheduler="10.0.0.5:8786"):
             pass
     err = capsys.readouterr().err
@@ -353,3 +414,276 @@ def test_tls_scheduler_without_tls_configuration_is_refused(tmp_path):
     }
     with dask.config.set(configured):
         assert tls_client_configured()
+
+
+# --------------------------------------------------------------------------- --scheduler probe
+
+
+class _FakeServer:
+    """A server on a loopback port that is not Dask: on each connection it sends
+    ``greeting`` (nothing: a silent server) and holds the connection until closed.
+    Bounded: it serves until the ``with`` block ends."""
+
+    def __init__(self, greeting: bytes) -> None:
+        self.greeting = greeting
+        self.listener = socket.create_server(("127.0.0.1", 0))
+        self.listener.settimeout(0.1)
+        self.port = self.listener.getsockname()[1]
+        self.done = threading.Event()
+        self.thread = threading.Thread(target=self._serve, daemon=True)
+
+    def _serve(self) -> None:
+        held = []
+        while not self.done.is_set():
+            try:
+                conn, _ = self.listener.accept()
+            except TimeoutError:
+                continue
+            conn.sendall(self.greeting)
+            held.append(conn)
+        for conn in held:
+            conn.close()
+
+    def __enter__(self) -> _FakeServer:
+        self.thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.done.set()
+        self.thread.join(timeout=5)
+        self.listener.close()
+
+
+#: What an HTTP server answers first: read as a Dask frame length, its first 8 bytes
+#: announce ~3 EiB.
+HTTP_GREETING = b"HTTP/1.1 400 Bad Request\r\nContent-Length: 0\r\n\r\n"
+
+
+def test_probe_scheduler_not_dask_is_one_line_exit_2(gallery, tmp_path):
+    """``--scheduler`` at a server that is not Dask: exit 2, one line saying so, no
+    traceback, in well under the scheduler timeout (distributed alone tried to allocate
+    the ~3 EiB the HTTP text announces); nothing rendered."""
+    from phrt_usd.cli import app
+
+    with _FakeServer(HTTP_GREETING) as server:
+        start = time.monotonic()
+        result = CliRunner().invoke(
+            app,
+            ["render", str(gallery), "--out", str(tmp_path / "out"), "--frames", "1:2",
+             "--scheduler", f"tcp://127.0.0.1:{server.port}"],
+        )  # fmt: skip
+        elapsed = time.monotonic() - start
+    assert result.exit_code == 2, result.output
+    assert "Traceback" not in result.output and result.exception is None or isinstance(
+        result.exception, SystemExit
+    )
+    [line] = [x for x in result.output.splitlines() if x.startswith("error:")]
+    assert f"--scheduler tcp://127.0.0.1:{server.port}: not a Dask scheduler" in line
+    # Opening the stage and the probe take well under a second; 10 s is far below the
+    # 20 s timeout, so the refusal came from the first bytes, not a timeout.
+    assert elapsed < 10
+    assert not (tmp_path / "out" / "stats.json").exists()
+
+
+def test_probe_scheduler_silent_server_keeps_the_timeout(monkeypatch):
+    """A server that accepts and never answers: refused when the scheduler timeout ends
+    (distributed alone waits for its handshake without a limit)."""
+    monkeypatch.setattr(cluster_client, "SCHEDULER_TIMEOUT_SECONDS", 1.0, raising=False)
+    outcome: dict = {}
+
+    def connect(port: int) -> None:
+        try:
+            with dask_client(scheduler=f"tcp://127.0.0.1:{port}"):
+                outcome["connected"] = True
+        except Exception as exc:  # noqa: BLE001 - handed to the test thread
+            outcome["error"] = exc
+
+    with _FakeServer(b"") as server:
+        start = time.monotonic()
+        thread = threading.Thread(target=connect, args=(server.port,), daemon=True)
+        thread.start()
+        thread.join(timeout=10)  # 10x the 1 s timeout: room for a loaded machine
+        elapsed = time.monotonic() - start
+    assert not thread.is_alive(), "still waiting for a silent server after 10 s"
+    error = outcome.get("error")
+    assert isinstance(error, BadOption), outcome
+    assert "no Dask handshake within 1 s" in str(error) and "\n" not in str(error)
+    assert elapsed >= 0.9  # it did wait for the timeout (1 s, less timer slack)
+
+
+def test_unreachable_scheduler_is_an_option_error():
+    """Nothing listening at the address: exit 2's BadOption, one line."""
+    with socket.create_server(("127.0.0.1", 0)) as free:
+        port = free.getsockname()[1]  # closed again below: nothing listens there
+    with pytest.raises(BadOption, match=rf"^--scheduler tcp://127\.0\.0\.1:{port}: cannot connect"):
+        with dask_client(scheduler=f"tcp://127.0.0.1:{port}", timeout=2):
+            pass
+
+
+def test_a_dask_scheduler_passes_the_probe_quietly(caplog):
+    """The probe answers a real scheduler's handshake with its own: the scheduler logs
+    no broken connection, and the client then connects."""
+    import logging
+
+    with dask_client(workers=1) as client, dask.config.set(_run_security(client)):
+        address = parse_scheduler_address(client.scheduler.address)
+        from distributed import Security
+
+        with caplog.at_level(logging.INFO, logger="distributed"):
+            cluster_client.probe_scheduler(address, 5.0, Security())
+            time.sleep(0.2)  # the scheduler reads the handshake on its own thread
+        assert not [r for r in caplog.records if "handshake" in r.getMessage()]
+
+
+# --------------------------------------------------------------------------- options
+
+
+def test_probe_workers_bound_exit_2(gallery, tmp_path, monkeypatch):
+    """``--workers 10000`` is refused with exit 2 before any process starts, the bound
+    and its reasons in the one line (each worker costs file descriptors; 10000 exhausted
+    them)."""
+    import distributed
+
+    from phrt_usd.cli import app
+
+    started = []
+    monkeypatch.setattr(distributed, "LocalCluster", lambda *a, **k: started.append(k))
+    result = CliRunner().invoke(
+        app, ["render", str(gallery), "--out", str(tmp_path / "o"), "--workers", "10000"]
+    )
+    assert result.exit_code == 2, result.output
+    bound, why = cluster_client.max_local_workers()
+    assert f"--workers 10000: give 1 to {bound} (the cores this process may use" in result.output
+    assert started == []
+    # A low open-file limit lowers the bound: (300 - 256 reserved) // 16 per worker = 2.
+    monkeypatch.setattr(cluster_client.resource, "getrlimit", lambda what: (300, 300))
+    assert cluster_client.max_local_workers()[0] == min(2, cluster_client.DEFAULT_THREADS)
+    assert "the open-file limit 300 allows 2" in cluster_client.max_local_workers()[1]
+
+
+@pytest.mark.parametrize(
+    ("options", "says"),
+    [
+        (["--workers", "1", "--resume"], "--resume is not available with --workers"),
+        (["--scheduler", "tcp://127.0.0.1:9", "--resume"], "--resume is not available"),
+        (["--workers", "1", "--chunk-frames", "0"], "--chunk-frames must be >= 1"),
+        (["--workers", "1", "--warmup", "-1"], "--warmup must be >= 0"),
+        (["--chunk-frames", "4"], "apply to --workers / --scheduler only"),
+        (["--workers", "1", "--scheduler", "tcp://127.0.0.1:9"], "exactly one of"),
+    ],
+)
+def test_probe_cluster_options_exit_2(gallery, tmp_path, options, says):
+    """Cluster options that cannot go together or are out of range: exit 2 (the contract's
+    bad option), one line, before any frame renders or any cluster starts."""
+    from phrt_usd.cli import app
+
+    out = tmp_path / "out"
+    result = CliRunner().invoke(app, ["render", str(gallery), "--out", str(out), *options])
+    assert result.exit_code == 2, result.output
+    assert says in result.output and result.output.count("error:") == 1
+    assert not out.exists()
+
+
+def test_probe_cluster_extra_missing_names_it(gallery, tmp_path, monkeypatch):
+    """Without Dask (the ``cluster`` extra), ``--workers`` and ``--scheduler`` are one line
+    naming the extra, exit 2; a render without them does not need Dask."""
+    from phrt_usd.cli import app
+
+    for name in ("dask", "distributed"):
+        monkeypatch.setitem(sys.modules, name, None)  # import fails
+    for option in (["--workers", "1"], ["--scheduler", "tcp://127.0.0.1:9"]):
+        result = CliRunner().invoke(
+            app, ["render", str(gallery), "--out", str(tmp_path / "o"), *option]
+        )
+        assert result.exit_code == 2, result.output
+        [line] = [x for x in result.output.splitlines() if x.startswith("error:")]
+        assert f"{option[0]} needs Dask" in line and "pip install 'phrt-usd[cluster]'" in line
+    result = CliRunner().invoke(
+        app, ["render", str(gallery), "--out", str(tmp_path / "plain"), "--frames", "1:1",
+              "--resolution", "16x12", "--no-images"],
+    )  # fmt: skip
+    assert result.exit_code == 0, result.output
+
+
+#: Imported at the top of phrt_usd's modules, Dask would make the extra required.
+_DASK_MODULES = ("dask", "distributed")
+
+
+def test_probe_no_module_imports_dask_at_import_time():
+    """No module of phrt_usd imports Dask when it is imported (only inside the functions
+    of a cluster run), read from the source of every module; and the package, its CLI
+    and its cluster module import in a Python where Dask cannot be imported."""
+    import ast
+    import subprocess
+
+    import phrt_usd
+
+    package = Path(phrt_usd.__file__).parent
+    eager = []
+    for path in package.rglob("*.py"):
+        tree = ast.parse(path.read_text())
+        for node in tree.body:  # module level only; imports inside functions are lazy
+            names = []
+            if isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom) and node.module:
+                names = [node.module]
+            eager += [f"{path.name}: {n}" for n in names if n.split(".")[0] in _DASK_MODULES]
+    assert eager == []
+    blocked = (
+        "import sys\n"
+        "class Block:\n"
+        "    def find_spec(self, name, path=None, target=None):\n"
+        f"        if name.split('.')[0] in {_DASK_MODULES!r}:\n"
+        "            raise ImportError(name)\n"
+        "sys.meta_path.insert(0, Block())\n"
+        "import phrt_usd, phrt_usd.cli, phrt_usd.api, phrt_usd.cluster\n"
+        "from typer.testing import CliRunner\n"
+        "r = CliRunner().invoke(phrt_usd.cli.app, ['render', '--workers', '1'])\n"
+        "print(r.exit_code, r.output.strip())\n"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", blocked], capture_output=True, text=True, timeout=120
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.startswith("2 error: --workers needs Dask"), done.stdout
+
+
+# --------------------------------------------------------------------------- interrupts
+
+
+def test_probe_cluster_interrupt_keeps_agreeing_files(gallery, tmp_path):
+    """SIGINT (Ctrl-C) while a 2-worker render runs, right after its first chunk is in:
+    RenderInterrupted saying how many frames were kept, and stats.json, the selection
+    layer and the images hold exactly those frames (a running chunk's images of frames
+    not kept are gone, no temp file is left)."""
+    from phrt_usd.run.products import default_plan
+    from phrt_usd.run.render_job import RenderInterrupted
+
+    out = tmp_path / "run"
+    job = _render_job(gallery, out)
+    signalled = []
+
+    def interrupt(done: int, total: int) -> None:
+        if not signalled:
+            signalled.append(done)
+            signal.raise_signal(signal.SIGINT)  # as Ctrl-C: to this (the main) thread
+
+    with dask_client(workers=2) as client:
+        try:
+            with pytest.raises(RenderInterrupted) as raised:
+                run_render_on_cluster(job, client, chunk_frames=4, warmup=2, on_frame=interrupt)
+        except KeyboardInterrupt:
+            pytest.fail("the interrupt escaped as KeyboardInterrupt: nothing reconciled")
+        assert client.submit(sum, [1, 1]).result() == 2  # the cluster still serves
+    kept = [f["time"] for f in _frames_of(out)]
+    assert f"stopped after {len(kept)} of 24 frames" in str(raised.value)
+    # The first chunk is kept; the 24 frames need 6 chunks on 2 workers, so a stop after
+    # the first left some unfinished.
+    assert 4 <= len(kept) < 24 and len(kept) % 4 == 0
+    layer = read_selection_record(out / "selection.usda")
+    assert sorted(layer.times) == sorted(kept)
+    expected = {p for t in kept for p in default_plan().files(out, t)}
+    written = {p for p in (out / "frames").iterdir()}
+    assert written == expected
+    assert not list(out.rglob(".*.tmp*"))
