@@ -15,7 +15,11 @@ package):
 - ``--host-resolver-rules`` maps every host name to nothing, so the page cannot reach
   the network even if it tried (the report must not need it).
 
-``test_checks_detect_planted_faults`` proves both checks can fail.
+- the page's layout (how wide its content is, whether a table overflows its box, which
+  links it has) is measured the same way, by a wrapper whose iframe is as wide as a
+  laptop's window (``LAPTOP_WIDTHS``).
+
+``test_checks_detect_planted_faults`` proves every check can fail.
 """
 
 from __future__ import annotations
@@ -89,6 +93,42 @@ frame.addEventListener("load", () => {{
 """
 
 
+#: Window widths the page must fit without scrolling sideways (px): a 1280 px laptop
+#: screen, and a narrower window on one.
+LAPTOP_WIDTHS = (1280, 1024)
+#: The data files the page must link (relative links to files next to it).
+DATA_LINKS = ("sweep.csv", "summary.csv")
+
+#: Loads ``{page}`` in an iframe ``{width}`` px wide; once loaded, writes the page's
+#: layout into <pre id=WRAPPER_RESULT_ID>: its content width (scrollWidth) against its
+#: window (clientWidth), each ``div.table`` box's, and every link's href.
+LAYOUT_WRAPPER_HTML = """<!DOCTYPE html>
+<html><head><meta charset="utf-8"><title>layout check</title></head><body style="margin:0">
+<pre id="{result_id}">pending</pre>
+<iframe id="page" src="{page}" width="{width}" height="900" style="border:0"></iframe>
+<script>
+const frame = document.getElementById("page");
+frame.addEventListener("load", () => {{
+  let result;
+  try {{
+    const doc = frame.contentDocument;
+    result = {{
+      content: doc.documentElement.scrollWidth,
+      window: doc.documentElement.clientWidth,
+      tables: Array.from(doc.querySelectorAll("div.table")).map(box => ({{
+        content: box.scrollWidth, box: box.clientWidth,
+      }})),
+      links: Array.from(doc.querySelectorAll("a[href]")).map(a => a.getAttribute("href")),
+    }};
+  }} catch (error) {{
+    result = {{error: String(error)}};
+  }}
+  document.getElementById("{result_id}").textContent = JSON.stringify(result);
+}});
+</script></body></html>
+"""
+
+
 def run_chromium(page: Path, profile: Path, *extra: str) -> tuple[str, list[str]]:
     """Load ``page`` headless; return (dumped DOM, console messages)."""
     command = [
@@ -132,6 +172,42 @@ def image_load_states(page: Path, profile: Path) -> tuple[list[dict], list[str]]
     result = json.loads(text)
     assert isinstance(result, list), f"wrapper could not read the page: {result}"
     return result, messages
+
+
+def page_layout(page: Path, profile: Path, width: int) -> dict:
+    """The layout of ``page`` in a window ``width`` px wide (see LAYOUT_WRAPPER_HTML)."""
+    wrapper = page.with_name(f"_layout_check_{page.stem}_{width}.html")
+    wrapper.write_text(
+        LAYOUT_WRAPPER_HTML.format(result_id=WRAPPER_RESULT_ID, page=page.name, width=width)
+    )
+    dom, messages = run_chromium(
+        wrapper, profile, "--allow-file-access-from-files", f"--window-size={width + 100},1000"
+    )
+    assert messages == [], f"console messages: {messages}"
+    found = re.search(rf'<pre id="{WRAPPER_RESULT_ID}">(.*?)</pre>', dom, re.S)
+    assert found, f"wrapper result missing from DOM:\n{dom[:2000]}"
+    text = html.unescape(found.group(1))
+    assert text != "pending", "the page in the iframe never finished loading"
+    layout = json.loads(text)
+    assert "error" not in layout, f"wrapper could not read the page: {layout}"
+    return layout
+
+
+def layout_problems(page: Path, layout: dict, width: int) -> list[str]:
+    """What is wrong with ``layout`` at ``width``: content wider than the window (the page
+    scrolls sideways), a window wider than ``width`` (not measured where asked), a
+    missing or broken link to a data file."""
+    problems = []
+    if layout["window"] > width:
+        problems.append(f"measured in a {layout['window']} px window, not {width} px")
+    if layout["content"] > layout["window"]:
+        problems.append(f"content {layout['content']} px wide in a {layout['window']} px window")
+    for name in DATA_LINKS:
+        if name not in layout["links"]:
+            problems.append(f"no link to {name}")
+        elif not (page.parent / name).is_file():
+            problems.append(f"link to {name}, which does not exist")
+    return problems
 
 
 class _ImgCounter(HTMLParser):
@@ -185,8 +261,22 @@ def test_every_report_image_loads(report, tmp_path):
     assert failed == [], f"images that did not load: {failed}"
 
 
+@pytest.mark.parametrize("width", LAPTOP_WIDTHS)
+def test_report_fits_a_laptop_screen_and_links_its_csvs(report, tmp_path, width):
+    """At a laptop's window width the page never scrolls sideways and links its CSVs; at
+    1280 px every table also fits its own box (config first, no sideways scroll inside)."""
+    layout = page_layout(report, tmp_path / "profile", width)
+    assert layout_problems(report, layout, width) == []
+    # Four tables per stage (sweep_tables.TABLES), two stages.
+    assert len(layout["tables"]) == 8
+    if width == max(LAPTOP_WIDTHS):
+        wide = [t for t in layout["tables"] if t["content"] > t["box"]]
+        assert wide == [], f"tables wider than their box at {width} px: {wide}"
+
+
 def test_checks_detect_planted_faults(report, tmp_path):
-    """A page with a console error, an uncaught exception and a missing image fails both."""
+    """A page with a console error, an uncaught exception and a missing image fails both;
+    a page wider than the window and without CSV links fails the layout check."""
     bad = report.with_name("planted_faults.html")
     bad.write_text(
         "<!DOCTYPE html><html><head><title>bad</title></head><body>"
@@ -203,3 +293,13 @@ def test_checks_detect_planted_faults(report, tmp_path):
         "error_vs_time.png": True,
         "no_such_image.png": False,
     }
+
+    wide = report.with_name("planted_wide.html")
+    wide.write_text(
+        '<!DOCTYPE html><html><head><title>wide</title></head><body>'
+        '<div style="width: 2000px">a table too wide</div>'
+        '<a href="sweep.csv">sweep.csv</a><a href="elsewhere.csv">summary</a></body></html>'
+    )
+    problems = layout_problems(wide, page_layout(wide, tmp_path / "profile", 1280), 1280)
+    assert any(p.startswith("content ") and "px wide in a" in p for p in problems), problems
+    assert "no link to summary.csv" in problems, problems

@@ -9,6 +9,7 @@ test): two stages, heuristics at two time budgets, a ray budget and unbounded, t
 from __future__ import annotations
 
 import csv
+import html
 import json
 import math
 import statistics
@@ -400,6 +401,8 @@ def test_report_html_references_only_existing_local_files(report_dir):
             assert f"images/{stage}/{IMAGE_FRAME}/{name}.png" in refs
     for config in EXPECTED_ORDER:
         assert f"<td>{config}</td>" in text
+    # The data behind the tables, linked relatively (their existence is checked above).
+    assert {"sweep.csv", "summary.csv", "timeline.json", "summary.md"} <= refs
 
 
 def test_text_is_escaped_in_html_and_markdown(tmp_path):
@@ -550,3 +553,67 @@ def test_summary_csv_and_pareto_marks_agree_with_the_tables(report_dir):
         assert front
         for p in front:
             assert not any(all(q[i] <= p[i] for i in range(3)) and q != p for q in points)
+
+
+def test_budget_adherence_names_the_configs_that_miss_their_budget(tmp_path):
+    """HEU1 and HEU2 at 2 ms whose trace phase averages 3.06 and 3.47 ms: the table gives
+    each one's share of frames within T + 10 % (2.2 ms) and the notes of summary.md and
+    report.html name both as not holding the budget, with their mean trace time; a config
+    within it in every frame is named as holding it; configs without a budget say n/a."""
+    configs = [
+        ("all", "all", "hybrid", "", ""), ("heu1@2ms", "heu1", "hybrid", "2", ""),
+        ("heu2@2ms", "heu2", "hybrid", "2", ""), ("heu1@8ms", "heu1", "hybrid", "8", ""),
+    ]  # fmt: skip
+    out = write_synthetic_sweep(tmp_path / "sweep", configs=configs)
+    # Per frame trace ms: one frame of six within 2.2 ms for HEU1, none for HEU2.
+    trace = {
+        "heu1@2ms": [2.0, 3.0, 3.2, 3.3, 3.4, 3.46],  # mean 3.06
+        "heu2@2ms": [3.3, 3.4, 3.5, 3.5, 3.6, 3.52],  # mean 3.47
+        "heu1@8ms": [1.0, 2.0, 3.0, 4.0, 5.0, 8.8],  # the last exactly at T + 10 %
+    }
+    rows = list(csv.DictReader((out / "sweep.csv").open(newline="")))
+    for row in rows:
+        if row["config"] in trace:
+            row["trace_ms"] = trace[row["config"]][FRAMES.index(float(row["frame"]))]
+    with (out / "sweep.csv").open("w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=COLUMNS)
+        writer.writeheader()
+        writer.writerows(rows)
+    write_sweep_report(out)
+    text = (out / "summary.md").read_text()
+    table = {row["config"]: row for row in parse_summary_md(text)["farm"]}
+    assert table["heu1@2ms"]["within budget"] == "16.7 %"  # 1 of 6 frames
+    assert table["heu2@2ms"]["within budget"] == "0.0 %"
+    assert table["heu1@8ms"]["within budget"] == "100.0 %"
+    assert table["all"]["within budget"] == "n/a"
+    assert table["heu1@2ms"]["mean trace ms"] == "3.06"
+    assert table["heu2@2ms"]["mean trace ms"] == "3.47"
+    html_text = (out / "report.html").read_text()
+    for page in (text, html_text):
+        missed = next(line for line in page.splitlines() if "Time budget NOT held" in line)
+        assert "heu1@2ms within 2.2 ms in 16.7 % of frames (mean trace 3.06 ms" in missed
+        assert "heu2@2ms within 2.2 ms in 0.0 % of frames (mean trace 3.47 ms" in missed
+        assert "heu1@8ms" not in missed
+        held = next(line for line in page.splitlines() if "Time budget held" in line)
+        assert "heu1@8ms (100.0 %)" in held
+
+
+def test_summary_and_report_show_the_provenance(tmp_path):
+    """With provenance.json the summary and the page list its items; without (a sweep
+    directory of an older phrt) they say it was not recorded."""
+    from phrt_usd.evaluate.provenance import collect, provenance_items
+
+    out = write_synthetic_sweep(tmp_path / "sweep")
+    write_sweep_report(out)
+    for name in ("summary.md", "report.html"):
+        assert "not recorded (this sweep directory has no provenance.json)" in (
+            out / name
+        ).read_text()
+    record = collect(threads=3, gl="osmesa", argv=["phrt", "sweep", "farm.usda"])
+    (out / "provenance.json").write_text(json.dumps(record))
+    write_sweep_report(out)
+    text, html_text = (out / "summary.md").read_text(), (out / "report.html").read_text()
+    for label, value in provenance_items(record):
+        assert f"- {label}: {value}" in text
+        assert f"<dt>{label}</dt><dd>{html.escape(value)}</dd>" in html_text
+    assert "threads: 3" in text and "phrt sweep farm.usda" in text
