@@ -1,0 +1,49 @@
+"""provenance: what a sweep or benchmark records never fails it, and says "unknown" for
+what it cannot find (an installed copy has no commit; a machine without git)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import phrt_usd
+from phrt_usd.evaluate import provenance
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def test_commit_is_unknown_for_an_installed_copy(monkeypatch, tmp_path):
+    """A package under site-packages (no checkout around it) has no commit to give, and a
+    repository of another project that holds the package at its top (no phrt-usd
+    pyproject.toml there) does not give its commit as phrt's."""
+    installed = tmp_path / "venv" / "lib" / "site-packages" / "phrt_usd"
+    installed.mkdir(parents=True)
+    monkeypatch.setattr(phrt_usd, "__file__", str(installed / "__init__.py"))
+    assert provenance.source_commit() == ("unknown", None)
+    (installed.parent / ".git").mkdir()  # a pipeline's repository, not phrt's
+    assert provenance.source_commit() == ("unknown", None)
+
+
+def test_commit_is_unknown_without_git(monkeypatch):
+    """No git on PATH: "unknown", no exception."""
+    monkeypatch.setenv("PATH", "")
+    assert provenance.source_commit() == ("unknown", None)
+
+
+def test_commit_of_the_checkout(monkeypatch):
+    """Run from this checkout: the 40-hex-digit commit of HEAD."""
+    if not (REPO / ".git").exists():
+        return  # a copy without git metadata: the test above covers it
+    commit, dirty = provenance.source_commit()
+    assert len(commit) == 40 and set(commit) <= set("0123456789abcdef")
+    assert dirty in (True, False)
+
+
+def test_record_is_json_and_its_line_is_one_line():
+    record = provenance.collect(threads=2, gl="osmesa", argv=["/usr/bin/phrt", "sweep", "a b"])
+    assert json.loads(json.dumps(record, allow_nan=False)) == record
+    assert record["command"] == "phrt sweep 'a b'"  # shell-quoted, the program by name
+    assert record["threads"]["setting"] == 2 and record["gl"]["requested"] == "osmesa"
+    line = provenance.provenance_line(record)
+    assert "\n" not in line and line.startswith(f"provenance: phrt {phrt_usd.__version__}")
+    assert "px per degree" in line and "cores" in line
