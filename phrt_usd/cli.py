@@ -597,7 +597,9 @@ def render(
                     scene.warnings += [w for w in found if w not in scene.warnings]
             except RenderInterrupted as exc:
                 raise fail(f"interrupted: {exc}", EXIT_INTERRUPTED, json_out) from None
-            except MemoryError:
+            except Exception as exc:  # memory running out, in numpy or in OpenGL
+                if not _ran_out_of_memory(exc):
+                    raise
                 message = _out_of_memory(job, scene, finished[0])
                 raise fail(message, EXIT_PROBLEMS, json_out) from None
     for warning in scene.warnings[warned:]:  # found while rendering (e.g. clipping)
@@ -626,6 +628,18 @@ def render(
                 )
             typer.echo(line)
         typer.echo(_written(summary))
+
+
+#: OpenGL's GL_OUT_OF_MEMORY: the raster phase's buffers did not fit.
+GL_OUT_OF_MEMORY = 0x0505
+
+
+def _ran_out_of_memory(error: Exception) -> bool:
+    """``error`` says memory ran out: Python's MemoryError (numpy's too) or PyOpenGL's
+    GLError of GL_OUT_OF_MEMORY."""
+    if isinstance(error, MemoryError):
+        return True
+    return type(error).__name__ == "GLError" and getattr(error, "err", None) == GL_OUT_OF_MEMORY
 
 
 def _out_of_memory(job, scene, done: int) -> str:

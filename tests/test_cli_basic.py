@@ -136,3 +136,33 @@ def test_author_cli(good, tmp_path):
     assert bad.exit_code == 1 and bad.stderr.startswith("error: /World/Cam: is a Camera")
     assert not (tmp_path / "x.usda").exists()
     assert good.read_bytes() == before
+
+
+def _gl_out_of_memory() -> Exception:
+    from OpenGL.error import GLError
+
+    return GLError(err=0x0505, description=b"out of memory")  # GL_OUT_OF_MEMORY
+
+
+@pytest.mark.parametrize("json_out", [False, True])
+@pytest.mark.parametrize("error", [MemoryError, _gl_out_of_memory])
+def test_probe_memory_error(good, tmp_path, monkeypatch, json_out, error):
+    """Memory running out in a render (a large frame under a memory limit: numpy's
+    MemoryError, or OpenGL's GL_OUT_OF_MEMORY from llvmpipe) is one line, or the one
+    JSON object, saying so and where: the frame being rendered and the resolution;
+    exit 1 as a failed render, no traceback."""
+    from phrt_usd import api
+
+    def out_of_memory(job, on_frame=None, stage_scene=None):
+        on_frame(1, 2, None)  # the first frame finished, the second runs out
+        raise error()
+
+    monkeypatch.setattr(api, "run_render", out_of_memory)
+    args = ["render", good, "--out", tmp_path / "run", "--frames", "1:2", "--resolution",
+            "32x24", *(["--json"] if json_out else [])]  # fmt: skip
+    result = run(*args)
+    assert result.exit_code == 1, result.output
+    errors = [line for line in result.stderr.splitlines() if line.startswith("error:")]
+    said = json.loads(result.stdout)["error"] if json_out else errors[0]
+    assert len(errors) == (0 if json_out else 1), result.stderr  # warnings aside
+    assert "memory ran out rendering frame 2 at 32x24 (1 of 2 frames finished" in said, said

@@ -435,3 +435,42 @@ def test_validate_warns_of_the_unauthored_sun_and_an_unsupported_dome_format(tmp
     UsdLux.DistantLight(stage.GetPrimAtPath("/World/Sun")).CreateIntensityAttr(1.0)
     after = [i.line() for i in validate_stage(stage).issues]
     assert not any("/World/Sun" in line for line in after), after
+
+
+@pytest.mark.parametrize("mode", MODES)
+def test_probe_missing_dome_texture(tmp_path, mode):
+    """A DomeLight whose texture file is missing renders as a surface texture does: one
+    warning naming the attribute, and the dome's fallback, its colour untextured (the
+    ambient term albedo x colour at the centre); ``phrt validate`` and ``--strict``
+    call it an error, as they do a surface texture's."""
+    from phrt_usd.usd.validation import validate_stage
+
+    stage = _stage(dome=False)
+    dome = UsdLux.DomeLight.Define(stage, "/World/Sky")
+    dome.CreateTextureFileAttr(str(tmp_path / "gone.exr"))
+    dome.CreateColorAttr(Gf.Vec3f(0.2, 0.4, 0.6))
+    beauty, _, scene = _render(stage, mode)
+    (line,) = [w for w in scene.warnings if "/World/Sky.inputs:texture:file" in w]
+    assert "gone.exr" in line and "untextured, in its colour" in line and "\n" not in line
+    assert scene.texture_problems and scene.scene.lights.dome.texture is None
+    # rtol 1e-6: float32 shading of an exact product, as the other dome tests.
+    np.testing.assert_allclose(beauty[CENTRE], ALBEDO * np.array([0.2, 0.4, 0.6]), rtol=1e-6)
+    errors = [i.line() for i in validate_stage(stage).errors]
+    assert any("/World/Sky.inputs:texture:file" in e and "gone.exr" in e for e in errors), errors
+
+
+def test_probe_missing_dome_texture_strict_is_an_error_exit_1(tmp_path):
+    """``--strict``: the missing dome texture is the one error line, exit 1 (as a
+    surface texture's), and no frame is rendered."""
+    stage = _stage(dome=False)
+    dome = UsdLux.DomeLight.Define(stage, "/World/Sky")
+    dome.CreateTextureFileAttr(str(tmp_path / "gone.exr"))
+    stage.GetRootLayer().Export(str(tmp_path / "dome.usda"))
+    args = ["render", str(tmp_path / "dome.usda"), "--out", str(tmp_path / "run"),
+            "--resolution", f"{W}x{H}", "--frames", "1:1"]  # fmt: skip
+    result = CliRunner().invoke(app, [*args, "--strict"])
+    assert result.exit_code == 1, result.output
+    lines = [line for line in result.output.splitlines() if line.startswith("error:")]
+    assert len(lines) == 1 and "/World/Sky.inputs:texture:file" in lines[0], result.output
+    assert "gone.exr" in lines[0] and "--strict" in lines[0]
+    assert not (tmp_path / "run" / "stats.json").exists()

@@ -3,6 +3,7 @@ materials, visibility, animation, lights and errors. Stages are built in memory.
 
 from __future__ import annotations
 
+import math
 import time as _time
 
 import numpy as np
@@ -604,3 +605,148 @@ def test_plane_axes(axis, size, normal):
     np.testing.assert_allclose(e.bounds_max - e.bounds_min, size)
     np.testing.assert_allclose(tri_normals(scene.geometry), [normal] * 2, atol=1e-12)
     np.testing.assert_allclose(scene.geometry.corner_normals.reshape(-1, 3), [normal] * 6)
+
+
+#: A text layer that does not parse: line 5, column 21 holds the second number of a
+#: scalar value ("1 2"), where the parser expects the end of the prim.
+_UNPARSABLE = '#usda 1.0\n\ndef Xform "World"\n{\n    double radius = 1 2\n}\n'
+
+
+def test_probe_parse_error_names_file_line_column(tmp_path):
+    """USD's own parse error reaches the message: the parser's ``file:line:column:
+    what``, in one line, not only "cannot open as USD"; text that is not UTF-8 (USD's
+    message then cannot be decoded) is located by its first bad byte."""
+    from phrt_usd.usd.stage import open_usd
+
+    bad = tmp_path / "bad.usda"
+    bad.write_text(_UNPARSABLE)
+    with pytest.raises(PhrtError) as err:
+        open_usd(bad)
+    message = str(err.value)
+    assert message.startswith(f"{bad}: cannot open as USD ({bad}:5:"), message
+    assert "Expected" in message and "\n" not in message
+    damaged = tmp_path / "damaged.usda"
+    damaged.write_bytes(b'#usda 1.0\ndef Xform "\xff\xfe" {{{\n')
+    with pytest.raises(PhrtError, match=rf"\({damaged}:2:12: bytes that are not UTF-8"):
+        open_usd(damaged)
+
+
+def test_probe_parse_error_of_a_referenced_layer_is_in_the_warning(tmp_path):
+    """A reference or sublayer that does not parse: the render goes on without it, its
+    warning carries the parser's ``file:line:column``."""
+    (tmp_path / "bad.usda").write_text(_UNPARSABLE)
+    stage = camera_stage()
+    UsdGeom.Cube.Define(stage, "/World/Box")
+    UsdLux.DistantLight.Define(stage, "/World/Sun")
+    stage.DefinePrim("/World/Prop").GetReferences().AddReference(str(tmp_path / "bad.usda"))
+    stage.GetRootLayer().subLayerPaths.append(str(tmp_path / "bad.usda"))
+    warnings = read_stage(stage).warnings
+    located = [w for w in warnings if f"{tmp_path}/bad.usda:5:" in w]
+    assert len(located) == 2, warnings  # the reference's and the sublayer's
+
+
+@pytest.mark.parametrize("special", ["/dev/zero", "fifo"])
+def test_stage_file_that_is_no_regular_file_is_refused_unread(tmp_path, special):
+    """A device or a named pipe with a USD extension (here a link to one) is refused
+    before USD reads it (a device reads without end, a pipe blocks)."""
+    import os
+
+    from phrt_usd.usd.stage import open_usd
+
+    target = special
+    if special == "fifo":
+        target = str(tmp_path / "pipe")
+        os.mkfifo(target)
+    link = tmp_path / "stage.usda"
+    link.symlink_to(target)
+    with pytest.raises(PhrtError, match=rf"^{link}: not a regular file"):
+        open_usd(link)
+
+
+@pytest.mark.parametrize(
+    "value, accepted",
+    [(Vt.Float(0.25), 0.25), (2, 2.0), (math.inf, None), (math.nan, None), (-1.0, None),
+     (0.0, None), (1e-300, 1e-300)],
+)  # fmt: skip
+def test_probe_float_meters_per_unit(value, accepted):
+    """metersPerUnit read tolerantly: a float or an int is its number (0.25 is exact in
+    float32); a value that is not finite or not > 0 refuses the stage as unusable input
+    (exit 2 in the CLI), one line naming the layer metadata."""
+    from phrt_usd.errors import UnreadableInput
+    from phrt_usd.usd.stage import meters_per_unit
+
+    stage = camera_stage()
+    UsdGeom.Cube.Define(stage, "/World/Box")
+    stage.GetRootLayer().pseudoRoot.SetInfo("metersPerUnit", value)
+    mpu, problems = meters_per_unit(stage)
+    if accepted is not None:
+        assert mpu == accepted and problems == []
+        assert read_stage(stage).meters_per_unit == accepted
+        return
+    (problem,) = problems
+    where = stage.GetRootLayer().identifier
+    assert problem.startswith(f"{where}: layer metadata metersPerUnit must be a finite number")
+    with pytest.raises(UnreadableInput) as err:
+        read_stage(stage)
+    assert str(err.value) == problem and "\n" not in problem
+
+
+def test_probe_bad_camera_and_settings_are_bad_options():
+    """--camera and --settings naming nothing are bad options (exit 2), listing what
+    there is."""
+    from phrt_usd.errors import BadOption
+
+    stage = camera_stage()
+    UsdGeom.Cube.Define(stage, "/World/Box")
+    UsdRender.Settings.Define(stage, "/Render/Main")
+    with pytest.raises(BadOption, match=r"^--camera /Nope: no UsdGeomCamera .*\(cameras: /Cam\)"):
+        read_stage(stage, camera="/Nope")
+    with pytest.raises(BadOption, match=r"^--camera Nope: no UsdGeomCamera of this name"):
+        read_stage(stage, camera="Nope")
+    with pytest.raises(
+        BadOption, match=r"^--settings /Nope: no RenderSettings .*\(RenderSettings prims: "
+        r"/Render/Main\)"
+    ):
+        read_stage(stage, settings="/Nope")
+    with pytest.raises(BadOption, match=r"^--settings Render: no RenderSettings"):
+        read_stage(stage, settings="Render")
+
+
+def test_probe_unknown_variant_names_set_prim_and_variants(tmp_path):
+    """A --variant name USD cannot even hold (``a.b``) is an unknown variant like any
+    other: the prim, the set and the variants it has, not "cannot open as USD"."""
+    from phrt_usd.errors import BadOption
+    from phrt_usd.usd.stage import open_usd
+    from phrt_usd.usd.stage_controls import StageControls
+
+    stage = Usd.Stage.CreateNew(str(tmp_path / "v.usda"))
+    holder = stage.DefinePrim("/World")
+    look = holder.GetVariantSets().AddVariantSet("look")
+    for name in ("red", "blue"):
+        look.AddVariant(name)
+    stage.GetRootLayer().Save()
+    for variant in ("/World:look=a.b", "/World:look=gr een", "/World:look=green"):
+        controls = StageControls.from_options((), [variant])
+        with pytest.raises(BadOption) as err:
+            open_usd(tmp_path / "v.usda", controls)
+        name = variant.rpartition("=")[2]
+        assert str(err.value) == (
+            f"--variant {variant}: /World has no variant {name!r} in its variant set 'look' "
+            "(it has: blue, red)"
+        )
+    with pytest.raises(BadOption, match=r"/World has no variant set 'lo\.ok' \(it has: look\)"):
+        open_usd(tmp_path / "v.usda", StageControls.from_options((), ["/World:lo.ok=red"]))
+
+
+def test_probe_session_layer_directory(tmp_path):
+    """A directory given as --session-layer is said to be one, not "no such file"."""
+    from phrt_usd.errors import BadOption
+    from phrt_usd.usd.stage_controls import StageControls
+
+    with pytest.raises(BadOption, match=rf"^--session-layer {tmp_path}: is a directory"):
+        StageControls.from_options([tmp_path])
+    with pytest.raises(BadOption, match=r"no such file"):
+        StageControls.from_options([tmp_path / "gone.usda"])
+    (tmp_path / "bad.usda").write_text(_UNPARSABLE)
+    with pytest.raises(BadOption, match=rf"cannot open \({tmp_path}/bad.usda:5:"):
+        StageControls.from_options([tmp_path / "bad.usda"])

@@ -240,3 +240,43 @@ def test_materialx_image_node_is_the_base_colour_texture(tmp_path):
     )
     np.testing.assert_allclose(_albedo_at(stage, "raster", -0.5), RED, atol=1e-6)
     np.testing.assert_allclose(_albedo_at(stage, "raster", 0.5), GREEN, atol=1e-6)
+
+
+@pytest.mark.parametrize("device", ["/dev/zero", "fifo", "directory"])
+def test_probe_texture_device(tmp_path, device):
+    """A texture path that is no regular file (a device, which reads without end, a
+    named pipe, which blocks, or a directory) is never read: one warning naming the
+    attribute, and the input's fallback (the UsdUVTexture's ``fallback``, here green);
+    ``--strict`` makes it the one error line, exit 1."""
+    import os
+
+    from typer.testing import CliRunner
+
+    from phrt_usd.cli import app
+
+    if device == "fifo":
+        device = str(tmp_path / "pipe.png")
+        os.mkfifo(device)
+    elif device == "directory":
+        device = str(tmp_path / "folder.png")
+        os.mkdir(device)
+    stage, surf = _stage(tmp_path)
+    tex = _texture(stage, "/Looks/Quad/Tex", device)
+    tex.CreateInput("fallback", Sdf.ValueTypeNames.Float4).Set((0.0, 1.0, 0.0, 1.0))
+    surf.GetInput("diffuseColor").ConnectToSource(
+        tex.CreateOutput("rgb", Sdf.ValueTypeNames.Float3)
+    )
+    stage.GetRootLayer().Save()
+    scene = read_stage(stage)
+    (problem,) = scene.texture_problems
+    assert "/Looks/Quad/Tex.inputs:file" in problem and "not a regular file" in problem
+    assert f"{problem}; rendered with the input's fallback" in scene.warnings
+    # The fallback green is every corner's albedo: exact, it is the authored constant.
+    np.testing.assert_array_equal(scene.scene.geometry.corner_albedo[0], [GREEN] * 3)
+    args = ["render", str(tmp_path / "tex.usda"), "--out", str(tmp_path / "run"), "--strict",
+            "--resolution", "16x12", "--frames", "1:1"]  # fmt: skip
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 1, result.output
+    lines = [line for line in result.output.splitlines() if line.startswith("error:")]
+    assert len(lines) == 1 and "not a regular file" in lines[0], result.output
+    assert "Traceback" not in result.output

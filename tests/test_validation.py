@@ -223,7 +223,8 @@ RENDER_REFUSALS = [
      r"^/World/Cam\.projection: orthographic cameras are not supported$"),
     (lambda s: _free_camera_at(s, (math.inf, 0, 0)),
      r"^/World/Cam: non-finite camera transform"),
-    (lambda s: UsdGeom.SetStageMetersPerUnit(s, 0.0), r"metersPerUnit must be > 0, got 0\.0$"),
+    (lambda s: UsdGeom.SetStageMetersPerUnit(s, 0.0),
+     r"metersPerUnit must be a finite number > 0, got 0\.0$"),
     (lambda s: UsdRender.Settings(s.GetPrimAtPath("/World/Render")).CreateCameraRel().SetTargets(
         ["/World/Mirror"]), r"^/World/Render\.camera: target /World/Mirror is not a"),
     (lambda s: s.GetPrimAtPath("/World/Path").GetAttribute(schema.POSITIONS).Set(

@@ -308,6 +308,16 @@ def _author_in_place(
     return target
 
 
+def _check_parent(target: Path) -> None:
+    """``BadOption`` when the overlay's directory cannot be made: the nearest part of
+    its path that exists is not a directory."""
+    parent = Path(os.path.abspath(target)).parent
+    while not os.path.lexists(parent) and parent != parent.parent:
+        parent = parent.parent
+    if not parent.is_dir():
+        raise BadOption(f"--out {target}: {parent} is not a directory")
+
+
 def _author_overlay(
     stage: Usd.Stage,
     stage_file: Path,
@@ -333,6 +343,7 @@ def _author_overlay(
         )
     if target.is_dir():
         raise PhrtError(f"{target}: is a directory")
+    _check_parent(target)
     if os.path.lexists(target) and not force:
         raise PhrtError(f"{target}: already exists; pass --force to overwrite it")
 

@@ -22,19 +22,25 @@ class CompositionProblem:
     where   : the prim whose arc failed; for a sublayer, the layer that lists it
     asset   : the asset path USD could not open, as USD resolved it ("" for "other")
     message : one line, ``"<where>: <what>"`` (``phrt validate`` reports it as an error)
+    reason  : why USD could not open it, when USD says (a layer that does not parse:
+              the parser's ``file:line:column: what``), else ""
     """
 
     kind: str
     where: str
     asset: str
     message: str
+    reason: str = ""
 
 
 _ASSET_ERROR = re.compile(
     r"Could not open asset @(?P<asset>.*?)@ for (?P<arc>\w+) introduced by "
     r"@(?P<layer>.*?)@<(?P<site>[^>]*)>\.?(?:\s*--\s*(?P<reason>.*?))?\.?$"
 )
-_SUBLAYER_ERROR = re.compile(r"Could not load sublayer @(?P<asset>.*?)@ of layer @(?P<layer>.*?)@")
+_SUBLAYER_ERROR = re.compile(
+    r"Could not load sublayer @(?P<asset>.*?)@ of layer @(?P<layer>.*?)@"
+    r"(?:\s*--\s*(?P<reason>.*?))?\s*(?:;\s*skipping)?\.?$"
+)
 
 
 def composition_problems(stage: Usd.Stage) -> list[CompositionProblem]:
@@ -50,21 +56,25 @@ def composition_problems(stage: Usd.Stage) -> list[CompositionProblem]:
         m = _ASSET_ERROR.search(text)
         if m and err.errorType == Pcp.ErrorType_InvalidAssetPath:
             arc = m["arc"] if m["arc"] in ("reference", "payload") else "reference"
-            reason = f" ({m['reason']})" if m["reason"] else ""
+            why = (m["reason"] or "").strip()
+            reason = f" ({why})" if why else ""
             problems.append(
                 CompositionProblem(
-                    arc, prim, m["asset"], f"{prim}: cannot open {arc} {m['asset']}{reason}"
+                    arc, prim, m["asset"], f"{prim}: cannot open {arc} {m['asset']}{reason}", why
                 )
             )
             continue
         m = _SUBLAYER_ERROR.search(text)
         if m and err.errorType == Pcp.ErrorType_InvalidSublayerPath:
+            why = (m["reason"] or "").strip()
+            reason = f" ({why})" if why else ""
             problems.append(
                 CompositionProblem(
                     "sublayer",
                     m["layer"],
                     m["asset"],
-                    f"{m['layer']}: cannot open sublayer {m['asset']}",
+                    f"{m['layer']}: cannot open sublayer {m['asset']}{reason}",
+                    why,
                 )
             )
             continue
@@ -79,24 +89,26 @@ _WARNING_PATHS = 5
 def composition_warnings(problems: list[CompositionProblem]) -> list[str]:
     """One-line render warnings for ``composition_problems``: per missing reference or
     payload asset, the number of prims that render without its content and their paths;
-    per missing sublayer, the layer (the number of prims it held is unknown)."""
-    by_asset: dict[tuple[str, str], list[str]] = {}
+    per missing sublayer, the layer (the number of prims it held is unknown); each with
+    USD's reason when it gives one (a parse error's ``file:line:column``)."""
+    by_asset: dict[tuple[str, str, str], list[str]] = {}
     warnings = []
     for p in problems:
+        why = f" ({p.reason})" if p.reason else ""
         if p.kind in ("reference", "payload"):
-            by_asset.setdefault((p.kind, p.asset), []).append(p.where)
+            by_asset.setdefault((p.kind, p.asset, why), []).append(p.where)
         elif p.kind == "sublayer":
             warnings.append(
-                f"missing sublayer {p.asset} of {p.where}: not rendered "
+                f"missing sublayer {p.asset}{why} of {p.where}: not rendered "
                 "(how many prims it held is unknown)"
             )
         else:
             warnings.append(f"composition error: {p.message}")
-    for (kind, asset), prims in by_asset.items():
+    for (kind, asset, why), prims in by_asset.items():
         shown = ", ".join(prims[:_WARNING_PATHS])
         if len(prims) > _WARNING_PATHS:
             shown += f" and {len(prims) - _WARNING_PATHS} more"
         n = len(prims)
         count = "1 prim renders" if n == 1 else f"{n} prims render"
-        warnings.append(f"missing {kind} {asset}: {count} without its content ({shown})")
+        warnings.append(f"missing {kind} {asset}{why}: {count} without its content ({shown})")
     return warnings

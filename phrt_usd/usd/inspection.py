@@ -20,10 +20,12 @@ from dataclasses import asdict
 import numpy as np
 from pxr import Sdf, Usd, UsdGeom, UsdLux, UsdShade
 
+from phrt_usd.errors import UnreadableInput
 from phrt_usd.usd import schema
 from phrt_usd.usd.authoring import instance_root
 from phrt_usd.usd.lights import READ_LIGHT_TYPE_NAMES
 from phrt_usd.usd.rules import stage_reflectors
+from phrt_usd.usd.stage import meters_per_unit
 from phrt_usd.usd.support_report import support_report
 
 SHADOW_LIGHT_TYPES = ("DistantLight", "SphereLight", "RectLight")
@@ -42,18 +44,17 @@ def _triangle_count(prim: Usd.Prim) -> int | None:
 
 
 def _bounds(cache: UsdGeom.BBoxCache, prim: Usd.Prim, meters_per_unit: float) -> dict:
-    """World-space axis-aligned bounds, stage units and metres; None for empty bounds."""
+    """World-space axis-aligned bounds, stage units and metres; None for empty bounds
+    and for a corner beyond float64's range (JSON holds finite numbers only)."""
     box = cache.ComputeWorldBound(prim).ComputeAlignedRange()
     if box.IsEmpty():
         return {"min": None, "max": None, "min_m": None, "max_m": None}
     lo = np.array(box.GetMin(), dtype=np.float64)
     hi = np.array(box.GetMax(), dtype=np.float64)
-    return {
-        "min": lo.tolist(),
-        "max": hi.tolist(),
-        "min_m": (lo * meters_per_unit).tolist(),
-        "max_m": (hi * meters_per_unit).tolist(),
-    }
+    with np.errstate(over="ignore", invalid="ignore"):
+        corners = {"min": lo, "max": hi, "min_m": lo * meters_per_unit,
+                   "max_m": hi * meters_per_unit}  # fmt: skip
+    return {k: v.tolist() if np.all(np.isfinite(v)) else None for k, v in corners.items()}
 
 
 def _traverse(stage: Usd.Stage) -> Usd.PrimRange:
@@ -141,8 +142,12 @@ def inspect_stage(stage: Usd.Stage, label: str | None = None) -> dict:
     """Summary of an open stage as one JSON-ready dict (keys: stage, metadata, reflectors,
     instanced_reflectors (their count), camera_paths, render_settings, lights,
     default_light_rig (no light the render reads: usd/default_lights.py), passes,
-    support: what the render ignores or approximates, ``support_report.support_report``)."""
-    mpu = float(UsdGeom.GetStageMetersPerUnit(stage))
+    support: what the render ignores or approximates, ``support_report.support_report``).
+    ``UnreadableInput`` (one line naming the layer) when the stage's ``metersPerUnit``
+    is no finite number > 0 (``stage.meters_per_unit``): nothing can be measured."""
+    mpu, problems = meters_per_unit(stage)
+    for problem in problems:
+        raise UnreadableInput(problem)
     cache = UsdGeom.BBoxCache(
         Usd.TimeCode.Default(), [UsdGeom.Tokens.default_, UsdGeom.Tokens.render]
     )

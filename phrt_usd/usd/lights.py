@@ -23,12 +23,13 @@ directions world unit vectors. Conventions (docs/usd-support.md, "Lights"):
   applied), ``shaping:cone:softness``, ``shaping:focus`` along the light's -Z axis,
   evaluated by ``shading.cone_falloff``; ``focusTint`` and IES profiles are not read.
 - DomeLight / DomeLight_1: ``color`` holds the emission, ``texture`` the raw linear
-  lat-long map; the environment radiance is ``texture * color``. DomeLight_1's
-  ``poleAxis`` ("scene": the stage's up axis, "Y", "Z") turns the map's pole to +Z for Z
-  (UsdLux: latitude 0, longitude 0 then points to -Y). ``inputs:texture:format`` other
-  than ``automatic`` / ``latlong``: one warning, the dome untextured. The dome is
-  hidden from camera rays (still lighting) when one of ``CAMERA_VISIBILITY_ATTRS`` says
-  so. Only the first dome is used.
+  lat-long map; the environment radiance is ``texture * color``; a texture that cannot
+  be read is a warning (an error with ``--strict``) and the dome renders in its colour.
+  DomeLight_1's ``poleAxis`` ("scene": the stage's up axis, "Y", "Z") turns the map's
+  pole to +Z for Z (UsdLux: latitude 0, longitude 0 then points to -Y).
+  ``inputs:texture:format`` other than ``automatic`` / ``latlong``: one warning, the
+  dome untextured. The dome is hidden from camera rays (still lighting) when one of
+  ``CAMERA_VISIBILITY_ATTRS`` says so. Only the first dome is used.
 """
 
 from __future__ import annotations
@@ -40,9 +41,9 @@ from phrt_usd.errors import PhrtError
 from phrt_usd.model.scene import DistantLight, DomeLight, Lights, LocalLight
 from phrt_usd.usd.blackbody import blackbody_rec709
 from phrt_usd.usd.materials import read_texture
+from phrt_usd.usd.textures import TextureError
 from phrt_usd.usd.values import (
     TimeContext,
-    asset_file,
     attr_value,
     rotation_columns,
     safe_normalize,
@@ -125,8 +126,16 @@ def _camera_visible(prim: Usd.Prim, code: Usd.TimeCode) -> bool:
 
 
 def _dome(
-    prim: Usd.Prim, code: Usd.TimeCode, m: np.ndarray, up_axis: str, warnings: list[str]
+    prim: Usd.Prim,
+    code: Usd.TimeCode,
+    m: np.ndarray,
+    up_axis: str,
+    warnings: list[str],
+    texture_problems: list[str],
 ) -> DomeLight:
+    """The dome light ``prim``; a texture that cannot be read is one line in
+    ``texture_problems`` and the dome untextured, in its colour (the fallback of
+    ``inputs:texture:file``, as for a surface texture)."""
     path = str(prim.GetPath())
     rotation = rotation_columns(m)
     if prim.IsA(UsdLux.DomeLight_1):
@@ -138,15 +147,18 @@ def _dome(
     fmt = str(attr_value(prim, "inputs:texture:format", code, "automatic"))
     file_value = attr_value(prim, "inputs:texture:file", code, None)
     where = f"{path}.inputs:texture:file"
-    file = asset_file(file_value, where) if file_value is not None else ""
+    authored = str(getattr(file_value, "path", file_value) or "") if file_value else ""
     texture = None
-    if file and fmt not in LATLONG_FORMATS:
+    if authored and fmt not in LATLONG_FORMATS:
         warnings.append(
             f"{path}.inputs:texture:format: {fmt!r} not supported (latlong, automatic); "
             "the dome is rendered untextured in its colour"
         )
-    elif file:
-        texture = read_texture(file, where, "auto")
+    elif authored:
+        try:
+            texture = read_texture(file_value, where, "auto")
+        except TextureError as problem:  # as a surface texture: its input's fallback
+            texture_problems.append(str(problem))
     return DomeLight(
         light_emission(prim, code), texture, rotation, path, _camera_visible(prim, code)
     )
@@ -159,15 +171,18 @@ def read_light(
     lights: Lights,
     up_axis: str = "Y",
     warnings: list[str] | None = None,
+    texture_problems: list[str] | None = None,
 ) -> None:
     """Append the UsdLux light ``prim`` at ``ctx`` to ``lights`` (module doc); ``mpu``
     is the stage's metres per unit, ``up_axis`` its up axis (DomeLight_1's "scene"
-    pole); what is read with a fallback is appended to ``warnings``. Other light types
-    are ignored."""
+    pole); what is read with a fallback is appended to ``warnings``, a dome texture
+    that cannot be read (``textures.TextureError``) to ``texture_problems`` (the dome
+    then renders in its colour). Other light types are ignored."""
     code = ctx.code
     m = ctx.world(prim)
     path = str(prim.GetPath())
     warnings = [] if warnings is None else warnings
+    texture_problems = [] if texture_problems is None else texture_problems
     if prim.IsA(UsdLux.DistantLight):
         # The light shines down its -Z axis; store the direction towards the light.
         towards = safe_normalize(m[2, :3])
@@ -206,7 +221,7 @@ def read_light(
     elif any(prim.IsA(t) for t in _DOME_TYPES):
         if lights.dome is not None:
             return  # one environment: the first dome light wins
-        lights.dome = _dome(prim, code, m, up_axis, warnings)
+        lights.dome = _dome(prim, code, m, up_axis, warnings, texture_problems)
 
 
 def fallback_intensity(stage: Usd.Stage, path: str) -> float | None:

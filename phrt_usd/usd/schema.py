@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 from pxr import Sdf, Usd, UsdGeom, UsdRender, Vt
 
-from phrt_usd.errors import PhrtError
+from phrt_usd.errors import BadOption, PhrtError
 
 # --- schema names -------------------------------------------------------------------------
 REFLECTOR_API = "PhrtReflectorAPI"
@@ -317,13 +317,19 @@ def apply_render_settings(
 
 
 def find_render_settings(stage: Usd.Stage, settings_path: str | None = None) -> Usd.Prim | None:
-    """The UsdRenderSettings prim to use: ``settings_path`` if given (PhrtError if it is
-    not a RenderSettings prim), else the stage's ``renderSettingsPrimPath`` metadata, else
-    the first RenderSettings prim in traversal order, else None."""
+    """The UsdRenderSettings prim to use: ``settings_path`` if given (``BadOption``,
+    listing the stage's RenderSettings prims, if it is not the path of one), else the
+    stage's ``renderSettingsPrimPath`` metadata, else the first RenderSettings prim in
+    traversal order, else None."""
     if settings_path:
-        prim = stage.GetPrimAtPath(settings_path)
+        valid = Sdf.Path.IsValidPathString(settings_path) and settings_path.startswith("/")
+        prim = stage.GetPrimAtPath(settings_path) if valid else None
         if not prim or not prim.IsA(UsdRender.Settings):
-            raise PhrtError(f"{settings_path}: no RenderSettings prim at this path")
+            have = [str(p.GetPath()) for p in stage.Traverse() if p.IsA(UsdRender.Settings)]
+            raise BadOption(
+                f"--settings {settings_path}: no RenderSettings prim at this path "
+                f"(RenderSettings prims: {', '.join(have) or 'none'})"
+            )
         return prim
     stage_settings = UsdRender.Settings.GetStageRenderSettings(stage)
     if stage_settings:

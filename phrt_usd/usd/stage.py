@@ -68,7 +68,13 @@ from dataclasses import dataclass
 import numpy as np
 from pxr import Gf, Sdf, Tf, Usd, UsdGeom, UsdRender
 
-from phrt_usd.errors import BadOption, PhrtError, usd_error_reason
+from phrt_usd.errors import (
+    NOT_UTF8_REASON,
+    BadOption,
+    PhrtError,
+    UnreadableInput,
+    usd_error_reason,
+)
 from phrt_usd.model.scene import CameraFrame, Element, Geometry, Lights, Scene
 from phrt_usd.usd import schema
 from phrt_usd.usd.camera_path import CameraPath, find_camera_path
@@ -111,9 +117,9 @@ def choose_camera(stage: Usd.Stage, camera: str | None = None) -> Usd.Prim | Non
     UsdGeomCamera at all (the render then frames the stage with ``default_camera``).
 
     ``camera`` is a prim path, or the name of a camera prim (unique on the stage,
-    instance proxies included). Raises ``PhrtError`` when the path or name holds no
-    UsdGeomCamera or the render settings' target is not one, ``BadOption`` when a name
-    matches several cameras (listing them)."""
+    instance proxies included). Raises ``BadOption`` when ``camera`` holds no
+    UsdGeomCamera or names several (listing the cameras), ``PhrtError`` when the render
+    settings' target is not one."""
     if camera:
         return _camera_by_name_or_path(stage, camera)
     settings_prim = schema.find_render_settings(stage)
@@ -144,28 +150,62 @@ def _all_cameras(stage: Usd.Stage) -> list[Usd.Prim]:
 
 def _camera_by_name_or_path(stage: Usd.Stage, camera: str) -> Usd.Prim:
     """The camera ``--camera`` names: a prim path (starts with ``/``) or a prim name."""
+    cameras = _all_cameras(stage)
+    have = ", ".join(str(p.GetPath()) for p in cameras) or "none"
     if camera.startswith("/"):
         prim = stage.GetPrimAtPath(camera) if Sdf.Path.IsValidPathString(camera) else None
         if not prim or not prim.IsA(UsdGeom.Camera):
-            raise PhrtError(f"{camera}: no UsdGeomCamera prim at this path (--camera)")
+            raise BadOption(f"--camera {camera}: no UsdGeomCamera prim at this path "
+                            f"(cameras: {have})")  # fmt: skip
         return prim
-    cameras = _all_cameras(stage)
     named = [p for p in cameras if p.GetName() == camera]
     if len(named) == 1:
         return named[0]
     if named:
         paths = ", ".join(str(p.GetPath()) for p in named)
         raise BadOption(f"--camera {camera}: {len(named)} cameras have this name ({paths})")
-    have = ", ".join(str(p.GetPath()) for p in cameras) or "none"
-    raise PhrtError(f"--camera {camera}: no UsdGeomCamera of this name (cameras: {have})")
+    raise BadOption(f"--camera {camera}: no UsdGeomCamera of this name (cameras: {have})")
 
 
 def stage_problems(stage: Usd.Stage) -> list[str]:
-    """Render refusals of the stage metadata: metersPerUnit must be finite and > 0."""
-    mpu = float(UsdGeom.GetStageMetersPerUnit(stage))
-    if np.isfinite(mpu) and mpu > 0:
-        return []
-    return [f"{stage.GetRootLayer().identifier}: metersPerUnit must be > 0, got {mpu}"]
+    """Render refusals of the stage metadata: metersPerUnit must be a finite number > 0
+    (``meters_per_unit``)."""
+    return meters_per_unit(stage)[1]
+
+
+def meters_per_unit(stage: Usd.Stage) -> tuple[float, list[str]]:
+    """(the stage's ``metersPerUnit`` as a float, [the one-line problem, if any]).
+
+    Read tolerantly: any numeric value a layer holds counts (a float, an int), whatever
+    USD's schema type for it (double); a value that is no number, not finite or not
+    > 0 is a problem naming the layer that authors it (the session layer, else the root
+    layer), and the value is then USD's fallback, 0.01."""
+    layer = stage.GetSessionLayer()
+    if not (layer and layer.pseudoRoot.HasInfo(_MPU)):
+        layer = stage.GetRootLayer()
+    try:
+        value = UsdGeom.GetStageMetersPerUnit(stage)
+    except Tf.ErrorException:  # a value USD cannot convert: read the layer's own
+        value = layer.pseudoRoot.GetInfo(_MPU)
+    mpu = _number(value)
+    if mpu is not None and np.isfinite(mpu) and mpu > 0:
+        return mpu, []
+    got = value if mpu is None else mpu
+    problem = f"{layer.identifier}: layer metadata {_MPU} must be a finite number > 0, got {got!r}"
+    return float(UsdGeom.LinearUnits.centimeters), [problem]
+
+
+_MPU = "metersPerUnit"
+
+
+def _number(value) -> float | None:
+    """``value`` as a float when it is a number (of any numeric type), else None."""
+    if value is None or isinstance(value, (str, bytes, bool)):
+        return None
+    try:
+        return float(value)
+    except (TypeError, ValueError, OverflowError):
+        return None
 
 
 def frame_range(stage: Usd.Stage, path_driver: CameraPath | None) -> tuple[float, float]:
@@ -364,9 +404,9 @@ class StageScene:
 
     def __init__(self, stage: Usd.Stage, camera: str | None = None, settings: str | None = None):
         self.stage = stage
-        for problem in stage_problems(stage):
-            raise PhrtError(problem)
-        self.meters_per_unit = float(UsdGeom.GetStageMetersPerUnit(stage))
+        self.meters_per_unit, problems = meters_per_unit(stage)
+        for problem in problems:  # nothing can be measured in it: unusable input
+            raise UnreadableInput(problem)
         self.up_axis, up_warning = stage_up_axis(stage)
         self.time_codes_per_second = float(stage.GetTimeCodesPerSecond())
         self.warnings: list[str] = composition_warnings(composition_problems(stage))
@@ -389,7 +429,12 @@ class StageScene:
             for problem in camera_problems(cam_prim, self._time, self.path_driver is not None):
                 raise PhrtError(problem)
         self._build(TimeContext(self._time))
-        self.warnings += [f"{m}; rendered with the input's fallback" for m in self.texture_problems]
+        self.warnings += [
+            f"{m}; rendered with the input's fallback"
+            if m not in self._dome_problems
+            else f"{m}; the dome is rendered untextured, in its colour"
+            for m in self.texture_problems
+        ]
         self.warnings += self.material_notices
         self._default_camera: CameraFrame | None = None
         if cam_prim is None:
@@ -408,6 +453,8 @@ class StageScene:
         lights = Lights()
         #: What the light readers read with a fallback (also in ``warnings``).
         light_warnings: list[str] = []
+        #: Dome textures that could not be read (the dome renders in its colour).
+        dome_problems: list[str] = []
         parts: list[_Part] = []
         elements: list[Element] = []
         mesh_cache: dict[tuple, LocalMesh] = {}
@@ -458,7 +505,15 @@ class StageScene:
             if kind == "PointInstancer":
                 expand_instancer(prim, ctx, probe, bank, prototype_gprims, add)
             elif kind == "Light":
-                read_light(prim, ctx, self.meters_per_unit, lights, self.up_axis, light_warnings)
+                read_light(
+                    prim,
+                    ctx,
+                    self.meters_per_unit,
+                    lights,
+                    self.up_axis,
+                    light_warnings,
+                    dome_problems,
+                )
             elif (skin := skinning.skinned(prim, kind)) is not None:
                 # Skinned: skeleton-space points placed by the skeleton (usd/skinning.py).
                 mesh = local_mesh(prim, kind)
@@ -489,9 +544,11 @@ class StageScene:
         self._parts = parts
         self._animated = [p for p in parts if p.animated]
         self.subdivided_meshes: list[str] = list(subdivided)
-        #: Textures that could not be read (``materials.MaterialBank.texture_problems``):
-        #: warnings of the render, errors with ``--strict`` and in ``phrt validate``.
-        self.texture_problems: list[str] = list(bank.texture_problems)
+        #: Textures that could not be read (``materials.MaterialBank.texture_problems``,
+        #: then the dome's): warnings of the render, errors with ``--strict`` and in
+        #: ``phrt validate``.
+        self.texture_problems: list[str] = list(bank.texture_problems) + dome_problems
+        self._dome_problems = dome_problems
         #: One line per material rendered approximately (``MaterialBank.notices``:
         #: MaterialX-only materials, base colour only or grey).
         self.material_notices: list[str] = list(bank.notices)
@@ -702,16 +759,21 @@ def open_usd(path: str | os.PathLike, controls: StageControls | None = None) -> 
     (session layers, variant selections, population mask; see ``stage_controls``).
 
     Raises ``PhrtError`` (one line naming the path and what is wrong) for a missing path,
-    a directory, a file without one of ``USD_EXTENSIONS``, or a file USD cannot read
-    (garbage bytes, invalid syntax, unreadable). A file without an extension is refused,
-    not sniffed: USD chooses the file format from the extension, and the same file
-    must open the same way in every USD tool — rename it to ``.usd`` (text or crate).
+    a directory or another file that is not a regular one (a device or pipe is never
+    read), a file without one of ``USD_EXTENSIONS``, or a file USD cannot read (garbage
+    bytes, invalid syntax, unreadable): then with USD's own reason, the parser's
+    ``file:line:column: what`` when it gives one (``usd_error_reason``). A file without
+    an extension is refused, not sniffed: USD chooses the file format from the
+    extension, and the same file must open the same way in every USD tool — rename it
+    to ``.usd`` (text or crate).
     """
     path = os.fspath(path)
     if not os.path.exists(path):
         raise PhrtError(f"{path}: no such file")
     if os.path.isdir(path):
         raise PhrtError(f"{path}: is a directory, not a USD file")
+    if not os.path.isfile(path):
+        raise PhrtError(f"{path}: not a regular file (a device, pipe or socket)")
     ext = os.path.splitext(path)[1]
     expected = "/".join(USD_EXTENSIONS)
     if not ext or ext == ".":
@@ -732,11 +794,34 @@ def open_usd(path: str | os.PathLike, controls: StageControls | None = None) -> 
             else:
                 stage = Usd.Stage.OpenMasked(root, session, mask, Usd.Stage.LoadAll)
     except Tf.ErrorException as exc:
-        raise PhrtError(f"{path}: cannot open as USD ({usd_error_reason(exc)})") from None
+        reason = usd_error_reason(exc)
+        if reason == NOT_UTF8_REASON:
+            reason = _first_non_utf8(path) or reason
+        raise PhrtError(f"{path}: cannot open as USD ({reason})") from None
     if stage is None:
         raise PhrtError(f"{path}: cannot open as USD")
     controls.check(stage)
     return stage
+
+
+#: Largest stage file searched for the bytes that are not UTF-8 (``_first_non_utf8``).
+_MAX_SEARCHED_BYTES = 64 << 20
+
+
+def _first_non_utf8(path: str) -> str | None:
+    """``"<path>:<line>:<column>: bytes that are not UTF-8 text"`` at the first such
+    bytes of a text stage file (of at most ``_MAX_SEARCHED_BYTES``), else None."""
+    if os.path.getsize(path) > _MAX_SEARCHED_BYTES:
+        return None
+    with open(path, "rb") as f:
+        data = f.read()
+    try:
+        data.decode("utf-8")
+    except UnicodeDecodeError as bad:
+        line = data.count(b"\n", 0, bad.start) + 1
+        column = bad.start - data.rfind(b"\n", 0, bad.start)
+        return f"{path}:{line}:{column}: bytes that are not UTF-8 text"
+    return None
 
 
 def open_stage(

@@ -32,12 +32,19 @@ class StageControls:
         cls, session_layers=(), variants=(), mask: str | None = None
     ) -> StageControls:
         """From the CLI's ``--session-layer FILE``s, ``--variant PRIM:SET=NAME``s and
-        ``--mask PRIM,...``; BadOption (one line) for a malformed value or a missing file."""
+        ``--mask PRIM,...``; BadOption (one line) for a malformed value, or a session
+        layer that is missing, a directory or another file that is not a regular one,
+        or that USD cannot read (with USD's reason, a parser's ``file:line:column``)."""
         layers = []
         for path in session_layers:
             path = os.fspath(path)
-            if not os.path.isfile(path):
+            if not os.path.exists(path):
                 raise BadOption(f"--session-layer {path}: no such file")
+            if os.path.isdir(path):
+                raise BadOption(f"--session-layer {path}: is a directory, not a USD layer")
+            if not os.path.isfile(path):
+                raise BadOption(f"--session-layer {path}: not a regular file "
+                                "(a device, pipe or socket)")  # fmt: skip
             try:
                 readable = Sdf.Layer.FindOrOpen(path) is not None
                 reason = "not a USD layer"
@@ -64,14 +71,20 @@ class StageControls:
         }
 
     def session_layer(self) -> Sdf.Layer | None:
-        """An anonymous session layer carrying the controls, or None without any."""
+        """An anonymous session layer carrying the controls, or None without any. A
+        selection USD cannot hold (a set or variant name that is no identifier, such as
+        ``a.b``) names no variant of any stage: it is left out here, and ``check``
+        refuses it once the stage is open, listing the variants there are."""
         if not (self.session_layers or self.variants):
             return None
         layer = Sdf.Layer.CreateAnonymous("phrt-session.usda")
         layer.subLayerPaths[:] = list(self.session_layers)
         for prim_path, variant_set, name in self.variants:
             spec = Sdf.CreatePrimInLayer(layer, Sdf.Path(prim_path))
-            spec.variantSelections[variant_set] = name
+            try:
+                spec.variantSelections[variant_set] = name
+            except Tf.ErrorException:
+                continue  # not a variant name: ``check`` says which names there are
         return layer
 
     def population_mask(self) -> Usd.StagePopulationMask | None:
@@ -92,8 +105,9 @@ class StageControls:
                                 f"(it has: {known})")  # fmt: skip
             names = sets.GetVariantSet(variant_set).GetVariantNames()
             if name not in names:
-                raise BadOption(f"{shown}: no variant {name!r} in {variant_set!r} "
-                                f"(it has: {', '.join(names)})")  # fmt: skip
+                known = ", ".join(names) or "none"
+                raise BadOption(f"{shown}: {prim_path} has no variant {name!r} in its "
+                                f"variant set {variant_set!r} (it has: {known})")  # fmt: skip
 
 
 def parse_variant(text: str) -> tuple[str, str, str]:

@@ -73,16 +73,30 @@ def _decode(path: str, where: str) -> tuple[np.ndarray, bool, str]:
     return pixels, eight_bit, wrap
 
 
+def _refuse_special_file(path: str, where: str) -> None:
+    """``TextureError`` when ``path``, or the package a package-relative path
+    (``scene.usdz[textures/wood.png]``) is in, exists on disk as something other than a
+    regular file: a directory, or a device or pipe, which would be read without end
+    (``/dev/zero``) or block. Paths only a resolver plugin serves pass."""
+    outer = Ar.SplitPackageRelativePathOuter(path)[0] if Ar.IsPackageRelativePath(path) else path
+    if os.path.exists(outer) and not os.path.isfile(outer):
+        kind = "a directory" if os.path.isdir(outer) else "a device, pipe or socket"
+        raise TextureError(f"{where}: texture file {outer!r} is not a regular file ({kind})")
+
+
 def read_asset_pixels(path: str, where: str) -> tuple[np.ndarray, bool, str]:
     """Decode the asset at resolved ``path`` (its bytes through ``Ar``): (pixels
     (h, w, c) float32 row 0 = top, 8-bit file?, the file's wrap metadata or "")."""
     resolver = Ar.GetResolver()
     if os.path.isfile(path):
         return _decode(path, where)
+    _refuse_special_file(path, where)
     asset = resolver.OpenAsset(Ar.ResolvedPath(path))
     if asset is None:
         raise TextureError(f"{where}: cannot open texture {path!r}")
     data = asset.GetBuffer()
+    if not data:  # USD gives no buffer for an empty asset
+        raise TextureError(f"{where}: texture {path!r} is empty")
     ext = resolver.GetExtension(path) or "img"
     fd, tmp = tempfile.mkstemp(suffix=f".{ext}", prefix="phrt-texture-")
     try:

@@ -21,8 +21,9 @@ import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from pxr import Sdf, Usd, UsdValidation
+from pxr import Sdf, Tf, Usd, UsdValidation
 
+from phrt_usd.errors import usd_error_reason
 from phrt_usd.usd import validators
 from phrt_usd.usd.composition import composition_problems
 from phrt_usd.usd.rules import ERROR, WARNING, Issue, stage_reflectors
@@ -71,7 +72,7 @@ _UNRESOLVABLE = re.compile(r"unresolvable external dependency '(?P<asset>[^']*)'
 _PHRT_RANK = {name: rank for rank, name in enumerate(validators.VALIDATOR_NAMES)}
 
 
-def _context() -> UsdValidation.ValidationContext:
+def _chosen_validators() -> list[UsdValidation.Validator]:
     """Every validator USD knows (the Phrt ones included), less the replaced ones."""
     registry = UsdValidation.ValidationRegistry()
     chosen = [
@@ -83,7 +84,12 @@ def _context() -> UsdValidation.ValidationContext:
     missing = [n for n in validators.VALIDATOR_NAMES if n not in names]
     if missing:  # registered by the import above; a USD that dropped them is a bug
         raise RuntimeError(f"Phrt validators not registered: {', '.join(missing)}")
-    return UsdValidation.ValidationContext(chosen)
+    return chosen
+
+
+def _context() -> UsdValidation.ValidationContext:
+    """One context of ``_chosen_validators``."""
+    return UsdValidation.ValidationContext(_chosen_validators())
 
 
 def _site_where(err: UsdValidation.ValidationError) -> str:
@@ -106,12 +112,49 @@ def _prim_of(where: str) -> str:
     return where
 
 
+def _run_validators(stage: Usd.Stage, missing: set[str]) -> tuple[list, list[Issue]]:
+    """Every validator's findings, and one error per reason USD stopped validators with
+    (a ``Tf`` error: a layer they read, a referenced layer, a usdz member or a layer of
+    an unselected variant, does not parse). One context runs them all; only when it
+    stops does each run on its own, so the others' findings are kept. A stop about a
+    layer the CompositionChecker already reports (``missing``) is not repeated."""
+    try:
+        return list(_context().Validate(stage)), []
+    except Tf.ErrorException:
+        pass
+    found: list = []
+    stopped: dict[str, list[str]] = {}  # reason -> validators it stopped
+    for validator in _chosen_validators():
+        try:
+            found += UsdValidation.ValidationContext([validator]).Validate(stage)
+        except Tf.ErrorException as error:
+            reason = usd_error_reason(error)
+            if not any(asset in reason for asset in missing):
+                stopped.setdefault(reason, []).append(validator.GetMetadata().name)
+    return found, [_stop_issue(stage, reason, names) for reason, names in stopped.items()]
+
+
+#: ``<file>:<line>:<column>: <what>``, the form of a parser's reason.
+_LOCATED_REASON = re.compile(r"^(?P<where>\S.*?:\d+:\d+): (?P<what>.*)$")
+
+
+def _stop_issue(stage: Usd.Stage, reason: str, names: list[str]) -> Issue:
+    """The error for validators USD stopped: located at the parser's ``file:line:column``
+    when the reason gives one, else at the stage's root layer."""
+    m = _LOCATED_REASON.match(reason)
+    where, what = (m["where"], m["what"]) if m else (stage.GetRootLayer().identifier, reason)
+    stopped = ", ".join(sorted(names))
+    return Issue(ERROR, where, f"{what} (USD stopped these validators here) [{stopped}]")
+
+
 def validate_stage(stage: Usd.Stage, label: str | None = None) -> ValidationReport:
-    """USD's validators and the Phrt validators on an open stage, in one context."""
+    """USD's validators and the Phrt validators on an open stage, in one context
+    (``_run_validators``)."""
     name = label or stage.GetRootLayer().identifier
     missing = {p.asset for p in composition_problems(stage) if p.asset}
     usd, phrt = [], []
-    for err in _context().Validate(stage):
+    found, stopped = _run_validators(stage, missing)
+    for err in found:
         if err.HasNoError():
             continue
         validator = err.GetValidator().GetMetadata().name
@@ -127,6 +170,7 @@ def validate_stage(stage: Usd.Stage, label: str | None = None) -> ValidationRepo
             continue  # the same missing layer, already reported with its prim
         where = _site_where(err)
         usd.append((validator, where, Issue(severity, where, f"{message} [{err.GetIdentifier()}]")))
+    usd += [(issue.message.rpartition("[")[2], issue.where, issue) for issue in stopped]
     # Stable sorts: a task's own findings keep their order (a context keeps them together).
     usd.sort(key=lambda t: (t[0], t[1]))
     phrt.sort(key=lambda t: (t[0], t[1]))

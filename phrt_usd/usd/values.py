@@ -1,7 +1,7 @@
 """Attribute values and time handling shared by the stage readers.
 
-Values: an attribute at a time code with a default (``attr_value``), the file an asset
-path resolves to (``asset_file``), whether attributes may vary in time (``varies``).
+Values: an attribute at a time code with a default (``attr_value``), whether attributes
+may vary in time (``varies``).
 Time: ``TimeContext`` answers transform queries at one time code (USD's row-vector
 convention, ``p' = p @ M``, stage units), ``AnimationProbe`` whether a prim's world
 transform may vary. Numeric helpers the readers share: unit rows (``safe_normalize``),
@@ -12,9 +12,7 @@ row-vector matrix (``rotation_columns``).
 from __future__ import annotations
 
 import numpy as np
-from pxr import Sdf, Usd, UsdGeom
-
-from phrt_usd.errors import PhrtError
+from pxr import Usd, UsdGeom
 
 #: Normals shorter than this (degenerate triangles, zero scale) are replaced by a
 #: fallback direction instead of being divided by ~0.
@@ -57,14 +55,6 @@ def attr_value(prim: Usd.Prim, name: str, time: Usd.TimeCode, default):
         return default
     v = a.Get(time)
     return default if v is None else v
-
-
-def asset_file(value, where: str) -> str:
-    """Resolved filesystem path of an ``SdfAssetPath`` (raises when it cannot resolve)."""
-    path = value.resolvedPath if isinstance(value, Sdf.AssetPath) else str(value or "")
-    if not path and isinstance(value, Sdf.AssetPath) and value.path:
-        raise PhrtError(f"{where}: texture file {value.path!r} not found")
-    return path
 
 
 def varies(prim: Usd.Prim, names: tuple[str, ...]) -> bool:
