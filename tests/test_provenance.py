@@ -47,3 +47,24 @@ def test_record_is_json_and_its_line_is_one_line():
     line = provenance.provenance_line(record)
     assert "\n" not in line and line.startswith(f"provenance: phrt {phrt_usd.__version__}")
     assert "px per degree" in line and "cores" in line
+
+
+def test_benchmark_tool_prints_its_provenance_first(tmp_path, capsys):
+    """tools/bench.py on a tiny stage: its output starts with the provenance line (the
+    command as run, the machine) before its table."""
+    import sys
+
+    from scenes import mirror_gallery_stage
+
+    sys.path.insert(0, str(REPO / "tools"))
+    try:
+        import bench
+    finally:
+        sys.path.remove(str(REPO / "tools"))
+    stage = mirror_gallery_stage(tmp_path / "tiny.usda", frames=2)
+    args = [str(stage), "--resolutions", "32x24", "--frames", "1:2"]
+    assert bench.main(args) == 0
+    first, _blank, table = capsys.readouterr().out.partition("\n\n")
+    assert first.startswith("provenance: phrt ") and "\n" not in first
+    assert f"command python tools/bench.py {' '.join(args)};" in first
+    assert table.startswith("| stage |")

@@ -5,8 +5,9 @@ trace phase's ray throughput against raw embreex on exactly the same rays, same 
         --resolutions 320x240,640x480 --frames 1:720:24 \
         [--append docs/bench-log/DATE-COMMIT-frame-phases.md]
 
-Prints a markdown table (and appends it, with the command, date and core count, to the
-file given by --append: a new log file in docs/bench-log/, see BENCHMARKS.md "How to
+Prints the run's provenance (``provenance_line``: version, commit, command, machine,
+threads, OpenGL) and a markdown table (and appends both, with the command, date and core
+count, to the file given by --append: a new log file in docs/bench-log/, see BENCHMARKS.md "How to
 measure"). Timings are wall-clock medians over the chosen frames; the
 first frame of every configuration is rendered once untimed as warm-up.
 """
@@ -20,6 +21,7 @@ import statistics
 import sys
 from pathlib import Path
 
+from phrt_usd.evaluate.provenance import collect_for_tool, provenance_line
 from phrt_usd.render.renderer import FrameRenderer, RenderOptions
 from phrt_usd.run.frames import parse_frames
 from phrt_usd.usd.stage import open_stage
@@ -110,7 +112,7 @@ def main(argv: list[str] | None = None) -> int:
             w, h = (int(v) for v in res.lower().split("x"))
             rows += bench_stage(stage, w, h, args.frames)
             print(f"done {stage} {res}", file=sys.stderr)
-    table = markdown(rows)
+    table = provenance_line(collect_for_tool(__file__, argv)) + "\n\n" + markdown(rows)
     print(table)
     if args.append:
         command = "uv run python tools/bench.py " + " ".join(argv or sys.argv[1:])

@@ -144,7 +144,11 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory(prefix="phrt-big-") as tmp:
         stage = make_stage(Path(tmp) / "big.usdc", args.cells, args.frames, (width, height))
         triangles, read_s, rows = bench(stage, width, height, args.frames, args.threads)
-    text = markdown(triangles, read_s, rows, args.resolution, args.frames)
+    from phrt_usd.evaluate.provenance import collect_for_tool, provenance_line
+
+    record = collect_for_tool(__file__, argv, threads=args.threads)
+    text = provenance_line(record) + "\n\n"
+    text += markdown(triangles, read_s, rows, args.resolution, args.frames)
     print(text)
     if args.append:
         from phrt_usd.bench.bench_stage import append_log

@@ -583,9 +583,14 @@ def main(argv: list[str] | None = None) -> int:
                 markdown_profile(stage_path, f"{w}x{h}", args.profile, rows, total, commit)
             )
     load = f"load average (1 min) {load_before[0]:.1f} before, {os.getloadavg()[0]:.1f} after"
+    from phrt_usd.evaluate.provenance import collect_for_tool, provenance_line
+
+    record = collect_for_tool(__file__, argv)
+    load += "\n\n" + provenance_line(record)
     text = "\n".join(blocks)
     print(load + "\n\n" + text)
     if args.json:
+        results["provenance"] = record
         args.json.write_text(json.dumps(results, indent=1, default=str))
     if args.append:
         command = "uv run python tools/bench_peers.py " + " ".join(argv or sys.argv[1:])

@@ -183,7 +183,10 @@ def main(argv: list[str] | None = None) -> int:
         rows = [measure(stage, work, args.runs, args.frames, extra, cached=True)]
         if args.as_is:
             rows.append(measure(stage, work, args.runs, args.frames, extra, cached=False))
-    text = markdown(rows, args.runs, args.frames, extra)
+    from phrt_usd.evaluate.provenance import collect_for_tool, provenance_line
+
+    record = collect_for_tool(__file__, argv, threads=args.threads, gl=args.gl)
+    text = provenance_line(record) + "\n\n" + markdown(rows, args.runs, args.frames, extra)
     print(text)
     if args.append:
         from phrt_usd.bench.bench_stage import append_log

@@ -138,7 +138,11 @@ def main(argv: list[str] | None = None) -> int:
                 block = markdown(stage, resolution, rows, args.rounds)
                 print(block, flush=True)
                 blocks.append(block)
-    note = f"load average (1 min) {before} before, {load()} after"
+    from phrt_usd.evaluate.provenance import collect_for_tool, provenance_line
+
+    # The settings compared are in the tables; the record gives the rest of the machine.
+    record = collect_for_tool(__file__, argv, gl=args.gl)
+    note = f"load average (1 min) {before} before, {load()} after\n\n{provenance_line(record)}"
     print(note)
     if args.append:
         from phrt_usd.bench.bench_stage import append_log

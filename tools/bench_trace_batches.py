@@ -26,6 +26,7 @@ import time
 from pathlib import Path
 
 from phrt_usd.bench.bench_stage import append_log
+from phrt_usd.evaluate.provenance import collect_for_tool, provenance_line
 from phrt_usd.render.renderer import FrameRenderer, RenderOptions
 from phrt_usd.usd.stage import open_stage
 
@@ -117,7 +118,7 @@ def main(argv: list[str] | None = None) -> int:
             frame = float(round((start + end) / 2))
         rows = measure(stage_path, frame, width, height, batches, args.reps)
         text.append(markdown(stage_path, frame, args.resolution, rows))
-    out = "\n".join(text)
+    out = provenance_line(collect_for_tool(__file__, argv)) + "\n\n" + "\n".join(text)
     print(out)
     if args.append:
         append_log(args.append, "Trace batches", " ".join(sys.argv), out)

@@ -121,7 +121,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--append", type=Path, default=None)
     args = ap.parse_args(argv)
     reports = {s.stem: run_pair(s, args.out, args) for s in args.stages}
-    text = tables(reports)
+    from phrt_usd.evaluate.provenance import collect_for_tool, provenance_line
+
+    text = provenance_line(collect_for_tool(__file__, argv)) + "\n\n" + tables(reports)
     for name, r in reports.items():
         text += (
             f"\n{name}: HEU1 transition rate {r['transition_rate']}, HEU2 "

@@ -2,7 +2,8 @@
 process: each frame is rasterized once and finished by the reference and by every policy
 (as ``phrt sweep`` does, which accepts heu1 and heu2 only). Prints per-policy mean FLIP,
 transitions (``evaluate/selection_metrics.py``), mean selected, rays, trace ms and budget
-use, and writes them with per-frame rows as JSON.
+use, and writes them with per-frame rows and the run's provenance
+(``evaluate/provenance.py``: version, commit, command, machine, FLIP's settings) as JSON.
 
     uv run python tools/policy_compare.py stages/sewer.usda 217 336 16 none,heu1,heu3 out.json
     uv run python tools/policy_compare.py stages/sewer.usda 217 276 r20000 heu1,heu3 out.json
@@ -30,6 +31,7 @@ from dataclasses import replace
 import numpy as np
 
 from phrt_usd.evaluate.image_metrics import flip_map, mean_over
+from phrt_usd.evaluate.provenance import collect_for_tool, provenance_line
 from phrt_usd.evaluate.selection_metrics import transitions_per_frame
 from phrt_usd.render.compositing import apply_traced
 from phrt_usd.render.renderer import FrameRenderer, RenderOptions
@@ -103,9 +105,11 @@ def main() -> None:
             "mean_trace_ms": float(np.mean([r["trace_ms"] for r in rows[n]])),
             "budget_use": float(np.mean([r["budget_use"] or 0.0 for r in rows[n]])),
         }
+    record = collect_for_tool(__file__)
+    print(provenance_line(record))
     print(json.dumps(summary, indent=1))
     with open(args.out, "w") as f:
-        json.dump({"summary": summary, "rows": rows}, f)
+        json.dump({"provenance": record, "summary": summary, "rows": rows}, f)
 
 
 def oracle_row(renderer, prep, reference, rays: int, paths: list[str], t: float) -> dict:

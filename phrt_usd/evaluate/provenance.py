@@ -18,8 +18,9 @@ that it can be reproduced and cited.
 - ``libraries``: the versions of the libraries the figures depend on;
 - ``date`` (UTC).
 
-``provenance_line`` is the one-line form (benchmark tools print it; summary.md and
-report.html show ``provenance_items``). Nothing here fails: what cannot be found is
+``provenance_line`` is the one-line form (the benchmark tools print it, and put the
+record itself in their JSON, through ``collect_for_tool``; summary.md and report.html
+show ``provenance_items``). Nothing here fails: what cannot be found is
 ``"unknown"`` or None.
 """
 
@@ -85,6 +86,16 @@ def collect(
     if extra:
         record["settings"] = extra
     return record
+
+
+def collect_for_tool(
+    script: str, argv: Sequence[str] | None = None, **settings: Any
+) -> dict[str, Any]:
+    """``collect`` for a benchmark tool: the command is ``python tools/<script> ARGS``
+    (``script``: the tool's ``__file__``; ``argv``: its arguments, default
+    ``sys.argv[1:]``); ``settings`` as ``collect`` takes them."""
+    args = list(sys.argv[1:] if argv is None else argv)
+    return collect(argv=["python", f"tools/{Path(script).name}", *args], **settings)
 
 
 def source_commit() -> tuple[str, bool | None]:
