@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import re
 import stat
 import tempfile
 from collections.abc import Callable, Iterator
@@ -27,6 +28,17 @@ class WriteFailed(PhrtError):
 
 #: Permission bits a new output gets before the umask (what ``open(..., "w")`` uses).
 NEW_FILE_MODE = 0o666
+#: The temp file a write goes through: ``.<stem>.<random>.tmp<ext>``, the random part
+#: ``tempfile.mkstemp``'s (8 of lower-case letters, digits and ``_``).
+_TEMP_NAME = re.compile(r"^\.(?P<stem>.+)\.[a-z0-9_]{8}\.tmp(?P<ext>\.[^.]+)?$")
+
+
+def published_name(name: str) -> str | None:
+    """The file name a temp file named ``name`` (``atomic_path``'s, left behind by a
+    killed writer) was to be published under, or None if ``name`` is not such a name:
+    ``.0012.k3j_x9ab.tmp.exr`` -> ``0012.exr``."""
+    match = _TEMP_NAME.match(name)
+    return None if match is None else match["stem"] + (match["ext"] or "")
 
 
 def _umask() -> int:

@@ -32,7 +32,12 @@ from phrt_usd.run.products import (
     var_channels,
 )
 from phrt_usd.run.render_job import RenderJob, render_to_directory
-from phrt_usd.usd.render_settings import MULTIPART_ATTR, read_render_settings
+from phrt_usd.usd.render_settings import (
+    MULTIPART_ATTR,
+    RenderProductSpec,
+    RenderSettingsSpec,
+    read_render_settings,
+)
 
 CLI = [sys.executable, "-m", "typer", "phrt_usd.cli", "run", "render"]
 #: A deterministic budget: the run's pixels do not depend on the machine's speed.
@@ -318,19 +323,73 @@ def test_multipart_only_when_the_product_asks(stage, tmp_path):
     assert len(single.parts) == 1
 
 
-def test_overwrite_removes_the_previous_runs_product_files_only(stage, tmp_path):
+def test_overwrite_removes_this_runs_product_files_only(stage, tmp_path):
+    """--overwrite deletes the files this run's names give at any frame number, never
+    another run's names (which only a file in OUT could tell) nor other files."""
     out = tmp_path / "out"
-    render_to_directory(_job(stage, out, settings="/Render/Second"))
+    render_to_directory(_job(stage, out, "1:2", settings="/Render/Second"))
     (out / "notes.txt").write_text("mine")
     (out / "beauty.final.exr").write_text("not a frame of phrt's")
     with pytest.raises(PhrtError, match="not empty"):
         render_to_directory(_job(stage, out, image="other/o.$F4.exr"))
+    render_to_directory(_job(stage, out, settings="/Render/Second", overwrite=True))
+    assert "beauty.0002.exr" not in _files(out)  # this run's name at another frame
+    assert {"notes.txt", "beauty.final.exr", "beauty.0001.exr"} <= set(_files(out))
     render_to_directory(_job(stage, out, image="other/o.$F4.exr", overwrite=True))
-    assert "beauty.0001.exr" not in _files(out)  # named by the last run's stats.json
-    assert {"notes.txt", "beauty.final.exr", "other/o.0001.exr"} <= set(_files(out))
+    assert {"beauty.0001.exr", "other/o.0001.exr", "notes.txt"} <= set(_files(out))
     render_to_directory(_job(stage, out, overwrite=True))  # back to the default layout
-    assert not (out / "other").exists()  # emptied, so removed
+    assert (out / "other").is_dir()  # --overwrite never deletes a folder
     assert {"frames/0001.exr", "frames/0001.png", "notes.txt"} <= set(_files(out))
+
+
+def _clashing_settings(stage: Path, path: Path) -> Path:
+    """A copy of ``stage`` with /Render/Clash (products ``img.$F4.exr`` and
+    ``img.####.exr``: one file at every frame) and /Render/Thousand (``t.$F.exr`` and
+    ``t.$F4.exr``: one file from frame 1000 on)."""
+    usd = Usd.Stage.Open(str(stage))
+    usd.GetRootLayer().Export(str(path))
+    usd = Usd.Stage.Open(str(path))
+    color = [_var(usd, "clash_color", "color", "color3h")]
+    for settings, names in (("Clash", ("img.$F4.exr", "img.####.exr")),
+                            ("Thousand", ("t.$F.exr", "t.$F4.exr"))):  # fmt: skip
+        products = [
+            _product(usd, f"/Render/Products/{settings}{i}", name, color)
+            for i, name in enumerate(names)
+        ]
+        _settings(usd, f"/Render/{settings}", products)
+    usd.GetRootLayer().Save()
+    return path
+
+
+def test_probe_products_expanding_to_one_file(stage, tmp_path):
+    """Products are compared by the names they expand to at every frame rendered: two
+    that meet are refused with exit 2 before any frame renders (OUT is not even made),
+    in one line naming both products' prim paths and the frame."""
+    clash = _clashing_settings(stage, tmp_path / "clash.usda")
+    out = tmp_path / "out"
+    line = _one_line_error(
+        _cli(str(clash), "--out", str(out), "--settings", "/Render/Clash", "--frames", "1:2"), 2
+    )
+    assert "/Render/Products/Clash0" in line and "/Render/Products/Clash1" in line
+    assert "img.0001.exr" in line and "frame 1" in line
+    assert not out.exists()
+    line = _one_line_error(_cli(str(clash), "--out", str(out), "--settings", "/Render/Thousand",
+                                "--frames", "999:1000"), 2)  # fmt: skip
+    assert "/Render/Products/Thousand0" in line and "/Render/Products/Thousand1" in line
+    assert "t.1000.exr" in line and "frame 1000" in line
+    assert not out.exists()
+    # Below 1000 $F and $F4 differ: the same products render.
+    render_to_directory(_job(clash, out, "998:999", settings="/Render/Thousand"))
+    assert {"t.998.exr", "t.0998.exr", "t.999.exr", "t.0999.exr"} <= set(_files(out))
+    # Names may meet at different frames too: a.1$F3.exr at 1 is a.$F4.exr at 1001.
+    spec = RenderSettingsSpec(
+        "/R", (8, 8), None, tuple(RenderProductSpec(f"/R/P{i}", name, "raster", None, None, ())
+                                  for i, name in enumerate(("a.1$F3.exr", "a.$F4.exr")))
+    )  # fmt: skip
+    plan = plan_images(spec, tmp_path)
+    plan.check_files([1.0, 2.0])
+    with pytest.raises(BadOption, match=r"/R/P0.* and /R/P1.*a\.1001\.exr at frames 1 and 1001"):
+        plan.check_files([1.0, 1001.0])
 
 
 def test_resume_refuses_other_products(stage, tmp_path):
@@ -410,7 +469,7 @@ def test_names_must_stay_in_out_and_be_images(tmp_path):
 
 
 def test_vars_phrt_cannot_write_are_named():
-    from phrt_usd.usd.render_settings import RenderProductSpec, RenderSettingsSpec, RenderVarSpec
+    from phrt_usd.usd.render_settings import RenderVarSpec
 
     def plan(*variables, name="x.$F4.exr"):
         product = RenderProductSpec("/R/P", name, "raster", None, None, tuple(variables))

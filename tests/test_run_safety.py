@@ -26,7 +26,8 @@ from phrt_usd.atomic import WriteFailed, write_text_atomic
 from phrt_usd.errors import BadOption, PhrtError
 from phrt_usd.render.renderer import RenderOptions
 from phrt_usd.run.render_job import RenderJob
-from phrt_usd.run.run_files import CHECKPOINT_FILE, LOCK_FILE
+from phrt_usd.run.run_directory import DirectoryLock
+from phrt_usd.run.run_files import CHECKPOINT_FILE, LOCK_FILE, RESERVE_FILE
 
 OPTIONS = RenderOptions(width=32, height=24, budget_ms=None, budget_rays=600)
 CLI = [sys.executable, "-m", "typer", "phrt_usd.cli", "run"]
@@ -157,6 +158,35 @@ def test_existing_out_is_refused_unless_resume_or_overwrite(gallery, tmp_path):
     assert (out / "notes.txt").read_text() == "mine\n"  # not phrt's: kept
 
 
+def test_probe_overwrite_deletes_only_phrts_own_files(gallery, tmp_path):
+    """--overwrite deletes only what this run's names make (known names and extensions
+    inside OUT), never what a run file names: a stats.json edited to list other files, a
+    folder reached through a link out of OUT, and folders phrt did not make all stay."""
+    out = tmp_path / "out"
+    run_render(_job(gallery, out))  # frames 1:3, the default layout
+    outside = tmp_path / "outside"
+    outside.mkdir()
+    (outside / "0001.exr").write_text("theirs\n")
+    (tmp_path / "victim.0001.exr").write_text("theirs\n")
+    (out / "plate.exr").write_text("mine\n")  # a user's file with an image's extension
+    (out / "mine").mkdir()  # an empty folder phrt did not make
+    (out / "frames" / ".keep").write_text("")  # a hidden file that is no temp file of ours
+    (out / "linked").symlink_to(outside, target_is_directory=True)
+    stats = json.loads((out / "stats.json").read_text())
+    listed = ("plate.exr", "mine/x.$F4.exr", "linked/$F4.exr", "../victim.$F4.exr")
+    stats["run"]["products"] = {name: {"channels": [], "multipart": False} for name in listed}
+    (out / "stats.json").write_text(json.dumps(stats))
+
+    run_render(RenderJob(**{**_job(gallery, out).__dict__, "frames": "1", "overwrite": True}))
+    assert (out / "plate.exr").read_text() == "mine\n"
+    assert (out / "mine").is_dir() and (out / "frames" / ".keep").exists()
+    assert (outside / "0001.exr").read_text() == "theirs\n"
+    assert (tmp_path / "victim.0001.exr").read_text() == "theirs\n"
+    # phrt's own: this run's names at any frame number, and its run files, rewritten
+    assert sorted(p.name for p in (out / "frames").iterdir()) == [".keep", "0001.exr", "0001.png"]
+    assert [f["time"] for f in json.loads((out / "stats.json").read_text())["frames"]] == [1.0]
+
+
 def test_resume_knows_the_run_by_content(gallery, tmp_path):
     """The same stage under another name resumes; an edited stage does not."""
     out = tmp_path / "out"
@@ -198,6 +228,42 @@ def test_a_second_render_into_a_locked_out_is_refused(gallery, tmp_path):
     # The kernel released the killed holder's lock: the next render may take over.
     run_render(RenderJob(stage_path=stage, out_dir=out, options=OPTIONS, frames="1:2",
                          overwrite=True))  # fmt: skip
+
+
+def test_probe_hard_link_as_lock_or_reserve_is_never_written(gallery, tmp_path):
+    """A hard link to another file planted as OUT/.phrt.lock or OUT/.phrt.reserve (a dead
+    run's name, so a render takes the directory over) is replaced, never written: the
+    linked file keeps its bytes and size, and keeps no name in OUT."""
+    for name in (LOCK_FILE, RESERVE_FILE):
+        victim = tmp_path / f"victim{name}"
+        victim.write_bytes(b"precious\n")
+        out = tmp_path / f"out{name}"
+        out.mkdir()
+        os.link(victim, out / name)
+        run_render(_job(gallery, out))
+        assert victim.read_bytes() == b"precious\n", name
+        assert victim.stat().st_nlink == 1, name  # the planted name was removed, not reused
+    # The lock alone (a sweep takes it too): the planted file is replaced while held.
+    victim = tmp_path / "victim"
+    victim.write_bytes(b"precious\n")
+    out = tmp_path / "swept"
+    out.mkdir()
+    os.link(victim, out / LOCK_FILE)
+    with DirectoryLock(out):
+        assert not os.path.samefile(out / LOCK_FILE, victim)
+        assert (out / LOCK_FILE).read_text().strip() == str(os.getpid())
+    assert victim.read_bytes() == b"precious\n"
+
+
+def test_probe_selection_layer_extension_checked_before_rendering(gallery, tmp_path):
+    """A --selection-layer phrt cannot write (not .usda / .usdc / .usd) is refused with
+    exit 2 before the first frame renders: no image, no stats."""
+    out = tmp_path / "out"
+    done = _cli("render", str(gallery), "--out", str(out), "--frames", "1:2", "--budget-rays",
+                "600", "--resolution", "32x24",
+                "--selection-layer", str(out / "layer.txt"))  # fmt: skip
+    assert "extension must be" in _one_line_error(done, 2)
+    assert not (out / "frames").exists() and not (out / "stats.json").exists()
 
 
 # --- failures mid-run ---------------------------------------------------------------------
@@ -368,8 +434,6 @@ def test_read_only_out_is_one_line(gallery, tmp_path):
 def test_a_second_sweep_into_a_locked_out_is_refused(tmp_path):
     """Sweeps hold OUT's lock too: a sweep (or render) into a busy OUT is refused at once,
     naming the holder's pid."""
-    from phrt_usd.run.run_directory import DirectoryLock
-
     stage = mirror_gallery_stage(tmp_path / "g.usda", frames=2)
     out = tmp_path / "sweep"
     out.mkdir()

@@ -6,17 +6,18 @@ into an ``ImagePlan``; ``write_frame_images`` writes one frame of it.
 **Files.** Every RenderProduct of the settings is one file per frame, named by its
 ``productName`` with the frame tokens expanded (``$F``, ``$F4``, ``${F4}``, ``####``,
 ``%04d``, ``%d``: the time code rounded to 1/1000, zero-padded to the digits asked; a
-fractional one keeps 3 decimals, ``0012.500``; ``frames.frame_text``). Names are relative to ``--out``; an absolute name must
-lie inside ``--out``, and ``..`` is refused: the run directory is the one place a render
-writes, locks and clears (``run_directory``), so a product outside it is refused rather
-than moved. ``.exr`` products hold their vars' channels, ``.png`` products the 8-bit sRGB
-preview of ``color`` (and nothing else). ``--image TEMPLATE`` replaces the products with
-one file named TEMPLATE holding the first product's vars (or the default channels). With
-neither, the default layout: ``frames/$F4.exr`` (``CHANNELS`` of ``images``) and its
-preview ``frames/$F4.png``. No two frames of a run may write one file: a name without a
-frame token for more than one frame, two names that expand to one file at some frame
-(``img.$F4.exr`` and ``img.####.exr``, ``$F`` and ``$F4`` from frame 1000) and two frames
-that round to the same 1/1000 are refused before the first frame renders
+fractional one keeps 3 decimals, ``0012.500``; ``frames.frame_text``). Names are
+relative to ``--out``; an absolute name must lie inside ``--out``, and ``..`` is
+refused: the run directory is the one place a render writes, locks and clears
+(``run_directory``), so a product outside it is refused rather than moved. ``.exr``
+products hold their vars' channels, ``.png`` products the 8-bit sRGB preview of
+``color`` (and nothing else). ``--image TEMPLATE`` replaces the products with one file
+named TEMPLATE holding the first product's vars (or the default channels). With neither,
+the default layout: ``frames/$F4.exr`` (``CHANNELS`` of ``images``) and its preview
+``frames/$F4.png``. No two frames of a run may write one file: a name without a frame
+token for more than one frame, two names that expand to one file at some frame
+(``img.$F4.exr`` and ``img.####.exr``, ``$F`` and ``$F4`` from frame 1000) and two
+frames that round to the same 1/1000 are refused before the first frame renders
 (``ImagePlan.check_files``: compared by the expanded names of every frame, exit 2).
 
 **Vars → channels.** A RenderVar's ``sourceName`` picks what it holds:

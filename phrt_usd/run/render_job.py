@@ -304,8 +304,8 @@ def runtime_settings(renderer: FrameRenderer) -> dict:
     OpenGL platform of the raster phase, None without one), ``llvmpipe_threads``
     (llvmpipe's render threads in this process, None without llvmpipe), ``kernels``
     ("cached": every compiled kernel came from the cache; "compiled": this process
-    compiled some, ``phrt_usd.kernels.form``) and ``primary`` (the G-buffer source, "raster" or "rays",
-    ``render.primary_source``)."""
+    compiled some, ``phrt_usd.kernels.form``) and ``primary`` (the G-buffer source,
+    "raster" or "rays", ``render.primary_source``)."""
     gl = renderer.gl
     return {
         "threads": renderer.options.threads,

@@ -1,20 +1,26 @@
 """The output directory of one run: its lock, what it may already hold, its disk reserve.
 
-See ``RunDirectory``. File names come from ``run_files``.
+See ``RunDirectory``. File names come from ``run_files`` and ``products``.
+
+The lock and the reserve are phrt's own files, created exclusively (``O_CREAT | O_EXCL |
+O_NOFOLLOW``) and only ever written through the descriptor that created them: whatever
+is planted under their names (a symlink, a hard link to another file, a folder) is never
+opened for writing. A lock file left by a run that died is removed and made anew, never
+reused.
 """
 
 from __future__ import annotations
 
 import errno
 import fcntl
-import json
 import os
-import re
+from collections.abc import Callable
 from contextlib import suppress
 from pathlib import Path
 
+from phrt_usd.atomic import published_name
 from phrt_usd.errors import BadOption, PhrtError
-from phrt_usd.run.products import template_pattern
+from phrt_usd.run.products import DEFAULT_PREVIEW, DEFAULT_TEMPLATE, template_pattern
 from phrt_usd.run.run_files import (
     CHECKPOINT_FILE,
     FRAMES_DIR,
@@ -23,6 +29,7 @@ from phrt_usd.run.run_files import (
     SELECTION_LAYER_FILE,
     STATS_FILE,
 )
+from phrt_usd.run.selection_layer import check_layer_path
 from phrt_usd.usd.stage import StageScene
 
 #: Disk held in reserve for a run's records (see ``RunDirectory.keep_reserve``): at least
@@ -30,17 +37,26 @@ from phrt_usd.usd.stage import StageScene
 #: (an atomic rewrite needs the old and the new file at once, and records grow).
 RESERVE_MIN_BYTES = 64 * 1024
 RESERVE_FACTOR = 3
-
-#: Frame image names phrt writes in ``OUT/frames`` (see ``run_files.frame_name``).
-_FRAME_IMAGE = re.compile(r"^-?\d{3,}(\.\d{3})?\.(exr|png)$")
-#: The temp file ``atomic_path`` writes a file through (``.<stem>.<random>.tmp<ext>``).
-_TEMP_FILE = re.compile(r"^\.(.+)\.[^.]+\.tmp(\.[^.]+)$")
+#: Tries at taking the lock: each loses only to another process that replaced the file
+#: at that moment (a dead run's lock file, or its own new one), so a few always suffice.
+LOCK_ATTEMPTS = 5
+#: The run files ``--overwrite`` deletes in ``OUT`` besides the images (the lock and
+#: the reserve are the running render's own).
+RUN_FILES = (STATS_FILE, SELECTION_LAYER_FILE, CHECKPOINT_FILE)
+#: Flags of a new lock or reserve file: created here or not at all, never through a link.
+_EXCLUSIVE = os.O_RDWR | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW
 
 
 class DirectoryLock:
     """``OUT/.phrt.lock``, held with ``flock`` by the one process writing ``OUT`` (a render
     or a sweep). The kernel releases it when the process dies, so a killed run never
-    blocks the next; a second writer is refused at once, naming the holder's pid."""
+    blocks the next; a second writer is refused at once, naming the holder's pid.
+
+    The file is created exclusively and the pid written through that descriptor only.
+    An existing file is flocked read-only to learn whether a live run holds it: if so the
+    run is refused; if not (its run died) it is unlinked while flocked, still the file at
+    the name, and a new one created: it is never truncated or written (a hard link
+    planted there keeps its target's bytes). A symlink there is refused."""
 
     def __init__(self, out: Path) -> None:
         self.out = Path(out)
@@ -54,34 +70,64 @@ class DirectoryLock:
 
     def acquire(self) -> DirectoryLock:
         path = self.out / LOCK_FILE
-        for _ in range(3):  # the holder may remove the file between our open and flock
+        for _ in range(LOCK_ATTEMPTS):
             try:
-                fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o644)
+                fd = os.open(path, _EXCLUSIVE, 0o644)
+            except FileExistsError:
+                self._clear_stale(path)
+                continue
             except OSError as error:
-                if error.errno == errno.ELOOP:
-                    raise PhrtError(f"{path}: is a symlink; remove it") from None
                 raise BadOption(f"--out {self.out}: cannot write ({error.strerror})") from None
             try:
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except BlockingIOError:
-                holder = os.read(fd, 64).decode("ascii", "replace").strip() or "?"
+            except BlockingIOError:  # another run took it for stale before we flocked
                 os.close(fd)
+                continue
+            if _same_file(fd, path):
+                os.write(fd, f"{os.getpid()}\n".encode())
+                self._fd = fd
+                return self
+            os.close(fd)  # locked a file another run just removed as stale: try again
+        raise PhrtError(f"{path}: could not take the lock (other runs keep replacing it)")
+
+    def _clear_stale(self, path: Path) -> None:
+        """The lock file at ``path`` exists: PhrtError naming the holder if a live run
+        holds it; else remove it (see the class), so the next attempt creates a new one."""
+        try:
+            fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK)
+        except FileNotFoundError:
+            return  # its holder released it meanwhile
+        except OSError as error:
+            if error.errno == errno.ELOOP:
+                raise PhrtError(f"{path}: is a symlink; remove it") from None
+            raise BadOption(
+                f"--out {self.out}: cannot read {LOCK_FILE} ({error.strerror})"
+            ) from None
+        try:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                text = os.read(fd, 64).decode("ascii", "replace").strip()
+                holder = text if text.isdigit() else "?"
                 raise PhrtError(
                     f"{self.out}: another phrt run is writing here (pid {holder}); "
                     "wait for it or choose another --out"
                 ) from None
-            if _same_file(fd, path):
-                os.ftruncate(fd, 0)
-                os.write(fd, f"{os.getpid()}\n".encode())
-                self._fd = fd
-                return self
-            os.close(fd)  # locked a file that was just removed: try the new one
-        raise PhrtError(f"{path}: could not take the lock")
+            if _same_file(fd, path):  # flocked, so no live run holds it: a dead run's
+                try:
+                    os.unlink(path)
+                except FileNotFoundError:
+                    pass
+                except OSError:
+                    raise PhrtError(f"{path}: not a lock file phrt made; remove it") from None
+        finally:
+            os.close(fd)
 
     def release(self) -> None:
         if self._fd is not None:
-            with suppress(OSError):
-                os.unlink(self.out / LOCK_FILE)
+            if _same_file(self._fd, self.out / LOCK_FILE):
+                with suppress(OSError):
+                    os.unlink(self.out / LOCK_FILE)
             os.close(self._fd)  # closing releases the flock
             self._fd = None
 
@@ -89,19 +135,23 @@ class DirectoryLock:
 class RunDirectory:
     """Context manager owning ``out`` for one run (see the module docstring).
 
-    On entry: ``out`` is created if missing (PhrtError if it is a file or cannot be
-    made); ``OUT/.phrt.lock`` is taken with ``flock`` (released by the kernel if the
-    process dies, so a killed run never blocks the next) or the run is refused naming the
-    holder's pid; an ``out`` holding anything is refused unless ``resume`` (the checkpoint
-    must then be this run's: checked by ``_load_checkpoint``) or ``overwrite`` (phrt's own
-    files are deleted first: frame images, stats, selection layer, checkpoint; anything
-    else stays); the selection layer may not be a layer of the stage. On exit the lock is
-    released and its file removed.
+    On entry: the selection layer's extension is checked (BadOption) and it may not be a
+    layer of the stage; ``out`` is created if missing (BadOption if it is a file or
+    cannot be made); ``OUT/.phrt.lock`` is taken (``DirectoryLock``) or the run is
+    refused naming the holder's pid; an ``out`` holding anything is refused unless
+    ``resume`` (the checkpoint must then be this run's: checked by ``_load_checkpoint``)
+    or ``overwrite``. On exit the reserve and the lock are released and their files
+    removed.
 
-    ``images``: the file name templates of the run's images (``run.products``, relative
-    to ``out``). ``overwrite`` deletes the files they name and those of the templates the
-    previous run recorded in ``stats.json`` (``run.products``), whatever their frame
-    numbers, and then every directory they leave empty; no other file is touched.
+    ``overwrite`` deletes phrt's own files only, known by construction, never by what a
+    file in ``out`` says (a handed-over or edited run directory does not choose what is
+    deleted): the files in ``out`` that ``images`` (this run's file name templates,
+    ``run.products``, relative to ``out``) and the default layout (``frames/NNNN.exr`` and
+    ``.png``) name at any frame number, ``stats.json``, ``selection.usda``,
+    ``checkpoint.json``, and the temp files a killed writer left for any of those names.
+    A symlink is removed itself, never followed, and a folder reached through one is never
+    entered; no folder is deleted; files of other names, of another run's templates, and
+    a ``--selection-layer`` outside ``out`` stay (the run's records replace the layer).
     """
 
     def __init__(self, out: Path, layer_path: Path, scene: StageScene | None, *,
@@ -116,18 +166,20 @@ class RunDirectory:
         self.resume = resume
         self.overwrite = overwrite
         self._lock_held: DirectoryLock | None = None
+        self._reserve_fd: int | None = None
         self.fresh = True  # False when resuming a run that left files in out
 
     def __enter__(self) -> RunDirectory:
         out = self.out
+        check_layer_path(self.layer_path, "--selection-layer")
+        if self.scene is not None:
+            _check_not_a_stage_layer(self.layer_path, self.scene)
         if out.exists() and not out.is_dir():
             raise BadOption(f"--out {out}: exists and is not a directory")
         try:
             out.mkdir(parents=True, exist_ok=True)
         except OSError as error:
             raise BadOption(f"--out {out}: cannot create ({error.strerror})") from None
-        if self.scene is not None:
-            _check_not_a_stage_layer(self.layer_path, self.scene)
         self._lock()
         try:
             self._claim()
@@ -136,6 +188,7 @@ class RunDirectory:
             if frames.is_symlink() or (frames.exists() and not frames.is_dir()):
                 raise PhrtError(f"{frames}: not a directory of this run (a link or a file)")
         except BaseException:
+            self.release_reserve()
             self._unlock()
             raise
         return self
@@ -147,23 +200,35 @@ class RunDirectory:
     def keep_reserve(self, nbytes: int) -> None:
         """Hold at least ``max(nbytes, RESERVE_MIN_BYTES)`` of disk in ``OUT/.phrt.reserve``
         (allocated, never written to) so that when the disk fills, releasing it leaves
-        room to write the finished frames' records. Without room for it, nothing is held."""
+        room to write the finished frames' records. Without room for it, nothing is held.
+
+        The file is this run's own: created exclusively, allocated only through the
+        descriptor that created it, and made anew (never written through) when the name
+        no longer leads to it alone (replaced, or hard-linked elsewhere)."""
         nbytes = max(int(nbytes), RESERVE_MIN_BYTES)
-        try:
-            fd = os.open(self.out / RESERVE_FILE, os.O_WRONLY | os.O_CREAT | os.O_NOFOLLOW, 0o600)
-        except OSError:
-            return
+        path = self.out / RESERVE_FILE
+        fd = self._reserve_fd
+        if fd is None or not _sole_name(fd, path):
+            self.release_reserve()
+            try:
+                fd = os.open(path, _EXCLUSIVE, 0o600)
+            except OSError:
+                return  # something phrt cannot remove is there, or no room for a file
+            self._reserve_fd = fd
         try:
             if os.fstat(fd).st_size < nbytes:
                 os.posix_fallocate(fd, 0, nbytes)
         except OSError:
             pass  # no room for the reserve (the disk is full already) or no fallocate here
-        finally:
-            os.close(fd)
 
     def release_reserve(self) -> None:
-        with suppress(FileNotFoundError):
-            (self.out / RESERVE_FILE).unlink()
+        """Give the reserve's disk back: close it and remove the name (a link planted
+        there is removed itself; a folder stays)."""
+        if self._reserve_fd is not None:
+            os.close(self._reserve_fd)
+            self._reserve_fd = None
+        with suppress(OSError):
+            os.unlink(self.out / RESERVE_FILE)
 
     def _lock(self) -> None:
         self._lock_held = DirectoryLock(self.out).acquire()
@@ -200,67 +265,43 @@ class RunDirectory:
             )
 
     def _clear(self) -> None:
-        """Delete phrt's own files in ``out`` (never following a symlink: a link is
-        removed itself), and the job's selection layer."""
-        templates = set(self.images) | set(_recorded_templates(self.out / STATS_FILE))
-        for template in sorted(templates):
+        """Delete phrt's own files in ``out`` (see the class)."""
+        for template in dict.fromkeys((*self.images, DEFAULT_TEMPLATE, DEFAULT_PREVIEW)):
             _clear_template(self.out, template)
-        for name in (STATS_FILE, SELECTION_LAYER_FILE, CHECKPOINT_FILE, RESERVE_FILE):
-            with suppress(FileNotFoundError):
-                (self.out / name).unlink()
-        with suppress(FileNotFoundError):
-            if self.layer_path.is_symlink() or self.layer_path.is_file():
-                self.layer_path.unlink()
+        _clear_names(self.out, RUN_FILES.__contains__)
         frames = self.out / FRAMES_DIR
         if frames.is_symlink():
-            frames.unlink()
-        elif frames.is_dir():
-            for entry in frames.iterdir():
-                if _FRAME_IMAGE.match(entry.name) or entry.name.startswith("."):
-                    if entry.is_dir() and not entry.is_symlink():
-                        continue
-                    entry.unlink()
-            with suppress(OSError):
-                frames.rmdir()  # only when nothing else is left in it
-
-
-def _recorded_templates(stats: Path) -> list[str]:
-    """The image file name templates a previous run recorded in its stats.json (``run``
-    ``products``: their keys and ``preview``s); none without a readable record."""
-    try:
-        if stats.is_symlink():
-            return []
-        run = json.loads(stats.read_text(encoding="utf-8")).get("run", {})
-        products = run.get("products") or {}
-        names = [*products, *(p.get("preview") for p in products.values())]
-    except (OSError, UnicodeDecodeError, ValueError, AttributeError, TypeError):
-        return []
-    return [n for n in names if isinstance(n, str) and n]
+            frames.unlink()  # the link itself; the default layout writes a real folder
 
 
 def _clear_template(out: Path, template: str) -> None:
-    """Delete the files in ``out`` that ``template`` names (a link is removed itself,
-    never followed; a directory is never entered through a link), and the directories
-    on its way that this leaves empty."""
+    """Delete the files in ``out`` that ``template`` names at any frame number (see
+    ``_clear_names``), when every folder on its way is a real folder inside ``out``."""
     parts = Path(template).parts
     if not parts or Path(template).is_absolute() or ".." in parts:
         return  # never one of ours: products are relative names inside out
-    folder = out.joinpath(*parts[:-1])
-    here = out
+    folder = out
     for part in parts[:-1]:
-        here = here / part
-        if here.is_symlink() or not here.is_dir():
+        folder = folder / part
+        if folder.is_symlink() or not folder.is_dir():
             return
-    pattern = template_pattern(parts[-1])
+    _clear_names(folder, template_pattern(parts[-1]).match)
+
+
+def _clear_names(folder: Path, ours: Callable[[str], object]) -> None:
+    """Delete the entries of ``folder`` whose name is ``ours``, or is the temp file of a
+    name that is (``atomic.published_name``): files and links (a link is removed itself,
+    never followed), never a folder."""
     for entry in folder.iterdir():
-        # a killed writer's temp file: .<name without extension>.<random>.tmp<extension>
-        name = _TEMP_FILE.sub(r"\1\2", entry.name)
-        if pattern.match(name) and (entry.is_symlink() or not entry.is_dir()):
-            entry.unlink()
-    while folder != out:
-        with suppress(OSError):
-            folder.rmdir()  # only when nothing else is left in it
-        folder = folder.parent
+        name = published_name(entry.name) or entry.name
+        if ours(name) and (entry.is_symlink() or not entry.is_dir()):
+            with suppress(FileNotFoundError):
+                entry.unlink()
+
+
+def _sole_name(fd: int, path: Path) -> bool:
+    """True if the file open as ``fd`` is the one at ``path`` and has no other name."""
+    return os.fstat(fd).st_nlink == 1 and _same_file(fd, path)
 
 
 def _same_file(fd: int, path: Path) -> bool:

@@ -6,7 +6,8 @@ Layout of a render's output directory ``OUT``::
     OUT/frames/NNNN.png     8-bit sRGB preview of the same frame
     OUT/<productName>       instead of frames/: each RenderProduct's file per frame, or
                             --image's (see products.py; recorded in stats.json's run
-                            ``products``, so --overwrite finds them again)
+                            ``products``; --overwrite deletes those the run it starts
+                            names, never what a file in OUT lists: run_directory.py)
     OUT/stats.json          run settings + one row per rendered frame (this module)
     OUT/selection.usda      the selection layer (see selection_layer.py)
     OUT/checkpoint.json     finished frames and the policy's memory, for --resume

@@ -43,7 +43,7 @@ import numpy as np
 from pxr import Sdf, Tf, Vt
 
 from phrt_usd.atomic import WriteFailed, atomic_path
-from phrt_usd.errors import PhrtError, usd_error_reason
+from phrt_usd.errors import BadOption, PhrtError, usd_error_reason
 from phrt_usd.model.frame import FrameStats, ReflectorMetrics
 from phrt_usd.run.run_files import check_run_info
 from phrt_usd.usd.stage import open_usd
@@ -83,6 +83,18 @@ STATS_ATTRIBUTES: tuple[tuple[str, Any, Callable[[FrameStats], Any]], ...] = (
 )
 
 
+#: Extensions a selection layer may have: USD's text (``.usda``) and crate (``.usdc``,
+#: ``.usd``) layers, the encodings Sdf writes by extension.
+LAYER_SUFFIXES = (".usda", ".usdc", ".usd")
+
+
+def check_layer_path(path: Path | str, where: str = "selection layer") -> None:
+    """BadOption (naming ``where``) unless ``path`` has an extension of LAYER_SUFFIXES;
+    a render checks it before its first frame (``run_directory.RunDirectory``)."""
+    if Path(path).suffix not in LAYER_SUFFIXES:
+        raise BadOption(f"{where} {path}: extension must be {', '.join(LAYER_SUFFIXES)}")
+
+
 def write_selection_layer(
     path: Path,
     stage_path: Path | str | None,
@@ -106,8 +118,7 @@ def write_selection_layer(
     ``stage_path`` (its instance proxies). Returns ``path``.
     """
     path = Path(path)
-    if path.suffix not in (".usda", ".usdc", ".usd"):
-        raise PhrtError(f"selection layer {path}: extension must be .usda, .usdc or .usd")
+    check_layer_path(path)
     tcps = _time_codes_per_second(stage_path, time_codes_per_second)
     layer = _open_for_merge(path, run_info, tcps) if merge and path.exists() else None
     if layer is None:
