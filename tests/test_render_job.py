@@ -152,6 +152,32 @@ def test_raster_run_casts_no_rays(tmp_path):
     assert np.isfinite(summary["median_frame_ms"])
 
 
+def test_probe_frames_closer_than_a_thousandth(tmp_path):
+    """Frames whose time codes round to the same 1/1000 (the precision of file names)
+    would overwrite each other's images: refused with exit 2 before any frame renders, in
+    one line naming both frames; frames 1/1000 apart each get their own files."""
+    stage = mirror_gallery_stage(tmp_path / "gallery.usda", frames=2)
+    out = tmp_path / "close"
+    for frames, shown in (("1.0001,1.0002", ("1.0001", "1.0002")),
+                          ("1,1.0000001", ("frames 1 ", "1.0000001"))):  # fmt: skip
+        done = subprocess.run(
+            [sys.executable, "-m", "typer", "phrt_usd.cli", "run", "render", str(stage),
+             "--out", str(out), "--frames", frames, "--resolution", "32x24",
+             "--budget-rays", str(BUDGET_RAYS)],
+            capture_output=True, text=True, timeout=300,
+        )  # fmt: skip
+        assert done.returncode == 2, done.stderr
+        errors = [line for line in done.stderr.splitlines() if line.startswith("error:")]
+        assert len(errors) == 1 and "Traceback" not in done.stderr, done.stderr
+        assert all(part in errors[0] for part in shown), errors[0]
+        assert not out.exists()  # refused before the run directory was even made
+    opts = RenderOptions(width=32, height=24, budget_ms=None, budget_rays=BUDGET_RAYS)
+    apart = tmp_path / "apart"
+    run_render(RenderJob(stage_path=stage, out_dir=apart, options=opts, frames="1:1.002x0.001"))
+    assert sorted(p.name for p in (apart / "frames").glob("*.exr")) == [
+        "0001.001.exr", "0001.002.exr", "0001.exr"]  # fmt: skip
+
+
 def test_parse_frames_takes_usd_frame_specs():
     """USD's FrameSpec (as usdrecord takes it): strides, counting down, comma lists;
     rendered once each in increasing time order."""
