@@ -301,8 +301,9 @@ def test_product_outside_out_and_bad_settings_are_refused(stage, tmp_path):
     line = _one_line_error(done, 1)
     assert "/Render/Products/Outside" in line and "outside the output directory" in line
     assert not list(Path("/tmp").glob("phrt-outside.*.exr"))
-    line = _one_line_error(_cli(str(stage), "--out", str(tmp_path / "b"), "--settings", "/Nope"), 1)
-    assert "/Nope" in line
+    # --settings naming no prim is a bad option (exit 2), listing the settings there are
+    line = _one_line_error(_cli(str(stage), "--out", str(tmp_path / "b"), "--settings", "/Nope"), 2)
+    assert "/Nope" in line and "/Render/Second" in line
 
 
 # --- in-process: multi-part, --overwrite, --resume ---------------------------------------
