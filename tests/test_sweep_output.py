@@ -255,3 +255,21 @@ def test_sweep_summary_gives_spread_and_budget_adherence(swept):
         if budgeted:
             assert 0.0 <= float(row["budget_within"]) <= 1.0
             assert row["budget_checked"] == ("rays" if config.endswith("rays") else "time")
+
+
+def test_a_sweep_interrupted_before_its_first_frame_says_it_left_no_results(tmp_path):
+    """No finished frame: no report to make (not an error about an empty sweep.csv), and
+    the line says OUT holds no results."""
+    from phrt_usd.evaluate.sweep import SweepSpec, finish_sweep, interruption_note
+
+    out = tmp_path / "out"
+    out.mkdir()
+    spec = SweepSpec(stages=[tmp_path / "farm.usda"], heuristics=["heu1"],
+                     budgets_rays=[100], out=out)  # fmt: skip
+    summary = finish_sweep(spec, [], {}, interrupted=True)
+    summary["frames"] = {}
+    assert summary["files"] == ["sweep.csv", "timeline.json", "provenance.json"]
+    assert not (out / "report.html").exists()
+    note = interruption_note(summary)
+    assert note.startswith("stopped after no frame (not started: farm);")
+    assert "holds no results" in note

@@ -340,15 +340,18 @@ def finish_sweep(
     """Write sweep.csv, timeline.json, provenance.json and the report into ``spec.out``;
     returns the summary dict of ``run_sweep``. ``runtime``: how this process's renderers
     ran (``gl``, ``gl_renderer``; ``_runtime_of``), None where none ran here (a cluster's
-    client)."""
+    client). Without rows (interrupted before its first frame) there is no report."""
     out = spec.out
     write_sweep_csv(out / SWEEP_CSV, rows)
     _write_json(out / TIMELINE_JSON, timeline)
     record = sweep_provenance(spec, runtime or {}, interrupted)
     _write_json(out / PROVENANCE_JSON, record)
-    from phrt_usd.evaluate.sweep_report import write_sweep_report
+    files = [SWEEP_CSV, TIMELINE_JSON, PROVENANCE_JSON]
+    if rows:
+        from phrt_usd.evaluate.sweep_report import write_sweep_report
 
-    write_sweep_report(out)
+        write_sweep_report(out)
+        files += [SUMMARY_MD, SUMMARY_CSV, ERROR_VS_TIME_PNG, REPORT_HTML]
     return {
         "out": str(out),
         "rows": len(rows),
@@ -363,10 +366,7 @@ def finish_sweep(
         "threads": spec.threads,
         "exposure": spec.exposure,
         "provenance": record,
-        "files": [
-            SWEEP_CSV, TIMELINE_JSON, PROVENANCE_JSON, SUMMARY_MD, SUMMARY_CSV,
-            ERROR_VS_TIME_PNG, REPORT_HTML,
-        ],  # fmt: skip
+        "files": files,
     }
 
 
@@ -381,11 +381,14 @@ def interruption_note(summary: dict) -> str:
     if waiting:
         where += f" (not started: {', '.join(waiting)})"
     out = summary["out"]
-    return (
-        f"stopped after {where}; {out} holds {SWEEP_CSV} ({summary['rows']} rows) and the "
-        f"report of the finished frames ({SUMMARY_MD}, {REPORT_HTML}); a new sweep into "
-        f"{out} needs --overwrite"
-    )
+    if not summary["rows"]:
+        held = f"{out} holds no results ({SWEEP_CSV} has no rows, no report)"
+    else:
+        held = (
+            f"{out} holds {SWEEP_CSV} ({summary['rows']} rows) and the report of the finished "
+            f"frames ({SUMMARY_MD}, {REPORT_HTML})"
+        )
+    return f"stopped after {where}; {held}; a new sweep into {out} needs --overwrite"
 
 
 def sweep_provenance(spec: SweepSpec, runtime: dict, interrupted: bool = False) -> dict:
