@@ -1,77 +1,41 @@
 """The ``phrt`` command line (typer). Thin commands: parse options, call the library,
 print. Domain errors (``PhrtError``) end as one ``error: ...`` line on stderr and a
-non-zero exit code, never a traceback; see ``user_errors``.
+non-zero exit code, never a traceback; see ``user_errors`` (``phrt_usd.cli_errors``).
 
 Exit codes: 0 success; 1 the stage/prims have problems (validation errors, bad prim) or
 the render failed (a frame or a file could not be written); 2 the input cannot be read
 (missing file, directory, not USD) or an option is bad; 130 interrupted. With ``--json``
-an error is one JSON object ``{"error": message, "code": exit code}`` on stdout.
+an error is one JSON object ``{"error": message, "code": exit code}`` on stdout (a usage
+error too: ``cli_errors.JsonUsageErrors``).
 """
 
 from __future__ import annotations
 
-import contextlib
-import json
 import sys
 import time
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Annotated
 
 import typer
-from typer.core import TyperGroup
 
 import phrt_usd  # noqa: F401  (registers the schema plugin before any stage opens)
+from phrt_usd.cli_errors import (
+    EXIT_INTERRUPTED,
+    EXIT_PROBLEMS,
+    EXIT_UNREADABLE,
+    JsonUsageErrors,
+    fail,
+    out_of_memory,
+    print_json,
+    ran_out_of_memory,
+    user_errors,
+)
 from phrt_usd.errors import BadOption, PhrtError, UnreadableInput
 from phrt_usd.usd.schema import DEFAULT_BOUNCE_LIMIT, DEFAULT_RESOLUTION
 
-EXIT_PROBLEMS = 1
-EXIT_UNREADABLE = 2
-EXIT_INTERRUPTED = 130
-
-
-
-class _Commands(TyperGroup):
-    """The ``phrt`` command group. With ``--json`` among the arguments, a usage error
-    (an unknown option or command, a missing or malformed value: what click would print
-    as a box) is the one JSON error object on stdout, exit 2, as every error of a
-    ``--json`` command is."""
-
-    def make_context(self, info_name, args, parent=None, **extra):
-        args = list(args)
-        json_out = "--json" in args
-        try:
-            ctx = super().make_context(info_name, args, parent=parent, **extra)
-        except _UsageError as error:
-            if json_out:
-                raise _usage_error(error) from None
-            raise
-        ctx.meta["phrt_json"] = json_out
-        return ctx
-
-    def invoke(self, ctx):
-        try:
-            return super().invoke(ctx)
-        except _UsageError as error:
-            if ctx.meta.get("phrt_json"):
-                raise _usage_error(error) from None
-            raise
-
-
-#: click's UsageError, of the click typer parses with (recent typer has its own copy).
-_UsageError = next(c for c in typer.BadParameter.__mro__ if c.__name__ == "UsageError")
-
-
-def _usage_error(error: Exception) -> typer.Exit:
-    """The JSON error object of a usage error (``_Commands``), naming the command."""
-    ctx = getattr(error, "ctx", None)
-    where = ctx.command_path if ctx is not None else "phrt"
-    return fail(f"{where}: {error.format_message()}", EXIT_UNREADABLE, json_out=True)
-
-
 app = typer.Typer(
     help="Heuristic hybrid rendering of USD stages (raster + selective ray-traced reflections).",
-    cls=_Commands,
+    cls=JsonUsageErrors,
     no_args_is_help=True,
     add_completion=False,
     pretty_exceptions_enable=False,
@@ -108,39 +72,6 @@ def main(
     _VERBOSITY["level"] = 0 if quiet else 2 if verbose else 1
 
 
-def fail(message: str, code: int, json_out: bool = False) -> typer.Exit:
-    """Report ``message`` (one line: ``error: ...`` on stderr, or the JSON error object on
-    stdout) and return the ``typer.Exit`` to raise."""
-    message = " ".join(str(message).split())  # one line, whatever the source
-    if json_out:
-        print_json({"error": message, "code": code})
-    else:
-        typer.echo(f"error: {message}", err=True)
-    return typer.Exit(code)
-
-
-@contextlib.contextmanager
-def user_errors(exit_code: int = EXIT_PROBLEMS, json_out: bool = False) -> Iterator[None]:
-    """Turn an error raised inside the block into one line and an exit code (see the
-    module docstring): UnreadableInput and BadOption exit 2, another PhrtError
-    ``exit_code``, an OSError (a file phrt could not read or write) 1, memory running
-    out 1, Ctrl-C 130."""
-    try:
-        yield
-    except (UnreadableInput, BadOption) as exc:
-        raise fail(str(exc), EXIT_UNREADABLE, json_out) from None
-    except PhrtError as exc:
-        raise fail(str(exc), exit_code, json_out) from None
-    except OSError as exc:
-        where = f"{exc.filename}: " if exc.filename else ""
-        raise fail(f"{where}{exc.strerror or exc}", EXIT_PROBLEMS, json_out) from None
-    except KeyboardInterrupt:
-        raise fail("interrupted", EXIT_INTERRUPTED, json_out) from None
-    except MemoryError:
-        message = "memory ran out; free memory, or ask for less"
-        raise fail(message, EXIT_PROBLEMS, json_out) from None
-
-
 def open_input(path: Path, controls=None):
     """Open a stage for a command (composed with ``controls``, a ``StageControls``);
     unreadable input raises UnreadableInput."""
@@ -150,11 +81,6 @@ def open_input(path: Path, controls=None):
         return open_usd(path, controls)
     except PhrtError as exc:
         raise UnreadableInput(str(exc)) from None
-
-
-def print_json(obj: dict) -> None:
-    """One JSON object on stdout."""
-    sys.stdout.write(json.dumps(obj, indent=2, allow_nan=False) + "\n")
 
 
 StageArg = Annotated[Path, typer.Argument(help="USD stage (.usda/.usdc/.usd/.usdz).")]
@@ -598,9 +524,9 @@ def render(
             except RenderInterrupted as exc:
                 raise fail(f"interrupted: {exc}", EXIT_INTERRUPTED, json_out) from None
             except Exception as exc:  # memory running out, in numpy or in OpenGL
-                if not _ran_out_of_memory(exc):
+                if not ran_out_of_memory(exc):
                     raise
-                message = _out_of_memory(job, scene, finished[0])
+                message = out_of_memory(job, scene, finished[0])
                 raise fail(message, EXIT_PROBLEMS, json_out) from None
     for warning in scene.warnings[warned:]:  # found while rendering (e.g. clipping)
         typer.echo(f"warning: {warning}", err=True)
@@ -628,32 +554,6 @@ def render(
                 )
             typer.echo(line)
         typer.echo(_written(summary))
-
-
-#: OpenGL's GL_OUT_OF_MEMORY: the raster phase's buffers did not fit.
-GL_OUT_OF_MEMORY = 0x0505
-
-
-def _ran_out_of_memory(error: Exception) -> bool:
-    """``error`` says memory ran out: Python's MemoryError (numpy's too) or PyOpenGL's
-    GLError of GL_OUT_OF_MEMORY."""
-    if isinstance(error, MemoryError):
-        return True
-    return type(error).__name__ == "GLError" and getattr(error, "err", None) == GL_OUT_OF_MEMORY
-
-
-def _out_of_memory(job, scene, done: int) -> str:
-    """One line: memory ran out in the render of ``job``, at which frame (the one after
-    the ``done`` finished ones) and resolution, and what to do about it."""
-    from phrt_usd.run.frames import parse_frames
-
-    times = parse_frames(job.frames, scene.frame_range)
-    at = f"frame {times[done]:g}" if done < len(times) else "the run's records"
-    size = f"{job.options.width}x{job.options.height}"
-    return (
-        f"memory ran out rendering {at} at {size} ({done} of {len(times)} frames finished "
-        f"in {job.out_dir}); free memory or render at a smaller --resolution"
-    )
 
 
 def _written(summary: dict) -> str:

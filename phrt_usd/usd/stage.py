@@ -1,8 +1,9 @@
 """Open a USD stage and read it into the in-memory ``phrt_usd.model.scene.Scene``.
 
-This module holds the one way to open a stage file (``open_usd``; ``open_stage`` opens
-and reads), the camera choice, the traversal, and ``StageScene``, which places the
-readers' elements in the world and moves them in ``set_time``. The readers:
+This module holds ``open_stage`` (opens a stage file with the one ``open_usd`` of
+``phrt_usd.usd.stage_file``, re-exported here, and reads it), the camera choice, the
+traversal, and ``StageScene``, which places the readers' elements in the world and
+moves them in ``set_time``. The readers:
 ``phrt_usd.usd.meshes`` (gprims, primvars, PointInstancers), ``phrt_usd.usd.materials``
 (UsdPreviewSurface, textures), ``phrt_usd.usd.lights`` (UsdLux),
 ``phrt_usd.usd.values`` (attribute values, time), ``phrt_usd.usd.composition``
@@ -68,13 +69,7 @@ from dataclasses import dataclass
 import numpy as np
 from pxr import Gf, Sdf, Tf, Usd, UsdGeom, UsdRender
 
-from phrt_usd.errors import (
-    NOT_UTF8_REASON,
-    BadOption,
-    PhrtError,
-    UnreadableInput,
-    usd_error_reason,
-)
+from phrt_usd.errors import BadOption, PhrtError, UnreadableInput
 from phrt_usd.model.scene import CameraFrame, Element, Geometry, Lights, Scene
 from phrt_usd.usd import schema
 from phrt_usd.usd.camera_path import CameraPath, find_camera_path
@@ -96,6 +91,7 @@ from phrt_usd.usd.meshes import (
 from phrt_usd.usd.render_settings import camera_settings, included_purposes
 from phrt_usd.usd.skinning import SkinningReader
 from phrt_usd.usd.stage_controls import StageControls
+from phrt_usd.usd.stage_file import USD_EXTENSIONS, open_usd  # noqa: F401 (re-export)
 from phrt_usd.usd.traversal import rendered_gprims, walk_subtree  # noqa: F401 (re-export)
 from phrt_usd.usd.values import (
     AnimationProbe,
@@ -747,81 +743,6 @@ def read_stage(
 ) -> StageScene:
     """Read an open stage for rendering (see the module doc). Raises ``PhrtError``."""
     return StageScene(stage, camera, settings)
-
-
-#: File extensions of the stage files ``open_usd`` accepts (USD picks the file format
-#: from the extension; ``.usd`` may hold text or crate).
-USD_EXTENSIONS = (".usda", ".usdc", ".usd", ".usdz")
-
-
-def open_usd(path: str | os.PathLike, controls: StageControls | None = None) -> Usd.Stage:
-    """Open a USD stage file with every payload loaded, composed with ``controls``
-    (session layers, variant selections, population mask; see ``stage_controls``).
-
-    Raises ``PhrtError`` (one line naming the path and what is wrong) for a missing path,
-    a directory or another file that is not a regular one (a device or pipe is never
-    read), a file without one of ``USD_EXTENSIONS``, or a file USD cannot read (garbage
-    bytes, invalid syntax, unreadable): then with USD's own reason, the parser's
-    ``file:line:column: what`` when it gives one (``usd_error_reason``). A file without
-    an extension is refused, not sniffed: USD chooses the file format from the
-    extension, and the same file must open the same way in every USD tool — rename it
-    to ``.usd`` (text or crate).
-    """
-    path = os.fspath(path)
-    if not os.path.exists(path):
-        raise PhrtError(f"{path}: no such file")
-    if os.path.isdir(path):
-        raise PhrtError(f"{path}: is a directory, not a USD file")
-    if not os.path.isfile(path):
-        raise PhrtError(f"{path}: not a regular file (a device, pipe or socket)")
-    ext = os.path.splitext(path)[1]
-    expected = "/".join(USD_EXTENSIONS)
-    if not ext or ext == ".":
-        raise PhrtError(f"{path}: no USD file extension ({expected})")
-    if not Sdf.FileFormat.FindByExtension(ext[1:]):
-        raise PhrtError(f"{path}: not a USD file (extension {ext!r}, expected {expected})")
-    controls = controls or StageControls()
-    try:
-        session = controls.session_layer()
-        mask = controls.population_mask()
-        root = None if session is None and mask is None else Sdf.Layer.FindOrOpen(path)
-        if root is None:  # no controls, or a root USD cannot read: Open says why
-            stage = Usd.Stage.Open(path, Usd.Stage.LoadAll)
-        else:
-            session = session or Sdf.Layer.CreateAnonymous("session.usda")
-            if mask is None:
-                stage = Usd.Stage.Open(root, session, Usd.Stage.LoadAll)
-            else:
-                stage = Usd.Stage.OpenMasked(root, session, mask, Usd.Stage.LoadAll)
-    except Tf.ErrorException as exc:
-        reason = usd_error_reason(exc)
-        if reason == NOT_UTF8_REASON:
-            reason = _first_non_utf8(path) or reason
-        raise PhrtError(f"{path}: cannot open as USD ({reason})") from None
-    if stage is None:
-        raise PhrtError(f"{path}: cannot open as USD")
-    controls.check(stage)
-    return stage
-
-
-#: Largest stage file searched for the bytes that are not UTF-8 (``_first_non_utf8``).
-_MAX_SEARCHED_BYTES = 64 << 20
-
-
-def _first_non_utf8(path: str) -> str | None:
-    """``"<path>:<line>:<column>: bytes that are not UTF-8 text"`` at the first such
-    bytes of a text stage file (of at most ``_MAX_SEARCHED_BYTES``), else None."""
-    if os.path.getsize(path) > _MAX_SEARCHED_BYTES:
-        return None
-    with open(path, "rb") as f:
-        data = f.read()
-    try:
-        data.decode("utf-8")
-    except UnicodeDecodeError as bad:
-        line = data.count(b"\n", 0, bad.start) + 1
-        column = bad.start - data.rfind(b"\n", 0, bad.start)
-        return f"{path}:{line}:{column}: bytes that are not UTF-8 text"
-    return None
 
 
 def open_stage(
