@@ -35,7 +35,8 @@ frames, mean_fps, median_frame_ms, mean_selected, transitions, reflectors, budge
 budget_overruns, ...) plus ``out``, ``selection_layer``, the ``passes`` its frames ran, and
 how it ran: ``threads`` (the setting), ``gl`` (the OpenGL platform of its raster phase,
 None in ``rt`` mode), ``llvmpipe_threads`` (llvmpipe's render threads, None without) and
-``kernels`` (``aot`` or ``jit``: the compiled kernels' form, ``phrt_usd.kernels``).
+``kernels`` (``cached``, or ``compiled`` when this process compiled kernels missing
+from the cache: ``phrt_usd.kernels.form``).
 """
 
 from __future__ import annotations
