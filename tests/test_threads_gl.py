@@ -29,9 +29,7 @@ REPO = Path(__file__).resolve().parent.parent
 CLI = [sys.executable, "-m", "typer", "phrt_usd.cli", "run"]
 #: Modules a cheap start must not load: OpenGL, pyrender (trimesh, scipy, networkx),
 #: Embree, the image library, the plots, the cluster and rich (tables printed at the end).
-#: Not scipy: numba (the kernels, loaded with the renderer) imports it where it is
-#: installed, as here for the tests; phrt_usd itself never does.
-HEAVY = ("OpenGL", "pyrender", "trimesh", "embreex", "OpenImageIO", "matplotlib",
+HEAVY = ("OpenGL", "pyrender", "trimesh", "embreex", "OpenImageIO", "scipy", "matplotlib",
          "dask", "networkx", "rich")  # fmt: skip
 
 
@@ -59,7 +57,7 @@ def stage(tmp_path_factory) -> Path:
 def test_startup_loads_only_what_the_mode_needs(stage, tmp_path):
     """``import phrt_usd.cli`` (every command's start, ``--help`` included) loads none of
     HEAVY, ``import phrt_usd.api`` only the image library, and an ``rt`` render adds
-    Embree but no OpenGL, pyrender or its trimesh / networkx (no raster phase:
+    Embree but no OpenGL, pyrender or its trimesh / scipy / networkx (no raster phase:
     no GL context, ``gl`` None): the rest is imported by the parts that need it."""
     done = _python(f"""
         import json, sys
