@@ -6,11 +6,10 @@ reflections). Importing the package registers the Phrt USD schema plugin.
 docs/api.md)."""
 
 import os
-import types
 
 # pyrender/PyOpenGL pick their platform at import time: headless OSMesa unless the user
 # chose otherwise (what they chose, if anything, is kept for ``--gl auto``:
-# phrt_usd.render.raster.gl_platform).
+# phrt_usd.engine.raster.gl_platform).
 USER_GL_PLATFORM = os.environ.get("PYOPENGL_PLATFORM")
 os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
 
@@ -41,10 +40,10 @@ if not Usd.SchemaRegistry().FindAppliedAPIPrimDefinition("PhrtReflectorAPI"):
 
 # The Python API (phrt_usd.api) is imported on first use, so that `import phrt_usd` (the CLI
 # does it first) stays cheap and never loads OpenGL or Embree (PEP 562).
-_API_NAMES = ("open", "RenderResult", "Renderer", "render_options")
+_API_NAMES = ("render", "open", "RenderResult", "Renderer", "render_options")
 
 if TYPE_CHECKING:
-    from phrt_usd.api import Renderer, RenderResult, open, render_options  # noqa: F401
+    from phrt_usd.api import Renderer, RenderResult, open, render, render_options  # noqa: F401
 
 
 def __getattr__(name: str):
@@ -57,20 +56,3 @@ def __getattr__(name: str):
 
 def __dir__() -> list[str]:
     return sorted({*globals(), *_API_NAMES})
-
-
-class _CallableRenderPackage(types.ModuleType):
-    """``phrt_usd.render`` names the renderer subpackage (``render/``) too, and Python binds
-    a subpackage over any package attribute of its name: so the subpackage itself is made
-    callable, as ``phrt_usd.api.render``."""
-
-    def __call__(self, *args, **kwargs):
-        from phrt_usd.api import render
-
-        return render(*args, **kwargs)
-
-
-from phrt_usd import render as _render_package  # noqa: E402  (cheap: imports nothing)
-
-_render_package.__class__ = _CallableRenderPackage
-del _render_package

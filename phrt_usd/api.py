@@ -16,10 +16,10 @@ Options (``**options``; ``None`` means "not given": the stage's render settings 
 ``selection_weight``, ``threads`` (1..1024, default: the cores this process may use; every
 pool, llvmpipe, OpenBLAS, numba: ``phrt_usd.threads``), ``gl`` (``auto`` | ``egl`` |
 ``osmesa``: the raster phase's OpenGL platform,
-``phrt_usd.render.raster.gl_platform``), ``primary`` (``auto`` | ``raster`` | ``rays``: the
+``phrt_usd.engine.raster.gl_platform``), ``primary`` (``auto`` | ``raster`` | ``rays``: the
 G-buffer's source), ``trace_density`` (``full`` | ``half`` | ``quarter``: the pixels of a
 traced reflector
-that start rays, ``phrt_usd.render.trace.sparse_pixels``), ``exposure`` (EV, default 0.0:
+that start rays, ``phrt_usd.engine.trace.sparse_pixels``), ``exposure`` (EV, default 0.0:
 every image's radiance times 2**exposure, EXR included) (the ``RenderOptions`` fields),
 and for ``render`` the ``RenderJob`` fields ``camera``, ``selection_layer``, ``resume``,
 ``overwrite``, ``write_images``, ``checkpoint_every``; ``strict`` (an unreadable texture
@@ -53,13 +53,13 @@ from typing import Any
 import numpy as np
 from pxr import Usd
 
+from phrt_usd.engine.primary_source import check_primary
+from phrt_usd.engine.raster.gl_platform import check_gl
+from phrt_usd.engine.renderer import FrameOutput, FrameRenderer, RenderOptions
 from phrt_usd.errors import BadOption, PhrtError
 from phrt_usd.evaluate.report import build_report
 from phrt_usd.model.frame import FrameStats
 from phrt_usd.model.trace_density import check_density
-from phrt_usd.render.primary_source import check_primary
-from phrt_usd.render.raster.gl_platform import check_gl
-from phrt_usd.render.renderer import FrameOutput, FrameRenderer, RenderOptions
 from phrt_usd.run.frame_reader import read_frame_files
 from phrt_usd.run.frames import SAME_FRAME, parse_frames
 from phrt_usd.run.products import ImagePlan

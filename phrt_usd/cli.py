@@ -641,6 +641,7 @@ def sweep(
     resolution: per
     frame FLIP, PSNR, the temporal error (popping) and transitions; writes sweep.csv,
     provenance.json, summary.md, error_vs_time.png and report.html."""
+    from phrt_usd.engine.raster.gl_platform import check_gl
     from phrt_usd.evaluate.sweep import (
         SweepSpec,
         interruption_note,
@@ -651,7 +652,6 @@ def sweep(
     )
     from phrt_usd.evaluate.sweep_output import claim_sweep_out
     from phrt_usd.model.trace_density import check_density
-    from phrt_usd.render.raster.gl_platform import check_gl
     from phrt_usd.threads import parse_threads
     from phrt_usd.usd.schema import read_render_params
 

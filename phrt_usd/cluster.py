@@ -199,7 +199,7 @@ def sweep_chunk(chunk: Chunk, spec: SweepSpec) -> SweepChunkResult:
 def render_chunk(chunk: Chunk, job: RenderJob) -> RenderChunkResult:
     """On a worker: render the chunk's frames (warm-up first); recorded frames' images go
     to ``job.out_dir`` when ``job.write_images``."""
-    from phrt_usd.render.renderer import FrameRenderer
+    from phrt_usd.engine.renderer import FrameRenderer
     from phrt_usd.run.frames import parse_frames
     from phrt_usd.run.render_job import prepare_job, render_frame, runtime_settings
     from phrt_usd.usd.stage import open_stage

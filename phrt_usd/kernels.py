@@ -47,8 +47,8 @@ from numba.core import caching
 #: Modules holding numba kernels, each with a ``warm_up()``.
 KERNEL_MODULES = (
     "phrt_usd.model.surface_kernels",
-    "phrt_usd.render.trace.trace_kernels",
-    "phrt_usd.render.shade_kernels",
+    "phrt_usd.engine.trace.trace_kernels",
+    "phrt_usd.engine.shade_kernels",
 )
 #: Sources the compiled kernels depend on (the kernels and the constants they read):
 #: their hash names the cache directory.
@@ -56,7 +56,7 @@ SOURCE_MODULES = (
     *KERNEL_MODULES,
     "phrt_usd.model.surface",
     "phrt_usd.model.scene",
-    "phrt_usd.render.trace.bounce_layout",
+    "phrt_usd.engine.trace.bounce_layout",
     "phrt_usd.kernels",
 )
 #: The numba options of every kernel (``@njit(**KERNEL_OPTIONS)``); ``cache`` puts the

@@ -1,5 +1,5 @@
 """The numpy forms of the trace phase's per-ray code, kept as the reference the compiled
-kernels (``phrt_usd.render.trace.trace_kernels``) are tested against: the bounce loop,
+kernels (``phrt_usd.engine.trace.trace_kernels``) are tested against: the bounce loop,
 its gather and records (``NumpyPathTracer``), and the first rays from G-buffer pixels
 (``numpy_first_rays``), as they were before the kernels replaced them."""
 
@@ -9,9 +9,9 @@ import time
 
 import numpy as np
 
+from phrt_usd.engine import shading
+from phrt_usd.engine.trace.paths import PathTracer, refract, unit
 from phrt_usd.model.frame import ReflectionResult, TraceRecord
-from phrt_usd.render import shading
-from phrt_usd.render.trace.paths import PathTracer, refract, unit
 
 
 class NumpyPathTracer(PathTracer):

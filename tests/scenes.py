@@ -383,7 +383,7 @@ def shaded_both_ways(pos, nrm, albedo, view, lights: Lights, vis, terms):
     """``shading.shade_local`` of points (n, 3 each) from a visibility matrix ``vis``
     (n, L) and from the shadow maps' light ``terms`` (``Rasterizer.light_terms``): the
     two (n, 3) radiances, which must agree."""
-    from phrt_usd.render import shading
+    from phrt_usd.engine import shading
 
     expected = shading.shade_local(pos, nrm, albedo, view, np.zeros(3), lights, vis)
     got = shading.shade_local(

@@ -1,5 +1,5 @@
-"""The numpy reference of the compiled shading kernels (``phrt_usd.render.shading``,
-``phrt_usd.render.compositing``): the vectorised code the kernels replaced, kept as the
+"""The numpy reference of the compiled shading kernels (``phrt_usd.engine.shading``,
+``phrt_usd.engine.compositing``): the vectorised code the kernels replaced, kept as the
 specification they are tested against (``tests/test_shading_kernels.py``). Same
 arguments, shapes and coordinate spaces as the functions they mirror (``shade_chunk`` is
 one ``shade_local`` chunk).
@@ -9,9 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from phrt_usd.model.frame import GBuffer
-from phrt_usd.model.scene import DEFAULT_ENVIRONMENT, Lights, LocalLight, Scene
-from phrt_usd.render.shading import (
+from phrt_usd.engine.shading import (
     MIN_LIGHT_DISTANCE,
     SHININESS,
     SPECULAR_STRENGTH,
@@ -20,6 +18,8 @@ from phrt_usd.render.shading import (
     light_ranges,
     shaped_lights,
 )
+from phrt_usd.model.frame import GBuffer
+from phrt_usd.model.scene import DEFAULT_ENVIRONMENT, Lights, LocalLight, Scene
 
 _MIN_DIRECTION_LENGTH = 1e-30
 _SHININESS_SQUARINGS = (

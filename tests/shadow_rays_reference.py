@@ -7,9 +7,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from phrt_usd.engine import shading
+from phrt_usd.engine.trace.bvh import FAR
 from phrt_usd.model.scene import Lights
-from phrt_usd.render import shading
-from phrt_usd.render.trace.bvh import FAR
 
 
 def cast(self, rel, offset_normals, shading_normals, lights: Lights, pairs=None, threads=None):

@@ -1,6 +1,6 @@
 """HEU3 (select/benefit_policy.py): selection by learned error removed per predicted ray,
 its prior from V and K, HEU1's hysteresis, its memory as JSON, the renderer's observation
-of what tracing changed (render/compositing.py ``observe_fallback_error``) and a render
+of what tracing changed (engine/compositing.py ``observe_fallback_error``) and a render
 through the CLI."""
 
 from __future__ import annotations
@@ -15,9 +15,9 @@ from test_heuristic import element, policy_of, scene, view
 from typer.testing import CliRunner
 
 from phrt_usd.cli import app
+from phrt_usd.engine.renderer import FrameRenderer, RenderOptions
 from phrt_usd.errors import PhrtError
 from phrt_usd.model.frame import Budget, TraceRecord
-from phrt_usd.render.renderer import FrameRenderer, RenderOptions
 from phrt_usd.select.benefit_policy import KEEP_GAIN, PRIOR_SCALE_INITIAL, Heu3Policy
 from phrt_usd.usd.schema import DEFAULT_SELECTION_WEIGHT
 from phrt_usd.usd.stage import open_stage

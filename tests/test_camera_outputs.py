@@ -19,9 +19,9 @@ import numpy as np
 import pytest
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux, UsdRender
 
+from phrt_usd.engine.renderer import RenderOptions
 from phrt_usd.errors import PhrtError
 from phrt_usd.model.scene import CameraFrame
-from phrt_usd.render.renderer import RenderOptions
 from phrt_usd.run import render_job
 from phrt_usd.run.images import element_ids, read_exr, read_manifest, read_preview_png
 from phrt_usd.run.render_job import RenderJob, prepare_job, render_to_directory

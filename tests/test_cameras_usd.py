@@ -20,12 +20,12 @@ import pytest
 from pxr import Gf, Usd, UsdGeom, UsdRender
 from scenes import mirror_floor_stage
 
+from phrt_usd.engine.raster.rasterizer import Rasterizer
+from phrt_usd.engine.renderer import FrameRenderer, RenderOptions
+from phrt_usd.engine.trace.tracer import Tracer
 from phrt_usd.errors import BadOption, PhrtError
 from phrt_usd.model.scene import CameraFrame
 from phrt_usd.pytest_plugin import assert_images_close
-from phrt_usd.render.raster.rasterizer import Rasterizer
-from phrt_usd.render.renderer import FrameRenderer, RenderOptions
-from phrt_usd.render.trace.tracer import Tracer
 from phrt_usd.usd.default_camera import FOCAL_LENGTH, VERTICAL_APERTURE
 from phrt_usd.usd.stage import choose_camera, read_stage
 

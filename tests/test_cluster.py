@@ -40,9 +40,9 @@ from phrt_usd.cluster_client import (
     scheduler_warning,
     tls_client_configured,
 )
+from phrt_usd.engine.renderer import RenderOptions
 from phrt_usd.errors import BadOption, PhrtError
 from phrt_usd.evaluate.sweep import SweepSpec, run_sweep
-from phrt_usd.render.renderer import RenderOptions
 from phrt_usd.run.render_job import RenderJob
 from phrt_usd.run.selection_layer import read_selection_record
 

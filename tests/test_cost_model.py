@@ -11,8 +11,8 @@ import pytest
 from scenes import mirror_gallery_stage
 
 from phrt_usd.api import run_render
+from phrt_usd.engine.renderer import RenderOptions
 from phrt_usd.errors import PhrtError
-from phrt_usd.render.renderer import RenderOptions
 from phrt_usd.run.render_job import RenderJob
 from phrt_usd.select.cost_model import JITTER_WINDOW, TraceTimeModel
 

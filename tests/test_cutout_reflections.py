@@ -18,7 +18,7 @@ import pytest
 from pxr import Sdf, Usd, UsdGeom, UsdLux, UsdShade
 from test_cutouts import HEIGHT, QUAD, WALL, WIDTH, _half_alpha, _material, _quad, _texture
 
-from phrt_usd.render.renderer import FrameRenderer, RenderOptions
+from phrt_usd.engine.renderer import FrameRenderer, RenderOptions
 from phrt_usd.usd import schema
 from phrt_usd.usd.stage import read_stage
 

@@ -19,7 +19,7 @@ import OpenImageIO as oiio
 import pytest
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux, UsdShade
 
-from phrt_usd.render.renderer import FrameRenderer, RenderOptions
+from phrt_usd.engine.renderer import FrameRenderer, RenderOptions
 from phrt_usd.usd.stage import read_stage
 
 WIDTH, HEIGHT = 96, 72
@@ -208,7 +208,7 @@ def test_id_layers_give_the_id_pass_ids(tmp_path):
     cut-out scene without holes (alpha 1 everywhere) draws its first layer through
     cutout_layers.IdLayers, the same scene without opacityThreshold through the id
     pass; every pixel's triangle id is the same (exact integers)."""
-    from phrt_usd.render.raster.rasterizer import Rasterizer
+    from phrt_usd.engine.raster.rasterizer import Rasterizer
 
     ids = {}
     for threshold in (0.5, 0.0):

@@ -1,11 +1,11 @@
-"""The frame's per-pixel figures (``phrt_usd.render.frame_pixels``) against the numpy
+"""The frame's per-pixel figures (``phrt_usd.engine.frame_pixels``) against the numpy
 code they replaced (kept here as the reference)."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from phrt_usd.render.frame_pixels import clipped_share, screen_boxes
+from phrt_usd.engine.frame_pixels import clipped_share, screen_boxes
 
 
 def _reference_boxes(element_id, reflector_ids, n):

@@ -1,4 +1,4 @@
-"""Rasterized G-buffer (phrt_usd.render.raster.gbuffer) against Embree primary and shadow rays.
+"""Rasterized G-buffer (phrt_usd.engine.raster.gbuffer) against Embree primary and shadow rays.
 
 Scenes are built here from trimesh primitives (no USD). Reference rays go through the
 same pixel centres (``CameraFrame.pixel_rays``), float32 after subtracting
@@ -18,11 +18,11 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scenes import box, look_at, parts_scene, shaded_both_ways, sphere
 
+from phrt_usd.engine.raster.rasterizer import Rasterizer
 from phrt_usd.errors import PhrtError
 from phrt_usd.model.frame import GBuffer
 from phrt_usd.model.scene import CameraFrame, DistantLight, Lights, Scene
 from phrt_usd.model.surface import sample_bilinear_wrap
-from phrt_usd.render.raster.rasterizer import Rasterizer
 
 W, H = 320, 240
 #: Required share of covered pixels whose element id matches Embree (docs/design.md §3).
@@ -390,7 +390,7 @@ def test_update_geometry_moves_prims_and_invalidates_shadows(animated, tmp_path)
 def test_box_extremum_matches_a_window_reference():
     """Against the plain definition (scipy.ndimage's ``minimum_filter`` with ``mode="nearest"``):
     the extremum over the (2r+1)^2 window, the edge pixels repeated outwards."""
-    from phrt_usd.render.raster.shadow_maps import _box_extremum
+    from phrt_usd.engine.raster.shadow_maps import _box_extremum
 
     a = np.random.default_rng(1).random((37, 23)).astype(np.float32)
     a[a > 0.9] = np.inf
@@ -550,9 +550,9 @@ def test_local_light_cube_shadows_match_shadow_rays(offset, tmp_path):
     most of the floor, the GPU lookup agrees with its numpy reference, and with
     ``refine`` resolving the uncertain pairs the answer is (nearly) exact. Pairs out
     of the light's range or facing away get 0, as the tracer reports them."""
+    from phrt_usd.engine import shading
+    from phrt_usd.engine.trace.tracer import Tracer
     from phrt_usd.model.scene import LocalLight
-    from phrt_usd.render import shading
-    from phrt_usd.render.trace.tracer import Tracer
 
     light = LocalLight(np.array([0.6, 3.5, 0.4]) + offset, np.full(3, 20.0))
     far_light = LocalLight(np.array([0.0, 1.0, -30.0]) + offset, np.full(3, 0.02))
@@ -616,8 +616,8 @@ def test_gpu_light_terms_shade_like_the_visibility_matrix(use_refine, with_local
     ``lit_sums``) give the same colours as the (n, L) visibility matrix shaded in
     numpy: a DistantLight with and without LocalLights, with and without shadow-ray
     refinement."""
+    from phrt_usd.engine.trace.tracer import Tracer
     from phrt_usd.model.scene import LocalLight
-    from phrt_usd.render.trace.tracer import Tracer
 
     lights = Lights(
         distant=[DistantLight(np.array([0.3, 1.0, 0.2]), np.array([0.8, 0.8, 0.7]))],
@@ -693,7 +693,7 @@ def test_local_light_animated_caster_updates_its_cube_only():
 def test_corner_index_finds_the_triangles_of_moved_vertices(n_vertices, n_triangles, seed):
     """CornerIndex.triangles_of (O(moved corners)) equals the pass over every triangle it
     replaces, for any topology (shared, isolated and unused vertices) and subset."""
-    from phrt_usd.render.raster.context import CornerIndex
+    from phrt_usd.engine.raster.context import CornerIndex
 
     rng = np.random.default_rng(seed)
     triangles = rng.integers(0, n_vertices, size=(n_triangles, 3))

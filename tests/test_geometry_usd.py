@@ -11,7 +11,7 @@ import pytest
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux, UsdRender, UsdSkel, Vt
 
 import phrt_usd  # noqa: F401  (registers the schema)
-from phrt_usd.render.renderer import FrameRenderer, RenderOptions
+from phrt_usd.engine.renderer import FrameRenderer, RenderOptions
 from phrt_usd.usd import schema
 from phrt_usd.usd.stage import read_stage
 from phrt_usd.usd.traversal import subdivided_meshes

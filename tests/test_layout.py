@@ -18,16 +18,16 @@ PHASES = {
     "model": 1,
     "usd": 2,
     "select": 3,
-    "render": 4,
+    "engine": 4,
     "bench": 5,
     "run": 5,
     "evaluate": 6,
 }
 TOP = 7
-#: The package root's facade, the one exception: ``phrt_usd.render(...)`` (the renderer
-#: subpackage, made callable) and ``phrt_usd.open(...)`` forward to the top-level API,
-#: which is imported on first use (PEP 562), never when the package is.
-ROOT_FACADE = ("phrt_usd.api", "phrt_usd.render")
+#: The package root's facade, the one exception: ``phrt_usd.render(...)`` and
+#: ``phrt_usd.open(...)`` forward to the top-level API, which is imported on first use
+#: (PEP 562), never when the package is.
+ROOT_FACADE = ("phrt_usd.api",)
 #: Reading limits (lines): a module a stranger reads in one go, a class one role wide.
 MAX_MODULE_LINES = 800
 MAX_CLASS_LINES = 450

@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 from scenes import box, parts_scene, shaded_both_ways
 
+from phrt_usd.engine import shading
+from phrt_usd.engine.raster.rasterizer import Rasterizer
 from phrt_usd.model.scene import Lights, LocalLight
-from phrt_usd.render import shading
-from phrt_usd.render.raster.rasterizer import Rasterizer
 
 if os.environ.get("PYOPENGL_PLATFORM", "osmesa") != "osmesa":  # pragma: no cover
     pytestmark = pytest.mark.skip("these tests expect the OSMesa platform")
@@ -97,7 +97,7 @@ def test_float32_rows_are_sent_as_they_are():
     """Normals and view directions that already are the texture (float32 rows, as many
     as the texture's texels: a fully covered frame) are uploaded without packing, with
     the same results as float64 ones that are packed."""
-    from phrt_usd.render.raster import light_pass
+    from phrt_usd.engine.raster import light_pass
 
     light = LocalLight(np.array([0.0, 2.0, 0.0]), np.full(3, 2.0))
     parts = [

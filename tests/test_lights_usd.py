@@ -8,7 +8,7 @@ z = 2 looking down -Z (focal 20 over a 20 x 15 aperture: the view spans x +-1 m,
 y +-0.75 m at the square, so the square fills the W x H = 32 x 24 frame). Pixel
 (row, col) sees the square at x = ((col + 0.5) / 16 - 1) m, y = (1 - (row + 0.5) / 12)
 x 0.75 m. Unless a test says otherwise a black dome (intensity 0) removes the ambient
-term, so a pixel is the direct light alone: Lambert without 1/pi (render/shading.py:
+term, so a pixel is the direct light alone: Lambert without 1/pi (engine/shading.py:
 albedo x E x n.l) plus the white highlight 0.25 x E x (n.h)^64.
 """
 
@@ -24,9 +24,9 @@ from typer.testing import CliRunner
 
 import phrt_usd
 from phrt_usd.cli import app
+from phrt_usd.engine.renderer import FrameRenderer, RenderOptions
+from phrt_usd.engine.shading import environment_radiance
 from phrt_usd.evaluate.sweep import SweepSpec, run_sweep
-from phrt_usd.render.renderer import FrameRenderer, RenderOptions
-from phrt_usd.render.shading import environment_radiance
 from phrt_usd.run.images import read_frame_exr
 from phrt_usd.usd import schema
 from phrt_usd.usd.blackbody import REC709_LUMINANCE, blackbody_rec709, blackbody_xyz
@@ -194,7 +194,7 @@ def test_normalize_keeps_an_area_light_size_independent_and_off_it_grows_with_ar
 
 def _point_lit_centre(intensity: float) -> float:
     """The centre pixel lit by a point of ``intensity`` 1 m above the origin, by the
-    model of render/shading.py: albedo x E + 0.25 x E x (n.h)^64, E = I x n.l / d² x
+    model of engine/shading.py: albedo x E + 0.25 x E x (n.h)^64, E = I x n.l / d² x
     the range window (1 - (d / r)^4)^2, r = sqrt(I / 0.02)."""
     point = np.array([0.03125, -0.03125, 0.0])
     to_light, to_eye = np.array([0, 0, 1.0]) - point, np.array([0, 0, 2.0]) - point

@@ -7,8 +7,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from phrt_usd.render.raster.light_pass import LOOKUP_LIGHTS_PER_PASS
-from phrt_usd.render.shade_kernels import lights_reaching, lit_local_pairs, undecided_rows
+from phrt_usd.engine.raster.light_pass import LOOKUP_LIGHTS_PER_PASS
+from phrt_usd.engine.shade_kernels import lights_reaching, lit_local_pairs, undecided_rows
 
 
 def _reference_undecided(bits, n_local, active, gpu_distant, distant_unsure):
@@ -108,10 +108,10 @@ def test_lights_out_of_reach_are_left_out_and_shading_is_unchanged(monkeypatch):
     visibility matrix in numpy."""
     from scenes import box, look_at, parts_scene
 
+    from phrt_usd.engine import shading
+    from phrt_usd.engine.raster import map_lighting
+    from phrt_usd.engine.raster.rasterizer import Rasterizer
     from phrt_usd.model.scene import Lights, LocalLight
-    from phrt_usd.render import shading
-    from phrt_usd.render.raster import map_lighting
-    from phrt_usd.render.raster.rasterizer import Rasterizer
 
     lights = Lights(
         local=[

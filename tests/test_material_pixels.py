@@ -15,7 +15,7 @@ import pytest
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux, UsdRender, UsdShade, UsdUtils
 from test_materials_usd import _png  # a 4 x 4 8-bit PNG of one colour
 
-from phrt_usd.render.renderer import FrameRenderer, RenderOptions
+from phrt_usd.engine.renderer import FrameRenderer, RenderOptions
 from phrt_usd.usd.stage import read_stage
 
 W = H = 16

@@ -11,16 +11,16 @@ from typer.testing import CliRunner
 
 import phrt_usd
 from phrt_usd.cli import app
-from phrt_usd.errors import BadOption
-from phrt_usd.pytest_plugin import assert_images_close
-from phrt_usd.render.primary_source import (
+from phrt_usd.engine.primary_source import (
     RAYS_TRIANGLES_PER_PIXEL,
     check_primary,
     choose,
     is_software,
 )
-from phrt_usd.render.raster.rasterizer import Rasterizer
-from phrt_usd.render.renderer import FrameRenderer, RenderOptions
+from phrt_usd.engine.raster.rasterizer import Rasterizer
+from phrt_usd.engine.renderer import FrameRenderer, RenderOptions
+from phrt_usd.errors import BadOption
+from phrt_usd.pytest_plugin import assert_images_close
 from phrt_usd.usd.stage import open_stage
 
 #: Covered pixels whose element id must agree between the two sources: the raster's

@@ -21,8 +21,8 @@ import pytest
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdRender
 from scenes import SPHERE_CENTER, SPHERE_RADIUS, _look_at_matrix, mirror_floor_stage
 
+from phrt_usd.engine.renderer import RenderOptions
 from phrt_usd.errors import BadOption, PhrtError
-from phrt_usd.render.renderer import RenderOptions
 from phrt_usd.run.images import ID_BACKGROUND, element_ids, read_exr, read_manifest
 from phrt_usd.run.products import (
     expand,

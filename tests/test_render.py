@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 from scenes import mirror_floor_stage, mirror_gallery_stage, mirrored_sphere_pixels
 
+from phrt_usd.engine.renderer import FrameRenderer, RenderOptions
 from phrt_usd.errors import PhrtError
 from phrt_usd.pytest_plugin import assert_images_close
-from phrt_usd.render.renderer import FrameRenderer, RenderOptions
 from phrt_usd.run.images import write_preview_png
 from phrt_usd.usd.stage import open_stage
 

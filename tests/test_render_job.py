@@ -17,7 +17,7 @@ from pxr import Sdf, Usd
 from scenes import mirror_gallery_stage
 
 from phrt_usd.api import run_render
-from phrt_usd.render.renderer import RenderOptions
+from phrt_usd.engine.renderer import RenderOptions
 from phrt_usd.run.frames import parse_frames
 from phrt_usd.run.render_job import RenderJob
 from phrt_usd.run.selection_layer import read_selection

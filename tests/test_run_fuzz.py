@@ -21,9 +21,9 @@ from hypothesis import strategies as st
 from scenes import mirror_gallery_stage
 
 from phrt_usd.api import run_render
+from phrt_usd.engine.renderer import RenderOptions
 from phrt_usd.errors import PhrtError
 from phrt_usd.evaluate.report import build_report
-from phrt_usd.render.renderer import RenderOptions
 from phrt_usd.run.frames import parse_frames
 from phrt_usd.run.render_job import RenderJob, _load_checkpoint, job_run_info
 from phrt_usd.run.run_files import CHECKPOINT_FILE

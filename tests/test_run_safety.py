@@ -23,8 +23,8 @@ from test_render_job import _check_readable
 
 from phrt_usd.api import run_render
 from phrt_usd.atomic import WriteFailed, write_text_atomic
+from phrt_usd.engine.renderer import RenderOptions
 from phrt_usd.errors import BadOption, PhrtError
-from phrt_usd.render.renderer import RenderOptions
 from phrt_usd.run.render_job import RenderJob
 from phrt_usd.run.run_directory import DirectoryLock
 from phrt_usd.run.run_files import CHECKPOINT_FILE, LOCK_FILE, RESERVE_FILE

@@ -1,4 +1,4 @@
-"""Tests of the shared local shading model (phrt_usd.render.shading)."""
+"""Tests of the shared local shading model (phrt_usd.engine.shading)."""
 
 from __future__ import annotations
 
@@ -7,9 +7,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from phrt_usd.engine import shading
 from phrt_usd.model import surface
 from phrt_usd.model.scene import DEFAULT_ENVIRONMENT, DistantLight, DomeLight, Lights, LocalLight
-from phrt_usd.render import shading
 
 UP = np.array([[0.0, 1.0, 0.0]])
 DOWN = -UP

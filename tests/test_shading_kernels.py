@@ -1,4 +1,4 @@
-"""The compiled shading kernels (``phrt_usd.render.shading``) against their numpy
+"""The compiled shading kernels (``phrt_usd.engine.shading``) against their numpy
 reference (``tests/shading_reference.py``, the vectorised code they replaced): the same
 model on random points, lights of every kind, every optional input, and extreme values.
 
@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 import shading_reference as ref
 
+from phrt_usd.engine import shading
 from phrt_usd.model.scene import DistantLight, DomeLight, Lights, LocalLight
-from phrt_usd.render import shading
 
 RTOL, ATOL = 1e-5, 1e-6
 
@@ -194,9 +194,9 @@ def test_window_and_cone_kernels_match_numpy_reference():
 def test_base_image_kernel_matches_numpy_reference(dome):
     """The raster frame (environment behind uncovered pixels, mirrored in reflectors)
     against the numpy reference, on a random G-buffer."""
+    from phrt_usd.engine import compositing
     from phrt_usd.model.frame import GBuffer
     from phrt_usd.model.scene import Scene
-    from phrt_usd.render import compositing
 
     rng = np.random.default_rng(4)
     h, w = 24, 32

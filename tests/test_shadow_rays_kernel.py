@@ -15,9 +15,9 @@ import pytest
 import shadow_rays_reference as ref
 from scenes import box_between, parts_scene
 
+from phrt_usd.engine import shading
+from phrt_usd.engine.trace.tracer import Tracer
 from phrt_usd.model.scene import DistantLight, Lights, LocalLight
-from phrt_usd.render import shading
-from phrt_usd.render.trace.tracer import Tracer
 
 
 def _setup():

@@ -1,4 +1,4 @@
-"""Reduced-density tracing (``render/trace/sparse_pixels.py``, ``--trace-density
+"""Reduced-density tracing (``engine/trace/sparse_pixels.py``, ``--trace-density
 half|quarter|sixteenth``): which pixels start rays, how the others are filled, and what the tracer
 and the run report."""
 
@@ -18,11 +18,11 @@ from typer.testing import CliRunner
 
 import phrt_usd
 from phrt_usd.cli import app
+from phrt_usd.engine.renderer import RenderOptions
+from phrt_usd.engine.trace.sparse_pixels import PATTERN_SPACING, fill_skipped, traced_subset
+from phrt_usd.engine.trace.tracer import Tracer
 from phrt_usd.errors import BadOption
 from phrt_usd.model.trace_density import SPARSE_MIN_PIXELS, check_density
-from phrt_usd.render.renderer import RenderOptions
-from phrt_usd.render.trace.sparse_pixels import PATTERN_SPACING, fill_skipped, traced_subset
-from phrt_usd.render.trace.tracer import Tracer
 
 
 def _pattern(row, col, density):

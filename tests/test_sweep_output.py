@@ -23,10 +23,10 @@ import pytest
 from scenes import mirror_gallery_stage
 
 import phrt_usd
+from phrt_usd.engine.renderer import CALIBRATION_SEED
 from phrt_usd.errors import BadOption
 from phrt_usd.evaluate.image_metrics import FLIP_VIEWING
 from phrt_usd.evaluate.sweep_output import SweepDirectory, clear
-from phrt_usd.render.renderer import CALIBRATION_SEED
 
 CLI = [sys.executable, "-m", "typer", "phrt_usd.cli", "run"]
 #: A sweep small enough for a test: every configuration of two heuristics at a time and a

@@ -11,9 +11,9 @@ from scenes import mirror_gallery_stage
 from test_heuristic import element, scene, view
 
 from phrt_usd.api import render_options
+from phrt_usd.engine.renderer import TARGET_FPS_MARGIN, RenderOptions, target_fps_budget_ms
 from phrt_usd.errors import BadOption
 from phrt_usd.model.frame import Budget, TraceRecord
-from phrt_usd.render.renderer import TARGET_FPS_MARGIN, RenderOptions, target_fps_budget_ms
 from phrt_usd.select.policies import make_policy
 from phrt_usd.usd.stage import open_usd
 

@@ -19,6 +19,7 @@ import numpy as np
 import OpenImageIO as oiio
 import pytest
 
+from phrt_usd.engine.renderer import FrameRenderer, RenderOptions
 from phrt_usd.errors import BadOption, PhrtError
 from phrt_usd.evaluate.image_metrics import flip_map, mean_over
 from phrt_usd.evaluate.sweep import (
@@ -41,7 +42,6 @@ from phrt_usd.evaluate.temporal_error import (
     temporal_error_map,
     temporal_filters,
 )
-from phrt_usd.render.renderer import FrameRenderer, RenderOptions
 from phrt_usd.select.policies import make_policy
 from phrt_usd.usd.stage import open_stage
 

@@ -161,7 +161,7 @@ def test_scale_bias_and_missing_alpha(tmp_path):
 def test_textured_emission_adds_its_texel_to_the_pixel(tmp_path, mode):
     """emissiveColor from the halves texture: the red half emits (1, 0, 0), the green
     half (0, 1, 0); the beauty minus the same stage's without emission is exactly the
-    texel (emission is added to the shaded colour, render/shading.py)."""
+    texel (emission is added to the shaded colour, engine/shading.py)."""
     stage, surf = _stage(tmp_path)
     stage.GetRootLayer().Save()
     plain, camera = _render(stage, mode)

@@ -21,8 +21,8 @@ from typer.testing import CliRunner
 
 from phrt_usd.api import render_options
 from phrt_usd.cli import app
+from phrt_usd.engine.raster.gl_platform import egl_problem
 from phrt_usd.errors import BadOption
-from phrt_usd.render.raster.gl_platform import egl_problem
 from phrt_usd.run.images import read_frame_exr
 
 REPO = Path(__file__).resolve().parent.parent
@@ -161,7 +161,7 @@ def test_threads_and_gl_end_to_end(stage, tmp_path):
         s = result.summary
         print(json.dumps({{"threads": s["threads"], "gl": s["gl"],
                           "llvmpipe_threads": s["llvmpipe_threads"],
-                          "bvh": "phrt_usd.render.trace.bvh" in sys.modules}}))
+                          "bvh": "phrt_usd.engine.trace.bvh" in sys.modules}}))
     """)
     assert done.returncode == 0, done.stderr
     assert json.loads(done.stdout.splitlines()[-1]) == {
@@ -193,8 +193,8 @@ def test_threads_and_gl_end_to_end(stage, tmp_path):
 def test_shading_pool_follows_the_setting(monkeypatch):
     """Local shading splits a large batch over the process's setting (3 workers here,
     an uneven split on any machine) and gives the same pixels as one thread."""
+    from phrt_usd.engine import shading
     from phrt_usd.model.scene import DistantLight, Lights
-    from phrt_usd.render import shading
     from phrt_usd.threads import DEFAULT_THREADS, LOAD_TIME_VARIABLES, apply_threads
 
     for name in LOAD_TIME_VARIABLES:  # restored after the test

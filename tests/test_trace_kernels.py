@@ -1,4 +1,4 @@
-"""The compiled trace phase (``render/trace/trace_kernels.py``) against the numpy forms it
+"""The compiled trace phase (``engine/trace/trace_kernels.py``) against the numpy forms it
 replaced (``numpy_paths.py``): first rays, offsets, hit splitting, the bounce loop with
 its gather and records, on mirrors, glass, cut-outs and lights; finite for extreme
 inputs."""
@@ -12,12 +12,12 @@ from numpy_paths import numpy_first_rays, numpy_primary_gbuffer, numpy_trace_ref
 from scenes import box_between, look_at, parts_scene, sphere
 from test_cutout_reflections import _stage
 
+from phrt_usd.engine.trace import trace_kernels
+from phrt_usd.engine.trace.bounce_layout import T_SOURCES, TRI_COLUMNS, TRI_IOR, TRI_REFLECTOR
+from phrt_usd.engine.trace.bvh import GLOBAL_IDS, NO_ANIMATED, RAY_OFFSET_RELATIVE
+from phrt_usd.engine.trace.paths import refract
+from phrt_usd.engine.trace.tracer import Tracer
 from phrt_usd.model.scene import DistantLight, Lights, LocalLight
-from phrt_usd.render.trace import trace_kernels
-from phrt_usd.render.trace.bounce_layout import T_SOURCES, TRI_COLUMNS, TRI_IOR, TRI_REFLECTOR
-from phrt_usd.render.trace.bvh import GLOBAL_IDS, NO_ANIMATED, RAY_OFFSET_RELATIVE
-from phrt_usd.render.trace.paths import refract
-from phrt_usd.render.trace.tracer import Tracer
 from phrt_usd.usd.stage import read_stage
 
 
@@ -229,7 +229,7 @@ def test_primary_gbuffer_matches_numpy(offset, monkeypatch):
     the directions differ only by the order of the normalisation's rounding, so ids
     agree but for a few edge pixels and the rest to rounding; split over the pool (rows
     threshold lowered) the same bits as on one thread."""
-    import phrt_usd.render.trace.tracer as tracer_module  # noqa: PLC0415
+    import phrt_usd.engine.trace.tracer as tracer_module  # noqa: PLC0415
 
     scene = lit_scene(np.asarray(offset), glass=True)
     camera = look_at(np.array([0.0, 4.0, 7.0]) + offset, np.array([0.0, 0.5, 0.0]) + offset)
@@ -253,7 +253,7 @@ def test_primary_gbuffer_matches_numpy(offset, monkeypatch):
 
 
 def test_first_rays_split_over_the_pool_match_one_thread(monkeypatch):
-    import phrt_usd.render.trace.tracer as tracer_module  # noqa: PLC0415
+    import phrt_usd.engine.trace.tracer as tracer_module  # noqa: PLC0415
 
     scene = lit_scene()
     camera = look_at((0.0, 4.0, 7.0), (0.0, 0.5, 0.0))

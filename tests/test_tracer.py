@@ -11,9 +11,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scenes import box_between, look_at, parts_scene, sphere
 
+from phrt_usd.engine.trace.tracer import Tracer
 from phrt_usd.model.frame import GBuffer
 from phrt_usd.model.scene import DEFAULT_ENVIRONMENT, DistantLight, DomeLight, Lights, Scene
-from phrt_usd.render.trace.tracer import Tracer
 
 SKY = np.array([0.2, 0.4, 0.8])
 
@@ -208,7 +208,7 @@ def test_total_internal_reflection_and_no_refraction_work_when_opaque():
     tracer.trace_reflections(gb, [0, 1], 5)
     assert tracer.rays_cast["refraction"] == 0
     # Snell at grazing incidence from inside glass: beyond the critical angle, mirror.
-    from phrt_usd.render.trace.paths import refract as _refract
+    from phrt_usd.engine.trace.paths import refract as _refract
 
     d = np.array([[np.sin(1.0), np.cos(1.0), 0.0]])  # 57° > 41.8° critical, leaving
     out = _refract(d, np.array([[0.0, 1.0, 0.0]]), np.array([[0.0, 1.0, 0.0]]), np.array([1.5]))
@@ -219,7 +219,7 @@ def test_total_internal_reflection_and_no_refraction_work_when_opaque():
 
 
 def test_environment_up_reads_top_row():
-    from phrt_usd.render.shading import environment_radiance
+    from phrt_usd.engine.shading import environment_radiance
 
     tex = np.zeros((8, 16, 3), np.float32)
     tex[:4] = (0, 0, 1)
@@ -232,7 +232,7 @@ def test_environment_up_reads_top_row():
 @settings(max_examples=200, deadline=None)
 @given(st.lists(st.floats(allow_nan=False, allow_infinity=True, width=64), min_size=3, max_size=3))
 def test_environment_lookup_never_nan(direction):
-    from phrt_usd.render.shading import environment_radiance
+    from phrt_usd.engine.shading import environment_radiance
 
     tex = np.random.default_rng(0).random((6, 12, 3)).astype(np.float32)
     rot = np.array([[1.0, 0, 0], [0, 0, -1.0], [0, 1.0, 0]])  # a Z-up stage's dome
@@ -313,7 +313,7 @@ def test_grazing_shading_normals_follow_the_rasterizer_rule():
     """Where the interpolated normal faces along the view ray (strongly tilted corner
     normals seen at grazing angles), the tracer uses the geometric normal like the
     rasterizer does, instead of flipping the shading normal into the surface."""
-    from phrt_usd.render.raster.rasterizer import Rasterizer
+    from phrt_usd.engine.raster.rasterizer import Rasterizer
 
     floor = quad(20.0)
     scene = parts_scene([{"mesh": floor}])
@@ -339,8 +339,8 @@ def test_grazing_shading_normals_follow_the_rasterizer_rule():
 def test_shadow_rays_only_within_light_range_and_facing():
     """No shadow ray for a point beyond a LocalLight's range or behind its normal; such
     pairs report 0 (the light adds nothing there) and the rest are traced."""
+    from phrt_usd.engine import shading
     from phrt_usd.model.scene import LocalLight
-    from phrt_usd.render import shading
 
     intensity = 2.0
     light = LocalLight(np.array([0.0, 1.0, 0.0]), np.full(3, intensity))
@@ -523,7 +523,7 @@ def test_shading_split_over_threads_matches_one_thread(monkeypatch):
     counts and shadow visibility as on one thread (threshold lowered to force it). The
     chunks' shadow batches, cast side by side, are kept for the raw replay as one batch
     per query: the same batches as on one thread (``Bvh.merge_recorded``)."""
-    import phrt_usd.render.trace.shadow_rays as tracer_module
+    import phrt_usd.engine.trace.shadow_rays as tracer_module
     from phrt_usd.model.scene import LocalLight
 
     lights = Lights(

@@ -21,8 +21,8 @@ import statistics
 import sys
 from pathlib import Path
 
+from phrt_usd.engine.renderer import FrameRenderer, RenderOptions
 from phrt_usd.evaluate.provenance import collect_for_tool, provenance_line
-from phrt_usd.render.renderer import FrameRenderer, RenderOptions
 from phrt_usd.run.frames import parse_frames
 from phrt_usd.usd.stage import open_stage
 

@@ -79,7 +79,7 @@ def make_stage(path: Path, cells: int, frames: int, resolution: tuple[int, int])
 
 
 def bench(stage_path: Path, width: int, height: int, frames: int, threads: int | None):
-    from phrt_usd.render.renderer import FrameRenderer, RenderOptions
+    from phrt_usd.engine.renderer import FrameRenderer, RenderOptions
     from phrt_usd.usd.stage import open_stage
 
     t = time.perf_counter()

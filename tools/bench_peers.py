@@ -47,7 +47,7 @@ from pathlib import Path
 
 import numpy as np
 
-from phrt_usd.render.renderer import FrameRenderer, RenderOptions
+from phrt_usd.engine.renderer import FrameRenderer, RenderOptions
 from phrt_usd.run.frames import parse_frames
 from phrt_usd.usd.stage import StageScene, open_stage
 

@@ -26,8 +26,8 @@ import time
 from pathlib import Path
 
 from phrt_usd.bench.bench_stage import append_log
+from phrt_usd.engine.renderer import FrameRenderer, RenderOptions
 from phrt_usd.evaluate.provenance import collect_for_tool, provenance_line
-from phrt_usd.render.renderer import FrameRenderer, RenderOptions
 from phrt_usd.usd.stage import open_stage
 
 #: A round stands for a target batch size when its rays are within these factors of it.

@@ -22,8 +22,8 @@ import sys
 from pathlib import Path
 
 from phrt_usd.api import run_render
+from phrt_usd.engine.renderer import RenderOptions
 from phrt_usd.evaluate.report import build_report
-from phrt_usd.render.renderer import RenderOptions
 from phrt_usd.run.render_job import RenderJob
 from phrt_usd.usd.schema import read_render_params
 from phrt_usd.usd.stage import open_stage

@@ -30,11 +30,11 @@ from dataclasses import replace
 
 import numpy as np
 
+from phrt_usd.engine.compositing import apply_traced
+from phrt_usd.engine.renderer import FrameRenderer, RenderOptions
 from phrt_usd.evaluate.image_metrics import flip_map, mean_over
 from phrt_usd.evaluate.provenance import collect_for_tool, provenance_line
 from phrt_usd.evaluate.selection_metrics import transitions_per_frame
-from phrt_usd.render.compositing import apply_traced
-from phrt_usd.render.renderer import FrameRenderer, RenderOptions
 from phrt_usd.select.policies import make_policy
 from phrt_usd.usd.stage import open_stage
 

@@ -62,6 +62,12 @@ from types import SimpleNamespace
 import numpy as np
 
 from phrt_usd.atomic import atomic_path, write_bytes_atomic
+from phrt_usd.engine.renderer import (
+    CALIBRATION_PIXELS,
+    CALIBRATION_REPEATS,
+    FrameRenderer,
+    RenderOptions,
+)
 from phrt_usd.errors import PhrtError
 from phrt_usd.evaluate.image_metrics import flip_map
 from phrt_usd.evaluate.selection_metrics import (
@@ -72,12 +78,6 @@ from phrt_usd.evaluate.selection_metrics import (
 from phrt_usd.model.frame import Budget, FrameView, TraceRecord
 from phrt_usd.model.scene import CameraFrame, DistantLight, LocalLight
 from phrt_usd.model.trace_density import traced_fraction
-from phrt_usd.render.renderer import (
-    CALIBRATION_PIXELS,
-    CALIBRATION_REPEATS,
-    FrameRenderer,
-    RenderOptions,
-)
 from phrt_usd.run.frames import parse_frames
 from phrt_usd.select.heu1_policy import UPCOMING_CAMERAS
 from phrt_usd.select.policies import AllPolicy, make_policy

@@ -14,7 +14,8 @@ same costs; real policies also plan with a safety factor on predicted rays, whic
 makes them more constrained. ``mean_selected`` defaults to HEU2's on the same budget
 (replayed), the constraint the brief puts on HEU1. Solved with scipy's HiGHS MILP.
 
-    uv run --with scipy python tools/transition_bound.py runs/replay/farm.json.gz --budgets 500,1000,2000,4000
+    uv run --with scipy python tools/transition_bound.py runs/replay/farm.json.gz \
+        --budgets 500,1000,2000,4000
 
 ``--max-transitions 2,4,9`` solves the other side of the trade instead: the most rays any
 selection traces (mean over frames with visible reflectors of traced rays / B, the

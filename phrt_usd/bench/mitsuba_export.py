@@ -26,7 +26,7 @@ What is exported (only what ``phrt_usd.model.scene.Scene`` holds, at its current
   work per path, which is what the benchmark times, is the same. F = 0 and F = 1 match
   exactly (``tests/test_mitsuba_export.py``).
 * **Lights**, scaled to our model's brightness. Our Lambert term has no 1/π (a white
-  surface facing a unit DistantLight shows 1.0, see ``phrt_usd.render.shading``); Mitsuba's
+  surface facing a unit DistantLight shows 1.0, see ``phrt_usd.engine.shading``); Mitsuba's
   diffuse BRDF is albedo/π, so irradiance / intensity are multiplied by π.
   DistantLight → ``directional`` (direction of travel = -direction towards the light),
   LocalLight → ``point`` (our tracer treats them as points too), DomeLight with a texture

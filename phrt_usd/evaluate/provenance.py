@@ -183,7 +183,7 @@ def machine() -> dict[str, Any]:
 def gl_settings(requested: str | None, renderer: str | None = None) -> dict[str, Any]:
     """The OpenGL platform asked for, the one it resolves to in this process (``egl`` or
     ``osmesa``; the loaded one once OpenGL is imported) and the ``GL_RENDERER``."""
-    from phrt_usd.render.raster.gl_platform import DEFAULT_GL, loaded_platform, resolve
+    from phrt_usd.engine.raster.gl_platform import DEFAULT_GL, loaded_platform, resolve
 
     requested = requested or DEFAULT_GL
     try:
@@ -216,7 +216,7 @@ def temporal_error_settings() -> dict[str, Any]:
 
 def seeds() -> dict[str, int]:
     """Every seed a render or sweep uses: the renderer's cost calibration sample."""
-    from phrt_usd.render.renderer import CALIBRATION_SEED
+    from phrt_usd.engine.renderer import CALIBRATION_SEED
 
     return {"calibration": CALIBRATION_SEED}
 

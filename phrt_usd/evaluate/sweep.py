@@ -43,6 +43,8 @@ from pathlib import Path
 import numpy as np
 
 from phrt_usd.atomic import write_text_atomic
+from phrt_usd.engine.raster.gl_platform import DEFAULT_GL
+from phrt_usd.engine.renderer import FrameOutput, FrameRenderer, RenderOptions
 from phrt_usd.errors import BadOption
 from phrt_usd.evaluate import provenance
 from phrt_usd.evaluate.image_metrics import flip_map, mean_over, psnr
@@ -69,8 +71,6 @@ from phrt_usd.evaluate.temporal_error import (
     sequence_frames_per_second,
     temporal_error_map,
 )
-from phrt_usd.render.raster.gl_platform import DEFAULT_GL
-from phrt_usd.render.renderer import FrameOutput, FrameRenderer, RenderOptions
 from phrt_usd.run.frames import parse_frames
 from phrt_usd.run.images import write_png_atomic, write_preview_png
 from phrt_usd.run.render_job import runtime_settings, stop_on_signals

@@ -1,9 +1,9 @@
 """Per-frame data passed between the render phases (the contracts between modules).
 
-    G-buffer (render/raster/gbuffer.py, or render/trace/tracer.py in ``rt`` mode)
+    G-buffer (engine/raster/gbuffer.py, or engine/trace/tracer.py in ``rt`` mode)
       → candidates and selection rounds (select/policies.py, a ``SelectionPolicy``)
-      → reflection tracing of the selected reflectors' pixels (render/trace/tracer.py)
-      → compositing (render/compositing.py) → images (run/images.py), stats and layer
+      → reflection tracing of the selected reflectors' pixels (engine/trace/tracer.py)
+      → compositing (engine/compositing.py) → images (run/images.py), stats and layer
         (run/selection_layer.py)
 
 Images are (H, W, ...) arrays, row 0 at the top, in linear RGB.

@@ -77,10 +77,10 @@ from pathlib import Path, PurePosixPath
 import numpy as np
 
 from phrt_usd import __version__
+from phrt_usd.engine.compositing import element_reflectivity, pixel_reflectivity
+from phrt_usd.engine.renderer import FrameOutput
 from phrt_usd.errors import BadOption, PhrtError
 from phrt_usd.model.scene import CameraFrame, Scene
-from phrt_usd.render.compositing import element_reflectivity, pixel_reflectivity
-from phrt_usd.render.renderer import FrameOutput
 from phrt_usd.run.frames import FRAME_DECIMALS, frame_text
 from phrt_usd.run.images import (
     DataWindow,

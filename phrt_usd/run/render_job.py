@@ -41,9 +41,9 @@ from pathlib import Path
 
 from phrt_usd import kernels
 from phrt_usd.atomic import write_text_atomic
+from phrt_usd.engine.renderer import FrameRenderer, RenderOptions
 from phrt_usd.errors import PhrtError
 from phrt_usd.model.frame import FrameStats
-from phrt_usd.render.renderer import FrameRenderer, RenderOptions
 from phrt_usd.run.frames import parse_frames
 from phrt_usd.run.images import DataWindow
 from phrt_usd.run.products import (

@@ -70,7 +70,7 @@ STARVED_SCALE = 0.75
 #: Before anything was measured or calibrated: 0.004 ms per ray (250k rays/s, slower than
 #: embreex plus numpy shading on one laptop core) and 0.5 ms fixed cost per tracing round.
 #: A render with a time budget replaces both by a calibration on its own stage before the
-#: first round (``TraceTimeModel.calibrate``; ``FrameRenderer`` in render/renderer.py).
+#: first round (``TraceTimeModel.calibrate``; ``FrameRenderer`` in engine/renderer.py).
 INITIAL_MS_PER_RAY = 0.004
 INITIAL_ROUND_MS = 0.5
 

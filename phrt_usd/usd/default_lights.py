@@ -4,7 +4,7 @@ As USD's viewers do (usdview's camera light and dome, the default lighting of Hy
 Storm when a stage has none), so that such a stage is not rendered near-black in
 silence. The headlight is a DistantLight shining from the camera along its view
 direction; ``aim_headlight`` turns it with the camera every frame (the renderer calls it,
-``render/renderer.py``). Values in the renderer's convention (``render/shading.py``: a
+``engine/renderer.py``). Values in the renderer's convention (``engine/shading.py``: a
 white surface facing a unit DistantLight shows 1.0):
 
 - ``HEADLIGHT_IRRADIANCE`` 0.6 and ``DOME_RADIANCE`` 0.25: a white surface facing the

@@ -9,7 +9,7 @@ directions world unit vectors. Conventions (docs/usd-support.md, "Lights"):
   defines it.
 - DistantLight: the direction towards the light (its +Z axis); the emission is the
   irradiance on a surface facing it (a white surface shows it: the preview-renderer
-  convention of ``render/shading.py``), whatever ``angle`` and ``normalize`` say, so the
+  convention of ``engine/shading.py``), whatever ``angle`` and ``normalize`` say, so the
   fallback intensity 50000 is a very bright sun (the clipping warning of the render
   names it and ``--exposure``).
 - SphereLight: the emission used as a point intensity with 1/d² fall-off (the radius

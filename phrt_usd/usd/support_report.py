@@ -321,7 +321,7 @@ KINDS: tuple[SupportKind, ...] = (
     SupportKind(
         "unshaded_texture", "UsdPreviewSurface shaders with textured inputs the shading "
         "does not use (occlusion, metallic, roughness, ...)", IGNORED,
-        "the shading model (render/shading.py) uses diffuse, emission, normal maps and "
+        "the shading model (engine/shading.py) uses diffuse, emission, normal maps and "
         "cut-out opacity; occlusion, metallic and roughness have no term in it",
         _unshaded_texture,
     ),
@@ -334,14 +334,14 @@ KINDS: tuple[SupportKind, ...] = (
     ),
     SupportKind(
         "clearcoat", "UsdPreviewSurface shaders with clearcoat", "approximated: no clearcoat",
-        "the shading model (render/shading.py) has no clearcoat layer",
+        "the shading model (engine/shading.py) has no clearcoat layer",
         _clearcoat,
     ),
     SupportKind(
         "rough_reflector", "reflectors with roughness > 0",
         "approximated: perfect-mirror reflections",
         "traced reflections are perfect mirrors and the highlight's exponent is one for "
-        "every material (render/shading.py SHININESS): roughness is not used",
+        "every material (engine/shading.py SHININESS): roughness is not used",
         _rough_reflector,
     ),
     SupportKind(

@@ -23,13 +23,13 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 from phrt_usd import kernels
+from phrt_usd.engine import shading
+from phrt_usd.engine.trace.bvh import FAR, Bvh
+from phrt_usd.engine.trace.hit_surfaces import HitSurfaces
 from phrt_usd.model.scene import Lights
-from phrt_usd.render import shading
-from phrt_usd.render.trace.bvh import FAR, Bvh
-from phrt_usd.render.trace.hit_surfaces import HitSurfaces
 
 #: The compiled trace kernels (``trace_kernels``, through ``phrt_usd.kernels``).
-_TRACE = kernels.load("phrt_usd.render.trace.trace_kernels")
+_TRACE = kernels.load("phrt_usd.engine.trace.trace_kernels")
 
 #: Shading work (shadow-ray kernel, Embree, shading kernel) on many points is split over
 #: the pool, each chunk on its own thread, only from this many possible shadow rays

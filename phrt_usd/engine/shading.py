@@ -585,4 +585,4 @@ def _shade_pool(threads: int) -> ThreadPoolExecutor:
 def _kernels():
     """The compiled kernels (``shade_kernels`` through ``phrt_usd.kernels``), taken on
     first use: importing this module (the renderer, the API) loads no kernel."""
-    return kernels.load("phrt_usd.render.shade_kernels")
+    return kernels.load("phrt_usd.engine.shade_kernels")

@@ -34,8 +34,8 @@ from OpenGL import GL
 from OpenGL.GL import shaders as gl_shaders
 
 from phrt_usd import kernels
-from phrt_usd.render.raster.context import SHADER_DIR, RasterContext, check_framebuffer
-from phrt_usd.render.raster.shadow_maps import (
+from phrt_usd.engine.raster.context import SHADER_DIR, RasterContext, check_framebuffer
+from phrt_usd.engine.raster.shadow_maps import (
     CUBE_GUARD_TEXELS,
     CUBE_MAP_SIZE,
     SHADOW_BIAS_TEXELS,
@@ -46,7 +46,7 @@ from phrt_usd.render.raster.shadow_maps import (
     ShadowMap,
     ShadowMaps,
 )
-from phrt_usd.render.shading import MIN_LIGHT_DISTANCE, SHININESS, SPECULAR_STRENGTH
+from phrt_usd.engine.shading import MIN_LIGHT_DISTANCE, SHININESS, SPECULAR_STRENGTH
 
 #: Most rows of the GPU lookup pass's point texture (llvmpipe's largest renderbuffer
 #: side); more points than the frame's width times this make the rows wider.
@@ -487,4 +487,4 @@ def _texels_already(data: np.ndarray | None, minus: np.ndarray | None, size) -> 
 
 def _shade():
     """The compiled kernels (``shade_kernels``), taken on first use."""
-    return kernels.load("phrt_usd.render.shade_kernels")
+    return kernels.load("phrt_usd.engine.shade_kernels")

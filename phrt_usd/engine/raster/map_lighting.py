@@ -22,23 +22,23 @@ from dataclasses import dataclass
 import numpy as np
 
 from phrt_usd import kernels
-from phrt_usd.model.scene import Lights
-from phrt_usd.render.raster.context import RasterContext
-from phrt_usd.render.raster.light_pass import (
+from phrt_usd.engine.raster.context import RasterContext
+from phrt_usd.engine.raster.light_pass import (
     LOOKUP_LIGHTS_PER_PASS,
     LOOKUP_LIT,
     LOOKUP_MAX_DISTANT,
     LOOKUP_UNCERTAIN,
     LightPass,
 )
-from phrt_usd.render.raster.shadow_maps import (
+from phrt_usd.engine.raster.shadow_maps import (
     CubeMap,
     ShadowMap,
     ShadowMaps,
     cube_pair_visibility,
     filtered_visibility,
 )
-from phrt_usd.render.shading import LightPairs, gather_rows, light_ranges, pair_directions
+from phrt_usd.engine.shading import LightPairs, gather_rows, light_ranges, pair_directions
+from phrt_usd.model.scene import Lights
 
 
 @dataclass
@@ -393,4 +393,4 @@ class MapLighting:
 
 def _shade():
     """The compiled kernels (``shade_kernels``), taken on first use."""
-    return kernels.load("phrt_usd.render.shade_kernels")
+    return kernels.load("phrt_usd.engine.shade_kernels")

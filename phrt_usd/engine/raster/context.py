@@ -37,9 +37,9 @@ from OpenGL import GL
 from pyrender.constants import RenderFlags
 from pyrender.shader_program import ShaderProgramCache
 
+from phrt_usd.engine.raster.gl_platform import loaded_platform, make_platform
 from phrt_usd.errors import PhrtError
 from phrt_usd.model.scene import Scene
-from phrt_usd.render.raster.gl_platform import loaded_platform, make_platform
 from phrt_usd.threads import current_threads
 
 #: Directory of our GLSL files (``flat.*``: id pass, ``depth.*``: shadow-map pass,

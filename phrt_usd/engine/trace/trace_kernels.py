@@ -44,10 +44,8 @@ import math
 import numpy as np
 from numba import njit
 
-from phrt_usd.kernels import KERNEL_OPTIONS
-from phrt_usd.model.surface_kernels import _orient, _pixel_dir, _weighted
-from phrt_usd.render.shade_kernels import shade_kernel
-from phrt_usd.render.trace.bounce_layout import (
+from phrt_usd.engine.shade_kernels import shade_kernel
+from phrt_usd.engine.trace.bounce_layout import (
     G_ENV_DIR,
     G_ENV_SLOT,
     G_ENV_W,
@@ -80,6 +78,8 @@ from phrt_usd.render.trace.bounce_layout import (
     TRI_REFLECTOR,
     TRI_TEXTURED,
 )
+from phrt_usd.kernels import KERNEL_OPTIONS
+from phrt_usd.model.surface_kernels import _orient, _pixel_dir, _weighted
 
 _KERNEL = KERNEL_OPTIONS
 _HELPER = {**_KERNEL, "inline": "always"}

@@ -15,19 +15,19 @@ from collections.abc import Callable
 
 import numpy as np
 
-from phrt_usd.errors import PhrtError
-from phrt_usd.model.frame import GBuffer
-from phrt_usd.model.scene import CameraFrame, Scene
-from phrt_usd.render.raster.context import RasterContext
-from phrt_usd.render.raster.gbuffer import GBufferPass
-from phrt_usd.render.raster.light_pass import LightPass
-from phrt_usd.render.raster.map_lighting import (
+from phrt_usd.engine.raster.context import RasterContext
+from phrt_usd.engine.raster.gbuffer import GBufferPass
+from phrt_usd.engine.raster.light_pass import LightPass
+from phrt_usd.engine.raster.map_lighting import (
     LightTerms,
     MapLighting,
     MapVisibility,
     PendingLightTerms,
 )
-from phrt_usd.render.raster.shadow_maps import CubeMap, ShadowMap, ShadowMaps
+from phrt_usd.engine.raster.shadow_maps import CubeMap, ShadowMap, ShadowMaps
+from phrt_usd.errors import PhrtError
+from phrt_usd.model.frame import GBuffer
+from phrt_usd.model.scene import CameraFrame, Scene
 
 #: An exact shadow test of the undecided pairs: ``(positions (m, 3), normals (m, 3),
 #: pairs (m, L) bool) -> (m, L)`` visibility, needed only at ``pairs`` (e.g. Embree

@@ -24,14 +24,14 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from phrt_usd.engine.shading import gather_rows, shade_local, shaped_lights
 from phrt_usd.model import surface
 from phrt_usd.model.frame import GBuffer
 from phrt_usd.model.scene import Scene
-from phrt_usd.render.shading import gather_rows, shade_local, shaped_lights
 
 if TYPE_CHECKING:  # the raster and trace halves import OpenGL / Embree: only if used
-    from phrt_usd.render.raster.rasterizer import Rasterizer
-    from phrt_usd.render.trace.tracer import Tracer
+    from phrt_usd.engine.raster.rasterizer import Rasterizer
+    from phrt_usd.engine.trace.tracer import Tracer
 
 
 def shade_gbuffer(

@@ -24,6 +24,17 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from phrt_usd.engine import frame_pixels
+from phrt_usd.engine.compositing import (
+    apply_traced,
+    base_image,
+    element_reflectivity,
+    observe_fallback_error,
+    pixel_reflectivity,
+)
+from phrt_usd.engine.lighting import shade_gbuffer
+from phrt_usd.engine.primary_source import DEFAULT_PRIMARY, check_primary, choose, is_software
+from phrt_usd.engine.raster.gl_platform import DEFAULT_GL, check_gl
 from phrt_usd.errors import BadOption
 from phrt_usd.model.frame import (
     Budget,
@@ -35,17 +46,6 @@ from phrt_usd.model.frame import (
 )
 from phrt_usd.model.scene import CameraFrame, Scene
 from phrt_usd.model.trace_density import check_density
-from phrt_usd.render import frame_pixels
-from phrt_usd.render.compositing import (
-    apply_traced,
-    base_image,
-    element_reflectivity,
-    observe_fallback_error,
-    pixel_reflectivity,
-)
-from phrt_usd.render.lighting import shade_gbuffer
-from phrt_usd.render.primary_source import DEFAULT_PRIMARY, check_primary, choose, is_software
-from phrt_usd.render.raster.gl_platform import DEFAULT_GL, check_gl
 from phrt_usd.select.heu1_policy import UPCOMING_CAMERAS
 from phrt_usd.select.policies import make_policy
 from phrt_usd.threads import DEFAULT_THREADS, apply_threads, check_threads
@@ -243,10 +243,10 @@ class FrameRenderer:
         self.gl: str | None = None
         apply_threads(options.threads)  # before any GL context or pool exists
         if options.mode != "rt":
-            from phrt_usd.render.raster.gl_platform import activate
+            from phrt_usd.engine.raster.gl_platform import activate
 
             self.gl = activate(options.gl)  # before pyrender / OpenGL are imported
-            from phrt_usd.render.raster.rasterizer import Rasterizer
+            from phrt_usd.engine.raster.rasterizer import Rasterizer
 
             self._rasterizer = Rasterizer(scene, options.width, options.height)
         # Embree is only needed to trace (reflectors in hybrid, everything in rt), or for
@@ -257,7 +257,7 @@ class FrameRenderer:
             or options.primary == "rays"
             or (options.mode == "hybrid" and traces)
         ):
-            from phrt_usd.render.trace.tracer import Tracer
+            from phrt_usd.engine.trace.tracer import Tracer
 
             self._tracer = Tracer(scene, threads=options.threads)
         #: The G-buffer source, "raster" or "rays" (``primary_source.choose``).
@@ -642,7 +642,7 @@ class FrameRenderer:
         at ``centre`` (3,) world metres, the covered pixels' mean position: a
         DistantLight its radiance, a LocalLight radiance / d² (unshadowed, no cone), the
         dome its mean radiance (``shading.ambient_radiance``)."""
-        from phrt_usd.render.shading import MIN_LIGHT_DISTANCE, ambient_radiance
+        from phrt_usd.engine.shading import MIN_LIGHT_DISTANCE, ambient_radiance
 
         lights = self.scene.lights
         best = ("(no light)", 0.0)

@@ -25,8 +25,8 @@ import ctypes
 import numpy as np
 from OpenGL import GL
 
+from phrt_usd.engine.raster.context import RasterContext, id_framebuffer
 from phrt_usd.model import surface
-from phrt_usd.render.raster.context import RasterContext, id_framebuffer
 
 #: Texture unit of the previous layer's (id, depth) image in ``peel.frag`` (the last of
 #: the 16 units OpenGL 3.3 guarantees; no other pass of ours binds it).

@@ -45,14 +45,14 @@ from dataclasses import dataclass
 import numpy as np
 from OpenGL import GL
 
-from phrt_usd.render.raster.context import (
+from phrt_usd.engine.raster.context import (
     CLIP_PADDING,
     RasterContext,
     check_framebuffer,
     transform_rows,
 )
-from phrt_usd.render.raster.cutout_layers import IdLayers
-from phrt_usd.render.shading import light_ranges
+from phrt_usd.engine.raster.cutout_layers import IdLayers
+from phrt_usd.engine.shading import light_ranges
 
 #: Static shadow-map resolution (texels per side).
 SHADOW_MAP_SIZE = 2048

@@ -45,10 +45,8 @@ import time
 import numpy as np
 
 from phrt_usd import kernels
-from phrt_usd.model.frame import ReflectionResult, TraceRecord
-from phrt_usd.model.scene import Lights
-from phrt_usd.render import shading
-from phrt_usd.render.trace.bounce_layout import (
+from phrt_usd.engine import shading
+from phrt_usd.engine.trace.bounce_layout import (
     G_ENV_DIR,
     G_ENV_SLOT,
     G_ENV_W,
@@ -73,12 +71,14 @@ from phrt_usd.render.trace.bounce_layout import (
     T_ENV,
     T_SOURCES,
 )
-from phrt_usd.render.trace.bvh import Bvh
-from phrt_usd.render.trace.hit_surfaces import HitSurfaces
-from phrt_usd.render.trace.shadow_rays import ShadowRays
+from phrt_usd.engine.trace.bvh import Bvh
+from phrt_usd.engine.trace.hit_surfaces import HitSurfaces
+from phrt_usd.engine.trace.shadow_rays import ShadowRays
+from phrt_usd.model.frame import ReflectionResult, TraceRecord
+from phrt_usd.model.scene import Lights
 
 #: The compiled trace kernels (``trace_kernels``, through ``phrt_usd.kernels``).
-trace_kernels = kernels.load("phrt_usd.render.trace.trace_kernels")
+trace_kernels = kernels.load("phrt_usd.engine.trace.trace_kernels")
 #: ``_gather``'s shadow figures when nothing was shaded.
 _NO_SHADOWS = np.zeros(0, np.int64)
 

@@ -2,7 +2,7 @@
 
 1. **Id pass** (``GBufferPass.render``). pyrender's ``Renderer`` (``context``) draws the
    one mesh node with ``RenderFlags.FLAT``; its program cache points at
-   ``phrt_usd/render/raster/shaders``, whose ``flat.frag`` writes ``gl_PrimitiveID + 1``
+   ``phrt_usd/engine/raster/shaders``, whose ``flat.frag`` writes ``gl_PrimitiveID + 1``
    (= triangle index + 1, 0 = background) as four exact bytes into the single-sampled
    id framebuffer. Read back: the id image only.
 2. **Derivation** (``model.surface_kernels.derive``: one compiled loop over the
@@ -37,12 +37,12 @@ import pyrender
 from pyrender.constants import RenderFlags
 
 from phrt_usd import kernels
+from phrt_usd.engine.raster.context import CLIP_PADDING, RasterContext
+from phrt_usd.engine.raster.cutout_layers import IdLayers
 from phrt_usd.errors import PhrtError
 from phrt_usd.model import surface
 from phrt_usd.model.frame import GBuffer
 from phrt_usd.model.scene import NO_HIT, CameraFrame, Scene
-from phrt_usd.render.raster.context import CLIP_PADDING, RasterContext
-from phrt_usd.render.raster.cutout_layers import IdLayers
 
 #: The compiled surface rule (``model.surface_kernels``, through ``phrt_usd.kernels``).
 _SURFACE = kernels.load("phrt_usd.model.surface_kernels")

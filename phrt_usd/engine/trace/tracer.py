@@ -46,18 +46,18 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 from phrt_usd import kernels
+from phrt_usd.engine.trace import sparse_pixels
+from phrt_usd.engine.trace.bvh import Bvh
+from phrt_usd.engine.trace.hit_surfaces import HitSurfaces
+from phrt_usd.engine.trace.paths import PathTracer, refract
+from phrt_usd.engine.trace.shadow_rays import ShadowRays
 from phrt_usd.model.frame import GBuffer, ReflectionResult
 from phrt_usd.model.scene import NO_HIT, CameraFrame, Lights, Scene
 from phrt_usd.model.trace_density import check_density
-from phrt_usd.render.trace import sparse_pixels
-from phrt_usd.render.trace.bvh import Bvh
-from phrt_usd.render.trace.hit_surfaces import HitSurfaces
-from phrt_usd.render.trace.paths import PathTracer, refract
-from phrt_usd.render.trace.shadow_rays import ShadowRays
 from phrt_usd.threads import DEFAULT_THREADS
 
 #: The compiled trace kernels (``trace_kernels``, through ``phrt_usd.kernels``).
-trace_kernels = kernels.load("phrt_usd.render.trace.trace_kernels")
+trace_kernels = kernels.load("phrt_usd.engine.trace.trace_kernels")
 
 #: Compiled per-pixel loops over fewer rows than this run on the calling thread (below
 #: it handing chunks to the pool costs more than it saves).

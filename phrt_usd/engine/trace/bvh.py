@@ -37,7 +37,7 @@ from phrt_usd.model.scene import NO_HIT, Scene
 from phrt_usd.model.surface import TriangleTable
 
 #: The compiled trace kernels (``trace_kernels``, through ``phrt_usd.kernels``).
-trace_kernels = kernels.load("phrt_usd.render.trace.trace_kernels")
+trace_kernels = kernels.load("phrt_usd.engine.trace.trace_kernels")
 
 #: Ray-origin offset along the geometric normal, in two parts (the larger one wins)::
 #:

@@ -23,9 +23,7 @@ from __future__ import annotations
 import numpy as np
 
 from phrt_usd import kernels
-from phrt_usd.model import surface
-from phrt_usd.model.scene import Scene
-from phrt_usd.render.trace.bounce_layout import (
+from phrt_usd.engine.trace.bounce_layout import (
     TRI_ALPHA,
     TRI_COLUMNS,
     TRI_F,
@@ -33,7 +31,9 @@ from phrt_usd.render.trace.bounce_layout import (
     TRI_REFLECTOR,
     TRI_TEXTURED,
 )
-from phrt_usd.render.trace.bvh import GLOBAL_IDS, NO_ANIMATED, Bvh, Hits
+from phrt_usd.engine.trace.bvh import GLOBAL_IDS, NO_ANIMATED, Bvh, Hits
+from phrt_usd.model import surface
+from phrt_usd.model.scene import Scene
 
 #: The compiled surface rule (``model.surface_kernels``, through ``phrt_usd.kernels``).
 _SURFACE = kernels.load("phrt_usd.model.surface_kernels")

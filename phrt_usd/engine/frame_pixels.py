@@ -41,4 +41,4 @@ def clipped_share(image: np.ndarray, covered: np.ndarray, step: int, level: floa
 
 def _shade():
     """The compiled kernels (``shade_kernels``), taken on first use."""
-    return kernels.load("phrt_usd.render.shade_kernels")
+    return kernels.load("phrt_usd.engine.shade_kernels")

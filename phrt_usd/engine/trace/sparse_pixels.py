@@ -108,4 +108,4 @@ def _int64(a: np.ndarray) -> np.ndarray:
 def _trace_kernels():
     """The compiled trace kernels (loaded on first use: this module is imported by the
     options, long before anything is traced)."""
-    return kernels.load("phrt_usd.render.trace.trace_kernels")
+    return kernels.load("phrt_usd.engine.trace.trace_kernels")

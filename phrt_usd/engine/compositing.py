@@ -16,9 +16,9 @@ from __future__ import annotations
 import numpy as np
 
 from phrt_usd import kernels
+from phrt_usd.engine.shading import environment_radiance
 from phrt_usd.model.frame import GBuffer, ReflectionResult
 from phrt_usd.model.scene import Scene
-from phrt_usd.render.shading import environment_radiance
 
 
 def reflect(directions: np.ndarray, normals: np.ndarray) -> np.ndarray:
@@ -52,7 +52,7 @@ def base_image(
     dome = scene.lights.dome
     background = dome is None or dome.camera_visible
     f = np.ascontiguousarray(reflectivity, np.float32).reshape(-1)
-    shade_kernels = kernels.load("phrt_usd.render.shade_kernels")  # compiled, on first use
+    shade_kernels = kernels.load("phrt_usd.engine.shade_kernels")  # compiled, on first use
 
     pixels, directions = shade_kernels.fallback_rays(
         np.ascontiguousarray(gbuffer.covered).reshape(-1),
