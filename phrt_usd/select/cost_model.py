@@ -17,27 +17,27 @@ import numpy as np
 #: from round to round (caches, the OS, other processes on the two cores). The factor is
 #: the JITTER_QUANTILE quantile of measured / modelled round time over the last
 #: JITTER_WINDOW rounds, each round weighted by its modelled milliseconds, and never below
-#: TIME_SAFETY_MIN.
+#: TIME_SAFETY_MIN. Each part has its reason:
 #: - Modelled by the current fit, recomputed after every round: the factor covers the
 #:   error of the model that predicts the next round, not the start-up error of a model
-#:   since corrected (the farm's first rounds took 4x the calibration's fixed cost;
-#:   measured against the model of their time, those ratios held the factor near 4 and
-#:   starved every frame for ~30 frames after the fit had learned the fixed cost).
+#:   since corrected (the farm's first rounds take ~4x the calibration's fixed cost;
+#:   measured against the model of their own time, those ratios would hold the factor
+#:   near 4 and starve ~30 frames after the fit has learned the fixed cost).
 #: - Weighted by time because what the budget must absorb is milliseconds: a 0.05 ms
 #:   round taking 4x its model costs less than a 10 ms round taking 1.1x (on the sewer at
-#:   T = 16 ms the few sub-millisecond rounds ran at 3-4x their model, the others' 97 %
-#:   quantile was 1.17-1.29).
+#:   T = 16 ms the few sub-millisecond rounds run at 3-4x their model, the others' 97 %
+#:   quantile is 1.17-1.29).
 #: - Over a window, so that a loaded spell raises the factor within a few rounds and is
-#:   forgotten JITTER_WINDOW rounds after it ends (the online quantile tracker this
-#:   replaces fell by 0.006 a round: ~60 frames after a burst, during which kept
-#:   reflectors were predicted over the budget and dropped).
+#:   forgotten JITTER_WINDOW rounds after it ends.
 #: - A window not full yet is filled up with rounds at TIME_SAFETY_INITIAL, each of the
-#:   real rounds' mean weight: one slow round must not be the quantile of a young window
-#:   (on the farm at T = 1 ms, the 14th round took 25x its model, set the factor to its
-#:   maximum and starved ~60 frames), while a few slow rounds in a full window still
-#:   raise it.
+#:   real rounds' mean weight: one slow round is not the quantile of a young window (on
+#:   the farm at T = 1 ms an early round can take 25x its model, which as the quantile
+#:   would set the factor to its maximum and starve ~60 frames), while a few slow rounds
+#:   in a full window still raise it.
 #: On a quiet machine it settles near 1.1-1.2: the selection then plans to use ~85-90 % of
-#: the budget. Ratios (measured / modelled ms).
+#: the budget. Ratios (measured / modelled ms). Measurements: the weighted window
+#: quantile in docs/bench-log/2026-12-03-d62f485-safety-glue-temporal.md, the current
+#: fit and the young window's filling in docs/bench-log/2026-12-03-2987843-make-room-hold.md.
 TIME_SAFETY_MIN = 1.05
 #: The factor before any round was measured, and the ratio of the rounds that fill up a
 #: young window: where it settles on a quiet machine.
@@ -49,11 +49,11 @@ TIME_SAFETY_MAX = 10.0
 #: budget, so one slow round costs the frame its leftover rounds, not the budget.
 JITTER_QUANTILE = 0.95
 #: Rounds in the window: a tracing frame makes 1-3 rounds, so 3-8 s of frames at 24 fps.
-#: 192 rather than 64: with sub-millisecond rounds (the farm at T = 1 ms, ±30-50 % round
-#: jitter) the quantile of 64 rounds swung with every slow round entering or leaving it,
-#: and the frame's ray allowance with it; six runs each made 1-6 transitions against
-#: 2-7, selecting more (docs/bench-log). A loaded spell is forgotten 192 rounds after it
-#: ends.
+#: Long enough for a steady quantile with sub-millisecond rounds (the farm at T = 1 ms,
+#: ±30-50 % round jitter), where the quantile of a shorter window swings with every slow
+#: round entering or leaving it, and the frame's ray allowance with it (64 rounds against
+#: 192: docs/bench-log/2026-12-03-454500a-window-192.md). A loaded spell is forgotten 192
+#: rounds after it ends.
 JITTER_WINDOW = 192
 #: When the time budget lets nothing at all be traced in a frame, the safety factor is
 #: multiplied by this. Otherwise a noisy spell could raise it so far that nothing is ever
@@ -238,16 +238,16 @@ class TraceTimeModel:
         typical = float(np.median(self.jitter_ms)) if self.jitter_ms else math.inf
         if overhead > typical:
             # Every round costs the fixed cost and more, so the window's median round time
-            # bounds it: the line through that bound that fits the rounds best. Without
-            # this, a spell of slow rounds of about the same rays (no spread to tell the
-            # fixed cost from the per-ray cost) fitted a flat line at their time, and
-            # every reflector, however small, was predicted above the budget (on the farm
-            # at T = 1 ms all eight claims dropped for a frame, twice in one run). The
-            # median, not the fastest round: a frame's first round also groups the
-            # G-buffer's reflector pixels, so later rounds' fixed cost is lower (capped at
-            # the fastest, the farm's prediction error rose from 12 to 35 %). A lasting
-            # rise of the fixed cost is followed once it fills half the window (~96
-            # rounds); until then the safety factor covers it.
+            # bounds it: the line through that bound that fits the rounds best. Unbounded,
+            # a spell of slow rounds of about the same rays (no spread to tell the fixed
+            # cost from the per-ray cost) fits a flat line at their time, and every
+            # reflector, however small, is predicted above the budget. The median, not the
+            # fastest round: a frame's first round also groups the G-buffer's reflector
+            # pixels, so later rounds' fixed cost is lower (capped at the fastest, the
+            # farm's prediction error is 35 % rather than 12 %). A lasting rise of the
+            # fixed cost is followed once it fills half the window (~96 rounds); until
+            # then the safety factor covers it. Measurements:
+            # docs/bench-log/2026-12-03-8cbb651-fixed-cost-bound.md.
             overhead = typical
             per_unit = max((rm - overhead * r) / rr, 0.0) if rr > 0.0 else b0
         self.overhead_ms = float(overhead)
