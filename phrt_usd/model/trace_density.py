@@ -1,6 +1,6 @@
 """Trace densities: how many of a reflector's pixels start rays (``--trace-density``,
 HEU1's density steps). The patterns themselves and the fill of the skipped pixels are
-``render.trace.sparse_pixels``; the policies need only the shares, to predict rays.
+``engine.trace.sparse_pixels``; the policies need only the shares, to predict rays.
 """
 
 from __future__ import annotations
@@ -9,17 +9,16 @@ from phrt_usd.errors import BadOption
 
 #: Reflectors with fewer pixels than this in a frame are traced at every pixel: below an
 #: 8 x 8 patch the rays saved are a few dozen and most pixels lie on the reflector's
-#: edge, where a skipped pixel has fewer traced neighbours. 256 until HEU1 made room by
-#: stepping reflectors coarser (2026-12-03): the farm's barrels, 64-255 pixels near its
-#: path's end, were then dropped whole where they can now be traced coarser (replays:
-#: farm at 500 rays 8 -> 3 transitions, sewer at 10k rays 22 -> 19 at 3.97 -> 5.32
-#: reflectors traced a frame; the wet tunnel's FLIP at T = 16 ms 0.045 -> 0.042).
+#: edge, where a skipped pixel has fewer traced neighbours. Not higher, so that HEU1 can
+#: step the farm's barrels (64-255 pixels near its path's end) coarser to make room
+#: rather than drop them whole (the floor at 64 pixels against 256:
+#: docs/bench-log/2026-12-03-2987843-make-room-hold.md; docs/heuristic.md, "Density steps").
 SPARSE_MIN_PIXELS = 64
 
 #: The trace densities: every pixel; the checkerboard, one pixel in each 2 x 2 block or
 #: one in each 4 x 4 block of large reflectors. Finest first (HEU1's density steps walk
 #: them in this order). "sixteenth" is a last step before dropping a reflector: on the
-#: farm at T = 1 ms, reflectors already at a quarter grew to 4x the budget's rays near the
+#: farm at T = 1 ms, reflectors already at a quarter grow to 4x the budget's rays near the
 #: path's end, and a drop there is a transition.
 TRACE_DENSITIES = ("full", "half", "quarter", "sixteenth")
 #: Index of the coarsest density in TRACE_DENSITIES.

@@ -18,7 +18,8 @@ their savings are small and their edges are most of their pixels.
 
 Measured on the sewer's wet tunnel (frames 217-276 every 6th, 320 x 240, every
 reflector traced): mean FLIP against full density 0.027 (half), 0.046 (quarter) and
-0.074 (sixteenth), where the raster fallback alone is 0.179 (``docs/bench-log``).
+0.074 (sixteenth), where the raster fallback alone is 0.179
+(docs/bench-log/2026-12-03-2987843-make-room-hold.md).
 
 Pixels are flat indices ``row * width + col`` of the G-buffer; ``src`` is each pixel's
 index into the round's sources (``Tracer.trace_reflections``).
