@@ -122,12 +122,14 @@ class RenderOptions:
     selection_weight: float = DEFAULT_SELECTION_WEIGHT
     #: Threads of every pool, llvmpipe, OpenBLAS and numba (``phrt_usd.threads``).
     threads: int = DEFAULT_THREADS
-    #: OpenGL platform of the raster phase: auto | egl | osmesa (``render.raster.gl_platform``).
+    #: OpenGL platform of the raster phase: auto | egl | osmesa (auto: EGL when a working
+    #: EGL device is found, else OSMesa; ``engine.raster.gl_platform``).
     gl: str = DEFAULT_GL
-    #: Source of the G-buffer: auto | raster | rays (``render.primary_source``).
+    #: Source of the G-buffer: auto | raster | rays (``engine.primary_source``).
     primary: str = DEFAULT_PRIMARY
-    #: Pixels of a traced reflector that start rays: full | half | quarter (of large
-    #: reflectors; the others filled from their neighbours: ``trace.sparse_pixels``).
+    #: Pixels of a traced reflector that start rays: full | half | quarter | sixteenth (of
+    #: reflectors of 64+ pixels; the others filled from their traced neighbours:
+    #: ``engine.trace.sparse_pixels``).
     trace_density: str = "full"
     #: Frame rate to hold (``--target-fps``): each frame's T is the frame period less the
     #: frame's measured raster and shading and the previous frame's selection, less

@@ -365,7 +365,7 @@ def job_run_info(
     info["target_fps"] = opts.target_fps  # None: a fixed (or no) time budget
     info["threads"] = opts.threads  # --threads (phrt_usd.threads); not in the identity
     info["exposure"] = opts.exposure_ev  # EV applied to every image (--exposure, clamped)
-    info["trace_density"] = opts.trace_density  # full | half (trace.sparse_pixels)
+    info["trace_density"] = opts.trace_density  # full | half | quarter | sixteenth
     info["camera"] = scene.camera_path
     info["settings"] = images.settings
     info["products"] = images.describe()
