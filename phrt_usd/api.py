@@ -15,10 +15,10 @@ Options (``**options``; ``None`` means "not given": the stage's render settings 
 ``budget_ms``), ``bounce_limit``,
 ``selection_weight``, ``threads`` (1..1024, default: the cores this process may use; every
 pool, llvmpipe, OpenBLAS, numba: ``phrt_usd.threads``), ``gl`` (``auto`` | ``egl`` |
-``osmesa``: the raster phase's OpenGL platform,
-``phrt_usd.engine.raster.gl_platform``), ``primary`` (``auto`` | ``raster`` | ``rays``: the
-G-buffer's source), ``trace_density`` (``full`` | ``half`` | ``quarter``: the pixels of a
-traced reflector
+``osmesa``: the raster phase's OpenGL platform; ``auto`` picks EGL when a working EGL
+device is found, else OSMesa: ``phrt_usd.engine.raster.gl_platform``), ``primary``
+(``auto`` | ``raster`` | ``rays``: the G-buffer's source), ``trace_density`` (``full`` |
+``half`` | ``quarter`` | ``sixteenth``: the pixels of a traced reflector of 64+ pixels
 that start rays, ``phrt_usd.engine.trace.sparse_pixels``), ``exposure`` (EV, default 0.0:
 every image's radiance times 2**exposure, EXR included) (the ``RenderOptions`` fields),
 and for ``render`` the ``RenderJob`` fields ``camera``, ``selection_layer``, ``resume``,

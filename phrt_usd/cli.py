@@ -612,7 +612,7 @@ def sweep(
     ] = None,
     trace_densities: Annotated[
         str | None,
-        typer.Option(help="Comma list of trace densities to sweep (full,half,quarter; "
+        typer.Option(help="Comma list of trace densities to sweep (full,half,quarter,sixteenth; "
                      "default full): the policies' hybrid frames; the references trace "
                      "every pixel."),
     ] = None,
