@@ -7,9 +7,10 @@ docs/api.md)."""
 
 import os
 
-# pyrender/PyOpenGL pick their platform at import time: headless OSMesa unless the user
-# chose otherwise (what they chose, if anything, is kept for ``--gl auto``:
-# phrt_usd.engine.raster.gl_platform).
+# PyOpenGL binds its platform when OpenGL is first imported. A render chooses it before
+# that (``--gl``; auto: EGL when a working EGL device is found, else OSMesa:
+# phrt_usd.engine.raster.gl_platform); OSMesa is the headless default for OpenGL imported
+# without a render. What the user chose, if anything, is kept for ``--gl auto``.
 USER_GL_PLATFORM = os.environ.get("PYOPENGL_PLATFORM")
 os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
 

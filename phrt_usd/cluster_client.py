@@ -357,11 +357,12 @@ def local_security(workers: int):
 
 def _worker_setup_plugin(ignore_interrupts: bool):
     """The Dask worker plugin every worker (present and future) runs: it imports
-    phrt_usd, which selects the OSMesa platform and registers the Phrt schema plugin
-    before any stage is opened there. With ``ignore_interrupts`` (the local cluster's
-    own workers, which share this terminal) SIGINT is ignored there: Ctrl-C stops the
-    run through the client, which lets the chunks stop between frames and keeps what
-    finished (``cluster.run_render_on_cluster``). Defined on first use: the module
+    phrt_usd, which registers the Phrt schema plugin before any stage is opened there
+    (each chunk's render then activates its ``--gl`` platform before OpenGL loads).
+    With ``ignore_interrupts`` (the local cluster's own workers, which share this
+    terminal) SIGINT is ignored there: Ctrl-C stops the run through the client, which
+    lets the chunks stop between frames and keeps what finished
+    (``cluster.run_render_on_cluster``). Defined on first use: the module
     imports no Dask."""
     from distributed.diagnostics.plugin import WorkerPlugin
 
@@ -413,7 +414,7 @@ def dask_client(
         security = local_security(workers)
         cluster = LocalCluster(
             n_workers=workers,
-            threads_per_worker=1,  # one chunk at a time per process (OSMesa, Embree)
+            threads_per_worker=1,  # one chunk at a time per process (OpenGL, Embree)
             processes=True,
             host=LOOPBACK_HOST,  # scheduler, nannies and workers, tls:// (the security)
             security=security,
