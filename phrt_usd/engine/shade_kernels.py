@@ -5,9 +5,9 @@ light pass's texel packing (``raster.light_pass``), the lights it looks up and i
 undecided pairs (``raster.map_lighting``). Taken through ``phrt_usd.kernels.load`` on first use (by
 those modules' functions), so that importing the renderer does not load numba; the
 numpy-facing functions, their arguments, shapes and coordinate spaces are those
-modules'. The constants of the model
-come in as arguments (a kernel's on-disk cache only knows this file). The numpy code
-these kernels replaced is ``tests/shading_reference.py``, checked against them in
+modules'. The constants of the model come in as arguments: the kernel cache is named
+by the sources of ``kernels.SOURCE_MODULES`` only, which leave ``shading`` out. The
+numpy form of these kernels, ``tests/shading_reference.py``, is checked against them in
 ``tests/test_shading_kernels.py``.
 """
 
@@ -511,7 +511,7 @@ def _numba_type(text: str):
 
 
 def warm_up() -> None:
-    """Compile every kernel for its SIGNATURES (or load them from numba's disk cache)."""
+    """Compile every kernel for its SIGNATURES (or load them from phrt's kernel cache)."""
     for name, signatures in SIGNATURES.items():
         for signature in signatures:
             args = re.findall(r"\w+(?:\[[^\]]*\])?", signature)  # "f4[:, ::1]" stays one

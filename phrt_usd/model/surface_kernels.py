@@ -233,7 +233,7 @@ def hit_albedo(tri, u, v, corners, out):
 
 
 def warm_up() -> None:
-    """Compile (or load from the disk cache) every kernel on tiny inputs of the types
+    """Compile (or load from phrt's kernel cache) every kernel on tiny inputs of the types
     the renderer passes."""
     plane = np.zeros((1, 13))
     plane[0, 8:13] = (0.0, 0.0, 1.0, 0.0, 1.0)

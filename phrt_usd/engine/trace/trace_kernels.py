@@ -574,7 +574,7 @@ def fill_skipped(row_of, traced_pix, traced_src, radiance, skipped_pix, skipped_
 
 
 def warm_up() -> None:
-    """Compile (or load from the disk cache) every kernel on tiny inputs of the types
+    """Compile (or load from phrt's kernel cache) every kernel on tiny inputs of the types
     the tracer passes."""
     i64, f64, f32 = np.zeros(1, np.int64), np.zeros(1), np.zeros(1, np.float32)
     v64, v32 = np.zeros((1, 3)), np.zeros((1, 3), np.float32)
