@@ -11,8 +11,8 @@ not safe for concurrent callers).
 
 One rule, one implementation: the side rule of every shading normal (raster and trace)
 is ``_orient`` below, the corner interpolation ``_weighted``. ``model.surface`` keeps
-the numpy interpolation for the rest of its API (normal maps, textures); the numpy form
-of the side rule these replaced is the tests' reference (``tests/surface_reference.py``):
+the numpy interpolation for the rest of its API (normal maps, textures); a numpy form
+of the side rule is the tests' reference (``tests/surface_reference.py``):
 the same operations in the same order and precision (float64 planes and positions,
 float32 weights and corner data), so results agree to rounding of a sum's order.
 

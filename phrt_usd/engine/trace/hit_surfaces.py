@@ -11,7 +11,7 @@ the raster's id layers use too): ``intersect`` and ``occluded`` are the ray quer
 every traced ray (primary, reflected, refracted, shadow). A hit on a cut-out texel is no
 hit: the ray is re-cast from just past it (the float32 boundary's offset to the far
 side), at most ``surface.MAX_CUTOUT_LAYERS`` times; a ray still in holes after that is a
-miss (a shadow ray: unoccluded). Scenes without cut-outs cast exactly as before.
+miss (a shadow ray: unoccluded). Scenes without cut-outs cast each ray once.
 
 Spaces: rel = world metres minus ``Scene.origin``, float64 (``bvh.Float32Boundary``).
 Hit points are rebuilt in float64 from the hit triangle's rel vertices and Embree's
