@@ -137,8 +137,8 @@ def _dome_colour(dome: DomeLight) -> np.ndarray:
     return np.asarray(dome.color, dtype=np.float32).reshape(3)
 
 
-#: The latest ``_dome_arrays``: (identity key, arrays). Converting them per lookup was
-#: ~1.5 us of every trace round that reads the environment.
+#: The latest ``_dome_arrays``: (identity key, arrays). Converting them per lookup would
+#: cost ~1.5 us of every trace round that reads the environment.
 _DOME_CACHE: list = [None]
 
 

@@ -41,7 +41,7 @@ FORECAST_MAX = 1e300
 #: that grow late.
 LOOKAHEAD_FRAMES = 48
 #: Box areas are computed for LOOKAHEAD_BATCH cameras at a time (one array pass instead of
-#: one per frame: the per-call overhead was ~0.2 ms of HEU1's selection time per frame);
+#: one per frame, whose per-call overhead costs ~0.2 ms of HEU1's selection time a frame);
 #: renderers pass UPCOMING_CAMERAS upcoming cameras so that a batch is computed before the
 #: window reaches it.
 LOOKAHEAD_BATCH = 48
