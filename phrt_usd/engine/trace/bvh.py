@@ -18,7 +18,8 @@ float32 batches given to Embree, so benchmarks can time raw embreex on the same 
 
 Threads: embreex releases the GIL inside ``run``, so batches of ≥ ``PARALLEL_MIN_RAYS``
 rays are split over the caller's thread pool (measured on this 2-core machine: 76.8k
-rays on an 82k-triangle mesh, 8.3 → 13.6 Mray/s; smaller batches gain nothing).
+rays on an 82k-triangle mesh, 8.3 Mray/s on one thread, 13.6 on two; smaller batches
+gain nothing).
 """
 
 from __future__ import annotations
