@@ -9,7 +9,7 @@ import pytest  # noqa: E402
 @pytest.fixture(autouse=True, scope="session")
 def _kernels_called_as_warmed_up():
     """Every kernel call of the suite used argument types its module's ``warm_up``
-    compiles: then ``phrt kernels`` (the set-up's ahead-of-time compile) compiled all a
+    compiles: then ``phrt kernels`` (which the set-up runs before any render) compiled all a
     render needs, and no render compiles a variant on the way (seconds each, uncached
     on a fresh installation). A caller passing other dtypes is found here."""
     from phrt_usd import kernels
