@@ -296,11 +296,16 @@ def test_animated_translate_changes_only_animated_vertices():
     static_rows = slice(0, 9)
     before_static = g.vertices[static_rows].copy()
     before_moving = g.vertices[9:].copy()
-    assert ss.set_time(5.0) is True
+    change = ss.set_time(5.0)
+    # A translation: moved (rigidly), not deformed; the geometry version stamps it.
+    assert change.moved.tolist() == [1] and change.deformed.tolist() == []
+    assert change.geometry_version == 1 and bool(change)
+    assert ss.scene.versions.element_geometry.tolist() == [0, 1]
     np.testing.assert_allclose(g.vertices[9:] - before_moving, np.tile([5, 0, 0], (9, 1)))
     np.testing.assert_array_equal(g.vertices[static_rows], before_static)
     assert els[1].bounds_min[0] == pytest.approx(5.0)
-    assert ss.set_time(5.0) is False  # same time: nothing moved
+    same = ss.set_time(5.0)  # same time: nothing moved, no version bumped
+    assert not same and same.changed.tolist() == [] and same.geometry_version == 1
     # Nothing animated → set_time is cheap.
     t0 = _time.perf_counter()
     for _ in range(100):
@@ -312,7 +317,8 @@ def test_static_stage_set_time_reports_no_change():
     stage = camera_stage()
     quad_pentagon(stage)
     ss = read_stage(stage)
-    assert ss.set_time(3.0) is False
+    change = ss.set_time(3.0)
+    assert not change and (change.geometry_version, change.camera_version) == (0, 0)
 
 
 def test_deforming_points_recomputed():
@@ -323,7 +329,8 @@ def test_deforming_points_recomputed():
     mesh.GetPointsAttr().Set(Vt.Vec3fArray.FromNumpy(pts * 2), 10)
     ss = read_stage(stage)
     assert ss.scene.elements[0].animated
-    ss.set_time(10)
+    change = ss.set_time(10)
+    assert change.deformed.tolist() == [0] and change.moved.tolist() == []
     np.testing.assert_allclose(ss.scene.geometry.vertices, pts * 2, rtol=1e-6)
 
 
@@ -583,7 +590,7 @@ def test_deforming_instances_and_animated_normals():
         inst.AddTranslateOp().Set(Gf.Vec3d(10 * i, 0, 0))
     ss = read_stage(stage)
     assert all(e.animated for e in ss.scene.elements)
-    assert ss.set_time(10) is True
+    assert ss.set_time(10).deformed.tolist() == [0, 1]  # points and normals changed
     g = ss.scene.geometry
     np.testing.assert_allclose(g.vertices[:, 2], 1.0, rtol=1e-6)  # both instances moved
     np.testing.assert_allclose(g.corner_normals.reshape(-1, 3), [[0, 1, 0]] * 30, atol=1e-6)

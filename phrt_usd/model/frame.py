@@ -177,6 +177,31 @@ class SelectionPolicy(Protocol):
     def end_frame(self) -> dict[int, ReflectorMetrics]: ...
 
 
+@dataclass(frozen=True)
+class FrameCamera:
+    """The camera a frame was rendered with, as the matrices that reproject it.
+
+    time : the frame's time code
+    camera_from_world : (4, 4) float64 world-to-camera, world metres → camera space
+        (metres, USD's / OpenGL's: looks down -Z, +Y up), column vectors:
+        ``p_cam = camera_from_world @ (x, y, z, 1)``
+    projection : (4, 4) float64 OpenGL clip-from-camera of the frame's image
+        (``CameraFrame.projection``: the image window at the frame's width x height,
+        aperture offsets and conform policy included; the camera's clipping range). NDC
+        (x, y) is pixel (col, row) = ((x + 1) W / 2, (1 - y) H / 2), row 0 at the top;
+        the G-buffer's ``depth`` is -z of camera space.
+    """
+
+    time: float
+    camera_from_world: np.ndarray
+    projection: np.ndarray
+
+    @classmethod
+    def of(cls, time: float, camera: CameraFrame, width: int, height: int) -> FrameCamera:
+        """The matrices of ``camera`` for a ``width`` x ``height`` frame at ``time``."""
+        return cls(float(time), camera.camera_from_world, camera.projection(width, height))
+
+
 @dataclass
 class FrameStats:
     """Everything recorded about one rendered frame (stats.json row, selection layer)."""

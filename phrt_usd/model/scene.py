@@ -258,6 +258,26 @@ CONFORM_POLICIES = (
 ASPECT_EQUAL_RTOL = 1e-12
 
 
+def perspective_matrix(
+    window: tuple[float, float, float, float], near: float, far: float
+) -> np.ndarray:
+    """OpenGL clip_from_camera (4, 4) float64 for the image-plane ``window`` (left,
+    right, bottom, top) at distance 1 (``CameraFrame.image_window``, so that
+    ``CameraFrame.project``, the primary rays and the rasterizer put a point on the same
+    pixel; off-centre for aperture offsets) and clip planes ``near`` < ``far``
+    (metres). NDC (x, y) is pixel ((x + 1) W / 2, (1 - y) H / 2), row 0 at the top."""
+    left, right, bottom, top = window
+    p = np.zeros((4, 4))
+    p[0, 0] = 2.0 / (right - left)
+    p[0, 2] = (right + left) / (right - left)
+    p[1, 1] = 2.0 / (top - bottom)
+    p[1, 2] = (top + bottom) / (top - bottom)
+    p[2, 2] = (far + near) / (near - far)
+    p[2, 3] = 2.0 * far * near / (near - far)
+    p[3, 2] = -1.0
+    return p
+
+
 @dataclass
 class CameraFrame:
     """The camera at one time code (``GfCamera`` semantics, perspective only).
@@ -393,6 +413,18 @@ class CameraFrame:
         py = (1.0 - ndc_y) * 0.5 * height
         return np.stack([px, py, depth], axis=1)
 
+    @property
+    def camera_from_world(self) -> np.ndarray:
+        """(4, 4) float64 world-to-camera: world metres → camera space (the inverse of
+        ``world_from_camera``), column vectors."""
+        return np.linalg.inv(self.world_from_camera)
+
+    def projection(self, width: int, height: int) -> np.ndarray:
+        """(4, 4) float64 OpenGL clip_from_camera of this camera for an image of ``width``
+        x ``height`` pixels: ``image_window`` (so a point projects to the pixel
+        ``project`` gives) and the clipping range ``near`` .. ``far`` (metres)."""
+        return perspective_matrix(self.image_window(width, height), self.near, self.far)
+
     def data_window_pixels(self, width: int, height: int) -> tuple[int, int, int, int]:
         """The pixels of ``data_window`` as (col0, row0, col1, row1), half-open, row 0 at
         the top, clamped to the image: the pixels whose centres lie inside the NDC window
@@ -407,9 +439,98 @@ class CameraFrame:
 
 
 @dataclass
+class SceneVersions:
+    """Change counters of a ``Scene``, bumped by whoever changes it (``StageScene.set_time``,
+    or a caller editing the scene in memory through ``Scene.geometry_changed`` /
+    ``Scene.replace_lights``). A consumer (raster buffers, BVH, shadow maps) keeps the
+    counter it last brought itself to and compares: equal means nothing it holds is
+    stale, and no array is looked at to find out (hdEmbree's scene version).
+
+    geometry : bumped whenever any element's vertices, winding or corner normals change
+    lights   : bumped whenever ``Scene.lights`` is replaced
+    camera   : bumped whenever the stage's camera differs from the one at the previous
+               ``set_time`` (pose, lens, clipping range or image settings)
+    element_geometry : (E,) int64, the ``geometry`` version at which each element last
+               changed (0: as read), so that a consumer that last synced at version v
+               finds what changed since, however many changes it missed
+               (``changed_since``)
+    """
+
+    element_geometry: np.ndarray
+    geometry: int = 0
+    lights: int = 0
+    camera: int = 0
+
+    def changed_since(self, version: int) -> np.ndarray:
+        """(k,) int64 ascending ids of the elements whose geometry changed after
+        ``version`` (a ``geometry`` value)."""
+        return np.flatnonzero(self.element_geometry > version).astype(np.int64)
+
+
+@dataclass(frozen=True)
+class SceneChange:
+    """What one ``StageScene.set_time`` changed (plain data).
+
+    moved    : (m,) int64 ascending ids of the elements placed anew by a changed rigid
+               transform, their own points and normals unchanged
+    deformed : (d,) int64 ascending ids of the elements whose points or normals changed
+               (their transform may have changed too); disjoint from ``moved``
+    geometry_version, lights_version, camera_version : ``Scene.versions`` after the
+               change (``SceneVersions``)
+
+    True (``bool``) when some element moved or deformed.
+    """
+
+    moved: np.ndarray
+    deformed: np.ndarray
+    geometry_version: int
+    lights_version: int
+    camera_version: int
+
+    @property
+    def changed(self) -> np.ndarray:
+        """(k,) int64 ascending ids of every element that moved or deformed."""
+        return np.union1d(self.moved, self.deformed).astype(np.int64)
+
+    def __bool__(self) -> bool:
+        return bool(len(self.moved) or len(self.deformed))
+
+
+class ElementTriangles:
+    """The triangle rows of each element (CSR over ``Geometry.tri_element``), so that a
+    consumer finds the rows of the few elements that changed without a pass over every
+    triangle. Built once per topology. tri_element : (T,) element id per triangle
+    (ids outside 0 .. ``n_elements`` - 1 belong to no element)."""
+
+    def __init__(self, tri_element: np.ndarray, n_elements: int) -> None:
+        tri_element = np.asarray(tri_element, dtype=np.int64)
+        #: Triangle rows sorted by element ...
+        self.row_order = np.argsort(tri_element, kind="stable")
+        #: ... where element e's begin (element_start[e] .. element_start[e + 1] - 1).
+        self.element_start = np.searchsorted(
+            tri_element[self.row_order], np.arange(n_elements + 1)
+        )
+
+    def rows(self, elements: np.ndarray) -> np.ndarray:
+        """(m,) int64 ascending triangle rows of ``elements`` (k,) ids, in O(their rows)."""
+        elements = np.asarray(elements, dtype=np.int64)
+        start = self.element_start[elements]
+        counts = self.element_start[elements + 1] - start
+        total = int(counts.sum())
+        if total == 0:
+            return np.zeros(0, dtype=np.int64)
+        # The positions start[i] .. start[i] + counts[i] - 1 of every element, one array.
+        offsets = np.arange(total) - np.repeat(np.cumsum(counts) - counts, counts)
+        return np.sort(self.row_order[np.repeat(start, counts) + offsets]).astype(np.int64)
+
+
+@dataclass
 class Scene:
     """Everything a frame needs. ``geometry`` and element bounds are valid at the time
-    last passed to ``StageScene.set_time`` (see ``phrt_usd.usd.stage``)."""
+    last passed to ``StageScene.set_time`` (see ``phrt_usd.usd.stage``); ``versions``
+    count the changes since the scene was read. Whoever edits ``geometry`` or ``lights``
+    after a consumer saw them announces it (``geometry_changed``, ``replace_lights``):
+    consumers compare versions, never arrays."""
 
     elements: list[Element]
     geometry: Geometry
@@ -418,6 +539,29 @@ class Scene:
     origin: np.ndarray  # (3,) float64 world metres: subtract before casting to float32
     meters_per_unit: float = 1.0
     up_axis: str = "Y"
+    versions: SceneVersions | None = None  # None: new counters at 0
+
+    def __post_init__(self) -> None:
+        if self.versions is None:
+            self.versions = SceneVersions(np.zeros(len(self.elements), dtype=np.int64))
+
+    def geometry_changed(self, elements) -> int:
+        """Announce that the geometry of ``elements`` ((k,) ids) changed in ``geometry``
+        (vertices, winding, corner normals; their bounds): bumps ``versions.geometry``
+        and stamps those elements with it. Returns the geometry version (unchanged when
+        ``elements`` is empty)."""
+        elements = np.asarray(elements, dtype=np.int64).reshape(-1)
+        if len(elements):
+            self.versions.geometry += 1
+            self.versions.element_geometry[elements] = self.versions.geometry
+        return self.versions.geometry
+
+    def replace_lights(self, lights: Lights) -> None:
+        """Make ``lights`` the scene's lights and bump ``versions.lights`` (nothing when
+        they are the scene's lights already)."""
+        if lights is not self.lights:
+            self.lights = lights
+            self.versions.lights += 1
 
     @property
     def reflector_ids(self) -> np.ndarray:

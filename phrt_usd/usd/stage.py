@@ -3,7 +3,8 @@
 This module holds ``open_stage`` (opens a stage file with the one ``open_usd`` of
 ``phrt_usd.usd.stage_file``, re-exported here, and reads it), the camera choice, the
 traversal, and ``StageScene``, which places the readers' elements in the world and
-moves them in ``set_time``. The readers:
+moves them in ``set_time`` (the camera's values at a time: ``phrt_usd.usd.stage_camera``).
+The readers:
 ``phrt_usd.usd.meshes`` (gprims, primvars, PointInstancers), ``phrt_usd.usd.materials``
 (UsdPreviewSurface, textures), ``phrt_usd.usd.lights`` (UsdLux),
 ``phrt_usd.usd.values`` (attribute values, time), ``phrt_usd.usd.composition``
@@ -29,7 +30,9 @@ Pipeline (``read_stage``):
    (``phrt_usd.usd.instancers``), becomes one element, its triangles
    prepared once in local space (``phrt_usd.usd.meshes``), then transformed into one
    world-space batch in **metres**. Elements whose transform or points may vary in time
-   are re-transformed in ``StageScene.set_time``; the others are never touched again.
+   are re-transformed in ``StageScene.set_time``, which returns what moved or deformed
+   (``model.scene.SceneChange``) and bumps ``Scene.versions``, the counters the
+   renderer's caches compare; the others are never touched again.
    Element vertex / triangle ranges stay fixed (topology must not change over time).
    Meshes bound to a UsdSkel skeleton are skinned by USD's own skinning at every time
    (``phrt_usd.usd.skinning``), placed by the skeleton's transform.
@@ -67,10 +70,10 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-from pxr import Gf, Sdf, Tf, Usd, UsdGeom, UsdRender
+from pxr import Sdf, Tf, Usd, UsdGeom, UsdRender
 
 from phrt_usd.errors import BadOption, PhrtError, UnreadableInput
-from phrt_usd.model.scene import CameraFrame, Element, Geometry, Lights, Scene
+from phrt_usd.model.scene import CameraFrame, Element, Geometry, Lights, Scene, SceneChange
 from phrt_usd.usd import schema
 from phrt_usd.usd.camera_path import CameraPath, find_camera_path
 from phrt_usd.usd.composition import composition_problems, composition_warnings
@@ -90,6 +93,12 @@ from phrt_usd.usd.meshes import (
 )
 from phrt_usd.usd.render_settings import camera_settings, included_purposes
 from phrt_usd.usd.skinning import SkinningReader
+from phrt_usd.usd.stage_camera import (  # noqa: F401 (camera_check_times: re-export)
+    StageCamera,
+    camera_check_times,
+    camera_problems,
+    same_camera,
+)
 from phrt_usd.usd.stage_controls import StageControls
 from phrt_usd.usd.stage_file import USD_EXTENSIONS, open_usd  # noqa: F401 (re-export)
 from phrt_usd.usd.traversal import rendered_gprims, walk_subtree  # noqa: F401 (re-export)
@@ -97,7 +106,6 @@ from phrt_usd.usd.values import (
     AnimationProbe,
     TimeContext,
     normal_matrix,
-    rotation_columns,
     safe_normalize,
     stage_up_axis,
     varies,
@@ -212,114 +220,15 @@ def frame_range(stage: Usd.Stage, path_driver: CameraPath | None) -> tuple[float
     return (float(stage.GetStartTimeCode()), float(stage.GetEndTimeCode()))
 
 
-@dataclass
-class _CameraValues:
-    world: np.ndarray | None  # (4, 4) row-vector local → world, stage units (None: driven)
-    focal: float
-    aperture: float
-    near: float
-    far: float
-    problems: list[str]
-    vertical: float = 0.0  # verticalAperture
-    offsets: tuple[float, float] = (0.0, 0.0)  # horizontal, vertical aperture offsets
-    exposure_scale: float = 1.0  # UsdGeomCamera.ComputeLinearExposureScale
-
-
-#: Largest camera linear exposure scale accepted (2^40: beyond it float32 radiance
-#: of ordinary scenes, ~1e-6..1e6, leaves float32's range, 3.4e38, within a few frames'
-#: worth of headroom only).
-MAX_CAMERA_EXPOSURE_SCALE = 2.0**40
-
-
-def _camera_values(prim: Usd.Prim, time: float, driven: bool) -> _CameraValues:
-    """The camera's attributes at ``time`` and every reason the render refuses them."""
-    code = Usd.TimeCode(float(time))
-    cam = UsdGeom.Camera(prim)
-    where = str(prim.GetPath())
-    problems = []
-    if cam.GetProjectionAttr().Get(code) == UsdGeom.Tokens.orthographic:
-        problems.append(f"{where}.projection: orthographic cameras are not supported")
-    world = None
-    if not driven:
-        world = np.array(UsdGeom.XformCache(code).GetLocalToWorldTransform(prim))
-        if not np.all(np.isfinite(world)):
-            problems.append(f"{where}: non-finite camera transform at time {time}")
-    focal = float(cam.GetFocalLengthAttr().Get(code))
-    aperture = float(cam.GetHorizontalApertureAttr().Get(code))
-    near, far = (float(x) for x in cam.GetClippingRangeAttr().Get(code))
-    if not (np.isfinite(focal) and focal > 0):
-        problems.append(f"{where}.focalLength: must be > 0 at time {time}, got {focal}")
-    if not (np.isfinite(aperture) and aperture > 0):
-        problems.append(f"{where}.horizontalAperture: must be > 0 at time {time}, got {aperture}")
-    vertical = float(cam.GetVerticalApertureAttr().Get(code))
-    if not (np.isfinite(vertical) and vertical > 0):
-        problems.append(f"{where}.verticalAperture: must be > 0 at time {time}, got {vertical}")
-    offsets = (
-        float(cam.GetHorizontalApertureOffsetAttr().Get(code)),
-        float(cam.GetVerticalApertureOffsetAttr().Get(code)),
-    )
-    for name, value in zip(_OFFSET_ATTRS, offsets, strict=True):
-        if not np.isfinite(value):
-            problems.append(f"{where}.{name}: must be finite at time {time}, got {value}")
-    if not (np.isfinite(near) and np.isfinite(far) and far > near):
-        problems.append(f"{where}.clippingRange: need near < far, got ({near}, {far})")
-    # USD's own formula: 2^exposure x time x ISO/100 x responsivity / fStop² (1 unauthored).
-    exposure_scale = float(cam.ComputeLinearExposureScale(code))
-    if not (np.isfinite(exposure_scale) and 0.0 <= exposure_scale <= MAX_CAMERA_EXPOSURE_SCALE):
-        problems.append(
-            f"{where}.exposure: the exposure attributes give a linear scale of "
-            f"{exposure_scale} at time {time}, need 0..{MAX_CAMERA_EXPOSURE_SCALE:g}"
-        )
-    return _CameraValues(
-        world, focal, aperture, near, far, problems, vertical, offsets, exposure_scale
-    )
-
-
-def camera_problems(prim: Usd.Prim, time: float, driven: bool = False) -> list[str]:
-    """Every reason the render refuses the camera at ``time`` (the first is what
-    ``StageScene.camera`` raises): orthographic projection, a non-finite transform
-    (unless a camera path drives it, ``driven``), focal length or an aperture not > 0,
-    an aperture offset not finite, clipping range not near < far."""
-    return _camera_values(prim, time, driven).problems
-
-
-_OFFSET_ATTRS = ("horizontalApertureOffset", "verticalApertureOffset")
-_CAMERA_ATTRS = (
-    "projection",
-    "focalLength",
-    "horizontalAperture",
-    "verticalAperture",
-    *_OFFSET_ATTRS,
-    "clippingRange",
-)
-
-
-def camera_check_times(prim: Usd.Prim, frames: tuple[float, float], driven: bool) -> list[float]:
-    """Times at which ``camera_problems`` covers the whole frame range: its start and end
-    and every time sample inside it of the camera attributes and (unless driven) of the
-    transforms of the camera and its ancestors. Values between samples are linear
-    interpolations, so their extremes are at these times."""
-    start, end = frames
-    interval = Gf.Interval(start, end)
-    times = {start, end}
-    for name in _CAMERA_ATTRS:
-        attr = prim.GetAttribute(name)
-        if attr:
-            times.update(attr.GetTimeSamplesInInterval(interval))
-    p = prim
-    while not driven and p and not p.IsPseudoRoot():
-        xf = UsdGeom.Xformable(p)
-        if xf:
-            times.update(xf.GetTimeSamplesInInterval(interval))
-            if xf.GetResetXformStack():
-                break
-        p = p.GetParent()
-    return sorted(float(t) for t in times)
-
-
 # --------------------------------------------------------------------------------------
 # Elements: reflector flags and how each is placed
 # --------------------------------------------------------------------------------------
+
+
+#: What ``StageScene._place`` found changed in an element: its points or normals
+#: (deformed), or only its rigid transform (moved).
+DEFORMED = "deformed"
+MOVED = "moved"
 
 
 @dataclass
@@ -413,7 +322,6 @@ class StageScene:
         self.binding_purposes = binding_purposes(stage, settings)
         cam_prim = choose_camera(stage, camera)
         self.camera_settings = camera_settings(stage, settings)
-        self._camera_prim = cam_prim
         self.camera_path = DEFAULT_CAMERA_NAME if cam_prim is None else str(cam_prim.GetPath())
         self.path_driver: CameraPath | None = (
             None if cam_prim is None else find_camera_path(stage, self.camera_path)
@@ -432,14 +340,19 @@ class StageScene:
             for m in self.texture_problems
         ]
         self.warnings += self.material_notices
-        self._default_camera: CameraFrame | None = None
+        default: CameraFrame | None = None
         if cam_prim is None:
             where = stage.GetRootLayer().identifier
-            self._default_camera = default_camera(self.scene, self.up_axis, where)
+            default = default_camera(self.scene, self.up_axis, where)
             self.warnings.append(
                 f"{where}: stage has no UsdGeomCamera; rendering with a default camera "
                 f"framing the stage's bounds from {'-Y' if self.up_axis == 'Z' else '+Z'}"
             )
+        self._camera = StageCamera(
+            cam_prim, self.path_driver, self.camera_settings, self.meters_per_unit, default
+        )
+        #: The camera at the last ``set_time`` (None: refused there), for its version.
+        self._camera_seen = self._camera.at(self._time)[0]
 
     # ---- reading ------------------------------------------------------------------
 
@@ -612,8 +525,9 @@ class StageScene:
                 geometry.vertices.min(axis=0) + geometry.vertices.max(axis=0)
             )
 
-    def _place(self, p: _Part, ctx: TimeContext, force: bool = False) -> bool:
-        """Transform part ``p`` to world metres at ``ctx``; True if anything changed."""
+    def _place(self, p: _Part, ctx: TimeContext, force: bool = False) -> str | None:
+        """Transform part ``p`` to world metres at ``ctx``. Returns what changed:
+        ``DEFORMED`` (its points or normals), ``MOVED`` (only its transform) or None."""
         m = p.matrix_at(ctx)
         if not np.all(np.isfinite(m)):
             raise PhrtError(f"{p.path}: non-finite transform at time {ctx.time}")
@@ -626,12 +540,12 @@ class StageScene:
             ):
                 raise PhrtError(f"{p.path}: topology changes at time {ctx.time} (not supported)")
         same_xform = p.matrix is not None and np.array_equal(m, p.matrix)
-        if not force and same_xform:
-            if new_points is None or (
-                np.array_equal(new_points, mesh.points)
-                and (new_normals is None or np.array_equal(new_normals, mesh.corner_normals))
-            ):
-                return False
+        same_shape = new_points is None or (
+            np.array_equal(new_points, mesh.points)
+            and (new_normals is None or np.array_equal(new_normals, mesh.corner_normals))
+        )
+        if not force and same_xform and same_shape:
+            return None
         if new_points is not None:
             mesh.points = new_points
             if new_normals is not None:
@@ -664,27 +578,50 @@ class StageScene:
             e.bounds_max = world.max(axis=0)
         else:
             e.bounds_min = e.bounds_max = m[3, :3] * self.meters_per_unit
-        return True
+        return MOVED if same_shape else DEFORMED
 
     # ---- public API ---------------------------------------------------------------
 
-    def set_time(self, time: float) -> bool:
-        """Re-evaluate animated elements at ``time``; True if any geometry changed.
+    def set_time(self, time: float) -> SceneChange:
+        """Re-evaluate animated elements and the camera at ``time``; returns what changed
+        (``SceneChange``: the elements moved and deformed, the versions after it), which
+        ``scene.versions`` counts too (the geometry version stamps the changed
+        elements, ``Scene.geometry_changed``; the camera version is bumped when the
+        camera differs from the one at the previous time).
 
-        Static elements are never recomputed; with no animated element this is O(1).
+        Static elements are never recomputed; with no animated element the geometry
+        costs O(1). The camera is read once per time code (``stage_camera.StageCamera``
+        keeps the last CAMERA_CACHE_SIZE); a camera the render refuses at ``time`` is not raised
+        here but by ``camera``, and counts as changed.
         """
         time = float(time)
         if not np.isfinite(time):
             raise PhrtError(f"set_time: time code {time} is not finite")
-        if not self._animated:
-            self._time = time
-            return False
-        ctx = TimeContext(time)
-        changed = False
-        for p in self._animated:
-            changed |= self._place(p, ctx)
+        moved: list[int] = []
+        deformed: list[int] = []
+        if self._animated:
+            ctx = TimeContext(time)
+            for p in self._animated:
+                kind = self._place(p, ctx)
+                if kind == MOVED:
+                    moved.append(p.element)
+                elif kind == DEFORMED:
+                    deformed.append(p.element)
         self._time = time
-        return changed
+        versions = self.scene.versions
+        self.scene.geometry_changed(moved + deformed)
+        camera = self._camera.at(time)[0]
+        seen = self._camera_seen
+        if camera is None or seen is None or not same_camera(camera, seen):
+            versions.camera += 1
+        self._camera_seen = camera
+        return SceneChange(
+            moved=np.array(sorted(moved), dtype=np.int64),
+            deformed=np.array(sorted(deformed), dtype=np.int64),
+            geometry_version=versions.geometry,
+            lights_version=versions.lights,
+            camera_version=versions.camera,
+        )
 
     @property
     def time(self) -> float:
@@ -694,43 +631,12 @@ class StageScene:
     def camera(self, time: float) -> CameraFrame:
         """The camera at ``time``: world metres, orthonormal rotation, the settings'
         conform policy, pixel aspect and data window (``camera_settings``). The default
-        camera (``default_camera``) when the stage has no camera."""
-        image = self.camera_settings
-        if self._default_camera is not None:
-            return dataclasses.replace(
-                self._default_camera,
-                conform_policy=image.conform_policy,
-                pixel_aspect=image.pixel_aspect,
-                data_window=image.data_window,
-            )
-        v = _camera_values(self._camera_prim, time, self.path_driver is not None)
-        for problem in v.problems:
+        camera (``default_camera``) when the stage has no camera. Raises ``PhrtError``
+        (``camera_problems``' first) for a camera the render refuses at ``time``."""
+        camera, problems = self._camera.at(time)
+        for problem in problems:
             raise PhrtError(problem)
-        if self.path_driver is not None:
-            world_from_camera = self.path_driver.world_from_camera(time, self.meters_per_unit)
-        else:
-            m = v.world
-            world_from_camera = np.eye(4)
-            world_from_camera[:3, :3] = rotation_columns(m)
-            world_from_camera[:3, 3] = m[3, :3] * self.meters_per_unit
-        focal, aperture, near, far = v.focal, v.aperture, v.near, v.far
-        # A zero near plane gives a singular depth projection: keep it a tiny positive
-        # fraction of the far plane.
-        near = max(near, far * 1e-7)
-        return CameraFrame(
-            world_from_camera=world_from_camera,
-            focal_length=focal,
-            horizontal_aperture=aperture,
-            near=near * self.meters_per_unit,
-            far=far * self.meters_per_unit,
-            vertical_aperture=v.vertical,
-            horizontal_aperture_offset=v.offsets[0],
-            vertical_aperture_offset=v.offsets[1],
-            conform_policy=image.conform_policy,
-            pixel_aspect=image.pixel_aspect,
-            data_window=image.data_window,
-            exposure_scale=v.exposure_scale,
-        )
+        return camera
 
 
 # --------------------------------------------------------------------------------------
