@@ -18,7 +18,7 @@ from typing import Annotated
 
 import typer
 
-import phrt_usd  # noqa: F401  (registers the schema plugin before any stage opens)
+from phrt_usd.base import __version__
 from phrt_usd.cli_errors import (
     EXIT_INTERRUPTED,
     EXIT_PROBLEMS,
@@ -49,7 +49,7 @@ PROGRESS_LINE_SECONDS = 5.0
 
 def _version(value: bool) -> None:
     if value:
-        typer.echo(f"phrt {phrt_usd.__version__}")
+        typer.echo(f"phrt {__version__}")
         raise typer.Exit()
 
 

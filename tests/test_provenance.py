@@ -7,6 +7,7 @@ import json
 from pathlib import Path
 
 import phrt_usd
+from phrt_usd import base
 from phrt_usd.evaluate import provenance
 
 REPO = Path(__file__).resolve().parents[1]
@@ -18,7 +19,7 @@ def test_commit_is_unknown_for_an_installed_copy(monkeypatch, tmp_path):
     pyproject.toml there) does not give its commit as phrt's."""
     installed = tmp_path / "venv" / "lib" / "site-packages" / "phrt_usd"
     installed.mkdir(parents=True)
-    monkeypatch.setattr(phrt_usd, "__file__", str(installed / "__init__.py"))
+    monkeypatch.setattr(base, "__file__", str(installed / "base.py"))
     assert provenance.source_commit() == ("unknown", None)
     (installed.parent / ".git").mkdir()  # a pipeline's repository, not phrt's
     assert provenance.source_commit() == ("unknown", None)

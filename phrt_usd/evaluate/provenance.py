@@ -36,7 +36,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-import phrt_usd
+from phrt_usd import base
 
 #: Written where the commit (or another fact) cannot be found.
 UNKNOWN = "unknown"
@@ -67,7 +67,7 @@ def collect(
 
     commit, dirty = source_commit()
     record: dict[str, Any] = {
-        "phrt_version": phrt_usd.__version__,
+        "phrt_version": base.__version__,
         "commit": commit,
         "commit_dirty": dirty,
         "command": command_line(argv),
@@ -102,7 +102,7 @@ def source_commit() -> tuple[str, bool | None]:
     """(commit, dirty) of the phrt-usd checkout this package runs from; (``UNKNOWN``,
     None) for an installed copy, a tree that is not phrt-usd's own checkout (a pipeline's
     repository holding a venv) or when git is missing or refuses."""
-    root = Path(phrt_usd.__file__).resolve().parent.parent
+    root = Path(base.__file__).resolve().parent.parent
     if not (root / ".git").exists() or not (root / "pyproject.toml").is_file():
         return UNKNOWN, None
     head = _git(root, "rev-parse", "HEAD")

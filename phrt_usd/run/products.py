@@ -76,7 +76,7 @@ from pathlib import Path, PurePosixPath
 
 import numpy as np
 
-from phrt_usd import __version__
+from phrt_usd.base import __version__
 from phrt_usd.engine.compositing import element_reflectivity, pixel_reflectivity
 from phrt_usd.engine.renderer import FrameOutput
 from phrt_usd.errors import BadOption, PhrtError

@@ -35,8 +35,8 @@ from typing import Any
 
 import numpy as np
 
-from phrt_usd import __version__
 from phrt_usd.atomic import write_text_atomic
+from phrt_usd.base import __version__
 from phrt_usd.errors import PhrtError
 from phrt_usd.model.frame import FrameStats, ReflectorMetrics
 from phrt_usd.model.trace_density import TRACE_DENSITIES

@@ -21,7 +21,7 @@ import ctypes.util
 import os
 import sys
 
-import phrt_usd
+from phrt_usd.base import USER_GL_PLATFORM
 from phrt_usd.errors import BadOption, PhrtError
 
 GL_PLATFORMS = ("auto", "egl", "osmesa")
@@ -68,7 +68,7 @@ def resolve(requested: str) -> str:
     loaded = loaded_platform()
     if loaded in ("egl", "osmesa"):
         return loaded
-    chosen = (phrt_usd.USER_GL_PLATFORM or "").lower()
+    chosen = (USER_GL_PLATFORM or "").lower()
     if chosen in ("egl", "osmesa"):
         return chosen
     return "egl" if egl_problem() is None else "osmesa"
