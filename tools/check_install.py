@@ -1,9 +1,10 @@
 """Install phrt-usd as a user would and check it keeps its promises there.
 
-    python3 tools/check_install.py [--python python3] [--work DIR] [--compare]
+    python3 tools/check_install.py [--python PY ... | --python supported] [--work DIR]
+        [--lowest] [--compare]
 
 Builds the wheel (``uv build``), installs it with pip (the strict resolver) into a new
-venv with nothing else (no dev group, no extras), and there:
+venv of each Python given with nothing else (no dev group, no extras), and there:
 
 1. ``phrt --version``;
 2. ``phrt kernels`` into an empty kernel cache (``PHRT_CACHE_DIR``): the first use
@@ -249,29 +250,62 @@ def compare(bin_dir: Path, work: Path, runs: int = 3) -> None:
     print(f"installed / checkout: {ratio:.2f}")
 
 
+#: The Pythons the package supports (pyproject.toml's requires-python).
+SUPPORTED = ("3.11", "3.12", "3.13")
+
+
+def supported_pythons() -> list[str]:
+    """An interpreter of each SUPPORTED version found on this machine: ``pythonX.Y`` on
+    PATH, else pyenv's newest ``X.Y.*`` (``$PYENV_ROOT``, ``~/.pyenv``)."""
+    found = []
+    pyenv = Path(os.environ.get("PYENV_ROOT", Path.home() / ".pyenv")) / "versions"
+    for version in SUPPORTED:
+        candidates = [shutil.which(f"python{version}")]
+        candidates += [str(p) for p in sorted(pyenv.glob(f"{version}.*/bin/python3"))[::-1]]
+        for candidate in filter(None, candidates):
+            done = subprocess.run([candidate, "-c", "import sys, venv; print(sys.version[:5])"],
+                                  capture_output=True, text=True)  # fmt: skip
+            if done.returncode == 0 and done.stdout.startswith(version + "."):
+                found.append(candidate)
+                break
+        else:
+            print(f"Python {version}: not on this machine, not checked")
+    return found
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--python", default="python3", help="the Python of the new venv")
-    parser.add_argument("--work", type=Path, help="keep the venv and outputs here")
+    parser.add_argument("--python", action="append",
+                        help="the Python of a new venv (repeatable; default python3; "
+                             "'supported': each of 3.11-3.13 found here)")  # fmt: skip
+    parser.add_argument("--work", type=Path, help="keep the venvs and outputs here")
     parser.add_argument("--compare", action="store_true", help="time installed vs checkout")
     parser.add_argument("--lowest", action="store_true", help="requirements at lower bounds")
     args = parser.parse_args()
+    pythons = args.python or ["python3"]
+    if "supported" in pythons:
+        pythons = supported_pythons()
     work = args.work or Path(tempfile.mkdtemp(prefix="phrt-install-"))
     try:
-        start = time.perf_counter()
         wheel = build_wheel(work)
-        bin_dir = install(args.python, wheel, work / "venv", args.lowest)
-        print(f"installed {wheel.name} with pip in {time.perf_counter() - start:.0f} s")
-        check(bin_dir, work)
-        if args.compare:
-            compare(bin_dir, work)
+        for k, python in enumerate(pythons):
+            start = time.perf_counter()
+            here = work / f"python-{k}"
+            here.mkdir(parents=True, exist_ok=True)
+            bin_dir = install(python, wheel, here / "venv", args.lowest)
+            version = run([bin_dir / "python", "--version"], "python --version").stdout.strip()
+            print(f"{version}: installed {wheel.name} with pip in "
+                  f"{time.perf_counter() - start:.0f} s")  # fmt: skip
+            check(bin_dir, here)
+            if args.compare:
+                compare(bin_dir, here)
     except Failed as failed:
         print(f"install check failed: {failed}", file=sys.stderr)
         return 1
     finally:
         if args.work is None:
             shutil.rmtree(work, ignore_errors=True)
-    print("install check passed")
+    print(f"install check passed ({len(pythons)} Python(s))")
     return 0
 
 
