@@ -412,7 +412,7 @@ _F32, _F64, _I64 = np.dtype(np.float32), np.dtype(np.float64), np.dtype(np.int64
 def _rows(a, dtype: np.dtype, *shape: int) -> np.ndarray:
     """``a`` as a C-contiguous array of ``dtype`` and ``shape`` (one -1 allowed): ``a``
     itself when it already is one (the tracer's gathered rows: checking costs a third of
-    numpy's converting calls, which were ~5 us of a small trace round), else a converted
+    numpy's converting calls, which would cost ~5 us of a small trace round), else a converted
     copy or view."""
     if (
         type(a) is np.ndarray
