@@ -5,7 +5,7 @@ Kernels are written once, as numba ``@njit(**KERNEL_OPTIONS)`` functions in the 
 ``KERNEL_MODULES`` (each with a ``warm_up()`` that compiles every kernel for the argument
 types the renderer passes). numba compiles them to machine code on first use and keeps
 that code in a disk cache, so only the very first render of an installation compiles
-(about half a minute on 2 cores); every later one loads the code (~0.5 s with numba's
+(about 20 s on 2 cores); every later one loads the code (~0.3 s with numba's
 import). Nothing needs a C compiler, and an installed wheel behaves as a checkout.
 
 The cache (``cache_dir()``) is phrt's own, not numba's default beside the sources:
@@ -187,7 +187,7 @@ def load(module_name: str):
             _announced = True
             print(
                 f"phrt: compiling the renderer's kernels into {cache_dir()} (once, about "
-                "30 s; `phrt kernels` does it ahead of time)",
+                "20 s; `phrt kernels` does it ahead of time)",
                 file=sys.stderr,
             )
         _loaded[module_name] = module
