@@ -401,6 +401,7 @@ def test_moved_animated_element_is_hit_at_its_new_place_only():
     np.testing.assert_array_equal(scene.geometry.tri_element[hits.tri], [1, 0])
     box_vertices = np.unique(scene.geometry.triangles[scene.geometry.tri_element == 1])
     scene.geometry.vertices[box_vertices] += (4.0, 0.0, 0.0)
+    scene.geometry_changed([1])  # the owner of the scene announces the move
     tracer.update_geometry(scene)
     assert not tracer.last_build_full and tracer.bvh.static is static_bvh  # static BVH kept
     hits = tracer.bvh.intersect(down - scene.origin, dirs)
@@ -418,6 +419,7 @@ def test_moved_animated_element_is_hit_at_its_new_place_only():
     # A static element that moves is not missed: full rebuild.
     floor_vertices = np.unique(scene.geometry.triangles[scene.geometry.tri_element == 0])
     scene.geometry.vertices[floor_vertices] += (0.0, -1.0, 0.0)
+    scene.geometry_changed([0])
     tracer.update_geometry(scene)
     assert tracer.last_build_full
     hits = tracer.bvh.intersect(down[:1] - scene.origin, dirs[:1])
@@ -471,6 +473,7 @@ def test_two_bvhs_match_a_single_bvh_on_random_scenes(seed):
             moving = np.isin(scene.geometry.tri_element, animated)
             ids = np.unique(scene.geometry.triangles[moving])
             scene.geometry.vertices[ids] += rng.normal(scale=0.5, size=3)
+            scene.geometry_changed(animated)
             tracer.update_geometry(scene)
             assert not tracer.last_build_full
         prim, u, v = tracer.bvh.run("INTERSECT", o32, d32)

@@ -2,7 +2,8 @@
 
 Per frame (``FrameRenderer.render``):
 
-1. ``set_time``   animated prims re-evaluated; rasterizer / Embree scene updated if moved.
+1. ``set_time``   animated prims re-evaluated; rasterizer / Embree scene brought to the
+                  scene's version (only the elements that changed).
 2. ``gbuffer``    raster G-buffer (the id pass) — or primary rays (Embree): always in
                   ``rt`` mode, else where ``--primary`` chose them (``primary_source``).
 3. ``shade``      local shading of every covered pixel (shadow map in raster/hybrid,
@@ -38,6 +39,7 @@ from phrt_usd.engine.raster.gl_platform import DEFAULT_GL, check_gl
 from phrt_usd.errors import BadOption
 from phrt_usd.model.frame import (
     Budget,
+    FrameCamera,
     FrameStats,
     FrameView,
     GBuffer,
@@ -218,13 +220,15 @@ class PreparedFrame:
 class FrameOutput:
     """A rendered frame: beauty (H, W, 3) float32 linear RGB (times 2**exposure and the
     camera's exposure scale: ``RenderOptions.exposure``), alpha (H, W) float32,
-    the G-buffer, traced_mask (H, W) bool and the frame's stats."""
+    the G-buffer, traced_mask (H, W) bool, the frame's stats and its camera
+    (``FrameCamera``: world-to-camera and projection at the frame's time code)."""
 
     beauty: np.ndarray
     alpha: np.ndarray
     gbuffer: GBuffer
     traced_mask: np.ndarray
     stats: FrameStats
+    camera: FrameCamera
 
 
 class FrameRenderer:
@@ -237,8 +241,6 @@ class FrameRenderer:
         scene = stage_scene.scene
         self._reflector_ids = scene.reflector_ids
         self._element_f = element_reflectivity(scene)  # F per element: fixed for a run
-        self._animated = any(e.animated for e in scene.elements)
-        self._geometry_time: float | None = None
         self._rasterizer = None
         self._tracer = None
         #: The OpenGL platform the raster phase runs on (None: no raster phase, ``rt``).
@@ -363,18 +365,17 @@ class FrameRenderer:
         t_frame = time.perf_counter()
 
         t = time.perf_counter()
-        moved = self.stage_scene.set_time(time_code)
-        # Several renderers may share one StageScene: re-upload whenever this renderer's
-        # geometry is from another time and something in the scene is animated.
-        if moved or (self._animated and self._geometry_time != time_code):
-            self._geometry_time = time_code
-            if self._rasterizer is not None:
-                self._rasterizer.update_geometry(self.scene)
-            if self._tracer is not None:
-                self._tracer.update_geometry(self.scene)
+        self.stage_scene.set_time(time_code)
+        # Each holder of geometry compares the scene's geometry version with its own and
+        # re-sends only the elements changed since (several renderers may share one
+        # StageScene: versions, not this frame's SceneChange, say what each lacks).
+        if self._rasterizer is not None:
+            self._rasterizer.update_geometry(self.scene)
+        if self._tracer is not None:
+            self._tracer.update_geometry(self.scene)
         camera, upcoming = self._path_cameras(time_code)
         # The default light rig's headlight follows the camera (usd/default_lights.py).
-        self.scene.lights = aim_headlight(self.scene.lights, camera)
+        self.scene.replace_lights(aim_headlight(self.scene.lights, camera))
         phase["set_time"] = _ms(t)
 
         scene = self.scene
@@ -542,7 +543,9 @@ class FrameRenderer:
             calibration=calibration,
             densities=densities,
         )
-        return FrameOutput(image, alpha, gb, traced_mask, stats)
+        height, width = gb.shape
+        camera = FrameCamera.of(prep.time, prep.camera, width, height)
+        return FrameOutput(image, alpha, gb, traced_mask, stats, camera)
 
     def _frame_budget_ms(
         self, prep: PreparedFrame, policy: SelectionPolicy, opts: RenderOptions

@@ -12,6 +12,10 @@ llvmpipe. Vertices are origin-relative (``Scene.origin`` subtracted in float64, 
 cast to float32) so a stage 1e6 m from the world origin rasterizes as precisely as one
 at the origin. The static and the animated triangles (``Element.animated``) are also
 drawable on their own (``batch``) from the same vertex buffer, for the shadow maps.
+What changed is never found by comparing arrays: the scene's versions
+(``Scene.versions``) say which elements changed since the version uploaded, and only
+their vertices are re-sent; ``batch_versions`` count the changes of each batch for the
+shadow maps' cache.
 
 pyrender's 4x multisampled framebuffer would blend ids at triangle edges, so the
 renderer instance gets our single-sampled id framebuffer (RGBA8 + 32-bit float depth)
@@ -39,7 +43,7 @@ from pyrender.shader_program import ShaderProgramCache
 
 from phrt_usd.engine.raster.gl_platform import loaded_platform, make_platform
 from phrt_usd.errors import PhrtError
-from phrt_usd.model.scene import Scene
+from phrt_usd.model.scene import ElementTriangles, Scene
 from phrt_usd.threads import current_threads
 
 #: Directory of our GLSL files (``flat.*``: id pass, ``depth.*``: shadow-map pass,
@@ -107,43 +111,26 @@ def id_framebuffer(width: int, height: int, name: str):
     return rb, fb
 
 
-class CornerIndex:
-    """The triangles of each vertex (CSR over the triangle corners), so that the
-    triangles of the few vertices an animation moves are found without a pass over every
-    triangle. triangles : (T, 3) int64 vertex indices < ``n_vertices``."""
-
-    def __init__(self, triangles: np.ndarray, n_vertices: int) -> None:
-        corners = np.asarray(triangles, dtype=np.int64).reshape(-1)
-        #: The corners (flat index 3 * triangle + corner) sorted by vertex ...
-        self.corner_order = np.argsort(corners, kind="stable")
-        #: ... where vertex v's begin (vertex_start[v] .. vertex_start[v + 1] - 1).
-        self.vertex_start = np.searchsorted(corners[self.corner_order], np.arange(n_vertices + 1))
-
-    def triangles_of(self, vertices: np.ndarray) -> np.ndarray:
-        """(m,) int64 ascending indices of the triangles using any of ``vertices`` (k,)
-        int64, in O(their corners)."""
-        vertices = np.asarray(vertices, dtype=np.int64)
-        start, stop = self.vertex_start[vertices], self.vertex_start[vertices + 1]
-        counts = stop - start
-        total = int(counts.sum())
-        if total == 0:
-            return np.zeros(0, dtype=np.int64)
-        # The corner positions start[i] .. stop[i] - 1 of every vertex, one flat array.
-        offsets = np.arange(total) - np.repeat(np.cumsum(counts) - counts, counts)
-        corners = self.corner_order[np.repeat(start, counts) + offsets]
-        return np.unique(corners // 3)
-
-
 @dataclass
 class GeometryChange:
     """What ``RasterContext.update_geometry`` changed.
 
-    rebuilt    : the topology or origin changed: everything was uploaded anew
-    moved_rows : (m,) int64 ascending, the triangles with a moved vertex (all when rebuilt)
+    rebuilt    : everything was uploaded anew (another scene, topology or origin, or a
+                 changed element's winding flipped)
+    elements   : (k,) int64 ascending, the elements whose vertices were re-sent (every
+                 element when rebuilt)
+    moved_rows : (m,) int64 ascending, their triangles (all when rebuilt)
+    vertices   : how many vertices were sent to the GPU (all when rebuilt)
     """
 
     rebuilt: bool
+    elements: np.ndarray
     moved_rows: np.ndarray
+    vertices: int
+
+
+#: ``GeometryChange.elements`` / ``moved_rows`` of an update that changed nothing.
+_NOTHING = np.zeros(0, dtype=np.int64)
 
 
 class RasterContext:
@@ -153,11 +140,16 @@ class RasterContext:
     scene, origin (3,) float64; width, height; renderer (pyrender, id framebuffer),
     pscene (pyrender scene, one mesh node), mesh_node (None without triangles);
     uploaded (V, 3) float32 vertices as on the GPU; triangles (T, 3) int64;
-    animated_tri (T,) bool; bounds_rel (2, 3) float64 and extent (metres, > 0) of all
-    vertices; threads and pool: the workers deriving the G-buffer from the id image and
-    looking points up in the shadow maps (numpy releases the GIL in its loops, so the
-    pixels / points are split into ``threads`` chunks; ``phrt_usd.threads``); gl: the
-    platform the context runs on (``egl`` / ``osmesa``).
+    animated_tri (T,) bool; geometry_version: the ``Scene.versions.geometry`` uploaded;
+    batch_versions: per batch ("static", "dynamic") a counter bumped whenever its
+    triangles' vertices change (what the shadow maps cache on); upload_version: a
+    counter bumped by every ``upload`` (the scene, its lights or the origin of rel space
+    may be others); bounds_rel (2, 3)
+    float64 and extent (metres, > 0) of all vertices; threads and pool: the workers
+    deriving the G-buffer from the id image and looking points up in the shadow maps
+    (numpy releases the GIL in its loops, so the pixels / points are split into
+    ``threads`` chunks; ``phrt_usd.threads``); gl: the platform the context runs on
+    (``egl`` / ``osmesa``).
     """
 
     def __init__(self, scene: Scene, width: int, height: int) -> None:
@@ -183,6 +175,9 @@ class RasterContext:
         self.mesh_node = None
         self.uploaded: np.ndarray | None = None  # (V, 3) float32 rel, as on the GPU
         self._batches: dict[str, tuple[int, int, int]] = {}  # name → (vao, ebo, count)
+        self.geometry_version = 0
+        self.batch_versions = {"static": 0, "dynamic": 0}
+        self.upload_version = 0
         self.threads = current_threads()
         self.pool = ThreadPoolExecutor(self.threads, thread_name_prefix="phrt-gbuffer")
 
@@ -196,14 +191,20 @@ class RasterContext:
     # ------------------------------------------------------------------ geometry upload
 
     def upload(self, scene: Scene) -> None:
-        """Build the single mesh node (rel space) and the static / animated split."""
+        """Build the single mesh node (rel space) and the static / animated split, at
+        ``scene``'s current version; both batches count as changed."""
         geo = scene.geometry
         if geo.triangle_count >= 2**32 - 1:
             raise PhrtError(f"{geo.triangle_count} triangles exceed the id encoding")
+        self.origin = np.asarray(scene.origin, dtype=np.float64).copy()
         rel = geo.vertices - self.origin
         self.uploaded = np.ascontiguousarray(rel, dtype=np.float32)
         self.triangles = np.array(geo.triangles, dtype=np.int64)
-        self._corners = CornerIndex(self.triangles, len(self.uploaded))
+        self._element_triangles = ElementTriangles(geo.tri_element, len(scene.elements))
+        self.geometry_version = scene.versions.geometry
+        self.upload_version += 1
+        for name in self.batch_versions:
+            self.batch_versions[name] += 1
         self.delete_batches()
         if self.mesh_node is not None:
             self.pscene.remove_node(self.mesh_node)
@@ -227,13 +228,14 @@ class RasterContext:
         """
         geo = scene.geometry
         flags = np.array([e.animated for e in scene.elements] + [False], dtype=bool)
+        #: (E,) bool, ``Element.animated`` when uploaded.
+        self.animated_element = flags[:-1]
         el = np.where(
             (geo.tri_element >= 0) & (geo.tri_element < len(scene.elements)),
             geo.tri_element,
             len(scene.elements),
         )
         self.animated_tri = flags[el]
-        self.animated_rows = np.flatnonzero(self.animated_tri)
         rel = self.uploaded
         static_vertices = np.unique(self.triangles[~self.animated_tri])
         if len(static_vertices):
@@ -261,51 +263,72 @@ class RasterContext:
         self.extent = float(max(np.linalg.norm(hi - lo), 1e-12))
 
     def update_geometry(self, scene: Scene) -> GeometryChange:
-        """Re-upload geometry after animated prims moved.
+        """Bring the uploaded geometry to ``scene``'s current version.
 
-        Same topology and origin: only the changed vertex range is re-sent
-        (``glBufferSubData``); otherwise the node is rebuilt (``upload``).
+        Versions are compared, never arrays (``Scene.versions``): the version uploaded
+        → nothing to do; the same scene, elements changed since → only their vertices
+        are re-sent (``glBufferSubData``, one call per contiguous run of vertex
+        indices) and the batches they belong to counted as changed
+        (``batch_versions``). Another ``Scene`` object, vertex or triangle count or
+        origin, or a changed element whose winding flipped (a transform's determinant
+        changed sign): the node is rebuilt (``upload``).
         """
         self.make_current()
         geo = scene.geometry
-        same_topology = (
-            self.mesh_node is not None
-            and np.array_equal(np.asarray(scene.origin, dtype=np.float64), self.origin)
+        same_scene = (
+            scene is self.scene
+            and self.uploaded is not None
             and geo.vertices.shape == self.uploaded.shape
-            and np.array_equal(geo.triangles, self.triangles)
-            and len(scene.elements) == len(self.scene.elements)
+            and geo.triangle_count == len(self.triangles)
+            and np.array_equal(np.asarray(scene.origin, dtype=np.float64), self.origin)
         )
-        if not same_topology:
-            self.origin = np.asarray(scene.origin, dtype=np.float64).copy()
+        if same_scene and scene.versions.geometry == self.geometry_version:
+            return GeometryChange(False, _NOTHING, _NOTHING, 0)
+        elements = scene.versions.changed_since(self.geometry_version)
+        rows = self._element_triangles.rows(elements) if same_scene else _NOTHING
+        if not same_scene or not np.array_equal(geo.triangles[rows], self.triangles[rows]):
             self.upload(scene)
-            return GeometryChange(True, np.arange(len(self.triangles)))
-        rel = np.ascontiguousarray(geo.vertices - self.origin, dtype=np.float32)
-        changed = np.unique(np.flatnonzero(rel.reshape(-1) != self.uploaded.reshape(-1)) // 3)
-        if len(changed):
-            first, last = int(changed[0]), int(changed[-1]) + 1
-            self.uploaded = rel
-            if self._primitive._vaid is not None:  # already on the GPU
-                chunk = np.ascontiguousarray(rel[first:last])
-                GL.glBindBuffer(GL.GL_ARRAY_BUFFER, self._primitive._buffers[0])
-                GL.glBufferSubData(GL.GL_ARRAY_BUFFER, first * 12, chunk.nbytes, chunk)
-                GL.glBindBuffer(GL.GL_ARRAY_BUFFER, 0)
-            self._primitive.positions = rel  # keeps pyrender's copy consistent
-        moved_rows = self._corners.triangles_of(changed)
-        self.scene = scene
-        if len(changed):
-            self._update_bounds()
-        if not self.animated_tri[moved_rows].all():
+            every = np.arange(len(scene.elements), dtype=np.int64)
+            return GeometryChange(
+                True, every, np.arange(len(self.triangles)), len(self.uploaded)
+            )
+        vertices = np.unique(self.triangles[rows])
+        self.uploaded[vertices] = geo.vertices[vertices] - self.origin
+        self._send_vertices(vertices)
+        self.geometry_version = scene.versions.geometry
+        animated = self.animated_element[elements]
+        if animated.any():
+            self.batch_versions["dynamic"] += 1
+        if not animated.all():
+            # Static casters moved (the caller animated a prim not flagged so): their
+            # cached bounds too.
+            self.batch_versions["static"] += 1
             self._static_bounds_stale()
-        return GeometryChange(False, moved_rows)
+        self._update_bounds()
+        return GeometryChange(False, elements, rows, len(vertices))
 
+    def _send_vertices(self, vertices: np.ndarray) -> None:
+        """Re-send ``uploaded``'s rows ``vertices`` (k,) int64 ascending to the GPU's
+        vertex buffer, one ``glBufferSubData`` per contiguous run."""
+        if self.mesh_node is None or not len(vertices):
+            return
+        self._primitive.positions = self.uploaded  # pyrender's copy (the same array)
+        if self._primitive._vaid is None:  # not on the GPU yet: sent whole when it is
+            return
+        breaks = np.flatnonzero(np.diff(vertices) > 1) + 1
+        firsts = vertices[np.concatenate([[0], breaks])]
+        lasts = vertices[np.concatenate([breaks - 1, [len(vertices) - 1]])] + 1
+        GL.glBindBuffer(GL.GL_ARRAY_BUFFER, self._primitive._buffers[0])
+        for first, last in zip(firsts.tolist(), lasts.tolist(), strict=True):
+            chunk = self.uploaded[first:last]
+            GL.glBufferSubData(GL.GL_ARRAY_BUFFER, first * 12, chunk.nbytes, chunk)
+        GL.glBindBuffer(GL.GL_ARRAY_BUFFER, 0)
 
     def _static_bounds_stale(self) -> None:
-        """A non-animated vertex moved (the caller animated a prim not flagged as
-        such): recompute the cached static bounds."""
+        """A non-animated vertex moved: recompute the cached static bounds."""
         static_vertices = np.unique(self.triangles[~self.animated_tri])
         sv = self.uploaded[static_vertices]
         self._static_bounds = np.stack([sv.min(axis=0), sv.max(axis=0)]).astype(np.float64)
-        self._update_bounds()
 
     def batch(self, name: str) -> tuple[int, int, int]:
         """(vao, ebo, index count) drawing the static (``name == "static"``) or animated

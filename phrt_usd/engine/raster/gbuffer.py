@@ -177,19 +177,13 @@ class GBufferPass:
             self._layers = None
 
     def geometry_moved(self, scene: Scene, moved_rows: np.ndarray) -> None:
-        """Refresh the tables of the moved triangles ``moved_rows`` (m,) int64 ascending
-        (same topology)."""
+        """Refresh the tables of ``moved_rows`` (m,) int64 ascending, the triangles of
+        the elements that changed (``RasterContext.update_geometry``; same topology):
+        their positions and shading (normals, albedo), nothing else."""
         if self._table is None:  # not built yet: it will be from the geometry as it is
             return
-        geo = scene.geometry
-        # Shading (normals, albedo) is re-read for moved and animated triangles only:
-        # other elements' shading is static (materials are not animated).
-        check = np.union1d(moved_rows, self._ctx.animated_rows)
-        if len(check):
-            differs = self._table.corners_differ(geo.corner_normals, geo.corner_albedo, check)
-            rows = check[np.isin(check, moved_rows, assume_unique=True) | differs]
-            if len(rows):
-                self._fill_tables(scene, rows)
+        if len(moved_rows):
+            self._fill_tables(scene, moved_rows)
 
     def _fill_tables(self, scene: Scene, rows: np.ndarray | slice) -> None:
         """Recompute the per-triangle tables (``_table``, a ``surface.TriangleTable``,

@@ -15,7 +15,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from phrt_usd.engine.raster.context import RasterContext
+from phrt_usd.engine.raster.context import GeometryChange, RasterContext
 from phrt_usd.engine.raster.gbuffer import GBufferPass
 from phrt_usd.engine.raster.light_pass import LightPass
 from phrt_usd.engine.raster.map_lighting import (
@@ -44,7 +44,7 @@ class Rasterizer:
         r = Rasterizer(scene, 320, 240)
         g = r.render(camera_frame)                 # GBuffer, every field filled
         vis = r.shadow_visibility(points, normals)  # (n, L) lights distant, then local
-        r.update_geometry(scene)                   # after animated prims moved
+        r.update_geometry(scene)                   # after set_time: what changed
         r.close()
     """
 
@@ -74,7 +74,6 @@ class Rasterizer:
         self._ctx.upload(scene)
         self._gbuffer.upload(scene)
         self._use_cutouts()
-        self._maps.invalidate(static=True, dynamic=True)
 
     def _use_cutouts(self) -> None:
         """The shadow maps render through the G-buffer's cut-outs (its surface table
@@ -87,24 +86,22 @@ class Rasterizer:
         """The OpenGL implementation's name (``GL_RENDERER``)."""
         return self._ctx.gl_renderer
 
-    def update_geometry(self, scene: Scene) -> None:
-        """Re-upload geometry after animated prims moved.
-
-        Same topology and origin: only the changed vertex range is re-sent and only the
-        changed triangles' tables are recomputed; otherwise everything is rebuilt. The
-        animated-geometry shadow maps are invalidated, the static ones only if a
-        non-animated triangle changed.
+    def update_geometry(self, scene: Scene) -> GeometryChange:
+        """Bring the uploaded geometry to ``scene``'s current version
+        (``RasterContext.update_geometry``): nothing when it is the version uploaded;
+        else only the vertices and G-buffer table rows of the elements that changed
+        since, or everything after a rebuild. The shadow maps of the batches that
+        changed are rendered again when next asked for (they compare the context's
+        ``batch_versions``). Returns what was re-sent (``GeometryChange``).
         """
         self._check_open()
         change = self._ctx.update_geometry(scene)
         if change.rebuilt:
             self._gbuffer.upload(scene)
             self._use_cutouts()
-            self._maps.invalidate(static=True, dynamic=True)
-            return
-        self._gbuffer.geometry_moved(scene, change.moved_rows)
-        animated = self._ctx.animated_tri[change.moved_rows]
-        self._maps.invalidate(static=not animated.all(), dynamic=bool(animated.any()))
+        else:
+            self._gbuffer.geometry_moved(scene, change.moved_rows)
+        return change
 
     def render(self, camera: CameraFrame) -> GBuffer:
         """Rasterize one frame (``GBufferPass.render``)."""

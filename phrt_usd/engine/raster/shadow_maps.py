@@ -1,15 +1,16 @@
-"""Shadow maps of every light: rendering, caching and invalidation, and their numpy
+"""Shadow maps of every light: rendering, caching on versions, and their numpy
 lookups with percentage-closer filtering (PCF).
 
 DistantLights (``ShadowMaps.distant_maps``): orthographic depth renders along the light,
 one of the static casters (SHADOW_MAP_SIZE², over their light-space footprint, rendered
 once) and one of the animated casters (``Element.animated``; same texel size, over their
-footprint only, re-rendered after ``update_geometry`` moved them). Points are projected
-into light space, compared with a slope-scaled bias and filtered with bilinear 2x2 PCF
-(``filtered_visibility``); a point's visibility is the product over the two maps. Points
-whose texel neighbourhood holds both occluding and clear depths (shadow edges, casters
-thinner than a texel) are *uncertain*: the caller may resolve only those exactly (the
-tracer's shadow rays in hybrid mode, ~2-15 % of the points on the farm).
+footprint only, re-rendered when they moved: ``ShadowMaps`` caches on the context's
+``batch_versions``). Points are projected into light space, compared with a slope-scaled
+bias and filtered with bilinear 2x2 PCF (``filtered_visibility``); a point's
+visibility is the product over the two maps. Points whose texel neighbourhood holds both
+occluding and clear depths (shadow edges, casters thinner than a texel) are *uncertain*:
+the caller may resolve only those exactly (the tracer's shadow rays in hybrid mode,
+~2-15 % of the points on the farm).
 
 LocalLights (``ShadowMaps.cube_maps``): per light, six 90° perspective depth renders
 (CUBE_MAP_SIZE², plus a guard band) of the static casters out to the light's range
@@ -312,18 +313,30 @@ def filtered_visibility(
 
 class ShadowMaps:
     """The shadow maps of a ``RasterContext``'s scene, rendered when first needed and
-    cached until the geometry or the lights they were rendered for change."""
+    cached on versions: each batch's maps on the context's ``batch_versions`` of that
+    batch (its casters), the lights' directions, positions and ranges on the scene's
+    lights version and the context's ``upload_version`` (the origin of rel space). A
+    map is rendered again only when a version it was rendered for has changed; nothing
+    else is compared. ``maps_rendered`` counts the renders per batch ("static",
+    "dynamic"; a cube map counts once)."""
 
     def __init__(self, ctx: RasterContext) -> None:
         self._ctx = ctx
         self._static_maps: list[ShadowMap | None] | None = None
         self._dynamic_maps: list[ShadowMap | None] | None = None
+        #: The batch version each list of distant maps was rendered from.
+        self._distant_for = {"static": -1, "dynamic": -1}
         self._map_dirs: list[np.ndarray] = []
+        self._distant_lights_for: tuple[int, int] | None = None  # (upload, lights) versions
         self.last_cube_build_seconds = 0.0
         self._cube_keys: list[tuple] = []  # per LocalLight: (rel position, range)
+        self._cube_lights_for: tuple[int, int] | None = None  # (upload, lights) versions
         self._cube_static: list[CubeMap | None] = []
         self._cube_dynamic: list[CubeMap | None] = []
-        self._cube_fresh: list[tuple[bool, bool]] = []  # (static, animated) map valid
+        #: Per LocalLight, the batch versions its (static, animated) cube was rendered
+        #: from (-1: not rendered for its current position and range).
+        self._cube_for: list[tuple[int, int]] = []
+        self.maps_rendered = {"static": 0, "dynamic": 0}
         self._cutouts = None  # (surface.Cutouts, TriangleTable) with cut-outs, else None
         self._layers: IdLayers | None = None
         self._create_framebuffer()
@@ -363,15 +376,10 @@ class ShadowMaps:
         GL.glDeleteFramebuffers(1, [self._shadow_fb])
         GL.glDeleteRenderbuffers(1, [self._shadow_rb])
 
-    def invalidate(self, static: bool, dynamic: bool) -> None:
-        """Forget the maps of the static and / or the animated casters (they moved)."""
-        if static:
-            self._static_maps = None
-        if dynamic:
-            self._dynamic_maps = None
-        self._cube_fresh = [
-            (ok_s and not static, ok_d and not dynamic) for ok_s, ok_d in self._cube_fresh
-        ]
+    def _lights_version(self) -> tuple[int, int]:
+        """(the context's upload version, the scene's lights version): what the lights'
+        directions, rel positions and ranges depend on."""
+        return self._ctx.upload_version, self._ctx.scene.versions.lights
 
     @property
     def cube_keys(self) -> list[tuple]:
@@ -435,6 +443,7 @@ class ShadowMaps:
         mask = self._ctx.animated_tri if name == "dynamic" else ~self._ctx.animated_tri
         if self._ctx.mesh_node is None or not mask.any():
             return None
+        self.maps_rendered[name] += 1
         used = np.unique(self._ctx.triangles[mask])
         lp = transform_rows(self._ctx.uploaded[used].astype(np.float64), frame)
         # Extents clamped away from 0 (flat casters) so the matrix is invertible.
@@ -479,22 +488,29 @@ class ShadowMaps:
 
     def distant_maps(self) -> list[tuple[ShadowMap | None, ShadowMap | None]]:
         """(static map, animated-geometry map) per DistantLight, either None when it has
-        no casters. Static maps are rendered once (again only if static geometry or the
-        lights changed); animated maps again after ``update_geometry`` moved animated
-        prims, at the static map's texel size over the animated casters only."""
-        dirs = [np.asarray(lt.direction, dtype=np.float64) for lt in self._ctx.scene.lights.distant]
-        if self._static_maps is not None and (
-            len(dirs) != len(self._map_dirs)
-            or any(not np.array_equal(a, b) for a, b in zip(dirs, self._map_dirs, strict=False))
-        ):
-            self._static_maps = self._dynamic_maps = None
-        self._map_dirs = dirs
-        frames = [self._light_frame(d) for d in dirs]
-        if self._static_maps is None:
+        no casters. Static maps are rendered once (again only when the static batch's
+        version changed, or a light's direction after the lights were replaced);
+        animated maps again when the animated batch's version changed (animated
+        elements moved), at the static map's texel size over the animated casters
+        only."""
+        if self._distant_lights_for != self._lights_version():
+            self._distant_lights_for = self._lights_version()
+            lights = self._ctx.scene.lights.distant
+            dirs = [np.asarray(lt.direction, dtype=np.float64) for lt in lights]
+            if len(dirs) != len(self._map_dirs) or any(
+                not np.array_equal(a, b) for a, b in zip(dirs, self._map_dirs, strict=False)
+            ):
+                self._static_maps = self._dynamic_maps = None
+            self._map_dirs = dirs
+        frames = [self._light_frame(d) for d in self._map_dirs]
+        versions = self._ctx.batch_versions
+        if self._static_maps is None or self._distant_for["static"] != versions["static"]:
+            self._distant_for["static"] = versions["static"]
             self._static_maps = [
                 self._render_shadow_map(f, "static", SHADOW_MAP_SIZE) for f in frames
             ]
-        if self._dynamic_maps is None:
+        if self._dynamic_maps is None or self._distant_for["dynamic"] != versions["dynamic"]:
+            self._distant_for["dynamic"] = versions["dynamic"]
             self._dynamic_maps = []
             for f, static in zip(frames, self._static_maps, strict=True):
                 texel = (
@@ -525,6 +541,7 @@ class ShadowMaps:
         mask = self._ctx.animated_tri if name == "dynamic" else ~self._ctx.animated_tri
         if self._ctx.mesh_node is None or not mask.any() or not light_range > 0.0:
             return None
+        self.maps_rendered[name] += 1
         lo, hi = self._ctx.bounds_rel
         corners = np.stack(np.meshgrid(*zip(lo, hi, strict=True), indexing="ij"), -1)
         farthest = float(np.linalg.norm(corners.reshape(-1, 3) - light_rel, axis=1).max())
@@ -571,11 +588,30 @@ class ShadowMaps:
     def cube_maps(self) -> list[tuple[CubeMap | None, CubeMap | None]]:
         """(static map, animated-geometry map) per LocalLight (cube maps, see
         ``CubeMap``), either None when it has no casters. Rendered when first needed
-        and again only for a light that moved or changed range, for static geometry
-        that moved (static maps) or after ``update_geometry`` moved animated prims
-        (animated maps). ``last_cube_build_seconds``: time the latest call spent
-        rendering cube maps."""
+        and again only for a light that moved or changed range (looked at only after
+        the lights were replaced), or when the version of the batch of its casters
+        changed (static or animated elements moved). ``last_cube_build_seconds``: time
+        the latest call spent rendering cube maps."""
         start = time.perf_counter()
+        if self._cube_lights_for != self._lights_version():
+            self._cube_lights_for = self._lights_version()
+            self._cube_lights_changed()
+        versions = self._ctx.batch_versions
+        for i, key in enumerate(self._cube_keys):
+            static_for, dynamic_for = self._cube_for[i]
+            light_rel = np.array(key[0])
+            if static_for != versions["static"]:
+                self._cube_static[i] = self._render_cube(light_rel, key[1], "static")
+            if dynamic_for != versions["dynamic"]:
+                self._cube_dynamic[i] = self._render_cube(light_rel, key[1], "dynamic")
+            self._cube_for[i] = (versions["static"], versions["dynamic"])
+        self.last_cube_build_seconds = time.perf_counter() - start
+        return list(zip(self._cube_static, self._cube_dynamic, strict=True))
+
+    def _cube_lights_changed(self) -> None:
+        """The lights were replaced: per LocalLight its rel position and range
+        (``cube_keys``); a light whose key changed, or every light when their number
+        did, has its cubes rendered again."""
         lights = self._ctx.scene.lights
         ranges = light_ranges(lights)[len(lights.distant) :]
         keys = [
@@ -585,20 +621,11 @@ class ShadowMaps:
         if len(keys) != len(self._cube_keys):
             self._cube_static = [None] * len(keys)
             self._cube_dynamic = [None] * len(keys)
-            self._cube_fresh = [(False, False)] * len(keys)
+            self._cube_for = [(-1, -1)] * len(keys)
         for i, key in enumerate(keys):
-            static_ok, dynamic_ok = self._cube_fresh[i]
             if i < len(self._cube_keys) and self._cube_keys[i] != key:
-                static_ok = dynamic_ok = False
-            light_rel = np.array(key[0])
-            if not static_ok:
-                self._cube_static[i] = self._render_cube(light_rel, key[1], "static")
-            if not dynamic_ok:
-                self._cube_dynamic[i] = self._render_cube(light_rel, key[1], "dynamic")
-            self._cube_fresh[i] = (True, True)
+                self._cube_for[i] = (-1, -1)
         self._cube_keys = keys
-        self.last_cube_build_seconds = time.perf_counter() - start
-        return list(zip(self._cube_static, self._cube_dynamic, strict=True))
 
     def distant_lookups(
         self, rel: np.ndarray, normals: np.ndarray, out: np.ndarray, uncertain: np.ndarray

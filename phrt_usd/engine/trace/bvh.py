@@ -1,9 +1,11 @@
 """The tracer's geometry: Embree BVHs of a ``Scene``, kept current, and the float32 boundary.
 
-``Bvh`` owns two Embree BVHs, static and animated triangles (``Element.animated``), the
-per-triangle surface table (``model.surface.TriangleTable``) and the change detection
-that decides, per ``update``, between nothing, a refresh of the small animated BVH
-(farm: ~0.3 ms) and a full build (35-90 ms for the farm's 54k triangles). Queries ask
+``Bvh`` owns two Embree BVHs, static and animated triangles (``Element.animated``), and
+the per-triangle surface table (``model.surface.TriangleTable``). ``update`` compares
+the scene's geometry version with the one it was brought to (``Scene.versions``; no
+array is compared) and decides between nothing, a refresh of the elements that changed
+since (their table rows and vertex copies) with a rebuild of the small animated BVH
+(farm: ~0.3 ms), and a full build (35-90 ms for the farm's 54k triangles). Queries ask
 both BVHs. embreex has neither refit nor instancing, and a committed scene cannot be
 edited, so the split is the cheap way to move a few hundred triangles among 50k.
 
@@ -34,7 +36,7 @@ from embreex import rtcore_scene as rtcs
 from embreex.mesh_construction import TriangleMesh
 
 from phrt_usd import kernels
-from phrt_usd.model.scene import NO_HIT, Scene
+from phrt_usd.model.scene import NO_HIT, ElementTriangles, Scene
 from phrt_usd.model.surface import TriangleTable
 
 #: The compiled trace kernels (``trace_kernels``, through ``phrt_usd.kernels``).
@@ -133,6 +135,24 @@ class Float32Boundary:
 
 
 @dataclass
+class BvhUpdate:
+    """What one ``Bvh.update`` did.
+
+    full : both BVHs and the whole table were built
+    elements : (k,) int64 ascending, the elements whose table rows and vertex copies
+               were refreshed (every element when full)
+    table_rows : triangle rows of the table filled again
+    animated_triangles : triangles the animated BVH was rebuilt from (all of them: it
+               is rebuilt whole), 0 when it was not
+    """
+
+    full: bool
+    elements: np.ndarray
+    table_rows: int
+    animated_triangles: int
+
+
+@dataclass
 class Hits:
     """Intersections of a batch of rays that hit something (m of the n rays).
 
@@ -157,6 +177,8 @@ class Bvh:
 
     boundary : the ``Float32Boundary`` (origin, extent, offsets).
     table : the ``TriangleTable`` of the current geometry (rel).
+    geometry_version : the ``Scene.versions.geometry`` the BVHs and table hold.
+    last_update : what the latest ``update`` did (``BvhUpdate``).
     tri_element, tri_material : (T,) int64 per-triangle element / material ids.
     static, dynamic : the embreex scenes (None when empty).
     record_rays : when True, ``run`` keeps every batch in ``last_rays`` (query, origins
@@ -170,31 +192,34 @@ class Bvh:
         self.last_rays: list[tuple[str, np.ndarray, np.ndarray, np.ndarray | None]] = []
         self._device = rtc.EmbreeDevice()  # shared by this object's BVHs
         self.scene: Scene | None = None
+        self.geometry_version = 0
         self.update(scene)
 
     # ------------------------------------------------------------------ building
 
     def update(self, scene: Scene) -> bool:
-        """Bring the BVHs and table to ``scene``'s current geometry; True when that was
-        a full build.
+        """Bring the BVHs and table to ``scene``'s current geometry version; True when
+        that was a full build. What was done: ``last_update``.
 
-        Cheap path — the same ``Scene`` object with the same topology, origin and
-        ``animated`` flags, where only vertices / triangles / corner data of animated
-        elements changed: their table rows are refreshed and the small animated BVH
-        rebuilt; the static BVH is kept. Anything else (a new scene, a static vertex or
-        triangle changed): full build of both BVHs. Static elements' shading normals and
-        albedo are taken as fixed between full builds (materials are not animated)."""
-        moved = self._animated_change(scene)
-        if moved is None:
+        Versions are compared, never arrays (``Scene.versions``). The version held →
+        nothing. The same ``Scene`` object with only animated elements changed since:
+        their table rows and vertex copies are refreshed and the animated BVH rebuilt
+        (whole: embreex has no refit, so its cost is that of every animated triangle);
+        the static BVH is kept. Anything else (another scene, another vertex or
+        triangle count or origin, a static element changed): full build of both."""
+        elements = self._changed_animated(scene)
+        if elements is None:
             self._build(scene)
-        elif moved:
-            self._refresh_animated(scene)
-        return moved is None
+        elif len(elements):
+            self._refresh_animated(scene, elements)
+        else:
+            self.last_update = BvhUpdate(False, elements, 0, 0)
+        self.geometry_version = scene.versions.geometry
+        return elements is None
 
-    def _animated_change(self, scene: Scene) -> bool | None:
-        """None when ``scene`` needs a full build, else whether any animated triangle
-        changed since the last build / refresh. Compares against this object's own
-        copies of vertices and triangles (exact, float64 / int64) and the table."""
+    def _changed_animated(self, scene: Scene) -> np.ndarray | None:
+        """The elements changed since the version held, (k,) int64 ascending, all
+        animated (empty: nothing changed); None when ``scene`` needs a full build."""
         if scene is not self.scene:
             return None
         geo = scene.geometry
@@ -202,20 +227,14 @@ class Bvh:
             geo.vertices.shape != self._vertices.shape
             or geo.triangles.shape != self._triangles.shape
             or not np.array_equal(np.asarray(scene.origin, np.float64), self.boundary.origin)
-            or [e.animated for e in scene.elements] != self._element_animated
         ):
             return None
-        # Flat indices of changed coordinates // 3 = changed rows (few when only animated
-        # elements moved; a per-row reduction over the length-3 axis would be slower).
-        vert = np.flatnonzero(geo.vertices.reshape(-1) != self._vertices.reshape(-1)) // 3
-        tri = np.flatnonzero(geo.triangles.reshape(-1) != self._triangles.reshape(-1)) // 3
-        if not (self._vertex_animated[vert].all() and self._tri_animated[tri].all()):
+        if scene.versions.geometry == self.geometry_version:
+            return np.zeros(0, dtype=np.int64)
+        elements = scene.versions.changed_since(self.geometry_version)
+        if not self._element_animated[elements].all():
             return None
-        if len(vert) or len(tri):
-            return True
-        # Animated corner data can change without moving a vertex (authored time samples).
-        rows = self._dynamic_ids
-        return bool(self.table.corners_differ(geo.corner_normals, geo.corner_albedo, rows).any())
+        return elements
 
     def _build(self, scene: Scene) -> None:
         """Full build: copies, table, both BVHs, the static bounds."""
@@ -227,8 +246,9 @@ class Bvh:
         n_tri = len(self._triangles)
         self.tri_element = np.asarray(geo.tri_element, dtype=np.int64)
         self.tri_material = np.asarray(geo.tri_material, dtype=np.int64)
-        self._element_animated = [e.animated for e in scene.elements]
-        animated = np.array(self._element_animated + [False], dtype=bool)
+        self._element_triangles = ElementTriangles(self.tri_element, len(scene.elements))
+        self._element_animated = np.array([e.animated for e in scene.elements], dtype=bool)
+        animated = np.append(self._element_animated, False)
         self._tri_animated = animated[self.tri_element] if n_tri else np.zeros(0, bool)
         self._vertex_animated = np.zeros(len(self._vertices), dtype=bool)
         self._vertex_animated[self._triangles[self._tri_animated].reshape(-1)] = True
@@ -252,25 +272,36 @@ class Bvh:
         still = rel[~self._vertex_animated]
         self._static_bounds = (still.min(axis=0), still.max(axis=0)) if len(still) else None
         self.dynamic = None
-        self._refresh_animated(scene)
+        self._rebuild_animated()
+        every = np.arange(len(scene.elements), dtype=np.int64)
+        self.last_update = BvhUpdate(True, every, n_tri, len(self._dynamic_ids))
 
-    def _refresh_animated(self, scene: Scene) -> None:
-        """Animated triangles' table rows, vertex copies and BVH from ``scene``'s current
-        geometry; the scene extent from the static bounds and the animated vertices."""
+    def _refresh_animated(self, scene: Scene, elements: np.ndarray) -> None:
+        """The table rows and vertex copies of the animated ``elements`` (k,) from
+        ``scene``'s current geometry, then the animated BVH."""
         geo = scene.geometry
-        rows = self._dynamic_ids
-        moved = np.flatnonzero(self._vertex_animated)
-        self._vertices[moved] = geo.vertices[moved]
+        rows = self._element_triangles.rows(elements)
+        # Winding may flip with a transform's sign: the rows' corners, then vertices.
         self._triangles[rows] = geo.triangles[rows]
+        moved = np.unique(self._triangles[rows])
+        self._vertices[moved] = geo.vertices[moved]
         self._fill(geo, rows)
+        self._rebuild_animated()
+        self.last_update = BvhUpdate(False, elements, len(rows), len(self._dynamic_ids))
+
+    def _rebuild_animated(self) -> None:
+        """The animated BVH from the vertex and triangle copies, and the scene extent
+        from the static bounds and the animated vertices."""
+        rows = self._dynamic_ids
         # A triangle soup (D, 3, 3): no index remapping for a few hundred triangles.
         soup = self.boundary.vertices(self._vertices[self._triangles[rows]])
         self.dynamic = self._new_bvh(soup, None)
         # Scene.extent, without a pass over every vertex: the union of the static bounds
         # and the animated vertices' bounds (same vertex set, so the same value).
         boxes = [] if self._static_bounds is None else list(self._static_bounds)
-        if len(moved):
-            rel = self.boundary.relative(self._vertices[moved])
+        animated = np.flatnonzero(self._vertex_animated)
+        if len(animated):
+            rel = self.boundary.relative(self._vertices[animated])
             boxes += [rel.min(axis=0), rel.max(axis=0)]
         if boxes:
             lo, hi = np.min(boxes, axis=0), np.max(boxes, axis=0)

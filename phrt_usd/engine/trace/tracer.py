@@ -117,10 +117,10 @@ class Tracer:
         return self.bvh.replay_raw(threads)
 
     def update_geometry(self, scene: Scene) -> None:
-        """Bring the tracer to ``scene``'s current geometry (after animated prims moved):
-        ``Bvh.update`` (a refresh of the animated triangles when only they changed,
-        else a full build), then, after a full build, the materials. Cost in
-        ``last_build_seconds``."""
+        """Bring the tracer to ``scene``'s current geometry version: ``Bvh.update``
+        (nothing when it holds that version; the changed elements and the animated BVH
+        when only animated elements changed; else a full build), then, after a full
+        build, the materials. Cost in ``last_build_seconds``."""
         start = time.perf_counter()
         full = self.bvh.update(scene)
         if full:
