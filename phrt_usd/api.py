@@ -619,7 +619,8 @@ class Renderer:
 
     def render(self, time: float) -> FrameOutput:
         """Render the frame at time code ``time``: ``FrameOutput`` with ``beauty`` (H, W, 3)
-        float32 linear RGB, ``alpha``, the ``gbuffer``, ``traced_mask`` and ``stats``."""
+        float32 linear RGB, ``alpha``, the ``gbuffer``, ``traced_mask``, ``stats`` and
+        ``camera`` (``FrameCamera``: world-to-camera and projection)."""
         renderer = self._live()
         time = _real("time", time)
         if not math.isfinite(time):
