@@ -11,6 +11,11 @@ Ids: an *element* is one renderable prim (a gprim, or one instance of an instanc
 prototype). Element ids index ``Scene.elements``; ``-1`` means background / no hit.
 Triangle ids index ``Geometry.triangles``.
 
+Changes: whoever changes a scene after it was read (``StageScene.set_time``) announces
+it on ``Scene.versions`` (``SceneVersions``: a geometry version stamped on the elements
+that changed, a lights and a camera version); the renderer's caches compare versions,
+never arrays. ``SceneChange`` is what one ``set_time`` changed.
+
 Nothing here reads USD: ``phrt_usd.usd.stage`` fills these structures.
 """
 
