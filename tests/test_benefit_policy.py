@@ -19,6 +19,7 @@ from phrt_usd.engine.renderer import FrameRenderer, RenderOptions
 from phrt_usd.errors import PhrtError
 from phrt_usd.model.frame import Budget, TraceRecord
 from phrt_usd.select.benefit_policy import KEEP_GAIN, PRIOR_SCALE_INITIAL, Heu3Policy
+from phrt_usd.select.rounds import TracedRound, run_rounds
 from phrt_usd.usd.schema import DEFAULT_SELECTION_WEIGHT
 from phrt_usd.usd.stage import open_stage
 
@@ -32,25 +33,22 @@ ONE_FITS = 2000
 
 
 def frame(policy, sc, fv, budget_rays, errors):
-    """One frame as the renderer drives it; the fake tracer casts one ray per pixel and
-    reports ``errors[e]`` as e's fallback error. Returns the ids traced, in order."""
-    policy.begin_frame(fv, sc)
-    traced = []
-    remaining = budget_rays
-    while remaining is None or remaining > 0:
-        ids = policy.next_round(Budget(rays=remaining))
-        if not ids:
-            break
-        traced += ids
-        records = []
-        for e in ids:
-            px = int(fv.pixel_counts[e])
-            records.append(TraceRecord(e, px, px, fallback_error=errors.get(e)))
-        policy.record(records, 1e-3)
-        if remaining is not None:
-            remaining -= sum(r.rays for r in records)
-    policy.end_frame()
-    return traced
+    """One frame through the renderer's round loop (``run_rounds``); the fake tracer casts
+    one ray per pixel, its observation step reports ``errors[e]`` as e's fallback error.
+    Returns the ids traced, in order."""
+    last: list[TraceRecord] = []
+
+    def trace(ids, densities):
+        last[:] = [TraceRecord(e, int(fv.pixel_counts[e]), int(fv.pixel_counts[e])) for e in ids]
+        return TracedRound(list(last), sum(r.rays for r in last), 1.0)
+
+    def observe():
+        for rec in last:
+            rec.fallback_error = errors.get(rec.source)
+
+    visible = [int(e) for e in np.flatnonzero(fv.pixel_counts > 0)]
+    limits = Budget(rays=budget_rays)
+    return run_rounds(policy, fv, sc, visible, limits, trace, observe=observe).selected
 
 
 @pytest.mark.parametrize("better", [0, 1])

@@ -11,7 +11,7 @@ from test_heuristic import camera, element, run_frame, scene, transitions, view
 
 from phrt_usd.model.frame import Budget, TraceRecord
 from phrt_usd.model.trace_density import DENSITY_FRACTION, TRACE_DENSITIES, traced_fraction
-from phrt_usd.select.heu1_policy import LOOKAHEAD_FRAMES
+from phrt_usd.select.heu1_forecast import LOOKAHEAD_FRAMES
 from phrt_usd.select.policies import ADMISSION_MARGIN, RAYS_SAFETY, make_policy
 
 

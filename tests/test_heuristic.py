@@ -23,15 +23,15 @@ from phrt_usd.model.scene import (
     Scene,
 )
 from phrt_usd.model.trace_density import traced_fraction
-from phrt_usd.select import heu1_policy as heuristic
+from phrt_usd.select import heu1_forecast
 from phrt_usd.select.cost_model import JITTER_WINDOW, TIME_SAFETY_MIN, TraceTimeModel
-from phrt_usd.select.heu1_policy import (
+from phrt_usd.select.heu1_forecast import (
     FORECAST_HORIZON,
     LOOKAHEAD_BATCH,
     LOOKAHEAD_FRAMES,
     UPCOMING_CAMERAS,
-    Heu1Policy,
 )
+from phrt_usd.select.heu1_policy import Heu1Policy
 from phrt_usd.select.metrics import (
     D_MIN,
     box_screen_area,
@@ -48,6 +48,7 @@ from phrt_usd.select.policies import (
     Heu2Policy,
     make_policy,
 )
+from phrt_usd.select.rounds import TracedRound, run_rounds
 
 W, H = 320, 240
 TAN_X = 0.36  # focal 50, aperture 36 → tan(hfov / 2)
@@ -114,28 +115,24 @@ def traced_rays(policy, ids, pixels, rays_per_pixel) -> list[int]:
 
 
 def run_frame(policy, sc, fv, budget_rays=None, rays_per_pixel=1.0, hits=None, bounces=None):
-    """One frame the way the renderer drives it, with a fake tracer. Returns
-    (metrics, rounds) where rounds is the list of id lists returned by next_round."""
+    """One frame through the renderer's round loop (``run_rounds``) with a fake tracer.
+    Returns (metrics, rounds) where rounds is the list of id lists each round traced."""
     hits = hits or {}
     bounces = bounces or {}
-    policy.begin_frame(fv, sc)
-    remaining = budget_rays
     rounds = []
-    while remaining is None or remaining > 0:
-        ids = policy.next_round(Budget(ms=None, rays=remaining))
-        if not ids:
-            break
+    px = fv.pixel_counts
+
+    def trace(ids, densities):
         rounds.append(ids)
-        records = []
-        px = fv.pixel_counts
-        for e, rays in zip(ids, traced_rays(policy, ids, px, rays_per_pixel), strict=True):
-            records.append(
-                TraceRecord(e, int(px[e]), rays, dict(hits.get(e, {})), bounces.get(e, 0), 0.0)
-            )
-        policy.record(records, 1e-3)
-        if remaining is not None:
-            remaining -= sum(r.rays for r in records)
-    return policy.end_frame(), rounds
+        records = [
+            TraceRecord(e, int(px[e]), rays, dict(hits.get(e, {})), bounces.get(e, 0), 0.0)
+            for e, rays in zip(ids, traced_rays(policy, ids, px, rays_per_pixel), strict=True)
+        ]
+        return TracedRound(records, sum(r.rays for r in records), 1.0)
+
+    visible = [int(e) for e in np.flatnonzero(px > 0)]
+    out = run_rounds(policy, fv, sc, visible, Budget(rays=budget_rays), trace)
+    return out.metrics, rounds
 
 
 def transitions(selections: list[set[int]], ids) -> int:
@@ -577,7 +574,7 @@ def test_lookahead_reuses_each_upcoming_cameras_areas_without_changing_them(monk
     path = [camera((0.3 * k / 200, 0.0, -5.0 * k / 200)) for k in range(frames + UPCOMING_CAMERAS)]
     calls = []
     monkeypatch.setattr(
-        heuristic, "box_screen_area", lambda *a: calls.append(1) or box_screen_area(*a)
+        heu1_forecast, "box_screen_area", lambda *a: calls.append(1) or box_screen_area(*a)
     )
     policy = policy_of("heu1")
     for t in range(frames):
@@ -691,19 +688,17 @@ def test_time_budget_holds_with_a_simulated_tracer(name):
     for _frame in range(400):
         pixels = (rng.uniform(300, 3000, n) * rng.uniform(0.8, 1.2, n)).astype(np.int64)
         rpp = base_rpp * rng.uniform(0.9, 1.1, n)
-        policy.begin_frame(view(pixels), sc)
-        elapsed = 0.0
-        while elapsed < T:
-            ids = policy.next_round(Budget(ms=T - elapsed))
-            if not ids:
-                break
+
+        def trace(ids, densities, pixels=pixels, rpp=rpp):
             rays = traced_rays(policy, ids, pixels, rpp)
             records = [TraceRecord(e, int(pixels[e]), r) for e, r in zip(ids, rays, strict=True)]
             rays = sum(r.rays for r in records)
-            ms = (0.4 + 0.0015 * rays) * rng.lognormal(0.0, 0.05)
-            elapsed += ms
-            policy.record(records, ms / 1000.0)
-        metrics = policy.end_frame()
+            return TracedRound(records, rays, (0.4 + 0.0015 * rays) * rng.lognormal(0.0, 0.05))
+
+        fv = view(pixels)
+        visible = [int(e) for e in np.flatnonzero(pixels > 0)]
+        rounds = run_rounds(policy, fv, sc, visible, Budget(ms=T), trace)
+        metrics, elapsed = rounds.metrics, rounds.trace_ms
         predicted = sum(m.predicted_ms for m in metrics.values() if m.selected)
         assert predicted == pytest.approx(policy.last_predicted_trace_ms)
         used.append(elapsed)

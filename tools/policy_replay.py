@@ -6,9 +6,10 @@ traces, that reflector's ``TraceRecord`` (rays, pixels, bounces, reflectors hit)
 reflector's record does not depend on which other reflectors are traced with it (its
 rays start from its own G-buffer pixels), so one ``all`` render that records every
 visible reflector's record per frame lets any policy be replayed exactly, without
-rendering: the replay runs the renderer's round loop (``FrameRenderer.finish``) with the
-recorded records instead of the tracer. The first step checks that: replaying HEU1 and
-HEU2 gives the same transitions and mean selected as real ``paper_tables`` runs.
+rendering: the replay runs the renderer's round loop (``select.rounds.run_rounds``) with
+the recorded records as its tracing step instead of the tracer. The first step checks
+that: replaying HEU1 and HEU2 gives the same transitions and mean selected as real
+``paper_tables`` runs.
 
     uv run python tools/policy_replay.py capture stages/farm.usda runs/replay/farm.json.gz \
         [--frames A:B:STEP] [--images runs/replay/farm.npz]
@@ -62,12 +63,8 @@ from types import SimpleNamespace
 import numpy as np
 
 from phrt_usd.atomic import atomic_path, write_bytes_atomic
-from phrt_usd.engine.renderer import (
-    CALIBRATION_PIXELS,
-    CALIBRATION_REPEATS,
-    FrameRenderer,
-    RenderOptions,
-)
+from phrt_usd.engine.renderer import FrameRenderer, RenderOptions
+from phrt_usd.engine.trace_rounds import CALIBRATION_PIXELS, CALIBRATION_REPEATS
 from phrt_usd.errors import PhrtError
 from phrt_usd.evaluate.image_metrics import flip_map
 from phrt_usd.evaluate.selection_metrics import (
@@ -77,10 +74,11 @@ from phrt_usd.evaluate.selection_metrics import (
 )
 from phrt_usd.model.frame import Budget, FrameView, TraceRecord
 from phrt_usd.model.scene import CameraFrame, DistantLight, LocalLight
-from phrt_usd.model.trace_density import traced_fraction
+from phrt_usd.model.trace_density import TRACE_DENSITIES, traced_fraction
 from phrt_usd.run.frames import parse_frames
-from phrt_usd.select.heu1_policy import UPCOMING_CAMERAS
+from phrt_usd.select.heu1_forecast import UPCOMING_CAMERAS
 from phrt_usd.select.policies import AllPolicy, make_policy
+from phrt_usd.select.rounds import Calibration, TracedRound, run_rounds
 from phrt_usd.usd.schema import read_render_params
 from phrt_usd.usd.stage import open_stage
 
@@ -681,10 +679,11 @@ def fit_time(data: dict, jitter: float = 0.1, seed: int = 0) -> SimulatedTime:
     return SimulatedTime(max(float(intercept), 0.0), float(slope), jitter, seed)
 
 
-def _calibrate(policy, frame, sim: SimulatedTime, rng: np.random.Generator) -> None:
-    """What ``FrameRenderer._calibrate`` hands the policy on the first time-budgeted frame
-    with visible reflectors: timed rounds of 64 and 512 pixels at that frame's mean rays
-    per pixel (the fastest of three each, as the renderer takes)."""
+def _calibration(frame, sim: SimulatedTime, rng: np.random.Generator) -> Calibration:
+    """What ``engine.trace_rounds.calibrate_tracer`` hands the policy on the first
+    time-budgeted frame with visible reflectors: timed rounds of CALIBRATION_PIXELS pixels
+    at that frame's mean rays per pixel (the fastest of CALIBRATION_REPEATS each, as the
+    renderer takes)."""
     records = list(frame.records.values())
     rpp = sum(r.rays for r in records) / max(sum(r.pixels for r in records), 1)
     samples = []
@@ -692,7 +691,28 @@ def _calibrate(policy, frame, sim: SimulatedTime, rng: np.random.Generator) -> N
         rays = int(round(n * rpp))
         samples.append((rays, min(sim.round_ms(rays, rng) for _ in range(CALIBRATION_REPEATS))))
     pixels = sum(CALIBRATION_PIXELS) * CALIBRATION_REPEATS
-    policy.calibrate(samples, int(round(pixels * rpp)), pixels)
+    return Calibration(samples, int(round(pixels * rpp)), pixels)
+
+
+class _RecordedRounds:
+    """The replay's tracing step of one frame: the capture's records of the round's
+    reflectors (a reflector traced at a reduced density casts that share of its recorded,
+    full-density rays), timed by ``sim`` (a time budget) or at 1 us a ray (a rays budget:
+    the time is not read)."""
+
+    def __init__(self, frame, sim: SimulatedTime | None, rng: np.random.Generator) -> None:
+        self.frame, self.sim, self.rng = frame, sim, rng
+
+    def __call__(self, ids: list[int], densities: list[str]) -> TracedRound:
+        counts = self.frame.view.pixel_counts
+        records = [
+            replace(self.frame.records[i], rays=round(self.frame.records[i].rays
+                                                      * traced_fraction(counts[i], d)))
+            for i, d in zip(ids, densities, strict=True)
+        ]  # fmt: skip
+        rays = sum(r.rays for r in records)
+        ms = self.sim.round_ms(rays, self.rng) if self.sim is not None else 1e-3 * rays
+        return TracedRound(records, rays, ms)
 
 
 def replay(
@@ -705,10 +725,11 @@ def replay(
     sim: SimulatedTime | None = None,
     spent: list | None = None,
 ):
-    """Run ``heuristic`` over the recorded frames with a rays budget, the way
-    ``FrameRenderer.finish`` does; with ``lookahead`` each view gets the next recorded
-    frames' cameras as ``upcoming_cameras``, as a render of the whole path does. Returns
-    (selected, visible): (F, R) bool arrays over the recorded reflectors, in frame order.
+    """Run ``heuristic`` over the recorded frames with a rays budget, through the
+    renderer's round loop (``select.rounds.run_rounds``) with the recorded records as its
+    tracing step; with ``lookahead`` each view gets the next recorded frames' cameras as
+    ``upcoming_cameras``, as a render of the whole path does. Returns (selected, visible):
+    (F, R) bool arrays over the recorded reflectors, in frame order.
 
     With ``budget_ms`` (and ``budget_rays`` None) the budget is a time T per frame and
     rounds take ``sim``'s synthetic time (calibrated on the first frame with visible
@@ -726,44 +747,29 @@ def replay(
     timed = budget_ms is not None
     if timed and (sim is None or budget_rays is not None):
         raise ValueError("a time-budgeted replay needs sim and no rays budget")
+    if not timed and budget_rays is None:
+        raise ValueError("a replay needs a rays budget or a time budget")
     rng = np.random.default_rng(sim.seed if sim is not None else 0)
-    calibrated = False
+    limits = Budget(ms=budget_ms) if timed else Budget(rays=budget_rays)
     for f, frame in enumerate(frames):
         scene = SimpleNamespace(elements=frame.elements, lights=data["lights"])
         counts = frame.view.pixel_counts
         ahead = frames[f + 1 : f + 1 + UPCOMING_CAMERAS] if lookahead else []
         view = replace(frame.view, upcoming_cameras=tuple(g.view.camera for g in ahead))
-        if timed and not calibrated and frame.records:
-            _calibrate(policy, frame, sim, rng)
-            calibrated = True
-        policy.begin_frame(view, scene)
-        rays, chosen, elapsed = 0, [], 0.0
-        while (budget_ms - elapsed > 0) if timed else (budget_rays - rays > 0):
-            budget = Budget(ms=budget_ms - elapsed) if timed else Budget(rays=budget_rays - rays)
-            ids = policy.next_round(budget)
-            ids = [i for i in ids if counts[i] > 0 and i not in chosen]
-            if not ids:
-                break
-            # A reflector the policy traces at a reduced density casts that share of
-            # its recorded (full-density) rays.
-            records = [
-                replace(frame.records[i], rays=round(frame.records[i].rays
-                                                     * traced_fraction(counts[i], d)))
-                for i, d in zip(ids, policy.round_densities(ids), strict=True)
-            ]  # fmt: skip
-            round_rays = sum(r.rays for r in records)
-            rays += round_rays
-            chosen.extend(ids)
-            ms = sim.round_ms(round_rays, rng) if timed else 1e-3 * round_rays
-            elapsed += ms
-            policy.record(records, ms / 1000.0)
-        policy.end_frame()
+        in_view = [e for e in refl if counts[e] > 0]
+        rounds = run_rounds(
+            policy, view, scene, in_view, limits,
+            _RecordedRounds(frame, sim if timed else None, rng),
+            calibrate=lambda frame=frame: _calibration(frame, sim, rng),
+        )  # fmt: skip
         if spent is not None:
-            spent.append((elapsed, rays, dict(getattr(policy, "previous_levels", {}))))
-        for e in chosen:
+            levels = {e: TRACE_DENSITIES.index(d) for e, d in rounds.densities.items()
+                      if d != "full"}  # fmt: skip
+            spent.append((rounds.trace_ms, rounds.rays, levels))
+        for e in rounds.selected:
             selected[f, column[e]] = True
-        for e in refl:
-            visible[f, column[e]] = counts[e] > 0
+        for e in in_view:
+            visible[f, column[e]] = True
     return selected, visible
 
 

@@ -22,20 +22,17 @@ from __future__ import annotations
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 
 from phrt_usd.engine import frame_pixels
-from phrt_usd.engine.compositing import (
-    apply_traced,
-    base_image,
-    element_reflectivity,
-    observe_fallback_error,
-    pixel_reflectivity,
-)
+from phrt_usd.engine.clipping_warning import clipping_warning
+from phrt_usd.engine.compositing import base_image, element_reflectivity, pixel_reflectivity
 from phrt_usd.engine.lighting import shade_gbuffer
 from phrt_usd.engine.primary_source import DEFAULT_PRIMARY, check_primary, choose, is_software
 from phrt_usd.engine.raster.gl_platform import DEFAULT_GL, check_gl
+from phrt_usd.engine.trace_rounds import CALIBRATION_SEED, ReflectionRounds, calibrate_tracer
 from phrt_usd.errors import BadOption
 from phrt_usd.model.frame import (
     Budget,
@@ -43,16 +40,15 @@ from phrt_usd.model.frame import (
     FrameStats,
     FrameView,
     GBuffer,
-    ReflectorMetrics,
     SelectionPolicy,
 )
 from phrt_usd.model.scene import CameraFrame, Scene
 from phrt_usd.model.trace_density import check_density
-from phrt_usd.select.heu1_policy import UPCOMING_CAMERAS
+from phrt_usd.select.heu1_forecast import UPCOMING_CAMERAS
 from phrt_usd.select.policies import make_policy
+from phrt_usd.select.rounds import Calibration, FrameRounds, run_rounds
 from phrt_usd.threads import DEFAULT_THREADS, apply_threads, check_threads
 from phrt_usd.usd.default_lights import aim_headlight
-from phrt_usd.usd.lights import intensity_note
 from phrt_usd.usd.schema import (
     DEFAULT_BOUNCE_LIMIT,
     DEFAULT_BUDGET_MS,
@@ -81,32 +77,12 @@ MAX_BUDGET_RAYS = 10**12
 TARGET_FPS_MARGIN = 0.05
 #: Highest --target-fps: a period of 1 ms is far below any frame's raster here.
 MAX_TARGET_FPS = 1000.0
-#: The trace-time calibration (``FrameRenderer._calibrate``): timed rounds over this many
-#: reflector pixels of the first frame with visible reflectors, sampled with a fixed seed.
-#: Two sizes separate a round's fixed cost from its per-ray cost; each size is timed
-#: CALIBRATION_REPEATS times after one warm-up round and its fastest time kept (the
-#: others carry the noise of the shared machine). A few thousand rays: a few ms, once.
-CALIBRATION_PIXELS = (64, 512)
-CALIBRATION_REPEATS = 3
 #: Largest |--exposure| in EV; larger values are clamped to it (with a warning): 2^40
 #: (~1e12) already maps a 1e-6 radiance to display white or a 1e6 one to black, and
 #: keeps ordinary radiance times the scale far inside float32 (max 3.4e38).
 MAX_EXPOSURE_EV = 40.0
 #: Largest finite float32: scaled radiance is clamped to it (an EXR holds no Inf).
 _FLOAT32_MAX = float(np.finfo(np.float32).max)
-#: The clipping warning (``FrameRenderer._check_clipping``): a frame whose covered
-#: pixels are clipped (some channel > CLIP_LEVEL after exposure: display white) for
-#: more than CLIPPED_SHARE of them is "mostly clipped"; once per run. The suggested
-#: exposure brings the covered pixels' median brightest channel to SUGGESTED_MEDIAN
-#: (mid-grey of the display range).
-CLIP_LEVEL = 1.0
-CLIPPED_SHARE = 0.5
-SUGGESTED_MEDIAN = 0.5
-#: The clipping check looks at every CLIP_SAMPLE_STRIDE-th row and column: a share and a
-#: median need no more than a quarter of the pixels, and the check runs every frame until
-#: it warns (at 640 x 480 the full check costs ~2 ms of frame time).
-CLIP_SAMPLE_STRIDE = 2
-CALIBRATION_SEED = 0
 
 
 @dataclass
@@ -415,94 +391,57 @@ class FrameRenderer:
     def finish(
         self, prep: PreparedFrame, policy: SelectionPolicy, opts: RenderOptions
     ) -> FrameOutput:
-        """Phases 4–5: selection rounds and tracing within ``opts``' budget, compositing.
+        """Phases 4–5: selection rounds and tracing within ``opts``' budget
+        (``select.rounds.run_rounds``, traced by ``trace_rounds.ReflectionRounds``),
+        compositing.
 
         Leaves ``prep`` untouched, so several policies / budgets can finish one frame.
         """
         scene = self.scene
         t_finish = time.perf_counter()
-        image = prep.image.copy()
         phase = dict(prep.phase_ms)
         passes = list(prep.passes)
-        pixel_counts = prep.pixel_counts
         gb = prep.gbuffer
-        visible_ids = [int(i) for i in self._reflector_ids if pixel_counts[i] > 0]
-        traced_mask = np.zeros(gb.shape, dtype=bool)
-        trace_ms = 0.0
-        select_ms = 0.0
-        rays = 0
-        metrics: dict[int, ReflectorMetrics] = {}
-        selected: list[int] = []
-        densities: dict[str, str] = {}  # reflectors traced at another density
+        visible_ids = [int(i) for i in self._reflector_ids if prep.pixel_counts[i] > 0]
         frame_budget_ms = self._frame_budget_ms(prep, policy, opts)
+        step = ReflectionRounds(
+            self._tracer, gb, prep.local, prep.reflectivity, prep.image, opts.bounce_limit
+        )
+        rounds = FrameRounds()
         untraced_reason = None
         calibration = None
-        note: dict = {}
-        if self._tracer is not None and opts.mode != "raster" and visible_ids:
-            calibration = self._calibrate(gb, visible_ids, policy, frame_budget_ms)
-            if calibration is not None:
-                phase["calibrate"] = calibration["wall_ms"]
         if self._tracer is not None and opts.mode != "raster":
             view = FrameView(
                 prep.time,
                 prep.camera,
                 opts.width,
                 opts.height,
-                pixel_counts,
+                prep.pixel_counts,
                 prep.screen_boxes,
                 prep.upcoming_cameras,
                 opts.trace_density,
             )
-            t = time.perf_counter()
-            policy.begin_frame(view, scene)
-            select_ms += _ms(t)
-            while True:
-                budget = _remaining(opts, trace_ms, rays, frame_budget_ms)
-                if (budget.ms is not None and budget.ms <= 0) or (
-                    budget.rays is not None and budget.rays <= 0
-                ):
-                    if not selected and visible_ids:
-                        untraced_reason = _no_budget_reason(budget, prep, opts, frame_budget_ms)
-                    break
-                t = time.perf_counter()
-                ids = policy.next_round(budget)
-                select_ms += _ms(t)
-                # Only reflectors with pixels in this frame are traced from the G-buffer.
-                ids = [i for i in ids if pixel_counts[i] > 0 and i not in selected]
-                if not ids:
-                    break
-                t = time.perf_counter()
-                density = policy.round_densities(ids)
-                result = self._tracer.trace_reflections(gb, ids, opts.bounce_limit, density)
-                for e, d in zip(ids, density, strict=True):
-                    if d != opts.trace_density:
-                        densities[scene.elements[e].path] = d
-                apply_traced(image, prep.local, prep.reflectivity, result, traced_mask)
-                round_ms = _ms(t)
-                trace_ms += round_ms
-                rays += result.rays
-                selected.extend(ids)
-                t = time.perf_counter()
-                # What tracing changed against the raster fallback, per source: only for
-                # a policy that learns from it (heu3); the others never read it.
-                if getattr(policy, "observes_fallback_error", False):
-                    observe_fallback_error(result, image, prep.image, gb.element_id)
-                # The policy learns the time the budget is charged (trace + composite).
-                policy.record(result.records, round_ms / 1000.0)
-                select_ms += _ms(t)
-            t = time.perf_counter()
-            metrics = policy.end_frame()
-            select_ms += _ms(t)
-            note = getattr(policy, "last_frame_note", None) or {}
-            if not selected and visible_ids and untraced_reason is None:
-                untraced_reason = note.get("untraced_reason")
-            self._select_ms[id(policy)] = select_ms
-            if selected:
+            rounds = run_rounds(
+                policy, view, scene, visible_ids, _frame_limits(opts, frame_budget_ms), step,
+                calibrate=partial(calibrate_tracer, self._tracer, gb, visible_ids,
+                                  self.options.bounce_limit, CALIBRATION_SEED),
+                observe=step.observe_fallback_error,
+            )  # fmt: skip
+            if rounds.calibration is not None:
+                calibration = _calibration_stats(*rounds.calibration)
+                phase["calibrate"] = calibration["wall_ms"]
+            if rounds.starved is not None:
+                untraced_reason = _no_budget_reason(rounds.starved, prep, opts, frame_budget_ms)
+            elif not rounds.selected and visible_ids:
+                untraced_reason = rounds.note.untraced_reason
+            self._select_ms[id(policy)] = rounds.select_ms
+            if rounds.selected:
                 passes.append("trace")
                 if scene.materials.has_transmission:
                     passes.append("refraction")
-        phase["select"] = select_ms
-        phase["trace"] = trace_ms
+        phase["select"] = rounds.select_ms
+        phase["trace"] = rounds.trace_ms
+        selected = rounds.selected
 
         # heuristic "none" is raster-only by request: nothing to explain.
         asked_to_trace = opts.heuristic != "none"
@@ -513,6 +452,7 @@ class FrameRenderer:
                 if self._tracer is None
                 else f"heuristic {opts.heuristic} traces nothing"
             )
+        image = step.image
         scale = 2.0**opts.exposure_ev * prep.camera.exposure_scale
         if scale != 1.0:  # exposure: the image's radiance, finite (float32 max at most)
             image = np.minimum(image * np.float32(scale), np.float32(_FLOAT32_MAX))
@@ -521,31 +461,33 @@ class FrameRenderer:
         # The calibration runs once per run and is reported apart (FrameStats.calibration).
         frame_ms = prep.prepare_ms + _ms(t_finish) - phase.get("calibrate", 0.0)
         budget_use = None
-        follows = getattr(policy, "follows_budget", True)  # not all/none/list
-        if frame_budget_ms is not None and frame_budget_ms > 0 and visible_ids and follows:
-            budget_use = trace_ms / frame_budget_ms
+        if (frame_budget_ms is not None and frame_budget_ms > 0 and visible_ids
+                and policy.follows_budget):  # fmt: skip
+            budget_use = rounds.trace_ms / frame_budget_ms
         elements = scene.elements
+        metrics = rounds.metrics
         stats = FrameStats(
             time=prep.time,
             phase_ms=phase,
             frame_ms=frame_ms,
-            trace_ms=trace_ms,
+            trace_ms=rounds.trace_ms,
             predicted_trace_ms=sum(metrics[i].predicted_ms for i in selected if i in metrics),
-            rays=rays,
+            rays=rounds.rays,
             visible=[elements[i].path for i in visible_ids],
             selected=[elements[i].path for i in selected],
             metrics={elements[i].path: m for i, m in metrics.items()},
             passes=passes,
             budget_ms=frame_budget_ms,
-            expected_trace_ms=float(note.get("expected_trace_ms", 0.0)) if selected else 0.0,
+            expected_trace_ms=float(rounds.note.expected_trace_ms) if selected else 0.0,
             budget_use=budget_use,
             untraced_reason=untraced_reason if opts.mode == "hybrid" else None,
             calibration=calibration,
-            densities=densities,
+            densities={elements[e].path: d for e, d in rounds.densities.items()
+                       if d != opts.trace_density},  # fmt: skip
         )
         height, width = gb.shape
         camera = FrameCamera.of(prep.time, prep.camera, width, height)
-        return FrameOutput(image, alpha, gb, traced_mask, stats, camera)
+        return FrameOutput(image, alpha, gb, step.traced_mask, stats, camera)
 
     def _frame_budget_ms(
         self, prep: PreparedFrame, policy: SelectionPolicy, opts: RenderOptions
@@ -561,54 +503,6 @@ class FrameRenderer:
             )
         return opts.budget_ms
 
-    def _calibrate(
-        self, gb: GBuffer, visible_ids: list[int], policy: SelectionPolicy, budget_ms
-    ) -> dict | None:
-        """Time the tracer on this frame's own reflector pixels once per run (a policy
-        whose time model is not calibrated yet, in a time-budgeted frame) and hand the
-        timings to the policy (``BudgetedPolicy.calibrate``). The pixels are taken out of
-        the G-buffer into a (1, n) one, so the rounds go through the real
-        ``Tracer.trace_reflections`` and compositing. Returns what stats.json reports, or
-        None when nothing was calibrated."""
-        model = getattr(policy, "time_model", None)
-        if budget_ms is None or model is None or model.calibrated:
-            return None
-        if not hasattr(policy, "calibrate"):
-            return None
-        start = time.perf_counter()
-        flat = np.flatnonzero(np.isin(gb.element_id.reshape(-1), visible_ids))
-        rng = np.random.default_rng(CALIBRATION_SEED)
-        samples: list[tuple[int, float]] = []
-        total_rays = total_pixels = 0
-        sizes = (CALIBRATION_PIXELS[0],) + CALIBRATION_PIXELS * CALIBRATION_REPEATS
-        best: dict[int, tuple[int, float]] = {}
-        for k, n in enumerate(sizes):
-            pick = np.sort(rng.choice(flat, size=n, replace=len(flat) < n))
-            sub = GBuffer(*(getattr(gb, f).reshape(-1, *getattr(gb, f).shape[2:])[pick][None]
-                            for f in GBUFFER_FIELDS))  # fmt: skip
-            ids = sorted(set(sub.element_id.reshape(-1).tolist()))
-            image = np.zeros((1, n, 3), np.float32)
-            t = time.perf_counter()
-            result = self._tracer.trace_reflections(sub, ids, self.options.bounce_limit)
-            apply_traced(image, image.copy(), np.ones((1, n), np.float32), result,
-                         np.zeros((1, n), bool))  # fmt: skip
-            ms = _ms(t)
-            if k == 0:
-                continue  # the warm-up round: caches, the pool's threads
-            total_rays += result.rays
-            total_pixels += n
-            if n not in best or ms < best[n][1]:
-                best[n] = (int(result.rays), ms)
-        samples = list(best.values())
-        policy.calibrate(samples, total_rays, total_pixels)
-        return {
-            "rounds": [{"rays": r, "ms": m} for r, m in samples],
-            "overhead_ms": model.prior_overhead_ms,
-            "ms_per_ray": model.prior_ms_per_ray,
-            "rays_per_pixel": total_rays / max(total_pixels, 1),
-            "wall_ms": _ms(start),
-        }
-
     def _screen_boxes(self, gb: GBuffer) -> np.ndarray:
         """(E, 4) pixel bounds (col_min, row_min, col_max, row_max) of every reflector's
         visible pixels, NaN for elements without any (see FrameView.screen_boxes)."""
@@ -616,59 +510,19 @@ class FrameRenderer:
         return frame_pixels.screen_boxes(gb.element_id, self._reflector_ids, n_elements)
 
     def _check_clipping(self, image: np.ndarray, gb: GBuffer, t: float, ev: float) -> None:
-        """Once per run: when more than CLIPPED_SHARE of the covered pixels of ``image``
-        (H, W, 3, after exposure) exceed CLIP_LEVEL in some channel, a warning (in
-        ``StageScene.warnings``, the render's warning path) naming the brightest light
-        (``_brightest_light``) and the ``--exposure`` that would bring the covered
-        pixels' median to SUGGESTED_MEDIAN."""
+        """Once per run: the clipping warning of a mostly clipped frame
+        (``clipping_warning``) into ``StageScene.warnings``, the render's warning path."""
         if self._clipping_warned:
             return
-        step = CLIP_SAMPLE_STRIDE
-        covered = gb.covered
-        share = frame_pixels.clipped_share(image, covered, step, CLIP_LEVEL)
-        if share <= CLIPPED_SHARE:
-            return
-        covered = covered[::step, ::step]
-        peak = image[::step, ::step][covered].max(axis=1)
-        self._clipping_warned = True
-        median = float(np.median(peak))
-        suggest = ev + float(np.log2(SUGGESTED_MEDIAN / median)) if median > 0 else ev
-        centre = gb.position[::step, ::step][covered].mean(axis=0)
-        path, level = self._brightest_light(centre)
-        note = intensity_note(self.stage_scene.stage, path)
-        self.stage_scene.warnings.append(
-            f"frame {t:g}: {share:.0%} of the covered pixels are clipped (> {CLIP_LEVEL:g} "
-            f"after exposure); brightest light {path} (~{level:.3g} at the scene{note}); "
-            f"try --exposure {suggest:.1f}"
-        )
-
-    def _brightest_light(self, centre: np.ndarray) -> tuple[str, float]:
-        """(prim path, brightest channel of its irradiance) of the light that gives most
-        at ``centre`` (3,) world metres, the covered pixels' mean position: a
-        DistantLight its radiance, a LocalLight radiance / d² (unshadowed, no cone), the
-        dome its mean radiance (``shading.ambient_radiance``)."""
-        from phrt_usd.engine.shading import MIN_LIGHT_DISTANCE, ambient_radiance
-
-        lights = self.scene.lights
-        best = ("(no light)", 0.0)
-        for li in lights.distant:
-            best = max(best, (li.path, float(np.max(li.radiance))), key=lambda b: b[1])
-        for li in lights.local:
-            d2 = max(float(np.sum((np.asarray(li.position) - centre) ** 2)), MIN_LIGHT_DISTANCE**2)
-            best = max(best, (li.path, float(np.max(li.radiance)) / d2), key=lambda b: b[1])
-        if lights.dome is not None:
-            level = float(np.max(ambient_radiance(lights)))
-            best = max(best, (lights.dome.path, level), key=lambda b: b[1])
-        return best
+        warning = clipping_warning(image, gb, t, ev, self.scene.lights, self.stage_scene.stage)
+        if warning is not None:
+            self._clipping_warned = True
+            self.stage_scene.warnings.append(warning)
 
     def _shade_local(self, gb: GBuffer) -> tuple[np.ndarray, str | None]:
         """Local shading (H, W, 3) of covered pixels and the shadow pass used, if any
         (``lighting.shade_gbuffer``: who answers the shadow queries in this mode)."""
         return shade_gbuffer(gb, self.scene, self.options.mode, self._rasterizer, self._tracer)
-
-
-#: The GBuffer's per-pixel arrays, in its field order (the calibration samples them).
-GBUFFER_FIELDS = ("element_id", "triangle_id", "depth", "position", "normal", "albedo", "view_dir")
 
 
 def target_fps_budget_ms(target_fps: float, prepare_ms: float, select_ms: float) -> float:
@@ -695,17 +549,24 @@ def _no_budget_reason(budget: Budget, prep: PreparedFrame, opts, frame_budget_ms
     return f"budget {frame_budget_ms:g} ms"
 
 
-def _remaining(
-    opts: RenderOptions, trace_ms: float, rays: int, budget_ms: float | None
-) -> Budget:
-    """Budget left after ``trace_ms`` and ``rays`` were spent of the frame's time budget
-    ``budget_ms`` and of the rays budget (unbounded in ``rt``)."""
+def _frame_limits(opts: RenderOptions, budget_ms: float | None) -> Budget:
+    """The frame's trace budgets: the time budget ``budget_ms`` and the rays budget
+    (unbounded in ``rt``)."""
     if opts.mode == "rt":
         return Budget()
-    return Budget(
-        ms=None if budget_ms is None else budget_ms - trace_ms,
-        rays=None if opts.budget_rays is None else opts.budget_rays - rays,
-    )
+    return Budget(ms=budget_ms, rays=opts.budget_rays)
+
+
+def _calibration_stats(done: Calibration, prior: tuple[float, float]) -> dict:
+    """What stats.json reports of the run's calibration: the timed rounds, the prior line
+    the policy fitted to them, the rays per pixel they cast, their wall ms."""
+    return {
+        "rounds": [{"rays": r, "ms": m} for r, m in done.samples],
+        "overhead_ms": prior[0],
+        "ms_per_ray": prior[1],
+        "rays_per_pixel": done.rays / max(done.pixels, 1),
+        "wall_ms": done.wall_ms,
+    }
 
 
 def _ms(t0: float) -> float:

@@ -105,7 +105,7 @@ class FrameView:
     screen_boxes: (E, 4) float64 pixel bounds (col_min, row_min, col_max, row_max) of
         each reflector's visible pixels, NaN where it has none; None if not computed.
     upcoming_cameras: the cameras of the next frames of the render, in order (at most
-        ``select.heu1_policy.UPCOMING_CAMERAS``; empty when the renderer does not know them, e.g.
+        ``select.heu1_forecast.UPCOMING_CAMERAS``; empty when the renderer does not know them, e.g.
         for the last frame or a single-frame render). A stage's camera path is known in
         advance, so HEU1 can forecast a reflector's cost from it.
     trace_density: the render's trace density (``--trace-density``); only at "full" may
@@ -154,17 +154,55 @@ class ReflectorMetrics:
     trace_density: float = math.nan
 
 
+@dataclass
+class FrameNote:
+    """A policy's note on the frame it last finished (``SelectionPolicy.last_frame_note``).
+
+    expected_trace_ms: the central estimate of the trace time made before each round
+        (no safety factors), summed over the frame's rounds;
+    untraced_reason: why nothing was traced while reflectors were visible (with numbers),
+        else None.
+    """
+
+    expected_trace_ms: float = 0.0
+    untraced_reason: str | None = None
+
+
 class SelectionPolicy(Protocol):
     """How reflectors are chosen per frame; implemented in ``phrt_usd.select.policies``.
+    This is everything the round loop (``phrt_usd.select.rounds.run_rounds``, which the
+    renderer and the replay tool run) reads of a policy. Per frame::
 
-    The renderer calls, per frame::
-
+        if policy.needs_calibration:                # time-budgeted, reflectors visible
+            policy.calibrate(samples, rays, pixels)
         policy.begin_frame(view, scene)
         while (ids := policy.next_round(budget)):   # budget shrinks after each round
             result = tracer.trace(...ids..., policy.round_densities(ids))
             policy.record(result.records, result.seconds)
         metrics = policy.end_frame()                # element id → ReflectorMetrics
+        policy.last_frame_note                      # FrameNote
     """
+
+    #: True when ``record`` reads ``TraceRecord.fallback_error`` (the renderer fills it
+    #: only then: it costs a pass over the traced pixels).
+    observes_fallback_error: bool
+    #: False when what the policy traces does not depend on the budget (``all``,
+    #: ``none``, ``list``): the renderer reports no budget use for it.
+    follows_budget: bool
+    #: Of the last finished frame (``end_frame``).
+    last_frame_note: FrameNote
+
+    @property
+    def needs_calibration(self) -> bool:
+        """True while the policy's trace-time model has not been calibrated."""
+        ...
+
+    def calibrate(
+        self, samples: list[tuple[int, float]], rays: int, pixels: int
+    ) -> tuple[float, float]:
+        """Timed calibration rounds ``(rays, ms)``, ``rays`` over ``pixels`` traced in all;
+        returns the trace-time line fitted to them: (fixed ms, ms per ray)."""
+        ...
 
     def begin_frame(self, view: FrameView, scene: Scene) -> None: ...
 

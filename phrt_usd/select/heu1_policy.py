@@ -1,7 +1,9 @@
 """HEU1: the paper's heuristic on a Selection Graph, made transition-aware (the class
 docstring lists what is the paper's and what is ours; docs/heuristic.md,
-"Transition-aware selection"). Registered with ``policies.make_policy`` as "heu1" when
-``phrt_usd.select`` is imported, like HEU3 (``benefit_policy``).
+"Transition-aware selection"). Its cost forecasts (pixel growth, the lookahead over the
+camera path) are in ``heu1_forecast``, its density steps in ``heu1_density``. Registered
+with ``policies.make_policy`` as "heu1" when ``phrt_usd.select`` is imported, like HEU3
+(``benefit_policy``).
 """
 
 from __future__ import annotations
@@ -11,45 +13,23 @@ import math
 import numpy as np
 
 from phrt_usd.model.frame import Budget, FrameView, ReflectorMetrics
-from phrt_usd.model.scene import CameraFrame, Scene
+from phrt_usd.model.scene import Scene
 from phrt_usd.model.trace_density import COARSEST
-from phrt_usd.select.metrics import box_screen_area
+from phrt_usd.select.heu1_density import DensitySteps
+from phrt_usd.select.heu1_forecast import (
+    FORECAST_HORIZON,
+    FORECAST_MAX,
+    GROWTH_MAX,
+    GROWTH_WINDOW,
+    BoxAreas,
+    pixel_growth,
+)
 from phrt_usd.select.policies import ADMISSION_MARGIN, BudgetedPolicy, register_policy
 from phrt_usd.select.selection_graph import Node, SelectionGraph
 
-#: HEU1's growth forecast (ours, docs/heuristic.md "Transition-aware selection"): a
-#: reflector's predicted rays are extrapolated FORECAST_HORIZON frames (1 s at 24 fps)
-#: ahead from the growth of its pixel count over the last GROWTH_WINDOW frames it was in
-#: view: the geometric mean growth per frame, clamped to [1, GROWTH_MAX] (a shrinking
-#: reflector is forecast at its current cost; one glitchy frame cannot forecast infinity).
-FORECAST_HORIZON = 24
-GROWTH_WINDOW = 4
-GROWTH_MAX = 2.0
-#: A pixel history counts as a trend when its net change (in log pixels) is at least this
-#: share of its total up-and-down travel (1: monotone).
-TREND_MIN = 0.5
-#: Forecasts (rays) are capped here so that sums of them stay finite.
-FORECAST_MAX = 1e300
-
-#: HEU1's lookahead: when the renderer knows the frames to come
-#: (``FrameView.upcoming_cameras``: a stage's camera path is known before the render
-#: starts), the forecast is instead the largest cost over the next LOOKAHEAD_FRAMES frames,
-#: scaled from the current cost by the screen area of the reflector's bounding box
-#: (``box_screen_area``; each upcoming camera's areas are computed once and reused by the
-#: following frames). Measured on both stages (docs/heuristic.md): 48 frames gave fewer
-#: transitions than 24 at the same mean selected count; longer ones shut out reflectors
-#: that grow late.
-LOOKAHEAD_FRAMES = 48
-#: Box areas are computed for LOOKAHEAD_BATCH cameras at a time (one array pass instead of
-#: one per frame, whose per-call overhead costs ~0.2 ms of HEU1's selection time a frame);
-#: renderers pass UPCOMING_CAMERAS upcoming cameras so that a batch is computed before the
-#: window reaches it.
-LOOKAHEAD_BATCH = 48
-UPCOMING_CAMERAS = LOOKAHEAD_FRAMES + LOOKAHEAD_BATCH
-
 
 @register_policy
-class Heu1Policy(BudgetedPolicy):
+class Heu1Policy(DensitySteps, BudgetedPolicy):
     """The paper's heuristic on a Selection Graph rebuilt from the untraced candidates
     every round, made transition-aware (docs/heuristic.md):
 
@@ -100,6 +80,7 @@ class Heu1Policy(BudgetedPolicy):
     """
 
     name = "heu1"
+    CACHE_ATTRIBUTES = BudgetedPolicy.CACHE_ATTRIBUTES | {"_box_areas", "_growth_curves"}
 
     def __init__(self, *, selection_weight: float, bounce_limit: int) -> None:
         super().__init__(selection_weight=selection_weight, bounce_limit=bounce_limit)
@@ -117,14 +98,8 @@ class Heu1Policy(BudgetedPolicy):
         #: bounding-box screen area over the upcoming cameras / the current one, >= 1);
         #: empty when the view has no upcoming cameras.
         self.lookahead_growth: dict[int, float] = {}
-        #: Screen area of every reflector's box per camera of the path, computed once per
-        #: camera (the renderer passes the same CameraFrame objects frame after frame, the
-        #: current one included): id(camera) → (camera, (R,) float64 pixels, in the order
-        #: of the reflector ids). The camera is held so that its id cannot be reused while
-        #: cached. Boxes are those of the frame that computed the batch (animation is not
-        #: forecast), the current camera's too, so growth compares like with like.
-        self._box_areas: dict[int, tuple[CameraFrame, np.ndarray]] = {}
-        self._box_areas_key: tuple = ()  # (width, height, reflector count) of the cache
+        #: Screen area of every reflector's box per camera of the path (a cache).
+        self._box_areas = BoxAreas()
         #: This frame's lookahead per reflector in view: element id → (W,) float64 screen
         #: area of its box at each of the next W <= LOOKAHEAD_FRAMES upcoming cameras / its
         #: area now (>= 0, finite; 0 where the box is off-screen); {} without upcoming
@@ -138,45 +113,12 @@ class Heu1Policy(BudgetedPolicy):
         for e in np.flatnonzero(frame.pixels > 0).tolist():
             history[e] = [*self.pixel_history.get(e, [])[-GROWTH_WINDOW:], int(frame.pixels[e])]
         self.pixel_history = history  # a reflector out of view starts afresh
-        self._growth_curves = self._lookahead_curves(view, scene, np.fromiter(history, int))
+        self._growth_curves = self._box_areas.growth_curves(
+            view, scene, self._reflectors_of(scene), np.fromiter(history, int)
+        )
         self.lookahead_growth = {
             e: float(max(curve.max(initial=1.0), 1.0)) for e, curve in self._growth_curves.items()
         }
-
-    def _lookahead_curves(
-        self, view: FrameView, scene: Scene, ids: np.ndarray
-    ) -> dict[int, np.ndarray]:
-        """Element id → (W,) float64 screen area of its box at each of the next W <=
-        LOOKAHEAD_FRAMES upcoming cameras / its area now (>= 0, finite), for the reflectors
-        ``ids`` in view; {} without upcoming cameras."""
-        ahead = view.upcoming_cameras[:LOOKAHEAD_FRAMES]
-        if not ahead or len(ids) == 0:
-            return {}
-        refl = self._reflectors_of(scene)  # ascending element ids
-        w, h = view.width, view.height
-        if self._box_areas_key != (w, h, len(refl)):
-            self._box_areas, self._box_areas_key = {}, (w, h, len(refl))
-        cached = self._box_areas
-        if any(id(c) not in cached for c in (view.camera, *ahead)):
-            # One call for every camera of the view not cached yet, the ones beyond the
-            # window included: with the renderer's UPCOMING_CAMERAS that is one call per
-            # LOOKAHEAD_BATCH frames.
-            path = {id(c): c for c in (view.camera, *view.upcoming_cameras)}
-            new = {k: c for k, c in path.items() if k not in cached}
-            lo = np.array([scene.elements[i].bounds_min for i in refl], dtype=np.float64)
-            hi = np.array([scene.elements[i].bounds_max for i in refl], dtype=np.float64)
-            areas = box_screen_area(lo, hi, list(new.values()), w, h)
-            cached = {k: v for k, v in cached.items() if k in path}  # drop cameras passed
-            cached.update(zip(new, zip(new.values(), areas, strict=True), strict=True))
-            self._box_areas = cached
-        cols = np.searchsorted(refl, ids)
-        now = cached[id(view.camera)][1][cols]
-        later = np.stack([cached[id(c)][1] for c in ahead])[:, cols]  # (W, n)
-        # A reflector in view has pixels, so a box area under one pixel is a sliver at
-        # the image edge: growth is measured from one pixel, which keeps it finite.
-        growth = later / np.maximum(now, 1.0)
-        growth = np.clip(np.nan_to_num(growth, nan=0.0, posinf=FORECAST_MAX), 0.0, FORECAST_MAX)
-        return {e: growth[:, k] for k, e in enumerate(ids.tolist())}
 
     def end_frame(self) -> dict[int, ReflectorMetrics]:
         frame = self._require_frame()
@@ -197,20 +139,8 @@ class Heu1Policy(BudgetedPolicy):
         animation) would otherwise extrapolate to a wildly wrong forecast."""
         growth = self._require_frame().growth  # the history is fixed within a frame
         if element not in growth:
-            growth[element] = self._pixel_growth(element)
+            growth[element] = pixel_growth(self.pixel_history.get(element, []))
         return growth[element]
-
-    def _pixel_growth(self, element: int) -> float:
-        """``growth`` computed from the pixel history."""
-        h = self.pixel_history.get(element, [])  # at most GROWTH_WINDOW + 1 counts: scalars
-        if len(h) < 2 or h[0] <= 0:
-            return 1.0
-        logs = [math.log(max(c, 1.0)) for c in h]
-        steps = [b - a for a, b in zip(logs, logs[1:], strict=False)]
-        travel = sum(abs(d) for d in steps)
-        if travel > 0.0 and abs(sum(steps)) < TREND_MIN * travel:
-            return 1.0  # up and down more than it moved: no trend to extrapolate
-        return float((h[-1] / h[0]) ** (1.0 / (len(h) - 1)))
 
     def forecast_rays(self, element: int) -> float:
         """Predicted rays within the forecast's horizon: with upcoming cameras,
@@ -230,23 +160,6 @@ class Heu1Policy(BudgetedPolicy):
         if curve is None:
             return self.forecast_rays(element)
         return np.minimum(self.predicted_rays(element) * curve, FORECAST_MAX)
-
-    def _steps(self) -> bool:
-        """Density steps are on: the render traces at full density (``FrameView``)."""
-        return self._require_frame().view.trace_density == "full"
-
-    def fewest_rays(self, element: int) -> float:
-        return self.level_rays(element, COARSEST if self._steps() else 0)
-
-    def _level(self, e: int) -> int:
-        """The density level ``e`` is offered at: a kept reflector's previous one (index
-        into ``model.trace_density.TRACE_DENSITIES``), else full."""
-        kept = e in self.previous_selection and self._steps()
-        return self.previous_levels.get(e, 0) if kept else 0
-
-    def _level_forecast(self, e: int, level: int) -> float | np.ndarray:
-        """``forecast_curve`` of ``e`` traced at ``level`` (the density's share of it)."""
-        return self.forecast_curve(e) * self.level_share(e, level)
 
     def _node(self, e: int, reserve: float, budget: float) -> Node:
         frame = self._require_frame()
@@ -366,117 +279,3 @@ class Heu1Policy(BudgetedPolicy):
             frame.unfit_claims.update(unfit)
         return ids
 
-    def _density_steps(
-        self, ids: list[int], unfit: list[int], remaining: float, reserve: float
-    ) -> list[int]:
-        """HEU1's density steps (ours, class docstring): after the graph's choice ``ids``
-        (``remaining`` rays of the round's allowance left), a claim the keep step could
-        not fit (``unfit``, cheapest first) is taken at the finest coarser density that
-        fits instead of being dropped, and a reflector entering the view that was not
-        taken at full density (too costly now, or forecast to outgrow the budget) at the
-        finest coarser one that fits with ``reserve`` to spare and is not forecast to
-        outgrow it. When even a reflector's coarsest density does not fit, reflectors of
-        this round step coarser to make room for it (``_room``), if that frees enough.
-        Then a reflector taken below full density (and not stepped to make room) steps one
-        density finer when the extra rays fit with ``reserve`` to spare and its finer
-        forecast stays within the budget over the lookahead (so it will not have to step
-        back). Returns the reflectors taken here; records their levels and forecasts in
-        the frame."""
-        frame = self._require_frame()
-        budget = frame.first_allowance
-        coarser = range(1, COARSEST + 1)
-        taken: list[int] = []
-
-        def take(e: int, level: int) -> None:
-            nonlocal remaining
-            # The finest density as cheap as ``level``: full below SPARSE_MIN_PIXELS, where
-            # every density traces every pixel (no step to report).
-            level = next(v for v in range(level + 1)
-                         if self.level_rays(e, v) <= self.level_rays(e, level))  # fmt: skip
-            remaining -= self._set_level(e, level)
-            taken.append(e)
-
-        squeezed: set[int] = set()  # stepped coarser to make room: no step back this round
-
-        def make_room(cost: float) -> bool:
-            """Step reflectors of this round coarser until ``cost`` fits what remains."""
-            nonlocal remaining
-            freed = self._room(ids + taken, cost - remaining)
-            if freed is None:
-                return False
-            squeezed.update(freed)
-            for c, level in freed.items():
-                remaining -= self._set_level(c, level, was=frame.levels.get(c, 0))
-            return True
-
-        for e in unfit:
-            level = next((v for v in coarser if v > self._level(e)
-                          and self.level_rays(e, v) <= remaining), None)  # fmt: skip
-            if level is None and make_room(self.level_rays(e, COARSEST)):
-                level = COARSEST
-            if level is not None:
-                take(e, level)
-        chosen = set(ids)
-        entering = [e for e in self._untraced_visible()
-                    if e not in chosen and e not in self.previous_visible]  # fmt: skip
-        for e in sorted(entering, key=lambda e: (-self.relevance_R(e), e)):
-            level = next((v for v in coarser
-                          if self.level_rays(e, v) + reserve <= remaining
-                          and not self._outgrows(e, budget, v)), None)  # fmt: skip
-            if level is None and not self._outgrows(e, budget, COARSEST):
-                if make_room(self.level_rays(e, COARSEST) + reserve):
-                    level = COARSEST
-            if level is not None:
-                take(e, level)
-        for e in ids:
-            level = frame.levels.get(e, 0)
-            if not level or e in squeezed:
-                continue
-            extra = self.level_rays(e, level - 1) - self.level_rays(e, level)
-            lasting = bool(np.all(self._level_forecast(e, level - 1) <= budget))
-            if extra + reserve <= remaining and lasting:
-                remaining -= self._set_level(e, level - 1, was=level)
-        return taken
-
-    def _set_level(self, e: int, level: int, was: int | None = None) -> float:
-        """Record ``e`` traced at density ``level`` in this frame, in place of density
-        ``was`` (None: not taken yet): its level (absent at full density) and its
-        forecast in the frame's ``forecast_used``. Returns the predicted rays this adds
-        to the round (negative when it frees some)."""
-        frame = self._require_frame()
-        if level:
-            frame.levels[e] = level
-        else:
-            frame.levels.pop(e, None)
-        frame.forecast_used = frame.forecast_used + self._level_forecast(e, level)
-        added = self.level_rays(e, level)
-        if was is not None:
-            frame.forecast_used = frame.forecast_used - self._level_forecast(e, was)
-            added -= self.level_rays(e, was)
-        return added
-
-    def _room(self, traced: list[int], need: float) -> dict[int, int] | None:
-        """Density steps down of reflectors of this round (``traced``: taken in it, not
-        traced yet) that free at least ``need`` predicted rays: element id → its new
-        level, one step at a time, each time the step that frees the fewest rays among
-        those that free enough, else the one that frees the most. {} if nothing is needed;
-        None (nothing stepped) if even every step to the coarsest density frees too
-        little."""
-        if need <= 0.0:
-            return {}
-        frame = self._require_frame()
-        levels = {c: frame.levels.get(c, 0) for c in traced}
-        steps: dict[int, int] = {}
-        while need > 0.0:
-            saving = {c: self.level_rays(c, v) - self.level_rays(c, v + 1)
-                      for c, v in levels.items() if v < COARSEST}  # fmt: skip
-            saving = {c: x for c, x in saving.items() if x > 0.0}
-            if not saving:
-                return None
-            enough = [c for c, x in saving.items() if x >= need]
-            c = min(enough, key=lambda c: (saving[c], c)) if enough else max(
-                saving, key=lambda c: (saving[c], -c))
-            levels[c] += 1
-            steps[c] = levels[c]
-            need -= saving[c]
-        return steps

@@ -23,7 +23,14 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from phrt_usd.errors import PhrtError
-from phrt_usd.model.frame import Budget, FrameView, ReflectorMetrics, SelectionPolicy, TraceRecord
+from phrt_usd.model.frame import (
+    Budget,
+    FrameNote,
+    FrameView,
+    ReflectorMetrics,
+    SelectionPolicy,
+    TraceRecord,
+)
 from phrt_usd.model.scene import Scene
 from phrt_usd.model.trace_density import TRACE_DENSITIES, traced_fraction
 from phrt_usd.select.cost_model import TIME_MODEL_DECAY, TraceTimeModel
@@ -98,7 +105,8 @@ class _FrameState:
 class BudgetedPolicy(ABC):
     """What every policy shares: the per-frame metrics, the memory across frames (Q,
     rays per pixel, which reflector reflects which, the previous selection) and the cost
-    model. Subclasses decide only which ids a round traces (``_choose``)."""
+    model. Subclasses decide only which ids a round traces (``_choose``). Implements all
+    of ``SelectionPolicy`` (``phrt_usd.model.frame``), what the round loop reads."""
 
     name = "base"
     #: True when ``record`` reads ``TraceRecord.fallback_error`` (the renderer fills it
@@ -135,29 +143,30 @@ class BudgetedPolicy(ABC):
         self.last_predicted_trace_ms = 0.0
         #: Of the last finished frame: the central trace-time estimate (ms) and why
         #: nothing was traced (None if something was, or nothing was visible).
-        self.last_frame_note: dict = {"expected_trace_ms": 0.0, "untraced_reason": None}
+        self.last_frame_note = FrameNote()
 
     #: Attributes that are caches or the frame in progress, not memory across frames:
-    #: left out of ``memory()`` and rebuilt on demand after ``restore_memory``.
-    CACHE_ATTRIBUTES = frozenset(
-        {
-            "_frame",
-            "_reflector_cache",
-            "_box_areas",
-            "_box_areas_key",
-            "last_frame_note",
-            "_growth_curves",
-        }
-    )
+    #: left out of ``memory()`` and rebuilt on demand after ``restore_memory``
+    #: (subclasses add their own caches).
+    CACHE_ATTRIBUTES = frozenset({"_frame", "_reflector_cache", "last_frame_note"})
 
-    def calibrate(self, samples: list[tuple[int, float]], rays: int, pixels: int) -> None:
+    @property
+    def needs_calibration(self) -> bool:
+        """True while the time model has no calibration of this stage's tracing."""
+        return not self.time_model.calibrated
+
+    def calibrate(
+        self, samples: list[tuple[int, float]], rays: int, pixels: int
+    ) -> tuple[float, float]:
         """A calibration of this stage's tracing before the first round: timed rounds
         ``(rays, ms)`` set the time model's prior (``TraceTimeModel.calibrate``); their
         ``rays`` over ``pixels`` traced seed the mean rays per pixel, which predicts
-        reflectors never traced, unless a trace already taught it."""
+        reflectors never traced, unless a trace already taught it. Returns the prior
+        line: (fixed ms, ms per ray)."""
         self.time_model.calibrate(samples)
         if self._global_pixels <= 0.0 and pixels > 0 and rays > 0:
             self._global_rays, self._global_pixels = float(rays), float(pixels)
+        return self.time_model.prior_overhead_ms, self.time_model.prior_ms_per_ray
 
     def memory(self) -> dict:
         """The policy's memory across frames as plain JSON data (for checkpoints): every
@@ -293,10 +302,10 @@ class BudgetedPolicy(ABC):
         self.previous_selection = set(frame.traced)
         self.previous_levels = {e: v for e, v in frame.levels.items() if e in frame.traced}
         self.last_predicted_trace_ms = frame.predicted_trace_ms
-        self.last_frame_note = {
-            "expected_trace_ms": frame.expected_trace_ms,
-            "untraced_reason": frame.untraced_reason if not frame.traced else None,
-        }
+        self.last_frame_note = FrameNote(
+            expected_trace_ms=frame.expected_trace_ms,
+            untraced_reason=frame.untraced_reason if not frame.traced else None,
+        )
         self._frame = None
         return metrics
 
