@@ -28,10 +28,10 @@ What one process can and cannot change once a library is loaded (``apply_threads
 from __future__ import annotations
 
 import ctypes
-import numbers
 import os
 import sys
 
+from phrt_usd.checks import check_integer, check_range
 from phrt_usd.errors import BadOption
 
 #: Threads of each of phrt's pools by default: the cores this process may run on (at
@@ -55,11 +55,7 @@ _current = {"threads": DEFAULT_THREADS}
 
 def check_threads(value: object, name: str = "threads") -> int:
     """``value`` as a thread count in 1..MAX_THREADS; BadOption (one line) otherwise."""
-    if isinstance(value, bool) or not isinstance(value, numbers.Integral):
-        raise BadOption(f"{name} must be an integer, got {value!r}")
-    if not 1 <= value <= MAX_THREADS:
-        raise BadOption(f"{name} must be in 1..{MAX_THREADS}, got {value}")
-    return int(value)
+    return check_range(check_integer(value, name), 1, MAX_THREADS, name)
 
 
 def current_threads() -> int:

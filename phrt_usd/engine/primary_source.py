@@ -28,10 +28,9 @@ budget stays deterministic and ``--resume`` continues with the pixels it began w
 
 from __future__ import annotations
 
-from phrt_usd.errors import BadOption
+from phrt_usd.model.render_options import OPTIONS, PRIMARY_SOURCES  # noqa: F401
 
-PRIMARY_SOURCES = ("auto", "raster", "rays")
-DEFAULT_PRIMARY = "auto"
+DEFAULT_PRIMARY = OPTIONS["primary"].default
 
 #: ``auto`` takes the rays above this many triangles a pixel on a software rasterizer:
 #: twice the measured crossover (module docstring), so that near the crossover the
@@ -45,9 +44,7 @@ SOFTWARE_RENDERERS = ("llvmpipe", "softpipe", "swrast")
 
 def check_primary(value: object) -> str:
     """``value`` as one of PRIMARY_SOURCES; BadOption (one line) otherwise."""
-    if not isinstance(value, str) or value.lower() not in PRIMARY_SOURCES:
-        raise BadOption(f"primary must be one of {', '.join(PRIMARY_SOURCES)}, got {value!r}")
-    return value.lower()
+    return OPTIONS["primary"].check(value)
 
 
 def is_software(gl_renderer: str) -> bool:

@@ -30,10 +30,8 @@ from phrt_usd.engine import frame_pixels
 from phrt_usd.engine.clipping_warning import clipping_warning
 from phrt_usd.engine.compositing import base_image, element_reflectivity, pixel_reflectivity
 from phrt_usd.engine.lighting import shade_gbuffer
-from phrt_usd.engine.primary_source import DEFAULT_PRIMARY, check_primary, choose, is_software
-from phrt_usd.engine.raster.gl_platform import DEFAULT_GL, check_gl
+from phrt_usd.engine.primary_source import choose, is_software
 from phrt_usd.engine.trace_rounds import CALIBRATION_SEED, ReflectionRounds, calibrate_tracer
-from phrt_usd.errors import BadOption
 from phrt_usd.model.frame import (
     Budget,
     FrameCamera,
@@ -42,131 +40,22 @@ from phrt_usd.model.frame import (
     GBuffer,
     SelectionPolicy,
 )
+from phrt_usd.model.render_options import MAX_EXPOSURE_EV, RenderOptions
 from phrt_usd.model.scene import CameraFrame, Scene
-from phrt_usd.model.trace_density import check_density
 from phrt_usd.select.heu1_forecast import UPCOMING_CAMERAS
 from phrt_usd.select.policies import make_policy
 from phrt_usd.select.rounds import Calibration, FrameRounds, run_rounds
-from phrt_usd.threads import DEFAULT_THREADS, apply_threads, check_threads
+from phrt_usd.threads import apply_threads
 from phrt_usd.usd.default_lights import aim_headlight
-from phrt_usd.usd.schema import (
-    DEFAULT_BOUNCE_LIMIT,
-    DEFAULT_BUDGET_MS,
-    DEFAULT_HEURISTIC,
-    DEFAULT_MODE,
-    DEFAULT_RESOLUTION,
-    DEFAULT_SELECTION_WEIGHT,
-    HEURISTICS,
-    MAX_BOUNCE_LIMIT,
-    MODES,
-)
 from phrt_usd.usd.stage import StageScene
 
-#: Largest frame side in pixels (OpenGL's usual maximum framebuffer size).
-MAX_RESOLUTION_SIDE = 16384
-#: Largest frame in pixels: the G-buffer, shading planes and images take ~100 bytes a
-#: pixel, so 2**26 pixels (e.g. 8192x8192) already need several GB.
-MAX_RESOLUTION_PIXELS = 2**26
-#: Largest --budget-rays: far above any frame's need (a 2**26-pixel frame at 16 bounces
-#: casts ~1e9 rays) and small enough for every int64 figure and USD's integer metadata.
-MAX_BUDGET_RAYS = 10**12
 #: With ``--target-fps``, a frame's trace budget T leaves this share of the frame period
 #: unbudgeted: what runs after the last tracing round (the policy's end of frame, its
 #: metrics, the stats) is not measured before T is set, and timer and scheduler jitter
 #: between frames would otherwise push every frame slightly past the period.
 TARGET_FPS_MARGIN = 0.05
-#: Highest --target-fps: a period of 1 ms is far below any frame's raster here.
-MAX_TARGET_FPS = 1000.0
-#: Largest |--exposure| in EV; larger values are clamped to it (with a warning): 2^40
-#: (~1e12) already maps a 1e-6 radiance to display white or a 1e6 one to black, and
-#: keeps ordinary radiance times the scale far inside float32 (max 3.4e38).
-MAX_EXPOSURE_EV = 40.0
 #: Largest finite float32: scaled radiance is clamped to it (an EXR holds no Inf).
 _FLOAT32_MAX = float(np.finfo(np.float32).max)
-
-
-@dataclass
-class RenderOptions:
-    """How to render. ``None`` budgets are unbounded. Defaults are the schema's
-    (``PhrtRenderSettingsAPI`` fallbacks in ``usd.schema``), declared there once."""
-
-    mode: str = DEFAULT_MODE
-    heuristic: str = DEFAULT_HEURISTIC
-    width: int = DEFAULT_RESOLUTION[0]
-    height: int = DEFAULT_RESOLUTION[1]
-    budget_ms: float | None = DEFAULT_BUDGET_MS
-    budget_rays: int | None = None
-    bounce_limit: int = DEFAULT_BOUNCE_LIMIT
-    selection_weight: float = DEFAULT_SELECTION_WEIGHT
-    #: Threads of every pool, llvmpipe, OpenBLAS and numba (``phrt_usd.threads``).
-    threads: int = DEFAULT_THREADS
-    #: OpenGL platform of the raster phase: auto | egl | osmesa (auto: EGL when a working
-    #: EGL device is found, else OSMesa; ``engine.raster.gl_platform``).
-    gl: str = DEFAULT_GL
-    #: Source of the G-buffer: auto | raster | rays (``engine.primary_source``).
-    primary: str = DEFAULT_PRIMARY
-    #: Pixels of a traced reflector that start rays: full | half | quarter | sixteenth (of
-    #: reflectors of 64+ pixels; the others filled from their traced neighbours:
-    #: ``engine.trace.sparse_pixels``).
-    trace_density: str = "full"
-    #: Frame rate to hold (``--target-fps``): each frame's T is the frame period less the
-    #: frame's measured raster and shading and the previous frame's selection, less
-    #: TARGET_FPS_MARGIN of the period. Exclusive with ``budget_ms``.
-    target_fps: float | None = None
-    #: ``--exposure EV``: every frame's radiance is scaled by 2**EV before it is written
-    #: (EXR and PNG alike); |EV| beyond MAX_EXPOSURE_EV is clamped (``exposure_ev``).
-    exposure: float = 0.0
-
-    def __post_init__(self) -> None:
-        self.threads = check_threads(self.threads)
-        self.gl = check_gl(self.gl)
-        self.primary = check_primary(self.primary)
-        self.trace_density = check_density(self.trace_density)
-        if self.mode not in MODES:
-            raise BadOption(f"unknown mode {self.mode!r}; expected one of {', '.join(MODES)}")
-        if self.mode == "rt" and self.primary == "raster":
-            raise BadOption("--primary raster: rt mode traces every ray, its primary rays too")
-        if self.mode == "rt" and self.trace_density != "full":
-            raise BadOption(
-                f"--trace-density {self.trace_density}: rt mode traces every pixel (hybrid only)"
-            )
-        if self.heuristic not in HEURISTICS:
-            raise BadOption(
-                f"unknown heuristic {self.heuristic!r}; expected one of {', '.join(HEURISTICS)}"
-            )
-        side, pixels = MAX_RESOLUTION_SIDE, MAX_RESOLUTION_PIXELS
-        if not (1 <= self.width <= side and 1 <= self.height <= side):
-            raise BadOption(f"resolution {self.width}x{self.height} out of range 1..{side}")
-        if self.width * self.height > pixels:
-            raise BadOption(
-                f"resolution {self.width}x{self.height}: more than {pixels} pixels a frame"
-            )
-        if self.budget_ms is not None and not (self.budget_ms >= 0 and np.isfinite(self.budget_ms)):
-            raise BadOption(f"--budget-ms must be a finite number >= 0, got {self.budget_ms}")
-        if self.target_fps is not None:
-            if not (np.isfinite(self.target_fps) and 0 < self.target_fps <= MAX_TARGET_FPS):
-                raise BadOption(
-                    f"--target-fps must be in (0, {MAX_TARGET_FPS:g}], got {self.target_fps}"
-                )
-            if self.budget_ms is not None:
-                raise BadOption("--budget-ms and --target-fps both given: use one of them")
-        if self.budget_rays is not None and not 0 <= self.budget_rays <= MAX_BUDGET_RAYS:
-            raise BadOption(
-                f"--budget-rays must be in 0..{MAX_BUDGET_RAYS}, got {self.budget_rays}"
-            )
-        if not 0 <= self.bounce_limit <= MAX_BOUNCE_LIMIT:
-            raise BadOption(
-                f"bounce limit must be in 0..{MAX_BOUNCE_LIMIT}, got {self.bounce_limit}"
-            )
-        if not (self.selection_weight >= 0 and np.isfinite(self.selection_weight)):
-            raise BadOption(f"selection weight I must be finite and >= 0: {self.selection_weight}")
-        if not np.isfinite(self.exposure):
-            raise BadOption(f"--exposure must be a finite number of EV, got {self.exposure}")
-
-    @property
-    def exposure_ev(self) -> float:
-        """``exposure`` clamped to +-MAX_EXPOSURE_EV (what the render applies)."""
-        return float(np.clip(self.exposure, -MAX_EXPOSURE_EV, MAX_EXPOSURE_EV))
 
 
 @dataclass

@@ -43,7 +43,6 @@ from pathlib import Path
 import numpy as np
 
 from phrt_usd.atomic import write_text_atomic
-from phrt_usd.engine.raster.gl_platform import DEFAULT_GL
 from phrt_usd.engine.renderer import FrameOutput, FrameRenderer, RenderOptions
 from phrt_usd.errors import BadOption
 from phrt_usd.evaluate import provenance
@@ -71,12 +70,11 @@ from phrt_usd.evaluate.temporal_error import (
     sequence_frames_per_second,
     temporal_error_map,
 )
+from phrt_usd.model.render_options import OPTIONS
 from phrt_usd.run.frames import parse_frames
 from phrt_usd.run.images import write_png_atomic, write_preview_png
 from phrt_usd.run.render_job import runtime_settings, stop_on_signals
 from phrt_usd.select.policies import make_policy
-from phrt_usd.threads import DEFAULT_THREADS
-from phrt_usd.usd.schema import DEFAULT_BOUNCE_LIMIT, DEFAULT_RESOLUTION, DEFAULT_SELECTION_WEIGHT
 from phrt_usd.usd.stage import open_stage
 
 CSV_COLUMNS = [
@@ -88,6 +86,15 @@ CSV_COLUMNS = [
     "temporal_error_reflectors",
 ]  # fmt: skip
 
+#: The render options a ``SweepSpec`` sets for all its renderers, and its lists of
+#: values of one option each (a list → the option each of its values sets).
+SPEC_OPTIONS = ("width", "height", "bounce_limit", "selection_weight", "threads", "gl", "exposure")
+SPEC_OPTION_LISTS = {
+    "budgets_ms": "budget_ms",
+    "budgets_rays": "budget_rays",
+    "bounce_limits": "bounce_limit",
+    "trace_densities": "trace_density",
+}
 #: How many frames per stage get their images (hybrid, reference, error map) in the report.
 REPORT_FRAMES = 3
 
@@ -135,15 +142,20 @@ class SweepConfig:
 
 @dataclass
 class SweepSpec:
+    """What a sweep renders: its stages, heuristics × budgets, frames and variants, and the
+    render options every renderer of it shares. The render options take their defaults
+    from their declaration (``model.render_options.OPTIONS``) and are checked by it when
+    the spec is made (``BadOption``, one line), held as a render holds them."""
+
     stages: list[Path]
     heuristics: list[str]
     budgets_ms: list[float | None] = field(default_factory=list)
     budgets_rays: list[int | None] = field(default_factory=list)
     frames: str | None = None
-    width: int = DEFAULT_RESOLUTION[0]
-    height: int = DEFAULT_RESOLUTION[1]
-    bounce_limit: int = DEFAULT_BOUNCE_LIMIT
-    selection_weight: float = DEFAULT_SELECTION_WEIGHT
+    width: int = OPTIONS["width"].default
+    height: int = OPTIONS["height"].default
+    bounce_limit: int = OPTIONS["bounce_limit"].default
+    selection_weight: float = OPTIONS["selection_weight"].default
     out: Path = Path("sweep")
     #: Knob sweeps: every bounce limit × resolution (WxH) × trace density; empty =
     #: ``bounce_limit``, (``width``, ``height``) and full density alone.
@@ -151,14 +163,20 @@ class SweepSpec:
     resolutions: list[tuple[int, int]] = field(default_factory=list)
     trace_densities: list[str] = field(default_factory=list)
     #: Every renderer's thread setting and OpenGL platform (``RenderOptions``).
-    threads: int = DEFAULT_THREADS
-    gl: str = DEFAULT_GL
+    threads: int = OPTIONS["threads"].default
+    gl: str = OPTIONS["gl"].default
     #: ``--exposure EV`` of every renderer (``RenderOptions.exposure``): images, and the
     #: FLIP / PSNR of their tone-mapped previews, are of the scaled radiance.
-    exposure: float = 0.0
+    exposure: float = OPTIONS["exposure"].default
     #: Replace an earlier sweep in ``out`` (its files only, ``sweep_output``); without
     #: it a non-empty ``out`` is refused.
     overwrite: bool = False
+
+    def __post_init__(self) -> None:
+        for name in SPEC_OPTIONS:
+            setattr(self, name, OPTIONS[name].check(getattr(self, name)))
+        for name, option in SPEC_OPTION_LISTS.items():
+            setattr(self, name, [OPTIONS[option].check(v) for v in getattr(self, name)])
 
     def variants(self) -> list[Variant]:
         """Every resolution × bounce limit × trace density, resolutions outer, in the

@@ -5,7 +5,7 @@ HEU1's density steps). The patterns themselves and the fill of the skipped pixel
 
 from __future__ import annotations
 
-from phrt_usd.errors import BadOption
+from phrt_usd.checks import check_choice
 
 #: Reflectors with fewer pixels than this in a frame are traced at every pixel: below an
 #: 8 x 8 patch the rays saved are a few dozen and most pixels lie on the reflector's
@@ -35,8 +35,4 @@ def traced_fraction(pixels: float, density: str) -> float:
 
 def check_density(value: object) -> str:
     """``value`` as one of TRACE_DENSITIES; BadOption (one line) otherwise."""
-    if not isinstance(value, str) or value.lower() not in TRACE_DENSITIES:
-        raise BadOption(
-            f"trace density must be one of {', '.join(TRACE_DENSITIES)}, got {value!r}"
-        )
-    return value.lower()
+    return check_choice(value, TRACE_DENSITIES, "trace density")

@@ -1,8 +1,9 @@
 """Python API of the Phrt USD schemas: author and read them without attribute-name strings.
 
 The schemas themselves live in ``schemas/phrt/schema.usda`` (codeless plugin registered by
-``import phrt_usd``). Every attribute and schema name is defined once here; other modules
-import these constants.
+``import phrt_usd``). Every attribute and schema name is defined once here, but for the
+render settings' ones, declared with their render options (their attribute, default and
+range: ``phrt_usd.model.render_options.OPTIONS``); other modules import these constants.
 
 Reads work with and without the plugin registered: applied schemas are detected through
 the composed apiSchemas (``has_api``) and unauthored values fall back to the defaults below, which
@@ -18,6 +19,12 @@ import numpy as np
 from pxr import Sdf, Usd, UsdGeom, UsdRender, Vt
 
 from phrt_usd.errors import BadOption, PhrtError
+from phrt_usd.model.render_options import (  # noqa: F401 - usd.rules reads them here
+    HEURISTICS,
+    MAX_BOUNCE_LIMIT,
+    MODES,
+    OPTIONS,
+)
 
 # --- schema names -------------------------------------------------------------------------
 REFLECTOR_API = "PhrtReflectorAPI"
@@ -51,25 +58,24 @@ INTERPOLATIONS = ("linear", "catmullRom")
 DEFAULT_INTERPOLATION = "catmullRom"
 
 # --- PhrtRenderSettingsAPI ----------------------------------------------------------------
-HEURISTIC = "phrt:heuristic"  # token
-MODE = "phrt:mode"  # token
-SELECTION_WEIGHT = "phrt:selectionWeight"  # float I
-BUDGET_MS = "phrt:budgetMs"  # float T, milliseconds
-BUDGET_RAYS = "phrt:budgetRays"  # int, -1 = not used
-TARGET_FPS = "phrt:targetFps"  # float frames per second, 0 = not used (then phrt:budgetMs)
-BOUNCE_LIMIT = "phrt:bounceLimit"  # int
-HEURISTICS = ("heu1", "heu2", "all", "none", "heu3")
-MODES = ("hybrid", "rt", "raster")
-MAX_BOUNCE_LIMIT = 16  # recursion depth beyond which extra bounces change nothing visible
-DEFAULT_HEURISTIC = "heu1"
-DEFAULT_MODE = "hybrid"
-DEFAULT_SELECTION_WEIGHT = 0.0001
-DEFAULT_BUDGET_MS = 10.0
-DEFAULT_BUDGET_RAYS = -1
-DEFAULT_TARGET_FPS = 0.0
-DEFAULT_BOUNCE_LIMIT = 5
+# Each attribute sets a render option; names, fallbacks and ranges are the options' table's
+# (HEURISTICS, MODES and MAX_BOUNCE_LIMIT are imported from there too).
+HEURISTIC = OPTIONS["heuristic"].schema_attribute  # token
+MODE = OPTIONS["mode"].schema_attribute  # token
+SELECTION_WEIGHT = OPTIONS["selection_weight"].schema_attribute  # float I
+BUDGET_MS = OPTIONS["budget_ms"].schema_attribute  # float T, milliseconds
+BUDGET_RAYS = OPTIONS["budget_rays"].schema_attribute  # int, -1 = not used
+TARGET_FPS = OPTIONS["target_fps"].schema_attribute  # float fps, 0 = not used (then budgetMs)
+BOUNCE_LIMIT = OPTIONS["bounce_limit"].schema_attribute  # int
+DEFAULT_HEURISTIC = OPTIONS["heuristic"].default
+DEFAULT_MODE = OPTIONS["mode"].default
+DEFAULT_SELECTION_WEIGHT = OPTIONS["selection_weight"].default
+DEFAULT_BUDGET_MS = OPTIONS["budget_ms"].default
+DEFAULT_BUDGET_RAYS = OPTIONS["budget_rays"].schema_unset
+DEFAULT_TARGET_FPS = OPTIONS["target_fps"].schema_unset
+DEFAULT_BOUNCE_LIMIT = OPTIONS["bounce_limit"].default
 # Image size when there is no UsdRenderSettings prim (the project's benchmark size).
-DEFAULT_RESOLUTION = (320, 240)
+DEFAULT_RESOLUTION = (OPTIONS["width"].default, OPTIONS["height"].default)
 
 # Value type of every authored property, so authoring never depends on the plugin.
 _TYPES = {

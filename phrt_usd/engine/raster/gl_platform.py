@@ -22,10 +22,10 @@ import os
 import sys
 
 from phrt_usd.base import USER_GL_PLATFORM
-from phrt_usd.errors import BadOption, PhrtError
+from phrt_usd.errors import PhrtError
+from phrt_usd.model.render_options import GL_PLATFORMS, OPTIONS  # noqa: F401
 
-GL_PLATFORMS = ("auto", "egl", "osmesa")
-DEFAULT_GL = "auto"
+DEFAULT_GL = OPTIONS["gl"].default
 
 # EGL enums (EGL 1.5 and EGL_EXT_platform_device), as in Khronos' egl.h / eglext.h.
 EGL_NONE = 0x3038
@@ -47,9 +47,7 @@ _state: dict[str, object] = {"egl_problem": ...}  # ... : not probed yet
 
 def check_gl(value: object) -> str:
     """``value`` as one of GL_PLATFORMS; BadOption (one line) otherwise."""
-    if not isinstance(value, str) or value.lower() not in GL_PLATFORMS:
-        raise BadOption(f"gl must be one of {', '.join(GL_PLATFORMS)}, got {value!r}")
-    return value.lower()
+    return OPTIONS["gl"].check(value)
 
 
 def loaded_platform() -> str | None:
