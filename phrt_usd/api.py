@@ -7,36 +7,34 @@
 * ``render_options(stage, settings=None, **overrides) -> RenderOptions``: the stage's
   render settings with the caller's overrides, as the CLI reads them.
 * ``render_job(...) -> (RenderJob, StageScene)`` and ``run_render(job)``: the two steps
-  ``render`` takes, for callers (the CLI, a cluster) that run the job their own way.
+  ``render`` takes, for callers (the CLI) that print as the job runs; ``run_render`` runs
+  it in this process or on a Dask cluster (``workers`` / ``scheduler``).
 
 Options (``**options``; ``None`` means "not given": the stage's render settings decide):
-``mode``, ``heuristic``, ``resolution`` (``(w, h)`` or ``"WxH"``) or ``width`` / ``height``,
-``budget_ms`` (``math.inf``: unbounded), ``budget_rays``, ``target_fps`` (exclusive with
-``budget_ms``), ``bounce_limit``,
-``selection_weight``, ``threads`` (1..1024, default: the cores this process may use; every
-pool, llvmpipe, OpenBLAS, numba: ``phrt_usd.threads``), ``gl`` (``auto`` | ``egl`` |
-``osmesa``: the raster phase's OpenGL platform; ``auto`` picks EGL when a working EGL
-device is found, else OSMesa: ``phrt_usd.engine.raster.gl_platform``), ``primary``
-(``auto`` | ``raster`` | ``rays``: the G-buffer's source), ``trace_density`` (``full`` |
-``half`` | ``quarter`` | ``sixteenth``: the pixels of a traced reflector of 64+ pixels
-that start rays, ``phrt_usd.engine.trace.sparse_pixels``), ``exposure`` (EV, default 0.0:
-every image's radiance times 2**exposure, EXR included) (the ``RenderOptions`` fields),
-and for ``render`` the ``RenderJob`` fields ``camera``, ``selection_layer``, ``resume``,
-``overwrite``, ``write_images``, ``checkpoint_every``; ``strict`` (an unreadable texture
-is an error, not a warning and the input's fallback); and how a stage file is composed:
-``session_layers`` (files, strongest first), ``variants`` (``{"/World/Car": {"paint": "red"}}`` or
+the render options, each declared once with its type, default, range or choices and help
+in ``phrt_usd.model.render_options.OPTIONS`` (``mode``, ``heuristic``, ``budget_ms``
+(``math.inf``: unbounded), ``budget_rays``, ``target_fps`` (exclusive with
+``budget_ms``), ``bounce_limit``, ``selection_weight``, ``threads``, ``gl``, ``primary``,
+``trace_density``, ``exposure``; the ``RenderOptions`` fields), with ``resolution``
+(``(w, h)`` or ``"WxH"``) or ``width`` / ``height``; for ``render`` the ``RenderJob``
+fields ``camera``, ``selection_layer``, ``resume``, ``overwrite``, ``write_images``,
+``checkpoint_every``; ``strict`` (an unreadable texture is an error, not a warning and
+the input's fallback); and how a stage file is composed: ``session_layers`` (files,
+strongest first), ``variants`` (``{"/World/Car": {"paint": "red"}}`` or
 ``["/World/Car:paint=red"]``), ``mask`` (prim paths the stage is populated with). An
-unknown name or a bad value raises
-``BadOption`` (one line) before anything is read or written. See ``docs/api.md``.
+unknown name or a bad value raises ``BadOption`` (one line, through ``phrt_usd.checks``)
+before anything is read or written. See ``docs/api.md``.
 
 The summary (``run_render``, ``RenderResult.summary``) is what ``phrt render --json``
-prints: the report of the run's selection layer (``phrt_usd.evaluate.report.build_report``:
-frames, mean_fps, median_frame_ms, mean_selected, transitions, reflectors, budget_ms,
-budget_overruns, ...) plus ``out``, ``selection_layer``, the ``passes`` its frames ran, and
-how it ran: ``threads`` (the setting), ``gl`` (the OpenGL platform of its raster phase,
-None in ``rt`` mode), ``llvmpipe_threads`` (llvmpipe's render threads, None without) and
-``kernels`` (``cached``, or ``compiled`` when this process compiled kernels missing
-from the cache: ``phrt_usd.kernels.form``).
+prints, finished here once for the API and the CLI (``phrt_usd.evaluate.run_summary``):
+the report of the run's selection layer (frames, mean_fps, median_frame_ms,
+mean_selected, transitions, reflectors, budget_ms, budget_overruns, ...) plus ``out``,
+``selection_layer``, the ``passes`` its frames ran, how it ran: ``threads`` (the
+setting), ``gl`` (the OpenGL platform of its raster phase, None in ``rt`` mode),
+``llvmpipe_threads`` (llvmpipe's render threads, None without) and ``kernels``
+(``cached``, or ``compiled`` when this process compiled kernels missing from the cache:
+``phrt_usd.kernels.form``), what its hybrid frames traced, and the stage's
+``warnings``, ``default_light_rig`` and ``support``.
 """
 
 from __future__ import annotations
@@ -53,22 +51,30 @@ from typing import Any
 import numpy as np
 from pxr import Usd
 
-from phrt_usd.engine.primary_source import check_primary
-from phrt_usd.engine.raster.gl_platform import check_gl
-from phrt_usd.engine.renderer import FrameOutput, FrameRenderer, RenderOptions
+from phrt_usd.checks import (
+    check_bool,
+    check_finite,
+    check_integer,
+    check_number,
+    check_range,
+    check_token,
+)
+from phrt_usd.engine.renderer import FrameOutput, FrameRenderer
 from phrt_usd.errors import BadOption, PhrtError
-from phrt_usd.evaluate.report import build_report
+from phrt_usd.evaluate.run_summary import (  # noqa: F401 - trace_summary: the API's too
+    finish_summary,
+    summary_of,
+    trace_summary,
+)
 from phrt_usd.model.frame import FrameStats
-from phrt_usd.model.trace_density import check_density
+from phrt_usd.model.render_options import OPTIONS, RenderOptions
 from phrt_usd.run.frame_reader import read_frame_files
 from phrt_usd.run.frames import SAME_FRAME, parse_frames
 from phrt_usd.run.products import ImagePlan
-from phrt_usd.run.render_job import RenderJob, RunRecord, render_to_directory
-from phrt_usd.threads import check_threads
+from phrt_usd.run.render_job import RenderJob, render_to_directory
 from phrt_usd.usd.schema import read_render_params
-from phrt_usd.usd.stage import StageScene, open_usd, read_stage
+from phrt_usd.usd.stage import StageScene, open_stage, open_usd, read_stage
 from phrt_usd.usd.stage_controls import StageControls
-from phrt_usd.usd.support_report import support_report
 from phrt_usd.usd.textures import TextureError
 
 #: What the API renders: a stage file or an open stage.
@@ -79,8 +85,9 @@ FramesInput = str | float | Sequence[float] | None
 #: ``on_frame(done, total, stats)``, called after every rendered frame.
 OnFrame = Callable[[int, int, FrameStats], None]
 
-#: Options ``render_options`` takes: the RenderOptions fields and ``resolution``.
-RENDER_OPTION_NAMES: tuple[str, ...] = (*(f.name for f in fields(RenderOptions)), "resolution")
+#: Options ``render_options`` takes: the render options (the table's order) and
+#: ``resolution``.
+RENDER_OPTION_NAMES: tuple[str, ...] = (*OPTIONS, "resolution")
 #: RenderJob fields the API fills in itself; the others are options of ``render``.
 _JOB_FILLED = ("stage_path", "out_dir", "options", "frames")
 #: How a stage file is composed when opened (``StageControls``; the CLI's
@@ -117,12 +124,10 @@ def render_options(
     given = {name: value for name, value in overrides.items() if value is not None}
     params = read_render_params(stage, settings)
     width, height = _resolution(given, params.resolution)
-    rays = given.get("budget_rays")
-    rays = params.budget_rays if rays is None else _integer("budget_rays", rays)
+    rays = given.get("budget_rays", params.budget_rays)
     fps = given.get("target_fps")
-    fps = None if fps is None else _real("target_fps", fps)
     if "budget_ms" in given:
-        ms = _unbounded(_real("budget_ms", given["budget_ms"]))
+        ms = _unbounded(check_number(given["budget_ms"], "budget_ms"))
         # A budget given here replaces the stage's frame-rate target (both given: BadOption).
     elif "budget_rays" in given or fps is not None:
         ms = None  # a rays budget alone is the deterministic budget
@@ -130,55 +135,18 @@ def render_options(
         ms, fps = None, params.target_fps  # the stage's phrt:targetFps replaces its budget
     else:
         ms = _unbounded(params.budget_ms)
-    extra = {}
-    if fps is not None:
-        extra["target_fps"] = fps
-    if "threads" in given:
-        extra["threads"] = check_threads(given["threads"])
-    if "gl" in given:
-        extra["gl"] = check_gl(given["gl"])
-    if "primary" in given:
-        extra["primary"] = check_primary(given["primary"])
-    if "trace_density" in given:
-        extra["trace_density"] = check_density(given["trace_density"])
-    if "exposure" in given:  # EV: the image's radiance x 2**exposure before writing
-        extra["exposure"] = _real("exposure", given["exposure"])
-    return RenderOptions(
-        mode=given.get("mode", params.mode),
-        heuristic=given.get("heuristic", params.heuristic),
-        width=width,
-        height=height,
-        budget_ms=ms,
-        budget_rays=rays,
-        bounce_limit=_integer("bounce_limit", given.get("bounce_limit", params.bounce_limit)),
-        selection_weight=_real(
-            "selection_weight", given.get("selection_weight", params.selection_weight)
-        ),
-        **extra,
-    )
+    # The stage's settings (the options a schema attribute sets), under the caller's
+    # options; RenderOptions checks each value by its option (OPTIONS).
+    values = {name: getattr(params, name) for name, o in OPTIONS.items() if o.schema_attribute}
+    values.update((name, value) for name, value in given.items() if name in OPTIONS)
+    values.update(width=width, height=height, budget_ms=ms, budget_rays=rays, target_fps=fps)
+    return RenderOptions(**values)
 
 
 def _known(options: dict[str, Any], names: Sequence[str], kind: str) -> None:
-    unknown = sorted(set(options) - set(names))
-    if unknown:
-        raise BadOption(f"unknown {kind} {unknown[0]!r}; expected one of {', '.join(names)}")
-
-
-def _real(name: str, value: Any) -> float:
-    if isinstance(value, bool) or not isinstance(value, numbers.Real):
-        raise BadOption(f"{name} must be a number, got {value!r}")
-    value = float(value)
-    if math.isnan(value):
-        raise BadOption(f"{name} must be a number, got nan")
-    return value
-
-
-def _integer(name: str, value: Any, minimum: int | None = None) -> int:
-    if isinstance(value, bool) or not isinstance(value, numbers.Integral):
-        raise BadOption(f"{name} must be an integer, got {value!r}")
-    if minimum is not None and value < minimum:
-        raise BadOption(f"{name} must be >= {minimum}, got {value}")
-    return int(value)
+    """BadOption naming the first (sorted) of ``options`` not in ``names``."""
+    for name in sorted(set(options) - set(names))[:1]:
+        check_token(name, names, kind)
 
 
 def _unbounded(ms: float | None) -> float | None:
@@ -198,8 +166,8 @@ def parse_resolution(text: str) -> tuple[int, int]:
 def _resolution(given: dict[str, Any], default: tuple[int, int]) -> tuple[int, int]:
     """(width, height) from ``resolution`` ((w, h) or "WxH") or ``width`` / ``height``."""
     if "resolution" not in given:
-        width = _integer("width", given.get("width", default[0]))
-        return width, _integer("height", given.get("height", default[1]))
+        width = check_integer(given.get("width", default[0]), "width")
+        return width, check_integer(given.get("height", default[1]), "height")
     if "width" in given or "height" in given:
         raise BadOption("give resolution or width/height, not both")
     value = given["resolution"]
@@ -207,16 +175,17 @@ def _resolution(given: dict[str, Any], default: tuple[int, int]) -> tuple[int, i
         return parse_resolution(value)
     if not isinstance(value, Sequence) or len(value) != 2:
         raise BadOption(f"resolution must be (width, height) or 'WxH', got {value!r}")
-    return _integer("width", value[0]), _integer("height", value[1])
+    return check_integer(value[0], "width"), check_integer(value[1], "height")
 
 
 def _check_job_options(options: dict[str, Any]) -> None:
     """BadOption for a RenderJob option of the wrong kind (the fields checked by type)."""
     for name in ("resume", "overwrite", "write_images"):
-        if name in options and not isinstance(options[name], bool):
-            raise BadOption(f"{name} must be True or False, got {options[name]!r}")
+        if name in options:
+            check_bool(options[name], name)
     if "checkpoint_every" in options:
-        _integer("checkpoint_every", options["checkpoint_every"], minimum=1)
+        every = check_integer(options["checkpoint_every"], "checkpoint_every")
+        check_range(every, 1, None, "checkpoint_every")
     controls = options.get("controls")
     if controls is not None and not isinstance(controls, StageControls):
         raise BadOption(f"controls must be a StageControls, got {controls!r}")
@@ -237,7 +206,7 @@ def frames_spec(frames: FramesInput) -> str | None:
     if isinstance(frames, numbers.Real) and not isinstance(frames, bool):
         frames = [frames]
     if isinstance(frames, Sequence | np.ndarray) and len(frames):
-        codes = [_real("frames", t) for t in frames]
+        codes = [check_number(t, "frames") for t in frames]
         if all(math.isfinite(t) for t in codes):
             return ",".join(repr(t) for t in codes)
         raise BadOption(f"frames must be finite time codes, got {list(frames)!r}")
@@ -370,72 +339,49 @@ def run_render(
     job: RenderJob,
     on_frame: OnFrame | None = None,
     stage_scene: StageScene | None = None,
+    *,
+    workers: int | None = None,
+    scheduler: str | None = None,
+    chunk_frames: int | None = None,
+    warmup: int | None = None,
 ) -> dict:
-    """Render ``job`` and return its summary (see the module docstring). ``on_frame(done,
-    total, stats)`` after every frame; ``stage_scene``: the stage already read, if any.
+    """Render ``job`` and return its finished summary (see the module docstring).
+    ``on_frame(done, total, stats)`` after every frame; ``stage_scene``: the stage already
+    read, if any. On a Dask cluster (``phrt_usd.cluster``, docs/cluster.md) when
+    ``workers`` (a local cluster of that many processes) or ``scheduler`` (the address of
+    a running one) is given: ``chunk_frames`` frames a task after ``warmup`` unrecorded
+    ones, ``on_frame(done, total, None)`` after every chunk.
     Raises ``PhrtError`` (one line) for bad input, a busy or non-empty output directory,
-    or a failed frame (after the finished frames' records are written)."""
-    return summary_of(render_to_directory(job, on_frame, stage_scene))
-
-
-def summary_of(record: RunRecord) -> dict:
-    """The summary of a finished run (see the module docstring)."""
-    summary = build_report(record.selection_layer)
-    products = record.images.products if record.images is not None else ()
-    summary.update(
-        out=str(record.out),
-        selection_layer=str(record.selection_layer),
-        passes=record.passes,
-        # File name templates of a frame's images, relative to ``out`` (frame tokens kept).
-        images=[name for p in products for name in (p.template, p.preview) if name],
-        **record.runtime,
+    or a failed frame (after the finished frames' records are written);
+    ``RenderInterrupted`` after SIGINT / SIGTERM."""
+    scene = stage_scene or open_stage(
+        job.stage_path, camera=job.camera, controls=job.controls, settings=job.settings
     )
-    summary.update(trace_summary(record.frames))
-    return summary
+    if workers is None and scheduler is None:
+        return finish_summary(summary_of(render_to_directory(job, on_frame, scene)), scene)
+    from phrt_usd.cluster import dask_client, run_render_on_cluster
+
+    chunks = cluster_chunking(chunk_frames, warmup)
+    per_chunk = None if on_frame is None else (lambda done, total: on_frame(done, total, None))
+    with dask_client(workers, scheduler) as client:
+        summary = run_render_on_cluster(job, client, on_frame=per_chunk, **chunks)
+    # Warnings the workers found while rendering, once each (``render_warnings``).
+    found = summary.pop("render_warnings", [])
+    scene.warnings += [w for w in found if w not in scene.warnings]
+    return finish_summary(summary, scene)
 
 
-def trace_summary(frames: Sequence[FrameStats]) -> dict:
-    """What a run's hybrid frames traced:
+def cluster_chunking(chunk_frames: int | None, warmup: int | None) -> dict:
+    """The chunking arguments of a cluster run, defaults filled in (``phrt_usd.cluster``:
+    96 frames a chunk, 8 warm-up frames) and checked (BadOption)."""
+    from phrt_usd.cluster import DEFAULT_CHUNK_FRAMES, DEFAULT_WARMUP_FRAMES, check_chunking
 
-    - ``untraced_frames``: frames with visible reflectors that traced nothing;
-    - ``mean_budget_use``: trace ms / T over the time-budgeted frames with visible
-      reflectors (None without any);
-    - ``budget_bound_frames``, ``budget_bound_use``: those of them that left a visible
-      reflector untraced, and their mean use (budget idle there is budget the policy
-      chose not to spend; where all in view was traced, nothing was left to spend it on);
-    - ``trace_prediction_error``: median |expected - measured| / measured trace ms after
-      the first three frames (None without traced frames);
-    - ``trace_note``: one line when hybrid frames with visible reflectors traced nothing
-      (the first reason), else None."""
-    seen = [f for f in frames if f.visible]
-    untraced = [f for f in seen if not f.selected and f.untraced_reason is not None]
-    uses = [f.budget_use for f in seen if f.budget_use is not None]
-    bound = [
-        f.budget_use
-        for f in seen
-        if f.budget_use is not None and not set(f.visible) <= set(f.selected)
-    ]
-    errors = [
-        abs(f.expected_trace_ms - f.trace_ms) / f.trace_ms
-        for f in list(frames)[3:]
-        if f.selected and f.trace_ms > 0.0
-    ]
-    note = None
-    if untraced:
-        share = "all" if len(untraced) == len(seen) else f"{len(untraced)} of {len(seen)}"
-        note = (
-            f"hybrid traced nothing in {share} of the frames with visible reflectors"
-            f" ({len(untraced)}/{len(seen)}); e.g. t={untraced[0].time:g}:"
-            f" {untraced[0].untraced_reason}"
-        )
-    return {
-        "untraced_frames": len(untraced),
-        "mean_budget_use": float(np.mean(uses)) if uses else None,
-        "budget_bound_frames": len(bound),
-        "budget_bound_use": float(np.mean(bound)) if bound else None,
-        "trace_prediction_error": float(np.median(errors)) if errors else None,
-        "trace_note": note,
+    chunks = {
+        "chunk_frames": DEFAULT_CHUNK_FRAMES if chunk_frames is None else chunk_frames,
+        "warmup": DEFAULT_WARMUP_FRAMES if warmup is None else warmup,
     }
+    check_chunking(**chunks)
+    return chunks
 
 
 # --------------------------------------------------------------------------------------
@@ -562,10 +508,7 @@ def render(
         if temporary is not None:
             temporary.cleanup()
         raise
-    summary["warnings"] = list(scene.warnings)
-    summary["default_light_rig"] = scene.scene.lights.default_rig  # usd/default_lights.py
-    # What the stage uses that the render ignores or approximates (usd/support_report.py).
-    summary["support"] = support_report(scene.stage)
+    finish_summary(summary, scene)
     images = ()
     if record.images is not None:
         images = tuple(
@@ -622,9 +565,7 @@ class Renderer:
         float32 linear RGB, ``alpha``, the ``gbuffer``, ``traced_mask``, ``stats`` and
         ``camera`` (``FrameCamera``: world-to-camera and projection)."""
         renderer = self._live()
-        time = _real("time", time)
-        if not math.isfinite(time):
-            raise BadOption(f"time must be a finite time code, got {time}")
+        time = check_finite(check_number(time, "time"), "time", "a finite time code")
         return renderer.render(time)
 
     def close(self) -> None:

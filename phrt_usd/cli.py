@@ -31,7 +31,7 @@ from phrt_usd.cli_errors import (
     user_errors,
 )
 from phrt_usd.errors import BadOption, PhrtError, UnreadableInput
-from phrt_usd.usd.schema import DEFAULT_BOUNCE_LIMIT, DEFAULT_RESOLUTION
+from phrt_usd.model.render_options import OPTIONS
 
 app = typer.Typer(
     help="Heuristic hybrid rendering of USD stages (raster + selective ray-traced reflections).",
@@ -299,48 +299,27 @@ class _LineProgress:
         typer.echo(f"{entry[0]}: {shown} frames{share}", err=True)
 
 
-ThreadsOpt = Annotated[
-    str | None,
-    typer.Option(
-        metavar="N",
-        help="Threads of every pool, Embree batch, llvmpipe and BLAS (default: the cores "
-        "this process may use).",
-    ),
-]
-GlOpt = Annotated[
-    str | None,
-    typer.Option(
-        metavar="auto|egl|osmesa",
-        help="OpenGL platform of the raster phase (auto: EGL when a working EGL device "
-        "is found, else OSMesa).",
-    ),
-]
-PrimaryOpt = Annotated[
-    str | None,
-    typer.Option(
-        metavar="auto|raster|rays",
-        help="Source of the G-buffer: the raster id pass or Embree primary rays (auto: "
-        "rays on a software rasterizer for stages of more triangles than pixels; rt mode: "
-        "rays).",
-    ),
-]
-TraceDensityOpt = Annotated[
-    str | None,
-    typer.Option(
-        metavar="full|half|quarter|sixteenth",
-        help="Pixels of a traced reflector that start rays: every one, or for reflectors "
-        "of 64+ pixels a checkerboard (half), one in each 2x2 block (quarter) or one in "
-        "each 4x4 block (sixteenth), the others interpolated from their traced "
-        "neighbours (hybrid mode).",
-    ),
-]
-ExposureOpt = Annotated[
-    float | None,
-    typer.Option(
-        metavar="EV",
-        help="Scale the image radiance by 2^EV before writing (the EXR too); |EV| <= 40.",
-    ),
-]
+def _render_option(name: str, more_help: str = "") -> typer.models.OptionInfo:
+    """The option of render option ``name``: its help and how its value shows, as the
+    table declares them (``model.render_options.OPTIONS``); ``more_help`` follows."""
+    option = OPTIONS[name]
+    return typer.Option(help=f"{option.help}{more_help}", metavar=option.metavar)
+
+
+# The render options of `render` and `sweep`, declared once (model.render_options).
+ModeOpt = Annotated[str | None, _render_option("mode")]
+HeuristicOpt = Annotated[str | None, _render_option("heuristic")]
+BudgetMsOpt = Annotated[float | None, _render_option("budget_ms")]
+BudgetRaysOpt = Annotated[int | None, _render_option("budget_rays")]
+TargetFpsOpt = Annotated[float | None, _render_option("target_fps")]
+ResolutionOpt = Annotated[str | None, _render_option("width")]  # WxH: width and height
+BounceLimitOpt = Annotated[int | None, _render_option("bounce_limit")]
+SelectionWeightOpt = Annotated[float | None, _render_option("selection_weight")]
+ThreadsOpt = Annotated[str | None, _render_option("threads")]  # text: parse_threads
+GlOpt = Annotated[str | None, _render_option("gl")]
+PrimaryOpt = Annotated[str | None, _render_option("primary")]
+TraceDensityOpt = Annotated[str | None, _render_option("trace_density")]
+ExposureOpt = Annotated[float | None, _render_option("exposure")]
 WorkersOpt = Annotated[
     int | None,
     typer.Option(help="Start a Dask LocalCluster of N worker processes (docs/cluster.md)."),
@@ -356,18 +335,6 @@ WarmupOpt = Annotated[
 ]
 
 
-def _cluster_args(chunk_frames: int | None, warmup: int | None) -> dict:
-    """The chunking arguments of a cluster run (defaults filled in, values checked)."""
-    from phrt_usd.cluster import DEFAULT_CHUNK_FRAMES, DEFAULT_WARMUP_FRAMES, check_chunking
-
-    args = {
-        "chunk_frames": DEFAULT_CHUNK_FRAMES if chunk_frames is None else chunk_frames,
-        "warmup": DEFAULT_WARMUP_FRAMES if warmup is None else warmup,
-    }
-    check_chunking(**args)
-    return args
-
-
 @app.command()
 def render(
     stage: Annotated[
@@ -377,23 +344,14 @@ def render(
     frames: Annotated[
         str | None, typer.Option(help="A:B[:STEP] in stage time codes, both ends included.")
     ] = None,
-    mode: Annotated[str | None, typer.Option(help="raster | hybrid | rt.")] = None,
-    heuristic: Annotated[str | None, typer.Option(help="heu1 | heu2 | heu3 | all | none.")] = None,
-    budget_ms: Annotated[
-        float | None, typer.Option(help="Trace budget T per frame in ms (inf: unbounded).")
-    ] = None,
-    budget_rays: Annotated[
-        int | None, typer.Option(help="Trace budget in rays per frame (deterministic).")
-    ] = None,
-    target_fps: Annotated[
-        float | None,
-        typer.Option(help="Frame rate to hold: T = what raster and shading leave of 1000/F ms."),
-    ] = None,
-    resolution: Annotated[str | None, typer.Option(help="WxH, e.g. 320x240.")] = None,
-    bounce_limit: Annotated[int | None, typer.Option(help="Reflection bounce limit.")] = None,
-    selection_weight: Annotated[
-        float | None, typer.Option(help="I, the weight of the previous selection.")
-    ] = None,
+    mode: ModeOpt = None,
+    heuristic: HeuristicOpt = None,
+    budget_ms: BudgetMsOpt = None,
+    budget_rays: BudgetRaysOpt = None,
+    target_fps: TargetFpsOpt = None,
+    resolution: ResolutionOpt = None,
+    bounce_limit: BounceLimitOpt = None,
+    selection_weight: SelectionWeightOpt = None,
     camera: Annotated[
         str | None,
         typer.Option(help="Camera prim path, or the name of a camera prim (unique on the stage)."),
@@ -454,7 +412,6 @@ def render(
     from phrt_usd.run.render_job import RenderInterrupted
     from phrt_usd.threads import parse_threads
     from phrt_usd.usd.stage_controls import StageControls
-    from phrt_usd.usd.support_report import support_report
 
     stage = stage or DEMO_STAGE
     with user_errors(json_out=json_out):
@@ -496,10 +453,12 @@ def render(
         for warning in scene.warnings:
             typer.echo(f"warning: {warning}", err=True)
         warned = len(scene.warnings)
+        cluster = {name: value for name, value in (
+            ("workers", workers), ("scheduler", scheduler), ("chunk_frames", chunk_frames),
+            ("warmup", warmup)) if value is not None}  # fmt: skip
         progress = _progress()
         with progress:
             task = progress.add_task(f"render {stage.name}", total=None)
-
             finished = [0]  # frames done so far: where memory ran out, if it does
 
             def on_frame(done: int, total: int, _stats) -> None:
@@ -507,20 +466,7 @@ def render(
                 progress.update(task, completed=done, total=total)
 
             try:
-                if workers is None and scheduler is None:
-                    summary = run_render(job, on_frame=on_frame, stage_scene=scene)
-                else:
-                    from phrt_usd.cluster import dask_client, run_render_on_cluster
-
-                    with dask_client(workers, scheduler) as client:
-                        summary = run_render_on_cluster(
-                            job,
-                            client,
-                            on_frame=lambda done, total: on_frame(done, total, None),
-                            **_cluster_args(chunk_frames, warmup),
-                        )
-                    found = summary.pop("render_warnings", [])
-                    scene.warnings += [w for w in found if w not in scene.warnings]
+                summary = run_render(job, on_frame=on_frame, stage_scene=scene, **cluster)
             except RenderInterrupted as exc:
                 raise fail(f"interrupted: {exc}", EXIT_INTERRUPTED, json_out) from None
             except Exception as exc:  # memory running out, in numpy or in OpenGL
@@ -528,32 +474,34 @@ def render(
                     raise
                 message = out_of_memory(job, scene, finished[0])
                 raise fail(message, EXIT_PROBLEMS, json_out) from None
-    for warning in scene.warnings[warned:]:  # found while rendering (e.g. clipping)
+    for warning in summary["warnings"][warned:]:  # found while rendering (e.g. clipping)
         typer.echo(f"warning: {warning}", err=True)
-    summary["warnings"] = list(scene.warnings)
-    summary["default_light_rig"] = scene.scene.lights.default_rig
-    # What the stage uses that the render ignores or approximates (usd/support_report.py).
-    summary["support"] = support_report(scene.stage)
     if json_out:
         print_json(summary)
     else:
-        from rich.console import Console
+        _print_render_summary(summary)
 
-        from phrt_usd.evaluate.report import print_report
 
-        print_report(summary, Console())
-        if summary.get("trace_note"):
-            typer.echo(f"note: {summary['trace_note']}")
-        if summary.get("mean_budget_use") is not None:
-            use = summary["mean_budget_use"]
-            line = f"trace budget use: {use:.0%} of T (mean, frames with reflectors in view)"
-            if summary.get("budget_bound_use") is not None:
-                line += (
-                    f"; {summary['budget_bound_use']:.0%} in the "
-                    f"{summary['budget_bound_frames']} frames that left one untraced"
-                )
-            typer.echo(line)
-        typer.echo(_written(summary))
+def _print_render_summary(summary: dict) -> None:
+    """A render's summary as text: the report, the trace note, the trace budget's use
+    and what was written."""
+    from rich.console import Console
+
+    from phrt_usd.evaluate.report import print_report
+
+    print_report(summary, Console())
+    if summary.get("trace_note"):
+        typer.echo(f"note: {summary['trace_note']}")
+    if summary.get("mean_budget_use") is not None:
+        use = summary["mean_budget_use"]
+        line = f"trace budget use: {use:.0%} of T (mean, frames with reflectors in view)"
+        if summary.get("budget_bound_use") is not None:
+            line += (
+                f"; {summary['budget_bound_use']:.0%} in the "
+                f"{summary['budget_bound_frames']} frames that left one untraced"
+            )
+        typer.echo(line)
+    typer.echo(_written(summary))
 
 
 def _written(summary: dict) -> str:
@@ -594,12 +542,10 @@ def sweep(
         str | None, typer.Option(help="Comma list of trace budgets in rays.")
     ] = None,
     frames: Annotated[str | None, typer.Option(help="A:B[:STEP] time codes.")] = None,
-    resolution: Annotated[str, typer.Option(help="WxH.")] = "x".join(
-        str(v) for v in DEFAULT_RESOLUTION
+    resolution: Annotated[str, _render_option("width")] = (
+        f"{OPTIONS['width'].default}x{OPTIONS['height'].default}"
     ),
-    bounce_limit: Annotated[
-        int, typer.Option(help="Reflection bounce limit.")
-    ] = DEFAULT_BOUNCE_LIMIT,
+    bounce_limit: Annotated[int, _render_option("bounce_limit")] = OPTIONS["bounce_limit"].default,
     bounce_limits: Annotated[
         str | None,
         typer.Option(help="Comma list of bounce limits to sweep (e.g. 0,1,2,5); replaces "
@@ -617,7 +563,7 @@ def sweep(
                      "every pixel."),
     ] = None,
     selection_weight: Annotated[
-        float | None, typer.Option(help="I (default: the first stage's setting).")
+        float | None, _render_option("selection_weight", " Default: the first stage's setting.")
     ] = None,
     out: Annotated[
         Path, typer.Option("--out", "-o", help="Output directory (empty, or --overwrite).")
@@ -641,7 +587,7 @@ def sweep(
     resolution: per
     frame FLIP, PSNR, the temporal error (popping) and transitions; writes sweep.csv,
     provenance.json, summary.md, error_vs_time.png and report.html."""
-    from phrt_usd.engine.raster.gl_platform import check_gl
+    from phrt_usd.api import cluster_chunking, parse_resolution
     from phrt_usd.evaluate.sweep import (
         SweepSpec,
         interruption_note,
@@ -651,7 +597,6 @@ def sweep(
         run_sweep,
     )
     from phrt_usd.evaluate.sweep_output import claim_sweep_out
-    from phrt_usd.model.trace_density import check_density
     from phrt_usd.threads import parse_threads
     from phrt_usd.usd.schema import read_render_params
 
@@ -660,8 +605,6 @@ def sweep(
         weight = selection_weight
         if weight is None:
             weight = read_render_params(opened[0]).selection_weight
-        from phrt_usd.api import parse_resolution
-
         width, height = parse_resolution(resolution)
         spec = SweepSpec(
             stages=stages,
@@ -677,11 +620,10 @@ def sweep(
             overwrite=overwrite,
             bounce_limits=parse_int_list(bounce_limits, "--bounce-limits"),
             resolutions=parse_resolution_list(resolutions),
-            trace_densities=[
-                check_density(d.strip()) for d in (trace_densities or "").split(",") if d.strip()
-            ],
+            trace_densities=[d.strip() for d in (trace_densities or "").split(",") if d.strip()],
+            # The options given; SweepSpec checks every value by its option (OPTIONS).
             **({} if threads is None else {"threads": parse_threads(threads)}),
-            **({} if gl is None else {"gl": check_gl(gl)}),
+            **({} if gl is None else {"gl": gl}),
             **({} if exposure is None else {"exposure": exposure}),
         )
         progress = _progress()
@@ -704,7 +646,7 @@ def sweep(
                         spec,
                         client,
                         on_chunk=lambda done, total: on_frame("chunks", done, total),
-                        **_cluster_args(chunk_frames, warmup),
+                        **cluster_chunking(chunk_frames, warmup),
                     )
     if summary["interrupted"]:
         raise fail(f"interrupted: {interruption_note(summary)}", EXIT_INTERRUPTED, json_out)

@@ -387,7 +387,7 @@ def run_render_on_cluster(
     stats.json, the selection layer and the images hold the same frames, those of the
     finished chunks (``_keep_finished``). Returns ``run_render``'s summary dict plus
     ``chunk_pids`` (see the sweep's)."""
-    from phrt_usd.api import summary_of
+    from phrt_usd.evaluate.run_summary import summary_of
     from phrt_usd.run.frames import parse_frames
     from phrt_usd.run.render_job import (
         RunRecord,

@@ -79,6 +79,33 @@ def test_cli_render_is_the_api_render(gallery, tmp_path):
     assert set(api) <= set(summary)
 
 
+def test_probe_summary_finished_twice(gallery, tmp_path):
+    """The API finishes a render's summary once: run_render (what `phrt render` calls)
+    gives the fields RenderResult.summary has, the stage's warnings, default light rig and
+    support report included."""
+    from phrt_usd.api import render_job, run_render
+
+    job, _ = render_job(gallery, tmp_path / "job", "1:2", budget_rays=RAYS)
+    summary = run_render(job)  # no stage read given: run_render reads it
+    result = phrt_usd.render(gallery, tmp_path / "api", frames="1:2", budget_rays=RAYS)
+    assert set(summary) == set(result.summary)
+    for key in ("warnings", "default_light_rig", "support"):
+        assert summary[key] == result.summary[key], key
+
+
+def test_probe_cli_render_only_prints_the_api_summary(gallery, tmp_path, monkeypatch):
+    """`phrt render --json` prints the summary run_render returns, as it is: the command
+    parses, calls and prints, and adds nothing of its own."""
+    from phrt_usd import api
+
+    finished = {"frames": 0, "out": str(tmp_path / "cli"), "selection_layer": "s.usda",
+                "warnings": [], "only_the_api_knows": 1}  # fmt: skip
+    monkeypatch.setattr(api, "run_render", lambda job, **_: dict(finished))
+    cli = CliRunner().invoke(app, ["render", str(gallery), "-o", finished["out"], "--json"])
+    assert cli.exit_code == 0, cli.output
+    assert json.loads(cli.stdout) == finished
+
+
 def test_out_none_renders_into_a_temporary_directory_the_result_owns(gallery):
     with phrt_usd.render(gallery, frames=2, budget_rays=RAYS, write_images=False) as result:
         assert result.temporary and result.out.is_dir()
