@@ -35,8 +35,6 @@ import sys
 from pathlib import Path
 
 import numpy as np
-from scipy.optimize import Bounds, LinearConstraint, milp
-from scipy.sparse import coo_matrix
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from policy_replay import RecordingError, load_recording, replay, transition_counts  # noqa: E402
@@ -94,6 +92,9 @@ def fewest_transitions(
 ) -> tuple[float, float, str]:
     """(transitions, mean selected, solver status) of the optimum (or of the best
     solution found within ``time_limit`` seconds; the status says which)."""
+    from scipy.optimize import Bounds, LinearConstraint, milp  # uv run --with scipy
+    from scipy.sparse import coo_matrix
+
     F, R = rays.shape
     n_x = F * R
     rows, cols, vals, lo, hi, pairs, _ = _shared_rows(rays, visible, budget)
@@ -136,6 +137,9 @@ def most_rays(
     """(budget use, transitions, mean selected, solver status) of the selection that
     traces the most rays within ``budget`` per frame with at most ``max_transitions``
     transitions (or of the best found within ``time_limit`` seconds)."""
+    from scipy.optimize import Bounds, LinearConstraint, milp  # uv run --with scipy
+    from scipy.sparse import coo_matrix
+
     F, R = rays.shape
     n_x = F * R
     rows, cols, vals, lo, hi, pairs, t_index = _shared_rows(rays, visible, budget)
