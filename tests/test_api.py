@@ -106,6 +106,45 @@ def test_probe_cli_render_only_prints_the_api_summary(gallery, tmp_path, monkeyp
     assert json.loads(cli.stdout) == finished
 
 
+def test_cli_render_hands_the_cluster_options_to_run_render(gallery, tmp_path, monkeypatch):
+    """`phrt render --workers N` passes the cluster options to run_render as they were
+    given (the API runs the cluster and finishes the summary); none without them."""
+    from phrt_usd import api
+
+    calls = []
+
+    def fake(job, on_frame=None, stage_scene=None, **cluster):
+        calls.append(cluster)
+        return {"warnings": [], "out": str(job.out_dir), "selection_layer": "s.usda"}
+
+    monkeypatch.setattr(api, "run_render", fake)
+    base = ["render", str(gallery), "--json", "-o"]
+    plain = CliRunner().invoke(app, [*base, str(tmp_path / "a")])
+    chunked = CliRunner().invoke(app, [*base, str(tmp_path / "b"), "--workers", "1",
+                                       "--chunk-frames", "2"])  # fmt: skip
+    assert plain.exit_code == 0 and chunked.exit_code == 0, (plain.output, chunked.output)
+    assert calls == [{}, {"workers": 1, "chunk_frames": 2}]
+
+
+@pytest.mark.slow
+def test_run_render_on_a_cluster_gives_the_same_finished_summary(gallery, tmp_path):
+    """run_render on a one-worker local cluster (chunks of 2 frames, no warm-up) finishes
+    its summary as a one-process run does: the same fields (the cluster adds its chunks'
+    worker processes), the same frames, selections, stage facts and warnings."""
+    from phrt_usd.api import render_job, run_render
+
+    job, scene = render_job(gallery, tmp_path / "one", "1:4", budget_rays=RAYS)
+    single = run_render(job, stage_scene=scene)
+    job, scene = render_job(gallery, tmp_path / "many", "1:4", budget_rays=RAYS)
+    chunked = run_render(job, stage_scene=scene, workers=1, chunk_frames=2, warmup=0)
+    assert set(chunked) == set(single) | {"chunk_pids"}
+    for key in ("frames", "mean_selected", "reflectors", "support", "default_light_rig"):
+        assert chunked[key] == single[key], key
+    # Every warning of the one-process run, and those the workers found while rendering
+    # (each chunk warns of its own first clipped frame).
+    assert set(single["warnings"]) <= set(chunked["warnings"])
+
+
 def test_out_none_renders_into_a_temporary_directory_the_result_owns(gallery):
     with phrt_usd.render(gallery, frames=2, budget_rays=RAYS, write_images=False) as result:
         assert result.temporary and result.out.is_dir()
