@@ -663,7 +663,7 @@ def kernels(
     ] = False,
 ) -> None:
     """Compile the renderer's kernels into their cache ahead of the first render (once per
-    installation, about 30 s), or check that they are there."""
+    installation, about 20 s), or check that they are there."""
     from phrt_usd import kernels as compiled
 
     raise typer.Exit(compiled.main(["--check"] if check else []))
