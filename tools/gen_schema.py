@@ -48,7 +48,7 @@ def generate(out_dir: Path) -> dict[str, str]:
     """Run usdGenSchema on the schema source into ``out_dir`` (which must be empty or new,
     so no earlier plugInfo.json is merged in); the generated files' texts by name."""
     if importlib.util.find_spec("jinja2") is None:
-        raise GenerationFailed("usdGenSchema needs jinja2: uv sync --inexact --extra dev")
+        raise GenerationFailed("usdGenSchema needs jinja2 (the dev group): uv sync")
     env = dict(os.environ)
     # A Phrt plugin on the plugin path (possibly a stale one) must not define the types
     # usdGenSchema is about to generate.
