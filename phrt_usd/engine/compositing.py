@@ -17,6 +17,7 @@ import numpy as np
 
 from phrt_usd import kernels
 from phrt_usd.engine.shading import environment_radiance
+from phrt_usd.model import pixel_kinds
 from phrt_usd.model.frame import GBuffer, ReflectionResult
 from phrt_usd.model.scene import Scene
 
@@ -75,11 +76,15 @@ def apply_traced(
     reflectivity: np.ndarray,
     result: ReflectionResult,
     traced_mask: np.ndarray,
+    pixel_kind: np.ndarray | None = None,
 ) -> None:
     """Replace the fallback reflection of traced pixels with the traced radiance, in place.
 
     image, local : (H, W, 3) float32; reflectivity : (H, W) float32;
-    traced_mask  : (H, W) bool, set where pixels were traced.
+    traced_mask  : (H, W) bool, set where pixels were traced (or filled from traced
+                   neighbours);
+    pixel_kind   : (H, W) uint8 (``model/pixel_kinds.py``), None: not kept; set to each
+                   replaced pixel's kind (``result.kinds``, TRACED where it has none).
     """
     if result.pixel_index.size == 0:
         return
@@ -88,6 +93,9 @@ def apply_traced(
     f = reflectivity.reshape(-1)[idx][:, None]
     flat_image[idx] = (1.0 - f) * local.reshape(-1, 3)[idx] + f * result.radiance
     traced_mask.reshape(-1)[idx] = True
+    if pixel_kind is not None:
+        kinds = pixel_kinds.TRACED if result.kinds is None else result.kinds
+        pixel_kind.reshape(-1)[idx] = kinds
 
 
 def observe_fallback_error(

@@ -30,6 +30,7 @@ from phrt_usd.engine import frame_pixels
 from phrt_usd.engine.clipping_warning import clipping_warning
 from phrt_usd.engine.compositing import base_image, element_reflectivity, pixel_reflectivity
 from phrt_usd.engine.lighting import shade_gbuffer
+from phrt_usd.engine.motion import MotionField, MotionTracker
 from phrt_usd.engine.primary_source import choose, is_software
 from phrt_usd.engine.trace_rounds import CALIBRATION_SEED, ReflectionRounds, calibrate_tracer
 from phrt_usd.model.frame import (
@@ -64,7 +65,9 @@ class PreparedFrame:
 
     local: (H, W, 3) float32 local shading; reflectivity: (H, W) float32 F per pixel;
     image: (H, W, 3) float32 the raster frame (environment fallback in reflectors);
-    pixel_counts: (E,) int64 pixels per element; screen_boxes: (E, 4) see FrameView.
+    pixel_counts: (E,) int64 pixels per element; screen_boxes: (E, 4) see FrameView;
+    motion: the frame's motion vectors from the previous frame (``engine/motion.py``),
+    computed when first read.
     """
 
     time: float
@@ -79,14 +82,18 @@ class PreparedFrame:
     phase_ms: dict[str, float]
     passes: list[str]
     prepare_ms: float
+    motion: MotionField | None = None
 
 
 @dataclass
 class FrameOutput:
     """A rendered frame: beauty (H, W, 3) float32 linear RGB (times 2**exposure and the
     camera's exposure scale: ``RenderOptions.exposure``), alpha (H, W) float32,
-    the G-buffer, traced_mask (H, W) bool, the frame's stats and its camera
-    (``FrameCamera``: world-to-camera and projection at the frame's time code)."""
+    the G-buffer, traced_mask (H, W) bool (traced or filled from traced neighbours), the
+    frame's stats and its camera (``FrameCamera``: world-to-camera and projection at the
+    frame's time code); pixel_kind (H, W) uint8 how each pixel was made
+    (``model/pixel_kinds.py``); motion_field the motion vectors from the previous frame
+    (``engine/motion.py``), read through ``motion``."""
 
     beauty: np.ndarray
     alpha: np.ndarray
@@ -94,6 +101,17 @@ class FrameOutput:
     traced_mask: np.ndarray
     stats: FrameStats
     camera: FrameCamera
+    pixel_kind: np.ndarray | None = None
+    motion_field: MotionField | None = None
+
+    @property
+    def motion(self) -> np.ndarray:
+        """(H, W, 2) float32 motion in pixels from the previous frame: this frame's
+        position minus the previous one's, x right, y down (``engine/motion.py``;
+        computed on first use); zeros without a previous frame."""
+        if self.motion_field is None:
+            return np.zeros((*self.gbuffer.shape, 2), np.float32)
+        return self.motion_field.vectors
 
 
 class FrameRenderer:
@@ -156,6 +174,9 @@ class FrameRenderer:
             )
         #: The clipping warning was given (once per run, ``_check_clipping``).
         self._clipping_warned = False
+        #: Motion vectors: the animated vertices of the last frame prepared, its time code.
+        self._motion = MotionTracker(scene)
+        self._last_time: float | None = None
         policy_name = "all" if options.mode == "rt" else options.heuristic
         self.policy = make_policy(
             policy_name,
@@ -230,7 +251,15 @@ class FrameRenderer:
         t_frame = time.perf_counter()
 
         t = time.perf_counter()
+        previous = self._previous_time(time_code)
+        if (previous is not None and self._motion.tracks_geometry
+                and self._motion.time != previous):  # fmt: skip
+            # Out of order (the first frame after a resume, a chunk's start): the animated
+            # elements' vertices at the previous planned frame, for the motion vectors.
+            self.stage_scene.set_time(previous)
+            self._motion.advance(self.scene, previous)
         self.stage_scene.set_time(time_code)
+        moved = self._motion.advance(self.scene, time_code)
         # Each holder of geometry compares the scene's geometry version with its own and
         # re-sends only the elements changed since (several renderers may share one
         # StageScene: versions, not this frame's SceneChange, say what each lacks).
@@ -262,6 +291,8 @@ class FrameRenderer:
         phase["shade"] = _ms(t)
         pixel_counts = np.bincount(gb.element_id[gb.covered], minlength=len(scene.elements))
         screen_boxes = self._screen_boxes(gb)
+        motion = self._motion_field(gb, camera, previous, float(time_code), moved)
+        self._last_time = float(time_code)
         return PreparedFrame(
             float(time_code),
             camera,
@@ -275,6 +306,7 @@ class FrameRenderer:
             phase,
             passes,
             _ms(t_frame),
+            motion,
         )
 
     def finish(
@@ -376,7 +408,29 @@ class FrameRenderer:
         )
         height, width = gb.shape
         camera = FrameCamera.of(prep.time, prep.camera, width, height)
-        return FrameOutput(image, alpha, gb, step.traced_mask, stats, camera)
+        return FrameOutput(
+            image, alpha, gb, step.traced_mask, stats, camera, step.pixel_kind, prep.motion
+        )
+
+    def _previous_time(self, time_code: float) -> float | None:
+        """The frame motion vectors start from (``engine/motion.py``): the one before
+        ``time_code`` in the plan (None for the first planned frame); for a frame outside
+        the plan, the last frame prepared (None before any)."""
+        k = self._planned_index.get(float(time_code))
+        if k is None:
+            return self._last_time
+        return self._planned[k - 1] if k > 0 else None
+
+    def _motion_field(self, gb: GBuffer, camera: CameraFrame, previous: float | None,
+                      time_code: float, moved) -> MotionField:  # fmt: skip
+        """The frame's ``MotionField``: its G-buffer, its camera and the previous frame's
+        (None without one), the vertices that moved since (``MotionTracker.advance``)."""
+        height, width = gb.shape
+        current = FrameCamera.of(time_code, camera, width, height)
+        if previous is None:
+            return MotionField(gb, current)
+        before = FrameCamera.of(previous, self.stage_scene.camera(previous), width, height)
+        return MotionField(gb, current, before, moved)
 
     def _frame_budget_ms(
         self, prep: PreparedFrame, policy: SelectionPolicy, opts: RenderOptions

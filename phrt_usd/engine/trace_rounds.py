@@ -12,6 +12,7 @@ import numpy as np
 
 from phrt_usd.engine.compositing import apply_traced, observe_fallback_error
 from phrt_usd.model.frame import GBuffer, ReflectionResult
+from phrt_usd.model.pixel_kinds import raster_kinds
 from phrt_usd.select.rounds import Calibration, TracedRound
 
 #: The trace-time calibration (``calibrate_tracer``): timed rounds over this many
@@ -33,7 +34,8 @@ class ReflectionRounds:
     (``apply_traced``), the time of both measured: what the budget is charged.
 
     image: (H, W, 3) float32 the frame, the raster fallback until traced;
-    traced_mask: (H, W) bool the pixels traced so far.
+    traced_mask: (H, W) bool the pixels traced (or filled) so far;
+    pixel_kind: (H, W) uint8 how each pixel was made so far (``model/pixel_kinds.py``).
     """
 
     def __init__(
@@ -53,12 +55,15 @@ class ReflectionRounds:
         self._bounce_limit = bounce_limit
         self.image = fallback.copy()
         self.traced_mask = np.zeros(gbuffer.shape, dtype=bool)
+        self.pixel_kind = raster_kinds(gbuffer.covered)
         self._last: ReflectionResult | None = None
 
     def __call__(self, ids: list[int], densities: list[str]) -> TracedRound:
         t = time.perf_counter()
         result = self._tracer.trace_reflections(self._gbuffer, ids, self._bounce_limit, densities)
-        apply_traced(self.image, self._local, self._reflectivity, result, self.traced_mask)
+        apply_traced(
+            self.image, self._local, self._reflectivity, result, self.traced_mask, self.pixel_kind
+        )
         ms = (time.perf_counter() - t) * 1000.0
         self._last = result
         return TracedRound(result.records, result.rays, ms)

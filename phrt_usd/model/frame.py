@@ -88,6 +88,8 @@ class ReflectionResult:
     records     : one TraceRecord per source reflector in the batch
     rays        : total rays cast (all kinds)
     seconds     : wall time of the whole batch
+    kinds       : (n,) uint8 how each of those pixels was made (``model/pixel_kinds.py``:
+                  traced, filled, ...), None when every one was traced
     """
 
     pixel_index: np.ndarray
@@ -95,6 +97,7 @@ class ReflectionResult:
     records: list[TraceRecord]
     rays: int
     seconds: float
+    kinds: np.ndarray | None = None
 
 
 @dataclass

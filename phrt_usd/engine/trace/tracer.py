@@ -51,6 +51,7 @@ from phrt_usd.engine.trace.bvh import Bvh
 from phrt_usd.engine.trace.hit_surfaces import HitSurfaces
 from phrt_usd.engine.trace.paths import PathTracer, refract
 from phrt_usd.engine.trace.shadow_rays import ShadowRays
+from phrt_usd.model import pixel_kinds
 from phrt_usd.model.frame import GBuffer, ReflectionResult
 from phrt_usd.model.scene import NO_HIT, CameraFrame, Lights, Scene
 from phrt_usd.model.trace_density import check_density
@@ -325,12 +326,15 @@ class Tracer:
             )
             for record, c in zip(result.records, covered, strict=True)
         ]
+        kinds = np.full(len(result.pixel_index) + len(fill_pix), pixel_kinds.FILLED, np.uint8)
+        kinds[: len(result.pixel_index)] = pixel_kinds.TRACED
         return ReflectionResult(
             pixel_index=np.concatenate([result.pixel_index, fill_pix]),
             radiance=np.concatenate([result.radiance, fill_radiance]),
             records=records,
             rays=result.rays,
             seconds=time.perf_counter() - start,
+            kinds=kinds,
         )
 
     def trace_refraction(
