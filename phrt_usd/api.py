@@ -449,7 +449,8 @@ class RenderResult:
         default layout) wrote (``run.frame_reader.read_frame_files``): ``beauty`` (H, W, 3)
         float32 linear RGB, and as the products hold them ``alpha``, ``depth`` (inf for
         background), ``element_id`` (H, W) int32, ``traced_mask`` (H, W) bool,
-        ``normal``, ``position``, ``albedo``, ``reflectivity``. The default layout gives
+        ``normal``, ``position``, ``albedo``, ``reflectivity``, ``motion`` (H, W, 2),
+        ``pixel_kind`` (H, W) uint8. The default layout gives
         beauty, alpha, depth, element_id and traced_mask."""
         images = self.image(time)
         if self._plan is None:
@@ -562,8 +563,9 @@ class Renderer:
 
     def render(self, time: float) -> FrameOutput:
         """Render the frame at time code ``time``: ``FrameOutput`` with ``beauty`` (H, W, 3)
-        float32 linear RGB, ``alpha``, the ``gbuffer``, ``traced_mask``, ``stats`` and
-        ``camera`` (``FrameCamera``: world-to-camera and projection)."""
+        float32 linear RGB, ``alpha``, the ``gbuffer``, ``traced_mask``, ``stats``,
+        ``camera`` (``FrameCamera``: world-to-camera and projection), ``pixel_kind`` and
+        ``motion`` (from the previous planned frame: render frames in plan order)."""
         renderer = self._live()
         time = check_finite(check_number(time, "time"), "time", "a finite time code")
         return renderer.render(time)

@@ -386,7 +386,8 @@ def render(
         typer.Option(help="File name TEMPLATE under OUT instead of the products (a.####.exr)."),
     ] = None,
     aovs: Annotated[
-        str | None, typer.Option(help="Passes added to every EXR: P,N,albedo,reflectivity,...")
+        str | None,
+        typer.Option(help="Passes added to every EXR: P,N,albedo,motion,pixelKind,..."),
     ] = None,
     timestamp: Annotated[
         bool, typer.Option(help="Write the wall-clock capDate into EXR headers.")

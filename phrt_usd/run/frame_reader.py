@@ -20,6 +20,8 @@ normal          (H, W, 3) float32        normal
 position        (H, W, 3) float32        position, metres
 albedo          (H, W, 3) float32        albedo
 reflectivity    (H, W) float32           phrt:reflectivity
+motion          (H, W, 2) float32        motion (pixels, x right, y down)
+pixel_kind      (H, W) uint8             phrt:pixelKind (``model/pixel_kinds.py``)
 ==============  =======================  ====================================================
 
 A key is present when some file of the frame holds its plane; H, W are those of the
@@ -47,6 +49,8 @@ PLANE_KEYS = {
     "position": "position",
     "albedo": "albedo",
     "reflectivity": "reflectivity",
+    "motion": "motion",
+    "pixel_kind": "pixel_kind",
 }
 #: The largest code of an 8-bit preview.
 PREVIEW_MAX = 255.0
@@ -111,6 +115,8 @@ def _plane(source: str, arrays: list[np.ndarray]) -> np.ndarray:
     """One source's plane from its channels as stored (module docstring, the table)."""
     if source == "id":
         return element_ids(arrays[0])
+    if source == "pixel_kind":
+        return arrays[0].astype(np.uint8)
     values = [a.astype(np.float32) for a in arrays]
     if source == "traced":
         return values[0] > 0.5

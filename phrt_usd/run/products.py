@@ -35,14 +35,22 @@ albedo              linear RGB albedo (0 background)               albedo.R/.G/.
 primId, id          element id, manifest in the header             id                uint
 phrt:traced         1 where the reflection was ray-traced          traced            dataType
 phrt:reflectivity   the reflector's F at the pixel (0 elsewhere)   reflectivity      dataType
+motion,             screen-space motion from the previous frame:   motion.x,         dataType
+motionvector        pixels, this frame's position minus the        motion.y
+                    previous one's, +x right, +y down; 0 on the
+                    run's first frame (``engine/motion.py``)
+phrt:pixelKind,     how the pixel was made: 0 background,          pixelKind         uint
+pixelKind           1 raster, 2 screen-space, 3 traced, 4 reused,
+                    5 filled (``model/pixel_kinds.py``)
 ==================  =============================================  ================  =======
 
 ``driver:parameters:aov:name`` renames a var's channels (``N`` → ``Nworld.x``; not color,
 alpha or depth, whose names are the ones EXR readers look for). Storage follows the
 var's ``dataType``: half types (``half``, ``color3h``, ``normal3h``, ...) are HALF,
-``int``/``uint``/``bool`` (``phrt:traced`` only) UINT, others FLOAT; ids are always UINT.
-``--aovs`` adds vars by source name to every EXR (``P`` float, ``N`` / ``albedo`` /
-``reflectivity`` / ``traced`` half, ``depth`` float, ``id`` uint), after the product's own.
+``int``/``uint``/``bool`` (``phrt:traced`` only) UINT, others FLOAT; ids and pixel kinds
+are always UINT. ``--aovs`` adds vars by source name to every EXR (``P`` float, ``N`` /
+``albedo`` / ``reflectivity`` / ``traced`` half, ``depth`` / ``motion`` float, ``id`` /
+``pixelKind`` uint), after the product's own.
 A product whose ``driver:parameters:OpenEXR:multipart`` is true gets one part per var
 (parts named after the var's channels: ``rgba``, ``depth``, ``N``, ...).
 
@@ -56,7 +64,9 @@ holds: the settings' ``dataWindowNDC``, ``CameraFrame.data_window_pixels``; ever
 a frame, EXR and PNG, holds only those pixels, ``images.DataWindow``),
 ``framesPerSecond`` (rational), ``software`` (``phrt-usd VERSION``), ``phrt/version``,
 ``phrt/timeCode`` (double), ``phrt/stage``, ``phrt/camera``, ``phrt/renderSettings`` and
-``phrt/renderProduct`` (when there is one), ``phrt/metersPerUnit`` (double), and, with an
+``phrt/renderProduct`` (when there is one), ``phrt/metersPerUnit`` (double), with a
+``motion`` var ``phrt/motion`` (its convention, one line), with a ``pixelKind`` var
+``phrt/pixelKinds`` (its codes, ``0 background, 1 raster, ...``), and, with an
 ``id`` channel, the manifest of the ids in the frame (``images.write_exr``: id → the
 element's prim path; a PointInstancer's instances are ``/Instancer.instance[i]/...``). The
 wall-clock ``capDate`` and ``utcOffset`` only with ``timestamp`` (``--timestamp``), so
@@ -80,6 +90,7 @@ from phrt_usd.base import __version__
 from phrt_usd.engine.compositing import element_reflectivity, pixel_reflectivity
 from phrt_usd.engine.renderer import FrameOutput
 from phrt_usd.errors import BadOption, PhrtError
+from phrt_usd.model.pixel_kinds import PIXEL_KINDS, raster_kinds
 from phrt_usd.model.scene import CameraFrame, Scene
 from phrt_usd.run.frames import FRAME_DECIMALS, frame_text
 from phrt_usd.run.images import (
@@ -118,6 +129,15 @@ SOURCES: tuple[Source, ...] = (
     Source("id", ("primId", "id"), "id", ("",), "uint"),
     Source("traced", ("phrt:traced", "traced"), "traced", ("",), "half"),
     Source("reflectivity", ("phrt:reflectivity", "reflectivity"), "reflectivity", ("",), "half"),
+    Source("motion", ("motion", "motionvector"), "motion", (".x", ".y"), "float"),
+    Source("pixel_kind", ("phrt:pixelKind", "pixelKind"), "pixelKind", ("",), "uint"),
+)
+#: Sources whose channels are UINT whatever the var's dataType (exact codes).
+UINT_SOURCES = frozenset({"id", "pixel_kind"})
+#: The header line of a file with a ``motion`` var (module docstring).
+MOTION_HEADER = (
+    "pixels, this frame's position minus the previous frame's, +x right, +y down "
+    "(rows from the top); 0 on a run's first frame"
 )
 _BY_NAME = {name: s for s in SOURCES for name in s.names}
 #: The default layout's vars (``images.CHANNELS``).
@@ -169,7 +189,7 @@ def var_channels(var: RenderVarSpec) -> list[Channel]:
             f"phrt renders ({known})"
         )
     data_type = var.data_type
-    if source.key == "id":
+    if source.key in UINT_SOURCES:
         storage = "uint"
     elif data_type in INT_TYPES:
         if source.key != "traced":
@@ -584,7 +604,13 @@ def _write_product_exr(
             values = stored(values, channel.storage)
         parts.setdefault(part, {})[channel.name] = values
     manifest = None
-    if "id" in {c.source for c in product.channels}:
+    sources = {c.source for c in product.channels}
+    if "motion" in sources:
+        header = {**header, "phrt/motion": MOTION_HEADER}
+    if "pixel_kind" in sources:
+        kinds = ", ".join(f"{code} {name}" for code, name in PIXEL_KINDS.items())
+        header = {**header, "phrt/pixelKinds": kinds}
+    if "id" in sources:
         ids = np.unique(window.crop(planes.get("id", path), path))  # the ids in the file
         manifest = {int(i): scene.elements[i].path for i in ids if i >= 0}
     id_channel = next((c.name for c in product.channels if c.source == "id"), "id")
@@ -620,6 +646,15 @@ class _Planes:
             return np.asarray(out.traced_mask, dtype=np.float32)
         if key == "reflectivity":
             return pixel_reflectivity(gb, element_reflectivity(self.scene))
+        if key == "pixel_kind":
+            if out.pixel_kind is None:
+                return raster_kinds(gb.covered)
+            return np.asarray(out.pixel_kind)
+        if key == "motion":
+            motion = np.asarray(out.motion, dtype=np.float32)
+            if not np.isfinite(motion).all():
+                raise PhrtError(f"{path}: motion has NaN/Inf")
+            return motion
         plane = {"normal": gb.normal, "position": gb.position, "albedo": gb.albedo}[key]
         values = np.where(gb.covered[..., None], plane, 0.0)
         if not np.isfinite(values).all():
