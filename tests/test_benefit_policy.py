@@ -11,7 +11,7 @@ import math
 import numpy as np
 import pytest
 from scenes import mirror_floor_stage, mirror_gallery_stage, mirrored_sphere_pixels
-from test_heuristic import element, policy_of, scene, view
+from selection_fakes import element, policy_of, scene, view
 from typer.testing import CliRunner
 
 from phrt_usd.cli import app

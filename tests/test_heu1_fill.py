@@ -7,7 +7,7 @@ fakes)."""
 from __future__ import annotations
 
 import numpy as np
-from test_heuristic import camera, element, run_frame, scene, transitions, view
+from selection_fakes import camera, element, run_frame, scene, transitions, view
 
 from phrt_usd.model.frame import Budget, TraceRecord
 from phrt_usd.model.trace_density import DENSITY_FRACTION, TRACE_DENSITIES, traced_fraction

@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux, UsdRender, UsdShade, UsdUtils
-from test_materials_usd import _png  # a 4 x 4 8-bit PNG of one colour
+from textured_stages import write_one_colour_png
 
 from phrt_usd.engine.renderer import FrameRenderer, RenderOptions
 from phrt_usd.usd.stage import read_stage
@@ -92,7 +92,7 @@ def _centre(stage, mode: str) -> np.ndarray:
 
 @pytest.mark.parametrize("mode", MODES)
 def test_usdz_texture_colours_the_pixel(tmp_path, mode):
-    _png(tmp_path / "red.png", RED)
+    write_one_colour_png(tmp_path / "red.png", RED)
     stage = _stage(tmp_path / "quad.usda")
     _bind(stage, _material(stage, "/M", texture="red.png"))
     stage.GetRootLayer().Save()

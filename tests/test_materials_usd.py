@@ -4,23 +4,13 @@ texture as a warning with the input's fallback."""
 from __future__ import annotations
 
 import numpy as np
-import OpenImageIO as oiio
 import pytest
 from pxr import Sdf, Usd, UsdGeom, UsdRender, UsdShade, UsdUtils
+from textured_stages import write_one_colour_png
 
 from phrt_usd.usd.stage import read_stage
 
 RED = (1.0, 0.0, 0.0)
-
-
-def _png(path, rgb):
-    """A 4 x 4 8-bit PNG of one colour (sRGB 255 = linear 1, 0 = 0: exact)."""
-    img = np.zeros((4, 4, 3), np.uint8)
-    img[:] = np.array(rgb) * 255
-    out = oiio.ImageOutput.create(str(path))
-    out.open(str(path), oiio.ImageSpec(4, 4, 3, oiio.UINT8))
-    out.write_image(img)
-    out.close()
 
 
 def _stage(path, texture: str):
@@ -52,7 +42,7 @@ def _stage(path, texture: str):
 
 
 def test_texture_inside_usdz_is_read_through_the_resolver(tmp_path):
-    _png(tmp_path / "red.png", RED)
+    write_one_colour_png(tmp_path / "red.png", RED)
     _stage(tmp_path / "quad.usda", "red.png")
     package = tmp_path / "quad.usdz"
     assert UsdUtils.CreateNewUsdzPackage(str(tmp_path / "quad.usda"), str(package))

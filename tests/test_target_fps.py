@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from scenes import mirror_gallery_stage
-from test_heuristic import element, scene, view
+from selection_fakes import element, scene, view
 
 from phrt_usd.api import render_options
 from phrt_usd.engine.renderer import TARGET_FPS_MARGIN, RenderOptions, target_fps_budget_ms

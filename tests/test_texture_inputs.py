@@ -3,8 +3,8 @@ transforms (UsdTransform2d), wrap modes, sourceColorSpace, scale / bias, texture
 emissiveColor, and MaterialX-only materials; stages and textures made here, rendered in
 raster and rt, checked at pixels whose right value follows from the geometry.
 
-The stage (``_stage``): a 2 m quad at z = 0 whose ``st`` runs 0..``st_max`` along x and
-0..1 along y, seen by a camera at z = 5 (the helpers of ``test_cutouts``). The test
+The stage (``textured_stages.textured_quad_stage``): a 2 m quad at z = 0 whose ``st`` runs
+0..``st_max`` along x and 0..1 along y, seen by a camera at z = 5. The test
 texture ``halves.png`` is red in its left half (s < 0.5) and green in its right half.
 """
 
@@ -12,8 +12,14 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux, UsdShade
-from test_cutouts import _image, _material, _pixel, _render, _texture
+from pxr import Gf, Sdf, UsdShade
+from textured_stages import (
+    define_texture,
+    pixel_at,
+    render_first_frame,
+    textured_quad_stage,
+    write_image,
+)
 
 from phrt_usd.usd.stage import read_stage
 from phrt_usd.usd.support_report import support_report
@@ -27,37 +33,12 @@ def _halves(path) -> None:
     px = np.zeros((8, 8, 3))
     px[:, :4] = RED
     px[:, 4:] = GREEN
-    _image(path, px)
-
-
-def _stage(tmp_path, st_max=1.0, name="tex.usda") -> tuple[Usd.Stage, UsdShade.Shader]:
-    """The quad, its material /Looks/Quad and camera; returns the stage and the
-    UsdPreviewSurface (nothing connected yet)."""
-    stage = Usd.Stage.CreateNew(str(tmp_path / name))
-    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
-    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
-    mesh = UsdGeom.Mesh.Define(stage, "/Quad")
-    mesh.CreatePointsAttr([(-1, -1, 0), (1, -1, 0), (1, 1, 0), (-1, 1, 0)])
-    mesh.CreateFaceVertexCountsAttr([4])
-    mesh.CreateFaceVertexIndicesAttr([0, 1, 2, 3])
-    mesh.CreateSubdivisionSchemeAttr("none")
-    UsdGeom.PrimvarsAPI(mesh).CreatePrimvar(
-        "st", Sdf.ValueTypeNames.TexCoord2fArray, UsdGeom.Tokens.faceVarying
-    ).Set([(0, 0), (st_max, 0), (st_max, 1), (0, 1)])
-    mat, surf = _material(stage, "/Looks/Quad", (0.5, 0.5, 0.5))
-    UsdShade.MaterialBindingAPI.Apply(mesh.GetPrim()).Bind(mat)
-    cam = UsdGeom.Camera.Define(stage, "/Cam")
-    cam.AddTranslateOp().Set((0.0, 0.0, 5.0))
-    cam.CreateFocalLengthAttr(25.0)
-    cam.CreateHorizontalApertureAttr(36.0)
-    cam.CreateVerticalApertureAttr(27.0)
-    UsdLux.DistantLight.Define(stage, "/Sun").CreateIntensityAttr(1.0)
-    return stage, surf
+    write_image(path, px)
 
 
 def _diffuse_texture(stage, surf, tmp_path, **inputs) -> UsdShade.Shader:
     _halves(tmp_path / "halves.png")
-    tex = _texture(stage, "/Looks/Quad/Tex", "halves.png", **inputs)
+    tex = define_texture(stage, "/Looks/Quad/Tex", "halves.png", **inputs)
     surf.GetInput("diffuseColor").ConnectToSource(
         tex.CreateOutput("rgb", Sdf.ValueTypeNames.Float3)
     )
@@ -67,8 +48,8 @@ def _diffuse_texture(stage, surf, tmp_path, **inputs) -> UsdShade.Shader:
 def _albedo_at(stage, mode, x) -> np.ndarray:
     """The G-buffer albedo at the pixel seeing the quad's point (x, 0, 0)."""
     stage.GetRootLayer().Save()
-    out, camera = _render(stage, mode)
-    return out.gbuffer.albedo[_pixel(camera, (x, 0.0, 0.0))]
+    out, camera = render_first_frame(stage, mode)
+    return out.gbuffer.albedo[pixel_at(camera, (x, 0.0, 0.0))]
 
 
 @pytest.mark.parametrize("mode", ["raster", "rt"])
@@ -76,7 +57,7 @@ def test_transform2d_translation_by_half_swaps_the_halves(tmp_path, mode):
     """UsdTransform2d translation (0.5, 0) with repeat wrap: st' = st + (0.5, 0), so
     the quad's left half (s = 0.25 at x = -0.5) reads s' = 0.75: green, its right half
     (s' = 1.25 → 0.25) red. Texel centres there: the albedo is exact."""
-    stage, surf = _stage(tmp_path)
+    stage, surf = textured_quad_stage(tmp_path)
     repeat = {"wrapS": (TOKEN, "repeat"), "wrapT": (TOKEN, "repeat")}
     tex = _diffuse_texture(stage, surf, tmp_path, **repeat)
     reader_out = tex.GetInput("st").GetConnectedSources()[0][0]  # the primvar reader
@@ -103,14 +84,14 @@ def test_transform2d_order_is_scale_rotate_translate():
 def test_wrap_clamp_and_repeat_outside_the_unit_square(tmp_path, wrap, expected):
     """st runs 0..2 along the quad: at x = 0.25, s = 1.25. Repeat reads s = 0.25 (red
     half); clamp reads the last column (green)."""
-    stage, surf = _stage(tmp_path, st_max=2.0)
+    stage, surf = textured_quad_stage(tmp_path, st_max=2.0)
     _diffuse_texture(stage, surf, tmp_path, wrapS=(TOKEN, wrap), wrapT=(TOKEN, wrap))
     np.testing.assert_allclose(_albedo_at(stage, "raster", 0.25), expected, atol=1e-6)
 
 
 def _grey(path, channels: int) -> None:
     """4 x 4 8-bit texture of 128 in every channel."""
-    _image(path, np.full((4, 4, channels), 128 / 255))
+    write_image(path, np.full((4, 4, channels), 128 / 255))
 
 
 #: 128 / 255 decoded: raw is the number itself; sRGB (IEC 61966-2-1) ((c + 0.055) /
@@ -127,9 +108,9 @@ def test_source_colour_space_decodes_mid_grey(tmp_path, space, channels, expecte
     """sourceColorSpace per the UsdUVTexture spec: sRGB / raw as asked; auto: an 8-bit
     file of 3 or 4 channels is sRGB, an 8-bit grey one raw. The G-buffer albedo at a
     texel centre equals the decoded value (float32)."""
-    stage, surf = _stage(tmp_path)
+    stage, surf = textured_quad_stage(tmp_path)
     _grey(tmp_path / "grey.png", channels)
-    tex = _texture(stage, "/Looks/Quad/Tex", "grey.png", sourceColorSpace=(TOKEN, space))
+    tex = define_texture(stage, "/Looks/Quad/Tex", "grey.png", sourceColorSpace=(TOKEN, space))
     output = "rgb" if channels == 3 else "r"
     kind = Sdf.ValueTypeNames.Float3 if channels == 3 else Sdf.ValueTypeNames.Float
     surf.GetInput("diffuseColor").ConnectToSource(tex.CreateOutput(output, kind))
@@ -140,7 +121,7 @@ def test_scale_bias_and_missing_alpha(tmp_path):
     """scale (0.5, 0.5, 0.5, 1) and bias (0.25, 0, 0, 0) on the rgb output: red reads
     (0.75, 0, 0); ``outputs:a`` of a file without alpha reads 1 (the spec): with
     opacityThreshold 0.5 nothing is cut."""
-    stage, surf = _stage(tmp_path)
+    stage, surf = textured_quad_stage(tmp_path)
     f4 = Sdf.ValueTypeNames.Float4
     tex = _diffuse_texture(
         stage, surf, tmp_path,
@@ -151,8 +132,8 @@ def test_scale_bias_and_missing_alpha(tmp_path):
     )
     surf.CreateInput("opacityThreshold", Sdf.ValueTypeNames.Float).Set(0.5)
     stage.GetRootLayer().Save()
-    out, camera = _render(stage, "rt")  # rt: no shadow maps to peel, a quicker test
-    p = _pixel(camera, (-0.5, 0.0, 0.0))
+    out, camera = render_first_frame(stage, "rt")  # rt: no shadow maps to peel, a quicker test
+    p = pixel_at(camera, (-0.5, 0.0, 0.0))
     assert out.gbuffer.element_id[p] == 0  # not cut
     np.testing.assert_allclose(out.gbuffer.albedo[p], (0.75, 0.0, 0.0), atol=1e-6)
 
@@ -162,18 +143,18 @@ def test_textured_emission_adds_its_texel_to_the_pixel(tmp_path, mode):
     """emissiveColor from the halves texture: the red half emits (1, 0, 0), the green
     half (0, 1, 0); the beauty minus the same stage's without emission is exactly the
     texel (emission is added to the shaded colour, engine/shading.py)."""
-    stage, surf = _stage(tmp_path)
+    stage, surf = textured_quad_stage(tmp_path)
     stage.GetRootLayer().Save()
-    plain, camera = _render(stage, mode)
+    plain, camera = render_first_frame(stage, mode)
     _halves(tmp_path / "halves.png")
-    tex = _texture(stage, "/Looks/Quad/Glow", "halves.png")
+    tex = define_texture(stage, "/Looks/Quad/Glow", "halves.png")
     surf.CreateInput("emissiveColor", Sdf.ValueTypeNames.Color3f).ConnectToSource(
         tex.CreateOutput("rgb", Sdf.ValueTypeNames.Float3)
     )
     stage.GetRootLayer().Save()
-    glowing, _ = _render(stage, mode)
+    glowing, _ = render_first_frame(stage, mode)
     for x, texel in ((-0.5, RED), (0.5, GREEN)):
-        p = _pixel(camera, (x, 0.0, 0.0))
+        p = pixel_at(camera, (x, 0.0, 0.0))
         added = glowing.beauty[p] - plain.beauty[p]
         np.testing.assert_allclose(added, texel, atol=1e-5)  # float32 sums
 
@@ -197,7 +178,7 @@ def _materialx(stage, ident: str, **inputs) -> None:
 def test_materialx_standard_surface_renders_its_base_colour(tmp_path, mode):
     """ND_standard_surface: albedo = base * base_color = 0.5 * (0.2, 0.8, 0.4); one
     notice naming the material; the support report counts it as base colour only."""
-    stage, _ = _stage(tmp_path)
+    stage, _ = textured_quad_stage(tmp_path)
     c3 = Sdf.ValueTypeNames.Color3f
     _materialx(
         stage, "ND_standard_surface_surfaceshader",
@@ -213,7 +194,7 @@ def test_materialx_standard_surface_renders_its_base_colour(tmp_path, mode):
 
 
 def test_materialx_unknown_surface_is_grey_with_a_notice(tmp_path):
-    stage, _ = _stage(tmp_path)
+    stage, _ = textured_quad_stage(tmp_path)
     _materialx(stage, "ND_my_studio_surface")
     albedo = _albedo_at(stage, "raster", 0.0)
     np.testing.assert_allclose(albedo, [0.18] * 3, atol=1e-6)  # UsdPreviewSurface grey
@@ -228,7 +209,7 @@ def test_materialx_unknown_surface_is_grey_with_a_notice(tmp_path):
 def test_materialx_image_node_is_the_base_colour_texture(tmp_path):
     """ND_image_color3 on base_color (ND_UsdPreviewSurface's diffuseColor here): the
     halves texture, red left and green right (periodic address modes)."""
-    stage, _ = _stage(tmp_path)
+    stage, _ = textured_quad_stage(tmp_path)
     _materialx(stage, "ND_UsdPreviewSurface_surfaceshader")
     _halves(tmp_path / "halves.png")
     image = UsdShade.Shader.Define(stage, "/Looks/Quad/Image")
@@ -260,8 +241,8 @@ def test_probe_texture_device(tmp_path, device):
     elif device == "directory":
         device = str(tmp_path / "folder.png")
         os.mkdir(device)
-    stage, surf = _stage(tmp_path)
-    tex = _texture(stage, "/Looks/Quad/Tex", device)
+    stage, surf = textured_quad_stage(tmp_path)
+    tex = define_texture(stage, "/Looks/Quad/Tex", device)
     tex.CreateInput("fallback", Sdf.ValueTypeNames.Float4).Set((0.0, 1.0, 0.0, 1.0))
     surf.GetInput("diffuseColor").ConnectToSource(
         tex.CreateOutput("rgb", Sdf.ValueTypeNames.Float3)

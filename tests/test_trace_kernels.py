@@ -10,7 +10,7 @@ import pytest
 import trimesh
 from numpy_paths import numpy_first_rays, numpy_primary_gbuffer, numpy_trace_reflections
 from scenes import box_between, look_at, parts_scene, sphere
-from test_cutout_reflections import _stage
+from textured_stages import mirrored_cutout_stage
 
 from phrt_usd.engine.trace import trace_kernels
 from phrt_usd.engine.trace.bounce_layout import T_SOURCES, TRI_COLUMNS, TRI_IOR, TRI_REFLECTOR
@@ -90,7 +90,7 @@ def test_bounce_loop_matches_numpy(glass, limit):
 
 def test_bounce_loop_through_cutouts_matches_numpy(tmp_path):
     """Reflected rays re-cast through a cut-out quad's holes (test_cutout_reflections)."""
-    stage = read_stage(_stage(tmp_path))
+    stage = read_stage(mirrored_cutout_stage(tmp_path))
     t = stage.frame_range[0]
     stage.set_time(t)
     scene = stage.scene
