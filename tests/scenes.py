@@ -7,7 +7,8 @@ mirror gallery on a camera path, a validating quad mirror, a lone cube, a stage 
 composition arcs, a camera-only stage and a camera-path stage.
 
 In-memory ``Scene``s (no USD): triangle soups from trimesh parts (``parts_scene`` with
-``box``, ``box_between``, ``sphere``) and ``CameraFrame``s (``look_at``). World space is
+``box``, ``box_between``, ``sphere``, ``quad``) and ``CameraFrame``s (``look_at``); the
+analytic sphere's rays (``ray_sphere_hit``). World space is
 metres, +Y up, unless a builder says otherwise.
 """
 
@@ -286,6 +287,27 @@ def sphere(radius, center, subdivisions: int = 4) -> trimesh.Trimesh:
     m = trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
     m.apply_translation(center)
     return m
+
+
+def quad(size: float, center=(0.0, 0.0, 0.0), axis: str = "y") -> trimesh.Trimesh:
+    """Square of side ``size`` facing +axis (y: floor facing up, z: wall facing +z)."""
+    h = 0.5 * size
+    if axis == "y":
+        v = np.array([[-h, 0, -h], [h, 0, -h], [h, 0, h], [-h, 0, h]], dtype=np.float64)
+        f = np.array([[0, 2, 1], [0, 3, 2]])
+    else:
+        v = np.array([[-h, -h, 0], [h, -h, 0], [h, h, 0], [-h, h, 0]], dtype=np.float64)
+        f = np.array([[0, 1, 2], [0, 2, 3]])
+    return trimesh.Trimesh(v + np.asarray(center), f, process=False)
+
+
+def ray_sphere_hit(origin, dirs, center, radius) -> np.ndarray:
+    """(n,) bool: rays from ``origin`` along unit ``dirs`` hit the analytic sphere."""
+    oc = np.asarray(origin) - np.asarray(center)
+    b = dirs @ oc
+    c = oc @ oc - radius**2
+    disc = b * b - c
+    return (disc >= 0) & (-b + np.sqrt(np.maximum(disc, 0)) > 0)
 
 
 def parts_scene(parts: list[dict], lights: Lights | None = None, offset=None) -> Scene:

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from image_thresholds import HYBRID_VS_RT_FLIP
 from pxr import UsdGeom
 from textured_stages import (
     HEIGHT,
@@ -121,8 +122,6 @@ def test_hybrid_all_matches_rt_on_the_cutout_stage(renders):
     """The hybrid-equals-rt invariant of tests/test_render.py, on cut-outs: hybrid with
     every reflector traced (none here: raster G-buffer, maps and rays for the pairs they
     cannot decide) against rt, within the same mean FLIP."""
-    from test_render import HYBRID_VS_RT_FLIP
-
     from phrt_usd.pytest_plugin import assert_images_close
 
     assert_images_close(

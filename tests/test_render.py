@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from image_thresholds import HYBRID_VS_RT_FLIP
 from scenes import mirror_floor_stage, mirror_gallery_stage, mirrored_sphere_pixels
 
 from phrt_usd.engine.renderer import FrameRenderer, RenderOptions
@@ -17,8 +18,6 @@ from phrt_usd.usd.stage import open_stage
 STAGES = Path(__file__).resolve().parent.parent / "stages"
 #: Fraction of the analytically mirrored sphere's floor pixels that must show it red.
 MIRROR_AGREEMENT = 0.97
-#: Mean FLIP allowed between hybrid with every reflector traced and the rt reference.
-HYBRID_VS_RT_FLIP = 0.02
 
 
 def _render(stage, mode: str, width: int, height: int, time: float = 1.0):

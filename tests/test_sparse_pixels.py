@@ -12,8 +12,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from pxr import Usd
-from scenes import look_at, mirror_floor_stage, parts_scene, sphere
-from test_tracer import quad, ray_sphere_hit
+from scenes import look_at, mirror_floor_stage, parts_scene, quad, ray_sphere_hit, sphere
 from typer.testing import CliRunner
 
 import phrt_usd

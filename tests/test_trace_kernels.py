@@ -7,9 +7,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-import trimesh
 from numpy_paths import numpy_first_rays, numpy_primary_gbuffer, numpy_trace_reflections
-from scenes import box_between, look_at, parts_scene, sphere
+from scenes import box_between, look_at, parts_scene, quad, sphere
 from textured_stages import mirrored_cutout_stage
 
 from phrt_usd.engine.trace import trace_kernels
@@ -19,13 +18,6 @@ from phrt_usd.engine.trace.paths import refract
 from phrt_usd.engine.trace.tracer import Tracer
 from phrt_usd.model.scene import DistantLight, Lights, LocalLight
 from phrt_usd.usd.stage import read_stage
-
-
-def quad(size: float, center=(0.0, 0.0, 0.0)) -> trimesh.Trimesh:
-    """Square of side ``size`` facing +y."""
-    h = 0.5 * size
-    v = np.array([[-h, 0, -h], [h, 0, -h], [h, 0, h], [-h, 0, h]], dtype=np.float64)
-    return trimesh.Trimesh(v + np.asarray(center), np.array([[0, 2, 1], [0, 3, 2]]), process=False)
 
 
 def lit_scene(offset=(0.0, 0.0, 0.0), glass: bool = False):

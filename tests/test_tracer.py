@@ -9,7 +9,7 @@ from embreex import rtcore_scene as rtcs
 from embreex.mesh_construction import TriangleMesh
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from scenes import box_between, look_at, parts_scene, sphere
+from scenes import box_between, look_at, parts_scene, quad, ray_sphere_hit, sphere
 
 from phrt_usd.engine.trace.tracer import Tracer
 from phrt_usd.model.frame import GBuffer
@@ -18,33 +18,12 @@ from phrt_usd.model.scene import DEFAULT_ENVIRONMENT, DistantLight, DomeLight, L
 SKY = np.array([0.2, 0.4, 0.8])
 
 
-# ---------------------------------------------------------------- scene builders
-
-
-def quad(size: float, center=(0.0, 0.0, 0.0), axis: str = "y") -> trimesh.Trimesh:
-    """Square of side ``size`` facing +axis (y: floor facing up, z: wall facing +z)."""
-    h = 0.5 * size
-    if axis == "y":
-        v = np.array([[-h, 0, -h], [h, 0, -h], [h, 0, h], [-h, 0, h]], dtype=np.float64)
-        f = np.array([[0, 2, 1], [0, 3, 2]])
-    else:
-        v = np.array([[-h, -h, 0], [h, -h, 0], [h, h, 0], [-h, h, 0]], dtype=np.float64)
-        f = np.array([[0, 1, 2], [0, 2, 3]])
-    return trimesh.Trimesh(v + np.asarray(center), f, process=False)
+# ---------------------------------------------------------------- helpers
 
 
 def assert_rows(rows: np.ndarray, expected, atol: float) -> None:
     """Every row of (n, 3) ``rows`` equals ``expected`` (3,) within ``atol``."""
     np.testing.assert_allclose(rows, np.broadcast_to(expected, rows.shape), atol=atol)
-
-
-def ray_sphere_hit(origin, dirs, center, radius) -> np.ndarray:
-    """(n,) bool: rays from ``origin`` along unit ``dirs`` hit the analytic sphere."""
-    oc = np.asarray(origin) - np.asarray(center)
-    b = dirs @ oc
-    c = oc @ oc - radius**2
-    disc = b * b - c
-    return (disc >= 0) & (-b + np.sqrt(np.maximum(disc, 0)) > 0)
 
 
 # ---------------------------------------------------------------- (1) mirror physics
