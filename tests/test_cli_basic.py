@@ -2,16 +2,15 @@
 
 import json
 import subprocess
-from pathlib import Path
 
 import pytest
 from pxr import Sdf, Usd, UsdGeom, UsdLux, UsdShade
+from repo_paths import REPO
 from scenes import clean_stage, cube_stage
 from typer.testing import CliRunner
 
 from phrt_usd.cli import app
 
-REPO = Path(__file__).resolve().parent.parent
 runner = CliRunner()
 
 

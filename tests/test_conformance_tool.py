@@ -19,10 +19,10 @@ from pathlib import Path
 
 import numpy as np
 from pxr import Usd, UsdGeom, UsdLux
+from repo_paths import TOOLS
 
 from phrt_usd.run.images import write_png_atomic
 
-TOOLS = Path(__file__).resolve().parents[1] / "tools"
 sys.path.insert(0, str(TOOLS))
 import conformance  # noqa: E402
 

@@ -21,10 +21,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from repo_paths import TOOLS
 
 from phrt_usd.run.images import write_frame_exr, write_preview_png
 
-TOOLS = Path(__file__).resolve().parents[1] / "tools"
 sys.path.insert(0, str(TOOLS))
 import cvvdp_check  # noqa: E402
 

@@ -3,14 +3,13 @@
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import pytest
+from repo_paths import STAGES
 from typer.testing import CliRunner
 
 from phrt_usd.cli import app
 
-STAGES = Path(__file__).resolve().parent.parent / "stages"
 runner = CliRunner()
 
 #: stage → the prim.attribute every error line of `phrt validate` must name.

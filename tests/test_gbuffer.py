@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 import trimesh
 from embreex import mesh_construction, rtcore_scene
+from repo_paths import STAGES
 from scenes import box, look_at, parts_scene, shaded_both_ways, sphere
 
 from phrt_usd.engine.raster.rasterizer import Rasterizer
@@ -491,8 +492,7 @@ STRICT_ID_STAGES = {"sewer"}
 @pytest.mark.parametrize("name", PAPER_STAGES)
 def test_paper_stage_ids(name, tmp_path):
     """Element ids agree with Embree on a few frames of the paper stages."""
-    root = Path(__file__).resolve().parents[1]
-    path = root / "stages" / f"{name}.usda"
+    path = STAGES / f"{name}.usda"
     if not path.exists():
         pytest.skip(f"{path} not there yet")
     try:

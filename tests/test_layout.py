@@ -6,7 +6,8 @@ from __future__ import annotations
 import ast
 from pathlib import Path
 
-PACKAGE = Path(__file__).resolve().parent.parent / "phrt_usd"
+from repo_paths import PACKAGE
+
 ROOT = "phrt_usd"
 #: Phase of each subpackage in the order a frame walks them; a module may import its own
 #: phase and earlier ones only. Top-level modules (cli, cluster, api) come last; the base

@@ -4,13 +4,12 @@ what it cannot find (an installed copy has no commit; a machine without git)."""
 from __future__ import annotations
 
 import json
-from pathlib import Path
+
+from repo_paths import REPO
 
 import phrt_usd
 from phrt_usd import base
 from phrt_usd.evaluate import provenance
-
-REPO = Path(__file__).resolve().parents[1]
 
 
 def test_commit_is_unknown_for_an_installed_copy(monkeypatch, tmp_path):

@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from image_thresholds import HYBRID_VS_RT_FLIP
+from repo_paths import STAGES
 from scenes import mirror_floor_stage, mirror_gallery_stage, mirrored_sphere_pixels
 
 from phrt_usd.engine.renderer import FrameRenderer, RenderOptions
@@ -15,7 +16,6 @@ from phrt_usd.pytest_plugin import assert_images_close
 from phrt_usd.run.images import write_preview_png
 from phrt_usd.usd.stage import open_stage
 
-STAGES = Path(__file__).resolve().parent.parent / "stages"
 #: Fraction of the analytically mirrored sphere's floor pixels that must show it red.
 MIRROR_AGREEMENT = 0.97
 

@@ -8,12 +8,12 @@ from __future__ import annotations
 import math
 import re
 from dataclasses import fields
-from pathlib import Path
 
 import numpy as np
 import pytest
 import typer
 from pxr import Usd
+from repo_paths import DOCS
 
 import phrt_usd  # noqa: F401  (registers the Phrt schemas)
 from phrt_usd.checks import (
@@ -38,7 +38,7 @@ from phrt_usd.model.render_options import (
 )
 from phrt_usd.usd import schema
 
-DOCS_API = Path(__file__).resolve().parent.parent / "docs" / "api.md"
+DOCS_API = DOCS / "api.md"
 #: Options given together as --resolution / resolution= (one row, one CLI option).
 SIZE = ("width", "height")
 

@@ -3,15 +3,13 @@
 import os
 import subprocess
 import sys
-from pathlib import Path
 
 import numpy as np
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdRender
+from repo_paths import REPO
 
 import phrt_usd
 from phrt_usd.usd import schema
-
-REPO = Path(__file__).resolve().parent.parent
 
 
 def _mesh_stage():

@@ -10,6 +10,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from repo_paths import REPO, TOOLS
 
 from phrt_usd.engine.renderer import FrameRenderer, RenderOptions
 from phrt_usd.model.frame import Budget, FrameNote, FrameView, SelectionPolicy, TraceRecord
@@ -18,16 +19,14 @@ from phrt_usd.select.policies import POLICY_NAMES, make_policy
 from phrt_usd.select.rounds import Calibration, TracedRound, run_rounds
 from phrt_usd.usd.stage import open_stage
 
-ROOT = Path(__file__).resolve().parents[1]
-TOOLS = ROOT / "tools"
 if str(TOOLS) not in sys.path:
     sys.path.insert(0, str(TOOLS))
 import policy_replay  # noqa: E402
 
 #: Where the round loop may be driven: the package and the tools (tests drive policies
 #: directly to test them one call at a time).
-SOURCES = sorted([*(ROOT / "phrt_usd").rglob("*.py"), *TOOLS.glob("*.py")])
-ROUND_LOOP = ROOT / "phrt_usd" / "select" / "rounds.py"
+SOURCES = sorted([*(REPO / "phrt_usd").rglob("*.py"), *TOOLS.glob("*.py")])
+ROUND_LOOP = REPO / "phrt_usd" / "select" / "rounds.py"
 
 
 def _calls(path: Path):
@@ -40,12 +39,12 @@ def test_probe_the_round_loop_is_written_once():
     # A policy's rounds are asked for in one place: the renderer and the replay tool both
     # run ``run_rounds``, so a replay selects what a render of the same views does.
     drivers = sorted(
-        str(path.relative_to(ROOT))
+        str(path.relative_to(REPO))
         for path in SOURCES
         for call in _calls(path)
         if isinstance(call.func, ast.Attribute) and call.func.attr == "next_round"
     )
-    assert drivers == [str(ROUND_LOOP.relative_to(ROOT))]
+    assert drivers == [str(ROUND_LOOP.relative_to(REPO))]
 
 
 def test_probe_no_policy_attribute_is_read_through_getattr():
@@ -57,7 +56,7 @@ def test_probe_no_policy_attribute_is_read_through_getattr():
             if isinstance(call.func, ast.Name) and call.func.id in ("getattr", "hasattr"):
                 target = ast.unparse(call.args[0]) if call.args else ""
                 if "policy" in target.lower():
-                    found.append(f"{path.relative_to(ROOT)}:{call.lineno}: {ast.unparse(call)}")
+                    found.append(f"{path.relative_to(REPO)}:{call.lineno}: {ast.unparse(call)}")
     assert not found, "\n".join(found)
 
 
@@ -221,7 +220,7 @@ def test_the_fallback_error_is_observed_before_the_policy_learns_only_when_read(
 def test_a_replay_of_a_capture_selects_what_the_renderer_selects(tmp_path: Path):
     # The replay tool's premise: with a rays budget, the recorded records replayed
     # through the round loop give the selection a render gives, frame by frame.
-    stage_path = ROOT / "stages" / "sewer.usda"
+    stage_path = REPO / "stages" / "sewer.usda"
     frames, width, height = "0:46:2", 96, 72
     recording = tmp_path / "sewer.json.gz"
     policy_replay.capture(stage_path, recording, width, height, frames)

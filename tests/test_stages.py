@@ -9,14 +9,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 from pxr import Usd, UsdGeom
+from repo_paths import REPO, STAGES
 
-ROOT = Path(__file__).resolve().parent.parent
-STAGES = ROOT / "stages"
 MAX_LAYER_BYTES = 5 * 1024 * 1024
 
 
 def _load_generator():
-    spec = importlib.util.spec_from_file_location("make_stages", ROOT / "tools" / "make_stages.py")
+    spec = importlib.util.spec_from_file_location("make_stages", REPO / "tools" / "make_stages.py")
     module = importlib.util.module_from_spec(spec)
     sys.modules["make_stages"] = module
     spec.loader.exec_module(module)

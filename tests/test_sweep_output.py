@@ -20,6 +20,7 @@ import time
 from pathlib import Path
 
 import pytest
+from repo_paths import REPO
 from scenes import mirror_gallery_stage
 
 import phrt_usd
@@ -37,7 +38,6 @@ FIRST_FRAMES = 3
 #: The thread setting of the recorded sweep: not the default (the cores), so that the
 #: provenance shows the setting given and not a guess.
 THREADS = 1
-REPO = Path(__file__).resolve().parents[1]
 
 
 def _cli(*args: str, timeout: float = 300) -> subprocess.CompletedProcess:

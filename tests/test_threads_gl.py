@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from repo_paths import REPO
 from scenes import mirror_floor_stage
 from typer.testing import CliRunner
 
@@ -25,7 +26,6 @@ from phrt_usd.engine.raster.gl_platform import egl_problem
 from phrt_usd.errors import BadOption
 from phrt_usd.run.images import read_frame_exr
 
-REPO = Path(__file__).resolve().parent.parent
 CLI = [sys.executable, "-m", "typer", "phrt_usd.cli", "run"]
 #: Modules a cheap start must not load: OpenGL, pyrender (trimesh, scipy, networkx),
 #: Embree, the image library, the plots, the cluster and rich (tables printed at the end).

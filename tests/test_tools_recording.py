@@ -18,11 +18,11 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from repo_paths import TOOLS
 
 from phrt_usd.model.frame import FrameView, TraceRecord
 from phrt_usd.model.scene import CameraFrame, DistantLight, LocalLight
 
-TOOLS = Path(__file__).resolve().parents[1] / "tools"
 if str(TOOLS) not in sys.path:
     sys.path.insert(0, str(TOOLS))
 import policy_replay as pr  # noqa: E402

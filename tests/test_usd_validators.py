@@ -11,13 +11,13 @@ from pathlib import Path
 
 import pytest
 from pxr import Tf, Usd, UsdValidation
+from repo_paths import REPO
 from scenes import clean_stage
 
 import phrt_usd
 from phrt_usd.usd import schema, validators
 from phrt_usd.usd.validation import validate_stage
 
-REPO = Path(__file__).resolve().parent.parent
 GEN_SCHEMA = REPO / "tools" / "gen_schema.py"
 
 #: A script for a Python that never imports phrt_usd: plain USD finds the Phrt validators
