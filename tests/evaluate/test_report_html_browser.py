@@ -35,9 +35,6 @@ from pathlib import Path
 
 import OpenImageIO as oiio
 import pytest
-from test_sweep_report import write_synthetic_sweep
-
-from phrt_usd.evaluate.sweep_report import write_sweep_report
 
 CHROMIUM = Path("/usr/bin/chromium")
 
@@ -227,10 +224,8 @@ def _img_srcs(page: Path) -> list[str]:
 
 
 @pytest.fixture(scope="module")
-def report(tmp_path_factory) -> Path:
-    out = write_synthetic_sweep(tmp_path_factory.mktemp("sweep"))
-    write_sweep_report(out)
-    return out / "report.html"
+def report(report_dir) -> Path:
+    return report_dir / "report.html"
 
 
 def test_report_renders_without_console_errors(report, tmp_path):

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import OpenImageIO as oiio
 import pytest
-from pxr import Sdf, Usd
+from pxr import Usd
 from scenes import mirror_gallery_stage
 
 from phrt_usd.api import run_render
@@ -42,26 +42,6 @@ def _selected_samples(layer: Path) -> dict[str, dict[float, bool]]:
     return out
 
 
-def _check_readable(out: Path) -> int:
-    """Open every finished file in a run directory; returns how many were checked."""
-    n = 0
-    for path in list(out.rglob("*")):
-        if path.name.startswith(".") or not path.is_file():
-            continue  # temp files of an atomic write in progress
-        try:
-            if path.suffix in (".exr", ".png"):
-                buf = oiio.ImageBuf(str(path))
-                assert not buf.has_error and buf.spec().width > 0, path
-            elif path.suffix == ".json":
-                json.loads(path.read_text())
-            elif path.suffix == ".usda":
-                assert Sdf.Layer.OpenAsAnonymous(str(path)) is not None, path
-        except FileNotFoundError:
-            continue  # replaced between listing and opening
-        n += 1
-    return n
-
-
 def test_parse_frames():
     assert parse_frames("1:5", (0, 0)) == [1, 2, 3, 4, 5]
     assert parse_frames("1:10:4", (0, 0)) == [1, 5, 9]
@@ -69,7 +49,7 @@ def test_parse_frames():
     assert parse_frames("7", (0, 0)) == [7]
 
 
-def test_sigint_then_resume_equals_uninterrupted(tmp_path):
+def test_sigint_then_resume_equals_uninterrupted(tmp_path, check_readable):
     stage = mirror_gallery_stage(tmp_path / "gallery.usda", frames=40)
     args = ["--frames", "1:40", "--budget-rays", str(BUDGET_RAYS), "--resolution", "64x48"]
     full = tmp_path / "full"
@@ -85,7 +65,7 @@ def test_sigint_then_resume_equals_uninterrupted(tmp_path):
     checked = 0
     deadline = time.monotonic() + 240
     while time.monotonic() < deadline:
-        checked += _check_readable(part) if part.exists() else 0
+        checked += check_readable(part) if part.exists() else 0
         if len(list((part / "frames").glob("*.png"))) >= 20 if part.exists() else False:
             break
         time.sleep(0.05)
@@ -97,7 +77,7 @@ def test_sigint_then_resume_equals_uninterrupted(tmp_path):
     times, _, _, _ = read_selection(part / "selection.usda")
     finished = len(list((part / "frames").glob("*.png")))
     assert 20 <= len(times) == finished < 40  # every finished frame is in the layer
-    _check_readable(part)
+    check_readable(part)
 
     resumed = subprocess.run(
         [sys.executable, "-m", "typer", "phrt_usd.cli", "run", "render", str(stage),

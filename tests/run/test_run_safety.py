@@ -19,7 +19,6 @@ from pathlib import Path
 
 import pytest
 from scenes import mirror_gallery_stage
-from test_render_job import _check_readable
 
 from phrt_usd.api import run_render
 from phrt_usd.atomic import WriteFailed, write_text_atomic
@@ -316,8 +315,9 @@ def small_disk(tmp_path):
         subprocess.run(["umount", "-l", str(mount)], check=False)
 
 
-def test_full_disk_leaves_no_broken_file_and_keeps_records(gallery, tmp_path, small_disk,
-                                                           monkeypatch):  # fmt: skip
+def test_full_disk_leaves_no_broken_file_and_keeps_records(
+    gallery, tmp_path, small_disk, monkeypatch, check_readable
+):
     """On a full disk the render ends with one line naming the file and the OS error; no
     file under a final name is broken and the finished frames are in stats.json."""
     options = RenderOptions(width=160, height=120, budget_ms=None, budget_rays=600)
@@ -340,7 +340,7 @@ def test_full_disk_leaves_no_broken_file_and_keeps_records(gallery, tmp_path, sm
     job = RenderJob(stage_path=stage, out_dir=out, options=options, frames="1:30")
     with pytest.raises(WriteFailed, match="(?i)no space left on device"):
         run_render(job)
-    assert _check_readable(out) > 0
+    assert check_readable(out) > 0
     assert not [p for p in out.rglob(".*") if p.name != LOCK_FILE]  # no temp left
     stats = json.loads((out / "stats.json").read_text())
     finished = [f["time"] for f in stats["frames"]]
@@ -350,7 +350,7 @@ def test_full_disk_leaves_no_broken_file_and_keeps_records(gallery, tmp_path, sm
         assert (out / "frames" / f"{int(t):04d}.png").stat().st_size > 0
 
 
-def test_kill_9_never_leaves_an_unreadable_final_file(tmp_path):
+def test_kill_9_never_leaves_an_unreadable_final_file(tmp_path, check_readable):
     """SIGKILL at random moments of a render: every file under its final name reads (temp
     files may remain; they are hidden and never mistaken for output)."""
     stage = mirror_gallery_stage(tmp_path / "g.usda", frames=60)
@@ -367,7 +367,7 @@ def test_kill_9_never_leaves_an_unreadable_final_file(tmp_path):
         time.sleep(rng.uniform(0.0, 1.5))
         proc.send_signal(signal.SIGKILL)
         proc.wait()
-        checked += _check_readable(out)
+        checked += check_readable(out)
         # The killed run's lock died with it: --resume continues.
         done = _cli("render", str(stage), "--out", str(out), "--frames", "1:60",
                     "--budget-rays", "600", "--resolution", "64x48", "--resume")  # fmt: skip
