@@ -7,9 +7,11 @@ markdown table and the Spearman rank correlations. cvvdp needs torch, which is n
 dependency of phrt-usd, so the check runs in two steps under two Python environments:
 
 1. ``ours`` (the project's environment): reads the ``phrt render`` output directories
-   (``DIR/frames/*.exr`` and ``DIR/stats.json``) of a reference (``--heuristic all``) and
-   of each configuration, computes per frame FLIP and the temporal error against the
-   reference with the project's own functions, counts transitions, and writes a JSON::
+   (``DIR/frames/*.exr`` and ``DIR/stats.json``) of a reference (``--heuristic all``,
+   rendered with ``--aovs motion``: the warp reads its motion vectors, depth and ids,
+   which every configuration of the same frames shares) and of each configuration,
+   computes per frame FLIP and the temporal error against the reference with the
+   project's own functions, counts transitions, and writes a JSON::
 
        uv run python tools/cvvdp_check.py ours /tmp/cv/all /tmp/cv/none /tmp/cv/heu1-10000 \\
            ... --out /tmp/cv/ours.json
@@ -28,12 +30,17 @@ therefore given an SDR display model with the sRGB EOTF (``standard_4k``'s photo
 [0, 1]. An HDR model (PQ, absolute luminance) would judge linear radiance above 1 that the
 previews and our metrics clamp away. The display geometry is a fixed ``PIXELS_PER_DEGREE``
 so that cvvdp views the frames under FLIP's viewing condition. The frame rate given to
-cvvdp and to our temporal error is the recorded sequence's
+cvvdp is the recorded sequence's
 (``temporal_error.sequence_frames_per_second`` of the reference's stats.json: the stage's
 ``timeCodesPerSecond`` for consecutive time codes), as the sweep takes it.
 
 Spearman's rho is taken between our error and ``-JOD`` (JOD is higher-better, our errors
 lower-better), so rho = +1 means the same ranking.
+
+Our temporal error here is the sweep's (``temporal_error``: the warped-frame error beyond
+the reference's, per pixel), with one difference: the files hold no depth of a pixel's
+point in the previous camera, so the warp masks by element id alone
+(``FrameWarp.between`` without ``expected_depth``).
 """
 
 from __future__ import annotations
@@ -108,23 +115,24 @@ def _check_same_frames(reference: Path, directory: Path, suffix: str) -> list[st
 
 def our_metrics(reference: Path, directory: Path, frames_per_second: float) -> dict:
     """Per-configuration figures of ``directory`` against ``reference`` (render outputs of
-    a sequence at ``frames_per_second``): mean per-frame FLIP, mean temporal error,
-    transitions, mean frame ms and rays per frame (from stats.json)."""
+    a sequence at ``frames_per_second``): mean per-frame FLIP, mean temporal error (over
+    every frame but the first), transitions, mean frame ms and rays per frame (from
+    stats.json)."""
     from phrt_usd.evaluate.image_metrics import flip_map, mean_over
     from phrt_usd.evaluate.selection_metrics import selection_metrics
-    from phrt_usd.evaluate.temporal_error import TemporalChannels, temporal_error_map
+    from phrt_usd.evaluate.temporal_error import WarpedSequence, popping_map
     from phrt_usd.run.images import read_frame_exr
 
     names = _check_same_frames(reference, directory, "exr")
     flips, temporals = [], []
-    ref_channels = TemporalChannels(frames_per_second)
-    test_channels = TemporalChannels(frames_per_second)
-    for name in names:
+    ref_sequence, test_sequence = WarpedSequence(), WarpedSequence()
+    for name, warp in zip(names, reference_warps(reference, names), strict=True):
         ref = read_frame_exr(reference / "frames" / name)["beauty"]
         test = read_frame_exr(directory / "frames" / name)["beauty"]
         flips.append(mean_over(flip_map(ref, test)))
-        error = temporal_error_map(ref_channels.push(ref), test_channels.push(test))
-        temporals.append(mean_over(error))
+        ref_warped, test_warped = ref_sequence.push(ref, warp), test_sequence.push(test, warp)
+        if warp is not None:
+            temporals.append(mean_over(popping_map(test_warped, ref_warped), warp.valid))
     stats = json.loads((directory / "stats.json").read_text())
     frames = stats["frames"]
     reflectors = stats["run"]["reflectors"]
@@ -143,11 +151,33 @@ def our_metrics(reference: Path, directory: Path, frames_per_second: float) -> d
         "budget_ms": run["budget_ms"] if run["budget_rays"] is None else None,
         "frames": len(names),
         "flip": float(np.mean(flips)),
-        "temporal_error": float(np.mean(temporals)),
+        "temporal_error": float(np.mean(temporals)) if temporals else 0.0,
         "transitions": selection_metrics(selected, visible)["transitions"],
         "frame_ms": float(np.mean([fr["frame_ms"] for fr in frames])),
         "rays": float(np.mean([fr["rays"] for fr in frames])),
     }
+
+
+def reference_warps(reference: Path, names: list[str]) -> list:
+    """Each frame's ``FrameWarp`` from the previous one (None for the first), from the
+    reference's ``motion.x`` / ``motion.y``, ``Z`` and ``id`` channels; one line and exit
+    2 when its frames hold no motion (render it with ``--aovs motion``)."""
+    from phrt_usd.evaluate.temporal_error import FrameWarp
+    from phrt_usd.run.images import element_ids, read_exr
+
+    warps, previous = [], None
+    for name in names:
+        _, channels = read_exr(reference / "frames" / name)
+        if "motion.x" not in channels or "motion.y" not in channels:
+            fail(f"{reference}/frames/{name}: no motion.x / motion.y channels; render the "
+                 "reference with --aovs motion")
+        motion = np.stack([channels["motion.x"], channels["motion.y"]], -1).astype(np.float32)
+        ids = element_ids(channels["id"])
+        depth = channels["Z"].astype(np.float32)
+        warps.append(None if previous is None else
+                     FrameWarp.between(motion, ids, previous[0], previous[1]))
+        previous = (ids, depth)
+    return warps
 
 
 def run_ours(args: argparse.Namespace) -> None:
@@ -221,23 +251,55 @@ def run_alternate(args: argparse.Namespace) -> None:
 
 def _write_blend(first: Path, second: Path, out: Path, names: list[str]) -> None:
     """frames/<name>.exr and .png under ``out``: the mean of A's and B's linear beauty
-    (other channels: A's)."""
-    from phrt_usd.run.images import read_frame_exr, write_frame_exr, write_preview_png
+    (other channels, motion included: A's)."""
+    from phrt_usd.run.images import read_frame_exr, write_preview_png
 
     for name in names:
         a = read_frame_exr(first / "frames" / name)
         b = read_frame_exr(second / "frames" / name)
         beauty = np.float32(0.5) * (a["beauty"] + b["beauty"])
         stem = name.removesuffix(".exr")
-        write_frame_exr(out / "frames" / f"{stem}.exr", beauty, a["alpha"], a["depth"],
-                        a["element_id"], a["traced_mask"])
+        write_frame(out / "frames" / f"{stem}.exr", beauty, a["element_id"],
+                    _motion_of(first / "frames" / name), a["depth"])
         write_preview_png(out / "frames" / f"{stem}.png", beauty)
+
+
+def _motion_of(path: Path) -> np.ndarray | None:
+    """(H, W, 2) the motion channels of an EXR, None without them."""
+    from phrt_usd.run.images import read_exr
+
+    _, channels = read_exr(path)
+    if "motion.x" not in channels:
+        return None
+    return np.stack([channels["motion.x"], channels["motion.y"]], -1).astype(np.float32)
+
+
+def write_frame(path: Path, beauty: np.ndarray, ids: np.ndarray, motion: np.ndarray | None,
+                depth: np.ndarray | None = None) -> None:
+    """A frame in the default layout (``images.write_frame_exr``'s channels: coverage and
+    traced from ``ids``, depth 2 m unless given) plus ``motion.x`` / ``motion.y`` (float)
+    when ``motion`` (H, W, 2) is given, as ``phrt render --aovs motion`` writes them."""
+    from phrt_usd.run.images import stored, stored_depth, stored_ids, write_exr
+
+    covered = (ids >= 0).astype(np.float32)
+    depth = np.full(ids.shape, 2.0, np.float32) if depth is None else depth
+    channels = {"R": stored(beauty[..., 0], "half"), "G": stored(beauty[..., 1], "half"),
+                "B": stored(beauty[..., 2], "half"), "A": stored(np.ones(ids.shape), "half"),
+                "Z": stored_depth(path, depth), "id": stored_ids(path, ids),
+                "traced": stored(covered, "half")}
+    if motion is not None:
+        channels["motion.x"] = stored(motion[..., 0], "float")
+        channels["motion.y"] = stored(motion[..., 1], "float")
+    write_exr(path, {"": channels})
 
 
 #: The synthetic sequences of ``synthetic`` (docs/temporal-error.md, "Synthetic
 #: sequences"): 320x240, 24 frames at 24 fps, a sine background (still or shifting 0.7 rad
-#: a frame), a patch of +PATCH linear radiance on its middle quarter.
+#: a frame: SYNTHETIC_PERIOD_PX x 0.7 / 2 pi = 21 pixels left), a patch of +PATCH linear
+#: radiance on its middle quarter (still on screen).
 SYNTHETIC_SIZE = (320, 240)
+SYNTHETIC_WAVELENGTH_PX = 30.0  # the background's sin(x / 30 + phase)
+SYNTHETIC_PHASE_STEP = 0.7
 SYNTHETIC_FRAMES = 24
 SYNTHETIC_PATCH = 0.3
 
@@ -247,8 +309,9 @@ def run_synthetic(args: argparse.Namespace) -> None:
     under ``--out``: the background alone (``reference``, as if rendered with ``all``),
     the patch in every frame (``steady``), half the patch in every frame (``blend``), and
     the patch switched on and off every 1, 2 and 4 frames (``pop1`` 12 Hz, ``pop2`` 6 Hz,
-    ``pop4`` 3 Hz); ``--moving`` shifts the background every frame."""
-    from phrt_usd.run.images import write_frame_exr, write_preview_png
+    ``pop4`` 3 Hz); ``--moving`` shifts the background every frame. The frames carry
+    their exact motion: the background's shift, 0 on the patch."""
+    from phrt_usd.run.images import write_preview_png
 
     width, height = SYNTHETIC_SIZE
     x = np.arange(width, dtype=np.float32)
@@ -260,17 +323,21 @@ def run_synthetic(args: argparse.Namespace) -> None:
             lambda t, p=period: SYNTHETIC_PATCH if (t // p) % 2 else 0.0)
     ids = np.full((height, width), -1, dtype=np.int32)
     ids[patch] = 0
+    # sin(x / L + s t): what is at x now was at x + L s a frame before (motion -L s).
+    motion = np.zeros((height, width, 2), np.float32)
+    if args.moving:
+        motion[ids < 0, 0] = -SYNTHETIC_WAVELENGTH_PX * SYNTHETIC_PHASE_STEP
     for name, amount in amounts.items():
         out = Path(args.out) / name
         (out / "frames").mkdir(parents=True, exist_ok=True)
         frames = []
         for t in range(SYNTHETIC_FRAMES):
-            row = 0.25 + 0.15 * np.sin(x / 30.0 + (0.7 * t if args.moving else 0.0))
+            phase = SYNTHETIC_PHASE_STEP * t if args.moving else 0.0
+            row = 0.25 + 0.15 * np.sin(x / SYNTHETIC_WAVELENGTH_PX + phase)
             beauty = np.repeat(np.repeat(row[None, :, None], height, 0), 3, 2)
             beauty[patch] += amount(t)
             stem = f"{1 + t:04d}"
-            write_frame_exr(out / "frames" / f"{stem}.exr", beauty, np.ones((height, width)),
-                            np.full((height, width), 2.0), ids, ids >= 0)
+            write_frame(out / "frames" / f"{stem}.exr", beauty, ids, motion)
             write_preview_png(out / "frames" / f"{stem}.png", beauty)
             frames.append({"time": float(1 + t), "frame_ms": 0.0, "rays": 0,
                            "visible": ["/Patch"],

@@ -13,7 +13,7 @@ that it can be reproduced and cited.
   OpenGL platform asked for and the one used, and the ``GL_RENDERER`` of the raster
   phase when known), ``kernels`` (how the compiled kernels run, ``phrt_usd.kernels.form``);
 - ``metric``: FLIP's mode and viewing conditions (``image_metrics.flip_settings``) and the
-  temporal error's filter settings;
+  temporal error's settings (its measure, the warp's depth agreement);
 - ``seeds``: every seed the measurement uses (the renderer's cost calibration);
 - ``libraries``: the versions of the libraries the figures depend on;
 - ``date`` (UTC).
@@ -208,8 +208,8 @@ def temporal_error_settings() -> dict[str, Any]:
     from phrt_usd.evaluate import temporal_error as te
 
     return {
-        "filter_span_s": te.TEMPORAL_FILTER_SPAN_S,
-        "transient_weight": te.TRANSIENT_WEIGHT,
+        "measure": "warped-frame FLIP beyond the reference's, per pixel",
+        "depth_agreement": te.DEPTH_AGREEMENT,
         "flip": "as metric.flip",
     }
 

@@ -13,10 +13,11 @@ order, per resolution:
 3. the pure ``rt`` mode finishes the frame at that bounce limit as a second reference;
 4. each configuration's image is compared with its variant's references: FLIP (LDR
    after ``images.tonemap_ldr``) and PSNR, over the frame and over reflector pixels only,
-   and the temporal error (``temporal_error``, docs/temporal-error.md): FLIP between the
-   configuration's and the reference's sequences as the eye integrates them (sustained)
-   plus FLIP between their flicker (transient), which sees the popping of a reflector
-   switching between raster and traced.
+   and the temporal error (``temporal_error``, docs/temporal-error.md): each sequence's
+   previous frame warped to this one by the frame's exact motion vectors (occluded
+   pixels masked) and compared with FLIP, the configuration's warped error beyond the
+   reference's own, which sees the popping of a reflector switching between raster and
+   traced and not the motion both sequences share.
 
 Frame times are measured per configuration in the same run: G-buffer and shading
 phases (shared) plus that configuration's own selection and trace phases.
@@ -65,11 +66,7 @@ from phrt_usd.evaluate.sweep_files import (
     TIMELINE_JSON,
 )
 from phrt_usd.evaluate.sweep_output import SweepDirectory, check_out
-from phrt_usd.evaluate.temporal_error import (
-    TemporalChannels,
-    sequence_frames_per_second,
-    temporal_error_map,
-)
+from phrt_usd.evaluate.temporal_error import FrameWarp, WarpedSequence, popping_map
 from phrt_usd.model.render_options import OPTIONS
 from phrt_usd.run.frames import parse_frames
 from phrt_usd.run.images import write_png_atomic, write_preview_png
@@ -82,9 +79,13 @@ CSV_COLUMNS = [
     "bounce_limit", "trace_density", "frame", "frame_ms", "gbuffer_ms", "shade_ms",
     "select_ms", "trace_ms",
     "predicted_trace_ms", "rays", "visible", "selected", "transitions", "density_steps", "flip",
-    "flip_reflectors", "psnr", "flip_rt", "psnr_rt", "temporal_error",
-    "temporal_error_reflectors",
+    "flip_reflectors", "psnr", "flip_rt", "psnr_rt", "warped_error", "warped_error_reference",
+    "temporal_error", "temporal_error_reflectors",
 ]  # fmt: skip
+#: The columns of the temporal error, blank on a sequence's first frame (no previous one).
+TEMPORAL_COLUMNS = (
+    "warped_error", "warped_error_reference", "temporal_error", "temporal_error_reflectors",
+)
 
 #: The render options a ``SweepSpec`` sets for all its renderers, and its lists of
 #: values of one option each (a list → the option each of its values sets).
@@ -259,14 +260,13 @@ def sweep_configs(spec: SweepSpec, variant: Variant | None = None) -> list[Sweep
 
 
 class _ConfigState:
-    """Per-configuration memory across frames: policy, the temporal error's channels of
-    its sequence (at ``frames_per_second``, the recorded sequence's rate), and the previous
-    frame's selection.
+    """Per-configuration memory across frames: policy, the previous frame of its sequence
+    (``temporal_error.WarpedSequence``), and the previous frame's selection.
 
     ``previous``: the last rendered frame's (selected, visible), each (R,) bool over the
     stage's reflectors (``StageSweep.reflectors`` order); None before the first frame."""
 
-    def __init__(self, config: SweepConfig, spec: SweepSpec, frames_per_second: float):
+    def __init__(self, config: SweepConfig, spec: SweepSpec):
         self.config = config
         variant = config.variant or spec.variants()[0]
         # rt traces everything: its renderer finishes frames with the ``all`` policy.
@@ -290,7 +290,7 @@ class _ConfigState:
             exposure=spec.exposure,
             trace_density=density,
         )
-        self.temporal = TemporalChannels(frames_per_second)
+        self.temporal = WarpedSequence()
         self.previous: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self.timeline_selected: list[list[bool]] = []
         self.timeline_visible: list[list[bool]] = []
@@ -471,12 +471,11 @@ def _sweep_stage(stage_path, spec, rows, timeline, stop, on_frame, progress, run
 class _VariantStates:
     """One variant's configurations and its two references (``all`` hybrid, ``rt``)."""
 
-    def __init__(self, variant: Variant, spec: SweepSpec, frames_per_second: float):
+    def __init__(self, variant: Variant, spec: SweepSpec):
         self.variant = variant
-        fps = frames_per_second
-        self.states = [_ConfigState(c, spec, fps) for c in sweep_configs(spec, variant)]
-        self.reference = _ConfigState(SweepConfig("all", variant=variant), spec, fps)
-        self.rt_state = _ConfigState(SweepConfig("all", mode="rt", variant=variant), spec, fps)
+        self.states = [_ConfigState(c, spec) for c in sweep_configs(spec, variant)]
+        self.reference = _ConfigState(SweepConfig("all", variant=variant), spec)
+        self.rt_state = _ConfigState(SweepConfig("all", mode="rt", variant=variant), spec)
 
     def all_states(self) -> list[_ConfigState]:
         return [*self.states, self.reference, self.rt_state]
@@ -484,7 +483,8 @@ class _VariantStates:
 
 class _Resolution:
     """The renderers of one resolution (hybrid and rt, shared by its bounce limits) and
-    the previous frame's reflector pixels ((H, W) bool, None before the first frame)."""
+    the previous frame's G-buffer (its element ids and depth, which the next frame's warp
+    reads; None before the first frame)."""
 
     def __init__(self, stage, times, spec: SweepSpec, variants: list[_VariantStates]):
         first = variants[0].variant
@@ -499,7 +499,21 @@ class _Resolution:
         self.rt = FrameRenderer(stage, replace(base, mode="rt"))
         self.rt.plan(times)
         self.variants = variants
-        self.previous_reflector_px: np.ndarray | None = None
+        self.previous_gbuffer = None
+
+    def warp(self, prep) -> FrameWarp | None:
+        """How frame ``prep`` (a ``PreparedFrame``) reads the previous one, shared by every
+        sequence of this resolution (they have one geometry): its motion vectors, element
+        ids and the depth its points had then against the previous G-buffer; None for
+        the first frame."""
+        previous, motion = self.previous_gbuffer, prep.motion
+        if previous is None or motion is None or not motion.has_previous:
+            return None
+        gb = prep.gbuffer
+        return FrameWarp.between(
+            motion.vectors, gb.element_id, previous.element_id, previous.depth,
+            motion.previous_depth,
+        )  # fmt: skip
 
 
 class StageSweep:
@@ -515,11 +529,10 @@ class StageSweep:
         self.name = Path(stage_path).stem
         #: Every time code of this stage's sweep (the chunk's frames are a slice of it).
         self.times = parse_frames(spec.frames, self.stage.frame_range)
-        fps = sequence_frames_per_second(self.times, self.stage.time_codes_per_second)
         by_size: dict[tuple[int, int], list[_VariantStates]] = {}
         for variant in spec.variants():
             key = (variant.width, variant.height)
-            by_size.setdefault(key, []).append(_VariantStates(variant, spec, fps))
+            by_size.setdefault(key, []).append(_VariantStates(variant, spec))
         self.resolutions = [
             _Resolution(self.stage, self.times, spec, vs) for vs in by_size.values()
         ]
@@ -561,13 +574,9 @@ class StageSweep:
             prep = res.hybrid.prepare(t)
             rt_prep = res.rt.prepare(t)
             reflector_px = prep.reflectivity > 0
-            # Temporal error over pixels that are a reflector's in either frame: a pop
-            # shows where the reflector is now and where it was.
-            temporal_px = (
-                reflector_px
-                if res.previous_reflector_px is None
-                else reflector_px | res.previous_reflector_px
-            )
+            # Every sequence of this resolution is warped alike (one geometry), outside
+            # the frames' timed phases; a warm-up frame's too, so the next one has it.
+            warp = res.warp(prep)
             for group in res.variants:
                 reference, rt_state = group.reference, group.rt_state
                 ref_out = res.hybrid.finish(prep, reference.policy, reference.options)
@@ -575,18 +584,21 @@ class StageSweep:
                 outputs = [(s, res.hybrid.finish(prep, s.policy, s.options)) for s in group.states]
                 outputs += [(reference, ref_out), (rt_state, rt_out)]
                 # Every sequence advances by this frame, warm-up frames included.
-                channels = {id(s): s.temporal.push(out.beauty) for s, out in outputs}
+                warped = {id(s): s.temporal.push(out.beauty, warp) for s, out in outputs}
                 references = _References(
-                    ref_out, channels[id(reference)], rt_out, reflector_px, temporal_px
-                )
+                    ref_out, warped[id(reference)], rt_out, reflector_px,
+                    None if warp is None else warp.valid,
+                )  # fmt: skip
                 for state, output in outputs:
                     selection = _selection_row(output, self.reflectors)
                     if record:
                         error = flip_map(ref_out.beauty, output.beauty)
-                        temporal = temporal_error_map(references.ref_channels, channels[id(state)])
+                        own = warped[id(state)]
+                        temporal = None if own is None else popping_map(own, references.ref_warped)
                         rows.append(
-                            _row(self.name, state, output, error, temporal, references, selection)
-                        )
+                            _row(self.name, state, output, error, own, temporal, references,
+                                 selection)
+                        )  # fmt: skip
                         if t in self.report_frames:
                             label = state.config.label
                             _write_report_images(
@@ -598,7 +610,7 @@ class StageSweep:
                 for state in group.all_states():
                     _remember(state, *state.pending, record)
                     state.pending = None
-            res.previous_reflector_px = reflector_px
+            res.previous_gbuffer = prep.gbuffer
         if record:
             self.recorded.append(t)
         return rows
@@ -622,15 +634,15 @@ class StageSweep:
 @dataclass
 class _References:
     """What one variant's rows are measured against in a frame: the ``all`` reference's
-    output and the temporal error's (sustained, transient) channels of its sequence at
-    this frame, the ``rt`` output, the reflector pixels of this frame and those of this or
-    the previous frame ((H, W) bool, the latter for the temporal error)."""
+    output and its sequence's warped error map at this frame (None on the first frame),
+    the ``rt`` output, the reflector pixels of this frame and the pixels the warp kept
+    ((H, W) bool; None on the first frame)."""
 
     ref: FrameOutput
-    ref_channels: tuple[np.ndarray, np.ndarray]
+    ref_warped: np.ndarray | None
     rt: FrameOutput
     reflector_px: np.ndarray
-    temporal_px: np.ndarray
+    warped_px: np.ndarray | None
 
 
 def _row(
@@ -638,16 +650,18 @@ def _row(
     state: _ConfigState,
     output: FrameOutput,
     flip_ref: np.ndarray,
-    temporal_map: np.ndarray,
+    warped_map: np.ndarray | None,
+    temporal_map: np.ndarray | None,
     refs: _References,
     selection: tuple[np.ndarray, np.ndarray, np.ndarray],
 ) -> dict:
     """One CSV row. flip_ref: (H, W) FLIP of this output against the ``all`` reference
-    ``refs.ref``; temporal_map: (H, W) ``temporal_error_map`` of this output's sequence
-    against the reference's at this frame; selection: this frame's (selected, visible,
-    levels), see ``_selection_row``. ``transitions`` and ``density_steps``: from the
-    configuration's previous frame into this one (``selection_metrics``; 0 on its first
-    frame)."""
+    ``refs.ref``; warped_map: (H, W) this output's sequence's warped error map
+    (``temporal_error.WarpedSequence``), temporal_map: its ``popping_map`` against the
+    reference's, both None on the first frame (the temporal columns are then blank);
+    selection: this frame's (selected, visible, levels), see ``_selection_row``.
+    ``transitions`` and ``density_steps``: from the configuration's previous frame into
+    this one (``selection_metrics``; 0 on its first frame)."""
     st = output.stats
     cfg = state.config
     transitions = steps = 0
@@ -657,6 +671,17 @@ def _row(
         transitions = int(transitions_per_frame(selected, visible)[-1])
         steps = density_steps(selected, visible, levels)
     heuristic = {"rt": "all", "raster": "none"}.get(cfg.mode, cfg.heuristic)
+    temporal = dict.fromkeys(TEMPORAL_COLUMNS, "")
+    if temporal_map is not None:
+        kept = refs.warped_px
+        temporal = {
+            "warped_error": round(mean_over(warped_map, kept), 6),
+            "warped_error_reference": round(mean_over(refs.ref_warped, kept), 6),
+            "temporal_error": round(mean_over(temporal_map, kept), 6),
+            "temporal_error_reflectors": round(
+                mean_over(temporal_map, kept & refs.reflector_px), 6
+            ),
+        }
     return {
         "stage": stage,
         "config": cfg.label,
@@ -685,8 +710,7 @@ def _row(
         "psnr": round(psnr(refs.ref.beauty, output.beauty), 4),
         "flip_rt": round(mean_over(flip_map(refs.rt.beauty, output.beauty)), 6),
         "psnr_rt": round(psnr(refs.rt.beauty, output.beauty), 4),
-        "temporal_error": round(mean_over(temporal_map), 6),
-        "temporal_error_reflectors": round(mean_over(temporal_map, refs.temporal_px), 6),
+        **temporal,
     }
 
 
@@ -729,17 +753,19 @@ def _write_report_images(
     label: str,
     output: FrameOutput,
     error: np.ndarray,
-    temporal: np.ndarray,
+    temporal: np.ndarray | None,
 ) -> None:
-    """Preview PNG, FLIP error map ((H, W) in [0, 1]) and temporal error map ((H, W) in
-    [0, 1 + TRANSIENT_WEIGHT], shown clipped to [0, 1]) of one configuration's frame, in
-    magma."""
+    """Preview PNG, FLIP error map and temporal error map (``popping_map``; none on the
+    first frame), both (H, W) in [0, 1], of one configuration's frame, in magma."""
     import matplotlib
 
     folder = out / IMAGES_DIR / stage / f"{t:g}"
     folder.mkdir(parents=True, exist_ok=True)
     write_preview_png(folder / f"{label}.png", output.beauty)
-    for suffix, values in ((FLIP_MAP_SUFFIX, error), (TEMPORAL_MAP_SUFFIX, temporal)):
+    maps = [(FLIP_MAP_SUFFIX, error)]
+    if temporal is not None:
+        maps.append((TEMPORAL_MAP_SUFFIX, temporal))
+    for suffix, values in maps:
         magma = matplotlib.colormaps["magma"](np.clip(values, 0.0, 1.0))[..., :3]
         # The error map is already display-referred: written without the tone map.
         _write_display_png(folder / f"{label}{suffix}.png", magma.astype(np.float32))

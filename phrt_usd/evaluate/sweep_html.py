@@ -244,8 +244,8 @@ def _images_section(
                     _figure(
                         out_dir,
                         temporal_map,
-                        f"temporal error of {config}: its sequence as seen over time "
-                        f"vs {reference_name}'s (magma)",
+                        f"temporal error of {config}: its warped-frame error beyond "
+                        f"{reference_name}'s (magma: black = 0, yellow = 1)",
                     )
                 )
             parts.append('<div class="row">' + "".join(cells) + "</div>")

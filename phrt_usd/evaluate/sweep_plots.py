@@ -85,7 +85,7 @@ def _save(fig: Figure, path: Path) -> None:
 #: The panels of error_vs_time.png, top to bottom: (summary key, y label, scale).
 ERROR_PANELS = (
     ("mean_flip", "mean FLIP vs reference\n(per frame, lower is better)", 1.0),
-    ("mean_temporal_error", "mean temporal error\n(seen over time, lower is better)", 1.0),
+    ("mean_temporal_error", "mean temporal error\n(popping, lower is better)", 1.0),
     ("transition_rate", "transition rate (%)", 100.0),
 )
 #: Ring drawn around the configurations on the Pareto front (points squared).
@@ -101,7 +101,7 @@ def plot_error_vs_time(
     summary: list[Mapping[str, Any]], path: Path, title: str | None = None
 ) -> None:
     """Three panels against mean frame ms, one x axis: mean FLIP (vs the reference), mean
-    temporal error (``temporal_error.temporal_error_map``) and the transition rate, for
+    temporal error (``temporal_error.popping_map``) and the transition rate, for
     every stage and variant in ``summary``.
 
     One line per heuristic per (stage, variant) through its budgets (each point annotated

@@ -30,12 +30,13 @@ Definitions used in the tables (all means and percentiles are over the config's 
   CSV's frame count) the chances are approximated from the CSV's per-frame visible counts
   after the first frame, which also counts reflectors that just entered the view; the
   summary says which was used.
-- *temporal error* = mean over the config's frames of ``temporal_error.
-  temporal_error_map``: FLIP between the config's sequence and the reference's as the eye
-  integrates them (sustained) plus FLIP between their flicker (transient), ColorVideoVDP's
-  channels (docs/temporal-error.md); 0 for a config whose frames equal the reference's,
-  about the per-frame FLIP for a steady error, more where a reflector pops between raster
-  and traced.
+- *temporal error* = mean over the config's frames (but its first: it has no previous
+  one) of sweep.csv's ``temporal_error``: the mean over the pixels the warp keeps of
+  ``temporal_error.popping_map``, the config's warped-frame error (its previous frame
+  warped to the current one by exact motion vectors, compared with FLIP) beyond the
+  reference's own (docs/temporal-error.md); 0 for a config whose frames equal the
+  reference's and for a steady error that moves with the surfaces, more where a reflector
+  pops between raster and traced.
 - *variant* = the resolution and bounce limit of a config (``sweep.Variant``); errors are
   measured against the reference of the same variant, so comparisons (equal time, the
   Pareto front) stay within one stage and variant.

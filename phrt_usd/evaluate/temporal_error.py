@@ -1,25 +1,30 @@
-"""The temporal error of a frame sequence against a reference sequence: what a viewer of the
-sequences sees over time, as a sustained (temporally integrated) and a transient (flicker)
-channel, each compared with LDR-FLIP (docs/temporal-error.md).
+"""The temporal error of a frame sequence against a reference sequence: popping, seen as
+the warped-frame error the reference does not have (docs/temporal-error.md).
 
-The two channels and their temporal filters are ColorVideoVDP's (Mantiuk et al. 2024,
-"ColorVideoVDP: A visual difference predictor for image, video and display distortions",
-ACM ToG 43(4); the parameter values of its release 0.5.7); FLIP stands in for its spatial
-model (contrast sensitivity, masking, pooling), and the weight of the transient channel is
-ours, calibrated against ColorVideoVDP (``TRANSIENT_WEIGHT``).
+Per frame t and sequence X, the previous frame is warped to this one by the frame's
+exact motion vectors (``engine/motion.py``): each pixel reads the previous frame where
+its surface point was (bilinear), and pixels whose surface was not visible there are
+masked (``FrameWarp``: the point was off screen or behind the camera, another element or
+a nearer surface covered it). The *warped error* of X at a pixel is the LDR-FLIP of
+``ldr(X_t)`` against ``ldr(warp(X_{t-1}))`` (``warped_error_map``): 0 where the pixel
+shows what its surface showed a frame before. A consistent moving sequence scores about
+0; a reflection that switches between raster and traced scores the switch. Real changes
+the warp does not follow (a reflection sliding over its mirror, a moving highlight) score
+too, so the sequence is judged against the reference's own warped error, pixel by pixel::
 
-Sequences are streamed: ``TemporalChannels.push`` takes the next frame of one sequence and
-returns its two channels at that frame; ``temporal_error_map`` compares two sequences'
-channels at one frame.
+    popping_t(p) = max(0, e_t(H)(p) - e_t(R)(p))      over the pixels the warp keeps
 
-Frames: (H, W, 3) float32 linear RGB, non-negative, finite. Channels: (H, W, 3) float32 in
-the display's sRGB-encoded domain (``images.tonemap_ldr``).
+(``popping_map``), 0 for the reference against itself. The sweep's ``temporal_error`` is
+its mean over the kept pixels; ``warped_error`` and ``warped_error_reference`` the two
+sequences' own means.
+
+Frames: (H, W, 3) float32 linear RGB, finite. Maps: (H, W) float32 in [0, 1].
 """
 
 from __future__ import annotations
 
 import math
-from collections import deque
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -27,40 +32,157 @@ from phrt_usd.errors import PhrtError
 from phrt_usd.evaluate.image_metrics import check_pair, flip_display
 from phrt_usd.run.images import tonemap_ldr
 
-#: Support of the temporal filters in seconds (ColorVideoVDP's 250 ms, over which its
-#: channels' impulse responses have decayed). At F frames per second a filter has
-#: 2 * ceil(F * SPAN / 2) + 1 taps (7 at 24 fps, 3 at 4 fps).
-TEMPORAL_FILTER_SPAN_S = 0.25
-#: Sustained channel, frequency response exp(-f**BETA / SIGMA) (f in Hz): a low-pass that
-#: keeps 48 % at 3 Hz and 2 % at 12 Hz (ColorVideoVDP's achromatic sustained channel, used
-#: here for all three colour channels).
-SUSTAINED_BETA = 1.3314
-SUSTAINED_SIGMA = 5.79336
-#: Transient channel, exp(-(f**BETA - PEAK**BETA)**2 / SIGMA): a band-pass peaking at PEAK Hz,
-#: where flicker is most visible (ColorVideoVDP's achromatic transient channel).
-TRANSIENT_BETA = 0.1898
-TRANSIENT_SIGMA = 0.12314
-TRANSIENT_PEAK_HZ = 5.0
-#: Weight of the transient channel's FLIP against the sustained one's (ours). FLIP of the
-#: transient images (changes of a few per cent on a grey) is small beside FLIP of images,
-#: where ColorVideoVDP sees flicker at low contrast: it scores a patch flickering at 6 Hz
-#: far worse than the same patch shown steadily (0.6 against 2.9 JOD), which the sum ranks
-#: so from a weight of 1.3 on. 1.5 is the round value above it; checked against
-#: ColorVideoVDP in docs/temporal-error.md (rank correlations on rendered and synthetic
-#: sequences, and how they move with the weight).
-TRANSIENT_WEIGHT = 1.5
+#: A surface point is the one the previous frame saw at its position when their inverse
+#: depths agree within this share: a plane's inverse depth is linear on screen, so the
+#: bilinear mean of the previous frame's at the taps is the point's own up to float32
+#: rounding (1e-7) and a surface's curvature over one pixel (far below 1 % for the
+#: stages' meshes); an occluder in front differs by its distance. Surfaces within 1 % of
+#: each other's depth are taken as one.
+DEPTH_AGREEMENT = 0.01
+#: A bilinear tap whose weight is at most this reads nothing (a motion of a whole number
+#: of pixels reads one pixel): its element and depth are not compared.
+TAP_WEIGHT_MIN = 1e-6
 
-#: Display mapping of the transient channel: a value ``d`` in [-1, 1] (the filter's output
-#: on sRGB-encoded frames in [0, 1] stays within +-0.8: its positive and its negative taps
-#: each sum to at most 0.79 from 1 to 10,000 frames per second) is shown as
-#: ``CHANGE_GREY + CHANGE_SCALE * d`` in [0, 1], on a mid-grey at half amplitude, so FLIP
-#: compares displayable images and +d and -d are equally far from the grey.
-CHANGE_GREY = 0.5
-CHANGE_SCALE = 0.5
 
-#: Highest frame rate the filters are made for: 2501 taps, far beyond any rendered
-#: sequence; keeps the filter length finite for absurd rates.
-MAX_FRAMES_PER_SECOND = 1e4
+@dataclass(frozen=True)
+class FrameWarp:
+    """How frame t reads frame t - 1 (module docstring), for every sequence of the same
+    frames: each pixel's four bilinear taps into the previous frame (``taps`` (H * W, 4)
+    int64 flat indices, ``weights`` (H * W, 4) float32, summing to 1) and ``valid`` (H, W)
+    bool, the pixels whose surface point the previous frame showed at that position."""
+
+    taps: np.ndarray
+    weights: np.ndarray
+    valid: np.ndarray
+
+    @classmethod
+    def between(
+        cls,
+        motion: np.ndarray,
+        element_id: np.ndarray,
+        previous_element_id: np.ndarray,
+        previous_depth: np.ndarray,
+        expected_depth: np.ndarray | None = None,
+    ) -> FrameWarp:
+        """The warp of a frame with ``motion`` (H, W, 2) pixels (``engine/motion.py``:
+        this frame's position minus the previous one's, x right, y down) and
+        ``element_id`` (H, W) (-1 background) onto the previous frame's
+        ``previous_element_id`` and view ``previous_depth`` (H, W) (inf background).
+
+        A pixel is kept when its previous position lies on the image, every tap that
+        weighs (TAP_WEIGHT_MIN) shows the same element (background: background), and,
+        with ``expected_depth`` ((H, W): the depth the pixel's point had in the previous
+        camera, ``MotionField.previous_depth``; NaN behind it), the taps' bilinear inverse
+        depth agrees with it (DEPTH_AGREEMENT). Without ``expected_depth`` (files hold
+        none) the element alone decides."""
+        height, width = element_id.shape
+        if motion.shape != (height, width, 2) or previous_depth.shape != (height, width):
+            raise PhrtError(
+                f"warp: motion {motion.shape} and depth {previous_depth.shape} do not fit "
+                f"a {width}x{height} frame"
+            )
+        rows, cols = np.divmod(np.arange(height * width), width)
+        move = np.asarray(motion, dtype=np.float64).reshape(-1, 2)
+        # Pixel centres are at index + 0.5: the previous centre's index coordinates.
+        x = cols - move[:, 0]
+        y = rows - move[:, 1]
+        on_image = (
+            np.isfinite(x) & np.isfinite(y)
+            & (x >= -0.5) & (x <= width - 0.5) & (y >= -0.5) & (y <= height - 0.5)
+        )  # fmt: skip
+        x = np.where(on_image, x, cols)
+        y = np.where(on_image, y, rows)
+        x0, y0 = np.floor(x), np.floor(y)
+        fx, fy = x - x0, y - y0
+        xs = np.clip(np.stack([x0, x0 + 1.0, x0, x0 + 1.0], axis=1), 0, width - 1).astype(np.int64)
+        ys = np.clip(np.stack([y0, y0, y0 + 1.0, y0 + 1.0], axis=1), 0, height - 1).astype(np.int64)
+        taps = ys * width + xs
+        weights = np.stack(
+            [(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy], axis=1
+        )
+        weighs = weights > TAP_WEIGHT_MIN
+        ids = np.asarray(element_id).reshape(-1)
+        then = np.asarray(previous_element_id).reshape(-1)[taps]
+        same = np.all((then == ids[:, None]) | ~weighs, axis=1)
+        valid = on_image & same
+        if expected_depth is not None:
+            expected = np.asarray(expected_depth, dtype=np.float64).reshape(-1)
+            covered = ids >= 0
+            inverse = 1.0 / np.asarray(previous_depth, dtype=np.float64).reshape(-1)[taps]
+            seen = np.sum(np.where(weighs, weights * inverse, 0.0), axis=1)
+            seen /= np.maximum(np.sum(np.where(weighs, weights, 0.0), axis=1), 1e-300)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                want = 1.0 / expected
+                agree = np.abs(seen - want) <= DEPTH_AGREEMENT * want
+            valid &= ~covered | (np.isfinite(expected) & (expected > 0.0) & agree)
+        return cls(taps, weights.astype(np.float32), valid.reshape(height, width))
+
+    @classmethod
+    def still(cls, height: int, width: int) -> FrameWarp:
+        """Every pixel reads itself (a still camera over a still scene, no occlusion)."""
+        taps = np.repeat(np.arange(height * width, dtype=np.int64)[:, None], 4, axis=1)
+        weights = np.zeros((height * width, 4), np.float32)
+        weights[:, 0] = 1.0
+        return cls(taps, weights, np.ones((height, width), dtype=bool))
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.valid.shape  # type: ignore[return-value]
+
+    def warp(self, previous: np.ndarray) -> np.ndarray:
+        """(H, W, C) float32 the previous frame's ``previous`` (H, W, C) read at each
+        pixel's previous position (bilinear); meaningful where ``valid``."""
+        height, width = self.shape
+        flat = np.asarray(previous, dtype=np.float32).reshape(height * width, -1)
+        out = np.einsum("nk,nkc->nc", self.weights, flat[self.taps])
+        return out.reshape(height, width, -1)
+
+
+def warped_error_map(current: np.ndarray, previous: np.ndarray, warp: FrameWarp) -> np.ndarray:
+    """(H, W) float32 LDR-FLIP of the linear frame ``current`` against the linear
+    ``previous`` one warped to it (both (H, W, 3), tone-mapped by ``images.tonemap_ldr``
+    first); 0 at the pixels ``warp`` masks (there the warped frame is the current one)."""
+    check_pair(current, previous)
+    return warped_display_error(tonemap_ldr(current), tonemap_ldr(previous), warp)
+
+
+def warped_display_error(current: np.ndarray, previous: np.ndarray, warp: FrameWarp) -> np.ndarray:
+    """``warped_error_map`` of display frames (sRGB-encoded, in [0, 1])."""
+    if current.shape[:2] != warp.shape:
+        raise PhrtError(f"warp of a {warp.shape} frame applied to one of {current.shape[:2]}")
+    warped = np.where(warp.valid[..., None], warp.warp(previous), current)
+    error = flip_display(current, warped)
+    return np.where(warp.valid, error, np.float32(0.0)).astype(np.float32)
+
+
+class WarpedSequence:
+    """One sequence's warped error frame by frame: ``push`` takes the next linear frame
+    and the warp from the previous one (None: no previous frame, e.g. the first) and
+    returns its warped error map, None when there is nothing to compare."""
+
+    def __init__(self) -> None:
+        self._previous: np.ndarray | None = None
+
+    def push(self, frame: np.ndarray, warp: FrameWarp | None) -> np.ndarray | None:
+        if frame.ndim != 3 or frame.shape[2] != 3 or not np.all(np.isfinite(frame)):
+            raise PhrtError(f"temporal error needs finite (H, W, 3) frames, got {frame.shape}")
+        shown = tonemap_ldr(frame).astype(np.float32)
+        previous, self._previous = self._previous, shown
+        if previous is None or warp is None:
+            return None
+        if previous.shape != shown.shape:
+            raise PhrtError(
+                f"temporal error: a frame of {frame.shape} after frames of {previous.shape}"
+            )
+        return warped_display_error(shown, previous, warp)
+
+
+def popping_map(test: np.ndarray, reference: np.ndarray) -> np.ndarray:
+    """(H, W) float32 ``max(0, test - reference)`` of two warped error maps of the same
+    frame (module docstring): the warped error the reference does not have."""
+    if test.shape != reference.shape:
+        raise PhrtError(f"popping: maps of {test.shape} and {reference.shape}")
+    return np.maximum(test - reference, np.float32(0.0)).astype(np.float32)
 
 
 def sequence_frames_per_second(times: list[float], time_codes_per_second: float) -> float:
@@ -76,85 +198,3 @@ def sequence_frames_per_second(times: list[float], time_codes_per_second: float)
     if not (math.isfinite(rate) and rate > 0.0):
         raise PhrtError(f"temporal error: no frame rate from time codes per second {rate}")
     return rate
-
-
-def temporal_filters(frames_per_second: float) -> tuple[np.ndarray, np.ndarray]:
-    """(sustained, transient) FIR filters, each (N,) float64 with N odd (module
-    constants), for a sequence of ``frames_per_second`` (finite, > 0): the inverse real FFT
-    of each frequency response sampled from 0 Hz to the Nyquist rate. The sustained one
-    sums to 1 (a still image passes unchanged), the transient one to 0 (a still image gives
-    0)."""
-    fps = float(frames_per_second)
-    if not (math.isfinite(fps) and fps > 0.0):
-        raise PhrtError(f"temporal error: frames per second must be finite and > 0, got {fps}")
-    fps = min(fps, MAX_FRAMES_PER_SECOND)
-    taps = 2 * math.ceil(fps * TEMPORAL_FILTER_SPAN_S / 2.0) + 1
-    f = np.linspace(0.0, fps / 2.0, taps // 2 + 1)
-    sustained = np.exp(-(f**SUSTAINED_BETA) / SUSTAINED_SIGMA)
-    peak = TRANSIENT_PEAK_HZ**TRANSIENT_BETA
-    transient = np.exp(-((f**TRANSIENT_BETA - peak) ** 2) / TRANSIENT_SIGMA)
-    sustained_k, transient_k = (
-        np.fft.fftshift(np.fft.irfft(response, n=taps)) for response in (sustained, transient)
-    )
-    # Exact unit and zero gain at 0 Hz (the sampled responses give them up to rounding).
-    return sustained_k / sustained_k.sum(), transient_k - transient_k.mean()
-
-
-class TemporalChannels:
-    """One sequence's two channels, frame by frame: the filters run over the last N
-    display frames (N = the filters' length), oldest first; before N frames were pushed
-    the first frame stands in for the missing ones (ColorVideoVDP's "replicate" padding),
-    so a still sequence has no transient from its first frame on."""
-
-    def __init__(self, frames_per_second: float) -> None:
-        self.sustained_filter, self.transient_filter = temporal_filters(frames_per_second)
-        self._frames: deque[np.ndarray] = deque(maxlen=len(self.sustained_filter))
-
-    def push(self, frame: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Add the next (H, W, 3) linear frame; its (sustained, transient) channels, each
-        (H, W, 3) float32 (sustained in [0, 1], transient in [-1, 1])."""
-        if frame.ndim != 3 or frame.shape[2] != 3 or not np.all(np.isfinite(frame)):
-            raise PhrtError(f"temporal error needs finite (H, W, 3) frames, got {frame.shape}")
-        if self._frames and self._frames[-1].shape != frame.shape:
-            raise PhrtError(
-                f"temporal error: a frame of {frame.shape} after frames of "
-                f"{self._frames[-1].shape}"
-            )
-        shown = tonemap_ldr(frame).astype(np.float32)
-        if not self._frames:
-            self._frames.extend([shown] * self._frames.maxlen)
-        else:
-            self._frames.append(shown)
-        sustained = np.zeros_like(shown)
-        transient = np.zeros_like(shown)
-        for image, s, t in zip(
-            self._frames, self.sustained_filter, self.transient_filter, strict=True
-        ):
-            sustained += np.float32(s) * image
-            transient += np.float32(t) * image
-        return np.clip(sustained, 0.0, 1.0), np.clip(transient, -1.0, 1.0)
-
-
-def temporal_error_map(
-    reference: tuple[np.ndarray, np.ndarray], test: tuple[np.ndarray, np.ndarray]
-) -> np.ndarray:
-    """(H, W) float32 temporal error in [0, 1 + TRANSIENT_WEIGHT] at one frame, from the
-    (sustained, transient) channels of the reference's and the test's sequences
-    (``TemporalChannels.push``)::
-
-        E = FLIP(sustained_R, sustained_H)
-            + TRANSIENT_WEIGHT * FLIP(CHANGE_GREY + CHANGE_SCALE * transient_R,
-                                      CHANGE_GREY + CHANGE_SCALE * transient_H)
-
-    0 where the test's sequence equals the reference's; a steady error on a still
-    reference scores its per-frame FLIP; a reflector switching between raster and traced
-    scores the error of what the eye integrates plus its flicker, most near 5 Hz."""
-    (ref_s, ref_t), (test_s, test_t) = reference, test
-    check_pair(ref_s, test_s)
-    check_pair(ref_s, ref_t)
-    check_pair(ref_s, test_t)
-    sustained = flip_display(ref_s, test_s)
-    transient = flip_display(
-        CHANGE_GREY + CHANGE_SCALE * ref_t, CHANGE_GREY + CHANGE_SCALE * test_t
-    )
-    return sustained + np.float32(TRANSIENT_WEIGHT) * transient
