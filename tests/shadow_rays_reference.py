@@ -32,7 +32,7 @@ def cast(self, rel, offset_normals, shading_normals, lights: Lights, pairs=None,
         return np.ones((n, n_lights), np.float32), np.zeros(n, np.int64), None
     rel = np.asarray(rel, np.float64)
     ns = np.asarray(shading_normals, np.float32)
-    dirs, pos, ranges = self.light_arrays(lights)
+    dirs, pos, ranges, *_ = self.light_arrays(lights)  # (power and cones: sampling only)
     # Facing: n·l > 0. For LocalLights n·(p_L - p) = n·p_L - n·p, with the squared
     # distance |p_L|² - 2 p·p_L + |p|² (render-relative: |p| is at most the scene
     # extent, so the cancellation error stays ~1e-16 extent², far below any range²).

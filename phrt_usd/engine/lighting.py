@@ -15,23 +15,39 @@ lookup pass already and only the rest is shaded in numpy; with a shaped LocalLig
 (UsdLux ShapingAPI cones, ``shading.cone_falloff``) the GPU pass only looks the maps up
 and every pair is shaded in numpy, so the cone has one implementation.
 
+The tracer's hits are lit by the same two steps (``trace/hit_lighting.py``): the maps'
+lookup (``map_lookup``) and the shading of what it settled (``shade_settled``), with
+its own settling of the undecided pairs (shadow rays, lights sampled where a hit has
+many: docs/hit-lighting.md).
+
 Shapes: a G-buffer of H x W pixels, n of them covered, L lights (distant, then local).
 """
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
 from phrt_usd.engine.shading import gather_rows, shade_local, shaped_lights
 from phrt_usd.model import surface
 from phrt_usd.model.frame import GBuffer
-from phrt_usd.model.scene import Scene
+from phrt_usd.model.scene import Lights, Scene
 
-if TYPE_CHECKING:  # the raster and trace halves import OpenGL / Embree: only if used
+if TYPE_CHECKING:  # the raster half imports OpenGL: only if used
+    from phrt_usd.engine.raster.map_lighting import (
+        LightTerms,
+        MapVisibility,
+        PendingLightTerms,
+    )
     from phrt_usd.engine.raster.rasterizer import Rasterizer
-    from phrt_usd.engine.trace.tracer import Tracer
+
+
+class Tracer(Protocol):
+    """What lighting asks of the tracer (``trace.tracer.Tracer``, not imported here: the
+    tracer's hit lighting imports this module): exact shadow rays."""
+
+    def shadow_visibility(self, positions, normals, triangle_ids=None, pairs=None): ...
 
 
 def shade_gbuffer(
@@ -65,40 +81,20 @@ def shade_gbuffer(
     lights = scene.lights
     n_lights = len(lights.distant) + len(lights.local)
     shadow_pass = None
-    local_pairs = lit_sums = None
     if n_lights == 0:
         visibility = np.ones((len(pos), 0), dtype=np.float32)
     elif mode == "rt":
         visibility = tracer.shadow_visibility(pos, nrm)
         shadow_pass = "shadow_rays"
     else:
-        if rasterizer.cube_lookup_on_gpu and not shaped_lights(lights):
-            # Lit pairs shaded in the GPU lookup pass; the rest comes back as
-            # DistantLight visibility and the LocalLight pairs the maps could not
-            # decide.
-            terms = _settled(rasterizer.map_light_terms(pos, nrm, np.negative(view)), tracer)
-            visibility = terms.distant_visibility
-            local_pairs, lit_sums = terms.local_pairs, terms.lit_sums
-        else:  # all lights, distant then local (the order shade_local expects); also
-            # with spot cones, which only shade_local evaluates (shading.cone_falloff)
-            pending = rasterizer.map_visibility(pos, nrm, filtered=tracer is None)
-            visibility = _settled(pending, tracer)
+        pending = map_lookup(rasterizer, lights, pos, nrm, view, filtered=tracer is None)
+        visibility = _settled(pending, tracer)
         shadow_pass = "shadow_map" if tracer is None else "shadow_map+rays"
     if _emits(scene):
         emissive = surface.emissive_at(scene, take(gb.triangle_id), pos)  # textured too
     else:  # one zero for every point: no per-pixel gathers
         emissive = _NO_EMISSION
-    shaded = shade_local(
-        pos,
-        nrm,
-        take(gb.albedo),
-        view,
-        emissive,
-        lights,
-        visibility,
-        local_pairs=local_pairs,
-        lit_sums=lit_sums,
-    )
+    shaded = shade_settled(pos, nrm, take(gb.albedo), view, emissive, lights, visibility)
     if isinstance(pix, slice):  # every pixel covered: the shading is the image
         return shaded.reshape(h, w, 3), shadow_pass
     local = np.zeros((h * w, 3), dtype=np.float32)
@@ -114,6 +110,54 @@ def _emits(scene: Scene) -> bool:
     """Some material of ``scene`` has a non-zero or textured emissiveColor."""
     materials = scene.materials
     return bool(np.any(materials.emissive)) or surface.has_texture_input(materials, "emissiveColor")
+
+
+def map_lookup(
+    rasterizer: Rasterizer,
+    lights: Lights,
+    positions: np.ndarray,
+    normals: np.ndarray,
+    view_dirs: np.ndarray,
+    filtered: bool = False,
+) -> MapVisibility | PendingLightTerms:
+    """What the shadow maps say about the direct light of points (n, 3) float64 world
+    metres with unit ``normals`` facing the viewer and ``view_dirs`` (n, 3) unit from the
+    viewer to them, the pairs they cannot decide left open: with the GPU lookup the
+    light terms (lit pairs shaded in the lookup pass, ``Rasterizer.map_light_terms``),
+    else, or with a cone-shaped LocalLight (only ``shade_local`` evaluates cones), the
+    (n, L) visibility (``Rasterizer.map_visibility``; ``filtered``: the undecided pairs
+    get the maps' PCF). The G-buffer's and the tracer's hits' one lookup."""
+    if rasterizer.cube_lookup_on_gpu and not shaped_lights(lights):
+        return rasterizer.map_light_terms(positions, normals, np.negative(view_dirs))
+    return rasterizer.map_visibility(positions, normals, filtered=filtered)
+
+
+def shade_settled(
+    positions: np.ndarray,
+    normals: np.ndarray,
+    albedo: np.ndarray,
+    view_dirs: np.ndarray,
+    emissive: np.ndarray,
+    lights: Lights,
+    settled: np.ndarray | LightTerms,
+) -> np.ndarray:
+    """``shade_local`` (same arguments, (n, 3) float32) with what a ``map_lookup``
+    became once its undecided pairs were settled: the (n, L) visibility, or the light
+    terms (DistantLight visibility, LocalLight pairs, the GPU's lit sums); an (n, L)
+    visibility also for points the maps never saw (``rt``)."""
+    if isinstance(settled, np.ndarray):
+        return shade_local(positions, normals, albedo, view_dirs, emissive, lights, settled)
+    return shade_local(
+        positions,
+        normals,
+        albedo,
+        view_dirs,
+        emissive,
+        lights,
+        settled.distant_visibility,
+        local_pairs=settled.local_pairs,
+        lit_sums=settled.lit_sums,
+    )
 
 
 def _settled(pending, tracer: Tracer | None):

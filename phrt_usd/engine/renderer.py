@@ -126,16 +126,16 @@ class FrameRenderer:
         self._element_f = element_reflectivity(scene)  # F per element: fixed for a run
         self._rasterizer = None
         self._tracer = None
-        #: The OpenGL platform the raster phase runs on (None: no raster phase, ``rt``).
+        #: The OpenGL platform the raster phase runs on (in ``rt`` the raster phase only
+        #: renders the shadow maps that light the traced hits, ``trace/hit_lighting.py``).
         self.gl: str | None = None
         apply_threads(options.threads)  # before any GL context or pool exists
-        if options.mode != "rt":
-            from phrt_usd.engine.raster.gl_platform import activate
+        from phrt_usd.engine.raster.gl_platform import activate
 
-            self.gl = activate(options.gl)  # before pyrender / OpenGL are imported
-            from phrt_usd.engine.raster.rasterizer import Rasterizer
+        self.gl = activate(options.gl)  # before pyrender / OpenGL are imported
+        from phrt_usd.engine.raster.rasterizer import Rasterizer
 
-            self._rasterizer = Rasterizer(scene, options.width, options.height)
+        self._rasterizer = Rasterizer(scene, options.width, options.height)
         # Embree is only needed to trace (reflectors in hybrid, everything in rt), or for
         # primary rays asked for by name.
         traces = len(self._reflector_ids) and options.heuristic != "none"
@@ -147,10 +147,12 @@ class FrameRenderer:
             from phrt_usd.engine.trace.tracer import Tracer
 
             self._tracer = Tracer(scene, threads=options.threads)
+            # Hits lit from the maps where they decide, in rt as in hybrid (one rule).
+            self._tracer.use_shadow_maps(self._rasterizer)
         #: The G-buffer source, "raster" or "rays" (``primary_source.choose``).
         self.primary = (
             "rays"
-            if self._rasterizer is None
+            if options.mode == "rt"
             else choose(
                 options.primary,
                 has_tracer=self._tracer is not None,
@@ -267,6 +269,7 @@ class FrameRenderer:
             self._rasterizer.update_geometry(self.scene)
         if self._tracer is not None:
             self._tracer.update_geometry(self.scene)
+            self._tracer.begin_frame(time_code)  # its light sampling's seed
         camera, upcoming = self._path_cameras(time_code)
         # The default light rig's headlight follows the camera (usd/default_lights.py).
         self.scene.replace_lights(aim_headlight(self.scene.lights, camera))

@@ -124,6 +124,64 @@ def cone_at(cos, cone_angle, softness, focus):
     return factor
 
 
+@njit(**_HELPER)
+def light_share(power, lit, dist2, light_range, local, cone):
+    """A light's unshadowed share of a point's direct light, by which the tracer samples
+    lights at hits (``shadow_rays``): ``power`` (its brightest radiance channel) times
+    ``lit`` (n·l of unit vectors); for a LocalLight (``local``) also its range window
+    and 1/d² at ``dist2`` (metres², clamped to MIN_LIGHT_DISTANCE²) and ``cone``, its
+    ``cone_at`` factor (1 unshaped). 0 where the light adds nothing."""
+    if not (lit > 0.0 and power > 0.0):
+        return 0.0
+    if local:
+        return power * lit * cone * window_at(dist2, light_range) / dist2
+    return power * lit
+
+
+@njit(**_HELPER)
+def light_draws(share, weight, picks, u0):
+    """The hit-lighting rule's choice of one point's shadow rays (``trace_kernels.
+    shadow_rays``): share (L,) each light's ``light_share`` (< 0: no ray wanted), picks
+    the rays the point may cast (0: every wanted one), u0 in [0, 1) its draws' offset;
+    writes weight (L,): 0 for no ray, else the ray's weight (share is overwritten).
+    Sampling (picks > 0) traces only lights of a positive share, each of weight 1 when
+    there are at most ``picks``. With more, while two picks or more are left a light of
+    at least the mean share per pick left is traced exactly (weight 1, largest first);
+    the picks left are systematic draws over the other lights' shares from u0: a light
+    of share s drawn c times out of S in all over p picks weighs c S / (p s), 1 in
+    expectation (unbiased)."""
+    n = share.shape[0]
+    count, total = 0, 0.0
+    for j in range(n):
+        if picks > 0 and not share[j] > 0.0:
+            share[j] = -1.0
+        weight[j] = 1.0 if share[j] >= 0.0 else 0.0
+        if share[j] >= 0.0:
+            count, total = count + 1, total + share[j]
+    left = picks
+    while 1 < left < count:  # the dominant lights, exact (weight 1, out of the draws)
+        big = np.argmax(share)
+        if share[big] * left < total:
+            break
+        count, total, left, share[big] = count - 1, total - share[big], left - 1, -1.0
+    if picks == 0 or count <= left:
+        return
+    last = -1  # the last light drawn from takes the draws rounding left over
+    for j in range(n):
+        last = j if share[j] >= 0.0 else last
+    step = total / left
+    mark, cum = u0 * step, 0.0
+    for j in range(n):
+        if share[j] < 0.0:  # no ray, or traced exactly
+            continue
+        cum += share[j]
+        draws = 0
+        while draws < left and (j == last or mark < cum):
+            draws, mark = draws + 1, mark + step
+        left -= draws
+        weight[j] = draws * step / share[j]
+
+
 @njit(**_KERNEL)
 def cone_kernel(emission, axis, cone_angle, softness, focus, out):
     for i in range(emission.shape[0]):

@@ -47,12 +47,14 @@ class UncertainPairs:
     (``Tracer.shadow_visibility``) takes them: m points with at least one such pair.
 
     positions : (m, 3) float64 world metres; normals : (m, 3) float64 unit, facing the
-    viewer; pairs : (m, L) bool, the undecided pairs (light order distant, then local)
+    viewer; pairs : (m, L) bool, the undecided pairs (light order distant, then local);
+    rows : (m,) int64, which of the looked-up points these are
     """
 
     positions: np.ndarray
     normals: np.ndarray
     pairs: np.ndarray
+    rows: np.ndarray
 
 
 @dataclass
@@ -96,7 +98,7 @@ class MapVisibility:
         if not self.uncertain.any():
             return None
         idx = np.flatnonzero(self.uncertain.any(axis=1))
-        return UncertainPairs(self.positions[idx], self.normals[idx], self.uncertain[idx])
+        return UncertainPairs(self.positions[idx], self.normals[idx], self.uncertain[idx], idx)
 
     def resolved(self, exact: np.ndarray) -> np.ndarray:
         """(n, L) ``visibility`` with the uncertain pairs replaced (in place) by
@@ -153,7 +155,7 @@ class PendingLightTerms:
         if not len(rows):
             return None
         positions, normals = (gather_rows(a, rows) for a in (self.positions, self.normals))
-        return UncertainPairs(positions, normals, self._pairs())
+        return UncertainPairs(positions, normals, self._pairs(), rows)
 
     def _pairs(self) -> np.ndarray:
         """(m, L) bool: the undecided pairs of ``rows``, DistantLights first."""

@@ -7,7 +7,9 @@ has transmissive materials)::
 
     radiance = α * ((1 - F) * local(X) + F * reflected) + (1 - α) * refracted
 
-``local`` is ``shading.shade_local`` with ray-traced shadows (``shadow_rays``).
+``local`` is ``shading.shade_local`` with the direct light of ``hit_lighting``'s rule
+(the shadow maps where the renderer has them and they decide, shadow rays elsewhere,
+lights sampled where a hit has many).
 ``reflected``/``refracted`` continue as new rays while the depth is below the bounce
 limit, and read the environment at the limit. Refraction (Snell's law with the
 material's ior, total internal reflection → mirror reflection) is part of the same loop;
@@ -22,9 +24,7 @@ gather, the next rays), in buffers a ``PathTracer`` keeps from call to call
 (``_Buffers``); environment lookups, shadow rays and local shading of all bounces are
 gathered and evaluated once per call (``_gather``). Every compiled call is a fixed cost
 (its arguments are checked, ``phrt_usd.kernels``), so there are few per depth. Local
-shading of a call's hits is split over the pool from
-``shadow_rays.PARALLEL_MIN_SHADE_RAYS`` shadow rays on (the kernels release the GIL,
-embreex inside ``run``).
+shading of a call's hits is ``hit_lighting.HitLighting.shade``'s.
 
 Records: one ``TraceRecord`` per source reflector (pixels, rays, reflectors hit,
 reflector bounces, time share), what the selection heuristic reads.
@@ -72,10 +72,10 @@ from phrt_usd.engine.trace.bounce_layout import (
     T_SOURCES,
 )
 from phrt_usd.engine.trace.bvh import Bvh
+from phrt_usd.engine.trace.hit_lighting import HitLighting
 from phrt_usd.engine.trace.hit_surfaces import HitSurfaces
 from phrt_usd.engine.trace.shadow_rays import ShadowRays
 from phrt_usd.model.frame import ReflectionResult, TraceRecord
-from phrt_usd.model.scene import Lights
 
 #: The compiled trace kernels (``trace_kernels``, through ``phrt_usd.kernels``).
 trace_kernels = kernels.load("phrt_usd.engine.trace.trace_kernels")
@@ -133,13 +133,15 @@ class _Buffers:
 class PathTracer:
     """The bounce loop over one ``Bvh``, its ``HitSurfaces`` and ``ShadowRays``; one call
     at a time (its buffers are reused from call to call; the tracer's callers trace
-    round after round)."""
+    round after round). ``lighting``: the direct light at its hits (``HitLighting``:
+    the tracer sets its shadow maps and frame seed)."""
 
     def __init__(self, bvh: Bvh, surfaces: HitSurfaces, shadows: ShadowRays) -> None:
         self._bvh = bvh
         self._surfaces = surfaces
         self._shadows = shadows
         self._buffers = _Buffers()
+        self.lighting = HitLighting(bvh, surfaces, shadows)
 
     def run(
         self,
@@ -236,7 +238,7 @@ class PathTracer:
         counters["refraction"] += cast[1]
         n_env, n_lit, n_keys, n_textured = tally[:T_SOURCES].tolist()
         radiance, shadow_src, shadow_rays = self._gather(
-            n_env, n_lit, n_textured > 0, lights, n_pix, counters
+            n_env, n_lit, n_textured > 0, lights, pix, counters
         )
         seconds = time.perf_counter() - start
         records, rays = self._records(
@@ -251,56 +253,15 @@ class PathTracer:
             seconds=seconds,
         )
 
-    def _shade_points(
-        self, tri, u, v, rel, ng, ns, d_in, albedo, lights: Lights, threads=None, into=None,
-        textured=None,
-    ):  # fmt: skip
-        """Local shading with ray-traced shadows at hits (tri, u, v (m,); rel, ng, ns,
-        d_in (m, 3), see ``HitSurfaces.at``; albedo (m, 3) float32 corner albedo or None,
-        ``HitSurfaces.colour``): (m, 3) float32 radiance, (m,) int64 shadow rays cast
-        per point and their sum (``ShadowRays.shade``, ``into`` as its; ``textured`` as
-        ``HitSurfaces.colour``'s). Safe to run on the pool with ``threads`` = 1 and no
-        ``into``."""
-        albedo, emissive = self._surfaces.colour(tri, u, v, albedo, textured)
-        # The caller updates ``rays_cast`` (a dict ``+=`` from pool threads could race).
-        return self._shadows.shade(
-            rel, ng, ns, d_in, albedo, emissive, lights, threads=threads, into=into
-        )
-
-    def _shade_hits(
-        self, tri, u, v, rel, ng, ns, d_in, lights: Lights, albedo=None, into=None,
-        textured=None,
-    ):  # fmt: skip
-        """``_shade_points`` of every gathered hit: (m, 3) radiance, (m,) shadow rays per
-        hit and their sum; with ``into`` (total, slot, weight) the radiance times weight
-        also added to total[slot] (``trace_kernels.accumulate``); ``textured``: some hit
-        is on a textured material (None: unknown). Large batches (the
-        sewer: 13 lights, ~300k shadow rays) run in chunks on the pool (the kernels and
-        embreex release the GIL), each chunk's Embree batch on its own thread."""
-        n_lights = len(lights.distant) + len(lights.local)
-        bounds = self._shadows.split(len(tri) * max(n_lights, 1), len(tri))
-        if bounds is None:
-            return self._shade_points(
-                tri, u, v, rel, ng, ns, d_in, albedo, lights, into=into, textured=textured
-            )
-        chunk_textured = None if textured else textured  # a chunk looks its own textures up
-        done = self._shadows.in_chunks(
-            lambda *rows: self._shade_points(*rows, lights, 1, None, chunk_textured),
-            bounds, tri, u, v, rel, ng, ns, d_in, albedo,
-        )  # fmt: skip
-        local, rays = (np.concatenate([d[i] for d in done]) for i in (0, 1))
-        if into is not None:  # the chunks' sums could race: one pass over them all
-            trace_kernels.accumulate(*into, local)
-        return local, rays, sum(d[2] for d in done)
-
-    def _gather(self, n_env, n_lit, textured, lights, n_pix, counters):
+    def _gather(self, n_env, n_lit, textured, lights, pix, counters):
         """The deferred part of ``run``: environment and local shading of every bounce
         at once, from the first ``n_env`` / ``n_lit`` gathered entries (``textured``:
-        some lit entry's material has an albedo texture). Returns radiance
-        (n_pix, 3) float32, and the source (m,) int64 and shadow rays cast (m,) int64 of
-        every shaded point (empty without direct lights)."""
+        some lit entry's material has an albedo texture; pix (n_pix,) the paths'
+        pixels). Returns radiance (n_pix, 3) float32, and the source (m,) int64 and
+        shadow rays cast (m,) int64 of every shaded point (empty without direct
+        lights)."""
         g_i, g_w, g_x, g_v, g_uv = self._buffers.gather
-        total = np.zeros((n_pix, 3))
+        total = np.zeros((len(pix), 3))
         if n_env:
             env = shading.environment_radiance(lights, g_v[G_ENV_DIR, :n_env])
             trace_kernels.accumulate(total, g_i[G_ENV_SLOT, :n_env], g_w[G_ENV_W, :n_env], env)
@@ -312,8 +273,8 @@ class PathTracer:
             ns, d_in = g_v[G_LIT_NS, :n_lit], g_v[G_LIT_DIR, :n_lit]
             albedo = g_v[G_LIT_ALBEDO, :n_lit]
             into = (total, slot, g_w[G_LIT_W, :n_lit])
-            _, rays, cast = self._shade_hits(
-                tri, u, v, rel, ng, ns, d_in, lights, albedo, into, textured
+            _, rays, cast = self.lighting.shade(
+                tri, u, v, rel, ng, ns, d_in, lights, np.take(pix, slot), albedo, into, textured
             )
             if cast:
                 shadow_src, shadow_rays = src, rays

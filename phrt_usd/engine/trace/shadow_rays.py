@@ -39,6 +39,11 @@ _TRACE = kernels.load("phrt_usd.engine.trace.trace_kernels")
 #: 0.19 against 0.075 ms (the pool's hand-over costs more than the chunks save).
 PARALLEL_MIN_SHADE_RAYS = 4096
 
+#: The hit-lighting rule's light sampling (``hit_lighting``): a hit with more pairs to
+#: trace than this (of a positive unshadowed share) casts this many rays, drawn by the
+#: lights' shares (``trace_kernels.shadow_rays``); at most this many it traces them all.
+HIT_LIGHT_PICKS = 2
+
 
 class ShadowRays:
     """Shadow rays against one ``Bvh`` (its current geometry and boundary), split over
@@ -68,20 +73,23 @@ class ShadowRays:
         edges = np.linspace(0, n, self.threads + 1).astype(int).tolist()
         return list(zip(edges[:-1], edges[1:], strict=True))
 
-    def visibility(self, rel, normals, lights: Lights, pairs=None):
-        """``cast`` for rel points (n, 3) whose offset and shading normals are both
-        ``normals`` (n, 3), in chunks on the pool when the batch is large (numpy and
-        Embree work of each chunk on its own thread). Returns (n, L) float32 visibility
-        and (n,) int64 shadow rays cast per point."""
+    def visibility(self, rel, normals, lights: Lights, pairs=None, offsets=None, u0=None):
+        """``cast`` for rel points (n, 3) of shading ``normals`` (n, 3) and offset normals
+        ``offsets`` (n, 3; None: ``normals``), in chunks on the pool when the batch is
+        large (numpy and Embree work of each chunk on its own thread); ``u0`` as
+        ``cast``'s. Returns (n, L) float32 visibility and (n,) int64 shadow rays cast
+        per point."""
         n, n_lights = len(rel), len(lights.distant) + len(lights.local)
         wanted = n * max(n_lights, 1) if pairs is None else int(np.count_nonzero(pairs))
+        offsets = normals if offsets is None else offsets
         bounds = self.split(wanted, n)
         if bounds is None:
-            vis, rays, _ = self.cast(rel, normals, normals, lights, pairs)
+            vis, rays, _ = self.cast(rel, offsets, normals, lights, pairs, u0=u0)
             return vis, rays
         done = self.in_chunks(
-            lambda r, nrm, p: self.cast(r, nrm, nrm, lights, p, 1), bounds, rel, normals, pairs
-        )
+            lambda r, ng, ns, p, u: self.cast(r, ng, ns, lights, p, 1, u),
+            bounds, rel, offsets, normals, pairs, u0,
+        )  # fmt: skip
         return np.concatenate([d[0] for d in done]), np.concatenate([d[1] for d in done])
 
     def in_chunks(self, call, bounds, *arrays) -> list:
@@ -98,11 +106,13 @@ class ShadowRays:
         self._bvh.merge_recorded(since)
         return done
 
-    def light_arrays(self, lights: Lights) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def light_arrays(self, lights: Lights) -> tuple[np.ndarray, ...]:
         """(D, 3) unit DistantLight directions, (P, 3) LocalLight positions (both
-        float64, as given) and (P,) LocalLight ranges in metres
-        (``shading.light_ranges``) of ``lights``; cached for the latest ``Lights``
-        object (the tracer's render-relative lights are one object per scene)."""
+        float64, as given), (P,) LocalLight ranges in metres (``shading.light_ranges``),
+        and what light sampling weighs them by: (D + P,) power (the brightest radiance
+        channel, >= 0) and (P, 7) cones (``shading.LightTable.cone``) of ``lights``;
+        cached for the latest ``Lights`` object (the tracer's render-relative lights
+        are one object per scene)."""
         cached = self._light_cache
         if cached is not None and cached[0] is lights:
             return cached[1]
@@ -110,8 +120,12 @@ class ShadowRays:
         dirs /= np.maximum(np.linalg.norm(dirs, axis=1, keepdims=True), 1e-300)
         pos = np.array([li.position for li in lights.local], np.float64).reshape(-1, 3)
         ranges = shading.light_ranges(lights)[len(lights.distant) :]
-        self._light_cache = (lights, (dirs, pos, ranges))
-        return dirs, pos, ranges
+        radiance = [li.radiance for li in (*lights.distant, *lights.local)]
+        power = np.array(radiance, np.float64).reshape(-1, 3).max(axis=1, initial=0.0)
+        power = np.nan_to_num(power, nan=0.0, posinf=1e300)
+        arrays = (dirs, pos, ranges, power, self.light_table(lights).cone)
+        self._light_cache = (lights, arrays)
+        return arrays
 
     def light_table(self, lights: Lights) -> shading.LightTable:
         """``shading.light_table`` of ``lights``, cached for the latest ``Lights`` object
@@ -123,7 +137,8 @@ class ShadowRays:
         self._table_cache = (lights, table)
         return table
 
-    def cast(self, rel, offset_normals, shading_normals, lights: Lights, pairs=None, threads=None):
+    def cast(self, rel, offset_normals, shading_normals, lights: Lights, pairs=None,
+             threads=None, u0=None):  # fmt: skip
         """(n, L) float32 visibility, (n,) int64 shadow rays cast per point and the lit
         LocalLight pairs (``shading.shade_local``'s ``local_pairs``, or None), for
         render-relative positions ``rel`` (n, 3) and render-relative ``lights``.
@@ -132,6 +147,9 @@ class ShadowRays:
         normal (elsewhere the Lambert term is 0) and, for LocalLights, the point within
         the light's range (``shading.light_ranges``; beyond it the light contributes 0).
         Such pairs, and pairs outside ``pairs`` ((n, L) bool, None = all), report 0.
+        ``u0`` (n,) float64 in [0, 1): the hit-lighting rule's light sampling (see the
+        module), each point's draws offset by u0; the visibility (and the lit pairs'
+        weight) is then the ray's weight where it is free. None: every pair, exact.
 
         The (point, light) pairs are chosen and their rays built in one compiled pass
         (``trace_kernels.shadow_rays``: float32 Embree batch, point-major, so the lit LocalLight
@@ -143,21 +161,22 @@ class ShadowRays:
             return np.ones((n, n_lights), np.float32), np.zeros(n, np.int64), None
         want = _ALL_PAIRS if pairs is None else np.asarray(pairs, dtype=bool).reshape(n, n_lights)
         ray_i, ray_v, ray_f, occluded = self._trace(
-            rel, offset_normals, shading_normals, lights, want, threads
+            rel, offset_normals, shading_normals, lights, want, threads, u0
         )
         k = len(occluded)
         vis, rays = np.empty((n, n_lights), np.float32), np.empty(n, np.int64)
         lit_i, lit_dir = np.empty((2, k), np.int64), np.empty((k, 3), np.float32)
-        lit_dist = np.empty(k)
+        lit_dist, lit_w = np.empty(k), np.empty(k, np.float32)
         m = _TRACE.shadow_results(
-            ray_i, ray_v, ray_f, occluded, n_distant, vis, rays, lit_i, lit_dir, lit_dist
+            ray_i, ray_v, ray_f, occluded, n_distant, vis, rays, lit_i, lit_dir, lit_dist, lit_w
         )
-        # The lit LocalLight pairs, for shade_local.
-        lit = shading.LightPairs(lit_i[0, :m], lit_i[1, :m], lit_dir[:m], lit_dist[:m])
+        # The lit LocalLight pairs, for shade_local (weights only where sampled).
+        weight = None if u0 is None else lit_w[:m]
+        lit = shading.LightPairs(lit_i[0, :m], lit_i[1, :m], lit_dir[:m], lit_dist[:m], weight)
         return vis, rays, lit if len(lights.local) else None
 
     def shade(self, rel, offset_normals, shading_normals, view_dirs, albedo, emissive,
-              lights: Lights, threads=None, into=None):  # fmt: skip
+              lights: Lights, threads=None, into=None, u0=None):  # fmt: skip
         """``shading.shade_local`` of rel points ``rel`` (n, 3) float64 with the
         visibility and lit LocalLight pairs of ``cast`` (every pair wanted), in one
         compiled call after Embree's (``trace_kernels.shadow_shade``: the same kernel
@@ -167,12 +186,13 @@ class ShadowRays:
         loop's gathered rows), emissive (n, 3) or (3,) float32. ``into``: (total (P, 3)
         float64, slot (n,) int64, weight (n,) float64) to add weight times the radiance
         to total[slot] in the same call (``trace_kernels.accumulate``), or None. Returns
-        (n, 3) float32 radiance, (n,) int64 shadow rays cast per point and their sum."""
+        (n, 3) float32 radiance, (n,) int64 shadow rays cast per point and their sum.
+        ``u0``: as ``cast``'s (the hit-lighting rule's light sampling)."""
         n = rel.shape[0]
         table = self.light_table(lights)
         if lights.has_direct and n:
             ray_i, ray_v, ray_f, occluded = self._trace(
-                rel, offset_normals, shading_normals, lights, _ALL_PAIRS, threads
+                rel, offset_normals, shading_normals, lights, _ALL_PAIRS, threads, u0
             )
         else:  # no lights (or no points): no rays, ambient and emission only
             ray_i, ray_v, ray_f, occluded = _NO_SHADOW_RAYS
@@ -187,18 +207,21 @@ class ShadowRays:
         )  # fmt: skip
         return out, rays, len(occluded)
 
-    def _trace(self, rel, offset_normals, shading_normals, lights: Lights, want, threads):
+    def _trace(self, rel, offset_normals, shading_normals, lights: Lights, want, threads,
+               u0=None):  # fmt: skip
         """The shadow rays of (point, light) pairs (``trace_kernels.shadow_rays``; ``want``
-        (n, L) bool or ``_ALL_PAIRS``) and Embree's answer: rays' point and light (2, k)
-        int64, origin and direction (2, k, 3) float32, tfar and distance (2, k) float32
-        (columns beyond k unused), occluded (k,) bool."""
+        (n, L) bool or ``_ALL_PAIRS``; ``u0`` as ``cast``'s) and Embree's answer: rays'
+        point and light (2, k) int64, origin and direction (2, k, 3) float32, tfar,
+        distance and weight (3, k) float32 (columns beyond k unused), occluded (k,)
+        bool."""
         n, n_lights = rel.shape[0], len(lights.distant) + len(lights.local)
-        dirs, pos, ranges = self.light_arrays(lights)
+        dirs, pos, ranges, power, cone = self.light_arrays(lights)
         floor, relative = self._bvh.boundary.offset_factors()
         most = n * n_lights  # one ray per (point, light) pair at most
         ray_i = np.empty((2, most), np.int64)  # point, light
         ray_v = np.empty((2, most, 3), np.float32)  # origin, direction
-        ray_f = np.empty((2, most), np.float32)  # tfar, distance
+        ray_f = np.empty((3, most), np.float32)  # tfar, distance, weight
+        picks, u0 = (0, _NO_OFFSETS) if u0 is None else (HIT_LIGHT_PICKS, u0)
         k = _TRACE.shadow_rays(
             np.ascontiguousarray(rel, np.float64),
             np.ascontiguousarray(offset_normals, np.float32),
@@ -211,6 +234,10 @@ class ShadowRays:
             relative,
             shading.MIN_LIGHT_DISTANCE,
             FAR,
+            power,
+            cone,
+            picks,
+            np.ascontiguousarray(u0, np.float64),
             ray_i,
             ray_v,
             ray_f,
@@ -229,4 +256,6 @@ _ALL_PAIRS = np.zeros((0, 0), bool)
 _NO_TOTAL = (np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros(0))
 #: ``_trace``'s answer without rays.
 _NO_SHADOW_RAYS = (np.zeros((2, 0), np.int64), np.zeros((2, 0, 3), np.float32),
-                   np.zeros((2, 0), np.float32), np.zeros(0, bool))  # fmt: skip
+                   np.zeros((3, 0), np.float32), np.zeros(0, bool))  # fmt: skip
+#: ``trace_kernels.shadow_rays``' offsets when every pair is traced (no sampling).
+_NO_OFFSETS = np.zeros(0)

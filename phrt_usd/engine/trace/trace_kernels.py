@@ -44,7 +44,7 @@ import math
 import numpy as np
 from numba import njit
 
-from phrt_usd.engine.shade_kernels import shade_kernel
+from phrt_usd.engine.shade_kernels import cone_at, light_draws, light_share, shade_kernel
 from phrt_usd.engine.trace.bounce_layout import (
     G_ENV_DIR,
     G_ENV_SLOT,
@@ -609,11 +609,13 @@ def warm_up() -> None:
     source_tallies(i64, np.zeros(6, np.int64), True, i64, i64, i64, 1, np.zeros((4, 1), np.int64),
                    np.zeros((2, 1), np.int64))  # fmt: skip
     shadow = (np.zeros((2, 1), np.int64), np.zeros((2, 1, 3), np.float32),
-              np.zeros((2, 1), np.float32))  # fmt: skip
-    shadow_rays(v64, v32, v32, np.array([[0.0, 1.0, 0.0]]), np.zeros((0, 3)), np.zeros(0),
-                np.zeros((0, 0), bool), 1e-6, 1e-5, 1e-3, 1e30, *shadow)  # fmt: skip
+              np.zeros((3, 1), np.float32))  # fmt: skip
+    for u0 in (f64, f64[:0]):  # sampled (the hit-lighting rule) or every pair
+        shadow_rays(v64, v32, v32, np.array([[0.0, 1.0, 0.0]]), np.zeros((0, 3)), f64[:0],
+                    np.zeros((0, 0), bool), 1e-6, 1e-5, 1e-3, 1e30, f64, np.zeros((0, 7)),
+                    len(u0), u0, *shadow)  # fmt: skip
     shadow_results(*shadow, b, 1, np.zeros((1, 1), np.float32), i64.copy(),
-                   np.zeros((2, 1), np.int64), v32.copy(), f64.copy())  # fmt: skip
+                   np.zeros((2, 1), np.int64), v32.copy(), f64.copy(), f32.copy())  # fmt: skip
     fill_skipped(np.full(4, -1, np.int32), i64, i64, v32, i64 + 1, i64, i64 + 2, 2, 2,
                  i64.copy(), v32.copy())  # fmt: skip
     light = (np.zeros(3), np.array([[0.0, 1.0, 0.0]]), np.ones((1, 3)), np.zeros((0, 3)),
@@ -624,67 +626,83 @@ def warm_up() -> None:
 
 @njit(**_KERNEL)
 def shadow_rays(
-    rel, ng, ns, dirs, pos, ranges, want, floor, relative, min_distance, far, out_i, out_v,
-    out_f,
+    rel, ng, ns, dirs, pos, ranges, want, floor, relative, min_distance, far, power, cone,
+    picks, u0, out_i, out_v, out_f,
 ):  # fmt: skip
     """The shadow rays of ``ShadowRays.cast``: for each point i (rel (n, 3) float64,
     offset normal ng and shading normal ns (n, 3) float32) and each light j
     (DistantLights dirs (D, 3) unit, then LocalLights pos (P, 3) rel metres of range
     ranges (P,)) wanted (``want`` (n, D + P) bool, or (0, 0): all) whose light can
     matter there (in front of ns; LocalLights: within range), one ray, point-major.
+    ``picks`` > 0 (``hit_lighting``'s rule): at most ``picks`` rays a point, chosen and
+    weighted by ``light_draws`` from the pairs' ``light_share`` (power (D + P,) the
+    brightest channels, cone (P, 7) as ``shade_kernel``'s l_cone) and offset u0[i].
 
     Writes ray r's point and light (distant then local index) into out_i (2, ·) int64,
-    its float32 origin and unit direction into out_v (2, ·, 3), its tfar and distance
-    into out_f (2, ·) float32 (LocalLights: metres to the light, >= ``min_distance``;
-    DistantLights: ``far``); the buffers have n (D + P) columns. Origins leave the
+    its float32 origin and unit direction into out_v (2, ·, 3), its tfar, distance and
+    weight into out_f (3, ·) float32 (distance: metres to a LocalLight, >=
+    ``min_distance``, or ``far``); the buffers have n (D + P) columns. Origins leave the
     surface by the offset epsilon (floor, relative: ``Float32Boundary``) along ng on the
-    ray's side (``_side``, the boundary's rule); LocalLight rays stop that epsilon short
-    of the light. Returns the ray count."""
-    n, n_distant, n_local = rel.shape[0], dirs.shape[0], pos.shape[0]
-    n_lights = n_distant + n_local
+    ray's side (``_side``); LocalLight rays stop that epsilon short of the light.
+    Returns the ray count."""
+    n, n_distant = rel.shape[0], dirs.shape[0]
+    n_lights = n_distant + pos.shape[0]
     every = want.shape[0] == 0
+    ray = np.empty((n_lights, 4))  # point i's ray to each light: direction, length
+    share, weight = np.empty(n_lights), np.empty(n_lights)
     r = 0
     for i in range(n):
         px, py, pz = rel[i, 0], rel[i, 1], rel[i, 2]
         e = _epsilon(px, py, pz, floor, relative)
         for j in range(n_lights):
+            share[j] = -1.0  # no ray
             if not (every or want[i, j]):
                 continue
-            if j < n_distant:
-                d0, d1, d2 = dirs[j, 0], dirs[j, 1], dirs[j, 2]
-                if not (ns[i, 0] * d0 + ns[i, 1] * d1 + ns[i, 2] * d2 > 0.0):
-                    continue
-                length = far
-                stop = far
+            q = j - n_distant
+            if q < 0:
+                t0, t1, t2, length = dirs[j, 0], dirs[j, 1], dirs[j, 2], far
             else:
-                q = j - n_distant
                 t0, t1, t2 = pos[q, 0] - px, pos[q, 1] - py, pos[q, 2] - pz
-                nl = ns[i, 0] * t0 + ns[i, 1] * t1 + ns[i, 2] * t2
                 square = t0 * t0 + t1 * t1 + t2 * t2
-                if not (nl > 0.0 and square < ranges[q] * ranges[q]):
+                if not square < ranges[q] * ranges[q]:
                     continue
                 length = max(math.sqrt(square), min_distance)
-                d0, d1, d2 = t0 / length, t1 / length, t2 / length
-                # Stop short of the light by the offset so the light's own position is free.
-                stop = max(length - e, 0.0)
+                t0, t1, t2 = t0 / length, t1 / length, t2 / length
+            lit = ns[i, 0] * t0 + ns[i, 1] * t1 + ns[i, 2] * t2
+            if not lit > 0.0:
+                continue
+            f = 1.0
+            if q >= 0 and cone[q, 6] > 0.0:
+                cos = -(t0 * cone[q, 0] + t1 * cone[q, 1] + t2 * cone[q, 2])
+                f = cone_at(cos, cone[q, 3], cone[q, 4], cone[q, 5])
+            reach = ranges[q] if q >= 0 else 0.0
+            share[j] = light_share(power[j], lit, length * length, reach, q >= 0, f)
+            ray[j, 0], ray[j, 1], ray[j, 2], ray[j, 3] = t0, t1, t2, length
+        light_draws(share, weight, picks, u0[i] if picks > 0 else 0.0)
+        for j in range(n_lights):
+            if not weight[j] > 0.0:
+                continue
+            d0, d1, d2, length = ray[j, 0], ray[j, 1], ray[j, 2], ray[j, 3]
+            stop = far if j < n_distant else max(length - e, 0.0)  # short of a LocalLight
             side = _side(e, d0, d1, d2, ng[i, 0], ng[i, 1], ng[i, 2])
             for c in range(3):
                 out_v[0, r, c] = rel[i, c] + side * ng[i, c]
             out_v[1, r, 0], out_v[1, r, 1], out_v[1, r, 2] = d0, d1, d2
-            out_i[0, r], out_i[1, r], out_f[0, r], out_f[1, r] = i, j, stop, length
+            out_i[0, r], out_i[1, r] = i, j
+            out_f[0, r], out_f[1, r], out_f[2, r] = stop, length, weight[j]
             r += 1
     return r
 
 
 @njit(**_KERNEL)
 def shadow_results(rays_i, rays_v, rays_f, occluded, n_distant, vis, rays, lit_i, lit_dir,
-                   lit_dist):  # fmt: skip
+                   lit_dist, lit_w):  # fmt: skip
     """What ``ShadowRays.cast`` answers from Embree's ``occluded`` (k,) bool on the k
-    rays of ``shadow_rays`` (its out_i, out_v, out_f): visibility into ``vis`` (n, L)
-    float32 (1 = lit; pairs without a ray 0), shadow rays per point into ``rays`` (n,)
-    int64, and the lit LocalLight pairs (``shading.LightPairs``): point and LocalLight
-    index into lit_i (2, k) int64, direction into lit_dir (k, 3) float32, distance into
-    lit_dist (k,) float64. Returns the lit LocalLight pairs' count."""
+    rays of ``shadow_rays`` (its out_i, out_v, out_f): visibility (a free ray's weight,
+    else 0) into ``vis`` (n, L) float32, shadow rays per point into ``rays`` (n,) int64,
+    and the lit LocalLight pairs (``shading.LightPairs``): point and LocalLight index
+    into lit_i (2, k) int64, direction, distance and weight into lit_dir (k, 3) float32,
+    lit_dist (k,) float64, lit_w (k,) float32. Returns the lit LocalLight pairs' count."""
     vis[:] = 0.0
     rays[:] = 0
     m = 0
@@ -693,12 +711,12 @@ def shadow_results(rays_i, rays_v, rays_f, occluded, n_distant, vis, rays, lit_i
         rays[i] += 1
         if occluded[r]:
             continue
-        vis[i, j] = _ONE32
+        vis[i, j] = rays_f[2, r]
         if j >= n_distant:
             lit_i[0, m], lit_i[1, m] = i, j - n_distant
             for c in range(3):
                 lit_dir[m, c] = rays_v[1, r, c]
-            lit_dist[m] = rays_f[1, r]
+            lit_dist[m], lit_w[m] = rays_f[1, r], rays_f[2, r]
             m += 1
     return m
 
@@ -711,29 +729,26 @@ def shadow_shade(
 ):  # fmt: skip
     """``shadow_results`` of Embree's ``occluded`` (k,) bool on the k rays of
     ``shadow_rays`` (rays_i, rays_v, rays_f) for n points, then the shading model of the
-    points with that visibility and those lit LocalLight pairs
+    points with that visibility and those lit LocalLight pairs, weighted
     (``shade_kernels.shade_kernel``, as ``shading.shade_local`` calls it with
     ``local_pairs``): one call instead of two and the Python between them, the same
-    code (to float32 rounding). positions (n, 3) float64 rel; normals, albedo, view_dirs (n, 3)
-    float32; emissive (1 or n, 3) float32; the lights as ``shading.LightTable`` (light
-    order distant then local); model ``shading.MODEL``. Writes out (n, 3) float32 and
-    the shadow rays per point into rays (n,) int64; when ``total`` (P, 3) float64 has
-    rows, also adds weight (n,) float64 times out into its rows slot (n,) int64, as
-    ``accumulate``."""
+    code (to float32 rounding). positions (n, 3) float64 rel; normals, albedo, view_dirs
+    (n, 3) float32; emissive (1 or n, 3) float32; the lights as ``shading.LightTable``
+    (distant then local); model ``shading.MODEL``. Writes out (n, 3) float32, the
+    shadow rays per point into rays (n,) int64, and when ``total`` (P, 3) float64 has
+    rows adds weight (n,) float64 times out into its rows slot (n,) int64."""
     n, k = positions.shape[0], occluded.shape[0]
     n_distant = d_dir.shape[0]
     vis = np.empty((n, n_distant + l_pos.shape[0]), np.float32)
-    lit_i = np.empty((2, k), np.int64)
-    lit_dir = np.empty((k, 3), np.float32)
-    lit_dist = np.empty(k)
+    lit_i, lit_dir = np.empty((2, k), np.int64), np.empty((k, 3), np.float32)
+    lit_dist, lit_w = np.empty(k), np.empty(k, np.float32)
     m = shadow_results(rays_i, rays_v, rays_f, occluded, n_distant, vis, rays, lit_i, lit_dir,
-                       lit_dist)  # fmt: skip
+                       lit_dist, lit_w)  # fmt: skip
     no_sums = np.empty((0, 3), np.float32)
     shade_kernel(
         positions, normals, albedo, view_dirs, emissive, ambient, no_sums, no_sums, d_dir,
         d_radiance, vis, l_pos, l_radiance, l_range, l_cone, False,
-        lit_i[0, :m], lit_i[1, :m], lit_dir[:m], lit_dist[:m],
-        np.empty(0, np.float32), False, model, out,
+        lit_i[0, :m], lit_i[1, :m], lit_dir[:m], lit_dist[:m], lit_w[:m], True, model, out,
     )  # fmt: skip
     if total.shape[0] > 0:
         accumulate(total, slot, weight, out)

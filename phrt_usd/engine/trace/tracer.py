@@ -15,6 +15,9 @@ The tracer is a shell over one role per module:
   surface rule of ``model.surface`` (the raster G-buffer's too, so ``rt`` and raster
   agree at grazing pixels);
 - ``shadow_rays``: visibility of lights by occlusion rays;
+- ``hit_lighting``: the direct light at the paths' hits (shadow maps where the renderer
+  has them and they decide, ``use_shadow_maps``; shadow rays elsewhere, lights sampled
+  where a hit has many);
 - ``paths``: the bounce loop and the per-source ``TraceRecord`` s the heuristic reads.
 
 This module picks the pixels paths start from (reflector pixels, found once per
@@ -46,8 +49,10 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 from phrt_usd import kernels
+from phrt_usd.engine import lighting
 from phrt_usd.engine.trace import sparse_pixels
 from phrt_usd.engine.trace.bvh import Bvh
+from phrt_usd.engine.trace.hit_lighting import MapLookup, frame_seed
 from phrt_usd.engine.trace.hit_surfaces import HitSurfaces
 from phrt_usd.engine.trace.paths import PathTracer, refract
 from phrt_usd.engine.trace.shadow_rays import ShadowRays
@@ -85,6 +90,8 @@ class Tracer:
         self._pool = ThreadPoolExecutor(self.threads) if self.threads > 1 else None
         self.rays_cast: dict[str, int] = {}
         self.reset_counters()
+        self._hit_maps: MapLookup | None = None  # ``use_shadow_maps``
+        self._frame_seed = 0.0  # ``begin_frame``
         start = time.perf_counter()
         self.bvh = Bvh(scene, self.threads, self._pool)
         self._bind(scene)
@@ -144,6 +151,19 @@ class Tracer:
         self._lights_key: tuple | None = None
         #: ``sparse_pixels.fill_skipped``'s pixel table, kept for the G-buffer size.
         self._fill_table: np.ndarray | None = None
+
+    def use_shadow_maps(self, rasterizer) -> None:
+        """Light the hits of paths with ``rasterizer``'s shadow maps where they decide
+        (``hit_lighting``: the raster light pass's lookup, ``lighting.map_lookup``);
+        without it every pair takes a shadow ray (lights sampled where there are many)."""
+        self._hit_maps = lambda positions, normals, view_dirs: lighting.map_lookup(
+            rasterizer, self.scene.lights, positions, normals, view_dirs
+        )
+
+    def begin_frame(self, time_code: float) -> None:
+        """The frame the next traces belong to: the seed of the light sampling at hits
+        (``hit_lighting.frame_seed``), so a frame traces the same way every time."""
+        self._frame_seed = frame_seed(time_code)
 
     def _relative_lights(self) -> Lights:
         """The scene's lights with LocalLight positions rel (what shading sees, since it
@@ -296,7 +316,9 @@ class Tracer:
             gbuffer, sources, None, reflect=True, surface=False, density=density
         )
         pix, src, d, origins = first["pix"], first["src"], first["dir"], first["org"]
-        result = self._run_paths(pix, src, origins, d, sources, bounce_limit, "reflection", start)
+        result = self._run_paths(
+            pix, src, origins, d, sources, bounce_limit, "reflection", start, gbuffer.shape[1]
+        )
         if first["skipped"] is None:
             return result
         return self._with_skipped(
@@ -367,12 +389,19 @@ class Tracer:
         # Directions are float32 from here on (Embree's precision for them anyway).
         d = refract(first["view"], first["ns"], ng_front, ior).astype(np.float32)
         origins = self.bvh.boundary.offset_rays(first["rel"], ng_front, d)
-        return self._run_paths(pix, src, origins, d, sources, bounce_limit, "refraction", start)
+        return self._run_paths(
+            pix, src, origins, d, sources, bounce_limit, "refraction", start, gbuffer.shape[1]
+        )
 
-    def _run_paths(self, pix, src, origins, dirs, sources, bounce_limit, first_kind, start):
-        """``PathTracer.run`` with this tracer's rel lights, element count and counters."""
+    def _run_paths(self, pix, src, origins, dirs, sources, bounce_limit, first_kind, start,
+                   width):  # fmt: skip
+        """``PathTracer.run`` with this tracer's rel lights, element count and counters,
+        its hits lit with its shadow maps and frame seed (``width``: the G-buffer's)."""
         lights = self._relative_lights()
         n_elements = len(self.scene.elements)
+        self._paths.lighting.maps = self._hit_maps
+        self._paths.lighting.frame_seed = self._frame_seed
+        self._paths.lighting.width = width
         return self._paths.run(
             pix, src, origins, dirs, sources, bounce_limit, first_kind, start,
             lights, n_elements, self.rays_cast,

@@ -1,0 +1,169 @@
+"""Direct light at the tracer's hits (reflection and refraction bounces): the one rule of
+``rt`` and ``hybrid`` alike (docs/hit-lighting.md states it with its measured error).
+
+For each hit and light (``shading``'s light order, distant then local):
+
+1. **Maps first.** Where the renderer has shadow maps (``hybrid``: ``use_maps``, the
+   raster light pass's own lookup, ``lighting.map_lookup``, the test and code of the
+   primary surface) and they decide the pair (lit or shadowed over the whole texel
+   neighbourhood), their answer is the visibility, and no ray is cast. The lit pairs are
+   shaded in the GPU lookup pass as the primary surface's are.
+2. **Rays where they do not.** The pairs the maps cannot decide (shadow edges, casters
+   thinner than a texel), and every pair where there are no maps (``rt``; a batch of
+   fewer than MAP_MIN_PAIRS possible pairs, where the lookup pass costs more than the
+   rays it saves), are *undecided*; each gets a shadow ray (``shadow_rays``).
+3. **Lights sampled where a hit has many.** A hit with more than
+   ``shadow_rays.HIT_LIGHT_PICKS`` undecided pairs of a positive unshadowed share
+   (``shade_kernels.light_share``: the light's brightest channel x n·l, window / d² and
+   cone for a LocalLight) casts HIT_LIGHT_PICKS rays only: systematic sampling over the
+   shares, each drawn light weighted by draws x total / (picks x share), so its expected
+   weight is 1 (unbiased); a light of at least 1 / picks of the share is always drawn.
+   The draws' offset is the pixel's in a 2D low-discrepancy pattern (R2), shifted per
+   frame by a hash of its time code (``frame_seed``): reproducible, different each
+   frame, and neighbouring pixels' offsets spread over [0, 1), so their errors offset
+   each other (a dither, which FLIP and the eye see less of than white noise); the
+   noise left is the reconstruction's.
+
+Everything else (ambient, emission, the shading model) is ``shading.shade_local``'s.
+Spaces: positions rel (``bvh.Float32Boundary``); the map lookup takes world metres.
+"""
+
+from __future__ import annotations
+
+import struct
+from collections.abc import Callable
+
+import numpy as np
+
+from phrt_usd import kernels
+from phrt_usd.engine import lighting
+from phrt_usd.engine.trace.bvh import Bvh
+from phrt_usd.engine.trace.hit_surfaces import HitSurfaces
+from phrt_usd.engine.trace.shadow_rays import ShadowRays
+from phrt_usd.model.scene import Lights
+
+#: The compiled trace kernels (``trace_kernels``, through ``phrt_usd.kernels``).
+_TRACE = kernels.load("phrt_usd.engine.trace.trace_kernels")
+
+#: The shadow maps' lookup of hits: (world positions (n, 3) float64, shading normals
+#: (n, 3) facing the ray's origin, ray directions (n, 3)) -> ``map_lighting``'s
+#: ``MapVisibility`` or ``PendingLightTerms`` (``lighting.map_lookup`` bound to a
+#: rasterizer and the scene's lights).
+MapLookup = Callable[[np.ndarray, np.ndarray, np.ndarray], object]
+
+#: A batch of hits is looked up in the shadow maps only from this many (hit, light)
+#: pairs on: the GPU lookup pass costs ~0.6 ms however few points it has (sewer, 13
+#: lights: 0.76 ms for 30 points, 29 ms for 65,000), while below this many pairs
+#: their shadow rays, sampled, cost less.
+MAP_MIN_PAIRS = 4096
+
+#: The R2 sequence's steps (Roberts 2018, from the plastic number g = 1.3247...): the
+#: offset of pixel (x, y) is fract(x / g + y / g² + the frame's shift).
+_PLASTIC = 1.324717957244746
+_R2_STEPS = (1.0 / _PLASTIC, 1.0 / _PLASTIC**2)
+
+
+def frame_seed(time_code: float) -> float:
+    """The light sampling's shift of a frame in [0, 1): a hash (splitmix64's finaliser,
+    Steele, Lea & Flood 2014) of its time code's float64 bits."""
+    x = struct.unpack("<Q", struct.pack("<d", float(time_code)))[0]
+    x = (x + 0x9E3779B97F4A7C15) & _U64
+    x = ((x ^ (x >> 30)) * 0xBF58476D1CE4E5B9) & _U64
+    x = ((x ^ (x >> 27)) * 0x94D049BB133111EB) & _U64
+    return ((x ^ (x >> 31)) >> 11) * 2.0**-53
+
+
+_U64 = (1 << 64) - 1
+
+
+def light_offsets(pixels: np.ndarray, width: int, seed: float) -> np.ndarray:
+    """(m,) float64 in [0, 1): the draws' offset of hits seen from ``pixels`` (m,) flat
+    indices of an image ``width`` pixels wide, in the frame of shift ``seed``
+    (``frame_seed``)."""
+    x, y = np.divmod(np.asarray(pixels, np.int64), max(int(width), 1))[::-1]
+    return np.mod(x * _R2_STEPS[0] + y * _R2_STEPS[1] + seed, 1.0)
+
+
+class HitLighting:
+    """The rule of the module over one ``Bvh``'s ``HitSurfaces`` and ``ShadowRays``.
+
+    maps : the shadow maps' lookup (``use_maps``), None without a raster (``rt``);
+    frame_seed : this frame's sampling shift (``frame_seed``); width : the traced
+    image's (the tracer sets all three before each trace)."""
+
+    def __init__(self, bvh: Bvh, surfaces: HitSurfaces, shadows: ShadowRays) -> None:
+        self._bvh = bvh
+        self._surfaces = surfaces
+        self._shadows = shadows
+        self.maps: MapLookup | None = None
+        self.frame_seed = 0.0
+        self.width = 1
+
+    def shade(self, tri, u, v, rel, ng, ns, d_in, lights: Lights, pixels, albedo=None,
+              into=None, textured=None):  # fmt: skip
+        """Local shading of hits (tri, u, v (m,); rel, ng, ns, d_in (m, 3), see
+        ``HitSurfaces.at``; pixels (m,) the pixel each hit's path started from; albedo
+        (m, 3) float32 corner albedo or None, ``HitSurfaces.colour``'s, as
+        ``textured``) by the module's rule with render-relative ``lights``: (m, 3)
+        float32 radiance, (m,) int64 shadow rays cast per hit and their sum; with
+        ``into`` (total, slot, weight) the radiance times weight also added to
+        total[slot] (``trace_kernels.accumulate``)."""
+        n_lights = len(lights.distant) + len(lights.local)
+        u0 = light_offsets(pixels, self.width, self.frame_seed)
+        if self.maps is not None and lights.has_direct and len(tri) * n_lights >= MAP_MIN_PAIRS:
+            return self._with_maps(tri, u, v, rel, ng, ns, d_in, lights, u0, albedo, into,
+                                   textured)  # fmt: skip
+        return self._with_rays(tri, u, v, rel, ng, ns, d_in, lights, u0, albedo, into, textured)
+
+    def _with_maps(self, tri, u, v, rel, ng, ns, d_in, lights, u0, albedo, into, textured):
+        """``shade`` with the shadow maps deciding what they can (steps 1-3)."""
+        albedo, emissive = self._surfaces.colour(tri, u, v, albedo, textured)
+        world = rel + self._bvh.boundary.origin
+        pending = self.maps(world, ns, d_in)
+        query = pending.uncertain_pairs()
+        rays = np.zeros(len(tri), np.int64)
+        if query is None:
+            settled = pending.filtered()
+        else:  # the undecided pairs: rays, lights sampled where a hit has many
+            rows = query.rows
+            take = (np.take(a, rows, axis=0) for a in (rel, ng, ns, u0))
+            r_rel, r_ng, r_ns, r_u0 = take
+            exact, rays[rows] = self._shadows.visibility(
+                r_rel, r_ns, lights, query.pairs, offsets=r_ng, u0=r_u0
+            )
+            settled = pending.resolved(exact)
+        local = lighting.shade_settled(rel, ns, albedo, d_in, emissive, lights, settled)
+        if into is not None:
+            _TRACE.accumulate(*into, local)
+        return local, rays, int(rays.sum())
+
+    def _points(self, tri, u, v, rel, ng, ns, d_in, albedo, u0, lights: Lights, threads=None,
+                into=None, textured=None):  # fmt: skip
+        """``shade`` of hits without maps (steps 2-3) in one compiled call after Embree's
+        (``ShadowRays.shade``); safe to run on the pool with ``threads`` = 1 and no
+        ``into``."""
+        albedo, emissive = self._surfaces.colour(tri, u, v, albedo, textured)
+        # The caller updates ``rays_cast`` (a dict ``+=`` from pool threads could race).
+        return self._shadows.shade(
+            rel, ng, ns, d_in, albedo, emissive, lights, threads=threads, into=into, u0=u0
+        )
+
+    def _with_rays(self, tri, u, v, rel, ng, ns, d_in, lights, u0, albedo, into, textured):
+        """``_points`` of every hit; large batches (the sewer in ``rt``: 13 lights, ~65k
+        hits at 640x480) run in chunks on the pool (the kernels and embreex release the
+        GIL), each chunk's Embree batch on its own thread."""
+        n_lights = len(lights.distant) + len(lights.local)
+        bounds = self._shadows.split(len(tri) * max(n_lights, 1), len(tri))
+        if bounds is None:
+            return self._points(
+                tri, u, v, rel, ng, ns, d_in, albedo, u0, lights, into=into, textured=textured
+            )
+        chunk_textured = None if textured else textured  # a chunk looks its own textures up
+        done = self._shadows.in_chunks(
+            lambda *rows: self._points(*rows, lights, 1, None, chunk_textured),
+            bounds, tri, u, v, rel, ng, ns, d_in, albedo, u0,
+        )  # fmt: skip
+        local, rays = (np.concatenate([d[i] for d in done]) for i in (0, 1))
+        if into is not None:  # the chunks' sums could race: one pass over them all
+            _TRACE.accumulate(*into, local)
+        return local, rays, sum(d[2] for d in done)
