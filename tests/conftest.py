@@ -1,3 +1,16 @@
+"""The suite, one folder a phase (model, usd, select, engine, run, evaluate, and top for
+what spans them), each with its conftest; the modules here beside this file are the
+builders and references the tests share (pytest puts this folder on ``sys.path``): scenes
+and stages (``scenes.py``, ``textured_stages.py``), fake selection frames
+(``selection_fakes.py``), a synthetic sweep (``synthetic_sweep.py``), the numpy forms the
+kernels replaced (``numpy_paths.py``, ``*_reference.py``), shared thresholds
+(``image_thresholds.py``) and the repository's folders (``repo_paths.py``). A test module
+never imports another test module, and no two test files share a name.
+
+``slow`` marks whole frames and camera paths, subprocesses (CLI, workers, browser) and
+whatever else takes over about 0.2 s; ``uv run pytest -m "not slow"`` is the quick loop,
+``./run tests`` the whole suite."""
+
 import os
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")

@@ -29,6 +29,7 @@ from phrt_usd.engine.renderer import FrameRenderer, RenderOptions
 from phrt_usd.usd.stage import read_stage
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("mode", ["rt", "hybrid"])
 def test_the_mirror_shows_the_wall_through_the_cut_half(tmp_path, mode):
     scene = read_stage(mirrored_cutout_stage(tmp_path))
@@ -55,6 +56,7 @@ def test_the_mirror_shows_the_wall_through_the_cut_half(tmp_path, mode):
     assert b[solid][0] > 2 * max(b[solid][1], b[solid][2]), b[solid]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("mode", ["raster", "rt"])
 def test_a_local_light_shines_through_the_cut_half(tmp_path, mode):
     """The cube shadow maps of a SphereLight are peeled like the distant maps, and its

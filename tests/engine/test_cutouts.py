@@ -42,6 +42,7 @@ def without_quad(tmp_path_factory):
     return {mode: render_first_frame(stage, mode) for mode in ("raster", "rt", "hybrid")}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("mode", ["raster", "rt", "hybrid"])
 def test_wall_shows_through_the_cut_half_and_the_quad_in_the_other(renders, mode):
     out, camera = renders[mode]
@@ -60,6 +61,7 @@ def test_wall_shows_through_the_cut_half_and_the_quad_in_the_other(renders, mode
     assert b[hole][2] > 2 * b[hole][0] and b[solid][0] > 2 * b[solid][2]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("mode", ["raster", "rt", "hybrid"])
 def test_the_cut_half_casts_no_shadow_and_the_present_half_does(renders, without_quad, mode):
     out, camera = renders[mode]
@@ -76,6 +78,7 @@ def test_the_cut_half_casts_no_shadow_and_the_present_half_does(renders, without
     assert out.beauty[shadowed][2] < 0.5 * bare[shadowed][2]
 
 
+@pytest.mark.slow
 def test_raster_and_rt_agree_on_which_pixels_are_cut(renders):
     """The one cut-out rule (model/surface.py Cutouts) in raster and trace: the pixels
     showing the wall agree except on the texels' edge between the halves (bilinear
@@ -87,6 +90,7 @@ def test_raster_and_rt_agree_on_which_pixels_are_cut(renders):
     assert differ <= HEIGHT
 
 
+@pytest.mark.slow
 def test_no_threshold_means_opaque(tmp_path):
     """opacityThreshold 0 with a textured opacity: not a cut-out and not faked
     translucency: the quad is opaque everywhere (the known limit in docs)."""
@@ -118,6 +122,7 @@ def test_id_layers_give_the_id_pass_ids(tmp_path):
     np.testing.assert_array_equal(ids[0.5], ids[0.0])
 
 
+@pytest.mark.slow
 def test_hybrid_all_matches_rt_on_the_cutout_stage(renders):
     """The hybrid-equals-rt invariant of tests/test_render.py, on cut-outs: hybrid with
     every reflector traced (none here: raster G-buffer, maps and rays for the pairs they
@@ -130,6 +135,7 @@ def test_hybrid_all_matches_rt_on_the_cutout_stage(renders):
     )  # fmt: skip
 
 
+@pytest.mark.slow
 def test_animated_geometry_keeps_the_triangle_ids(tmp_path):
     """Id layers number the static triangles, then the animated ones (two draws); the
     G-buffer maps them back to the scene's triangle ids. With the wall animated (a

@@ -171,11 +171,13 @@ def showcase():
 # ---------------------------------------------------------------- tests
 
 
+@pytest.mark.slow
 def test_showcase_is_large_enough(showcase):
     scene, _ = showcase
     assert 45_000 <= scene.geometry.triangle_count <= 60_000
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("offset", [0.0, 1e6])
 def test_ids_positions_normals_match_embree(offset, tmp_path):
     off = np.array([offset, 0.5 * offset, -offset])
@@ -213,6 +215,7 @@ def test_ids_positions_normals_match_embree(offset, tmp_path):
     np.testing.assert_allclose(g.albedo[cov], colours[g.triangle_id[cov]], atol=1e-6)
 
 
+@pytest.mark.slow
 def test_background_pixels(showcase):
     scene, r = showcase
     cam = look_at([0.0, 3.0, 9.0], [0.0, 8.0, 0.0])  # looking up: mostly sky
@@ -239,6 +242,7 @@ def test_mirror_visible_from_behind(tmp_path):
     assert np.all(g.normal[g.covered][:, 1] < -0.99)  # flipped towards the camera below
 
 
+@pytest.mark.slow
 def test_an_open_rasterizer_is_not_collected_until_closed():
     """pyrender's finalisers delete GL objects in whatever context is current; a rasterizer
     collected during another's render would delete that one's framebuffers."""
@@ -258,6 +262,7 @@ def test_an_open_rasterizer_is_not_collected_until_closed():
     assert dropped() is None  # closed: collected as usual
 
 
+@pytest.mark.slow
 def test_random_triangle_soup_ids_exact(tmp_path):
     """70k random coloured triangles (ids above 2^16 use the third byte): every id the
     rasterizer writes names a triangle that really contains the pixel's ray, and ids
@@ -303,6 +308,7 @@ def test_random_triangle_soup_ids_exact(tmp_path):
     np.testing.assert_allclose(g.albedo[cov], colours[tid], atol=1e-6)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("animated", [False, True])
 def test_shadow_map_matches_shadow_rays(animated, tmp_path):
     """Floor pixels lit / shadowed as Embree shadow rays say (with the sphere flagged
@@ -355,6 +361,7 @@ def test_shadow_map_matches_shadow_rays(animated, tmp_path):
         assert refined_agree >= max(agree, 0.999), f"refined agreement {refined_agree:.4%}"
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("animated", [False, True])
 def test_update_geometry_moves_prims_and_invalidates_shadows(animated, tmp_path):
     """Moving a box re-rasterizes it and moves its shadow. Flagged animated, the box
@@ -434,6 +441,7 @@ def test_textured_albedo_follows_uv():
     np.testing.assert_allclose(g.albedo[cov], sample_bilinear_wrap(tex, uv), atol=1e-4)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "case", ["empty", "beyond_far", "inside_box", "near0_far_inf", "tiny_far_away"]
 )
@@ -475,6 +483,7 @@ def test_extreme_inputs_stay_finite(case, tmp_path):
         assert check_ids(scene, g, ref_tri, tmp_path, case) >= ID_AGREEMENT
 
 
+@pytest.mark.slow
 def test_degenerate_camera_is_a_user_error(showcase):
     _, r = showcase
     cam = look_at([0.0, 1.0, 6.0], [0.0, 0.0, 0.0])
@@ -489,6 +498,7 @@ PAPER_STAGES = ["farm", "sewer"]
 STRICT_ID_STAGES = {"sewer"}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", PAPER_STAGES)
 def test_paper_stage_ids(name, tmp_path):
     """Element ids agree with Embree on a few frames of the paper stages."""
@@ -543,6 +553,7 @@ if os.environ.get("PYOPENGL_PLATFORM", "osmesa") != "osmesa":  # pragma: no cove
     pytestmark = pytest.mark.skip("these tests expect the OSMesa platform")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("offset", [np.zeros(3), np.array([1e6, -2e5, 3e6])])
 def test_local_light_cube_shadows_match_shadow_rays(offset, tmp_path):
     """A point light over a table: the cube maps alone agree with Embree shadow rays on
@@ -608,6 +619,7 @@ def test_local_light_cube_shadows_match_shadow_rays(offset, tmp_path):
     assert np.all(tracer.shadow_visibility(pos, down)[:, 0] == 0.0)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("use_refine", [False, True])
 @pytest.mark.parametrize("with_local", [True, False])
 def test_gpu_light_terms_shade_like_the_visibility_matrix(use_refine, with_local):

@@ -59,6 +59,7 @@ def test_texel_free_pairs_match_the_numpy_reference(offset):
     assert not gpu.uncertain[out | inside_near].any()
 
 
+@pytest.mark.slow
 def test_many_lights_shade_like_the_visibility_matrix():
     """20 LocalLights (two passes of the shading lookup, which walks each fragment's
     lights as bit masks) around a slab with casters, some out of reach of parts of it,

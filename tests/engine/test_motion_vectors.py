@@ -116,6 +116,7 @@ def test_camera_translating_sideways_over_a_wall(tmp_path):
     assert np.abs(second.motion[..., 1]).max() < EXACT_PX
 
 
+@pytest.mark.slow
 def test_still_camera_over_a_still_scene_is_zero(tmp_path):
     """Camera and wall do not move (half the view is the dome): the motion is 0 at every
     pixel, covered or background (the same projection both ways: float64 round-off)."""
@@ -144,6 +145,7 @@ def test_camera_turning_in_place_moves_every_pixel_alike_at_any_depth(tmp_path, 
     assert np.abs(want[..., 0]).min() > 2.0  # the turn moves every pixel a few pixels
 
 
+@pytest.mark.slow
 def test_element_moving_rigidly_moves_its_pixels_by_the_projected_displacement(tmp_path):
     """Still camera, still wall; a quad 2 m nearer (depth 3 m) moves by (0.2, 0.1, 0) m:
     its pixels move by (0.2, -0.1) / 3 x FOCAL_PX pixels (y up in the world is up the
@@ -189,6 +191,7 @@ def test_element_turning_and_moving_with_a_moving_camera(tmp_path):
     assert np.abs(second.motion[on_mover] - want).max() < EXACT_PX
 
 
+@pytest.mark.slow
 def test_a_frame_rendered_out_of_order_gets_the_motion_of_its_planned_predecessor(tmp_path):
     """Frame 3 of the plan 1, 2, 3 rendered alone (as after a resume) has the motion of
     frame 3 rendered after 1 and 2: the renderer evaluates the stage at frame 2 for the

@@ -61,6 +61,7 @@ def _counts(output) -> dict[str, int]:
     return pk.kind_counts(output.pixel_kind)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("density", ["full", "quarter", "sixteenth"])
 def test_kinds_count_what_the_renderer_traced_and_filled(gallery, density):
     """Traced pixels are the reflection rays cast (one each at one bounce); traced and
@@ -94,6 +95,7 @@ def test_kinds_count_what_the_renderer_traced_and_filled(gallery, density):
         assert np.all((rows[large] % step == 0) & (cols[large] % step == 0))
 
 
+@pytest.mark.slow
 def test_raster_mode_has_only_raster_and_background(gallery):
     for output, _ in _frames(gallery, "raster"):
         assert set(np.unique(output.pixel_kind).tolist()) == {pk.BACKGROUND, pk.RASTER}

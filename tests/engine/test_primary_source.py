@@ -80,6 +80,7 @@ def _frame(stage, primary: str, mode: str = "hybrid", width: int = 160, height: 
         renderer.close()
 
 
+@pytest.mark.slow
 def test_rays_render_the_raster_frame(tmp_path):
     stage = open_stage(mirror_floor_stage(tmp_path / "mirror.usda"))
     source_r, raster = _frame(stage, "raster")
@@ -96,6 +97,7 @@ def test_rays_render_the_raster_frame(tmp_path):
     )
 
 
+@pytest.mark.slow
 def test_auto_follows_the_triangles_a_pixel(tmp_path):
     """The test stage has a few dozen triangles: at 160 x 120 the raster, at 4 x 3 (12
     pixels) the rays where the raster is software (llvmpipe, as on any machine without
@@ -115,6 +117,7 @@ def test_auto_follows_the_triangles_a_pixel(tmp_path):
     assert source == "rays" and "primary_rays" in out.stats.passes and not out.traced_mask.any()
 
 
+@pytest.mark.slow
 def test_the_run_records_its_source(tmp_path):
     stage = mirror_floor_stage(tmp_path / "mirror.usda")
     result = phrt_usd.render(stage, tmp_path / "api", frames="1", primary="rays")

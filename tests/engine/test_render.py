@@ -34,6 +34,7 @@ def _red(image: np.ndarray) -> np.ndarray:
     return (image[..., 0] > 2 * image[..., 1]) & (image[..., 0] > 2 * image[..., 2])
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("mode", ["rt", "hybrid"])
 def test_sphere_reflection_lands_where_geometry_says(tmp_path, mode):
     stage = open_stage(mirror_floor_stage(tmp_path / "mirror.usda"))
@@ -58,6 +59,7 @@ def test_sphere_reflection_lands_where_geometry_says(tmp_path, mode):
         raise
 
 
+@pytest.mark.slow
 def test_raster_mode_shows_no_reflected_geometry(tmp_path):
     stage = open_stage(mirror_floor_stage(tmp_path / "mirror.usda"))
     out = _render(stage, "raster", 160, 120)
@@ -69,6 +71,7 @@ def test_raster_mode_shows_no_reflected_geometry(tmp_path):
     assert not out.traced_mask.any()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name,times", [("farm", [200.0, 420.0]), ("sewer", [100.0, 400.0])])
 def test_hybrid_all_matches_rt(name, times):
     stage = open_stage(STAGES / f"{name}.usda")
@@ -85,6 +88,7 @@ def _all_stage_files() -> list[Path]:
     return sorted(STAGES.glob("*.usda")) + sorted((STAGES / "extreme").glob("*.usda"))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("path", _all_stage_files(), ids=lambda p: p.stem)
 def test_every_stage_renders_finite_or_fails_clearly(path):
     try:
@@ -101,6 +105,7 @@ def test_every_stage_renders_finite_or_fails_clearly(path):
             assert np.all(np.isfinite(channel))
 
 
+@pytest.mark.slow
 def test_screen_boxes_bound_each_reflectors_pixels(tmp_path):
     stage = open_stage(mirror_gallery_stage(tmp_path / "gallery.usda"))
     renderer = FrameRenderer(
@@ -123,6 +128,7 @@ def test_screen_boxes_bound_each_reflectors_pixels(tmp_path):
     assert seen >= 2
 
 
+@pytest.mark.slow
 def test_planned_frames_give_each_view_the_upcoming_cameras():
     stage = open_stage(STAGES / "sewer.usda")  # its camera path moves every frame
     renderer = FrameRenderer(

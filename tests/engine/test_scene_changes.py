@@ -7,6 +7,7 @@ compare versions and update only the elements that changed, counted (not timed);
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from pxr import Gf, Usd, UsdGeom, Vt
@@ -53,6 +54,7 @@ def _move(scene, element: int, offset) -> None:
     scene.geometry_changed([element])
 
 
+@pytest.mark.slow
 def test_moving_one_element_of_a_large_static_scene_updates_only_its_part():
     """One box moves among 46 080 static triangles: the rasterizer re-sends exactly its
     8 vertices and refreshes its 12 table rows, the tracer refreshes its 12 rows and
@@ -135,6 +137,7 @@ def test_two_animated_elements_far_apart_only_the_moved_one_is_refreshed():
         assert change.elements.tolist() == [first, last] and change.vertices == 2 * BOX_VERTICES
 
 
+@pytest.mark.slow
 def test_a_flipped_winding_rebuilds_the_raster_buffers():
     """A changed element whose winding flipped (a transform's determinant changing
     sign) cannot be re-sent as vertices: the node is rebuilt, and the ids stay right."""
@@ -153,6 +156,7 @@ def test_a_flipped_winding_rebuilds_the_raster_buffers():
         np.testing.assert_array_equal(g.triangle_id, fresh.render(camera).triangle_id)
 
 
+@pytest.mark.slow
 def test_replaced_lights_rerender_only_the_maps_of_changed_lights():
     """New lights with the same directions and positions render nothing again; a
     DistantLight turned renders its two maps again, the SphereLight's cubes are kept."""
@@ -236,6 +240,7 @@ def test_set_time_says_what_moved_deformed_and_which_versions_changed():
     assert held.camera_version == 2 and held.geometry_version == 3
 
 
+@pytest.mark.slow
 def test_frame_output_carries_its_camera(tmp_path):
     """Projecting each covered pixel's world position with the frame's world-to-camera
     and projection lands on that pixel's centre, and camera-space -z is the G-buffer's

@@ -109,6 +109,7 @@ def test_density_is_checked_and_refused_in_rt_mode():
         RenderOptions(mode="rt", trace_density="half")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     ("density", "share"), [("half", 0.5), ("quarter", 0.25), ("sixteenth", 1 / 16)]
 )
@@ -150,6 +151,7 @@ def test_mirror_floor_at_reduced_density_traces_its_share_and_the_same_reflectio
     assert np.mean(diff < 1e-4) >= 0.95
 
 
+@pytest.mark.slow
 def test_densities_per_source_trace_each_source_as_its_own_density_would():
     """HEU1's density steps trace a round's sources at different densities: each source's
     pixels, rays and radiance are those of a round at that source's density alone."""
@@ -172,6 +174,7 @@ def test_densities_per_source_trace_each_source_as_its_own_density_would():
     assert len(mixed.pixel_index) == sum(len(r.pixel_index) for r in alone)
 
 
+@pytest.mark.slow
 def test_the_cli_and_the_api_run_at_half_density_and_record_it(tmp_path):
     """End to end on the mirror-floor stage: the API and the CLI render at half density,
     record it in stats.json (part of the run's identity: a full-density run does not
@@ -199,6 +202,7 @@ def test_the_cli_and_the_api_run_at_half_density_and_record_it(tmp_path):
     assert not (tmp_path / "bad").exists()
 
 
+@pytest.mark.slow
 @settings(max_examples=150, deadline=None)
 @given(
     st.integers(1, 9), st.integers(1, 9), st.integers(0, 2**32 - 1),
@@ -239,6 +243,7 @@ def test_fill_is_the_weighted_mean_of_traced_same_source_neighbours_on_any_layou
     np.testing.assert_allclose(got, np.array(want, np.float32).reshape(-1, 3), rtol=1e-5)
 
 
+@pytest.mark.slow
 def test_heu1_takes_a_reflector_too_large_for_its_budget_at_a_coarser_density(tmp_path):
     """End to end (API, then CLI): HEU1 with a rays budget that holds the mirror floor
     only at a reduced density traces it at that density (the floor enters the view in

@@ -80,6 +80,7 @@ def test_bounce_loop_matches_numpy(glass, limit):
         assert new_counts["refraction"] > 0
 
 
+@pytest.mark.slow
 def test_bounce_loop_through_cutouts_matches_numpy(tmp_path):
     """Reflected rays re-cast through a cut-out quad's holes (test_cutout_reflections)."""
     stage = read_stage(mirrored_cutout_stage(tmp_path))

@@ -29,6 +29,7 @@ def assert_rows(rows: np.ndarray, expected, atol: float) -> None:
 # ---------------------------------------------------------------- (1) mirror physics
 
 
+@pytest.mark.slow
 def test_mirror_floor_reflects_sphere_where_mirrored_geometry_says():
     center, radius = np.array([0.3, 1.0, -0.5]), 0.6
     parts = [
@@ -208,6 +209,7 @@ def test_environment_up_reads_top_row():
     np.testing.assert_allclose(got, [[1, 0, 0], [0, 0, 0]], atol=1e-6)
 
 
+@pytest.mark.slow
 @settings(max_examples=200, deadline=None)
 @given(st.lists(st.floats(allow_nan=False, allow_infinity=True, width=64), min_size=3, max_size=3))
 def test_environment_lookup_never_nan(direction):

@@ -21,6 +21,7 @@ def test_identical_images_have_no_error():
     assert psnr(img, img) == PSNR_IDENTICAL_DB
 
 
+@pytest.mark.slow
 def test_error_grows_with_the_planted_difference():
     ref = _image()
     flips, psnrs = [], []

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 
+import pytest
 from repo_paths import REPO
 
 import phrt_usd
@@ -49,6 +50,7 @@ def test_record_is_json_and_its_line_is_one_line():
     assert "px per degree" in line and "cores" in line
 
 
+@pytest.mark.slow
 def test_benchmark_tool_prints_its_provenance_first(tmp_path, capsys):
     """tools/bench.py on a tiny stage: its output starts with the provenance line (the
     command as run, the machine) before its table."""

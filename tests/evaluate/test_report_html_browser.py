@@ -228,6 +228,7 @@ def report(report_dir) -> Path:
     return report_dir / "report.html"
 
 
+@pytest.mark.slow
 def test_report_renders_without_console_errors(report, tmp_path):
     screenshot = tmp_path / "report.png"
     dom, messages = run_chromium(
@@ -246,6 +247,7 @@ def test_report_renders_without_console_errors(report, tmp_path):
     assert pixels.std() > 10.0, f"screenshot looks blank: {screenshot}"
 
 
+@pytest.mark.slow
 def test_every_report_image_loads(report, tmp_path):
     states, messages = image_load_states(report, tmp_path / "profile")
     assert messages == [], f"console messages: {messages}"
@@ -256,6 +258,7 @@ def test_every_report_image_loads(report, tmp_path):
     assert failed == [], f"images that did not load: {failed}"
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("width", LAPTOP_WIDTHS)
 def test_report_fits_a_laptop_screen_and_links_its_csvs(report, tmp_path, width):
     """At a laptop's window width the page never scrolls sideways and links its CSVs; at
@@ -269,6 +272,7 @@ def test_report_fits_a_laptop_screen_and_links_its_csvs(report, tmp_path, width)
         assert wide == [], f"tables wider than their box at {width} px: {wide}"
 
 
+@pytest.mark.slow
 def test_checks_detect_planted_faults(report, tmp_path):
     """A page with a console error, an uncaught exception and a missing image fails both;
     a page wider than the window and without CSV links fails the layout check."""

@@ -70,6 +70,7 @@ def swept(tmp_path_factory) -> tuple[Path, Path]:
     return stage, out
 
 
+@pytest.mark.slow
 def test_probe_sweep_into_non_empty_out_replaces_earlier_sweep(swept, tmp_path):
     """A second sweep into the OUT of a first is refused (one line, exit 2; with --json
     one JSON object; also before a cluster would start) and the first sweep's files stay
@@ -143,6 +144,7 @@ def test_an_out_holding_only_the_sweeps_inputs_is_taken(tmp_path):
         assert sorted(p.name for p in out.iterdir()) == [".phrt.lock", "paper.json"]
 
 
+@pytest.mark.slow
 def test_probe_unwritable_output_in_sweep_exits_1(swept, tmp_path):
     """An --out that cannot be made is a bad option: exit 2, one line naming --out,
     before any frame renders (no traceback, no partial directory)."""
@@ -161,6 +163,7 @@ def test_probe_unwritable_output_in_sweep_exits_1(swept, tmp_path):
     assert error["code"] == 2 and "cannot create" in error["error"]
 
 
+@pytest.mark.slow
 def test_probe_interrupted_sweep_says_wrote_n_rows(tmp_path):
     """SIGINT during a long sweep: exit 130 and one line that says it was interrupted,
     after how many of how many frames, and what OUT holds (the finished frames' rows and
@@ -206,6 +209,7 @@ def _git_head() -> str:
     return done.stdout.strip() if done.returncode == 0 else "unknown"
 
 
+@pytest.mark.slow
 def test_sweep_records_its_provenance(swept):
     """provenance.json holds what reproducing and citing the sweep needs, and summary.md
     and report.html show it; report.html links the CSVs."""
@@ -235,6 +239,7 @@ def test_sweep_records_its_provenance(swept):
     assert 'href="sweep.csv"' in html and 'href="summary.csv"' in html
 
 
+@pytest.mark.slow
 def test_sweep_summary_gives_spread_and_budget_adherence(swept):
     """summary.csv: per config the mean, median, p5 and p95 of frame time and FLIP, ordered
     (p5 <= median <= p95, the mean inside [p5 - span, p95 + span]); the share of frames

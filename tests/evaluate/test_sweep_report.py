@@ -175,6 +175,7 @@ class _Refs(HTMLParser):
 # --- tests ------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_summary_md_agrees_with_csv(report_dir):
     text = (report_dir / "summary.md").read_text()
     tables = parse_summary_md(text)
@@ -199,6 +200,7 @@ def test_summary_md_agrees_with_csv(report_dir):
                     assert_printed_close(cell, value, f"{stage} {row['config']} {column}")
 
 
+@pytest.mark.slow
 def test_summary_budgets_and_paper_line(report_dir):
     text = (report_dir / "summary.md").read_text()
     table = parse_summary_md(text)["farm"]
@@ -221,6 +223,7 @@ def test_summary_budgets_and_paper_line(report_dir):
     assert text.count("This sweep at budget") == 2 * len(STAGES)
 
 
+@pytest.mark.slow
 def test_without_timeline_rate_is_approximated_from_csv(tmp_path):
     out = write_synthetic_sweep(tmp_path / "sweep", seed=5)
     (out / "timeline.json").unlink()
@@ -236,6 +239,7 @@ def test_without_timeline_rate_is_approximated_from_csv(tmp_path):
     assert "timeline_" not in (out / "report.html").read_text()
 
 
+@pytest.mark.slow
 def test_paper_json_overrides_defaults(tmp_path):
     out = write_synthetic_sweep(tmp_path / "sweep", seed=3)
     paper = {"farm": {"heu1_fps": 11.5, "heu2_fps": 12.5, "transitions_ratio": 0.5,
@@ -249,6 +253,7 @@ def test_paper_json_overrides_defaults(tmp_path):
     assert "no figures for stage 'sewer'" in text
 
 
+@pytest.mark.slow
 def test_plots_are_small_valid_pngs(report_dir):
     for name in ("error_vs_time.png", "error_vs_time_farm.png", "error_vs_time_sewer.png"):
         path = report_dir / name
@@ -270,6 +275,7 @@ def test_plots_are_small_valid_pngs(report_dir):
         assert red.any(), stage
 
 
+@pytest.mark.slow
 def test_report_html_references_only_existing_local_files(report_dir):
     text = (report_dir / "report.html").read_text()
     parser = _Refs()
@@ -293,6 +299,7 @@ def test_report_html_references_only_existing_local_files(report_dir):
     assert {"sweep.csv", "summary.csv", "timeline.json", "summary.md"} <= refs
 
 
+@pytest.mark.slow
 def test_text_is_escaped_in_html_and_markdown(tmp_path):
     evil = "<script>alert(1)</script>|x&y"
     configs = [("all", "all", "hybrid", "", ""), (evil, "heu1", "hybrid", "4", "")]
@@ -414,6 +421,7 @@ def test_equal_rays_comparison_for_rays_budgets():
     assert "1000.0 rays: 0.035 at 300 rays vs HEU2 0.04" in rays_line
 
 
+@pytest.mark.slow
 def test_summary_csv_and_pareto_marks_agree_with_the_tables(report_dir):
     """summary.csv carries the temporal error unrounded (recomputed from sweep.csv) and
     the same Pareto marks as summary.md; every stage has a front, and within a stage no
@@ -443,6 +451,7 @@ def test_summary_csv_and_pareto_marks_agree_with_the_tables(report_dir):
             assert not any(all(q[i] <= p[i] for i in range(3)) and q != p for q in points)
 
 
+@pytest.mark.slow
 def test_budget_adherence_names_the_configs_that_miss_their_budget(tmp_path):
     """HEU1 and HEU2 at 2 ms whose trace phase averages 3.06 and 3.47 ms: the table gives
     each one's share of frames within T + 10 % (2.2 ms) and the notes of summary.md and
@@ -486,6 +495,7 @@ def test_budget_adherence_names_the_configs_that_miss_their_budget(tmp_path):
         assert "heu1@8ms (100.0 %)" in held
 
 
+@pytest.mark.slow
 def test_summary_and_report_show_the_provenance(tmp_path):
     """With provenance.json the summary and the page list its items; without (a sweep
     directory of an older phrt) they say it was not recorded."""

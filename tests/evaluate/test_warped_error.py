@@ -111,6 +111,7 @@ def test_warp_reads_each_pixel_where_it_was():
     assert np.array_equal(warped[warp.valid], _texture(1)[warp.valid])
 
 
+@pytest.mark.slow
 def test_consistent_moving_sequence_and_steady_moving_error_score_zero():
     """The moving texture against itself scores 0 (exactly: a whole-pixel warp); a patch
     that is there in every frame and moves with the texture is a steady error, not
@@ -125,6 +126,7 @@ def test_consistent_moving_sequence_and_steady_moving_error_score_zero():
     assert maps[0] is None and all(float(m.max()) == 0.0 for m in maps[1:])
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("period", [1, 2])
 def test_popping_scores_what_it_changes(period):
     """The patch switched on and off every ``period`` frames, moving with the texture:
@@ -194,6 +196,7 @@ def _gallery(tmp_path, times):
     return traced, raster, warps
 
 
+@pytest.mark.slow
 def test_rendered_sequence_popping_against_steady(tmp_path):
     """Real renders on the gallery's moving camera (frames 10..17, 160 x 120): the
     all-traced sequence against itself scores 0; its own warped error is far below the

@@ -16,6 +16,7 @@ operations in the same precision; only the order of a sum's terms may differ, so
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import surface_reference as reference
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -101,6 +102,7 @@ def test_hit_geometry_matches_numpy_reference():
     _assert_hits_agree(table, tri, u, v, _directions(rng, m), scale=40.0)
 
 
+@pytest.mark.slow
 @settings(max_examples=40, deadline=None)
 @given(
     far=st.sampled_from([0.0, 1e6, -3e7]),

@@ -126,6 +126,7 @@ def _project(point: np.ndarray, matrix: np.ndarray) -> np.ndarray:
     return row[:3] / row[3]
 
 
+@pytest.mark.slow
 def test_data_window_crops_every_channel_and_sets_the_exr_windows(runs):
     full, crop = runs
     header, whole = read_exr(full / "multi.0001.exr")
@@ -150,6 +151,7 @@ def test_data_window_crops_every_channel_and_sets_the_exr_windows(runs):
     assert set(read_manifest(cropped_header)) == {int(i) for i in np.unique(ids) if i >= 0}
 
 
+@pytest.mark.slow
 def test_data_window_crops_the_png_products(runs):
     full, crop = runs
     whole = read_preview_png(full / "preview.0001.png")
@@ -159,6 +161,7 @@ def test_data_window_crops_the_png_products(runs):
     np.testing.assert_array_equal(part, whole[row0:row1, col0:col1])
 
 
+@pytest.mark.slow
 def test_header_world_to_ndc_follows_the_aperture_offsets(runs):
     full, crop = runs
     header, channels = read_exr(full / "multi.0001.exr")

@@ -66,6 +66,7 @@ def _channels(path: Path) -> dict[str, tuple[np.ndarray, object]]:
     return {name: (c.pixels, part.header) for name, c in part.channels.items()}
 
 
+@pytest.mark.slow
 def test_aovs_add_motion_and_pixel_kind_channels(gallery, tmp_path, in_memory):
     """``--aovs motion,pixelKind``: channels ``motion.x``, ``motion.y`` (FLOAT) and
     ``pixelKind`` (UINT) in every frame's EXR, the header stating the motion convention
@@ -118,6 +119,7 @@ def _product_stage(gallery: Path, path: Path) -> Path:
     return path
 
 
+@pytest.mark.slow
 def test_render_product_vars_of_motion_and_pixel_kind(gallery, tmp_path, in_memory):
     """A RenderVar ``motion`` renamed ``mv`` stored as half: channels ``mv.x``, ``mv.y``
     (HALF, the renderer's motion within half's rounding); ``phrt:pixelKind`` as uchar:
@@ -146,6 +148,7 @@ def test_aov_names_are_listed_and_checked():
     ]
 
 
+@pytest.mark.slow
 def test_cli_aovs_motion(gallery, tmp_path):
     """``phrt render --aovs motion,pixelKind`` from the command line: exit 0, the
     channels in the frame."""

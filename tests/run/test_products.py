@@ -151,6 +151,7 @@ def _project(point: np.ndarray, matrix: np.ndarray) -> np.ndarray:
 # --- --settings and the product ----------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_settings_picks_the_second_settings_products_names_and_resolution(stage, second):
     # The stage's own settings (/Render/Settings) have no products: the second's are used.
     run = json.loads((second / "stats.json").read_text())["run"]
@@ -178,6 +179,7 @@ def test_settings_picks_the_second_settings_products_names_and_resolution(stage,
     assert "capDate" not in header
 
 
+@pytest.mark.slow
 def test_camera_matrices_in_the_header_agree_with_the_camera_and_the_pixels(second):
     header, channels = read_exr(second / "beauty.0001.exr")
     height, width = channels["Z"].shape
@@ -206,6 +208,7 @@ def test_camera_matrices_in_the_header_agree_with_the_camera_and_the_pixels(seco
     assert np.dot(normal, facing) > 0.97
 
 
+@pytest.mark.slow
 def test_manifest_resolves_the_id_at_a_known_pixel_to_its_prim(second):
     header, channels = read_exr(second / "beauty.0001.exr")
     ids = channels["id"]
@@ -224,6 +227,7 @@ def test_manifest_resolves_the_id_at_a_known_pixel_to_its_prim(second):
     assert header["idManifest"].find("id") >= 0
 
 
+@pytest.mark.slow
 def test_identical_budget_rays_runs_write_identical_bytes(stage, second, tmp_path):
     again = tmp_path / "again"
     _ok(str(stage), "--out", str(again), "--settings", "/Render/Second", "--frames", "1:2", *RAYS)
@@ -231,6 +235,7 @@ def test_identical_budget_rays_runs_write_identical_bytes(stage, second, tmp_pat
         assert (again / name).read_bytes() == (second / name).read_bytes(), name
 
 
+@pytest.mark.slow
 def test_no_products_keeps_the_default_layout_byte_for_byte(stage, tmp_path):
     out = tmp_path / "out"
     _ok(str(stage), "--out", str(out), "--frames", "1", *RAYS)  # the stage's own settings
@@ -255,6 +260,7 @@ def test_no_products_keeps_the_default_layout_byte_for_byte(stage, tmp_path):
 # --- --image, --aovs, --timestamp --------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_image_template_replaces_the_products_and_aovs_add_passes(stage, tmp_path):
     out = tmp_path / "out"
     _ok(str(stage), "--out", str(out), "--settings", "/Render/Second", "--frames", "1:2",
@@ -283,6 +289,7 @@ def test_image_template_replaces_the_products_and_aovs_add_passes(stage, tmp_pat
     assert channels["reflectivity"][row, col] == 0
 
 
+@pytest.mark.slow
 def test_image_and_aovs_errors_are_one_line(stage, tmp_path):
     outside = tmp_path / "elsewhere" / "x.####.exr"
     line = _one_line_error(
@@ -296,6 +303,7 @@ def test_image_and_aovs_errors_are_one_line(stage, tmp_path):
     assert not outside.parent.exists()
 
 
+@pytest.mark.slow
 def test_product_outside_out_and_bad_settings_are_refused(stage, tmp_path):
     done = _cli(str(stage), "--out", str(tmp_path / "a"), "--settings", "/Render/Escape")
     line = _one_line_error(done, 1)
@@ -315,6 +323,7 @@ def _job(stage: Path, out: Path, frames: str = "1", **kw) -> RenderJob:
     return RenderJob(stage_path=stage, out_dir=out, options=OPTIONS, frames=frames, **kw)
 
 
+@pytest.mark.slow
 def test_multipart_only_when_the_product_asks(stage, tmp_path):
     render_to_directory(_job(stage, tmp_path / "parts", settings="/Render/Parts"))
     image = OpenEXR.File(str(tmp_path / "parts" / "parts.0001.exr"), header_only=True)
@@ -324,6 +333,7 @@ def test_multipart_only_when_the_product_asks(stage, tmp_path):
     assert len(single.parts) == 1
 
 
+@pytest.mark.slow
 def test_overwrite_removes_this_runs_product_files_only(stage, tmp_path):
     """--overwrite deletes the files this run's names give at any frame number, never
     another run's names (which only a file in OUT could tell) nor other files."""
@@ -362,6 +372,7 @@ def _clashing_settings(stage: Path, path: Path) -> Path:
     return path
 
 
+@pytest.mark.slow
 def test_probe_products_expanding_to_one_file(stage, tmp_path):
     """Products are compared by the names they expand to at every frame rendered: two
     that meet are refused with exit 2 before any frame renders (OUT is not even made),
@@ -393,6 +404,7 @@ def test_probe_products_expanding_to_one_file(stage, tmp_path):
         plan.check_files([1.0, 1001.0])
 
 
+@pytest.mark.slow
 def test_resume_refuses_other_products(stage, tmp_path):
     out = tmp_path / "out"
     render_to_directory(_job(stage, out, settings="/Render/Second"))
@@ -402,6 +414,7 @@ def test_resume_refuses_other_products(stage, tmp_path):
         render_to_directory(_job(stage, out, resume=True))  # the stage's own settings
 
 
+@pytest.mark.slow
 def test_cluster_chunks_write_the_same_product_files(stage, tmp_path):
     from phrt_usd.cluster import plan_chunks, render_chunk
     from phrt_usd.run.render_job import prepare_job

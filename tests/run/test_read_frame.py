@@ -99,6 +99,7 @@ def default_frame(tmp_path_factory):
     return frame
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("layout", list(LAYOUTS))
 def test_read_frame_reads_every_product_layout(layout, default_frame, tmp_path):
     stage = _with_products(tmp_path / "shot.usda", layout)
@@ -128,6 +129,7 @@ def test_read_frame_reads_every_product_layout(layout, default_frame, tmp_path):
         assert frame["albedo"].shape == (HEIGHT, WIDTH, 3)
 
 
+@pytest.mark.slow
 def test_read_frame_names_a_missing_file(tmp_path):
     stage = _with_products(tmp_path / "shot.usda", "colour-only")
     with phrt_usd.render(stage, budget_ms=math.inf) as result:

@@ -49,6 +49,7 @@ def test_parse_frames():
     assert parse_frames("7", (0, 0)) == [7]
 
 
+@pytest.mark.slow
 def test_sigint_then_resume_equals_uninterrupted(tmp_path, check_readable):
     stage = mirror_gallery_stage(tmp_path / "gallery.usda", frames=40)
     args = ["--frames", "1:40", "--budget-rays", str(BUDGET_RAYS), "--resolution", "64x48"]
@@ -90,6 +91,7 @@ def test_sigint_then_resume_equals_uninterrupted(tmp_path, check_readable):
     assert summary["frames"] == 40
 
 
+@pytest.mark.slow
 def test_render_summary_and_files(tmp_path):
     stage = mirror_gallery_stage(tmp_path / "gallery.usda", frames=6)
     job = RenderJob(
@@ -111,6 +113,7 @@ def test_render_summary_and_files(tmp_path):
     assert not list((tmp_path / "run").rglob(".*tmp*"))
 
 
+@pytest.mark.slow
 def test_resume_refuses_other_options(tmp_path):
     stage = mirror_gallery_stage(tmp_path / "gallery.usda", frames=3)
     opts = RenderOptions(width=32, height=24, budget_ms=None, budget_rays=BUDGET_RAYS)
@@ -122,6 +125,7 @@ def test_resume_refuses_other_options(tmp_path):
         run_render(RenderJob(stage_path=stage, out_dir=tmp_path / "r", options=other, resume=True))
 
 
+@pytest.mark.slow
 def test_raster_run_casts_no_rays(tmp_path):
     stage = mirror_gallery_stage(tmp_path / "gallery.usda", frames=2)
     opts = RenderOptions(mode="raster", width=32, height=24)
@@ -132,6 +136,7 @@ def test_raster_run_casts_no_rays(tmp_path):
     assert np.isfinite(summary["median_frame_ms"])
 
 
+@pytest.mark.slow
 def test_probe_frames_closer_than_a_thousandth(tmp_path):
     """Frames whose time codes round to the same 1/1000 (the precision of file names)
     would overwrite each other's images: refused with exit 2 before any frame renders, in

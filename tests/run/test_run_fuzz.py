@@ -89,6 +89,7 @@ def _readers_refuse_or_accept(call) -> None:
         assert "\n" not in str(error).strip(), str(error)
 
 
+@pytest.mark.slow
 @settings(max_examples=EXAMPLES, deadline=None,
           suppress_health_check=[HealthCheck.function_scoped_fixture])  # fmt: skip
 @given(data=st.data())
@@ -99,6 +100,7 @@ def test_corrupted_checkpoint_resumes_or_is_refused(good_run, tmp_path, data):
     _readers_refuse_or_accept(lambda: _load_checkpoint(tmp_path, run_info, renderer))
 
 
+@pytest.mark.slow
 @settings(max_examples=EXAMPLES, deadline=None,
           suppress_health_check=[HealthCheck.function_scoped_fixture])  # fmt: skip
 @given(data=st.data(), name=st.sampled_from(["stats.json", "selection.usda"]))
@@ -113,6 +115,7 @@ def test_corrupted_stats_or_selection_layer_report_or_refuse(good_run, tmp_path,
     _readers_refuse_or_accept(lambda: build_report(run))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", [CHECKPOINT_FILE, "stats.json", "selection.usda"])
 def test_cli_on_a_corrupted_run_is_one_line(good_run, tmp_path, name):
     out, run_info = good_run

@@ -70,6 +70,7 @@ def _job(stage: Path, out: Path, **kw) -> RenderJob:
 # --- code from data --------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_planted_pickles_under_every_name_never_run(gallery, tmp_path):
     """A pickle at any name phrt reads in OUT (checkpoint, stats, layer, old checkpoint
     name) is refused as unreadable and never unpickled, by --resume and by report."""
@@ -90,6 +91,7 @@ def test_planted_pickles_under_every_name_never_run(gallery, tmp_path):
 # --- symlinks ---------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_planted_symlinks_are_never_followed(gallery, tmp_path):
     """Links at every name in OUT point at a victim file and folder outside it: a render
     refuses the non-empty OUT, and with --overwrite removes the links themselves and
@@ -139,6 +141,7 @@ def test_atomic_writer_never_writes_through_a_link(tmp_path):
 # --- an existing run directory ----------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_existing_out_is_refused_unless_resume_or_overwrite(gallery, tmp_path):
     out = tmp_path / "out"
     run_render(_job(gallery, out))
@@ -157,6 +160,7 @@ def test_existing_out_is_refused_unless_resume_or_overwrite(gallery, tmp_path):
     assert (out / "notes.txt").read_text() == "mine\n"  # not phrt's: kept
 
 
+@pytest.mark.slow
 def test_probe_overwrite_deletes_only_phrts_own_files(gallery, tmp_path):
     """--overwrite deletes only what this run's names make (known names and extensions
     inside OUT), never what a run file names: a stats.json edited to list other files, a
@@ -186,6 +190,7 @@ def test_probe_overwrite_deletes_only_phrts_own_files(gallery, tmp_path):
     assert [f["time"] for f in json.loads((out / "stats.json").read_text())["frames"]] == [1.0]
 
 
+@pytest.mark.slow
 def test_resume_knows_the_run_by_content(gallery, tmp_path):
     """The same stage under another name resumes; an edited stage does not."""
     out = tmp_path / "out"
@@ -207,6 +212,7 @@ def test_selection_layer_may_not_name_a_stage_layer(gallery, tmp_path):
     assert gallery.read_bytes() == before
 
 
+@pytest.mark.slow
 def test_a_second_render_into_a_locked_out_is_refused(gallery, tmp_path):
     stage = mirror_gallery_stage(tmp_path / "long.usda", frames=400)
     out = tmp_path / "out"
@@ -229,6 +235,7 @@ def test_a_second_render_into_a_locked_out_is_refused(gallery, tmp_path):
                          overwrite=True))  # fmt: skip
 
 
+@pytest.mark.slow
 def test_probe_hard_link_as_lock_or_reserve_is_never_written(gallery, tmp_path):
     """A hard link to another file planted as OUT/.phrt.lock or OUT/.phrt.reserve (a dead
     run's name, so a render takes the directory over) is replaced, never written: the
@@ -254,6 +261,7 @@ def test_probe_hard_link_as_lock_or_reserve_is_never_written(gallery, tmp_path):
     assert victim.read_bytes() == b"precious\n"
 
 
+@pytest.mark.slow
 def test_probe_selection_layer_extension_checked_before_rendering(gallery, tmp_path):
     """A --selection-layer phrt cannot write (not .usda / .usdc / .usd) is refused with
     exit 2 before the first frame renders: no image, no stats."""
@@ -268,6 +276,7 @@ def test_probe_selection_layer_extension_checked_before_rendering(gallery, tmp_p
 # --- failures mid-run ---------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_a_failing_frame_keeps_the_finished_frames_records(gallery, tmp_path, monkeypatch):
     from phrt_usd.run import render_job
 
@@ -315,6 +324,7 @@ def small_disk(tmp_path):
         subprocess.run(["umount", "-l", str(mount)], check=False)
 
 
+@pytest.mark.slow
 def test_full_disk_leaves_no_broken_file_and_keeps_records(
     gallery, tmp_path, small_disk, monkeypatch, check_readable
 ):
@@ -350,6 +360,7 @@ def test_full_disk_leaves_no_broken_file_and_keeps_records(
         assert (out / "frames" / f"{int(t):04d}.png").stat().st_size > 0
 
 
+@pytest.mark.slow
 def test_kill_9_never_leaves_an_unreadable_final_file(tmp_path, check_readable):
     """SIGKILL at random moments of a render: every file under its final name reads (temp
     files may remain; they are hidden and never mistaken for output)."""
@@ -378,6 +389,7 @@ def test_kill_9_never_leaves_an_unreadable_final_file(tmp_path, check_readable):
 # --- bounds and exit codes ----------------------------------------------------------------
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "args",
     [
@@ -400,6 +412,7 @@ def test_bad_option_values_exit_2_with_one_line(gallery, tmp_path, args):
     assert not (tmp_path / "o" / "stats.json").exists()
 
 
+@pytest.mark.slow
 def test_os_conditions_are_one_line(gallery, tmp_path):
     as_file = tmp_path / "file"
     as_file.write_text("x")
@@ -415,6 +428,7 @@ def test_os_conditions_are_one_line(gallery, tmp_path):
     assert error["code"] == 2 and "not a directory" in error["error"]
 
 
+@pytest.mark.slow
 def test_read_only_out_is_one_line(gallery, tmp_path):
     if os.geteuid() != 0:
         pytest.skip("needs root to mount a read-only tmpfs")
@@ -431,6 +445,7 @@ def test_read_only_out_is_one_line(gallery, tmp_path):
         subprocess.run(["umount", "-l", str(mount)], check=False)
 
 
+@pytest.mark.slow
 def test_a_second_sweep_into_a_locked_out_is_refused(tmp_path):
     """Sweeps hold OUT's lock too: a sweep (or render) into a busy OUT is refused at once,
     naming the holder's pid."""

@@ -245,6 +245,7 @@ def test_run_settings_are_layer_metadata(tmp_path: Path) -> None:
     assert "budget_rays" not in record.run_info  # None is not stored
 
 
+@pytest.mark.slow
 def test_long_path_layer_opens_quickly(tmp_path: Path) -> None:
     # 600 frames x 33 reflectors (the sewer stage's path). Measured ~0.05 s (usda) on the
     # 2-core dev machine; the bound here is only a generous sanity check.

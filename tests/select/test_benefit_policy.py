@@ -162,6 +162,7 @@ def test_non_finite_or_missing_observations_keep_figures_finite():
     assert isinstance(policy, Heu3Policy)
 
 
+@pytest.mark.slow
 def test_renderer_observes_what_tracing_changed_against_the_fallback(tmp_path):
     """The floor mirrors a red ball: the error the policy learns for it is the mean over
     the floor's pixels of |clip(hybrid) - clip(raster fallback)|, computed here from two
@@ -197,6 +198,7 @@ def test_renderer_observes_what_tracing_changed_against_the_fallback(tmp_path):
     assert diff[mask & ~rim].max() < 1e-3
 
 
+@pytest.mark.slow
 def test_cli_render_with_heu3_writes_stats(tmp_path):
     gallery = mirror_gallery_stage(tmp_path / "gallery.usda", frames=4)
     out = tmp_path / "run"

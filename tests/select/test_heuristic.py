@@ -131,6 +131,7 @@ def test_processing_cost_finite(A, P, D, Q, reflected):
 coords = st.one_of(st.floats(-1e6, 1e6), st.floats(-1e-3, 1e-3), st.sampled_from([0.0, 1e150]))
 
 
+@pytest.mark.slow
 @settings(max_examples=60, deadline=None)
 @given(
     st.lists(st.tuples(coords, coords, coords), min_size=2, max_size=5),
@@ -160,6 +161,7 @@ def test_cost_c_equals_the_array_formulas(centers, pixels, fractions, qs):
     assert got == pytest.approx(expected, rel=1e-12, abs=0.0)
 
 
+@pytest.mark.slow
 @given(st.booleans(), weights, unit, unit, distances, weights)
 def test_relevance_finite_over_extremes(S, weight, A, P, D, K):
     r = float(relevance(float(S), weight, visibility(A, P, D), K))
@@ -191,6 +193,7 @@ def frames(draw):
 
 
 
+@pytest.mark.slow
 @settings(max_examples=150, deadline=None)
 @given(frames(), st.sampled_from(["heu1", "heu2"]), weights, st.integers(0, 100_000))
 def test_round_cost_within_ray_budget_and_finite(frame, name, weight, budget):
@@ -213,6 +216,7 @@ def test_round_cost_within_ray_budget_and_finite(frame, name, weight, budget):
         assert 1.0 <= m.Q <= 5.0
 
 
+@pytest.mark.slow
 @settings(max_examples=80, deadline=None)
 @given(frames(), st.sampled_from(["heu1", "heu2"]), st.integers(0, 20_000))
 def test_same_inputs_same_selection(frame, name, budget):
@@ -225,6 +229,7 @@ def test_same_inputs_same_selection(frame, name, budget):
     assert selections[0] == selections[1]
 
 
+@pytest.mark.slow
 @settings(max_examples=60, deadline=None)
 @given(frames(), st.sampled_from(["heu1", "heu2"]))
 def test_budget_zero_selects_nothing_and_unbounded_selects_all_visible(frame, name):
@@ -438,6 +443,7 @@ def test_box_screen_area_is_the_clipped_rectangle_of_the_projected_corners():
 coords = st.floats(-1e12, 1e12)
 
 
+@pytest.mark.slow
 @given(st.lists(st.tuples(coords, coords, coords), min_size=2, max_size=2), coords)
 @settings(max_examples=200, deadline=None)
 def test_box_screen_area_is_finite_and_within_the_image(corners, eye_z):
@@ -474,6 +480,7 @@ def test_lookahead_keeps_out_a_reflector_the_camera_will_approach():
         assert (1 in ids) is admitted, (upcoming != (), ids)
 
 
+@pytest.mark.slow
 def test_lookahead_reuses_each_upcoming_cameras_areas_without_changing_them(monkeypatch):
     # Frame after frame the window of upcoming cameras slides by one; growth figures from
     # a policy that caches each camera's box areas, computed in batches, equal those of a
@@ -579,6 +586,7 @@ def test_initial_rays_per_pixel_guess_counts_lights():
     policy.end_frame()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["heu1", "heu2"])
 def test_time_budget_holds_with_a_simulated_tracer(name):
     """A fake tracer whose time is 0.4 ms per round + 1.5 us per ray with 5 % lognormal

@@ -76,6 +76,7 @@ def reference_greedy(nodes: list[Node], budget: float, horizon: float = math.inf
         left.remove(best)
 
 
+@pytest.mark.slow
 @given(node_lists())
 def test_cost_list_is_strictly_ordered_with_id_ties(nodes):
     g = SelectionGraph(nodes)
@@ -91,6 +92,7 @@ def test_cost_list_is_strictly_ordered_with_id_ties(nodes):
         assert ca > cb or (ca == cb and a < b)
 
 
+@pytest.mark.slow
 @given(node_lists())
 def test_relevance_edges_go_to_more_relevant_no_costlier_nodes_and_are_complete(nodes):
     g = SelectionGraph(nodes)
@@ -112,6 +114,7 @@ def test_relevance_edges_go_to_more_relevant_no_costlier_nodes_and_are_complete(
             assert g.is_more_relevant(x, y)
 
 
+@pytest.mark.slow
 @settings(max_examples=300)
 @given(node_lists(), st.sampled_from([0.0, 1.0, 2.5, 4.0, 9.0, 20.0, 1e7, math.inf]))
 def test_selection_fits_budget_and_is_greedy_by_relevance(nodes, budget):
@@ -123,6 +126,7 @@ def test_selection_fits_budget_and_is_greedy_by_relevance(nodes, budget):
     assert chosen == reference_greedy(nodes, budget)
 
 
+@pytest.mark.slow
 @settings(max_examples=300)
 @given(node_lists(), st.sampled_from([0.0, 2.5, 9.0, 20.0, math.inf]),
        st.sampled_from([-1.0, 0.0, 3.0, 10.0, math.inf]))  # fmt: skip
@@ -170,6 +174,7 @@ def test_admission_needs_its_forecast_to_fit_the_horizon_budget():
     assert g.select(100.0) == [0, 1, 2]  # no horizon budget: forecasts play no part
 
 
+@pytest.mark.slow
 @given(node_lists(), st.sampled_from([0.0, 3.0, 9.0, math.inf]), st.randoms())
 def test_selection_does_not_depend_on_node_order(nodes, budget, rnd: random.Random):
     shuffled = list(nodes)

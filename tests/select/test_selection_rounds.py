@@ -35,6 +35,7 @@ def _calls(path: Path):
             yield node
 
 
+@pytest.mark.slow
 def test_probe_the_round_loop_is_written_once():
     # A policy's rounds are asked for in one place: the renderer and the replay tool both
     # run ``run_rounds``, so a replay selects what a render of the same views does.
@@ -47,6 +48,7 @@ def test_probe_the_round_loop_is_written_once():
     assert drivers == [str(ROUND_LOOP.relative_to(REPO))]
 
 
+@pytest.mark.slow
 def test_probe_no_policy_attribute_is_read_through_getattr():
     # What the renderer reads of a policy is stated by SelectionPolicy, so nothing needs
     # getattr / hasattr with a default to read a policy.

@@ -60,6 +60,7 @@ def test_budget_is_the_period_less_raster_selection_and_margin():
     assert target_fps_budget_ms(1e-6, 0.0, 0.0) > 0  # finite for a tiny rate
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["heu1", "heu2"])
 def test_target_fps_holds_the_frame_time_with_jitter(name):
     """25 fps (40 ms): raster + shading jitter around 20 ms (15 %), selection ~0.5 ms,
@@ -140,6 +141,7 @@ def test_cli_both_budgets_is_a_one_line_error(tmp_path):
     assert "Traceback" not in result.output
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(("name", "reported"), [("heu1", True), ("all", False), ("none", False)])
 def test_budget_use_only_for_policies_that_follow_the_budget(tmp_path, name, reported):
     """all and none trace what they trace whatever T: a share of T would mislead (a

@@ -41,6 +41,7 @@ def gallery(tmp_path_factory):
     return mirror_gallery_stage(tmp_path_factory.mktemp("gallery") / "gallery.usda", frames=6)
 
 
+@pytest.mark.slow
 def test_render_returns_summary_frames_and_images(gallery, tmp_path):
     out = tmp_path / "out"
     result = phrt_usd.render(gallery, out, frames="1:4", budget_rays=RAYS)
@@ -63,6 +64,7 @@ def test_render_returns_summary_frames_and_images(gallery, tmp_path):
         result.image(7)
 
 
+@pytest.mark.slow
 def test_cli_render_is_the_api_render(gallery, tmp_path):
     """The same options through `phrt render --json` and phrt_usd.render give the same
     run (a rays budget makes the selections deterministic)."""
@@ -79,6 +81,7 @@ def test_cli_render_is_the_api_render(gallery, tmp_path):
     assert set(api) <= set(summary)
 
 
+@pytest.mark.slow
 def test_probe_summary_finished_twice(gallery, tmp_path):
     """The API finishes a render's summary once: run_render (what `phrt render` calls)
     gives the fields RenderResult.summary has, the stage's warnings, default light rig and
@@ -106,6 +109,7 @@ def test_probe_cli_render_only_prints_the_api_summary(gallery, tmp_path, monkeyp
     assert json.loads(cli.stdout) == finished
 
 
+@pytest.mark.slow
 def test_cli_render_hands_the_cluster_options_to_run_render(gallery, tmp_path, monkeypatch):
     """`phrt render --workers N` passes the cluster options to run_render as they were
     given (the API runs the cluster and finishes the summary); none without them."""
@@ -145,6 +149,7 @@ def test_run_render_on_a_cluster_gives_the_same_finished_summary(gallery, tmp_pa
     assert set(single["warnings"]) <= set(chunked["warnings"])
 
 
+@pytest.mark.slow
 def test_out_none_renders_into_a_temporary_directory_the_result_owns(gallery):
     with phrt_usd.render(gallery, frames=2, budget_rays=RAYS, write_images=False) as result:
         assert result.temporary and result.out.is_dir()
@@ -154,6 +159,7 @@ def test_out_none_renders_into_a_temporary_directory_the_result_owns(gallery):
     assert not result.out.exists()
 
 
+@pytest.mark.slow
 def test_an_open_stage_renders_as_it_is_in_memory(gallery):
     stage = Usd.Stage.Open(str(gallery))
     for i in range(5):  # unsaved edits: no mirrors left
@@ -164,6 +170,7 @@ def test_an_open_stage_renders_as_it_is_in_memory(gallery):
     assert stage.GetRootLayer().dirty  # the API never saved the caller's stage
 
 
+@pytest.mark.slow
 def test_session_layers_apply_to_a_stage_file(gallery, tmp_path):
     layer = Sdf.Layer.CreateNew(str(tmp_path / "no_mirrors.usda"))
     for i in range(5):
@@ -255,6 +262,7 @@ def test_bad_input_is_one_line_phrt_error(tmp_path):
         phrt_usd.open(42)
 
 
+@pytest.mark.slow
 def test_import_phrt_usd_loads_neither_the_api_nor_opengl():
     """The CLI imports phrt_usd first: the API (and GL, Embree) load on first use only.
     ``phrt_usd.render`` is plainly the API function (the renderer is ``phrt_usd.engine``)."""

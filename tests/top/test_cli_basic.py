@@ -66,6 +66,7 @@ def test_unreadable_input_exit_2(tmp_path, name):
         assert result.stderr.startswith("error: ") and len(result.stderr.splitlines()) == 1
 
 
+@pytest.mark.slow
 def test_real_subprocess_nonexistent():
     proc = subprocess.run(
         ["uv", "run", "phrt", "validate", "/nonexistent"],

@@ -28,11 +28,13 @@ def gallery(tmp_path_factory) -> Path:
     return mirror_gallery_stage(tmp_path_factory.mktemp("cli") / "gallery.usda", frames=4)
 
 
+@pytest.mark.slow
 def test_version():
     done = _run("--version")
     assert done.returncode == 0 and done.stdout.strip() == f"phrt {phrt_usd.__version__}"
 
 
+@pytest.mark.slow
 def test_progress_lines_without_a_terminal(gallery, tmp_path):
     """Default: a line at the start and at the end (with a percentage); -v: one per frame;
     -q: nothing but errors."""
@@ -88,6 +90,7 @@ def _ball_colour(out: Path) -> tuple[float, float, float] | None:
     return tuple(frame["beauty"][pixels].mean(axis=0)) if pixels.any() else None
 
 
+@pytest.mark.slow
 def test_session_layer_variant_and_mask_change_the_picture_and_are_recorded(tmp_path):
     stage = _ball_stage(tmp_path)
     session = tmp_path / "shot.usda"
@@ -127,6 +130,7 @@ def test_session_layer_variant_and_mask_change_the_picture_and_are_recorded(tmp_
     assert done.returncode == 1 and "differs" in done.stderr or "changed" in done.stderr
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "args, problem",
     [

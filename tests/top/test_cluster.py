@@ -110,6 +110,7 @@ def gallery(tmp_path_factory) -> Path:
     return mirror_gallery_stage(folder / "gallery.usda", frames=24, width=WIDTH, height=HEIGHT)
 
 
+@pytest.mark.slow
 def test_chunked_render_equals_unchunked_after_warmup(gallery, tmp_path):
     """HEU1 with a rays budget: chunks of 6 frames after DEFAULT_WARMUP_FRAMES warm-up
     frames select exactly what one uninterrupted run selects, frame by frame, with the
@@ -129,6 +130,7 @@ def test_chunked_render_equals_unchunked_after_warmup(gallery, tmp_path):
                 assert getattr(m, name) == pytest.approx(theirs["metrics"][path][name], rel=1e-9)
 
 
+@pytest.mark.slow
 def test_a_chunk_sends_back_what_the_render_warned_of(tmp_path):
     """The clipping warning is found while rendering, on the worker: the chunk's result
     carries it (the client's stage never renders), and only it (not the reading's)."""
@@ -153,6 +155,7 @@ def test_a_chunk_sends_back_what_the_render_warned_of(tmp_path):
 # --------------------------------------------------------------------------- cluster
 
 
+@pytest.mark.slow
 def test_two_worker_cluster_matches_single_process(gallery, tmp_path):
     """On a 2-worker LocalCluster: the sweep's CSV rows (timings aside) and timeline, and
     a render's selection layer and stats, equal a single-process run's. Sweep chunks run
@@ -187,6 +190,7 @@ def test_two_worker_cluster_matches_single_process(gallery, tmp_path):
     assert not list(multi.rglob(".*.tmp*"))  # no partial file left behind
 
 
+@pytest.mark.slow
 def test_killed_worker_chunk_is_retried_without_losing_or_repeating_frames(gallery, tmp_path):
     """SIGKILL one worker process while it renders a chunk: the chunk runs again on a
     live worker, and the result equals the single-process render exactly once per frame."""
@@ -253,6 +257,7 @@ def _run_security(client) -> dict:
     }
 
 
+@pytest.mark.slow
 def test_local_cluster_listens_on_loopback_only(capsys):
     """Scheduler, nanny and worker addresses are 127.0.0.1, and no socket of this process
     (the scheduler runs here) or of the worker processes listens on another address; a
@@ -281,6 +286,7 @@ def test_local_cluster_listens_on_loopback_only(capsys):
 REFUSED_TIMEOUT = "1s"
 
 
+@pytest.mark.slow
 def test_probe_local_cluster_authenticates_workers():
     """The --workers cluster speaks mutual TLS on certificates made for the run: a plain
     tcp client and a TLS client holding another certificate (another user's, say) are
@@ -486,6 +492,7 @@ def test_probe_scheduler_not_dask_is_one_line_exit_2(gallery, tmp_path):
     assert not (tmp_path / "out" / "stats.json").exists()
 
 
+@pytest.mark.slow
 def test_probe_scheduler_silent_server_keeps_the_timeout(monkeypatch):
     """A server that accepts and never answers: refused when the scheduler timeout ends
     (distributed alone waits for its handshake without a limit)."""
@@ -521,6 +528,7 @@ def test_unreachable_scheduler_is_an_option_error():
             pass
 
 
+@pytest.mark.slow
 def test_a_dask_scheduler_passes_the_probe_quietly(caplog):
     """The probe answers a real scheduler's handshake with its own: the scheduler logs
     no broken connection, and the client then connects."""
@@ -585,6 +593,7 @@ def test_probe_cluster_options_exit_2(gallery, tmp_path, options, says):
     assert not out.exists()
 
 
+@pytest.mark.slow
 def test_probe_cluster_extra_missing_names_it(gallery, tmp_path, monkeypatch):
     """Without Dask (the ``cluster`` extra), ``--workers`` and ``--scheduler`` are one line
     naming the extra, exit 2; a render without them does not need Dask."""
@@ -610,6 +619,7 @@ def test_probe_cluster_extra_missing_names_it(gallery, tmp_path, monkeypatch):
 _DASK_MODULES = ("dask", "distributed")
 
 
+@pytest.mark.slow
 def test_probe_no_module_imports_dask_at_import_time():
     """No module of phrt_usd imports Dask when it is imported (only inside the functions
     of a cluster run), read from the source of every module; and the package, its CLI
@@ -653,6 +663,7 @@ def test_probe_no_module_imports_dask_at_import_time():
 # --------------------------------------------------------------------------- interrupts
 
 
+@pytest.mark.slow
 def test_probe_cluster_interrupt_keeps_agreeing_files(gallery, tmp_path):
     """SIGINT (Ctrl-C) while a 2-worker render runs, right after its first chunk is in:
     RenderInterrupted saying how many frames were kept, and stats.json, the selection

@@ -18,6 +18,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 from pxr import Usd, UsdGeom, UsdLux
 from repo_paths import TOOLS
 
@@ -46,6 +47,7 @@ def _quad_stage(path: Path) -> None:
     stage.GetRootLayer().Save()
 
 
+@pytest.mark.slow
 def test_wrapper_camera_sheet_and_a_broken_asset(tmp_path):
     assets, out = tmp_path / "assets", tmp_path / "out"
     assets.mkdir()

@@ -83,6 +83,7 @@ def test_cvvdp_step_without_cvvdp_fails_with_one_line(tmp_path):
     assert len(lines) == 1 and "cannot import" in lines[0], done.stderr
 
 
+@pytest.mark.slow
 def test_alternate_and_ours_on_synthetic_outputs(tmp_path):
     ref = _render_dir(tmp_path, "all", 0.8, "all")
     none = _render_dir(tmp_path, "none", 0.2, "none")
@@ -105,6 +106,7 @@ def test_alternate_and_ours_on_synthetic_outputs(tmp_path):
     assert popping["transitions"] == len(REFLECTORS) * (FRAMES - 1)
 
 
+@pytest.mark.slow
 def test_synthetic_sequences_are_render_outputs(tmp_path):
     """The ``synthetic`` step writes the six sequences as render outputs: the patch's
     linear radiance is what each sequence promises in the frames checked."""
@@ -127,6 +129,7 @@ def test_synthetic_sequences_are_render_outputs(tmp_path):
     assert patch("pop2", 2) == 0.0 and patch("pop2", 3) == pytest.approx(p, abs=half)
 
 
+@pytest.mark.slow
 def test_ours_needs_the_reference_motion(tmp_path):
     """A reference rendered without ``--aovs motion``: one line naming the frame and the
     option, exit 2."""

@@ -21,6 +21,7 @@ PLANTED = {
 }
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name,reflectors", [("farm", 17), ("sewer", 33)])
 def test_paper_stage_validates_and_inspects(name, reflectors):
     path = str(STAGES / f"{name}.usda")
@@ -33,6 +34,7 @@ def test_paper_stage_validates_and_inspects(name, reflectors):
     assert {"gbuffer", "reflections"} <= set(summary["passes"])
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("path", sorted((STAGES / "extreme").glob("*.usda")), ids=lambda p: p.stem)
 def test_extreme_stage_reports_exactly_its_planted_problem(path):
     result = runner.invoke(app, ["validate", "--json", str(path)])

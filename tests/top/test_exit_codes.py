@@ -50,6 +50,7 @@ def _check(done: subprocess.CompletedProcess, code: int, json_out: bool = False)
         assert done.stderr.count("error:") == 1, done.stderr
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("json_out", [False, True])
 def test_validate(files, json_out):
     flag = ["--json"] if json_out else []
@@ -60,6 +61,7 @@ def test_validate(files, json_out):
     _check(_run("validate", str(files["missing"]), *flag), 2, json_out)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("json_out", [False, True])
 def test_inspect(files, json_out):
     flag = ["--json"] if json_out else []
@@ -68,6 +70,7 @@ def test_inspect(files, json_out):
     _check(_run("inspect", str(files["root"]), *flag), 2, json_out)  # a directory
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("json_out", [False, True])
 def test_render(files, tmp_path, json_out):
     flag = ["--json"] if json_out else []
@@ -88,6 +91,7 @@ def test_render(files, tmp_path, json_out):
            json_out)  # fmt: skip
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("json_out", [False, True])
 def test_report(files, tmp_path, json_out):
     flag = ["--json"] if json_out else []
@@ -96,6 +100,7 @@ def test_report(files, tmp_path, json_out):
     _check(_run("report", str(files["garbage"]), *flag), 2, json_out)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("json_out", [False, True])
 def test_sweep(files, tmp_path, json_out):
     flag = ["--json"] if json_out else []
@@ -122,6 +127,7 @@ def _phrt(*args: str) -> subprocess.CompletedProcess:
     return subprocess.run([*PHRT, *args], capture_output=True, text=True, timeout=300)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("json_out", [False, True])
 def test_probe_usd_parse_error_reaches_the_user(tmp_path, json_out):
     """validate, inspect, author and render of a stage that does not parse: exit 2 and
@@ -141,6 +147,7 @@ def test_probe_usd_parse_error_reaches_the_user(tmp_path, json_out):
     assert located in done.stderr, done.stderr
 
 
+@pytest.mark.slow
 def test_probe_validate_of_a_layer_that_does_not_parse(tmp_path):
     """validate of a stage whose referenced layer, sublayer, usdz member, or a layer of
     an unselected variant does not parse: a finding (exit 1) located at the parser's
@@ -192,6 +199,7 @@ def test_probe_validate_of_a_layer_that_does_not_parse(tmp_path):
                 assert json.loads(done.stdout)["ok"] is False
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("value", ["inf", "-inf", "nan", "-1", "0"])
 def test_probe_float_meters_per_unit(tmp_path, value):
     """A metersPerUnit that is no finite number > 0: inspect and render refuse the
@@ -207,6 +215,7 @@ def test_probe_float_meters_per_unit(tmp_path, value):
             assert f"{stage}: layer metadata metersPerUnit must be a finite number > 0" in said
 
 
+@pytest.mark.slow
 def test_probe_bad_camera_settings_and_author_output_exit_2(files, tmp_path):
     """--camera or --settings naming nothing, and author's output that cannot be
     written, are bad options: exit 2 (they were 1), one line."""
@@ -224,6 +233,7 @@ def test_probe_bad_camera_settings_and_author_output_exit_2(files, tmp_path):
         assert not out.exists()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("json_out", [False, True])
 def test_probe_json_usage_error(files, json_out):
     """A usage error (unknown option or command, malformed value, missing argument)
@@ -242,6 +252,7 @@ def test_probe_json_usage_error(files, json_out):
             assert done.stdout == "" and "Usage:" in done.stderr
 
 
+@pytest.mark.slow
 def test_probe_unknown_variant_and_session_layer_directory(files, tmp_path):
     """--variant with a name USD cannot hold says which prim, set and variants there
     are (not "cannot open as USD"); a directory as --session-layer is said to be one."""

@@ -63,6 +63,7 @@ def _python(code: str, env: dict) -> subprocess.CompletedProcess:
     )
 
 
+@pytest.mark.slow
 def test_a_new_process_loads_every_kernel_from_the_cache():
     """The suite's session fixture compiled every kernel; a new process (a render's) finds
     them all in the cache and compiles none (``phrt kernels --check``)."""
@@ -76,6 +77,7 @@ def test_a_new_process_loads_every_kernel_from_the_cache():
                    ).stdout.strip() == "cached"  # fmt: skip
 
 
+@pytest.mark.slow
 def test_an_empty_cache_is_announced_once(tmp_path):
     """A render about to compile says so in one line on stderr, naming `phrt kernels`;
     loading a module does not compile yet, so this is quick."""

@@ -6,6 +6,7 @@ from __future__ import annotations
 import ast
 from pathlib import Path
 
+import pytest
 from repo_paths import PACKAGE
 
 ROOT = "phrt_usd"
@@ -90,11 +91,13 @@ def up_arrows() -> list[str]:
             for target in sorted(targets) if _phase(target) > _phase(name)]  # fmt: skip
 
 
+@pytest.mark.slow
 def test_phases_import_only_earlier_phases():
     wrong = up_arrows()
     assert not wrong, "\n".join(wrong)
 
 
+@pytest.mark.slow
 def test_no_import_circles():
     graph = _graph()
     state: dict[str, int] = {}
@@ -116,6 +119,7 @@ def test_no_import_circles():
             visit(node)
 
 
+@pytest.mark.slow
 def test_probe_imports_back_up_into_the_root():
     """The package root is a facade on top of every phase: the version and the OpenGL
     default every phase reads are in phrt_usd.base (phase 0), so no module below the top
@@ -139,6 +143,7 @@ def test_model_is_plain_data():
                 assert not bad, f"{name} imports {bad}"
 
 
+@pytest.mark.slow
 def test_modules_and_classes_fit_in_one_reading():
     big = []
     for name, path in _modules().items():

@@ -109,6 +109,7 @@ def _failure_images(output: str) -> dict[str, list[str]]:
     return found
 
 
+@pytest.mark.slow
 def test_update_then_identical_rerender_passes_then_changed_stage_fails(pipeline):
     """The CI's sequence: references written by --phrt-update-references, the identical
     render passing (PNG reference of flat colours included), a changed material colour
@@ -196,6 +197,7 @@ def test_second_of_a_shared_file(phrt_render, phrt_reference_dir):
 """
 
 
+@pytest.mark.slow
 def test_two_tests_rendering_one_stage_get_their_own_reference_files(project):
     pytester = project
     shot_stage(pytester.path / "shot.usda")
@@ -222,6 +224,7 @@ def test_two_tests_rendering_one_stage_get_their_own_reference_files(project):
 TIGHT_BUDGET_MS = 0.001
 
 
+@pytest.mark.slow
 def test_fixtures_of_the_plugin(pipeline):
     tight = Usd.Stage.Open(str(shot_stage(pipeline.path / "tight.usda")))
     schema.apply_render_settings(tight.GetPrimAtPath("/Render/Settings"), budget_ms=TIGHT_BUDGET_MS)
@@ -356,6 +359,7 @@ def test_png_and_8_bit_images_are_srgb_and_exr_is_linear(tmp_path):
 FLAT_COLOUR = (0.0344, 0.987, 0.817)
 
 
+@pytest.mark.slow
 def test_stored_references_compare_equal_to_the_frame_they_were_written_from(tmp_path):
     """A re-render of a frame against the reference written from it: no difference in
     any storage (PNG, half EXR, 8/16-bit arrays); the rounding is taken out, not allowed for."""

@@ -54,6 +54,7 @@ def stage(tmp_path_factory) -> Path:
     return mirror_floor_stage(tmp_path_factory.mktemp("threads") / "floor.usda", 64, 48)
 
 
+@pytest.mark.slow
 def test_startup_loads_only_what_the_mode_needs(stage, tmp_path):
     """``import phrt_usd.cli`` (every command's start, ``--help`` included) loads none of
     HEAVY, ``import phrt_usd.api`` only the image library, and an ``rt`` render adds
@@ -81,6 +82,7 @@ def test_startup_loads_only_what_the_mode_needs(stage, tmp_path):
     ]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     ("args", "needle"),
     [
@@ -123,6 +125,7 @@ def test_api_threads_bad_values(stage, value):
         render_options(Usd.Stage.Open(str(stage)), threads=value)
 
 
+@pytest.mark.slow
 def test_threads_reach_openblas_numba_and_the_environment():
     """``apply_threads`` sets the OpenBLAS numpy loaded (read back through its own
     getter) and the load-time variables; numba follows when it is loaded."""
@@ -145,6 +148,7 @@ def test_threads_reach_openblas_numba_and_the_environment():
     assert json.loads(done.stdout) == [[1, "1", "1"], [2, "2", "2"], [1, "1", "1"]]
 
 
+@pytest.mark.slow
 def test_threads_and_gl_end_to_end(stage, tmp_path):
     """API (OSMesa, 1 thread) and CLI (EGL when this machine has a working EGL device,
         2 threads) render the same raster frame: the settings are recorded in the summary
@@ -223,6 +227,7 @@ def test_shading_pool_follows_the_setting(monkeypatch):
     assert float(images[0].max()) > 0.0
 
 
+@pytest.mark.slow
 def test_egl_contexts_of_one_process_outlive_each_other(stage):
     """EGL hands every context of a device the same display; closing one renderer must
     not end the others (pyrender's own EGL platform terminates the display with each

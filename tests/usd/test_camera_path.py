@@ -67,6 +67,7 @@ def test_linear_midpoint_and_catmull_rom_smooth():
     assert np.all(np.diff(s[:, 0]) > 0)
 
 
+@pytest.mark.slow
 @settings(max_examples=60, deadline=None)
 @given(
     st.lists(vec3, min_size=1, max_size=6),
@@ -81,6 +82,7 @@ def test_catmull_rom_passes_through_control_points(points, gaps):
     assert np.all(np.isfinite(mid))
 
 
+@pytest.mark.slow
 @settings(max_examples=100, deadline=None)
 @given(vec3, vec3, st.sampled_from([(0, 1, 0), (0, 0, 1)]))
 def test_look_at_never_nan(pos, tgt, up):

@@ -97,6 +97,7 @@ CONFORM_CASES = {
 }
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("policy", list(CONFORM_CASES))
 def test_conform_policy_decides_what_of_a_square_aperture_a_4_3_image_shows(policy):
     assert _covered(_square_stage(policy)) == CONFORM_CASES[policy]
@@ -165,6 +166,7 @@ def test_camera_by_name_or_path():
         choose_camera(stage, "Top")
 
 
+@pytest.mark.slow
 def test_cli_refuses_an_ambiguous_camera_name_in_one_line(tmp_path):
     stage = _square_stage()
     UsdGeom.Camera.Define(stage, "/A/Cam")

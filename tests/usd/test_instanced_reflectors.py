@@ -101,6 +101,7 @@ def test_author_on_an_instance_proxy_is_one_line(two_trees, tmp_path):
     assert not (tmp_path / "scene.phrt.usda").exists()  # nothing written
 
 
+@pytest.mark.slow
 def test_on_prototype_reaches_every_instance_and_keeps_instancing(two_trees, tmp_path):
     result = runner.invoke(
         app, ["author", two_trees, PROXIES[0], "--priority", "2", "--on-prototype"]

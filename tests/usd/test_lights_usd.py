@@ -85,6 +85,7 @@ def _clipping(warnings: list[str]) -> list[str]:
     return [w for w in warnings if "clipped" in w]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("mode", MODES)
 def test_unauthored_sun_is_the_fallback_50000_and_warned_once_not_white_in_silence(mode):
     stage = _stage()
@@ -102,6 +103,7 @@ def test_unauthored_sun_is_the_fallback_50000_and_warned_once_not_white_in_silen
     assert suggested == pytest.approx(np.log2(0.5 / 12500.0), abs=0.06)  # printed to 0.1
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("mode", MODES)
 def test_light_exposure_render_exposure_and_camera_exposure_each_double(mode):
     def centre(light_exposure=0.0, camera_exposure=None, **options) -> np.ndarray:
@@ -123,6 +125,7 @@ def test_light_exposure_render_exposure_and_camera_exposure_each_double(mode):
     np.testing.assert_allclose(centre(camera_exposure=1.0), 2.0 * base, rtol=1e-6)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("mode", MODES)
 def test_color_temperature_6500_is_white_and_3000_is_reddish(mode):
     def centre(kelvin: float) -> np.ndarray:
@@ -160,6 +163,7 @@ def test_blackbody_chromaticity_is_on_the_planckian_locus():
     assert rgb[3][2] > rgb[3][0]  # 10000 K is bluish
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("mode", MODES)
 def test_normalize_keeps_an_area_light_size_independent_and_off_it_grows_with_area(mode):
     def centre(size: float, normalize: bool, kind=UsdLux.RectLight) -> float:
@@ -313,6 +317,7 @@ def test_dome_hidden_from_camera_leaves_a_black_background_and_still_lights(mode
     np.testing.assert_allclose(beauty[CENTRE], [ALBEDO * 0.4] * 3, rtol=1e-6)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("mode", MODES)
 def test_stage_without_lights_gets_the_default_rig_with_a_notice(mode):
     stage = _stage(dome=False)
@@ -347,6 +352,7 @@ def test_stage_without_lights_gets_the_default_rig_with_a_notice(mode):
     assert inspect_stage(stage)["default_light_rig"] is True
 
 
+@pytest.mark.slow
 def test_api_render_records_exposure_and_the_clipping_warning(tmp_path):
     stage = _stage()
     _sun(stage).CreateIntensityAttr(10.0)  # 0.5 x 10 x cos 60 = 2.5: clipped everywhere
@@ -364,6 +370,7 @@ def test_api_render_records_exposure_and_the_clipping_warning(tmp_path):
         assert stats["run"]["exposure"] == -2.0
 
 
+@pytest.mark.slow
 def test_cli_exposure_scales_the_exr_by_2_to_the_ev_and_warns_when_clipped(tmp_path):
     stage = _stage()
     _sun(stage).CreateIntensityAttr(1.0)
@@ -389,6 +396,7 @@ def test_cli_exposure_scales_the_exr_by_2_to_the_ev_and_warns_when_clipped(tmp_p
     assert lines[0].startswith("warning: ") and "Traceback" not in stderr[3.0]
 
 
+@pytest.mark.slow
 def test_sweep_exposure_scales_every_config_image(tmp_path):
     stage = _stage()
     _sun(stage).CreateIntensityAttr(1.0)  # centre 0.25 (module docstring)

@@ -111,6 +111,7 @@ def test_missing_texture_renders_its_fallback(tmp_path, mode):
     np.testing.assert_allclose(_centre(stage, mode), GREEN_HALF, atol=TOLERANCE)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("mode", MODES)
 def test_binding_purpose_chooses_the_material(tmp_path, mode):
     stage = _stage(tmp_path / "quad.usda")

@@ -43,6 +43,7 @@ def _tilted(tmp_path):
     return stage, m / np.linalg.norm(m)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("mode", ["raster", "rt"])
 def test_normal_map_tilts_the_shading_normal(tmp_path, mode):
     stage, expected = _tilted(tmp_path)

@@ -5,6 +5,7 @@ import subprocess
 import sys
 
 import numpy as np
+import pytest
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdRender
 from repo_paths import REPO
 
@@ -18,6 +19,7 @@ def _mesh_stage():
     return stage, prim
 
 
+@pytest.mark.slow
 def test_generated_plugin_files_are_current():
     proc = subprocess.run(
         [sys.executable, str(REPO / "tools" / "gen_schema.py"), "--check"],
@@ -75,6 +77,7 @@ def test_reflector_api_only_applies_to_gprims():
     assert not xform.CanApplyAPI(schema.REFLECTOR_API)
 
 
+@pytest.mark.slow
 def test_plugin_path_env_registers_without_importing_phrt_usd(tmp_path):
     code = (
         "import sys\n"
@@ -114,6 +117,7 @@ def test_plain_usd_authoring_reads_back():
     assert [p.GetName() for p in schema.find_reflectors(stage)] == ["Mirror", "Ball"]
 
 
+@pytest.mark.slow
 def test_reader_without_plugin_uses_same_defaults(tmp_path):
     """A process where the schemas are unknown still reads reflectors and defaults."""
     layer = tmp_path / "plain.usda"

@@ -558,6 +558,7 @@ def test_negative_scale_keeps_front_face_consistent():
     np.testing.assert_allclose((g.corner_normals.mean(axis=1) * geo).sum(axis=1), 1.0, atol=1e-6)
 
 
+@pytest.mark.slow
 def test_read_speed_many_prims():
     stage = camera_stage()
     for i in range(300):

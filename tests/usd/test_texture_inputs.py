@@ -52,6 +52,7 @@ def _albedo_at(stage, mode, x) -> np.ndarray:
     return out.gbuffer.albedo[pixel_at(camera, (x, 0.0, 0.0))]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("mode", ["raster", "rt"])
 def test_transform2d_translation_by_half_swaps_the_halves(tmp_path, mode):
     """UsdTransform2d translation (0.5, 0) with repeat wrap: st' = st + (0.5, 0), so
@@ -80,6 +81,7 @@ def test_transform2d_order_is_scale_rotate_translate():
     np.testing.assert_allclose(m @ [1.0, 0.0, 1.0], [0.5, 2.0], atol=1e-12)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(("wrap", "expected"), [("repeat", RED), ("clamp", GREEN)])
 def test_wrap_clamp_and_repeat_outside_the_unit_square(tmp_path, wrap, expected):
     """st runs 0..2 along the quad: at x = 0.25, s = 1.25. Repeat reads s = 0.25 (red
@@ -100,6 +102,7 @@ RAW_128 = 128 / 255
 SRGB_128 = ((128 / 255 + 0.055) / 1.055) ** 2.4
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     ("space", "channels", "expected"),
     [("sRGB", 3, SRGB_128), ("raw", 3, RAW_128), ("auto", 3, SRGB_128), ("auto", 1, RAW_128)],
@@ -138,6 +141,7 @@ def test_scale_bias_and_missing_alpha(tmp_path):
     np.testing.assert_allclose(out.gbuffer.albedo[p], (0.75, 0.0, 0.0), atol=1e-6)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("mode", ["raster", "rt"])
 def test_textured_emission_adds_its_texel_to_the_pixel(tmp_path, mode):
     """emissiveColor from the halves texture: the red half emits (1, 0, 0), the green
@@ -206,6 +210,7 @@ def test_materialx_unknown_surface_is_grey_with_a_notice(tmp_path):
     assert "materialx_base_colour" not in rows
 
 
+@pytest.mark.slow
 def test_materialx_image_node_is_the_base_colour_texture(tmp_path):
     """ND_image_color3 on base_color (ND_UsdPreviewSurface's diffuseColor here): the
     halves texture, red left and green right (periodic address modes)."""

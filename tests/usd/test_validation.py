@@ -28,6 +28,7 @@ def _mirror(s):
     return UsdGeom.Mesh(s.GetPrimAtPath("/World/Mirror"))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "plant, expected",
     [
@@ -91,6 +92,7 @@ def test_zero_area_mirror_is_a_warning_only(tmp_path):
     ]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "plant, expected",
     [
@@ -239,6 +241,7 @@ RENDER_REFUSALS = [
 ]  # fmt: skip
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("plant, match", RENDER_REFUSALS)
 def test_what_render_refuses_validate_reports_with_the_same_message(tmp_path, plant, match):
     stage = clean_stage(tmp_path / "s.usda")

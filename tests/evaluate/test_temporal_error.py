@@ -71,6 +71,7 @@ def test_knob_lists_are_parsed_and_checked():
         check_spec(SweepSpec(**base, resolutions=[(0, 10)]))
 
 
+@pytest.mark.slow
 def test_sweep_over_two_bounce_limits(tmp_path):
     """3 frames x bounce limits 0 and 2 at 64x48, HEU1 with a rays budget: the CSV has
     the new columns, every configuration is measured against its own bounce limit's
@@ -134,6 +135,7 @@ def test_sweep_over_two_bounce_limits(tmp_path):
     assert f"images/gallery/{frames[1].name}/heu1%40600rays%20b2_temporal.png" in html
 
 
+@pytest.mark.slow
 def test_sweep_over_trace_densities(tmp_path):
     """3 frames at full and quarter density (160x120, the gallery's mirrors, every visible
     reflector traced): each density's references are full-density frames (zero error
