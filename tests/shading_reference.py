@@ -1,6 +1,6 @@
 """The numpy reference of the compiled shading kernels (``phrt_usd.engine.shading``,
 ``phrt_usd.engine.compositing``): the vectorised code the kernels replaced, kept as the
-specification they are tested against (``tests/test_shading_kernels.py``). Same
+specification they are tested against (``tests/engine/test_shading_kernels.py``). Same
 arguments, shapes and coordinate spaces as the functions they mirror (``shade_chunk`` is
 one ``shade_local`` chunk).
 """

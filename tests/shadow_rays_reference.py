@@ -1,6 +1,6 @@
 """The numpy shadow-ray set-up that ``ShadowRays.cast``'s compiled pass
 (``render.trace.trace_kernels.shadow_rays``) replaced, kept as the reference of
-``tests/test_shadow_rays_kernel.py``: ``cast`` is the old method, called with the
+``tests/engine/test_shadow_rays_kernel.py``: ``cast`` is the old method, called with the
 ``ShadowRays`` object as ``self``."""
 
 from __future__ import annotations

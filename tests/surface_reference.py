@@ -1,5 +1,5 @@
 """The numpy form of the surface rule's side rule, as it stood before it was compiled
-(``model.surface_kernels._orient``): the reference ``tests/test_surface_kernels.py``
+(``model.surface_kernels._orient``): the reference ``tests/model/test_surface_kernels.py``
 checks the kernels against."""
 
 from __future__ import annotations

@@ -1825,7 +1825,7 @@ def build_extreme(out: Path) -> list[Path]:
 
 
 # --------------------------------------------------------------------------------------
-# Checks and previews (used by main --preview and by tests/test_stages.py)
+# Checks and previews (used by main --preview and by tests/top/test_stages.py)
 # --------------------------------------------------------------------------------------
 
 

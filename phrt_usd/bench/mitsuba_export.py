@@ -24,7 +24,7 @@ What is exported (only what ``phrt_usd.model.scene.Scene`` holds, at its current
   at 0.28 / 0.77 / 0.97 of F x environment for F = 0.1 / 0.5 / 0.9 (and the diffuse term
   of a blend ~1.2x too bright), so partial reflectors differ in brightness from ours; the
   work per path, which is what the benchmark times, is the same. F = 0 and F = 1 match
-  exactly (``tests/test_mitsuba_export.py``).
+  exactly (``tests/top/test_mitsuba_export.py``).
 * **Lights**, scaled to our model's brightness. Our Lambert term has no 1/π (a white
   surface facing a unit DistantLight shows 1.0, see ``phrt_usd.engine.shading``); Mitsuba's
   diffuse BRDF is albedo/π, so irradiance / intensity are multiplied by π.

@@ -8,7 +8,7 @@ numpy-facing functions, their arguments, shapes and coordinate spaces are those
 modules'. The constants of the model come in as arguments: the kernel cache is named
 by the sources of ``kernels.SOURCE_MODULES`` only, which leave ``shading`` out. The
 numpy form of these kernels, ``tests/shading_reference.py``, is checked against them in
-``tests/test_shading_kernels.py``.
+``tests/engine/test_shading_kernels.py``.
 """
 
 from __future__ import annotations

@@ -10,7 +10,7 @@ chosen frames' images the sweep wrote::
 
 and links the sweep's data files (sweep.csv, summary.csv, timeline.json, provenance.json,
 summary.md) by relative path. Its tables (``sweep_tables.TABLES``, config first) fit a
-laptop screen: the page is no wider than 1280 px (tests/test_report_html_browser.py
+laptop screen: the page is no wider than 1280 px (tests/evaluate/test_report_html_browser.py
 checks it in Chromium); a table wider than the window scrolls inside its own box, its
 config column held in place.
 

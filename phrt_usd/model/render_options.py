@@ -6,7 +6,7 @@ render settings): each option's name, type, default, range or choices, help, and
 reads it here: the checks (``RenderOption.check``, through ``phrt_usd.checks``), the API's
 names and the stage's settings under its overrides (``phrt_usd.api``, ``usd.schema``'s
 defaults), the CLI's ``render`` and ``sweep`` options (help and defaults), ``SweepSpec``,
-and docs/api.md's option table (tests/test_render_options.py checks it against this).
+and docs/api.md's option table (tests/model/test_render_options.py checks it against this).
 
 The options a render runs with come in two parts (as pbrt-v4 splits ``BasicPBRTOptions``
 from ``PBRTOptions``): ``SetupOptions``, what a render is set up with once (mode, frame

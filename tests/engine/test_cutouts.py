@@ -124,7 +124,7 @@ def test_id_layers_give_the_id_pass_ids(tmp_path):
 
 @pytest.mark.slow
 def test_hybrid_all_matches_rt_on_the_cutout_stage(renders):
-    """The hybrid-equals-rt invariant of tests/test_render.py, on cut-outs: hybrid with
+    """The hybrid-equals-rt invariant of tests/engine/test_render.py, on cut-outs: hybrid with
     every reflector traced (none here: raster G-buffer, maps and rays for the pairs they
     cannot decide) against rt, within the same mean FLIP."""
     from phrt_usd.pytest_plugin import assert_images_close

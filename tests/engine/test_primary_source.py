@@ -27,7 +27,7 @@ from phrt_usd.usd.stage import open_stage
 #: id-against-Embree target (they differ only where coplanar surfaces z-fight).
 ID_AGREEMENT = 0.995
 #: Mean FLIP allowed between the two sources' frames: the hybrid-against-rt threshold
-#: (tests/test_render.py), which the same G-buffer difference is held to there.
+#: (tests/engine/test_render.py), which the same G-buffer difference is held to there.
 SOURCES_FLIP = 0.02
 
 

@@ -148,7 +148,7 @@ def test_data_window_names_its_pixels():
     cam = scene.camera(0.0)
     # Columns whose centres are in [0.25, 1] * 64, rows (down) in [0, 0.5] * 48.
     assert cam.data_window_pixels(W, H) == (16, 0, 64, 24)
-    # Applied to the written images (tests/test_camera_outputs.py): no warning.
+    # Applied to the written images (tests/run/test_camera_outputs.py): no warning.
     assert not any("dataWindowNDC" in w for w in scene.warnings)
 
 

@@ -466,7 +466,7 @@ def test_no_camera(tmp_path):
     with pytest.raises(PhrtError, match="no UsdGeomCamera and no geometry to frame"):
         read_stage(stage)  # nothing to frame with a default camera either
     UsdGeom.Cube.Define(stage, "/Box")
-    scene = read_stage(stage)  # tests/test_cameras_usd.py checks the default camera
+    scene = read_stage(stage)  # tests/usd/test_cameras_usd.py checks the default camera
     assert scene.camera_path == "<default camera>"
     assert "no UsdGeomCamera; rendering with a default camera" in scene.warnings[-1]
     with pytest.raises(PhrtError, match="/Nope"):

@@ -26,7 +26,7 @@ callers), writing into buffers the caller allocates:
 - ``primary_rays`` / ``primary_fill``: the ``rt`` mode's pixel rays (the raster
   G-buffer's direction rule, ``surface_kernels._pixel_dir``) and its G-buffer rows.
 
-Numpy forms of these loops are the tests' reference (``tests/test_trace_kernels.py``):
+Numpy forms of these loops are the tests' reference (``tests/engine/test_trace_kernels.py``):
 same operations in the same precision (float64 positions and offsets, float32
 directions and shading normals), so results agree to the rounding of a sum's order.
 

@@ -1,7 +1,7 @@
 #version 330 core
 // Cut-out id layers (cutout_layers.py), fragment stage: the id pass's encoding
 // (flat.frag: id + 1 as four exact bytes, R least significant; keep the two in step,
-// tests/test_cutouts.py compares their ids) with depth peeling.
+// tests/engine/test_cutouts.py compares their ids) with depth peeling.
 //
 // id_base: offset of this draw's first triangle in the layer's id list (the static,
 // then the animated triangles). When `peeling`, `previous` holds per pixel the layer
