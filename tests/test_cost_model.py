@@ -78,7 +78,9 @@ def test_calibration_runs_once_per_run_and_resume_keeps_it(tmp_path):
     calibrated = [f for f in frames if f["calibration"] is not None]
     assert len(calibrated) == 1  # the first frame with a visible reflector, only
     cal = calibrated[0]["calibration"]
-    assert len(cal["rounds"]) == 2 and all(r["rays"] > 0 for r in cal["rounds"])
+    # Rounds of two sizes at least (the fixed cost apart from the per-ray cost).
+    rounds = cal["rounds"]
+    assert len({r["rays"] for r in rounds}) >= 2 and all(r["rays"] > 0 for r in rounds)
     assert cal["ms_per_ray"] > 0 and "calibrate" in calibrated[0]["phase_ms"]
     # A time-budgeted frame with visible reflectors reports T, its use and a prediction.
     traced = [f for f in frames if f["selected"]]

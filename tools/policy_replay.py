@@ -57,6 +57,7 @@ import sys
 import zipfile
 import zlib
 from dataclasses import dataclass, replace
+from functools import partial
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -64,7 +65,14 @@ import numpy as np
 
 from phrt_usd.atomic import atomic_path, write_bytes_atomic
 from phrt_usd.engine.renderer import FrameRenderer, RenderOptions
-from phrt_usd.engine.trace_rounds import CALIBRATION_PIXELS, CALIBRATION_REPEATS
+from phrt_usd.engine.trace_calibration import (
+    CALIBRATION_AIM,
+    CALIBRATION_GROWTH,
+    CALIBRATION_PIXELS,
+    CALIBRATION_REPEATS,
+    CALIBRATION_ROUND_MAX_MS,
+    SPARSE_PIXELS_FACTOR,
+)
 from phrt_usd.errors import PhrtError
 from phrt_usd.evaluate.image_metrics import flip_map
 from phrt_usd.evaluate.selection_metrics import (
@@ -679,19 +687,34 @@ def fit_time(data: dict, jitter: float = 0.1, seed: int = 0) -> SimulatedTime:
     return SimulatedTime(max(float(intercept), 0.0), float(slope), jitter, seed)
 
 
-def _calibration(frame, sim: SimulatedTime, rng: np.random.Generator) -> Calibration:
-    """What ``engine.trace_rounds.calibrate_tracer`` hands the policy on the first
-    time-budgeted frame with visible reflectors: timed rounds of CALIBRATION_PIXELS pixels
-    at that frame's mean rays per pixel (the fastest of CALIBRATION_REPEATS each, as the
-    renderer takes)."""
+def _calibration(frame, sim: SimulatedTime, rng: np.random.Generator, budget_ms: float,
+                 available: int) -> Calibration:  # fmt: skip
+    """What ``engine.trace_calibration.calibrate_tracer`` hands the policy on the first
+    time-budgeted frame with visible reflectors (``available`` reflector pixels), at that
+    frame's mean rays per pixel: CALIBRATION_REPEATS timed rounds of each size growing
+    from CALIBRATION_PIXELS as the renderer's do until one takes ``budget_ms``, then of
+    whole reflectors at the coarsest density (their filled pixels cost nothing in the
+    simulated time)."""
     records = list(frame.records.values())
     rpp = sum(r.rays for r in records) / max(sum(r.pixels for r in records), 1)
-    samples = []
-    for n in CALIBRATION_PIXELS:
-        rays = int(round(n * rpp))
-        samples.append((rays, min(sim.round_ms(rays, rng) for _ in range(CALIBRATION_REPEATS))))
-    pixels = sum(CALIBRATION_PIXELS) * CALIBRATION_REPEATS
-    return Calibration(samples, int(round(pixels * rpp)), pixels)
+    samples, n, started = [], CALIBRATION_PIXELS, 0
+    while True:
+        pixels = min(n, available)
+        timed = [sim.round_ms(round(pixels * rpp), rng) for _ in range(CALIBRATION_REPEATS)]
+        samples.extend((round(pixels * rpp), ms, 0) for ms in timed)
+        started += pixels * CALIBRATION_REPEATS
+        stop_ms = min(budget_ms, CALIBRATION_ROUND_MAX_MS)
+        if pixels == available or min(timed) >= stop_ms:
+            break
+        aim = n * CALIBRATION_AIM * stop_ms / max(min(timed), 1e-3)
+        n = max(int(min(n * CALIBRATION_GROWTH, aim)), n + 1)
+    covered = min(SPARSE_PIXELS_FACTOR * pixels, available)
+    traced = round(covered * traced_fraction(covered, TRACE_DENSITIES[-1]))
+    rays = round(traced * rpp)
+    samples.extend((rays, sim.round_ms(rays, rng), covered - traced)
+                   for _ in range(CALIBRATION_REPEATS))  # fmt: skip
+    started += traced * CALIBRATION_REPEATS
+    return Calibration(samples, round(started * rpp), started)
 
 
 class _RecordedRounds:
@@ -760,7 +783,8 @@ def replay(
         rounds = run_rounds(
             policy, view, scene, in_view, limits,
             _RecordedRounds(frame, sim if timed else None, rng),
-            calibrate=lambda frame=frame: _calibration(frame, sim, rng),
+            calibrate=partial(_calibration, frame, sim, rng, budget_ms,
+                              int(counts[in_view].sum())),
         )  # fmt: skip
         if spent is not None:
             levels = {e: TRACE_DENSITIES.index(d) for e, d in rounds.densities.items()

@@ -32,7 +32,8 @@ from phrt_usd.engine.compositing import base_image, element_reflectivity, pixel_
 from phrt_usd.engine.lighting import shade_gbuffer
 from phrt_usd.engine.motion import MotionField, MotionTracker
 from phrt_usd.engine.primary_source import choose, is_software
-from phrt_usd.engine.trace_rounds import CALIBRATION_SEED, ReflectionRounds, calibrate_tracer
+from phrt_usd.engine.trace_calibration import CALIBRATION_SEED, calibrate_tracer
+from phrt_usd.engine.trace_rounds import ReflectionRounds
 from phrt_usd.model.frame import (
     Budget,
     FrameCamera,
@@ -348,7 +349,7 @@ class FrameRenderer:
             rounds = run_rounds(
                 policy, view, scene, visible_ids, _frame_limits(opts, frame_budget_ms), step,
                 calibrate=partial(calibrate_tracer, self._tracer, gb, visible_ids,
-                                  self.options.bounce_limit, CALIBRATION_SEED),
+                                  self.options.bounce_limit, CALIBRATION_SEED, frame_budget_ms),
                 observe=step.observe_fallback_error,
             )  # fmt: skip
             if rounds.calibration is not None:
@@ -503,13 +504,14 @@ def _frame_limits(opts: RenderOptions, budget_ms: float | None) -> Budget:
     return Budget(ms=budget_ms, rays=opts.budget_rays)
 
 
-def _calibration_stats(done: Calibration, prior: tuple[float, float]) -> dict:
-    """What stats.json reports of the run's calibration: the timed rounds, the prior line
+def _calibration_stats(done: Calibration, prior: tuple[float, float, float]) -> dict:
+    """What stats.json reports of the run's calibration: the timed rounds, the time model
     the policy fitted to them, the rays per pixel they cast, their wall ms."""
     return {
-        "rounds": [{"rays": r, "ms": m} for r, m in done.samples],
+        "rounds": [{"rays": r, "ms": m, "filled": f} for r, m, f in done.samples],
         "overhead_ms": prior[0],
         "ms_per_ray": prior[1],
+        "fill_rays": prior[2],
         "rays_per_pixel": done.rays / max(done.pixels, 1),
         "wall_ms": done.wall_ms,
     }

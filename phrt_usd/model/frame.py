@@ -201,10 +201,11 @@ class SelectionPolicy(Protocol):
         ...
 
     def calibrate(
-        self, samples: list[tuple[int, float]], rays: int, pixels: int
-    ) -> tuple[float, float]:
-        """Timed calibration rounds ``(rays, ms)``, ``rays`` over ``pixels`` traced in all;
-        returns the trace-time line fitted to them: (fixed ms, ms per ray)."""
+        self, samples: list[tuple[int, float, int]], rays: int, pixels: int
+    ) -> tuple[float, float, float]:
+        """Timed calibration rounds ``(rays, ms, filled pixels)``, ``rays`` over the
+        ``pixels`` that started rays in all; returns the trace-time model fitted to them:
+        (fixed ms, ms per ray, rays per filled pixel)."""
         ...
 
     def begin_frame(self, view: FrameView, scene: Scene) -> None: ...

@@ -1,10 +1,11 @@
-"""The trace-time cost model: milliseconds of a tracing round predicted from its ray count,
-learned online from the rounds the renderer measures, with a safety factor that tracks
-wall-time jitter.
+"""The trace-time cost model: milliseconds of a tracing round predicted from its ray count
+(and the pixels it fills at reduced densities, counted in rays), started from a
+calibration on the run's own stage, learned online from the rounds the renderer
+measures, with a safety factor that tracks wall-time jitter.
 
 What a policy checks its budget against is a prediction of the rays tracing a candidate
-costs (``BudgetedPolicy.predicted_rays`` in ``phrt_usd.select.policies``) and of the time
-those rays take (``TraceTimeModel`` here).
+costs (``BudgetedPolicy.predicted_rays`` and ``level_rays`` in
+``phrt_usd.select.policies``) and of the time those rays take (``TraceTimeModel`` here).
 """
 
 from __future__ import annotations
@@ -29,7 +30,8 @@ import numpy as np
 #:   quantile is 1.17-1.29).
 #: - Over a window, so that a loaded spell raises the factor within a few rounds and is
 #:   forgotten JITTER_WINDOW rounds after it ends.
-#: - A window not full yet is filled up with rounds at TIME_SAFETY_INITIAL, each of the
+#: - A window not full yet is filled up with rounds at TIME_SAFETY_INITIAL (plus the
+#:   calibration's spread above it while its line still weighs in the fit), each of the
 #:   real rounds' mean weight: one slow round is not the quantile of a young window (on
 #:   the farm at T = 1 ms an early round can take 25x its model, which as the quantile
 #:   would set the factor to its maximum and starve ~60 frames), while a few slow rounds
@@ -39,9 +41,14 @@ import numpy as np
 #: quantile in docs/bench-log/2026-12-03-d62f485-safety-glue-temporal.md, the current
 #: fit and the young window's filling in docs/bench-log/2026-12-03-2987843-make-room-hold.md.
 TIME_SAFETY_MIN = 1.05
-#: The factor before any round was measured, and the ratio of the rounds that fill up a
-#: young window: where it settles on a quiet machine.
+#: The factor before any round was measured (uncalibrated; a calibration's spread is
+#: never taken below it), and the ratio of the rounds that fill up a young window: where
+#: it settles on a quiet machine.
 TIME_SAFETY_INITIAL = 1.1
+#: Upper clamp of the calibration's safety factor (``TraceTimeModel.calibrate``): a
+#: calibration timed in a loaded spell still lets the first frames plan half the budget;
+#: their rounds then correct the factor.
+CALIBRATION_SAFETY_MAX = 2.0
 #: Upper clamp of the factor: a round stuck behind another process (10-100x its model)
 #: would otherwise plan nothing at all for JITTER_WINDOW rounds.
 TIME_SAFETY_MAX = 10.0
@@ -69,10 +76,25 @@ STARVED_SCALE = 0.75
 
 #: Before anything was measured or calibrated: 0.004 ms per ray (250k rays/s, slower than
 #: embreex plus numpy shading on one laptop core) and 0.5 ms fixed cost per tracing round.
-#: A render with a time budget replaces both by a calibration on its own stage before the
-#: first round (``TraceTimeModel.calibrate``; ``FrameRenderer`` in engine/renderer.py).
+#: A render with a time budget replaces both by a calibration on its own stage, at the
+#: sizes its budget plans, before the first round (``TraceTimeModel.calibrate``;
+#: engine/trace_calibration.py).
 INITIAL_MS_PER_RAY = 0.004
 INITIAL_ROUND_MS = 0.5
+
+#: What filling a skipped pixel of a reduced-density reflector costs, in rays, before a
+#: calibration measured it: nothing (a run without one has a rays budget, which counts
+#: rays only). The calibration's figure is kept for the run: a run's rounds mix rays and
+#: filled pixels in about the same proportion, which cannot tell the two costs apart
+#: (learned online from them, a figure 0.6 off the truth was still 0.17-0.22 off after
+#: 400 frames of a simulated tracer); the line learns the machine's speed. On a mirror
+#: floor of 64 small reflective spheres (320 x 240, every reflector at a sixteenth: 9,973
+#: rays, 45.6k filled pixels, 8.5-9 ms against 0.3 ms + 0.2 us a ray) a filled pixel took
+#: ~0.14 us, ~0.6 rays; calibrations there measure 0.5-1.3.
+INITIAL_FILL_RAYS = 0.0
+#: Upper clamp of the calibrated cost of a filled pixel: a filled pixel reads a few
+#: neighbours, never the cost of several rays (a larger figure is noise in the rounds).
+FILL_RAYS_MAX = 4.0
 
 #: Lower bound of the learned ms per ray (1e10 rays/s): keeps ms → rays finite.
 MIN_MS_PER_RAY = 1e-7
@@ -96,8 +118,8 @@ RAY_UNIT = 1e4
 #: The prior line (the initial guess, or the calibration) enters the fit as two
 #: pseudo-rounds, one at 0 rays (the fixed cost) and one at RAY_UNIT rays (fixed cost plus
 #: the per-ray cost), each of weight PRIOR_WEIGHT at the start: the first measured round
-#: already outweighs it (the calibration's rounds are small and on a (1, n) image, so they
-#: miss part of a real round's fixed cost). Their weight is forgotten like a measured
+#: already outweighs it (a frame's rounds are what the budget is charged; the
+#: calibration's are only like them). Their weight is forgotten like a measured
 #: round's (TIME_MODEL_DECAY per round); when the rounds all trace about the same rays,
 #: they decide the line's height there and the prior only its tilt.
 PRIOR_WEIGHT = 0.5
@@ -107,7 +129,9 @@ PRIOR_WEIGHT_MIN = 1e-9
 
 
 class TraceTimeModel:
-    """Milliseconds of one tracing round: ``overhead_ms + ms_per_ray * rays``.
+    """Milliseconds of one tracing round: ``overhead_ms + ms_per_ray * rays``, where
+    ``rays`` are the rays cast plus ``fill_rays`` for each pixel a reduced-density
+    reflector fills from its traced neighbours (the calibration measures that cost).
 
     Fitted by exponentially weighted least squares over the rounds seen so far (older
     rounds weigh ``TIME_MODEL_DECAY`` less per round) and a prior line: the calibration
@@ -122,8 +146,9 @@ class TraceTimeModel:
 
     Predictions are multiplied by ``safety``: the JITTER_QUANTILE quantile of (measured /
     modelled) round time over the last JITTER_WINDOW rounds, weighted by the rounds'
-    modelled ms, clamped to [TIME_SAFETY_MIN, TIME_SAFETY_MAX]; ``expected_ms`` is the
-    central estimate without it.
+    modelled ms, clamped to [TIME_SAFETY_MIN, TIME_SAFETY_MAX]; before the first round,
+    the calibration's spread (``prior_safety``; TIME_SAFETY_INITIAL uncalibrated).
+    ``expected_ms`` is the central estimate without it.
     """
 
     def __init__(self) -> None:
@@ -139,41 +164,73 @@ class TraceTimeModel:
         self.prior_overhead_ms = INITIAL_ROUND_MS
         self.prior_ms_per_ray = INITIAL_MS_PER_RAY
         self.prior_weight = PRIOR_WEIGHT
+        #: The safety factor of the prior line: the calibration's spread
+        #: (``calibrate``), TIME_SAFETY_INITIAL without one.
+        self.prior_safety = TIME_SAFETY_INITIAL
+        #: What filling one skipped pixel of a reduced-density reflector from its traced
+        #: neighbours costs, in rays (``calibrate``; INITIAL_FILL_RAYS without one).
+        self.fill_rays = INITIAL_FILL_RAYS
         #: True once ``calibrate`` set the prior from this stage's own rays.
         self.calibrated = False
         # Weighted sums of the measured rounds: weight, x, ms, x^2, x*ms (x = rays/RAY_UNIT).
         self._w = self._r = self._m = self._rr = self._rm = 0.0
 
-    def calibrate(self, samples: list[tuple[int, float]]) -> None:
-        """Set the prior line from timed calibration rounds ``(rays, ms)`` (at least one;
-        two sizes separate the fixed cost from the per-ray cost) and refit. Marks the
+    def calibrate(self, samples: list[tuple]) -> None:
+        """Set the prior line, the cost of a filled pixel and the prior's safety factor
+        from timed calibration rounds ``(rays, ms)`` or ``(rays, ms, filled pixels)`` (at
+        least one at full density, i.e. none filled; rounds of two sizes or more separate
+        the fixed cost from the per-ray cost) and refit. The line: least squares of the
+        relative error of each full-density size's fastest round (``calibration_line``);
+        ``fill_rays``: what each reduced-density size's fastest round took beyond the
+        line, per filled pixel, in rays; the safety factor: the JITTER_QUANTILE quantile
+        of every round's measured / modelled ms, weighted by modelled ms, within
+        [TIME_SAFETY_INITIAL, CALIBRATION_SAFETY_MAX]. It starts the factor, and fills a
+        young window as long as the prior weighs in the fit (``_young_ratio``). Marks the
         model calibrated; rounds learned before stay."""
-        pts = [(float(r), float(m)) for r, m in samples if r > 0 and math.isfinite(m) and m >= 0]
+        pts = [(float(r), float(m), float(f[0]) if f else 0.0) for r, m, *f in samples
+               if r > 0 and math.isfinite(m) and m > 0 and all(v >= 0 for v in f)]  # fmt: skip
         if not pts:
             return
-        pts.sort()
-        (r1, m1), (r2, m2) = pts[0], pts[-1]
-        slope = (m2 - m1) / (r2 - r1) if r2 > r1 else 0.0
-        if slope > 0.0:
-            overhead = m1 - slope * r1
-            if overhead < 0.0:  # a line through the origin instead
-                overhead, slope = 0.0, sum(m for _r, m in pts) / sum(r for r, _m in pts)
-        else:  # timings too noisy to show growth: all of it per ray (conservative)
-            overhead, slope = 0.0, max(m for _r, m in pts) / r2
-        self.prior_overhead_ms = max(overhead, 0.0)
+        rays, ms, filled = np.array(pts, np.float64).T
+        # The line and the fill from each round size's fastest repeat (a repeat slowed
+        # by another process must not tilt them), the safety factor from every round.
+        fastest: dict[tuple[float, float], float] = {}
+        for r, m, f in pts:
+            fastest[(r, f)] = min(m, fastest.get((r, f), math.inf))
+        sizes = np.array([(r, f, m) for (r, f), m in sorted(fastest.items())]).reshape(-1, 3)
+        full, sparse = sizes[sizes[:, 1] == 0], sizes[sizes[:, 1] > 0]
+        if not len(full):
+            return
+        overhead, slope = calibration_line(full[:, 0], full[:, 2])
+        self.prior_overhead_ms = overhead
         self.prior_ms_per_ray = max(slope, MIN_MS_PER_RAY)
+        if len(sparse):
+            beyond = sparse[:, 2] - overhead - self.prior_ms_per_ray * sparse[:, 0]
+            per_pixel = max(float(beyond.sum() / sparse[:, 1].sum()), 0.0)
+            self.fill_rays = min(per_pixel / self.prior_ms_per_ray, FILL_RAYS_MAX)
         self.prior_weight = PRIOR_WEIGHT
+        modelled = np.maximum(overhead + self.prior_ms_per_ray * (rays + self.fill_rays * filled),
+                              1e-9)  # fmt: skip
+        spread = weighted_quantile(ms / modelled, modelled, JITTER_QUANTILE)
+        self.prior_safety = min(max(spread, TIME_SAFETY_INITIAL), CALIBRATION_SAFETY_MAX)
         self.calibrated = True
         self._fit()
+        if self.jitter_ms:
+            self._update_safety()
+        else:
+            self.safety = self.prior_safety
 
-    def learn(self, rays: int, ms: float, planned_rays: float = 0.0) -> None:
-        """One round: ``rays`` cast in ``ms`` wall-clock milliseconds. ``planned_rays``
-        (> 0): the rays the round was predicted to cast; the safety factor's ratio is then
-        measured against the time modelled for them, so it also covers the error of the
-        ray prediction (the fit itself always learns the rays cast)."""
+    def learn(self, rays: int, ms: float, planned_rays: float = 0.0, filled: float = 0.0) -> None:
+        """One round: ``rays`` cast and ``filled`` pixels filled from traced neighbours in
+        ``ms`` wall-clock milliseconds; the fit learns ``rays + fill_rays * filled``.
+        ``planned_rays`` (> 0): what the round was predicted to cost, in the same rays;
+        the safety factor's ratio is then measured against the time modelled for them, so
+        it also covers the error of the ray prediction."""
         if rays <= 0 or not math.isfinite(ms) or ms < 0.0:
             return
-        x, m = float(rays) / RAY_UNIT, float(ms)
+        filled = float(filled) if math.isfinite(filled) and filled > 0.0 else 0.0
+        rays = float(rays) + self.fill_rays * filled
+        x, m = rays / RAY_UNIT, float(ms)
         if self.rounds > 0 or self.calibrated:
             # (Uncalibrated, the first round only tells how wrong the initial guess was.)
             planned = planned_rays if planned_rays > 0.0 and math.isfinite(planned_rays) else rays
@@ -197,10 +254,9 @@ class TraceTimeModel:
 
     def _update_safety(self) -> None:
         """``safety`` from the window (none: unchanged): the weighted JITTER_QUANTILE
-        quantile (the smallest ratio with at least that share of the window's weight at or
-        below it) of measured / modelled ms, modelled by the current fit for the rays
-        each round was predicted to cast and weighted by those ms, the window filled up
-        to JITTER_WINDOW rounds at TIME_SAFETY_INITIAL, clamped."""
+        quantile (``weighted_quantile``) of measured / modelled ms, modelled by the current
+        fit for the rays each round was predicted to cast and weighted by those ms, the
+        window filled up to JITTER_WINDOW rounds at ``_young_ratio``, clamped."""
         if not self.jitter_ms:
             return
         # One array pass (this runs after every round, over up to JITTER_WINDOW rounds).
@@ -209,13 +265,17 @@ class TraceTimeModel:
         ratios, weights = np.asarray(self.jitter_ms) / modelled, modelled
         padding = JITTER_WINDOW - len(ratios)  # the young window's prior rounds, as one
         if padding > 0:
-            ratios = np.append(ratios, TIME_SAFETY_INITIAL)
+            ratios = np.append(ratios, self._young_ratio())
             weights = np.append(weights, padding * modelled.mean())
-        order = np.argsort(ratios, kind="stable")
-        below = np.cumsum(weights[order])
-        at = int(np.searchsorted(below, JITTER_QUANTILE * below[-1]))
-        quantile = float(ratios[order[min(at, len(order) - 1)]])
+        quantile = weighted_quantile(ratios, weights, JITTER_QUANTILE)
         self.safety = min(max(quantile, TIME_SAFETY_MIN), TIME_SAFETY_MAX)
+
+    def _young_ratio(self) -> float:
+        """The ratio the rounds filling up a young window have: TIME_SAFETY_INITIAL plus
+        the calibration's spread above it in the share the prior still has of its weight
+        in the fit (the calibration's uncertainty counts as long as its line does)."""
+        share = min(self.prior_weight / PRIOR_WEIGHT, 1.0)
+        return TIME_SAFETY_INITIAL + (self.prior_safety - TIME_SAFETY_INITIAL) * share
 
     def _fit(self) -> None:
         """Weighted least squares of the rounds and the prior's two pseudo-rounds."""
@@ -270,7 +330,8 @@ class TraceTimeModel:
         self.safety = max(self.safety * STARVED_RELAX, TIME_SAFETY_MIN)
 
     def expected_ms(self, rays: float) -> float:
-        """Central estimate of a round's milliseconds (no safety factor)."""
+        """Central estimate of a round's milliseconds (no safety factor); ``rays``, here
+        and in ``predicted_ms`` and ``rays_within``, count a filled pixel as ``fill_rays``."""
         return self.overhead_ms + self.ms_per_ray * max(rays, 0.0)
 
     def predicted_ms(self, rays: float) -> float:
@@ -280,3 +341,32 @@ class TraceTimeModel:
     def rays_within(self, ms: float) -> float:
         """Most rays a round may cast and still (conservatively) end within ``ms``."""
         return max((ms / self.safety - self.overhead_ms) / self.ms_per_ray, 0.0)
+
+
+def calibration_line(rays: np.ndarray, ms: np.ndarray) -> tuple[float, float]:
+    """(fixed ms, ms per ray) fitted to timed rounds ``rays``, ``ms`` (n,) float64 (ms >
+    0): least squares of the relative error (weights 1 / ms^2), so the small rounds decide
+    the fixed cost and the large ones the per-ray cost, whatever their ms. A negative
+    fixed cost is replaced by the best line through the origin, a non-positive slope
+    (rounds of one size, or timings too noisy to show growth) by the line through the
+    origin and the slowest round per ray (conservative)."""
+    w = 1.0 / ms**2
+    sw, sr, sm = w.sum(), (w * rays).sum(), (w * ms).sum()
+    srr, srm = (w * rays * rays).sum(), (w * rays * ms).sum()
+    det = sw * srr - sr * sr
+    slope = (sw * srm - sr * sm) / det if det > 1e-12 * sw * srr else 0.0
+    if not slope > 0.0:
+        return 0.0, float(np.max(ms / rays))
+    overhead = (sm - slope * sr) / sw
+    if overhead < 0.0:
+        return 0.0, float(srm / srr)
+    return float(overhead), float(slope)
+
+
+def weighted_quantile(values: np.ndarray, weights: np.ndarray, q: float) -> float:
+    """The smallest of ``values`` with at least the share ``q`` of ``weights``' sum at
+    or below it."""
+    order = np.argsort(values, kind="stable")
+    below = np.cumsum(weights[order])
+    at = int(np.searchsorted(below, q * below[-1]))
+    return float(values[order[min(at, len(order) - 1)]])

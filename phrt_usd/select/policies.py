@@ -100,6 +100,10 @@ class _FrameState:
     #: Trace density of each reflector taken at other than full density (index into
     #: ``model.trace_density.TRACE_DENSITIES``; HEU1's density steps); absent: full.
     levels: dict[int, int] = field(default_factory=dict)
+    #: What a pixel filled from traced neighbours costs in this frame's ``level_rays``:
+    #: the time model's ``fill_rays`` under a time budget, 0 under a rays budget alone
+    #: (which counts rays).
+    fill_rays: float = 0.0
 
 
 class BudgetedPolicy(ABC):
@@ -156,17 +160,19 @@ class BudgetedPolicy(ABC):
         return not self.time_model.calibrated
 
     def calibrate(
-        self, samples: list[tuple[int, float]], rays: int, pixels: int
-    ) -> tuple[float, float]:
+        self, samples: list[tuple[int, float, int]], rays: int, pixels: int
+    ) -> tuple[float, float, float]:
         """A calibration of this stage's tracing before the first round: timed rounds
-        ``(rays, ms)`` set the time model's prior (``TraceTimeModel.calibrate``); their
-        ``rays`` over ``pixels`` traced seed the mean rays per pixel, which predicts
-        reflectors never traced, unless a trace already taught it. Returns the prior
-        line: (fixed ms, ms per ray)."""
-        self.time_model.calibrate(samples)
+        ``(rays, ms, filled pixels)`` set the time model's prior
+        (``TraceTimeModel.calibrate``); their ``rays`` over the ``pixels`` that started
+        rays seed the mean rays per pixel, which predicts reflectors never traced, unless
+        a trace already taught it. Returns the prior: (fixed ms, ms per ray, rays per
+        filled pixel)."""
+        model = self.time_model
+        model.calibrate(samples)
         if self._global_pixels <= 0.0 and pixels > 0 and rays > 0:
             self._global_rays, self._global_pixels = float(rays), float(pixels)
-        return self.time_model.prior_overhead_ms, self.time_model.prior_ms_per_ray
+        return model.prior_overhead_ms, model.prior_ms_per_ray, model.fill_rays
 
     def memory(self) -> dict:
         """The policy's memory across frames as plain JSON data (for checkpoints): every
@@ -239,21 +245,24 @@ class BudgetedPolicy(ABC):
 
     def next_round(self, budget: Budget) -> list[int]:
         frame = self._require_frame()
+        frame.fill_rays = self.time_model.fill_rays if budget.ms is not None else 0.0
         ids = self._choose(budget)
         if not ids and not frame.traced:
             frame.untraced_reason = self._untraced_reason(budget)
             if self._starved_by_time(budget):
                 self.time_model.relax()
+        cost = {e: self.level_rays(e, frame.levels.get(e, 0)) for e in ids}
         for e in ids:
-            frame.predicted_rays[e] = self.level_rays(e, frame.levels.get(e, 0))
+            level = frame.levels.get(e, 0)
+            frame.predicted_rays[e] = self.predicted_rays(e) * self.level_share(e, level)
         if ids:
             # The round's predicted time (fixed overhead included), shared among its
-            # reflectors by rays, so that summing predicted_ms over a frame's selection
+            # reflectors by cost, so that summing predicted_ms over a frame's selection
             # gives the frame's predicted trace time.
-            rays = sum(frame.predicted_rays[e] for e in ids)
+            rays = sum(cost.values())
             round_ms = self.time_model.predicted_ms(rays)
             for e in ids:
-                share = frame.predicted_rays[e] / rays if rays > 0.0 else 1.0 / len(ids)
+                share = cost[e] / rays if rays > 0.0 else 1.0 / len(ids)
                 frame.predicted_ms[e] = round_ms * share
             frame.predicted_trace_ms += round_ms
             frame.expected_trace_ms += self.time_model.expected_ms(rays)
@@ -266,11 +275,15 @@ class BudgetedPolicy(ABC):
         frame.rays.clear()  # rays per pixel change below
         n = len(frame.scene.elements)
         total_rays = 0
+        filled = 0.0  # pixels filled from traced neighbours (HEU1's density steps)
         for rec in records:
             total_rays += max(int(rec.rays), 0)
             src = int(rec.source)
             if not 0 <= src < n:
                 continue
+            if src in frame.levels and rec.pixels > 0:
+                density = TRACE_DENSITIES[frame.levels[src]]
+                filled += rec.pixels * (1.0 - traced_fraction(rec.pixels, density))
             bounces = max(int(rec.max_reflector_bounces), 0)
             # Q = 1 + bounces, capped at the bounce limit (Q >= 1 even for a limit of 0).
             self.Q[src] = float(min(1 + bounces, max(self.bounce_limit, 1)))
@@ -293,7 +306,9 @@ class BudgetedPolicy(ABC):
                     hits[j] = min(max(count, 0) / max(rec.pixels, 1), 1.0)
             self.reflects[src] = hits
             self.discovered.update(hits)
-        self.time_model.learn(total_rays, float(seconds) * 1000.0, planned_rays=frame.round_rays)
+        self.time_model.learn(
+            total_rays, float(seconds) * 1000.0, planned_rays=frame.round_rays, filled=filled
+        )
         frame.round_rays = 0.0
 
     def end_frame(self) -> dict[int, ReflectorMetrics]:
@@ -381,8 +396,14 @@ class BudgetedPolicy(ABC):
         return traced_fraction(pixels, TRACE_DENSITIES[level])
 
     def level_rays(self, element: int, level: int) -> float:
-        """``predicted_rays`` of ``element`` traced at density TRACE_DENSITIES[level]."""
-        return self.predicted_rays(element) * self.level_share(element, level)
+        """What tracing ``element`` at density TRACE_DENSITIES[level] costs, in rays: its
+        ``predicted_rays`` at that density's share of its pixels, and under a time
+        budget its other pixels, filled from traced neighbours, at the time model's
+        ``fill_rays`` each."""
+        share = self.level_share(element, level)
+        frame = self._require_frame()
+        filled = float(frame.pixels[element]) * (1.0 - share) if frame.fill_rays else 0.0
+        return self.predicted_rays(element) * share + frame.fill_rays * filled
 
     def fewest_rays(self, element: int) -> float:
         """The fewest predicted rays this policy could trace ``element`` with: at full

@@ -55,12 +55,13 @@ class Calibration:
     """Timed calibration rounds of a run's tracing, before its first time-budgeted round
     (what ``SelectionPolicy.calibrate`` takes).
 
-    samples: (rays, ms) of each timed round size, the fastest of its repeats;
-    rays, pixels: rays cast and pixels traced over every timed round;
+    samples: (rays, ms, filled pixels) of each timed round (filled: pixels of
+        reduced-density reflectors filled from traced neighbours, 0 at full density);
+    rays, pixels: rays cast and pixels that started rays over the calibration's rounds;
     wall_ms: wall time the calibration took (the renderer reports it apart).
     """
 
-    samples: list[tuple[int, float]]
+    samples: list[tuple[int, float, int]]
     rays: int
     pixels: int
     wall_ms: float = 0.0
@@ -83,8 +84,8 @@ class FrameRounds:
     note: the policy's note on the frame (``last_frame_note``);
     starved: the budget when the rounds stopped with none of it left before anything
         was traced while reflectors were visible, else None;
-    calibration: the run's calibration if this frame ran it, with the prior line the
-        policy fitted to it (fixed ms, ms per ray), else None.
+    calibration: the run's calibration if this frame ran it, with the prior the policy
+        fitted to it (fixed ms, ms per ray, rays per filled pixel), else None.
     """
 
     selected: list[int] = field(default_factory=list)
@@ -95,7 +96,7 @@ class FrameRounds:
     metrics: dict[int, ReflectorMetrics] = field(default_factory=dict)
     note: FrameNote = field(default_factory=FrameNote)
     starved: Budget | None = None
-    calibration: tuple[Calibration, tuple[float, float]] | None = None
+    calibration: tuple[Calibration, tuple[float, float, float]] | None = None
 
 
 def remaining_budget(limits: Budget, trace_ms: float, rays: int) -> Budget:
@@ -131,9 +132,10 @@ def run_rounds(
 
     visible: the reflectors with pixels in ``view``; only ids with pixels in the view
         (``view.pixel_counts``) and not traced yet this frame are passed to ``trace``;
-    calibrate: times the caller's tracing for the policy's time model, called before the
-        frame begins when the frame is time-budgeted, reflectors are visible and the
-        policy ``needs_calibration``;
+    calibrate: times the caller's tracing for the policy's time model (at the sizes
+        ``limits.ms`` plans: the caller binds it), called before the frame begins when
+        the frame is time-budgeted, reflectors are visible and the policy
+        ``needs_calibration``;
     observe: fills the last traced round's ``TraceRecord.fallback_error`` (called only
         for a policy that ``observes_fallback_error``, before it learns the round);
     clock: seconds, for the selection time.

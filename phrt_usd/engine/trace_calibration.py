@@ -1,0 +1,153 @@
+"""The run's trace-time calibration (``calibrate_tracer``): before the first time-budgeted
+round of a run, the renderer's tracing step is timed on the frame's own reflector pixels
+at the sizes the frame's budget will plan, at full and at the coarsest density, and the
+policy's time model fits its prior line, the cost of a filled pixel and its safety
+factor to those rounds (``TraceTimeModel.calibrate``).
+
+Why at the budget's size. A round of a size the run has not traced yet costs 1.5-2.5x
+its repeats (its buffers are allocated and touched for the first time; from 4096 shadow
+rays and 8192 rays on, the work is split over the thread pool). On a mirror floor with 64
+small reflective spheres at 320 x 240 (48,621 reflector pixels), the same 155k-ray round
+took 123, 78, 41 and 50 ms in turn, and rounds of 8,000 / 16,000 / 48,000 pixels 9.7 /
+26.6 / 62.9 ms the first time against 7.9 / 13.9 / 34.1 the second. Why at the coarsest
+density too. A reflector traced at a reduced density also fills its skipped pixels from
+the traced ones, a cost per pixel that no count of rays shows: on that floor, every
+reflector at a sixteenth cast 9,973 rays in 8.5-9 ms, where the rounds at full density
+cast 155k in 32 ms. A calibration of 64 and 512 pixels at full density (a few ms) saw
+neither, so the first frame (HEU1 stepping 44 of its 61 reflectors to a sixteenth) took
+16-18 ms against T = 9 ms (third-party assets: 58 and 81 ms against 9).
+
+So the calibration traces, each round through the renderer's own tracing step
+(``ReflectionRounds``: ``Tracer.trace_reflections`` and compositing, timed as a frame's
+rounds are) on a copy of the frame's G-buffer keeping only the round's pixels' element
+ids, so that each round does a real round's work over the whole image:
+
+* at full density, random samples of the reflector pixels growing from
+  CALIBRATION_PIXELS (CALIBRATION_GROWTH times, or to what the last size says takes
+  CALIBRATION_AIM T) until a round takes the budget T (at most CALIBRATION_ROUND_MAX_MS)
+  or every pixel; each size once untimed, then timed CALIBRATION_REPEATS times;
+* at the coarsest density (``model.trace_density``), whole reflectors in a seeded random
+  order up to SPARSE_PIXELS_FACTOR times the largest full-density round's pixels; once
+  untimed, then timed CALIBRATION_REPEATS times.
+
+Its wall time is about 4-5 T plus the run's first trace (~30 ms), once per run, reported
+apart from the frame's time (``FrameStats.calibration``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+
+import numpy as np
+
+from phrt_usd.engine.trace_rounds import ReflectionRounds
+from phrt_usd.model.frame import GBuffer
+from phrt_usd.model.trace_density import COARSEST, TRACE_DENSITIES, traced_fraction
+from phrt_usd.select.rounds import Calibration
+
+#: The smallest calibration round, in pixels (the run's first trace is one of its size,
+#: untimed): about one small reflector, so the fit sees a round's fixed cost.
+CALIBRATION_PIXELS = 64
+#: Each full-density size is at most this many times the last (about 1.3 T of timed
+#: rounds per repeat up to the size that takes T) ...
+CALIBRATION_GROWTH = 4
+#: ... and at most the size the last one's time per pixel says takes this many times T:
+#: the last size is then about T to 1.5 T rather than up to 4 T (the fixed cost in a
+#: smaller round's time per pixel makes the aim short rather than long).
+CALIBRATION_AIM = 1.5
+#: Timed rounds of each size after its untimed one: two show the spread the safety
+#: factor starts from.
+CALIBRATION_REPEATS = 2
+#: The seed of the pixel samples (the run's provenance reports it).
+CALIBRATION_SEED = 0
+#: The largest full-density round stops growing once a round takes this many ms, whatever
+#: the budget: bounds the calibration's wall time for large budgets (their first frame's
+#: rounds are then a prediction of the line beyond what was timed).
+CALIBRATION_ROUND_MAX_MS = 50.0
+#: The coarsest-density rounds cover this many times the largest full-density round's
+#: pixels: at a sixteenth they cast ~1/16 of the rays and fill the rest, which takes
+#: about as long as the full-density round (the floor above: 0.19 against 0.66 us a pixel).
+SPARSE_PIXELS_FACTOR = 4
+
+
+def calibrate_tracer(
+    tracer, gb: GBuffer, visible_ids: list[int], bounce_limit: int, seed: int,
+    budget_ms: float | None = None,
+) -> Calibration:  # fmt: skip
+    """Time ``tracer`` on this frame's own reflector pixels (of ``visible_ids``) at the
+    sizes a frame of ``budget_ms`` plans, at full and at the coarsest density (module
+    docstring); samples drawn with ``seed``. Returns every timed round's (rays, ms,
+    filled pixels)."""
+    start = time.perf_counter()
+    rng = np.random.default_rng(seed)
+    rounds = _CalibrationRounds(tracer, gb, visible_ids, bounce_limit)
+    flat = rounds.pixels
+    stop_ms = min(float(budget_ms or 0.0), CALIBRATION_ROUND_MAX_MS)
+    samples: list[tuple[int, float, int]] = []
+    n = CALIBRATION_PIXELS
+    largest = 0
+    while True:
+        pick = rng.choice(flat, size=min(n, len(flat)), replace=False)
+        rounds.trace(pick, "full")  # the first round of this size: untimed
+        timed = [rounds.trace(pick, "full") for _ in range(CALIBRATION_REPEATS)]
+        samples.extend(timed)
+        largest = len(pick)
+        fastest = min(ms for _r, ms, _f in timed)
+        if largest == len(flat) or fastest >= stop_ms:
+            break
+        aim = n * CALIBRATION_AIM * stop_ms / max(fastest, 1e-3)  # by its time per pixel
+        n = max(int(min(n * CALIBRATION_GROWTH, aim)), n + 1)
+    whole = _whole_reflectors(gb, visible_ids, SPARSE_PIXELS_FACTOR * largest, rng)
+    if len(whole):
+        rounds.trace(whole, TRACE_DENSITIES[COARSEST])
+        samples.extend(rounds.trace(whole, TRACE_DENSITIES[COARSEST])
+                       for _ in range(CALIBRATION_REPEATS))  # fmt: skip
+    wall_ms = (time.perf_counter() - start) * 1000.0
+    return Calibration(samples, rounds.rays, rounds.traced_pixels, wall_ms)
+
+
+class _CalibrationRounds:
+    """Rounds of chosen G-buffer pixels through the renderer's tracing step, each on a
+    copy of ``gb`` keeping only those pixels' element ids; counts the rays and the pixels
+    that started rays over the timed and untimed rounds."""
+
+    def __init__(self, tracer, gb: GBuffer, visible_ids: list[int], bounce_limit: int):
+        self._tracer = tracer
+        self._gb = gb
+        self._bounce_limit = bounce_limit
+        self._ids = gb.element_id.reshape(-1)
+        #: The flat indices of the visible reflectors' pixels.
+        self.pixels = np.flatnonzero(np.isin(self._ids, visible_ids))
+        self._blank = np.zeros((*gb.shape, 3), np.float32)
+        self._whole = np.ones(gb.shape, np.float32)
+        self.rays = 0
+        self.traced_pixels = 0
+
+    def trace(self, pick: np.ndarray, density: str) -> tuple[int, float, int]:
+        """One round of the pixels ``pick`` (flat indices) at ``density``: its rays, its
+        ms and its filled pixels (covered, not started rays at)."""
+        ids = np.full(self._ids.size, -1, self._ids.dtype)
+        ids[pick] = self._ids[pick]
+        sources = np.unique(ids[pick]).tolist()
+        sub = dataclasses.replace(self._gb, element_id=ids.reshape(self._gb.shape))
+        step = ReflectionRounds(self._tracer, sub, self._blank, self._whole, self._blank,
+                                self._bounce_limit)  # fmt: skip
+        traced = step(sources, [density] * len(sources))
+        started = sum(r.pixels * traced_fraction(r.pixels, density) for r in traced.records)
+        self.rays += int(traced.rays)
+        self.traced_pixels += round(started)
+        return int(traced.rays), float(traced.ms), round(len(pick) - started)
+
+
+def _whole_reflectors(
+    gb: GBuffer, visible_ids: list[int], pixels: int, rng: np.random.Generator
+) -> np.ndarray:
+    """Flat indices of every pixel of visible reflectors taken in a random order (``rng``)
+    until they cover ``pixels`` (all of them if they cover fewer)."""
+    ids = gb.element_id.reshape(-1)
+    counts = np.bincount(ids[ids >= 0], minlength=max(visible_ids, default=0) + 1)
+    order = rng.permutation(np.asarray(sorted(visible_ids), np.int64))
+    cover = np.cumsum(counts[order])
+    taken = order[: int(np.searchsorted(cover, pixels)) + 1]
+    return np.flatnonzero(np.isin(ids, taken))
