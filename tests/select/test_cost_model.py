@@ -69,6 +69,7 @@ def _stats(out):
     return json.loads((out / "stats.json").read_text())["frames"]
 
 
+@pytest.mark.slow
 def test_calibration_runs_once_per_run_and_resume_keeps_it(tmp_path):
     stage = mirror_gallery_stage(tmp_path / "gallery.usda", frames=8)
     options = RenderOptions(width=64, height=48, budget_ms=50.0)
@@ -134,7 +135,7 @@ def test_rows_written_before_the_new_fields_still_read(tmp_path):
     with pytest.raises(Exception, match="untraced_reason"):
         frame_stats_from_row({**row, "untraced_reason": 3})
     # A reflector's figures without their required fields (an empty table: found by
-    # tests/test_run_fuzz.py) are refused with the reader's one line, not a TypeError.
+    # tests/run/test_run_fuzz.py) are refused with the reader's one line, not a TypeError.
     with pytest.raises(PhrtError, match="metrics of /World/Mirror0: not reflector figures"):
         frame_stats_from_row({**row, "metrics": {"/World/Mirror0": {}}})
 
