@@ -109,30 +109,36 @@ def project_points(camera: FrameCamera, points: np.ndarray, width: int, height: 
     """Pixel positions (n, 2) float64 (col, row: pixel centres at +0.5, row 0 at the top)
     and view depths (n,) float64 of world ``points`` (n, 3) through ``camera``'s
     matrices; a point at depth <= 0 (behind the camera) gets NaN pixels."""
-    view, proj = camera.camera_from_world, camera.projection
-    cam = points @ view[:3, :3].T + view[:3, 3]
-    clip = cam @ proj[:, :3].T + proj[:, 3]
-    return _pixels(clip, width, height), -cam[:, 2]
+    clip_from_world = camera.projection @ camera.camera_from_world
+    clip = _affine(clip_from_world, points, 1.0)
+    depth = -_affine(camera.camera_from_world[2:3], points, 1.0)[0]
+    return _pixels(clip, width, height), depth
 
 
 def project_directions(camera: FrameCamera, directions: np.ndarray, width: int, height: int):
     """Pixel positions (n, 2) float64 of world ``directions`` (n, 3) (points at infinity)
     through ``camera``; NaN for a direction behind it."""
-    view, proj = camera.camera_from_world, camera.projection
-    clip = (directions @ view[:3, :3].T) @ proj[:, :3].T
-    return _pixels(clip, width, height)
+    clip_from_world = camera.projection @ camera.camera_from_world
+    return _pixels(_affine(clip_from_world, directions, 0.0), width, height)
 
 
-def _pixels(clip: np.ndarray, width: int, height: int) -> np.ndarray:
-    """Pixel (col, row) of clip-space points (n, 4): NDC (x, y) → ((x + 1) W / 2,
-    (1 - y) H / 2) (``FrameCamera``); NaN where w <= 0."""
-    w = clip[:, 3]
+def _affine(matrix: np.ndarray, points: np.ndarray, w: float) -> list[np.ndarray]:
+    """The rows of ``matrix`` (k, 4) applied to ``points`` (n, 3) with homogeneous
+    coordinate ``w`` (1 points, 0 directions): k arrays (n,) float64, one multiply-add a
+    component (small matrix products through BLAS cost several times that)."""
+    x, y, z = (np.ascontiguousarray(points[:, i], dtype=np.float64) for i in range(3))
+    return [m[0] * x + m[1] * y + m[2] * z + m[3] * w for m in matrix]
+
+
+def _pixels(clip: list[np.ndarray], width: int, height: int) -> np.ndarray:
+    """Pixel (col, row) of clip-space points (x, y, z, w arrays (n,)): NDC (x, y) →
+    ((x + 1) W / 2, (1 - y) H / 2) (``FrameCamera``); NaN where w <= 0."""
+    x, y, _, w = clip
     ahead = w > 0.0
-    safe = np.where(ahead, w, 1.0)
-    col = (clip[:, 0] / safe + 1.0) * 0.5 * width
-    row = (1.0 - clip[:, 1] / safe) * 0.5 * height
-    out = np.stack([col, row], axis=1)
-    out[~ahead] = np.nan
+    inverse = np.where(ahead, 0.5 / np.where(ahead, w, 1.0), np.nan)
+    out = np.empty((len(w), 2), np.float64)
+    out[:, 0] = (x * inverse + 0.5) * width
+    out[:, 1] = (0.5 - y * inverse) * height
     return out
 
 
@@ -199,8 +205,11 @@ class MotionField:
         flat = vectors.reshape(-1, 2)
         covered = np.flatnonzero(gb.covered.reshape(-1))
         background = np.flatnonzero(~gb.covered.reshape(-1))
-        rows, cols = np.divmod(np.arange(height * width), width)
-        centres = np.stack([cols + 0.5, rows + 0.5], axis=1)
+
+        def centres(pixels: np.ndarray) -> np.ndarray:
+            rows, cols = np.divmod(pixels, width)
+            return np.stack([cols + 0.5, rows + 0.5], axis=1)
+
         if len(covered):
             points = gb.position.reshape(-1, 3)[covered].astype(np.float64)
             if self.vertices is not None:
@@ -208,14 +217,14 @@ class MotionField:
                 points = self.vertices.previous_points(tris, points)
             then, then_depth = project_points(self.previous, points, width, height)
             ahead = then_depth > 0.0
-            move = centres[covered] - then
+            move = centres(covered) - then
             move[~ahead] = 0.0
             flat[covered] = move
             depth.reshape(-1)[covered] = np.where(ahead, then_depth, np.nan)
         if len(background):
             directions = pixel_directions(self.camera, width, height)[background]
             then = project_directions(self.previous, directions, width, height)
-            move = centres[background] - then
+            move = centres(background) - then
             flat[background] = np.nan_to_num(move, nan=0.0)
         self._vectors, self._previous_depth = vectors, depth
 

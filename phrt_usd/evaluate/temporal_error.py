@@ -82,40 +82,45 @@ class FrameWarp:
                 f"a {width}x{height} frame"
             )
         rows, cols = np.divmod(np.arange(height * width), width)
-        move = np.asarray(motion, dtype=np.float64).reshape(-1, 2)
         # Pixel centres are at index + 0.5: the previous centre's index coordinates.
-        x = cols - move[:, 0]
-        y = rows - move[:, 1]
-        on_image = (
-            np.isfinite(x) & np.isfinite(y)
-            & (x >= -0.5) & (x <= width - 0.5) & (y >= -0.5) & (y <= height - 0.5)
-        )  # fmt: skip
+        x = cols - np.asarray(motion[..., 0], dtype=np.float64).reshape(-1)
+        y = rows - np.asarray(motion[..., 1], dtype=np.float64).reshape(-1)
+        with np.errstate(invalid="ignore"):
+            on_image = (x >= -0.5) & (x <= width - 0.5) & (y >= -0.5) & (y <= height - 0.5)
         x = np.where(on_image, x, cols)
         y = np.where(on_image, y, rows)
         x0, y0 = np.floor(x), np.floor(y)
-        fx, fy = x - x0, y - y0
-        xs = np.clip(np.stack([x0, x0 + 1.0, x0, x0 + 1.0], axis=1), 0, width - 1).astype(np.int64)
-        ys = np.clip(np.stack([y0, y0, y0 + 1.0, y0 + 1.0], axis=1), 0, height - 1).astype(np.int64)
-        taps = ys * width + xs
-        weights = np.stack(
-            [(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy], axis=1
-        )
-        weighs = weights > TAP_WEIGHT_MIN
+        fx, fy = (x - x0).astype(np.float32), (y - y0).astype(np.float32)
+        x0, y0 = x0.astype(np.int64), y0.astype(np.int64)
+        xa, xb = np.clip(x0, 0, width - 1), np.clip(x0 + 1, 0, width - 1)
+        ya, yb = np.clip(y0, 0, height - 1) * width, np.clip(y0 + 1, 0, height - 1) * width
+        taps = [ya + xa, ya + xb, yb + xa, yb + xb]
+        gx, gy = 1.0 - fx, 1.0 - fy
+        weights = [gx * gy, fx * gy, gx * fy, fx * fy]
+        # Tap by tap on (H * W,) arrays: reductions over a short axis cost several times it.
         ids = np.asarray(element_id).reshape(-1)
-        then = np.asarray(previous_element_id).reshape(-1)[taps]
-        same = np.all((then == ids[:, None]) | ~weighs, axis=1)
-        valid = on_image & same
+        then_ids = np.asarray(previous_element_id).reshape(-1)
+        weighs = [w > TAP_WEIGHT_MIN for w in weights]
+        valid = on_image
+        for tap, weigh in zip(taps, weighs, strict=True):
+            valid &= (then_ids[tap] == ids) | ~weigh
         if expected_depth is not None:
             expected = np.asarray(expected_depth, dtype=np.float64).reshape(-1)
-            covered = ids >= 0
-            inverse = 1.0 / np.asarray(previous_depth, dtype=np.float64).reshape(-1)[taps]
-            seen = np.sum(np.where(weighs, weights * inverse, 0.0), axis=1)
-            seen /= np.maximum(np.sum(np.where(weighs, weights, 0.0), axis=1), 1e-300)
+            with np.errstate(divide="ignore"):
+                inverse = (1.0 / np.asarray(previous_depth, dtype=np.float64)).reshape(-1)
+            seen = np.zeros(height * width)
+            total = np.zeros(height * width)
+            for tap, weight, weigh in zip(taps, weights, weighs, strict=True):
+                used = np.where(weigh, weight, np.float32(0.0))
+                seen += used * inverse[tap]
+                total += used
+            seen /= np.maximum(total, 1e-30)
             with np.errstate(divide="ignore", invalid="ignore"):
                 want = 1.0 / expected
                 agree = np.abs(seen - want) <= DEPTH_AGREEMENT * want
-            valid &= ~covered | (np.isfinite(expected) & (expected > 0.0) & agree)
-        return cls(taps, weights.astype(np.float32), valid.reshape(height, width))
+            valid &= (ids < 0) | (np.isfinite(expected) & (expected > 0.0) & agree)
+        taps, weights = np.stack(taps, axis=1), np.stack(weights, axis=1)
+        return cls(taps, weights, valid.reshape(height, width))
 
     @classmethod
     def still(cls, height: int, width: int) -> FrameWarp:
