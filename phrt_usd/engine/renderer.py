@@ -14,7 +14,8 @@ Per frame (``FrameRenderer.render``):
 5. ``composite``  traced radiance replaces the fallback in the traced pixels.
 
 Modes: ``raster`` (no tracing), ``hybrid`` (the heuristic chooses), ``rt`` (Embree for
-everything, all reflectors traced: the reference).
+everything, all reflectors traced: the reference; its raster phase only renders the
+shadow maps its traced hits are lit by, as hybrid's are: docs/hit-lighting.md).
 """
 
 from __future__ import annotations

@@ -31,6 +31,7 @@ from phrt_usd.model.frame import (
     SelectionPolicy,
     TraceRecord,
 )
+from phrt_usd.model.light_sampling import shadow_rays_per_hit
 from phrt_usd.model.scene import Scene
 from phrt_usd.model.trace_density import TRACE_DENSITIES, traced_fraction
 from phrt_usd.select.cost_model import TIME_MODEL_DECAY, TraceTimeModel
@@ -372,8 +373,8 @@ class BudgetedPolicy(ABC):
         """Predicted rays to trace ``element``'s pixels: pixels * rays per pixel (the
         budgets' margins are in ``ray_allowance``). Rays per pixel: the element's own
         learned average; else the mean over everything traced so far; else Q * (1 +
-        number of lights) (one reflection ray plus one shadow ray per light, per
-        bounce)."""
+        the shadow rays a hit casts at most, ``light_sampling.shadow_rays_per_hit``)
+        (one reflection ray and its hit's shadow rays, per bounce)."""
         frame = self._require_frame()
         cached = frame.rays.get(element)
         if cached is not None:
@@ -385,7 +386,8 @@ class BudgetedPolicy(ABC):
                 rpp = self._global_rays / self._global_pixels
             else:
                 lights = frame.scene.lights
-                rpp = self.q_of(element) * (1 + len(lights.distant) + len(lights.local))
+                n_lights = len(lights.distant) + len(lights.local)
+                rpp = self.q_of(element) * (1 + shadow_rays_per_hit(n_lights))
         frame.rays[element] = rays = pixels * max(rpp, MIN_RAYS_PER_PIXEL)
         return rays
 

@@ -3,26 +3,29 @@
 
 For each hit and light (``shading``'s light order, distant then local):
 
-1. **Maps first.** Where the renderer has shadow maps (``hybrid``: ``use_maps``, the
-   raster light pass's own lookup, ``lighting.map_lookup``, the test and code of the
-   primary surface) and they decide the pair (lit or shadowed over the whole texel
-   neighbourhood), their answer is the visibility, and no ray is cast. The lit pairs are
-   shaded in the GPU lookup pass as the primary surface's are.
+1. **Maps first.** Where the renderer has shadow maps (``hybrid`` and ``rt`` alike:
+   ``Tracer.use_shadow_maps``, the raster light pass's own lookup,
+   ``lighting.map_lookup``, the test and code of the primary surface) and they decide
+   the pair (lit or shadowed over the whole texel neighbourhood), their answer is the
+   visibility and no ray is cast; the lit pairs are shaded in the GPU lookup pass, as
+   the primary surface's are.
 2. **Rays where they do not.** The pairs the maps cannot decide (shadow edges, casters
-   thinner than a texel), and every pair where there are no maps (``rt``; a batch of
-   fewer than MAP_MIN_PAIRS possible pairs, where the lookup pass costs more than the
-   rays it saves), are *undecided*; each gets a shadow ray (``shadow_rays``).
+   thinner than a texel), and every pair where there are no maps (a tracer without a
+   raster; a batch of fewer than MAP_MIN_PAIRS possible pairs, where the lookup pass
+   costs more than the rays), are *undecided*; each gets a shadow ray (``shadow_rays``).
 3. **Lights sampled where a hit has many.** A hit with more than
-   ``shadow_rays.HIT_LIGHT_PICKS`` undecided pairs of a positive unshadowed share
-   (``shade_kernels.light_share``: the light's brightest channel x n·l, window / d² and
-   cone for a LocalLight) casts HIT_LIGHT_PICKS rays only: systematic sampling over the
-   shares, each drawn light weighted by draws x total / (picks x share), so its expected
-   weight is 1 (unbiased); a light of at least 1 / picks of the share is always drawn.
-   The draws' offset is the pixel's in a 2D low-discrepancy pattern (R2), shifted per
-   frame by a hash of its time code (``frame_seed``): reproducible, different each
-   frame, and neighbouring pixels' offsets spread over [0, 1), so their errors offset
-   each other (a dither, which FLIP and the eye see less of than white noise); the
-   noise left is the reconstruction's.
+   ``model.light_sampling.HIT_LIGHT_PICKS`` undecided pairs of a positive unshadowed share
+   (``shade_kernels.light_share``: the light's brightest channel x n·l, and for a
+   LocalLight its window / d² and cone) casts HIT_LIGHT_PICKS rays
+   (``shade_kernels.light_draws``): while two picks or more are left, a light of at
+   least the mean share per pick left is traced exactly; the picks left are systematic
+   draws over the other lights' shares, a light of share s drawn c times out of S in
+   all over p picks weighing c S / (p s), 1 in expectation (unbiased). The draws'
+   offset is the pixel's in a 2D low-discrepancy pattern (R2), shifted per frame by a
+   hash of its time code (``frame_seed``): reproducible, different each frame, and
+   neighbouring pixels' offsets spread over [0, 1), so their errors offset each other
+   (a dither, which FLIP and the eye see less of than white noise); the noise left is
+   the reconstruction's.
 
 Everything else (ambient, emission, the shading model) is ``shading.shade_local``'s.
 Spaces: positions rel (``bvh.Float32Boundary``); the map lookup takes world metres.
@@ -52,10 +55,14 @@ _TRACE = kernels.load("phrt_usd.engine.trace.trace_kernels")
 MapLookup = Callable[[np.ndarray, np.ndarray, np.ndarray], object]
 
 #: A batch of hits is looked up in the shadow maps only from this many (hit, light)
-#: pairs on: the GPU lookup pass costs ~0.6 ms however few points it has (sewer, 13
-#: lights: 0.76 ms for 30 points, 29 ms for 65,000), while below this many pairs
-#: their shadow rays, sampled, cost less.
-MAP_MIN_PAIRS = 4096
+#: pairs on. The lookup pass costs ~0.6 ms however few points it has; past that, maps
+#: and sampled rays cost about the same per hit, the maps casting a third of the rays
+#: with no sampling noise. Measured (sewer frame 241, 13 lights, whole rule, median of
+#: 15, shared 2-core machine): 800 hits 1.03 ms with the maps against 0.50 ms by rays,
+#: 1,600 hits 1.36 against 0.93 ms, 6,400 hits 3.8 against 3.5 ms, 66,627 hits 69
+#: against 65 ms; one light (farm), 400 hits: 0.81 against 0.07 ms. From 16,384 pairs
+#: (1,260 hits with 13 lights) the maps cost at most ~1.5 times the rays.
+MAP_MIN_PAIRS = 16384
 
 #: The R2 sequence's steps (Roberts 2018, from the plastic number g = 1.3247...): the
 #: offset of pixel (x, y) is fract(x / g + y / g² + the frame's shift).
@@ -87,9 +94,11 @@ def light_offsets(pixels: np.ndarray, width: int, seed: float) -> np.ndarray:
 class HitLighting:
     """The rule of the module over one ``Bvh``'s ``HitSurfaces`` and ``ShadowRays``.
 
-    maps : the shadow maps' lookup (``use_maps``), None without a raster (``rt``);
+    maps : the shadow maps' lookup (``Tracer.use_shadow_maps``), None: no maps;
     frame_seed : this frame's sampling shift (``frame_seed``); width : the traced
-    image's (the tracer sets all three before each trace)."""
+    image's; exact : every pair traced, no maps and no sampling (the evaluation the
+    rule's error is measured against, ``tools/hit_lighting_error.py``). The tracer
+    sets all four before each trace (``prepare``)."""
 
     def __init__(self, bvh: Bvh, surfaces: HitSurfaces, shadows: ShadowRays) -> None:
         self._bvh = bvh
@@ -98,6 +107,11 @@ class HitLighting:
         self.maps: MapLookup | None = None
         self.frame_seed = 0.0
         self.width = 1
+        self.exact = False
+
+    def prepare(self, maps: MapLookup | None, seed: float, width: int, exact: bool) -> None:
+        """The next traces' shadow maps, frame seed, image width and exactness."""
+        self.maps, self.frame_seed, self.width, self.exact = maps, seed, width, exact
 
     def shade(self, tri, u, v, rel, ng, ns, d_in, lights: Lights, pixels, albedo=None,
               into=None, textured=None):  # fmt: skip
@@ -109,8 +123,9 @@ class HitLighting:
         ``into`` (total, slot, weight) the radiance times weight also added to
         total[slot] (``trace_kernels.accumulate``)."""
         n_lights = len(lights.distant) + len(lights.local)
-        u0 = light_offsets(pixels, self.width, self.frame_seed)
-        if self.maps is not None and lights.has_direct and len(tri) * n_lights >= MAP_MIN_PAIRS:
+        u0 = None if self.exact else light_offsets(pixels, self.width, self.frame_seed)
+        if (self.maps is not None and not self.exact and lights.has_direct
+                and len(tri) * n_lights >= MAP_MIN_PAIRS):  # fmt: skip
             return self._with_maps(tri, u, v, rel, ng, ns, d_in, lights, u0, albedo, into,
                                    textured)  # fmt: skip
         return self._with_rays(tri, u, v, rel, ng, ns, d_in, lights, u0, albedo, into, textured)

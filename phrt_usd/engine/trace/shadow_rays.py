@@ -26,6 +26,7 @@ from phrt_usd import kernels
 from phrt_usd.engine import shading
 from phrt_usd.engine.trace.bvh import FAR, Bvh
 from phrt_usd.engine.trace.hit_surfaces import HitSurfaces
+from phrt_usd.model.light_sampling import HIT_LIGHT_PICKS
 from phrt_usd.model.scene import Lights
 
 #: The compiled trace kernels (``trace_kernels``, through ``phrt_usd.kernels``).
@@ -38,11 +39,6 @@ _TRACE = kernels.load("phrt_usd.engine.trace.trace_kernels")
 #: 0.57 ms on one thread, a 12,690-ray round 0.85 against 0.91 ms; but a 486-ray round
 #: 0.19 against 0.075 ms (the pool's hand-over costs more than the chunks save).
 PARALLEL_MIN_SHADE_RAYS = 4096
-
-#: The hit-lighting rule's light sampling (``hit_lighting``): a hit with more pairs to
-#: trace than this (of a positive unshadowed share) casts this many rays, drawn by the
-#: lights' shares (``trace_kernels.shadow_rays``); at most this many it traces them all.
-HIT_LIGHT_PICKS = 2
 
 
 class ShadowRays:

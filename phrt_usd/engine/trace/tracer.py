@@ -92,6 +92,7 @@ class Tracer:
         self.reset_counters()
         self._hit_maps: MapLookup | None = None  # ``use_shadow_maps``
         self._frame_seed = 0.0  # ``begin_frame``
+        self.exact_hit_lighting = False  # every pair traced (``HitLighting.exact``)
         start = time.perf_counter()
         self.bvh = Bvh(scene, self.threads, self._pool)
         self._bind(scene)
@@ -153,9 +154,8 @@ class Tracer:
         self._fill_table: np.ndarray | None = None
 
     def use_shadow_maps(self, rasterizer) -> None:
-        """Light the hits of paths with ``rasterizer``'s shadow maps where they decide
-        (``hit_lighting``: the raster light pass's lookup, ``lighting.map_lookup``);
-        without it every pair takes a shadow ray (lights sampled where there are many)."""
+        """Light the paths' hits with ``rasterizer``'s shadow maps where they decide
+        (``hit_lighting``; without maps every pair takes a ray, lights sampled)."""
         self._hit_maps = lambda positions, normals, view_dirs: lighting.map_lookup(
             rasterizer, self.scene.lights, positions, normals, view_dirs
         )
@@ -399,9 +399,8 @@ class Tracer:
         its hits lit with its shadow maps and frame seed (``width``: the G-buffer's)."""
         lights = self._relative_lights()
         n_elements = len(self.scene.elements)
-        self._paths.lighting.maps = self._hit_maps
-        self._paths.lighting.frame_seed = self._frame_seed
-        self._paths.lighting.width = width
+        self._paths.lighting.prepare(self._hit_maps, self._frame_seed, width,
+                                     self.exact_hit_lighting)  # fmt: skip
         return self._paths.run(
             pix, src, origins, dirs, sources, bounce_limit, first_kind, start,
             lights, n_elements, self.rays_cast,
