@@ -227,6 +227,7 @@ def _room_stage(path):
     return path
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("mode", ["hybrid", "rt"])
 def test_probe_traced_pixel_ray_cost(tmp_path, mode):
     stage = open_stage(_room_stage(tmp_path / "room.usda"))

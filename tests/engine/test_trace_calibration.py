@@ -110,6 +110,7 @@ def cluttered_mirror_floor(path, n=5, width=160, height=120):
     return path
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("heuristic", ["heu1", "heu2"])
 def test_probe_first_frames_overrun_on_a_new_stage(tmp_path, monkeypatch, heuristic):
     machine = SyntheticMachine()
