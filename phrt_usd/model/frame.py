@@ -90,6 +90,9 @@ class ReflectionResult:
     seconds     : wall time of the whole batch
     kinds       : (n,) uint8 how each of those pixels was made (``model/pixel_kinds.py``:
                   traced, filled, ...), None when every one was traced
+    hit_distance : (n,) float32 metres from each pixel's surface to what its reflection
+                  ray hit first (+inf: it left the scene; filled pixels: the fill's
+                  estimate, ``engine/trace/sparse_pixels.py``), None when not known
     """
 
     pixel_index: np.ndarray
@@ -98,6 +101,7 @@ class ReflectionResult:
     rays: int
     seconds: float
     kinds: np.ndarray | None = None
+    hit_distance: np.ndarray | None = None
 
 
 @dataclass

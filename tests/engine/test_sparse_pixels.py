@@ -9,8 +9,6 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
-from hypothesis import strategies as st
 from pxr import Usd
 from scenes import look_at, mirror_floor_stage, parts_scene, quad, ray_sphere_hit, sphere
 from typer.testing import CliRunner
@@ -18,7 +16,12 @@ from typer.testing import CliRunner
 import phrt_usd
 from phrt_usd.cli import app
 from phrt_usd.engine.renderer import RenderOptions
-from phrt_usd.engine.trace.sparse_pixels import PATTERN_SPACING, fill_skipped, traced_subset
+from phrt_usd.engine.trace.sparse_pixels import (
+    PATTERN_SPACING,
+    FillGuides,
+    fill_skipped,
+    traced_subset,
+)
 from phrt_usd.engine.trace.tracer import Tracer
 from phrt_usd.errors import BadOption
 from phrt_usd.model.trace_density import SPARSE_MIN_PIXELS, check_density
@@ -30,21 +33,6 @@ def _pattern(row, col, density):
         return (row + col) % 2 == 0
     step = PATTERN_SPACING[density]
     return (row % step == 0) & (col % step == 0)
-
-
-def _bilinear(value_of, r, c, step, width, height, same):
-    """The tent-weighted mean the fill computes for pixel (r, c): traced pixels q within
-    step - 1 rows and columns with ``same(y, x)``, weighted (step - |dy|)(step - |dx|);
-    ``value_of(q)`` their radiance or None when not traced. None without any."""
-    total, acc = 0.0, 0.0
-    for y in range(r - step + 1, r + step):
-        for x in range(c - step + 1, c + step):
-            if (y, x) != (r, c) and 0 <= y < height and 0 <= x < width and same(y, x):
-                v = value_of(y * width + x)
-                if v is not None:
-                    w = (step - abs(y - r)) * (step - abs(x - c))
-                    acc, total = acc + w * np.asarray(v, np.float64), total + w
-    return None if total == 0.0 else acc / total
 
 
 @pytest.mark.parametrize("density", ["half", "quarter", "sixteenth"])
@@ -59,46 +47,16 @@ def test_large_reflectors_start_rays_on_the_pattern_small_ones_everywhere(densit
     np.testing.assert_array_equal(keep[src == 1], _pattern(row, col, density))
 
 
-@pytest.mark.parametrize("density", ["half", "quarter", "sixteenth"])
-def test_skipped_pixels_interpolate_their_traced_neighbours_of_the_same_source(density):
-    """On a radiance linear in (row, col) the bilinear interpolation of an interior
-    skipped pixel's traced neighbours (symmetric about it on every pattern) is the value
-    itself. Edge pixels weigh the traced neighbours they have; a neighbour of another
-    source is never used, and the input order of the traced pixels does not matter."""
-    step = PATTERN_SPACING[density]
-    width, height = 6 * step, 5 * step
-    split = 3 * step  # two sources side by side, each starting on the grid
-    pix = np.arange(width * height, dtype=np.int64)
-    row, col = np.divmod(pix, width)
-    src = (col >= split).astype(np.int64)
-    value = np.stack([row, col, 100.0 * src + row + col], axis=1).astype(np.float32)
-    traced = _pattern(row, col, density)
-    order = np.random.default_rng(3).permutation(int(traced.sum()))
-    args = (pix[traced][order], src[traced][order], value[traced][order])
-    filled, radiance = fill_skipped(
-        *args, pix[~traced], src[~traced], width, height, density=density
-    )
-    np.testing.assert_array_equal(filled, pix[~traced])  # every one has a neighbour
-    got = dict(zip(filled.tolist(), radiance.tolist(), strict=True))
-    for p in filled.tolist():
-        r, c = divmod(p, width)
-        want = _bilinear(
-            lambda q: value[q] if traced[q] else None, r, c, step, width, height,
-            lambda y, x, c=c: (x >= split) == (c >= split),
-        )  # fmt: skip
-        np.testing.assert_allclose(got[p], want, rtol=1e-6)
-        # Interior: its whole window in the image and on its source.
-        lo, hi = (0, split) if c < split else (split, width)
-        if step - 1 <= r < height - step + 1 and lo + step - 1 <= c < hi - step + 1:
-            np.testing.assert_allclose(got[p], value[p], rtol=1e-5)
-
-
 def test_a_skipped_pixel_without_traced_neighbours_keeps_the_fallback():
-    filled, radiance = fill_skipped(
+    """Pixel 7 ((1, 3) of a 4 x 4 image) has no traced pixel of its source in its cell nor
+    within a quarter's spacing - 1; pixel 1 is of another source than the traced one."""
+    guides = FillGuides(np.tile(np.float32([0, 0, 1]), (16, 1)), np.zeros((16, 3)),
+                        np.ones(16, np.float32), 4, 4)  # fmt: skip
+    filled, radiance, hit = fill_skipped(
         np.array([0], np.int64), np.array([0], np.int64), np.ones((1, 3), np.float32),
-        np.array([7, 1], np.int64), np.array([0, 1], np.int64), 4, 4,
+        np.ones(1, np.float32), np.array([7, 1], np.int64), np.array([0, 1], np.int64), guides,
     )  # fmt: skip
-    assert filled.size == 0 and radiance.shape == (0, 3)
+    assert filled.size == 0 and radiance.shape == (0, 3) and hit.shape == (0,)
 
 
 def test_density_is_checked_and_refused_in_rt_mode():
@@ -200,47 +158,6 @@ def test_the_cli_and_the_api_run_at_half_density_and_record_it(tmp_path):
     lines = bad.stderr.strip().splitlines()
     assert len(lines) == 1 and "trace density must be one of full, half, quarter" in lines[0], lines
     assert not (tmp_path / "bad").exists()
-
-
-@pytest.mark.slow
-@settings(max_examples=150, deadline=None)
-@given(
-    st.integers(1, 9), st.integers(1, 9), st.integers(0, 2**32 - 1),
-    st.sampled_from(["quarter", "sixteenth"]),
-)  # fmt: skip
-def test_fill_is_the_weighted_mean_of_traced_same_source_neighbours_on_any_layout(
-    width, height, seed, density
-):
-    """Any image size, any sources, any traced subset (not only the patterns), traced
-    pixels in any order, a reused table: each skipped pixel with a traced pixel of its
-    source within the pattern's spacing - 1 gets their tent-weighted mean, the others
-    none; the table is left all -1."""
-    rng = np.random.default_rng(seed)
-    n = width * height
-    pix = rng.permutation(n)[: rng.integers(0, n + 1)].astype(np.int64)
-    src = rng.integers(0, 3, len(pix)).astype(np.int64)
-    traced = rng.random(len(pix)) < 0.5
-    radiance = rng.random((int(traced.sum()), 3)).astype(np.float32)
-    table = np.full(n, -1, np.int32)
-    filled, got = fill_skipped(
-        pix[traced], src[traced], radiance, pix[~traced], src[~traced], width, height, table,
-        density,
-    )  # fmt: skip
-    assert (table == -1).all()
-    where = {int(p): (int(s), radiance[i]) for i, (p, s) in enumerate(
-        zip(pix[traced], src[traced], strict=True))}  # fmt: skip
-    want_pix, want = [], []
-    for p, s in zip(pix[~traced].tolist(), src[~traced].tolist(), strict=True):
-        r, c = divmod(p, width)
-        mean = _bilinear(
-            lambda q, s=s: where[q][1] if q in where and where[q][0] == s else None,
-            r, c, PATTERN_SPACING[density], width, height, lambda y, x: True,
-        )  # fmt: skip
-        if mean is not None:
-            want_pix.append(p)
-            want.append(mean)
-    np.testing.assert_array_equal(filled, np.array(want_pix, np.int64))
-    np.testing.assert_allclose(got, np.array(want, np.float32).reshape(-1, 3), rtol=1e-5)
 
 
 @pytest.mark.slow

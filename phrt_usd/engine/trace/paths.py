@@ -207,6 +207,9 @@ class PathTracer:
         if split:  # room for children (refracted ones staged after the live rays)
             buf.rays(2 * k, 0, k)
         parity = 0
+        # How far each pixel's first ray went (its reflected surface; inf: none), for the
+        # fill of reduced densities (``sparse_pixels``).
+        first_hit = np.full(n_pix, np.inf, np.float32)
         for depth in range(bounce_limit if k else 0):
             cast[0] += k - n_refr
             cast[1] += n_refr
@@ -220,6 +223,10 @@ class PathTracer:
                 recast_refr = int(np.count_nonzero(live[RAY_REFRACTED, recast]))
                 cast[0] += len(recast) - recast_refr
                 cast[1] += recast_refr
+            if depth == 0:
+                trace_kernels.hit_distances(
+                    *answer, rays_v[parity, RAY_ORIGIN, :k], bvh.table.frame, first_hit
+                )
             last = depth + 1 >= bounce_limit
             bound += 2 * k  # misses and children, hits
             if bound > buf.room:
@@ -251,6 +258,7 @@ class PathTracer:
             records=records,
             rays=rays,
             seconds=seconds,
+            hit_distance=first_hit,
         )
 
     def _gather(self, n_env, n_lit, textured, lights, pix, counters):

@@ -1,25 +1,49 @@
 """Tracing large reflectors at reduced density: which of their pixels start rays, and how
-the others get their reflection from traced neighbours (``--trace-density
+the others get their reflection from traced samples (``--trace-density
 half|quarter|sixteenth``, HEU1's density steps).
 
 The pixels of a reflector with at least SPARSE_MIN_PIXELS pixels in a frame are traced
 on a pattern: ``half`` a checkerboard (row + column even), ``quarter`` one pixel of each
 2 x 2 block (row and column even), ``sixteenth`` one of each 4 x 4 block (row and column
-multiples of 4). Each skipped pixel takes the bilinear interpolation of the traced
-pixels of the same reflector around it: their mean weighted by (s - |dy|) (s - |dx|)
-within s - 1 rows and columns, s the pattern's spacing (PATTERN_SPACING). On the
-checkerboard that is the mean of its 4 axis neighbours; at quarter density of the 2
-traced ones in its row or column, or of the 4 diagonal ones. One on the reflector's
-edge has fewer, an isolated one none and keeps the raster fallback. A share of the rays
-for a reflection at that resolution, as real-time renderers trace large reflections;
-the reflection is smoothed over s - 1 pixels, and its edges against other surfaces stay
-exact (pixels of another element are never used). Smaller reflectors are traced whole:
-their savings are small and their edges are most of their pixels.
+multiples of 4); a ``phase`` (row, column) shifts the pattern (a pattern rotating from
+frame to frame passes the frame's). Smaller reflectors are traced whole: their savings
+are small and their edges are most of their pixels.
+
+The other pixels are reconstructed (``fill_skipped``, compiled in ``fill_kernels``, whose
+docstring has the rule and its constants): an edge-aware Catmull-Rom interpolation on
+the pattern's lattice (the cell's four traced corners and the 8 lattice points that
+extend them), each traced sample weighed by how far it belongs with the pixel:
+
+- its reflector: only the pixel's own (never across reflectors);
+- the G-buffer's normals (n . n')^256: a crease stops the fill, and on a rippled
+  (normal-mapped) reflector the samples whose normal matches the pixel's, which reflect
+  what it does, count most;
+- the G-buffer's positions: a sample off the pixel's tangent plane (a depth step, a
+  fold of the same mesh) counts for nothing;
+- the reflection's hit distance (how far the traced ray went): a sample whose
+  reflected surface is much nearer or farther than the pixel's estimate (the
+  reflection of a near object over a far one) counts little, so the pixel takes one
+  side of the reflected edge.
+
+Traced pixels keep their traced values exactly; a filled one stays within the range of
+the cell corners it used (no ringing, nothing of the other side of an edge). Where the
+cell has no traced corner of the reflector (its edges), the pixel takes the guided
+tent-weighted mean of its reflector's traced pixels within the pattern's spacing - 1
+rows and columns (unguided where the guides leave none); an isolated pixel keeps the
+raster fallback. Unlike the bilinear fill it replaces, the interpolation is smooth
+across the pattern's cells (no 4 x 4 blocks: their creases, the bilinear fill's, were
+the largest second differences of the image), and edges inside a reflector stay edges.
 
 Measured on the sewer's wet tunnel (frames 217-276 every 6th, 320 x 240, every
-reflector traced): mean FLIP against full density 0.027 (half), 0.046 (quarter) and
-0.074 (sixteenth), where the raster fallback alone is 0.179
-(docs/bench-log/2026-12-03-2987843-make-room-hold.md).
+reflector traced), mean FLIP against full density and its cost at 640 x 480: the
+figures are in docs/heuristic.md ("Density steps").
+
+Across frames: the fill is a function of one frame's traced samples (pixel, radiance,
+hit distance) and its G-buffer; it keeps no state. Temporal reuse feeds it in either
+of two ways: a rotating pattern passes the frame's ``phase`` (to ``traced_subset`` and
+``fill_skipped`` alike), and the reprojected history, a full-resolution estimate, is
+blended with the fill's output per pixel afterwards (the fill's hit-distance estimate
+gives a filled pixel's reflected point, for the reprojection of a planar reflector).
 
 Pixels are flat indices ``row * width + col`` of the G-buffer; ``src`` is each pixel's
 index into the round's sources (``Tracer.trace_reflections``).
@@ -27,9 +51,10 @@ index into the round's sources (``Tracer.trace_reflections``).
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
-from phrt_usd import kernels
 from phrt_usd.model.trace_density import SPARSE_MIN_PIXELS, TRACE_DENSITIES
 
 #: Spacing of each reduced density's traced pixels: a skipped pixel's traced neighbours
@@ -37,6 +62,35 @@ from phrt_usd.model.trace_density import SPARSE_MIN_PIXELS, TRACE_DENSITIES
 PATTERN_SPACING = {"half": 2, "quarter": 2, "sixteenth": 4}
 #: PATTERN_SPACING by index of TRACE_DENSITIES (1 at full density: every pixel traced).
 _SPACING = np.array([PATTERN_SPACING.get(d, 1) for d in TRACE_DENSITIES], np.int64)
+#: Each density's lattice as ``fill_kernels.fill_skipped`` takes it: 0 the checkerboard,
+#: else the spacing of its grid (by index of TRACE_DENSITIES; "full" skips nothing).
+_LATTICE = np.array([0 if d == "half" else PATTERN_SPACING.get(d, 1) for d in TRACE_DENSITIES],
+                    np.int64)  # fmt: skip
+
+
+@dataclass(frozen=True)
+class FillGuides:
+    """The G-buffer images the fill weighs traced samples by, flat over its H*W pixels:
+    normal (H*W, 3) float32 unit, position (H*W, 3) float64 world, depth (H*W,) float32
+    view depth; width, height the G-buffer's."""
+
+    normal: np.ndarray
+    position: np.ndarray
+    depth: np.ndarray
+    width: int
+    height: int
+
+    @classmethod
+    def of(cls, gbuffer) -> FillGuides:
+        """The guides of a ``GBuffer`` (views where its arrays already are flat-able)."""
+        height, width = gbuffer.shape
+        return cls(
+            np.ascontiguousarray(gbuffer.normal, np.float32).reshape(-1, 3),
+            np.ascontiguousarray(gbuffer.position, np.float64).reshape(-1, 3),
+            np.ascontiguousarray(gbuffer.depth, np.float32).reshape(-1),
+            width,
+            height,
+        )
 
 
 def _pixel_levels(density, src: np.ndarray) -> np.ndarray:
@@ -50,14 +104,16 @@ def _pixel_levels(density, src: np.ndarray) -> np.ndarray:
 
 
 def traced_subset(
-    pix: np.ndarray, src: np.ndarray, n_sources: int, width: int, density
+    pix: np.ndarray, src: np.ndarray, n_sources: int, width: int, density, phase=(0, 0)
 ) -> np.ndarray:
     """(n,) bool: which of the round's pixels ``pix`` (n,) int64 of sources ``src`` (n,)
     int64 start rays at ``density``, one of TRACE_DENSITIES for every source or a
     sequence of them, one per source: every pixel of a source traced at "full" or with
-    fewer than SPARSE_MIN_PIXELS pixels, the pattern's pixels of the others."""
+    fewer than SPARSE_MIN_PIXELS pixels, the pattern's pixels of the others, the pattern
+    shifted by ``phase`` (rows, columns)."""
     counts = np.bincount(src, minlength=n_sources)
     row, col = np.divmod(pix, width)
+    row, col = row - int(phase[0]), col - int(phase[1])
     level = _pixel_levels(density, src)
     step = _SPACING[level]
     on_grid = (row % step == 0) & (col % step == 0)
@@ -69,44 +125,80 @@ def fill_skipped(
     traced_pix: np.ndarray,
     traced_src: np.ndarray,
     radiance: np.ndarray,
+    hit_distance: np.ndarray,
     skipped_pix: np.ndarray,
     skipped_src: np.ndarray,
-    width: int,
-    height: int,
-    row_of: np.ndarray | None = None,
+    guides: FillGuides,
     density="quarter",
-) -> tuple[np.ndarray, np.ndarray]:
+    table: np.ndarray | None = None,
+    phase=(0, 0),
+    split=None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Radiance of the skipped pixels from the traced pixels of the same source around
-    them, bilinear on the pattern's grid (module docstring; ``trace_kernels.fill_skipped``,
-    one pass: ~10 ns a pixel at spacing 2, ~5x that at 4).
+    them (module docstring; ``fill_kernels``).
 
     traced_pix, traced_src : (n,) int64 the traced pixels (each once) and their sources
     radiance : (n, 3) float32 traced radiance of those pixels
+    hit_distance : (n,) float32 how far each one's reflection ray went (+inf: it left
+        the scene; ``ReflectionResult.hit_distance``)
     skipped_pix, skipped_src : (m,) int64 the skipped pixels and their sources
-    row_of : (width * height,) int32 all -1, a table the kernel uses and leaves as it
-        found it (a caller tracing round after round keeps one); None: a new one
+    guides : the G-buffer's ``FillGuides``
     density : the density the sources were traced at, one of TRACE_DENSITIES but "full"
         for every source, or a sequence of them, one per source (index ``skipped_src``)
-    Returns (k,) int64 the skipped pixels with at least one traced neighbour and (k, 3)
-    float32 their interpolated radiance (the others keep the fallback)."""
-    if row_of is None:
-        row_of = np.full(width * height, -1, np.int32)
-    m = len(skipped_pix)
-    spacing = _SPACING[_pixel_levels(density, _int64(skipped_src))]
-    out_pix, out_rad = np.empty(m, np.int64), np.empty((m, 3), np.float32)
-    k = _trace_kernels().fill_skipped(
-        row_of, _int64(traced_pix), _int64(traced_src),
-        np.ascontiguousarray(radiance, np.float32), _int64(skipped_pix), _int64(skipped_src),
-        spacing, width, height, out_pix, out_rad,
-    )  # fmt: skip
-    return out_pix[:k], out_rad[:k]
+    table : (H * W,) int32 all -1, a table the kernels use and leave as they found it (a
+        caller tracing round after round keeps one); None: a new one
+    phase : (rows, columns) the pattern's shift, as ``traced_subset``'s
+    split : None, or ``split(kernel, k, *args, out=outputs)`` calling ``kernel(*args,
+        lo, hi, *outputs)`` over slices of rows 0..k (``Tracer._split``: the tracer's
+        pool)
+    Returns (k,) int64 the skipped pixels that got a value (those with a traced pixel of
+    their source in their cell or within the pattern's spacing - 1 rows and columns; the
+    others keep the fallback), in their order in skipped_pix, (k, 3) float32 their
+    radiance and (k,) float32 their estimated hit distance."""
+    kernels = _fill_kernels()
+    if table is None:
+        table = np.full(guides.width * guides.height, -1, np.int32)
+    if split is None:
+        split = _one_call
+    traced_pix, traced_src = _int64(traced_pix), _int64(traced_src)
+    skipped_pix, skipped_src = _int64(skipped_pix), _int64(skipped_src)
+    radiance = np.ascontiguousarray(radiance, np.float32)
+    n, m = len(traced_pix), len(skipped_pix)
+    out_rad, out_hit = np.empty((m, 3), np.float32), np.empty(m, np.float32)
+    ok = np.zeros(m, bool)
+    v, curvature = np.empty(n), np.empty((n, 2, 3), np.float32)
+    size = (guides.width, guides.height)
+    kernels.fill_table(table, traced_pix, np.ascontiguousarray(hit_distance, np.float32),
+                       guides.depth, v)  # fmt: skip
+    try:
+        split(
+            kernels.fill_curvature, n, table, traced_pix, traced_src, radiance, v,
+            _LATTICE[_pixel_levels(density, traced_src)], *size, guides.normal,
+            guides.position, out=(curvature,),
+        )  # fmt: skip
+        split(
+            kernels.fill_skipped, m, table, traced_src, radiance, v, curvature, traced_pix,
+            skipped_pix, skipped_src, _LATTICE[_pixel_levels(density, skipped_src)],
+            np.array(phase, np.int64), *size, guides.normal, guides.position, guides.depth,
+            out=(out_rad, out_hit, ok),
+        )  # fmt: skip
+    finally:
+        kernels.clear_table(table, traced_pix)
+    return skipped_pix[ok], out_rad[ok], out_hit[ok]
+
+
+def _one_call(kernel, n: int, *args, out: tuple) -> None:
+    """``kernel`` over rows 0..n in one call (``fill_skipped``'s ``split`` by default)."""
+    kernel(*args, 0, n, *out)
 
 
 def _int64(a: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(a, np.int64)
 
 
-def _trace_kernels():
-    """The compiled trace kernels (loaded on first use: this module is imported by the
-    options, long before anything is traced)."""
-    return kernels.load("phrt_usd.engine.trace.trace_kernels")
+def _fill_kernels():
+    """The compiled fill (imported on first use: this module is imported by the options,
+    long before anything is traced)."""
+    from phrt_usd.engine.trace import fill_kernels
+
+    return fill_kernels

@@ -19,6 +19,8 @@ callers), writing into buffers the caller allocates:
   reflector keys, the reflector chains, and the children (mirror and refracted rays
   with their offset origins), appended to the caller's call-long buffers;
 - ``accumulate``: the gathered radiance summed per pixel;
+- ``hit_distances``: how far the first rays went (a guide of the reduced densities'
+  fill, ``sparse_pixels``; the fill itself is ``fill_kernels``);
 - ``source_tallies``: the per-source figures of ``TraceRecord``;
 - ``shadow_rays`` / ``shadow_results``: the shadow rays of (point, light) pairs, and
   visibility and the lit LocalLight pairs from Embree's answer; ``shadow_shade``: those
@@ -533,44 +535,31 @@ def primary_fill(
 
 
 @njit(**_KERNEL)
-def fill_skipped(row_of, traced_pix, traced_src, radiance, skipped_pix, skipped_src, spacing,
-                 width, height, out_pix, out_rad):  # fmt: skip
-    """``sparse_pixels.fill_skipped``: each skipped pixel (skipped_pix, skipped_src (m,)
-    int64, the spacing s (m,) int64 >= 2 of its source's pattern) with traced pixels of
-    its own source within s - 1 rows and columns (traced_pix, traced_src (n,) int64,
-    their radiance (n, 3) float32) gets their mean weighted by (s - |dy|) (s - |dx|),
-    written with the pixel to out_pix (m,) int64 / out_rad (m, 3) float32 in order.
-    row_of (width * height,) int32 is all -1 on entry and again on return (the caller
-    keeps it from round to round). Returns how many were written."""
-    for i in range(traced_pix.shape[0]):
-        row_of[traced_pix[i]] = i
-    k = 0
-    for j in range(skipped_pix.shape[0]):
-        p, s, step = skipped_pix[j], skipped_src[j], spacing[j]
-        row, col = p // width, p % width
-        r = g = b = 0.0
-        total = 0.0
-        for dy in range(1 - step, step):
-            y = row + dy
-            if y < 0 or y >= height:
-                continue
-            for dx in range(1 - step, step):
-                x = col + dx
-                if (dy or dx) and 0 <= x < width:
-                    at = row_of[y * width + x]
-                    if at >= 0 and traced_src[at] == s:
-                        w = float((step - abs(dy)) * (step - abs(dx)))
-                        r += w * radiance[at, 0]
-                        g += w * radiance[at, 1]
-                        b += w * radiance[at, 2]
-                        total += w
-        if total > 0.0:
-            out_pix[k] = p
-            out_rad[k, 0], out_rad[k, 1], out_rad[k, 2] = r / total, g / total, b / total
-            k += 1
-    for i in range(traced_pix.shape[0]):
-        row_of[traced_pix[i]] = -1
-    return k
+def hit_distances(prim, u, v, far_prim, far_u, far_v, static_map, dynamic_map, origins, frame,
+                  out):  # fmt: skip
+    """Metres from each ray's origin to its nearest hit, from Embree's answer for n rays
+    (the eight arrays of ``bvh.Bvh.answers``, merged by ``Bvh.merge``'s rule as
+    ``bounce`` merges them) into out (n,) float32: |hit - origin|, the hit at the
+    barycentrics on its triangle (``surface_kernels.hit_geometry``), origins (n, 3)
+    float32 rel; +inf for a miss. ``sparse_pixels`` reads the first rays' distances
+    (how far the reflected surface is) as a guide of its fill."""
+    animated = far_prim.shape[0] > 0
+    mapped = static_map.shape[0] > 0
+    for r in range(prim.shape[0]):
+        if animated and far_prim[r] >= 0:
+            t, w1, w2 = dynamic_map[far_prim[r]], far_u[r], far_v[r]
+        elif prim[r] >= 0:
+            t = static_map[prim[r]] if mapped else np.int64(prim[r])
+            w1, w2 = u[r], v[r]
+        else:
+            out[r] = np.inf
+            continue
+        fu, fv = float(w1), float(w2)
+        d2 = 0.0
+        for c in range(3):
+            e = frame[t, 0, c] + fu * frame[t, 1, c] + fv * frame[t, 2, c] - origins[r, c]
+            d2 += e * e
+        out[r] = math.sqrt(d2)
 
 
 def warm_up() -> None:
@@ -616,8 +605,11 @@ def warm_up() -> None:
                     len(u0), u0, *shadow)  # fmt: skip
     shadow_results(*shadow, b, 1, np.zeros((1, 1), np.float32), i64.copy(),
                    np.zeros((2, 1), np.int64), v32.copy(), f64.copy(), f32.copy())  # fmt: skip
-    fill_skipped(np.full(4, -1, np.int32), i64, i64, v32, i64 + 1, i64, i64 + 2, 2, 2,
-                 i64.copy(), v32.copy())  # fmt: skip
+    for answer in answers:
+        hit_distances(*answer, v32, frame, f32.copy())
+    from phrt_usd.engine.trace import fill_kernels  # its code is cached by numba's locator
+
+    fill_kernels.warm_up()
     light = (np.zeros(3), np.array([[0.0, 1.0, 0.0]]), np.ones((1, 3)), np.zeros((0, 3)),
              np.zeros((0, 3)), np.zeros(0), np.zeros((0, 7)))  # fmt: skip
     shadow_shade(*shadow, b, v64, v32, v32, v32, v32, *light, np.zeros(4),

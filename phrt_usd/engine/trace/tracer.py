@@ -321,23 +321,22 @@ class Tracer:
         )
         if first["skipped"] is None:
             return result
-        return self._with_skipped(
-            result, src, first["skipped"], gbuffer.shape, density, start
-        )
+        return self._with_skipped(result, src, first["skipped"], gbuffer, density, start)
 
-    def _with_skipped(self, result, src, skipped, shape, density, start) -> ReflectionResult:
+    def _with_skipped(self, result, src, skipped, gbuffer, density, start) -> ReflectionResult:
         """A reduced-density ``result`` with its skipped pixels filled
-        (``sparse_pixels.fill_skipped``) and its records counting every covered pixel:
-        src (n,) the traced pixels' sources, skipped (pixels (m,), their sources (m,),
-        covered pixels per source) from ``_source_pixels``, shape (H, W) of the
-        G-buffer, density as ``trace_reflections``'."""
-        height, width = shape
+        (``sparse_pixels.fill_skipped``, guided by ``gbuffer``, split over the pool) and
+        its records counting every covered pixel: src (n,) the traced pixels' sources,
+        skipped (pixels (m,), their sources (m,), covered pixels per source) from
+        ``_source_pixels``, density as ``trace_reflections``'."""
+        height, width = gbuffer.shape
         skipped_pix, skipped_src, covered = skipped
         if self._fill_table is None or len(self._fill_table) != width * height:
             self._fill_table = np.full(width * height, -1, np.int32)
-        fill_pix, fill_radiance = sparse_pixels.fill_skipped(
-            result.pixel_index, src, result.radiance, skipped_pix, skipped_src,
-            width, height, self._fill_table, density,
+        fill_pix, fill_radiance, fill_hit = sparse_pixels.fill_skipped(
+            result.pixel_index, src, result.radiance, result.hit_distance, skipped_pix,
+            skipped_src, sparse_pixels.FillGuides.of(gbuffer), density, self._fill_table,
+            split=self._split,
         )  # fmt: skip
         covered = covered.tolist()
         records = [
@@ -357,6 +356,7 @@ class Tracer:
             rays=result.rays,
             seconds=time.perf_counter() - start,
             kinds=kinds,
+            hit_distance=np.concatenate([result.hit_distance, fill_hit]),
         )
 
     def trace_refraction(
