@@ -31,8 +31,12 @@ SLAB = ((-1.0, 1.9, -1.0), (1.0, 2.0, 1.0))
 SHADING_RTOL = 1e-4
 
 
-def _slab_scene():
-    lights = Lights(local=[LocalLight(LAMP, np.full(3, 20.0))])
+def _slab_scene(shaped: bool = False):
+    """The floor, the slab and the lamp; ``shaped``: the lamp a downward 80° cone (the
+    maps then only look pairs up and the shading evaluates the cone, ``map_lookup``),
+    which every hit of the tests lies well inside (56° off its axis at most)."""
+    cone = dict(axis=np.array([0.0, -1.0, 0.0]), cone_angle=80.0) if shaped else {}
+    lights = Lights(local=[LocalLight(LAMP, np.full(3, 20.0), **cone)])
     floor = box_between((-10, -0.1, -10), (10, 0.0, 10))
     parts = [dict(mesh=floor), dict(mesh=box_between(*SLAB))]
     return parts_scene(parts, lights)
@@ -52,13 +56,13 @@ def _floor_hits(tracer: Tracer, xz: np.ndarray):
     return tri, u, v, pos, ng, ns, down
 
 
-@pytest.fixture
-def slab(monkeypatch):
+@pytest.fixture(params=[False, True], ids=["lamp", "cone"])
+def slab(monkeypatch, request):
     """(tracer, hit lighting with the slab scene's shadow maps, exact hit lighting)."""
     # The maps' step at any batch size (the rule leaves batches of fewer pairs than
     # MAP_MIN_PAIRS to rays only because the lookup pass's fixed cost outweighs them).
     monkeypatch.setattr(hit_lighting, "MAP_MIN_PAIRS", 1)
-    scene = _slab_scene()
+    scene = _slab_scene(request.param)
     tracer = Tracer(scene, threads=1)
     with Rasterizer(scene, 64, 48) as raster:
         rule = HitLighting(tracer.bvh, tracer.surfaces, tracer._shadows)
