@@ -694,7 +694,7 @@ def _calibration(frame, sim: SimulatedTime, rng: np.random.Generator, budget_ms:
     frame's mean rays per pixel: CALIBRATION_REPEATS timed rounds of each size growing
     from CALIBRATION_PIXELS as the renderer's do until one takes ``budget_ms``, then of
     whole reflectors at the coarsest density (their filled pixels cost nothing in the
-    simulated time)."""
+    simulated time); each reflector's own rays per pixel from the capture's records."""
     records = list(frame.records.values())
     rpp = sum(r.rays for r in records) / max(sum(r.pixels for r in records), 1)
     samples, n, started = [], CALIBRATION_PIXELS, 0
@@ -714,7 +714,7 @@ def _calibration(frame, sim: SimulatedTime, rng: np.random.Generator, budget_ms:
     samples.extend((rays, sim.round_ms(rays, rng), covered - traced)
                    for _ in range(CALIBRATION_REPEATS))  # fmt: skip
     started += traced * CALIBRATION_REPEATS
-    return Calibration(samples, round(started * rpp), started)
+    return Calibration(samples, round(started * rpp), started, records=records)
 
 
 class _RecordedRounds:

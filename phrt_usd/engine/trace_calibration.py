@@ -42,7 +42,7 @@ import time
 import numpy as np
 
 from phrt_usd.engine.trace_rounds import ReflectionRounds
-from phrt_usd.model.frame import GBuffer
+from phrt_usd.model.frame import GBuffer, TraceRecord
 from phrt_usd.model.trace_density import COARSEST, TRACE_DENSITIES, traced_fraction
 from phrt_usd.select.rounds import Calibration
 
@@ -78,7 +78,8 @@ def calibrate_tracer(
     """Time ``tracer`` on this frame's own reflector pixels (of ``visible_ids``) at the
     sizes a frame of ``budget_ms`` plans, at full and at the coarsest density (module
     docstring); samples drawn with ``seed``. Returns every timed round's (rays, ms,
-    filled pixels)."""
+    filled pixels), and per reflector its pixels and rays over the full-density rounds
+    (its own rays per pixel, for the policy's first predictions)."""
     start = time.perf_counter()
     rng = np.random.default_rng(seed)
     rounds = _CalibrationRounds(tracer, gb, visible_ids, bounce_limit)
@@ -104,7 +105,8 @@ def calibrate_tracer(
         samples.extend(rounds.trace(whole, TRACE_DENSITIES[COARSEST])
                        for _ in range(CALIBRATION_REPEATS))  # fmt: skip
     wall_ms = (time.perf_counter() - start) * 1000.0
-    return Calibration(samples, rounds.rays, rounds.traced_pixels, wall_ms)
+    records = [TraceRecord(e, pixels, rays) for e, (pixels, rays) in sorted(rounds.sources.items())]
+    return Calibration(samples, rounds.rays, rounds.traced_pixels, wall_ms, records)
 
 
 class _CalibrationRounds:
@@ -123,6 +125,8 @@ class _CalibrationRounds:
         self._whole = np.ones(gb.shape, np.float32)
         self.rays = 0
         self.traced_pixels = 0
+        #: Per reflector, its pixels and rays over the full-density rounds.
+        self.sources: dict[int, tuple[int, int]] = {}
 
     def trace(self, pick: np.ndarray, density: str) -> tuple[int, float, int]:
         """One round of the pixels ``pick`` (flat indices) at ``density``: its rays, its
@@ -135,6 +139,10 @@ class _CalibrationRounds:
                                 self._bounce_limit)  # fmt: skip
         traced = step(sources, [density] * len(sources))
         started = sum(r.pixels * traced_fraction(r.pixels, density) for r in traced.records)
+        if density == "full":
+            for r in traced.records:
+                pixels, rays = self.sources.get(r.source, (0, 0))
+                self.sources[r.source] = (pixels + r.pixels, rays + r.rays)
         self.rays += int(traced.rays)
         self.traced_pixels += round(started)
         return int(traced.rays), float(traced.ms), round(len(pick) - started)

@@ -181,7 +181,7 @@ class SelectionPolicy(Protocol):
     renderer and the replay tool run) reads of a policy. Per frame::
 
         if policy.needs_calibration:                # time-budgeted, reflectors visible
-            policy.calibrate(samples, rays, pixels)
+            policy.calibrate(samples, rays, pixels, records)
         policy.begin_frame(view, scene)
         while (ids := policy.next_round(budget)):   # budget shrinks after each round
             result = tracer.trace(...ids..., policy.round_densities(ids))
@@ -205,10 +205,12 @@ class SelectionPolicy(Protocol):
         ...
 
     def calibrate(
-        self, samples: list[tuple[int, float, int]], rays: int, pixels: int
-    ) -> tuple[float, float, float]:
+        self, samples: list[tuple[int, float, int]], rays: int, pixels: int,
+        records: list[TraceRecord],
+    ) -> tuple[float, float, float]:  # fmt: skip
         """Timed calibration rounds ``(rays, ms, filled pixels)``, ``rays`` over the
-        ``pixels`` that started rays in all; returns the trace-time model fitted to them:
+        ``pixels`` that started rays in all, and per reflector traced at full density its
+        pixels and rays (``records``); returns the trace-time model fitted to them:
         (fixed ms, ms per ray, rays per filled pixel)."""
         ...
 

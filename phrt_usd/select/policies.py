@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import math
 from abc import ABC, abstractmethod
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -60,6 +61,13 @@ RAYS_PER_PIXEL_ALPHA = 0.5
 
 #: Fewest rays per traced pixel: the reflection ray itself.
 MIN_RAYS_PER_PIXEL = 1.0
+
+#: A reflector's rays per pixel from the calibration's rounds is drawn towards their mean
+#: as if this many more of its pixels had cast the mean: the rounds sample pixels at
+#: random, so a small reflector may have been traced at a handful. Without its own
+#: figure, a cluttered mirror floor's first frame cast 1.7x the rays predicted (the mean
+#: is mostly the floor's; the selected spheres reflect more).
+CALIBRATION_PRIOR_PIXELS = 16.0
 
 #: HEU1's hysteresis in cost (ours; the paper's I is hysteresis in relevance): a reflector
 #: not selected in the previous frame joins only if this fraction of the round's budget
@@ -161,18 +169,27 @@ class BudgetedPolicy(ABC):
         return not self.time_model.calibrated
 
     def calibrate(
-        self, samples: list[tuple[int, float, int]], rays: int, pixels: int
-    ) -> tuple[float, float, float]:
+        self, samples: list[tuple[int, float, int]], rays: int, pixels: int,
+        records: Sequence[TraceRecord] = (),
+    ) -> tuple[float, float, float]:  # fmt: skip
         """A calibration of this stage's tracing before the first round: timed rounds
         ``(rays, ms, filled pixels)`` set the time model's prior
         (``TraceTimeModel.calibrate``); their ``rays`` over the ``pixels`` that started
-        rays seed the mean rays per pixel, which predicts reflectors never traced, unless
-        a trace already taught it. Returns the prior: (fixed ms, ms per ray, rays per
-        filled pixel)."""
+        rays seed the mean rays per pixel, which predicts reflectors never traced, and
+        each reflector's ``records`` its own rays per pixel, drawn towards that mean by
+        CALIBRATION_PRIOR_PIXELS (a reflector sampled at a few pixels), unless a trace
+        already taught them. Returns the prior: (fixed ms, ms per ray, rays per filled
+        pixel)."""
         model = self.time_model
         model.calibrate(samples)
         if self._global_pixels <= 0.0 and pixels > 0 and rays > 0:
             self._global_rays, self._global_pixels = float(rays), float(pixels)
+        if self._global_pixels > 0.0:
+            mean, k = self._global_rays / self._global_pixels, CALIBRATION_PRIOR_PIXELS
+            for rec in records:
+                if rec.pixels > 0 and rec.rays >= 0 and rec.source not in self.rays_per_pixel:
+                    rpp = (rec.rays + k * mean) / (rec.pixels + k)
+                    self.rays_per_pixel[int(rec.source)] = max(rpp, MIN_RAYS_PER_PIXEL)
         return model.prior_overhead_ms, model.prior_ms_per_ray, model.fill_rays
 
     def memory(self) -> dict:

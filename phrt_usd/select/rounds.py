@@ -58,13 +58,16 @@ class Calibration:
     samples: (rays, ms, filled pixels) of each timed round (filled: pixels of
         reduced-density reflectors filled from traced neighbours, 0 at full density);
     rays, pixels: rays cast and pixels that started rays over the calibration's rounds;
-    wall_ms: wall time the calibration took (the renderer reports it apart).
+    wall_ms: wall time the calibration took (the renderer reports it apart);
+    records: one ``TraceRecord`` per reflector the full-density rounds traced, its
+        pixels and rays summed over them (its own rays per pixel).
     """
 
     samples: list[tuple[int, float, int]]
     rays: int
     pixels: int
     wall_ms: float = 0.0
+    records: list[TraceRecord] = field(default_factory=list)
 
 
 #: The tracing step: (a round's element ids, their trace densities) → what it traced.
@@ -143,7 +146,8 @@ def run_rounds(
     out = FrameRounds()
     if calibrate is not None and limits.ms is not None and visible and policy.needs_calibration:
         done = calibrate()
-        out.calibration = (done, policy.calibrate(done.samples, done.rays, done.pixels))
+        fitted = policy.calibrate(done.samples, done.rays, done.pixels, done.records)
+        out.calibration = (done, fitted)
     counts = view.pixel_counts
     t = clock()
     policy.begin_frame(view, scene)

@@ -96,8 +96,8 @@ class ScriptedPolicy:
         self.last_frame_note = FrameNote()
         self.calls: list = []
 
-    def calibrate(self, samples, rays, pixels):
-        self.calls.append(("calibrate", samples, rays, pixels))
+    def calibrate(self, samples, rays, pixels, records):
+        self.calls.append(("calibrate", samples, rays, pixels, records))
         return (0.5, 0.001)
 
     def begin_frame(self, view, scene):
@@ -192,7 +192,7 @@ def test_calibration_runs_once_in_a_time_budgeted_frame_with_reflectors(
     out = run_rounds(policy, _view([5 if visible else 0]), None, visible, limits,
                      _tracer(1, 1.0, []), calibrate=lambda: done)  # fmt: skip
     if calibrated:
-        assert policy.calls[0] == ("calibrate", done.samples, 1700, 1728)
+        assert policy.calls[0] == ("calibrate", done.samples, 1700, 1728, done.records)
         assert policy.calls[1] == ("begin",)  # before the frame's rounds
         assert out.calibration == (done, (0.5, 0.001))
     else:

@@ -129,6 +129,21 @@ def test_first_round_planned_within_the_budget_by_the_calibrated_model():
     policy.end_frame()
 
 
+def test_calibration_seeds_each_reflectors_rays_per_pixel():
+    """The calibration's rounds traced each visible reflector at some of its pixels: its
+    own rays per pixel predicts it (drawn towards the rounds' mean by 16 pixels), not the
+    mean of all reflectors, which a large plain one dominates."""
+    sc = scene([element((0.0, 0.0, -4.0)), element((2.0, 0.0, -4.0))], lights=2)
+    policy = policy_of("heu1")
+    records = [TraceRecord(0, 4000, 8000), TraceRecord(1, 400, 3200)]  # 2 and 8 rays a pixel
+    policy.calibrate(calibration_rounds(), rays=11200, pixels=4400, records=records)
+    policy.begin_frame(view(np.array([1000, 1000])), sc)
+    mean = 11200 / 4400
+    assert policy.predicted_rays(0) == pytest.approx(1000 * (8000 + 16 * mean) / 4016)
+    assert policy.predicted_rays(1) == pytest.approx(1000 * (3200 + 16 * mean) / 416)
+    policy.end_frame()
+
+
 def test_filled_pixels_count_under_a_time_budget_only():
     """Under a rays budget a reflector costs its rays (deterministic runs unchanged);
     under a time budget also its filled pixels, at the calibrated cost."""

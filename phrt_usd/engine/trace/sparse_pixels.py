@@ -35,8 +35,8 @@ across the pattern's cells (no 4 x 4 blocks: their creases, the bilinear fill's,
 the largest second differences of the image), and edges inside a reflector stay edges.
 
 Measured on the sewer's wet tunnel (frames 217-276 every 6th, 320 x 240, every
-reflector traced), mean FLIP against full density and its cost at 640 x 480: the
-figures are in docs/heuristic.md ("Density steps").
+reflector traced): mean FLIP against full density, blocks and its cost at 640 x 480
+against the bilinear fill are in docs/heuristic.md ("The reconstruction").
 
 Across frames: the fill is a function of one frame's traced samples (pixel, radiance,
 hit distance) and its G-buffer; it keeps no state. Temporal reuse feeds it in either
