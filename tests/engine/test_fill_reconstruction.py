@@ -118,6 +118,22 @@ def test_an_edge_does_not_bleed(density, edge_kind):
         np.testing.assert_array_equal(value, radiance[p], err_msg=f"pixel {divmod(p, width)}")
 
 
+def test_without_hit_distances_the_fill_has_no_hit_guide():
+    """hit_distance None (a result that did not measure it) fills as if every ray had
+    left the scene: all alike, so the hit-distance guide weighs every corner the same."""
+    height, width = 21, 23
+    src = np.zeros(height * width, np.int64)
+    pix, traced = _split_pattern(height, width, "quarter", src)
+    radiance = np.random.default_rng(5).random((height * width, 3)).astype(np.float32)
+    guides = _plane(height, width)
+    args = (pix[traced], src[traced], radiance[traced])
+    unknown = fill_skipped(*args, None, pix[~traced], src[~traced], guides, "quarter")
+    far = np.full(int(traced.sum()), np.inf, np.float32)
+    left = fill_skipped(*args, far, pix[~traced], src[~traced], guides, "quarter")
+    for a, b in zip(unknown, left, strict=True):
+        np.testing.assert_array_equal(a, b)
+
+
 def _block_ratio(luma: np.ndarray, label: np.ndarray, step: int) -> float:
     """Mean |second difference| along rows and columns centred on the pattern's lattice
     lines (where the bilinear fill creased) over its mean centred elsewhere, on the

@@ -125,7 +125,7 @@ def fill_skipped(
     traced_pix: np.ndarray,
     traced_src: np.ndarray,
     radiance: np.ndarray,
-    hit_distance: np.ndarray,
+    hit_distance: np.ndarray | None,
     skipped_pix: np.ndarray,
     skipped_src: np.ndarray,
     guides: FillGuides,
@@ -140,7 +140,8 @@ def fill_skipped(
     traced_pix, traced_src : (n,) int64 the traced pixels (each once) and their sources
     radiance : (n, 3) float32 traced radiance of those pixels
     hit_distance : (n,) float32 how far each one's reflection ray went (+inf: it left
-        the scene; ``ReflectionResult.hit_distance``)
+        the scene; ``ReflectionResult.hit_distance``), None: not known (all alike: the
+        fill then has no hit-distance guide)
     skipped_pix, skipped_src : (m,) int64 the skipped pixels and their sources
     guides : the G-buffer's ``FillGuides``
     density : the density the sources were traced at, one of TRACE_DENSITIES but "full"
@@ -168,6 +169,8 @@ def fill_skipped(
     ok = np.zeros(m, bool)
     v, curvature = np.empty(n), np.empty((n, 2, 3), np.float32)
     size = (guides.width, guides.height)
+    if hit_distance is None:
+        hit_distance = np.full(n, np.inf, np.float32)
     kernels.fill_table(table, traced_pix, np.ascontiguousarray(hit_distance, np.float32),
                        guides.depth, v)  # fmt: skip
     try:

@@ -356,7 +356,8 @@ class Tracer:
             rays=result.rays,
             seconds=time.perf_counter() - start,
             kinds=kinds,
-            hit_distance=np.concatenate([result.hit_distance, fill_hit]),
+            hit_distance=None if result.hit_distance is None
+            else np.concatenate([result.hit_distance, fill_hit]),
         )
 
     def trace_refraction(
