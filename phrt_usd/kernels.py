@@ -48,6 +48,7 @@ from numba.core import caching
 KERNEL_MODULES = (
     "phrt_usd.model.surface_kernels",
     "phrt_usd.engine.trace.trace_kernels",
+    "phrt_usd.engine.trace.fill_kernels",
     "phrt_usd.engine.shade_kernels",
 )
 #: Sources the compiled kernels depend on (the kernels and the constants they read):

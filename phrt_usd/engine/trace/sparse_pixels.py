@@ -202,6 +202,6 @@ def _int64(a: np.ndarray) -> np.ndarray:
 def _fill_kernels():
     """The compiled fill (imported on first use: this module is imported by the options,
     long before anything is traced)."""
-    from phrt_usd.engine.trace import fill_kernels
+    from phrt_usd import kernels
 
-    return fill_kernels
+    return kernels.load("phrt_usd.engine.trace.fill_kernels")

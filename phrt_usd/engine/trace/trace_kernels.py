@@ -607,9 +607,6 @@ def warm_up() -> None:
                    np.zeros((2, 1), np.int64), v32.copy(), f64.copy(), f32.copy())  # fmt: skip
     for answer in answers:
         hit_distances(*answer, v32, frame, f32.copy())
-    from phrt_usd.engine.trace import fill_kernels  # its code is cached by numba's locator
-
-    fill_kernels.warm_up()
     light = (np.zeros(3), np.array([[0.0, 1.0, 0.0]]), np.ones((1, 3)), np.zeros((0, 3)),
              np.zeros((0, 3)), np.zeros(0), np.zeros((0, 7)))  # fmt: skip
     shadow_shade(*shadow, b, v64, v32, v32, v32, v32, *light, np.zeros(4),
