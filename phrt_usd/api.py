@@ -30,8 +30,9 @@ prints, finished here once for the API and the CLI (``phrt_usd.evaluate.run_summ
 the report of the run's selection layer (frames, mean_fps, median_frame_ms,
 mean_selected, transitions, reflectors, budget_ms, budget_overruns, ...) plus ``out``,
 ``selection_layer``, the ``passes`` its frames ran, how it ran: ``threads`` (the
-setting), ``gl`` (the OpenGL platform of its raster phase; in ``rt`` the shadow maps'),
-``llvmpipe_threads`` (llvmpipe's render threads, None without) and ``kernels``
+setting), ``gl`` (the OpenGL platform of its raster phase, None without one: ``rt`` on
+a stage of at most two lights), ``llvmpipe_threads`` (llvmpipe's render threads, None
+without) and ``kernels``
 (``cached``, or ``compiled`` when this process compiled kernels missing from the cache:
 ``phrt_usd.kernels.form``), what its hybrid frames traced, and the stage's
 ``warnings``, ``default_light_rig`` and ``support``.

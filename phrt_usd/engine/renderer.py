@@ -15,7 +15,8 @@ Per frame (``FrameRenderer.render``):
 
 Modes: ``raster`` (no tracing), ``hybrid`` (the heuristic chooses), ``rt`` (Embree for
 everything, all reflectors traced: the reference; its raster phase only renders the
-shadow maps its traced hits are lit by, as hybrid's are: docs/hit-lighting.md).
+shadow maps its traced hits are lit by, as hybrid's are, on stages of more than two
+lights: docs/hit-lighting.md).
 """
 
 from __future__ import annotations
@@ -43,6 +44,7 @@ from phrt_usd.model.frame import (
     GBuffer,
     SelectionPolicy,
 )
+from phrt_usd.model.light_sampling import maps_light_hits
 from phrt_usd.model.render_options import MAX_EXPOSURE_EV, RenderOptions
 from phrt_usd.model.scene import CameraFrame, Scene
 from phrt_usd.select.heu1_forecast import UPCOMING_CAMERAS
@@ -128,16 +130,18 @@ class FrameRenderer:
         self._element_f = element_reflectivity(scene)  # F per element: fixed for a run
         self._rasterizer = None
         self._tracer = None
-        #: The OpenGL platform the raster phase runs on (in ``rt`` the raster phase only
-        #: renders the shadow maps that light the traced hits, ``trace/hit_lighting.py``).
+        #: The OpenGL platform the raster phase runs on (None: no raster phase). In ``rt``
+        #: the raster phase only renders the shadow maps the traced hits are lit by, and
+        #: only on stages whose hits use them (``light_sampling.maps_light_hits``).
         self.gl: str | None = None
         apply_threads(options.threads)  # before any GL context or pool exists
-        from phrt_usd.engine.raster.gl_platform import activate
+        if options.mode != "rt" or maps_light_hits(scene.lights):
+            from phrt_usd.engine.raster.gl_platform import activate
 
-        self.gl = activate(options.gl)  # before pyrender / OpenGL are imported
-        from phrt_usd.engine.raster.rasterizer import Rasterizer
+            self.gl = activate(options.gl)  # before pyrender / OpenGL are imported
+            from phrt_usd.engine.raster.rasterizer import Rasterizer
 
-        self._rasterizer = Rasterizer(scene, options.width, options.height)
+            self._rasterizer = Rasterizer(scene, options.width, options.height)
         # Embree is only needed to trace (reflectors in hybrid, everything in rt), or for
         # primary rays asked for by name.
         traces = len(self._reflector_ids) and options.heuristic != "none"
@@ -149,12 +153,12 @@ class FrameRenderer:
             from phrt_usd.engine.trace.tracer import Tracer
 
             self._tracer = Tracer(scene, threads=options.threads)
-            # Hits lit from the maps where they decide, in rt as in hybrid (one rule).
-            self._tracer.use_shadow_maps(self._rasterizer)
+            if self._rasterizer is not None:  # hits lit by the maps, in rt as in hybrid
+                self._tracer.use_shadow_maps(self._rasterizer)
         #: The G-buffer source, "raster" or "rays" (``primary_source.choose``).
         self.primary = (
             "rays"
-            if options.mode == "rt"
+            if options.mode == "rt" or self._rasterizer is None
             else choose(
                 options.primary,
                 has_tracer=self._tracer is not None,
@@ -206,14 +210,14 @@ class FrameRenderer:
         ``FrameView`` then carries the cameras of the next UPCOMING_CAMERAS planned
         frames, which HEU1 uses to forecast a reflector's cost (a stage's camera path is
         known before the render starts). Without a plan, views have no upcoming cameras.
-        With a raster phase, the first planned frame is prepared once here
-        (``warm_up``)."""
+        With a raster phase (outside ``rt``), the first planned frame is prepared once
+        here (``warm_up``)."""
         self._planned = [float(t) for t in times]
         self._planned_index = {}
         for k, t in enumerate(self._planned):
             self._planned_index.setdefault(t, k)
         self._cameras = {}
-        if self._planned and self._rasterizer is not None:
+        if self._planned and self._rasterizer is not None and self.options.mode != "rt":
             self.warm_up(self._planned[0])
 
     def warm_up(self, time_code: float) -> None:

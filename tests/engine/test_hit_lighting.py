@@ -59,9 +59,11 @@ def _floor_hits(tracer: Tracer, xz: np.ndarray):
 @pytest.fixture(params=[False, True], ids=["lamp", "cone"])
 def slab(monkeypatch, request):
     """(tracer, hit lighting with the slab scene's shadow maps, exact hit lighting)."""
-    # The maps' step at any batch size (the rule leaves batches of fewer pairs than
-    # MAP_MIN_PAIRS to rays only because the lookup pass's fixed cost outweighs them).
+    # The maps' step at any batch size and for one light (the rule leaves batches of
+    # fewer pairs than MAP_MIN_PAIRS, and stages of at most HIT_LIGHT_PICKS lights, to
+    # rays only because there the lookup pass costs more than the rays).
     monkeypatch.setattr(hit_lighting, "MAP_MIN_PAIRS", 1)
+    monkeypatch.setattr(hit_lighting, "maps_light_hits", lambda lights: True)
     scene = _slab_scene(request.param)
     tracer = Tracer(scene, threads=1)
     with Rasterizer(scene, 64, 48) as raster:
@@ -123,6 +125,22 @@ def test_undecided_pair_casts_its_ray(slab):
     np.testing.assert_allclose(local[undecided], want[undecided], rtol=SHADING_RTOL, atol=1e-6)
     # Both sides of the edge are among the traced hits (lit and shadowed answers).
     assert want[undecided].max() > 2 * want[undecided].min()
+
+
+def test_few_lights_are_traced_exactly_without_maps():
+    # One light: every hit traces it (no sampling, no maps), whatever the batch.
+    scene = _slab_scene()
+    tracer = Tracer(scene, threads=1)
+    rule = HitLighting(tracer.bvh, tracer.surfaces, tracer._shadows)
+    rule.maps = lambda *_: pytest.fail("a one-light stage looked its hits up in the maps")
+    xz = np.random.default_rng(4).uniform(-8.0, 8.0, (20_000, 2))  # > MAP_MIN_PAIRS pairs
+    hits = _floor_hits(tracer, xz)
+    exact = HitLighting(tracer.bvh, tracer.surfaces, tracer._shadows)
+    exact.exact = True
+    local, rays = _shade(rule, tracer, hits)
+    want, want_rays = _shade(exact, tracer, hits)
+    np.testing.assert_array_equal(rays, want_rays)
+    np.testing.assert_array_equal(local, want)
 
 
 def _many_lights_scene():
@@ -245,6 +263,7 @@ def test_probe_traced_pixel_ray_cost(tmp_path, mode):
             out = renderer.render(1.0)
         finally:
             renderer.close()
+        assert renderer.gl is not None  # rt too renders the shadow maps of 9 lights
         traced = int(out.traced_mask.sum())
         assert traced > 4000  # the mirror fills most of the frame
         figures[exact] = out.stats.rays / traced

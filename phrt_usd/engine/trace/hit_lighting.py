@@ -10,9 +10,11 @@ For each hit and light (``shading``'s light order, distant then local):
    visibility and no ray is cast; the lit pairs are shaded in the GPU lookup pass, as
    the primary surface's are.
 2. **Rays where they do not.** The pairs the maps cannot decide (shadow edges, casters
-   thinner than a texel), and every pair where there are no maps (a tracer without a
-   raster; a batch of fewer than MAP_MIN_PAIRS possible pairs, where the lookup pass
-   costs more than the rays), are *undecided*; each gets a shadow ray (``shadow_rays``).
+   thinner than a texel), and every pair where the maps are not used (a tracer without
+   a raster; a stage of at most HIT_LIGHT_PICKS lights, ``light_sampling.
+   maps_light_hits``, and a batch of fewer than MAP_MIN_PAIRS possible pairs: there the
+   lookup pass costs more than the rays), are *undecided*; each gets a shadow ray
+   (``shadow_rays``).
 3. **Lights sampled where a hit has many.** A hit with more than
    ``model.light_sampling.HIT_LIGHT_PICKS`` undecided pairs of a positive unshadowed share
    (``shade_kernels.light_share``: the light's brightest channel x n·l, and for a
@@ -43,6 +45,7 @@ from phrt_usd.engine import lighting
 from phrt_usd.engine.trace.bvh import Bvh
 from phrt_usd.engine.trace.hit_surfaces import HitSurfaces
 from phrt_usd.engine.trace.shadow_rays import ShadowRays
+from phrt_usd.model.light_sampling import maps_light_hits
 from phrt_usd.model.scene import Lights
 
 #: The compiled trace kernels (``trace_kernels``, through ``phrt_usd.kernels``).
@@ -124,7 +127,7 @@ class HitLighting:
         total[slot] (``trace_kernels.accumulate``)."""
         n_lights = len(lights.distant) + len(lights.local)
         u0 = None if self.exact else light_offsets(pixels, self.width, self.frame_seed)
-        if (self.maps is not None and not self.exact and lights.has_direct
+        if (self.maps is not None and not self.exact and maps_light_hits(lights)
                 and len(tri) * n_lights >= MAP_MIN_PAIRS):  # fmt: skip
             return self._with_maps(tri, u, v, rel, ng, ns, d_in, lights, u0, albedo, into,
                                    textured)  # fmt: skip
