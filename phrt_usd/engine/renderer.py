@@ -45,6 +45,7 @@ from phrt_usd.model.frame import (
     SelectionPolicy,
 )
 from phrt_usd.model.light_sampling import maps_light_hits
+from phrt_usd.model.pixel_kinds import kind_counts
 from phrt_usd.model.render_options import MAX_EXPOSURE_EV, RenderOptions
 from phrt_usd.model.scene import CameraFrame, Scene
 from phrt_usd.select.heu1_forecast import UPCOMING_CAMERAS
@@ -414,6 +415,7 @@ class FrameRenderer:
             calibration=calibration,
             densities={elements[e].path: d for e, d in rounds.densities.items()
                        if d != opts.trace_density},  # fmt: skip
+            pixel_kinds=kind_counts(step.pixel_kind),  # after frame_ms: not in the frame time
         )
         height, width = gb.shape
         camera = FrameCamera.of(prep.time, prep.camera, width, height)

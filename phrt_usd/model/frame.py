@@ -280,3 +280,7 @@ class FrameStats:
     #: Selected reflectors traced at another density than the render's (HEU1's density
     #: steps): prim path → "half", "quarter" or "sixteenth".
     densities: dict[str, str] = field(default_factory=dict)
+    #: Pixels of each kind (``model/pixel_kinds.py``: "background", "raster",
+    #: "screen-space", "traced", "reused", "filled" → count); empty in records written
+    #: before it was kept.
+    pixel_kinds: dict[str, int] = field(default_factory=dict)

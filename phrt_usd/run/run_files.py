@@ -39,6 +39,7 @@ from phrt_usd.atomic import write_text_atomic
 from phrt_usd.base import __version__
 from phrt_usd.errors import PhrtError
 from phrt_usd.model.frame import FrameStats, ReflectorMetrics
+from phrt_usd.model.pixel_kinds import PIXEL_KINDS
 from phrt_usd.model.trace_density import TRACE_DENSITIES
 from phrt_usd.run.frames import frame_text
 
@@ -206,7 +207,7 @@ def frame_stats_from_row(row: Any) -> FrameStats:
 #: FrameStats fields that rows written before they existed lack (read as their defaults).
 _OPTIONAL_FRAME_FIELDS = (
     "budget_ms", "expected_trace_ms", "budget_use", "untraced_reason", "calibration",
-    "densities",
+    "densities", "pixel_kinds",
 )  # fmt: skip
 
 
@@ -232,6 +233,13 @@ def _optional_frame_fields(row: dict, number) -> dict[str, Any]:
     ):
         raise PhrtError("frame record field densities: not a table of trace densities")
     out["densities"] = dict(densities)
+    kinds = row.get("pixel_kinds", {})
+    if not isinstance(kinds, dict) or not all(
+        k in PIXEL_KINDS.values() and isinstance(v, int) and not isinstance(v, bool) and v >= 0
+        for k, v in kinds.items()
+    ):
+        raise PhrtError("frame record field pixel_kinds: not a table of pixel counts by kind")
+    out["pixel_kinds"] = dict(kinds)
     return out
 
 
@@ -239,7 +247,7 @@ def frame_stats_row(frame: FrameStats) -> dict[str, Any]:
     """One stats.json row: time, phase_ms, frame_ms, trace_ms, predicted_trace_ms, rays,
     visible, selected, metrics (prim path → ReflectorMetrics fields), passes, budget_ms
     (the frame's T), expected_trace_ms, budget_use, untraced_reason, calibration,
-    densities."""
+    densities, pixel_kinds."""
     return to_json_value(asdict(frame))
 
 

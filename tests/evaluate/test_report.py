@@ -245,6 +245,7 @@ def test_stats_round_trip_atomic_and_json_safe(tmp_path: Path) -> None:
         "untraced_reason",
         "calibration",
         "densities",
+        "pixel_kinds",
     }
     (tmp_path / "stats.json").write_text("{}")
     with pytest.raises(PhrtError, match="not a phrt stats file"):

@@ -26,10 +26,11 @@ from scenes import mirror_gallery_stage  # noqa: E402
 
 import phrt_usd  # noqa: E402
 from phrt_usd.engine.renderer import FrameRenderer  # noqa: E402
-from phrt_usd.errors import BadOption  # noqa: E402
-from phrt_usd.model.pixel_kinds import PIXEL_KINDS  # noqa: E402
+from phrt_usd.errors import BadOption, PhrtError  # noqa: E402
+from phrt_usd.model.pixel_kinds import PIXEL_KINDS, kind_counts  # noqa: E402
 from phrt_usd.model.render_options import RenderOptions  # noqa: E402
 from phrt_usd.run.products import MOTION_HEADER, parse_aovs  # noqa: E402
+from phrt_usd.run.run_files import frame_stats_from_row, read_stats  # noqa: E402
 from phrt_usd.usd.stage import open_stage  # noqa: E402
 
 W, H = 64, 48
@@ -85,6 +86,12 @@ def test_aovs_add_motion_and_pixel_kind_channels(gallery, tmp_path, in_memory):
             assert np.array_equal(frame["motion"], motion)
             assert np.array_equal(frame["pixel_kind"], kinds)
             assert frame["pixel_kind"].dtype == np.uint8
+        # stats.json counts each frame's kinds, as the EXR holds them, and reads back.
+        _, rows = read_stats(result.out)
+        for stats, row in zip(result.frames, rows, strict=True):
+            counts = kind_counts(result.read_frame(stats.time)["pixel_kind"])
+            assert stats.pixel_kinds == counts == frame_stats_from_row(row).pixel_kinds
+            assert sum(counts.values()) == W * H
         assert not result.read_frame(1.0)["motion"].any()
         assert np.abs(result.read_frame(2.0)["motion"]).max() > 1.0
         assert (result.read_frame(2.0)["pixel_kind"] == 5).any()  # filled: quarter density
@@ -135,6 +142,20 @@ def test_render_product_vars_of_motion_and_pixel_kind(gallery, tmp_path, in_memo
             assert np.array_equal(channels["pixelKind"][0].astype(np.uint8), kinds)
             frame = result.read_frame(t)
             assert set(frame) >= {"motion", "pixel_kind", "beauty"}
+
+
+def test_stats_rows_with_bad_pixel_kind_counts_are_refused(gallery, tmp_path):
+    """A stats row whose ``pixel_kinds`` names an unknown kind or a count that is not a
+    whole number >= 0 is refused in one line; rows without it (written before) read as
+    no counts."""
+    with phrt_usd.render(gallery, tmp_path / "out", frames="1", **OPTIONS) as result:
+        _, rows = read_stats(result.out)
+    row = dict(rows[0])
+    for bad in ({"glowing": 3}, {"traced": -1}, {"traced": 1.5}, {"traced": True}, [1]):
+        with pytest.raises(PhrtError, match="pixel_kinds"):
+            frame_stats_from_row({**row, "pixel_kinds": bad})
+    del row["pixel_kinds"]
+    assert frame_stats_from_row(row).pixel_kinds == {}
 
 
 def test_aov_names_are_listed_and_checked():
