@@ -51,8 +51,10 @@ PIXEL_KIND_DTYPE = np.uint8
 
 def raster_kinds(covered: np.ndarray) -> np.ndarray:
     """(H, W) uint8 codes of the raster frame: RASTER where ``covered`` ((H, W) bool),
-    BACKGROUND elsewhere."""
-    return np.where(covered, RASTER, BACKGROUND).astype(PIXEL_KIND_DTYPE)
+    BACKGROUND (0) elsewhere; two cheap passes (a frame's finish pays for them)."""
+    kinds = np.asarray(covered, dtype=bool).astype(PIXEL_KIND_DTYPE)
+    kinds *= PIXEL_KIND_DTYPE(RASTER)
+    return kinds
 
 
 def kind_counts(kinds: np.ndarray) -> dict[str, int]:
