@@ -45,11 +45,13 @@ def _quad_xy(stage, path: str, half: float, z: float, color) -> UsdGeom.Mesh:
     return mesh
 
 
-def _stage(path: Path, *, camera_x=(0.0, 0.0), camera_yaw=None, wall=True, mover=None) -> Path:
+def _stage(path: Path, *, camera_x=(0.0, 0.0), camera_yaw=None, wall=True, wall_half=20.0,
+           mover=None) -> Path:  # fmt: skip
     """Frames 1..len(camera_x): the camera at (camera_x[f], 0, D) (or turned by
-    camera_yaw[f] degrees about +Y at (0, 0, D)), a 20 m wall at z = 0 unless not ``wall``
-    (then the view is the dome), ``mover``: a dict of a 0.5 m quad at z = mover["z"]
-    with per-frame ``translate`` (x, y, z) and optional ``rotate`` (degrees about Z)."""
+    camera_yaw[f] degrees about +Y at (0, 0, D)), a wall of side 2 ``wall_half`` m at
+    z = 0 unless not ``wall`` (then the view is the dome), ``mover``: a dict of a 0.5 m
+    quad at z = mover["z"] with per-frame ``translate`` (x, y, z) and optional ``rotate``
+    (degrees about Z)."""
     stage = Usd.Stage.CreateNew(str(path))
     UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
     UsdGeom.SetStageMetersPerUnit(stage, 1.0)
@@ -75,7 +77,7 @@ def _stage(path: Path, *, camera_x=(0.0, 0.0), camera_yaw=None, wall=True, mover
         for f, x in enumerate(camera_x):
             move.Set(Gf.Vec3d(x, 0.0, D), f + 1)
     if wall:
-        _quad_xy(stage, "/World/Wall", 20.0, 0.0, (0.6, 0.6, 0.6))
+        _quad_xy(stage, "/World/Wall", wall_half, 0.0, (0.6, 0.6, 0.6))
     if mover is not None:
         quad = _quad_xy(stage, "/World/Mover", 0.5, 0.0, (0.9, 0.1, 0.1))
         xf = UsdGeom.Xformable(quad)
@@ -103,12 +105,14 @@ def _render(path: Path, times, plan=None, mode="raster"):
         renderer.close()
 
 
-def test_camera_translating_sideways_over_a_wall(tmp_path):
+@pytest.mark.parametrize("mode", ["raster", "rt"])
+def test_camera_translating_sideways_over_a_wall(tmp_path, mode):
     """The camera moves 0.3 m right between frames 1 and 2 at 5 m from the wall: every
     pixel of the wall moves 0.3 / 5 x FOCAL_PX = 2.56 pixels left, none up or down; the
-    first frame has no previous one: zero motion."""
+    first frame has no previous one: zero motion. The same from the raster G-buffer and
+    from primary rays (``rt``)."""
     path = _stage(tmp_path / "pan.usda", camera_x=(0.0, 0.3))
-    (first, second), _ = _render(path, [1.0, 2.0])
+    (first, second), _ = _render(path, [1.0, 2.0], mode=mode)
     assert second.gbuffer.covered.all()  # the wall fills the view
     assert np.array_equal(first.motion, np.zeros((H, W, 2), np.float32))
     want = -0.3 / D * FOCAL_PX
@@ -118,11 +122,12 @@ def test_camera_translating_sideways_over_a_wall(tmp_path):
 
 @pytest.mark.slow
 def test_still_camera_over_a_still_scene_is_zero(tmp_path):
-    """Camera and wall do not move (half the view is the dome): the motion is 0 at every
+    """Camera and a 4 m wall do not move (the dome around it): the motion is 0 at every
     pixel, covered or background (the same projection both ways: float64 round-off)."""
-    path = _stage(tmp_path / "still.usda", camera_x=(0.0, 0.0))
+    path = _stage(tmp_path / "still.usda", camera_x=(0.0, 0.0), wall_half=2.0)
     (_, second), _ = _render(path, [1.0, 2.0])
-    assert second.motion_field.has_previous
+    covered = second.gbuffer.covered
+    assert second.motion_field.has_previous and covered.any() and not covered.all()
     assert np.abs(second.motion).max() < EXACT_PX
 
 
