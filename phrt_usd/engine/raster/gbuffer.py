@@ -42,7 +42,7 @@ from phrt_usd.engine.raster.cutout_layers import IdLayers
 from phrt_usd.errors import PhrtError
 from phrt_usd.model import surface
 from phrt_usd.model.frame import GBuffer
-from phrt_usd.model.scene import NO_HIT, CameraFrame, Scene
+from phrt_usd.model.scene import NO_HIT, CameraFrame, Scene, perspective_matrix
 
 #: The compiled surface rule (``model.surface_kernels``, through ``phrt_usd.kernels``).
 _SURFACE = kernels.load("phrt_usd.model.surface_kernels")
@@ -77,26 +77,6 @@ class _ExactPerspective(pyrender.camera.Camera):
 
     def get_projection_matrix(self, width=None, height=None) -> np.ndarray:
         return self.matrix
-
-
-def perspective_matrix(
-    window: tuple[float, float, float, float], near: float, far: float
-) -> np.ndarray:
-    """OpenGL clip_from_camera (4, 4) float64 for the image-plane ``window`` (left,
-    right, bottom, top) at distance 1 (``CameraFrame.image_window``, so that
-    ``CameraFrame.project``, the primary rays and the rasterizer put a point on the same
-    pixel; off-centre for aperture offsets) and clip planes ``near`` < ``far``
-    (metres)."""
-    left, right, bottom, top = window
-    p = np.zeros((4, 4))
-    p[0, 0] = 2.0 / (right - left)
-    p[0, 2] = (right + left) / (right - left)
-    p[1, 1] = 2.0 / (top - bottom)
-    p[1, 2] = (top + bottom) / (top - bottom)
-    p[2, 2] = (far + near) / (near - far)
-    p[2, 3] = 2.0 * far * near / (near - far)
-    p[3, 2] = -1.0
-    return p
 
 
 @dataclass
