@@ -73,6 +73,9 @@ _PLASTIC = 1.324717957244746
 _R2_STEPS = (1.0 / _PLASTIC, 1.0 / _PLASTIC**2)
 
 
+_U64 = (1 << 64) - 1  # splitmix64 works modulo 2**64
+
+
 def frame_seed(time_code: float) -> float:
     """The light sampling's shift of a frame in [0, 1): a hash (splitmix64's finaliser,
     Steele, Lea & Flood 2014) of its time code's float64 bits."""
@@ -81,9 +84,6 @@ def frame_seed(time_code: float) -> float:
     x = ((x ^ (x >> 30)) * 0xBF58476D1CE4E5B9) & _U64
     x = ((x ^ (x >> 27)) * 0x94D049BB133111EB) & _U64
     return ((x ^ (x >> 31)) >> 11) * 2.0**-53
-
-
-_U64 = (1 << 64) - 1
 
 
 def light_offsets(pixels: np.ndarray, width: int, seed: float) -> np.ndarray:
@@ -167,9 +167,9 @@ class HitLighting:
         )
 
     def _with_rays(self, tri, u, v, rel, ng, ns, d_in, lights, u0, albedo, into, textured):
-        """``_points`` of every hit; large batches (the sewer in ``rt``: 13 lights, ~65k
-        hits at 640x480) run in chunks on the pool (the kernels and embreex release the
-        GIL), each chunk's Embree batch on its own thread."""
+        """``_points`` of every hit; large batches (from ``shadow_rays.
+        PARALLEL_MIN_SHADE_RAYS`` possible rays) run in chunks on the pool (the kernels
+        and embreex release the GIL), each chunk's Embree batch on its own thread."""
         n_lights = len(lights.distant) + len(lights.local)
         bounds = self._shadows.split(len(tri) * max(n_lights, 1), len(tri))
         if bounds is None:
