@@ -89,7 +89,7 @@ ImageInput = np.ndarray | str | os.PathLike
 #: The test running now and the pytest config (set by the hooks below).
 _STATE: dict[str, Any] = {"item": None, "config": None}
 _WRITTEN = pytest.StashKey[list]()
-#: Reference file (resolved) → node id of the test that compares against it this session.
+#: Reference file (resolved) → node id of the test that compares against it in this pytest run.
 _OWNERS = pytest.StashKey[dict]()
 
 
@@ -305,7 +305,7 @@ def assert_images_close(
     sRGB-encoded) or image files (``.exr``: linear R, G, B; else 8/16-bit sRGB, e.g. PNG).
     ``reference`` None (in a test): the test's own file, ``reference_path`` (with
     ``name``), ``references/<module>/<test>[.<name>].exr``. A reference file belongs to
-    one test: another test of the session comparing against it fails, naming both. The
+    one test: another test of the pytest run comparing against it fails, naming both. The
     finer of the two images is first brought to the coarser one's storage
     (``PRECISIONS``): the rounding of a PNG or half-float reference is no difference.
     On failure (or a missing reference, or images of two sizes) the actual, the reference
@@ -315,7 +315,7 @@ def assert_images_close(
     them; a passing comparison removes those of an earlier failure. With
     ``--phrt-update-references`` and a reference *file* (``.png`` or ``.exr``), the actual
     is written there instead and nothing is compared (a second comparison of the test
-    against a file it wrote this session compares). Bad arguments raise ``BadOption`` /
+    against a file it wrote in this run compares). Bad arguments raise ``BadOption`` /
     ``PhrtError`` before any metric runs (the FLIP library exits the process on bad
     input)."""
     __tracebackhide__ = True
@@ -370,7 +370,7 @@ def _own_reference(name: str | None) -> Path:
 
 def _claim(reference: Path) -> None:
     """Record that the running test compares against ``reference``; AssertionError when
-    another test of this session already does (under ``--phrt-update-references`` the
+    another test of this pytest run already does (under ``--phrt-update-references`` the
     later test's image would silently replace the earlier one's)."""
     __tracebackhide__ = True
     item, config = _STATE["item"], _STATE["config"]
@@ -386,7 +386,7 @@ def _claim(reference: Path) -> None:
 
 
 def _written_now(reference: Path) -> bool:
-    """True when this session already wrote ``reference`` (by the same test: ``_claim``)."""
+    """True when this pytest run already wrote ``reference`` (by the same test: ``_claim``)."""
     config = _STATE["config"]
     written = config.stash[_WRITTEN] if config is not None else []
     return any(reference.resolve() == path.resolve() for path in written)

@@ -65,7 +65,7 @@ def _python(code: str, env: dict) -> subprocess.CompletedProcess:
 
 @pytest.mark.slow
 def test_a_new_process_loads_every_kernel_from_the_cache():
-    """The suite's session fixture compiled every kernel; a new process (a render's) finds
+    """The suite's session-scoped fixture compiled every kernel; a new process (a render's) finds
     them all in the cache and compiles none (``phrt kernels --check``)."""
     done = subprocess.run(
         [sys.executable, "-m", "phrt_usd.kernels", "--check"],
