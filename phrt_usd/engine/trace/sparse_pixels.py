@@ -68,6 +68,26 @@ _LATTICE = np.array([0 if d == "half" else PATTERN_SPACING.get(d, 1) for d in TR
                     np.int64)  # fmt: skip
 
 
+#: The rotation of the patterns from frame to frame (``rotation_phase``): the 2 x 2
+#: offsets in the order that alternates the checkerboard's parity every frame (so "half"
+#: covers its pixels in 2 frames) and visits every offset of a 2 x 2 block in 4 ("quarter");
+#: the same order again for the 4 x 4 block's 2 x 2 sub-blocks, so "sixteenth" visits all
+#: 16 offsets in 16 frames, each 4 consecutive frames spread over one 2 x 2 block.
+_ROTATION_2X2 = ((0, 0), (0, 1), (1, 1), (1, 0))
+#: Frames after which every density's pattern has visited every pixel of its cell.
+ROTATION_PERIOD = {"full": 1, "half": 2, "quarter": 4, "sixteenth": 16}
+
+
+def rotation_phase(frame: int) -> tuple[int, int]:
+    """The pattern's (row, column) shift at the ``frame``-th frame of a rotating sequence
+    (``traced_subset``'s ``phase``): frame k's fine 2 x 2 offset is the k-th of
+    _ROTATION_2X2, its coarse one (times 2) the (k // 4)-th; a density of spacing s reads
+    the shift modulo s, so every density rotates through its own cell with one phase."""
+    fine = _ROTATION_2X2[frame % 4]
+    coarse = _ROTATION_2X2[(frame // 4) % 4]
+    return fine[0] + 2 * coarse[0], fine[1] + 2 * coarse[1]
+
+
 @dataclass(frozen=True)
 class FillGuides:
     """The G-buffer images the fill weighs traced samples by, flat over its H*W pixels:

@@ -288,7 +288,8 @@ class Tracer:
     # ------------------------------------------------------------------ paths
 
     def trace_reflections(
-        self, gbuffer: GBuffer, sources: list[int], bounce_limit: int, density="full"
+        self, gbuffer: GBuffer, sources: list[int], bounce_limit: int, density="full",
+        phase: tuple[int, int] = (0, 0),
     ) -> ReflectionResult:
         """Mirror-reflection radiance for every G-buffer pixel whose element is in
         ``sources`` (no primary rays: rays start at the G-buffer position / normal /
@@ -300,7 +301,8 @@ class Tracer:
         densities, one per source): large reflectors start rays on a pattern of their pixels and
         fill the others from traced neighbours (``sparse_pixels``); their records then
         count every covered pixel, so rays per pixel stay what a frame's pixel counts
-        predict at that density (hits scaled alike)."""
+        predict at that density (hits scaled alike). ``phase`` (rows, columns) shifts
+        the pattern (``sparse_pixels.rotation_phase``: a rotating subset)."""
         start = time.perf_counter()
         self.last_rays = []
         sources = [int(s) for s in sources]
@@ -313,7 +315,7 @@ class Tracer:
             if all(d == "full" for d in density):
                 density = "full"
         first = self._source_pixels(
-            gbuffer, sources, None, reflect=True, surface=False, density=density
+            gbuffer, sources, None, reflect=True, surface=False, density=density, phase=phase
         )
         pix, src, d, origins = first["pix"], first["src"], first["dir"], first["org"]
         result = self._run_paths(
@@ -321,9 +323,10 @@ class Tracer:
         )
         if first["skipped"] is None:
             return result
-        return self._with_skipped(result, src, first["skipped"], gbuffer, density, start)
+        return self._with_skipped(result, src, first["skipped"], gbuffer, density, phase, start)
 
-    def _with_skipped(self, result, src, skipped, gbuffer, density, start) -> ReflectionResult:
+    def _with_skipped(self, result, src, skipped, gbuffer, density, phase, start
+                      ) -> ReflectionResult:  # fmt: skip
         """A reduced-density ``result`` with its skipped pixels filled
         (``sparse_pixels.fill_skipped``, guided by ``gbuffer``, split over the pool) and
         its records counting every covered pixel: src (n,) the traced pixels' sources,
@@ -336,7 +339,7 @@ class Tracer:
         fill_pix, fill_radiance, fill_hit = sparse_pixels.fill_skipped(
             result.pixel_index, src, result.radiance, result.hit_distance, skipped_pix,
             skipped_src, sparse_pixels.FillGuides.of(gbuffer), density, self._fill_table,
-            split=self._split,
+            phase=phase, split=self._split,
         )  # fmt: skip
         covered = covered.tolist()
         records = [
@@ -452,7 +455,7 @@ class Tracer:
 
     def _source_pixels(
         self, gbuffer: GBuffer, sources: list[int], mask, reflect: bool, surface: bool,
-        density="full",
+        density="full", phase=(0, 0),
     ) -> dict:
         """Pixels to start paths from (``trace_kernels.source_rays``), a dict of arrays:
         pix (n,) flat indices, src (n,) index into ``sources``, tri (n,) triangle ids;
@@ -496,7 +499,9 @@ class Tracer:
         skipped = None
         if density != "full":
             width = gbuffer.shape[1]
-            keep = sparse_pixels.traced_subset(cand, cand_src, len(sources), width, density)
+            keep = sparse_pixels.traced_subset(
+                cand, cand_src, len(sources), width, density, phase
+            )
             if not keep.all():  # only small reflectors: traced whole
                 covered = np.bincount(cand_src, minlength=len(sources))
                 skipped = (cand[~keep], cand_src[~keep], covered)
