@@ -49,6 +49,7 @@ KERNEL_MODULES = (
     "phrt_usd.model.surface_kernels",
     "phrt_usd.engine.trace.trace_kernels",
     "phrt_usd.engine.trace.fill_kernels",
+    "phrt_usd.engine.trace.screen_space_kernels",
     "phrt_usd.engine.shade_kernels",
 )
 #: Sources the compiled kernels depend on (the kernels and the constants they read):

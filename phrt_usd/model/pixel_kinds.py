@@ -10,8 +10,9 @@ code  kind          the pixel
 0     background    hit no surface: the environment (or black when the dome is hidden)
 1     raster        the raster frame: local shading, and on a reflector the environment
                     fallback in the mirror direction (``compositing.base_image``)
-2     screen-space  a reflector pixel whose reflection was read from the frame's own
-                    shaded pixels (reserved: no stage of the renderer makes it yet)
+2     screen-space  a reflector pixel whose first reflection ray was resolved in the
+                    frame's own G-buffer (``engine/trace/screen_space.py``): its hit
+                    found by marching the G-buffer, lit as a traced hit
 3     traced        a reflector pixel whose reflection rays were traced this frame
 4     reused        a reflector pixel whose reflection came from earlier frames,
                     reprojected (reserved: no stage of the renderer makes it yet)

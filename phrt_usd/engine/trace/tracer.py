@@ -50,7 +50,7 @@ import numpy as np
 
 from phrt_usd import kernels
 from phrt_usd.engine import lighting
-from phrt_usd.engine.trace import sparse_pixels
+from phrt_usd.engine.trace import screen_space, sparse_pixels
 from phrt_usd.engine.trace.bvh import Bvh
 from phrt_usd.engine.trace.hit_lighting import MapLookup, frame_seed
 from phrt_usd.engine.trace.hit_surfaces import HitSurfaces
@@ -289,7 +289,7 @@ class Tracer:
 
     def trace_reflections(
         self, gbuffer: GBuffer, sources: list[int], bounce_limit: int, density="full",
-        phase: tuple[int, int] = (0, 0),
+        phase: tuple[int, int] = (0, 0), screen=None,
     ) -> ReflectionResult:
         """Mirror-reflection radiance for every G-buffer pixel whose element is in
         ``sources`` (no primary rays: rays start at the G-buffer position / normal /
@@ -302,7 +302,9 @@ class Tracer:
         fill the others from traced neighbours (``sparse_pixels``); their records then
         count every covered pixel, so rays per pixel stay what a frame's pixel counts
         predict at that density (hits scaled alike). ``phase`` (rows, columns) shifts
-        the pattern (``sparse_pixels.rotation_phase``: a rotating subset)."""
+        the pattern (``sparse_pixels.rotation_phase``: a rotating subset). ``screen`` (a
+        ``screen_space.ScreenFrame``, None: none) resolves first rays in screen space
+        where the G-buffer decides them (kind SCREEN_SPACE), the bounce loop the rest."""
         start = time.perf_counter()
         self.last_rays = []
         sources = [int(s) for s in sources]
@@ -318,12 +320,30 @@ class Tracer:
             gbuffer, sources, None, reflect=True, surface=False, density=density, phase=phase
         )
         pix, src, d, origins = first["pix"], first["src"], first["dir"], first["org"]
+        hits = None
+        if screen is not None and bounce_limit >= 1 and len(pix):
+            self._paths.lighting.prepare(self._hit_maps, self._frame_seed, gbuffer.shape[1],
+                                         self.exact_hit_lighting)  # fmt: skip
+            hits = screen_space.resolve(
+                screen, gbuffer.depth, pix, origins, d, self._images(gbuffer),
+                self.bvh.boundary.origin, self.bvh.table.frame, self.surfaces,
+                self._paths.lighting, self._relative_lights(), self._split,
+            )  # fmt: skip
+            self.rays_cast["shadow"] += hits.shadow_cast
+            rest = hits.unresolved
+            all_pix, all_src = pix, src
+            pix, src, d, origins = pix[rest], src[rest], d[rest], origins[rest]
         result = self._run_paths(
             pix, src, origins, d, sources, bounce_limit, "reflection", start, gbuffer.shape[1]
         )
+        if hits is not None:
+            result, src = screen_space.merge(result, src, hits, all_pix, all_src, sources, start)
         if first["skipped"] is None:
             return result
-        return self._with_skipped(result, src, first["skipped"], gbuffer, density, phase, start)
+        filled = self._with_skipped(result, src, first["skipped"], gbuffer, density, phase, start)
+        if hits is not None:  # the screen-space pixels keep their kind
+            filled.kinds[: len(result.pixel_index)] = result.kinds
+        return filled
 
     def _with_skipped(self, result, src, skipped, gbuffer, density, phase, start
                       ) -> ReflectionResult:  # fmt: skip
