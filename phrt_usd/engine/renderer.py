@@ -34,6 +34,7 @@ from phrt_usd.engine.compositing import base_image, element_reflectivity, pixel_
 from phrt_usd.engine.lighting import shade_gbuffer
 from phrt_usd.engine.motion import MotionField, MotionTracker
 from phrt_usd.engine.primary_source import choose, is_software
+from phrt_usd.engine.reflection_history import ReflectionHistory
 from phrt_usd.engine.trace_calibration import CALIBRATION_SEED, calibrate_tracer
 from phrt_usd.engine.trace_rounds import ReflectionRounds
 from phrt_usd.model.frame import (
@@ -176,6 +177,9 @@ class FrameRenderer:
         #: Selection ms of the last frame each policy finished (id(policy) → ms): the
         #: estimate of this frame's selection when --target-fps sets T.
         self._select_ms: dict[int, float] = {}
+        #: The reflections each policy's last frame traced, for its next frame to reuse
+        #: (id(policy) → (policy, history); holding the policy keeps its id unique).
+        self._histories: dict[int, tuple[SelectionPolicy, ReflectionHistory]] = {}
         if options.exposure_ev != options.exposure:
             stage_scene.warnings.append(
                 f"--exposure {options.exposure:g} EV clamped to {options.exposure_ev:+g} EV "
@@ -335,9 +339,18 @@ class FrameRenderer:
         gb = prep.gbuffer
         visible_ids = [int(i) for i in self._reflector_ids if prep.pixel_counts[i] > 0]
         frame_budget_ms = self._frame_budget_ms(prep, policy, opts)
+        history = reuse = None
+        if self._tracer is not None and opts.mode != "raster":
+            history = self._histories.setdefault(id(policy), (policy, ReflectionHistory()))[1]
+            height, width = gb.shape
+            reuse = history.begin(
+                gb, FrameCamera.of(prep.time, prep.camera, width, height),
+                self._moved_elements(prep), self._planned_index.get(prep.time),
+            )  # fmt: skip
         step = ReflectionRounds(
-            self._tracer, gb, prep.local, prep.reflectivity, prep.image, opts.bounce_limit
-        )
+            self._tracer, gb, prep.local, prep.reflectivity, prep.image, opts.bounce_limit,
+            reuse,
+        )  # fmt: skip
         rounds = FrameRounds()
         untraced_reason = None
         calibration = None
@@ -370,6 +383,8 @@ class FrameRenderer:
                 passes.append("trace")
                 if scene.materials.has_transmission:
                     passes.append("refraction")
+        if history is not None:
+            history.end(reuse)
         phase["select"] = rounds.select_ms
         phase["trace"] = rounds.trace_ms
         selected = rounds.selected
@@ -422,6 +437,14 @@ class FrameRenderer:
         return FrameOutput(
             image, alpha, gb, step.traced_mask, stats, camera, step.pixel_kind, prep.motion
         )
+
+    def _moved_elements(self, prep: PreparedFrame) -> np.ndarray:
+        """(k,) int64 ids of the elements that moved or deformed since the previous
+        frame (``MotionTracker``'s vertices): their reflections keep no history."""
+        vertices = None if prep.motion is None else prep.motion.vertices
+        if vertices is None or not len(vertices.tri_rows):
+            return np.zeros(0, np.int64)
+        return np.unique(self.scene.geometry.tri_element[vertices.tri_rows]).astype(np.int64)
 
     def _previous_time(self, time_code: float) -> float | None:
         """The frame motion vectors start from (``engine/motion.py``): the one before

@@ -1,6 +1,7 @@
 """The renderer's tracing step of a frame's selection rounds (``select.rounds.run_rounds``):
-``ReflectionRounds``, a round's reflectors traced from the G-buffer and composited into
-the frame, timed (the run's trace-time calibration times the same step:
+``ReflectionRounds``, a round's reflectors traced from the G-buffer (their skipped pixels
+reusing the previous frames' reflections, ``engine/reflection_history.py``) and
+composited into the frame, timed (the run's trace-time calibration times the same step:
 ``engine/trace_calibration.py``).
 """
 
@@ -34,6 +35,7 @@ class ReflectionRounds:
         reflectivity: np.ndarray,
         fallback: np.ndarray,
         bounce_limit: int,
+        reuse=None,
     ) -> None:
         self._tracer = tracer
         self._gbuffer = gbuffer
@@ -41,6 +43,9 @@ class ReflectionRounds:
         self._reflectivity = reflectivity
         self._fallback = fallback
         self._bounce_limit = bounce_limit
+        #: The frame's ``reflection_history.FrameReuse`` (None: no reuse): the pattern's
+        #: rotation, the history skipped pixels take, and where this frame's is kept.
+        self._reuse = reuse
         self.image = fallback.copy()
         self.traced_mask = np.zeros(gbuffer.shape, dtype=bool)
         self.pixel_kind = raster_kinds(gbuffer.covered)
@@ -48,7 +53,16 @@ class ReflectionRounds:
 
     def __call__(self, ids: list[int], densities: list[str]) -> TracedRound:
         t = time.perf_counter()
-        result = self._tracer.trace_reflections(self._gbuffer, ids, self._bounce_limit, densities)
+        reuse = self._reuse
+        if reuse is None:
+            result = self._tracer.trace_reflections(
+                self._gbuffer, ids, self._bounce_limit, densities
+            )
+        else:
+            result = self._tracer.trace_reflections(
+                self._gbuffer, ids, self._bounce_limit, densities, reuse.phase, reuse
+            )
+            reuse.record(result)
         apply_traced(
             self.image, self._local, self._reflectivity, result, self.traced_mask, self.pixel_kind
         )

@@ -14,8 +14,9 @@ code  kind          the pixel
                     frame's own G-buffer (``engine/trace/screen_space.py``): its hit
                     found by marching the G-buffer, lit as a traced hit
 3     traced        a reflector pixel whose reflection rays were traced this frame
-4     reused        a reflector pixel whose reflection came from earlier frames,
-                    reprojected (reserved: no stage of the renderer makes it yet)
+4     reused        a reflector pixel traced at a reduced density that started no ray:
+                    its reflection is an earlier frame's, reprojected
+                    (``engine/reflection_history.py``)
 5     filled        a reflector pixel traced at a reduced density that started no ray:
                     its reflection is interpolated from traced neighbours
                     (``engine/trace/sparse_pixels.py``)

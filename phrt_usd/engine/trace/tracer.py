@@ -289,7 +289,7 @@ class Tracer:
 
     def trace_reflections(
         self, gbuffer: GBuffer, sources: list[int], bounce_limit: int, density="full",
-        phase: tuple[int, int] = (0, 0), screen=None,
+        phase: tuple[int, int] = (0, 0), reuse=None, screen=None,
     ) -> ReflectionResult:
         """Mirror-reflection radiance for every G-buffer pixel whose element is in
         ``sources`` (no primary rays: rays start at the G-buffer position / normal /
@@ -302,7 +302,9 @@ class Tracer:
         fill the others from traced neighbours (``sparse_pixels``); their records then
         count every covered pixel, so rays per pixel stay what a frame's pixel counts
         predict at that density (hits scaled alike). ``phase`` (rows, columns) shifts
-        the pattern (``sparse_pixels.rotation_phase``: a rotating subset). ``screen`` (a
+        the pattern (``sparse_pixels.rotation_phase``: a rotating subset); ``reuse``
+        (an ``engine.reflection_history.FrameReuse``, None: none) gives skipped pixels
+        their reprojected history where it is valid, the fill the others. ``screen`` (a
         ``screen_space.ScreenFrame``, None: none) resolves first rays in screen space
         where the G-buffer decides them (kind SCREEN_SPACE), the bounce loop the rest."""
         start = time.perf_counter()
@@ -340,20 +342,31 @@ class Tracer:
             result, src = screen_space.merge(result, src, hits, all_pix, all_src, sources, start)
         if first["skipped"] is None:
             return result
-        filled = self._with_skipped(result, src, first["skipped"], gbuffer, density, phase, start)
+        filled = self._with_skipped(result, src, first["skipped"], gbuffer, density, phase,
+                                  reuse, start)  # fmt: skip
         if hits is not None:  # the screen-space pixels keep their kind
             filled.kinds[: len(result.pixel_index)] = result.kinds
         return filled
 
-    def _with_skipped(self, result, src, skipped, gbuffer, density, phase, start
+    def _with_skipped(self, result, src, skipped, gbuffer, density, phase, reuse, start
                       ) -> ReflectionResult:  # fmt: skip
-        """A reduced-density ``result`` with its skipped pixels filled
-        (``sparse_pixels.fill_skipped``, guided by ``gbuffer``, split over the pool) and
-        its records counting every covered pixel: src (n,) the traced pixels' sources,
-        skipped (pixels (m,), their sources (m,), covered pixels per source) from
-        ``_source_pixels``, density as ``trace_reflections``'."""
+        """A reduced-density ``result`` with its skipped pixels reused or filled: the
+        reprojected history where ``reuse`` finds it valid (``FrameReuse.reprojected``),
+        else filled (``sparse_pixels.fill_skipped``, guided by ``gbuffer``, split over
+        the pool); its records count every covered pixel. src (n,) the traced pixels'
+        sources, skipped (pixels (m,), their sources (m,), covered pixels per source)
+        from ``_source_pixels``, density and phase as ``trace_reflections``'."""
         height, width = gbuffer.shape
         skipped_pix, skipped_src, covered = skipped
+        reused_pix = np.zeros(0, np.int64)
+        reused_radiance, reused_hit = np.zeros((0, 3), np.float32), np.zeros(0, np.float32)
+        if reuse is not None:
+            taken, reused_radiance, reused_hit = reuse.reprojected(
+                result.pixel_index, src, result.radiance, result.hit_distance, skipped_pix,
+                skipped_src, density,
+            )  # fmt: skip
+            reused_pix = skipped_pix[taken]
+            skipped_pix, skipped_src = skipped_pix[~taken], skipped_src[~taken]
         if self._fill_table is None or len(self._fill_table) != width * height:
             self._fill_table = np.full(width * height, -1, np.int32)
         fill_pix, fill_radiance, fill_hit = sparse_pixels.fill_skipped(
@@ -370,17 +383,21 @@ class Tracer:
             )
             for record, c in zip(result.records, covered, strict=True)
         ]
-        kinds = np.full(len(result.pixel_index) + len(fill_pix), pixel_kinds.FILLED, np.uint8)
-        kinds[: len(result.pixel_index)] = pixel_kinds.TRACED
+        n, k = len(result.pixel_index), len(reused_pix)
+        kinds = np.full(n + k + len(fill_pix), pixel_kinds.FILLED, np.uint8)
+        kinds[:n] = pixel_kinds.TRACED if result.kinds is None else result.kinds
+        kinds[n : n + k] = pixel_kinds.REUSED
+        hit_distance = None
+        if result.hit_distance is not None:
+            hit_distance = np.concatenate([result.hit_distance, reused_hit, fill_hit])
         return ReflectionResult(
-            pixel_index=np.concatenate([result.pixel_index, fill_pix]),
-            radiance=np.concatenate([result.radiance, fill_radiance]),
+            pixel_index=np.concatenate([result.pixel_index, reused_pix, fill_pix]),
+            radiance=np.concatenate([result.radiance, reused_radiance, fill_radiance]),
             records=records,
             rays=result.rays,
             seconds=time.perf_counter() - start,
             kinds=kinds,
-            hit_distance=None if result.hit_distance is None
-            else np.concatenate([result.hit_distance, fill_hit]),
+            hit_distance=hit_distance,
         )
 
     def trace_refraction(

@@ -1,0 +1,391 @@
+"""Reuse across frames: the reflections a frame traced, reprojected into the next one.
+
+A reflector traced at a reduced density starts rays on a pattern of its pixels that
+rotates every frame (``sparse_pixels.rotation_phase``): over ``ROTATION_PERIOD`` frames
+("half" 2, "quarter" 4, "sixteenth" 16) every pixel of it is traced once. Its other
+pixels take, where it is still valid, the reflection they had in the previous frame,
+reprojected (``REUSED``, ``model/pixel_kinds.py``); only where no valid history exists
+are they reconstructed from this frame's samples (``FILLED``, ``sparse_pixels``). A still
+view therefore reaches full resolution in one rotation period, and a moving one keeps
+what is still true of the last frames.
+
+**Reprojection.** A mirror shows the reflected point at its *virtual image*: along the
+pixel's view ray, at the surface's distance plus the reflection's hit distance (exact
+for a planar mirror, whatever the camera does). Pixel p of this frame (surface point X,
+view direction v) saw, in the previous frame, the same reflected point at the previous
+camera's projection of X + h v, h the hit distance (a reflection that left the scene:
+the direction v at infinity). h of a pixel not traced this frame is the previous
+frame's at the surface's own reprojection (a fixed-point step: for a still camera both
+give the same pixel). The element's own motion is not followed: a reflector that moved
+or deformed since the previous frame keeps no history.
+
+**Rejection** (history is used only when every test passes, otherwise the pixel is
+filled):
+
+- the previous pixel is on screen, of the same element, and its reflection was traced
+  at most ``period - 1`` frames ago (``age``): stale history expires within one rotation
+  period, which bounds how long anything wrong can persist (a moved object's ghost);
+- normals agree within ``NORMAL_AGREEMENT`` and the previous pixel's surface point lies
+  on this pixel's tangent plane within ``PLANE_TOLERANCE`` of the view depth (a
+  disocclusion, a fold, another part of a curved reflector);
+- the reprojected point falls within ``MAX_PIXEL_OFFSET`` of the previous pixel's
+  centre (history is read from the nearest pixel: a chain of reuses must not drift);
+- the temporal gradient: in each pattern cell, this frame's traced pixel is compared
+  with its own reprojected history; a change above ``GRADIENT_LIMIT`` (display-range
+  luminance) rejects the history of that cell and the 8 around it (A-SVGF's idea on the
+  pattern's own strata: something in the reflection changed there);
+- when an element moved or deformed since the previous frame, the range test: history
+  outside the range of this frame's traced samples in its cell and the 8 around it (per
+  channel, ``RANGE_TOLERANCE``) shows something no longer there (temporal
+  anti-aliasing's neighbourhood clamp). Only then: on a still scene it would refuse
+  true detail that no nearby sample happens to show.
+
+Traced values replace history outright (mirror reflections have no noise to average
+but the hit lighting's light sampling, which the gradient tolerates below its limit).
+
+Arrays: pixels are flat indices ``row * W + col``; radiance (n, 3) float32 linear RGB,
+the reflected radiance before the reflector's F; positions float64 world metres.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from phrt_usd.engine.trace.sparse_pixels import PATTERN_SPACING, ROTATION_PERIOD, rotation_phase
+from phrt_usd.model import pixel_kinds
+from phrt_usd.model.frame import FrameCamera, GBuffer, ReflectionResult
+from phrt_usd.model.trace_density import TRACE_DENSITIES
+
+#: The age of a pixel without history (never traced, or filled: a fill is an estimate
+#: from this frame's samples, not a value to carry forward).
+NO_HISTORY = np.iinfo(np.int16).max
+#: Farthest the reprojected point may fall from its previous pixel's centre, in pixels
+#: along either axis: history is read from the nearest pixel (a bilinear read would blur
+#: it), so each reuse may shift the reflection by this much, and a chain of reuses over a
+#: moving camera adds the shifts up; 0.25 px keeps a still view (0 px) and the slow
+#: parts of a moving one.
+MAX_PIXEL_OFFSET = 0.25
+#: Least cosine between this pixel's normal and its previous pixel's: 0.95 (18 degrees)
+#: keeps a planar reflector's history (the same normal everywhere) and a gently curved
+#: one's under small motion, and rejects another facet or a curved part the virtual
+#: image does not describe.
+NORMAL_AGREEMENT = 0.95
+#: Largest distance of the previous pixel's surface point from this pixel's tangent
+#: plane, as a share of the view depth: G-buffer positions lie on their triangle's plane
+#: (float64), so one plane gives ~1e-7; 0.5 % rejects a step in depth (a disocclusion)
+#: of a few centimetres at 5 m and keeps float32 depth-buffer noise.
+PLANE_TOLERANCE = 0.005
+#: Largest change of a traced pixel's reflection from its reprojected history that keeps
+#: the history of its cell, in display-range luminance (x / (1 + x), 0..1): 0.1 is an
+#: edge FLIP sees; the hit lighting's light sampling stays well below it where the
+#: shadow maps decide (docs/hit-lighting.md), and a moved object or light exceeds it.
+GRADIENT_LIMIT = 0.1
+#: How far outside the range of this frame's traced samples around it (per channel, in
+#: the display range) history may lie and still be taken: 0.04 keeps the hit lighting's
+#: sampling noise (below the gradient's limit) and refuses a colour no sample around
+#: shows any more (a moved object's ghost, which the cell's own sample may have missed).
+RANGE_TOLERANCE = 0.04
+#: Rec. 709 luminance weights (linear RGB).
+_LUMINANCE = np.array([0.2126, 0.7152, 0.0722], np.float32)
+
+
+@dataclass
+class _Frame:
+    """One frame's reflections as the next frame reads them, flat over its H*W pixels:
+    radiance (H*W, 3) float32, hit (H*W,) float32 metres (+inf: left the scene), age
+    (H*W,) int16 frames since traced (NO_HISTORY: none), and its G-buffer's element
+    (H*W,) int32, normal (H*W, 3) float32, position (H*W, 3) float64; its camera's
+    clip_from_world (4, 4) float64 (projection times world-to-camera)."""
+
+    radiance: np.ndarray
+    hit: np.ndarray
+    age: np.ndarray
+    element: np.ndarray
+    normal: np.ndarray
+    position: np.ndarray
+    clip_from_world: np.ndarray
+
+
+class ReflectionHistory:
+    """The reflections of the frames one selection policy rendered, for the next frame
+    (a renderer keeps one per policy: each policy's frames are their own sequence)."""
+
+    def __init__(self) -> None:
+        self._last: _Frame | None = None
+        self._frames = 0
+
+    def begin(self, gbuffer: GBuffer, camera: FrameCamera, moved: np.ndarray,
+              frame: int | None = None) -> FrameReuse:  # fmt: skip
+        """The reuse of one frame: its G-buffer and camera, the ids ``moved`` (k,) int64
+        of the elements that moved or deformed since the previous frame, ``frame`` the
+        frame's index in the run's plan (the pattern's rotation; None: the count of frames
+        begun so far). The previous frame is the one last ended (``end``)."""
+        index = self._frames if frame is None else int(frame)
+        self._frames += 1
+        return FrameReuse(gbuffer, camera, self._last, moved, index)
+
+    def end(self, reuse: FrameReuse) -> None:
+        """Keep ``reuse``'s frame as the previous one of the next frame."""
+        self._last = reuse.finished()
+
+
+class FrameReuse:
+    """One frame's side of the history: it reprojects the previous frame's reflections
+    for the tracer (``reprojected``), and collects this frame's (``record``).
+
+    frame : the frame's index in its sequence, which picks the pattern's rotation
+    (``phase``)."""
+
+    def __init__(self, gbuffer: GBuffer, camera: FrameCamera, previous: _Frame | None,
+                 moved: np.ndarray, frame: int) -> None:  # fmt: skip
+        self.frame = frame
+        self.phase = rotation_phase(frame)
+        self._gbuffer = gbuffer
+        self._camera = camera
+        self._previous = previous
+        height, width = gbuffer.shape
+        self._size = (width, height)
+        self._element = _flat(gbuffer.element_id, np.int32, 1)
+        self._normal = _flat(gbuffer.normal, np.float32, 3)
+        self._position = _flat(gbuffer.position, np.float64, 3)
+        self._view = _flat(gbuffer.view_dir, np.float32, 3)
+        self._depth = _flat(gbuffer.depth, np.float32, 1)
+        #: (E + 1,) bool per element id (the last: id -1): moved since the previous frame.
+        moved = np.asarray(moved, np.int64)
+        self._moved_table = np.zeros(max(int(self._element.max(initial=-1)),
+                                         int(moved.max(initial=-1))) + 2, np.bool_)  # fmt: skip
+        self._moved_table[moved] = True
+        self._scene_moved = bool(len(moved))
+        self._radiance: np.ndarray | None = None  # allocated by the first ``record``
+        self._hit: np.ndarray | None = None
+        self._age: np.ndarray | None = None
+        #: The pixels the last ``reprojected`` took and their ages (for ``record``).
+        self._taken: tuple[np.ndarray, np.ndarray] = (np.zeros(0, np.int64),
+                                                      np.zeros(0, np.int16))  # fmt: skip
+
+    @property
+    def has_history(self) -> bool:
+        return self._previous is not None
+
+    # ------------------------------------------------------------------ reprojection
+
+    def _lookup(self, pix: np.ndarray, hit: np.ndarray | None, period: np.ndarray):
+        """For pixels ``pix`` (n,) int64: (n,) int64 the previous frame's pixel showing
+        what each shows now (the virtual image's reprojection, module docstring; -1: off
+        screen or behind the previous camera) and (n,) bool its history passes the
+        per-pixel tests (all but the gradient), ``period`` (n,) int64 the frames the
+        pixel's density rotates in. ``hit`` (n,) float32 the pixels' hit distances this
+        frame, None: the previous frame's (the fixed-point step). Compiled:
+        ``history_kernels.history_lookup``."""
+        prev = self._previous
+        n = len(pix)
+        q, ok = np.empty(n, np.int64), np.empty(n, np.bool_)
+        own = hit is not None
+        hit = np.ascontiguousarray(hit if own else np.zeros(0), np.float32)
+        width, height = self._size
+        _kernels().history_lookup(
+            pix, hit, own, self._element, self._normal, self._position, self._view,
+            self._depth, np.ascontiguousarray(period, np.int64), self._moved_table,
+            prev.element, prev.age, prev.normal, prev.position, prev.hit, prev.clip_from_world,
+            width, height, MAX_PIXEL_OFFSET, NORMAL_AGREEMENT, PLANE_TOLERANCE, 0, n, q, ok,
+        )  # fmt: skip
+        return q, ok
+
+    def reprojected(
+        self,
+        traced_pix: np.ndarray,
+        traced_src: np.ndarray,
+        traced_radiance: np.ndarray,
+        traced_hit: np.ndarray | None,
+        skipped_pix: np.ndarray,
+        skipped_src: np.ndarray,
+        density,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Which skipped pixels of a reduced-density round take their history.
+
+        traced_pix, traced_src (n,) int64, traced_radiance (n, 3) float32, traced_hit (n,)
+        float32 or None: the round's traced pixels; skipped_pix, skipped_src (m,) int64:
+        the pixels its pattern skipped; density: one of TRACE_DENSITIES for every source
+        or one per source (``Tracer.trace_reflections``'). Returns (m,) bool the skipped
+        pixels taking history, (k, 3) float32 their radiance and (k,) float32 their hit
+        distance (k the count taken)."""
+        m = len(skipped_pix)
+        none = (np.zeros(m, bool), np.zeros((0, 3), np.float32), np.zeros(0, np.float32))
+        self._taken = (np.zeros(0, np.int64), np.zeros(0, np.int16))
+        if self._previous is None or m == 0:
+            return none
+        level_of_src = _levels(density, max(int(traced_src.max(initial=-1)),
+                                            int(skipped_src.max(initial=-1))) + 1)  # fmt: skip
+        skipped_pix, traced_pix = _int64(skipped_pix), _int64(traced_pix)
+        then, take = self._lookup(skipped_pix, None, _PERIOD[level_of_src[skipped_src]])
+        # The temporal gradient of each pattern cell, from its traced pixels.
+        any_age = np.full(len(traced_pix), NO_HISTORY + 1, np.int64)  # any history counts
+        traced_then, traced_ok = self._lookup(traced_pix, traced_hit, any_age)
+        traced_ok = np.flatnonzero(traced_ok)
+        if len(traced_ok):
+            change = np.abs(
+                _display_luminance(traced_radiance[traced_ok])
+                - _display_luminance(self._previous.radiance[traced_then[traced_ok]])
+            )
+            changed = traced_ok[change > GRADIENT_LIMIT]
+            if len(changed):
+                take &= ~self._near_cells(
+                    skipped_pix, level_of_src[skipped_src],
+                    traced_pix[changed], level_of_src[traced_src[changed]],
+                )  # fmt: skip
+        prev = self._previous
+        if self._scene_moved:
+            # Something moved: history may show it where it was. Only what lies within
+            # the range of this frame's traced samples around it is kept.
+            q = then[take]
+            inside = self._within_range(
+                skipped_pix[take], level_of_src[skipped_src[take]], prev.radiance[q],
+                traced_pix, level_of_src[traced_src], traced_radiance,
+            )  # fmt: skip
+            take[np.flatnonzero(take)[~inside]] = False
+        q = then[take]
+        self._taken = (skipped_pix[take], (prev.age[q] + 1).astype(np.int16))
+        return take, prev.radiance[q], prev.hit[q]
+
+    def _near_cells(self, pix, pix_level, changed, changed_level) -> np.ndarray:
+        """(n,) bool: pixels ``pix`` (n,) (of density levels ``pix_level``) whose pattern
+        cell is one of, or next to, the cells of ``changed`` (k,) (levels
+        ``changed_level``): the cells are the pattern's spacing s squares, in this
+        frame's phase."""
+        out = np.zeros(len(pix), bool)
+        for level in np.unique(pix_level):
+            s = _SPACING[level]
+            here = pix_level == level
+            grid = np.zeros(self._grid_shape(s), bool)
+            grid[self._cells(changed[changed_level == level], s)] = True
+            out[here] = _dilated(grid, np.logical_or)[self._cells(pix[here], s)]
+        return out
+
+    def _within_range(self, pix, pix_level, history, traced_pix, traced_level, traced
+                      ) -> np.ndarray:  # fmt: skip
+        """(n,) bool: the history (n, 3) of pixels ``pix`` (n,) lies, per channel in the
+        display range, within RANGE_TOLERANCE of the range of this frame's traced samples
+        (``traced`` (k, 3) at ``traced_pix``) in its pattern cell and the 8 around it
+        (the neighbourhood clamp of temporal anti-aliasing, on the pattern's cells).
+        Without a traced sample around, history cannot be checked and is refused."""
+        out = np.zeros(len(pix), bool)
+        history, traced = _display(history), _display(traced)
+        for level in np.unique(pix_level):
+            s = _SPACING[level]
+            here = pix_level == level
+            shape = (*self._grid_shape(s), 3)
+            low, high = np.full(shape, np.inf, np.float32), np.full(shape, -np.inf, np.float32)
+            mine = traced_level == level
+            cells = self._cells(traced_pix[mine], s)
+            np.minimum.at(low, cells, traced[mine])
+            np.maximum.at(high, cells, traced[mine])
+            cells = self._cells(pix[here], s)
+            low, high = _dilated(low, np.minimum)[cells], _dilated(high, np.maximum)[cells]
+            h = history[here]
+            out[here] = ((h >= low - RANGE_TOLERANCE) & (h <= high + RANGE_TOLERANCE)).all(axis=1)
+        return out
+
+    def _grid_shape(self, spacing: int) -> tuple[int, int]:
+        """The cell grid of a pattern of ``spacing`` (``_cells``' rows and columns)."""
+        width, height = self._size
+        return height // spacing + 3, width // spacing + 3
+
+    def _cells(self, pix: np.ndarray, spacing: int) -> tuple[np.ndarray, np.ndarray]:
+        """Row and column (+1: -1 is the partial cell before the phase) of the pattern
+        cell of each pixel ``pix`` for a pattern of ``spacing``."""
+        row, col = np.divmod(pix, self._size[0])
+        return ((row - self.phase[0] % spacing) // spacing + 1,
+                (col - self.phase[1] % spacing) // spacing + 1)  # fmt: skip
+
+    # ------------------------------------------------------------------ this frame
+
+    def record(self, result: ReflectionResult) -> None:
+        """Keep a round's reflections as this frame's history: traced and screen-space
+        pixels at age 0, reused ones at their reprojected age, filled ones none."""
+        if result.pixel_index.size == 0:
+            return
+        if self._radiance is None:
+            n = self._size[0] * self._size[1]
+            self._radiance = np.zeros((n, 3), np.float32)
+            self._hit = np.full(n, np.inf, np.float32)
+            self._age = np.full(n, NO_HISTORY, np.int16)
+        pix = result.pixel_index
+        kinds = result.kinds
+        self._radiance[pix] = result.radiance
+        if result.hit_distance is not None:
+            self._hit[pix] = result.hit_distance
+        age = np.zeros(len(pix), np.int16)
+        if kinds is not None:
+            age[kinds == pixel_kinds.FILLED] = NO_HISTORY
+        self._age[pix] = age
+        taken, taken_age = self._taken
+        if len(taken):
+            self._age[taken] = taken_age
+            self._taken = (np.zeros(0, np.int64), np.zeros(0, np.int16))
+
+    def finished(self) -> _Frame | None:
+        """This frame as the next one's previous frame (None when nothing was traced)."""
+        if self._radiance is None:
+            return None
+        camera = self._camera
+        return _Frame(self._radiance, self._hit, self._age, self._element, self._normal,
+                      self._position, camera.projection @ camera.camera_from_world)  # fmt: skip
+
+
+#: Rotation period and pattern spacing by index of TRACE_DENSITIES.
+_PERIOD = np.array([ROTATION_PERIOD[d] for d in TRACE_DENSITIES], np.int64)
+_SPACING = [PATTERN_SPACING.get(d, 1) for d in TRACE_DENSITIES]
+
+
+def _levels(density, n_sources: int) -> np.ndarray:
+    """(n_sources,) int64 index in TRACE_DENSITIES of each source's density."""
+    if isinstance(density, str):
+        return np.full(max(n_sources, 1), TRACE_DENSITIES.index(density), np.int64)
+    return np.array([TRACE_DENSITIES.index(d) for d in density], np.int64)
+
+
+def _display(values: np.ndarray) -> np.ndarray:
+    """Linear radiance (any shape) compressed to 0..1 (x / (1 + x)): changes in it are
+    about what a display shows, whatever the exposure of a highlight; non-finite and
+    negative values count as 0 (nothing derived from them is NaN)."""
+    values = np.maximum(np.nan_to_num(values, nan=0.0, posinf=0.0, neginf=0.0), 0.0)
+    return (values / (1.0 + values)).astype(np.float32)
+
+
+def _display_luminance(radiance: np.ndarray) -> np.ndarray:
+    """(n,) float32 luminance of (n, 3) linear radiance in the display range
+    (``_display``)."""
+    return _display(radiance @ _LUMINANCE)
+
+
+def _dilated(grid: np.ndarray, combine) -> np.ndarray:
+    """``grid`` (rows, cols[, C]) with every inner cell combined (``np.logical_or``,
+    ``np.minimum``, ``np.maximum``) with its 8 neighbours; the border cells, which no
+    pixel maps to (``FrameReuse._cells`` pads by one), are left as they are."""
+    out = grid.copy()
+    inner = out[1:-1, 1:-1]
+    rows, cols = grid.shape[0], grid.shape[1]
+    for dr in (-1, 0, 1):
+        for dc in (-1, 0, 1):
+            combine(inner, grid[1 + dr : rows - 1 + dr, 1 + dc : cols - 1 + dc], out=inner)
+    return out
+
+
+def _flat(image: np.ndarray, dtype, channels: int) -> np.ndarray:
+    """A G-buffer image (H, W[, C]) as contiguous (H*W[, C]) of ``dtype`` (no copy when
+    it already is)."""
+    shape = (-1,) if channels == 1 else (-1, channels)
+    return np.ascontiguousarray(image, dtype=dtype).reshape(shape)
+
+
+def _int64(a: np.ndarray) -> np.ndarray:
+    return np.ascontiguousarray(a, np.int64)
+
+
+def _kernels():
+    """The compiled reprojection (``history_kernels``), loaded on first use."""
+    from phrt_usd import kernels
+
+    return kernels.load("phrt_usd.engine.history_kernels")
