@@ -9,7 +9,8 @@ use, and writes them with per-frame rows and the run's provenance
     uv run python tools/policy_compare.py stages/sewer.usda 217 276 r20000 heu1,heu3 out.json
 
 BUDGET is milliseconds (``--budget-ms``) or ``rN`` for N rays (``--budget-rays``).
-320x240, the schema's bounce limit and selection weight (docs/heuristic.md, "HEU3").
+320x240 (``--resolution WxH``), the schema's bounce limit and selection weight
+(docs/heuristic.md, "HEU3").
 A policy named ``NAME@DENSITY`` traces at that density (``--trace-density``, e.g.
 ``heu3@quarter``; the reference ``all`` always at full density).
 
@@ -48,14 +49,17 @@ def main() -> None:
     ap.add_argument("policies", help="comma list, e.g. none,heu1,heu3")
     ap.add_argument("out", help="JSON file")
     ap.add_argument("--oracle", metavar="POLICY", help="add the oracle at POLICY's rays")
+    ap.add_argument("--resolution", default="320x240", help="WxH (default 320x240)")
     args = ap.parse_args()
+    width, height = (int(v) for v in args.resolution.split("x"))
     if args.budget.startswith("r"):
         budget = {"budget_ms": None, "budget_rays": int(args.budget[1:])}
     else:
         budget = {"budget_ms": float(args.budget)}
     names = args.policies.split(",")
     stage = open_stage(args.stage)
-    base = RenderOptions(mode="hybrid", heuristic="all", width=320, height=240, budget_ms=None)
+    base = RenderOptions(mode="hybrid", heuristic="all", width=width, height=height,
+                         budget_ms=None)  # fmt: skip
     renderer = FrameRenderer(stage, base)
     times = [float(t) for t in range(args.first, args.last + 1)]
     renderer.plan(times)
