@@ -319,6 +319,7 @@ ThreadsOpt = Annotated[str | None, _render_option("threads")]  # text: parse_thr
 GlOpt = Annotated[str | None, _render_option("gl")]
 PrimaryOpt = Annotated[str | None, _render_option("primary")]
 TraceDensityOpt = Annotated[str | None, _render_option("trace_density")]
+ScreenSpaceOpt = Annotated[str | None, _render_option("screen_space")]
 ExposureOpt = Annotated[float | None, _render_option("exposure")]
 WorkersOpt = Annotated[
     int | None,
@@ -401,6 +402,7 @@ def render(
     gl: GlOpt = None,
     primary: PrimaryOpt = None,
     trace_density: TraceDensityOpt = None,
+    screen_space: ScreenSpaceOpt = None,
     workers: WorkersOpt = None,
     scheduler: SchedulerOpt = None,
     chunk_frames: ChunkFramesOpt = None,
@@ -449,6 +451,7 @@ def render(
             gl=gl,
             primary=primary,
             trace_density=trace_density,
+            screen_space=screen_space,
             exposure=exposure,
         )
         for warning in scene.warnings:

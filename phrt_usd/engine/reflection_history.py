@@ -87,6 +87,17 @@ GRADIENT_LIMIT = 0.1
 #: sampling noise (below the gradient's limit) and refuses a colour no sample around
 #: shows any more (a moved object's ghost, which the cell's own sample may have missed).
 RANGE_TOLERANCE = 0.04
+#: A round looks up the history of every PROBE_STRIDE-th skipped pixel first, and of
+#: all only when at least MIN_REPROJECTED of those reproject onto a previous pixel that
+#: passes every test but the age (whether that pixel has history yet or not). The lookup
+#: and its bookkeeping cost about 70 ns a skipped pixel, the fill it replaces about 110
+#: (sewer 640x480, a sixteenth, 2 threads): where little would ever be reused (a moving
+#: camera over a rippled floor: under a quarter of the pixels land within
+#: MAX_PIXEL_OFFSET of a pixel centre, and 2-3 % end up reused) the full lookup is time
+#: taken from the budget for next to nothing, and the probe costs a sixteenth of it. A
+#: still view reprojects every pixel onto itself.
+PROBE_STRIDE = 16
+MIN_REPROJECTED = 0.5
 #: Rec. 709 luminance weights (linear RGB).
 _LUMINANCE = np.array([0.2126, 0.7152, 0.0722], np.float32)
 
@@ -171,25 +182,30 @@ class FrameReuse:
 
     # ------------------------------------------------------------------ reprojection
 
-    def _lookup(self, pix: np.ndarray, hit: np.ndarray | None, period: np.ndarray):
+    def _lookup(self, pix: np.ndarray, hit: np.ndarray | None, period: np.ndarray,
+                split=None):  # fmt: skip
         """For pixels ``pix`` (n,) int64: (n,) int64 the previous frame's pixel showing
         what each shows now (the virtual image's reprojection, module docstring; -1: off
         screen or behind the previous camera) and (n,) bool its history passes the
         per-pixel tests (all but the gradient), ``period`` (n,) int64 the frames the
         pixel's density rotates in. ``hit`` (n,) float32 the pixels' hit distances this
         frame, None: the previous frame's (the fixed-point step). Compiled:
-        ``history_kernels.history_lookup``."""
+        ``history_kernels.history_lookup``, over ``split`` (as ``sparse_pixels.
+        fill_skipped``'s: the tracer's pool) when given."""
         prev = self._previous
         n = len(pix)
         q, ok = np.empty(n, np.int64), np.empty(n, np.bool_)
         own = hit is not None
         hit = np.ascontiguousarray(hit if own else np.zeros(0), np.float32)
         width, height = self._size
-        _kernels().history_lookup(
-            pix, hit, own, self._element, self._normal, self._position, self._view,
-            self._depth, np.ascontiguousarray(period, np.int64), self._moved_table,
-            prev.element, prev.age, prev.normal, prev.position, prev.hit, prev.clip_from_world,
-            width, height, MAX_PIXEL_OFFSET, NORMAL_AGREEMENT, PLANE_TOLERANCE, 0, n, q, ok,
+        if split is None:
+            split = _one_call
+        split(
+            _kernels().history_lookup, n, pix, hit, own, self._element, self._normal,
+            self._position, self._view, self._depth, np.ascontiguousarray(period, np.int64),
+            self._moved_table, prev.element, prev.age, prev.normal, prev.position, prev.hit,
+            prev.clip_from_world, width, height, MAX_PIXEL_OFFSET, NORMAL_AGREEMENT,
+            PLANE_TOLERANCE, out=(q, ok),
         )  # fmt: skip
         return q, ok
 
@@ -202,15 +218,18 @@ class FrameReuse:
         skipped_pix: np.ndarray,
         skipped_src: np.ndarray,
         density,
+        split=None,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Which skipped pixels of a reduced-density round take their history.
 
         traced_pix, traced_src (n,) int64, traced_radiance (n, 3) float32, traced_hit (n,)
         float32 or None: the round's traced pixels; skipped_pix, skipped_src (m,) int64:
         the pixels its pattern skipped; density: one of TRACE_DENSITIES for every source
-        or one per source (``Tracer.trace_reflections``'). Returns (m,) bool the skipped
-        pixels taking history, (k, 3) float32 their radiance and (k,) float32 their hit
-        distance (k the count taken)."""
+        or one per source (``Tracer.trace_reflections``'); split: ``_lookup``'s. History
+        is looked up for all skipped pixels only when a probe of every PROBE_STRIDE-th
+        finds MIN_REPROJECTED of them reprojected, the gradient included (else none is
+        taken). Returns (m,) bool the skipped pixels taking history, (k, 3) float32
+        their radiance and (k,) float32 their hit distance (k the count taken)."""
         m = len(skipped_pix)
         none = (np.zeros(m, bool), np.zeros((0, 3), np.float32), np.zeros(0, np.float32))
         self._taken = (np.zeros(0, np.int64), np.zeros(0, np.int16))
@@ -219,22 +238,33 @@ class FrameReuse:
         level_of_src = _levels(density, max(int(traced_src.max(initial=-1)),
                                             int(skipped_src.max(initial=-1))) + 1)  # fmt: skip
         skipped_pix, traced_pix = _int64(skipped_pix), _int64(traced_pix)
-        then, take = self._lookup(skipped_pix, None, _PERIOD[level_of_src[skipped_src]])
-        # The temporal gradient of each pattern cell, from its traced pixels.
+        period = _PERIOD[level_of_src[skipped_src]]
+        skipped_level = level_of_src[skipped_src]
+        # The temporal gradient: the pattern cells whose traced pixel changed.
         any_age = np.full(len(traced_pix), NO_HISTORY + 1, np.int64)  # any history counts
-        traced_then, traced_ok = self._lookup(traced_pix, traced_hit, any_age)
+        traced_then, traced_ok = self._lookup(traced_pix, traced_hit, any_age, split)
         traced_ok = np.flatnonzero(traced_ok)
+        changed = np.zeros(0, np.int64)
         if len(traced_ok):
             change = np.abs(
                 _display_luminance(traced_radiance[traced_ok])
                 - _display_luminance(self._previous.radiance[traced_then[traced_ok]])
             )
             changed = traced_ok[change > GRADIENT_LIMIT]
-            if len(changed):
-                take &= ~self._near_cells(
-                    skipped_pix, level_of_src[skipped_src],
-                    traced_pix[changed], level_of_src[traced_src[changed]],
-                )  # fmt: skip
+
+        def unchanged(rows):  # (k,) bool: skipped pixels ``rows`` not next to a change
+            if not len(changed):
+                return np.ones(len(rows), bool)
+            return ~self._near_cells(skipped_pix[rows], skipped_level[rows],
+                                     traced_pix[changed], level_of_src[traced_src[changed]])
+
+        probe = np.arange(0, m, PROBE_STRIDE)
+        ages = np.full(len(probe), NO_HISTORY + 2, np.int64)  # even NO_HISTORY passes
+        if self._lookup(skipped_pix[probe], None, ages)[1][unchanged(probe)].sum() < \
+                MIN_REPROJECTED * len(probe):  # fmt: skip
+            return none
+        then, take = self._lookup(skipped_pix, None, period, split)
+        take &= unchanged(np.arange(m))
         prev = self._previous
         if self._scene_moved:
             # Something moved: history may show it where it was. Only what lies within
@@ -378,6 +408,11 @@ def _flat(image: np.ndarray, dtype, channels: int) -> np.ndarray:
     it already is)."""
     shape = (-1,) if channels == 1 else (-1, channels)
     return np.ascontiguousarray(image, dtype=dtype).reshape(shape)
+
+
+def _one_call(kernel, n: int, *args, out: tuple) -> None:
+    """``kernel`` over rows 0..n in one call (``_lookup``'s ``split`` by default)."""
+    kernel(*args, 0, n, *out)
 
 
 def _int64(a: np.ndarray) -> np.ndarray:

@@ -339,17 +339,20 @@ class FrameRenderer:
         gb = prep.gbuffer
         visible_ids = [int(i) for i in self._reflector_ids if prep.pixel_counts[i] > 0]
         frame_budget_ms = self._frame_budget_ms(prep, policy, opts)
-        history = reuse = None
+        history = reuse = screen = None
         if self._tracer is not None and opts.mode != "raster":
             history = self._histories.setdefault(id(policy), (policy, ReflectionHistory()))[1]
             height, width = gb.shape
-            reuse = history.begin(
-                gb, FrameCamera.of(prep.time, prep.camera, width, height),
-                self._moved_elements(prep), self._planned_index.get(prep.time),
-            )  # fmt: skip
+            frame_camera = FrameCamera.of(prep.time, prep.camera, width, height)
+            reuse = history.begin(gb, frame_camera, self._moved_elements(prep),
+                                  self._planned_index.get(prep.time))  # fmt: skip
+            if opts.screen_space == "on":
+                from phrt_usd.engine.trace.screen_space import ScreenFrame
+
+                screen = ScreenFrame(frame_camera)
         step = ReflectionRounds(
             self._tracer, gb, prep.local, prep.reflectivity, prep.image, opts.bounce_limit,
-            reuse,
+            reuse, screen,
         )  # fmt: skip
         rounds = FrameRounds()
         untraced_reason = None

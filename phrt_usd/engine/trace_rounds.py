@@ -36,6 +36,7 @@ class ReflectionRounds:
         fallback: np.ndarray,
         bounce_limit: int,
         reuse=None,
+        screen=None,
     ) -> None:
         self._tracer = tracer
         self._gbuffer = gbuffer
@@ -46,6 +47,8 @@ class ReflectionRounds:
         #: The frame's ``reflection_history.FrameReuse`` (None: no reuse): the pattern's
         #: rotation, the history skipped pixels take, and where this frame's is kept.
         self._reuse = reuse
+        #: The frame's ``screen_space.ScreenFrame`` (None: every first ray to Embree).
+        self._screen = screen
         self.image = fallback.copy()
         self.traced_mask = np.zeros(gbuffer.shape, dtype=bool)
         self.pixel_kind = raster_kinds(gbuffer.covered)
@@ -54,14 +57,11 @@ class ReflectionRounds:
     def __call__(self, ids: list[int], densities: list[str]) -> TracedRound:
         t = time.perf_counter()
         reuse = self._reuse
-        if reuse is None:
-            result = self._tracer.trace_reflections(
-                self._gbuffer, ids, self._bounce_limit, densities
-            )
-        else:
-            result = self._tracer.trace_reflections(
-                self._gbuffer, ids, self._bounce_limit, densities, reuse.phase, reuse
-            )
+        phase = (0, 0) if reuse is None else reuse.phase
+        result = self._tracer.trace_reflections(
+            self._gbuffer, ids, self._bounce_limit, densities, phase, reuse, self._screen
+        )
+        if reuse is not None:
             reuse.record(result)
         apply_traced(
             self.image, self._local, self._reflectivity, result, self.traced_mask, self.pixel_kind

@@ -12,8 +12,9 @@ The options a render runs with come in two parts (as pbrt-v4 splits ``BasicPBRTO
 from ``PBRTOptions``): ``SetupOptions``, what a render is set up with once (mode, frame
 size, threads, OpenGL platform, the G-buffer's source), and ``FrameOptions``, what each
 frame's selection, tracing and images read (heuristic, budgets, target frame rate, bounce
-limit, selection weight, trace density, exposure). ``RenderOptions`` is both, built with
-every option by name as before (``RenderOptions(mode="rt", budget_rays=500)``).
+limit, selection weight, trace density, screen space, exposure). ``RenderOptions`` is
+both, built with every option by name as before (``RenderOptions(mode="rt",
+budget_rays=500)``).
 """
 
 from __future__ import annotations
@@ -45,6 +46,8 @@ HEURISTICS = ("heu1", "heu2", "all", "none", "heu3")
 GL_PLATFORMS = ("auto", "egl", "osmesa")
 #: Sources of the G-buffer (``engine.primary_source``).
 PRIMARY_SOURCES = ("auto", "raster", "rays")
+#: Screen-space reflections before Embree (``engine.trace.screen_space``): off or on.
+SCREEN_SPACE = ("off", "on")
 #: Recursion depth beyond which extra bounces change nothing visible.
 MAX_BOUNCE_LIMIT = 16
 #: Largest frame side in pixels (OpenGL's usual maximum framebuffer size).
@@ -214,6 +217,15 @@ OPTIONS: dict[str, RenderOption] = {o.name: o for o in (
         metavar="|".join(TRACE_DENSITIES),
     ),
     RenderOption(
+        "screen_space", str, "off", FRAME,
+        "Screen-space reflections first: each first reflection ray marched through the "
+        "G-buffer (up to 32 pixels), Embree only for what that cannot resolve (hybrid "
+        "mode; off by default: on a 2-core CPU the march costs more than the rays it "
+        "saves, docs/screen-space.md).",
+        cli="--screen-space", label="screen space", choices=SCREEN_SPACE,
+        metavar="|".join(SCREEN_SPACE),
+    ),
+    RenderOption(
         "target_fps", float, None, FRAME,
         "Frame rate to hold: T = what raster and shading leave of 1000/F ms.",
         cli="--target-fps", label="--target-fps", low=0.0, low_open=True, high=MAX_TARGET_FPS,
@@ -294,6 +306,8 @@ class FrameOptions:
     #: reflectors of 64+ pixels; the others filled from their traced neighbours:
     #: ``engine.trace.sparse_pixels``).
     trace_density: str = _default("trace_density")
+    #: Screen-space reflections before Embree: off | on (``engine.trace.screen_space``).
+    screen_space: str = _default("screen_space")
     #: ``--exposure EV``: every frame's radiance is scaled by 2**EV before it is written
     #: (EXR and PNG alike); |EV| beyond MAX_EXPOSURE_EV is clamped (``exposure_ev``).
     exposure: float = _default("exposure")
@@ -324,6 +338,8 @@ class RenderOptions(SetupOptions, FrameOptions):
             raise BadOption(
                 f"--trace-density {self.trace_density}: rt mode traces every pixel (hybrid only)"
             )
+        if self.mode == "rt" and self.screen_space != "off":
+            raise BadOption("--screen-space on: rt mode traces every ray (hybrid only)")
 
     @property
     def setup(self) -> SetupOptions:

@@ -366,6 +366,7 @@ def job_run_info(
     info["threads"] = opts.threads  # --threads (phrt_usd.threads); not in the identity
     info["exposure"] = opts.exposure_ev  # EV applied to every image (--exposure, clamped)
     info["trace_density"] = opts.trace_density  # full | half | quarter | sixteenth
+    info["screen_space"] = opts.screen_space  # off | on
     info["camera"] = scene.camera_path
     info["settings"] = images.settings
     info["products"] = images.describe()
@@ -384,6 +385,7 @@ IDENTITY_KEYS = (
     "target_fps",
     "exposure",
     "trace_density",
+    "screen_space",
     "bounce_limit",
     "selection_weight",
     "resolution",

@@ -307,6 +307,7 @@ _RUN_INFO_TYPES: dict[str, tuple[type, ...]] = {
     "target_fps": (int, float),
     "exposure": (int, float),
     "trace_density": (str,),
+    "screen_space": (str,),
     "bounce_limit": (int,),
     "selection_weight": (int, float),
     "time_codes_per_second": (int, float),

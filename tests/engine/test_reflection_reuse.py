@@ -87,7 +87,8 @@ def test_still_view_converges_to_full_density_within_its_period(tmp_path, densit
     # Monotone in the mean: every frame keeps what the earlier ones traced.
     errors = [flip_map(full, f.beauty).mean() for f in frames[:period]]
     assert errors[-1] <= first
-    assert all(b <= a + 1e-3 for a, b in zip(errors, errors[1:]))  # noise of FLIP's mean
+    # 1e-3: the noise of FLIP's mean between two frames of the same quality.
+    assert all(b <= a + 1e-3 for a, b in zip(errors, errors[1:], strict=False))
 
 
 def test_sixteenth_reaches_the_target_in_16_frames(tmp_path):
@@ -158,15 +159,19 @@ def test_moved_object_leaves_no_ghost_after_the_period(tmp_path, monkeypatch):
 def test_moving_camera_reuse_is_no_worse_than_filling(tmp_path, monkeypatch):
     """The gallery's moving camera: with reuse the sequence's mean FLIP against full
     density is at most filling alone's (reuse takes only history the tests keep)."""
-    stage = open_stage(mirror_gallery_stage(tmp_path / "gallery.usda", frames=40, width=W,
+    # A slow pan (the 40-frame path over 800 frames: under a quarter pixel a frame), so
+    # most reprojected points land near a pixel centre and history is taken.
+    stage = open_stage(mirror_gallery_stage(tmp_path / "gallery.usda", frames=800, width=W,
                                             height=H))  # fmt: skip
-    times = [float(t) for t in range(10, 26)]
+    times = [float(t) for t in range(200, 216)]
     full = _sequence(stage, times, "full")
     reused = _sequence(stage, times, "sixteenth")
     monkeypatch.setattr(reflection_history.ReflectionHistory, "end", lambda self, reuse: None)
     filled = _sequence(stage, times, "sixteenth")
-    err_reuse = np.mean([flip_map(a.beauty, b.beauty).mean() for a, b in zip(full, reused)])
-    err_fill = np.mean([flip_map(a.beauty, b.beauty).mean() for a, b in zip(full, filled)])
+    err_reuse = np.mean([flip_map(a.beauty, b.beauty).mean()
+                         for a, b in zip(full, reused, strict=True)])  # fmt: skip
+    err_fill = np.mean([flip_map(a.beauty, b.beauty).mean()
+                        for a, b in zip(full, filled, strict=True)])  # fmt: skip
     assert err_reuse <= err_fill * 1.01  # 1 %: FLIP's mean over a few pixels' noise
     kinds = reused[-1].pixel_kind
     assert (kinds == pixel_kinds.REUSED).any()

@@ -51,10 +51,14 @@ index into the round's sources (``Tracer.trace_reflections``).
 
 from __future__ import annotations
 
+import dataclasses
+import time
 from dataclasses import dataclass
 
 import numpy as np
 
+from phrt_usd.model import pixel_kinds
+from phrt_usd.model.frame import ReflectionResult
 from phrt_usd.model.trace_density import SPARSE_MIN_PIXELS, TRACE_DENSITIES
 
 #: Spacing of each reduced density's traced pixels: a skipped pixel's traced neighbours
@@ -208,6 +212,56 @@ def fill_skipped(
     finally:
         kernels.clear_table(table, traced_pix)
     return skipped_pix[ok], out_rad[ok], out_hit[ok]
+
+
+def complete(result: ReflectionResult, src, skipped, guides: FillGuides, density, phase,
+             reuse, table: np.ndarray, split, start: float) -> ReflectionResult:  # fmt: skip
+    """A reduced-density round's ``result`` (its traced, or screen-space, pixels) with its
+    skipped pixels reused or filled: the reprojected history where ``reuse`` (an
+    ``engine.reflection_history.FrameReuse``, None: none) finds it valid, else filled
+    (``fill_skipped``, with ``guides``, ``table`` and ``split``); its records count every
+    covered pixel (hits scaled alike). src (n,) the result's pixels' sources, skipped
+    (pixels (m,), their sources (m,), covered pixels per source) from
+    ``Tracer._source_pixels``; density and phase as ``Tracer.trace_reflections``';
+    ``start`` the round's ``perf_counter`` start (its ``seconds``)."""
+    skipped_pix, skipped_src, covered = skipped
+    reused_pix = np.zeros(0, np.int64)
+    reused_radiance, reused_hit = np.zeros((0, 3), np.float32), np.zeros(0, np.float32)
+    if reuse is not None:
+        taken, reused_radiance, reused_hit = reuse.reprojected(
+            result.pixel_index, src, result.radiance, result.hit_distance, skipped_pix,
+            skipped_src, density, split,
+        )  # fmt: skip
+        reused_pix = skipped_pix[taken]
+        skipped_pix, skipped_src = skipped_pix[~taken], skipped_src[~taken]
+    fill_pix, fill_radiance, fill_hit = fill_skipped(
+        result.pixel_index, src, result.radiance, result.hit_distance, skipped_pix,
+        skipped_src, guides, density, table, phase=phase, split=split,
+    )  # fmt: skip
+    records = [
+        dataclasses.replace(
+            record,
+            pixels=c,
+            hits={e: round(n * c / max(record.pixels, 1)) for e, n in record.hits.items()},
+        )
+        for record, c in zip(result.records, covered.tolist(), strict=True)
+    ]
+    n, k = len(result.pixel_index), len(reused_pix)
+    kinds = np.full(n + k + len(fill_pix), pixel_kinds.FILLED, np.uint8)
+    kinds[:n] = pixel_kinds.TRACED if result.kinds is None else result.kinds
+    kinds[n : n + k] = pixel_kinds.REUSED
+    hit_distance = None
+    if result.hit_distance is not None:
+        hit_distance = np.concatenate([result.hit_distance, reused_hit, fill_hit])
+    return ReflectionResult(
+        pixel_index=np.concatenate([result.pixel_index, reused_pix, fill_pix]),
+        radiance=np.concatenate([result.radiance, reused_radiance, fill_radiance]),
+        records=records,
+        rays=result.rays,
+        seconds=time.perf_counter() - start,
+        kinds=kinds,
+        hit_distance=hit_distance,
+    )
 
 
 def _one_call(kernel, n: int, *args, out: tuple) -> None:

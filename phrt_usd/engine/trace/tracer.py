@@ -56,7 +56,6 @@ from phrt_usd.engine.trace.hit_lighting import MapLookup, frame_seed
 from phrt_usd.engine.trace.hit_surfaces import HitSurfaces
 from phrt_usd.engine.trace.paths import PathTracer, refract
 from phrt_usd.engine.trace.shadow_rays import ShadowRays
-from phrt_usd.model import pixel_kinds
 from phrt_usd.model.frame import GBuffer, ReflectionResult
 from phrt_usd.model.scene import NO_HIT, CameraFrame, Lights, Scene
 from phrt_usd.model.trace_density import check_density
@@ -342,63 +341,13 @@ class Tracer:
             result, src = screen_space.merge(result, src, hits, all_pix, all_src, sources, start)
         if first["skipped"] is None:
             return result
-        filled = self._with_skipped(result, src, first["skipped"], gbuffer, density, phase,
-                                  reuse, start)  # fmt: skip
-        if hits is not None:  # the screen-space pixels keep their kind
-            filled.kinds[: len(result.pixel_index)] = result.kinds
-        return filled
-
-    def _with_skipped(self, result, src, skipped, gbuffer, density, phase, reuse, start
-                      ) -> ReflectionResult:  # fmt: skip
-        """A reduced-density ``result`` with its skipped pixels reused or filled: the
-        reprojected history where ``reuse`` finds it valid (``FrameReuse.reprojected``),
-        else filled (``sparse_pixels.fill_skipped``, guided by ``gbuffer``, split over
-        the pool); its records count every covered pixel. src (n,) the traced pixels'
-        sources, skipped (pixels (m,), their sources (m,), covered pixels per source)
-        from ``_source_pixels``, density and phase as ``trace_reflections``'."""
         height, width = gbuffer.shape
-        skipped_pix, skipped_src, covered = skipped
-        reused_pix = np.zeros(0, np.int64)
-        reused_radiance, reused_hit = np.zeros((0, 3), np.float32), np.zeros(0, np.float32)
-        if reuse is not None:
-            taken, reused_radiance, reused_hit = reuse.reprojected(
-                result.pixel_index, src, result.radiance, result.hit_distance, skipped_pix,
-                skipped_src, density,
-            )  # fmt: skip
-            reused_pix = skipped_pix[taken]
-            skipped_pix, skipped_src = skipped_pix[~taken], skipped_src[~taken]
         if self._fill_table is None or len(self._fill_table) != width * height:
             self._fill_table = np.full(width * height, -1, np.int32)
-        fill_pix, fill_radiance, fill_hit = sparse_pixels.fill_skipped(
-            result.pixel_index, src, result.radiance, result.hit_distance, skipped_pix,
-            skipped_src, sparse_pixels.FillGuides.of(gbuffer), density, self._fill_table,
-            phase=phase, split=self._split,
+        return sparse_pixels.complete(
+            result, src, first["skipped"], sparse_pixels.FillGuides.of(gbuffer), density,
+            phase, reuse, self._fill_table, self._split, start,
         )  # fmt: skip
-        covered = covered.tolist()
-        records = [
-            dataclasses.replace(
-                record,
-                pixels=c,
-                hits={e: round(n * c / max(record.pixels, 1)) for e, n in record.hits.items()},
-            )
-            for record, c in zip(result.records, covered, strict=True)
-        ]
-        n, k = len(result.pixel_index), len(reused_pix)
-        kinds = np.full(n + k + len(fill_pix), pixel_kinds.FILLED, np.uint8)
-        kinds[:n] = pixel_kinds.TRACED if result.kinds is None else result.kinds
-        kinds[n : n + k] = pixel_kinds.REUSED
-        hit_distance = None
-        if result.hit_distance is not None:
-            hit_distance = np.concatenate([result.hit_distance, reused_hit, fill_hit])
-        return ReflectionResult(
-            pixel_index=np.concatenate([result.pixel_index, reused_pix, fill_pix]),
-            radiance=np.concatenate([result.radiance, reused_radiance, fill_radiance]),
-            records=records,
-            rays=result.rays,
-            seconds=time.perf_counter() - start,
-            kinds=kinds,
-            hit_distance=hit_distance,
-        )
 
     def trace_refraction(
         self, gbuffer: GBuffer, bounce_limit: int, elements: list[int] | None = None
