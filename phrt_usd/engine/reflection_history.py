@@ -126,6 +126,10 @@ class ReflectionHistory:
     def __init__(self) -> None:
         self._last: _Frame | None = None
         self._frames = 0
+        # The reprojection's compiled code loaded now, before any frame's budget is
+        # timed: its first call would otherwise take several ms of the second traced
+        # frame's trace phase (a frame has history only from the second on).
+        _kernels().warm_up()
 
     def begin(self, gbuffer: GBuffer, camera: FrameCamera, moved: np.ndarray,
               frame: int | None = None) -> FrameReuse:  # fmt: skip
