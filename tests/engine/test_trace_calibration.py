@@ -49,10 +49,11 @@ class SyntheticMachine:
         return self.now
 
     def wrap(self, trace_reflections):
-        def traced(tracer, gbuffer, sources, bounce_limit, density="full"):
-            result = trace_reflections(tracer, gbuffer, sources, bounce_limit, density)
+        def traced(tracer, gbuffer, sources, bounce_limit, density="full", *more):
+            result = trace_reflections(tracer, gbuffer, sources, bounce_limit, density, *more)
             kinds = result.kinds
-            filled = 0 if kinds is None else int(np.count_nonzero(kinds == pixel_kinds.FILLED))
+            skipped = (pixel_kinds.FILLED, pixel_kinds.REUSED)  # the model's filled pixels
+            filled = 0 if kinds is None else int(np.isin(kinds, skipped).sum())
             ms = OVERHEAD_MS + MS_PER_RAY * result.rays + MS_PER_FILLED * filled
             if result.rays > self.largest:
                 ms *= FIRST_SIZE_FACTOR
