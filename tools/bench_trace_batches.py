@@ -25,7 +25,7 @@ import sys
 import time
 from pathlib import Path
 
-from phrt_usd.bench.bench_stage import append_log
+from phrt_usd.bench.bench_stage import append_log, stage_at
 from phrt_usd.engine.renderer import FrameRenderer, RenderOptions
 from phrt_usd.evaluate.provenance import collect_for_tool, provenance_line
 from phrt_usd.usd.stage import open_stage
@@ -110,12 +110,7 @@ def main(argv: list[str] | None = None) -> int:
     batches = [int(b) for b in args.batches.split(",")]
     text = []
     for spec in args.stages:
-        stage_path, _, at = spec.partition("@")
-        if at:
-            frame = float(at)
-        else:
-            start, end = open_stage(stage_path).frame_range
-            frame = float(round((start + end) / 2))
+        stage_path, frame = stage_at(spec)
         rows = measure(stage_path, frame, width, height, batches, args.reps)
         text.append(markdown(stage_path, frame, args.resolution, rows))
     out = provenance_line(collect_for_tool(__file__, argv)) + "\n\n" + "\n".join(text)

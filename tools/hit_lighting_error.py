@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from phrt_usd.bench.bench_stage import append_log
+from phrt_usd.bench.bench_stage import append_log, stage_at
 from phrt_usd.engine.renderer import FrameRenderer, RenderOptions
 from phrt_usd.evaluate.image_metrics import flip_map, mean_over
 from phrt_usd.evaluate.provenance import collect_for_tool, provenance_line
@@ -95,12 +95,7 @@ def main(argv: list[str] | None = None) -> int:
     width, height = (int(v) for v in args.resolution.split("x"))
     rows = []
     for spec in args.stages:
-        stage_path, _, at = spec.partition("@")
-        if at:
-            frame = float(at)
-        else:
-            start, end = open_stage(stage_path).frame_range
-            frame = float(round((start + end) / 2))
+        stage_path, frame = stage_at(spec)
         rows.append(measure(stage_path, frame, width, height))
     if args.json:
         print(json.dumps(rows, indent=1))

@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from phrt_usd.bench.bench_stage import stage_at
 from phrt_usd.engine.renderer import FrameRenderer, RenderOptions
 from phrt_usd.engine.trace import screen_space, screen_space_kernels
 from phrt_usd.evaluate.image_metrics import flip_map
@@ -143,12 +144,7 @@ def main(argv: list[str] | None = None) -> int:
     width, height = (int(v) for v in args.resolution.split("x"))
     rows = []
     for spec in args.stages:
-        stage_path, _, at = spec.partition("@")
-        if at:
-            frame = float(at)
-        else:
-            start, end = open_stage(stage_path).frame_range
-            frame = float(round((start + end) / 2))
+        stage_path, frame = stage_at(spec)
         rows.append(measure(stage_path, frame, width, height, args.max_steps, args.repeat))
     print(json.dumps(rows, indent=1))
     return 0

@@ -1,5 +1,6 @@
 """What the benchmark tools share: the lights, moving camera and render settings of the
-small stages they write on the fly, and their ``--append`` log entry."""
+small stages they write on the fly, their ``STAGE@T`` arguments and their ``--append``
+log entry."""
 
 from __future__ import annotations
 
@@ -44,6 +45,18 @@ def add_lights_and_camera(
     stage.SetMetadata("renderSettingsPrimPath", "/Render/Settings")
     stage.SetStartTimeCode(1)
     stage.SetEndTimeCode(frames)
+
+
+def stage_at(spec: str) -> tuple[str, float]:
+    """A tool's ``STAGE`` or ``STAGE@T`` argument: the stage's path and the time code T
+    (default: the middle of the stage's frame range, rounded)."""
+    from phrt_usd.usd.stage import open_stage
+
+    stage_path, _, at = spec.partition("@")
+    if at:
+        return stage_path, float(at)
+    start, end = open_stage(stage_path).frame_range
+    return stage_path, float(round((start + end) / 2))
 
 
 def append_log(path: Path, title: str, command: str, text: str) -> None:
