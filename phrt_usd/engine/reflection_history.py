@@ -173,12 +173,10 @@ class FrameReuse:
                                          int(moved.max(initial=-1))) + 2, np.bool_)  # fmt: skip
         self._moved_table[moved] = True
         self._scene_moved = bool(len(moved))
-        self._radiance: np.ndarray | None = None  # allocated by the first ``record``
-        self._hit: np.ndarray | None = None
-        self._age: np.ndarray | None = None
-        #: The pixels the last ``reprojected`` took and their ages (for ``record``).
-        self._taken: tuple[np.ndarray, np.ndarray] = (np.zeros(0, np.int64),
-                                                      np.zeros(0, np.int16))  # fmt: skip
+        #: The pixels each ``reprojected`` took and their ages, and the rounds'
+        #: results, kept as history when the frame is finished (``finished``).
+        self._taken: list[tuple[np.ndarray, np.ndarray]] = []
+        self._results: list[ReflectionResult] = []
 
     @property
     def has_history(self) -> bool:
@@ -236,7 +234,6 @@ class FrameReuse:
         their radiance and (k,) float32 their hit distance (k the count taken)."""
         m = len(skipped_pix)
         none = (np.zeros(m, bool), np.zeros((0, 3), np.float32), np.zeros(0, np.float32))
-        self._taken = (np.zeros(0, np.int64), np.zeros(0, np.int16))
         if self._previous is None or m == 0:
             return none
         level_of_src = _levels(density, max(int(traced_src.max(initial=-1)),
@@ -280,7 +277,7 @@ class FrameReuse:
             )  # fmt: skip
             take[np.flatnonzero(take)[~inside]] = False
         q = then[take]
-        self._taken = (skipped_pix[take], (prev.age[q] + 1).astype(np.int16))
+        self._taken.append((skipped_pix[take], (prev.age[q] + 1).astype(np.int16)))
         return take, prev.radiance[q], prev.hit[q]
 
     def _near_cells(self, pix, pix_level, changed, changed_level) -> np.ndarray:
@@ -336,36 +333,35 @@ class FrameReuse:
     # ------------------------------------------------------------------ this frame
 
     def record(self, result: ReflectionResult) -> None:
-        """Keep a round's reflections as this frame's history: traced and screen-space
-        pixels at age 0, reused ones at their reprojected age, filled ones none."""
-        if result.pixel_index.size == 0:
-            return
-        if self._radiance is None:
-            n = self._size[0] * self._size[1]
-            self._radiance = np.zeros((n, 3), np.float32)
-            self._hit = np.full(n, np.inf, np.float32)
-            self._age = np.full(n, NO_HISTORY, np.int16)
-        pix = result.pixel_index
-        kinds = result.kinds
-        self._radiance[pix] = result.radiance
-        if result.hit_distance is not None:
-            self._hit[pix] = result.hit_distance
-        age = np.zeros(len(pix), np.int16)
-        if kinds is not None:
-            age[kinds == pixel_kinds.FILLED] = NO_HISTORY
-        self._age[pix] = age
-        taken, taken_age = self._taken
-        if len(taken):
-            self._age[taken] = taken_age
-            self._taken = (np.zeros(0, np.int64), np.zeros(0, np.int16))
+        """Keep a round's reflections for this frame's history (written when the frame
+        is finished: after its rounds, outside the time their budget counts)."""
+        if result.pixel_index.size:
+            self._results.append(result)
 
     def finished(self) -> _Frame | None:
-        """This frame as the next one's previous frame (None when nothing was traced)."""
-        if self._radiance is None:
+        """This frame as the next one's previous frame (None when nothing was traced):
+        traced and screen-space pixels at age 0, reused ones at their reprojected age,
+        filled ones none."""
+        if not self._results:
             return None
+        n = self._size[0] * self._size[1]
+        radiance = np.zeros((n, 3), np.float32)
+        hit = np.full(n, np.inf, np.float32)
+        age = np.full(n, NO_HISTORY, np.int16)
+        for result in self._results:
+            pix = result.pixel_index
+            radiance[pix] = result.radiance
+            if result.hit_distance is not None:
+                hit[pix] = result.hit_distance
+            traced = np.zeros(len(pix), np.int16)
+            if result.kinds is not None:
+                traced[result.kinds == pixel_kinds.FILLED] = NO_HISTORY
+            age[pix] = traced
+        for taken, taken_age in self._taken:
+            age[taken] = taken_age
         camera = self._camera
-        return _Frame(self._radiance, self._hit, self._age, self._element, self._normal,
-                      self._position, camera.projection @ camera.camera_from_world)  # fmt: skip
+        return _Frame(radiance, hit, age, self._element, self._normal, self._position,
+                      camera.projection @ camera.camera_from_world)
 
 
 #: Rotation period and pattern spacing by index of TRACE_DENSITIES.
