@@ -43,6 +43,10 @@ filled):
 Traced values replace history outright (mirror reflections have no noise to average
 but the hit lighting's light sampling, which the gradient tolerates below its limit).
 
+The pattern rotates only while history is worth looking up (the last probe's verdict,
+``MIN_REPROJECTED``): where none would be taken, a rotating subset only flickers, so the
+pattern then holds its phase until a probe finds the view reprojecting again.
+
 Arrays: pixels are flat indices ``row * W + col``; radiance (n, 3) float32 linear RGB,
 the reflected radiance before the reflector's F; positions float64 world metres.
 """
@@ -126,6 +130,9 @@ class ReflectionHistory:
     def __init__(self) -> None:
         self._last: _Frame | None = None
         self._frames = 0
+        #: The last probe's verdict (None: none yet) and the pattern's last phase.
+        self._reprojects: bool | None = None
+        self._phase = rotation_phase(0)
         # The reprojection's compiled code loaded now, before any frame's budget is
         # timed: its first call would otherwise take several ms of the second traced
         # frame's trace phase (a frame has history only from the second on).
@@ -139,24 +146,36 @@ class ReflectionHistory:
         begun so far). The previous frame is the one last ended (``end``)."""
         index = self._frames if frame is None else int(frame)
         self._frames += 1
-        return FrameReuse(gbuffer, camera, self._last, moved, index)
+        # The pattern rotates while history is taken: with none taken a rotating subset
+        # only flickers (the wet tunnel at 5,000-10,000 rays: temporal error 0.032
+        # rotating against 0.028 still), so it then holds its last phase.
+        phase = rotation_phase(index) if self._reprojects is not False else self._phase
+        self._phase = phase
+        return FrameReuse(gbuffer, camera, self._last, moved, index, phase)
 
     def end(self, reuse: FrameReuse) -> None:
-        """Keep ``reuse``'s frame as the previous one of the next frame."""
+        """Keep ``reuse``'s frame as the previous one of the next frame, and whether its
+        probe found history worth taking (``FrameReuse.reprojects``)."""
         self._last = reuse.finished()
+        if reuse.reprojects is not None:
+            self._reprojects = reuse.reprojects
 
 
 class FrameReuse:
     """One frame's side of the history: it reprojects the previous frame's reflections
     for the tracer (``reprojected``), and collects this frame's (``record``).
 
-    frame : the frame's index in its sequence, which picks the pattern's rotation
-    (``phase``)."""
+    frame : the frame's index in its sequence; phase : the pattern's shift this frame
+    (``ReflectionHistory.begin``'s: the rotation's at ``frame`` while history is taken,
+    else the last one held)."""
 
     def __init__(self, gbuffer: GBuffer, camera: FrameCamera, previous: _Frame | None,
-                 moved: np.ndarray, frame: int) -> None:  # fmt: skip
+                 moved: np.ndarray, frame: int,
+                 phase: tuple[int, int] | None = None) -> None:  # fmt: skip
         self.frame = frame
-        self.phase = rotation_phase(frame)
+        self.phase = rotation_phase(frame) if phase is None else phase
+        #: Whether this frame's probe found history worth looking up (None: no probe).
+        self.reprojects: bool | None = None
         self._gbuffer = gbuffer
         self._camera = camera
         self._previous = previous
@@ -261,8 +280,9 @@ class FrameReuse:
 
         probe = np.arange(0, m, PROBE_STRIDE)
         ages = np.full(len(probe), NO_HISTORY + 2, np.int64)  # even NO_HISTORY passes
-        if self._lookup(skipped_pix[probe], None, ages)[1][unchanged(probe)].sum() < \
-                MIN_REPROJECTED * len(probe):  # fmt: skip
+        found = self._lookup(skipped_pix[probe], None, ages)[1][unchanged(probe)].sum()
+        self.reprojects = bool(found >= MIN_REPROJECTED * len(probe))
+        if not self.reprojects:
             return none
         then, take = self._lookup(skipped_pix, None, period, split)
         take &= unchanged(np.arange(m))
