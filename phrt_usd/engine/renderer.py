@@ -340,7 +340,7 @@ class FrameRenderer:
         visible_ids = [int(i) for i in self._reflector_ids if prep.pixel_counts[i] > 0]
         frame_budget_ms = self._frame_budget_ms(prep, policy, opts)
         history = reuse = screen = None
-        if self._tracer is not None and opts.mode != "raster":
+        if self._tracer is not None and opts.mode == "hybrid":  # rt traces every pixel
             history = self._histories.setdefault(id(policy), (policy, ReflectionHistory()))[1]
             height, width = gb.shape
             frame_camera = FrameCamera.of(prep.time, prep.camera, width, height)
