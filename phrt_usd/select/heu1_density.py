@@ -12,14 +12,6 @@ import numpy as np
 
 from phrt_usd.model.trace_density import COARSEST
 
-#: A reflector below full density steps finer when the finer density is forecast to fit
-#: the budget over the next STEP_FINER_LOOKAHEAD frames (half a second at 24 fps), not
-#: over the whole lookahead that admissions use: a density step is no transition, and a
-#: reflector growing past the budget a second later would otherwise stay coarse (and
-#: filled) all the while it fits (the farm's pond at 1000 rays: half density for 40
-#: frames while it cast 64-640 rays, its fill error HEU1's whole FLIP at that budget).
-STEP_FINER_LOOKAHEAD = 12
-
 
 class DensitySteps:
     """HEU1's density levels and steps, mixed into ``Heu1Policy`` (a ``BudgetedPolicy``,
@@ -114,10 +106,7 @@ class DensitySteps:
             if not level or e in squeezed:
                 continue
             extra = self.level_rays(e, level - 1) - self.level_rays(e, level)
-            finer = self._level_forecast(e, level - 1)
-            if np.ndim(finer):
-                finer = finer[:STEP_FINER_LOOKAHEAD]
-            lasting = bool(np.all(finer <= budget))
+            lasting = bool(np.all(self._level_forecast(e, level - 1) <= budget))
             if extra + reserve <= remaining and lasting:
                 remaining -= self._set_level(e, level - 1, was=level)
         return taken
