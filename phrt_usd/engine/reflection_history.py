@@ -93,13 +93,14 @@ GRADIENT_LIMIT = 0.1
 RANGE_TOLERANCE = 0.04
 #: A round looks up the history of every PROBE_STRIDE-th skipped pixel first, and of
 #: all only when at least MIN_REPROJECTED of those reproject onto a previous pixel that
-#: passes every test but the age (whether that pixel has history yet or not). The lookup
-#: and its bookkeeping cost about 70 ns a skipped pixel, the fill it replaces about 110
-#: (sewer 640x480, a sixteenth, 2 threads): where little would ever be reused (a moving
-#: camera over a rippled floor: under a quarter of the pixels land within
-#: MAX_PIXEL_OFFSET of a pixel centre, and 2-3 % end up reused) the full lookup is time
-#: taken from the budget for next to nothing, and the probe costs a sixteenth of it. A
-#: still view reprojects every pixel onto itself.
+#: passes every per-pixel test but the age (whether that pixel has history yet or not;
+#: the gradient is not asked). The lookup and its bookkeeping cost about 70 ns a
+#: skipped pixel, the fill it replaces about 110 (sewer 640x480, a sixteenth, 2
+#: threads): where little would ever be reused (a moving camera over a rippled floor:
+#: under a quarter of the pixels land within MAX_PIXEL_OFFSET of a pixel centre, and
+#: 2-3 % end up reused) the full lookup is time taken from the budget for next to
+#: nothing, and the probe costs a sixteenth of it. A still view reprojects every pixel
+#: onto itself.
 PROBE_STRIDE = 16
 MIN_REPROJECTED = 0.5
 #: Rec. 709 luminance weights (linear RGB).
@@ -248,9 +249,9 @@ class FrameReuse:
         the pixels its pattern skipped; density: one of TRACE_DENSITIES for every source
         or one per source (``Tracer.trace_reflections``'); split: ``_lookup``'s. History
         is looked up for all skipped pixels only when a probe of every PROBE_STRIDE-th
-        finds MIN_REPROJECTED of them reprojected, the gradient included (else none is
-        taken). Returns (m,) bool the skipped pixels taking history, (k, 3) float32
-        their radiance and (k,) float32 their hit distance (k the count taken)."""
+        finds MIN_REPROJECTED of them reprojected (else none is taken). Returns (m,) bool
+        the skipped pixels taking history, (k, 3) float32 their radiance and (k,) float32
+        their hit distance (k the count taken)."""
         m = len(skipped_pix)
         none = (np.zeros(m, bool), np.zeros((0, 3), np.float32), np.zeros(0, np.float32))
         if self._previous is None or m == 0:
@@ -260,6 +261,14 @@ class FrameReuse:
         skipped_pix, traced_pix = _int64(skipped_pix), _int64(traced_pix)
         period = _PERIOD[level_of_src[skipped_src]]
         skipped_level = level_of_src[skipped_src]
+        # The probe: every PROBE_STRIDE-th skipped pixel, every test but the age and the
+        # gradient (MIN_REPROJECTED).
+        probe = np.arange(0, m, PROBE_STRIDE)
+        ages = np.full(len(probe), NO_HISTORY + 2, np.int64)  # even NO_HISTORY passes
+        found = int(self._lookup(skipped_pix[probe], None, ages)[1].sum())
+        self.reprojects = found >= MIN_REPROJECTED * len(probe)
+        if not self.reprojects:
+            return none
         # The temporal gradient: the pattern cells whose traced pixel changed.
         any_age = np.full(len(traced_pix), NO_HISTORY + 1, np.int64)  # any history counts
         traced_then, traced_ok = self._lookup(traced_pix, traced_hit, any_age, split)
@@ -271,21 +280,10 @@ class FrameReuse:
                 - _display_luminance(self._previous.radiance[traced_then[traced_ok]])
             )
             changed = traced_ok[change > GRADIENT_LIMIT]
-
-        def unchanged(rows):  # (k,) bool: skipped pixels ``rows`` not next to a change
-            if not len(changed):
-                return np.ones(len(rows), bool)
-            return ~self._near_cells(skipped_pix[rows], skipped_level[rows],
-                                     traced_pix[changed], level_of_src[traced_src[changed]])
-
-        probe = np.arange(0, m, PROBE_STRIDE)
-        ages = np.full(len(probe), NO_HISTORY + 2, np.int64)  # even NO_HISTORY passes
-        found = self._lookup(skipped_pix[probe], None, ages)[1][unchanged(probe)].sum()
-        self.reprojects = bool(found >= MIN_REPROJECTED * len(probe))
-        if not self.reprojects:
-            return none
         then, take = self._lookup(skipped_pix, None, period, split)
-        take &= unchanged(np.arange(m))
+        if len(changed):  # not next to a cell whose traced pixel changed
+            take &= ~self._near_cells(skipped_pix, skipped_level, traced_pix[changed],
+                                      level_of_src[traced_src[changed]])  # fmt: skip
         prev = self._previous
         if self._scene_moved:
             # Something moved: history may show it where it was. Only what lies within
