@@ -177,7 +177,6 @@ class FrameReuse:
         self.phase = rotation_phase(frame) if phase is None else phase
         #: Whether this frame's probe found history worth looking up (None: no probe).
         self.reprojects: bool | None = None
-        self._gbuffer = gbuffer
         self._camera = camera
         self._previous = previous
         height, width = gbuffer.shape
@@ -197,10 +196,6 @@ class FrameReuse:
         #: results, kept as history when the frame is finished (``finished``).
         self._taken: list[tuple[np.ndarray, np.ndarray]] = []
         self._results: list[ReflectionResult] = []
-
-    @property
-    def has_history(self) -> bool:
-        return self._previous is not None
 
     # ------------------------------------------------------------------ reprojection
 
