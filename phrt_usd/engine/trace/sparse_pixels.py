@@ -39,11 +39,10 @@ reflector traced): mean FLIP against full density, blocks and its cost at 640 x 
 against the bilinear fill are in docs/heuristic.md ("The reconstruction").
 
 Across frames: the fill is a function of one frame's traced samples (pixel, radiance,
-hit distance) and its G-buffer; it keeps no state. Temporal reuse feeds it in either
-of two ways: a rotating pattern passes the frame's ``phase`` (to ``traced_subset`` and
-``fill_skipped`` alike), and the reprojected history, a full-resolution estimate, is
-blended with the fill's output per pixel afterwards (the fill's hit-distance estimate
-gives a filled pixel's reflected point, for the reprojection of a planar reflector).
+hit distance) and its G-buffer; it keeps no state. The pattern rotates from frame to
+frame (``rotation_phase``, passed to ``traced_subset`` and ``fill_skipped`` alike), and a
+skipped pixel whose reprojected history is valid takes it instead of a fill
+(``complete``, with ``engine/reflection_history.py``'s ``FrameReuse``).
 
 Pixels are flat indices ``row * width + col`` of the G-buffer; ``src`` is each pixel's
 index into the round's sources (``Tracer.trace_reflections``).
