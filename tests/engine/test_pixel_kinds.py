@@ -20,7 +20,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from scenes import mirror_gallery_stage  # noqa: E402
 
 from phrt_usd.engine.renderer import FrameRenderer  # noqa: E402
-from phrt_usd.engine.trace.sparse_pixels import PATTERN_SPACING  # noqa: E402
+from phrt_usd.engine.trace.sparse_pixels import PATTERN_SPACING, rotation_phase  # noqa: E402
 from phrt_usd.model import pixel_kinds as pk  # noqa: E402
 from phrt_usd.model.render_options import RenderOptions  # noqa: E402
 from phrt_usd.model.trace_density import SPARSE_MIN_PIXELS  # noqa: E402
@@ -64,35 +64,41 @@ def _counts(output) -> dict[str, int]:
 @pytest.mark.slow
 @pytest.mark.parametrize("density", ["full", "quarter", "sixteenth"])
 def test_kinds_count_what_the_renderer_traced_and_filled(gallery, density):
-    """Traced pixels are the reflection rays cast (one each at one bounce); traced and
-    filled together are the frame's traced mask; every pixel of a traced reflector is
-    traced, filled or (a skipped pixel without a traced neighbour) raster; background is
-    exactly the uncovered pixels. At full density nothing is filled; at a reduced one the
-    traced pixels of a reflector over SPARSE_MIN_PIXELS lie on its pattern."""
-    for output, rays in _frames(gallery, "hybrid", density):
+    """Traced pixels are the reflection rays cast (one each at one bounce); traced,
+    reused and filled together are the frame's traced mask; every pixel of a traced
+    reflector is traced, reused, filled or (a skipped pixel without a traced neighbour)
+    raster; background is exactly the uncovered pixels. At full density nothing is
+    filled; at a reduced one the traced pixels of a reflector over SPARSE_MIN_PIXELS lie
+    on its pattern, shifted by the frame's rotation (``rotation_phase`` of its index in
+    the plan: no probe has refused history before the second frame)."""
+    for k, (output, rays) in enumerate(_frames(gallery, "hybrid", density)):
         counts = _counts(output)
         kinds = output.pixel_kind
         gb = output.gbuffer
         assert kinds.dtype == np.uint8 and kinds.shape == (H, W)
         assert counts["traced"] == rays > 0
-        assert counts["traced"] + counts["filled"] == int(output.traced_mask.sum())
+        made = counts["traced"] + counts["reused"] + counts["filled"]
+        assert made == int(output.traced_mask.sum())
         assert np.array_equal(kinds == pk.BACKGROUND, ~gb.covered)
-        assert counts["screen-space"] == counts["reused"] == 0  # no stage makes them yet
+        assert counts["screen-space"] == 0  # --screen-space is off by default
         selected = np.isin(gb.element_id, [
             i for i, e in enumerate(open_stage(gallery).scene.elements)
             if e.path in output.stats.selected
         ])  # fmt: skip
-        made = (kinds == pk.TRACED) | (kinds == pk.FILLED)
+        made = np.isin(kinds, (pk.TRACED, pk.REUSED, pk.FILLED))
         assert not (made & ~selected).any()
         if density == "full":
             assert counts["filled"] == 0 and np.array_equal(made, selected)
             continue
-        assert counts["filled"] > counts["traced"]  # most of a sparse reflector is filled
+        # Most of a sparse reflector is not traced (filled, or reused from frame 10).
+        assert counts["filled"] + counts["reused"] > counts["traced"]
         step = PATTERN_SPACING[density]
+        phase_row, phase_col = rotation_phase(k)
         rows, cols = np.nonzero(kinds == pk.TRACED)
         ids = gb.element_id[rows, cols]
         large = np.bincount(gb.element_id[gb.covered])[ids] >= SPARSE_MIN_PIXELS
-        assert np.all((rows[large] % step == 0) & (cols[large] % step == 0))
+        assert np.all(((rows[large] - phase_row) % step == 0)
+                      & ((cols[large] - phase_col) % step == 0))  # fmt: skip
 
 
 @pytest.mark.slow
