@@ -18,7 +18,11 @@ The tracer is a shell over one role per module:
 - ``hit_lighting``: the direct light at the paths' hits (shadow maps where the renderer
   has them and they decide, ``use_shadow_maps``; shadow rays elsewhere, lights sampled
   where a hit has many);
-- ``paths``: the bounce loop and the per-source ``TraceRecord`` s the heuristic reads.
+- ``paths``: the bounce loop and the per-source ``TraceRecord`` s the heuristic reads;
+- ``screen_space``: first rays resolved in the frame's own G-buffer before the bounce
+  loop (``--screen-space on``);
+- ``sparse_pixels``: reduced densities, their rotating pattern, and the skipped pixels
+  reused (``engine/reflection_history.py``) or filled.
 
 This module picks the pixels paths start from (reflector pixels, found once per
 G-buffer), turns them into first rays, and keeps the ray counters.
