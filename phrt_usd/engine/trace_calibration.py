@@ -69,6 +69,13 @@ CALIBRATION_ROUND_MAX_MS = 50.0
 #: pixels: at a sixteenth they cast ~1/16 of the rays and fill the rest, which takes
 #: about as long as the full-density round (the floor above: 0.19 against 0.66 us a pixel).
 SPARSE_PIXELS_FACTOR = 4
+#: The reduced densities the calibration times on those whole reflectors: the coarsest
+#: and the finest. A filled pixel's cost depends on the density (the finest pattern's
+#: rounds cast half the rays, often below the pool's split, and fill most of a small
+#: reflector from its edges): priced from the coarsest alone, the first frame of a
+#: cluttered floor at T = 4 ms, HEU1 stepping small spheres to a half or a quarter, took
+#: 1.4-1.5 T.
+CALIBRATION_DENSITIES = (TRACE_DENSITIES[COARSEST], TRACE_DENSITIES[1])
 
 
 def calibrate_tracer(
@@ -101,9 +108,9 @@ def calibrate_tracer(
         n = max(int(min(n * CALIBRATION_GROWTH, aim)), n + 1)
     whole = _whole_reflectors(gb, visible_ids, SPARSE_PIXELS_FACTOR * largest, rng)
     if len(whole):
-        rounds.trace(whole, TRACE_DENSITIES[COARSEST])
-        samples.extend(rounds.trace(whole, TRACE_DENSITIES[COARSEST])
-                       for _ in range(CALIBRATION_REPEATS))  # fmt: skip
+        for density in CALIBRATION_DENSITIES:
+            rounds.trace(whole, density)
+            samples.extend(rounds.trace(whole, density) for _ in range(CALIBRATION_REPEATS))
     wall_ms = (time.perf_counter() - start) * 1000.0
     records = [TraceRecord(e, pixels, rays) for e, (pixels, rays) in sorted(rounds.sources.items())]
     return Calibration(samples, rounds.rays, rounds.traced_pixels, wall_ms, records)
