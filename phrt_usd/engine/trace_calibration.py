@@ -1,6 +1,6 @@
 """The run's trace-time calibration (``calibrate_tracer``): before the first time-budgeted
 round of a run, the renderer's tracing step is timed on the frame's own reflector pixels
-at the sizes the frame's budget will plan, at full and at the coarsest density, and the
+at the sizes the frame's budget will plan, at full and at reduced densities, and the
 policy's time model fits its prior line, the cost of a filled pixel and its safety
 factor to those rounds (``TraceTimeModel.calibrate``).
 
@@ -26,11 +26,11 @@ ids, so that each round does a real round's work over the whole image:
   CALIBRATION_PIXELS (CALIBRATION_GROWTH times, or to what the last size says takes
   CALIBRATION_AIM T) until a round takes the budget T (at most CALIBRATION_ROUND_MAX_MS)
   or every pixel; each size once untimed, then timed CALIBRATION_REPEATS times;
-* at the coarsest density (``model.trace_density``), whole reflectors in a seeded random
-  order up to SPARSE_PIXELS_FACTOR times the largest full-density round's pixels; once
-  untimed, then timed CALIBRATION_REPEATS times.
+* at the coarsest and the finest reduced density (CALIBRATION_DENSITIES), whole
+  reflectors in a seeded random order up to SPARSE_PIXELS_FACTOR times the largest
+  full-density round's pixels; each once untimed, then timed CALIBRATION_REPEATS times.
 
-Its wall time is about 4-5 T plus the run's first trace (~30 ms), once per run, reported
+Its wall time is about 6-8 T plus the run's first trace (~30 ms), once per run, reported
 apart from the frame's time (``FrameStats.calibration``).
 """
 
@@ -83,7 +83,7 @@ def calibrate_tracer(
     budget_ms: float | None = None,
 ) -> Calibration:  # fmt: skip
     """Time ``tracer`` on this frame's own reflector pixels (of ``visible_ids``) at the
-    sizes a frame of ``budget_ms`` plans, at full and at the coarsest density (module
+    sizes a frame of ``budget_ms`` plans, at full and at reduced densities (module
     docstring); samples drawn with ``seed``. Returns every timed round's (rays, ms,
     filled pixels), and per reflector its pixels and rays over the full-density rounds
     (its own rays per pixel, for the policy's first predictions)."""
