@@ -57,10 +57,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from phrt_usd.engine.trace.sparse_pixels import PATTERN_SPACING, ROTATION_PERIOD, rotation_phase
+from phrt_usd.engine.trace.sparse_pixels import (
+    LEVEL_PERIOD,
+    LEVEL_SPACING,
+    one_call,
+    pixel_levels,
+    rotation_phase,
+)
 from phrt_usd.model import pixel_kinds
-from phrt_usd.model.frame import FrameCamera, GBuffer, ReflectionResult
-from phrt_usd.model.trace_density import TRACE_DENSITIES
+from phrt_usd.model.frame import FrameCamera, GBuffer, ReflectionResult, flat_image
 
 #: The age of a pixel without history (never traced, or filled: a fill is an estimate
 #: from this frame's samples, not a value to carry forward).
@@ -181,11 +186,11 @@ class FrameReuse:
         self._previous = previous
         height, width = gbuffer.shape
         self._size = (width, height)
-        self._element = _flat(gbuffer.element_id, np.int32, 1)
-        self._normal = _flat(gbuffer.normal, np.float32, 3)
-        self._position = _flat(gbuffer.position, np.float64, 3)
-        self._view = _flat(gbuffer.view_dir, np.float32, 3)
-        self._depth = _flat(gbuffer.depth, np.float32, 1)
+        self._element = flat_image(gbuffer.element_id, np.int32, 1)
+        self._normal = flat_image(gbuffer.normal, np.float32, 3)
+        self._position = flat_image(gbuffer.position, np.float64, 3)
+        self._view = flat_image(gbuffer.view_dir, np.float32, 3)
+        self._depth = flat_image(gbuffer.depth, np.float32, 1)
         #: (E + 1,) bool per element id (the last: id -1): moved since the previous frame.
         moved = np.asarray(moved, np.int64)
         self._moved_table = np.zeros(max(int(self._element.max(initial=-1)),
@@ -216,7 +221,7 @@ class FrameReuse:
         hit = np.ascontiguousarray(hit if own else np.zeros(0), np.float32)
         width, height = self._size
         if split is None:
-            split = _one_call
+            split = one_call
         split(
             _kernels().history_lookup, n, pix, hit, own, self._element, self._normal,
             self._position, self._view, self._depth, np.ascontiguousarray(period, np.int64),
@@ -251,11 +256,10 @@ class FrameReuse:
         none = (np.zeros(m, bool), np.zeros((0, 3), np.float32), np.zeros(0, np.float32))
         if self._previous is None or m == 0:
             return none
-        level_of_src = _levels(density, max(int(traced_src.max(initial=-1)),
-                                            int(skipped_src.max(initial=-1))) + 1)  # fmt: skip
         skipped_pix, traced_pix = _int64(skipped_pix), _int64(traced_pix)
-        period = _PERIOD[level_of_src[skipped_src]]
-        skipped_level = level_of_src[skipped_src]
+        skipped_level = pixel_levels(density, skipped_src)
+        traced_level = pixel_levels(density, traced_src)
+        period = LEVEL_PERIOD[skipped_level]
         # The probe: every PROBE_STRIDE-th skipped pixel, every test but the age and the
         # gradient (MIN_REPROJECTED).
         probe = np.arange(0, m, PROBE_STRIDE)
@@ -278,15 +282,15 @@ class FrameReuse:
         then, take = self._lookup(skipped_pix, None, period, split)
         if len(changed):  # not next to a cell whose traced pixel changed
             take &= ~self._near_cells(skipped_pix, skipped_level, traced_pix[changed],
-                                      level_of_src[traced_src[changed]])  # fmt: skip
+                                      traced_level[changed])  # fmt: skip
         prev = self._previous
         if self._scene_moved:
             # Something moved: history may show it where it was. Only what lies within
             # the range of this frame's traced samples around it is kept.
             q = then[take]
             inside = self._within_range(
-                skipped_pix[take], level_of_src[skipped_src[take]], prev.radiance[q],
-                traced_pix, level_of_src[traced_src], traced_radiance,
+                skipped_pix[take], skipped_level[take], prev.radiance[q],
+                traced_pix, traced_level, traced_radiance,
             )  # fmt: skip
             take[np.flatnonzero(take)[~inside]] = False
         q = then[take]
@@ -300,7 +304,7 @@ class FrameReuse:
         frame's phase."""
         out = np.zeros(len(pix), bool)
         for level in np.unique(pix_level):
-            s = _SPACING[level]
+            s = int(LEVEL_SPACING[level])
             here = pix_level == level
             grid = np.zeros(self._grid_shape(s), bool)
             grid[self._cells(changed[changed_level == level], s)] = True
@@ -317,7 +321,7 @@ class FrameReuse:
         out = np.zeros(len(pix), bool)
         history, traced = _display(history), _display(traced)
         for level in np.unique(pix_level):
-            s = _SPACING[level]
+            s = int(LEVEL_SPACING[level])
             here = pix_level == level
             shape = (*self._grid_shape(s), 3)
             low, high = np.full(shape, np.inf, np.float32), np.full(shape, -np.inf, np.float32)
@@ -377,18 +381,6 @@ class FrameReuse:
                       camera.projection @ camera.camera_from_world)
 
 
-#: Rotation period and pattern spacing by index of TRACE_DENSITIES.
-_PERIOD = np.array([ROTATION_PERIOD[d] for d in TRACE_DENSITIES], np.int64)
-_SPACING = [PATTERN_SPACING.get(d, 1) for d in TRACE_DENSITIES]
-
-
-def _levels(density, n_sources: int) -> np.ndarray:
-    """(n_sources,) int64 index in TRACE_DENSITIES of each source's density."""
-    if isinstance(density, str):
-        return np.full(max(n_sources, 1), TRACE_DENSITIES.index(density), np.int64)
-    return np.array([TRACE_DENSITIES.index(d) for d in density], np.int64)
-
-
 def _display(values: np.ndarray) -> np.ndarray:
     """Linear radiance (any shape) compressed to 0..1 (x / (1 + x)): changes in it are
     about what a display shows, whatever the exposure of a highlight; non-finite and
@@ -414,18 +406,6 @@ def _dilated(grid: np.ndarray, combine) -> np.ndarray:
         for dc in (-1, 0, 1):
             combine(inner, grid[1 + dr : rows - 1 + dr, 1 + dc : cols - 1 + dc], out=inner)
     return out
-
-
-def _flat(image: np.ndarray, dtype, channels: int) -> np.ndarray:
-    """A G-buffer image (H, W[, C]) as contiguous (H*W[, C]) of ``dtype`` (no copy when
-    it already is)."""
-    shape = (-1,) if channels == 1 else (-1, channels)
-    return np.ascontiguousarray(image, dtype=dtype).reshape(shape)
-
-
-def _one_call(kernel, n: int, *args, out: tuple) -> None:
-    """``kernel`` over rows 0..n in one call (``_lookup``'s ``split`` by default)."""
-    kernel(*args, 0, n, *out)
 
 
 def _int64(a: np.ndarray) -> np.ndarray:

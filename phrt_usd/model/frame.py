@@ -52,6 +52,13 @@ class GBuffer:
         return self.element_id >= 0
 
 
+def flat_image(image: np.ndarray, dtype, channels: int) -> np.ndarray:
+    """A G-buffer image (H, W[, C]) as contiguous (H*W[, C]) of ``dtype`` (no copy when
+    it already is): how the compiled per-pixel passes read it."""
+    shape = (-1,) if channels == 1 else (-1, channels)
+    return np.ascontiguousarray(image, dtype=dtype).reshape(shape)
+
+
 @dataclass
 class TraceRecord:
     """What tracing one selected reflector's pixels found (one per source reflector).

@@ -57,14 +57,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from phrt_usd.model import pixel_kinds
-from phrt_usd.model.frame import ReflectionResult
+from phrt_usd.model.frame import ReflectionResult, flat_image
 from phrt_usd.model.trace_density import SPARSE_MIN_PIXELS, TRACE_DENSITIES
 
 #: Spacing of each reduced density's traced pixels: a skipped pixel's traced neighbours
 #: lie within spacing - 1 rows and columns (the checkerboard's within 1, as at quarter).
 PATTERN_SPACING = {"half": 2, "quarter": 2, "sixteenth": 4}
 #: PATTERN_SPACING by index of TRACE_DENSITIES (1 at full density: every pixel traced).
-_SPACING = np.array([PATTERN_SPACING.get(d, 1) for d in TRACE_DENSITIES], np.int64)
+LEVEL_SPACING = np.array([PATTERN_SPACING.get(d, 1) for d in TRACE_DENSITIES], np.int64)
 #: Each density's lattice as ``fill_kernels.fill_skipped`` takes it: 0 the checkerboard,
 #: else the spacing of its grid (by index of TRACE_DENSITIES; "full" skips nothing).
 _LATTICE = np.array([0 if d == "half" else PATTERN_SPACING.get(d, 1) for d in TRACE_DENSITIES],
@@ -77,8 +77,10 @@ _LATTICE = np.array([0 if d == "half" else PATTERN_SPACING.get(d, 1) for d in TR
 #: the same order again for the 4 x 4 block's 2 x 2 sub-blocks, so "sixteenth" visits all
 #: 16 offsets in 16 frames, each 4 consecutive frames spread over one 2 x 2 block.
 _ROTATION_2X2 = ((0, 0), (0, 1), (1, 1), (1, 0))
-#: Frames after which every density's pattern has visited every pixel of its cell.
+#: Frames after which every density's pattern has visited every pixel of its cell, and
+#: the same by index of TRACE_DENSITIES.
 ROTATION_PERIOD = {"full": 1, "half": 2, "quarter": 4, "sixteenth": 16}
+LEVEL_PERIOD = np.array([ROTATION_PERIOD[d] for d in TRACE_DENSITIES], np.int64)
 
 
 def rotation_phase(frame: int) -> tuple[int, int]:
@@ -108,15 +110,15 @@ class FillGuides:
         """The guides of a ``GBuffer`` (views where its arrays already are flat-able)."""
         height, width = gbuffer.shape
         return cls(
-            np.ascontiguousarray(gbuffer.normal, np.float32).reshape(-1, 3),
-            np.ascontiguousarray(gbuffer.position, np.float64).reshape(-1, 3),
-            np.ascontiguousarray(gbuffer.depth, np.float32).reshape(-1),
+            flat_image(gbuffer.normal, np.float32, 3),
+            flat_image(gbuffer.position, np.float64, 3),
+            flat_image(gbuffer.depth, np.float32, 1),
             width,
             height,
         )
 
 
-def _pixel_levels(density, src: np.ndarray) -> np.ndarray:
+def pixel_levels(density, src: np.ndarray) -> np.ndarray:
     """(n,) int64 index in TRACE_DENSITIES of the density of each pixel's source (``src``
     (n,) int64): ``density`` one of TRACE_DENSITIES for every source, or a sequence of
     them, one per source."""
@@ -137,8 +139,8 @@ def traced_subset(
     counts = np.bincount(src, minlength=n_sources)
     row, col = np.divmod(pix, width)
     row, col = row - int(phase[0]), col - int(phase[1])
-    level = _pixel_levels(density, src)
-    step = _SPACING[level]
+    level = pixel_levels(density, src)
+    step = LEVEL_SPACING[level]
     on_grid = (row % step == 0) & (col % step == 0)
     on_pattern = np.where(level == TRACE_DENSITIES.index("half"), (row + col) % 2 == 0, on_grid)
     return (counts[src] < SPARSE_MIN_PIXELS) | on_pattern
@@ -183,7 +185,7 @@ def fill_skipped(
     if table is None:
         table = np.full(guides.width * guides.height, -1, np.int32)
     if split is None:
-        split = _one_call
+        split = one_call
     traced_pix, traced_src = _int64(traced_pix), _int64(traced_src)
     skipped_pix, skipped_src = _int64(skipped_pix), _int64(skipped_src)
     radiance = np.ascontiguousarray(radiance, np.float32)
@@ -199,12 +201,12 @@ def fill_skipped(
     try:
         split(
             kernels.fill_curvature, n, table, traced_pix, traced_src, radiance, v,
-            _LATTICE[_pixel_levels(density, traced_src)], *size, guides.normal,
+            _LATTICE[pixel_levels(density, traced_src)], *size, guides.normal,
             guides.position, out=(curvature,),
         )  # fmt: skip
         split(
             kernels.fill_skipped, m, table, traced_src, radiance, v, curvature, traced_pix,
-            skipped_pix, skipped_src, _LATTICE[_pixel_levels(density, skipped_src)],
+            skipped_pix, skipped_src, _LATTICE[pixel_levels(density, skipped_src)],
             np.array(phase, np.int64), *size, guides.normal, guides.position, guides.depth,
             out=(out_rad, out_hit, ok),
         )  # fmt: skip
@@ -263,7 +265,7 @@ def complete(result: ReflectionResult, src, skipped, guides: FillGuides, density
     )
 
 
-def _one_call(kernel, n: int, *args, out: tuple) -> None:
+def one_call(kernel, n: int, *args, out: tuple) -> None:
     """``kernel`` over rows 0..n in one call (``fill_skipped``'s ``split`` by default)."""
     kernel(*args, 0, n, *out)
 

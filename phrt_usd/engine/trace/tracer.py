@@ -60,7 +60,7 @@ from phrt_usd.engine.trace.hit_lighting import MapLookup, frame_seed
 from phrt_usd.engine.trace.hit_surfaces import HitSurfaces
 from phrt_usd.engine.trace.paths import PathTracer, refract
 from phrt_usd.engine.trace.shadow_rays import ShadowRays
-from phrt_usd.model.frame import GBuffer, ReflectionResult
+from phrt_usd.model.frame import GBuffer, ReflectionResult, flat_image
 from phrt_usd.model.scene import NO_HIT, CameraFrame, Lights, Scene
 from phrt_usd.model.trace_density import check_density
 from phrt_usd.threads import DEFAULT_THREADS
@@ -430,15 +430,17 @@ class Tracer:
 
     def _images(self, gbuffer: GBuffer) -> tuple[np.ndarray, ...]:
         """``gbuffer``'s triangle, position, normal and view images flat as
-        ``trace_kernels.source_rays`` reads them (``_flat``), cached for the latest
+        ``trace_kernels.source_rays`` reads them (``model.frame.flat_image``), cached for the latest
         G-buffer's arrays (never modified once made, see ``_reflector_pixels``)."""
         images = (gbuffer.triangle_id, gbuffer.position, gbuffer.normal, gbuffer.view_dir)
         cached = self._image_cache
         if cached is not None and all(map(operator.is_, cached[0], images)):
             return cached[1]
         flat = (
-            _flat(gbuffer.triangle_id, np.int32, 1), _flat(gbuffer.position, np.float64, 3),
-            _flat(gbuffer.normal, np.float32, 3), _flat(gbuffer.view_dir, np.float32, 3),
+            flat_image(gbuffer.triangle_id, np.int32, 1),
+            flat_image(gbuffer.position, np.float64, 3),
+            flat_image(gbuffer.normal, np.float32, 3),
+            flat_image(gbuffer.view_dir, np.float32, 3),
         )  # fmt: skip
         self._image_cache = (images, flat)
         return flat
@@ -522,10 +524,3 @@ class Tracer:
 _NO_SURFACE = (np.empty((0, 3)), np.empty((0, 3)), np.empty((0, 3), np.float32),
                np.empty((0, 3), np.float32))  # fmt: skip
 _NO_RAYS = (np.empty((0, 3), np.float32), np.empty((0, 3), np.float32))
-
-
-def _flat(image: np.ndarray, dtype, channels: int) -> np.ndarray:
-    """A G-buffer image (H, W[, C]) as contiguous (H*W[, C]) of ``dtype`` (no copy when
-    it already is)."""
-    shape = (-1,) if channels == 1 else (-1, channels)
-    return np.ascontiguousarray(image, dtype=dtype).reshape(shape)
