@@ -73,7 +73,7 @@ class PreparedFrame:
     image: (H, W, 3) float32 the raster frame (environment fallback in reflectors);
     pixel_counts: (E,) int64 pixels per element; screen_boxes: (E, 4) see FrameView;
     motion: the frame's motion vectors from the previous frame (``engine/motion.py``),
-    computed when first read.
+    computed when first read; its ``camera`` is the frame's (``FrameCamera``).
     """
 
     time: float
@@ -88,7 +88,7 @@ class PreparedFrame:
     phase_ms: dict[str, float]
     passes: list[str]
     prepare_ms: float
-    motion: MotionField | None = None
+    motion: MotionField
 
 
 @dataclass
@@ -342,14 +342,12 @@ class FrameRenderer:
         history = reuse = screen = None
         if self._tracer is not None and opts.mode == "hybrid":  # rt traces every pixel
             history = self._histories.setdefault(id(policy), (policy, ReflectionHistory()))[1]
-            height, width = gb.shape
-            frame_camera = FrameCamera.of(prep.time, prep.camera, width, height)
-            reuse = history.begin(gb, frame_camera, self._moved_elements(prep),
+            reuse = history.begin(gb, prep.motion.camera, self._moved_elements(prep),
                                   self._planned_index.get(prep.time))  # fmt: skip
             if opts.screen_space == "on":
                 from phrt_usd.engine.trace.screen_space import ScreenFrame
 
-                screen = ScreenFrame(frame_camera)
+                screen = ScreenFrame(prep.motion.camera)
         step = ReflectionRounds(
             self._tracer, gb, prep.local, prep.reflectivity, prep.image, opts.bounce_limit,
             reuse, screen,
@@ -435,16 +433,15 @@ class FrameRenderer:
                        if d != opts.trace_density},  # fmt: skip
             pixel_kinds=kind_counts(step.pixel_kind),  # after frame_ms: not in the frame time
         )
-        height, width = gb.shape
-        camera = FrameCamera.of(prep.time, prep.camera, width, height)
         return FrameOutput(
-            image, alpha, gb, step.traced_mask, stats, camera, step.pixel_kind, prep.motion
+            image, alpha, gb, step.traced_mask, stats, prep.motion.camera, step.pixel_kind,
+            prep.motion,
         )
 
     def _moved_elements(self, prep: PreparedFrame) -> np.ndarray:
         """(k,) int64 ids of the elements that moved or deformed since the previous
         frame (``MotionTracker``'s vertices): their reflections keep no history."""
-        vertices = None if prep.motion is None else prep.motion.vertices
+        vertices = prep.motion.vertices
         if vertices is None or not len(vertices.tri_rows):
             return np.zeros(0, np.int64)
         return np.unique(self.scene.geometry.tri_element[vertices.tri_rows]).astype(np.int64)
