@@ -111,6 +111,18 @@ def _unit64(x, y, z):
 
 
 @njit(**_HELPER)
+def _answer(r, prim, u, v, far_prim, far_u, far_v, static_map, dynamic_map, animated, mapped):
+    """Ray r's hit in Embree's answer merged by ``bvh.Bvh.merge``'s rule (the animated
+    BVH's hit where it has one: only nearer hits are kept there): (global triangle id,
+    barycentrics w1, w2), the id -1 for a miss."""
+    if animated and far_prim[r] >= 0:
+        return dynamic_map[far_prim[r]], far_u[r], far_v[r]
+    if prim[r] >= 0:
+        return (static_map[prim[r]] if mapped else np.int64(prim[r])), u[r], v[r]
+    return np.int64(-1), u[r], v[r]
+
+
+@njit(**_HELPER)
 def _epsilon(px, py, pz, floor, relative):
     """The offset epsilon at rel (px, py, pz) (``Float32Boundary.epsilon``): max(floor,
     relative * largest |coordinate|), float64 metres."""
@@ -329,12 +341,9 @@ def bounce(
     n_child = 0
     n_refr = 0
     for r in range(k):
-        if animated and far_prim[r] >= 0:
-            t, w1, w2 = dynamic_map[far_prim[r]], far_u[r], far_v[r]
-        elif prim[r] >= 0:
-            t = static_map[prim[r]] if mapped else np.int64(prim[r])
-            w1, w2 = u[r], v[r]
-        else:
+        t, w1, w2 = _answer(r, prim, u, v, far_prim, far_u, far_v, static_map, dynamic_map,
+                            animated, mapped)  # fmt: skip
+        if t < 0:
             continue
         slot = rays_i[cur, RAY_SLOT, r]
         s = rays_i[cur, RAY_SRC, r]
@@ -546,12 +555,9 @@ def hit_distances(prim, u, v, far_prim, far_u, far_v, static_map, dynamic_map, o
     animated = far_prim.shape[0] > 0
     mapped = static_map.shape[0] > 0
     for r in range(prim.shape[0]):
-        if animated and far_prim[r] >= 0:
-            t, w1, w2 = dynamic_map[far_prim[r]], far_u[r], far_v[r]
-        elif prim[r] >= 0:
-            t = static_map[prim[r]] if mapped else np.int64(prim[r])
-            w1, w2 = u[r], v[r]
-        else:
+        t, w1, w2 = _answer(r, prim, u, v, far_prim, far_u, far_v, static_map, dynamic_map,
+                            animated, mapped)  # fmt: skip
+        if t < 0:
             out[r] = np.inf
             continue
         fu, fv = float(w1), float(w2)
