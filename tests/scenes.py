@@ -86,6 +86,20 @@ def _common(stage: Usd.Stage, width: int, height: int) -> UsdGeom.Camera:
     return cam
 
 
+def render_var(stage: Usd.Stage, name: str, source: str, data_type: str,
+               aov: str | None = None) -> Sdf.Path:  # fmt: skip
+    """A RenderVar /Render/Vars/``name`` reading ``source`` as ``data_type``, renamed
+    ``aov`` (``driver:parameters:aov:name``) when given; its path."""
+    var = UsdRender.Var.Define(stage, f"/Render/Vars/{name}")
+    var.CreateSourceNameAttr(source)
+    var.CreateDataTypeAttr(data_type)
+    if aov:
+        var.GetPrim().CreateAttribute(
+            "driver:parameters:aov:name", Sdf.ValueTypeNames.String
+        ).Set(aov)
+    return var.GetPath()
+
+
 def mirror_floor_stage(path: Path, width: int = 160, height: int = 120) -> Path:
     """A 10 m mirror floor at y = 0 (F = 1), a red sphere above it, a fixed camera."""
     stage = Usd.Stage.CreateNew(str(path))

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux, UsdRender
+from scenes import render_var
 
 from phrt_usd.engine.renderer import RenderOptions
 from phrt_usd.errors import PhrtError
@@ -76,10 +77,7 @@ def _stage(path: Path, data_window=None) -> Path:
         ("id", "primId", "int"),
         ("N", "normal", "normal3f"),
     ):
-        var = UsdRender.Var.Define(stage, f"/Render/Vars/{name}")
-        var.CreateSourceNameAttr(source)
-        var.CreateDataTypeAttr(data_type)
-        variables.append(var.GetPath())
+        variables.append(render_var(stage, name, source, data_type))
     multi = UsdRender.Product.Define(stage, "/Render/Products/Multi")
     multi.CreateProductNameAttr("multi.$F4.exr")
     multi.CreateOrderedVarsRel().SetTargets(variables)

@@ -18,11 +18,11 @@ from pathlib import Path
 import numpy as np
 import OpenEXR
 import pytest
-from pxr import Sdf, Usd, UsdRender
+from pxr import Usd, UsdRender
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from scenes import mirror_gallery_stage  # noqa: E402
+from scenes import mirror_gallery_stage, render_var  # noqa: E402
 
 import phrt_usd  # noqa: E402
 from phrt_usd.engine.renderer import FrameRenderer  # noqa: E402
@@ -109,14 +109,7 @@ def _product_stage(gallery: Path, path: Path) -> Path:
         ("mv", "motion", "half2", "mv"),
         ("kind", "phrt:pixelKind", "uchar", None),
     ):
-        var = UsdRender.Var.Define(stage, f"/Render/Vars/{name}")
-        var.CreateSourceNameAttr(source)
-        var.CreateDataTypeAttr(data_type)
-        if aov:
-            var.GetPrim().CreateAttribute(
-                "driver:parameters:aov:name", Sdf.ValueTypeNames.String
-            ).Set(aov)
-        targets.append(var.GetPath())
+        targets.append(render_var(stage, name, source, data_type, aov))
     product = UsdRender.Product.Define(stage, "/Render/Products/Motion")
     product.CreateProductNameAttr("mv.$F4.exr")
     product.CreateOrderedVarsRel().SetTargets(targets)

@@ -19,7 +19,7 @@ import numpy as np
 import OpenEXR
 import pytest
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdRender
-from scenes import SPHERE_CENTER, SPHERE_RADIUS, _look_at_matrix, mirror_floor_stage
+from scenes import SPHERE_CENTER, SPHERE_RADIUS, _look_at_matrix, mirror_floor_stage, render_var
 
 from phrt_usd.engine.renderer import RenderOptions
 from phrt_usd.errors import BadOption, PhrtError
@@ -47,13 +47,6 @@ EYE2 = np.array([1.0, 1.6, 4.0])
 TARGET2 = np.array([0.0, 0.8, 0.0])
 #: /Render/Second's resolution, and its product's own, which wins.
 SETTINGS_RES, PRODUCT_RES = (80, 60), (96, 72)
-
-
-def _var(stage: Usd.Stage, name: str, source: str, data_type: str) -> Sdf.Path:
-    var = UsdRender.Var.Define(stage, f"/Render/Vars/{name}")
-    var.CreateSourceNameAttr(source)
-    var.CreateDataTypeAttr(data_type)
-    return var.GetPath()
 
 
 def _settings(stage: Usd.Stage, path: str, products: list[UsdRender.Product], camera=None):
@@ -84,10 +77,10 @@ def products_stage(path: Path) -> Path:
     camera.CreateClippingRangeAttr(Gf.Vec2f(0.05, 50.0))
     UsdGeom.Xformable(camera).AddTransformOp().Set(_look_at_matrix(EYE2, TARGET2))
     variables = [
-        _var(stage, "color", "color", "color3h"),
-        _var(stage, "depth", "depth", "float"),
-        _var(stage, "N", "normal", "normal3f"),
-        _var(stage, "id", "primId", "int"),
+        render_var(stage, "color", "color", "color3h"),
+        render_var(stage, "depth", "depth", "float"),
+        render_var(stage, "N", "normal", "normal3f"),
+        render_var(stage, "id", "primId", "int"),
     ]
     beauty = _product(stage, "/Render/Products/Beauty", "beauty.$F4.exr", variables, PRODUCT_RES)
     _settings(stage, "/Render/Second", [beauty], camera.GetPath())
@@ -360,7 +353,7 @@ def _clashing_settings(stage: Path, path: Path) -> Path:
     usd = Usd.Stage.Open(str(stage))
     usd.GetRootLayer().Export(str(path))
     usd = Usd.Stage.Open(str(path))
-    color = [_var(usd, "clash_color", "color", "color3h")]
+    color = [render_var(usd, "clash_color", "color", "color3h")]
     for settings, names in (("Clash", ("img.$F4.exr", "img.####.exr")),
                             ("Thousand", ("t.$F.exr", "t.$F4.exr"))):  # fmt: skip
         products = [

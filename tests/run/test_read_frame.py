@@ -10,7 +10,7 @@ import math
 import numpy as np
 import pytest
 from pxr import Sdf, Usd, UsdRender
-from scenes import mirror_floor_stage
+from scenes import mirror_floor_stage, render_var
 
 import phrt_usd
 from phrt_usd.errors import PhrtError
@@ -68,15 +68,7 @@ def _with_products(path, layout: str):
         product.CreateProductNameAttr(name)
         targets = []
         for var_name in var_names:
-            source, data_type, aov = VARS[var_name]
-            var = UsdRender.Var.Define(stage, f"/Render/Vars/{var_name}")
-            var.CreateSourceNameAttr(source)
-            var.CreateDataTypeAttr(data_type)
-            if aov:
-                var.GetPrim().CreateAttribute(
-                    "driver:parameters:aov:name", Sdf.ValueTypeNames.String
-                ).Set(aov)
-            targets.append(var.GetPath())
+            targets.append(render_var(stage, var_name, *VARS[var_name]))
         if targets:
             product.CreateOrderedVarsRel().SetTargets(targets)
         if multipart:
