@@ -109,8 +109,7 @@ def project_points(camera: FrameCamera, points: np.ndarray, width: int, height: 
     """Pixel positions (n, 2) float64 (col, row: pixel centres at +0.5, row 0 at the top)
     and view depths (n,) float64 of world ``points`` (n, 3) through ``camera``'s
     matrices; a point at depth <= 0 (behind the camera) gets NaN pixels."""
-    clip_from_world = camera.projection @ camera.camera_from_world
-    clip = _affine(clip_from_world, points, 1.0)
+    clip = _affine(camera.clip_from_world, points, 1.0)
     depth = -_affine(camera.camera_from_world[2:3], points, 1.0)[0]
     return _pixels(clip, width, height), depth
 
@@ -118,8 +117,7 @@ def project_points(camera: FrameCamera, points: np.ndarray, width: int, height: 
 def project_directions(camera: FrameCamera, directions: np.ndarray, width: int, height: int):
     """Pixel positions (n, 2) float64 of world ``directions`` (n, 3) (points at infinity)
     through ``camera``; NaN for a direction behind it."""
-    clip_from_world = camera.projection @ camera.camera_from_world
-    return _pixels(_affine(clip_from_world, directions, 0.0), width, height)
+    return _pixels(_affine(camera.clip_from_world, directions, 0.0), width, height)
 
 
 def _affine(matrix: np.ndarray, points: np.ndarray, w: float) -> list[np.ndarray]:

@@ -376,9 +376,8 @@ class FrameReuse:
             age[pix] = traced
         for taken, taken_age in self._taken:
             age[taken] = taken_age
-        camera = self._camera
         return _Frame(radiance, hit, age, self._element, self._normal, self._position,
-                      camera.projection @ camera.camera_from_world)
+                      self._camera.clip_from_world)
 
 
 def _display(values: np.ndarray) -> np.ndarray:

@@ -256,6 +256,11 @@ class FrameCamera:
         """The matrices of ``camera`` for a ``width`` x ``height`` frame at ``time``."""
         return cls(float(time), camera.camera_from_world, camera.projection(width, height))
 
+    @property
+    def clip_from_world(self) -> np.ndarray:
+        """(4, 4) float64 world → clip space: ``projection @ camera_from_world``."""
+        return self.projection @ self.camera_from_world
+
 
 @dataclass
 class FrameStats:

@@ -85,7 +85,7 @@ def clip_from_rel(camera: FrameCamera, origin: np.ndarray) -> np.ndarray:
     """(4, 4) float64: rel points (world minus ``origin``) to the frame's clip space."""
     shift = np.eye(4)
     shift[:3, 3] = np.asarray(origin, np.float64)
-    return camera.projection @ camera.camera_from_world @ shift
+    return camera.clip_from_world @ shift
 
 
 def resolve(screen: ScreenFrame, depth, pix, origins, dirs, images, origin, frame, surfaces,
