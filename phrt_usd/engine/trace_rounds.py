@@ -56,13 +56,11 @@ class ReflectionRounds:
 
     def __call__(self, ids: list[int], densities: list[str]) -> TracedRound:
         t = time.perf_counter()
-        reuse = self._reuse
-        phase = (0, 0) if reuse is None else reuse.phase
         result = self._tracer.trace_reflections(
-            self._gbuffer, ids, self._bounce_limit, densities, phase, reuse, self._screen
+            self._gbuffer, ids, self._bounce_limit, densities, self._reuse, self._screen
         )
-        if reuse is not None:
-            reuse.record(result)
+        if self._reuse is not None:
+            self._reuse.record(result)
         apply_traced(
             self.image, self._local, self._reflectivity, result, self.traced_mask, self.pixel_kind
         )

@@ -292,7 +292,7 @@ class Tracer:
 
     def trace_reflections(
         self, gbuffer: GBuffer, sources: list[int], bounce_limit: int, density="full",
-        phase: tuple[int, int] = (0, 0), reuse=None, screen=None,
+        reuse=None, screen=None,
     ) -> ReflectionResult:
         """Mirror-reflection radiance for every G-buffer pixel whose element is in
         ``sources`` (no primary rays: rays start at the G-buffer position / normal /
@@ -304,15 +304,17 @@ class Tracer:
         densities, one per source): large reflectors start rays on a pattern of their pixels and
         fill the others from traced neighbours (``sparse_pixels``); their records then
         count every covered pixel, so rays per pixel stay what a frame's pixel counts
-        predict at that density (hits scaled alike). ``phase`` (rows, columns) shifts
-        the pattern (``sparse_pixels.rotation_phase``: a rotating subset); ``reuse``
-        (an ``engine.reflection_history.FrameReuse``, None: none) gives skipped pixels
-        their reprojected history where it is valid, the fill the others. ``screen`` (a
-        ``screen_space.ScreenFrame``, None: none) resolves first rays in screen space
-        where the G-buffer decides them (kind SCREEN_SPACE), the bounce loop the rest."""
+        predict at that density (hits scaled alike). ``reuse`` (an
+        ``engine.reflection_history.FrameReuse``, None: none) shifts the pattern by the
+        frame's ``phase`` (a rotating subset, ``sparse_pixels.rotation_phase``) and gives
+        skipped pixels their reprojected history where it is valid, the fill the others.
+        ``screen`` (a ``screen_space.ScreenFrame``, None: none) resolves first rays in
+        screen space where the G-buffer decides them (kind SCREEN_SPACE), the bounce loop
+        the rest."""
         start = time.perf_counter()
         self.last_rays = []
         sources = [int(s) for s in sources]
+        phase = (0, 0) if reuse is None else reuse.phase
         if isinstance(density, str):
             density = check_density(density)
         else:
