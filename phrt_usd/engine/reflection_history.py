@@ -2,7 +2,8 @@
 
 A reflector traced at a reduced density starts rays on a pattern of its pixels that
 rotates every frame (``sparse_pixels.rotation_phase``): over ``ROTATION_PERIOD`` frames
-("half" 2, "quarter" 4, "sixteenth" 16) every pixel of it is traced once. Its other
+(2 from "half" up, 4 from "quarter", 8 from "eighth", 16 at "sixteenth") every pixel of
+it is traced at least once. Its other
 pixels take, where it is still valid, the reflection they had in the previous frame,
 reprojected (``REUSED``, ``model/pixel_kinds.py``); only where no valid history exists
 are they reconstructed from this frame's samples (``FILLED``, ``sparse_pixels``). A still

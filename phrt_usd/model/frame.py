@@ -290,7 +290,7 @@ class FrameStats:
     #: round, the fitted fixed ms and ms per ray, its wall ms (not in frame_ms).
     calibration: dict | None = None
     #: Selected reflectors traced at another density than the render's (HEU1's density
-    #: steps): prim path → "half", "quarter" or "sixteenth".
+    #: steps): prim path → one of ``model.trace_density.TRACE_DENSITIES`` but "full".
     densities: dict[str, str] = field(default_factory=dict)
     #: Pixels of each kind (``model/pixel_kinds.py``: "background", "raster",
     #: "screen-space", "traced", "reused", "filled" → count); empty in records written

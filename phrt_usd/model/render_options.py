@@ -210,11 +210,12 @@ OPTIONS: dict[str, RenderOption] = {o.name: o for o in (
     RenderOption(
         "trace_density", str, "full", FRAME,
         "Pixels of a traced reflector that start rays: every one, or for reflectors of 64+ "
-        "pixels a checkerboard (half), one in each 2x2 block (quarter) or one in each 4x4 "
-        "block (sixteenth), the others interpolated from their traced neighbours (hybrid "
-        "mode).",
+        "pixels k/16 of them (k = 1..15; named: a checkerboard half, one in each 2x2 block "
+        "quarter, the checkerboard of those eighth, one in each 4x4 block sixteenth), the "
+        "others reused from the previous frame or interpolated from their traced "
+        "neighbours (hybrid mode).",
         cli="--trace-density", label="trace density", choices=TRACE_DENSITIES,
-        metavar="|".join(TRACE_DENSITIES),
+        metavar="full|half|quarter|eighth|sixteenth|K/16",
     ),
     RenderOption(
         "screen_space", str, "off", FRAME,

@@ -15,16 +15,26 @@ from phrt_usd.checks import check_choice
 #: docs/bench-log/2026-12-03-2987843-make-room-hold.md; docs/heuristic.md, "Density steps").
 SPARSE_MIN_PIXELS = 64
 
-#: The trace densities: every pixel; the checkerboard, one pixel in each 2 x 2 block or
-#: one in each 4 x 4 block of large reflectors. Finest first (HEU1's density steps walk
-#: them in this order). "sixteenth" is a last step before dropping a reflector: on the
-#: farm at T = 1 ms, reflectors already at a quarter grow to 4x the budget's rays near the
-#: path's end, and a drop there is a transition.
-TRACE_DENSITIES = ("full", "half", "quarter", "sixteenth")
+#: The trace densities are a rate: a reflector traced at k/16 (k = 1..16) starts rays at
+#: the pixels of each 4 x 4 block whose rank in an ordered-dither (Bayer) matrix is below
+#: k (``engine/trace/sparse_pixels.py``). The powers of two are the regular patterns and
+#: have names: "half" the checkerboard, "quarter" one pixel of each 2 x 2 block, "eighth"
+#: the checkerboard of those, "sixteenth" one of each 4 x 4 block; the rates between them
+#: add pixels to the coarser pattern, so that HEU1 can set a reflector's rate in steps of
+#: 1/16 of its pixels rather than halve it. "sixteenth" is a last step before dropping a
+#: reflector: on the farm at T = 1 ms, reflectors already at a quarter grow to 4x the
+#: budget's rays near the path's end, and a drop there is a transition.
+RATE_STEPS = 16
+_NAMED_RATES = {16: "full", 8: "half", 4: "quarter", 2: "eighth", 1: "sixteenth"}
+#: The densities, finest first (HEU1's density steps walk them in this order; a level is
+#: an index into this tuple).
+TRACE_DENSITIES = tuple(_NAMED_RATES.get(k, f"{k}/{RATE_STEPS}") for k in range(RATE_STEPS, 0, -1))
 #: Index of the coarsest density in TRACE_DENSITIES.
 COARSEST = len(TRACE_DENSITIES) - 1
+#: Pixels of each 4 x 4 block that start rays (k above), by index of TRACE_DENSITIES.
+LEVEL_RANKS = tuple(range(RATE_STEPS, 0, -1))
 #: Share of a large reflector's pixels each density starts rays at (the patterns').
-DENSITY_FRACTION = {"full": 1.0, "half": 0.5, "quarter": 0.25, "sixteenth": 1.0 / 16.0}
+DENSITY_FRACTION = {d: k / RATE_STEPS for d, k in zip(TRACE_DENSITIES, LEVEL_RANKS, strict=True)}
 
 
 def traced_fraction(pixels: float, density: str) -> float:

@@ -1,6 +1,6 @@
 """HEU1's density steps (ours, docs/heuristic.md "Transition-aware selection"): when the
-render traces at full density, a reflector that does not fit is traced at half, a
-quarter or a sixteenth of its pixels (``engine/trace/sparse_pixels.py``) instead of being
+render traces at full density, a reflector that does not fit is traced at a rate of k/16
+of its pixels, k = 15 down to 1 (``engine/trace/sparse_pixels.py``), instead of being
 dropped or left out, reflectors of its round step coarser to make room for it, and one
 below full density steps back finer once that fits. A step changes how sharp a
 reflection is, not whether it is traced (no transition).
@@ -50,8 +50,8 @@ class DensitySteps:
         at the finest coarser one that fits with ``reserve`` to spare and is not forecast
         to outgrow it. When even a reflector's coarsest density does not fit, reflectors
         of this round step coarser to make room for it (``_room``), if that frees enough.
-        Then a reflector taken below full density (and not stepped to make room) steps one
-        density finer when the extra rays fit with ``reserve`` to spare and its finer
+        Then a reflector taken below full density (and not stepped to make room) steps to
+        the finest density whose extra rays fit with ``reserve`` to spare and whose
         forecast stays within the budget over the lookahead (so it will not have to step
         back). Returns the reflectors taken here; records their levels and forecasts in
         the frame."""
@@ -105,10 +105,12 @@ class DensitySteps:
             level = frame.levels.get(e, 0)
             if not level or e in squeezed:
                 continue
-            extra = self.level_rays(e, level - 1) - self.level_rays(e, level)
-            lasting = bool(np.all(self._level_forecast(e, level - 1) <= budget))
-            if extra + reserve <= remaining and lasting:
-                remaining -= self._set_level(e, level - 1, was=level)
+            finer = next((v for v in range(level)
+                          if self.level_rays(e, v) - self.level_rays(e, level) + reserve
+                          <= remaining
+                          and bool(np.all(self._level_forecast(e, v) <= budget))), None)  # fmt: skip
+            if finer is not None:
+                remaining -= self._set_level(e, finer, was=level)
         return taken
 
     def _set_level(self, e: int, level: int, was: int | None = None) -> float:

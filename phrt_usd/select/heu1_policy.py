@@ -51,12 +51,12 @@ class Heu1Policy(DensitySteps, BudgetedPolicy):
       kept together); a kept reflector forecast to outgrow the budget charges its curve
       only up to that frame;
     * density steps (when the render traces at full density): a kept reflector that no
-      longer fits is traced at half, a quarter or a sixteenth of its pixels
-      (``sparse_pixels``) instead of being dropped, a reflector entering the view that
+      longer fits is traced at a rate of k/16 of its pixels, the finest that fits
+      (``sparse_pixels``), instead of being dropped, a reflector entering the view that
       does not fit (or would outgrow the budget) is taken at such a density; when even
       its coarsest density does not fit, reflectors of the round step coarser to make
       room for it (for a claim, or one entering the view: taken later it would be a
-      transition); a reflector below full density steps back one density finer once
+      transition); a reflector below full density steps back to the finest density
       that fits with the admission margin and its forecast stays within the budget. A
       step changes how sharp a reflection is, not whether it is traced (no transition:
       docs/heuristic.md);

@@ -62,7 +62,7 @@ def test_a_skipped_pixel_without_traced_neighbours_keeps_the_fallback():
 def test_density_is_checked_and_refused_in_rt_mode():
     assert check_density("HALF") == "half"
     with pytest.raises(BadOption, match="trace density"):
-        RenderOptions(trace_density="eighth")
+        RenderOptions(trace_density="17/16")
     with pytest.raises(BadOption, match="rt mode"):
         RenderOptions(mode="rt", trace_density="half")
 
@@ -156,7 +156,7 @@ def test_the_cli_and_the_api_run_at_half_density_and_record_it(tmp_path):
     bad = CliRunner().invoke(app, [*argv[:3], str(tmp_path / "bad"), "--trace-density", "x"])
     assert bad.exit_code == 2
     lines = bad.stderr.strip().splitlines()
-    assert len(lines) == 1 and "trace density must be one of full, half, quarter" in lines[0], lines
+    assert len(lines) == 1 and "trace density must be one of full, 15/16" in lines[0], lines
     assert not (tmp_path / "bad").exists()
 
 
@@ -172,7 +172,8 @@ def test_heu1_takes_a_reflector_too_large_for_its_budget_at_a_coarser_density(tm
     phrt_usd.render(stage, tmp_path / "all", **every)
     first = json.loads((tmp_path / "all" / "stats.json").read_text())["frames"][0]
     # A fresh policy's first prediction of the floor (its prior), the same for HEU1: 40 %
-    # of it fits a quarter of the floor with the admission margin, not half of it.
+    # of it fits 5/16 of the floor with the admission margin (10 % of the allowance:
+    # 5/16 + 0.04 <= 0.4 < 6/16 + 0.04), the finest rate that fits.
     predicted = first["metrics"]["/World/Floor"]["predicted_rays"]
     budget = int(0.4 * predicted)
     argv = ["render", str(stage), "--out", str(tmp_path / "heu1"), "--frames", "1",
@@ -180,10 +181,10 @@ def test_heu1_takes_a_reflector_too_large_for_its_budget_at_a_coarser_density(tm
     cli = CliRunner().invoke(app, argv)
     assert cli.exit_code == 0, cli.stderr
     frame = json.loads((tmp_path / "heu1" / "stats.json").read_text())["frames"][0]
-    assert frame["densities"] == {"/World/Floor": "quarter"}
+    assert frame["densities"] == {"/World/Floor": "5/16"}
     assert 0 < frame["rays"] <= budget
     layer = Usd.Stage.Open(str(tmp_path / "heu1" / "selection.usda"))
-    assert layer.GetPrimAtPath("/World/Floor").GetAttribute("phrt:traceDensity").Get(1) == 0.25
+    assert layer.GetPrimAtPath("/World/Floor").GetAttribute("phrt:traceDensity").Get(1) == 5 / 16
     phrt_usd.render(stage, tmp_path / "fixed", frames="1", heuristic="heu1",
                     budget_rays=budget, trace_density="half")  # fmt: skip
     fixed = json.loads((tmp_path / "fixed" / "stats.json").read_text())["frames"][0]

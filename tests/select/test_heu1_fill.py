@@ -68,13 +68,14 @@ def test_entering_reflector_forecast_to_outgrow_the_whole_budget_is_not_taken():
     # more than the whole budget, so it would be dropped while in view (a transition):
     # with the lookahead it is not taken at full density; without upcoming cameras, or
     # when the cameras stay put, it is. With density steps (the render at full density)
-    # it is taken at the finest coarser density its forecast fits at.
+    # it is taken at the finest coarser density its forecast fits at (10/16: 11/16
+    # outgrows the round's allowance).
     sc = scene([element((0.0, 0.0, -8.0)), element((1.0, 0.0, -8.0))])
     approach = tuple(camera((0.8, 0.0, -5.0 * k / LOOKAHEAD_FRAMES)) for k in range(1, 40))
     still = tuple(camera() for _ in range(1, 40))
     for upcoming, taken, density in (
         ((), "full", "full"), (still, "full", "full"), (approach, None, "half"),
-        (approach, "half", "full"),
+        (approach, "10/16", "full"),
     ):  # fmt: skip
         policy = heu1()
         fv = view([0, 300], trace_density=density)
@@ -87,8 +88,10 @@ def test_entering_reflector_forecast_to_outgrow_the_whole_budget_is_not_taken():
         assert (1 in ids) is (taken is not None), (len(upcoming), ids)
         if taken is not None:
             assert policy.round_densities([1]) == [taken]
-        if taken == "half":
-            assert growth * policy.predicted_rays(1) * 0.5 <= 1000
+        if taken == "10/16":
+            assert growth * policy.predicted_rays(1) * 10 / 16 <= 1000
+            allowance = policy._require_frame().first_allowance  # 1000 less the safety
+            assert policy._outgrows(1, allowance, TRACE_DENSITIES.index("11/16"))
         policy.end_frame()
 
 
@@ -96,7 +99,8 @@ def test_density_steps_make_room_for_a_reflector_entering_the_view():
     # Reflector 0 (2000 pixels) fills most of a 2300-ray budget (2091 predicted rays with
     # RAYS_SAFETY). Reflector 1 enters with 60 pixels (traced whole: under 64): beside 0
     # at full density it does not fit with the admission margin (2000 + 60 + 209 >
-    # 2091), so HEU1 steps 0 to half density and takes 1 as it enters; taken later, while
+    # 2091), so HEU1 steps 0 to 14/16 (each 1/16 frees 125 of the 178 rays needed) and
+    # takes 1 as it enters; taken later, while
     # in view, it would be a transition. At a fixed density nothing steps, and 0 tracing
     # 20 % more rays than predicted leaves no round for 1: it stays out.
     sc = scene([element((0.0, 0.0, -8.0)), element((1.0, 0.0, -8.0))])
@@ -107,21 +111,23 @@ def test_density_steps_make_room_for_a_reflector_entering_the_view():
         assert m[1].selected is taken
         if taken:
             assert rounds == [[0, 1]]  # one round: the room is made before it is traced
-            assert policy.previous_levels == {0: 1}  # 0 at half, 1 whole (no level)
+            assert policy.previous_levels == {0: 2}  # 0 at 14/16, 1 whole (no level)
             assert m[1].trace_density == 1.0
 
 
 def test_room_steps_the_reflector_that_frees_the_fewest_rays_that_suffice():
     # Three reflectors at full density, 4000 / 1000 / 600 pixels (1 ray a pixel): a step
-    # to half frees 2000 / 500 / 300 rays. 400 needed: the 1000-pixel one (500, the
-    # fewest that suffice); 2500: the largest first, then the 1000-pixel one;
-    # more than every step to a sixteenth frees: none.
+    # of 1/16 frees 250 / 62.5 / 37.5 rays. 60 needed: the 1000-pixel one (62.5, the
+    # fewest that suffice); 400: the largest twice (250 frees most, then 250 is the
+    # fewest that suffices for 150); 2500: the largest ten times; more than every step
+    # to a sixteenth frees: none.
     sc = scene([element((0.0, 0.0, -8.0)), element((1.0, 0.0, -8.0)), element((2.0, 0.0, -8.0))])
     policy = heu1()
     policy.begin_frame(view([4000, 1000, 600]), sc)
     assert policy._room([0, 1, 2], 0.0) == {}
-    assert policy._room([0, 1, 2], 400.0) == {1: 1}
-    assert policy._room([0, 1, 2], 2500.0) == {0: 1, 1: 1}
+    assert policy._room([0, 1, 2], 60.0) == {1: 1}
+    assert policy._room([0, 1, 2], 400.0) == {0: 2}
+    assert policy._room([0, 1, 2], 2500.0) == {0: 10}
     assert policy._room([0, 1, 2], 5600.0 * (15 / 16) + 1.0) is None
     policy.end_frame()
 

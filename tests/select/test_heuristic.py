@@ -513,8 +513,8 @@ def test_kept_selection_drops_the_fewest_when_it_no_longer_fits():
     # Three kept reflectors; the largest grows past what the budget holds with the two
     # small ones: at a fixed trace density it is the one dropped (one transition), not
     # the two small ones, even though it is the most relevant; with density steps (the
-    # render at full density) it is kept at half density instead, and steps back to full
-    # once it shrinks enough.
+    # render at full density) it is kept at 14/16 of its pixels instead (the finest rate
+    # that fits: 700 + 200 rays), and steps back to full once it shrinks enough.
     sc = scene([element((0.0, 0.0, -4.0)), element((1.0, 0.0, -8.0)), element((-1.0, 0.0, -8.0))])
     for density in ("half", "full"):
         policy = policy_of("heu1")
@@ -526,11 +526,11 @@ def test_kept_selection_drops_the_fewest_when_it_no_longer_fits():
             assert {e for e, x in m.items() if x.selected} == {1, 2}
             continue
         assert {e for e, x in m.items() if x.selected} == {0, 1, 2}
-        assert policy.previous_levels == {0: 1}  # element 0 at half density
-        # 800 pixels at half density: 400 predicted rays (1 ray a pixel) beside 200.
-        assert m[0].predicted_rays == pytest.approx(800 * 0.5 * 1.0)
+        assert policy.previous_levels == {0: 2}  # element 0 at 14/16
+        # 800 pixels at 14/16: 700 predicted rays (1 ray a pixel) beside 200.
+        assert m[0].predicted_rays == pytest.approx(800 * 14 / 16 * 1.0)
         run_frame(policy, sc, view([800, 100, 100]), 1000)
-        assert policy.previous_levels == {0: 1}  # no room to step up: it stays at half
+        assert policy.previous_levels == {0: 2}  # no room to step up: it stays
         m, _ = run_frame(policy, sc, view([500, 100, 100]), 1000)
         assert all(x.selected for x in m.values()) and policy.previous_levels == {}
 

@@ -11,7 +11,7 @@ import pytest
 from selection_fakes import element, policy_of, scene, view
 
 from phrt_usd.model.frame import Budget, TraceRecord
-from phrt_usd.model.trace_density import traced_fraction
+from phrt_usd.model.trace_density import COARSEST, traced_fraction
 from phrt_usd.select.cost_model import (
     CALIBRATION_SAFETY_MAX,
     TIME_SAFETY_INITIAL,

@@ -14,9 +14,12 @@ Four kernels, in the order a round calls them:
 The last three take a range lo..hi of their rows (callers split them over a pool: the
 table is read-only while they run).
 
-The lattice of a pattern: a grid of spacing s (axes (0, s) and (s, 0)) or the
-checkerboard's (axes (1, 1) and (1, -1)); a skipped pixel p lies in the cell of four
-traced lattice points (its corners), at fractions (t1, t2) along the two axes.
+The lattice of a pattern (the density's regular pattern: ``sparse_pixels``): a grid
+of spacing s (axes (0, s) and (s, 0)) or the checkerboard of the grid of spacing q (axes
+(q, q) and (q, -q): q = 1 the checkerboard, 2 the eighth's); a skipped pixel p lies in the
+cell of four traced lattice points (its corners), at fractions (t1, t2) along the two
+axes. A density between two regular patterns traces more pixels than its lattice's:
+they keep their traced values, and the fill still interpolates on the lattice.
 
 Guides. A traced pixel q weighs ``guide(p, q)``: the normals' agreement
 (n_p . n_q)^(2^FILL_NORMAL_SQUARINGS) times the plane weight (how far the line between
@@ -133,10 +136,11 @@ def clear_table(table, traced_pix):
 
 @njit(**_HELPER)
 def _axes(lat):
-    """The lattice's two axes (rows, columns each) and the fallback window's radius:
-    ``lat`` 0 the checkerboard, else the grid's spacing."""
-    if lat == 0:
-        return 1, 1, 1, -1, 1
+    """The lattice's two axes (rows, columns each) and the fallback window's radius
+    (the farthest any pixel lies from a lattice point, in rows or columns): ``lat`` -q
+    the checkerboard of the grid of spacing q, else the grid's spacing."""
+    if lat < 0:
+        return -lat, -lat, -lat, lat, -lat
     return 0, lat, lat, 0, lat - 1
 
 
@@ -160,7 +164,8 @@ def _hit_weight(v, vhat):
 def fill_curvature(table, traced_pix, traced_src, radiance, v, lattice, width, height, normal,
                    position, lo, hi, out_d):  # fmt: skip
     """The second differences of traced pixels lo..hi along the two axes of their
-    lattice (``lattice`` (n,) int64: 0 the checkerboard, s >= 2 the grid, 1 none: 0)
+    lattice (``lattice`` (n,) int64: -q the checkerboard of the grid q, s >= 2 the grid, 1 none:
+    0)
     into out_d (n, 2, 3) float32, each times its two neighbours' guides (module
     docstring); 0 without both. traced_pix, traced_src (n,) int64, radiance
     (n, 3) float32, v (n,) float64 (``fill_table``'s)."""
@@ -199,9 +204,10 @@ def fill_skipped(
     table: ``fill_table``'s; traced_src (n,) int64, radiance (n, 3) float32, v (n,)
     float64 (``fill_table``'s), curvature (n, 2, 3) float32 (``fill_curvature``'s) and
     traced_pix (n,) int64 of the traced pixels; skipped_pix, skipped_src (m,) int64;
-    lattice (m,) int64 each one's pattern: 0 the checkerboard (traced where row + col +
-    phase[0] + phase[1] is even), s >= 2 the grid of spacing s (rows phase[0] + i s,
-    columns phase[1] + j s); phase (2,) int64; the guides (normal, position, depth).
+    lattice (m,) int64 each one's pattern: -q the checkerboard of the grid of spacing q
+    (rows phase[0] + i q, columns phase[1] + j q, i + j even), s >= 2 the grid of spacing
+    s (rows phase[0] + i s, columns phase[1] + j s); phase (2,) int64; the guides
+    (normal, position, depth).
     Writes out_rad (m, 3) float32 the radiance, out_hit (m,) float32 the hit distance
     the corners' v̂ gives (+inf: its rays leave the scene) and out_ok (m,) bool whether
     the pixel got them (the others are left as they were)."""
@@ -212,10 +218,14 @@ def fill_skipped(
         r = p // width
         c = p - r * width
         ar, ac, br, bc, radius = _axes(lat)
-        if lat == 0:  # p is the centre of the cell above it, or on the lattice itself
-            odd = (r + c + phase[0] + phase[1]) & 1
-            r0, c0 = (r - 1, c) if odd else (r, c)
-            t1 = t2 = 0.5 if odd else 0.0
+        if lat < 0:  # along the diagonals u = rows + columns, w = rows - columns
+            q2 = -2 * lat  # lattice points lie at multiples of 2q of both
+            u = (r - phase[0]) + (c - phase[1])
+            w = (r - phase[0]) - (c - phase[1])
+            fu, fw = u // q2, w // q2
+            r0 = phase[0] + (fu + fw) * (-lat)
+            c0 = phase[1] + (fu - fw) * (-lat)
+            t1, t2 = (u - fu * q2) / q2, (w - fw * q2) / q2
         else:
             r0 = phase[0] + ((r - phase[0]) // lat) * lat
             c0 = phase[1] + ((c - phase[1]) // lat) * lat

@@ -1,18 +1,21 @@
 """Tracing large reflectors at reduced density: which of their pixels start rays, and how
-the others get their reflection from traced samples (``--trace-density
-half|quarter|sixteenth``, HEU1's density steps).
+the others get their reflection from traced samples (``--trace-density``, HEU1's
+density steps).
 
 The pixels of a reflector with at least SPARSE_MIN_PIXELS pixels in a frame are traced
-on a pattern: ``half`` a checkerboard (row + column even), ``quarter`` one pixel of each
-2 x 2 block (row and column even), ``sixteenth`` one of each 4 x 4 block (row and column
-multiples of 4); a ``phase`` (row, column) shifts the pattern (a pattern rotating from
-frame to frame passes the frame's). Smaller reflectors are traced whole: their savings
-are small and their edges are most of their pixels.
+on a pattern: at a density of k/16, the pixels of each 4 x 4 block whose ordered-dither
+rank (BAYER_RANKS) is below k. Its regular patterns: ``half`` a checkerboard (row +
+column even), ``quarter`` one pixel of each 2 x 2 block (row and column even),
+``eighth`` the checkerboard of those, ``sixteenth`` one of each 4 x 4 block (row and
+column multiples of 4); a density between two of them traces the coarser one's pixels
+and the next ranks. A ``phase`` (row, column) shifts the pattern (a pattern rotating
+from frame to frame passes the frame's). Smaller reflectors are traced whole: their
+savings are small and their edges are most of their pixels.
 
 The other pixels are reconstructed (``fill_skipped``, compiled in ``fill_kernels``, whose
 docstring has the rule and its constants): an edge-aware Catmull-Rom interpolation on
-the pattern's lattice (the cell's four traced corners and the 8 lattice points that
-extend them), each traced sample weighed by how far it belongs with the pixel:
+the lattice of the density's regular pattern (the cell's four traced corners and the 8
+lattice points that extend them), each traced sample weighed by how far it belongs with the pixel:
 
 - its reflector: only the pixel's own (never across reflectors);
 - the G-buffer's normals (n . n')^256: a crease stops the fill, and on a rippled
@@ -58,29 +61,45 @@ import numpy as np
 
 from phrt_usd.model import pixel_kinds
 from phrt_usd.model.frame import ReflectionResult, flat_image
-from phrt_usd.model.trace_density import SPARSE_MIN_PIXELS, TRACE_DENSITIES
+from phrt_usd.model.trace_density import LEVEL_RANKS, SPARSE_MIN_PIXELS, TRACE_DENSITIES
 
-#: Spacing of each reduced density's traced pixels: a skipped pixel's traced neighbours
-#: lie within spacing - 1 rows and columns (the checkerboard's within 1, as at quarter).
-PATTERN_SPACING = {"half": 2, "quarter": 2, "sixteenth": 4}
-#: PATTERN_SPACING by index of TRACE_DENSITIES (1 at full density: every pixel traced).
-LEVEL_SPACING = np.array([PATTERN_SPACING.get(d, 1) for d in TRACE_DENSITIES], np.int64)
-#: Each density's lattice as ``fill_kernels.fill_skipped`` takes it: 0 the checkerboard,
-#: else the spacing of its grid (by index of TRACE_DENSITIES; "full" skips nothing).
-_LATTICE = np.array([0 if d == "half" else PATTERN_SPACING.get(d, 1) for d in TRACE_DENSITIES],
-                    np.int64)  # fmt: skip
+#: The ordered-dither (Bayer) ranks of a 4 x 4 block: a density of k/16 traces the pixels
+#: of rank below k (``model/trace_density.py``). Its prefixes of 2^j ranks are the regular
+#: patterns: rank 0 one pixel of each 4 x 4 block, ranks 0-1 the checkerboard of the 2 x 2
+#: grid, 0-3 the 2 x 2 grid, 0-7 the checkerboard, 0-15 every pixel.
+BAYER_RANKS = np.array([[0, 8, 2, 10], [12, 4, 14, 6], [3, 11, 1, 9], [15, 7, 13, 5]], np.int64)
+_RANKS = np.array(LEVEL_RANKS, np.int64)
+#: The regular pattern each density contains (its traced pixels of the largest power of
+#: two of ranks): the lattice the fill interpolates on and the reuse's cells are cut by;
+#: a density between two powers traces that pattern's pixels and more, which keep their
+#: traced values (the fill still interpolates on the coarser lattice).
+_REGULAR = 2 ** np.floor(np.log2(_RANKS)).astype(np.int64)
+#: Each density's lattice as ``fill_kernels.fill_skipped`` takes it, by index of
+#: TRACE_DENSITIES: -q the checkerboard of the grid of spacing q (-1 the checkerboard),
+#: s >= 2 the grid of spacing s, 1 none (every pixel traced).
+_LATTICE = np.select([_REGULAR == 16, _REGULAR == 8, _REGULAR == 4, _REGULAR == 2],
+                     [1, -1, 2, -2], 4).astype(np.int64)  # fmt: skip
+#: Side of the square cells of each density's regular pattern that hold one or more of its
+#: traced pixels (the reuse's cells: ``engine/reflection_history.py``), by index of
+#: TRACE_DENSITIES: 1 at full density, 2 down to a quarter, 4 below.
+LEVEL_SPACING = np.where(_REGULAR == 16, 1, np.where(_REGULAR >= 4, 2, 4)).astype(np.int64)
+#: Frames after which a density's rotating pattern (``rotation_phase``) has visited every
+#: pixel, by index of TRACE_DENSITIES: 16 / 2^j for a regular pattern of 2^j ranks (its
+#: traced pixels are one in that many).
+LEVEL_PERIOD = (16 // _REGULAR).astype(np.int64)
+#: The same by name, and the spacing of a regular pattern's lattice (the checkerboards'
+#: by their grid: 1 the checkerboard, 2 the eighth's).
+ROTATION_PERIOD = dict(zip(TRACE_DENSITIES, LEVEL_PERIOD.tolist(), strict=True))
+PATTERN_SPACING = {"half": 2, "quarter": 2, "eighth": 4, "sixteenth": 4}
 
 
 #: The rotation of the patterns from frame to frame (``rotation_phase``): the 2 x 2
 #: offsets in the order that alternates the checkerboard's parity every frame (so "half"
 #: covers its pixels in 2 frames) and visits every offset of a 2 x 2 block in 4 ("quarter");
 #: the same order again for the 4 x 4 block's 2 x 2 sub-blocks, so "sixteenth" visits all
-#: 16 offsets in 16 frames, each 4 consecutive frames spread over one 2 x 2 block.
+#: 16 offsets in 16 frames, each 4 consecutive frames spread over one 2 x 2 block, and
+#: "eighth" (whose pattern holds the offsets 0 and (2, 2)) all 8 of its own in 8.
 _ROTATION_2X2 = ((0, 0), (0, 1), (1, 1), (1, 0))
-#: Frames after which every density's pattern has visited every pixel of its cell, and
-#: the same by index of TRACE_DENSITIES.
-ROTATION_PERIOD = {"full": 1, "half": 2, "quarter": 4, "sixteenth": 16}
-LEVEL_PERIOD = np.array([ROTATION_PERIOD[d] for d in TRACE_DENSITIES], np.int64)
 
 
 def rotation_phase(frame: int) -> tuple[int, int]:
@@ -138,11 +157,8 @@ def traced_subset(
     shifted by ``phase`` (rows, columns)."""
     counts = np.bincount(src, minlength=n_sources)
     row, col = np.divmod(pix, width)
-    row, col = row - int(phase[0]), col - int(phase[1])
-    level = pixel_levels(density, src)
-    step = LEVEL_SPACING[level]
-    on_grid = (row % step == 0) & (col % step == 0)
-    on_pattern = np.where(level == TRACE_DENSITIES.index("half"), (row + col) % 2 == 0, on_grid)
+    rank = BAYER_RANKS[(row - int(phase[0])) % 4, (col - int(phase[1])) % 4]
+    on_pattern = rank < _RANKS[pixel_levels(density, src)]
     return (counts[src] < SPARSE_MIN_PIXELS) | on_pattern
 
 
