@@ -157,7 +157,7 @@ def test_filled_pixels_count_under_a_time_budget_only():
     for budget in (Budget(rays=10**6), Budget(ms=1000.0)):
         policy.begin_frame(view(pixels), sc)
         policy.next_round(budget)
-        costs[budget.ms is None] = policy.level_rays(0, 3)  # the coarsest density
+        costs[budget.ms is None] = policy.level_rays(0, COARSEST)
         policy.end_frame()
     share = 1.0 / 16.0  # the coarsest density's
     assert costs[False] - costs[True] == pytest.approx(fill * 4096 * (1.0 - share))
