@@ -215,7 +215,7 @@ OPTIONS: dict[str, RenderOption] = {o.name: o for o in (
         "others reused from the previous frame or interpolated from their traced "
         "neighbours (hybrid mode).",
         cli="--trace-density", label="trace density", choices=TRACE_DENSITIES,
-        metavar="full|half|quarter|eighth|sixteenth|K/16",
+        metavar="|".join(TRACE_DENSITIES),
     ),
     RenderOption(
         "screen_space", str, "off", FRAME,

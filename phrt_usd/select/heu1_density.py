@@ -105,10 +105,10 @@ class DensitySteps:
             level = frame.levels.get(e, 0)
             if not level or e in squeezed:
                 continue
-            finer = next((v for v in range(level)
-                          if self.level_rays(e, v) - self.level_rays(e, level) + reserve
-                          <= remaining
-                          and bool(np.all(self._level_forecast(e, v) <= budget))), None)  # fmt: skip
+            room = remaining - reserve + self.level_rays(e, level)
+            fits = (v for v in range(level) if self.level_rays(e, v) <= room
+                    and bool(np.all(self._level_forecast(e, v) <= budget)))  # fmt: skip
+            finer = next(fits, None)
             if finer is not None:
                 remaining -= self._set_level(e, finer, was=level)
         return taken

@@ -20,7 +20,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from scenes import mirror_gallery_stage  # noqa: E402
 
 from phrt_usd.engine.renderer import FrameRenderer  # noqa: E402
-from phrt_usd.engine.trace.sparse_pixels import PATTERN_SPACING, rotation_phase  # noqa: E402
+from phrt_usd.engine.trace.sparse_pixels import pattern_spacing, rotation_phase  # noqa: E402
 from phrt_usd.model import pixel_kinds as pk  # noqa: E402
 from phrt_usd.model.render_options import RenderOptions  # noqa: E402
 from phrt_usd.model.trace_density import SPARSE_MIN_PIXELS  # noqa: E402
@@ -92,7 +92,7 @@ def test_kinds_count_what_the_renderer_traced_and_filled(gallery, density):
             continue
         # Most of a sparse reflector is not traced (filled, or reused from frame 10).
         assert counts["filled"] + counts["reused"] > counts["traced"]
-        step = PATTERN_SPACING[density]
+        step = pattern_spacing(density)
         phase_row, phase_col = rotation_phase(k)
         rows, cols = np.nonzero(kinds == pk.TRACED)
         ids = gb.element_id[rows, cols]

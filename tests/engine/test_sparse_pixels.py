@@ -17,9 +17,9 @@ import phrt_usd
 from phrt_usd.cli import app
 from phrt_usd.engine.renderer import RenderOptions
 from phrt_usd.engine.trace.sparse_pixels import (
-    PATTERN_SPACING,
     FillGuides,
     fill_skipped,
+    pattern_spacing,
     traced_subset,
 )
 from phrt_usd.engine.trace.tracer import Tracer
@@ -28,14 +28,16 @@ from phrt_usd.model.trace_density import SPARSE_MIN_PIXELS, check_density
 
 
 def _pattern(row, col, density):
-    """The pixels a large reflector traces at ``density``."""
+    """The pixels a large reflector traces at ``density`` (a regular pattern)."""
     if density == "half":
         return (row + col) % 2 == 0
-    step = PATTERN_SPACING[density]
+    if density == "eighth":  # the checkerboard of the 2 x 2 grid
+        return (row % 2 == 0) & (col % 2 == 0) & ((row + col) % 4 == 0)
+    step = pattern_spacing(density)
     return (row % step == 0) & (col % step == 0)
 
 
-@pytest.mark.parametrize("density", ["half", "quarter", "sixteenth"])
+@pytest.mark.parametrize("density", ["half", "quarter", "eighth", "sixteenth"])
 def test_large_reflectors_start_rays_on_the_pattern_small_ones_everywhere(density):
     width, height = 40, 30
     pix = np.arange(width * height, dtype=np.int64)

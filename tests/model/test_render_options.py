@@ -145,7 +145,7 @@ BAD_VALUES = [
     ({"threads": 0}, r"threads must be in 1\.\.1024, got 0"),
     ({"gl": "vulkan"}, "gl must be one of auto, egl, osmesa, got 'vulkan'"),
     ({"primary": "gpu"}, "primary must be one of auto, raster, rays, got 'gpu'"),
-    ({"trace_density": "eighth"}, "trace density must be one of full, half, quarter, sixteenth"),
+    ({"trace_density": "17/16"}, "trace density must be one of full, 15/16, 14/16"),
     ({"exposure": math.inf}, "--exposure must be a finite number of EV, got inf"),
     ({"mode": "rt", "primary": "raster"}, "--primary raster: rt mode traces every ray"),
     ({"mode": "rt", "trace_density": "half"}, "--trace-density half: rt mode traces every"),

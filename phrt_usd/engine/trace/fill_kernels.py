@@ -137,10 +137,11 @@ def clear_table(table, traced_pix):
 @njit(**_HELPER)
 def _axes(lat):
     """The lattice's two axes (rows, columns each) and the fallback window's radius
-    (the farthest any pixel lies from a lattice point, in rows or columns): ``lat`` -q
-    the checkerboard of the grid of spacing q, else the grid's spacing."""
+    (the farthest a pixel of the image lies from a lattice point in it, in rows or
+    columns): ``lat`` -q the checkerboard of the grid of spacing q (2q - 1: along the
+    image's edges its points are 2q apart), else the grid's spacing s (s - 1)."""
     if lat < 0:
-        return -lat, -lat, -lat, lat, -lat
+        return -lat, -lat, -lat, lat, -2 * lat - 1
     return 0, lat, lat, 0, lat - 1
 
 

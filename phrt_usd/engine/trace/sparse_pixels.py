@@ -87,10 +87,8 @@ LEVEL_SPACING = np.where(_REGULAR == 16, 1, np.where(_REGULAR >= 4, 2, 4)).astyp
 #: pixel, by index of TRACE_DENSITIES: 16 / 2^j for a regular pattern of 2^j ranks (its
 #: traced pixels are one in that many).
 LEVEL_PERIOD = (16 // _REGULAR).astype(np.int64)
-#: The same by name, and the spacing of a regular pattern's lattice (the checkerboards'
-#: by their grid: 1 the checkerboard, 2 the eighth's).
+#: The same by name.
 ROTATION_PERIOD = dict(zip(TRACE_DENSITIES, LEVEL_PERIOD.tolist(), strict=True))
-PATTERN_SPACING = {"half": 2, "quarter": 2, "eighth": 4, "sixteenth": 4}
 
 
 #: The rotation of the patterns from frame to frame (``rotation_phase``): the 2 x 2
@@ -110,6 +108,13 @@ def rotation_phase(frame: int) -> tuple[int, int]:
     fine = _ROTATION_2X2[frame % 4]
     coarse = _ROTATION_2X2[(frame // 4) % 4]
     return fine[0] + 2 * coarse[0], fine[1] + 2 * coarse[1]
+
+
+def pattern_spacing(density: str) -> int:
+    """Rows and columns between the traced pixels of ``density``'s regular pattern along
+    an axis of the image (1 at full density; 2 the checkerboard and the 2 x 2 grid, 4 the
+    eighth's checkerboard and the 4 x 4 grid): the reach of its fill's lattice steps."""
+    return int(LEVEL_SPACING[TRACE_DENSITIES.index(density)])
 
 
 @dataclass(frozen=True)
