@@ -57,7 +57,7 @@ class Heu1Policy(DensitySteps, BudgetedPolicy):
       its coarsest density does not fit, reflectors of the round step coarser to make
       room for it (for a claim, or one entering the view: taken later it would be a
       transition); a reflector below full density steps back to the finest density
-      that fits with the admission margin and its forecast stays within the budget. A
+      that fits with the admission margin. A
       step changes how sharp a reflection is, not whether it is traced (no transition:
       docs/heuristic.md);
     * hold: when the time model lets none of the previous frame's selection be traced
