@@ -177,10 +177,11 @@ def capture(
 
 #: The ``format`` and ``version`` a recording file names; any other is refused.
 RECORDING_FORMAT = "phrt-replay-recording"
+#: 6: TraceRecord's pixel kinds (screen_space, reused, filled, marched);
 #: 5: FrameView.trace_density; 4: CameraFrame.exposure_scale, the lights' path and
 #: LocalLight's cone; 3: TraceRecord.fallback_error; 2: CameraFrame's vertical aperture,
 #: offsets, conform policy.
-RECORDING_VERSION = 5
+RECORDING_VERSION = 6
 
 
 class RecordingError(PhrtError):
@@ -251,6 +252,10 @@ _SCHEMAS: dict[type, dict[str, object]] = {
         "mean_reflector_bounces": float,
         "seconds": float,
         "fallback_error": _Optional(float),
+        "screen_space": _Optional(int),
+        "reused": _Optional(int),
+        "filled": _Optional(int),
+        "marched": _Optional(int),
     },
     DistantLight: {"direction": _VEC3, "radiance": _VEC3, "angle": float, "path": str},
     LocalLight: {
@@ -720,17 +725,20 @@ def _calibration(frame, sim: SimulatedTime, rng: np.random.Generator, budget_ms:
 class _RecordedRounds:
     """The replay's tracing step of one frame: the capture's records of the round's
     reflectors (a reflector traced at a reduced density casts that share of its recorded,
-    full-density rays), timed by ``sim`` (a time budget) or at 1 us a ray (a rays budget:
-    the time is not read)."""
+    full-density rays; its pixel kinds not counted), timed by ``sim`` (a time budget) or
+    at 1 us a ray (a rays budget: the time is not read)."""
 
     def __init__(self, frame, sim: SimulatedTime | None, rng: np.random.Generator) -> None:
         self.frame, self.sim, self.rng = frame, sim, rng
 
     def __call__(self, ids: list[int], densities: list[str]) -> TracedRound:
         counts = self.frame.view.pixel_counts
+        # The recorded pixel kinds are the full-density capture's, not this density's:
+        # not counted (the policy takes the density's skipped pixels as filled).
         records = [
             replace(self.frame.records[i], rays=round(self.frame.records[i].rays
-                                                      * traced_fraction(counts[i], d)))
+                                                      * traced_fraction(counts[i], d)),
+                    screen_space=None, reused=None, filled=None, marched=None)
             for i, d in zip(ids, densities, strict=True)
         ]  # fmt: skip
         rays = sum(r.rays for r in records)

@@ -73,6 +73,15 @@ class TraceRecord:
     fallback_error: mean over this source's traced pixels of how far the traced frame is
           from the raster fallback it replaced (``compositing.observe_fallback_error``:
           displayed values, in [0, 1]); None until the renderer has composited the round.
+    screen_space, reused, filled: of ``pixels``, how many were made each way
+          (``model/pixel_kinds.py``: resolved in screen space, reprojected from the
+          previous frame, reconstructed from traced neighbours); the rest were traced
+          (or, at a reduced density, kept the fallback: an isolated skipped pixel).
+    marched: of ``pixels``, how many had their first ray marched through the G-buffer
+          (screen space on: every pixel that started rays, resolved or not; the march
+          is what the screen-space step costs). The tracer counts these four for every
+          reflection round (``Tracer.trace_reflections``); None: not counted (a record
+          made elsewhere: a replay, a test).
     """
 
     source: int
@@ -83,6 +92,10 @@ class TraceRecord:
     mean_reflector_bounces: float = 0.0
     seconds: float = 0.0
     fallback_error: float | None = None
+    screen_space: int | None = None
+    reused: int | None = None
+    filled: int | None = None
+    marched: int | None = None
 
 
 @dataclass
@@ -212,13 +225,13 @@ class SelectionPolicy(Protocol):
         ...
 
     def calibrate(
-        self, samples: list[tuple[int, float, int]], rays: int, pixels: int,
-        records: list[TraceRecord],
-    ) -> tuple[float, float, float]:  # fmt: skip
-        """Timed calibration rounds ``(rays, ms, filled pixels)``, ``rays`` over the
-        ``pixels`` that started rays in all, and per reflector traced at full density its
-        pixels and rays (``records``); returns the trace-time model fitted to them:
-        (fixed ms, ms per ray, rays per filled pixel)."""
+        self, samples: list[tuple], rays: int, pixels: int, records: list[TraceRecord],
+    ) -> tuple[float, ...]:  # fmt: skip
+        """Timed calibration rounds ``(rays, ms, filled, reused, marched pixels)``,
+        ``rays`` over the ``pixels`` that started rays in all, and per reflector traced
+        at full density its pixels, rays and marched pixels (``records``); returns the
+        trace-time model fitted to them: (fixed ms, ms per ray, rays per filled, reused
+        and marched pixel)."""
         ...
 
     def begin_frame(self, view: FrameView, scene: Scene) -> None: ...

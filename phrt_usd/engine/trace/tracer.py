@@ -60,6 +60,7 @@ from phrt_usd.engine.trace.hit_lighting import MapLookup, frame_seed
 from phrt_usd.engine.trace.hit_surfaces import HitSurfaces
 from phrt_usd.engine.trace.paths import PathTracer, refract
 from phrt_usd.engine.trace.shadow_rays import ShadowRays
+from phrt_usd.model import pixel_kinds
 from phrt_usd.model.frame import GBuffer, ReflectionResult, flat_image
 from phrt_usd.model.scene import NO_HIT, CameraFrame, Lights, Scene
 from phrt_usd.model.trace_density import check_density
@@ -310,7 +311,7 @@ class Tracer:
         skipped pixels their reprojected history where it is valid, the fill the others.
         ``screen`` (a ``screen_space.ScreenFrame``, None: none) resolves first rays in
         screen space where the G-buffer decides them (kind SCREEN_SPACE), the bounce loop
-        the rest."""
+        the rest. Each record counts its pixels of each kind (``with_kind_counts``)."""
         start = time.perf_counter()
         self.last_rays = []
         sources = [int(s) for s in sources]
@@ -345,15 +346,15 @@ class Tracer:
         )
         if hits is not None:
             result, src = screen_space.merge(result, src, hits, all_pix, all_src, sources, start)
-        if first["skipped"] is None:
-            return result
-        height, width = gbuffer.shape
-        if self._fill_table is None or len(self._fill_table) != width * height:
-            self._fill_table = np.full(width * height, -1, np.int32)
-        return sparse_pixels.complete(
-            result, src, first["skipped"], sparse_pixels.FillGuides.of(gbuffer), density,
-            phase, reuse, self._fill_table, self._split, start,
-        )  # fmt: skip
+        if first["skipped"] is not None:
+            height, width = gbuffer.shape
+            if self._fill_table is None or len(self._fill_table) != width * height:
+                self._fill_table = np.full(width * height, -1, np.int32)
+            result = sparse_pixels.complete(
+                result, src, first["skipped"], sparse_pixels.FillGuides.of(gbuffer), density,
+                phase, reuse, self._fill_table, self._split, start,
+            )  # fmt: skip
+        return with_kind_counts(result, gbuffer.element_id, marched=hits is not None)
 
     def trace_refraction(
         self, gbuffer: GBuffer, bounce_limit: int, elements: list[int] | None = None
@@ -519,6 +520,43 @@ class Tracer:
         )  # fmt: skip
         out["pix"], out["src"], out["skipped"] = cand, cand_src, skipped
         return out
+
+
+#: The pixel kinds a ``TraceRecord`` counts (the rest of its pixels were traced), by
+#: field name.
+_COUNTED_KINDS = {
+    "screen_space": pixel_kinds.SCREEN_SPACE,
+    "reused": pixel_kinds.REUSED,
+    "filled": pixel_kinds.FILLED,
+}
+
+
+def with_kind_counts(result: ReflectionResult, element_id: np.ndarray,
+                     marched: bool = False) -> ReflectionResult:  # fmt: skip
+    """``result`` (a reflection round, complete) with each record's pixels of each kind
+    counted (``TraceRecord.screen_space``, ``reused``, ``filled``) from its ``kinds``
+    and the G-buffer's ``element_id`` (H, W) at its pixels, and its pixels whose first
+    ray was ``marched`` in screen space (``TraceRecord.marched``: the traced and the
+    screen-space ones when the step ran, else none): what the time model prices apart
+    from rays (``select.cost_model``)."""
+    if result.kinds is None:  # every pixel traced (and none marched: the step would mark)
+        counts = {name: 0 for name in _COUNTED_KINDS}
+        result.records = [dataclasses.replace(r, **counts, marched=r.pixels if marched else 0)
+                          for r in result.records]  # fmt: skip
+        return result
+    ids = np.take(element_id.reshape(-1), result.pixel_index).astype(np.int64)
+    n_ids, n_kinds = int(ids.max(initial=-1)) + 1, len(pixel_kinds.PIXEL_KINDS)
+    # One pass: (element, kind) pairs counted together, a row per element id.
+    table = np.bincount(ids * n_kinds + result.kinds, minlength=n_ids * n_kinds)
+    table = table.reshape(n_ids, n_kinds)
+    records = []
+    for r in result.records:
+        row = table[r.source] if 0 <= r.source < n_ids else np.zeros(n_kinds, np.int64)
+        counts = {name: int(row[code]) for name, code in _COUNTED_KINDS.items()}
+        started = int(row[pixel_kinds.TRACED]) + counts["screen_space"]
+        records.append(dataclasses.replace(r, **counts, marched=started if marched else 0))
+    result.records = records
+    return result
 
 
 #: ``_source_pixels``' outputs not asked for (no rows): the surface (rel, ng, ns, view)
