@@ -1,11 +1,37 @@
 """The trace-time cost model: milliseconds of a tracing round predicted from its ray count
-(and the pixels it fills at reduced densities, counted in rays), started from a
+and the pixels it made without rays, each kind counted in rays, started from a
 calibration on the run's own stage, learned online from the rounds the renderer
 measures, with a safety factor that tracks wall-time jitter.
 
 What a policy checks its budget against is a prediction of the rays tracing a candidate
 costs (``BudgetedPolicy.predicted_rays`` and ``level_rays`` in
 ``phrt_usd.select.policies``) and of the time those rays take (``TraceTimeModel`` here).
+
+The rule. A round of ``rays`` rays (every kind the tracer counts: reflection,
+refraction, shadow) that ``filled`` and ``reused`` pixels (``model/pixel_kinds.py``) and
+``marched`` the first rays of pixels through the G-buffer (screen space on), counted per
+source in ``TraceRecord``, takes
+
+    overhead_ms + ms_per_ray * (rays + fill_rays * filled + reuse_rays * reused
+                                + screen_space_rays * marched)
+
+milliseconds. Each figure is what one such pixel costs beyond the rays counted, in rays:
+a filled pixel the reconstruction from up to 12 traced neighbours, a reused one the
+reprojection of its history (one previous pixel read, after the per-pixel tests), a
+marched one the screen-space march (and, for the few it resolves, their hit's surface
+and shading, whose shadow rays are counted rays; their reflection ray and its bounces
+are not cast, which their counted rays show). A traced pixel costs only its rays.
+
+Why the march is priced per marched pixel, not per resolved (screen-space) pixel: every
+first ray is marched, resolved or not, and few resolve (sewer frame 241: 4-6 % at the
+march's bound of 32 steps), so the step's cost is the march over all of them (~0.3-0.6
+us a pixel there, ~0.4-0.8 rays), and a reflector whose rays all leave the screen pays
+it too. Priced per resolved pixel, one would cost ~16 rays on the sewer and nothing on
+such a reflector.
+
+The calibration measures each (``engine/trace_calibration.py``); the rounds the renderer
+measures refine them where they tell them apart (``_fit_kinds``). Under a rays budget
+alone nothing but rays counts (the policies price the kinds under a time budget only).
 """
 
 from __future__ import annotations
@@ -84,17 +110,59 @@ INITIAL_ROUND_MS = 0.5
 
 #: What filling a skipped pixel of a reduced-density reflector costs, in rays, before a
 #: calibration measured it: nothing (a run without one has a rays budget, which counts
-#: rays only). The calibration's figure is kept for the run: a run's rounds mix rays and
-#: filled pixels in about the same proportion, which cannot tell the two costs apart
-#: (learned online from them, a figure 0.6 off the truth was still 0.17-0.22 off after
-#: 400 frames of a simulated tracer); the line learns the machine's speed. On a mirror
-#: floor of 64 small reflective spheres (320 x 240, every reflector at a sixteenth: 9,973
-#: rays, 45.6k filled pixels, 8.5-9 ms against 0.3 ms + 0.2 us a ray) a filled pixel took
-#: ~0.14 us, ~0.6 rays; calibrations there measure 0.5-1.3.
+#: rays only); reused and marched pixels alike (INITIAL_KIND_RAYS). A run's rounds
+#: often mix rays and filled pixels in about the same proportion, which cannot tell the
+#: two costs apart (learned online from them alone, a figure 0.6 off the truth was still
+#: 0.17-0.22 off after 400 frames of a simulated tracer): the online fit keeps the
+#: calibration's figures there (KIND_PRIOR_WEIGHT). On a mirror floor of 64 small
+#: reflective spheres (320 x 240, every reflector at a sixteenth: 9,973 rays, 45.6k
+#: filled pixels, 8.5-9 ms against 0.3 ms + 0.2 us a ray) a filled pixel took ~0.14 us,
+#: ~0.6 rays; calibrations there measure 0.5-1.3.
 INITIAL_FILL_RAYS = 0.0
+INITIAL_KIND_RAYS = (INITIAL_FILL_RAYS, 0.0, 0.0)
 #: Upper clamp of the calibrated cost of a filled pixel: a filled pixel reads a few
 #: neighbours, never the cost of several rays (a larger figure is noise in the rounds).
 FILL_RAYS_MAX = 4.0
+#: Upper clamp of the cost of a reused pixel: its lookup reads one previous pixel, less
+#: than the fill it replaces (docs/temporal-reuse.md: ~70 against ~110 ns).
+REUSE_RAYS_MAX = FILL_RAYS_MAX
+#: Upper clamp of the cost of a marched pixel: a march of at most
+#: ``screen_space.MAX_STEPS`` (32) pixels at ~5 ns a step, against ~0.15-0.2 us for a
+#: first ray (docs/screen-space.md): about a ray, never the cost of many.
+SCREEN_SPACE_RAYS_MAX = 4.0
+#: The pixels priced apart from rays, in the order of ``TraceTimeModel``'s per-kind
+#: lists (``kind_rays``, ``prior_kind_rays``) and ``learn``'s arguments: filled, reused,
+#: and marched in screen space (``TraceRecord``'s counts of the same names).
+PRICED_KINDS = ("filled", "reused", "marched")
+#: Their clamps, in that order.
+KIND_RAYS_MAX = (FILL_RAYS_MAX, REUSE_RAYS_MAX, SCREEN_SPACE_RAYS_MAX)
+#: The order the calibration prices them in (indices into PRICED_KINDS): the march from
+#: full-density rounds with screen space (against the line of rounds without), then the
+#: fill from reduced-density rounds without history, then reuse from rounds with
+#: history (which fill what their history does not cover): each from the rounds whose
+#: other kinds are priced already.
+CALIBRATION_ORDER = (2, 0, 1)
+#: The kinds' costs are fitted to the rounds with this forgetting per round (the line's
+#: is TIME_MODEL_DECAY): what a kind costs in rays is a property of the stage and the
+#: code, not of the machine's load, and three more coefficients need more rounds than
+#: two. Over ~100 rounds (30-100 frames), synthetic rounds of 10 % jitter whose reused
+#: share varies at random put fill and reuse within ~0.03 rays of the truth (sd
+#: 0.02); over ~10 (the line's forgetting), 0.1-0.4 rays off, up to 4 where the mix
+#: barely varies.
+KIND_DECAY = 0.99
+#: The calibration's figure of each kind enters that fit as a ridge towards it, in rays
+#: (a pseudo-round of RAY_UNIT pixels of the kind alone at the cost the calibration
+#: measured, relative to the per-ray cost), of the prior line's weight
+#: (PRIOR_WEIGHT, forgotten at TIME_MODEL_DECAY per round) but never below
+#: KIND_PRIOR_WEIGHT_MIN: a run's rounds often mix the kinds in about the same
+#: proportion (every frame's reflectors at the same densities, the same share of
+#: history found), which cannot tell them apart; there the calibration's figures stand
+#: and the line learns the machine's speed. Where the mix varies (a reflector stepping
+#: density, a view starting or stopping to reproject) the rounds decide. Not higher: a
+#: ridge biases the direction the rounds tell apart least (fixed cost against pixels
+#: made without rays, both in every round): at 0.5 exact rounds settled reuse at 0.34
+#: rays against a true 0.25, at 0.05 within 0.01.
+KIND_PRIOR_WEIGHT_MIN = 0.05
 
 #: Lower bound of the learned ms per ray (1e10 rays/s): keeps ms → rays finite.
 MIN_MS_PER_RAY = 1e-7
@@ -130,19 +198,26 @@ PRIOR_WEIGHT_MIN = 1e-9
 
 class TraceTimeModel:
     """Milliseconds of one tracing round: ``overhead_ms + ms_per_ray * rays``, where
-    ``rays`` are the rays cast plus ``fill_rays`` for each pixel a reduced-density
-    reflector fills from its traced neighbours (the calibration measures that cost).
+    ``rays`` are the rays cast plus, for each pixel made without rays, its kind's cost in
+    rays (``fill_rays``, ``reuse_rays``, ``screen_space_rays``: the module's rule,
+    ``equivalent_rays``).
 
-    Fitted by exponentially weighted least squares over the rounds seen so far (older
-    rounds weigh ``TIME_MODEL_DECAY`` less per round) and a prior line: the calibration
-    of ``calibrate`` (or INITIAL_ROUND_MS / INITIAL_MS_PER_RAY without one) as two
-    pseudo-rounds whose weight is forgotten as rounds come (PRIOR_WEIGHT). So the fit
-    converges to the measured time also when every round traces about the same rays (a
-    still or turntable shot): the rounds fix the line's height where they are, the prior
-    only its tilt. A negative fixed cost is replaced by a line through the origin, a
-    non-positive slope by the prior's per-ray cost (noise dominating small rounds), and a
-    fixed cost above the median round time of the safety factor's window by that median
-    (``_fit``).
+    The line is fitted by exponentially weighted least squares over the rounds seen so
+    far (older rounds weigh ``TIME_MODEL_DECAY`` less per round) and a prior line: the
+    calibration of ``calibrate`` (or INITIAL_ROUND_MS / INITIAL_MS_PER_RAY without one)
+    as two pseudo-rounds whose weight is forgotten as rounds come (PRIOR_WEIGHT). So the
+    fit converges to the measured time also when every round traces about the same rays
+    (a still or turntable shot): the rounds fix the line's height where they are, the
+    prior only its tilt. A negative fixed cost is replaced by a line through the origin,
+    a non-positive slope by the prior's per-ray cost (noise dominating small rounds), and
+    a fixed cost above the median round time of the safety factor's window by that median
+    (``_fit_line``).
+
+    The kinds' costs start from the calibration's (``prior_kind_rays``) and are refined
+    by the rounds that made such pixels: what the line leaves of their time is fitted to
+    their counts by least squares, drawn towards the calibration's figures in rays
+    (KIND_PRIOR_WEIGHT), and the line refitted with them (``_fit``). Rounds whose mix of
+    kinds never varies leave the calibration's figures as they are.
 
     Predictions are multiplied by ``safety``: the JITTER_QUANTILE quantile of (measured /
     modelled) round time over the last JITTER_WINDOW rounds, weighted by the rounds'
@@ -167,50 +242,89 @@ class TraceTimeModel:
         #: The safety factor of the prior line: the calibration's spread
         #: (``calibrate``), TIME_SAFETY_INITIAL without one.
         self.prior_safety = TIME_SAFETY_INITIAL
-        #: What filling one skipped pixel of a reduced-density reflector from its traced
-        #: neighbours costs, in rays (``calibrate``; INITIAL_FILL_RAYS without one).
-        self.fill_rays = INITIAL_FILL_RAYS
+        #: What one pixel costs beyond its rays, in rays: filled from its traced
+        #: neighbours, reused from the previous frame, its first ray marched in screen
+        #: space (the calibration's, refined by the rounds; INITIAL_KIND_RAYS without
+        #: either).
+        self.fill_rays, self.reuse_rays, self.screen_space_rays = INITIAL_KIND_RAYS
+        #: The calibration's figures of those costs (PRICED_KINDS order), in rays: what
+        #: the online fit of the kinds is drawn towards.
+        self.prior_kind_rays = list(INITIAL_KIND_RAYS)
         #: True once ``calibrate`` set the prior from this stage's own rays.
         self.calibrated = False
-        # Weighted sums of the measured rounds: weight, x, ms, x^2, x*ms (x = rays/RAY_UNIT).
-        self._w = self._r = self._m = self._rr = self._rm = 0.0
+        # Weighted sums of the measured rounds over z = (1, rays, filled, reused,
+        # marched pixels), the counts in RAY_UNIT: z z^T row-major (25) and z * ms (5),
+        # forgotten at TIME_MODEL_DECAY (the line's) and at KIND_DECAY (the kinds').
+        self._zz = [0.0] * 25
+        self._zm = [0.0] * 5
+        self._kind_zz = [0.0] * 25
+        self._kind_zm = [0.0] * 5
+
+    @property
+    def kind_rays(self) -> tuple[float, float, float]:
+        """(``fill_rays``, ``reuse_rays``, ``screen_space_rays``): PRICED_KINDS' costs."""
+        return (self.fill_rays, self.reuse_rays, self.screen_space_rays)
+
+    def equivalent_rays(self, rays: float, filled: float = 0.0, reused: float = 0.0,
+                        marched: float = 0.0) -> float:  # fmt: skip
+        """A round's ``rays`` plus its filled, reused and marched pixels, each at its
+        cost in rays: what ``expected_ms``, ``predicted_ms`` and ``rays_within`` count."""
+        return (float(rays) + self.fill_rays * filled + self.reuse_rays * reused
+                + self.screen_space_rays * marched)  # fmt: skip
 
     def calibrate(self, samples: list[tuple]) -> None:
-        """Set the prior line, the cost of a filled pixel and the prior's safety factor
-        from timed calibration rounds ``(rays, ms)`` or ``(rays, ms, filled pixels)`` (at
-        least one at full density, i.e. none filled; rounds of two sizes or more separate
-        the fixed cost from the per-ray cost) and refit. The line: least squares of the
-        relative error of each full-density size's fastest round (``calibration_line``);
-        ``fill_rays``: what each reduced-density size's fastest round took beyond the
-        line, per filled pixel, in rays; the safety factor: the JITTER_QUANTILE quantile
-        of every round's measured / modelled ms, weighted by modelled ms, within
-        [TIME_SAFETY_INITIAL, CALIBRATION_SAFETY_MAX]. It starts the factor, and fills a
-        young window as long as the prior weighs in the fit (``_young_ratio``). Marks the
-        model calibrated; rounds learned before stay."""
-        pts = [(float(r), float(m), float(f[0]) if f else 0.0) for r, m, *f in samples
-               if r > 0 and math.isfinite(m) and m > 0 and all(v >= 0 for v in f)]  # fmt: skip
+        """Set the prior line, the kinds' costs and the prior's safety factor from timed
+        calibration rounds ``(rays, ms)`` or ``(rays, ms, filled[, reused[, marched]])``
+        (pixel counts; at least one round with none of them, and rounds of two sizes or
+        more separate the fixed cost from the per-ray cost) and refit. The line: least
+        squares of the relative error of each such size's fastest round
+        (``calibration_line``). Each kind in CALIBRATION_ORDER: what the fastest round of
+        each configuration that counted it (and no kind priced after it) took beyond the
+        line and the kinds priced before it, per pixel of it, in rays, pooled over those
+        rounds; a kind no round counted keeps its cost. The safety factor: the
+        JITTER_QUANTILE quantile of every round's measured / modelled ms, weighted by
+        modelled ms, within [TIME_SAFETY_INITIAL, CALIBRATION_SAFETY_MAX]. It starts the
+        factor, and fills a young window as long as the prior weighs in the fit
+        (``_young_ratio``). Marks the model calibrated; rounds learned before stay."""
+        pts = []
+        for r, m, *counts in samples:
+            counts = [float(c) for c in counts[: len(PRICED_KINDS)]]
+            counts += [0.0] * (len(PRICED_KINDS) - len(counts))
+            if r > 0 and math.isfinite(m) and m > 0 and all(c >= 0 for c in counts):
+                pts.append((float(r), float(m), *counts))
         if not pts:
             return
-        rays, ms, filled = np.array(pts, np.float64).T
-        # The line and the fill from each round size's fastest repeat (a repeat slowed
-        # by another process must not tilt them), the safety factor from every round.
-        fastest: dict[tuple[float, float], float] = {}
-        for r, m, f in pts:
-            fastest[(r, f)] = min(m, fastest.get((r, f), math.inf))
-        sizes = np.array([(r, f, m) for (r, f), m in sorted(fastest.items())]).reshape(-1, 3)
-        full, sparse = sizes[sizes[:, 1] == 0], sizes[sizes[:, 1] > 0]
+        table = np.array(pts, np.float64)
+        rays, ms, counts = table[:, 0], table[:, 1], table[:, 2:]
+        # The line and the kinds from each round configuration's fastest repeat (a repeat
+        # slowed by another process must not tilt them), the safety factor from every one.
+        fastest: dict[tuple[float, ...], float] = {}
+        for r, m, *c in pts:
+            key = (r, *c)
+            fastest[key] = min(m, fastest.get(key, math.inf))
+        sizes = np.array([(*key, m) for key, m in sorted(fastest.items())]).reshape(-1, 5)
+        made = sizes[:, 1:4]  # pixels of each kind
+        full = sizes[~made.any(axis=1)]
         if not len(full):
             return
-        overhead, slope = calibration_line(full[:, 0], full[:, 2])
+        overhead, slope = calibration_line(full[:, 0], full[:, 4])
         self.prior_overhead_ms = overhead
         self.prior_ms_per_ray = max(slope, MIN_MS_PER_RAY)
-        if len(sparse):
-            beyond = sparse[:, 2] - overhead - self.prior_ms_per_ray * sparse[:, 0]
-            per_pixel = max(float(beyond.sum() / sparse[:, 1].sum()), 0.0)
-            self.fill_rays = min(per_pixel / self.prior_ms_per_ray, FILL_RAYS_MAX)
+        kinds = np.array(self.kind_rays)
+        for position, k in enumerate(CALIBRATION_ORDER):
+            later = list(CALIBRATION_ORDER[position + 1 :])
+            rows = (made[:, k] > 0) & ~made[:, later].any(axis=1)
+            if rows.any():
+                kinds[k] = 0.0
+                beyond = sizes[rows, 4] - overhead - self.prior_ms_per_ray * (
+                    sizes[rows, 0] + made[rows] @ kinds
+                )
+                per_pixel = max(float(beyond.sum() / made[rows, k].sum()), 0.0)
+                kinds[k] = min(per_pixel / self.prior_ms_per_ray, KIND_RAYS_MAX[k])
+        self.fill_rays, self.reuse_rays, self.screen_space_rays = (float(v) for v in kinds)
+        self.prior_kind_rays = kinds.tolist()
         self.prior_weight = PRIOR_WEIGHT
-        modelled = np.maximum(overhead + self.prior_ms_per_ray * (rays + self.fill_rays * filled),
-                              1e-9)  # fmt: skip
+        modelled = np.maximum(overhead + self.prior_ms_per_ray * (rays + counts @ kinds), 1e-9)
         spread = weighted_quantile(ms / modelled, modelled, JITTER_QUANTILE)
         self.prior_safety = min(max(spread, TIME_SAFETY_INITIAL), CALIBRATION_SAFETY_MAX)
         self.calibrated = True
@@ -220,34 +334,39 @@ class TraceTimeModel:
         else:
             self.safety = self.prior_safety
 
-    def learn(self, rays: int, ms: float, planned_rays: float = 0.0, filled: float = 0.0) -> None:
-        """One round: ``rays`` cast and ``filled`` pixels filled from traced neighbours in
-        ``ms`` wall-clock milliseconds; the fit learns ``rays + fill_rays * filled``.
-        ``planned_rays`` (> 0): what the round was predicted to cost, in the same rays;
-        the safety factor's ratio is then measured against the time modelled for them, so
-        it also covers the error of the ray prediction."""
+    def learn(self, rays: int, ms: float, planned_rays: float = 0.0, filled: float = 0.0,
+              reused: float = 0.0, marched: float = 0.0) -> None:  # fmt: skip
+        """One round: ``rays`` cast, ``filled`` and ``reused`` pixels and ``marched``
+        first rays (``TraceRecord``'s counts) in ``ms`` wall-clock
+        milliseconds; the line learns their ``equivalent_rays``, the kinds' costs what
+        the line leaves (``_fit``). ``planned_rays`` (> 0): what the round was predicted
+        to cost, in the same rays; the safety factor's ratio is then measured against
+        the time modelled for them, so it also covers the error of the prediction."""
         if rays <= 0 or not math.isfinite(ms) or ms < 0.0:
             return
-        filled = float(filled) if math.isfinite(filled) and filled > 0.0 else 0.0
-        rays = float(rays) + self.fill_rays * filled
-        x, m = rays / RAY_UNIT, float(ms)
+        counts = [float(c) if math.isfinite(c) and c > 0.0 else 0.0
+                  for c in (filled, reused, marched)]  # fmt: skip
+        equivalent = self.equivalent_rays(rays, *counts)
+        m = float(ms)
         if self.rounds > 0 or self.calibrated:
             # (Uncalibrated, the first round only tells how wrong the initial guess was.)
-            planned = planned_rays if planned_rays > 0.0 and math.isfinite(planned_rays) else rays
+            planned = (planned_rays if planned_rays > 0.0 and math.isfinite(planned_rays)
+                       else equivalent)  # fmt: skip
             self.jitter_ms = [*self.jitter_ms[1 - JITTER_WINDOW :], m]
             self.jitter_rays = [*self.jitter_rays[1 - JITTER_WINDOW :], float(planned)]
-            actual = max(self.expected_ms(rays), 1e-9)
+            actual = max(self.expected_ms(equivalent), 1e-9)
             m = min(max(m, actual / OUTLIER_RATIO), actual * OUTLIER_RATIO)
         k = TIME_MODEL_DECAY
         if not self.calibrated and self.rounds == 0:
             # The initial guess is a guess: the first measured round replaces it at once.
             self.prior_weight = PRIOR_WEIGHT_MIN
         self.prior_weight = max(self.prior_weight * k, PRIOR_WEIGHT_MIN)
-        self._w = k * self._w + 1.0
-        self._r = k * self._r + x
-        self._m = k * self._m + m
-        self._rr = k * self._rr + x * x
-        self._rm = k * self._rm + x * m
+        z = np.array([1.0, float(rays) / RAY_UNIT, *(c / RAY_UNIT for c in counts)])
+        zz = np.outer(z, z).reshape(-1)
+        self._zz = (k * np.asarray(self._zz) + zz).tolist()
+        self._zm = (k * np.asarray(self._zm) + z * m).tolist()
+        self._kind_zz = (KIND_DECAY * np.asarray(self._kind_zz) + zz).tolist()
+        self._kind_zm = (KIND_DECAY * np.asarray(self._kind_zm) + z * m).tolist()
         self.rounds += 1
         self._fit()
         self._update_safety()
@@ -278,13 +397,56 @@ class TraceTimeModel:
         return TIME_SAFETY_INITIAL + (self.prior_safety - TIME_SAFETY_INITIAL) * share
 
     def _fit(self) -> None:
+        """The kinds' costs (``_fit_kinds``, when rounds made pixels without rays), then
+        the line at those costs (``_fit_line``)."""
+        if any(self._kind_zz[i] for i in _KIND_DIAGONAL):
+            self._fit_kinds()
+        self._fit_line()
+
+    def _fit_kinds(self) -> None:
+        """The kinds' costs from the rounds (sums forgotten at KIND_DECAY): weighted least
+        squares of ms = a + b rays + sum_k c_k n_k (n_k the pixels of kind k), with the
+        prior line's two pseudo-rounds and, per kind, the ridge (c_k - prior_k b)^2 of
+        weight max(``prior_weight``, KIND_PRIOR_WEIGHT_MIN) (prior_k ``prior_kind_rays``);
+        each cost c_k / b in rays, clamped to [0, KIND_RAYS_MAX]. Unchanged when the
+        rounds leave b not positive (noise over rounds of one size)."""
+        p, a0, b0 = self.prior_weight, self.prior_overhead_ms, self.prior_ms_per_ray * RAY_UNIT
+        normal = np.asarray(self._kind_zz).reshape(5, 5).copy()
+        right = np.asarray(self._kind_zm).copy()
+        fixed, both = np.eye(5)[0], np.eye(5)[0] + np.eye(5)[1]  # pseudo-rounds at 0 and 1
+        normal += p * (np.outer(fixed, fixed) + np.outer(both, both))
+        right += p * (a0 * fixed + (a0 + b0) * both)
+        q = max(p, KIND_PRIOR_WEIGHT_MIN)
+        for k, prior in enumerate(self.prior_kind_rays):
+            ridge = np.eye(5)[2 + k] - prior * np.eye(5)[1]
+            normal += q * np.outer(ridge, ridge)
+        try:
+            theta = np.linalg.solve(normal, right)
+        except np.linalg.LinAlgError:
+            return
+        if not (theta[1] > 0.0 and np.all(np.isfinite(theta))):
+            return
+        rho = np.clip(theta[2:] / theta[1], 0.0, KIND_RAYS_MAX)
+        self.fill_rays, self.reuse_rays, self.screen_space_rays = (float(v) for v in rho)
+
+    def _line_sums(self) -> tuple[float, float, float, float, float]:
+        """The rounds' weighted sums of the line's fit: weight, x, ms, x^2, x * ms, x the
+        round's ``equivalent_rays`` / RAY_UNIT at the kinds' current costs."""
+        zz = np.asarray(self._zz).reshape(5, 5)
+        zm = np.asarray(self._zm)
+        g = np.array([0.0, 1.0, *self.kind_rays])
+        return (float(zz[0, 0]), float(g @ zz[0]), float(zm[0]), float(g @ zz @ g),
+                float(g @ zm))  # fmt: skip
+
+    def _fit_line(self) -> None:
         """Weighted least squares of the rounds and the prior's two pseudo-rounds."""
         p, a0, b0 = self.prior_weight, self.prior_overhead_ms, self.prior_ms_per_ray * RAY_UNIT
-        w = self._w + 2.0 * p
-        r = self._r + p  # the pseudo-rounds at x = 0 and x = 1
-        m = self._m + p * a0 + p * (a0 + b0)
-        rr = self._rr + p
-        rm = self._rm + p * (a0 + b0)
+        sw, sr, sm, srr, srm = self._line_sums()
+        w = sw + 2.0 * p
+        r = sr + p  # the pseudo-rounds at x = 0 and x = 1
+        m = sm + p * a0 + p * (a0 + b0)
+        rr = srr + p
+        rm = srm + p * (a0 + b0)
         det = w * rr - r * r  # > 0: the pseudo-rounds at two different x
         slope = (w * rm - r * m) / det if det > 0.0 else -1.0
         intercept = (m - slope * r) / w
@@ -321,8 +483,8 @@ class TraceTimeModel:
             k = STARVED_SCALE
             self.prior_overhead_ms *= k
             self.prior_ms_per_ray = max(self.prior_ms_per_ray * k, MIN_MS_PER_RAY)
-            self._m *= k
-            self._rm *= k
+            self._zm = [v * k for v in self._zm]  # the rounds' ms (the kinds' in rays stay)
+            self._kind_zm = [v * k for v in self._kind_zm]
             # The window's rounds scale with the model, so their ratios to it stay.
             self.jitter_ms = [m * k for m in self.jitter_ms]
             self._fit()
@@ -331,7 +493,8 @@ class TraceTimeModel:
 
     def expected_ms(self, rays: float) -> float:
         """Central estimate of a round's milliseconds (no safety factor); ``rays``, here
-        and in ``predicted_ms`` and ``rays_within``, count a filled pixel as ``fill_rays``."""
+        and in ``predicted_ms`` and ``rays_within``, count a pixel made without rays at
+        its kind's cost (``equivalent_rays``)."""
         return self.overhead_ms + self.ms_per_ray * max(rays, 0.0)
 
     def predicted_ms(self, rays: float) -> float:
@@ -341,6 +504,10 @@ class TraceTimeModel:
     def rays_within(self, ms: float) -> float:
         """Most rays a round may cast and still (conservatively) end within ``ms``."""
         return max((ms / self.safety - self.overhead_ms) / self.ms_per_ray, 0.0)
+
+
+#: Indices of the kinds' squared counts in the flat sums (z z^T, row-major).
+_KIND_DIAGONAL = (12, 18, 24)
 
 
 def calibration_line(rays: np.ndarray, ms: np.ndarray) -> tuple[float, float]:

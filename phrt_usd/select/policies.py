@@ -46,6 +46,11 @@ from phrt_usd.select.metrics import (
     visibility,
     visible_area,
 )
+from phrt_usd.select.pixel_kind_shares import (
+    learn_reused_share,
+    made_without_rays,
+    skipped_cost,
+)
 from phrt_usd.select.policy_memory import from_plain, same_shape, to_plain
 
 #: A rays budget admits predicted rays up to budget / RAYS_SAFETY: rays per pixel learned
@@ -109,10 +114,10 @@ class _FrameState:
     #: Trace density of each reflector taken at other than full density (index into
     #: ``model.trace_density.TRACE_DENSITIES``; HEU1's density steps); absent: full.
     levels: dict[int, int] = field(default_factory=dict)
-    #: What a pixel filled from traced neighbours costs in this frame's ``level_rays``:
-    #: the time model's ``fill_rays`` under a time budget, 0 under a rays budget alone
-    #: (which counts rays).
-    fill_rays: float = 0.0
+    #: What a pixel costs beyond its rays in this frame's ``level_rays``, in rays
+    #: (filled, reused, marched): the time model's ``kind_rays`` under a time budget, 0
+    #: under a rays budget alone (which counts rays).
+    kind_rays: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
 
 class BudgetedPolicy(ABC):
@@ -150,6 +155,12 @@ class BudgetedPolicy(ABC):
         self.previous_levels: dict[int, int] = {}
         self._global_rays = 0.0  # decayed sums for the mean rays per pixel
         self._global_pixels = 0.0
+        #: Decayed sums over the recorded pixels that started rays: those whose first ray
+        #: was marched in screen space, and all (the marched share, 1 with it on).
+        self._marched = [0.0, 0.0]
+        #: Per reflector, the share of its skipped pixels reused rather than filled
+        #: (``select.pixel_kind_shares``).
+        self.reused_share: dict[int, float] = {}
         self._frame: _FrameState | None = None
         self._reflector_cache: tuple[tuple[int, int], np.ndarray] | None = None
         #: Predicted trace time of the last finished frame (ms, time safety included).
@@ -169,28 +180,32 @@ class BudgetedPolicy(ABC):
         return not self.time_model.calibrated
 
     def calibrate(
-        self, samples: list[tuple[int, float, int]], rays: int, pixels: int,
+        self, samples: list[tuple], rays: int, pixels: int,
         records: Sequence[TraceRecord] = (),
-    ) -> tuple[float, float, float]:  # fmt: skip
+    ) -> tuple[float, ...]:  # fmt: skip
         """A calibration of this stage's tracing before the first round: timed rounds
-        ``(rays, ms, filled pixels)`` set the time model's prior
+        ``(rays, ms, filled, reused, screen-space pixels)`` set the time model's prior
         (``TraceTimeModel.calibrate``); their ``rays`` over the ``pixels`` that started
         rays seed the mean rays per pixel, which predicts reflectors never traced, and
         each reflector's ``records`` its own rays per pixel, drawn towards that mean by
         CALIBRATION_PRIOR_PIXELS (a reflector sampled at a few pixels), unless a trace
-        already taught them. Returns the prior: (fixed ms, ms per ray, rays per filled
-        pixel)."""
+        already taught them; their marched pixels, whether screen space is on. Returns
+        the prior: (fixed ms, ms per ray, rays per filled, reused and marched pixel)."""
         model = self.time_model
         model.calibrate(samples)
         if self._global_pixels <= 0.0 and pixels > 0 and rays > 0:
             self._global_rays, self._global_pixels = float(rays), float(pixels)
+            counted = [r for r in records if r.pixels > 0 and r.marched is not None]
+            if counted:  # full density: every pixel started rays
+                self._marched = [float(sum(r.marched for r in counted)),
+                                 float(sum(r.pixels for r in counted))]  # fmt: skip
         if self._global_pixels > 0.0:
             mean, k = self._global_rays / self._global_pixels, CALIBRATION_PRIOR_PIXELS
             for rec in records:
                 if rec.pixels > 0 and rec.rays >= 0 and rec.source not in self.rays_per_pixel:
                     rpp = (rec.rays + k * mean) / (rec.pixels + k)
                     self.rays_per_pixel[int(rec.source)] = max(rpp, MIN_RAYS_PER_PIXEL)
-        return model.prior_overhead_ms, model.prior_ms_per_ray, model.fill_rays
+        return model.prior_overhead_ms, model.prior_ms_per_ray, *model.kind_rays
 
     def memory(self) -> dict:
         """The policy's memory across frames as plain JSON data (for checkpoints): every
@@ -263,7 +278,7 @@ class BudgetedPolicy(ABC):
 
     def next_round(self, budget: Budget) -> list[int]:
         frame = self._require_frame()
-        frame.fill_rays = self.time_model.fill_rays if budget.ms is not None else 0.0
+        frame.kind_rays = self.time_model.kind_rays if budget.ms is not None else (0.0,) * 3
         ids = self._choose(budget)
         if not ids and not frame.traced:
             frame.untraced_reason = self._untraced_reason(budget)
@@ -293,15 +308,18 @@ class BudgetedPolicy(ABC):
         frame.rays.clear()  # rays per pixel change below
         n = len(frame.scene.elements)
         total_rays = 0
-        filled = 0.0  # pixels filled from traced neighbours (HEU1's density steps)
+        made = np.zeros(3)  # pixels filled, reused and marched in screen space
         for rec in records:
             total_rays += max(int(rec.rays), 0)
             src = int(rec.source)
             if not 0 <= src < n:
                 continue
-            if src in frame.levels and rec.pixels > 0:
-                density = TRACE_DENSITIES[frame.levels[src]]
-                filled += rec.pixels * (1.0 - traced_fraction(rec.pixels, density))
+            kinds = made_without_rays(rec, frame.levels.get(src))
+            made += kinds
+            learn_reused_share(self.reused_share, src, kinds[0], kinds[1])
+            if rec.marched is not None:  # of the pixels that started rays, those marched
+                k, started = TIME_MODEL_DECAY, rec.pixels - kinds[0] - kinds[1]
+                self._marched = [k * self._marched[0] + kinds[2], k * self._marched[1] + started]
             bounces = max(int(rec.max_reflector_bounces), 0)
             # Q = 1 + bounces, capped at the bounce limit (Q >= 1 even for a limit of 0).
             self.Q[src] = float(min(1 + bounces, max(self.bounce_limit, 1)))
@@ -325,7 +343,7 @@ class BudgetedPolicy(ABC):
             self.reflects[src] = hits
             self.discovered.update(hits)
         self.time_model.learn(
-            total_rays, float(seconds) * 1000.0, planned_rays=frame.round_rays, filled=filled
+            total_rays, float(seconds) * 1000.0, frame.round_rays, *made.tolist()
         )
         frame.round_rays = 0.0
 
@@ -416,13 +434,26 @@ class BudgetedPolicy(ABC):
 
     def level_rays(self, element: int, level: int) -> float:
         """What tracing ``element`` at density TRACE_DENSITIES[level] costs, in rays: its
-        ``predicted_rays`` at that density's share of its pixels, and under a time
-        budget its other pixels, filled from traced neighbours, at the time model's
-        ``fill_rays`` each."""
+        ``predicted_rays`` at that density's share of its pixels; under a time budget
+        also its other pixels at the expected mix of reused and filled (its
+        ``reused_share``; never traced at a reduced density: all filled), and its pixels
+        that start rays at the march's cost when screen space is on (the share of the
+        recent rounds' pixels that were marched), each at the time model's cost
+        (``kind_rays``; ``select.pixel_kind_shares``)."""
         share = self.level_share(element, level)
         frame = self._require_frame()
-        filled = float(frame.pixels[element]) * (1.0 - share) if frame.fill_rays else 0.0
-        return self.predicted_rays(element) * share + frame.fill_rays * filled
+        rays = self.predicted_rays(element) * share
+        fill, reuse, march = frame.kind_rays
+        if not (fill or reuse or march):
+            return rays
+        pixels = float(frame.pixels[element])
+        # The share that starts rays: the level's, at level 0 the view's own density's
+        # (whose rays per pixel count every covered pixel).
+        traced = share if level else traced_fraction(pixels, frame.view.trace_density)
+        cost = skipped_cost(pixels, traced, self.reused_share.get(element, 0.0), fill, reuse)
+        if march and self._marched[1] > 0.0:
+            cost += march * pixels * traced * self._marched[0] / self._marched[1]
+        return rays + cost
 
     def fewest_rays(self, element: int) -> float:
         """The fewest predicted rays this policy could trace ``element`` with: at full

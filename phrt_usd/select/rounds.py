@@ -55,15 +55,16 @@ class Calibration:
     """Timed calibration rounds of a run's tracing, before its first time-budgeted round
     (what ``SelectionPolicy.calibrate`` takes).
 
-    samples: (rays, ms, filled pixels) of each timed round (filled: pixels of
-        reduced-density reflectors filled from traced neighbours, 0 at full density);
+    samples: (rays, ms, filled, reused, marched pixels) of each timed round
+        (``TraceRecord``'s counts: pixels made without rays, first rays marched in screen
+        space; 0 at full density without screen space);
     rays, pixels: rays cast and pixels that started rays over the calibration's rounds;
     wall_ms: wall time the calibration took (the renderer reports it apart);
     records: one ``TraceRecord`` per reflector the full-density rounds traced, its
         pixels and rays summed over them (its own rays per pixel).
     """
 
-    samples: list[tuple[int, float, int]]
+    samples: list[tuple]
     rays: int
     pixels: int
     wall_ms: float = 0.0
@@ -88,7 +89,8 @@ class FrameRounds:
     starved: the budget when the rounds stopped with none of it left before anything
         was traced while reflectors were visible, else None;
     calibration: the run's calibration if this frame ran it, with the prior the policy
-        fitted to it (fixed ms, ms per ray, rays per filled pixel), else None.
+        fitted to it (fixed ms, ms per ray, rays per filled, reused and screen-space
+        pixel), else None.
     """
 
     selected: list[int] = field(default_factory=list)
@@ -99,7 +101,7 @@ class FrameRounds:
     metrics: dict[int, ReflectorMetrics] = field(default_factory=dict)
     note: FrameNote = field(default_factory=FrameNote)
     starved: Budget | None = None
-    calibration: tuple[Calibration, tuple[float, float, float]] | None = None
+    calibration: tuple[Calibration, tuple[float, ...]] | None = None
 
 
 def remaining_budget(limits: Budget, trace_ms: float, rays: int) -> Budget:
