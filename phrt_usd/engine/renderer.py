@@ -369,7 +369,8 @@ class FrameRenderer:
             rounds = run_rounds(
                 policy, view, scene, visible_ids, _frame_limits(opts, frame_budget_ms), step,
                 calibrate=partial(calibrate_tracer, self._tracer, gb, visible_ids,
-                                  self.options.bounce_limit, CALIBRATION_SEED, frame_budget_ms),
+                                  self.options.bounce_limit, CALIBRATION_SEED, frame_budget_ms,
+                                  prep.motion.camera if reuse is not None else None, screen),
                 observe=step.observe_fallback_error,
             )  # fmt: skip
             if rounds.calibration is not None:
@@ -534,14 +535,23 @@ def _frame_limits(opts: RenderOptions, budget_ms: float | None) -> Budget:
     return Budget(ms=budget_ms, rays=opts.budget_rays)
 
 
-def _calibration_stats(done: Calibration, prior: tuple[float, float, float]) -> dict:
-    """What stats.json reports of the run's calibration: the timed rounds, the time model
-    the policy fitted to them, the rays per pixel they cast, their wall ms."""
+#: The pixel counts of a calibration round after its rays and ms, and the costs the
+#: time model prices them at (``select.cost_model.PRICED_KINDS``), by stats.json key.
+_ROUND_KINDS = ("filled", "reused", "marched")
+_KIND_COSTS = ("fill_rays", "reuse_rays", "screen_space_rays")
+
+
+def _calibration_stats(done: Calibration, prior: tuple[float, ...]) -> dict:
+    """What stats.json reports of the run's calibration: the timed rounds (rays, ms,
+    pixels of each kind made without rays), the time model the policy fitted to them
+    (fixed ms, ms per ray, each kind's cost in rays), the rays per pixel they cast,
+    their wall ms."""
     return {
-        "rounds": [{"rays": r, "ms": m, "filled": f} for r, m, f in done.samples],
+        "rounds": [{"rays": r, "ms": m, **dict(zip(_ROUND_KINDS, kinds, strict=False))}
+                   for r, m, *kinds in done.samples],  # fmt: skip
         "overhead_ms": prior[0],
         "ms_per_ray": prior[1],
-        "fill_rays": prior[2],
+        **dict(zip(_KIND_COSTS, prior[2:], strict=True)),
         "rays_per_pixel": done.rays / max(done.pixels, 1),
         "wall_ms": done.wall_ms,
     }

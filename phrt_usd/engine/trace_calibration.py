@@ -41,9 +41,9 @@ import time
 
 import numpy as np
 
+from phrt_usd.engine.reflection_history import ReflectionHistory
 from phrt_usd.engine.trace_rounds import ReflectionRounds
-from phrt_usd.model.frame import GBuffer, TraceRecord
-from phrt_usd.model.trace_density import COARSEST, TRACE_DENSITIES, traced_fraction
+from phrt_usd.model.frame import FrameCamera, GBuffer, TraceRecord
 from phrt_usd.select.rounds import Calibration
 
 #: The smallest calibration round, in pixels (the run's first trace is one of its size,
@@ -75,56 +75,85 @@ SPARSE_PIXELS_FACTOR = 4
 #: reflector from its edges): priced from the coarsest alone, the first frame of a
 #: cluttered floor at T = 4 ms, HEU1 stepping small spheres to a half or a quarter, took
 #: 1.4-1.5 T.
-CALIBRATION_DENSITIES = (TRACE_DENSITIES[COARSEST], TRACE_DENSITIES[1])
+CALIBRATION_DENSITIES = ("sixteenth", "half")
+#: The density whose two phases make the still view's history: its pattern rotates in
+#: two frames (``sparse_pixels.ROTATION_PERIOD``), so the second frame's skipped pixels
+#: are the first's traced ones, and after it every pixel was traced or reused within a
+#: frame (history every density's rotation period accepts).
+HISTORY_DENSITY = "half"
+#: The density reused pixels are timed at: the coarsest, whose skipped pixels are 15 in
+#: 16 (the lookups' cost per reused pixel as the frames that reuse most pay it; at a half
+#: each reused pixel also pays one traced pixel's lookup of the temporal gradient).
+REUSE_DENSITY = "sixteenth"
 
 
 def calibrate_tracer(
     tracer, gb: GBuffer, visible_ids: list[int], bounce_limit: int, seed: int,
-    budget_ms: float | None = None,
+    budget_ms: float | None = None, camera: FrameCamera | None = None, screen=None,
 ) -> Calibration:  # fmt: skip
     """Time ``tracer`` on this frame's own reflector pixels (of ``visible_ids``) at the
-    sizes a frame of ``budget_ms`` plans, at full and at reduced densities (module
-    docstring); samples drawn with ``seed``. Returns every timed round's (rays, ms,
-    filled pixels), and per reflector its pixels and rays over the full-density rounds
-    (its own rays per pixel, for the policy's first predictions)."""
+    sizes a frame of ``budget_ms`` plans, at full and at reduced densities, with the
+    previous frame's reflections reused (with ``camera``, the frame's ``FrameCamera``;
+    None: not timed) and with screen space (with ``screen``, the run's
+    ``screen_space.ScreenFrame``; None: the run has none) (module docstring); samples
+    drawn with ``seed``. Returns every timed round's (rays, ms, filled, reused, marched
+    pixels), and per reflector its pixels, rays and marched pixels over the
+    full-density rounds traced as the run traces (its own rays per pixel, for the
+    policy's first predictions)."""
     start = time.perf_counter()
     rng = np.random.default_rng(seed)
-    rounds = _CalibrationRounds(tracer, gb, visible_ids, bounce_limit)
+    rounds = _CalibrationRounds(tracer, gb, visible_ids, bounce_limit, screen)
     flat = rounds.pixels
     stop_ms = min(float(budget_ms or 0.0), CALIBRATION_ROUND_MAX_MS)
-    samples: list[tuple[int, float, int]] = []
+    samples: list[tuple[int, float, int, int, int]] = []
     n = CALIBRATION_PIXELS
     largest = 0
     while True:
         pick = rng.choice(flat, size=min(n, len(flat)), replace=False)
-        rounds.trace(pick, "full")  # the first round of this size: untimed
-        timed = [rounds.trace(pick, "full") for _ in range(CALIBRATION_REPEATS)]
+        rounds.trace(pick, "full", screen=False)  # the first round of this size: untimed
+        if screen is not None and n == CALIBRATION_PIXELS:
+            rounds.trace(pick, "full")  # the run's first march (its first call is slow)
+        timed = [rounds.trace(pick, "full", screen=False) for _ in range(CALIBRATION_REPEATS)]
         samples.extend(timed)
         largest = len(pick)
-        fastest = min(ms for _r, ms, _f in timed)
+        fastest = min(t[1] for t in timed)
         if largest == len(flat) or fastest >= stop_ms:
             break
         aim = n * CALIBRATION_AIM * stop_ms / max(fastest, 1e-3)  # by its time per pixel
         n = max(int(min(n * CALIBRATION_GROWTH, aim)), n + 1)
+    if screen is not None:  # the largest size again, its first rays marched first
+        samples.extend(rounds.trace(pick, "full") for _ in range(CALIBRATION_REPEATS))
     whole = _whole_reflectors(gb, visible_ids, SPARSE_PIXELS_FACTOR * largest, rng)
     if len(whole):
+        timed_reuse = camera is not None and HISTORY_DENSITY in CALIBRATION_DENSITIES
+        history = _History(whole, rounds, camera) if timed_reuse else None
         for density in CALIBRATION_DENSITIES:
-            rounds.trace(whole, density)
+            begun = history.begin(0) if history is not None and density == HISTORY_DENSITY else None
+            rounds.trace(whole, density, begun)  # untimed (and the history's first frame)
+            if begun is not None:
+                history.end(begun)
             samples.extend(rounds.trace(whole, density) for _ in range(CALIBRATION_REPEATS))
+        if history is not None:
+            samples.extend(history.reuse_rounds())
     wall_ms = (time.perf_counter() - start) * 1000.0
-    records = [TraceRecord(e, pixels, rays) for e, (pixels, rays) in sorted(rounds.sources.items())]
+    records = [TraceRecord(e, pixels, rays, marched=marched)
+               for e, (pixels, rays, marched) in sorted(rounds.sources.items())]  # fmt: skip
     return Calibration(samples, rounds.rays, rounds.traced_pixels, wall_ms, records)
 
 
 class _CalibrationRounds:
     """Rounds of chosen G-buffer pixels through the renderer's tracing step, each on a
-    copy of ``gb`` keeping only those pixels' element ids; counts the rays and the pixels
-    that started rays over the timed and untimed rounds."""
+    copy of ``gb`` keeping only those pixels' element ids, with the run's ``screen``
+    (a ``screen_space.ScreenFrame``, None: none) unless told not to; counts the rays and
+    the pixels that started rays over the rounds traced as the run traces (timed and
+    untimed)."""
 
-    def __init__(self, tracer, gb: GBuffer, visible_ids: list[int], bounce_limit: int):
+    def __init__(self, tracer, gb: GBuffer, visible_ids: list[int], bounce_limit: int,
+                 screen=None) -> None:  # fmt: skip
         self._tracer = tracer
         self._gb = gb
         self._bounce_limit = bounce_limit
+        self._screen = screen
         self._ids = gb.element_id.reshape(-1)
         #: The flat indices of the visible reflectors' pixels.
         self.pixels = np.flatnonzero(np.isin(self._ids, visible_ids))
@@ -132,27 +161,76 @@ class _CalibrationRounds:
         self._whole = np.ones(gb.shape, np.float32)
         self.rays = 0
         self.traced_pixels = 0
-        #: Per reflector, its pixels and rays over the full-density rounds.
-        self.sources: dict[int, tuple[int, int]] = {}
+        #: Per reflector, its pixels, rays and marched pixels over the full-density
+        #: rounds traced as the run traces.
+        self.sources: dict[int, tuple[int, int, int]] = {}
 
-    def trace(self, pick: np.ndarray, density: str) -> tuple[int, float, int]:
-        """One round of the pixels ``pick`` (flat indices) at ``density``: its rays, its
-        ms and its filled pixels (covered, not started rays at)."""
+    def gbuffer(self, pick: np.ndarray) -> GBuffer:
+        """The copy of ``gb`` a round of the pixels ``pick`` (flat indices) traces."""
         ids = np.full(self._ids.size, -1, self._ids.dtype)
         ids[pick] = self._ids[pick]
-        sources = np.unique(ids[pick]).tolist()
-        sub = dataclasses.replace(self._gb, element_id=ids.reshape(self._gb.shape))
+        return dataclasses.replace(self._gb, element_id=ids.reshape(self._gb.shape))
+
+    def trace(self, pick: np.ndarray, density: str, reuse=None, screen: bool = True,
+              sub: GBuffer | None = None) -> tuple[int, float, int, int, int]:  # fmt: skip
+        """One round of the pixels ``pick`` (flat indices) at ``density``, with ``reuse``
+        (a ``FrameReuse``, None: none) on ``sub`` (``gbuffer(pick)``, made when None),
+        with the run's screen space unless ``screen`` is False: its rays, its ms and its
+        filled, reused and marched pixels (``TraceRecord``'s counts)."""
+        sub = self.gbuffer(pick) if sub is None else sub
+        sources = np.unique(sub.element_id.reshape(-1)[pick]).tolist()
+        frame = self._screen if screen else None
         step = ReflectionRounds(self._tracer, sub, self._blank, self._whole, self._blank,
-                                self._bounce_limit)  # fmt: skip
+                                self._bounce_limit, reuse, frame)  # fmt: skip
         traced = step(sources, [density] * len(sources))
-        started = sum(r.pixels * traced_fraction(r.pixels, density) for r in traced.records)
-        if density == "full":
-            for r in traced.records:
-                pixels, rays = self.sources.get(r.source, (0, 0))
-                self.sources[r.source] = (pixels + r.pixels, rays + r.rays)
-        self.rays += int(traced.rays)
-        self.traced_pixels += round(started)
-        return int(traced.rays), float(traced.ms), round(len(pick) - started)
+        filled, reused, marched = (sum(getattr(r, kind) or 0 for r in traced.records)
+                                   for kind in ("filled", "reused", "marched"))  # fmt: skip
+        if screen or self._screen is None:  # traced as the run traces
+            if density == "full":
+                for r in traced.records:
+                    pixels, rays, ran = self.sources.get(r.source, (0, 0, 0))
+                    self.sources[r.source] = (pixels + r.pixels, rays + r.rays,
+                                              ran + (r.marched or 0))  # fmt: skip
+            self.rays += int(traced.rays)
+            self.traced_pixels += sum(r.pixels for r in traced.records) - filled - reused
+        return int(traced.rays), float(traced.ms), filled, reused, marched
+
+
+class _History:
+    """The reflections of the calibration's own rounds of the pixels ``pick`` as the
+    previous frames of a still view (``ReflectionHistory`` with ``camera``): its first
+    frame the untimed round at HISTORY_DENSITY (``begin`` / ``end``), its second a
+    round at that density with the pattern's next phase, whose skipped pixels are the
+    first's traced ones (``reuse_rounds``)."""
+
+    def __init__(self, pick: np.ndarray, rounds: _CalibrationRounds, camera: FrameCamera):
+        self._pick = pick
+        self._rounds = rounds
+        self._sub = rounds.gbuffer(pick)
+        self._camera = camera
+        self._history = ReflectionHistory()
+        self._still = np.zeros(0, np.int64)  # nothing moved
+
+    def begin(self, frame: int):
+        """A ``FrameReuse`` of the ``frame``-th frame, the last ended its previous one."""
+        return self._history.begin(self._sub, self._camera, self._still, frame)
+
+    def end(self, reuse) -> None:
+        self._history.end(reuse)
+
+    def trace(self, density: str, reuse) -> tuple[int, float, int, int, int]:
+        return self._rounds.trace(self._pick, density, reuse, sub=self._sub)
+
+    def reuse_rounds(self) -> list[tuple[int, float, int, int, int]]:
+        """The timed rounds with history: one at HISTORY_DENSITY, its pattern's other
+        pixels (the first frame's traced ones) reused (which makes every pixel's
+        history at most a frame old), then CALIBRATION_REPEATS at REUSE_DENSITY, each a
+        fresh frame after that one."""
+        second = self.begin(1)
+        out = [self.trace(HISTORY_DENSITY, second)]
+        self.end(second)
+        out += [self.trace(REUSE_DENSITY, self.begin(2)) for _ in range(CALIBRATION_REPEATS)]
+        return out
 
 
 def _whole_reflectors(

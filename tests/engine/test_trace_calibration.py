@@ -26,10 +26,13 @@ from phrt_usd.usd import schema
 from phrt_usd.usd.stage import open_stage
 
 #: The synthetic machine: a round takes OVERHEAD_MS + MS_PER_RAY * rays + MS_PER_FILLED *
-#: filled pixels, FIRST_SIZE_FACTOR times that when it casts more rays than any round
-#: before (buffers touched for the first time, the pool's first split: 1.5-2.5x measured
-#: on a cluttered mirror floor, trace_calibration's docstring).
+#: filled pixels + MS_PER_REUSED * reused pixels, FIRST_SIZE_FACTOR times that when it
+#: casts more rays than any round before (buffers touched for the first time, the pool's
+#: first split: 1.5-2.5x measured on a cluttered mirror floor, trace_calibration's
+#: docstring). A reused pixel costs less than a filled one (one previous pixel read
+#: against up to 12 neighbours).
 OVERHEAD_MS, MS_PER_RAY, MS_PER_FILLED, FIRST_SIZE_FACTOR = 0.3, 4e-4, 2.4e-4, 2.0
+MS_PER_REUSED = 1.2e-4
 #: The budget: every reflector of the stage traced at full density takes several times
 #: it, so the first frame's rounds are planned to fill it, at reduced densities too.
 BUDGET_MS = 6.0
@@ -38,7 +41,7 @@ BUDGET_MS = 6.0
 class SyntheticMachine:
     """The clock ``ReflectionRounds`` reads (``perf_counter``, seconds), advanced by each
     ``Tracer.trace_reflections`` call by its synthetic time; ``log`` holds each call's
-    G-buffer element ids, sources, rays, filled pixels and ms."""
+    G-buffer element ids, sources, rays, filled and reused pixels and ms."""
 
     def __init__(self) -> None:
         self.now = 0.0
@@ -52,15 +55,17 @@ class SyntheticMachine:
         def traced(tracer, gbuffer, sources, bounce_limit, density="full", *more):
             result = trace_reflections(tracer, gbuffer, sources, bounce_limit, density, *more)
             kinds = result.kinds
-            skipped = (pixel_kinds.FILLED, pixel_kinds.REUSED)  # the model's filled pixels
-            filled = 0 if kinds is None else int(np.isin(kinds, skipped).sum())
-            ms = OVERHEAD_MS + MS_PER_RAY * result.rays + MS_PER_FILLED * filled
+            filled = 0 if kinds is None else int(np.count_nonzero(kinds == pixel_kinds.FILLED))
+            reused = 0 if kinds is None else int(np.count_nonzero(kinds == pixel_kinds.REUSED))
+            ms = (OVERHEAD_MS + MS_PER_RAY * result.rays + MS_PER_FILLED * filled
+                  + MS_PER_REUSED * reused)  # fmt: skip
             if result.rays > self.largest:
                 ms *= FIRST_SIZE_FACTOR
                 self.largest = result.rays
             self.now += ms / 1000.0
             self.log.append(SimpleNamespace(ids=gbuffer.element_id, sources=list(sources),
-                                            rays=result.rays, filled=filled, ms=ms))  # fmt: skip
+                                            rays=result.rays, filled=filled, reused=reused,
+                                            ms=ms))  # fmt: skip
             return result
 
         return traced
@@ -142,7 +147,7 @@ def test_probe_first_frames_overrun_on_a_new_stage(tmp_path, monkeypatch, heuris
         assert np.array_equal(c.ids[kept], ids[kept]) and set(c.sources) <= visible
     # Its rounds reach the budget's size (or take every pixel): the first frame's
     # rounds are of sizes it timed, so none pays a first-of-size cost.
-    full = [r for r in stats.calibration["rounds"] if r.get("filled", 0) == 0]
+    full = [r for r in stats.calibration["rounds"] if r["filled"] == r["reused"] == 0]
     assert max(r["ms"] for r in full) >= BUDGET_MS
     assert all(machine.log[k].rays <= max(c.rays for c in calibration) for k in frame_calls)
 
@@ -150,10 +155,17 @@ def test_probe_first_frames_overrun_on_a_new_stage(tmp_path, monkeypatch, heuris
     # exactly linear once a size was traced: what a fit may miss is the 2x first-of-size
     # cost, or the filled pixels' cost if it charged only rays).
     model = TraceTimeModel()
-    model.calibrate([(r["rays"], r["ms"], r.get("filled", 0)) for r in stats.calibration["rounds"]])
+    model.calibrate([(r["rays"], r["ms"], r["filled"], r["reused"], r["marched"])
+                     for r in stats.calibration["rounds"]])  # fmt: skip
     first = machine.log[frame_calls[0]]
-    predicted = model.expected_ms(first.rays + model.fill_rays * first.filled)
+    predicted = model.expected_ms(model.equivalent_rays(first.rays, first.filled, first.reused))
     assert predicted == pytest.approx(first.ms, rel=0.10)
+    # It timed reused pixels (a still view of its own rounds) and priced them apart: at
+    # the machine's costs within 10 % (first-of-size factors aside, the rounds are exact),
+    # a reused pixel cheaper than a filled one.
+    assert any(r["reused"] > 0 for r in stats.calibration["rounds"])
+    assert model.fill_rays == pytest.approx(MS_PER_FILLED / MS_PER_RAY, rel=0.10)
+    assert model.reuse_rays == pytest.approx(MS_PER_REUSED / MS_PER_RAY, rel=0.10)
     # The rays the frame was predicted to cast are what it cast, within 15 %: the
     # calibration traced every visible reflector's pixels at random, so each reflector is
     # predicted at its own rays per pixel (1.00-1.02 on this floor; at the mean of all,
