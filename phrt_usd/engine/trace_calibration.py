@@ -1,8 +1,9 @@
 """The run's trace-time calibration (``calibrate_tracer``): before the first time-budgeted
 round of a run, the renderer's tracing step is timed on the frame's own reflector pixels
-at the sizes the frame's budget will plan, at full and at reduced densities, and the
-policy's time model fits its prior line, the cost of a filled pixel and its safety
-factor to those rounds (``TraceTimeModel.calibrate``).
+at the sizes the frame's budget will plan, at full and at reduced densities, with the
+previous frame's reflections reused and with screen space when the run has it, and the
+policy's time model fits its prior line, the cost of each kind of pixel made without
+rays and its safety factor to those rounds (``TraceTimeModel.calibrate``).
 
 Why at the budget's size. A round of a size the run has not traced yet costs 1.5-2.5x
 its repeats (its buffers are allocated and touched for the first time; from 4096 shadow
@@ -22,16 +23,42 @@ So the calibration traces, each round through the renderer's own tracing step
 rounds are) on a copy of the frame's G-buffer keeping only the round's pixels' element
 ids, so that each round does a real round's work over the whole image:
 
-* at full density, random samples of the reflector pixels growing from
-  CALIBRATION_PIXELS (CALIBRATION_GROWTH times, or to what the last size says takes
+* at full density without screen space, random samples of the reflector pixels growing
+  from CALIBRATION_PIXELS (CALIBRATION_GROWTH times, or to what the last size says takes
   CALIBRATION_AIM T) until a round takes the budget T (at most CALIBRATION_ROUND_MAX_MS)
-  or every pixel; each size once untimed, then timed CALIBRATION_REPEATS times;
-* at the coarsest and the finest reduced density (CALIBRATION_DENSITIES), whole
+  or every pixel; each size once untimed, then timed CALIBRATION_REPEATS times: the
+  line (rays alone);
+* with screen space on, the largest of those samples again with it, timed
+  CALIBRATION_REPEATS times (its first march warmed on the smallest sample, untimed):
+  the march's cost per marched pixel, from the same pixels with and without it;
+* at the reduced densities CALIBRATION_DENSITIES (a sixteenth and a half), whole
   reflectors in a seeded random order up to SPARSE_PIXELS_FACTOR times the largest
-  full-density round's pixels; each once untimed, then timed CALIBRATION_REPEATS times.
+  full-density sample's pixels, without history; each once untimed, then timed
+  CALIBRATION_REPEATS times: the fill's cost per filled pixel;
+* and the same reflectors as a still view's frames (``_History``,
+  ``_reduced_density_rounds``): the untimed half-density round is the first frame, a
+  half-density round in the pattern's other phase the second (its skipped pixels are
+  the first's traced ones: they take their history), and each timed round at a
+  sixteenth is followed by one after that second frame (every pixel has history at
+  most a frame old: nearly all of its skipped pixels are reused, the rest filled where
+  the temporal gradient refuses a cell): the lookup's cost per reused pixel, timed in
+  turn with the fill it replaces.
 
-Its wall time is about 6-8 T plus the run's first trace (~30 ms), once per run, reported
-apart from the frame's time (``FrameStats.calibration``).
+Why a pair of rounds for the march. Every first ray is marched when screen space is on,
+so rounds of random samples march a constant share of their pixels (all of them): a fit
+of their times cannot tell the march from the rays. The same pixels with and without it
+differ by the march alone (and the rays its resolved pixels do not cast, which the count
+of rays shows). Why the still view for reuse: it is the one view where the history of
+every skipped pixel is valid, so the reused pixels' count is known and large, and what
+the lookups cost is not mixed with a view's rejections. Both are the renderer's own code
+on the frame's own pixels; what they cost apart from rays is priced per pixel in rays
+(``select/cost_model.py``, its rule).
+
+Its wall time is once per run, reported apart from the frame's time
+(``FrameStats.calibration``): on sewer frame 241 (320 x 240, T = 16 ms, the machine
+shared) about 12 T with screen space off (10 T before reuse was timed: the half-density
+round of the history's second frame and two at a sixteenth) and 18-20 T with it on (the
+two rounds of the largest sample with screen space).
 """
 
 from __future__ import annotations
@@ -125,16 +152,11 @@ def calibrate_tracer(
         samples.extend(rounds.trace(pick, "full") for _ in range(CALIBRATION_REPEATS))
     whole = _whole_reflectors(gb, visible_ids, SPARSE_PIXELS_FACTOR * largest, rng)
     if len(whole):
-        timed_reuse = camera is not None and HISTORY_DENSITY in CALIBRATION_DENSITIES
+        timed_reuse = camera is not None and {HISTORY_DENSITY, REUSE_DENSITY} <= set(
+            CALIBRATION_DENSITIES
+        )
         history = _History(whole, rounds, camera) if timed_reuse else None
-        for density in CALIBRATION_DENSITIES:
-            begun = history.begin(0) if history is not None and density == HISTORY_DENSITY else None
-            rounds.trace(whole, density, begun)  # untimed (and the history's first frame)
-            if begun is not None:
-                history.end(begun)
-            samples.extend(rounds.trace(whole, density) for _ in range(CALIBRATION_REPEATS))
-        if history is not None:
-            samples.extend(history.reuse_rounds())
+        samples.extend(_reduced_density_rounds(rounds, whole, history))
     wall_ms = (time.perf_counter() - start) * 1000.0
     records = [TraceRecord(e, pixels, rays, marched=marched)
                for e, (pixels, rays, marched) in sorted(rounds.sources.items())]  # fmt: skip
@@ -197,11 +219,9 @@ class _CalibrationRounds:
 
 
 class _History:
-    """The reflections of the calibration's own rounds of the pixels ``pick`` as the
-    previous frames of a still view (``ReflectionHistory`` with ``camera``): its first
-    frame the untimed round at HISTORY_DENSITY (``begin`` / ``end``), its second a
-    round at that density with the pattern's next phase, whose skipped pixels are the
-    first's traced ones (``reuse_rounds``)."""
+    """The calibration's own rounds of the pixels ``pick`` as the frames of a still view
+    (a ``ReflectionHistory`` with ``camera``, nothing moving): ``begin`` a frame,
+    ``trace`` it, ``end`` it (``_reduced_density_rounds`` says which)."""
 
     def __init__(self, pick: np.ndarray, rounds: _CalibrationRounds, camera: FrameCamera):
         self._pick = pick
@@ -221,16 +241,32 @@ class _History:
     def trace(self, density: str, reuse) -> tuple[int, float, int, int, int]:
         return self._rounds.trace(self._pick, density, reuse, sub=self._sub)
 
-    def reuse_rounds(self) -> list[tuple[int, float, int, int, int]]:
-        """The timed rounds with history: one at HISTORY_DENSITY, its pattern's other
-        pixels (the first frame's traced ones) reused (which makes every pixel's
-        history at most a frame old), then CALIBRATION_REPEATS at REUSE_DENSITY, each a
-        fresh frame after that one."""
-        second = self.begin(1)
-        out = [self.trace(HISTORY_DENSITY, second)]
-        self.end(second)
-        out += [self.trace(REUSE_DENSITY, self.begin(2)) for _ in range(CALIBRATION_REPEATS)]
-        return out
+
+
+def _reduced_density_rounds(rounds: _CalibrationRounds, whole: np.ndarray,
+                            history: _History | None) -> list[tuple]:  # fmt: skip
+    """Timed rounds of the whole reflectors ``whole`` at each of CALIBRATION_DENSITIES
+    (REUSE_DENSITY last), each density's after an untimed one: CALIBRATION_REPEATS
+    without history (filled pixels). With ``history`` (None: reuse not timed),
+    HISTORY_DENSITY's untimed round is the still view's first frame and a round in the
+    pattern's other phase its second (its skipped pixels, the first's traced ones,
+    reused: every pixel's history is then at most a frame old), and each round at
+    REUSE_DENSITY is followed by one with that history (fill and reuse timed in turn,
+    under the same load of the machine)."""
+    out = []
+    for density in sorted(CALIBRATION_DENSITIES, key=lambda d: d == REUSE_DENSITY):
+        first = history.begin(0) if history is not None and density == HISTORY_DENSITY else None
+        rounds.trace(whole, density, first)  # untimed (and the history's first frame)
+        for _ in range(CALIBRATION_REPEATS):
+            out.append(rounds.trace(whole, density))
+            if history is not None and density == REUSE_DENSITY:
+                out.append(history.trace(density, history.begin(2)))
+        if first is not None:
+            history.end(first)
+            second = history.begin(1)
+            out.append(history.trace(density, second))
+            history.end(second)
+    return out
 
 
 def _whole_reflectors(
