@@ -57,7 +57,8 @@ class ReflectionRounds:
     def __call__(self, ids: list[int], densities: list[str]) -> TracedRound:
         t = time.perf_counter()
         result = self._tracer.trace_reflections(
-            self._gbuffer, ids, self._bounce_limit, densities, self._reuse, self._screen
+            self._gbuffer, ids, self._bounce_limit, densities, self._reuse, self._screen,
+            (self._fallback, self._local, self._reflectivity),
         )
         if self._reuse is not None:
             self._reuse.record(result)

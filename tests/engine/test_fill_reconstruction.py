@@ -56,6 +56,69 @@ def _fill(pix, src, radiance, traced, guides, density, hit=None, phase=(0, 0)):
     return dict(zip(filled.tolist(), got, strict=True)), got_hit
 
 
+def _raster(height, width, sky, reflectivity=0.4, local=0.3):
+    """Raster images (fallback, local, reflectivity), (H, W, ...) float32, of a reflector
+    whose fallback reflection is ``sky`` (H*W, 3): fallback = (1 - F) local + F sky."""
+    f = np.full((height, width), reflectivity, np.float32)
+    loc = np.full((height, width, 3), local, np.float32)
+    fallback = (1.0 - f[..., None]) * loc + f[..., None] * sky.reshape(height, width, 3)
+    return fallback.astype(np.float32), loc, f
+
+
+@pytest.mark.parametrize("density", ["half", "eighth", "sixteenth", "5/16"])
+def test_a_reflection_of_the_sky_is_reconstructed_exactly(density):
+    """Every traced ray left the scene (hit +inf) and saw the environment in its mirror
+    direction, which the raster fallback shows at every pixel: a skipped pixel takes its
+    own fallback reflection, however much the sky varies between samples (a rippled
+    pond's highlights; 1e-5: float32 rounding of the fallback's blend, divided by F).
+    Without the raster images, or with a reflectivity under ENV_MIN_REFLECTIVITY, the
+    fill interpolates as before (the sky's detail between samples is lost)."""
+    height, width = 24, 32
+    src = np.zeros(height * width, np.int64)
+    pix, traced = _split_pattern(height, width, density, src)
+    sky = np.random.default_rng(7).random((height * width, 3)).astype(np.float32) * 4.0
+    inf = np.full(height * width, np.inf, np.float32)
+    guides = _plane(height, width)
+    with_sky = FillGuides.of(_GBufferLike(guides), _raster(height, width, sky))
+    got, _hit = _fill(pix, src, sky, traced, with_sky, density, hit=inf)
+    assert len(got) == int((~traced).sum())
+    for p, value in got.items():
+        np.testing.assert_allclose(value, sky[p], rtol=1e-5, atol=1e-5)
+    for off in (guides, FillGuides.of(_GBufferLike(guides),
+                                      _raster(height, width, sky, reflectivity=0.005))):
+        got, _hit = _fill(pix, src, sky, traced, off, density, hit=inf)
+        error = np.mean([np.abs(v - sky[p]).max() for p, v in got.items()])
+        assert error > 0.1  # random sky: interpolation cannot know it
+
+
+def test_the_sky_rule_keeps_reflected_geometry():
+    """Samples whose rays hit something (finite hit distance) are interpolated as before,
+    the raster images given or not: the rule changes only what the sky stands for."""
+    height, width = 24, 32
+    src = np.zeros(height * width, np.int64)
+    pix, traced = _split_pattern(height, width, "quarter", src)
+    radiance = np.random.default_rng(8).random((height * width, 3)).astype(np.float32)
+    sky = np.full((height * width, 3), 9.0, np.float32)
+    guides = _plane(height, width)
+    plain, _ = _fill(pix, src, radiance, traced, guides, "quarter")
+    ruled, _ = _fill(pix, src, radiance, traced,
+                     FillGuides.of(_GBufferLike(guides), _raster(height, width, sky)), "quarter")
+    assert plain.keys() == ruled.keys()
+    for p in plain:
+        np.testing.assert_array_equal(plain[p], ruled[p])
+
+
+class _GBufferLike:
+    """What ``FillGuides.of`` reads of a G-buffer, from a ``FillGuides`` of flat images."""
+
+    def __init__(self, guides: FillGuides):
+        shape = (guides.height, guides.width)
+        self.shape = shape
+        self.normal = guides.normal.reshape(*shape, 3)
+        self.position = guides.position.reshape(*shape, 3)
+        self.depth = guides.depth.reshape(shape)
+
+
 @pytest.mark.parametrize("phase", [(0, 0), (1, 3)])
 @pytest.mark.parametrize("density", DENSITIES)
 def test_a_linear_ramp_is_reproduced_at_interior_pixels(density, phase):

@@ -42,6 +42,18 @@ t1 (1 - t1) t2 (1 - t2) / 4 <= 1/64 times a mixed fourth difference), clamped pe
 channel to the range of the corners it used: no ringing, and nothing from the other
 side of an edge. On a linear ramp D is 0 and the value exact.
 
+The sky. A traced sample whose reflection ray left the scene (v = 0) shows the
+environment in its own mirror direction, which is what the raster fallback shows at
+every pixel (``compositing.base_image``). For such a sample the pixel takes its own
+fallback reflection instead of the sample's value (no curvature term; the range clamp
+includes it): exact where the pixel's ray leaves the scene too, so a reflector that
+reflects only the sky is reconstructed exactly at any density (a normal-mapped pond's
+ripples in the sky included), and one reflecting the sky beside geometry keeps the
+sky's detail up to the reflected edge. The fallback reflection is
+(fallback - (1 - F) local) / F, F the pixel's reflectivity (``FillGuides.raster``);
+below ENV_MIN_REFLECTIVITY (float32 rounding divided by F) and on stages with
+transmissive materials (whose traced radiance mixes in refraction) the rule is off.
+
 A pixel whose cell has no corner of its reflector (an edge, an irregular traced
 subset) takes the tent-weighted mean of its reflector's traced pixels within the
 pattern's spacing - 1 rows and columns (the guides' weights, or without them when they
@@ -84,6 +96,11 @@ FILL_HIT_TOLERANCE = 0.2
 #: What a tap far from p's hit-distance estimate still weighs: never nothing, so that a
 #: pixel between two equally far estimates takes a mix of both, as the bilinear fill.
 FILL_HIT_FLOOR = 1e-3
+#: The sky rule (module docstring) needs the pixel's fallback reflection back from the
+#: raster frame, (fallback - (1 - F) local) / F: float32 rounding of ~1e-7 of the local
+#: term divided by F stays below 1e-5 for F >= 0.01; a reflector reflecting less than
+#: that keeps the interpolation.
+ENV_MIN_REFLECTIVITY = 0.01
 #: The weight the cell's corners add to their bilinear weight in v̂ (and in the value
 #: where the bilinear weights leave none), so that a corner at the far end of p's cell
 #: still counts where the nearer ones are missing.
@@ -113,6 +130,21 @@ def _guide(nx, ny, nz, px, py, pz, q, normal, position):
     if off >= _PLANE_ZERO2 * length2:
         return 0.0
     return w * (_PLANE_ZERO2 * length2 - off) / ((_PLANE_ZERO2 - _PLANE_FULL2) * length2)
+
+
+@njit(**_HELPER)
+def _environment(p, fallback, local, reflectivity, sky):
+    """Writes the raster fallback's reflection at pixel p into sky (3,) float64 and
+    returns True, or False when the rule is off (no raster images given, or the pixel's
+    reflectivity below ENV_MIN_REFLECTIVITY)."""
+    if fallback.shape[0] == 0:
+        return False
+    f = float(reflectivity[p])
+    if not (f >= ENV_MIN_REFLECTIVITY):
+        return False
+    for c in range(3):
+        sky[c] = (float(fallback[p, c]) - (1.0 - f) * float(local[p, c])) / f
+    return True
 
 
 @njit(**_KERNEL)
@@ -198,7 +230,8 @@ def fill_curvature(table, traced_pix, traced_src, radiance, v, lattice, width, h
 @njit(**_KERNEL)
 def fill_skipped(
     table, traced_src, radiance, v, curvature, traced_pix, skipped_pix, skipped_src, lattice,
-    phase, width, height, normal, position, depth, lo, hi, out_rad, out_hit, out_ok,
+    phase, width, height, normal, position, depth, fallback, local, reflectivity, lo, hi,
+    out_rad, out_hit, out_ok,
 ):  # fmt: skip
     """The skipped pixels lo..hi (module docstring).
 
@@ -208,12 +241,15 @@ def fill_skipped(
     lattice (m,) int64 each one's pattern: -q the checkerboard of the grid of spacing q
     (rows phase[0] + i q, columns phase[1] + j q, i + j even), s >= 2 the grid of spacing
     s (rows phase[0] + i s, columns phase[1] + j s); phase (2,) int64; the guides
-    (normal, position, depth).
+    (normal, position, depth); the raster frame's fallback (H*W, 3), local (H*W, 3)
+    float32 and reflectivity (H*W,) float32 images for the sky rule (fallback of 0 rows:
+    off).
     Writes out_rad (m, 3) float32 the radiance, out_hit (m,) float32 the hit distance
     the corners' v̂ gives (+inf: its rays leave the scene) and out_ok (m,) bool whether
     the pixel got them (the others are left as they were)."""
     corner = np.empty(4, np.int64)
     weight, bilinear = np.empty(4), np.empty(4)
+    sky = np.empty(3)
     for j in range(lo, hi):
         p, s, lat = skipped_pix[j], skipped_src[j], lattice[j]
         r = p // width
@@ -233,6 +269,7 @@ def fill_skipped(
             t1, t2 = (c - c0) / lat, (r - r0) / lat
         nx, ny, nz = float(normal[p, 0]), float(normal[p, 1]), float(normal[p, 2])
         px, py, pz = position[p, 0], position[p, 1], position[p, 2]
+        has_sky = _environment(p, fallback, local, reflectivity, sky)
         total = vhat = exact = 0.0
         for k in range(4):  # the corners (0, 0), (1, 0), (0, 1), (1, 1) along the axes
             a1, a2 = k & 1, k >> 1
@@ -261,11 +298,15 @@ def fill_skipped(
                 if weight[k] > 0.0:
                     at = corner[k]
                     w = weight[k] * _hit_weight(v[at], vhat)
-                    f0, f1, f2 = radiance[at, 0], radiance[at, 1], radiance[at, 2]
                     total += w
-                    x0 += w * (f0 - s1 * curvature[at, 0, 0] - s2 * curvature[at, 1, 0])
-                    x1 += w * (f1 - s1 * curvature[at, 0, 1] - s2 * curvature[at, 1, 1])
-                    x2 += w * (f2 - s1 * curvature[at, 0, 2] - s2 * curvature[at, 1, 2])
+                    if has_sky and v[at] == 0.0:  # the sky: the pixel's own (docstring)
+                        f0, f1, f2 = sky[0], sky[1], sky[2]
+                        x0, x1, x2 = x0 + w * f0, x1 + w * f1, x2 + w * f2
+                    else:
+                        f0, f1, f2 = radiance[at, 0], radiance[at, 1], radiance[at, 2]
+                        x0 += w * (f0 - s1 * curvature[at, 0, 0] - s2 * curvature[at, 1, 0])
+                        x1 += w * (f1 - s1 * curvature[at, 0, 1] - s2 * curvature[at, 1, 1])
+                        x2 += w * (f2 - s1 * curvature[at, 0, 2] - s2 * curvature[at, 1, 2])
                     lo0, hi0 = min(lo0, f0), max(hi0, f0)
                     lo1, hi1 = min(lo1, f1), max(hi1, f1)
                     lo2, hi2 = min(lo2, f2), max(hi2, f2)
@@ -286,9 +327,12 @@ def fill_skipped(
                             w *= _guide(nx, ny, nz, px, py, pz, traced_pix[at], normal,
                                         position)  # fmt: skip
                         total += w
-                        x0 += w * radiance[at, 0]
-                        x1 += w * radiance[at, 1]
-                        x2 += w * radiance[at, 2]
+                        if has_sky and v[at] == 0.0:  # the sky: the pixel's own
+                            x0, x1, x2 = x0 + w * sky[0], x1 + w * sky[1], x2 + w * sky[2]
+                        else:
+                            x0 += w * radiance[at, 0]
+                            x1 += w * radiance[at, 1]
+                            x2 += w * radiance[at, 2]
                         vhat += w * v[at]
             if total > 0.0:
                 out_rad[j, 0], out_rad[j, 1], out_rad[j, 2] = x0 / total, x1 / total, x2 / total
@@ -307,6 +351,9 @@ def warm_up() -> None:
     images = (np.ones((4, 3), np.float32), np.zeros((4, 3)))
     fill_table(i32, i64, f32[:1], f32, v)
     fill_curvature(i32, i64, i64, v32, v, i64 + 2, 2, 2, *images, 0, 1, d)
-    fill_skipped(i32, i64, v32, v, d, i64, i64 + 1, i64, i64 + 2, np.zeros(2, np.int64), 2, 2,
-                 *images, f32, 0, 1, v32.copy(), f32[:1].copy(), np.zeros(1, bool))  # fmt: skip
+    raster = (np.zeros((4, 3), np.float32), np.zeros((4, 3), np.float32), f32)
+    for fallback, local, reflectivity in (raster, (v32[:0], v32[:0], f32[:0])):
+        fill_skipped(i32, i64, v32, v, d, i64, i64 + 1, i64, i64 + 2, np.zeros(2, np.int64), 2,
+                     2, *images, f32, fallback, local, reflectivity, 0, 1, v32.copy(),
+                     f32[:1].copy(), np.zeros(1, bool))  # fmt: skip
     clear_table(i32, i64)

@@ -117,28 +117,44 @@ def pattern_spacing(density: str) -> int:
     return int(LEVEL_SPACING[TRACE_DENSITIES.index(density)])
 
 
+_NO_IMAGE = np.zeros((0, 3), np.float32)
+
+
 @dataclass(frozen=True)
 class FillGuides:
     """The G-buffer images the fill weighs traced samples by, flat over its H*W pixels:
     normal (H*W, 3) float32 unit, position (H*W, 3) float64 world, depth (H*W,) float32
-    view depth; width, height the G-buffer's."""
+    view depth; width, height the G-buffer's. ``raster``: the raster frame's fallback
+    (H*W, 3), local (H*W, 3) float32 and reflectivity (H*W,) float32 images, from which
+    the fill's sky rule reads each pixel's fallback reflection (``fill_kernels``); empty
+    arrays: the rule is off."""
 
     normal: np.ndarray
     position: np.ndarray
     depth: np.ndarray
     width: int
     height: int
+    raster: tuple[np.ndarray, np.ndarray, np.ndarray] = (_NO_IMAGE, _NO_IMAGE, _NO_IMAGE[:, 0])
 
     @classmethod
-    def of(cls, gbuffer) -> FillGuides:
-        """The guides of a ``GBuffer`` (views where its arrays already are flat-able)."""
+    def of(cls, gbuffer, raster=None) -> FillGuides:
+        """The guides of a ``GBuffer`` (views where its arrays already are flat-able);
+        ``raster`` (fallback (H, W, 3), local (H, W, 3), reflectivity (H, W)) the raster
+        frame's images for the sky rule, None: off (a stage with transmissive materials,
+        whose traced radiance mixes in refraction, passes None)."""
         height, width = gbuffer.shape
+        images = cls.raster
+        if raster is not None:
+            fallback, local, reflectivity = raster
+            images = (flat_image(fallback, np.float32, 3), flat_image(local, np.float32, 3),
+                      flat_image(reflectivity, np.float32, 1))  # fmt: skip
         return cls(
             flat_image(gbuffer.normal, np.float32, 3),
             flat_image(gbuffer.position, np.float64, 3),
             flat_image(gbuffer.depth, np.float32, 1),
             width,
             height,
+            images,
         )
 
 
@@ -229,7 +245,7 @@ def fill_skipped(
             kernels.fill_skipped, m, table, traced_src, radiance, v, curvature, traced_pix,
             skipped_pix, skipped_src, _LATTICE[pixel_levels(density, skipped_src)],
             np.array(phase, np.int64), *size, guides.normal, guides.position, guides.depth,
-            out=(out_rad, out_hit, ok),
+            *guides.raster, out=(out_rad, out_hit, ok),
         )  # fmt: skip
     finally:
         kernels.clear_table(table, traced_pix)

@@ -293,7 +293,7 @@ class Tracer:
 
     def trace_reflections(
         self, gbuffer: GBuffer, sources: list[int], bounce_limit: int, density="full",
-        reuse=None, screen=None,
+        reuse=None, screen=None, raster=None,
     ) -> ReflectionResult:
         """Mirror-reflection radiance for every G-buffer pixel whose element is in
         ``sources`` (no primary rays: rays start at the G-buffer position / normal /
@@ -301,9 +301,11 @@ class Tracer:
         reflector hit at the last one reads the environment for its reflected part
         (``bounce_limit`` < 1: no rays, the environment in the mirror direction).
 
-        ``density`` "half" / "quarter" / "sixteenth" (for every source, or a sequence of
-        densities, one per source): large reflectors start rays on a pattern of their pixels and
-        fill the others from traced neighbours (``sparse_pixels``); their records then
+        ``density`` one of ``model.trace_density.TRACE_DENSITIES`` (for every source, or
+        a sequence of them, one per source): large reflectors start rays on a pattern of
+        their pixels and fill the others from traced neighbours (``sparse_pixels``; with
+        ``raster``, the raster frame's fallback, local and reflectivity images, its sky
+        rule: ``_fill_guides``); their records then
         count every covered pixel, so rays per pixel stay what a frame's pixel counts
         predict at that density (hits scaled alike). ``reuse`` (an
         ``engine.reflection_history.FrameReuse``, None: none) shifts the pattern by the
@@ -351,10 +353,16 @@ class Tracer:
             if self._fill_table is None or len(self._fill_table) != width * height:
                 self._fill_table = np.full(width * height, -1, np.int32)
             result = sparse_pixels.complete(
-                result, src, first["skipped"], sparse_pixels.FillGuides.of(gbuffer), density,
+                result, src, first["skipped"], self._fill_guides(gbuffer, raster), density,
                 phase, reuse, self._fill_table, self._split, start,
             )  # fmt: skip
         return with_kind_counts(result, gbuffer.element_id, marched=hits is not None)
+
+    def _fill_guides(self, gbuffer: GBuffer, raster) -> sparse_pixels.FillGuides:
+        """The fill's guides: the G-buffer's, and ``raster`` for its sky rule unless the
+        stage has transmissive materials (their traced radiance mixes in refraction,
+        which the raster's fallback reflection does not show)."""
+        return sparse_pixels.FillGuides.of(gbuffer, None if self.surfaces.transmission else raster)
 
     def trace_refraction(
         self, gbuffer: GBuffer, bounce_limit: int, elements: list[int] | None = None
