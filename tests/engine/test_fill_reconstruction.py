@@ -365,3 +365,16 @@ def test_probe_reduced_densities_show_as_blocks():
         assert np.mean(flips[d]) <= limit, (d, flips[d])
     for d, c in coarser.items():
         assert np.mean(flips[d]) <= np.mean(flips[c]), (d, flips[d], c, flips[c])
+
+
+def test_the_sky_rule_is_off_on_stages_with_transmissive_materials():
+    """A glass pane's traced radiance mixes in what it refracts, which the raster's
+    fallback reflection does not show: there the fill's guides carry no raster images."""
+    height, width = 4, 6
+    raster = _raster(height, width, np.zeros((height * width, 3), np.float32))
+    gb = _GBufferLike(_plane(height, width))
+    for opacity, kept in ((1.0, True), (0.4, False)):
+        parts = [{"mesh": quad(1.0), "F": 0.5}, {"mesh": sphere(0.3, (0, 0, 1)),
+                                                  "opacity": opacity}]  # fmt: skip
+        tracer = Tracer(parts_scene(parts))
+        assert (len(tracer._fill_guides(gb, raster).raster[0]) > 0) is kept
