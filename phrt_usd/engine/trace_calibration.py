@@ -55,10 +55,10 @@ on the frame's own pixels; what they cost apart from rays is priced per pixel in
 (``select/cost_model.py``, its rule).
 
 Its wall time is once per run, reported apart from the frame's time
-(``FrameStats.calibration``): on sewer frame 241 (320 x 240, T = 16 ms, the machine
-shared) about 12 T with screen space off (10 T before reuse was timed: the half-density
-round of the history's second frame and two at a sixteenth) and 18-20 T with it on (the
-two rounds of the largest sample with screen space).
+(``FrameStats.calibration``): on sewer frame 241 (320 x 240, T = 16 ms, a fresh
+process, the machine shared) 12-14 T with screen space off and 17-19 T with it on,
+against 12-13 T before reuse and the march were timed (the history's second frame and
+two rounds at a sixteenth; the two rounds of the largest sample with screen space).
 """
 
 from __future__ import annotations
