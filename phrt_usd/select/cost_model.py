@@ -146,22 +146,26 @@ CALIBRATION_ORDER = (2, 0, 1)
 #: is TIME_MODEL_DECAY): what a kind costs in rays is a property of the stage and the
 #: code, not of the machine's load, and three more coefficients need more rounds than
 #: two. Over ~100 rounds (30-100 frames), synthetic rounds of 10 % jitter whose reused
-#: share varies at random put fill and reuse within ~0.03 rays of the truth (sd
-#: 0.02); over ~10 (the line's forgetting), 0.1-0.4 rays off, up to 4 where the mix
-#: barely varies.
+#: share varies at random put the mean of each cost over rounds 100-300 within 0.06 rays
+#: of the truth; over ~10 (the line's forgetting), 0.1-0.4 rays off, up to 4 where the
+#: mix barely varies.
 KIND_DECAY = 0.99
-#: The calibration's figure of each kind enters that fit as a ridge towards it, in rays
-#: (a pseudo-round of RAY_UNIT pixels of the kind alone at the cost the calibration
-#: measured, relative to the per-ray cost), of the prior line's weight
-#: (PRIOR_WEIGHT, forgotten at TIME_MODEL_DECAY per round) but never below
-#: KIND_PRIOR_WEIGHT_MIN: a run's rounds often mix the kinds in about the same
-#: proportion (every frame's reflectors at the same densities, the same share of
-#: history found), which cannot tell them apart; there the calibration's figures stand
-#: and the line learns the machine's speed. Where the mix varies (a reflector stepping
-#: density, a view starting or stopping to reproject) the rounds decide. Not higher: a
-#: ridge biases the direction the rounds tell apart least (fixed cost against pixels
-#: made without rays, both in every round): at 0.5 exact rounds settled reuse at 0.34
-#: rays against a true 0.25, at 0.05 within 0.01.
+#: The calibration's figure of each kind enters that fit as a ridge towards it
+#: (pseudo-rounds of RAY_UNIT pixels of the kind alone at that many rays at the line's
+#: present ms per ray), weighing what the calibration's own rounds of that kind weigh
+#: in the fit (the sum of (pixels / RAY_UNIT)^2 over the configurations that priced it,
+#: each size's fastest round: on the sewer at 320 x 240 about 0.6-1.5), never
+#: forgotten, and never below KIND_PRIOR_WEIGHT_MIN (a kind the calibration did not
+#: see: the rounds decide). A run's rounds often mix the kinds in about the same
+#: proportion (every frame's reflectors at the same rates, the same share of history
+#: found), which cannot tell them apart; there the calibration's figures stand and the
+#: line learns the machine's speed. Where the mix varies (a reflector stepping its rate,
+#: a view starting or stopping to reproject) the rounds decide as they outweigh it. The
+#: wet tunnel's rounds (sewer 217-276, HEU1, T = 16 ms, screen space on) replayed
+#: through the fit: at 0.05 for every kind the fill's figure ranged over 0.09-2.0 rays,
+#: at the calibration's weights over 0.19-0.94, for the same error of the predicted
+#: round times (mean |log(measured / predicted)| 0.17; 0.24 with the calibration's
+#: figures held).
 KIND_PRIOR_WEIGHT_MIN = 0.05
 
 #: Lower bound of the learned ms per ray (1e10 rays/s): keeps ms → rays finite.
@@ -248,8 +252,10 @@ class TraceTimeModel:
         #: either).
         self.fill_rays, self.reuse_rays, self.screen_space_rays = INITIAL_KIND_RAYS
         #: The calibration's figures of those costs (PRICED_KINDS order), in rays: what
-        #: the online fit of the kinds is drawn towards.
+        #: the online fit of the kinds is drawn towards, and how strongly (the weight of
+        #: the calibration's rounds of each kind, KIND_PRIOR_WEIGHT_MIN).
         self.prior_kind_rays = list(INITIAL_KIND_RAYS)
+        self.kind_prior_weight = [KIND_PRIOR_WEIGHT_MIN] * len(PRICED_KINDS)
         #: True once ``calibrate`` set the prior from this stage's own rays.
         self.calibrated = False
         # Weighted sums of the measured rounds over z = (1, rays, filled, reused,
@@ -285,7 +291,9 @@ class TraceTimeModel:
         JITTER_QUANTILE quantile of every round's measured / modelled ms, weighted by
         modelled ms, within [TIME_SAFETY_INITIAL, CALIBRATION_SAFETY_MAX]. It starts the
         factor, and fills a young window as long as the prior weighs in the fit
-        (``_young_ratio``). Marks the model calibrated; rounds learned before stay."""
+        (``_young_ratio``). Each kind's figure weighs in the online fit what its rounds
+        weigh (KIND_PRIOR_WEIGHT_MIN). Marks the model calibrated; rounds learned before
+        stay."""
         pts = []
         for r, m, *counts in samples:
             counts = [float(c) for c in counts[: len(PRICED_KINDS)]]
@@ -321,6 +329,8 @@ class TraceTimeModel:
                 )
                 per_pixel = max(float(beyond.sum() / made[rows, k].sum()), 0.0)
                 kinds[k] = min(per_pixel / self.prior_ms_per_ray, KIND_RAYS_MAX[k])
+                weight = float(np.sum((made[rows, k] / RAY_UNIT) ** 2))
+                self.kind_prior_weight[k] = max(weight, KIND_PRIOR_WEIGHT_MIN)
         self.fill_rays, self.reuse_rays, self.screen_space_rays = (float(v) for v in kinds)
         self.prior_kind_rays = kinds.tolist()
         self.prior_weight = PRIOR_WEIGHT
@@ -397,29 +407,37 @@ class TraceTimeModel:
         return TIME_SAFETY_INITIAL + (self.prior_safety - TIME_SAFETY_INITIAL) * share
 
     def _fit(self) -> None:
-        """The kinds' costs (``_fit_kinds``, when rounds made pixels without rays), then
-        the line at those costs (``_fit_line``)."""
-        if any(self._kind_zz[i] for i in _KIND_DIAGONAL):
+        """The kinds' costs (``_fit_kinds``, when rounds made pixels without rays), the
+        line at those costs (``_fit_line``), and the kinds' costs again in the refitted
+        line's rays."""
+        counted = any(self._kind_zz[i] for i in _KIND_DIAGONAL)
+        if counted:
             self._fit_kinds()
         self._fit_line()
+        if counted:
+            self._fit_kinds()
 
     def _fit_kinds(self) -> None:
         """The kinds' costs from the rounds (sums forgotten at KIND_DECAY): weighted least
         squares of ms = a + b rays + sum_k c_k n_k (n_k the pixels of kind k), with the
-        prior line's two pseudo-rounds and, per kind, the ridge (c_k - prior_k b)^2 of
-        weight max(``prior_weight``, KIND_PRIOR_WEIGHT_MIN) (prior_k ``prior_kind_rays``);
-        each cost c_k / b in rays, clamped to [0, KIND_RAYS_MAX]. Unchanged when the
-        rounds leave b not positive (noise over rounds of one size)."""
+        prior line's two pseudo-rounds and, per kind, the ridge (c_k - prior_k B)^2 of
+        weight ``kind_prior_weight`` (prior_k ``prior_kind_rays``, B the current line's
+        ms per RAY_UNIT rays: the calibration's figure at the machine's present speed, a
+        constant of the fit, so that a kind the rounds cannot tell from the rays, the
+        march, keeps its figure without tilting b); each cost c_k / B in rays (what the
+        line then charges for it is c_k), clamped to [0, KIND_RAYS_MAX]. Unchanged when
+        the rounds leave no solution."""
         p, a0, b0 = self.prior_weight, self.prior_overhead_ms, self.prior_ms_per_ray * RAY_UNIT
         normal = np.asarray(self._kind_zz).reshape(5, 5).copy()
         right = np.asarray(self._kind_zm).copy()
         fixed, both = np.eye(5)[0], np.eye(5)[0] + np.eye(5)[1]  # pseudo-rounds at 0 and 1
         normal += p * (np.outer(fixed, fixed) + np.outer(both, both))
         right += p * (a0 * fixed + (a0 + b0) * both)
-        q = max(p, KIND_PRIOR_WEIGHT_MIN)
-        for k, prior in enumerate(self.prior_kind_rays):
-            ridge = np.eye(5)[2 + k] - prior * np.eye(5)[1]
-            normal += q * np.outer(ridge, ridge)
+        line = self.ms_per_ray * RAY_UNIT
+        for k, (prior, q) in enumerate(zip(self.prior_kind_rays, self.kind_prior_weight,
+                                           strict=True)):  # fmt: skip
+            normal[2 + k, 2 + k] += q
+            right[2 + k] += q * prior * line
         try:
             theta = np.linalg.solve(normal, right)
         except np.linalg.LinAlgError:
