@@ -68,9 +68,13 @@ from phrt_usd.engine.trace.sparse_pixels import (
 from phrt_usd.model import pixel_kinds
 from phrt_usd.model.frame import FrameCamera, GBuffer, ReflectionResult, flat_image
 
-#: The age of a pixel without history (never traced, or filled: a fill is an estimate
-#: from this frame's samples, not a value to carry forward).
+#: The age of a pixel without history (never traced, or not in the frame's
+#: reflections).
 NO_HISTORY = np.iinfo(np.int16).max
+#: The age of a filled pixel: a fill is an estimate from its frame's samples, not a
+#: value to carry forward as traced (reuse refuses it); only the accumulation of the
+#: next frame's fill reads it (``accumulated``).
+FILLED_AGE = NO_HISTORY - 1
 #: Farthest the reprojected point may fall from its previous pixel's centre, in pixels
 #: along either axis: history is read from the nearest pixel (a bilinear read would blur
 #: it), so each reuse may shift the reflection by this much, and a chain of reuses over a
@@ -109,6 +113,18 @@ RANGE_TOLERANCE = 0.04
 #: onto itself.
 PROBE_STRIDE = 16
 MIN_REPROJECTED = 0.5
+#: A filled pixel (no valid history: a moving view, a rippled reflector) blends this
+#: share of its previous value in, read from the nearest previous pixel (within half a
+#: pixel: every on-screen reprojection) that passes the per-pixel tests and clamped to
+#: the range of the traced samples its fill was made of (``accumulated``): temporal
+#: anti-aliasing's exponential average, over about 1 / (1 - ACCUMULATION) frames. A
+#: fill's error changes from frame to frame where the camera moves (the traced samples
+#: land on other surface points), and the average halves that change; the clamp keeps
+#: what no traced sample around shows any more (a ghost) out. Measured on the wet
+#: tunnel (docs/temporal-reuse.md, "Accumulating fills").
+ACCUMULATION = 0.5
+#: The nearest-pixel read of ``accumulated``: any reprojection that lands on a pixel.
+ACCUMULATION_OFFSET = 0.5
 #: Rec. 709 luminance weights (linear RGB).
 _LUMINANCE = np.array([0.2126, 0.7152, 0.0722], np.float32)
 
@@ -206,12 +222,13 @@ class FrameReuse:
     # ------------------------------------------------------------------ reprojection
 
     def _lookup(self, pix: np.ndarray, hit: np.ndarray | None, period: np.ndarray,
-                split=None):  # fmt: skip
+                split=None, max_offset: float = MAX_PIXEL_OFFSET):  # fmt: skip
         """For pixels ``pix`` (n,) int64: (n,) int64 the previous frame's pixel showing
         what each shows now (the virtual image's reprojection, module docstring; -1: off
         screen or behind the previous camera) and (n,) bool its history passes the
         per-pixel tests (all but the gradient), ``period`` (n,) int64 the frames the
-        pixel's density rotates in. ``hit`` (n,) float32 the pixels' hit distances this
+        pixel's density rotates in, ``max_offset`` the farthest the reprojected point may
+        fall from the previous pixel's centre. ``hit`` (n,) float32 the pixels' hit distances this
         frame, None: the previous frame's (the fixed-point step). Compiled:
         ``history_kernels.history_lookup``, over ``split`` (as ``sparse_pixels.
         fill_skipped``'s: the tracer's pool) when given."""
@@ -227,7 +244,7 @@ class FrameReuse:
             _kernels().history_lookup, n, pix, hit, own, self._element, self._normal,
             self._position, self._view, self._depth, np.ascontiguousarray(period, np.int64),
             self._moved_table, prev.element, prev.age, prev.normal, prev.position, prev.hit,
-            prev.clip_from_world, width, height, MAX_PIXEL_OFFSET, NORMAL_AGREEMENT,
+            prev.clip_from_world, width, height, max_offset, NORMAL_AGREEMENT,
             PLANE_TOLERANCE, out=(q, ok),
         )  # fmt: skip
         return q, ok
@@ -270,7 +287,7 @@ class FrameReuse:
         if not self.reprojects:
             return none
         # The temporal gradient: the pattern cells whose traced pixel changed.
-        any_age = np.full(len(traced_pix), NO_HISTORY + 1, np.int64)  # any history counts
+        any_age = np.full(len(traced_pix), FILLED_AGE, np.int64)  # any traced history
         traced_then, traced_ok = self._lookup(traced_pix, traced_hit, any_age, split)
         traced_ok = np.flatnonzero(traced_ok)
         changed = np.zeros(0, np.int64)
@@ -297,6 +314,23 @@ class FrameReuse:
         q = then[take]
         self._taken.append((skipped_pix[take], (prev.age[q] + 1).astype(np.int16)))
         return take, prev.radiance[q], prev.hit[q]
+
+    def accumulated(self, fill_pix: np.ndarray, fill_radiance: np.ndarray, low: np.ndarray,
+                    high: np.ndarray, split=None) -> np.ndarray:  # fmt: skip
+        """(m, 3) float32 the filled pixels ``fill_pix`` (m,) int64 with ACCUMULATION of
+        their previous value blended into their fill ``fill_radiance`` (m, 3), where it
+        passes the per-pixel tests (read within ACCUMULATION_OFFSET, any age), clamped per
+        channel to [low, high] (m, 3): the range of the traced samples the fill was made
+        of (``sparse_pixels.Fill``). split: ``_lookup``'s."""
+        out = np.array(fill_radiance, np.float32, copy=True)
+        if self._previous is None or len(fill_pix) == 0:
+            return out
+        any_age = np.full(len(fill_pix), NO_HISTORY + 1, np.int64)  # filled ones too
+        then, ok = self._lookup(_int64(fill_pix), None, any_age, split, ACCUMULATION_OFFSET)
+        at = np.flatnonzero(ok)
+        history = np.clip(self._previous.radiance[then[at]], low[at], high[at])
+        out[at] += ACCUMULATION * (history - out[at])
+        return out
 
     def _near_cells(self, pix, pix_level, changed, changed_level) -> np.ndarray:
         """(n,) bool: pixels ``pix`` (n,) (of density levels ``pix_level``) whose pattern
@@ -359,7 +393,7 @@ class FrameReuse:
     def finished(self) -> _Frame | None:
         """This frame as the next one's previous frame (None when nothing was traced):
         traced and screen-space pixels at age 0, reused ones at their reprojected age,
-        filled ones none."""
+        filled ones at FILLED_AGE (read by the next frame's accumulation only)."""
         if not self._results:
             return None
         n = self._size[0] * self._size[1]
@@ -373,7 +407,7 @@ class FrameReuse:
                 hit[pix] = result.hit_distance
             traced = np.zeros(len(pix), np.int16)
             if result.kinds is not None:
-                traced[result.kinds == pixel_kinds.FILLED] = NO_HISTORY
+                traced[result.kinds == pixel_kinds.FILLED] = FILLED_AGE
             age[pix] = traced
         for taken, taken_age in self._taken:
             age[taken] = taken_age

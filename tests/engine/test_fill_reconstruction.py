@@ -49,11 +49,11 @@ def _split_pattern(height, width, density, src, phase=(0, 0)):
 def _fill(pix, src, radiance, traced, guides, density, hit=None, phase=(0, 0)):
     """fill_skipped of the untraced pixels: {pixel: radiance}, and the hit estimates."""
     hit = np.full(int(traced.sum()), 2.0, np.float32) if hit is None else hit[traced]
-    filled, got, got_hit = fill_skipped(
+    filled, got, got_hit, *_ = fill_skipped(
         pix[traced], src[traced], radiance[traced], hit, pix[~traced], src[~traced], guides,
         density, phase=phase,
     )  # fmt: skip
-    return dict(zip(filled.tolist(), got, strict=True)), got_hit
+    return dict(zip(pix[~traced][filled].tolist(), got, strict=True)), got_hit
 
 
 def _raster(height, width, sky, reflectivity=0.4, local=0.3):
@@ -260,10 +260,11 @@ def test_any_layout_fills_within_its_own_sources_values(width, height, seed, den
     radiance = rng.random((int(traced.sum()), 3)).astype(np.float32)
     hit = np.where(rng.random(int(traced.sum())) < 0.2, np.inf, rng.uniform(0, 9, len(radiance)))
     table = np.full(n, -1, np.int32)
-    filled, got, got_hit = fill_skipped(
+    filled, got, got_hit, *_ = fill_skipped(
         pix[traced], src[traced], radiance, hit.astype(np.float32), pix[~traced], src[~traced],
         guides, density, table,
     )  # fmt: skip
+    filled = pix[~traced][filled]
     assert (table == -1).all()
     assert np.all(got_hit >= -1e-3)  # distances, +inf where the taps' rays left the scene
     step = pattern_spacing(density)

@@ -54,11 +54,11 @@ def test_a_skipped_pixel_without_traced_neighbours_keeps_the_fallback():
     within a quarter's spacing - 1; pixel 1 is of another source than the traced one."""
     guides = FillGuides(np.tile(np.float32([0, 0, 1]), (16, 1)), np.zeros((16, 3)),
                         np.ones(16, np.float32), 4, 4)  # fmt: skip
-    filled, radiance, hit = fill_skipped(
+    filled, radiance, hit, *_ = fill_skipped(
         np.array([0], np.int64), np.array([0], np.int64), np.ones((1, 3), np.float32),
         np.ones(1, np.float32), np.array([7, 1], np.int64), np.array([0, 1], np.int64), guides,
     )  # fmt: skip
-    assert filled.size == 0 and radiance.shape == (0, 3) and hit.shape == (0,)
+    assert not filled.any() and radiance.shape == (0, 3) and hit.shape == (0,)
 
 
 def test_density_is_checked_and_refused_in_rt_mode():

@@ -231,7 +231,7 @@ def fill_curvature(table, traced_pix, traced_src, radiance, v, lattice, width, h
 def fill_skipped(
     table, traced_src, radiance, v, curvature, traced_pix, skipped_pix, skipped_src, lattice,
     phase, width, height, normal, position, depth, fallback, local, reflectivity, lo, hi,
-    out_rad, out_hit, out_ok,
+    out_rad, out_hit, out_ok, out_low, out_high,
 ):  # fmt: skip
     """The skipped pixels lo..hi (module docstring).
 
@@ -245,8 +245,9 @@ def fill_skipped(
     float32 and reflectivity (H*W,) float32 images for the sky rule (fallback of 0 rows:
     off).
     Writes out_rad (m, 3) float32 the radiance, out_hit (m,) float32 the hit distance
-    the corners' v̂ gives (+inf: its rays leave the scene) and out_ok (m,) bool whether
-    the pixel got them (the others are left as they were)."""
+    the corners' v̂ gives (+inf: its rays leave the scene), out_low, out_high (m, 3)
+    float32 per channel the least and the greatest of the values it was made of, and
+    out_ok (m,) bool whether the pixel got them (the others are left as they were)."""
     corner = np.empty(4, np.int64)
     weight, bilinear = np.empty(4), np.empty(4)
     sky = np.empty(3)
@@ -310,6 +311,8 @@ def fill_skipped(
                     lo0, hi0 = min(lo0, f0), max(hi0, f0)
                     lo1, hi1 = min(lo1, f1), max(hi1, f1)
                     lo2, hi2 = min(lo2, f2), max(hi2, f2)
+            out_low[j, 0], out_low[j, 1], out_low[j, 2] = lo0, lo1, lo2
+            out_high[j, 0], out_high[j, 1], out_high[j, 2] = hi0, hi1, hi2
             out_rad[j, 0] = min(max(x0 / total, lo0), hi0)
             out_rad[j, 1] = min(max(x1 / total, lo1), hi1)
             out_rad[j, 2] = min(max(x2 / total, lo2), hi2)
@@ -318,6 +321,8 @@ def fill_skipped(
             continue
         for guided in (True, False):  # no corner of p's reflector: the tent window
             total = x0 = x1 = x2 = vhat = 0.0
+            lo0 = lo1 = lo2 = np.inf
+            hi0 = hi1 = hi2 = -np.inf
             for dy in range(-radius, radius + 1):
                 for dx in range(-radius, radius + 1):
                     at = _traced(table, traced_src, s, r + dy, c + dx, width, height)
@@ -326,16 +331,22 @@ def fill_skipped(
                         if guided:
                             w *= _guide(nx, ny, nz, px, py, pz, traced_pix[at], normal,
                                         position)  # fmt: skip
+                        if not w > 0.0:
+                            continue
                         total += w
                         if has_sky and v[at] == 0.0:  # the sky: the pixel's own
-                            x0, x1, x2 = x0 + w * sky[0], x1 + w * sky[1], x2 + w * sky[2]
+                            f0, f1, f2 = sky[0], sky[1], sky[2]
                         else:
-                            x0 += w * radiance[at, 0]
-                            x1 += w * radiance[at, 1]
-                            x2 += w * radiance[at, 2]
+                            f0, f1, f2 = radiance[at, 0], radiance[at, 1], radiance[at, 2]
+                        x0, x1, x2 = x0 + w * f0, x1 + w * f1, x2 + w * f2
+                        lo0, hi0 = min(lo0, f0), max(hi0, f0)
+                        lo1, hi1 = min(lo1, f1), max(hi1, f1)
+                        lo2, hi2 = min(lo2, f2), max(hi2, f2)
                         vhat += w * v[at]
             if total > 0.0:
                 out_rad[j, 0], out_rad[j, 1], out_rad[j, 2] = x0 / total, x1 / total, x2 / total
+                out_low[j, 0], out_low[j, 1], out_low[j, 2] = lo0, lo1, lo2
+                out_high[j, 0], out_high[j, 1], out_high[j, 2] = hi0, hi1, hi2
                 vhat /= total
                 out_hit[j] = depth[p] * (1.0 / vhat - 1.0) if vhat > 0.0 else np.inf
                 out_ok[j] = True
@@ -355,5 +366,5 @@ def warm_up() -> None:
     for fallback, local, reflectivity in (raster, (v32[:0], v32[:0], f32[:0])):
         fill_skipped(i32, i64, v32, v, d, i64, i64 + 1, i64, i64 + 2, np.zeros(2, np.int64), 2,
                      2, *images, f32, fallback, local, reflectivity, 0, 1, v32.copy(),
-                     f32[:1].copy(), np.zeros(1, bool))  # fmt: skip
+                     f32[:1].copy(), np.zeros(1, bool), v32.copy(), v32.copy())  # fmt: skip
     clear_table(i32, i64)

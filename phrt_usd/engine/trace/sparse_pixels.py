@@ -56,6 +56,7 @@ from __future__ import annotations
 import dataclasses
 import time
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -183,6 +184,19 @@ def traced_subset(
     return (counts[src] < SPARSE_MIN_PIXELS) | on_pattern
 
 
+class Fill(NamedTuple):
+    """``fill_skipped``'s answer: ``filled`` (m,) bool which skipped pixels got a value,
+    and for those k, in their order: ``radiance`` (k, 3) float32, ``hit_distance`` (k,)
+    float32 the estimate of their rays' (+inf: leaving the scene), ``low``, ``high`` (k,
+    3) float32 per channel the least and the greatest of the samples each was made of."""
+
+    filled: np.ndarray
+    radiance: np.ndarray
+    hit_distance: np.ndarray
+    low: np.ndarray
+    high: np.ndarray
+
+
 def fill_skipped(
     traced_pix: np.ndarray,
     traced_src: np.ndarray,
@@ -195,7 +209,7 @@ def fill_skipped(
     table: np.ndarray | None = None,
     phase=(0, 0),
     split=None,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+) -> Fill:
     """Radiance of the skipped pixels from the traced pixels of the same source around
     them (module docstring; ``fill_kernels``).
 
@@ -214,10 +228,8 @@ def fill_skipped(
     split : None, or ``split(kernel, k, *args, out=outputs)`` calling ``kernel(*args,
         lo, hi, *outputs)`` over slices of rows 0..k (``Tracer._split``: the tracer's
         pool)
-    Returns (k,) int64 the skipped pixels that got a value (those with a traced pixel of
-    their source in their cell or within the pattern's spacing - 1 rows and columns; the
-    others keep the fallback), in their order in skipped_pix, (k, 3) float32 their
-    radiance and (k,) float32 their estimated hit distance."""
+    Returns the ``Fill``: the skipped pixels with a traced pixel of their source in their
+    cell or within the fill's window got a value, the others keep the fallback."""
     kernels = _fill_kernels()
     if table is None:
         table = np.full(guides.width * guides.height, -1, np.int32)
@@ -228,6 +240,7 @@ def fill_skipped(
     radiance = np.ascontiguousarray(radiance, np.float32)
     n, m = len(traced_pix), len(skipped_pix)
     out_rad, out_hit = np.empty((m, 3), np.float32), np.empty(m, np.float32)
+    out_low, out_high = np.empty((m, 3), np.float32), np.empty((m, 3), np.float32)
     ok = np.zeros(m, bool)
     v, curvature = np.empty(n), np.empty((n, 2, 3), np.float32)
     size = (guides.width, guides.height)
@@ -245,11 +258,11 @@ def fill_skipped(
             kernels.fill_skipped, m, table, traced_src, radiance, v, curvature, traced_pix,
             skipped_pix, skipped_src, _LATTICE[pixel_levels(density, skipped_src)],
             np.array(phase, np.int64), *size, guides.normal, guides.position, guides.depth,
-            *guides.raster, out=(out_rad, out_hit, ok),
+            *guides.raster, out=(out_rad, out_hit, ok, out_low, out_high),
         )  # fmt: skip
     finally:
         kernels.clear_table(table, traced_pix)
-    return skipped_pix[ok], out_rad[ok], out_hit[ok]
+    return Fill(ok, out_rad[ok], out_hit[ok], out_low[ok], out_high[ok])
 
 
 def complete(result: ReflectionResult, src, skipped, guides: FillGuides, density, phase,
@@ -257,7 +270,8 @@ def complete(result: ReflectionResult, src, skipped, guides: FillGuides, density
     """A reduced-density round's ``result`` (its traced, or screen-space, pixels) with its
     skipped pixels reused or filled: the reprojected history where ``reuse`` (an
     ``engine.reflection_history.FrameReuse``, None: none) finds it valid, else filled
-    (``fill_skipped``, with ``guides``, ``table`` and ``split``); its records count every
+    (``fill_skipped``, with ``guides``, ``table`` and ``split``) and the fill blended
+    with what history it has (``FrameReuse.accumulated``); its records count every
     covered pixel (hits scaled alike). src (n,) the result's pixels' sources, skipped
     (pixels (m,), their sources (m,), covered pixels per source) from
     ``Tracer._source_pixels``; density and phase as ``Tracer.trace_reflections``';
@@ -272,10 +286,13 @@ def complete(result: ReflectionResult, src, skipped, guides: FillGuides, density
         )  # fmt: skip
         reused_pix = skipped_pix[taken]
         skipped_pix, skipped_src = skipped_pix[~taken], skipped_src[~taken]
-    fill_pix, fill_radiance, fill_hit = fill_skipped(
+    fill = fill_skipped(
         result.pixel_index, src, result.radiance, result.hit_distance, skipped_pix,
         skipped_src, guides, density, table, phase=phase, split=split,
     )  # fmt: skip
+    fill_pix, fill_radiance, fill_hit = skipped_pix[fill.filled], fill.radiance, fill.hit_distance
+    if reuse is not None:
+        fill_radiance = reuse.accumulated(fill_pix, fill_radiance, fill.low, fill.high, split)
     records = [
         dataclasses.replace(
             record,
