@@ -1,6 +1,8 @@
 """The clipping warning: a frame most of whose covered pixels are clipped after exposure
 (display white) gets one warning per run, naming the brightest light and the
-``--exposure`` that would bring the frame to mid-grey (``FrameRenderer`` gives it once).
+``--exposure`` that would bring the frame to mid-grey (``FrameRenderer`` gives it once);
+when the camera's own exposure attributes are what clips it (without their scale the
+frame would not be mostly clipped), the warning names the camera instead of a light.
 """
 
 from __future__ import annotations
@@ -27,22 +29,43 @@ CLIP_SAMPLE_STRIDE = 2
 
 
 def clipping_warning(
-    image: np.ndarray, gb: GBuffer, t: float, ev: float, lights: Lights, stage
+    image: np.ndarray,
+    gb: GBuffer,
+    t: float,
+    ev: float,
+    lights: Lights,
+    stage,
+    camera_scale: float = 1.0,
+    camera_path: str = "",
 ) -> str | None:
     """When more than CLIPPED_SHARE of the covered pixels of ``image`` (H, W, 3, after
-    exposure ``ev``) exceed CLIP_LEVEL in some channel, the warning for frame ``t``: the
-    share, the brightest light (``brightest_light``, with its intensity note from
-    ``stage``, the ``Usd.Stage``) and the ``--exposure`` that would bring the covered
-    pixels' median to SUGGESTED_MEDIAN; else None."""
+    exposure ``ev`` and the camera's linear exposure scale ``camera_scale``) exceed
+    CLIP_LEVEL in some channel, the warning for frame ``t``: the share, the cause and
+    the ``--exposure`` that would bring the covered pixels' median to SUGGESTED_MEDIAN;
+    else None. The cause is the camera ``camera_path``'s exposure attributes when
+    ``camera_scale`` > 1 and the image divided by it would not be mostly clipped, else
+    the brightest light (``brightest_light``, with its intensity note from ``stage``,
+    the ``Usd.Stage``)."""
     step = CLIP_SAMPLE_STRIDE
     covered = gb.covered
     share = frame_pixels.clipped_share(image, covered, step, CLIP_LEVEL)
     if share <= CLIPPED_SHARE:
         return None
+    unscaled_share = share
+    if camera_scale > 1.0:
+        unscaled_share = frame_pixels.clipped_share(image, covered, step, CLIP_LEVEL * camera_scale)
     covered = covered[::step, ::step]
     peak = image[::step, ::step][covered].max(axis=1)
     median = float(np.median(peak))
     suggest = ev + float(np.log2(SUGGESTED_MEDIAN / median)) if median > 0 else ev
+    if unscaled_share <= CLIPPED_SHARE:
+        return (
+            f"frame {t:g}: {share:.0%} of the covered pixels are clipped (> {CLIP_LEVEL:g} "
+            f"after exposure) by the exposure attributes of camera {camera_path} ("
+            f"x{camera_scale:.3g}, {np.log2(camera_scale):+.1f} EV; "
+            f"without them {unscaled_share:.0%} would be); lower them or try "
+            f"--exposure {suggest:.1f}"
+        )
     centre = gb.position[::step, ::step][covered].mean(axis=0)
     path, level = brightest_light(lights, centre)
     note = intensity_note(stage, path)

@@ -404,7 +404,7 @@ class FrameRenderer:
         scale = 2.0**opts.exposure_ev * prep.camera.exposure_scale
         if scale != 1.0:  # exposure: the image's radiance, finite (float32 max at most)
             image = np.minimum(image * np.float32(scale), np.float32(_FLOAT32_MAX))
-        self._check_clipping(image, gb, prep.time, opts.exposure_ev)
+        self._check_clipping(image, gb, prep.time, opts.exposure_ev, prep.camera.exposure_scale)
         alpha = gb.covered.astype(np.float32)
         # The calibration runs once per run and is reported apart (FrameStats.calibration).
         frame_ms = prep.prepare_ms + _ms(t_finish) - phase.get("calibrate", 0.0)
@@ -487,12 +487,18 @@ class FrameRenderer:
         n_elements = len(self.scene.elements)
         return frame_pixels.screen_boxes(gb.element_id, self._reflector_ids, n_elements)
 
-    def _check_clipping(self, image: np.ndarray, gb: GBuffer, t: float, ev: float) -> None:
+    def _check_clipping(
+        self, image: np.ndarray, gb: GBuffer, t: float, ev: float, camera_scale: float
+    ) -> None:
         """Once per run: the clipping warning of a mostly clipped frame
-        (``clipping_warning``) into ``StageScene.warnings``, the render's warning path."""
+        (``clipping_warning``; ``camera_scale``, the camera's exposure scale, named when it
+        is the cause) into ``StageScene.warnings``, the render's warning path."""
         if self._clipping_warned:
             return
-        warning = clipping_warning(image, gb, t, ev, self.scene.lights, self.stage_scene.stage)
+        warning = clipping_warning(
+            image, gb, t, ev, self.scene.lights, self.stage_scene.stage,
+            camera_scale, self.stage_scene.camera_path,
+        )  # fmt: skip
         if warning is not None:
             self._clipping_warned = True
             self.stage_scene.warnings.append(warning)
