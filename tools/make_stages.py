@@ -1570,7 +1570,10 @@ def build_sewer(out: Path) -> Path:
     for j, (x, z) in enumerate(lamp_spots):
         lamp = UsdLux.SphereLight.Define(stage, f"/World/Lights/Lamp{j:02d}")
         lamp.CreateRadiusAttr(8.0)
-        lamp.CreateIntensityAttr(30.0)
+        # Normalized: intensity 120 / 4 = 30 (usd/lights.py local_intensity), a lamp of
+        # 30 at 1 m whatever its radius.
+        lamp.CreateNormalizeAttr(True)
+        lamp.CreateIntensityAttr(120.0)
         lamp.CreateColorAttr(Gf.Vec3f(1.0, 0.85, 0.6))
         top = (MAIN_WALL + MAIN_WIDTH / 2) if abs(z) < 0.5 else (DRY_WALL + DRY_WIDTH / 2)
         place(lamp, sewer_point((x, top - 0.25, z)))

@@ -12,13 +12,18 @@ directions world unit vectors. Conventions (docs/usd-support.md, "Lights"):
   convention of ``engine/shading.py``), whatever ``angle`` and ``normalize`` say, so the
   fallback intensity 50000 is a very bright sun (the clipping warning of the render
   names it and ``--exposure``).
-- SphereLight: the emission used as a point intensity with 1/d² fall-off (the radius
-  only offsets shadow rays); with ``normalize``, divided by its surface area 4πr² and
-  multiplied by its projected area πr² (UsdLux: constant power whatever the size): /4.
-  Rect / Disk / Cylinder lights: the emission times the light's (lateral) area in m²,
-  the intensity of that area seen face-on; with ``normalize`` the area cancels (UsdLux:
-  luminance divided by the world-space area), so the intensity is independent of size.
-  All placed at their centre as a point ``LocalLight``.
+- Local lights (Sphere, Rect, Disk, Cylinder): each a point ``LocalLight`` at its
+  centre whose intensity follows ``local_intensity``, the one place of the unit rule:
+  every length is in metres (the light's sizes times its transform's scale times the
+  stage's ``metersPerUnit``), the emission is the luminance of the light's surface and
+  the intensity is that luminance times the light's area seen face-on in m² (sphere
+  πr², rect w·h, disk πr², cylinder side-on 2rℓ); with ``normalize`` the luminance is
+  first divided by the emitting surface area in m² (sphere 4πr², cylinder 2πrℓ), as
+  UsdLux's LightAPI says, so the intensity is the emission times face-on / surface
+  (1/4, 1, 1, 1/π) whatever the size. ``treatAsPoint`` makes a SphereLight a point
+  (radius 0: no shadow-ray offset) of the normalized sphere's intensity, emission / 4.
+  Distances are metres too (1/d² in ``engine/shading.py``), so a stage authored in
+  centimetres and the same stage in metres render the same image.
 - ShapingAPI (local lights): ``shaping:cone:angle`` (fallback 90 once the API is
   applied), ``shaping:cone:softness``, ``shaping:focus`` along the light's -Z axis,
   evaluated by ``shading.cone_falloff``; ``focusTint`` and IES profiles are not read.
@@ -164,6 +169,55 @@ def _dome(
     )
 
 
+#: A local light's area seen face-on over its emitting surface area (both in m²), by
+#: shape: what ``normalize`` leaves of the emission (``local_intensity``). A sphere
+#: shows πr² of its 4πr²; a rect and a disk are one face; a cylinder seen side-on
+#: shows 2rℓ of its lateral 2πrℓ (its caps do not emit).
+FACE_ON_PER_SURFACE = {
+    "SphereLight": 0.25,
+    "RectLight": 1.0,
+    "DiskLight": 1.0,
+    "CylinderLight": 1.0 / np.pi,
+}
+#: A SphereLight with ``treatAsPoint``: the limit of a normalized sphere shrunk to its
+#: centre (constant power), face-on / surface 1/4 at every radius.
+POINT_SHAPE = "SphereLight"
+
+
+def local_intensity(
+    emission: np.ndarray, shape: str, face_on_m2: float, normalize: bool
+) -> np.ndarray:
+    """(3,) intensity of a local light (module doc; docs/usd-support.md "Lights"): its
+    emission (``light_emission``, the luminance of its surface) times its area seen
+    face-on ``face_on_m2`` in m², or with ``normalize`` (the luminance divided by the
+    emitting surface area in m², UsdLux LightAPI) times ``FACE_ON_PER_SURFACE[shape]``,
+    independent of the size. ``face_on_m2`` in metres (``metersPerUnit`` applied) makes
+    a stage authored in centimetres and the same stage in metres give one intensity."""
+    if normalize:
+        return emission * FACE_ON_PER_SURFACE[shape]
+    return emission * abs(face_on_m2)
+
+
+def _local_shape(prim: Usd.Prim, code: Usd.TimeCode, scale: np.ndarray):
+    """(shape name, radius in m offsetting shadow rays, area seen face-on in m²) of the
+    local light ``prim``; ``scale`` (3,) metres per light-space unit along its axes."""
+    if prim.IsA(UsdLux.SphereLight):
+        r = float(attr_value(prim, "inputs:radius", code, 0.5)) * float(scale.max())
+        return "SphereLight", r, np.pi * r * r
+    if prim.IsA(UsdLux.RectLight):
+        w = float(attr_value(prim, "inputs:width", code, 1.0)) * scale[0]
+        h = float(attr_value(prim, "inputs:height", code, 1.0)) * scale[1]
+        return "RectLight", 0.5 * float(np.hypot(w, h)), w * h
+    if prim.IsA(UsdLux.DiskLight):
+        r = float(attr_value(prim, "inputs:radius", code, 0.5))
+        radius = r * float(max(scale[0], scale[1]))
+        return "DiskLight", radius, np.pi * (r * scale[0]) * (r * scale[1])
+    # CylinderLight: a tube along its local X axis.
+    r = float(attr_value(prim, "inputs:radius", code, 0.5)) * float(max(scale[1], scale[2]))
+    length = float(attr_value(prim, "inputs:length", code, 1.0)) * scale[0]
+    return "CylinderLight", 0.5 * float(np.hypot(length, 2 * r)), 2.0 * r * length
+
+
 def read_light(
     prim: Usd.Prim,
     ctx: TimeContext,
@@ -189,34 +243,16 @@ def read_light(
         angle = float(attr_value(prim, "inputs:angle", code, 0.53))
         lights.distant.append(DistantLight(towards, light_emission(prim, code), angle, path))
     elif any(prim.IsA(t) for t in _LOCAL_LIGHT_TYPES):
-        radiance = light_emission(prim, code)
         scale = np.linalg.norm(m[:3, :3], axis=1) * mpu  # metres per light-space unit
+        shape, radius, face_on = _local_shape(prim, code, scale)
         normalize = bool(attr_value(prim, "inputs:normalize", code, False))
-        if prim.IsA(UsdLux.SphereLight):
-            radius = float(attr_value(prim, "inputs:radius", code, 0.5)) * float(scale.max())
-            if normalize:
-                radiance = radiance / 4.0  # projected area πr² over surface area 4πr²
-        elif prim.IsA(UsdLux.RectLight):
-            w = float(attr_value(prim, "inputs:width", code, 1.0)) * scale[0]
-            h = float(attr_value(prim, "inputs:height", code, 1.0)) * scale[1]
-            radius = 0.5 * float(np.hypot(w, h))
-            if not normalize:
-                radiance = radiance * abs(w * h)  # area light → point intensity
-        elif prim.IsA(UsdLux.DiskLight):
-            r = float(attr_value(prim, "inputs:radius", code, 0.5))
-            radius = r * float(max(scale[0], scale[1]))
-            if not normalize:
-                radiance = radiance * np.pi * abs((r * scale[0]) * (r * scale[1]))
-        else:  # CylinderLight: a tube along its local X axis
-            r = float(attr_value(prim, "inputs:radius", code, 0.5)) * float(max(scale[1], scale[2]))
-            length = float(attr_value(prim, "inputs:length", code, 1.0)) * scale[0]
-            radius = 0.5 * float(np.hypot(length, 2 * r))
-            if not normalize:
-                radiance = radiance * 2.0 * np.pi * abs(r * length)  # lateral area
-        if not np.isfinite(radius) or not np.all(np.isfinite(radiance)):
+        if shape == "SphereLight" and bool(attr_value(prim, "treatAsPoint", code, False)):
+            shape, radius, normalize = POINT_SHAPE, 0.0, True
+        intensity = local_intensity(light_emission(prim, code), shape, face_on, normalize)
+        if not np.isfinite(radius) or not np.all(np.isfinite(intensity)):
             raise PhrtError(f"{path}: non-finite light size")
         lights.local.append(
-            LocalLight(m[3, :3] * mpu, radiance, abs(radius), path, **_shaping(prim, code, m))
+            LocalLight(m[3, :3] * mpu, intensity, abs(radius), path, **_shaping(prim, code, m))
         )
     elif any(prim.IsA(t) for t in _DOME_TYPES):
         if lights.dome is not None:

@@ -69,7 +69,8 @@ def test_a_local_light_shines_through_the_cut_half(tmp_path, mode):
         stage.RemovePrim("/Sun")
         bulb = UsdLux.SphereLight.Define(stage, "/Bulb")
         bulb.CreateRadiusAttr(0.01)
-        bulb.CreateIntensityAttr(1.0)
+        bulb.CreateNormalizeAttr(True)  # intensity 4 / 4 = 1 (usd/lights.local_intensity)
+        bulb.CreateIntensityAttr(4.0)
         bulb.AddTranslateOp().Set((0.0, 0.0, 1.0))
         stage.GetRootLayer().Save()
         return stage

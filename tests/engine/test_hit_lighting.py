@@ -240,7 +240,8 @@ def _room_stage(path):
     spots = [(-3, -3), (0, -3), (3, -3), (-3, 0), (3, 0), (-3, 3), (0, 3), (3, 3)]
     for i, (x, z) in enumerate(spots):
         lamp = UsdLux.SphereLight.Define(stage, f"/World/Lamp{i}")
-        lamp.CreateIntensityAttr(8.0 + 2.0 * i)
+        lamp.CreateNormalizeAttr(True)  # intensity / 4: 8 + 2i (usd/lights.local_intensity)
+        lamp.CreateIntensityAttr(4.0 * (8.0 + 2.0 * i))
         lamp.CreateRadiusAttr(0.05)
         UsdGeom.Xformable(lamp).AddTranslateOp().Set(Gf.Vec3d(x, 3.5, z))
     (view,) = UsdGeom.Xformable(stage.GetPrimAtPath("/World/Camera")).GetOrderedXformOps()

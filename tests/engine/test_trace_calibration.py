@@ -96,7 +96,8 @@ def cluttered_mirror_floor(path, n=5, width=160, height=120):
             schema.apply_reflector(ball.GetPrim(), priority=1.0, reflectivity=0.8)
     for k in range(3):
         lamp = UsdLux.SphereLight.Define(stage, f"/World/Lamp{k}")
-        lamp.CreateIntensityAttr(20.0)
+        lamp.CreateNormalizeAttr(True)  # intensity 80 / 4 = 20 (usd/lights.local_intensity)
+        lamp.CreateIntensityAttr(80.0)
         lamp.CreateRadiusAttr(0.1)
         at = (3.0 * math.cos(2.1 * k), 2.5, 3.0 * math.sin(2.1 * k))
         UsdGeom.Xformable(lamp).AddTranslateOp().Set(Gf.Vec3d(*at))

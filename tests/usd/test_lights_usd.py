@@ -183,11 +183,9 @@ def test_normalize_keeps_an_area_light_size_independent_and_off_it_grows_with_ar
         normalized = centre(0.1, True, kind)
         # normalize: luminance / area, so the power, and the lighting, stay the same.
         assert centre(0.2, True, kind) == pytest.approx(normalized, rel=1e-6)
-        if kind is UsdLux.SphereLight:  # off: the emission is the point's intensity
-            continue
         small, big = centre(0.1, False, kind), centre(0.2, False, kind)
-        # Off: area x 4 → 4 x the light (the range window, shading.range_window,
-        # differs by < 1e-3 between the two).
+        # Off: area x 4 → 4 x the light, the sphere's πr² too (the range window,
+        # shading.range_window, differs by < 1e-3 between the two).
         assert big / small == pytest.approx(4.0, rel=2e-3)
         if kind is UsdLux.RectLight:
             # A 0.1 m rect of luminance 100: intensity 100 x 0.01 = 1; normalized, the
@@ -216,7 +214,8 @@ def test_spot_cone_lights_inside_and_not_outside_with_the_schema_softness(mode):
         lamp = UsdLux.SphereLight.Define(stage, "/World/Spot")
         lamp.AddTranslateOp().Set(Gf.Vec3d(0, 0, 1))  # shines down -Z from 1 m
         lamp.CreateRadiusAttr(0.01)
-        lamp.CreateIntensityAttr(4.0)
+        lamp.CreateNormalizeAttr(True)  # intensity 16 / 4 = 4 (usd/lights.local_intensity)
+        lamp.CreateIntensityAttr(16.0)
         shaping = UsdLux.ShapingAPI.Apply(lamp.GetPrim())
         shaping.CreateShapingConeAngleAttr(30.0)
         shaping.CreateShapingConeSoftnessAttr(softness)
@@ -241,7 +240,8 @@ def test_spot_cone_raster_equals_rt():
     stage = _stage()
     lamp = UsdLux.SphereLight.Define(stage, "/World/Spot")
     lamp.AddTranslateOp().Set(Gf.Vec3d(0, 0, 1))
-    lamp.CreateIntensityAttr(2.0)
+    lamp.CreateNormalizeAttr(True)  # intensity 8 / 4 = 2
+    lamp.CreateIntensityAttr(8.0)
     shaping = UsdLux.ShapingAPI.Apply(lamp.GetPrim())
     shaping.CreateShapingConeAngleAttr(25.0)
     shaping.CreateShapingConeSoftnessAttr(0.3)

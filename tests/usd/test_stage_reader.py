@@ -368,7 +368,8 @@ def test_lights_directions_and_radiance(tmp_path):
     np.testing.assert_allclose(d.radiance, [4, 2, 1])
     local = {round(light.radius, 6): light for light in lights.local}
     np.testing.assert_allclose(local[0.25].position, [1, 2, 3])
-    np.testing.assert_allclose(local[0.25].radiance, [5, 5, 5])
+    # UsdLux: luminance 5 over a sphere seen face-on as π 0.25² m² (usd/lights.py).
+    np.testing.assert_allclose(local[0.25].radiance, [5 * np.pi * 0.25**2] * 3)
     rect_light = local[round(0.5 * np.hypot(2, 3), 6)]
     np.testing.assert_allclose(rect_light.radiance, [6, 6, 6])  # × area 2 × 3
     assert lights.dome is not None
