@@ -318,14 +318,7 @@ class Tracer:
         self.last_rays = []
         sources = [int(s) for s in sources]
         phase = (0, 0) if reuse is None else reuse.phase
-        if isinstance(density, str):
-            density = check_density(density)
-        else:
-            density = [check_density(d) for d in density]
-            if len(density) != len(sources):
-                raise ValueError(f"{len(density)} densities for {len(sources)} sources")
-            if all(d == "full" for d in density):
-                density = "full"
+        density = checked_densities(density, len(sources))
         first = self._source_pixels(
             gbuffer, sources, None, reflect=True, surface=False, density=density, phase=phase
         )
@@ -359,10 +352,8 @@ class Tracer:
         return with_kind_counts(result, gbuffer.element_id, marched=hits is not None)
 
     def _fill_guides(self, gbuffer: GBuffer, raster) -> sparse_pixels.FillGuides:
-        """The fill's guides: the G-buffer's, and ``raster`` for its sky rule unless the
-        stage has transmissive materials (their traced radiance mixes in refraction,
-        which the raster's fallback reflection does not show)."""
-        return sparse_pixels.FillGuides.of(gbuffer, None if self.surfaces.transmission else raster)
+        """``fill_guides`` on this tracer's stage."""
+        return fill_guides(gbuffer, raster, self.surfaces.transmission)
 
     def trace_refraction(
         self, gbuffer: GBuffer, bounce_limit: int, elements: list[int] | None = None
@@ -528,6 +519,25 @@ class Tracer:
         )  # fmt: skip
         out["pix"], out["src"], out["skipped"] = cand, cand_src, skipped
         return out
+
+
+def checked_densities(density, sources: int) -> str | list[str]:
+    """``trace_reflections``' ``density`` checked (``model.trace_density.check_density``):
+    one density for every source, or a sequence of one per source of ``sources``
+    (ValueError for another count; one density "full" when all are)."""
+    if isinstance(density, str):
+        return check_density(density)
+    density = [check_density(d) for d in density]
+    if len(density) != sources:
+        raise ValueError(f"{len(density)} densities for {sources} sources")
+    return "full" if all(d == "full" for d in density) else density
+
+
+def fill_guides(gbuffer: GBuffer, raster, transmission: bool) -> sparse_pixels.FillGuides:
+    """The fill's guides: the G-buffer's, and ``raster`` for its sky rule unless the stage
+    has transmissive materials (``transmission``: their traced radiance mixes in
+    refraction, which the raster's fallback reflection does not show)."""
+    return sparse_pixels.FillGuides.of(gbuffer, None if transmission else raster)
 
 
 #: The pixel kinds a ``TraceRecord`` counts (the rest of its pixels were traced), by
