@@ -71,6 +71,17 @@ TIME_SAFETY_MIN = 1.05
 #: never taken below it), and the ratio of the rounds that fill up a young window: where
 #: it settles on a quiet machine.
 TIME_SAFETY_INITIAL = 1.1
+#: The calibration's spread above TIME_SAFETY_INITIAL fills a young window at this share
+#: less for each round measured since (``_young_ratio``). Its largest part is the
+#: calibration line's own error at sizes the frames do not trace (on the wet tunnel at
+#: T = 16 ms its 2,000-ray rounds took 1.7-1.9x the line through the 200- and 20,000-ray
+#: ones: below the thread pool's split a ray costs twice as much) and a repeat slowed by
+#: another process; once a round was measured, the line goes through the machine's
+#: present speed there (``_speed``) and the rounds' own ratios are the margin's measure.
+#: Faded at the prior's weight (0.9 a round), a spread of 1.5-1.75 kept the factor above
+#: 1.3 for 10-15 frames: they planned 9-11 ms of T = 16 ms, their reflectors at reduced
+#: densities, while the rounds took 0.8-1.15x their central estimate.
+CALIBRATION_SPREAD_FADE = 0.5
 #: Upper clamp of the calibration's safety factor (``TraceTimeModel.calibrate``): a
 #: calibration timed in a loaded spell still lets the first frames plan half the budget;
 #: their rounds then correct the factor.
@@ -198,6 +209,31 @@ PRIOR_WEIGHT = 0.5
 #: The prior's weight never falls below this: with identical rounds the two terms cannot
 #: be told apart from data, and the remaining prior keeps the normal equations regular.
 PRIOR_WEIGHT_MIN = 1e-9
+#: A calibrated prior's pseudo-round at 0 rays (its fixed cost) weighs this much more in
+#: the line's fit and the kinds', never forgotten, and the line's pseudo-rounds stand at
+#: the prior line times the machine's present speed (``_speed``: the recent rounds' ms
+#: over the prior line's for them). So the fixed cost keeps the calibration's share of a
+#: round's time where the rounds cannot tell it apart, and only there. A policy plans
+#: every round to the budget, so its rounds cast about the same equivalent rays (the wet
+#: tunnel at T = 16 ms: 16-18k a first round, frame after frame), whose spread cannot
+#: separate a fixed cost from a per-ray cost, and when the machine slows the policy steps
+#: coarser: fewer rays, more filled pixels, the same equivalent rays at more ms. With the
+#: prior forgotten the line took any such change for a fixed cost. Sewer 217-276, HEU1,
+#: T = 16 ms, a quiet machine: 1.4-3.4 ms fixed and 0.48-0.55 us a ray, where least
+#: squares over the same run's rounds find 0.0 ms and 0.56 us; on a simulated machine
+#: slowing 1.8x at frame 235, 8-13 ms and 0.2-0.6 us against a true 0.4 ms and 1.2 us.
+#: Priced so, a reflector's rays look cheap and its filled pixels dear (their cost in
+#: rays is the line's ms per pixel over its ms per ray): HEU1 dropped the nearest
+#: reflector (the largest, at a sixteenth) or traced few at full density rather than
+#: all at a sixteenth, the late frames near the raster's FLIP. The anchor leaves the
+#: tilt to the rounds wherever their rays spread (its weight against theirs is about
+#: that of their spread over their mean): rounds of 200-1,400 rays that all take 1 ms
+#: outweigh it three to one, the tunnel's rounds weigh 1/30 of it.
+FIXED_COST_PRIOR_WEIGHT = 0.5
+#: Solves of the kinds' fit (``_fit_kinds``): the first draws each kind towards its
+#: figure at the prior's ms per ray, each next one at the last solve's (three: within
+#: 0.001 rays of the fixed point on the tests' rounds).
+KIND_RIDGE_SOLVES = 3
 
 
 class TraceTimeModel:
@@ -209,24 +245,28 @@ class TraceTimeModel:
     The line is fitted by exponentially weighted least squares over the rounds seen so
     far (older rounds weigh ``TIME_MODEL_DECAY`` less per round) and a prior line: the
     calibration of ``calibrate`` (or INITIAL_ROUND_MS / INITIAL_MS_PER_RAY without one)
-    as two pseudo-rounds whose weight is forgotten as rounds come (PRIOR_WEIGHT). So the
-    fit converges to the measured time also when every round traces about the same rays
-    (a still or turntable shot): the rounds fix the line's height where they are, the
-    prior only its tilt. A negative fixed cost is replaced by a line through the origin,
+    as two pseudo-rounds at its line times the machine's present speed (``_speed``),
+    whose weight is forgotten as rounds come (PRIOR_WEIGHT) but for the calibrated fixed
+    cost's (FIXED_COST_PRIOR_WEIGHT). So the fit converges to the measured time also
+    when every round traces about the same rays (a still or turntable shot, a policy
+    planning each round to the budget): the rounds fix the line's height where they are,
+    the prior its tilt. A negative fixed cost is replaced by a line through the origin,
     a non-positive slope by the prior's per-ray cost (noise dominating small rounds), and
     a fixed cost above the median round time of the safety factor's window by that median
     (``_fit_line``).
 
     The kinds' costs start from the calibration's (``prior_kind_rays``) and are refined
-    by the rounds that made such pixels: what the line leaves of their time is fitted to
-    their counts by least squares, drawn towards the calibration's figures in rays
-    (KIND_PRIOR_WEIGHT), and the line refitted with them (``_fit``). Rounds whose mix of
-    kinds never varies leave the calibration's figures as they are.
+    by the rounds that made such pixels: each round's time at the calibration's speed is
+    fitted to its rays and counts by least squares, drawn towards the calibration's
+    figures in rays (KIND_PRIOR_WEIGHT), and the line refitted with them (``_fit``).
+    Rounds whose mix of kinds never varies leave the calibration's figures as they are,
+    and a slower machine is the line's, not a kind's.
 
     Predictions are multiplied by ``safety``: the JITTER_QUANTILE quantile of (measured /
     modelled) round time over the last JITTER_WINDOW rounds, weighted by the rounds'
     modelled ms, clamped to [TIME_SAFETY_MIN, TIME_SAFETY_MAX]; before the first round,
-    the calibration's spread (``prior_safety``; TIME_SAFETY_INITIAL uncalibrated).
+    the calibration's spread (``prior_safety``; TIME_SAFETY_INITIAL uncalibrated), which
+    then fades by CALIBRATION_SPREAD_FADE a round.
     ``expected_ms`` is the central estimate without it.
     """
 
@@ -373,10 +413,14 @@ class TraceTimeModel:
         self.prior_weight = max(self.prior_weight * k, PRIOR_WEIGHT_MIN)
         z = np.array([1.0, float(rays) / RAY_UNIT, *(c / RAY_UNIT for c in counts)])
         zz = np.outer(z, z).reshape(-1)
+        # The kinds learn the round's time at the prior's speed (``_fit_kinds``): over
+        # the machine's speed with it (``_speed``; uncalibrated, as measured: the guess is
+        # no reference).
         self._zz = (k * np.asarray(self._zz) + zz).tolist()
         self._zm = (k * np.asarray(self._zm) + z * m).tolist()
+        speed = self._speed() if self.calibrated else 1.0
         self._kind_zz = (KIND_DECAY * np.asarray(self._kind_zz) + zz).tolist()
-        self._kind_zm = (KIND_DECAY * np.asarray(self._kind_zm) + z * m).tolist()
+        self._kind_zm = (KIND_DECAY * np.asarray(self._kind_zm) + z * m / speed).tolist()
         self.rounds += 1
         self._fit()
         self._update_safety()
@@ -401,51 +445,78 @@ class TraceTimeModel:
 
     def _young_ratio(self) -> float:
         """The ratio the rounds filling up a young window have: TIME_SAFETY_INITIAL plus
-        the calibration's spread above it in the share the prior still has of its weight
-        in the fit (the calibration's uncertainty counts as long as its line does)."""
-        share = min(self.prior_weight / PRIOR_WEIGHT, 1.0)
+        the calibration's spread above it, a share CALIBRATION_SPREAD_FADE less for each
+        round measured since the calibration (``prior_weight`` counts them)."""
+        rounds = math.log(min(self.prior_weight / PRIOR_WEIGHT, 1.0)) / math.log(TIME_MODEL_DECAY)
+        share = CALIBRATION_SPREAD_FADE ** rounds
         return TIME_SAFETY_INITIAL + (self.prior_safety - TIME_SAFETY_INITIAL) * share
 
     def _fit(self) -> None:
-        """The kinds' costs (``_fit_kinds``, when rounds made pixels without rays), the
-        line at those costs (``_fit_line``), and the kinds' costs again in the refitted
-        line's rays."""
-        counted = any(self._kind_zz[i] for i in _KIND_DIAGONAL)
-        if counted:
-            self._fit_kinds()
+        """The kinds' costs (``_fit_kinds``), the line at those costs (``_fit_line``), and
+        the kinds' costs again in the refitted line's rays."""
+        self._fit_kinds()
         self._fit_line()
-        if counted:
-            self._fit_kinds()
+        self._fit_kinds()
 
     def _fit_kinds(self) -> None:
-        """The kinds' costs from the rounds (sums forgotten at KIND_DECAY): weighted least
-        squares of ms = a + b rays + sum_k c_k n_k (n_k the pixels of kind k), with the
-        prior line's two pseudo-rounds and, per kind, the ridge (c_k - prior_k B)^2 of
-        weight ``kind_prior_weight`` (prior_k ``prior_kind_rays``, B the current line's
-        ms per RAY_UNIT rays: the calibration's figure at the machine's present speed, a
-        constant of the fit, so that a kind the rounds cannot tell from the rays, the
-        march, keeps its figure without tilting b); each cost c_k / B in rays (what the
-        line then charges for it is c_k), clamped to [0, KIND_RAYS_MAX]. Unchanged when
-        the rounds leave no solution."""
-        p, a0, b0 = self.prior_weight, self.prior_overhead_ms, self.prior_ms_per_ray * RAY_UNIT
+        """The kinds' costs from the rounds (sums forgotten at KIND_DECAY), each round's
+        time at the prior line's speed (``learn``: scaled by the prior's ms per ray over
+        the line's then; a slowdown is the line's to learn, not a kind's: on the wet
+        tunnel a slower machine makes HEU1 step coarser, more filled pixels as every
+        round takes longer, and fitted as measured a filled pixel's cost took up the
+        slowdown, 1.0-1.8 rays against a true 0.3-0.4 on the simulated machine of
+        FIXED_COST_PRIOR_WEIGHT): weighted least squares of ms = a + b rays + sum_k c_k
+        n_k (n_k the pixels of kind k), with the prior line's two pseudo-rounds
+        (``_prior_weights``) and, per kind, the ridge (c_k - prior_k B)^2 of weight
+        ``kind_prior_weight`` (prior_k ``prior_kind_rays``, B a constant of the fit: the
+        prior's ms per RAY_UNIT rays, then the last solve's b, KIND_RIDGE_SOLVES; so a
+        kind the rounds cannot tell from the rays, the march, keeps its figure in rays
+        without tilting b); each cost c_k / b in rays (what the line then charges for it
+        is c_k), clamped to [0, KIND_RAYS_MAX]. Unchanged when the rounds leave no
+        solution."""
+        (p0, p1), a0 = self._prior_weights(), self.prior_overhead_ms
+        b0 = self.prior_ms_per_ray * RAY_UNIT
         normal = np.asarray(self._kind_zz).reshape(5, 5).copy()
         right = np.asarray(self._kind_zm).copy()
         fixed, both = np.eye(5)[0], np.eye(5)[0] + np.eye(5)[1]  # pseudo-rounds at 0 and 1
-        normal += p * (np.outer(fixed, fixed) + np.outer(both, both))
-        right += p * (a0 * fixed + (a0 + b0) * both)
-        line = self.ms_per_ray * RAY_UNIT
-        for k, (prior, q) in enumerate(zip(self.prior_kind_rays, self.kind_prior_weight,
-                                           strict=True)):  # fmt: skip
-            normal[2 + k, 2 + k] += q
-            right[2 + k] += q * prior * line
-        try:
-            theta = np.linalg.solve(normal, right)
-        except np.linalg.LinAlgError:
-            return
-        if not (theta[1] > 0.0 and np.all(np.isfinite(theta))):
+        normal += p0 * np.outer(fixed, fixed) + p1 * np.outer(both, both)
+        right += p0 * a0 * fixed + p1 * (a0 + b0) * both
+        q, prior = np.asarray(self.kind_prior_weight), np.asarray(self.prior_kind_rays)
+        normal[2:, 2:] += np.diag(q)
+        theta, line = None, b0
+        for _ in range(KIND_RIDGE_SOLVES):
+            try:
+                solved = np.linalg.solve(normal, right + np.r_[0.0, 0.0, q * prior * line])
+            except np.linalg.LinAlgError:
+                break
+            if not (solved[1] > 0.0 and np.all(np.isfinite(solved))):
+                break
+            theta, line = solved, float(solved[1])
+        if theta is None:
             return
         rho = np.clip(theta[2:] / theta[1], 0.0, KIND_RAYS_MAX)
         self.fill_rays, self.reuse_rays, self.screen_space_rays = (float(v) for v in rho)
+
+    def _prior_weights(self) -> tuple[float, float]:
+        """The weights of the prior's pseudo-rounds at 0 and at RAY_UNIT rays in the fits:
+        ``prior_weight`` each, plus FIXED_COST_PRIOR_WEIGHT at 0 rays once calibrated (an
+        uncalibrated guess is forgotten)."""
+        anchor = FIXED_COST_PRIOR_WEIGHT if self.calibrated else 0.0
+        return self.prior_weight + anchor, self.prior_weight
+
+    def _speed(self) -> float:
+        """How much slower the machine runs now than the prior says: the rounds' measured
+        ms over the prior line's ms for their rays and pixels of each kind at the prior's
+        figures (a reference that what the rounds teach does not move), each summed at
+        TIME_MODEL_DECAY (the line's forgetting); 1 before any round."""
+        zz = np.asarray(self._zz).reshape(5, 5)
+        g = np.array([0.0, 1.0, *self.prior_kind_rays])
+        per_unit = self.prior_ms_per_ray * RAY_UNIT
+        prior = self.prior_overhead_ms * zz[0, 0] + per_unit * float(g @ zz[0])
+        measured = float(self._zm[0])
+        if not (prior > 0.0 and measured > 0.0 and math.isfinite(measured / prior)):
+            return 1.0
+        return measured / prior
 
     def _line_sums(self) -> tuple[float, float, float, float, float]:
         """The rounds' weighted sums of the line's fit: weight, x, ms, x^2, x * ms, x the
@@ -457,14 +528,16 @@ class TraceTimeModel:
                 float(g @ zm))  # fmt: skip
 
     def _fit_line(self) -> None:
-        """Weighted least squares of the rounds and the prior's two pseudo-rounds."""
-        p, a0, b0 = self.prior_weight, self.prior_overhead_ms, self.prior_ms_per_ray * RAY_UNIT
+        """Weighted least squares of the rounds and the prior's two pseudo-rounds, at the
+        prior line times the machine's present speed (``_speed``, ``_prior_weights``)."""
+        speed, (p0, p1) = self._speed(), self._prior_weights()
+        a0, b0 = speed * self.prior_overhead_ms, speed * self.prior_ms_per_ray * RAY_UNIT
         sw, sr, sm, srr, srm = self._line_sums()
-        w = sw + 2.0 * p
-        r = sr + p  # the pseudo-rounds at x = 0 and x = 1
-        m = sm + p * a0 + p * (a0 + b0)
-        rr = srr + p
-        rm = srm + p * (a0 + b0)
+        w = sw + p0 + p1
+        r = sr + p1  # the pseudo-rounds at x = 0 and x = 1
+        m = sm + p0 * a0 + p1 * (a0 + b0)
+        rr = srr + p1
+        rm = srm + p1 * (a0 + b0)
         det = w * rr - r * r  # > 0: the pseudo-rounds at two different x
         slope = (w * rm - r * m) / det if det > 0.0 else -1.0
         intercept = (m - slope * r) / w
@@ -522,10 +595,6 @@ class TraceTimeModel:
     def rays_within(self, ms: float) -> float:
         """Most rays a round may cast and still (conservatively) end within ``ms``."""
         return max((ms / self.safety - self.overhead_ms) / self.ms_per_ray, 0.0)
-
-
-#: Indices of the kinds' squared counts in the flat sums (z z^T, row-major).
-_KIND_DIAGONAL = (12, 18, 24)
 
 
 def calibration_line(rays: np.ndarray, ms: np.ndarray) -> tuple[float, float]:

@@ -82,18 +82,24 @@ def _miscalibrated():
 
 
 def test_rounds_whose_reused_share_varies_separate_reuse_from_fill():
-    # Exact rounds: from a reuse cost 0.35 rays off, within 0.1 rays of the truth after
+    # Exact rounds: from a reuse cost 0.35 rays off, within 0.12 rays of the truth after
     # 100 rounds (what is left is the calibration's pull: its reuse rounds weigh as 4.3
-    # rounds of 10,000 reused pixels, KIND_PRIOR_WEIGHT_MIN; measured 0.05-0.08 over
-    # three seeds), fill and march within 0.05 (measured 0.02-0.05), the line the
-    # machine's within 5 % (it takes up what that pull leaves: measured 3 %).
+    # rounds of 10,000 reused pixels, KIND_PRIOR_WEIGHT_MIN; and each round enters the
+    # fit at the machine's speed against the prior, whose reuse figure is the wrong one,
+    # so that speed moves with the round's reused share: measured 0.08-0.11 over three
+    # seeds, 0.05-0.08 with the rounds' times as measured, which a slowdown tilts:
+    # test_a_slowdown_is_the_lines_not_a_filled_pixels), the march within 0.01 (the
+    # ridge holds its figure in rays: measured 0.002), the fill within 0.05 (measured
+    # 0.02-0.05), the line the machine's within 8 % (it takes up what that pull leaves:
+    # measured 4-7 %).
     for seed in (1, 2, 3):
         model = _miscalibrated()
         assert model.reuse_rays == FILL
         costs = _learn(model, np.random.default_rng(seed), 100, lambda rng: rng.uniform(0, 1))
-        assert costs[-1][1] == pytest.approx(REUSE, abs=0.1)
-        assert costs[-1][[0, 2]] == pytest.approx((FILL, MARCH), abs=0.05)
-        assert model.ms_per_ray == pytest.approx(MS_PER_RAY, rel=0.05)
+        assert costs[-1][1] == pytest.approx(REUSE, abs=0.12)
+        assert costs[-1][2] == pytest.approx(MARCH, abs=0.01)
+        assert costs[-1][0] == pytest.approx(FILL, abs=0.05)
+        assert model.ms_per_ray == pytest.approx(MS_PER_RAY, rel=0.08)
     # 10 % jitter per round (the shared machine's): over rounds 100-300 the mean of each
     # within 0.1 rays of the truth (measured within 0.06), and a reused pixel priced
     # below a filled one in every round.
@@ -212,3 +218,54 @@ def test_a_rounds_time_is_predicted_from_its_reused_share():
     assert policy.last_frame_note.expected_trace_ms == pytest.approx(truth, rel=0.01)
     rays, filled, reused = kinds(density)
     assert round_ms(rays, filled + reused) > 1.1 * truth
+
+
+def _planned_rounds(model, rng, rounds, slow_from, slow=1.8, budget_ms=16.0, pixels=20000.0):
+    """A policy's rounds on the synthetic tracer: each plans the model's whole allowance
+    (``rays_within``) on ``pixels`` reflector pixels at 2.2 rays a traced pixel, the
+    traced share what the model's fill cost lets fit (the rest filled: a slower machine,
+    more filled pixels), 10 % jitter, every round ``slow`` times slower from round
+    ``slow_from`` on; the model's (fixed ms, ms per ray, fill rays) after each."""
+    out = []
+    for k in range(rounds):
+        allowance = model.rays_within(budget_ms)
+        fill = model.fill_rays
+        share = (allowance - fill * pixels) / max(2.2 * pixels - fill * pixels, 1.0)
+        share = min(max(share, 1.0 / 16.0), 1.0)
+        rays, filled = 2.2 * share * pixels, (1.0 - share) * pixels
+        ms = round_ms(rays, filled) * rng.lognormal(0.0, 0.1) * (slow if k >= slow_from else 1.0)
+        model.learn(round(rays), ms, 0.0, filled)
+        out.append((model.overhead_ms, model.ms_per_ray, model.fill_rays))
+    return np.array(out)
+
+
+def test_rounds_planned_to_the_budget_keep_the_fixed_cost_a_fixed_cost():
+    # Every round plans the whole budget, so all cast about the same equivalent rays:
+    # their spread cannot tell a fixed cost from a per-ray cost, and the calibration's
+    # share of each stands. Over rounds 50-100 of a steady machine the fixed cost stays
+    # below 1 ms (the truth 0.3 ms; measured 0.30-0.59 over eight seeds) and the per-ray
+    # cost within 10 % (measured 3-8 %); with the prior forgotten, one seed's went to
+    # 14 ms and 0.03 of the per-ray cost.
+    for seed in (1, 2, 3, 4, 5):
+        model = TraceTimeModel()
+        model.calibrate(calibration_rounds())
+        costs = _planned_rounds(model, np.random.default_rng(seed), 100, slow_from=100)
+        assert np.all(costs[50:, 0] < 1.0)
+        assert costs[50:, 1] == pytest.approx(MS_PER_RAY, rel=0.1)
+
+
+def test_a_slowdown_is_the_lines_not_a_filled_pixels():
+    # The machine slows 1.8x: the rounds trace fewer pixels and fill more, each slower.
+    # Fifty rounds on, the line is the slow machine's (per-ray cost within 12 %: measured
+    # 4-8 % over eight seeds; the fixed cost below 1.5 ms, the truth 0.54: measured
+    # 1.0-1.34) and a filled pixel costs what it did, in rays (within 0.1 of the truth
+    # 0.6: measured 0.05). Fitted to the times as measured, a filled pixel took up the
+    # slowdown (1.0-1.5 rays for 100 rounds) and the per-ray cost fell to 0.44-0.69 of
+    # the machine's.
+    for seed in (1, 2, 3, 4, 5):
+        model = TraceTimeModel()
+        model.calibrate(calibration_rounds())
+        costs = _planned_rounds(model, np.random.default_rng(seed), 200, slow_from=100)
+        assert np.all(costs[150:, 0] < 1.5)
+        assert costs[150:, 1] == pytest.approx(1.8 * MS_PER_RAY, rel=0.12)
+        assert costs[150:, 2] == pytest.approx(FILL, abs=0.1)

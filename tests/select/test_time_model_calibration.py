@@ -177,3 +177,16 @@ def test_rounds_learn_their_filled_pixels_at_the_calibrated_cost():
     # 1e-6: exact rounds, exact calibration.
     assert model.ms_per_ray == pytest.approx(MS_PER_RAY, rel=1e-6)
     assert model.overhead_ms == pytest.approx(OVERHEAD_MS, rel=1e-6)
+
+
+def test_calibration_spread_fades_once_rounds_are_measured():
+    # The calibration's largest round took 1.6x its line: the first frame plans with its
+    # spread (1.32); three exact rounds later the factor is within 0.05 of
+    # TIME_SAFETY_INITIAL (the excess halved a round: 1.1 + 0.22 / 8 = 1.13). Faded with
+    # the prior's weight (0.9 a round) it was still 1.26, and ~1.2 ten rounds on.
+    model = TraceTimeModel()
+    model.calibrate(calibration_rounds(lambda k: 1.6 if k == 3 else 1.0))
+    assert model.safety >= 1.3
+    for rays in (3000, 3500, 4000):
+        model.learn(rays, round_ms(rays))
+    assert model.safety <= TIME_SAFETY_INITIAL + 0.05
