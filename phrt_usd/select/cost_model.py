@@ -223,9 +223,10 @@ PRIOR_WEIGHT_MIN = 1e-9
 #: squares over the same run's rounds find 0.0 ms and 0.56 us; on a simulated machine
 #: slowing 1.8x at frame 235, 8-13 ms and 0.2-0.6 us against a true 0.4 ms and 1.2 us.
 #: Priced so, a reflector's rays look cheap and its filled pixels dear (their cost in
-#: rays is the line's ms per pixel over its ms per ray): HEU1 dropped the nearest
-#: reflector (the largest, at a sixteenth) or traced few at full density rather than
-#: all at a sixteenth, the late frames near the raster's FLIP. The anchor leaves the
+#: rays is the line's ms per pixel over its ms per ray): on the simulated machine HEU1
+#: traced a few reflectors at full density and dropped the rest rather than trace them
+#: all at a sixteenth (the last 12 frames at FLIP 0.22-0.25, the raster's 0.29; 0.19
+#: so anchored; over the run 0.11-0.14 against 0.097, three seeds). The anchor leaves the
 #: tilt to the rounds wherever their rays spread (its weight against theirs is about
 #: that of their spread over their mean): rounds of 200-1,400 rays that all take 1 ms
 #: outweigh it three to one, the tunnel's rounds weigh 1/30 of it.
