@@ -222,13 +222,12 @@ class FrameReuse:
     # ------------------------------------------------------------------ reprojection
 
     def _lookup(self, pix: np.ndarray, hit: np.ndarray | None, period: np.ndarray,
-                split=None, max_offset: float = MAX_PIXEL_OFFSET):  # fmt: skip
+                split=None):  # fmt: skip
         """For pixels ``pix`` (n,) int64: (n,) int64 the previous frame's pixel showing
         what each shows now (the virtual image's reprojection, module docstring; -1: off
         screen or behind the previous camera) and (n,) bool its history passes the
         per-pixel tests (all but the gradient), ``period`` (n,) int64 the frames the
-        pixel's density rotates in, ``max_offset`` the farthest the reprojected point may
-        fall from the previous pixel's centre. ``hit`` (n,) float32 the pixels' hit distances this
+        pixel's density rotates in. ``hit`` (n,) float32 the pixels' hit distances this
         frame, None: the previous frame's (the fixed-point step). Compiled:
         ``history_kernels.history_lookup``, over ``split`` (as ``sparse_pixels.
         fill_skipped``'s: the tracer's pool) when given."""
@@ -244,7 +243,7 @@ class FrameReuse:
             _kernels().history_lookup, n, pix, hit, own, self._element, self._normal,
             self._position, self._view, self._depth, np.ascontiguousarray(period, np.int64),
             self._moved_table, prev.element, prev.age, prev.normal, prev.position, prev.hit,
-            prev.clip_from_world, width, height, max_offset, NORMAL_AGREEMENT,
+            prev.clip_from_world, width, height, MAX_PIXEL_OFFSET, NORMAL_AGREEMENT,
             PLANE_TOLERANCE, out=(q, ok),
         )  # fmt: skip
         return q, ok
@@ -315,21 +314,30 @@ class FrameReuse:
         self._taken.append((skipped_pix[take], (prev.age[q] + 1).astype(np.int16)))
         return take, prev.radiance[q], prev.hit[q]
 
-    def accumulated(self, fill_pix: np.ndarray, fill_radiance: np.ndarray, low: np.ndarray,
-                    high: np.ndarray, split=None) -> np.ndarray:  # fmt: skip
+    def accumulated(self, fill_pix: np.ndarray, fill_hit: np.ndarray, fill_radiance: np.ndarray,
+                    low: np.ndarray, high: np.ndarray, split=None) -> np.ndarray:  # fmt: skip
         """(m, 3) float32 the filled pixels ``fill_pix`` (m,) int64 with ACCUMULATION of
-        their previous value blended into their fill ``fill_radiance`` (m, 3), where it
+        their previous value blended into their fill ``fill_radiance`` (m, 3) (compiled:
+        ``history_kernels.accumulate``), read where their hit distance ``fill_hit`` (m,)
+        float32 (the fill's estimate) reprojects them and it
         passes the per-pixel tests (read within ACCUMULATION_OFFSET, any age), clamped per
         channel to [low, high] (m, 3): the range of the traced samples the fill was made
         of (``sparse_pixels.Fill``). split: ``_lookup``'s."""
         out = np.array(fill_radiance, np.float32, copy=True)
-        if self._previous is None or len(fill_pix) == 0:
+        prev = self._previous
+        if prev is None or len(fill_pix) == 0:
             return out
-        any_age = np.full(len(fill_pix), NO_HISTORY + 1, np.int64)  # filled ones too
-        then, ok = self._lookup(_int64(fill_pix), None, any_age, split, ACCUMULATION_OFFSET)
-        at = np.flatnonzero(ok)
-        history = np.clip(self._previous.radiance[then[at]], low[at], high[at])
-        out[at] += ACCUMULATION * (history - out[at])
+        width, height = self._size
+        # Filled ones too (FILLED_AGE + 1 < NO_HISTORY + 1), never-traced ones not.
+        (split or one_call)(
+            _kernels().accumulate, len(fill_pix), _int64(fill_pix),
+            np.ascontiguousarray(fill_hit, np.float32),
+            np.ascontiguousarray(low, np.float32), np.ascontiguousarray(high, np.float32),
+            ACCUMULATION, NO_HISTORY + 1, self._element, self._normal, self._position,
+            self._view, self._depth, self._moved_table, prev.element, prev.age, prev.normal,
+            prev.position, prev.hit, prev.radiance, prev.clip_from_world, width, height,
+            ACCUMULATION_OFFSET, NORMAL_AGREEMENT, PLANE_TOLERANCE, out=(out,),
+        )  # fmt: skip
         return out
 
     def _near_cells(self, pix, pix_level, changed, changed_level) -> np.ndarray:

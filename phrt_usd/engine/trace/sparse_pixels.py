@@ -292,7 +292,8 @@ def complete(result: ReflectionResult, src, skipped, guides: FillGuides, density
     )  # fmt: skip
     fill_pix, fill_radiance, fill_hit = skipped_pix[fill.filled], fill.radiance, fill.hit_distance
     if reuse is not None:
-        fill_radiance = reuse.accumulated(fill_pix, fill_radiance, fill.low, fill.high, split)
+        fill_radiance = reuse.accumulated(fill_pix, fill_hit, fill_radiance, fill.low,
+                                          fill.high, split)  # fmt: skip
     records = [
         dataclasses.replace(
             record,
