@@ -55,9 +55,9 @@ below ENV_MIN_REFLECTIVITY (float32 rounding divided by F) and on stages with
 transmissive materials (whose traced radiance mixes in refraction) the rule is off.
 
 A pixel whose cell has no corner of its reflector (an edge, an irregular traced
-subset) takes the tent-weighted mean of its reflector's traced pixels within the
-pattern's spacing - 1 rows and columns (the guides' weights, or without them when they
-leave none), as the bilinear fill did; none: not filled.
+subset) takes the tent-weighted mean of its reflector's traced lattice points within
+the window's radius (``_axes``; the guides' weights, or without them when they leave
+none), as the bilinear fill did; none: not filled.
 
 Arrays: G-buffer images flat over H*W (normal (H*W, 3) float32 unit, position (H*W, 3)
 float64 world, depth (H*W,) float32 view depth).
@@ -319,14 +319,28 @@ def fill_skipped(
             out_hit[j] = depth[p] * (1.0 / vhat - 1.0) if vhat > 0.0 else np.inf
             out_ok[j] = True
             continue
-        for guided in (True, False):  # no corner of p's reflector: the tent window
-            total = x0 = x1 = x2 = vhat = 0.0
-            lo0 = lo1 = lo2 = np.inf
-            hi0 = hi1 = hi2 = -np.inf
-            for dy in range(-radius, radius + 1):
-                for dx in range(-radius, radius + 1):
-                    at = _traced(table, traced_src, s, r + dy, c + dx, width, height)
-                    if at >= 0 and (dy or dx):
+        # The tent window, read at the lattice's points first (the grid's, or the
+        # checkerboard's of spacing q: ~4 of the 49 positions of a sixteenth's window),
+        # at every position only when none of those is the reflector's (a rate's extra
+        # traced pixels, an irregular subset).
+        step = lat if lat > 0 else -lat
+        for every in (False, True):
+            stride = 1 if every else step
+            y0 = r - radius + (0 if every else (phase[0] - (r - radius)) % step)
+            xs = c - radius + (0 if every else (phase[1] - (c - radius)) % step)
+            for guided in (True, False):
+                total = x0 = x1 = x2 = vhat = 0.0
+                lo0 = lo1 = lo2 = np.inf
+                hi0 = hi1 = hi2 = -np.inf
+                for y in range(y0, r + radius + 1, stride):
+                    for x in range(xs, c + radius + 1, stride):
+                        if not every and lat < 0 and \
+                                ((y - phase[0]) // step + (x - phase[1]) // step) & 1:  # fmt: skip
+                            continue  # off the checkerboard
+                        dy, dx = y - r, x - c
+                        at = _traced(table, traced_src, s, y, x, width, height)
+                        if at < 0 or not (dy or dx):
+                            continue
                         w = float((radius + 1 - abs(dy)) * (radius + 1 - abs(dx)))
                         if guided:
                             w *= _guide(nx, ny, nz, px, py, pz, traced_pix[at], normal,
@@ -343,13 +357,16 @@ def fill_skipped(
                         lo1, hi1 = min(lo1, f1), max(hi1, f1)
                         lo2, hi2 = min(lo2, f2), max(hi2, f2)
                         vhat += w * v[at]
-            if total > 0.0:
-                out_rad[j, 0], out_rad[j, 1], out_rad[j, 2] = x0 / total, x1 / total, x2 / total
-                out_low[j, 0], out_low[j, 1], out_low[j, 2] = lo0, lo1, lo2
-                out_high[j, 0], out_high[j, 1], out_high[j, 2] = hi0, hi1, hi2
-                vhat /= total
-                out_hit[j] = depth[p] * (1.0 / vhat - 1.0) if vhat > 0.0 else np.inf
-                out_ok[j] = True
+                if total > 0.0:
+                    out_rad[j, 0], out_rad[j, 1] = x0 / total, x1 / total
+                    out_rad[j, 2] = x2 / total
+                    out_low[j, 0], out_low[j, 1], out_low[j, 2] = lo0, lo1, lo2
+                    out_high[j, 0], out_high[j, 1], out_high[j, 2] = hi0, hi1, hi2
+                    vhat /= total
+                    out_hit[j] = depth[p] * (1.0 / vhat - 1.0) if vhat > 0.0 else np.inf
+                    out_ok[j] = True
+                    break
+            if out_ok[j]:
                 break
 
 
