@@ -171,4 +171,4 @@ def test_sweep_over_trace_densities(tmp_path):
     with pytest.raises(BadOption, match="--trace-densities: a value is given twice"):
         check_spec(replace(spec, trace_densities=["half", "half"]))
     with pytest.raises(BadOption, match="trace density must be one of"):
-        check_spec(replace(spec, trace_densities=["eighth"]))
+        check_spec(replace(spec, trace_densities=["17/16"]))
