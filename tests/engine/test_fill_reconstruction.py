@@ -19,7 +19,7 @@ from phrt_usd.engine.trace.sparse_pixels import (
     pattern_spacing,
     traced_subset,
 )
-from phrt_usd.engine.trace.tracer import Tracer
+from phrt_usd.engine.trace.tracer import Tracer, fill_guides
 from phrt_usd.evaluate.image_metrics import flip_map
 from phrt_usd.model.render_options import RenderOptions
 from phrt_usd.run.images import tonemap_ldr
@@ -378,4 +378,5 @@ def test_the_sky_rule_is_off_on_stages_with_transmissive_materials():
         parts = [{"mesh": quad(1.0), "F": 0.5}, {"mesh": sphere(0.3, (0, 0, 1)),
                                                   "opacity": opacity}]  # fmt: skip
         tracer = Tracer(parts_scene(parts))
-        assert (len(tracer._fill_guides(gb, raster).raster[0]) > 0) is kept
+        guides = fill_guides(gb, raster, tracer.surfaces.transmission)
+        assert (len(guides.raster[0]) > 0) is kept

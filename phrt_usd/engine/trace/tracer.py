@@ -305,7 +305,7 @@ class Tracer:
         a sequence of them, one per source): large reflectors start rays on a pattern of
         their pixels and fill the others from traced neighbours (``sparse_pixels``; with
         ``raster``, the raster frame's fallback, local and reflectivity images, its sky
-        rule: ``_fill_guides``); their records then
+        rule: ``fill_guides``); their records then
         count every covered pixel, so rays per pixel stay what a frame's pixel counts
         predict at that density (hits scaled alike). ``reuse`` (an
         ``engine.reflection_history.FrameReuse``, None: none) shifts the pattern by the
@@ -346,14 +346,11 @@ class Tracer:
             if self._fill_table is None or len(self._fill_table) != width * height:
                 self._fill_table = np.full(width * height, -1, np.int32)
             result = sparse_pixels.complete(
-                result, src, first["skipped"], self._fill_guides(gbuffer, raster), density,
+                result, src, first["skipped"],
+                fill_guides(gbuffer, raster, self.surfaces.transmission), density,
                 phase, reuse, self._fill_table, self._split, start,
             )  # fmt: skip
         return with_kind_counts(result, gbuffer.element_id, marched=hits is not None)
-
-    def _fill_guides(self, gbuffer: GBuffer, raster) -> sparse_pixels.FillGuides:
-        """``fill_guides`` on this tracer's stage."""
-        return fill_guides(gbuffer, raster, self.surfaces.transmission)
 
     def trace_refraction(
         self, gbuffer: GBuffer, bounce_limit: int, elements: list[int] | None = None
