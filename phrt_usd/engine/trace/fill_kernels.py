@@ -147,6 +147,16 @@ def _environment(p, fallback, local, reflectivity, sky):
     return True
 
 
+@njit(**_HELPER)
+def _sky(state, p, fallback, local, reflectivity, sky):
+    """The sky rule's state for pixel p after its first sky sample: ``state`` 0 (not
+    read yet) becomes 1 with p's fallback reflection in sky (``_environment``) or -1
+    (the rule off); read once a pixel, only where a sample's ray left the scene."""
+    if state == 0:
+        state = 1 if _environment(p, fallback, local, reflectivity, sky) else -1
+    return state
+
+
 @njit(**_KERNEL)
 def fill_table(table, traced_pix, hit, depth, out_v):
     """Traced pixel i's row into table[traced_pix[i]] (table (H*W,) int32 all -1), and
@@ -270,7 +280,7 @@ def fill_skipped(
             t1, t2 = (c - c0) / lat, (r - r0) / lat
         nx, ny, nz = float(normal[p, 0]), float(normal[p, 1]), float(normal[p, 2])
         px, py, pz = position[p, 0], position[p, 1], position[p, 2]
-        has_sky = _environment(p, fallback, local, reflectivity, sky)
+        sky_state = 0  # the fallback reflection: 0 not read yet, 1 in sky, -1 rule off
         total = vhat = exact = 0.0
         for k in range(4):  # the corners (0, 0), (1, 0), (0, 1), (1, 1) along the axes
             a1, a2 = k & 1, k >> 1
@@ -300,7 +310,9 @@ def fill_skipped(
                     at = corner[k]
                     w = weight[k] * _hit_weight(v[at], vhat)
                     total += w
-                    if has_sky and v[at] == 0.0:  # the sky: the pixel's own (docstring)
+                    if v[at] == 0.0:  # a ray that left the scene: the sky (docstring)
+                        sky_state = _sky(sky_state, p, fallback, local, reflectivity, sky)
+                    if v[at] == 0.0 and sky_state > 0:
                         f0, f1, f2 = sky[0], sky[1], sky[2]
                         x0, x1, x2 = x0 + w * f0, x1 + w * f1, x2 + w * f2
                     else:
@@ -348,7 +360,9 @@ def fill_skipped(
                         if not w > 0.0:
                             continue
                         total += w
-                        if has_sky and v[at] == 0.0:  # the sky: the pixel's own
+                        if v[at] == 0.0:  # a ray that left the scene: the sky (docstring)
+                            sky_state = _sky(sky_state, p, fallback, local, reflectivity, sky)
+                        if v[at] == 0.0 and sky_state > 0:
                             f0, f1, f2 = sky[0], sky[1], sky[2]
                         else:
                             f0, f1, f2 = radiance[at, 0], radiance[at, 1], radiance[at, 2]
