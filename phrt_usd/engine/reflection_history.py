@@ -73,7 +73,7 @@ from phrt_usd.model.frame import FrameCamera, GBuffer, ReflectionResult, flat_im
 NO_HISTORY = np.iinfo(np.int16).max
 #: The age of a filled pixel: a fill is an estimate from its frame's samples, not a
 #: value to carry forward as traced (reuse refuses it); only the accumulation of the
-#: next frame's fill reads it (``accumulated``).
+#: next frame's fill reads it (``accumulate``).
 FILLED_AGE = NO_HISTORY - 1
 #: Farthest the reprojected point may fall from its previous pixel's centre, in pixels
 #: along either axis: history is read from the nearest pixel (a bilinear read would blur
@@ -116,14 +116,14 @@ MIN_REPROJECTED = 0.5
 #: A filled pixel (no valid history: a moving view, a rippled reflector) blends this
 #: share of its previous value in, read from the nearest previous pixel (within half a
 #: pixel: every on-screen reprojection) that passes the per-pixel tests and clamped to
-#: the range of the traced samples its fill was made of (``accumulated``): temporal
+#: the range of the traced samples its fill was made of (``accumulate``): temporal
 #: anti-aliasing's exponential average, over about 1 / (1 - ACCUMULATION) frames. A
 #: fill's error changes from frame to frame where the camera moves (the traced samples
 #: land on other surface points), and the average halves that change; the clamp keeps
 #: what no traced sample around shows any more (a ghost) out. Measured on the wet
 #: tunnel (docs/temporal-reuse.md, "Accumulating fills").
 ACCUMULATION = 0.5
-#: The nearest-pixel read of ``accumulated``: any reprojection that lands on a pixel.
+#: The nearest-pixel read of ``accumulate``: any reprojection that lands on a pixel.
 ACCUMULATION_OFFSET = 0.5
 #: Rec. 709 luminance weights (linear RGB).
 _LUMINANCE = np.array([0.2126, 0.7152, 0.0722], np.float32)
@@ -314,19 +314,18 @@ class FrameReuse:
         self._taken.append((skipped_pix[take], (prev.age[q] + 1).astype(np.int16)))
         return take, prev.radiance[q], prev.hit[q]
 
-    def accumulated(self, fill_pix: np.ndarray, fill_hit: np.ndarray, fill_radiance: np.ndarray,
-                    low: np.ndarray, high: np.ndarray, split=None) -> np.ndarray:  # fmt: skip
-        """(m, 3) float32 the filled pixels ``fill_pix`` (m,) int64 with ACCUMULATION of
-        their previous value blended into their fill ``fill_radiance`` (m, 3) (compiled:
+    def accumulate(self, fill_pix: np.ndarray, fill_hit: np.ndarray, radiance: np.ndarray,
+                   low: np.ndarray, high: np.ndarray, split=None) -> None:  # fmt: skip
+        """Blends ACCUMULATION of the filled pixels' ``fill_pix`` (m,) int64 previous
+        values into their fill ``radiance`` (m, 3) float32, in place (compiled:
         ``history_kernels.accumulate``), read where their hit distance ``fill_hit`` (m,)
-        float32 (the fill's estimate) reprojects them and it
-        passes the per-pixel tests (read within ACCUMULATION_OFFSET, any age), clamped per
-        channel to [low, high] (m, 3): the range of the traced samples the fill was made
-        of (``sparse_pixels.Fill``). split: ``_lookup``'s."""
-        out = np.array(fill_radiance, np.float32, copy=True)
+        float32 (the fill's estimate) reprojects them and it passes the per-pixel tests
+        (read within ACCUMULATION_OFFSET, any age), clamped per channel to [low, high]
+        (m, 3): the range of the traced samples the fill was made of
+        (``sparse_pixels.Fill``). split: ``_lookup``'s."""
         prev = self._previous
         if prev is None or len(fill_pix) == 0:
-            return out
+            return
         width, height = self._size
         # Filled ones too (FILLED_AGE + 1 < NO_HISTORY + 1), never-traced ones not.
         (split or one_call)(
@@ -336,9 +335,8 @@ class FrameReuse:
             ACCUMULATION, NO_HISTORY + 1, self._element, self._normal, self._position,
             self._view, self._depth, self._moved_table, prev.element, prev.age, prev.normal,
             prev.position, prev.hit, prev.radiance, prev.clip_from_world, width, height,
-            ACCUMULATION_OFFSET, NORMAL_AGREEMENT, PLANE_TOLERANCE, out=(out,),
+            ACCUMULATION_OFFSET, NORMAL_AGREEMENT, PLANE_TOLERANCE, out=(radiance,),
         )  # fmt: skip
-        return out
 
     def _near_cells(self, pix, pix_level, changed, changed_level) -> np.ndarray:
         """(n,) bool: pixels ``pix`` (n,) (of density levels ``pix_level``) whose pattern

@@ -122,7 +122,7 @@ def _ghosts(reused, full, moved_away, frames, kind=pixel_kinds.REUSED) -> list[i
     was. A ghost is history showing what is no longer there: a REUSED pixel that differs
     from full density by more than 0.05 in linear radiance (an eighth of the ball's red
     against the floor's grey); filled pixels are this frame's reconstruction (no history
-    in them, but the share ``accumulated`` blends in), traced ones exact. ``kind``: the
+    in them, but the share ``accumulate`` blends in), traced ones exact. ``kind``: the
     pixels counted (REUSED; FILLED for the accumulation's)."""
     counts = []
     for k in frames:

@@ -271,7 +271,7 @@ def complete(result: ReflectionResult, src, skipped, guides: FillGuides, density
     skipped pixels reused or filled: the reprojected history where ``reuse`` (an
     ``engine.reflection_history.FrameReuse``, None: none) finds it valid, else filled
     (``fill_skipped``, with ``guides``, ``table`` and ``split``) and the fill blended
-    with what history it has (``FrameReuse.accumulated``); its records count every
+    with what history it has (``FrameReuse.accumulate``); its records count every
     covered pixel (hits scaled alike). src (n,) the result's pixels' sources, skipped
     (pixels (m,), their sources (m,), covered pixels per source) from
     ``Tracer._source_pixels``; density and phase as ``Tracer.trace_reflections``';
@@ -291,9 +291,8 @@ def complete(result: ReflectionResult, src, skipped, guides: FillGuides, density
         skipped_src, guides, density, table, phase=phase, split=split,
     )  # fmt: skip
     fill_pix, fill_radiance, fill_hit = skipped_pix[fill.filled], fill.radiance, fill.hit_distance
-    if reuse is not None:
-        fill_radiance = reuse.accumulated(fill_pix, fill_hit, fill_radiance, fill.low,
-                                          fill.high, split)  # fmt: skip
+    if reuse is not None:  # the fill's own arrays: blended in place
+        reuse.accumulate(fill_pix, fill_hit, fill_radiance, fill.low, fill.high, split)
     records = [
         dataclasses.replace(
             record,
