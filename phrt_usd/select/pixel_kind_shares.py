@@ -34,10 +34,12 @@ def made_without_rays(record: TraceRecord, level: int | None) -> tuple[float, fl
     return skipped, 0.0, 0.0
 
 
-def average_into(table: dict[int, float], key: int, value: float) -> None:
-    """``table[key]`` moved towards ``value`` by SHARE_ALPHA (set to it when absent)."""
+def average_into(table: dict[int, float], key: int, value: float,
+                 alpha: float = SHARE_ALPHA) -> None:  # fmt: skip
+    """``table[key]`` moved towards ``value`` by ``alpha`` (set to it when absent): the
+    per-reflector exponential average of the policies' learned figures."""
     old = table.get(key)
-    table[key] = value if old is None else SHARE_ALPHA * value + (1.0 - SHARE_ALPHA) * old
+    table[key] = value if old is None else alpha * value + (1.0 - alpha) * old
 
 
 def learn_reused_share(table: dict[int, float], source: int, filled: float,

@@ -47,6 +47,7 @@ from phrt_usd.select.metrics import (
     visible_area,
 )
 from phrt_usd.select.pixel_kind_shares import (
+    average_into,
     learn_reused_share,
     made_without_rays,
     skipped_cost,
@@ -329,9 +330,7 @@ class BudgetedPolicy(ABC):
                 level = frame.levels.get(src, 0)
                 pixels = rec.pixels * traced_fraction(rec.pixels, TRACE_DENSITIES[level])
                 rpp = max(rec.rays / pixels, MIN_RAYS_PER_PIXEL)
-                old = self.rays_per_pixel.get(src)
-                a = RAYS_PER_PIXEL_ALPHA
-                self.rays_per_pixel[src] = rpp if old is None else a * rpp + (1 - a) * old
+                average_into(self.rays_per_pixel, src, rpp, RAYS_PER_PIXEL_ALPHA)
                 self._global_rays = TIME_MODEL_DECAY * self._global_rays + rec.rays
                 self._global_pixels = TIME_MODEL_DECAY * self._global_pixels + pixels
             # The latest trace of a source replaces what it was seen to reflect before.
