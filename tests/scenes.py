@@ -427,3 +427,28 @@ def shaded_both_ways(pos, nrm, albedo, view, lights: Lights, vis, terms):
         local_pairs=terms.local_pairs, lit_sums=terms.lit_sums,
     )  # fmt: skip
     return expected, got
+
+
+def grey_square_stage(albedo: float, half: float = 2.0, eye=(0.0, 0.0, 2.0),
+                      meters_per_unit: float = 1.0) -> Usd.Stage:  # fmt: skip
+    """An in-memory stage (y up) of a grey square of ``albedo`` (displayColor), ``half``
+    m from its centre to each side in the plane z = 0, and the camera /World/Cam at
+    ``eye`` looking down -z (20 mm lens, 20 x 15 mm aperture, clipping 0.1-100 m).
+    Authored in units of ``meters_per_unit`` (every length in metres / it)."""
+    s = 1.0 / meters_per_unit
+    stage = Usd.Stage.CreateInMemory()
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+    UsdGeom.SetStageMetersPerUnit(stage, meters_per_unit)
+    h = half * s
+    quad = UsdGeom.Mesh.Define(stage, "/World/Square")
+    quad.CreatePointsAttr([(-h, -h, 0), (h, -h, 0), (h, h, 0), (-h, h, 0)])
+    quad.CreateFaceVertexCountsAttr([4])
+    quad.CreateFaceVertexIndicesAttr([0, 1, 2, 3])
+    quad.CreateDisplayColorAttr([(albedo, albedo, albedo)])
+    cam = UsdGeom.Camera.Define(stage, "/World/Cam")
+    cam.CreateFocalLengthAttr(20.0)
+    cam.CreateHorizontalApertureAttr(20.0)
+    cam.CreateVerticalApertureAttr(15.0)
+    cam.CreateClippingRangeAttr(Gf.Vec2f(0.1 * s, 100.0 * s))
+    cam.AddTranslateOp().Set(Gf.Vec3d(*(np.asarray(eye, float) * s)))
+    return stage

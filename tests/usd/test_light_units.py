@@ -17,6 +17,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux
+from scenes import grey_square_stage
 
 from phrt_usd.engine.renderer import FrameRenderer, RenderOptions
 from phrt_usd.engine.shading import LIGHT_CUTOFF_IRRADIANCE
@@ -57,22 +58,7 @@ LIGHTS = {
 def _stage(mpu: float, dome: float = 0.0) -> Usd.Stage:
     """The module's stage with ``mpu`` metres per unit (every length / ``mpu``) and a
     dome of constant radiance ``dome`` (0: black)."""
-    s = 1.0 / mpu
-    stage = Usd.Stage.CreateInMemory()
-    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
-    UsdGeom.SetStageMetersPerUnit(stage, mpu)
-    half = 2.0 * s
-    quad = UsdGeom.Mesh.Define(stage, "/World/Square")
-    quad.CreatePointsAttr([(-half, -half, 0), (half, -half, 0), (half, half, 0), (-half, half, 0)])
-    quad.CreateFaceVertexCountsAttr([4])
-    quad.CreateFaceVertexIndicesAttr([0, 1, 2, 3])
-    quad.CreateDisplayColorAttr([(ALBEDO, ALBEDO, ALBEDO)])
-    cam = UsdGeom.Camera.Define(stage, "/World/Cam")
-    cam.CreateFocalLengthAttr(20.0)
-    cam.CreateHorizontalApertureAttr(20.0)
-    cam.CreateVerticalApertureAttr(15.0)
-    cam.CreateClippingRangeAttr(Gf.Vec2f(0.1 * s, 100.0 * s))
-    cam.AddTranslateOp().Set(Gf.Vec3d(*(EYE * s)))
+    stage = grey_square_stage(ALBEDO, 2.0, EYE, meters_per_unit=mpu)
     UsdLux.DomeLight.Define(stage, "/World/Dome").CreateIntensityAttr(dome)
     return stage
 

@@ -20,6 +20,7 @@ import numpy as np
 import OpenImageIO as oiio
 import pytest
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux
+from scenes import grey_square_stage
 from typer.testing import CliRunner
 
 import phrt_usd
@@ -41,20 +42,7 @@ CENTRE = (12, 16)  # sees (0.03125, -0.03125, 0): 1.3 degrees off the view axis
 
 
 def _stage(half: float = 2.0, dome: bool = True) -> Usd.Stage:
-    stage = Usd.Stage.CreateInMemory()
-    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
-    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
-    quad = UsdGeom.Mesh.Define(stage, "/World/Square")
-    quad.CreatePointsAttr([(-half, -half, 0), (half, -half, 0), (half, half, 0), (-half, half, 0)])
-    quad.CreateFaceVertexCountsAttr([4])
-    quad.CreateFaceVertexIndicesAttr([0, 1, 2, 3])
-    quad.CreateDisplayColorAttr([(ALBEDO, ALBEDO, ALBEDO)])
-    cam = UsdGeom.Camera.Define(stage, "/World/Cam")
-    cam.CreateFocalLengthAttr(20.0)
-    cam.CreateHorizontalApertureAttr(20.0)
-    cam.CreateVerticalApertureAttr(15.0)
-    cam.CreateClippingRangeAttr(Gf.Vec2f(0.1, 100.0))
-    cam.AddTranslateOp().Set(Gf.Vec3d(0, 0, 2))
+    stage = grey_square_stage(ALBEDO, half)
     if dome:
         UsdLux.DomeLight.Define(stage, "/World/Black").CreateIntensityAttr(0.0)
     return stage
