@@ -29,8 +29,8 @@ import numpy as np
 from pxr import Sdf, Usd, UsdGeom
 
 from phrt_usd.errors import PhrtError
-from phrt_usd.usd.materials import MaterialBank
-from phrt_usd.usd.meshes import LocalMesh, read_gprim
+from phrt_usd.usd.mesh_batch import PendingMesh
+from phrt_usd.usd.meshes import LocalMesh
 from phrt_usd.usd.values import AnimationProbe, TimeContext, varies
 
 #: PointInstancer attributes whose animation moves its instances.
@@ -44,11 +44,15 @@ INSTANCE_ATTRS = (
     "angularVelocities",
 )
 
-#: Receiver of one element: (gprim, element path, kind, its LocalMesh, matrix_at(ctx) →
+#: A gprim's local mesh: its LocalMesh, or a PendingMesh of the scene's MeshBatch.
+Mesh = LocalMesh | PendingMesh
+
+#: Receiver of one element: (gprim, element path, kind, its mesh, matrix_at(ctx) →
 #: (4, 4) row-vector prototype gprim → world in stage units, transform may vary).
-AddElement = Callable[
-    [Usd.Prim, str, str, LocalMesh, Callable[[TimeContext], np.ndarray], bool], None
-]
+AddElement = Callable[[Usd.Prim, str, str, Mesh, Callable[[TimeContext], np.ndarray], bool], None]
+
+#: Reader of a gprim's mesh: (kind, prim) → its mesh (read once per prim here).
+ReadMesh = Callable[[str, Usd.Prim], Mesh]
 
 #: (kind, prim) the render reads under a prototype root: gprims and "PointInstancer".
 GprimsUnder = Callable[[Usd.Prim], Iterable[tuple[str, Usd.Prim]]]
@@ -65,7 +69,7 @@ class _Entry:
     prim: Usd.Prim
     suffix: str  # path below the prototype root, "." for the root itself
     is_root: bool
-    mesh: LocalMesh | None  # None for an inner PointInstancer
+    mesh: Mesh | None  # None for an inner PointInstancer
 
 
 @dataclass
@@ -82,11 +86,11 @@ class _Expander:
     """Expands PointInstancers, nested ones for every outer instance; plans and meshes of
     a prim are read once however many outer instances reach it."""
 
-    def __init__(self, ctx, probe, bank, gprims_under, add):
-        self.ctx, self.probe, self.bank = ctx, probe, bank
+    def __init__(self, ctx, probe, read_mesh, gprims_under, add):
+        self.ctx, self.probe, self.read_mesh = ctx, probe, read_mesh
         self.gprims_under, self.add = gprims_under, add
         self._plans: dict[Sdf.Path, _Plan] = {}
-        self._meshes: dict[Sdf.Path, LocalMesh] = {}
+        self._meshes: dict[Sdf.Path, Mesh] = {}
 
     def plan(self, prim: Usd.Prim) -> _Plan:
         path = prim.GetPath()
@@ -118,7 +122,7 @@ class _Expander:
                 mesh = None
                 if kind != "PointInstancer":
                     if g.GetPath() not in self._meshes:
-                        self._meshes[g.GetPath()] = read_gprim(kind, g, ctx.code, self.bank)
+                        self._meshes[g.GetPath()] = self.read_mesh(kind, g)
                     mesh = self._meshes[g.GetPath()]
                 found.append(_Entry(kind, g, suffix, g == root, mesh))
             entries.append(found)
@@ -180,7 +184,7 @@ def expand_instancer(
     prim: Usd.Prim,
     ctx: TimeContext,
     probe: AnimationProbe,
-    bank: MaterialBank,
+    read_mesh: ReadMesh,
     gprims_under: GprimsUnder,
     add: AddElement,
 ) -> None:
@@ -189,7 +193,7 @@ def expand_instancer(
     (module doc); masked instances are skipped.
 
     gprims_under(root) : (kind, prim) the render reads under a prototype root, gprims
-    and nested "PointInstancer"s.
+    and nested "PointInstancer"s; read_mesh(kind, gprim) : its mesh, asked once a gprim.
     """
-    expander = _Expander(ctx, probe, bank, gprims_under, add)
+    expander = _Expander(ctx, probe, read_mesh, gprims_under, add)
     expander.expand(prim, str(prim.GetPath()), lambda c: c.world(prim), False, ())

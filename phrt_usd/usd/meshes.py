@@ -44,7 +44,7 @@ import numpy as np
 from pxr import Gf, Usd, UsdGeom, UsdShade
 
 from phrt_usd.errors import PhrtError
-from phrt_usd.usd.materials import MaterialBank, face_materials
+from phrt_usd.usd.materials import MaterialBank
 from phrt_usd.usd.values import (
     MIN_NORMAL_LENGTH,
     attr_value,
@@ -306,8 +306,10 @@ def _read_mesh_points(prim: Usd.Prim, time: Usd.TimeCode) -> np.ndarray:
     return points
 
 
-def _mesh_normals(prim, time, corners, tri_face, triangles) -> np.ndarray | None:
-    """Authored normals expanded to corners (T, 3, 3), or None (compute smooth)."""
+def authored_normals(prim: Usd.Prim, time: Usd.TimeCode) -> tuple[np.ndarray, str, str] | None:
+    """A mesh's authored normals: (values (k, 3) float64, NaN read as 0, interpolation,
+    where) of ``primvars:normals`` (preferred) or ``normals``; None when neither is
+    authored (smooth normals are computed)."""
     path = prim.GetPath()
     pv = _read_primvar(prim, "normals", time)
     if pv is not None:
@@ -324,26 +326,29 @@ def _mesh_normals(prim, time, corners, tri_face, triangles) -> np.ndarray | None
         values = np.asarray(raw, dtype=np.float64)
         interp = str(mesh.GetNormalsInterpolation())
         where = f"{path}.normals"
-    values = np.nan_to_num(values.reshape(-1, 3))  # bad normals shade, not crash
+    return np.nan_to_num(values.reshape(-1, 3)), interp, where  # bad normals shade, not crash
+
+
+def _mesh_normals(prim, time, corners, tri_face, triangles) -> np.ndarray | None:
+    """Authored normals expanded to corners (T, 3, 3), or None (compute smooth)."""
+    normals = authored_normals(prim, time)
+    if normals is None:
+        return None
+    values, interp, where = normals
     return safe_normalize(_expand(values, interp, corners, tri_face, triangles, where))
 
 
-def _display_color(prim, time, corners, tri_face, triangles) -> np.ndarray | None:
-    """primvars:displayColor expanded to corners (T, 3, 3), or None when unauthored."""
-    pv = _read_primvar(prim, "displayColor", time)
-    if pv is None:
-        return None
-    values, interp = pv
-    values = np.clip(np.nan_to_num(values.reshape(-1, 3)), 0.0, None)
-    where = f"{prim.GetPath()}.primvars:displayColor"
-    return _expand(values, interp, corners, tri_face, triangles, where)
+def albedo_rows(bank: MaterialBank) -> tuple[np.ndarray, np.ndarray]:
+    """Per MaterialTable row: its diffuse (M, 3) and whether it is authored (M,) bool."""
+    rows = bank.rows
+    diffuse = np.array([r.diffuse for r in rows])
+    return diffuse, np.array([r.diffuse_authored for r in rows], dtype=bool)
 
 
 def _albedo(tri_material: np.ndarray, display: np.ndarray | None, bank: MaterialBank) -> np.ndarray:
     """Corner albedo (T, 3, 3) float32: material diffuse, else displayColor, else grey."""
-    rows = bank.rows
-    diffuse = np.array([r.diffuse for r in rows])[tri_material]  # (T, 3)
-    authored = np.array([r.diffuse_authored for r in rows], dtype=bool)[tri_material]
+    diffuse, authored = albedo_rows(bank)
+    diffuse, authored = diffuse[tri_material], authored[tri_material]  # (T, 3), (T,)
     if display is None:
         no_material = tri_material == 0
         diffuse[no_material] = DEFAULT_GREY
@@ -351,38 +356,6 @@ def _albedo(tri_material: np.ndarray, display: np.ndarray | None, bank: Material
     else:
         out = np.where(authored[:, None, None], diffuse[:, None, :], display)
     return out.astype(np.float32)
-
-
-def _read_mesh(prim: Usd.Prim, time: Usd.TimeCode, bank: MaterialBank) -> LocalMesh:
-    points = _read_mesh_points(prim, time)
-    corners, tri_face, triangles = _mesh_topology(prim, time, len(points))
-    normals = _mesh_normals(prim, time, corners, tri_face, triangles)
-    n_faces = len(UsdGeom.Mesh(prim).GetFaceVertexCountsAttr().Get(time) or [])
-    face_mat, _ = face_materials(prim, n_faces, bank)
-    tri_material = face_mat[tri_face] if len(tri_face) else np.zeros(0, np.int32)
-    display = _display_color(prim, time, corners, tri_face, triangles)
-    albedo = _albedo(tri_material, display, bank)
-    uv = None
-    textured = [m for m in np.unique(tri_material) if bank.rows[m].needs_uv]
-    if textured:
-        name = bank.rows[textured[0]].uv_primvar
-        pv = _read_primvar(prim, name, time)
-        if pv is None:
-            uv = np.zeros((len(triangles), 3, 2), np.float32)
-        else:
-            values, interp = pv
-            where = f"{prim.GetPath()}.primvars:{name}"
-            values = np.nan_to_num(values.reshape(len(values), -1)[:, :2])
-            uv = _expand(values, interp, corners, tri_face, triangles, where).astype(np.float32)
-    return LocalMesh(
-        points=points,
-        triangles=triangles,
-        corner_normals=normals if normals is not None else smooth_corner_normals(points, triangles),
-        corner_albedo=albedo,
-        tri_material=tri_material.astype(np.int32),
-        corner_uv=uv,
-        smooth=normals is None,
-    )
 
 
 # ---- implicit gprims (built along +Z, then rotated onto their axis) ------------------
@@ -539,7 +512,9 @@ def _implicit_geometry(kind: str, prim: Usd.Prim, time: Usd.TimeCode):
     return pts, tris.astype(np.int64), nrm[tris]
 
 
-def _read_implicit(kind: str, prim: Usd.Prim, time: Usd.TimeCode, bank: MaterialBank) -> LocalMesh:
+def read_implicit(kind: str, prim: Usd.Prim, time: Usd.TimeCode, bank: MaterialBank) -> LocalMesh:
+    """The ``LocalMesh`` of an implicit gprim (any ``SHAPE_ATTRS`` type but ``Mesh``;
+    meshes are read, many at once, by ``phrt_usd.usd.mesh_batch``)."""
     pts, tris, normals = _implicit_geometry(kind, prim, time)
     mat = bank.index(UsdShade.MaterialBindingAPI(prim).ComputeBoundMaterial()[0])
     tri_material = np.full(len(tris), mat, dtype=np.int32)
@@ -587,13 +562,6 @@ def is_subdivided(prim: Usd.Prim) -> bool:
     if not prim.IsA(UsdGeom.Mesh):
         return False
     return UsdGeom.Mesh(prim).GetSubdivisionSchemeAttr().Get() != UsdGeom.Tokens.none
-
-
-def read_gprim(kind: str, prim: Usd.Prim, time: Usd.TimeCode, bank: MaterialBank) -> LocalMesh:
-    """The ``LocalMesh`` of a gprim of type ``kind`` (``SHAPE_ATTRS``) at ``time``."""
-    if kind == "Mesh":
-        return _read_mesh(prim, time, bank)
-    return _read_implicit(kind, prim, time, bank)
 
 
 def mesh_area(

@@ -82,13 +82,13 @@ from phrt_usd.usd.default_lights import DEFAULT_RIG_NAME, default_light_rig
 from phrt_usd.usd.instancers import expand_instancer
 from phrt_usd.usd.lights import read_light
 from phrt_usd.usd.materials import MaterialBank, binding_purposes, bound_material, material_key
+from phrt_usd.usd.mesh_batch import MeshBatch, PendingMesh, read_gprim
 from phrt_usd.usd.meshes import (
     SHAPE_ATTRS,
     LocalMesh,
     ShapeAt,
     is_subdivided,
     local_shape_fn,
-    read_gprim,
     smooth_corner_normals,
 )
 from phrt_usd.usd.render_settings import camera_settings, included_purposes
@@ -237,7 +237,7 @@ class _Part:
 
     element: int
     path: str
-    mesh: LocalMesh
+    mesh: LocalMesh  # a PendingMesh of the scene's MeshBatch until it is resolved
     matrix_at: Callable[[TimeContext], np.ndarray]  # (4, 4) row-vector, stage units
     shape_at: ShapeAt | None  # deforming points / normals, or None
     animated: bool
@@ -366,15 +366,20 @@ class StageScene:
         dome_problems: list[str] = []
         parts: list[_Part] = []
         elements: list[Element] = []
-        mesh_cache: dict[tuple, LocalMesh] = {}
+        mesh_cache: dict[tuple, LocalMesh | PendingMesh] = {}
         purposes = self.included_purposes
         skinning = SkinningReader()
         subdivided: dict[str, None] = {}
+        # Meshes are triangulated together once the traversal is done (usd/mesh_batch.py).
+        batch = MeshBatch(ctx.code, bank)
 
         def prototype_gprims(root: Usd.Prim):
             return walk_subtree(root, ctx.code, purposes, top=False)
 
-        def local_mesh(prim: Usd.Prim, kind: str) -> LocalMesh:
+        def read_mesh(kind: str, prim: Usd.Prim) -> LocalMesh | PendingMesh:
+            return batch.add(prim) if kind == "Mesh" else read_gprim(kind, prim, ctx.code, bank)
+
+        def local_mesh(prim: Usd.Prim, kind: str) -> LocalMesh | PendingMesh:
             # Instance proxies of one prototype share their triangulation (materials
             # may differ per instance, so the binding is part of the key).
             key = None
@@ -384,7 +389,7 @@ class StageScene:
                 key = (str(proto), material_key(mat))
                 if key in mesh_cache:
                     return mesh_cache[key]
-            mesh = read_gprim(kind, prim, ctx.code, bank)
+            mesh = read_mesh(kind, prim)
             if key is not None:
                 mesh_cache[key] = mesh
             return mesh
@@ -394,7 +399,7 @@ class StageScene:
             refl, k, f = _element_flags(prim, path)
             if kind == "Mesh" and is_subdivided(prim):
                 subdivided[str(prim.GetPath())] = None
-            if shape_animated:
+            if shape_animated and not isinstance(mesh, PendingMesh):
                 mesh = dataclasses.replace(mesh)  # deforms on its own, even if shared
             elements.append(Element(path, refl, k, f, np.zeros(3), np.zeros(3)))
             parts.append(
@@ -412,7 +417,7 @@ class StageScene:
 
         for kind, prim in walk_subtree(self.stage.GetPseudoRoot(), ctx.code, purposes):
             if kind == "PointInstancer":
-                expand_instancer(prim, ctx, probe, bank, prototype_gprims, add)
+                expand_instancer(prim, ctx, probe, read_mesh, prototype_gprims, add)
             elif kind == "Light":
                 read_light(
                     prim,
@@ -425,7 +430,7 @@ class StageScene:
                 )
             elif (skin := skinning.skinned(prim, kind)) is not None:
                 # Skinned: skeleton-space points placed by the skeleton (usd/skinning.py).
-                mesh = local_mesh(prim, kind)
+                mesh = read_gprim(kind, prim, ctx.code, bank)
                 shape_at = skin.shape_fn(mesh.smooth)
                 if skin.animated(probe):
                     add(prim, str(prim.GetPath()), kind, mesh, skin.matrix_at, True, shape_at)
@@ -448,6 +453,12 @@ class StageScene:
                     probe.xform_varies(prim),
                 )
 
+        batch.resolve()
+        for p in parts:
+            if isinstance(p.mesh, PendingMesh):
+                p.mesh = p.mesh.resolved()
+                if p.shape_at is not None:  # deforms on its own, even if shared
+                    p.mesh = dataclasses.replace(p.mesh)
         self.light_warnings = light_warnings
         self.warnings += light_warnings
         self._parts = parts
