@@ -185,8 +185,9 @@ class NumpyPathTracer(PathTracer):
             # Shading as before ``ShadowRays.shade``: visibility and lit pairs from
             # ``cast``, then ``shade_local``.
             albedo, emissive = self._surfaces.colour(tri, u, v)
+            surface = self._surfaces.surface(tri, u, v, albedo)
             vis, shadow_rays, lit_pairs = self._shadows.cast(rel, ng, ns, lights)
-            local = shading.shade_local(rel, ns, albedo, d_in, emissive, lights, vis, lit_pairs)
+            local = shading.shade_local(rel, ns, surface, d_in, emissive, lights, vis, lit_pairs)
             if lights.has_direct:
                 rays_src += np.bincount(src, weights=shadow_rays, minlength=n_src).astype(np.int64)
                 counters["shadow"] += int(shadow_rays.sum())

@@ -11,26 +11,16 @@ import numpy as np
 
 from phrt_usd.engine.shading import (
     MIN_LIGHT_DISTANCE,
-    SHININESS,
-    SPECULAR_STRENGTH,
     LightPairs,
     ambient_radiance,
     light_ranges,
     shaped_lights,
 )
+from phrt_usd.model import preview_surface as ps
 from phrt_usd.model.frame import GBuffer
 from phrt_usd.model.scene import DEFAULT_ENVIRONMENT, Lights, LocalLight, Scene
 
 _MIN_DIRECTION_LENGTH = 1e-30
-_SHININESS_SQUARINGS = (
-    int(np.log2(SHININESS))
-    if SHININESS >= 1
-    and float(SHININESS).is_integer()
-    and (int(SHININESS) & (int(SHININESS) - 1)) == 0
-    else None
-)
-
-
 def _safe_normalize(v: np.ndarray, fallback: np.ndarray) -> np.ndarray:
     """Rows of ``v`` (n, 3) scaled to unit length; rows of (near) zero length or
     non-finite become ``fallback`` (3,). Returns float64 (n, 3)."""
@@ -160,134 +150,162 @@ def cone_falloff(light: LocalLight, emission: np.ndarray) -> np.ndarray:
 def shade_chunk(
     positions: np.ndarray,
     normals: np.ndarray,
-    albedo: np.ndarray,
+    surface: np.ndarray,
     view_dirs: np.ndarray,
     emissive: np.ndarray,
     lights: Lights,
     visibility: np.ndarray | None,
     local_pairs: LightPairs | tuple | None = None,
-    lit_sums: tuple[np.ndarray, np.ndarray] | None = None,
+    lit_sums: np.ndarray | None = None,
 ) -> np.ndarray:
     """``shade_local`` on one chunk of points (same arguments and result)."""
     positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
     n = positions.shape[0]
     normals = np.asarray(normals, dtype=np.float32).reshape(n, 3)
-    albedo = np.asarray(albedo, dtype=np.float32).reshape(n, 3)
+    surface = np.asarray(surface, np.float32)
+    if surface.shape[-1] != ps.SURFACE_COLUMNS:
+        surface = ps.fallback_surface(surface.reshape(n, 3))
     to_eye = -np.asarray(view_dirs, dtype=np.float32).reshape(n, 3)
-    colour = albedo * ambient_radiance(lights)[None, :]
+    colour = ambient_weight(surface, normals, to_eye) * ambient_radiance(lights)[None, :]
     colour += np.broadcast_to(np.asarray(emissive, dtype=np.float32), (n, 3))
     if lit_sums is not None:
-        colour += albedo * lit_sums[0] + lit_sums[1]
+        colour += np.asarray(lit_sums)[:, :3]
     if not lights.has_direct or n == 0:
         return colour.astype(np.float32)
-    # Per point and light colour: the summed diffuse weights (cosine x fall-off x
-    # visibility) and highlight weights of the lights of that radiance, times the
-    # radiance once at the end (lamps usually share a colour: the sewer's 13 lights
-    # have 2, so 2 instead of 13 (n, 3) products).
-    radiance, group = np.unique(
-        np.array(
-            [li.radiance for li in lights.distant] + [li.radiance for li in lights.local],
-            dtype=np.float32,
-        ).reshape(-1, 3),
-        axis=0,
-        return_inverse=True,
-    )
-    group = group.reshape(-1)
-    diffuse = np.zeros((len(radiance), n), dtype=np.float32)
-    highlight = np.zeros((len(radiance), n), dtype=np.float32)
+    # Every (point, light) pair with its direction and E, the light's radiance times
+    # fall-off and visibility, then the BRDF once over all of them.
+    point_rows, l_rows, e_rows = [], [], []
     for j, light in enumerate(lights.distant):
         d = np.asarray(light.direction, dtype=np.float64)
         l_dir = (d / max(np.linalg.norm(d), _MIN_DIRECTION_LENGTH)).astype(np.float32)
-        lit = np.maximum(normals @ l_dir, 0.0)
-        if visibility is not None:
-            lit = lit * visibility[:, j]
-        idx = np.flatnonzero(lit > 0.0)
-        lit = lit[idx]
-        diffuse[group[j], idx] += lit
-        highlight[group[j], idx] += lit * _highlight(
-            np.take(normals, idx, axis=0), np.take(to_eye, idx, axis=0), l_dir[None, :]
-        )
+        lit = np.ones(n) if visibility is None else visibility[:, j].astype(np.float64)
+        idx = np.flatnonzero((lit > 0.0) & (normals @ l_dir > 0.0))
+        point_rows.append(idx)
+        l_rows.append(np.broadcast_to(l_dir, (len(idx), 3)))
+        e_rows.append(lit[idx, None] * np.asarray(light.radiance, np.float64)[None, :])
     n_distant = len(lights.distant)
     ranges = light_ranges(lights)
     if local_pairs is not None:
         point, light, l_dir, dist, weight = LightPairs(*local_pairs)
         j = n_distant + np.asarray(light, np.int64)
-        nrm = np.take(normals, point, axis=0)
         l_dir = np.asarray(l_dir, np.float32)
         dist = np.maximum(np.asarray(dist, np.float64), MIN_LIGHT_DISTANCE)
-        n_dot_l = np.maximum(np.einsum("ij,ij->i", nrm, l_dir), 0.0)
-        lit = (n_dot_l * _window(dist, ranges[j]) / dist**2).astype(np.float32)
+        e = _window(dist, ranges[j]) / dist**2
         if weight is not None:
-            lit *= weight
+            e = e * weight
         if shaped_lights(lights):  # the cone of each shaped light on its own pairs
             for k in np.unique(light).tolist():
                 if lights.local[k].shaped:
                     on = np.flatnonzero(light == k)
-                    lit[on] *= cone_falloff(lights.local[k], -l_dir[on])
-        spec = lit * _highlight(nrm, np.take(to_eye, point, axis=0), l_dir)
-        # Pairs of one light never repeat a point, but several lights share a colour
-        # group: sum with bincount over (group, point).
-        key = group[j] * n + point
-        size = len(radiance) * n
-        diffuse += np.bincount(key, weights=lit, minlength=size).reshape(-1, n)
-        highlight += np.bincount(key, weights=spec, minlength=size).reshape(-1, n)
-    # Light-major visibility: each light's column becomes one contiguous row.
-    vis_rows = None if visibility is None else np.ascontiguousarray(visibility.T)
+                    e[on] *= cone_falloff(lights.local[k], -l_dir[on])
+        rad = np.array([li.radiance for li in lights.local], np.float64).reshape(-1, 3)
+        point_rows.append(np.asarray(point, np.int64))
+        l_rows.append(l_dir)
+        e_rows.append(e[:, None] * rad[np.asarray(light, np.int64)])
     skip_local = local_pairs is not None or lit_sums is not None
     for k, light in enumerate([] if skip_local else lights.local):
         j = n_distant + k
-        # Only points that see the light (visibility > 0), within its range (the window
-        # is exactly 0 beyond) and on the lit side of their normal are shaded.
-        if vis_rows is None:
-            idx = np.arange(n)
-            to_light = np.asarray(light.position, dtype=np.float64) - positions
-        else:
-            idx = np.flatnonzero(vis_rows[j] > 0.0)
-            to_light = np.asarray(light.position, dtype=np.float64) - np.take(
-                positions, idx, axis=0
-            )
+        to_light = np.asarray(light.position, dtype=np.float64) - positions
         dist2 = np.einsum("ij,ij->i", to_light, to_light)
-        near = dist2 < ranges[j] ** 2
-        if not near.all():  # shadow maps already zero these: usually nothing to drop
-            idx, to_light, dist2 = idx[near], to_light[near], dist2[near]
-        dist2 = np.maximum(dist2, MIN_LIGHT_DISTANCE**2)
-        inv_dist = 1.0 / np.sqrt(dist2)
-        l_dir = (to_light * inv_dist[:, None]).astype(np.float32)
-        nrm = np.take(normals, idx, axis=0)
-        n_dot_l = np.einsum("ij,ij->i", nrm, l_dir)
-        front = n_dot_l > 0.0
-        if not front.all():
-            idx, nrm, l_dir = idx[front], nrm[front], l_dir[front]
-            dist2, n_dot_l = dist2[front], n_dot_l[front]
-        # Window and 1/d² in float64: d up to ~1e154 stays finite, and the float32 cast
-        # of a tiny fall-off underflows to 0 instead of overflowing d² to Inf.
-        lit = (n_dot_l * (_window_sq(dist2, ranges[j]) / dist2)).astype(np.float32)
-        if vis_rows is not None:
-            lit *= vis_rows[j, idx]
+        keep = dist2 < ranges[j] ** 2
+        if visibility is not None:
+            keep &= visibility[:, j] > 0.0
+        idx = np.flatnonzero(keep)
+        dist2 = np.maximum(dist2[idx], MIN_LIGHT_DISTANCE**2)
+        l_dir = (to_light[idx] / np.sqrt(dist2)[:, None]).astype(np.float32)
+        # Window and 1/d² in float64: d up to ~1e154 stays finite.
+        e = _window_sq(dist2, ranges[j]) / dist2
+        if visibility is not None:
+            e = e * visibility[idx, j]
         if light.shaped:
-            lit *= cone_falloff(light, -l_dir)
-        # idx has no repeats, so the buffered fancy-index += is exact.
-        diffuse[group[j], idx] += lit
-        highlight[group[j], idx] += lit * _highlight(nrm, np.take(to_eye, idx, axis=0), l_dir)
-    for g, rad in enumerate(radiance):
-        colour += (albedo * diffuse[g][:, None] + highlight[g][:, None]) * rad
-    return colour.astype(np.float32)
+            e = e * cone_falloff(light, -l_dir)
+        point_rows.append(idx)
+        l_rows.append(l_dir)
+        e_rows.append(e[:, None] * np.asarray(light.radiance, np.float64)[None, :])
+    point = np.concatenate(point_rows)
+    f = brdf_cos(surface[point], normals[point], to_eye[point], np.concatenate(l_rows))
+    direct = np.zeros((n, 3))
+    np.add.at(direct, point, f * np.concatenate(e_rows))
+    return (colour + direct).astype(np.float32)
 
 
-def _highlight(normals: np.ndarray, to_eye: np.ndarray, l_dir: np.ndarray) -> np.ndarray:
-    """(m,) float32 Blinn-Phong highlight SPECULAR_STRENGTH * max(n·h, 0)**SHININESS for
-    unit normals, directions to the eye (m, 3) and to the light (m, 3) or (1, 3)."""
-    half = l_dir + to_eye
-    half_len = np.sqrt(np.einsum("ij,ij->i", half, half))
-    # l and the eye direction exactly opposite: no meaningful half vector, no highlight.
-    n_dot_h = np.einsum("ij,ij->i", normals, half) / np.maximum(half_len, 1e-12)
-    x = np.maximum(n_dot_h, 0.0)
-    if _SHININESS_SQUARINGS is not None:  # x**64 as 6 squarings: ~10x faster than pow
-        for _ in range(_SHININESS_SQUARINGS):
-            x *= x
-    else:
-        x = x**SHININESS
-    return SPECULAR_STRENGTH * x
+def _lut(r: np.ndarray, mu: np.ndarray, mean: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """(A, B) of the albedo table at roughness r and cosine mu (bilinear, clamped), or
+    its row means (``mean``): ``shade_kernels.lut_albedo`` / ``lut_mean``."""
+    lut = ps.specular_albedo_table().astype(np.float64)
+    n_r, n_c = lut.shape[0], lut.shape[1] - 1
+    y = np.clip(r, 0.0, 1.0) * (n_r - 1)
+    y0 = np.minimum(y.astype(np.int64), n_r - 2)
+    fy = (y - y0)[:, None]
+    if mean:
+        out = lut[y0, n_c] * (1.0 - fy) + lut[y0 + 1, n_c] * fy
+        return out[:, 0], out[:, 1]
+    x = np.clip(mu, 0.0, 1.0) * (n_c - 1)
+    x0 = np.minimum(x.astype(np.int64), n_c - 2)
+    fx = (x - x0)[:, None]
+    top = lut[y0, x0] * (1.0 - fx) + lut[y0, x0 + 1] * fx
+    bottom = lut[y0 + 1, x0] * (1.0 - fx) + lut[y0 + 1, x0 + 1] * fx
+    out = top * (1.0 - fy) + bottom * fy
+    return out[:, 0], out[:, 1]
+
+
+def _ggx_dv(alpha, nl, nv, nh):
+    a2 = alpha * alpha
+    d = nh * nh * (a2 - 1.0) + 1.0
+    v = nl * np.sqrt(nv * nv * (1.0 - a2) + a2) + nv * np.sqrt(nl * nl * (1.0 - a2) + a2)
+    return a2 / (np.pi * d * d) * 0.5 / np.maximum(v, 1e-30)
+
+
+def brdf_cos(surface, normals, to_eye, to_light) -> np.ndarray:
+    """(m, 3) π f(l, v) n·l of UsdPreviewSurface rows (m, 16) (the model of
+    ``model/preview_surface.py``, ``shade_kernels.brdf_cos``), in numpy."""
+    s = np.asarray(surface, np.float64)
+    n, e, lt = (np.asarray(a, np.float64) for a in (normals, to_eye, to_light))
+    nl = np.einsum("ij,ij->i", n, lt)
+    nv = np.maximum(np.einsum("ij,ij->i", n, e), ps.MIN_COSINE)
+    h = lt + e
+    length = np.linalg.norm(h, axis=1)
+    h = np.where(length[:, None] > 1e-12, h / np.maximum(length, 1e-300)[:, None], n)
+    nh = np.maximum(np.einsum("ij,ij->i", n, h), 0.0)
+    vh = np.clip(np.einsum("ij,ij->i", e, h), 0.0, 1.0)
+    s5 = (1.0 - vh) ** 5
+    r = np.maximum(s[:, ps.ROUGHNESS], ps.MIN_ROUGHNESS)
+    dv = _ggx_dv(r * r, nl, nv, nh)
+    av, bv = _lut(r, nv)
+    al, bl = _lut(r, nl)
+    am, bm = _lut(r, nv, mean=True)
+    c, fc0 = s[:, ps.CLEARCOAT], s[:, ps.CLEARCOAT_F0]
+    rc = np.maximum(s[:, ps.CLEARCOAT_ROUGHNESS], ps.MIN_ROUGHNESS)
+    coat = c * (fc0 + (1.0 - fc0) * s5) * _ggx_dv(rc * rc, nl, nv, nh)
+    acv, bcv = _lut(rc, nv)
+    acl, bcl = _lut(rc, nl)
+    t = (1.0 - c * np.minimum(fc0 * acv + bcv, 1.0)) * (1.0 - c * np.minimum(fc0 * acl + bcl, 1.0))
+    f0, f90 = s[:, ps.F0 : ps.F0 + 3], s[:, ps.F90 : ps.F90 + 3]
+    ev = np.minimum(f0 * av[:, None] + f90 * bv[:, None], 1.0)
+    el = np.minimum(f0 * al[:, None] + f90 * bl[:, None], 1.0)
+    mean = np.minimum(f0 * am[:, None] + f90 * bm[:, None], 1.0)
+    diffuse = s[:, :3] * (1.0 - ev) * (1.0 - el) / np.maximum(1.0 - mean, 1e-4)
+    spec = (f0 + (f90 - f0) * s5[:, None]) * dv[:, None]
+    out = ((coat[:, None] + t[:, None] * spec) * np.pi + t[:, None] * diffuse) * nl[:, None]
+    return np.where(nl[:, None] > 0.0, out, 0.0)
+
+
+def ambient_weight(surface, normals, to_eye) -> np.ndarray:
+    """(n, 3) ``shade_kernels.ambient_weight`` in numpy."""
+    s = np.asarray(surface, np.float64)
+    nv = np.maximum(np.einsum("ij,ij->i", np.asarray(normals, np.float64), to_eye), ps.MIN_COSINE)
+    r = np.maximum(s[:, ps.ROUGHNESS], ps.MIN_ROUGHNESS)
+    av, bv = _lut(r, nv)
+    c, fc0 = s[:, ps.CLEARCOAT], s[:, ps.CLEARCOAT_F0]
+    rc = np.maximum(s[:, ps.CLEARCOAT_ROUGHNESS], ps.MIN_ROUGHNESS)
+    acv, bcv = _lut(rc, nv)
+    acm, bcm = _lut(rc, nv, mean=True)
+    coat_v = np.where(c > 0.0, c * np.minimum(fc0 * acv + bcv, 1.0), 0.0)
+    base = (1.0 - coat_v) * (1.0 - np.where(c > 0.0, c * np.minimum(fc0 * acm + bcm, 1.0), 0.0))
+    f0, f90 = s[:, ps.F0 : ps.F0 + 3], s[:, ps.F90 : ps.F90 + 3]
+    ev = np.minimum(f0 * av[:, None] + f90 * bv[:, None], 1.0)
+    spec, occ = s[:, ps.SPECULAR_AMBIENT, None], s[:, ps.OCCLUSION, None]
+    return occ * (spec * coat_v[:, None] + base[:, None] * (spec * ev + s[:, :3] * (1.0 - ev)))
 
 
 def reflect(directions: np.ndarray, normals: np.ndarray) -> np.ndarray:

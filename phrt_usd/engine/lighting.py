@@ -25,11 +25,13 @@ Shapes: a G-buffer of H x W pixels, n of them covered, L lights (distant, then l
 
 from __future__ import annotations
 
+import contextlib
+from contextvars import ContextVar
 from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
-from phrt_usd.engine.shading import gather_rows, shade_local, shaped_lights
+from phrt_usd.engine.shading import gather_rows, point_surface, shade_local, shaped_lights
 from phrt_usd.model import surface
 from phrt_usd.model.frame import GBuffer
 from phrt_usd.model.scene import Lights, Scene
@@ -78,6 +80,8 @@ def shade_gbuffer(
     pos = take(gb.position)
     nrm = take(gb.normal)
     view = take(gb.view_dir)
+    tri, element = take(gb.triangle_id), take(gb.element_id)
+    surf = gbuffer_surface(scene, tri, element, take(gb.albedo), pos)
     lights = scene.lights
     n_lights = len(lights.distant) + len(lights.local)
     shadow_pass = None
@@ -87,14 +91,16 @@ def shade_gbuffer(
         visibility = tracer.shadow_visibility(pos, nrm)
         shadow_pass = "shadow_rays"
     else:
-        pending = map_lookup(rasterizer, lights, pos, nrm, view, filtered=tracer is None)
+        pending = map_lookup(
+            rasterizer, lights, pos, nrm, view, filtered=tracer is None, surface=surf
+        )
         visibility = _settled(pending, tracer)
         shadow_pass = "shadow_map" if tracer is None else "shadow_map+rays"
     if _emits(scene):
-        emissive = surface.emissive_at(scene, take(gb.triangle_id), pos)  # textured too
+        emissive = surface.emissive_at(scene, tri, pos)  # textured too
     else:  # one zero for every point: no per-pixel gathers
         emissive = _NO_EMISSION
-    shaded = shade_settled(pos, nrm, take(gb.albedo), view, emissive, lights, visibility)
+    shaded = shade_settled(pos, nrm, surf, view, emissive, lights, visibility)
     if isinstance(pix, slice):  # every pixel covered: the shading is the image
         return shaded.reshape(h, w, 3), shadow_pass
     local = np.zeros((h * w, 3), dtype=np.float32)
@@ -104,6 +110,43 @@ def shade_gbuffer(
 
 #: ``shade_local``'s emission of every point in a scene whose materials emit nothing.
 _NO_EMISSION = np.zeros(3, np.float32)
+
+
+def gbuffer_surface(scene: Scene, tri, element, albedo, positions) -> np.ndarray:
+    """(n, SURFACE_COLUMNS) float32 UsdPreviewSurface rows (``model.preview_surface``) of
+    n G-buffer pixels: triangles ``tri`` (n,) of elements ``element`` (n,) with their
+    ``albedo`` (n, 3) at world ``positions`` (n, 3) (the barycentric weights of textured
+    inputs come from them, ``surface.point_weights``); reflector pixels leave the
+    ambient's specular part to their reflection (``compositing``)."""
+    geo = scene.geometry
+    reflector = _reflector_elements(scene)
+    specular_ambient = np.where(np.take(reflector, element), 0.0, 1.0).astype(np.float32)
+    return point_surface(
+        scene.materials, geo.tri_material, tri, albedo, geo.corner_uv,
+        lambda: surface.point_weights(geo.vertices, geo.triangles, tri, positions),
+        specular_ambient,
+    )  # fmt: skip
+
+
+def _reflector_elements(scene: Scene) -> np.ndarray:
+    """(E,) bool: the elements that are reflectors."""
+    return np.array([e.is_reflector for e in scene.elements] or [False], dtype=bool)
+
+
+#: The surface rows of the points a ``map_lookup`` without its own ``surface`` shades
+#: (``lookup_surface``: the tracer's hits, whose lookup is a three-argument callable).
+_LOOKUP_SURFACE: ContextVar[np.ndarray | None] = ContextVar("lookup_surface", default=None)
+
+
+@contextlib.contextmanager
+def lookup_surface(rows: np.ndarray):
+    """Within the block, ``map_lookup`` calls without ``surface`` shade with ``rows``
+    (n, SURFACE_COLUMNS): the surface of the points they look up."""
+    token = _LOOKUP_SURFACE.set(rows)
+    try:
+        yield
+    finally:
+        _LOOKUP_SURFACE.reset(token)
 
 
 def _emits(scene: Scene) -> bool:
@@ -119,23 +162,30 @@ def map_lookup(
     normals: np.ndarray,
     view_dirs: np.ndarray,
     filtered: bool = False,
+    surface: np.ndarray | None = None,
 ) -> MapVisibility | PendingLightTerms:
     """What the shadow maps say about the direct light of points (n, 3) float64 world
     metres with unit ``normals`` facing the viewer and ``view_dirs`` (n, 3) unit from the
     viewer to them, the pairs they cannot decide left open: with the GPU lookup the
-    light terms (lit pairs shaded in the lookup pass, ``Rasterizer.map_light_terms``),
-    else, or with a cone-shaped LocalLight (only ``shade_local`` evaluates cones), the
-    (n, L) visibility (``Rasterizer.map_visibility``; ``filtered``: the undecided pairs
-    get the maps' PCF). The G-buffer's and the tracer's hits' one lookup."""
+    light terms (lit pairs shaded in the lookup pass with the points' ``surface`` rows,
+    (n, SURFACE_COLUMNS), else those of ``lookup_surface``, else the fallback material
+    of albedo 1: ``Rasterizer.map_light_terms``), else, or with a cone-shaped LocalLight
+    (only ``shade_local`` evaluates cones), the (n, L) visibility
+    (``Rasterizer.map_visibility``; ``filtered``: the undecided pairs get the maps'
+    PCF). The G-buffer's and the tracer's hits' one lookup."""
     if rasterizer.cube_lookup_on_gpu and not shaped_lights(lights):
-        return rasterizer.map_light_terms(positions, normals, np.negative(view_dirs))
+        if surface is None:
+            surface = _LOOKUP_SURFACE.get()
+        return rasterizer.map_light_terms(
+            positions, normals, np.negative(view_dirs), surface=surface
+        )
     return rasterizer.map_visibility(positions, normals, filtered=filtered)
 
 
 def shade_settled(
     positions: np.ndarray,
     normals: np.ndarray,
-    albedo: np.ndarray,
+    surface: np.ndarray,
     view_dirs: np.ndarray,
     emissive: np.ndarray,
     lights: Lights,
@@ -146,11 +196,11 @@ def shade_settled(
     terms (DistantLight visibility, LocalLight pairs, the GPU's lit sums); an (n, L)
     visibility also for points the maps never saw (``rt``)."""
     if isinstance(settled, np.ndarray):
-        return shade_local(positions, normals, albedo, view_dirs, emissive, lights, settled)
+        return shade_local(positions, normals, surface, view_dirs, emissive, lights, settled)
     return shade_local(
         positions,
         normals,
-        albedo,
+        surface,
         view_dirs,
         emissive,
         lights,

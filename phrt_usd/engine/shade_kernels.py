@@ -190,33 +190,222 @@ def cone_kernel(emission, axis, cone_angle, softness, focus, out):
 
 
 @njit(**_HELPER)
-def highlight_at(n0, n1, n2, e0, e1, e2, l0, l1, l2, model):
-    """Blinn-Phong highlight ``strength * max(n·h, 0)**shininess`` of unit normal n,
-    direction to the eye e and direction to the light l (world, unit); ``model`` as
-    ``shade_kernel``'s."""
-    strength, shininess, squarings = model[1], model[2], int(model[3])
+def lut_albedo(lut, roughness, cosine):
+    """(A, B) of ``preview_surface.specular_albedo_table`` ``lut`` (R, C + 1, 2) at
+    ``roughness`` and ``cosine`` (n·v), bilinear between its nodes (clamped)."""
+    n_r, n_c = lut.shape[0], lut.shape[1] - 1
+    x = min(max(cosine, 0.0), 1.0) * (n_c - 1)
+    y = min(max(roughness, 0.0), 1.0) * (n_r - 1)
+    x0, y0 = min(int(x), n_c - 2), min(int(y), n_r - 2)
+    fx, fy = x - x0, y - y0
+    a = (lut[y0, x0, 0] * (1.0 - fx) + lut[y0, x0 + 1, 0] * fx) * (1.0 - fy)
+    a += (lut[y0 + 1, x0, 0] * (1.0 - fx) + lut[y0 + 1, x0 + 1, 0] * fx) * fy
+    b = (lut[y0, x0, 1] * (1.0 - fx) + lut[y0, x0 + 1, 1] * fx) * (1.0 - fy)
+    b += (lut[y0 + 1, x0, 1] * (1.0 - fx) + lut[y0 + 1, x0 + 1, 1] * fx) * fy
+    return a, b
+
+
+@njit(**_HELPER)
+def lut_mean(lut, roughness):
+    """The cosine-weighted means (A, B) of ``lut``'s row at ``roughness`` (linear)."""
+    n_r, c = lut.shape[0], lut.shape[1] - 1
+    y = min(max(roughness, 0.0), 1.0) * (n_r - 1)
+    y0 = min(int(y), n_r - 2)
+    fy = y - y0
+    a = lut[y0, c, 0] * (1.0 - fy) + lut[y0 + 1, c, 0] * fy
+    b = lut[y0, c, 1] * (1.0 - fy) + lut[y0 + 1, c, 1] * fy
+    return a, b
+
+
+@njit(**_HELPER)
+def ggx_dv(alpha, nl, nv, nh):
+    """GGX D times the height-correlated Smith V = G / (4 n·l n·v) of ``alpha``."""
+    a2 = alpha * alpha
+    d = nh * nh * (a2 - 1.0) + 1.0
+    v = nl * math.sqrt(nv * nv * (1.0 - a2) + a2) + nv * math.sqrt(nl * nl * (1.0 - a2) + a2)
+    return a2 / (math.pi * d * d) * 0.5 / max(v, 1e-30)
+
+
+@njit(**_HELPER)
+def point_terms(s, i, nv, lut, min_rough):
+    """What ``brdf_cos`` and ``ambient_weight`` read of point i's surface row ``s[i]``
+    (``model.preview_surface`` columns) at n·v: (roughness, A(v), B(v), mean A, mean B,
+    clear coat amount, its roughness, A_c(v), B_c(v), mean A_c, mean B_c)."""
+    r = max(float(s[i, 9]), min_rough)
+    av, bv = lut_albedo(lut, r, nv)
+    am, bm = lut_mean(lut, r)
+    c = float(s[i, 10])
+    rc = max(float(s[i, 11]), min_rough)
+    acv = bcv = acm = bcm = 0.0
+    if c > 0.0:
+        acv, bcv = lut_albedo(lut, rc, nv)
+        acm, bcm = lut_mean(lut, rc)
+    return r, av, bv, am, bm, c, rc, acv, bcv, acm, bcm
+
+
+@njit(**_HELPER)
+def brdf_cos(s, i, t, n0, n1, n2, e0, e1, e2, l0, l1, l2, nv, lut):
+    """π f(l, v) n·l (RGB) of point i's UsdPreviewSurface BRDF (``model.preview_surface``
+    states it) for unit normal n, direction to the eye e (n·e = ``nv``, clamped) and
+    direction to the light l, with ``t`` its ``point_terms``: what a light of radiance E
+    adds is E times this. 0 where n·l <= 0."""
+    nl = n0 * l0 + n1 * l1 + n2 * l2
+    if not nl > 0.0:
+        return 0.0, 0.0, 0.0
+    r, av, bv, am, bm, c, rc, acv, bcv, acm, bcm = t
     h0, h1, h2 = l0 + e0, l1 + e1, l2 + e2
     length = math.sqrt(h0 * h0 + h1 * h1 + h2 * h2)
-    # l and the eye direction exactly opposite: no meaningful half vector, no highlight.
-    x = max((n0 * h0 + n1 * h1 + n2 * h2) / max(length, 1e-12), 0.0)
-    if squarings >= 0:  # x**64 as 6 squarings: several times faster than pow
-        for _ in range(squarings):
-            x *= x
+    # l and the eye direction exactly opposite: no half vector (n·l > 0 then means a
+    # grazing eye); h = n keeps it finite.
+    if length > 1e-12:
+        h0, h1, h2 = h0 / length, h1 / length, h2 / length
     else:
-        x = x**shininess
-    return strength * x
+        h0, h1, h2 = n0, n1, n2
+    nh = max(n0 * h0 + n1 * h1 + n2 * h2, 0.0)
+    vh = min(max(e0 * h0 + e1 * h1 + e2 * h2, 0.0), 1.0)
+    s5 = (1.0 - vh) ** 5
+    dv = ggx_dv(r * r, nl, nv, nh)
+    al, bl = lut_albedo(lut, r, nl)
+    coat = 0.0
+    t_in = t_out = 1.0
+    if c > 0.0:
+        fc0 = float(s[i, 12])
+        coat = c * (fc0 + (1.0 - fc0) * s5) * ggx_dv(rc * rc, nl, nv, nh)
+        acl, bcl = lut_albedo(lut, rc, nl)
+        t_out = 1.0 - c * min(fc0 * acv + bcv, 1.0)
+        t_in = 1.0 - c * min(fc0 * acl + bcl, 1.0)
+    out0 = out1 = out2 = 0.0
+    for ch in range(3):
+        f0, f90 = float(s[i, 3 + ch]), float(s[i, 6 + ch])
+        ev = min(f0 * av + f90 * bv, 1.0)
+        el = min(f0 * al + f90 * bl, 1.0)
+        mean = min(f0 * am + f90 * bm, 1.0)
+        diffuse = float(s[i, ch]) * (1.0 - ev) * (1.0 - el) / max(1.0 - mean, 1e-4)
+        # π f n·l: the diffuse lobe's 1/π cancels.
+        v = (coat + t_out * t_in * (f0 + (f90 - f0) * s5) * dv) * math.pi + t_out * t_in * diffuse
+        v *= nl
+        if ch == 0:
+            out0 = v
+        elif ch == 1:
+            out1 = v
+        else:
+            out2 = v
+    return out0, out1, out2
+
+
+@njit(**_HELPER)
+def ambient_weight(s, i, t, nv):
+    """(RGB) what point i returns of a uniform environment of unit radiance
+    (``model.preview_surface``): occlusion times the clear coat's and the base's
+    directional albedo, the specular parts only where its ``specular ambient`` column
+    is 1 (no mirror reflection stands in for them: ``reflection_weight``)."""
+    r, av, bv, am, bm, c, rc, acv, bcv, acm, bcm = t
+    occ, spec = float(s[i, 13]), float(s[i, 14])
+    fc0 = float(s[i, 12])
+    coat_v = c * min(fc0 * acv + bcv, 1.0)
+    base = (1.0 - coat_v) * (1.0 - c * min(fc0 * acm + bcm, 1.0))
+    out0 = out1 = out2 = 0.0
+    for ch in range(3):
+        f0, f90 = float(s[i, 3 + ch]), float(s[i, 6 + ch])
+        ev = min(f0 * av + f90 * bv, 1.0)
+        v = occ * (spec * coat_v + base * (spec * ev + float(s[i, ch]) * (1.0 - ev)))
+        if ch == 0:
+            out0 = v
+        elif ch == 1:
+            out1 = v
+        else:
+            out2 = v
+    return out0, out1, out2
+
+
+@njit(**_HELPER)
+def reflection_weight(s, i, t):
+    """(RGB) the weight of point i's mirror reflection: the specular parts of
+    ``ambient_weight`` (split sum: the lobes' directional albedo at n·v), occlusion
+    left out (an occlusion map darkens the ambient, not what a ray finds)."""
+    r, av, bv, am, bm, c, rc, acv, bcv, acm, bcm = t
+    fc0 = float(s[i, 12])
+    coat_v = c * min(fc0 * acv + bcv, 1.0)
+    base = (1.0 - coat_v) * (1.0 - c * min(fc0 * acm + bcm, 1.0))
+    out0 = out1 = out2 = 0.0
+    for ch in range(3):
+        f0, f90 = float(s[i, 3 + ch]), float(s[i, 6 + ch])
+        v = coat_v + base * min(f0 * av + f90 * bv, 1.0)
+        if ch == 0:
+            out0 = v
+        elif ch == 1:
+            out1 = v
+        else:
+            out2 = v
+    return out0, out1, out2
+
+
+@njit(**_KERNEL)
+def brdf_kernel(surface, normals, to_eye, to_light, lut, min_rough, out):
+    """``brdf_cos`` of n points (surface (n, 16) float32, normals, to_eye, to_light
+    (n, 3) float64 unit) into out (n, 3) float64: the BRDF as the shading evaluates
+    it, for tests and tools."""
+    for i in range(surface.shape[0]):
+        n0, n1, n2 = normals[i, 0], normals[i, 1], normals[i, 2]
+        e0, e1, e2 = to_eye[i, 0], to_eye[i, 1], to_eye[i, 2]
+        nv = max(n0 * e0 + n1 * e1 + n2 * e2, 1e-4)
+        t = point_terms(surface, i, nv, lut, min_rough)
+        r, g, b = brdf_cos(surface, i, t, n0, n1, n2, e0, e1, e2,
+                           to_light[i, 0], to_light[i, 1], to_light[i, 2], nv, lut)  # fmt: skip
+        out[i, 0], out[i, 1], out[i, 2] = r, g, b
+
+
+@njit(**_KERNEL)
+def weights_kernel(surface, normals, to_eye, lut, min_rough, ambient, reflection):
+    """``ambient_weight`` and ``reflection_weight`` (n, 3) float32 of n points (surface
+    (n, 16) float32, normals and to_eye (n, 3) unit, float32 or float64)."""
+    for i in range(surface.shape[0]):
+        nv = normals[i, 0] * to_eye[i, 0] + normals[i, 1] * to_eye[i, 1]
+        nv = max(nv + normals[i, 2] * to_eye[i, 2], 1e-4)
+        t = point_terms(surface, i, nv, lut, min_rough)
+        ambient[i, 0], ambient[i, 1], ambient[i, 2] = ambient_weight(surface, i, t, nv)
+        reflection[i, 0], reflection[i, 1], reflection[i, 2] = reflection_weight(surface, i, t)
+
+
+@njit(**_KERNEL)
+def surface_rows(albedo, material, inputs, per_point, specular_ambient, out):
+    """The surface rows (``model.preview_surface.surface_columns``) of n points into out
+    (n, 16) float32: albedo (n, 3) float32 (diffuseColor), their inputs
+    (``preview_surface.input_rows`` columns) ``inputs[material[i]]`` (material (n,)
+    int64, clamped to the table) or, with ``per_point``, ``inputs[i]``;
+    specular_ambient (n,) float32 or (0,): 1 for all."""
+    m_rows = inputs.shape[0]
+    every = specular_ambient.shape[0] == 0
+    for i in range(albedo.shape[0]):
+        k = i if per_point else min(max(material[i], 0), m_rows - 1)
+        metallic, spec = float(inputs[k, 0]), inputs[k, 1] != 0.0
+        r2 = float(inputs[k, 8])
+        for c in range(3):
+            a = max(float(albedo[i, c]), 0.0)
+            if not a == a:  # NaN albedo: black
+                a = 0.0
+            colour = min(a, 1.0)
+            if spec:
+                out[i, c], out[i, 3 + c], out[i, 6 + c] = a, inputs[k, 2 + c], 1.0
+            else:
+                out[i, c] = a * (1.0 - metallic)
+                out[i, 3 + c] = r2 + (colour - r2) * metallic
+                out[i, 6 + c] = 1.0 + (colour - 1.0) * metallic
+        out[i, 9], out[i, 10], out[i, 11] = inputs[k, 5], inputs[k, 6], inputs[k, 7]
+        out[i, 12], out[i, 13] = r2, inputs[k, 9]
+        out[i, 14] = 1.0 if every else specular_ambient[i]
+        out[i, 15] = 0.0
 
 
 @njit(**_KERNEL)
 def shade_kernel(
     positions,
     normals,
-    albedo,
+    surface,
     view_dirs,
     emissive,
     ambient,
-    sum_diffuse,
-    sum_highlight,
+    sum_direct,
     d_dir,
     d_radiance,
     visibility,
@@ -232,44 +421,48 @@ def shade_kernel(
     p_weight,
     has_weight,
     model,
+    lut,
     out,
 ):
     """The shading model of the module docstring, per point (see ``shade_local``).
 
-    positions (n, 3) float64 world metres; normals, albedo, view_dirs (n, 3) float32;
-    emissive (1 or n, 3); ambient (3,); sum_diffuse, sum_highlight (n, 3) or (0, 3):
-    ``lit_sums``; d_dir (D, 3) unit, d_radiance (D, 3); visibility (n, D + P) or (0, 0):
-    all lit; l_pos (P, 3) world metres, l_radiance (P, 3), l_range (P,) metres, l_cone
-    (P, 7) (axis, cone angle, softness, focus, shaped); local_columns: shade every
-    LocalLight from its visibility column (else only the pairs); pairs p_point (m,),
-    p_light (m,), p_dir (m, 3) unit, p_dist (m,) metres, p_weight (m,) if has_weight;
-    model (4,) float64: the shading module's MIN_LIGHT_DISTANCE, SPECULAR_STRENGTH,
-    SHININESS and its squarings (-1: pow). Writes out (n, 3) float32. Sums in float64
-    per point."""
+    positions (n, 3) float64 world metres; normals, view_dirs (n, 3) float32; surface
+    (n, 16) float32 (``model.preview_surface`` columns); emissive (1 or n, 3); ambient
+    (3,); sum_direct (n, 3 or 4) or (0, 3): ``lit_sums``, the direct light of pairs
+    shaded elsewhere; d_dir (D, 3) unit, d_radiance (D, 3); visibility (n, D + P) or
+    (0, 0): all lit; l_pos (P, 3) world metres, l_radiance (P, 3), l_range (P,) metres,
+    l_cone (P, 7) (axis, cone angle, softness, focus, shaped); local_columns: shade
+    every LocalLight from its visibility column (else only the pairs); pairs p_point
+    (m,), p_light (m,), p_dir (m, 3) unit, p_dist (m,) metres, p_weight (m,) if
+    has_weight; model (4,) float64: the shading module's MIN_LIGHT_DISTANCE, the
+    preview surface's MIN_ROUGHNESS and MIN_COSINE, 0; lut its albedo table. Writes out
+    (n, 3) float32. Sums in float64 per point."""
     n = positions.shape[0]
     n_distant = d_dir.shape[0]
     has_vis = visibility.shape[0] > 0
-    has_sums = sum_diffuse.shape[0] > 0
+    has_sums = sum_direct.shape[0] > 0
     one_emissive = emissive.shape[0] == 1
     min_d2 = model[0] * model[0]
+    min_rough, min_cos = model[1], model[2]
     for i in range(n):
         n0, n1, n2 = float(normals[i, 0]), float(normals[i, 1]), float(normals[i, 2])
         e0, e1, e2 = -float(view_dirs[i, 0]), -float(view_dirs[i, 1]), -float(view_dirs[i, 2])
+        nv = max(n0 * e0 + n1 * e1 + n2 * e2, min_cos)
+        t = point_terms(surface, i, nv, lut, min_rough)
         em = 0 if one_emissive else i
-        # Radiance-weighted Lambert terms of the lights (d) and their highlights (s), RGB.
-        d0 = d1 = d2 = s0 = s1 = s2 = 0.0
+        a0, a1, a2 = ambient_weight(surface, i, t, nv)
+        d0 = a0 * ambient[0] + emissive[em, 0]
+        d1 = a1 * ambient[1] + emissive[em, 1]
+        d2 = a2 * ambient[2] + emissive[em, 2]
         for j in range(n_distant):
-            lit = n0 * d_dir[j, 0] + n1 * d_dir[j, 1] + n2 * d_dir[j, 2]
-            if has_vis:
-                lit *= visibility[i, j]
-            if not lit > 0.0:
+            vis = visibility[i, j] if has_vis else 1.0
+            if not vis > 0.0:
                 continue
-            hl = lit * highlight_at(
-                n0, n1, n2, e0, e1, e2, d_dir[j, 0], d_dir[j, 1], d_dir[j, 2], model
-            )
-            r, g, b = d_radiance[j, 0], d_radiance[j, 1], d_radiance[j, 2]
-            d0, d1, d2 = d0 + r * lit, d1 + g * lit, d2 + b * lit
-            s0, s1, s2 = s0 + r * hl, s1 + g * hl, s2 + b * hl
+            f0, f1, f2 = brdf_cos(surface, i, t, n0, n1, n2, e0, e1, e2,
+                                  d_dir[j, 0], d_dir[j, 1], d_dir[j, 2], nv, lut)  # fmt: skip
+            d0 += d_radiance[j, 0] * vis * f0
+            d1 += d_radiance[j, 1] * vis * f1
+            d2 += d_radiance[j, 2] * vis * f2
         for k in range(l_pos.shape[0] if local_columns else 0):
             vis = visibility[i, n_distant + k] if has_vis else 1.0
             if not vis > 0.0:
@@ -285,45 +478,39 @@ def shade_kernel(
             dist2 = max(dist2, min_d2)
             inv = 1.0 / math.sqrt(dist2)
             l0, l1, l2 = t0 * inv, t1 * inv, t2 * inv
-            lit = n0 * l0 + n1 * l1 + n2 * l2
-            if not lit > 0.0:
+            if not n0 * l0 + n1 * l1 + n2 * l2 > 0.0:
                 continue
-            lit *= window_at(dist2, l_range[k]) / dist2 * vis
+            e = window_at(dist2, l_range[k]) / dist2 * vis
             if l_cone[k, 6] > 0.0:
                 cos = -(l0 * l_cone[k, 0] + l1 * l_cone[k, 1] + l2 * l_cone[k, 2])
-                lit *= cone_at(cos, l_cone[k, 3], l_cone[k, 4], l_cone[k, 5])
-            hl = lit * highlight_at(n0, n1, n2, e0, e1, e2, l0, l1, l2, model)
-            r, g, b = l_radiance[k, 0], l_radiance[k, 1], l_radiance[k, 2]
-            d0, d1, d2 = d0 + r * lit, d1 + g * lit, d2 + b * lit
-            s0, s1, s2 = s0 + r * hl, s1 + g * hl, s2 + b * hl
+                e *= cone_at(cos, l_cone[k, 3], l_cone[k, 4], l_cone[k, 5])
+            f0, f1, f2 = brdf_cos(surface, i, t, n0, n1, n2, e0, e1, e2, l0, l1, l2, nv, lut)
+            d0 += l_radiance[k, 0] * e * f0
+            d1 += l_radiance[k, 1] * e * f1
+            d2 += l_radiance[k, 2] * e * f2
         if has_sums:
-            d0, d1, d2 = d0 + sum_diffuse[i, 0], d1 + sum_diffuse[i, 1], d2 + sum_diffuse[i, 2]
-            s0 += sum_highlight[i, 0]
-            s1 += sum_highlight[i, 1]
-            s2 += sum_highlight[i, 2]
-        a0, a1, a2 = float(albedo[i, 0]), float(albedo[i, 1]), float(albedo[i, 2])
-        out[i, 0] = a0 * (ambient[0] + d0) + s0 + emissive[em, 0]
-        out[i, 1] = a1 * (ambient[1] + d1) + s1 + emissive[em, 1]
-        out[i, 2] = a2 * (ambient[2] + d2) + s2 + emissive[em, 2]
+            d0, d1, d2 = d0 + sum_direct[i, 0], d1 + sum_direct[i, 1], d2 + sum_direct[i, 2]
+        out[i, 0], out[i, 1], out[i, 2] = d0, d1, d2
     for q in range(p_point.shape[0]):  # lit LocalLight pairs, any order
         i, k = p_point[q], p_light[q]
         l0, l1, l2 = float(p_dir[q, 0]), float(p_dir[q, 1]), float(p_dir[q, 2])
         n0, n1, n2 = float(normals[i, 0]), float(normals[i, 1]), float(normals[i, 2])
-        lit = n0 * l0 + n1 * l1 + n2 * l2
-        if not lit > 0.0:
+        if not n0 * l0 + n1 * l1 + n2 * l2 > 0.0:
             continue
         dist2 = max(p_dist[q] * p_dist[q], min_d2)
-        lit *= window_at(dist2, l_range[k]) / dist2
+        e = window_at(dist2, l_range[k]) / dist2
         if has_weight:
-            lit *= p_weight[q]
+            e *= p_weight[q]
         if l_cone[k, 6] > 0.0:
             cos = -(l0 * l_cone[k, 0] + l1 * l_cone[k, 1] + l2 * l_cone[k, 2])
-            lit *= cone_at(cos, l_cone[k, 3], l_cone[k, 4], l_cone[k, 5])
+            e *= cone_at(cos, l_cone[k, 3], l_cone[k, 4], l_cone[k, 5])
         e0, e1, e2 = -float(view_dirs[i, 0]), -float(view_dirs[i, 1]), -float(view_dirs[i, 2])
-        hl = lit * highlight_at(n0, n1, n2, e0, e1, e2, l0, l1, l2, model)
-        out[i, 0] += l_radiance[k, 0] * (float(albedo[i, 0]) * lit + hl)
-        out[i, 1] += l_radiance[k, 1] * (float(albedo[i, 1]) * lit + hl)
-        out[i, 2] += l_radiance[k, 2] * (float(albedo[i, 2]) * lit + hl)
+        nv = max(n0 * e0 + n1 * e1 + n2 * e2, min_cos)
+        t = point_terms(surface, i, nv, lut, min_rough)
+        f0, f1, f2 = brdf_cos(surface, i, t, n0, n1, n2, e0, e1, e2, l0, l1, l2, nv, lut)
+        out[i, 0] += l_radiance[k, 0] * e * f0
+        out[i, 1] += l_radiance[k, 1] * e * f1
+        out[i, 2] += l_radiance[k, 2] * e * f2
 
 
 @njit(**_KERNEL)
@@ -536,10 +723,17 @@ SIGNATURES = {
     "cone_kernel": ["f8[:, ::1], f8[::1], f8, f8, f8, f4[::1]"],
     "shade_kernel": [
         "f8[:, ::1], f4[:, ::1], f4[:, ::1], f4[:, ::1], f4[:, ::1], f8[::1], f4[:, ::1], "
-        "f4[:, ::1], f8[:, ::1], f8[:, ::1], f4[:, ::1], f8[:, ::1], f8[:, ::1], f8[::1], "
+        "f8[:, ::1], f8[:, ::1], f4[:, ::1], f8[:, ::1], f8[:, ::1], f8[::1], "
         "f8[:, ::1], b1, i8[::1], i8[::1], f4[:, ::1], f8[::1], f4[::1], b1, f8[::1], "
-        "f4[:, ::1]"
+        "f4[:, :, ::1], f4[:, ::1]"
     ],
+    "brdf_kernel": ["f4[:, ::1], f8[:, ::1], f8[:, ::1], f8[:, ::1], f4[:, :, ::1], f8, "
+                    "f8[:, ::1]"],
+    "weights_kernel": ["f4[:, ::1], f4[:, ::1], f4[:, ::1], f4[:, :, ::1], f8, f4[:, ::1], "
+                       "f4[:, ::1]",
+                       "f4[:, ::1], f8[:, ::1], f8[:, ::1], f4[:, :, ::1], f8, f4[:, ::1], "
+                       "f4[:, ::1]"],
+    "surface_rows": ["f4[:, ::1], i8[::1], f4[:, ::1], b1, f4[::1], f4[:, ::1]"],
     "fallback_rays": ["b1[::1], f4[::1], f4[:, ::1], f4[:, ::1], b1"],
     "blend": ["f4[:, ::1], f4[::1], i8[::1], f4[:, ::1], f4[:, ::1]"],
     "pair_directions": ["f8[:, ::1], f8[:, ::1], i8[::1], i8[::1], f8, f4[:, ::1], f8[::1]"],

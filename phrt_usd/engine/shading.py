@@ -2,21 +2,26 @@
 
 Everything here works on world-space arrays (metres, linear RGB float32, no tone mapping);
 the per-point work runs in compiled kernels (``shade_kernels``: numba, ``nogil``,
-imported on first use). The model, deliberately simple and the same everywhere:
+imported on first use). The model, the same everywhere::
 
-    colour = Σ_lights  visibility * E_light * (albedo * max(n·l, 0)
-                                               + SPECULAR_STRENGTH * max(n·h, 0)**SHININESS)
-             + albedo * ambient_radiance(lights) + emissive
+    colour = Σ_lights  visibility * E_light * π f(l, v) max(n·l, 0)
+             + ambient_weight(v) * ambient_radiance(lights) + emissive
 
+* ``f`` is UsdPreviewSurface's BRDF (``model/preview_surface.py`` states it: GGX with
+  height-correlated Smith masking, Schlick's Fresnel from F0 / F90 of the metallic or
+  specular workflow, the diffuse lobe taking what the specular leaves, the clear coat),
+  evaluated per point from its *surface row* (``preview_surface.surface_columns``).
 * ``E_light`` is the light's ``radiance`` for a DistantLight and
   ``radiance / d**2 * range_window(d, r)`` for a LocalLight (d clamped to
   ``MIN_LIGHT_DISTANCE``): every LocalLight has a finite range ``r`` (``light_ranges``,
   from ``LIGHT_CUTOFF_IRRADIANCE``) beyond which it contributes nothing, so neither its
   shading nor its shadow rays / shadow-map lookups are computed there.
-* Lambert without the 1/π factor (the preview-renderer convention): a white surface facing
-  a unit DistantLight shows 1.0.
-* ``h`` is the Blinn-Phong half vector between the light and the direction to the eye.
-* The ambient term is the mean environment radiance, unshadowed.
+* The π: a light's radiance is the irradiance a surface facing it receives over π (the
+  preview-renderer convention), so a white Lambert surface facing a unit DistantLight
+  shows 1.0.
+* The ambient term is the mean environment radiance, unshadowed, times the surface's
+  directional albedo under a uniform environment (``shade_kernels.ambient_weight``:
+  its occlusion, and the specular part only where no mirror reflection stands in for it).
 * A LocalLight with UsdLux ShapingAPI (a cone, focus) scales ``E_light`` by
   ``cone_falloff`` of the direction it emits towards the point.
 
@@ -39,6 +44,7 @@ from typing import NamedTuple
 import numpy as np
 
 from phrt_usd import kernels
+from phrt_usd.model import preview_surface
 from phrt_usd.model.scene import DEFAULT_ENVIRONMENT, DomeLight, Lights, LocalLight
 from phrt_usd.threads import current_threads
 
@@ -54,22 +60,6 @@ MIN_LIGHT_DISTANCE = 1e-4
 #: the sewer's lamps (I = 30) reach 39 m, and the window still keeps > 97 % of the
 #: 1/d² light within a third of the range.
 LIGHT_CUTOFF_IRRADIANCE = 0.02
-
-#: Blinn-Phong exponent of the specular highlight (one value for every material).
-SHININESS = 64.0
-
-#: SHININESS = 2**k: the highlight's power is computed as k squarings (else with pow:
-#: -1).
-_SQUARINGS = (
-    int(np.log2(SHININESS))
-    if SHININESS >= 1
-    and float(SHININESS).is_integer()
-    and (int(SHININESS) & (int(SHININESS) - 1)) == 0
-    else -1
-)
-
-#: Weight of the white Blinn-Phong highlight relative to the diffuse term.
-SPECULAR_STRENGTH = 0.25
 
 #: Threads ``shade_local`` splits large batches over (points are independent): None is
 #: the process's setting (``phrt_usd.threads.current_threads``, which every renderer
@@ -355,13 +345,13 @@ def light_table(lights: Lights) -> LightTable:
 def _shade_chunk(
     positions: np.ndarray,
     normals: np.ndarray,
-    albedo: np.ndarray,
+    surface: np.ndarray,
     view_dirs: np.ndarray,
     emissive: np.ndarray,
     lights: Lights,
     visibility: np.ndarray | None,
     local_pairs: LightPairs | tuple | None = None,
-    lit_sums: tuple[np.ndarray, np.ndarray] | None = None,
+    lit_sums: np.ndarray | None = None,
 ) -> np.ndarray:
     """``shade_local`` on one chunk of points (same arguments and result), by
     ``shade_kernels.shade_kernel``."""
@@ -376,16 +366,14 @@ def _shade_chunk(
     m = len(pairs.point)
     out = np.empty((n, 3), np.float32)
     if n:
-        diffuse, highlight = lit_sums if lit_sums is not None else (None, None)
         _kernels().shade_kernel(
             positions,
             _rows(normals, _F32, n, 3),
-            _rows(albedo, _F32, n, 3),
+            surface_rows(surface, n),
             _rows(view_dirs, _F32, n, 3),
             emissive,
             table.ambient,
-            _sums(diffuse, n),
-            _sums(highlight, n),
+            _sums(lit_sums, n),
             table.d_dir,
             table.d_radiance,
             _NO_VISIBILITY if visibility is None else _rows(visibility, _F32, n, -1),
@@ -401,9 +389,20 @@ def _shade_chunk(
             _rows(pairs.weight, _F32, m) if has_weight else _NO_WEIGHT,
             has_weight,
             MODEL,
+            preview_surface.specular_albedo_table(),
             out,
         )
     return out
+
+
+def surface_rows(surface: np.ndarray, n: int) -> np.ndarray:
+    """``surface`` as the kernels take it: (n, SURFACE_COLUMNS) float32 rows
+    (``model.preview_surface``) as they are, or an (n, 3) albedo as the rows of
+    UsdPreviewSurface's fallback material of that diffuse colour."""
+    surface = np.asarray(surface)
+    if surface.ndim == 2 and surface.shape[1] == preview_surface.SURFACE_COLUMNS:
+        return _rows(surface, _F32, n, preview_surface.SURFACE_COLUMNS)
+    return preview_surface.fallback_surface(np.asarray(surface).reshape(n, 3))
 
 
 _F32, _F64, _I64 = np.dtype(np.float32), np.dtype(np.float64), np.dtype(np.int64)
@@ -426,12 +425,15 @@ def _rows(a, dtype: np.dtype, *shape: int) -> np.ndarray:
 
 _NO_ROWS = np.zeros((0, 3), np.float32)
 #: The model's constants as ``shade_kernels.shade_kernel`` takes them.
-MODEL = np.array([MIN_LIGHT_DISTANCE, SPECULAR_STRENGTH, SHININESS, _SQUARINGS], np.float64)
+MODEL = np.array(
+    [MIN_LIGHT_DISTANCE, preview_surface.MIN_ROUGHNESS, preview_surface.MIN_COSINE, 0.0],
+    np.float64,
+)
 
 
 def _sums(a: np.ndarray | None, n: int) -> np.ndarray:
-    """A ``lit_sums`` array as ``shade_kernels.shade_kernel`` reads it: (n, 3 or 4) float32 C order,
-    channels 0-2 used ((0, 3): none)."""
+    """A ``lit_sums`` array as ``shade_kernels.shade_kernel`` reads it: (n, 3 or 4)
+    float32 C order, channels 0-2 used ((0, 3): none)."""
     if a is None:
         return _NO_ROWS
     return _rows(a, _F32, n, -1)
@@ -445,19 +447,21 @@ _NO_PAIRS = LightPairs(np.zeros(0, np.int64), np.zeros(0, np.int64), _NO_ROWS, n
 def shade_local(
     positions: np.ndarray,
     normals: np.ndarray,
-    albedo: np.ndarray,
+    surface: np.ndarray,
     view_dirs: np.ndarray,
     emissive: np.ndarray,
     lights: Lights,
     visibility: np.ndarray | None,
     local_pairs: LightPairs | tuple | None = None,
-    lit_sums: tuple[np.ndarray, np.ndarray] | None = None,
+    lit_sums: np.ndarray | None = None,
 ) -> np.ndarray:
     """Direct + ambient + emitted radiance leaving surface points towards the viewer.
 
     positions  : (n, 3) float64 world metres
     normals    : (n, 3) world unit shading normals (facing the viewer)
-    albedo     : (n, 3) linear RGB
+    surface    : (n, SURFACE_COLUMNS) float32 surface rows (``model.preview_surface``:
+                 the UsdPreviewSurface inputs at each point), or (n, 3) linear RGB
+                 albedo: the fallback material of that diffuse colour
     view_dirs  : (n, 3) world unit directions from the viewer (eye or previous bounce)
                  to the point
     emissive   : (n, 3) linear RGB, or (3,) for all points
@@ -468,15 +472,13 @@ def shade_local(
                  in front of the normal (the tracer has them from its shadow rays).
                  They replace the LocalLight columns of ``visibility``, and the same
                  model is evaluated on them without recomputing directions.
-    lit_sums   : optional (diffuse, highlight) (n, 3) float32 (or (n, 4), channel 3
-                 ignored: the GPU's readback as it is): the terms of
-                 (point, light) pairs already shaded elsewhere (``LightTerms.lit_sums``
-                 of ``render.raster.map_lighting``, on the GPU), per pair
-                 ``radiance * n·l`` (LocalLights also ``* window / d²``) and that times
-                 the highlight. Added as
-                 ``albedo * diffuse + highlight``; LocalLights are then evaluated only
-                 at ``local_pairs``, and ``visibility`` needs only its DistantLight
-                 columns, 0 for pairs already in the sums.
+    lit_sums   : optional (n, 3) float32 (or (n, 4), channel 3 ignored: the GPU's
+                 readback as it is): the direct light of (point, light) pairs already
+                 shaded elsewhere (``LightTerms.lit_sums`` of
+                 ``render.raster.map_lighting``, on the GPU, the same BRDF), added as
+                 it is; LocalLights are then evaluated only at ``local_pairs``, and
+                 ``visibility`` needs only its DistantLight columns, 0 for pairs
+                 already in the sums.
     Returns (n, 3) float32 linear RGB.
 
     Points are independent: large batches are split into ``_shade_threads()`` contiguous
@@ -496,7 +498,7 @@ def shade_local(
         return _shade_chunk(
             positions,
             normals,
-            albedo,
+            surface,
             view_dirs,
             emissive,
             lights,
@@ -505,7 +507,7 @@ def shade_local(
             lit_sums,
         )
     normals = np.asarray(normals).reshape(n, 3)
-    albedo = np.asarray(albedo).reshape(n, 3)
+    surface = surface_rows(surface, n)
     view_dirs = np.asarray(view_dirs).reshape(n, 3)
     emissive = np.asarray(emissive)
     out = np.empty((n, 3), dtype=np.float32)
@@ -521,13 +523,13 @@ def shade_local(
         out[part] = _shade_chunk(
             positions[part],
             normals[part],
-            albedo[part],
+            surface[part],
             view_dirs[part],
             emissive if emissive.ndim == 1 else emissive[part],
             lights,
             None if visibility is None else visibility[part],
             chunk_pairs,
-            None if lit_sums is None else (lit_sums[0][part], lit_sums[1][part]),
+            None if lit_sums is None else lit_sums[part],
         )
 
     on_pool(run, n)
@@ -586,3 +588,71 @@ def _kernels():
     """The compiled kernels (``shade_kernels`` through ``phrt_usd.kernels``), taken on
     first use: importing this module (the renderer, the API) loads no kernel."""
     return kernels.load("phrt_usd.engine.shade_kernels")
+
+
+#: The latest ``material_input_rows``: (materials, rows), by identity.
+_INPUT_ROWS: list = [None]
+_NO_INDEX = np.zeros(0, np.int64)
+
+
+def material_input_rows(materials) -> np.ndarray:
+    """``preview_surface.input_rows`` of a ``MaterialTable``, cached while it stays the
+    same object (materials are read once a run)."""
+    cached = _INPUT_ROWS[0]
+    if cached is not None and cached[0] is materials:
+        return cached[1]
+    rows = preview_surface.input_rows(materials)
+    _INPUT_ROWS[0] = (materials, rows)
+    return rows
+
+
+def point_surface(
+    materials, tri_material, tri, albedo, corner_uv, weights, specular_ambient=None
+) -> np.ndarray:
+    """(m, SURFACE_COLUMNS) float32 surface rows (``model.preview_surface``) of m points
+    on triangles ``tri`` (m,) of a geometry whose triangles have materials
+    ``tri_material`` (T,) (rows of ``materials``, a ``MaterialTable``): their ``albedo``
+    (m, 3) (diffuseColor, textured already) and their material's inputs, sampled where
+    textured at the barycentric ``weights`` (m, 3) (or a callable giving them: called
+    only then) on ``corner_uv``; ``specular_ambient`` (m,) (None: 1 everywhere): 0 where
+    a mirror reflection stands in for the ambient's specular part."""
+    tri = np.asarray(tri, np.int64).reshape(-1)
+    n = len(tri)
+    out = np.empty((n, preview_surface.SURFACE_COLUMNS), np.float32)
+    if n == 0:
+        return out
+    albedo = _rows(albedo, _F32, n, 3)
+    ambient = _NO_WEIGHT if specular_ambient is None else _rows(specular_ambient, _F32, n)
+    constant = material_input_rows(materials)
+    if corner_uv is not None and preview_surface.textured_inputs(materials):
+        at = weights() if callable(weights) else weights
+        inputs = preview_surface.textured_input_rows(
+            materials, constant, tri, at, tri_material, corner_uv
+        )
+        _kernels().surface_rows(albedo, _NO_INDEX, inputs, True, ambient, out)
+    else:
+        material = np.take(np.asarray(tri_material), tri).astype(np.int64)
+        _kernels().surface_rows(albedo, material, constant, False, ambient, out)
+    return out
+
+
+def surface_weights(surface: np.ndarray, normals: np.ndarray, to_eye: np.ndarray):
+    """(ambient, reflection) (n, 3) float32 each: what n points of ``surface`` rows
+    return of a uniform unit environment (``shade_kernels.ambient_weight``) and the
+    weight of their mirror reflection (``reflection_weight``: the specular lobes'
+    directional albedo, split sum), seen from unit ``to_eye`` (n, 3) about unit
+    ``normals`` (n, 3)."""
+    n = len(surface)
+    ambient = np.empty((n, 3), np.float32)
+    reflection = np.empty((n, 3), np.float32)
+    if n:
+        _kernels().weights_kernel(
+            _rows(surface, _F32, n, preview_surface.SURFACE_COLUMNS),
+            _rows(normals, _F32, n, 3),
+            _rows(to_eye, _F32, n, 3),
+            preview_surface.specular_albedo_table(),
+            preview_surface.MIN_ROUGHNESS,
+            ambient,
+            reflection,
+        )
+    return ambient, reflection

@@ -100,6 +100,10 @@ class MaterialTable:
     opacity_threshold : (M,) float32 UsdPreviewSurface ``opacityThreshold``; > 0 makes
                 the material a cut-out: a point whose opacity is below it is not there
                 (no hit, no pixel, no shadow), any other point is opaque. Empty: all 0.
+    specular_color, use_specular_workflow, clearcoat, clearcoat_roughness, occlusion :
+                (M, 3), (M,), (M,), (M,), (M,) float32, the other UsdPreviewSurface
+                inputs of the BRDF (``model/preview_surface.py``); empty (or shorter):
+                the specification's fallbacks.
     """
 
     diffuse: np.ndarray
@@ -111,6 +115,11 @@ class MaterialTable:
     textures: list[np.ndarray | None] = field(default_factory=list)
     texture_inputs: list[dict[str, TextureInput]] = field(default_factory=list)
     opacity_threshold: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))
+    specular_color: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.float32))
+    use_specular_workflow: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))
+    clearcoat: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))
+    clearcoat_roughness: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))
+    occlusion: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))
 
     def threshold(self, m: int) -> float:
         """``opacity_threshold`` of row ``m`` (0 where the table has none)."""

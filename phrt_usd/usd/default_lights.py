@@ -7,10 +7,11 @@ direction; ``aim_headlight`` turns it with the camera every frame (the renderer 
 ``engine/renderer.py``). Values in the renderer's convention (``engine/shading.py``: a
 white surface facing a unit DistantLight shows 1.0):
 
-- ``HEADLIGHT_IRRADIANCE`` 0.6 and ``DOME_RADIANCE`` 0.25: a white surface facing the
-  camera shows 0.6 (diffuse) + 0.15 (its Blinn-Phong highlight, ``SPECULAR_STRENGTH`` x
-  0.6) + 0.25 (ambient) = 1.0, display white and no more; a grazing one still shows
-  the dome's 0.25, so shapes read everywhere.
+- ``HEADLIGHT_IRRADIANCE`` 0.6 and ``DOME_RADIANCE`` 0.25: a white surface of
+  UsdPreviewSurface's fallback material facing the camera shows 0.6 x 1.19 (diffuse and
+  the GGX highlight at roughness 0.5, ``model/preview_surface.py``) + 0.25 (ambient) =
+  0.96, about display white and no more; a grazing one still shows the dome's 0.25, so
+  shapes read everywhere.
 """
 
 from __future__ import annotations

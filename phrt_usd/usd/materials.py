@@ -7,8 +7,10 @@ are read with their connections followed (material interface inputs included).
 Materials are read once, at the start of the frame range (not animated).
 
 Texturable inputs the render uses (``TEXTURED_INPUTS``): ``diffuseColor``,
-``emissiveColor``, ``opacity`` and ``normal`` (tangent space, ``model.surface.
-NormalMaps``), each possibly fed by a ``UsdUVTexture`` output
+``emissiveColor``, ``opacity``, ``normal`` (tangent space, ``model.surface.
+NormalMaps``) and the BRDF's (``model/preview_surface.py``): ``metallic``,
+``roughness``, ``specularColor``, ``useSpecularWorkflow``, ``ior``, ``clearcoat``,
+``clearcoatRoughness``, ``occlusion``; each possibly fed by a ``UsdUVTexture`` output
 (``rgb``, ``r``, ``g``, ``b``, ``a``), read as a ``TextureInput`` as the
 UsdPreviewSurface specification defines it:
 
@@ -28,9 +30,7 @@ presence mask. Opacity < 1 without a threshold stays the constant ``opacity`` of
 row (transmissive when < 1); a *textured* opacity without a threshold is not used as
 translucency (the row is opaque; docs/usd-support.md, known limits).
 
-Inputs read but not textured (the shading does not use them): ``metallic``,
-``roughness``, ``ior`` as constants; ``occlusion``, ``clearcoat`` and ``displacement``
-are not read (``usd/support_report.py`` lists them).
+``displacement`` is not read (``usd/support_report.py`` lists it).
 
 MaterialX: a material whose only surface is a MaterialX one (``outputs:mtlx:surface``)
 gets its base colour from the shader prim's inputs (``ND_standard_surface``:
@@ -63,7 +63,15 @@ PREVIEW_SURFACE_DIFFUSE = 0.18
 
 #: UsdPreviewSurface inputs read from textures: name -> components (the others the
 #: shading does not use; see the module).
-TEXTURED_INPUTS = {"diffuseColor": 3, "emissiveColor": 3, "opacity": 1, "normal": 3}
+TEXTURED_INPUTS = {
+    "diffuseColor": 3, "emissiveColor": 3, "opacity": 1, "normal": 3, "metallic": 1,
+    "roughness": 1, "specularColor": 3, "useSpecularWorkflow": 1, "ior": 1, "clearcoat": 1,
+    "clearcoatRoughness": 1, "occlusion": 1,
+}  # fmt: skip
+
+#: The BRDF's scalar inputs read as constants (their fallbacks: ``_MaterialRow``), each
+#: clamped to [0, 1] but ``ior`` (> 0) and ``useSpecularWorkflow`` (0 or 1).
+BRDF_INPUTS = ("metallic", "roughness", "ior", "clearcoat", "clearcoatRoughness", "occlusion")
 
 #: UsdUVTexture output -> the file's channel per component, by the file's channel count
 #: (1 grey, 2 grey + alpha, 3 RGB, 4 RGBA); ``ALPHA_ONE``: no alpha, reads 1.
@@ -102,6 +110,11 @@ class _MaterialRow:
     roughness: float = 0.5
     opacity: float = 1.0
     ior: float = 1.5
+    clearcoat: float = 0.0
+    clearcoatRoughness: float = 0.01  # noqa: N815 (the input's name)
+    occlusion: float = 1.0
+    useSpecularWorkflow: float = 0.0  # noqa: N815
+    specularColor: np.ndarray = field(default_factory=lambda: np.zeros(3))  # noqa: N815
     emissive: np.ndarray = field(default_factory=lambda: np.zeros(3))
     texture: np.ndarray | None = None  # (h, w, 3) float32 linear diffuse rgb, row 0 = top
     uv_primvar: str = "st"
@@ -244,11 +257,14 @@ class MaterialBank:
         if not shader or shader.GetIdAttr().Get() != "UsdPreviewSurface":
             self._read_materialx(row, material)
             return row
-        for name in ("metallic", "roughness", "opacity", "ior"):
+        for name in (*BRDF_INPUTS, "opacity"):
             setattr(row, name, float(self._constant(shader, name, getattr(row, name))))
-        row.metallic = float(np.clip(row.metallic, 0.0, 1.0))
-        row.roughness = float(np.clip(row.roughness, 0.0, 1.0))
-        row.opacity = float(np.clip(row.opacity, 0.0, 1.0))
+            if name != "ior":
+                setattr(row, name, float(np.clip(getattr(row, name), 0.0, 1.0)))
+        if not row.ior > 0.0:
+            row.ior = 1.5
+        row.useSpecularWorkflow = float(self._constant(shader, "useSpecularWorkflow", 0) != 0)
+        row.specularColor = np.clip(self._constant(shader, "specularColor", np.zeros(3)), 0, 1)
         threshold = float(self._constant(shader, "opacityThreshold", 0.0))
         row.opacity_threshold = float(np.clip(threshold, 0.0, 1.0))
         row.emissive = np.clip(self._constant(shader, "emissiveColor", np.zeros(3)), 0, None)
@@ -333,6 +349,10 @@ class MaterialBank:
             row.emissive = np.clip(np.broadcast_to(value, (3,)), 0, None).astype(np.float64)
         elif name == "opacity":
             row.opacity = float(np.clip(value.reshape(-1)[0], 0.0, 1.0))
+        elif name == "specularColor":
+            row.specularColor = np.clip(np.broadcast_to(value, (3,)), 0, 1).astype(np.float64)
+        elif name in BRDF_INPUTS or name == "useSpecularWorkflow":
+            setattr(row, name, float(value.reshape(-1)[0]))
 
     def _file(self, file_value, where: str, space: str):
         """(pixels (h, w, c) float32, wrap metadata) of a texture file, read once per
@@ -458,6 +478,11 @@ class MaterialBank:
             textures=[r.texture for r in rows],
             texture_inputs=[dict(r.inputs) for r in rows],
             opacity_threshold=np.array([r.opacity_threshold for r in rows], dtype=np.float32),
+            specular_color=np.array([r.specularColor for r in rows], np.float32).reshape(-1, 3),
+            use_specular_workflow=np.array([r.useSpecularWorkflow for r in rows], np.float32),
+            clearcoat=np.array([r.clearcoat for r in rows], dtype=np.float32),
+            clearcoat_roughness=np.array([r.clearcoatRoughness for r in rows], np.float32),
+            occlusion=np.array([r.occlusion for r in rows], dtype=np.float32),
         )
 
 

@@ -20,6 +20,7 @@ from scenes import box, look_at, parts_scene, shaded_both_ways, sphere
 from phrt_usd.engine.raster.rasterizer import Rasterizer
 from phrt_usd.errors import PhrtError
 from phrt_usd.model.frame import GBuffer
+from phrt_usd.model.preview_surface import fallback_surface
 from phrt_usd.model.scene import CameraFrame, DistantLight, Lights, Scene
 from phrt_usd.model.surface import sample_bilinear_wrap
 
@@ -658,12 +659,13 @@ def test_gpu_light_terms_shade_like_the_visibility_matrix(use_refine, with_local
         albedo, view = g.albedo[cov], g.view_dir[cov]
         fix = refine if use_refine else None
         vis = r.shadow_visibility(pos, nrm, refine=fix)
-        terms = r.light_terms(pos, nrm, -view, refine=fix)
+        surface = fallback_surface(albedo)
+        terms = r.light_terms(pos, nrm, -view, refine=fix, surface=surface)
     assert terms.distant_visibility.shape == (len(pos), 1)
     assert (len(terms.local_pairs.point) > 0) == with_local
     # The table's shadow edge is uncertain in the map: resolved outside the sums.
     assert np.count_nonzero(terms.distant_visibility) > 0
-    expected, got = shaded_both_ways(pos, nrm, albedo, view, lights, vis, terms)
+    expected, got = shaded_both_ways(pos, nrm, surface, view, lights, vis, terms)
     assert np.all(np.isfinite(got))
     np.testing.assert_allclose(got, expected, rtol=1e-4, atol=1e-5)
 

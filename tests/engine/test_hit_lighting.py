@@ -94,18 +94,26 @@ def test_hit_the_maps_decide_is_exact_without_rays(slab, where):
     want, want_rays = _shade(exact, tracer, hits)
     assert rays.sum() == 0 and want_rays.sum() == 200  # the exact evaluation: one a hit
     np.testing.assert_allclose(local, want, rtol=SHADING_RTOL, atol=1e-6)
-    # Analytically: under the slab the ambient term alone (albedo 0.5 x the mean
-    # environment); in the open at least the lamp's Lambert term on top of it (its
-    # highlight adds a little, never less): 0.5 x 20 cos / d² x the range window.
-    ambient = 0.5 * shading.ambient_radiance(tracer.scene.lights)
+    # Analytically: under the slab the ambient term alone (the mean environment times
+    # the surface's directional albedo, ``shade_kernels.ambient_weight``); in the open
+    # the lamp's 20 / d² x the range window x the BRDF's π f n·l on top of it (the
+    # numpy BRDF of tests/shading_reference.py).
+    import shading_reference as ref
+
+    tri, u, v, pos, _, ns, down = hits
+    surf = tracer.surfaces.surface(tri, u, v, tracer.surfaces.colour(tri, u, v)[0])
+    ambient = ref.ambient_weight(surf, ns, -down) * shading.ambient_radiance(
+        tracer.scene.lights
+    )
     if where == "shadowed":
-        np.testing.assert_allclose(want, np.broadcast_to(ambient, want.shape), rtol=1e-5)
+        np.testing.assert_allclose(want, ambient, rtol=1e-5)
     else:
-        to_lamp = LAMP - (hits[3] + tracer.bvh.boundary.origin)
+        to_lamp = LAMP - (pos + tracer.bvh.boundary.origin)
         d2 = np.einsum("ij,ij->i", to_lamp, to_lamp)
         window = shading.range_window(np.sqrt(d2), shading.light_ranges(tracer.scene.lights)[0])
-        lambert = 0.5 * 20.0 * to_lamp[:, 1] / d2**1.5 * window
-        assert np.all(want - ambient >= (1 - 1e-5) * lambert[:, None])
+        to_lamp /= np.sqrt(d2)[:, None]
+        lamp = (20.0 * window / d2)[:, None] * ref.brdf_cos(surf, ns, -down, to_lamp)
+        np.testing.assert_allclose(want, ambient + lamp, rtol=1e-4)
 
 
 def test_undecided_pair_casts_its_ray(slab):

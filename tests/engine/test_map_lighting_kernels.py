@@ -9,6 +9,7 @@ import pytest
 
 from phrt_usd.engine.raster.light_pass import LOOKUP_LIGHTS_PER_PASS
 from phrt_usd.engine.shade_kernels import lights_reaching, lit_local_pairs, undecided_rows
+from phrt_usd.model.preview_surface import fallback_surface
 
 
 def _reference_undecided(bits, n_local, active, gpu_distant, distant_unsure):
@@ -138,11 +139,12 @@ def test_lights_out_of_reach_are_left_out_and_shading_is_unchanged(monkeypatch):
         cov = g.covered
         pos, nrm, albedo, view = g.position[cov], g.normal[cov], g.albedo[cov], g.view_dir[cov]
         vis = r.shadow_visibility(pos, nrm)
-        terms = r.light_terms(pos, nrm, -view)
+        surface = fallback_surface(albedo)
+        terms = r.light_terms(pos, nrm, -view, surface=surface)
     assert [list(a) for a in looked_up if a is not None] == [[1]]
-    expected = shading.shade_local(pos, nrm, albedo, view, np.zeros(3), lights, vis)
+    expected = shading.shade_local(pos, nrm, surface, view, np.zeros(3), lights, vis)
     got = shading.shade_local(
-        pos, nrm, albedo, view, np.zeros(3), lights, terms.distant_visibility,
+        pos, nrm, surface, view, np.zeros(3), lights, terms.distant_visibility,
         local_pairs=terms.local_pairs, lit_sums=terms.lit_sums,
     )  # fmt: skip
     assert float(got.max()) > 0.1

@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from phrt_usd.engine import shading
-from phrt_usd.model import surface
+from phrt_usd.model import preview_surface, surface
 from phrt_usd.model.scene import DEFAULT_ENVIRONMENT, DistantLight, DomeLight, Lights, LocalLight
 
 UP = np.array([[0.0, 1.0, 0.0]])
@@ -28,13 +28,14 @@ def _surface_points(rng: np.random.Generator, n: int, extent: float):
     return pos, nrm, view, albedo
 
 
-def _shade(lights, albedo=(0.5, 0.5, 0.5), view=DOWN, normal=UP, pos=((0.0, 0.0, 0.0),), vis=None):
+def _shade(lights, albedo=(0.5, 0.5, 0.5), view=DOWN, normal=UP, pos=((0.0, 0.0, 0.0),), vis=None,
+           surface=None):  # fmt: skip
     n_lights = len(lights.distant) + len(lights.local)
     vis = np.ones((1, n_lights), np.float32) if vis is None else vis
     return shading.shade_local(
         np.array(pos, dtype=np.float64),
         normal,
-        np.array([albedo], np.float32),
+        np.array([albedo], np.float32) if surface is None else surface,
         view,
         np.zeros(3, np.float32),
         lights,
@@ -43,25 +44,46 @@ def _shade(lights, albedo=(0.5, 0.5, 0.5), view=DOWN, normal=UP, pos=((0.0, 0.0,
 
 
 def test_lambert_cosine_law_and_ambient():
+    """A surface row without a specular lobe (F0 = F90 = 0: the BRDF's diffuse lobe
+    alone, which then takes all the energy) is Lambert's law without the 1/π: albedo x
+    cos at every angle, plus albedo x the ambient."""
     dome = DomeLight(color=np.array([0.1, 0.1, 0.1]))
+    lambert = preview_surface.fallback_surface(np.full((1, 3), 0.5))
+    lambert[:, preview_surface.F0 : preview_surface.F90 + 3] = 0.0
     for angle in (0.0, 30.0, 60.0, 89.0):
         a = np.radians(angle)
         light = DistantLight(np.array([np.sin(a), np.cos(a), 0.0]), np.ones(3))
-        # View from the side so the highlight stays out of the measurement.
         view = np.array([[np.sin(a), 0.0, np.cos(a)]])
-        got = _shade(Lights(distant=[light], dome=dome), view=-view)
-        spec = (
-            shading.SPECULAR_STRENGTH
-            * max(0.0, (light.direction + view[0])[1] / np.linalg.norm(light.direction + view[0]))
-            ** shading.SHININESS
-        )
-        expected = 0.5 * 0.1 + (0.5 + spec) * np.cos(a)
+        got = _shade(Lights(distant=[light], dome=dome), view=-view, surface=lambert)
+        expected = 0.5 * 0.1 + 0.5 * np.cos(a)
         np.testing.assert_allclose(got, [expected] * 3, rtol=1e-5)
 
 
+def test_direct_light_is_the_brdf_and_ambient_its_albedo():
+    """UsdPreviewSurface's fallback material (roughness 0.5, ior 1.5) lit by one
+    DistantLight at several angles: the BRDF's π f n·l (the numpy form of
+    ``tests/shading_reference.py``) plus the dome times the directional albedo."""
+    import shading_reference as ref
+
+    dome = DomeLight(color=np.array([0.1, 0.1, 0.1]))
+    surf = preview_surface.fallback_surface(np.full((1, 3), 0.5))
+    for angle in (0.0, 30.0, 60.0, 89.0):
+        a = np.radians(angle)
+        light = DistantLight(np.array([np.sin(a), np.cos(a), 0.0]), np.ones(3))
+        view = np.array([[np.sin(a), 0.0, np.cos(a)]])  # to the eye
+        got = _shade(Lights(distant=[light], dome=dome), view=-view, surface=surf)
+        expected = 0.1 * ref.ambient_weight(surf, UP, view) + ref.brdf_cos(
+            surf, UP, view, light.direction[None, :]
+        )
+        np.testing.assert_allclose(got, expected[0], rtol=1e-5)
+
+
 def test_light_behind_surface_and_shadowed_give_ambient_only():
+    import shading_reference as ref
+
     lights = Lights(distant=[DistantLight(np.array([0.0, -1.0, 0.0]), np.ones(3))])
-    ambient = 0.5 * DEFAULT_ENVIRONMENT
+    surf = preview_surface.fallback_surface(np.full((1, 3), 0.5))
+    ambient = ref.ambient_weight(surf, UP, -DOWN)[0] * DEFAULT_ENVIRONMENT
     np.testing.assert_allclose(_shade(lights), ambient, rtol=1e-6)
     lit_from_above = Lights(distant=[DistantLight(np.array([0.0, 1.0, 0.0]), np.ones(3))])
     shadowed = _shade(lit_from_above, vis=np.zeros((1, 1), np.float32))
@@ -249,7 +271,7 @@ def test_threaded_shade_local_matches_one_chunk(monkeypatch):
     l_dir, dist = shading.pair_directions(lights, pos, point, light)
     weight = rng.uniform(0.1, 1.0, len(point)).astype(np.float32)
     pairs = shading.LightPairs(point, light, l_dir, dist, weight)
-    sums = (rng.uniform(0, 1, (n, 3)).astype(np.float32),) * 2
+    sums = rng.uniform(0, 1, (n, 3)).astype(np.float32)
     runs = []
     for threads in (3, 1):
         monkeypatch.setattr(shading, "SHADE_THREADS", threads)

@@ -4,7 +4,7 @@ model on random points, lights of every kind, every optional input, and extreme 
 
 Tolerances: the kernels sum in float64 where the reference rounds its terms to float32,
 so results agree to a few float32 ulps (rtol 1e-5) plus an absolute 1e-6 for terms that
-cancel (the highlight's 64th power of a float32-rounded cosine near 1).
+cancel (the GGX peak of a float32-rounded cosine near 1).
 """
 
 from __future__ import annotations
@@ -14,6 +14,7 @@ import pytest
 import shading_reference as ref
 
 from phrt_usd.engine import shading
+from phrt_usd.model import preview_surface as ps
 from phrt_usd.model.scene import DistantLight, DomeLight, Lights, LocalLight
 
 RTOL, ATOL = 1e-5, 1e-6
@@ -78,7 +79,15 @@ def test_shade_kernel_matches_numpy_reference(shaped, case):
     emissive = rng.uniform(0.0, 0.2, (n, 3)).astype(np.float32)
     vis = rng.uniform(0.0, 1.0, (n, 5)).astype(np.float32)
     vis[vis < 0.3] = 0.0
-    args = (pos, nrm, albedo, view, emissive, lights)
+    # Random UsdPreviewSurface inputs: both workflows, clear coats, every roughness.
+    surface = ps.surface_columns(
+        albedo, rng.uniform(0.0, 1.0, n), rng.uniform(size=n) < 0.3,
+        rng.uniform(0.0, 1.0, (n, 3)), rng.uniform(0.0, 1.0, n),
+        np.where(rng.uniform(size=n) < 0.5, rng.uniform(0.0, 1.0, n), 0.0),
+        rng.uniform(0.0, 1.0, n), rng.uniform(1.0, 3.0, n), rng.uniform(0.0, 1.0, n),
+        rng.uniform(size=n) < 0.7,
+    )  # fmt: skip
+    args = (pos, nrm, surface, view, emissive, lights)
     pairs = sums = None
     if case == "all_lit":
         vis = None
@@ -87,7 +96,7 @@ def test_shade_kernel_matches_numpy_reference(shaped, case):
         if case == "pairs_unweighted":
             pairs = tuple(pairs[:4])
     elif case == "sums":
-        sums = tuple(rng.uniform(0.0, 1.0, (n, 3)).astype(np.float32) for _ in range(2))
+        sums = rng.uniform(0.0, 1.0, (n, 4)).astype(np.float32)
         pairs = _pairs(rng, pos, nrm, lights, sort=True)
         vis = vis[:, :2]
     want = ref.shade_chunk(*args, vis, pairs, sums)

@@ -8,11 +8,13 @@ cube maps (``shadow_maps.CubeMap`` (min, max) texels in one RG32F buffer texture
 up to LOOKUP_MAX_DISTANT DistantLights' orthographic maps (``shadow_maps.ShadowMap``,
 RG32F each); a pass handles LOOKUP_LIGHTS_PER_PASS LocalLights. Outputs
 (``LightPass.lookup``): either a code per (point, LocalLight) pair (LOOKUP_LIT /
-LOOKUP_SHADOWED / LOOKUP_UNCERTAIN), or the diffuse and highlight sums over the lit
-pairs with bits flagging the uncertain ones, which the caller resolves
-(``map_lighting``). The test is ``shadow_maps.cube_visibility``'s and
-``shadow_maps.filtered_visibility``'s, the shading ``shade_kernels.shade_kernel``'s:
-keep the shader and those in step.
+LOOKUP_SHADOWED / LOOKUP_UNCERTAIN), or the direct light of the lit pairs (each
+point's UsdPreviewSurface BRDF, its surface rows a texture of four RGBA32F texels a
+point, ``model/preview_surface.py``; the lobe's albedo table an RG32F texture) with
+bits flagging the uncertain ones, which the caller resolves (``map_lighting``). The
+test is ``shadow_maps.cube_visibility``'s and ``shadow_maps.filtered_visibility``'s,
+the shading ``shade_kernels.shade_kernel``'s and ``brdf_cos``'s: keep the shader and
+those in step (``tests/engine/test_preview_surface.py`` compares the BRDFs).
 
 Measured on the sewer (13 lights, 640x480): the lookup takes ~45 ms of CPU time per
 frame (llvmpipe spreads it over the cores), nearly all of it the fragment shader
@@ -46,7 +48,8 @@ from phrt_usd.engine.raster.shadow_maps import (
     ShadowMap,
     ShadowMaps,
 )
-from phrt_usd.engine.shading import MIN_LIGHT_DISTANCE, SHININESS, SPECULAR_STRENGTH
+from phrt_usd.engine.shading import MIN_LIGHT_DISTANCE
+from phrt_usd.model import preview_surface
 
 #: Most rows of the GPU lookup pass's point texture (llvmpipe's largest renderbuffer
 #: side); more points than the frame's width times this make the rows wider.
@@ -77,6 +80,8 @@ class LightPass:
         self._cube_tex_layers = 0
         self._cube_tex_held: list[CubeMap | None] = []
         self._point_tex: list[int] = []
+        self._surface_tex: int | None = None  # the points' surface rows (RGBA32F)
+        self._lut_tex: int | None = None  # preview_surface.specular_albedo_table (RG32F)
         self._lookup_fb: int | None = None
         self._lookup_rb: list[int] = []
         self._lookup_size = (0, 0)  # (width, rows) of ``_lookup_fb``
@@ -92,13 +97,11 @@ class LightPass:
                 vert = f.read()
             with open(os.path.join(SHADER_DIR, "cube_lookup.frag")) as f:
                 version, frag = f.read().split("\n", 1)
-            squarings = np.log2(SHININESS) if SHININESS >= 1.0 else 0.5
             tan_half = CUBE_MAP_SIZE / (CUBE_MAP_SIZE - 2.0 * CUBE_GUARD_TEXELS)
             defines = (
                 f"#define N_LIGHTS {n_lights}\n#define N_DISTANT {n_distant}\n"
                 f"#define HAS_DYNAMIC {int(has_dynamic)}\n"
                 f"#define SHADE {int(shade)}\n"
-                f"#define SQUARINGS {int(squarings) if squarings % 1 == 0 else -1}\n"
                 f"#define CUBE_SIZE {CUBE_MAP_SIZE}\n#define TAN_HALF {tan_half!r}\n"
                 f"#define LINE_W {CUBE_LINE_TILE[0]}u\n#define LINE_H {CUBE_LINE_TILE[1]}u\n"
                 f"#define PAGE_W {CUBE_PAGE_TILE[0]}u\n#define PAGE_H {CUBE_PAGE_TILE[1]}u\n"
@@ -117,11 +120,19 @@ class LightPass:
         if self._lookup_vao is not None:
             return
         self._lookup_vao = int(GL.glGenVertexArrays(1))
-        self._point_tex = [int(t) for t in GL.glGenTextures(3)]  # points, normals, to_eye
-        for tex in self._point_tex:
+        # points, normals, to_eye, surface rows, the albedo table
+        textures = [int(t) for t in GL.glGenTextures(5)]
+        for tex in textures:
             GL.glBindTexture(GL.GL_TEXTURE_2D, tex)
             GL.glTexParameteri(GL.GL_TEXTURE_2D, GL.GL_TEXTURE_MIN_FILTER, GL.GL_NEAREST)
             GL.glTexParameteri(GL.GL_TEXTURE_2D, GL.GL_TEXTURE_MAG_FILTER, GL.GL_NEAREST)
+        self._point_tex = textures[:3]
+        self._surface_tex, self._lut_tex = textures[3], textures[4]
+        lut = preview_surface.specular_albedo_table()
+        GL.glBindTexture(GL.GL_TEXTURE_2D, self._lut_tex)
+        GL.glPixelStorei(GL.GL_UNPACK_ALIGNMENT, 1)
+        GL.glTexImage2D(GL.GL_TEXTURE_2D, 0, GL.GL_RG32F, lut.shape[1], lut.shape[0], 0,
+                        GL.GL_RG, GL.GL_FLOAT, np.ascontiguousarray(lut, np.float32))  # fmt: skip
         GL.glBindTexture(GL.GL_TEXTURE_2D, 0)
 
     def _upload_cubes(self, cubes: list[tuple[CubeMap | None, CubeMap | None]]) -> list[int]:
@@ -241,8 +252,7 @@ class LightPass:
 
     def _framebuffer(self, width: int, rows: int) -> None:
         """The outputs of ``shaders/cube_lookup.frag``, >= ``width`` x ``rows`` each:
-        RGBA32UI packed per-light codes, RGBA32F diffuse sums (+ uncertain bits),
-        RGBA32F highlight sums."""
+        RGBA32UI packed per-light codes, RGBA32F direct light (+ uncertain bits)."""
         held_width, held_rows = self._lookup_size
         if self._lookup_fb is not None and width <= held_width and rows <= held_rows:
             return  # the pass draws into the lower left width x rows
@@ -250,17 +260,17 @@ class LightPass:
             GL.glDeleteFramebuffers(1, [self._lookup_fb])
             GL.glDeleteRenderbuffers(len(self._lookup_rb), self._lookup_rb)
         self._lookup_size = (width, rows)
-        self._lookup_rb = [int(rb) for rb in GL.glGenRenderbuffers(3)]
+        self._lookup_rb = [int(rb) for rb in GL.glGenRenderbuffers(2)]
         self._lookup_fb = int(GL.glGenFramebuffers(1))
         GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, self._lookup_fb)
-        formats = (GL.GL_RGBA32UI, GL.GL_RGBA32F, GL.GL_RGBA32F)
+        formats = (GL.GL_RGBA32UI, GL.GL_RGBA32F)
         for i, (rb, fmt) in enumerate(zip(self._lookup_rb, formats, strict=True)):
             GL.glBindRenderbuffer(GL.GL_RENDERBUFFER, rb)
             GL.glRenderbufferStorage(GL.GL_RENDERBUFFER, fmt, width, rows)
             GL.glFramebufferRenderbuffer(
                 GL.GL_FRAMEBUFFER, GL.GL_COLOR_ATTACHMENT0 + i, GL.GL_RENDERBUFFER, rb
             )
-        GL.glDrawBuffers(3, [GL.GL_COLOR_ATTACHMENT0 + i for i in range(3)])
+        GL.glDrawBuffers(2, [GL.GL_COLOR_ATTACHMENT0 + i for i in range(2)])
         check_framebuffer("cube lookup")
         GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, 0)
         GL.glBindRenderbuffer(GL.GL_RENDERBUFFER, 0)
@@ -275,7 +285,8 @@ class LightPass:
         distant: list[tuple[ShadowMap | None, ShadowMap | None]] | None = None,
         origin: np.ndarray | None = None,
         active: np.ndarray | None = None,
-    ) -> np.ndarray | tuple[np.ndarray, np.ndarray, np.ndarray]:
+        surface: np.ndarray | None = None,
+    ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
         """Every point against every LocalLight's cube maps on the GPU (the test of
         ``shadow_maps.cube_visibility``, in ``shaders/cube_lookup.frag``).
 
@@ -285,10 +296,11 @@ class LightPass:
         metres.
         Without ``to_eye``: returns (n, len(cubes)) uint8 codes: LOOKUP_LIT,
         LOOKUP_SHADOWED (also out of range / facing away) or LOOKUP_UNCERTAIN.
-        With ``to_eye`` (n, 3) unit directions to the viewer: the lit pairs are also
-        shaded on the GPU; returns diffuse (n, 4) and highlight (n, 4) float32 sums over
-        the lit pairs in channels 0-2 (``shading.shade_local``'s ``lit_sums``) and
-        (n, passes) uint32 uncertain pairs (not in the sums): bit j of pass p is
+        With ``to_eye`` (n, 3) unit directions to the viewer and ``surface`` (n,
+        SURFACE_COLUMNS) float32 the points' UsdPreviewSurface rows: the lit pairs are
+        also shaded on the GPU; returns the direct light (n, 4) float32 of the lit
+        pairs in channels 0-2 (``shading.shade_local``'s ``lit_sums``) and (n, passes)
+        uint32 uncertain pairs (not in the sums): bit j of pass p is
         LocalLight ``active[p * LOOKUP_LIGHTS_PER_PASS + j]``. ``active`` (with
         ``to_eye`` only): the LocalLights (indices into ``cubes``) to look up and shade,
         default all (lights that reach none of the points cost nothing when left out;
@@ -320,6 +332,8 @@ class LightPass:
             GL.glTexImage2D(
                 GL.GL_TEXTURE_2D, 0, GL.GL_RGB32F, *size, 0, GL.GL_RGB, GL.GL_FLOAT, texels
             )
+        if shading:  # the surface rows: four RGBA texels a point, rows as the points'
+            self._upload_surface(surface, n, width, rows)
         GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, self._lookup_fb)
         GL.glViewport(0, 0, width, rows)
         GL.glDisable(GL.GL_DEPTH_TEST)
@@ -330,6 +344,9 @@ class LightPass:
         textures = [self._point_tex[0], self._point_tex[1], self._cube_tex, self._point_tex[2]]
         targets += [GL.GL_TEXTURE_2D] * 2 * len(distant)  # units 4 + 2 k (+1): maps
         textures += self._dmap_tex[: 2 * len(distant)]
+        targets += [GL.GL_TEXTURE_2D] * 2  # the next two units: surface rows, albedo table
+        textures += [self._surface_tex, self._lut_tex]
+        surface_unit = len(textures) - 2
         for unit, (target, tex) in enumerate(zip(targets, textures, strict=True)):
             GL.glActiveTexture(GL.GL_TEXTURE0 + unit)
             GL.glBindTexture(target, tex)
@@ -337,23 +354,21 @@ class LightPass:
         # Only the attachments this pass writes are drawn to (llvmpipe stores every
         # drawn attachment of every fragment, written by the shader or not: the codes
         # are 16 of the shading pass's 48 bytes a point).
-        attachments = [GL.GL_COLOR_ATTACHMENT0 + i for i in range(3)]
+        attachments = [GL.GL_COLOR_ATTACHMENT0 + i for i in range(2)]
         if shading:
-            GL.glDrawBuffers(3, [GL.GL_NONE, *attachments[1:]])
+            GL.glDrawBuffers(2, [GL.GL_NONE, attachments[1]])
         else:
-            GL.glDrawBuffers(3, [attachments[0], GL.GL_NONE, GL.GL_NONE])
+            GL.glDrawBuffers(2, [attachments[0], GL.GL_NONE])
         drawn = list(range(n_local)) if active is None or not shading else list(active)
         passes = max(-(-len(drawn) // LOOKUP_LIGHTS_PER_PASS), 1 if distant else 0)
         if shading:
-            # Read back straight into the results (one pass: no sums, no copies): diffuse
-            # and highlight RGBA rows, of which the first n are the points'.
-            diffuse = np.empty((rows * width, 4), dtype=np.float32)
-            highlight = np.empty((rows * width, 4), dtype=np.float32)
+            # Read back straight into the result (one pass: no sums, no copies): direct
+            # light RGBA rows, of which the first n are the points'.
+            direct = np.empty((rows * width, 4), dtype=np.float32)
             bits = np.empty((n, passes), dtype=np.uint32)
             sums = np.empty((rows * width, 4), dtype=np.float32) if passes > 1 else None
             if passes == 0:  # nothing for the GPU to shade (DistantLights in numpy)
-                diffuse[:] = 0.0
-                highlight[:] = 0.0
+                direct[:] = 0.0
         else:
             out = np.zeros((n, n_local), dtype=np.uint8)
             # One byte per light, 16 per texel (see the shader): the readback viewed as
@@ -389,8 +404,10 @@ class LightPass:
             GL.glUniform1f(loc("box_radius"), SHADOW_REFINE_RADIUS + 0.5)
             GL.glUniform1f(loc("slope_clamp"), 1.0 / SHADOW_MIN_COS)
             GL.glUniform1f(loc("min_light_distance"), MIN_LIGHT_DISTANCE)
-            GL.glUniform1f(loc("shininess"), SHININESS)
-            GL.glUniform1f(loc("specular_strength"), SPECULAR_STRENGTH)
+            GL.glUniform1i(loc("surface"), surface_unit)
+            GL.glUniform1i(loc("albedo_lut"), surface_unit + 1)
+            GL.glUniform1f(loc("min_roughness"), preview_surface.MIN_ROUGHNESS)
+            GL.glUniform1f(loc("min_cosine"), preview_surface.MIN_COSINE)
             if n_distant:
                 self._distant_uniforms(distant, loc)
             pos_arr = np.zeros((LOOKUP_LIGHTS_PER_PASS, 3), np.float32)
@@ -419,14 +436,12 @@ class LightPass:
             )
             GL.glDrawArrays(GL.GL_TRIANGLES, 0, 3)
             if shading:
-                for attachment, total in ((1, diffuse), (2, highlight)):
-                    GL.glReadBuffer(GL.GL_COLOR_ATTACHMENT0 + attachment)
-                    into = total if p == 0 else sums
-                    GL.glReadPixels(0, 0, width, rows, GL.GL_RGBA, GL.GL_FLOAT, into)
-                    if attachment == 1:  # channel 3: the pass's uncertain bits
-                        bits[:, p] = into[:n, 3]
-                    if p > 0:
-                        total[:, :3] += sums[:, :3]
+                GL.glReadBuffer(GL.GL_COLOR_ATTACHMENT1)
+                into = direct if p == 0 else sums
+                GL.glReadPixels(0, 0, width, rows, GL.GL_RGBA, GL.GL_FLOAT, into)
+                bits[:, p] = into[:n, 3]  # channel 3: the pass's uncertain bits
+                if p > 0:
+                    direct[:, :3] += sums[:, :3]
             else:
                 GL.glReadBuffer(GL.GL_COLOR_ATTACHMENT0)
                 GL.glReadPixels(0, 0, width, rows, GL.GL_RGBA_INTEGER, GL.GL_UNSIGNED_INT, readback)
@@ -441,8 +456,25 @@ class LightPass:
         GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, 0)
         GL.glEnable(GL.GL_DEPTH_TEST)
         if shading:
-            return diffuse[:n], highlight[:n], bits
+            return direct[:n], bits
         return out
+
+    def _upload_surface(self, surface: np.ndarray | None, n: int, width: int, rows: int):
+        """The points' surface rows (n, SURFACE_COLUMNS) float32 (None: the fallback
+        material of albedo 1) into the RGBA32F texture of ``4 width`` x ``rows`` texels
+        (point k's four texels at (4 (k % width) + i, k / width))."""
+        columns = preview_surface.SURFACE_COLUMNS
+        if surface is None:
+            surface = preview_surface.fallback_surface(np.ones((n, 3)))
+        surface = np.ascontiguousarray(surface, np.float32).reshape(n, columns)
+        if n == width * rows:
+            texels = surface
+        else:
+            texels = np.zeros((max(width * rows, 1), columns), np.float32)
+            texels[:n] = surface
+        GL.glBindTexture(GL.GL_TEXTURE_2D, self._surface_tex)
+        GL.glTexImage2D(GL.GL_TEXTURE_2D, 0, GL.GL_RGBA32F, 4 * max(width, 1), max(rows, 1), 0,
+                        GL.GL_RGBA, GL.GL_FLOAT, texels)  # fmt: skip
 
 
 #: The texel tiles of the cube buffer (``_tiled``): (columns, rows) of a 64-byte cache

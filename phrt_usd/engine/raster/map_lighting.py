@@ -37,7 +37,13 @@ from phrt_usd.engine.raster.shadow_maps import (
     cube_pair_visibility,
     filtered_visibility,
 )
-from phrt_usd.engine.shading import LightPairs, gather_rows, light_ranges, pair_directions
+from phrt_usd.engine.shading import (
+    LightPairs,
+    gather_rows,
+    light_ranges,
+    pair_directions,
+    surface_rows,
+)
 from phrt_usd.model.scene import Lights
 
 
@@ -64,16 +70,17 @@ class LightTerms:
 
     distant_visibility : (n, D) float32 in [0, 1]: DistantLight visibility of the pairs
                          *not* in ``lit_sums`` (0 for the pairs summed there)
-    lit_sums           : diffuse (n, 3) and highlight (n, 3) float32 sums over the
-                         (point, light) pairs the maps decided are lit, shaded on the GPU
-                         (LocalLights and up to LOOKUP_MAX_DISTANT DistantLights)
+    lit_sums           : (n, 4) float32, channels 0-2 the direct light of the (point,
+                         light) pairs the maps decided are lit, shaded on the GPU
+                         with the points' BRDF (LocalLights and up to
+                         LOOKUP_MAX_DISTANT DistantLights)
     local_pairs        : the (point, LocalLight) pairs the maps could not decide, with
                          their visibility from shadow rays or PCF (lit ones only), or
                          None
     """
 
     distant_visibility: np.ndarray
-    lit_sums: tuple[np.ndarray, np.ndarray] | None
+    lit_sums: np.ndarray | None
     local_pairs: LightPairs | None
 
 
@@ -145,7 +152,7 @@ class PendingLightTerms:
     distant_unsure: np.ndarray
     maps: list[tuple[ShadowMap | None, ShadowMap | None]]
     cubes: list[tuple[CubeMap | None, CubeMap | None]]
-    lit_sums: tuple[np.ndarray, np.ndarray] | None
+    lit_sums: np.ndarray | None
     rows: np.ndarray
     local_unsure: np.ndarray
 
@@ -312,7 +319,11 @@ class MapLighting:
         return vis, unsure
 
     def light_terms(
-        self, positions: np.ndarray, normals: np.ndarray, to_eye: np.ndarray
+        self,
+        positions: np.ndarray,
+        normals: np.ndarray,
+        to_eye: np.ndarray,
+        surface: np.ndarray | None = None,
     ) -> PendingLightTerms:
         """The shadow-mapped lighting of points, for ``shading.shade_local``: as
         ``visibility`` (same maps), but the (point, light) pairs the maps decide are
@@ -322,7 +333,10 @@ class MapLighting:
         left to settle. Needs the GPU lookup.
 
         positions : (n, 3) float64 world metres; normals : (n, 3) unit, facing the
-        viewer; to_eye : (n, 3) unit directions from the points to the viewer.
+        viewer; to_eye : (n, 3) unit directions from the points to the viewer; surface :
+        (n, SURFACE_COLUMNS) float32 rows of their UsdPreviewSurface
+        (``model.preview_surface``), or (n, 3) albedo, or None (albedo 1): the fallback
+        material of that colour.
         """
         positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
         normals = np.asarray(normals).reshape(-1, 3)
@@ -363,8 +377,10 @@ class MapLighting:
         centres = np.array([li.position for li in lights.local], np.float64).reshape(-1, 3)
         reaching = _shade().lights_reaching(positions, centres, np.asarray(ranges, np.float64))
         active = np.flatnonzero(reaching)
-        diffuse, highlight, bits = self._light_pass.lookup(
-            positions, normals, cubes, ranges, to_eye, maps, origin=origin, active=active
+        rows_of = surface_rows(np.ones((n, 3), np.float32) if surface is None else surface, n)
+        direct, bits = self._light_pass.lookup(
+            positions, normals, cubes, ranges, to_eye, maps, origin=origin, active=active,
+            surface=rows_of,
         )
         for job in jobs:
             job.result()
@@ -387,7 +403,7 @@ class MapLighting:
             distant_unsure,
             maps,
             cubes,
-            (diffuse, highlight),
+            direct,
             rows,
             local_unsure,
         )

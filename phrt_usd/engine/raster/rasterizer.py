@@ -130,12 +130,14 @@ class Rasterizer:
         return self._lookups.visibility(positions, normals, filtered, self.cube_lookup_on_gpu)
 
     def map_light_terms(
-        self, positions: np.ndarray, normals: np.ndarray, to_eye: np.ndarray
+        self, positions: np.ndarray, normals: np.ndarray, to_eye: np.ndarray, surface=None
     ) -> PendingLightTerms:
-        """Light terms of points with the lit pairs shaded on the GPU, the undecided
-        pairs still open (``MapLighting.light_terms``). Requires ``cube_lookup_on_gpu``."""
+        """Light terms of points with the lit pairs shaded on the GPU with the points'
+        ``surface`` rows (``model.preview_surface``; None: the fallback material of
+        albedo 1), the undecided pairs still open (``MapLighting.light_terms``).
+        Requires ``cube_lookup_on_gpu``."""
         self._check_open()
-        return self._lookups.light_terms(positions, normals, to_eye)
+        return self._lookups.light_terms(positions, normals, to_eye, surface)
 
     def shadow_visibility(
         self, positions: np.ndarray, normals: np.ndarray, refine: ExactTest | None = None
@@ -153,10 +155,11 @@ class Rasterizer:
         normals: np.ndarray,
         to_eye: np.ndarray,
         refine: ExactTest | None = None,
+        surface: np.ndarray | None = None,
     ) -> LightTerms:
         """``map_light_terms`` with the undecided pairs settled as in
         ``shadow_visibility``; to_eye : (n, 3) unit directions to the viewer."""
-        return self._settle(self.map_light_terms(positions, normals, to_eye), refine)
+        return self._settle(self.map_light_terms(positions, normals, to_eye, surface), refine)
 
     def _settle(
         self, pending: MapVisibility | PendingLightTerms, refine: ExactTest | None

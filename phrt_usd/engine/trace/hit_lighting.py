@@ -136,8 +136,10 @@ class HitLighting:
     def _with_maps(self, tri, u, v, rel, ng, ns, d_in, lights, u0, albedo, into, textured):
         """``shade`` with the shadow maps deciding what they can (steps 1-3)."""
         albedo, emissive = self._surfaces.colour(tri, u, v, albedo, textured)
+        surf = self._surfaces.surface(tri, u, v, albedo)
         world = rel + self._bvh.boundary.origin
-        pending = self.maps(world, ns, d_in)
+        with lighting.lookup_surface(surf):  # the GPU pass shades with the hits' BRDF
+            pending = self.maps(world, ns, d_in)
         query = pending.uncertain_pairs()
         rays = np.zeros(len(tri), np.int64)
         if query is None:
@@ -150,7 +152,7 @@ class HitLighting:
                 r_rel, r_ns, lights, query.pairs, offsets=r_ng, u0=r_u0
             )
             settled = pending.resolved(exact)
-        local = lighting.shade_settled(rel, ns, albedo, d_in, emissive, lights, settled)
+        local = lighting.shade_settled(rel, ns, surf, d_in, emissive, lights, settled)
         if into is not None:
             _TRACE.accumulate(*into, local)
         return local, rays, int(rays.sum())
@@ -161,9 +163,10 @@ class HitLighting:
         (``ShadowRays.shade``); safe to run on the pool with ``threads`` = 1 and no
         ``into``."""
         albedo, emissive = self._surfaces.colour(tri, u, v, albedo, textured)
+        surf = self._surfaces.surface(tri, u, v, albedo)
         # The caller updates ``rays_cast`` (a dict ``+=`` from pool threads could race).
         return self._shadows.shade(
-            rel, ng, ns, d_in, albedo, emissive, lights, threads=threads, into=into, u0=u0
+            rel, ng, ns, d_in, surf, emissive, lights, threads=threads, into=into, u0=u0
         )
 
     def _with_rays(self, tri, u, v, rel, ng, ns, d_in, lights, u0, albedo, into, textured):

@@ -23,6 +23,7 @@ from __future__ import annotations
 import numpy as np
 
 from phrt_usd import kernels
+from phrt_usd.engine import shading
 from phrt_usd.engine.trace.bounce_layout import (
     TRI_ALPHA,
     TRI_COLUMNS,
@@ -62,6 +63,9 @@ class HitSurfaces:
         n_tri = len(tri_element)
         self.tri_reflector = is_reflector[tri_element] if n_tri else np.zeros(0, bool)
         self.tri_f = np.where(self.tri_reflector, reflectivity[tri_element], 0.0)
+        #: Per triangle: 1 where the ambient's specular part is shaded (no mirror
+        #: reflection stands in for it), as the G-buffer's (``lighting``).
+        self._specular_ambient = np.where(self.tri_reflector, 0.0, 1.0).astype(np.float32)
         self.transmission = mats.has_transmission
         self.opacity = np.clip(np.asarray(mats.opacity, dtype=np.float64), 0.0, 1.0)
         # A cut-out's opacity is a presence mask: where it is there it is opaque.
@@ -252,6 +256,19 @@ class HitSurfaces:
         else:
             emissive = np.zeros(3, np.float32)
         return albedo, emissive
+
+    def surface(self, tri, u, v, albedo) -> np.ndarray:
+        """(m, SURFACE_COLUMNS) float32 UsdPreviewSurface rows (``model.preview_surface``)
+        of hits on triangles ``tri`` (m,) at barycentrics u, v with their ``albedo``
+        (m, 3) (``colour``'s): the material's inputs, textured ones sampled; the
+        ambient's specular part left to the reflection on reflector triangles (their
+        mirror child carries it, ``shade_kernels.ambient_weight``)."""
+        tri = np.asarray(tri, np.int64)
+        return shading.point_surface(
+            self._scene.materials, self._bvh.tri_material, tri, albedo,
+            self._scene.geometry.corner_uv, lambda: surface.weights_from_uv(u, v),
+            self._specular_ambient[tri],
+        )  # fmt: skip
 
     def snap(self, rel: np.ndarray, tri: np.ndarray, fallback: np.ndarray):
         """Project rel positions (n, 3) (e.g. from a depth buffer) onto the plane of

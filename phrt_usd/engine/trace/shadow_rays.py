@@ -26,6 +26,7 @@ from phrt_usd import kernels
 from phrt_usd.engine import shading
 from phrt_usd.engine.trace.bvh import FAR, Bvh
 from phrt_usd.engine.trace.hit_surfaces import HitSurfaces
+from phrt_usd.model import preview_surface
 from phrt_usd.model.light_sampling import HIT_LIGHT_PICKS
 from phrt_usd.model.scene import Lights
 
@@ -171,15 +172,17 @@ class ShadowRays:
         lit = shading.LightPairs(lit_i[0, :m], lit_i[1, :m], lit_dir[:m], lit_dist[:m], weight)
         return vis, rays, lit if len(lights.local) else None
 
-    def shade(self, rel, offset_normals, shading_normals, view_dirs, albedo, emissive,
+    def shade(self, rel, offset_normals, shading_normals, view_dirs, surface, emissive,
               lights: Lights, threads=None, into=None, u0=None):  # fmt: skip
         """``shading.shade_local`` of rel points ``rel`` (n, 3) float64 with the
         visibility and lit LocalLight pairs of ``cast`` (every pair wanted), in one
         compiled call after Embree's (``trace_kernels.shadow_shade``: the same kernel
         code without the Python between them; the compiler may round differently, the
         farm and sewer rounds agree within 1e-6): offset_normals (n, 3) float64,
-        shading_normals, view_dirs and albedo (n, 3) float32 C-contiguous (the bounce
-        loop's gathered rows), emissive (n, 3) or (3,) float32. ``into``: (total (P, 3)
+        shading_normals and view_dirs (n, 3) float32 C-contiguous (the bounce loop's
+        gathered rows), surface (n, 16) float32 rows (``model.preview_surface``; an
+        (n, 3) albedo: the fallback material of that colour),
+        emissive (n, 3) or (3,) float32. ``into``: (total (P, 3)
         float64, slot (n,) int64, weight (n,) float64) to add weight times the radiance
         to total[slot] in the same call (``trace_kernels.accumulate``), or None. Returns
         (n, 3) float32 radiance, (n,) int64 shadow rays cast per point and their sum.
@@ -196,10 +199,11 @@ class ShadowRays:
         f32 = np.float32
         _TRACE.shadow_shade(
             ray_i, ray_v, ray_f, occluded, np.ascontiguousarray(rel, np.float64),
-            np.ascontiguousarray(shading_normals, f32), np.ascontiguousarray(albedo, f32),
+            np.ascontiguousarray(shading_normals, f32), shading.surface_rows(surface, n),
             np.ascontiguousarray(view_dirs, f32),
-            np.ascontiguousarray(emissive, f32).reshape(-1, 3), *table, shading.MODEL, out,
-            rays, *(_NO_TOTAL if into is None else into),
+            np.ascontiguousarray(emissive, f32).reshape(-1, 3), *table, shading.MODEL,
+            preview_surface.specular_albedo_table(), out, rays,
+            *(_NO_TOTAL if into is None else into),
         )  # fmt: skip
         return out, rays, len(occluded)
 

@@ -615,7 +615,9 @@ def warm_up() -> None:
         hit_distances(*answer, v32, frame, f32.copy())
     light = (np.zeros(3), np.array([[0.0, 1.0, 0.0]]), np.ones((1, 3)), np.zeros((0, 3)),
              np.zeros((0, 3)), np.zeros(0), np.zeros((0, 7)))  # fmt: skip
-    shadow_shade(*shadow, b, v64, v32, v32, v32, v32, *light, np.zeros(4),
+    surface = np.zeros((1, 16), np.float32)
+    lut = np.zeros((2, 3, 2), np.float32)
+    shadow_shade(*shadow, b, v64, v32, surface, v32, v32, *light, np.zeros(4), lut,
                  v32.copy(), i64.copy(), np.zeros((1, 3)), i64, f64)  # fmt: skip
 
 
@@ -718,8 +720,8 @@ def shadow_results(rays_i, rays_v, rays_f, occluded, n_distant, vis, rays, lit_i
 
 @njit(**_KERNEL)
 def shadow_shade(
-    rays_i, rays_v, rays_f, occluded, positions, normals, albedo, view_dirs, emissive,
-    ambient, d_dir, d_radiance, l_pos, l_radiance, l_range, l_cone, model, out, rays,
+    rays_i, rays_v, rays_f, occluded, positions, normals, surface, view_dirs, emissive,
+    ambient, d_dir, d_radiance, l_pos, l_radiance, l_range, l_cone, model, lut, out, rays,
     total, slot, weight,
 ):  # fmt: skip
     """``shadow_results`` of Embree's ``occluded`` (k,) bool on the k rays of
@@ -727,11 +729,12 @@ def shadow_shade(
     points with that visibility and those lit LocalLight pairs, weighted
     (``shade_kernels.shade_kernel``, as ``shading.shade_local`` calls it with
     ``local_pairs``): one call instead of two and the Python between them, the same
-    code (to float32 rounding). positions (n, 3) float64 rel; normals, albedo, view_dirs
-    (n, 3) float32; emissive (1 or n, 3) float32; the lights as ``shading.LightTable``
-    (distant then local); model ``shading.MODEL``. Writes out (n, 3) float32, the
-    shadow rays per point into rays (n,) int64, and when ``total`` (P, 3) float64 has
-    rows adds weight (n,) float64 times out into its rows slot (n,) int64."""
+    code (to float32 rounding). positions (n, 3) float64 rel; normals, view_dirs (n, 3)
+    float32; surface (n, 16) float32 (``model.preview_surface`` rows); emissive (1 or
+    n, 3) float32; the lights as ``shading.LightTable`` (distant then local); model
+    ``shading.MODEL``, lut ``preview_surface.specular_albedo_table``. Writes out (n, 3)
+    float32, the shadow rays per point into rays (n,) int64, and when ``total`` (P, 3)
+    float64 has rows adds weight (n,) float64 times out into its rows slot (n,) int64."""
     n, k = positions.shape[0], occluded.shape[0]
     n_distant = d_dir.shape[0]
     vis = np.empty((n, n_distant + l_pos.shape[0]), np.float32)
@@ -741,9 +744,10 @@ def shadow_shade(
                        lit_dist, lit_w)  # fmt: skip
     no_sums = np.empty((0, 3), np.float32)
     shade_kernel(
-        positions, normals, albedo, view_dirs, emissive, ambient, no_sums, no_sums, d_dir,
+        positions, normals, surface, view_dirs, emissive, ambient, no_sums, d_dir,
         d_radiance, vis, l_pos, l_radiance, l_range, l_cone, False,
-        lit_i[0, :m], lit_i[1, :m], lit_dir[:m], lit_dist[:m], lit_w[:m], True, model, out,
+        lit_i[0, :m], lit_i[1, :m], lit_dir[:m], lit_dist[:m], lit_w[:m], True, model, lut,
+        out,
     )  # fmt: skip
     if total.shape[0] > 0:
         accumulate(total, slot, weight, out)

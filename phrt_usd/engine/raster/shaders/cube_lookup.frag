@@ -11,8 +11,7 @@
 //   N_LIGHTS     LocalLights in this pass, 0..16
 //   N_DISTANT    DistantLights in this pass (with SHADE, first pass only), 0..2
 //   HAS_DYNAMIC  1 when the scene has animated casters (a second cube per light)
-//   SHADE        1 to also shade the lit pairs (diffuse / highlight outputs)
-//   SQUARINGS    log2(shading.SHININESS) when that is an integer, else -1 (pow)
+//   SHADE        1 to also shade the lit pairs (the direct output)
 //   CUBE_SIZE    texels per cube face side (shadow_maps.CUBE_MAP_SIZE)
 //   TAN_HALF     tangent of a cube face's half field of view (its guard band)
 //   LINE_W, LINE_H, PAGE_W, PAGE_H  (columns, rows) of the cube buffer's tiles, unsigned
@@ -33,15 +32,19 @@
 //             neighbourhood; face f of a cube whose first face is F at
 //             (F + f) * CUBE_SIZE², its texels in tiles (light_pass._tiled, cube_test)
 //   to_eye  : RGB32F, (x, y, z) unit direction from the point to the viewer, same layout
+//   surface : RGBA32F, the point's UsdPreviewSurface row (model/preview_surface.py, 16
+//             floats) as the four texels (4 (k % width) + i, k / width), i = 0..3
+//   albedo_lut : RG32F, (A, B) of preview_surface.specular_albedo_table: texel (j, i) its
+//             row i (roughness), column j (n.v; the last column the row's means)
 //   dmap_s<k>, dmap_d<k> : RG32F, (min, max) caster depth over the texel neighbourhood
 //             of DistantLight k's static / animated orthographic map (as
 //             shadow_maps.ShadowMap; the test of shadow_maps.filtered_visibility)
 // Output code per light: 1 lit, 0 shadowed / out of range / facing away, 2 uncertain.
-// Also the local shading of the lit pairs (shade_kernels.shade_kernel's model, keep in step):
-//   diffuse   : rgb = sum over lit lights of radiance * n.l * window / d^2 (DistantLights:
-//               radiance * n.l), a = bit j set where LocalLight j is uncertain, bit
+// Also the local shading of the lit pairs (shade_kernels.shade_kernel's model and its
+// BRDF, shade_kernels.brdf_cos: keep in step, tests/engine/test_preview_surface.py):
+//   direct    : rgb = sum over lit lights of radiance * window / d^2 (DistantLights:
+//               radiance) * brdf_cos, a = bit j set where LocalLight j is uncertain, bit
 //               16 + k where DistantLight k is (exact in float up to 2^24)
-//   highlight : rgb = the same sums times the Blinn-Phong highlight
 
 uniform sampler2D points;
 uniform sampler2D normals;
@@ -59,8 +62,10 @@ uniform float slope_clamp;      // 1 / SHADOW_MIN_COS
 uniform sampler2D to_eye;
 uniform vec3 light_radiance[16];     // linear RGB
 uniform float min_light_distance;    // shading.MIN_LIGHT_DISTANCE
-uniform float shininess;             // shading.SHININESS
-uniform float specular_strength;     // shading.SPECULAR_STRENGTH
+uniform sampler2D surface;
+uniform sampler2D albedo_lut;
+uniform float min_roughness;         // preview_surface.MIN_ROUGHNESS
+uniform float min_cosine;            // preview_surface.MIN_COSINE
 
 #if N_DISTANT > 0
 uniform vec3 distant_dir[N_DISTANT];       // unit, towards the light
@@ -83,8 +88,7 @@ uniform sampler2D dmap_d1;
 #endif
 
 layout(location = 0) out uvec4 codes;
-layout(location = 1) out vec4 diffuse;
-layout(location = 2) out vec4 highlight;
+layout(location = 1) out vec4 direct;
 
 // One cube (first face ``first``, -1 = none): 1 lit, 0 shadowed, -1 uncertain. Only
 // ``wanted`` pairs read their texel; the others (masked lanes, which llvmpipe runs all
@@ -160,20 +164,117 @@ uint code(float r)
     return r > 0.5 ? 1u : (r < -0.5 ? 2u : 0u);
 }
 
-// Blinn-Phong highlight for unit normal n, direction to the eye e and to the light l.
-float highlight_of(vec3 n, vec3 e, vec3 l)
+#if SHADE
+const float PI = 3.14159265358979;
+
+// (A, B) of the albedo table at roughness r and cosine mu, bilinear between its nodes
+// (shade_kernels.lut_albedo).
+vec2 lut_albedo(float r, float mu)
 {
-    vec3 h = l + e;
-    float x = max(dot(n, h) * inversesqrt(max(dot(h, h), 1e-24)), 0.0);
-#if SQUARINGS >= 0
-    for (int i = 0; i < SQUARINGS; ++i) {  // x^(2^k) as k squarings, as shading does
-        x *= x;
-    }
-#else
-    x = pow(x, shininess);
-#endif
-    return specular_strength * x;
+    ivec2 size = textureSize(albedo_lut, 0);
+    int n_c = size.x - 1;
+    int n_r = size.y;
+    float x = clamp(mu, 0.0, 1.0) * float(n_c - 1);
+    float y = clamp(r, 0.0, 1.0) * float(n_r - 1);
+    int x0 = min(int(x), n_c - 2);
+    int y0 = min(int(y), n_r - 2);
+    float fx = x - float(x0);
+    float fy = y - float(y0);
+    vec2 top = mix(texelFetch(albedo_lut, ivec2(x0, y0), 0).rg,
+                   texelFetch(albedo_lut, ivec2(x0 + 1, y0), 0).rg, fx);
+    vec2 bottom = mix(texelFetch(albedo_lut, ivec2(x0, y0 + 1), 0).rg,
+                      texelFetch(albedo_lut, ivec2(x0 + 1, y0 + 1), 0).rg, fx);
+    return mix(top, bottom, fy);
 }
+
+// The table's cosine-weighted means at roughness r (shade_kernels.lut_mean).
+vec2 lut_mean(float r)
+{
+    ivec2 size = textureSize(albedo_lut, 0);
+    int c = size.x - 1;
+    float y = clamp(r, 0.0, 1.0) * float(size.y - 1);
+    int y0 = min(int(y), size.y - 2);
+    return mix(texelFetch(albedo_lut, ivec2(c, y0), 0).rg,
+               texelFetch(albedo_lut, ivec2(c, y0 + 1), 0).rg, y - float(y0));
+}
+
+// GGX D times the height-correlated Smith V (shade_kernels.ggx_dv).
+float ggx_dv(float alpha, float nl, float nv, float nh)
+{
+    float a2 = alpha * alpha;
+    float d = nh * nh * (a2 - 1.0) + 1.0;
+    float v = nl * sqrt(nv * nv * (1.0 - a2) + a2) + nv * sqrt(nl * nl * (1.0 - a2) + a2);
+    return a2 / (PI * d * d) * 0.5 / max(v, 1e-30);
+}
+
+// A point's surface row (model/preview_surface.py columns) and what the BRDF reads of
+// it at n.v (shade_kernels.point_terms).
+struct Surface {
+    vec3 diffuse;
+    vec3 f0;
+    vec3 f90;
+    float rough;       // at least min_roughness
+    float coat;
+    float coat_rough;  // at least min_roughness
+    float coat_f0;
+    vec2 ab_v;         // the base lobe's (A, B) at n.v
+    vec2 ab_mean;
+    vec2 coat_ab_v;
+};
+
+Surface surface_at(ivec2 xy, float nv)
+{
+    vec4 s0 = texelFetch(surface, ivec2(4 * xy.x, xy.y), 0);
+    vec4 s1 = texelFetch(surface, ivec2(4 * xy.x + 1, xy.y), 0);
+    vec4 s2 = texelFetch(surface, ivec2(4 * xy.x + 2, xy.y), 0);
+    vec4 s3 = texelFetch(surface, ivec2(4 * xy.x + 3, xy.y), 0);
+    Surface s;
+    s.diffuse = s0.xyz;
+    s.f0 = vec3(s0.w, s1.xy);
+    s.f90 = vec3(s1.zw, s2.x);
+    s.rough = max(s2.y, min_roughness);
+    s.coat = s2.z;
+    s.coat_rough = max(s2.w, min_roughness);
+    s.coat_f0 = s3.x;
+    s.ab_v = lut_albedo(s.rough, nv);
+    s.ab_mean = lut_mean(s.rough);
+    s.coat_ab_v = s.coat > 0.0 ? lut_albedo(s.coat_rough, nv) : vec2(0.0);
+    return s;
+}
+
+// pi f(l, v) n.l (RGB) of the point's UsdPreviewSurface BRDF (shade_kernels.brdf_cos):
+// unit normal n, direction to the eye e (n.e = nv, clamped), to the light l.
+vec3 brdf_cos(Surface s, vec3 n, vec3 e, vec3 l, float nv)
+{
+    float nl = dot(n, l);
+    if (!(nl > 0.0)) {
+        return vec3(0.0);
+    }
+    vec3 h = l + e;
+    float len = length(h);
+    h = len > 1e-12 ? h / len : n;
+    float nh = max(dot(n, h), 0.0);
+    float vh = clamp(dot(e, h), 0.0, 1.0);
+    float s5 = pow(1.0 - vh, 5.0);
+    float dv = ggx_dv(s.rough * s.rough, nl, nv, nh);
+    vec2 ab_l = lut_albedo(s.rough, nl);
+    float coat = 0.0;
+    float t = 1.0;
+    if (s.coat > 0.0) {
+        coat = s.coat * (s.coat_f0 + (1.0 - s.coat_f0) * s5)
+            * ggx_dv(s.coat_rough * s.coat_rough, nl, nv, nh);
+        vec2 coat_l = lut_albedo(s.coat_rough, nl);
+        t = (1.0 - s.coat * min(s.coat_f0 * s.coat_ab_v.x + s.coat_ab_v.y, 1.0))
+            * (1.0 - s.coat * min(s.coat_f0 * coat_l.x + coat_l.y, 1.0));
+    }
+    vec3 ev = min(s.f0 * s.ab_v.x + s.f90 * s.ab_v.y, vec3(1.0));
+    vec3 el = min(s.f0 * ab_l.x + s.f90 * ab_l.y, vec3(1.0));
+    vec3 mean = min(s.f0 * s.ab_mean.x + s.f90 * s.ab_mean.y, vec3(1.0));
+    vec3 diffuse = s.diffuse * (1.0 - ev) * (1.0 - el) / max(1.0 - mean, vec3(1e-4));
+    vec3 spec = (s.f0 + (s.f90 - s.f0) * s5) * dv;
+    return ((coat + t * spec) * PI + t * diffuse) * nl;
+}
+#endif
 
 #if N_DISTANT > 0
 // One orthographic map m: 1 lit, 0 shadowed, -1 uncertain (shadow_maps.filtered_visibility:
@@ -202,8 +303,8 @@ float map_test(sampler2D tex, int m, vec3 p, vec3 n)
 }
 
 // DistantLight k through both its maps: lit pairs are shaded, uncertain ones flagged.
-void distant(int k, float vs, float vd, vec3 n, vec3 e,
-             inout vec3 d_sum, inout vec3 h_sum, inout float unsure)
+void distant(int k, float vs, float vd, Surface s, vec3 n, vec3 e, float nv,
+             inout vec3 d_sum, inout float unsure)
 {
     if (vs == 0.0 || vd == 0.0) {
         return;
@@ -212,16 +313,14 @@ void distant(int k, float vs, float vd, vec3 n, vec3 e,
         unsure += float(1 << (16 + k));
         return;
     }
-    vec3 l = distant_dir[k];
-    float lit = max(dot(n, l), 0.0);
-    d_sum += distant_radiance[k] * lit;
-    h_sum += distant_radiance[k] * (lit * highlight_of(n, e, l));
+    d_sum += distant_radiance[k] * brdf_cos(s, n, e, distant_dir[k], nv);
 }
 #endif
 
+#if SHADE
 // Adds light j's contribution at a point it lights (the shadow test said lit); v and d2
 // as in lookup (shared: the compiler would not match light - p with p - light).
-void shade(int j, vec3 v, float d2, vec3 n, vec3 e, inout vec3 d_sum, inout vec3 h_sum)
+void shade(int j, vec3 v, float d2, Surface s, vec3 n, vec3 e, float nv, inout vec3 d_sum)
 {
     float r2 = light_range[j] * light_range[j];
     float dist2 = max(d2, min_light_distance * min_light_distance);
@@ -229,10 +328,10 @@ void shade(int j, vec3 v, float d2, vec3 n, vec3 e, inout vec3 d_sum, inout vec3
     vec3 l = -v * inv_d;
     float q = dist2 / r2;
     float window = clamp(1.0 - q * q, 0.0, 1.0);
-    float lit = max(dot(n, l), 0.0) * window * window * (inv_d * inv_d);
-    d_sum += light_radiance[j] * lit;
-    h_sum += light_radiance[j] * (lit * highlight_of(n, e, l));
+    float e_light = window * window * (inv_d * inv_d);
+    d_sum += light_radiance[j] * (e_light * brdf_cos(s, n, e, l, nv));
 }
+#endif
 
 void main()
 {
@@ -243,24 +342,25 @@ void main()
         result[j] = 0.0;
     }
     vec3 d_sum = vec3(0.0);
-    vec3 h_sum = vec3(0.0);
     float unsure = 0.0;
     if (k < n_points) {
         vec3 p = texelFetch(points, xy, 0).xyz;
         vec3 n = texelFetch(normals, xy, 0).xyz;
 #if SHADE
         vec3 e = texelFetch(to_eye, xy, 0).xyz;
+        float nv = max(dot(n, e), min_cosine);
+        Surface s = surface_at(xy, nv);
 #endif
 #if N_DISTANT > 0
         if (dot(n, distant_dir[0]) > 0.0) {  // facing away: no light, nothing to decide
-            distant(0, map_test(dmap_s0, 0, p, n), map_test(dmap_d0, 1, p, n), n, e,
-                    d_sum, h_sum, unsure);
+            distant(0, map_test(dmap_s0, 0, p, n), map_test(dmap_d0, 1, p, n), s, n, e, nv,
+                    d_sum, unsure);
         }
 #endif
 #if N_DISTANT > 1
         if (dot(n, distant_dir[1]) > 0.0) {
-            distant(1, map_test(dmap_s1, 2, p, n), map_test(dmap_d1, 3, p, n), n, e,
-                    d_sum, h_sum, unsure);
+            distant(1, map_test(dmap_s1, 2, p, n), map_test(dmap_d1, 3, p, n), s, n, e, nv,
+                    d_sum, unsure);
         }
 #endif
 #if SHADE && N_LIGHTS > 0
@@ -294,7 +394,7 @@ void main()
             int j = findLSB(lit) & 15;
             lit &= lit - 1u;
             vec3 v = p - light_pos[j];
-            shade(j, v, dot(v, v), n, e, d_sum, h_sum);
+            shade(j, v, dot(v, v), s, n, e, nv, d_sum);
         }
 #elif !SHADE
         // Constant trip count: the compiler unrolls it, so every index of ``result``
@@ -307,8 +407,7 @@ void main()
 #endif
     }
 #if SHADE
-    diffuse = vec4(d_sum, unsure);
-    highlight = vec4(h_sum, 0.0);
+    direct = vec4(d_sum, unsure);
 #else
     uint word[4];
     for (int c = 0; c < 4; ++c) {
