@@ -25,6 +25,11 @@ from phrt_usd.usd import meshes
 from phrt_usd.usd.materials import MaterialBank, face_materials
 from phrt_usd.usd.values import safe_normalize
 
+#: Triangles resolved in one pass: the pass's temporaries (a few hundred bytes a
+#: triangle) stay near 100 MB however large the stage, few enough passes that their
+#: per-pass cost does not count (a 1.4 M-triangle stage: 6).
+RESOLVE_CHUNK_TRIANGLES = 1 << 18
+
 #: Interpolations by the index a corner's value is found at (``meshes._expand``).
 _BY_INDEX = {"constant": 0, "uniform": 1, "vertex": 2, "varying": 2, "faceVarying": 3}
 
@@ -52,6 +57,7 @@ class _Source:
     colour: _Primvar | None
     uv: _Primvar | None
     textured: bool  # a drawn face's material needs texture coordinates
+    triangles: int  # at most this many (faces of 3 or more vertices, holes included)
 
 
 class PendingMesh:
@@ -108,23 +114,37 @@ class MeshBatch:
                 values = np.nan_to_num(pv[0].reshape(len(pv[0]), -1)[:, :2])
                 uv = _Primvar(values, pv[1], f"{prim.GetPath()}.primvars:{name}")
         self._sources.append(
-            _Source(points, counts, indices, holes, left, face_mat, normals, colour, uv, textured)
-        )
+            _Source(points, counts, indices, holes, left, face_mat, normals, colour, uv,
+                    textured, int(np.maximum(counts - 2, 0).sum()))
+        )  # fmt: skip
         return PendingMesh(self, len(self._sources) - 1)
 
     # ---- resolve --------------------------------------------------------------------
 
     def resolve(self) -> list[meshes.LocalMesh]:
-        """The ``LocalMesh`` of every mesh added, in order (module doc). Raises
-        ``PhrtError`` for a primvar with too few values or an unknown interpolation."""
-        sources = self._sources
-        if not sources:
-            return self.meshes
+        """The ``LocalMesh`` of every mesh added, in order (module doc), made
+        ``RESOLVE_CHUNK_TRIANGLES`` triangles at a time. Raises ``PhrtError`` for a
+        primvar with too few values or an unknown interpolation."""
+        chunk: list[_Source] = []
+        size = 0
+        for source in self._sources:
+            if chunk and size + source.triangles > RESOLVE_CHUNK_TRIANGLES:
+                self.meshes += self._resolve(chunk)
+                chunk, size = [], 0
+            chunk.append(source)
+            size += source.triangles
+        if chunk:
+            self.meshes += self._resolve(chunk)
+        self._sources = []  # the LocalMeshes hold what is still needed
+        return self.meshes
+
+    def _resolve(self, sources: list[_Source]) -> list[meshes.LocalMesh]:
+        """The ``LocalMesh`` of each of ``sources``, in one pass over their faces."""
         layout = _Layout(sources)
-        normals = self._normals(layout)
-        colour = layout.expand([s.colour for s in sources])
-        albedo = self._albedo(layout, colour)
+        normals = self._normals(sources, layout)
+        albedo = self._albedo(sources, layout)
         uv = layout.expand([s.uv for s in sources], zeros_for=[s.textured for s in sources])
+        uv = None if uv is None else uv.astype(np.float32)
         out = []
         for m, source in enumerate(sources):
             rows = layout.rows(m)
@@ -135,47 +155,44 @@ class MeshBatch:
                     corner_normals=normals[rows],
                     corner_albedo=albedo[rows],
                     tri_material=layout.tri_material[rows],
-                    corner_uv=uv[rows].astype(np.float32) if source.textured else None,
+                    corner_uv=uv[rows] if source.textured else None,
                     smooth=source.normals is None,
                 )
             )
-        self.meshes = out
-        self._sources = []  # the LocalMeshes hold what is still needed
         return out
 
-    def _normals(self, layout: _Layout) -> np.ndarray:
+    @staticmethod
+    def _normals(sources: list[_Source], layout: _Layout) -> np.ndarray:
         """(T, 3, 3) float64 corner normals: the authored ones expanded and normalised,
         smooth ones (area-weighted, ``meshes.smooth_corner_normals``) for the rest."""
-        sources = self._sources
-        authored = layout.expand([s.normals for s in sources])
-        out = safe_normalize(authored) if authored is not None else None
         smooth = np.array([s.normals is None for s in sources])
-        if not smooth.any():
-            return out
-        if out is None:
-            out = np.empty((layout.count, 3, 3))
-        rows = layout.rows_of(smooth)
-        if len(rows) == 0:
-            return out
-        tri = layout.local_triangles[rows] + layout.point_offset[layout.tri_mesh[rows]][:, None]
         points = sources[0].points if len(sources) == 1 else np.concatenate(
             [s.points for s in sources]
         )
-        out[rows] = meshes.smooth_corner_normals(points, tri)
+        if smooth.all():  # every row: no gather, no copy
+            tri = layout.local_triangles + layout.point_offset[layout.tri_mesh][:, None]
+            return meshes.smooth_corner_normals(points, tri)
+        out = safe_normalize(layout.expand([s.normals for s in sources]))
+        if smooth.any():
+            rows = layout.rows_of(smooth)
+            tri = layout.local_triangles[rows] + layout.point_offset[layout.tri_mesh[rows]][:, None]
+            out[rows] = meshes.smooth_corner_normals(points, tri)  # ids into all points
         return out
 
-    def _albedo(self, layout: _Layout, colour: np.ndarray | None) -> np.ndarray:
+    def _albedo(self, sources: list[_Source], layout: _Layout) -> np.ndarray:
         """(T, 3, 3) float32 corner albedo (``meshes._albedo`` of every mesh at once)."""
         diffuse, authored = meshes.albedo_rows(self.bank)
         tri_material = layout.tri_material
         base = diffuse[tri_material]  # (T, 3)
-        has_colour = np.array([s.colour is not None for s in self._sources])[layout.tri_mesh]
+        has_colour = np.array([s.colour is not None for s in sources])[layout.tri_mesh]
         base[(~has_colour) & (tri_material == 0)] = meshes.DEFAULT_GREY
-        out = np.repeat(base[:, None, :], 3, axis=1)
-        if colour is not None:
+        out = np.empty((layout.count, 3, 3), np.float32)
+        out[:] = base[:, None, :]
+        if has_colour.any():
+            colour = layout.expand([s.colour for s in sources])
             take = has_colour & ~authored[tri_material]
             out[take] = colour[take]
-        return out.astype(np.float32)
+        return out
 
 
 def _drawn_materials(face_mat: np.ndarray, counts: np.ndarray, holes: np.ndarray) -> list[int]:

@@ -180,20 +180,30 @@ class LocalMesh:
     smooth: bool = False  # normals are smooth_corner_normals(points): redo on deformation
 
 
+#: Triangles whose corner positions are gathered at once by ``smooth_corner_normals``:
+#: its temporaries stay a few MB whatever the mesh's size.
+SMOOTH_CHUNK_TRIANGLES = 1 << 16
+
+
 def smooth_corner_normals(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     """Area-weighted smooth vertex normals, gathered to corners: (T, 3, 3) float64."""
-    p = points[triangles]
-    face = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])  # length = 2 * area
+    face = np.empty((len(triangles), 3))  # e1 x e2, length = 2 * area
+    for start in range(0, len(triangles), SMOOTH_CHUNK_TRIANGLES):
+        rows = slice(start, start + SMOOTH_CHUNK_TRIANGLES)
+        p = points[triangles[rows]]
+        face[rows] = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
     acc = np.zeros_like(points)
     for c in range(3):
         for axis in range(3):
             acc[:, axis] += np.bincount(triangles[:, c], face[:, axis], minlength=len(points))
-    vertex = safe_normalize(acc)
-    corner = vertex[triangles]
+    corner = safe_normalize(acc)[triangles]
     # Vertices whose incident faces cancel (or have zero area) take their face normal.
-    face_n = safe_normalize(face)[:, None, :]
-    bad = np.linalg.norm(acc, axis=1)[triangles] <= MIN_NORMAL_LENGTH
-    return np.where(bad[..., None], face_n, corner)
+    bad = (np.linalg.norm(acc, axis=1) <= MIN_NORMAL_LENGTH)[triangles]
+    if bad.any():
+        rows = np.flatnonzero(bad.any(axis=1))
+        face_n = safe_normalize(face[rows])[:, None, :]
+        corner[rows] = np.where(bad[rows][..., None], face_n, corner[rows])
+    return corner
 
 
 def _points_problems(points: np.ndarray, where: str) -> list[str]:

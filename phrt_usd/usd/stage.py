@@ -91,6 +91,7 @@ from phrt_usd.usd.meshes import (
     local_shape_fn,
     smooth_corner_normals,
 )
+from phrt_usd.usd.placement import place_parts
 from phrt_usd.usd.render_settings import camera_settings, included_purposes
 from phrt_usd.usd.skinning import SkinningReader
 from phrt_usd.usd.stage_camera import (  # noqa: F401 (camera_check_times: re-export)
@@ -461,7 +462,7 @@ class StageScene:
                     p.mesh = dataclasses.replace(p.mesh)
         self.light_warnings = light_warnings
         self.warnings += light_warnings
-        self._parts = parts
+        # Only what moves keeps its local mesh: the others are placed once (_assemble).
         self._animated = [p for p in parts if p.animated]
         self.subdivided_meshes: list[str] = list(subdivided)
         #: Textures that could not be read (``materials.MaterialBank.texture_problems``,
@@ -483,43 +484,26 @@ class StageScene:
         self._assemble(parts, elements, bank, lights, ctx)
 
     def _assemble(self, parts, elements, bank, lights, ctx) -> None:
-        """Allocate the world-space batch and fill it at ``ctx``."""
+        """Allocate the world-space batch and fill it at ``ctx`` (``placement.place_parts``
+        for the parts that do not deform, ``_place`` for those that do)."""
         v = t = 0
         for p in parts:
             p.v0, p.t0 = v, t
             v += len(p.mesh.points)
             t += len(p.mesh.triangles)
         any_uv = any(p.mesh.corner_uv is not None for p in parts)
-        tri_element = np.zeros(t, np.int32)
-        triangles = np.zeros((t, 3), np.int64)
-        for p in parts:
-            sl = slice(p.t0, p.t0 + len(p.mesh.triangles))
-            tri_element[sl] = p.element
-            triangles[sl] = p.mesh.triangles + p.v0
-
-        def cat(arrays, shape, dtype):
-            return np.concatenate(arrays).astype(dtype) if arrays else np.zeros(shape, dtype)
-
+        counts = [len(p.mesh.triangles) for p in parts]
         geometry = Geometry(
             vertices=np.zeros((v, 3)),
-            triangles=triangles,
-            tri_element=tri_element,
-            tri_material=cat([p.mesh.tri_material for p in parts], (0,), np.int32),
+            triangles=np.zeros((t, 3), np.int64),
+            tri_element=np.repeat(np.array([p.element for p in parts], np.int32), counts),
+            tri_material=np.concatenate([p.mesh.tri_material for p in parts]).astype(np.int32)
+            if parts
+            else np.zeros(0, np.int32),
             corner_normals=np.zeros((t, 3, 3), np.float32),
-            corner_albedo=cat([p.mesh.corner_albedo for p in parts], (0, 3, 3), np.float32),
-            corner_uv=None,
+            corner_albedo=np.zeros((t, 3, 3), np.float32),
+            corner_uv=np.zeros((t, 3, 2), np.float32) if any_uv else None,
         )
-        if any_uv:
-            geometry.corner_uv = cat(
-                [
-                    p.mesh.corner_uv
-                    if p.mesh.corner_uv is not None
-                    else np.zeros((len(p.mesh.triangles), 3, 2), np.float32)
-                    for p in parts
-                ],
-                (0, 3, 2),
-                np.float32,
-            )
         self.scene = Scene(
             elements=elements,
             geometry=geometry,
@@ -529,8 +513,11 @@ class StageScene:
             meters_per_unit=self.meters_per_unit,
             up_axis=self.up_axis,
         )
+        rigid = [p for p in parts if p.shape_at is None]
+        place_parts(rigid, ctx, geometry, elements, self.meters_per_unit)
         for p in parts:
-            self._place(p, ctx, force=True)
+            if p.shape_at is not None:
+                self._place(p, ctx, force=True)
         if v:
             self.scene.origin = 0.5 * (
                 geometry.vertices.min(axis=0) + geometry.vertices.max(axis=0)
