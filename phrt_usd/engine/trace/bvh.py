@@ -263,13 +263,15 @@ class Bvh:
         static_map = GLOBAL_IDS if every_static else np.append(static_ids, NO_HIT)
         self._maps = (static_map, np.append(self._dynamic_ids, NO_HIT))
         rel = self.boundary.relative(self._vertices)
+        static_triangles = self._triangles if every_static else self._triangles[static_ids]
         self.static = self._new_bvh(
             np.ascontiguousarray(rel, dtype=np.float32),
-            np.ascontiguousarray(self._triangles[static_ids], dtype=np.int32),
+            np.ascontiguousarray(static_triangles, dtype=np.int32),
         )
+        del static_triangles
         # Bounds of everything that never moves between full builds (vertices of no
         # animated triangle), for the offset epsilon's scene extent.
-        still = rel[~self._vertex_animated]
+        still = rel if every_static else rel[~self._vertex_animated]
         self._static_bounds = (still.min(axis=0), still.max(axis=0)) if len(still) else None
         self.dynamic = None
         self._rebuild_animated()
