@@ -54,6 +54,7 @@ from phrt_usd.select.policies import make_policy
 from phrt_usd.select.rounds import Calibration, FrameRounds, run_rounds
 from phrt_usd.threads import apply_threads
 from phrt_usd.usd.default_lights import aim_headlight
+from phrt_usd.usd.schema import mark_material_reflections
 from phrt_usd.usd.stage import StageScene
 
 #: With ``--target-fps``, a frame's trace budget T leaves this share of the frame period
@@ -129,7 +130,10 @@ class FrameRenderer:
         self.options = options
         scene = stage_scene.scene
         self._reflector_ids = scene.reflector_ids
-        self._element_f = element_reflectivity(scene)  # F per element: fixed for a run
+        # Reflectors without an authored phrt:reflectivity follow their material
+        # (engine/compositing.py), in the raster, the traced hits and the composite.
+        mark_material_reflections(stage_scene.stage, scene.elements)
+        self._element_f = element_reflectivity(scene)  # the rule per element: fixed for a run
         self._rasterizer = None
         self._tracer = None
         #: The OpenGL platform the raster phase runs on (None: no raster phase). In ``rt``

@@ -288,3 +288,25 @@ def textured_input_rows(materials, constant, tri, weights, tri_material, corner_
             value = np.clip(value, 0.0, 1.0)
         out[:, at : at + k] = value[:, :k]
     return np.ascontiguousarray(np.nan_to_num(out), np.float32)
+
+
+def mean_reflection(surface: np.ndarray) -> np.ndarray:
+    """(n, 3) float64: the mirror reflection's weight (``shade_kernels.
+    reflection_weight``) of surface rows (n, SURFACE_COLUMNS) averaged over the
+    hemisphere of view directions (cosine-weighted): the clear coat's mean albedo plus
+    the base's under it, from the albedo table's means. What a view-independent weight
+    of the reflection can be (the tracer's deeper bounces)."""
+    s = np.asarray(surface, np.float64)
+    table = specular_albedo_table().astype(np.float64)
+
+    def mean(rough: np.ndarray) -> np.ndarray:
+        y = np.clip(np.maximum(rough, MIN_ROUGHNESS), 0.0, 1.0) * (TABLE_ROUGHNESS - 1)
+        y0 = np.minimum(y.astype(np.int64), TABLE_ROUGHNESS - 2)
+        fy = (y - y0)[:, None]
+        return table[y0, TABLE_COSINES] * (1.0 - fy) + table[y0 + 1, TABLE_COSINES] * fy
+
+    base, coat = mean(s[:, ROUGHNESS]), mean(s[:, CLEARCOAT_ROUGHNESS])
+    c, fc0 = s[:, CLEARCOAT, None], s[:, CLEARCOAT_F0, None]
+    coat_albedo = c * np.minimum(fc0 * coat[:, :1] + coat[:, 1:], 1.0)
+    lobe = np.minimum(s[:, F0 : F0 + 3] * base[:, :1] + s[:, F90 : F90 + 3] * base[:, 1:], 1.0)
+    return coat_albedo + (1.0 - coat_albedo) ** 2 * lobe

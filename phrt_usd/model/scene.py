@@ -35,7 +35,10 @@ class Element:
 
     ``bounds_min``/``bounds_max`` are the world-space (metres) axis-aligned bounds at the
     current time; ``reflectivity`` is F in ``pixel = (1 - F) * local + F * reflected``
-    (0 for non-reflectors).
+    (0 for non-reflectors) where ``reflectivity_authored`` (an explicit override, the
+    default); where not (``phrt:reflectivity`` unauthored) the reflection follows the
+    material: ``local + W * reflected``, W its specular lobes' albedo
+    (``engine/compositing.py``).
     """
 
     path: str
@@ -45,6 +48,7 @@ class Element:
     bounds_min: np.ndarray  # (3,) float64, world metres
     bounds_max: np.ndarray  # (3,) float64, world metres
     animated: bool = False
+    reflectivity_authored: bool = True
 
     @property
     def center(self) -> np.ndarray:

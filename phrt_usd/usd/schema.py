@@ -179,6 +179,30 @@ def reflector_reflectivity(prim: Usd.Prim) -> float:
     return _f32(_get(prim, REFLECTIVITY, DEFAULT_REFLECTIVITY))
 
 
+def reflectivity_authored(prim: Usd.Prim) -> bool:
+    """Whether a reflector's ``phrt:reflectivity`` has an authored value (an explicit F
+    that overrides the material's Fresnel, ``engine/compositing.py``)."""
+    attr = prim.GetAttribute(REFLECTIVITY)
+    return bool(attr) and attr.HasAuthoredValue()
+
+
+def mark_material_reflections(stage: Usd.Stage, elements) -> None:
+    """Set ``reflectivity_authored`` False on the reflector elements (``model.scene.
+    Element``) whose prim leaves ``phrt:reflectivity`` unauthored: their reflection
+    follows their material (``engine/compositing.py``). A point instancer's instance
+    (``<prototype>.instance[i]``) is its prototype gprim's; an element whose prim cannot
+    be found keeps its F as an override."""
+    for element in elements:
+        if not element.is_reflector:
+            continue
+        path = element.path.split(".instance[")[0]
+        if not Sdf.Path.IsValidPathString(path):
+            continue
+        prim = stage.GetPrimAtPath(path)
+        if prim and prim.IsValid() and not reflectivity_authored(prim):
+            element.reflectivity_authored = False
+
+
 def find_reflectors(stage: Usd.Stage) -> list[Usd.Prim]:
     """Active, defined reflectors of the stage, in traversal order."""
     return [p for p in stage.Traverse() if is_reflector(p)]

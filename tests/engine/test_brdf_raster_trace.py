@@ -117,9 +117,9 @@ def test_raster_and_trace_shade_a_sphere_alike(index):
     """The raster's shading of a sphere's pixels (G-buffer, GPU light pass, compiled
     ambient) and the tracer's shading of the same points as hits of rays through those
     pixels (their triangle and barycentrics, shadow rays, the compiled BRDF:
-    ``hit_lighting``'s exact evaluation) agree within GPU_RTOL / GPU_ATOL at the pixels inside the sphere's
-    silhouette (a pixel off it: the two see its edge at different sub-pixel positions);
-    both equal the numpy BRDF there."""
+    ``hit_lighting``'s exact evaluation) agree within GPU_RTOL / GPU_ATOL at the pixels
+    inside the sphere's silhouette (a pixel off it: the two see its edge at different
+    sub-pixel positions); both equal the numpy BRDF there."""
     scene = _sphere_scene()
     camera = look_at(np.array([0.0, 0.4, 4.0]), np.array([0.0, 0.0, 0.0]))
     w, h = 160, 80

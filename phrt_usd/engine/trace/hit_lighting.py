@@ -126,6 +126,7 @@ class HitLighting:
         ``into`` (total, slot, weight) the radiance times weight also added to
         total[slot] (``trace_kernels.accumulate``)."""
         n_lights = len(lights.distant) + len(lights.local)
+        into = self._surfaces.weighted(into, tri)  # material-rule reflectors' local part
         u0 = None if self.exact else light_offsets(pixels, self.width, self.frame_seed)
         if (self.maps is not None and not self.exact and maps_light_hits(lights)
                 and len(tri) * n_lights >= MAP_MIN_PAIRS):  # fmt: skip

@@ -24,6 +24,7 @@ import numpy as np
 
 from phrt_usd import kernels
 from phrt_usd.engine import shading
+from phrt_usd.engine.compositing import MATERIAL_MAX_F
 from phrt_usd.engine.trace.bounce_layout import (
     TRI_ALPHA,
     TRI_COLUMNS,
@@ -33,7 +34,7 @@ from phrt_usd.engine.trace.bounce_layout import (
     TRI_TEXTURED,
 )
 from phrt_usd.engine.trace.bvh import GLOBAL_IDS, NO_ANIMATED, Bvh, Hits
-from phrt_usd.model import surface
+from phrt_usd.model import preview_surface, surface
 from phrt_usd.model.scene import Scene
 
 #: The compiled surface rule (``model.surface_kernels``, through ``phrt_usd.kernels``).
@@ -63,6 +64,33 @@ class HitSurfaces:
         n_tri = len(tri_element)
         self.tri_reflector = is_reflector[tri_element] if n_tri else np.zeros(0, bool)
         self.tri_f = np.where(self.tri_reflector, reflectivity[tri_element], 0.0)
+        # Reflectors that follow their material (``Element.reflectivity_authored`` off,
+        # ``engine/compositing.py``): at a hit the bounce weighs the reflection by one F
+        # per triangle, the material's reflection weight averaged over view directions
+        # (``preview_surface.mean_reflection``, its channels' mean: no tint, no angle at
+        # deeper bounces), and the local part by 1 - F, which ``weighted`` undoes
+        # (``local_scale``): local + F reflected, as the primary pixel's rule.
+        material = np.array(
+            [e.is_reflector and not e.reflectivity_authored for e in scene.elements] or [False]
+        )
+        follows = material[tri_element] if n_tri else np.zeros(0, bool)
+        #: (T,) float64: what a hit's local shading is multiplied by before the bounce's
+        #: 1 - F weight (1 but on material-rule reflector triangles).
+        self.local_scale = np.ones(n_tri)
+        if follows.any():
+            rows = preview_surface.surface_columns(
+                mats.diffuse, *(preview_surface.material_inputs(mats, name)[:, 0]
+                                for name in ("metallic", "useSpecularWorkflow")),
+                preview_surface.material_inputs(mats, "specularColor"),
+                *(preview_surface.material_inputs(mats, name)[:, 0]
+                  for name in ("roughness", "clearcoat", "clearcoatRoughness", "ior",
+                               "occlusion")),
+                0.0,
+            )  # fmt: skip
+            mean = preview_surface.mean_reflection(rows).mean(axis=1)
+            f_material = np.minimum(mean, MATERIAL_MAX_F)[bvh.tri_material]
+            self.tri_f = np.where(follows, f_material, self.tri_f)
+            self.local_scale = np.where(follows, 1.0 / (1.0 - self.tri_f), 1.0)
         #: Per triangle: 1 where the ambient's specular part is shaded (no mirror
         #: reflection stands in for it), as the G-buffer's (``lighting``).
         self._specular_ambient = np.where(self.tri_reflector, 0.0, 1.0).astype(np.float32)
@@ -269,6 +297,14 @@ class HitSurfaces:
             self._scene.geometry.corner_uv, lambda: surface.weights_from_uv(u, v),
             self._specular_ambient[tri],
         )  # fmt: skip
+
+    def weighted(self, into, tri):
+        """``into`` (total, slot, weight) of a batch of hits on triangles ``tri`` with
+        each weight times the triangle's ``local_scale`` (None stays None)."""
+        if into is None or not np.any(self.local_scale != 1.0):
+            return into
+        total, slot, weight = into
+        return total, slot, weight * self.local_scale[np.asarray(tri, np.int64)]
 
     def snap(self, rel: np.ndarray, tri: np.ndarray, fallback: np.ndarray):
         """Project rel positions (n, 3) (e.g. from a depth buffer) onto the plane of
