@@ -411,13 +411,17 @@ def render(
 ) -> None:
     """Render the stage's camera path: images, stats.json and the selection layer."""
     from phrt_usd.api import render_job, run_render
+    from phrt_usd.load_line import LoadLine
+    from phrt_usd.progress import step as progress_step
     from phrt_usd.run.products import parse_aovs
     from phrt_usd.run.render_job import RenderInterrupted
     from phrt_usd.threads import parse_threads
     from phrt_usd.usd.stage_controls import StageControls
 
     stage = stage or DEMO_STAGE
-    with user_errors(json_out=json_out):
+    # What the load is doing, on one stderr line once it takes over a second.
+    load = LoadLine(stage.name, enabled=_VERBOSITY["level"] > 0 and not json_out)
+    with user_errors(json_out=json_out), load:
         from phrt_usd.cluster import check_cluster_options
 
         # Before anything renders or starts: exit 2 for a bad combination or value.
@@ -454,19 +458,29 @@ def render(
             screen_space=screen_space,
             exposure=exposure,
         )
+        if scene.warnings:
+            load.erase()
         for warning in scene.warnings:
             typer.echo(f"warning: {warning}", err=True)
         warned = len(scene.warnings)
         cluster = {name: value for name, value in (
             ("workers", workers), ("scheduler", scheduler), ("chunk_frames", chunk_frames),
             ("warmup", warmup)) if value is not None}  # fmt: skip
+        progress_step("setting up the renderer")
         progress = _progress()
+        task = progress.add_task(f"render {stage.name}", total=None)
+        live = not isinstance(progress, _LineProgress)  # a live bar: the load line goes in it
+        if live:
+            load.hand_over(lambda text: progress.update(task, description=text))
         with progress:
-            task = progress.add_task(f"render {stage.name}", total=None)
             finished = [0]  # frames done so far: where memory ran out, if it does
 
             def on_frame(done: int, total: int, _stats) -> None:
                 finished[0] = done
+                if not load.finished:  # the first frame: the load is over
+                    load.finish()
+                    if live:
+                        progress.update(task, description=f"render {stage.name}")
                 progress.update(task, completed=done, total=total)
 
             try:

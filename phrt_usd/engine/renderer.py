@@ -28,6 +28,7 @@ from functools import partial
 
 import numpy as np
 
+from phrt_usd import progress
 from phrt_usd.engine import frame_pixels
 from phrt_usd.engine.clipping_warning import clipping_warning
 from phrt_usd.engine.compositing import base_image, element_reflectivity, pixel_reflectivity
@@ -147,6 +148,7 @@ class FrameRenderer:
             self.gl = activate(options.gl)  # before pyrender / OpenGL are imported
             from phrt_usd.engine.raster.rasterizer import Rasterizer
 
+            progress.step("uploading the geometry")
             self._rasterizer = Rasterizer(scene, options.width, options.height)
         # Embree is only needed to trace (reflectors in hybrid, everything in rt), or for
         # primary rays asked for by name.
@@ -238,6 +240,7 @@ class FrameRenderer:
         Selection and tracing are not run: the policy and its cost model learn from
         rendered frames only, and the image of any frame is the same with or without
         this (everything it leaves behind is a cache of the scene at a time code)."""
+        progress.step("preparing the first frame")
         self.prepare(time_code)
 
     def _path_cameras(self, time_code: float) -> tuple[CameraFrame, tuple[CameraFrame, ...]]:

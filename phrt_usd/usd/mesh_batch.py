@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 from pxr import Usd, UsdGeom
 
+from phrt_usd import progress
 from phrt_usd.errors import PhrtError
 from phrt_usd.usd import meshes
 from phrt_usd.usd.materials import MaterialBank, face_materials
@@ -126,14 +127,17 @@ class MeshBatch:
         ``RESOLVE_CHUNK_TRIANGLES`` triangles at a time. Raises ``PhrtError`` for a
         primvar with too few values or an unknown interpolation."""
         chunk: list[_Source] = []
-        size = 0
+        size = done = 0
+        total = sum(s.triangles for s in self._sources)
         for source in self._sources:
             if chunk and size + source.triangles > RESOLVE_CHUNK_TRIANGLES:
+                progress.step("triangulating", done, total)
                 self.meshes += self._resolve(chunk)
-                chunk, size = [], 0
+                chunk, done, size = [], done + size, 0
             chunk.append(source)
             size += source.triangles
         if chunk:
+            progress.step("triangulating", done, total)
             self.meshes += self._resolve(chunk)
         self._sources = []  # the LocalMeshes hold what is still needed
         return self.meshes

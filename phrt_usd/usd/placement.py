@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from phrt_usd import progress
 from phrt_usd.errors import PhrtError
 from phrt_usd.model.scene import Element, Geometry
 from phrt_usd.usd.values import TimeContext, normal_matrix, safe_normalize
@@ -37,7 +38,7 @@ def place_parts(parts, ctx: TimeContext, geometry: Geometry, elements: list[Elem
     for a non-finite transform."""
     group: list = []
     size = 0
-    for p in parts:
+    for k, p in enumerate(parts):
         m = p.matrix_at(ctx)
         if not np.all(np.isfinite(m)):
             raise PhrtError(f"{p.path}: non-finite transform at time {ctx.time}")
@@ -45,6 +46,7 @@ def place_parts(parts, ctx: TimeContext, geometry: Geometry, elements: list[Elem
         p.flipped = bool(np.linalg.det(m[:3, :3]) < 0)
         n = len(p.mesh.points) + 3 * len(p.mesh.triangles)
         if group and size + n > PLACE_CHUNK_ROWS:
+            progress.step("placing elements", k, len(parts))
             _place_group(group, geometry, elements, meters_per_unit)
             group, size = [], 0
         group.append(p)

@@ -72,6 +72,7 @@ from dataclasses import dataclass
 import numpy as np
 from pxr import Sdf, Tf, Usd, UsdGeom, UsdRender
 
+from phrt_usd import progress
 from phrt_usd.errors import BadOption, PhrtError, UnreadableInput
 from phrt_usd.model.scene import CameraFrame, Element, Geometry, Lights, Scene, SceneChange
 from phrt_usd.usd import schema
@@ -417,6 +418,7 @@ class StageScene:
             elements[-1].animated = parts[-1].animated
 
         for kind, prim in walk_subtree(self.stage.GetPseudoRoot(), ctx.code, purposes):
+            progress.step("reading prims", len(parts))
             if kind == "PointInstancer":
                 expand_instancer(prim, ctx, probe, read_mesh, prototype_gprims, add)
             elif kind == "Light":

@@ -21,6 +21,7 @@ PHASES = {
     "atomic": 0,
     "threads": 0,
     "kernels": 0,
+    "progress": 0,
     "model": 1,
     "usd": 2,
     "select": 3,

@@ -35,7 +35,7 @@ from embreex import rtcore as rtc
 from embreex import rtcore_scene as rtcs
 from embreex.mesh_construction import TriangleMesh
 
-from phrt_usd import kernels
+from phrt_usd import kernels, progress
 from phrt_usd.model.scene import NO_HIT, ElementTriangles, Scene
 from phrt_usd.model.surface import TriangleTable
 
@@ -240,6 +240,7 @@ class Bvh:
         """Full build: copies, table, both BVHs, the static bounds."""
         self.scene = scene
         geo = scene.geometry
+        progress.step(f"building the BVH of {geo.triangle_count:,} triangles")
         self.boundary = Float32Boundary(scene.origin)
         self._vertices = np.array(geo.vertices, dtype=np.float64).reshape(-1, 3)
         self._triangles = np.array(geo.triangles, dtype=np.int64).reshape(-1, 3)
