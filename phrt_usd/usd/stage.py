@@ -28,9 +28,11 @@ Pipeline (``read_stage``):
 3. **Geometry.** Every gprim the render draws (``meshes.RENDERED_GPRIM_TYPES``) and every
    PointInstancer instance × gprim of its prototype, at any depth of nesting
    (``phrt_usd.usd.instancers``), becomes one element, its triangles
-   prepared once in local space (``phrt_usd.usd.meshes``), then transformed into one
-   world-space batch in **metres**. Elements whose transform or points may vary in time
-   are re-transformed in ``StageScene.set_time``, which returns what moved or deformed
+   prepared once in local space (``phrt_usd.usd.meshes``; the meshes all together, in
+   one numpy pass, ``phrt_usd.usd.mesh_batch``), then transformed into one
+   world-space batch in **metres** (many elements at a time, ``phrt_usd.usd.placement``).
+   Elements whose transform or points may vary in time are re-transformed in
+   ``StageScene.set_time``, which returns what moved or deformed
    (``model.scene.SceneChange``) and bumps ``Scene.versions``, the counters the
    renderer's caches compare; the others are never touched again.
    Element vertex / triangle ranges stay fixed (topology must not change over time).
