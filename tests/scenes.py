@@ -452,3 +452,25 @@ def grey_square_stage(albedo: float, half: float = 2.0, eye=(0.0, 0.0, 2.0),
     cam.CreateClippingRangeAttr(Gf.Vec2f(0.1 * s, 100.0 * s))
     cam.AddTranslateOp().Set(Gf.Vec3d(*(np.asarray(eye, float) * s)))
     return stage
+
+
+def preview_shade(albedo, point, eye, normal=(0.0, 0.0, 1.0), sources=(), ambient=0.0):
+    """(3,) float64 linear colour of a point (3,) of UsdPreviewSurface's fallback material
+    of ``albedo`` (scalar or (3,); roughness 0.5, ior 1.5) with unit ``normal``, seen
+    from ``eye`` (3,): per source (unit direction to the light (3,), E (scalar or (3,)))
+    E x the BRDF's π f n·l, plus ``ambient`` (scalar or (3,)) times its directional
+    albedo (the numpy model of ``tests/shading_reference.py``)."""
+    from shading_reference import ambient_weight, brdf_cos
+
+    from phrt_usd.model.preview_surface import fallback_surface
+
+    surface = fallback_surface(np.broadcast_to(np.asarray(albedo, np.float64), (1, 3)))
+    n = np.asarray(normal, np.float64).reshape(1, 3)
+    to_eye = np.asarray(eye, np.float64) - np.asarray(point, np.float64)
+    to_eye = (to_eye / np.linalg.norm(to_eye)).reshape(1, 3)
+    out = ambient_weight(surface, n, to_eye)[0] * np.asarray(ambient, np.float64)
+    for direction, e in sources:
+        d = np.asarray(direction, np.float64).reshape(1, 3)
+        brdf = brdf_cos(surface, n, to_eye, d / np.linalg.norm(d))[0]
+        out = out + np.asarray(e, np.float64) * brdf
+    return out

@@ -8,8 +8,9 @@ The stage (in metres; x ``1 / mpu`` in stage units): a grey (albedo 0.5) square 
 at z = 0 facing +Z, a camera at z = 2 m looking down -Z (focal 20 over a 20 x 15
 aperture: the square fills the 32 x 24 frame), a black dome (no ambient term) and one
 light 1 m above the origin. The centre pixel (row 12, col 16) sees (0.03125, -0.03125, 0)
-m. A point light of intensity I there gives, by the model of engine/shading.py, albedo x
-E + 0.25 x E x (n.h)^64 with E = I x n.l / d² x the range window (``_point_lit_centre``).
+m. A point light of intensity I there gives, by the model of engine/shading.py, E x the
+BRDF's π f n.l (UsdPreviewSurface's fallback material: the square has no material) with
+E = I / d² x the range window (``_point_lit_centre``).
 """
 
 from __future__ import annotations
@@ -17,10 +18,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux
-from scenes import grey_square_stage
+from scenes import grey_square_stage, preview_shade
+from shading_reference import brdf_cos
 
 from phrt_usd.engine.renderer import FrameRenderer, RenderOptions
 from phrt_usd.engine.shading import LIGHT_CUTOFF_IRRADIANCE
+from phrt_usd.model.preview_surface import fallback_surface
 from phrt_usd.usd.default_lights import DOME_RADIANCE, HEADLIGHT_IRRADIANCE
 from phrt_usd.usd.stage import read_stage
 
@@ -92,9 +95,11 @@ def _point_lit_centre(intensity: float) -> float:
     to_light, to_eye = np.array([0, 0, 1.0]) - CENTRE_POINT, EYE - CENTRE_POINT
     d = np.linalg.norm(to_light)
     window = (1.0 - (d / np.sqrt(intensity / LIGHT_CUTOFF_IRRADIANCE)) ** 4) ** 2
-    e = intensity * (to_light[2] / d) / d**2 * window
-    half = to_light / d + to_eye / np.linalg.norm(to_eye)
-    return ALBEDO * e + 0.25 * e * (half[2] / np.linalg.norm(half)) ** 64
+    e = intensity / d**2 * window
+    surface = fallback_surface(np.full((1, 3), ALBEDO))
+    up = np.array([[0.0, 0.0, 1.0]])
+    brdf = brdf_cos(surface, up, (to_eye / np.linalg.norm(to_eye))[None], (to_light / d)[None])
+    return float(e * brdf[0, 0])
 
 
 #: The pair's images agree to float32 rounding: the centimetre stage's points and
@@ -135,10 +140,11 @@ def test_distant_and_dome_lights_centimetres_and_metres_render_the_same(mode):
         sun.CreateIntensityAttr(1.0)
         images[mpu] = _render(stage, mode)[0]
     np.testing.assert_allclose(images[CENTIMETRES], images[1.0], rtol=PAIR_RTOL, atol=1e-9)
-    # No length in either: 0.5 x 1 x cos 60 + the dome's 0.5 x 0.2, plus the highlight
-    # 0.25 x 0.5 x (n.h)^64 < 2e-5 (test_lights_usd's sun) and the pixel's 1.3 degree
-    # offset from the view axis: 1e-4.
-    assert images[1.0][CENTRE][0] == pytest.approx(0.25 + ALBEDO * 0.2, abs=1e-4)
+    # No length in either: the sun (n.l = cos 60) and the dome of 0.2 on the square's
+    # fallback material (float32 shading: 1e-5 relative).
+    towards = np.array([0.0, -np.sin(np.radians(60.0)), np.cos(np.radians(60.0))])
+    expected = preview_shade(ALBEDO, CENTRE_POINT, EYE, sources=[(towards, 1.0)], ambient=0.2)
+    assert images[1.0][CENTRE][0] == pytest.approx(expected[0], rel=1e-5)
 
 
 @pytest.mark.parametrize("mode", MODES)
@@ -181,14 +187,13 @@ def test_probe_camera_exposure_in_clipping_warning():
     (line,) = [w for w in scene.warnings if "clipped" in w]
     assert "camera /World/Cam" in line and "+6.0 EV" in line and "x64" in line
     assert "brightest light" not in line and "\n" not in line
-    # Without the camera's 64 the centre is 0.5 x (headlight + dome) plus the
-    # headlight's highlight 0.25 x 0.6 x (n.h)^64 (light along +Z, the view 1.3 degrees
-    # off it): ~0.57, nothing clipped (corners are darker). The suggested EV brings the
-    # median to 0.5: log2(0.5 / median).
-    view = (EYE - CENTRE_POINT) / np.linalg.norm(EYE - CENTRE_POINT)
-    half = view + [0.0, 0.0, 1.0]
-    highlight = 0.25 * HEADLIGHT_IRRADIANCE * (half[2] / np.linalg.norm(half)) ** 64
-    unscaled = ALBEDO * (HEADLIGHT_IRRADIANCE + DOME_RADIANCE) + highlight
+    # Without the camera's 64 the centre is the square's fallback material under the
+    # headlight (along +Z, the view 1.3 degrees off it) and the dome: ~0.6, nothing
+    # clipped (corners are darker). The suggested EV brings the median to 0.5:
+    # log2(0.5 / median).
+    headlight = [((0.0, 0.0, 1.0), HEADLIGHT_IRRADIANCE)]
+    unscaled = preview_shade(ALBEDO, CENTRE_POINT, EYE, sources=headlight,
+                             ambient=DOME_RADIANCE)[0]  # fmt: skip
     assert beauty[CENTRE][0] / 64.0 == pytest.approx(unscaled, rel=1e-3)
     assert "without them 0% would be" in line
     median = float(np.median(beauty.max(axis=2)[::2, ::2]))

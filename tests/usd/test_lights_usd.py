@@ -20,7 +20,7 @@ import numpy as np
 import OpenImageIO as oiio
 import pytest
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux
-from scenes import grey_square_stage
+from scenes import grey_square_stage, preview_shade
 from typer.testing import CliRunner
 
 import phrt_usd
@@ -39,6 +39,14 @@ W, H = 32, 24
 ALBEDO = 0.5
 MODES = ("raster", "rt")
 CENTRE = (12, 16)  # sees (0.03125, -0.03125, 0): 1.3 degrees off the view axis
+CENTRE_POINT, EYE = np.array([0.03125, -0.03125, 0.0]), np.array([0.0, 0.0, 2.0])
+
+
+def _ambient_centre(dome) -> np.ndarray:
+    """The centre pixel under a uniform dome of radiance ``dome`` alone: the square's
+    UsdPreviewSurface fallback material returns its directional albedo of it (albedo x
+    the diffuse share plus the specular lobe's, ``shade_kernels.ambient_weight``)."""
+    return preview_shade(ALBEDO, CENTRE_POINT, EYE, ambient=dome)
 
 
 def _stage(half: float = 2.0, dome: bool = True) -> Usd.Stage:
@@ -46,6 +54,15 @@ def _stage(half: float = 2.0, dome: bool = True) -> Usd.Stage:
     if dome:
         UsdLux.DomeLight.Define(stage, "/World/Black").CreateIntensityAttr(0.0)
     return stage
+
+
+def _sun_centre(e: float = 1.0, tilt: float = 60.0) -> float:
+    """The centre pixel lit by ``_sun`` of irradiance ``e`` alone: e x the BRDF's π f n·l
+    (the square's UsdPreviewSurface fallback material), the light towards (0, -sin
+    tilt, cos tilt)."""
+    a = np.radians(tilt)
+    towards = np.array([0.0, -np.sin(a), np.cos(a)])
+    return float(preview_shade(ALBEDO, CENTRE_POINT, EYE, sources=[(towards, e)])[0])
 
 
 def _sun(stage: Usd.Stage, tilt: float = 60.0, path: str = "/World/Sun") -> UsdLux.DistantLight:
@@ -80,15 +97,16 @@ def test_unauthored_sun_is_the_fallback_50000_and_warned_once_not_white_in_silen
     _sun(stage)  # inputs:intensity unauthored: the schema's DistantLight fallback
     beauty, _, scene = _render(stage, mode, frames=(1.0, 2.0))
     # Our convention (docs/usd-support.md "Lights"): the intensity is the irradiance of
-    # a surface facing the light: 0.5 x 50000 x cos 60 = 12500, plus the highlight
-    # 0.25 x 25000 x (n.h)^64 with n.h = cos(30 +- 0.7 deg): 0.6 to 0.9 (bound 2).
-    assert beauty[CENTRE] == pytest.approx([12500.0] * 3, abs=2.0)
+    # a surface facing the light: 50000 x the BRDF's π f n·l at n·l = cos 60 (~12400;
+    # float32 shading: 1e-5 relative).
+    lit = 50000.0 * _sun_centre()
+    assert beauty[CENTRE] == pytest.approx([lit] * 3, rel=1e-5)
     (line,) = _clipping(scene.warnings)  # once per run, not once per frame
     assert "/World/Sun" in line and "--exposure" in line and "fallback 50000" in line
     assert "\n" not in line
-    # The suggested EV brings the median covered pixel (12500) to 0.5: log2(0.5/12500).
+    # The suggested EV brings the median covered pixel (the centre's) to 0.5.
     suggested = float(line.rsplit("--exposure ", 1)[1])
-    assert suggested == pytest.approx(np.log2(0.5 / 12500.0), abs=0.06)  # printed to 0.1
+    assert suggested == pytest.approx(np.log2(0.5 / lit), abs=0.06)  # printed to 0.1
 
 
 @pytest.mark.slow
@@ -104,8 +122,8 @@ def test_light_exposure_render_exposure_and_camera_exposure_each_double(mode):
         return _render(stage, mode, **options)[0][CENTRE]
 
     base = centre()
-    # 0.5 x 1 x cos 60 = 0.25, plus the highlight 0.25 x 0.5 x (n.h)^64 < 2e-5.
-    assert base == pytest.approx([0.25] * 3, abs=2e-4)
+    # The BRDF's π f n·l at n·l = cos 60 (~0.25; float32 shading: 1e-5 relative).
+    assert base == pytest.approx([_sun_centre()] * 3, rel=1e-5)
     # Each is an exact power of two on the same float32 sums: relative 1e-6.
     np.testing.assert_allclose(centre(light_exposure=1.0), 2.0 * base, rtol=1e-6)
     np.testing.assert_allclose(centre(exposure=1.0), 2.0 * base, rtol=1e-6)
@@ -126,13 +144,13 @@ def test_color_temperature_6500_is_white_and_3000_is_reddish(mode):
 
     white = centre(6500.0)
     # UsdLux: "the default value of 6500 will always result in white" (luminance 1).
-    np.testing.assert_allclose(white, [0.25] * 3, atol=2e-4)
+    np.testing.assert_allclose(white, [_sun_centre()] * 3, rtol=1e-5)
     warm = centre(3000.0)
     # A 3000 K blackbody in Rec.709: r/b ~ 6.4 (USD's own table 6.5); > 4 leaves room
     # for the colour-matching fit while excluding a neutral or cool colour.
     assert warm[0] / warm[2] > 4.0
     # The colour has luminance 1: the brightness is the 6500 K one (grey albedo).
-    assert float(warm @ REC709_LUMINANCE) == pytest.approx(0.25, rel=2e-3)
+    assert float(warm @ REC709_LUMINANCE) == pytest.approx(_sun_centre(), rel=2e-3)
 
 
 def test_blackbody_chromaticity_is_on_the_planckian_locus():
@@ -184,15 +202,14 @@ def test_normalize_keeps_an_area_light_size_independent_and_off_it_grows_with_ar
 
 def _point_lit_centre(intensity: float) -> float:
     """The centre pixel lit by a point of ``intensity`` 1 m above the origin, by the
-    model of engine/shading.py: albedo x E + 0.25 x E x (n.h)^64, E = I x n.l / d² x
-    the range window (1 - (d / r)^4)^2, r = sqrt(I / 0.02)."""
-    point = np.array([0.03125, -0.03125, 0.0])
-    to_light, to_eye = np.array([0, 0, 1.0]) - point, np.array([0, 0, 2.0]) - point
+    model of engine/shading.py: E x the BRDF's π f n·l (the square's UsdPreviewSurface
+    fallback material), E = I / d² x the range window (1 - (d / r)^4)^2, r =
+    sqrt(I / 0.02)."""
+    to_light = np.array([0, 0, 1.0]) - CENTRE_POINT
     d = np.linalg.norm(to_light)
     window = (1.0 - (d / np.sqrt(intensity / 0.02)) ** 4) ** 2
-    e = intensity * (to_light[2] / d) / d**2 * window
-    half = to_light / d + to_eye / np.linalg.norm(to_eye)
-    return ALBEDO * e + 0.25 * e * (half[2] / np.linalg.norm(half)) ** 64
+    e = intensity / d**2 * window
+    return float(preview_shade(ALBEDO, CENTRE_POINT, EYE, sources=[(to_light, e)])[0])
 
 
 @pytest.mark.parametrize("mode", MODES)
@@ -258,8 +275,8 @@ def test_dome_light_1_lights_a_diffuse_square(mode):
     dome.CreateColorAttr(Gf.Vec3f(0.4, 0.6, 0.8))
     beauty, _, scene = _render(stage, mode)
     assert scene.scene.lights.dome is not None and not scene.scene.lights.default_rig
-    # Only the ambient term: albedo x dome radiance.
-    np.testing.assert_allclose(beauty[CENTRE], ALBEDO * np.array([0.4, 0.6, 0.8]), rtol=1e-6)
+    # Only the ambient term: the surface's directional albedo x dome radiance.
+    np.testing.assert_allclose(beauty[CENTRE], _ambient_centre([0.4, 0.6, 0.8]), rtol=1e-5)
 
 
 @pytest.mark.parametrize("pole, up", [("scene", "Z"), ("Z", "Y"), ("Y", "Z"), ("scene", "Y")])
@@ -287,7 +304,7 @@ def test_unsupported_dome_format_warns_once_and_renders_untextured(tmp_path):
     (line,) = [w for w in scene.warnings if "texture:format" in w]
     assert line.startswith("/World/Sky.inputs:texture:format: 'angular'") and "\n" not in line
     assert scene.scene.lights.dome.texture is None
-    np.testing.assert_allclose(beauty[CENTRE], [ALBEDO * 0.2] * 3, rtol=1e-6)
+    np.testing.assert_allclose(beauty[CENTRE], _ambient_centre(0.2), rtol=1e-5)
 
 
 @pytest.mark.parametrize("mode", MODES)
@@ -302,7 +319,7 @@ def test_dome_hidden_from_camera_leaves_a_black_background_and_still_lights(mode
     corner = (0, 0)  # sees x = -0.97, y = 0.72 m: beyond the square, background
     assert alpha[corner] == 0.0 and alpha[CENTRE] == 1.0
     np.testing.assert_allclose(beauty[corner], [0.4 if visible else 0.0] * 3, atol=1e-7)
-    np.testing.assert_allclose(beauty[CENTRE], [ALBEDO * 0.4] * 3, rtol=1e-6)
+    np.testing.assert_allclose(beauty[CENTRE], _ambient_centre(0.4), rtol=1e-5)
 
 
 @pytest.mark.slow
@@ -332,11 +349,14 @@ def test_stage_without_lights_gets_the_default_rig_with_a_notice(mode):
     finally:
         renderer.close()
     # Frame 1's centre pixel looks 30 degrees off the square's normal, along the
-    # headlight: n.l = cos 30, the highlight (n.h)^64 = cos(30)^64 = 1e-4 (negligible),
-    # plus the dome's ambient: 0.5 x 0.6 cos 30 + 0.5 x 0.25 = 0.385 (an unaimed headlight,
-    # still along +Z, would give 0.441). Bound: the pixel's own 1.3 degree offset.
-    expected = ALBEDO * HEADLIGHT_IRRADIANCE * np.cos(turned) + ALBEDO * DOME_RADIANCE
-    np.testing.assert_allclose(first[CENTRE], [expected] * 3, atol=4e-3)
+    # headlight (n.l = cos 30), plus the dome's ambient: the square's fallback material
+    # under both (~0.39; an unaimed headlight, still along +Z, would give ~0.45). Bound:
+    # the pixel's own 1.3 degree offset.
+    towards = np.array([np.sin(turned), 0.0, np.cos(turned)])
+    seen = np.array([-2.0 * np.tan(turned), 0.0, 0.0])
+    expected = preview_shade(ALBEDO, seen, EYE, sources=[(towards, HEADLIGHT_IRRADIANCE)],
+                             ambient=DOME_RADIANCE)  # fmt: skip
+    np.testing.assert_allclose(first[CENTRE], expected, atol=4e-3)
     assert inspect_stage(stage)["default_light_rig"] is True
 
 
@@ -351,9 +371,10 @@ def test_api_render_records_exposure_and_the_clipping_warning(tmp_path):
         assert result.summary["default_light_rig"] is False
     with phrt_usd.render(stage, frames="1", mode="raster", resolution=(W, H),
                          exposure=-2.0) as result:  # fmt: skip
-        # 2.5 / 4 = 0.625 < 1: no longer clipped, no warning.
+        # ~2.5 / 4 < 1: no longer clipped, no warning.
         assert not _clipping(result.summary["warnings"])
-        np.testing.assert_allclose(result.read_frame(1.0)["beauty"][CENTRE], 0.625, rtol=1e-3)
+        np.testing.assert_allclose(result.read_frame(1.0)["beauty"][CENTRE],
+                                   10.0 * _sun_centre() / 4.0, rtol=1e-3)  # fmt: skip
         stats = json.loads((result.out / "stats.json").read_text())
         assert stats["run"]["exposure"] == -2.0
 
@@ -449,8 +470,9 @@ def test_probe_missing_dome_texture(tmp_path, mode):
     (line,) = [w for w in scene.warnings if "/World/Sky.inputs:texture:file" in w]
     assert "gone.exr" in line and "untextured, in its colour" in line and "\n" not in line
     assert scene.texture_problems and scene.scene.lights.dome.texture is None
-    # rtol 1e-6: float32 shading of an exact product, as the other dome tests.
-    np.testing.assert_allclose(beauty[CENTRE], ALBEDO * np.array([0.2, 0.4, 0.6]), rtol=1e-6)
+    # rtol 1e-5: float32 shading of an exact product and the albedo table's float32
+    # entries, as the other dome tests.
+    np.testing.assert_allclose(beauty[CENTRE], _ambient_centre([0.2, 0.4, 0.6]), rtol=1e-5)
     errors = [i.line() for i in validate_stage(stage).errors]
     assert any("/World/Sky.inputs:texture:file" in e and "gone.exr" in e for e in errors), errors
 

@@ -4,8 +4,10 @@ chooses (``full`` over all-purpose; the settings' ``materialBindingPurposes``).
 
 The stage: a 2 x 2 quad at z = 0 facing +Z, seen from (0, 0, 5) down -Z (focal 50 mm,
 aperture 20 x 20 mm: the image spans +-1.05 at the quad, so the centre pixel lies on it),
-lit only by a white dome of radiance 1. A Lambertian surface under a uniform dome of
-radiance L reflects albedo * L, so the centre pixel's linear colour is the albedo.
+lit only by a white dome of radiance 1. A UsdPreviewSurface under a uniform dome of
+radiance L returns its directional albedo times L: the albedo where the specular lobe
+leaves light to the diffuse one, plus the lobe's own (``_look``), so the centre pixel's
+linear colour follows the albedo.
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux, UsdRender, UsdShade, UsdUtils
+from scenes import preview_shade
 from textured_stages import write_one_colour_png
 
 from phrt_usd.engine.renderer import FrameRenderer, RenderOptions
@@ -25,6 +28,12 @@ MODES = ("raster", "rt")
 #: (0 and 255 decode exactly).
 TOLERANCE = 0.02
 RED, GREEN_HALF, BLUE, GREEN = (1.0, 0.0, 0.0), (0.0, 0.5, 0.0), (0.0, 0.0, 1.0), (0.0, 1.0, 0.0)
+
+
+def _look(colour) -> np.ndarray:
+    """(3,) the centre pixel of a material of albedo ``colour`` (its other inputs the
+    fallbacks) under the white dome, seen face on from (0, 0, 5)."""
+    return preview_shade(colour, (0.0, 0.0, 0.0), (0.0, 0.0, 5.0), ambient=1.0)
 
 
 def _material(stage, path: str, colour=None, texture: str | None = None) -> UsdShade.Material:
@@ -100,7 +109,7 @@ def test_usdz_texture_colours_the_pixel(tmp_path, mode):
     assert UsdUtils.CreateNewUsdzPackage(str(tmp_path / "quad.usda"), str(package))
     (tmp_path / "red.png").unlink()  # only the package's copy is left
     np.testing.assert_allclose(
-        _centre(Usd.Stage.Open(str(package)), mode), RED, atol=TOLERANCE
+        _centre(Usd.Stage.Open(str(package)), mode), _look(RED), atol=TOLERANCE
     )
 
 
@@ -108,7 +117,7 @@ def test_usdz_texture_colours_the_pixel(tmp_path, mode):
 def test_missing_texture_renders_its_fallback(tmp_path, mode):
     stage = _stage(tmp_path / "quad.usda")
     _bind(stage, _material(stage, "/M", texture="missing.png"))
-    np.testing.assert_allclose(_centre(stage, mode), GREEN_HALF, atol=TOLERANCE)
+    np.testing.assert_allclose(_centre(stage, mode), _look(GREEN_HALF), atol=TOLERANCE)
 
 
 @pytest.mark.slow
@@ -119,9 +128,9 @@ def test_binding_purpose_chooses_the_material(tmp_path, mode):
     _bind(stage, _material(stage, "/Full", colour=BLUE), UsdShade.Tokens.full)
     _bind(stage, _material(stage, "/Preview", colour=GREEN), UsdShade.Tokens.preview)
     # materialBindingPurposes' fallback is ["full", ""]: the full binding.
-    np.testing.assert_allclose(_centre(stage, mode), BLUE, atol=TOLERANCE)
+    np.testing.assert_allclose(_centre(stage, mode), _look(BLUE), atol=TOLERANCE)
     settings = UsdRender.Settings.Define(stage, "/Render/Settings")
     settings.CreateMaterialBindingPurposesAttr(["preview", ""])
-    np.testing.assert_allclose(_centre(stage, mode), GREEN, atol=TOLERANCE)
+    np.testing.assert_allclose(_centre(stage, mode), _look(GREEN), atol=TOLERANCE)
     settings.GetMaterialBindingPurposesAttr().Set([""])
-    np.testing.assert_allclose(_centre(stage, mode), RED, atol=TOLERANCE)
+    np.testing.assert_allclose(_centre(stage, mode), _look(RED), atol=TOLERANCE)
