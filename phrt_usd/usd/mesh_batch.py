@@ -106,7 +106,10 @@ class MeshBatch:
             values = np.clip(np.nan_to_num(colour[0].reshape(-1, 3)), 0.0, None)
             colour = _Primvar(values, colour[1], f"{prim.GetPath()}.primvars:displayColor")
         uv, textured = None, False
-        needs = [m for m in _drawn_materials(face_mat, counts, holes) if bank.rows[m].needs_uv]
+        # The mesh's materials are in the bank now: without a textured one, no uv.
+        any_textured = any(row.needs_uv for row in bank.rows)
+        drawn = _drawn_materials(face_mat, counts, holes) if any_textured else []
+        needs = [m for m in drawn if bank.rows[m].needs_uv]
         if needs:
             textured = True
             name = bank.rows[needs[0]].uv_primvar
