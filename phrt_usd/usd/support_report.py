@@ -109,29 +109,12 @@ def _preview_input(prim: Usd.Prim, name: str):
     return (inp.Get() if inp.GetAttr().HasAuthoredValue() else None), False
 
 
-#: UsdPreviewSurface inputs a texture may feed that the shading does not use
-#: (``usd/materials.py`` reads ``TEXTURED_INPUTS`` only).
-_UNSHADED_INPUTS = (
-    "occlusion", "metallic", "roughness", "specularColor", "clearcoat", "clearcoatRoughness",
-    "ior",
-)  # fmt: skip
-
-
-def _unshaded_texture(prim: Usd.Prim) -> bool:
-    return any(_preview_input(prim, name)[1] for name in _UNSHADED_INPUTS)
-
-
 def _texture_opacity_without_threshold(prim: Usd.Prim) -> bool:
     """A textured opacity with opacityThreshold 0: not a cut-out, drawn opaque."""
     if not _preview_input(prim, "opacity")[1]:
         return False
     value, connected = _preview_input(prim, "opacityThreshold")
     return not connected and (value is None or float(value) <= 0.0)
-
-
-def _clearcoat(prim: Usd.Prim) -> bool:
-    value, connected = _preview_input(prim, "clearcoat")
-    return connected or (value is not None and float(value) > 0.0)
 
 
 def _rough_reflector(prim: Usd.Prim) -> bool:
@@ -319,13 +302,6 @@ KINDS: tuple[SupportKind, ...] = (
         "no volume rendering", _of_types(UsdVol.Volume),
     ),
     SupportKind(
-        "unshaded_texture", "UsdPreviewSurface shaders with textured inputs the shading "
-        "does not use (occlusion, metallic, roughness, ...)", IGNORED,
-        "the shading model (engine/shading.py) uses diffuse, emission, normal maps and "
-        "cut-out opacity; occlusion, metallic and roughness have no term in it",
-        _unshaded_texture,
-    ),
-    SupportKind(
         "texture_opacity_opaque", "UsdPreviewSurface shaders with a textured opacity "
         "and no opacityThreshold", "approximated: opaque",
         "texture alpha is read as a cut-out mask (opacityThreshold > 0); without a "
@@ -333,15 +309,10 @@ KINDS: tuple[SupportKind, ...] = (
         _texture_opacity_without_threshold,
     ),
     SupportKind(
-        "clearcoat", "UsdPreviewSurface shaders with clearcoat", "approximated: no clearcoat",
-        "the shading model (engine/shading.py) has no clearcoat layer",
-        _clearcoat,
-    ),
-    SupportKind(
         "rough_reflector", "reflectors with roughness > 0",
         "approximated: perfect-mirror reflections",
-        "traced reflections are perfect mirrors and the highlight's exponent is one for "
-        "every material (engine/shading.py SHININESS): roughness is not used",
+        "traced reflections are perfect mirrors: roughness shapes the highlights and the "
+        "reflection's Fresnel weight (model/preview_surface.py), not the reflection's blur",
         _rough_reflector,
     ),
     SupportKind(

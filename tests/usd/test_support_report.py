@@ -154,9 +154,7 @@ EXPECTED = {
     "nurbs_patch": ["/World/Patch"],
     "tet_mesh": ["/World/Tets"],
     "volume": ["/World/Smoke"],
-    "unshaded_texture": ["/World/Looks/Leaf/Surface"],
     "texture_opacity_opaque": ["/World/Looks/Leaf/Surface"],
-    "clearcoat": ["/World/Looks/Coat/Surface"],
     # Sharp has roughness 0; Blurry takes the fallback 0.5; Coated has 0 authored.
     "rough_reflector": ["/World/Blurry"],
     "displacement": ["/World/Looks/Disp"],
