@@ -46,10 +46,14 @@ class DensitySteps:
         choice ``ids`` (``remaining`` rays of the round's allowance left), a claim the
         keep step could not fit (``unfit``, cheapest first) is taken at the finest coarser
         density that fits instead of being dropped, and a reflector entering the view that
-        was not taken at full density (too costly now, or forecast to outgrow the budget)
-        at the finest coarser one that fits with ``reserve`` to spare and is not forecast
-        to outgrow it. When even a reflector's coarsest density does not fit, reflectors
-        of this round step coarser to make room for it (``_room``), if that frees enough.
+        the graph did not take (too costly now, or forecast to outgrow the budget) at the
+        finest density that fits with ``reserve`` to spare, full included, unless even its
+        coarsest density is forecast to outgrow the budget (it would be dropped in view).
+        Should it outgrow the density it is taken at, it steps coarser later (no
+        transition); entering coarser than it fits cost the farm's sweep FLIP at 500 and
+        1,000 rays for no lower temporal error (docs/heuristic.md). When even a
+        reflector's coarsest density does not fit, reflectors of this round step coarser
+        to make room for it (``_room``), if that frees enough.
         Then a reflector taken below full density (and not stepped to make room) steps to
         the finest density whose extra rays fit with ``reserve`` to spare. Its forecast is
         not asked: should it outgrow that density, it steps coarser again, by 1/16 of its
@@ -64,7 +68,7 @@ class DensitySteps:
 
         def take(e: int, level: int) -> None:
             nonlocal remaining
-            # The finest density as cheap as ``level``: full below SPARSE_MIN_PIXELS, where
+            # The finest density as cheap as ``level``: full below its ``sparse_floor``, where
             # every density traces every pixel (no step to report).
             level = next(v for v in range(level + 1)
                          if self.level_rays(e, v) <= self.level_rays(e, level))  # fmt: skip
@@ -95,10 +99,11 @@ class DensitySteps:
         entering = [e for e in self._untraced_visible()
                     if e not in chosen and e not in self.previous_visible]  # fmt: skip
         for e in sorted(entering, key=lambda e: (-self.relevance_R(e), e)):
-            level = next((v for v in coarser
-                          if self.level_rays(e, v) + reserve <= remaining
-                          and not self._outgrows(e, budget, v)), None)  # fmt: skip
-            if level is None and not self._outgrows(e, budget, COARSEST):
+            if self._outgrows(e, budget, COARSEST):
+                continue  # it would be dropped in view: a transition for a few frames
+            level = next((v for v in range(COARSEST + 1)
+                          if self.level_rays(e, v) + reserve <= remaining), None)  # fmt: skip
+            if level is None:
                 if make_room(self.level_rays(e, COARSEST) + reserve):
                     level = COARSEST
             if level is not None:

@@ -53,7 +53,8 @@ class Heu1Policy(DensitySteps, BudgetedPolicy):
     * density steps (when the render traces at full density): a kept reflector that no
       longer fits is traced at a rate of k/16 of its pixels, the finest that fits
       (``sparse_pixels``), instead of being dropped, a reflector entering the view that
-      does not fit (or would outgrow the budget) is taken at such a density; when even
+      does not fit is taken at such a density, and one forecast to outgrow the budget at
+      the finest density that fits now (it steps coarser as it grows); when even
       its coarsest density does not fit, reflectors of the round step coarser to make
       room for it (for a claim, or one entering the view: taken later it would be a
       transition); a reflector below full density steps back to the finest density

@@ -68,14 +68,15 @@ def test_entering_reflector_forecast_to_outgrow_the_whole_budget_is_not_taken():
     # more than the whole budget, so it would be dropped while in view (a transition):
     # with the lookahead it is not taken at full density; without upcoming cameras, or
     # when the cameras stay put, it is. With density steps (the render at full density)
-    # it is taken at the finest coarser density its forecast fits at (10/16: 11/16
-    # outgrows the round's allowance).
+    # it is taken at full density all the same: it fits now, and as it grows it steps
+    # coarser (no transition) down to a sixteenth, whose forecast fits the budget; only a
+    # reflector that would outgrow even that is left out.
     sc = scene([element((0.0, 0.0, -8.0)), element((1.0, 0.0, -8.0))])
     approach = tuple(camera((0.8, 0.0, -5.0 * k / LOOKAHEAD_FRAMES)) for k in range(1, 40))
     still = tuple(camera() for _ in range(1, 40))
     for upcoming, taken, density in (
         ((), "full", "full"), (still, "full", "full"), (approach, None, "half"),
-        (approach, "10/16", "full"),
+        (approach, "full", "full"),
     ):  # fmt: skip
         policy = heu1()
         fv = view([0, 300], trace_density=density)
@@ -88,18 +89,19 @@ def test_entering_reflector_forecast_to_outgrow_the_whole_budget_is_not_taken():
         assert (1 in ids) is (taken is not None), (len(upcoming), ids)
         if taken is not None:
             assert policy.round_densities([1]) == [taken]
-        if taken == "10/16":
-            assert growth * policy.predicted_rays(1) * 10 / 16 <= 1000
+        if upcoming is approach and density == "full":
             allowance = policy._require_frame().first_allowance  # 1000 less the safety
-            assert policy._outgrows(1, allowance, TRACE_DENSITIES.index("11/16"))
+            assert policy._outgrows(1, allowance, 0)
+            assert not policy._outgrows(1, allowance, TRACE_DENSITIES.index("sixteenth"))
         policy.end_frame()
 
 
 def test_density_steps_make_room_for_a_reflector_entering_the_view():
     # Reflector 0 (2000 pixels) fills most of a 2300-ray budget (2091 predicted rays with
-    # RAYS_SAFETY). Reflector 1 enters with 60 pixels (traced whole: under 64): beside 0
-    # at full density it does not fit with the admission margin (2000 + 60 + 209 >
-    # 2091), so HEU1 steps 0 to 14/16 (each 1/16 frees 125 of the 178 rays needed) and
+    # RAYS_SAFETY). Reflector 1 enters with 30 pixels (traced whole: under
+    # SPARSE_MIN_PIXELS): beside 0 at full density it does not fit with the admission
+    # margin (2000 + 30 + 209 > 2091), so HEU1 steps 0 to 14/16 (each 1/16 frees 125 of
+    # the 148 rays needed) and
     # takes 1 as it enters; taken later, while
     # in view, it would be a transition. At a fixed density nothing steps, and 0 tracing
     # 20 % more rays than predicted leaves no round for 1: it stays out.
@@ -107,7 +109,7 @@ def test_density_steps_make_room_for_a_reflector_entering_the_view():
     for density, taken in (("full", True), ("half", False)):
         policy = heu1()
         run_frame(policy, sc, view([2000, 0], trace_density=density), budget_rays=2300)
-        m, rounds = run_frame(policy, sc, view([2000, 60], trace_density=density), 2300, 1.2)
+        m, rounds = run_frame(policy, sc, view([2000, 30], trace_density=density), 2300, 1.2)
         assert m[1].selected is taken
         if taken:
             assert rounds == [[0, 1]]  # one round: the room is made before it is traced
@@ -133,9 +135,10 @@ def test_room_steps_the_reflector_that_frees_the_fewest_rays_that_suffice():
 
 
 def test_a_frame_the_time_model_starves_holds_the_claims_once():
-    # Two reflectors traced in frame 0 (60 and 2000 pixels, 0.001 ms a ray: 2.06 ms of a
-    # 10 ms budget). Then a slow spell puts even the cheapest above 0.5 ms (safety 10: 60
-    # rays 0.6 ms, the large one's sixteenth 125 rays 1.25 ms):
+    # Two reflectors traced in frame 0 (30 and 2000 pixels, 0.001 ms a ray: 2.03 ms of a
+    # 10 ms budget). Then a slow spell puts even the cheapest above 0.25 ms (safety 10: 30
+    # rays, traced whole at any density, 0.3 ms, the large one's sixteenth 125 rays
+    # 1.25 ms):
     # the first starved frame traces both all the same, the large one at its coarsest
     # density (the hold); a second starved frame in a row drops them. A frame whose
     # selection fits is no hold, so the next starved frame holds again.
@@ -145,7 +148,7 @@ def test_a_frame_the_time_model_starves_holds_the_claims_once():
 
     def frame(ms, safety=1.1):
         """One frame at a safety factor of ``safety``: {traced id: its density}."""
-        pixels = [60, 2000]
+        pixels = [30, 2000]
         policy.begin_frame(view(pixels), sc)
         policy.time_model.safety = safety
         ids = policy.next_round(Budget(ms=ms))
@@ -159,7 +162,7 @@ def test_a_frame_the_time_model_starves_holds_the_claims_once():
 
     full = {0: "full", 1: "full"}
     assert frame(10.0) == full
-    assert frame(0.5, safety=10.0) == {0: "full", 1: "sixteenth"}  # held
-    assert frame(0.5, safety=10.0) == {}  # starved again: dropped
+    assert frame(0.25, safety=10.0) == {0: "full", 1: "sixteenth"}  # held
+    assert frame(0.25, safety=10.0) == {}  # starved again: dropped
     assert frame(10.0) == full
-    assert set(frame(0.5, safety=10.0)) == {0, 1}
+    assert set(frame(0.25, safety=10.0)) == {0, 1}
