@@ -5,15 +5,23 @@ HEU1's density steps). The patterns themselves and the fill of the skipped pixel
 
 from __future__ import annotations
 
+import math
+
 from phrt_usd.checks import check_choice
 
-#: Reflectors with fewer pixels than this in a frame are traced at every pixel: below an
-#: 8 x 8 patch the rays saved are a few dozen and most pixels lie on the reflector's
+#: Reflectors with fewer pixels than this in a frame are traced at every pixel: below
+#: ~6 x 6 pixels the rays saved are a few dozen and most pixels lie on the reflector's
 #: edge, where a skipped pixel has fewer traced neighbours. Not higher, so that HEU1 can
-#: step the farm's barrels (64-255 pixels near its path's end) coarser to make room
-#: rather than drop them whole (the floor at 64 pixels against 256:
-#: docs/bench-log/2026-12-03-2987843-make-room-hold.md; docs/heuristic.md, "Density steps").
-SPARSE_MIN_PIXELS = 64
+#: step the farm's barrels (32-255 pixels near its path's end at 160 x 120) a few
+#: sixteenths coarser to make room rather than drop them whole: at 64, the farm's sweep
+#: dropped a 55-pixel barrel HEU2 kept, and HEU2 had both the lower FLIP and the lower
+#: temporal error at 300 rays (docs/heuristic.md, "Where HEU1 and HEU2 trade"; the floor
+#: at 64 against 256: docs/bench-log/2026-12-03-2987843-make-room-hold.md).
+SPARSE_MIN_PIXELS = 32
+#: And at least this many of its pixels must start rays at the rate (so a sixteenth
+#: needs 64 pixels, as before the rate, an eighth 32): fewer samples leave most of a small
+#: reflector's skipped pixels on its edge with one traced neighbour or none.
+SPARSE_MIN_SAMPLES = 4
 
 #: The trace densities are a rate: a reflector traced at k/16 (k = 1..16) starts rays at
 #: the pixels of each 4 x 4 block whose rank in an ordered-dither (Bayer) matrix is below
@@ -37,10 +45,17 @@ LEVEL_RANKS = tuple(range(RATE_STEPS, 0, -1))
 DENSITY_FRACTION = {d: k / RATE_STEPS for d, k in zip(TRACE_DENSITIES, LEVEL_RANKS, strict=True)}
 
 
+def sparse_floor(density: str) -> int:
+    """The fewest pixels a reflector traced at ``density`` must have to start rays at
+    that share of them (SPARSE_MIN_PIXELS, SPARSE_MIN_SAMPLES); smaller ones are traced
+    whole."""
+    return max(SPARSE_MIN_PIXELS, math.ceil(SPARSE_MIN_SAMPLES / DENSITY_FRACTION[density]))
+
+
 def traced_fraction(pixels: float, density: str) -> float:
-    """Share of a reflector's ``pixels`` that start rays at ``density`` (1 below
-    SPARSE_MIN_PIXELS: small reflectors are traced whole)."""
-    return 1.0 if pixels < SPARSE_MIN_PIXELS else DENSITY_FRACTION[density]
+    """Share of a reflector's ``pixels`` that start rays at ``density`` (1 below its
+    ``sparse_floor``: small reflectors are traced whole)."""
+    return 1.0 if pixels < sparse_floor(density) else DENSITY_FRACTION[density]
 
 
 def check_density(value: object) -> str:

@@ -22,11 +22,12 @@ from phrt_usd.engine.trace_calibration import calibrate_tracer
 from phrt_usd.model import pixel_kinds as pk
 from phrt_usd.model.frame import FrameCamera
 from phrt_usd.model.scene import DistantLight, Lights, LocalLight
+from phrt_usd.model.trace_density import sparse_floor
 from phrt_usd.select.cost_model import KIND_RAYS_MAX, TraceTimeModel
 
 W, H = 160, 120
 #: A mirror floor (the large reflector), a box it reflects (screen space resolves some
-#: of its first rays) and a small mirror sphere (a second source, under SPARSE_MIN_PIXELS
+#: of its first rays) and a small mirror sphere (a second source, under its density's sparse_floor
 #: or not, traced on its own pattern).
 PARTS = [
     dict(mesh=quad(8.0), F=0.9),
@@ -96,7 +97,7 @@ def test_records_count_each_kind_of_a_rounds_pixels(stage):
     for record in plain.records:
         c = _per_source(plain, gb)[record.source]
         assert record.marched == 0 and record.screen_space == 0 and record.reused == 0
-        assert record.filled == c[pk.FILLED] > 0 or record.pixels < 64
+        assert record.filled == c[pk.FILLED] > 0 or record.pixels < sparse_floor("sixteenth")
 
 
 def _costs(tracer, gb, camera, screen, times=3):

@@ -23,7 +23,7 @@ from phrt_usd.engine.renderer import FrameRenderer  # noqa: E402
 from phrt_usd.engine.trace.sparse_pixels import pattern_spacing, rotation_phase  # noqa: E402
 from phrt_usd.model import pixel_kinds as pk  # noqa: E402
 from phrt_usd.model.render_options import RenderOptions  # noqa: E402
-from phrt_usd.model.trace_density import SPARSE_MIN_PIXELS  # noqa: E402
+from phrt_usd.model.trace_density import sparse_floor  # noqa: E402
 from phrt_usd.usd.stage import open_stage  # noqa: E402
 
 W, H = 160, 120
@@ -68,7 +68,7 @@ def test_kinds_count_what_the_renderer_traced_and_filled(gallery, density):
     reused and filled together are the frame's traced mask; every pixel of a traced
     reflector is traced, reused, filled or (a skipped pixel without a traced neighbour)
     raster; background is exactly the uncovered pixels. At full density nothing is
-    filled; at a reduced one the traced pixels of a reflector over SPARSE_MIN_PIXELS lie
+    filled; at a reduced one the traced pixels of a reflector over its density's sparse_floor lie
     on its pattern, shifted by the frame's rotation (``rotation_phase`` of its index in
     the plan: no probe has refused history before the second frame)."""
     for k, (output, rays) in enumerate(_frames(gallery, "hybrid", density)):
@@ -96,7 +96,7 @@ def test_kinds_count_what_the_renderer_traced_and_filled(gallery, density):
         phase_row, phase_col = rotation_phase(k)
         rows, cols = np.nonzero(kinds == pk.TRACED)
         ids = gb.element_id[rows, cols]
-        large = np.bincount(gb.element_id[gb.covered])[ids] >= SPARSE_MIN_PIXELS
+        large = np.bincount(gb.element_id[gb.covered])[ids] >= sparse_floor(density)
         assert np.all(((rows[large] - phase_row) % step == 0)
                       & ((cols[large] - phase_col) % step == 0))  # fmt: skip
 

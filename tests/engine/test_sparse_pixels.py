@@ -24,7 +24,7 @@ from phrt_usd.engine.trace.sparse_pixels import (
 )
 from phrt_usd.engine.trace.tracer import Tracer
 from phrt_usd.errors import BadOption
-from phrt_usd.model.trace_density import SPARSE_MIN_PIXELS, check_density
+from phrt_usd.model.trace_density import check_density, sparse_floor
 
 
 def _pattern(row, col, density):
@@ -41,8 +41,8 @@ def _pattern(row, col, density):
 def test_large_reflectors_start_rays_on_the_pattern_small_ones_everywhere(density):
     width, height = 40, 30
     pix = np.arange(width * height, dtype=np.int64)
-    # Source 0: the first SPARSE_MIN_PIXELS - 1 pixels; source 1: the rest.
-    src = (pix >= SPARSE_MIN_PIXELS - 1).astype(np.int64)
+    # Source 0: one pixel fewer than the density's floor; source 1: the rest.
+    src = (pix >= sparse_floor(density) - 1).astype(np.int64)
     keep = traced_subset(pix, src, 2, width, density)
     assert keep[src == 0].all()
     row, col = np.divmod(pix[src == 1], width)
@@ -92,7 +92,7 @@ def test_mirror_floor_at_reduced_density_traces_its_share_and_the_same_reflectio
     full = tracer.trace_reflections(gb, [0], bounce_limit=5)
     half = tracer.trace_reflections(gb, [0], 5, density=density)
     floor = int((gb.element_id == 0).sum())
-    assert floor >= SPARSE_MIN_PIXELS
+    assert floor >= sparse_floor(density)
     # The pattern's share of the first rays; the sky-lit scene casts no shadow rays.
     assert (share - 0.05) * full.rays <= half.rays <= (share + 0.05) * full.rays
     assert len(np.unique(half.pixel_index)) == len(half.pixel_index)
@@ -121,7 +121,7 @@ def test_densities_per_source_trace_each_source_as_its_own_density_would():
     ]
     tracer = Tracer(parts_scene(parts))
     gb = tracer.primary_gbuffer(look_at((0.0, 3.0, 6.0), (0.0, 0.0, 0.0)), 160, 120)
-    assert min((gb.element_id == e).sum() for e in (0, 1)) >= SPARSE_MIN_PIXELS
+    assert min((gb.element_id == e).sum() for e in (0, 1)) >= sparse_floor("quarter")
     mixed = tracer.trace_reflections(gb, [0, 1], 5, density=["quarter", "full"])
     alone = [tracer.trace_reflections(gb, [0], 5, density="quarter"),
              tracer.trace_reflections(gb, [1], 5, density="full")]  # fmt: skip

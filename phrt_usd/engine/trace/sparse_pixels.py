@@ -2,15 +2,16 @@
 the others get their reflection from traced samples (``--trace-density``, HEU1's
 density steps).
 
-The pixels of a reflector with at least SPARSE_MIN_PIXELS pixels in a frame are traced
-on a pattern: at a density of k/16, the pixels of each 4 x 4 block whose ordered-dither
-rank (BAYER_RANKS) is below k. Its regular patterns: ``half`` a checkerboard (row +
-column even), ``quarter`` one pixel of each 2 x 2 block (row and column even),
-``eighth`` the checkerboard of those, ``sixteenth`` one of each 4 x 4 block (row and
-column multiples of 4); a density between two of them traces the coarser one's pixels
-and the next ranks. A ``phase`` (row, column) shifts the pattern (a pattern rotating
-from frame to frame passes the frame's). Smaller reflectors are traced whole: their
-savings are small and their edges are most of their pixels.
+The pixels of a reflector with at least its density's ``sparse_floor`` of pixels in a
+frame (``model/trace_density.py``) are traced on a pattern: at a density of k/16, the
+pixels of each 4 x 4 block whose ordered-dither rank (BAYER_RANKS) is below k. Its
+regular patterns: ``half`` a checkerboard (row + column even), ``quarter`` one pixel of
+each 2 x 2 block (row and column even), ``eighth`` the checkerboard of those,
+``sixteenth`` one of each 4 x 4 block (row and column multiples of 4); a density between
+two of them traces the coarser one's pixels and the next ranks. A ``phase`` (row,
+column) shifts the pattern (a pattern rotating from frame to frame passes the frame's).
+Smaller reflectors are traced whole: their savings are small and their edges are most
+of their pixels.
 
 The other pixels are reconstructed (``fill_skipped``, compiled in ``fill_kernels``, whose
 docstring has the rule and its constants): an edge-aware Catmull-Rom interpolation on
@@ -62,7 +63,7 @@ import numpy as np
 
 from phrt_usd.model import pixel_kinds
 from phrt_usd.model.frame import ReflectionResult, flat_image
-from phrt_usd.model.trace_density import LEVEL_RANKS, SPARSE_MIN_PIXELS, TRACE_DENSITIES
+from phrt_usd.model.trace_density import LEVEL_RANKS, TRACE_DENSITIES, sparse_floor
 
 #: The ordered-dither (Bayer) ranks of a 4 x 4 block: a density of k/16 traces the pixels
 #: of rank below k (``model/trace_density.py``). Its prefixes of 2^j ranks are the regular
@@ -70,6 +71,8 @@ from phrt_usd.model.trace_density import LEVEL_RANKS, SPARSE_MIN_PIXELS, TRACE_D
 #: grid, 0-3 the 2 x 2 grid, 0-7 the checkerboard, 0-15 every pixel.
 BAYER_RANKS = np.array([[0, 8, 2, 10], [12, 4, 14, 6], [3, 11, 1, 9], [15, 7, 13, 5]], np.int64)
 _RANKS = np.array(LEVEL_RANKS, np.int64)
+#: Each density's ``sparse_floor``, by index of TRACE_DENSITIES.
+_FLOORS = np.array([sparse_floor(d) for d in TRACE_DENSITIES], np.int64)
 #: The regular pattern each density contains (its traced pixels of the largest power of
 #: two of ranks): the lattice the fill interpolates on and the reuse's cells are cut by;
 #: a density between two powers traces that pattern's pixels and more, which keep their
@@ -175,13 +178,14 @@ def traced_subset(
     """(n,) bool: which of the round's pixels ``pix`` (n,) int64 of sources ``src`` (n,)
     int64 start rays at ``density``, one of TRACE_DENSITIES for every source or a
     sequence of them, one per source: every pixel of a source traced at "full" or with
-    fewer than SPARSE_MIN_PIXELS pixels, the pattern's pixels of the others, the pattern
-    shifted by ``phase`` (rows, columns)."""
+    fewer pixels than its density's ``sparse_floor``, the pattern's pixels of the others,
+    the pattern shifted by ``phase`` (rows, columns)."""
     counts = np.bincount(src, minlength=n_sources)
     row, col = np.divmod(pix, width)
     rank = BAYER_RANKS[(row - int(phase[0])) % 4, (col - int(phase[1])) % 4]
-    on_pattern = rank < _RANKS[pixel_levels(density, src)]
-    return (counts[src] < SPARSE_MIN_PIXELS) | on_pattern
+    levels = pixel_levels(density, src)
+    on_pattern = rank < _RANKS[levels]
+    return (counts[src] < _FLOORS[levels]) | on_pattern
 
 
 class Fill(NamedTuple):
