@@ -128,3 +128,16 @@ def test_tinted_reflection_reconstructs_at_reduced_density(tmp_path):
     full, _ = _render(path, "hybrid")
     sparse, _ = _render(path, "hybrid", density="sixteenth")
     np.testing.assert_allclose(sparse.beauty, full.beauty, atol=ATOL)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["sewer", "farm"])
+def test_paper_stages_keep_their_reflection_weights(name):
+    """The paper's stages author phrt:reflectivity on every reflector: their reflections
+    keep the explicit (1 - F) local + F reflected (their local shading is the BRDF's)."""
+    from repo_paths import STAGES
+
+    stage = open_stage(STAGES / f"{name}.usda")
+    schema.mark_material_reflections(stage.stage, stage.scene.elements)
+    reflectors = [e for e in stage.scene.elements if e.is_reflector]
+    assert reflectors and all(e.reflectivity_authored for e in reflectors)
