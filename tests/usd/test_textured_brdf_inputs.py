@@ -1,0 +1,100 @@
+"""The BRDF's UsdPreviewSurface inputs textured as the others are (``usd/materials.py``,
+``model/preview_surface.py``): a 2 x 1 texture feeding ``metallic`` (its red channel) and
+``occlusion`` (its green one) of a quad under a white dome, seen face on, in raster and
+rt: each half of the quad shows what its texel's inputs say."""
+
+from __future__ import annotations
+
+import numpy as np
+import OpenImageIO as oiio
+import pytest
+from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux, UsdShade
+
+from phrt_usd.engine import shading
+from phrt_usd.engine.renderer import FrameRenderer, RenderOptions
+from phrt_usd.model import preview_surface as ps
+from phrt_usd.usd.stage import read_stage
+
+ALBEDO = (0.8, 0.4, 0.2)
+#: The two texels (raw, 8-bit): (metallic, occlusion, unused).
+TEXELS = np.array([[[0, 255, 0], [255, 128, 0]]], np.uint8)
+#: Float32 shading of the same rows (the texel values are exact in 8 bits).
+TOLERANCE = 1e-5
+
+
+def _stage(tmp_path) -> Usd.Stage:
+    """A 2 x 2 quad at z = 0 facing +Z (st 0..1 across it), the texture's left texel on
+    its left half, seen from (0, 0, 5); a white dome of radiance 1, no other light."""
+    png = tmp_path / "inputs.png"
+    out = oiio.ImageOutput.create(str(png))
+    out.open(str(png), oiio.ImageSpec(2, 1, 3, oiio.UINT8))
+    out.write_image(TEXELS)
+    out.close()
+    stage = Usd.Stage.CreateNew(str(tmp_path / "quad.usda"))
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    mesh = UsdGeom.Mesh.Define(stage, "/Quad")
+    mesh.CreatePointsAttr([(-1, -1, 0), (1, -1, 0), (1, 1, 0), (-1, 1, 0)])
+    mesh.CreateFaceVertexCountsAttr([4])
+    mesh.CreateFaceVertexIndicesAttr([0, 1, 2, 3])
+    mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+    st = UsdGeom.PrimvarsAPI(mesh).CreatePrimvar(
+        "st", Sdf.ValueTypeNames.TexCoord2fArray, UsdGeom.Tokens.faceVarying
+    )
+    st.Set([(0, 0), (1, 0), (1, 1), (0, 1)])
+    cam = UsdGeom.Camera.Define(stage, "/Cam")
+    cam.CreateFocalLengthAttr(50.0)
+    cam.CreateHorizontalApertureAttr(20.0)
+    cam.CreateVerticalApertureAttr(20.0)
+    cam.CreateClippingRangeAttr(Gf.Vec2f(0.1, 100.0))
+    cam.AddTranslateOp().Set(Gf.Vec3d(0, 0, 5))
+    UsdLux.DomeLight.Define(stage, "/Sky").CreateColorAttr(Gf.Vec3f(1, 1, 1))
+    mat = UsdShade.Material.Define(stage, "/M")
+    surf = UsdShade.Shader.Define(stage, "/M/Surface")
+    surf.CreateIdAttr("UsdPreviewSurface")
+    surf.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).Set(Gf.Vec3f(*ALBEDO))
+    surf.CreateInput("roughness", Sdf.ValueTypeNames.Float).Set(0.3)
+    tex = UsdShade.Shader.Define(stage, "/M/Inputs")
+    tex.CreateIdAttr("UsdUVTexture")
+    tex.CreateInput("file", Sdf.ValueTypeNames.Asset).Set("inputs.png")
+    tex.CreateInput("sourceColorSpace", Sdf.ValueTypeNames.Token).Set("raw")
+    for axis in ("wrapS", "wrapT"):
+        tex.CreateInput(axis, Sdf.ValueTypeNames.Token).Set("clamp")
+    for name, channel in (("metallic", "r"), ("occlusion", "g")):
+        surf.CreateInput(name, Sdf.ValueTypeNames.Float).ConnectToSource(
+            tex.CreateOutput(channel, Sdf.ValueTypeNames.Float)
+        )
+    mat.CreateSurfaceOutput().ConnectToSource(surf.ConnectableAPI(), "surface")
+    UsdShade.MaterialBindingAPI.Apply(mesh.GetPrim()).Bind(mat)
+    stage.GetRootLayer().Save()
+    return stage
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("mode", ["raster", "rt"])
+def test_textured_metallic_and_occlusion_shade_per_texel(tmp_path, mode):
+    """Left half: metallic 0, occlusion 1 (a dielectric: its albedo plus ~4 % white);
+    right half: metallic 1, occlusion 128/255 (a metal: its albedo, darkened by the
+    occlusion). A pixel near the middle of a half equals the ambient weight
+    (``shading.surface_weights``) of the surface row of the texels' bilinear blend at
+    its point, seen from its own view."""
+    scene = read_stage(_stage(tmp_path))
+    renderer = FrameRenderer(scene, RenderOptions(mode=mode, width=16, height=16))
+    try:
+        out = renderer.render(scene.frame_range[0])
+    finally:
+        renderer.close()
+    gb = out.gbuffer
+    for col in (4, 11):
+        at = (8, col)
+        assert gb.element_id[at] == 0
+        # The bilinear blend of the two texels at the pixel's s (clamped at the edges).
+        s = (gb.position[at][0] + 1.0) / 2.0
+        w = float(np.clip(s * 2.0 - 0.5, 0.0, 1.0))
+        metallic, occlusion = w, (1.0 - w) + w * 128 / 255
+        row = ps.surface_columns(np.array([ALBEDO]), metallic, 0, np.zeros(3), 0.3, 0.0,
+                                 0.01, 1.5, occlusion, 1.0)  # fmt: skip
+        ambient, _ = shading.surface_weights(row, gb.normal[at][None], -gb.view_dir[at][None])
+        np.testing.assert_allclose(out.beauty[at], ambient[0], atol=TOLERANCE, err_msg=str(at))
+    left, right = out.beauty[8, 4], out.beauty[8, 11]
+    assert left[2] > 0.2 and right[2] < 0.15  # the metal has no white specular floor
