@@ -53,6 +53,7 @@ from phrt_usd.model.scene import CameraFrame, Scene
 from phrt_usd.select.heu1_forecast import UPCOMING_CAMERAS
 from phrt_usd.select.policies import make_policy
 from phrt_usd.select.rounds import Calibration, FrameRounds, run_rounds
+from phrt_usd.small_pages import small_pages
 from phrt_usd.threads import apply_threads
 from phrt_usd.usd.default_lights import aim_headlight
 from phrt_usd.usd.schema import mark_material_reflections
@@ -149,7 +150,8 @@ class FrameRenderer:
             from phrt_usd.engine.raster.rasterizer import Rasterizer
 
             progress.step("uploading the geometry")
-            self._rasterizer = Rasterizer(scene, options.width, options.height)
+            with small_pages():  # arrays written once (phrt_usd.small_pages)
+                self._rasterizer = Rasterizer(scene, options.width, options.height)
         # Embree is only needed to trace (reflectors in hybrid, everything in rt), or for
         # primary rays asked for by name.
         traces = len(self._reflector_ids) and options.heuristic != "none"
@@ -241,7 +243,8 @@ class FrameRenderer:
         rendered frames only, and the image of any frame is the same with or without
         this (everything it leaves behind is a cache of the scene at a time code)."""
         progress.step("preparing the first frame")
-        self.prepare(time_code)
+        with small_pages():  # the tables and maps it makes are written once
+            self.prepare(time_code)
 
     def _path_cameras(self, time_code: float) -> tuple[CameraFrame, tuple[CameraFrame, ...]]:
         """The camera at ``time_code`` and those of the planned frames after it (at most

@@ -77,6 +77,7 @@ from pxr import Sdf, Tf, Usd, UsdGeom, UsdRender
 from phrt_usd import progress
 from phrt_usd.errors import BadOption, PhrtError, UnreadableInput
 from phrt_usd.model.scene import CameraFrame, Element, Geometry, Lights, Scene, SceneChange
+from phrt_usd.small_pages import small_pages
 from phrt_usd.usd import schema
 from phrt_usd.usd.camera_path import CameraPath, find_camera_path
 from phrt_usd.usd.composition import composition_problems, composition_warnings
@@ -336,7 +337,8 @@ class StageScene:
         if cam_prim is not None:
             for problem in camera_problems(cam_prim, self._time, self.path_driver is not None):
                 raise PhrtError(problem)
-        self._build(TimeContext(self._time))
+        with small_pages():  # the geometry's arrays are written once: phrt_usd.small_pages
+            self._build(TimeContext(self._time))
         self.warnings += [
             f"{m}; rendered with the input's fallback"
             if m not in self._dome_problems

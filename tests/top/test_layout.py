@@ -22,6 +22,7 @@ PHASES = {
     "threads": 0,
     "kernels": 0,
     "progress": 0,
+    "small_pages": 0,
     "model": 1,
     "usd": 2,
     "select": 3,

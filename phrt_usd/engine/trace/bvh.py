@@ -38,6 +38,7 @@ from embreex.mesh_construction import TriangleMesh
 from phrt_usd import kernels, progress
 from phrt_usd.model.scene import NO_HIT, ElementTriangles, Scene
 from phrt_usd.model.surface import TriangleTable
+from phrt_usd.small_pages import small_pages
 
 #: The compiled trace kernels (``trace_kernels``, through ``phrt_usd.kernels``).
 trace_kernels = kernels.load("phrt_usd.engine.trace.trace_kernels")
@@ -209,7 +210,8 @@ class Bvh:
         triangle count or origin, a static element changed): full build of both."""
         elements = self._changed_animated(scene)
         if elements is None:
-            self._build(scene)
+            with small_pages():  # copies and table written once: phrt_usd.small_pages
+                self._build(scene)
         elif len(elements):
             self._refresh_animated(scene, elements)
         else:
