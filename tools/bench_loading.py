@@ -12,7 +12,8 @@ the runs). Three kinds of child:
 
 * **usd** -- USD's plain read: ``Usd.Stage.Open`` and a traversal of every prim
   (instance proxies included) reading every attribute's value at the default time.
-  What any reader of the stage pays before it has done anything with the values.
+  What any reader of the stage pays before it has done anything with the values (what
+  ``usdcat`` reads before it writes; the usd-core wheel ships no ``usdcat`` binary).
 * **embree** -- Embree's own build: the stage read by phrt, its triangles as phrt hands
   them to Embree (float32 vertices relative to the scene's origin, int32 triangles),
   the scene freed, then one ``embreex`` scene of one triangle mesh built and committed
