@@ -36,6 +36,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from phrt_usd import kernels
+from phrt_usd.engine.lighting import gbuffer_surface
 from phrt_usd.engine.shading import environment_radiance, surface_weights
 from phrt_usd.model import pixel_kinds
 from phrt_usd.model.frame import GBuffer, ReflectionResult
@@ -97,8 +98,6 @@ def pixel_reflectivity(gbuffer: GBuffer, element_reflectivity) -> np.ndarray:
     follows = rule.material[gbuffer.element_id]
     if not follows.any():
         return f
-    from phrt_usd.engine.lighting import gbuffer_surface  # lighting imports this module
-
     weight = np.repeat(f[..., None], 3, axis=2).view(np.ndarray).astype(np.float32)
     at = np.nonzero(follows)
     surface = gbuffer_surface(
