@@ -4,6 +4,12 @@ stage and Embree's own build of the same triangles.
 
     uv run python tools/bench_loading.py STAGE [STAGE ...] [--runs 3]
         [--resolution 320x240] [--mode hybrid] [--threads N] [--json]
+        [--many-meshes 5000x12]
+
+``--many-meshes MxQ`` adds a stage written here to a temporary directory: M meshes of
+Q x Q quads each (2 Q² triangles, a constant displayColor, no material, side by side
+on a grid), the many-small-meshes case (5000x12: 1.44 M triangles, as many as the
+chess set below in 5000 meshes instead of 21).
 
 Every measurement runs in a fresh child process (this file with ``--child``), ``--runs``
 times; printed are the medians over the runs (and the spread, min-max) and the peak
@@ -227,20 +233,58 @@ HEADER = [
 ]  # fmt: skip
 
 
+def many_meshes_stage(path: Path, meshes: int, quads: int) -> Path:
+    """Write the ``--many-meshes`` stage (module doc) to ``path``."""
+    import numpy as np
+    from pxr import Usd, UsdGeom, Vt
+
+    stage = Usd.Stage.CreateNew(str(path))
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    k = quads + 1
+    grid = np.stack(np.meshgrid(np.linspace(0, 1, k), np.linspace(0, 1, k)), -1).reshape(-1, 2)
+    points = np.column_stack([grid[:, 0], np.zeros(len(grid)), grid[:, 1]])
+    i, j = np.meshgrid(np.arange(quads), np.arange(quads))
+    a = (j * k + i).ravel()
+    quad_corners = np.stack([a, a + k, a + k + 1, a + 1], 1).ravel()
+    indices = Vt.IntArray.FromNumpy(quad_corners.astype(np.int32))
+    counts = Vt.IntArray.FromNumpy(np.full(quads * quads, 4, np.int32))
+    side = int(np.ceil(np.sqrt(meshes)))
+    for m in range(meshes):
+        mesh = UsdGeom.Mesh.Define(stage, f"/World/G{m // 100}/M{m}")
+        shifted = points + [m % side * 1.1, 0.0, m // side * 1.1]
+        mesh.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(shifted.astype(np.float32)))
+        mesh.CreateFaceVertexCountsAttr(counts)
+        mesh.CreateFaceVertexIndicesAttr(indices)
+        mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+        mesh.CreateDisplayColorPrimvar(UsdGeom.Tokens.constant).Set([(0.5, 0.6, 0.7)])
+    stage.GetRootLayer().Save()
+    return path
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("stages", nargs="+")
+    parser.add_argument("stages", nargs="*")
     parser.add_argument("--runs", type=int, default=3)
     parser.add_argument("--resolution", default="320x240")
     parser.add_argument("--mode", default="hybrid")
     parser.add_argument("--threads", type=int, default=None)
     parser.add_argument("--json", action="store_true", help="One JSON object on stdout.")
+    parser.add_argument("--many-meshes", metavar="MxQ", help="Add M meshes of QxQ quads.")
     parser.add_argument("--child", choices=CHILD_KINDS, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.child:
         run_child(args.child, args.stages[0], args)
         return
-    results = [bench_stage(stage, args) for stage in args.stages]
+    with tempfile.TemporaryDirectory(prefix="phrt-bench-loading-") as tmp:
+        stages = list(args.stages)
+        if args.many_meshes:
+            meshes, quads = (int(v) for v in args.many_meshes.lower().split("x"))
+            name = f"many_meshes_{meshes}x{quads}.usdc"
+            stages.append(str(many_meshes_stage(Path(tmp) / name, meshes, quads)))
+        if not stages:
+            parser.error("no stage: give STAGE paths or --many-meshes")
+        results = [bench_stage(stage, args) for stage in stages]
     if args.json:
         print(json.dumps({"runs": args.runs, "resolution": args.resolution,
                           "mode": args.mode, "stages": results}, indent=2))  # fmt: skip

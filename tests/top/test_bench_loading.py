@@ -18,8 +18,12 @@ import bench_loading  # noqa: E402
 @pytest.mark.slow
 def test_bench_loading_reports_every_step(tmp_path, capsys):
     stage = cube_stage(tmp_path / "cube.usda")
-    bench_loading.main([str(stage), "--runs", "1", "--resolution", "32x24", "--json"])
-    result = json.loads(capsys.readouterr().out)["stages"][0]
+    bench_loading.main([str(stage), "--many-meshes", "3x2", "--runs", "1", "--resolution",
+                        "32x24", "--json"])  # fmt: skip
+    result, many = json.loads(capsys.readouterr().out)["stages"]
+    # The written stage: 3 meshes of 2 x 2 quads, 2 triangles a quad.
+    assert many["phrt"]["info"]["triangles"] == 3 * 2 * 2 * 2
+    assert many["phrt"]["info"]["elements"] == 3
     phrt, embree, usd = result["phrt"], result["embree"], result["usd"]
     # USD's Cube: 6 faces of 2 triangles each, the same for phrt and Embree.
     assert phrt["info"]["triangles"] == embree["info"]["triangles"] == 12
