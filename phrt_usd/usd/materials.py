@@ -69,9 +69,12 @@ TEXTURED_INPUTS = {
     "clearcoatRoughness": 1, "occlusion": 1,
 }  # fmt: skip
 
-#: The BRDF's scalar inputs read as constants (their fallbacks: ``_MaterialRow``), each
-#: clamped to [0, 1] but ``ior`` (> 0) and ``useSpecularWorkflow`` (0 or 1).
-BRDF_INPUTS = ("metallic", "roughness", "ior", "clearcoat", "clearcoatRoughness", "occlusion")
+#: The BRDF's scalar inputs read as constants: input name -> ``_MaterialRow`` field (its
+#: fallback there), each clamped to [0, 1] but ``ior`` (> 0).
+BRDF_INPUTS = {
+    "metallic": "metallic", "roughness": "roughness", "ior": "ior", "clearcoat": "clearcoat",
+    "clearcoatRoughness": "clearcoat_roughness", "occlusion": "occlusion",
+}  # fmt: skip
 
 #: UsdUVTexture output -> the file's channel per component, by the file's channel count
 #: (1 grey, 2 grey + alpha, 3 RGB, 4 RGBA); ``ALPHA_ONE``: no alpha, reads 1.
@@ -111,10 +114,10 @@ class _MaterialRow:
     opacity: float = 1.0
     ior: float = 1.5
     clearcoat: float = 0.0
-    clearcoatRoughness: float = 0.01  # noqa: N815 (the input's name)
+    clearcoat_roughness: float = 0.01
     occlusion: float = 1.0
-    useSpecularWorkflow: float = 0.0  # noqa: N815
-    specularColor: np.ndarray = field(default_factory=lambda: np.zeros(3))  # noqa: N815
+    use_specular_workflow: float = 0.0
+    specular_color: np.ndarray = field(default_factory=lambda: np.zeros(3))
     emissive: np.ndarray = field(default_factory=lambda: np.zeros(3))
     texture: np.ndarray | None = None  # (h, w, 3) float32 linear diffuse rgb, row 0 = top
     uv_primvar: str = "st"
@@ -257,14 +260,13 @@ class MaterialBank:
         if not shader or shader.GetIdAttr().Get() != "UsdPreviewSurface":
             self._read_materialx(row, material)
             return row
-        for name in (*BRDF_INPUTS, "opacity"):
-            setattr(row, name, float(self._constant(shader, name, getattr(row, name))))
-            if name != "ior":
-                setattr(row, name, float(np.clip(getattr(row, name), 0.0, 1.0)))
+        for name, attr in (*BRDF_INPUTS.items(), ("opacity", "opacity")):
+            value = float(self._constant(shader, name, getattr(row, attr)))
+            setattr(row, attr, value if name == "ior" else float(np.clip(value, 0.0, 1.0)))
         if not row.ior > 0.0:
             row.ior = 1.5
-        row.useSpecularWorkflow = float(self._constant(shader, "useSpecularWorkflow", 0) != 0)
-        row.specularColor = np.clip(self._constant(shader, "specularColor", np.zeros(3)), 0, 1)
+        row.use_specular_workflow = float(self._constant(shader, "useSpecularWorkflow", 0) != 0)
+        row.specular_color = np.clip(self._constant(shader, "specularColor", np.zeros(3)), 0, 1)
         threshold = float(self._constant(shader, "opacityThreshold", 0.0))
         row.opacity_threshold = float(np.clip(threshold, 0.0, 1.0))
         row.emissive = np.clip(self._constant(shader, "emissiveColor", np.zeros(3)), 0, None)
@@ -350,9 +352,11 @@ class MaterialBank:
         elif name == "opacity":
             row.opacity = float(np.clip(value.reshape(-1)[0], 0.0, 1.0))
         elif name == "specularColor":
-            row.specularColor = np.clip(np.broadcast_to(value, (3,)), 0, 1).astype(np.float64)
-        elif name in BRDF_INPUTS or name == "useSpecularWorkflow":
-            setattr(row, name, float(value.reshape(-1)[0]))
+            row.specular_color = np.clip(np.broadcast_to(value, (3,)), 0, 1).astype(np.float64)
+        elif name == "useSpecularWorkflow":
+            row.use_specular_workflow = float(value.reshape(-1)[0] != 0)
+        elif name in BRDF_INPUTS:
+            setattr(row, BRDF_INPUTS[name], float(value.reshape(-1)[0]))
 
     def _file(self, file_value, where: str, space: str):
         """(pixels (h, w, c) float32, wrap metadata) of a texture file, read once per
@@ -478,10 +482,10 @@ class MaterialBank:
             textures=[r.texture for r in rows],
             texture_inputs=[dict(r.inputs) for r in rows],
             opacity_threshold=np.array([r.opacity_threshold for r in rows], dtype=np.float32),
-            specular_color=np.array([r.specularColor for r in rows], np.float32).reshape(-1, 3),
-            use_specular_workflow=np.array([r.useSpecularWorkflow for r in rows], np.float32),
+            specular_color=np.array([r.specular_color for r in rows], np.float32).reshape(-1, 3),
+            use_specular_workflow=np.array([r.use_specular_workflow for r in rows], np.float32),
             clearcoat=np.array([r.clearcoat for r in rows], dtype=np.float32),
-            clearcoat_roughness=np.array([r.clearcoatRoughness for r in rows], np.float32),
+            clearcoat_roughness=np.array([r.clearcoat_roughness for r in rows], np.float32),
             occlusion=np.array([r.occlusion for r in rows], dtype=np.float32),
         )
 

@@ -98,3 +98,24 @@ def test_textured_metallic_and_occlusion_shade_per_texel(tmp_path, mode):
         np.testing.assert_allclose(out.beauty[at], ambient[0], atol=TOLERANCE, err_msg=str(at))
     left, right = out.beauty[8, 4], out.beauty[8, 11]
     assert left[2] > 0.2 and right[2] < 0.15  # the metal has no white specular floor
+
+
+def test_brdf_constants_are_read_into_the_material_table(tmp_path):
+    """Every constant input the BRDF reads lands in its MaterialTable row (clamped to
+    its range): the specular workflow, its colour, ior, clear coat and its roughness,
+    occlusion."""
+    stage = _stage(tmp_path)
+    surf = UsdShade.Shader(stage.GetPrimAtPath("/M/Surface"))
+    values = {"useSpecularWorkflow": (Sdf.ValueTypeNames.Int, 1),
+              "ior": (Sdf.ValueTypeNames.Float, 2.0),
+              "clearcoat": (Sdf.ValueTypeNames.Float, 0.7),
+              "clearcoatRoughness": (Sdf.ValueTypeNames.Float, 1.5),
+              "specularColor": (Sdf.ValueTypeNames.Color3f, Gf.Vec3f(0.1, 0.2, 0.3))}  # fmt: skip
+    for name, (kind, value) in values.items():
+        surf.CreateInput(name, kind).Set(value)
+    m = read_stage(stage).scene.materials
+    row = 1  # row 0: no material
+    assert m.use_specular_workflow[row] == 1.0 and m.ior[row] == 2.0
+    assert m.clearcoat[row] == pytest.approx(0.7) and m.clearcoat_roughness[row] == 1.0
+    np.testing.assert_allclose(m.specular_color[row], [0.1, 0.2, 0.3], rtol=1e-6)
+    assert "metallic" in m.texture_inputs[row] and "occlusion" in m.texture_inputs[row]
