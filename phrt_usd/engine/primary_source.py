@@ -16,9 +16,12 @@ triangles a pixel) 12.9 / 29.1 and 14.0 / 25.2; at 320 x 240 (0.58-0.70) 7.3 / 7
 
 - ``raster``: the id pass;
 - ``rays``: primary rays (an Embree scene is built for them if the mode has none);
-- ``auto``: ``rays`` where the raster phase runs on a software rasterizer, the renderer
-  has an Embree scene anyway, and the stage has more than RAYS_TRIANGLES_PER_PIXEL
-  triangles a pixel; ``raster`` otherwise (``choose``).
+- ``auto``: ``rays`` where the raster phase runs on a software rasterizer and the stage
+  has more than RAYS_TRIANGLES_PER_PIXEL triangles a pixel, in every mode (a ``raster``
+  render then builds an Embree scene for its primary rays alone: on the 1.4 M-triangle
+  stages where this holds, the BVH's build costs about what two raster id passes do,
+  and every frame after it is cheaper, so ``raster`` is never the slowest mode on a
+  heavy stage); ``raster`` otherwise (``choose``).
 
 ``auto`` decides from the stage, the image size and the OpenGL renderer only, never from
 a timing: the same run on the same machine always takes the same source, so a rays
@@ -53,12 +56,11 @@ def is_software(gl_renderer: str) -> bool:
     return any(s in name for s in SOFTWARE_RENDERERS)
 
 
-def choose(option: str, has_tracer: bool, software_gl: bool, triangles: int, pixels: int) -> str:
+def choose(option: str, software_gl: bool, triangles: int, pixels: int) -> str:
     """The source ("raster" or "rays") for ``option`` (one of PRIMARY_SOURCES) in a
-    raster or hybrid renderer: ``has_tracer`` whether it builds an Embree scene anyway,
-    ``software_gl`` whether its raster phase runs on a software rasterizer, and the
-    stage's ``triangles`` and the image's ``pixels``."""
+    raster or hybrid renderer: ``software_gl`` whether its raster phase runs on a
+    software rasterizer, and the stage's ``triangles`` and the image's ``pixels``."""
     if option != "auto":
         return option
     dense = triangles > RAYS_TRIANGLES_PER_PIXEL * max(pixels, 1)
-    return "rays" if has_tracer and software_gl and dense else "raster"
+    return "rays" if software_gl and dense else "raster"

@@ -152,31 +152,26 @@ class FrameRenderer:
             progress.step("uploading the geometry")
             with small_pages():  # arrays written once (phrt_usd.small_pages)
                 self._rasterizer = Rasterizer(scene, options.width, options.height)
-        # Embree is only needed to trace (reflectors in hybrid, everything in rt), or for
-        # primary rays asked for by name.
-        traces = len(self._reflector_ids) and options.heuristic != "none"
-        if (
-            options.mode == "rt"
-            or options.primary == "rays"
-            or (options.mode == "hybrid" and traces)
-        ):
-            from phrt_usd.engine.trace.tracer import Tracer
-
-            self._tracer = Tracer(scene, threads=options.threads)
-            if self._rasterizer is not None:  # hits lit by the maps, in rt as in hybrid
-                self._tracer.use_shadow_maps(self._rasterizer)
         #: The G-buffer source, "raster" or "rays" (``primary_source.choose``).
         self.primary = (
             "rays"
             if options.mode == "rt" or self._rasterizer is None
             else choose(
                 options.primary,
-                has_tracer=self._tracer is not None,
                 software_gl=is_software(self._rasterizer.gl_renderer),
                 triangles=scene.geometry.triangle_count,
                 pixels=options.width * options.height,
             )
         )
+        # Embree is only needed to trace (reflectors in hybrid, everything in rt), or for
+        # primary rays.
+        traces = len(self._reflector_ids) and options.heuristic != "none"
+        if self.primary == "rays" or (options.mode == "hybrid" and traces):
+            from phrt_usd.engine.trace.tracer import Tracer
+
+            self._tracer = Tracer(scene, threads=options.threads)
+            if self._rasterizer is not None:  # hits lit by the maps, in rt as in hybrid
+                self._tracer.use_shadow_maps(self._rasterizer)
         #: The frames this renderer will render, in order (``plan``), and the cameras of
         #: those looked up so far, by time code.
         self._planned: list[float] = []
