@@ -510,8 +510,11 @@ class FrameRenderer:
 
     def _shade_local(self, gb: GBuffer) -> tuple[np.ndarray, str | None]:
         """Local shading (H, W, 3) of covered pixels and the shadow pass used, if any
-        (``lighting.shade_gbuffer``: who answers the shadow queries in this mode)."""
-        return shade_gbuffer(gb, self.scene, self.options.mode, self._rasterizer, self._tracer)
+        (``lighting.shade_gbuffer``: who answers the shadow queries in this mode; raster
+        mode's shadows are the maps' alone, whether or not it built Embree for its
+        primary rays)."""
+        tracer = None if self.options.mode == "raster" else self._tracer
+        return shade_gbuffer(gb, self.scene, self.options.mode, self._rasterizer, tracer)
 
 
 def target_fps_budget_ms(target_fps: float, prepare_ms: float, select_ms: float) -> float:

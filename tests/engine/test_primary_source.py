@@ -116,6 +116,7 @@ def test_auto_follows_the_triangles_a_pixel(tmp_path):
     # Asked for by name, the rays serve a raster-mode frame too (Embree built for them).
     source, out = _frame(stage, "rays", mode="raster")
     assert source == "rays" and "primary_rays" in out.stats.passes and not out.traced_mask.any()
+    assert "shadow_map" in out.stats.passes  # the maps' shadows, no rays: raster mode's own
 
 
 @pytest.mark.slow
