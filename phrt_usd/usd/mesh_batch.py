@@ -150,8 +150,12 @@ class MeshBatch:
         layout = _Layout(sources)
         normals = self._normals(sources, layout)
         albedo = self._albedo(sources, layout)
-        uv = layout.expand([s.uv for s in sources], zeros_for=[s.textured for s in sources])
-        uv = None if uv is None else uv.astype(np.float32)
+        uv = None
+        if any(s.textured for s in sources):  # zeros where a textured mesh has no uv
+            uv = np.zeros((layout.count, 3, 2), np.float32)
+            gathered = layout.gather([s.uv for s in sources])
+            if gathered is not None:
+                uv[gathered[0]] = gathered[1]
         out = []
         for m, source in enumerate(sources):
             rows = layout.rows(m)
@@ -179,7 +183,9 @@ class MeshBatch:
         if smooth.all():  # every row: no gather, no copy
             tri = layout.local_triangles + layout.point_offset[layout.tri_mesh][:, None]
             return meshes.smooth_corner_normals(points, tri)
-        out = safe_normalize(layout.expand([s.normals for s in sources]))
+        out = np.empty((layout.count, 3, 3))
+        rows, values = layout.gather([s.normals for s in sources])
+        out[rows] = safe_normalize(values)
         if smooth.any():
             rows = layout.rows_of(smooth)
             tri = layout.local_triangles[rows] + layout.point_offset[layout.tri_mesh[rows]][:, None]
@@ -195,10 +201,11 @@ class MeshBatch:
         base[(~has_colour) & (tri_material == 0)] = meshes.DEFAULT_GREY
         out = np.empty((layout.count, 3, 3), np.float32)
         out[:] = base[:, None, :]
-        if has_colour.any():
-            colour = layout.expand([s.colour for s in sources])
-            take = has_colour & ~authored[tri_material]
-            out[take] = colour[take]
+        gathered = layout.gather([s.colour for s in sources])
+        if gathered is not None:  # displayColor where the material's diffuse is not authored
+            rows, colour = gathered
+            take = ~authored[tri_material[rows]]
+            out[rows[take]] = colour[take]
         return out
 
 
@@ -279,15 +286,15 @@ class _Layout:
                 out[having, col] = np.maximum.reduceat(ids, starts) + 1
         return out
 
-    def expand(self, primvars: list[_Primvar | None], zeros_for=None) -> np.ndarray | None:
-        """(T, 3, c) float64: each mesh's primvar at its triangles' corners (rows of
-        meshes without one are zeros), or None when no mesh has one. ``zeros_for``
-        (n,) bool: meshes that need the values even without the primvar (zeros)."""
+    def gather(self, primvars: list[_Primvar | None]) -> tuple[np.ndarray, np.ndarray] | None:
+        """Each mesh's primvar at its triangles' corners: (rows (r,) int64, the triangle
+        rows of the meshes that have one; values (r, 3, c) float64), or None when no
+        mesh has one. Raises ``PhrtError`` for too few values or an unknown
+        interpolation (``meshes._expand``'s rule)."""
         having = [m for m, pv in enumerate(primvars) if pv is not None]
         if not having:
-            return None if zeros_for is None or not any(zeros_for) else self._zeros(2)
+            return None
         width = max(primvars[m].values.shape[1] for m in having)
-        out = np.zeros((self.count, 3, width))
         offsets = np.zeros(len(primvars), dtype=np.int64)
         kinds = np.zeros(len(primvars), dtype=np.int64)
         values, total = [], 0
@@ -326,11 +333,8 @@ class _Layout:
             else:
                 index[pick] = ids[rows[pick]]
         index += offsets[mesh][:, None]
-        out[rows] = flat[index]
-        return out
+        return rows, flat[index]
 
-    def _zeros(self, width: int) -> np.ndarray:
-        return np.zeros((self.count, 3, width))
 
 
 def read_gprim(kind: str, prim: Usd.Prim, time: Usd.TimeCode, bank: MaterialBank):
