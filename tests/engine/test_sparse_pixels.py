@@ -17,6 +17,7 @@ import phrt_usd
 from phrt_usd.cli import app
 from phrt_usd.engine.renderer import RenderOptions
 from phrt_usd.engine.trace.sparse_pixels import (
+    BAYER_RANKS,
     FillGuides,
     fill_skipped,
     pattern_spacing,
@@ -24,7 +25,7 @@ from phrt_usd.engine.trace.sparse_pixels import (
 )
 from phrt_usd.engine.trace.tracer import Tracer
 from phrt_usd.errors import BadOption
-from phrt_usd.model.trace_density import check_density, sparse_floor
+from phrt_usd.model.trace_density import DENSITY_FRACTION, check_density, sparse_floor
 
 
 def _pattern(row, col, density):
@@ -47,6 +48,23 @@ def test_large_reflectors_start_rays_on_the_pattern_small_ones_everywhere(densit
     assert keep[src == 0].all()
     row, col = np.divmod(pix[src == 1], width)
     np.testing.assert_array_equal(keep[src == 1], _pattern(row, col, density))
+
+
+def test_a_small_reflector_is_thinned_only_while_it_keeps_four_samples():
+    # 40 pixels (a 5 x 8 patch): from 32 pixels a reflector may be thinned, but only while
+    # at least 4 of its pixels start rays: at 13/16 (32.5 of them) and at an eighth (5)
+    # it is, at a sixteenth (2.5: that needs 64 pixels) it is traced whole.
+    assert [sparse_floor(d) for d in ("13/16", "eighth", "sixteenth")] == [32, 32, 64]
+    width = 8
+    pix = np.arange(40, dtype=np.int64)
+    src = np.zeros(40, np.int64)
+    for density, thinned in (("13/16", True), ("eighth", True), ("sixteenth", False)):
+        keep = traced_subset(pix, src, 1, width, density)
+        assert (not keep.all()) is thinned, density
+        if thinned:  # the density's ordered-dither ranks
+            row, col = np.divmod(pix, width)
+            rate = round(DENSITY_FRACTION[density] * 16)
+            np.testing.assert_array_equal(keep, BAYER_RANKS[row % 4, col % 4] < rate)
 
 
 def test_a_skipped_pixel_without_traced_neighbours_keeps_the_fallback():
