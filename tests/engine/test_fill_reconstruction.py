@@ -330,16 +330,23 @@ SEWER_FRAMES = (217.0, 241.0, 265.0)
 @pytest.mark.slow
 def test_probe_reduced_densities_show_as_blocks():
     """The sewer's wet tunnel at 320 x 240, every reflector traced: at each reduced
-    density the mean FLIP against full density is no worse than the bilinear fill's on
-    these frames (the renderer with the bilinear fill of the commit before this one:
-    half 0.0255, quarter 0.0441, sixteenth 0.0730; this fill measured 0.0236, 0.0437,
-    0.0715), and at a sixteenth the reflectors' second differences centred on the
+    density the mean FLIP against full density stays within its limit. Under the earlier
+    Lambert / Blinn-Phong shading this fill measured 0.0236, 0.0437, 0.0715 (half,
+    quarter, sixteenth) against the bilinear fill's 0.0255, 0.0441, 0.0730 (the renderer
+    with the bilinear fill of the commit before it), which were the limits. The
+    UsdPreviewSurface BRDF's sharp lamp highlights on the wet floor raised every
+    density's error by 3-11 % (the fill unchanged: 0.0261, 0.0464, 0.0736), and the
+    bilinear fill no longer exists to measure against: the limits are now this fill's
+    own figures under the BRDF plus 2 % (FLIP of seeded renders: the margin covers float
+    rounding between machines), a guard against regressions of the fill; that it has no
+    blocks is the ratio below. At a sixteenth the reflectors' second differences centred on the
     pattern's lattice lines over those centred between them stay under 1.6 (this fill:
     1.15-1.53; the bilinear fill: 3.2-5.1; the full-density image: 1.00-1.01; what is
     left is the traced pixels' own, often aliased, detail, which they keep exactly).
     The error falls as the rate rises: each rate's mean FLIP is at most that of the next
     coarser regular pattern (what a rate between two adds is traced pixels, kept exact)."""
-    bilinear = {"half": 0.0255, "quarter": 0.0441, "sixteenth": 0.0730}
+    limits = {d: 1.02 * v for d, v in (("half", 0.0261), ("quarter", 0.0464),
+                                         ("sixteenth", 0.0736))}  # fmt: skip
     coarser = {"12/16": "half", "half": "5/16", "5/16": "quarter", "quarter": "eighth",
                "eighth": "sixteenth"}  # fmt: skip
     stage = open_stage(STAGES / "sewer.usda")
@@ -362,7 +369,7 @@ def test_probe_reduced_densities_show_as_blocks():
     finally:
         for r in renderers.values():
             r.close()
-    for d, limit in bilinear.items():
+    for d, limit in limits.items():
         assert np.mean(flips[d]) <= limit, (d, flips[d])
     for d, c in coarser.items():
         assert np.mean(flips[d]) <= np.mean(flips[c]), (d, flips[d], c, flips[c])
