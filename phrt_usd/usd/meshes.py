@@ -41,10 +41,10 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-from pxr import Gf, Usd, UsdGeom, UsdShade
+from pxr import Gf, Usd, UsdGeom
 
 from phrt_usd.errors import PhrtError
-from phrt_usd.usd.materials import MaterialBank
+from phrt_usd.usd.materials import MaterialBank, bound_material
 from phrt_usd.usd.values import (
     MIN_NORMAL_LENGTH,
     attr_value,
@@ -526,7 +526,8 @@ def read_implicit(kind: str, prim: Usd.Prim, time: Usd.TimeCode, bank: MaterialB
     """The ``LocalMesh`` of an implicit gprim (any ``SHAPE_ATTRS`` type but ``Mesh``;
     meshes are read, many at once, by ``phrt_usd.usd.mesh_batch``)."""
     pts, tris, normals = _implicit_geometry(kind, prim, time)
-    mat = bank.index(UsdShade.MaterialBindingAPI(prim).ComputeBoundMaterial()[0])
+    # Bound for the render's binding purposes, as meshes are (``materials.face_materials``).
+    mat = bank.index(bound_material(prim, bank.purposes))
     tri_material = np.full(len(tris), mat, dtype=np.int32)
     display = None
     pv = _read_primvar(prim, "displayColor", time)
