@@ -227,6 +227,13 @@ def _print_summary(s: dict) -> None:
     if s.get("default_light_rig"):
         lights += " (rendered with the default light rig: a dim dome and a headlight)"
     console.print(f"Lights: {lights}")
+    cam = s.get("camera") or {}
+    if cam.get("path"):
+        driven = f", driven by {cam['driven_by']}" if cam.get("driven_by") else ""
+        line = f"Camera: {cam['path']} ({cam['source']}{driven})"
+        console.print(line, highlight=False, markup=False)
+    elif cam.get("problem"):
+        console.print(f"Camera: refused: {cam['problem']}", highlight=False, markup=False)
     console.print(f"Passes: {', '.join(s['passes'])}")
     support = s.get("support", [])
     console.print(f"Not supported or approximated ({len(support)} kinds):" if support else

@@ -1,5 +1,5 @@
 """What a stage holds for phrt: reflectors, camera paths, render settings, lights,
-stage metadata, and which render passes a render of it needs.
+stage metadata, the camera a render uses, and which render passes a render of it needs.
 
 Reflectors are listed with instance proxies (``rules.stage_reflectors``): a reflector
 inside an instanced reference once per instance, at its per-instance path (the render's
@@ -20,12 +20,15 @@ from dataclasses import asdict
 import numpy as np
 from pxr import Sdf, Usd, UsdGeom, UsdLux, UsdShade
 
-from phrt_usd.errors import UnreadableInput
+from phrt_usd.errors import PhrtError, UnreadableInput
 from phrt_usd.usd import schema
 from phrt_usd.usd.authoring import instance_root
+from phrt_usd.usd.camera_path import find_camera_path_prim
+from phrt_usd.usd.default_camera import DEFAULT_CAMERA_NAME
 from phrt_usd.usd.lights import READ_LIGHT_TYPE_NAMES
+from phrt_usd.usd.render_settings import read_render_settings
 from phrt_usd.usd.rules import stage_reflectors
-from phrt_usd.usd.stage import meters_per_unit
+from phrt_usd.usd.stage import choose_camera, meters_per_unit
 from phrt_usd.usd.support_report import support_report
 
 SHADOW_LIGHT_TYPES = ("DistantLight", "SphereLight", "RectLight")
@@ -123,6 +126,44 @@ def _has_translucent_preview_surface(stage: Usd.Stage) -> bool:
     return False
 
 
+def render_camera(stage: Usd.Stage) -> dict:
+    """The camera ``phrt render`` (without ``--camera`` or ``--settings``) renders
+    through, by the render's rule (``run.render_job.prepare_job``, ``stage.choose_camera``):
+    the camera the render settings' products author, else the settings' ``camera``, else
+    the first UsdGeomCamera in traversal order, else the default camera framing the
+    stage's bounds. Keys: ``path`` (``DEFAULT_CAMERA_NAME`` for the default camera, None
+    when the render refuses the choice), ``source`` (which step chose it), ``driven_by``
+    (the PhrtCameraPath driving it, or None) and ``problem`` (the render's one-line
+    refusal, or None)."""
+    out = {"path": None, "source": None, "driven_by": None, "problem": None}
+    try:
+        settings = read_render_settings(stage)
+        products = {p.camera for p in settings.products if p.camera} if settings else set()
+        if len(products) > 1:
+            raise PhrtError(
+                f"{settings.path}: products differ in camera ({', '.join(sorted(products))}); "
+                "phrt renders one per run"
+            )
+        product_camera = products.pop() if products else None
+        prim = choose_camera(stage, product_camera)
+    except PhrtError as problem:
+        out["problem"] = str(problem)
+        return out
+    if prim is None:
+        out.update(path=DEFAULT_CAMERA_NAME, source="default camera (the stage has none)")
+        return out
+    if product_camera:
+        source = "render product"
+    elif settings is not None and settings.camera:
+        source = f"render settings {settings.path}"
+    else:
+        source = "first UsdGeomCamera"
+    path_prim = find_camera_path_prim(stage, str(prim.GetPath()))
+    out.update(path=str(prim.GetPath()), source=source,
+               driven_by=str(path_prim.GetPath()) if path_prim else None)  # fmt: skip
+    return out
+
+
 def required_passes(stage: Usd.Stage, lights: list[dict], n_reflectors: int) -> list[str]:
     """Render passes the stage needs, in pipeline order."""
     types = {light["type"] for light in lights}
@@ -140,7 +181,8 @@ def required_passes(stage: Usd.Stage, lights: list[dict], n_reflectors: int) -> 
 
 def inspect_stage(stage: Usd.Stage, label: str | None = None) -> dict:
     """Summary of an open stage as one JSON-ready dict (keys: stage, metadata, reflectors,
-    instanced_reflectors (their count), camera_paths, render_settings, lights,
+    instanced_reflectors (their count), camera (the camera a render uses,
+    ``render_camera``), camera_paths, render_settings, lights,
     default_light_rig (no light the render reads: usd/default_lights.py), passes,
     support: what the render ignores or approximates, ``support_report.support_report``).
     ``UnreadableInput`` (one line naming the layer) when the stage's ``metersPerUnit``
@@ -203,6 +245,7 @@ def inspect_stage(stage: Usd.Stage, label: str | None = None) -> dict:
         },
         "reflectors": reflectors,
         "instanced_reflectors": sum(r["instance"] is not None for r in reflectors),
+        "camera": render_camera(stage),
         "camera_paths": camera_paths,
         "render_settings": asdict(schema.read_render_params(stage)),
         "lights": lights,
