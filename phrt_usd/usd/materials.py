@@ -16,13 +16,21 @@ UsdPreviewSurface specification defines it:
 
 - ``file`` through the resolver (``usd/textures.py``); ``sourceColorSpace`` ``raw`` /
   ``sRGB`` / ``auto`` (``textures.read_texture``); ``fallback`` (float4) where the
-  texture cannot be read, else the input's own default;
+  texture cannot be read or no file is authored, else the input's own fallback (for
+  ``diffuseColor`` the spec's 0.18, not the gprim's displayColor);
 - ``wrapS`` / ``wrapT``: repeat, mirror, clamp, black, and ``useMetadata`` (the
   fallback): the file's own wrap metadata, else ``black``;
 - ``scale`` / ``bias`` (float4, per output component);
 - ``st``: a ``UsdPrimvarReader_float2`` (its ``varname``, default ``st``), optionally
   through a ``UsdTransform2d`` (``in`` * ``scale``, rotated by ``rotation`` degrees
   counter-clockwise, then moved by ``translation``).
+
+Every input is read through ``UsdShadeInput.GetValueProducingAttributes``: an input
+connected to an input of its Material (or of a NodeGraph, at any depth) takes that
+input's value, in instanced Materials and instance proxies too. A ``UsdPrimvarReader``
+on ``diffuseColor`` makes the gprim's primvar ``varname`` (itself possibly a Material
+input: Houdini's and Maya's exports) its colour per corner, in place of
+``displayColor`` (``colour_primvar``); without that primvar, the reader's ``fallback``.
 
 ``opacityThreshold`` > 0 makes the material a cut-out (``model.surface.Cutouts``): the
 opacity, constant or textured (``outputs:a`` of a file without alpha reads 1), is a
@@ -121,6 +129,9 @@ class _MaterialRow:
     emissive: np.ndarray = field(default_factory=lambda: np.zeros(3))
     texture: np.ndarray | None = None  # (h, w, 3) float32 linear diffuse rgb, row 0 = top
     uv_primvar: str = "st"
+    #: The primvar a ``UsdPrimvarReader`` on ``diffuseColor`` reads (the gprim's colour
+    #: per corner in place of ``displayColor``), None when no reader feeds it.
+    colour_primvar: str | None = None
     opacity_threshold: float = 0.0
     #: UsdPreviewSurface input name -> its ``TextureInput`` (``TEXTURED_INPUTS``).
     inputs: dict[str, TextureInput] = field(default_factory=dict)
@@ -274,11 +285,26 @@ class MaterialBank:
         if src is None and value is not None:
             row.diffuse = np.clip(np.nan_to_num(np.asarray(value, dtype=np.float64)), 0, None)
             row.diffuse_authored = True
+        if src is not None and _is_primvar_reader(src):
+            self._primvar_colour(row, src)
         for name in TEXTURED_INPUTS:
             output, src = self._value(shader, name)
             if src is not None:
                 self._texture_input(row, name, src, str(output))
         return row
+
+    def _primvar_colour(self, row: _MaterialRow, reader: UsdShade.Shader) -> None:
+        """``diffuseColor`` fed by a ``UsdPrimvarReader``: the gprim's primvar
+        ``varname`` (followed through its connections, e.g. to an input of the Material)
+        is its colour per corner; a gprim without that primvar takes the reader's
+        ``fallback`` (the spec's 0)."""
+        name, _ = self._value(reader, "varname")
+        row.colour_primvar = str(name) if name else None
+        if row.colour_primvar is None:
+            return
+        fallback = np.nan_to_num(np.asarray(self._constant(reader, "fallback", 0.0), np.float64))
+        row.diffuse = np.clip(np.resize(fallback.reshape(-1), 3), 0.0, None)
+        row.diffuse_authored = False  # the primvar, where the gprim has it
 
     def _texture_input(self, row: _MaterialRow, name: str, tex: UsdShade.Shader, output: str):
         """Fill input ``name`` of ``row`` from output ``output`` of the UsdUVTexture
@@ -291,10 +317,15 @@ class MaterialBank:
         file_value, _ = self._value(tex, "file")
         space = str(self._value(tex, "sourceColorSpace")[0] or "auto")
         read = self._file(file_value, where, space)
-        if read is None:
+        if read is None:  # no file authored, or one that cannot be read
             fallback, _ = self._value(tex, "fallback")
             if fallback is not None:
                 self._set_constant(row, name, np.asarray(fallback, np.float64)[list(comps)])
+            elif name == "diffuseColor":
+                # The input's own fallback (the row's other inputs keep theirs), not the
+                # gprim's displayColor.
+                row.diffuse = np.full(3, PREVIEW_SURFACE_DIFFUSE)
+                row.diffuse_authored = True
             return
         pixels, metadata = read
         channels = _OUTPUT_CHANNELS[output][min(max(pixels.shape[2], 1), 4)]
@@ -396,7 +427,7 @@ class MaterialBank:
             )
             st, src = self._value(src, "in")
         varname = "st"
-        if src is not None and str(src.GetIdAttr().Get() or "").startswith("UsdPrimvarReader"):
+        if src is not None and _is_primvar_reader(src):
             name, _ = self._value(src, "varname")
             varname = str(name) if name else "st"
         return transform, varname
@@ -488,6 +519,22 @@ class MaterialBank:
             clearcoat_roughness=np.array([r.clearcoat_roughness for r in rows], np.float32),
             occlusion=np.array([r.occlusion for r in rows], dtype=np.float32),
         )
+
+
+def _is_primvar_reader(shader: UsdShade.Shader) -> bool:
+    """A ``UsdPrimvarReader_*`` node (float, float2, float3, float4, int, ...)."""
+    return str(shader.GetIdAttr().Get() or "").startswith("UsdPrimvarReader")
+
+
+def colour_primvar(bank: MaterialBank, rows) -> str:
+    """The primvar holding the colour of a gprim drawn with material ``rows``: the
+    first row's ``UsdPrimvarReader`` ``varname`` (``_MaterialRow.colour_primvar``), else
+    ``displayColor``."""
+    for row in np.unique(np.asarray(rows, np.int64)):
+        name = bank.rows[int(row)].colour_primvar
+        if name:
+            return name
+    return "displayColor"
 
 
 def face_materials(prim: Usd.Prim, n_faces: int, bank: MaterialBank) -> tuple[np.ndarray, int]:

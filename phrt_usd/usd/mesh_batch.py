@@ -23,7 +23,7 @@ from pxr import Usd, UsdGeom
 from phrt_usd import progress
 from phrt_usd.errors import PhrtError
 from phrt_usd.usd import meshes
-from phrt_usd.usd.materials import MaterialBank, face_materials
+from phrt_usd.usd.materials import MaterialBank, colour_primvar, face_materials
 from phrt_usd.usd.values import safe_normalize
 
 #: Triangles resolved in one pass: the pass's temporaries (a few hundred bytes a
@@ -101,10 +101,12 @@ class MeshBatch:
         normals = meshes.authored_normals(prim, time)
         normals = None if normals is None else _Primvar(*normals)
         face_mat, _ = face_materials(prim, len(counts), bank)
-        colour = meshes._read_primvar(prim, "displayColor", time)
+        # displayColor, or the primvar a UsdPrimvarReader of the material names.
+        name = colour_primvar(bank, face_mat)
+        colour = meshes._read_primvar(prim, name, time)
         if colour is not None:
-            values = np.clip(np.nan_to_num(colour[0].reshape(-1, 3)), 0.0, None)
-            colour = _Primvar(values, colour[1], f"{prim.GetPath()}.primvars:displayColor")
+            values = np.clip(np.nan_to_num(meshes.colour_values(colour[0])), 0.0, None)
+            colour = _Primvar(values, colour[1], f"{prim.GetPath()}.primvars:{name}")
         uv, textured = None, False
         # The mesh's materials are in the bank now: without a textured one, no uv.
         any_textured = any(row.needs_uv for row in bank.rows)

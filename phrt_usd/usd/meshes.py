@@ -44,7 +44,7 @@ import numpy as np
 from pxr import Gf, Usd, UsdGeom
 
 from phrt_usd.errors import PhrtError
-from phrt_usd.usd.materials import MaterialBank, bound_material
+from phrt_usd.usd.materials import MaterialBank, bound_material, colour_primvar
 from phrt_usd.usd.values import (
     MIN_NORMAL_LENGTH,
     attr_value,
@@ -348,6 +348,16 @@ def _mesh_normals(prim, time, corners, tri_face, triangles) -> np.ndarray | None
     return safe_normalize(_expand(values, interp, corners, tri_face, triangles, where))
 
 
+def colour_values(values: np.ndarray) -> np.ndarray:
+    """(n, 3) colours of a colour primvar's values: RGB of colour3 or colour4 values, a
+    float's grey."""
+    values = np.asarray(values, np.float64)
+    if values.size == 0:
+        return np.zeros((0, 3))
+    values = values.reshape(len(values), -1) if values.ndim else values.reshape(1, 1)
+    return values[:, :3] if values.shape[1] >= 3 else np.repeat(values[:, :1], 3, axis=1)
+
+
 def albedo_rows(bank: MaterialBank) -> tuple[np.ndarray, np.ndarray]:
     """Per MaterialTable row: its diffuse (M, 3) and whether it is authored (M,) bool."""
     rows = bank.rows
@@ -530,9 +540,9 @@ def read_implicit(kind: str, prim: Usd.Prim, time: Usd.TimeCode, bank: MaterialB
     mat = bank.index(bound_material(prim, bank.purposes))
     tri_material = np.full(len(tris), mat, dtype=np.int32)
     display = None
-    pv = _read_primvar(prim, "displayColor", time)
-    if pv is not None:
-        color = np.clip(np.nan_to_num(pv[0].reshape(-1, 3)[0]), 0.0, None)
+    pv = _read_primvar(prim, colour_primvar(bank, tri_material[:1]), time)
+    if pv is not None and len(pv[0]):
+        color = np.clip(np.nan_to_num(colour_values(pv[0])[0]), 0.0, None)
         display = np.broadcast_to(color, (len(tris), 3, 3))
     albedo = _albedo(tri_material, display, bank)
     uv = np.zeros((len(tris), 3, 2), np.float32) if bank.rows[mat].needs_uv else None

@@ -131,3 +131,182 @@ def test_binding_purposes_hold_for_every_gprim_type(tmp_path, kind, mode):
     settings = UsdRender.Settings.Define(stage, "/Render/Settings")
     settings.CreateMaterialBindingPurposesAttr(["preview", ""])
     np.testing.assert_allclose(_centre(stage, mode), _look(GREEN), atol=TOLERANCE)
+
+
+# ------------------------------------------------------------ interface inputs
+
+
+def _interface_material(stage, path: str, depth: int, colour) -> None:
+    """Material ``path`` whose input ``base`` = ``colour`` feeds the surface's
+    diffuseColor through ``depth`` nested NodeGraphs, each passing its own ``base``
+    input on (the surface shader is inside the innermost one)."""
+    mat = UsdShade.Material.Define(stage, path)
+    source = mat.CreateInput("base", Sdf.ValueTypeNames.Color3f)
+    source.Set(Gf.Vec3f(*colour))
+    parent = path
+    for level in range(depth):
+        parent = f"{parent}/Graph{level}"
+        graph = UsdShade.NodeGraph.Define(stage, parent)
+        inp = graph.CreateInput("base", Sdf.ValueTypeNames.Color3f)
+        inp.ConnectToSource(source)
+        source = inp
+    surf = UsdShade.Shader.Define(stage, f"{parent}/Surface")
+    surf.CreateIdAttr("UsdPreviewSurface")
+    surf.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).ConnectToSource(source)
+    out = surf.CreateOutput("surface", Sdf.ValueTypeNames.Token)
+    mat.CreateSurfaceOutput().ConnectToSource(out)
+
+
+@pytest.mark.parametrize("mode", MODES)
+@pytest.mark.parametrize("depth", [0, 2])
+def test_material_interface_inputs_at_any_depth(tmp_path, depth, mode):
+    stage = _stage(tmp_path)
+    _interface_material(stage, "/M", depth, RED)
+    _bind(_quad(stage), "/M")
+    np.testing.assert_allclose(_centre(stage, mode), _look(RED), atol=TOLERANCE)
+
+
+def _reader_material(stage, path: str, reader_id: str, varname: str) -> UsdShade.Shader:
+    """Material ``path`` with a UsdPrimvarReader ``reader_id`` whose ``varname`` is
+    connected to the Material's input ``frame:primvarName`` = ``varname`` (the export
+    Houdini and Maya write); the reader."""
+    surf = _surface(stage, path)
+    mat = UsdShade.Material(stage.GetPrimAtPath(path))
+    name = mat.CreateInput("frame:primvarName", Sdf.ValueTypeNames.Token)
+    name.Set(varname)
+    reader = UsdShade.Shader.Define(stage, f"{path}/Reader")
+    reader.CreateIdAttr(reader_id)
+    reader.CreateInput("varname", Sdf.ValueTypeNames.Token).ConnectToSource(name)
+    reader.CreateOutput("result", Sdf.ValueTypeNames.Float3)
+    surf.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f)
+    return reader
+
+
+@pytest.mark.parametrize("mode", MODES)
+@pytest.mark.parametrize("gprim", ["Mesh", "Sphere"])
+def test_probe_primvar_reader_varname_from_a_material_input(tmp_path, gprim, mode):
+    stage = _stage(tmp_path)
+    reader = _reader_material(stage, "/M", "UsdPrimvarReader_float3", "Cd")
+    surf = UsdShade.Shader(stage.GetPrimAtPath("/M/Surface"))
+    surf.GetInput("diffuseColor").ConnectToSource(reader.GetOutput("result"))
+    prim = _gprim(stage, gprim)
+    primvars = UsdGeom.PrimvarsAPI(prim)
+    primvars.CreatePrimvar("Cd", Sdf.ValueTypeNames.Color3fArray, "constant").Set([BLUE])
+    # A displayColor the material does not name is not the colour.
+    primvars.CreatePrimvar("displayColor", Sdf.ValueTypeNames.Color3fArray).Set([GREEN])
+    _bind(prim, "/M")
+    np.testing.assert_allclose(_centre(stage, mode), _look(BLUE), atol=TOLERANCE)
+
+
+@pytest.mark.parametrize("mode", MODES)
+def test_texture_st_from_a_primvar_named_by_a_material_input(tmp_path, mode):
+    """The UsdUVTexture's ``st`` read through a reader whose ``varname`` is the
+    Material's input naming ``uv``: ``uv`` puts every corner at (5, 5), outside the
+    texture, where wrap ``black`` gives black; ``st`` (not named) would give red."""
+    from textured_stages import write_one_colour_png
+
+    write_one_colour_png(tmp_path / "red.png", RED)
+    stage = _stage(tmp_path)
+    reader = _reader_material(stage, "/M", "UsdPrimvarReader_float2", "uv")
+    tex = UsdShade.Shader.Define(stage, "/M/Texture")
+    tex.CreateIdAttr("UsdUVTexture")
+    tex.CreateInput("file", Sdf.ValueTypeNames.Asset).Set("red.png")
+    for axis in ("wrapS", "wrapT"):
+        tex.CreateInput(axis, Sdf.ValueTypeNames.Token).Set("black")
+    tex.CreateInput("st", Sdf.ValueTypeNames.Float2).ConnectToSource(reader.GetOutput("result"))
+    surf = UsdShade.Shader(stage.GetPrimAtPath("/M/Surface"))
+    surf.GetInput("diffuseColor").ConnectToSource(
+        tex.CreateOutput("rgb", Sdf.ValueTypeNames.Float3)
+    )
+    quad = _quad(stage)
+    UsdGeom.PrimvarsAPI(quad).CreatePrimvar(
+        "uv", Sdf.ValueTypeNames.TexCoord2fArray, UsdGeom.Tokens.faceVarying
+    ).Set([(5, 5)] * 4)
+    _bind(quad, "/M")
+    np.testing.assert_allclose(_centre(stage, mode), _look((0, 0, 0)), atol=TOLERANCE)
+
+
+# ------------------------------------------------------------ instanced materials
+
+
+def _instanced_stage(tmp_path) -> Usd.Stage:
+    """/Lib/Asset (a class): a quad bound to /Lib/Asset/Looks/Paint, a Material with
+    interface input ``base`` = red through one NodeGraph; /Lib/Paint (a class): a
+    Material of interface input ``base`` = grey. /Twin: the asset as a plain
+    reference; /Inst: the same asset, instanceable (quad and Material are instance
+    proxies). Only one of the two is active in a test (they overlap)."""
+    stage = _stage(tmp_path)
+    stage.CreateClassPrim("/Lib")
+    _interface_material(stage, "/Lib/Asset/Looks/Paint", 1, RED)
+    _bind(_quad(stage, "/Lib/Asset/Quad"), "/Lib/Asset/Looks/Paint")
+    for name, instanceable in (("Twin", False), ("Inst", True)):
+        prim = stage.DefinePrim(f"/{name}", "Xform")
+        prim.GetReferences().AddInternalReference("/Lib/Asset")
+        prim.SetInstanceable(instanceable)
+    return stage
+
+
+@pytest.mark.parametrize("mode", MODES)
+def test_instanced_material_shades_as_its_twin(tmp_path, mode):
+    stage = _instanced_stage(tmp_path)
+    stage.GetPrimAtPath("/Inst").SetActive(False)
+    twin = _centre(stage, mode)
+    stage.GetPrimAtPath("/Inst").SetActive(True)
+    stage.GetPrimAtPath("/Twin").SetActive(False)
+    assert stage.GetPrimAtPath("/Inst/Quad").IsInstanceProxy()
+    np.testing.assert_allclose(_centre(stage, mode), twin, atol=1e-6)
+    np.testing.assert_allclose(twin, _look(RED), atol=TOLERANCE)
+
+
+@pytest.mark.parametrize("mode", MODES)
+def test_instanceable_material_takes_its_own_inputs(tmp_path, mode):
+    """Materials that are themselves instances of one library Material (the prototype
+    holds the shaders) with their own ``base`` on each instance root: each shades in
+    its own colour, bound from outside and from inside an instance."""
+    stage = _stage(tmp_path)
+    stage.CreateClassPrim("/Lib")
+    _interface_material(stage, "/Lib/Paint", 1, GREY)
+    for name, colour in (("Red", RED), ("Blue", BLUE)):
+        mat = stage.DefinePrim(f"/Looks/{name}", "Material")
+        mat.GetReferences().AddInternalReference("/Lib/Paint")
+        mat.SetInstanceable(True)
+        UsdShade.Material(mat).CreateInput("base", Sdf.ValueTypeNames.Color3f).Set(
+            Gf.Vec3f(*colour)
+        )
+    quad = _quad(stage)
+    _bind(quad, "/Looks/Blue")
+    np.testing.assert_allclose(_centre(stage, mode), _look(BLUE), atol=TOLERANCE)
+    _bind(quad, "/Looks/Red")
+    np.testing.assert_allclose(_centre(stage, mode), _look(RED), atol=TOLERANCE)
+
+
+# ------------------------------------------------------------ unset texture file
+
+
+def _textured(stage, file: str | None) -> None:
+    """/M: diffuseColor from a UsdUVTexture of ``file`` (unset when None), no
+    ``fallback`` authored; bound to a quad whose displayColor is light blue."""
+    surf = _surface(stage, "/M")
+    tex = UsdShade.Shader.Define(stage, "/M/Texture")
+    tex.CreateIdAttr("UsdUVTexture")
+    if file is not None:
+        tex.CreateInput("file", Sdf.ValueTypeNames.Asset).Set(file)
+    surf.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).ConnectToSource(
+        tex.CreateOutput("rgb", Sdf.ValueTypeNames.Float3)
+    )
+    quad = _quad(stage)
+    UsdGeom.PrimvarsAPI(quad).CreatePrimvar(
+        "displayColor", Sdf.ValueTypeNames.Color3fArray
+    ).Set([(0.6, 0.8, 1.0)])
+    _bind(quad, "/M")
+
+
+@pytest.mark.parametrize("mode", MODES)
+@pytest.mark.parametrize("file", [None, "missing.png"])
+def test_probe_unset_texture_file_takes_the_input_fallback(tmp_path, file, mode):
+    stage = _stage(tmp_path)
+    _textured(stage, file)
+    np.testing.assert_allclose(_centre(stage, mode), _look(GREY), atol=TOLERANCE)
+    warnings = read_stage(stage).warnings
+    missing = [w for w in warnings if "/M/Texture.inputs:file" in w]
+    assert len(missing) == (0 if file is None else 1), warnings
