@@ -5,7 +5,7 @@ a Material input, instanced Materials, binding purposes on every gprim type and 
 texture ``file``.
 
 The stage (``_stage``): a gprim facing +Z at the origin, seen from (0, 0, 5) down -Z
-(focal 50 mm, aperture 20 x 20 mm: the image spans +-2.1 m at z = 0, so the centre
+(focal 50 mm, aperture 20 x 20 mm: the image spans +-1 m at z = 0, so the centre
 pixel lies on the gprim's +Z face at its centre, whose normal is +Z), lit only by a
 white dome of radiance 1. A UsdPreviewSurface under a uniform dome of radiance L returns
 its directional albedo times L (``scenes.preview_shade``), so the centre pixel's linear
@@ -310,3 +310,32 @@ def test_probe_unset_texture_file_takes_the_input_fallback(tmp_path, file, mode)
     warnings = read_stage(stage).warnings
     missing = [w for w in warnings if "/M/Texture.inputs:file" in w]
     assert len(missing) == (0 if file is None else 1), warnings
+
+
+@pytest.mark.parametrize("mode", MODES)
+def test_instances_of_one_prototype_bound_per_instance_root(tmp_path, mode):
+    """Two instances of one quad (/A at x < 0, /B at x > 0, each half the image's
+    width), bound on their instance roots to red and blue: each instance proxy takes its
+    root's binding (the image spans +-1 m: pixel column 2 is on /A, 13 on /B)."""
+    stage = _stage(tmp_path)
+    stage.CreateClassPrim("/Lib")
+    _quad(stage, "/Lib/Asset/Quad")
+    _surface(stage, "/Looks/Red", RED)
+    _surface(stage, "/Looks/Blue", BLUE)
+    for name, material, x in (("A", "/Looks/Red", -1.0), ("B", "/Looks/Blue", 1.0)):
+        root = stage.DefinePrim(f"/{name}", "Xform")
+        root.GetReferences().AddInternalReference("/Lib/Asset")
+        root.SetInstanceable(True)
+        UsdGeom.Xformable(root).AddTranslateOp().Set(Gf.Vec3d(x, 0, 0))
+        UsdGeom.Xformable(root).AddScaleOp().Set(Gf.Vec3f(0.5, 0.5, 1))
+        _bind(root, material)
+    scene = read_stage(stage)
+    renderer = FrameRenderer(
+        scene, RenderOptions(mode=mode, heuristic="all", width=W, height=H, budget_ms=None)
+    )
+    try:
+        beauty = renderer.render(scene.frame_range[0]).beauty
+    finally:
+        renderer.close()
+    np.testing.assert_allclose(beauty[H // 2, 2], _look(RED), atol=TOLERANCE)
+    np.testing.assert_allclose(beauty[H // 2, W - 3], _look(BLUE), atol=TOLERANCE)
