@@ -3,8 +3,9 @@
 Every ``Mesh``, ``Sphere``, ``Cube``, ``Cylinder``, ``Cone``, ``Capsule`` and ``Plane``
 becomes one ``LocalMesh``: its triangles prepared once in its local space (stage units;
 fan triangulation, ``leftHanded`` flipped, normals, colours and texture coordinates
-expanded to triangle corners). ``phrt_usd.usd.instancers`` makes the elements of
-PointInstancers from these, ``phrt_usd.usd.skinning`` deforms skinned ones;
+expanded to triangle corners; the rules are here, a stage's meshes are read all
+together by ``phrt_usd.usd.mesh_batch``). ``phrt_usd.usd.instancers`` makes the elements
+of PointInstancers from these, ``phrt_usd.usd.skinning`` deforms skinned ones;
 ``phrt_usd.usd.stage`` places them in the world and re-reads the shapes that deform
 (``local_shape_fn``).
 
