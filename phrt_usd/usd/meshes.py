@@ -1,7 +1,8 @@
 """Geometry: gprims as triangles in their own space, primvars, PointInstancer elements.
 
-Every ``Mesh``, ``Sphere``, ``Cube``, ``Cylinder``, ``Cone``, ``Capsule`` and ``Plane``
-becomes one ``LocalMesh``: its triangles prepared once in its local space (stage units;
+Every ``Mesh``, ``Sphere``, ``Cube``, ``Cylinder``, ``Cone``, ``Capsule``, ``Plane`` and
+``BasisCurves`` (tubes, ``phrt_usd.usd.curves``) becomes one ``LocalMesh``: its
+triangles prepared once in its local space (stage units;
 fan triangulation, ``leftHanded`` flipped, normals, colours and texture coordinates
 expanded to triangle corners; the rules are here, a stage's meshes are read all
 together by ``phrt_usd.usd.mesh_batch``). ``phrt_usd.usd.instancers`` makes the elements
@@ -30,7 +31,7 @@ Decisions where USD leaves room:
   (``mesh_problems`` / ``mesh_problems_in_range`` return those messages for
   ``phrt validate``).
 
-Limits: no subdivision (the cage is rendered), no curves/points/volumes, no primvar
+Limits: no subdivision (the cage is rendered), no other curves, points or volumes, no primvar
 inheritance from ancestors, implicit gprims take only a constant displayColor and no
 texture coordinates. Topology (point, face, hole and instance counts) must not change
 over time.
@@ -45,6 +46,7 @@ import numpy as np
 from pxr import Gf, Usd, UsdGeom
 
 from phrt_usd.errors import PhrtError
+from phrt_usd.usd.curves import tube_geometry
 from phrt_usd.usd.materials import MaterialBank, bound_material, colour_primvar
 from phrt_usd.usd.values import (
     MIN_NORMAL_LENGTH,
@@ -72,10 +74,12 @@ SHAPE_ATTRS = {
     "Cone": ("radius", "height"),
     "Capsule": ("radius", "height"),
     "Plane": ("width", "length"),
+    "BasisCurves": ("points", "widths"),  # drawn as tubes (usd/curves.py)
 }
 
 
-#: Prim types the render reads as geometry (other gprims, e.g. curves, are not drawn).
+#: Prim types the render reads as geometry (other gprims, e.g. NURBS curves, points,
+#: are not drawn).
 RENDERED_GPRIM_TYPES = tuple(SHAPE_ATTRS)
 
 
@@ -522,6 +526,8 @@ _AXIS_PERMUTATION = {"Z": [0, 1, 2], "X": [2, 0, 1], "Y": [1, 2, 0]}
 
 def _implicit_geometry(kind: str, prim: Usd.Prim, time: Usd.TimeCode):
     """Points (n, 3), triangles (T, 3), corner normals (T, 3, 3) in prim space."""
+    if kind == "BasisCurves":
+        return tube_geometry(prim, time)
     if kind == "Plane":
         pts, tris, nrm = _plane(prim, time)
     else:
@@ -560,6 +566,8 @@ ShapeAt = Callable[[Usd.TimeCode], tuple[np.ndarray, np.ndarray | None]]
 
 def local_shape_fn(kind: str, prim: Usd.Prim) -> ShapeAt:
     """Reader of a deforming gprim's points (and authored normals) at a time."""
+    if kind == "BasisCurves":  # a tube's normals follow its curve
+        return lambda code: (lambda g: (g[0], g[2]))(_implicit_geometry(kind, prim, code))
     if kind != "Mesh":
         return lambda code: (_implicit_geometry(kind, prim, code)[0], None)
 

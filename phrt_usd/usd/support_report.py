@@ -23,6 +23,7 @@ from pathlib import PurePosixPath
 from pxr import Ar, Usd, UsdGeom, UsdLux, UsdShade, UsdSkel, UsdVol
 
 from phrt_usd.usd import schema
+from phrt_usd.usd.curves import TUBE_SIDES
 from phrt_usd.usd.lights import READ_LIGHT_TYPE_NAMES
 from phrt_usd.usd.materials import MATERIALX_BASE_COLOUR
 from phrt_usd.usd.meshes import is_subdivided
@@ -278,9 +279,15 @@ KINDS: tuple[SupportKind, ...] = (
         _skinned,
     ),
     SupportKind(
-        "curves", "curves (BasisCurves, NurbsCurves, HermiteCurves)", IGNORED,
-        "the render draws surfaces only (meshes.RENDERED_GPRIM_TYPES)",
-        _of_types(UsdGeom.BasisCurves, UsdGeom.NurbsCurves, UsdGeom.HermiteCurves),
+        "basis_curves", "BasisCurves",
+        f"approximated: tubes of {TUBE_SIDES} sides, open ends (ribbons too)",
+        "usd/curves.py sweeps a circle of the widths along each curve",
+        _of_types(UsdGeom.BasisCurves),
+    ),
+    SupportKind(
+        "curves", "curves (NurbsCurves, HermiteCurves)", IGNORED,
+        "the render draws surfaces and BasisCurves only (meshes.RENDERED_GPRIM_TYPES)",
+        _of_types(UsdGeom.NurbsCurves, UsdGeom.HermiteCurves),
     ),
     SupportKind(
         "points", "point clouds (Points)", IGNORED,

@@ -108,7 +108,7 @@ def test_zero_area_mirror_is_a_warning_only(tmp_path):
          ["WARNING /World/Mirror.faceVertexCounts: mesh reflector has no faces"]),
         (lambda s: s.DefinePrim("/World/Group", "Xform").AddAppliedSchema(schema.REFLECTOR_API),
          ["WARNING /World/Group: PhrtReflectorAPI on a Xform: the renderer draws only Mesh, "
-          "Sphere, Cube, Cylinder, Cone, Capsule, Plane and ignores it"]),
+          "Sphere, Cube, Cylinder, Cone, Capsule, Plane, BasisCurves and ignores it"]),
         (lambda s: s.GetPrimAtPath("/World/Path").GetRelationship(schema.CAMERA).SetTargets(
             ["/World/Mirror"]),
          ["WARNING /World/Path.phrt:camera: targets /World/Mirror, not a UsdGeomCamera: "

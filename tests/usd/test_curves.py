@@ -1,0 +1,107 @@
+"""BasisCurves drawn as tubes (``usd/curves.py``): the cubic bases evaluated as the
+schema defines them, and a tube's silhouette and colour at analytic pixels in raster
+and rt.
+
+The render stage: a camera at (0, 0, 5) looking down -Z (focal 50 mm, aperture 20 x 20
+mm: the image spans +-1 m at z = 0, 16 x 16 pixels, pixel rows at y = 1 - (k + 0.5) / 8
+there), a white dome of radiance 1, and a straight curve along X through the origin,
+bound to a red UsdPreviewSurface.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux, UsdShade
+from scenes import preview_shade
+
+from phrt_usd.engine.renderer import FrameRenderer, RenderOptions
+from phrt_usd.usd import curves
+from phrt_usd.usd.stage import read_stage
+
+W = H = 16
+MODES = ("raster", "rt")
+RED = (1.0, 0.0, 0.0)
+S = curves.SEGMENT_SAMPLES
+
+
+def test_bezier_segment_midpoint():
+    """A cubic Bezier (0,0,0) (1,1,0) (2,1,0) (3,0,0) is at (1.5, 0.75, 0) at t = 1/2
+    and ends on its end point."""
+    pts = np.array([(0, 0, 0), (1, 1, 0), (2, 1, 0), (3, 0, 0)], float)
+    samples, owner, _ = curves._polylines(pts, np.array([4]), "cubic", "bezier", "nonperiodic")
+    assert len(samples) == S + 1 and (owner == 0).all()
+    np.testing.assert_allclose(samples[S // 2], (1.5, 0.75, 0), atol=1e-12)
+    np.testing.assert_allclose(samples[[0, -1]], pts[[0, 3]], atol=1e-12)
+
+
+@pytest.mark.parametrize(
+    ("wrap", "through"), [("nonperiodic", [1, 2, 3]), ("pinned", [0, 1, 2, 3, 4])]
+)
+def test_catmull_rom_passes_through_its_points(wrap, through):
+    """Catmull-Rom interpolates its points: nonperiodic from the second to the
+    next-to-last, pinned from the first to the last."""
+    pts = np.array([(0, 0, 0), (1, 2, 0), (2, -1, 1), (4, 0, 0), (5, 3, 2)], float)
+    samples, _, _ = curves._polylines(pts, np.array([5]), "cubic", "catmullRom", wrap)
+    np.testing.assert_allclose(samples[::S], pts[through], atol=1e-12)
+
+
+def test_periodic_bspline_closes():
+    pts = np.array([(1, 0, 0), (0, 1, 0), (-1, 0, 0), (0, -1, 0)], float)
+    samples, _, _ = curves._polylines(pts, np.array([4]), "cubic", "bspline", "periodic")
+    assert len(samples) == 4 * S + 1
+    np.testing.assert_allclose(samples[0], samples[-1], atol=1e-12)
+    # A uniform B-spline starts at (P0 + 4 P1 + P2) / 6.
+    np.testing.assert_allclose(samples[0], (pts[0] + 4 * pts[1] + pts[2]) / 6, atol=1e-12)
+
+
+def _curve_stage(tmp_path, kind: str, basis: str, width: float) -> Usd.Stage:
+    stage = Usd.Stage.CreateNew(str(tmp_path / "curves.usda"))
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    cam = UsdGeom.Camera.Define(stage, "/Cam")
+    cam.CreateFocalLengthAttr(50.0)
+    cam.CreateHorizontalApertureAttr(20.0)
+    cam.CreateVerticalApertureAttr(20.0)
+    cam.CreateClippingRangeAttr(Gf.Vec2f(0.1, 100.0))
+    cam.AddTranslateOp().Set(Gf.Vec3d(0, 0, 5))
+    UsdLux.DomeLight.Define(stage, "/Sky").CreateIntensityAttr(1.0)
+    hair = UsdGeom.BasisCurves.Define(stage, "/Hair")
+    hair.CreateTypeAttr(kind)
+    hair.CreateBasisAttr(basis)
+    hair.CreateWrapAttr("pinned")
+    hair.CreatePointsAttr([(-3, 0, 0), (-1, 0, 0), (1, 0, 0), (3, 0, 0)])
+    hair.CreateCurveVertexCountsAttr([4])
+    hair.CreateWidthsAttr([width])
+    hair.SetWidthsInterpolation(UsdGeom.Tokens.constant)
+    mat = UsdShade.Material.Define(stage, "/Red")
+    surf = UsdShade.Shader.Define(stage, "/Red/Surface")
+    surf.CreateIdAttr("UsdPreviewSurface")
+    surf.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).Set(Gf.Vec3f(*RED))
+    mat.CreateSurfaceOutput().ConnectToSource(surf.ConnectableAPI(), "surface")
+    UsdShade.MaterialBindingAPI.Apply(hair.GetPrim()).Bind(mat)
+    return stage
+
+
+@pytest.mark.parametrize("mode", MODES)
+@pytest.mark.parametrize(("kind", "basis"), [("linear", "bezier"), ("cubic", "catmullRom")])
+def test_curve_is_drawn_as_a_tube(tmp_path, kind, basis, mode):
+    """A tube of width 1 along X: the centre column covers rows 4..11 (|y| < 0.5: the
+    silhouette of a radius-0.5 octagonal tube seen from 5 m lies at |y| between 0.46
+    and 0.50 at z = 0, and the row centres nearest it are 0.4375 and 0.5625), and the
+    tube's front, whose normal faces the camera, shades as the red material."""
+    stage = _curve_stage(tmp_path, kind, basis, width=1.0)
+    scene = read_stage(stage)
+    renderer = FrameRenderer(
+        scene, RenderOptions(mode=mode, heuristic="all", width=W, height=H, budget_ms=None)
+    )
+    try:
+        out = renderer.render(scene.frame_range[0])
+    finally:
+        renderer.close()
+    covered = np.flatnonzero(out.gbuffer.element_id[:, W // 2] >= 0)
+    assert covered.tolist() == list(range(4, 12))
+    # Row 7's centre (y = 0.0625) sees the front facets within 8 degrees of facing the
+    # camera: their directional albedo is within 0.03 of the facing one's.
+    front = preview_shade(RED, (0.0, 0.0, 0.5), (0.0, 0.0, 5.0), ambient=1.0)
+    np.testing.assert_allclose(out.beauty[7, W // 2], front, atol=0.03)
