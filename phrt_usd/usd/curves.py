@@ -92,35 +92,83 @@ def _polylines(points, counts, kind: str, basis: str, wrap: str):
     return np.concatenate(out), np.concatenate(owner), np.concatenate(param)
 
 
+def _along(values, interp: str, where: str, counts, kind, basis, wrap, owner, u):
+    """(m, k) values of a primvar (``values`` (v, k), interpolation ``interp``) at each
+    sample: ``constant`` as is, ``uniform`` per curve, ``vertex`` (one per point) and
+    ``varying`` (one per segment end of a cubic curve) interpolated linearly along the
+    curve's parameter. ``PhrtError`` naming ``where`` for a count that does not fit."""
+    if interp == UsdGeom.Tokens.constant or len(values) == 1:
+        return np.repeat(values[:1], len(owner), axis=0)
+    if interp == UsdGeom.Tokens.uniform:
+        per = np.ones(len(counts), np.int64)
+    elif interp == UsdGeom.Tokens.vertex or kind != "cubic" or basis not in _BASES:
+        per = np.asarray(counts, np.int64)
+    else:  # varying: one per segment end
+        per = np.array([len(_segments(n, basis, wrap)) + (wrap != "periodic")
+                        for n in counts], np.int64)  # fmt: skip
+    if per.sum() != len(values):
+        raise PhrtError(
+            f"{where}: {len(values)} values for {interp} interpolation, need {int(per.sum())}"
+        )
+    start = np.concatenate([[0], np.cumsum(per)[:-1]])[owner]
+    x = u * (per[owner] - 1)
+    k = np.minimum(np.floor(x).astype(np.int64), np.maximum(per[owner] - 2, 0))
+    f = np.clip(x - k, 0.0, 1.0)[:, None]
+    nxt = np.minimum(k + 1, per[owner] - 1)
+    return values[start + k] * (1 - f) + values[start + nxt] * f
+
+
 def _widths(prim: Usd.Prim, time: Usd.TimeCode, counts, kind, basis, wrap, owner, u):
     """(m,) width at each sample (see the module)."""
     curves = UsdGeom.BasisCurves(prim)
     values = curves.GetWidthsAttr().Get(time)
     if values is None or len(values) == 0:
         return np.full(len(owner), DEFAULT_WIDTH)
-    w = np.abs(np.nan_to_num(np.asarray(values, np.float64)))
+    w = np.abs(np.nan_to_num(np.asarray(values, np.float64))).reshape(-1, 1)
+    where = f"{prim.GetPath()}.widths"
     interp = curves.GetWidthsInterpolation()
-    if interp == UsdGeom.Tokens.constant or len(w) == 1:
-        return np.full(len(owner), w[0])
-    if interp == UsdGeom.Tokens.uniform:
-        per = np.ones(len(counts), np.int64)
-    elif interp == UsdGeom.Tokens.vertex or kind != "cubic":
-        per = np.asarray(counts, np.int64)
-    else:  # varying: one per segment end
-        per = np.array(
-            [len(_segments(n, basis, wrap)) + (wrap != "periodic") if basis in _BASES else n
-             for n in counts], np.int64)  # fmt: skip
-    if per.sum() != len(w):
+    return _along(w, interp, where, counts, kind, basis, wrap, owner, u)[:, 0]
+
+
+def _curve_layout(prim: Usd.Prim, time: Usd.TimeCode):
+    """(points (p, 3), counts, type, basis, wrap) of a BasisCurves prim; ``PhrtError``
+    for counts that do not add up or points that are not finite."""
+    curves = UsdGeom.BasisCurves(prim)
+    points = np.asarray(curves.GetPointsAttr().Get(time) or [], np.float64).reshape(-1, 3)
+    counts = np.asarray(curves.GetCurveVertexCountsAttr().Get(time) or [], np.int64)
+    if (counts < 0).any() or counts.sum() != len(points):
         raise PhrtError(
-            f"{prim.GetPath()}.widths: {len(w)} values for {interp} interpolation, "
-            f"need {int(per.sum())}"
+            f"{prim.GetPath()}.curveVertexCounts: the counts add up to {int(counts.sum())}, "
+            f"the curves have {len(points)} points"
         )
-    start = np.concatenate([[0], np.cumsum(per)[:-1]])[owner]
-    x = u * (per[owner] - 1)
-    k = np.minimum(np.floor(x).astype(np.int64), np.maximum(per[owner] - 2, 0))
-    f = np.clip(x - k, 0.0, 1.0)
-    nxt = np.minimum(k + 1, per[owner] - 1)
-    return w[start + k] * (1 - f) + w[start + nxt] * f
+    if not np.all(np.isfinite(points)):
+        raise PhrtError(f"{prim.GetPath()}.points: not every point is finite")
+    kind = str(curves.GetTypeAttr().Get(time) or "cubic")
+    basis = str(curves.GetBasisAttr().Get(time) or "bezier")
+    wrap = str(curves.GetWrapAttr().Get(time) or "nonperiodic")
+    return points, counts, kind, basis, wrap
+
+
+def tube_corner_colours(prim: Usd.Prim, time: Usd.TimeCode, values, interp: str, where: str):
+    """(T, 3, 3) the colour primvar ``values`` ((v, 3), interpolation ``interp``) at the
+    corners of ``tube_geometry``'s triangles: each ring takes its sample's value."""
+    points, counts, kind, basis, wrap = _curve_layout(prim, time)
+    samples, owner, u = _polylines(points, counts, kind, basis, wrap)
+    per_sample = _along(np.asarray(values, np.float64).reshape(-1, 3), interp, where,
+                        counts, kind, basis, wrap, owner, u)  # fmt: skip
+    return per_sample[_triangles(owner) // TUBE_SIDES]
+
+
+def _triangles(owner: np.ndarray) -> np.ndarray:
+    """(T, 3) the tube's triangles over rings of ``TUBE_SIDES`` vertices, one ring per
+    sample: the quads between consecutive samples of one curve, (a, c, b) and (a, d, c)
+    facing out."""
+    k = np.flatnonzero(owner[1:] == owner[:-1])
+    j = np.arange(TUBE_SIDES)
+    a = (k[:, None] * TUBE_SIDES + j).reshape(-1)
+    d = (k[:, None] * TUBE_SIDES + (j + 1) % TUBE_SIDES).reshape(-1)
+    b, c = a + TUBE_SIDES, d + TUBE_SIDES
+    return np.concatenate([np.stack([a, c, b], 1), np.stack([a, d, c], 1)]).astype(np.int64)
 
 
 def _frames(samples: np.ndarray, owner: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -152,19 +200,7 @@ def _frames(samples: np.ndarray, owner: np.ndarray) -> tuple[np.ndarray, np.ndar
 def tube_geometry(prim: Usd.Prim, time: Usd.TimeCode):
     """Points (n, 3), triangles (T, 3) counter-clockwise from outside, corner normals
     (T, 3, 3) of the tubes of a BasisCurves prim, in its space (the module)."""
-    curves = UsdGeom.BasisCurves(prim)
-    points = np.asarray(curves.GetPointsAttr().Get(time) or [], np.float64).reshape(-1, 3)
-    counts = np.asarray(curves.GetCurveVertexCountsAttr().Get(time) or [], np.int64)
-    if (counts < 0).any() or counts.sum() != len(points):
-        raise PhrtError(
-            f"{prim.GetPath()}.curveVertexCounts: the counts add up to {int(counts.sum())}, "
-            f"the curves have {len(points)} points"
-        )
-    if not np.all(np.isfinite(points)):
-        raise PhrtError(f"{prim.GetPath()}.points: not every point is finite")
-    kind = str(curves.GetTypeAttr().Get(time) or "cubic")
-    basis = str(curves.GetBasisAttr().Get(time) or "bezier")
-    wrap = str(curves.GetWrapAttr().Get(time) or "nonperiodic")
+    points, counts, kind, basis, wrap = _curve_layout(prim, time)
     samples, owner, u = _polylines(points, counts, kind, basis, wrap)
     radius = 0.5 * _widths(prim, time, counts, kind, basis, wrap, owner, u)
     normal, binormal = _frames(samples, owner)
@@ -172,12 +208,5 @@ def tube_geometry(prim: Usd.Prim, time: Usd.TimeCode):
     radial = (np.cos(angle)[None, :, None] * normal[:, None, :]
               + np.sin(angle)[None, :, None] * binormal[:, None, :])  # fmt: skip
     ring_points = samples[:, None, :] + radius[:, None, None] * radial
-    # Quads between consecutive samples of one curve: (a, c, b) and (a, d, c) face out.
-    k = np.flatnonzero(owner[1:] == owner[:-1])
-    j = np.arange(TUBE_SIDES)
-    a = (k[:, None] * TUBE_SIDES + j).reshape(-1)
-    d = (k[:, None] * TUBE_SIDES + (j + 1) % TUBE_SIDES).reshape(-1)
-    b, c = a + TUBE_SIDES, d + TUBE_SIDES
-    triangles = np.concatenate([np.stack([a, c, b], 1), np.stack([a, d, c], 1)])
-    normals = radial.reshape(-1, 3)
-    return ring_points.reshape(-1, 3), triangles.astype(np.int64), normals[triangles]
+    triangles = _triangles(owner)
+    return ring_points.reshape(-1, 3), triangles, radial.reshape(-1, 3)[triangles]

@@ -46,7 +46,7 @@ import numpy as np
 from pxr import Gf, Usd, UsdGeom
 
 from phrt_usd.errors import PhrtError
-from phrt_usd.usd.curves import tube_geometry
+from phrt_usd.usd.curves import tube_corner_colours, tube_geometry
 from phrt_usd.usd.materials import MaterialBank, bound_material, colour_primvar
 from phrt_usd.usd.values import (
     MIN_NORMAL_LENGTH,
@@ -547,8 +547,13 @@ def read_implicit(kind: str, prim: Usd.Prim, time: Usd.TimeCode, bank: MaterialB
     mat = bank.index(bound_material(prim, bank.purposes))
     tri_material = np.full(len(tris), mat, dtype=np.int32)
     display = None
-    pv = _read_primvar(prim, colour_primvar(bank, tri_material[:1]), time)
-    if pv is not None and len(pv[0]):
+    name = colour_primvar(bank, tri_material[:1])
+    pv = _read_primvar(prim, name, time)
+    if pv is not None and len(pv[0]) and kind == "BasisCurves":  # along each curve
+        values = np.clip(np.nan_to_num(colour_values(pv[0])), 0.0, None)
+        where = f"{prim.GetPath()}.primvars:{name}"
+        display = tube_corner_colours(prim, time, values, pv[1], where)
+    elif pv is not None and len(pv[0]):
         color = np.clip(np.nan_to_num(colour_values(pv[0])[0]), 0.0, None)
         display = np.broadcast_to(color, (len(tris), 3, 3))
     albedo = _albedo(tri_material, display, bank)

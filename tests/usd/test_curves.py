@@ -105,3 +105,31 @@ def test_curve_is_drawn_as_a_tube(tmp_path, kind, basis, mode):
     # camera: their directional albedo is within 0.03 of the facing one's.
     front = preview_shade(RED, (0.0, 0.0, 0.5), (0.0, 0.0, 5.0), ambient=1.0)
     np.testing.assert_allclose(out.beauty[7, W // 2], front, atol=0.03)
+
+
+@pytest.mark.parametrize("mode", MODES)
+def test_vertex_colours_vary_along_the_tube(tmp_path, mode):
+    """displayColor per vertex (red, red, blue, blue) on the pinned Catmull-Rom through
+    x = -3, -1, 1, 3 (evenly spaced and collinear: its parameter is linear in x), no
+    material: the ray of pixel (7, 8) meets the front of the tube (z = 0.5) at x =
+    0.0625 * 4.5 / 5, parameter u = (x + 3) / 6, i.e. 3u = 1.528 vertex steps: a
+    blend of 47 % red and 53 % blue."""
+    stage = _curve_stage(tmp_path, "cubic", "catmullRom", width=1.0)
+    hair = stage.GetPrimAtPath("/Hair")
+    UsdShade.MaterialBindingAPI(hair).UnbindAllBindings()
+    UsdGeom.PrimvarsAPI(hair).CreatePrimvar(
+        "displayColor", Sdf.ValueTypeNames.Color3fArray, UsdGeom.Tokens.vertex
+    ).Set([RED, RED, (0, 0, 1), (0, 0, 1)])
+    scene = read_stage(stage)
+    renderer = FrameRenderer(
+        scene, RenderOptions(mode=mode, heuristic="all", width=W, height=H, budget_ms=None)
+    )
+    try:
+        out = renderer.render(scene.frame_range[0])
+    finally:
+        renderer.close()
+    f = 3 * (0.0625 * 4.5 / 5 + 3) / 6 - 1
+    colour = (1 - f, 0.0, f)
+    expected = preview_shade(colour, (0.0, 0.0, 0.5), (0.0, 0.0, 5.0), ambient=1.0)
+    # 0.03: the front facets' tilt (within 8 degrees) as in the test above.
+    np.testing.assert_allclose(out.beauty[7, W // 2], expected, atol=0.03)
