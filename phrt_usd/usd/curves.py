@@ -11,7 +11,8 @@ segments are sampled at ``SEGMENT_SAMPLES`` parameter steps.
 ``widths`` (diameters, stage units) in any interpolation: ``constant`` and ``uniform``
 (one per curve) as they are; ``vertex`` (one per point) and ``varying`` (one per segment
 end) interpolated linearly along the curve's parameter; unauthored, ``DEFAULT_WIDTH``
-(Storm's). A ``hermite`` basis is drawn as its polyline.
+(Storm's). A ``hermite`` basis is drawn as its polyline. A colour primvar is carried
+along the same way (``tube_corner_colours``).
 
 The tube: ``TUBE_SIDES`` sides, a ring per sample in a frame carried along the curve by
 parallel transport (no twist), its normals radial; the ends are open. Ribbons (curves
