@@ -339,3 +339,25 @@ def test_instances_of_one_prototype_bound_per_instance_root(tmp_path, mode):
         renderer.close()
     np.testing.assert_allclose(beauty[H // 2, 2], _look(RED), atol=TOLERANCE)
     np.testing.assert_allclose(beauty[H // 2, W - 3], _look(BLUE), atol=TOLERANCE)
+
+
+@pytest.mark.parametrize("mode", MODES)
+def test_texture_file_from_a_material_input(tmp_path, mode):
+    """A UsdUVTexture's ``file`` connected to an asset input of its Material (how
+    Houdini exposes a texture path) reads the file the Material's input names."""
+    from textured_stages import write_one_colour_png
+
+    write_one_colour_png(tmp_path / "blue.png", BLUE)
+    stage = _stage(tmp_path)
+    surf = _surface(stage, "/M")
+    mat = UsdShade.Material(stage.GetPrimAtPath("/M"))
+    path = mat.CreateInput("baseColorTexture", Sdf.ValueTypeNames.Asset)
+    path.Set("blue.png")
+    tex = UsdShade.Shader.Define(stage, "/M/Texture")
+    tex.CreateIdAttr("UsdUVTexture")
+    tex.CreateInput("file", Sdf.ValueTypeNames.Asset).ConnectToSource(path)
+    surf.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).ConnectToSource(
+        tex.CreateOutput("rgb", Sdf.ValueTypeNames.Float3)
+    )
+    _bind(_quad(stage), "/M")
+    np.testing.assert_allclose(_centre(stage, mode), _look(BLUE), atol=TOLERANCE)
