@@ -361,3 +361,22 @@ def test_texture_file_from_a_material_input(tmp_path, mode):
     )
     _bind(_quad(stage), "/M")
     np.testing.assert_allclose(_centre(stage, mode), _look(BLUE), atol=TOLERANCE)
+
+
+@pytest.mark.parametrize("mode", MODES)
+def test_instanced_material_in_a_point_instancer_prototype(tmp_path, mode):
+    """A PointInstancer whose prototype is an instanceable reference to an asset with
+    its own Material (interface input through two NodeGraphs): the instance shades in
+    the Material's input colour."""
+    stage = _stage(tmp_path)
+    stage.CreateClassPrim("/Lib")
+    _interface_material(stage, "/Lib/Asset/Looks/Paint", 2, RED)
+    _bind(_quad(stage, "/Lib/Asset/Quad"), "/Lib/Asset/Looks/Paint")
+    instancer = UsdGeom.PointInstancer.Define(stage, "/Scatter")
+    proto = stage.DefinePrim("/Scatter/Protos/Asset", "Xform")
+    proto.GetReferences().AddInternalReference("/Lib/Asset")
+    proto.SetInstanceable(True)
+    instancer.CreatePrototypesRel().SetTargets([proto.GetPath()])
+    instancer.CreateProtoIndicesAttr([0])
+    instancer.CreatePositionsAttr([(0, 0, 0)])
+    np.testing.assert_allclose(_centre(stage, mode), _look(RED), atol=TOLERANCE)
