@@ -218,6 +218,12 @@ def lut_mean(lut, roughness):
 
 
 @njit(**_HELPER)
+def put(ch, v, a, b, c):
+    """(a, b, c) with channel ``ch`` (0, 1, 2) set to ``v``."""
+    return (v, b, c) if ch == 0 else ((a, v, c) if ch == 1 else (a, b, v))
+
+
+@njit(**_HELPER)
 def ggx_dv(alpha, nl, nv, nh):
     """GGX D times the height-correlated Smith V = G / (4 n·l n·v) of ``alpha``."""
     a2 = alpha * alpha
@@ -284,12 +290,7 @@ def brdf_cos(s, i, t, n0, n1, n2, e0, e1, e2, l0, l1, l2, nv, lut):
         # π f n·l: the diffuse lobe's 1/π cancels.
         v = (coat + t_out * t_in * (f0 + (f90 - f0) * s5) * dv) * math.pi + t_out * t_in * diffuse
         v *= nl
-        if ch == 0:
-            out0 = v
-        elif ch == 1:
-            out1 = v
-        else:
-            out2 = v
+        out0, out1, out2 = put(ch, v, out0, out1, out2)
     return out0, out1, out2
 
 
@@ -309,12 +310,7 @@ def ambient_weight(s, i, t, nv):
         f0, f90 = float(s[i, 3 + ch]), float(s[i, 6 + ch])
         ev = min(f0 * av + f90 * bv, 1.0)
         v = occ * (spec * coat_v + base * (spec * ev + float(s[i, ch]) * (1.0 - ev)))
-        if ch == 0:
-            out0 = v
-        elif ch == 1:
-            out1 = v
-        else:
-            out2 = v
+        out0, out1, out2 = put(ch, v, out0, out1, out2)
     return out0, out1, out2
 
 
@@ -331,12 +327,7 @@ def reflection_weight(s, i, t):
     for ch in range(3):
         f0, f90 = float(s[i, 3 + ch]), float(s[i, 6 + ch])
         v = coat_v + base * min(f0 * av + f90 * bv, 1.0)
-        if ch == 0:
-            out0 = v
-        elif ch == 1:
-            out1 = v
-        else:
-            out2 = v
+        out0, out1, out2 = put(ch, v, out0, out1, out2)
     return out0, out1, out2
 
 
@@ -397,33 +388,51 @@ def surface_rows(albedo, material, inputs, per_point, specular_ambient, out):
         out[i, 15] = 0.0
 
 
+#: Consecutive points ``shade_kernel`` culls LocalLights for at once (G-buffer pixels
+#: in row order, a tracer's hits: neighbours, mostly): a block walks only the lights
+#: reaching its bounding box (``block_lights``), so a point costs by the lights that
+#: reach it, not the stage's. 32 points, 64 lights: two box tests a point.
+CULL_BLOCK_POINTS = 32
+
+
+@njit(**_HELPER)
+def box_lights(lo, hi, centres, ranges, margin, out):
+    """The lights (centres (P, 3), ranges (P,) metres) whose range plus ``margin``
+    reaches the box ``lo``..``hi`` (3,), in increasing order into out (P,) int64;
+    returns their count. With no margin exact, not conservative: a light left out has,
+    for every point in the box, a squared distance at least its range² also in float64
+    (each axis gap of the box is at most the point's, rounded the same way). A NaN box
+    keeps every light (the points' own tests decide)."""
+    count = 0
+    for k in range(centres.shape[0]):
+        d2 = 0.0
+        for c in range(3):
+            e = max(lo[c] - centres[k, c], 0.0, centres[k, c] - hi[c])
+            d2 += e * e
+        reach = ranges[k] + margin
+        if ranges[k] > 0.0 and not d2 >= reach * reach:
+            out[count] = k
+            count += 1
+    return count
+
+
+@njit(**_HELPER)
+def block_lights(positions, start, stop, l_pos, l_range, box, out):
+    """``box_lights`` (no margin) of the bounding box of positions[start:stop]; box
+    (2, 3) float64 scratch."""
+    for c in range(3):
+        box[0, c] = box[1, c] = positions[start, c]
+        for i in range(start + 1, stop):
+            box[0, c], box[1, c] = min(box[0, c], positions[i, c]), max(box[1, c], positions[i, c])
+    return box_lights(box[0], box[1], l_pos, l_range, 0.0, out)
+
+
 @njit(**_KERNEL)
 def shade_kernel(
-    positions,
-    normals,
-    surface,
-    view_dirs,
-    emissive,
-    ambient,
-    sum_direct,
-    d_dir,
-    d_radiance,
-    visibility,
-    l_pos,
-    l_radiance,
-    l_range,
-    l_cone,
-    local_columns,
-    p_point,
-    p_light,
-    p_dir,
-    p_dist,
-    p_weight,
-    has_weight,
-    model,
-    lut,
-    out,
-):
+    positions, normals, surface, view_dirs, emissive, ambient, sum_direct, d_dir, d_radiance,
+    visibility, l_pos, l_radiance, l_range, l_cone, local_columns, p_point, p_light, p_dir,
+    p_dist, p_weight, has_weight, model, lut, out,
+):  # fmt: skip
     """The shading model of the module docstring, per point (see ``shade_local``).
 
     positions (n, 3) float64 world metres; normals, view_dirs (n, 3) float32; surface
@@ -444,6 +453,8 @@ def shade_kernel(
     one_emissive = emissive.shape[0] == 1
     min_d2 = model[0] * model[0]
     min_rough, min_cos = model[1], model[2]
+    reach = np.empty(l_pos.shape[0], np.int64)  # the LocalLights reaching the block
+    block_end, n_reach, box = 0, 0, np.empty((2, 3))
     for i in range(n):
         n0, n1, n2 = float(normals[i, 0]), float(normals[i, 1]), float(normals[i, 2])
         e0, e1, e2 = -float(view_dirs[i, 0]), -float(view_dirs[i, 1]), -float(view_dirs[i, 2])
@@ -463,7 +474,11 @@ def shade_kernel(
             d0 += d_radiance[j, 0] * vis * f0
             d1 += d_radiance[j, 1] * vis * f1
             d2 += d_radiance[j, 2] * vis * f2
-        for k in range(l_pos.shape[0] if local_columns else 0):
+        if local_columns and i >= block_end:  # the next block's LocalLights
+            block_end = min(i + CULL_BLOCK_POINTS, n)
+            n_reach = block_lights(positions, i, block_end, l_pos, l_range, box, reach)
+        for q in range(n_reach if local_columns else 0):
+            k = reach[q]
             vis = visibility[i, n_distant + k] if has_vis else 1.0
             if not vis > 0.0:
                 continue
@@ -649,62 +664,59 @@ def lit_local_pairs(rows, unsure, exact):
 
 
 @njit(**_KERNEL)
-def undecided_rows(bits, n_local, active, per_pass, gpu_distant, distant_unsure):
+def undecided_rows(bits, n_local, slots, per_pass, gpu_distant, distant_unsure, tile):
     """The points with a pair the maps could not decide, from the GPU lookup's ``bits``
-    (n, passes) uint32 (bit j of pass p: LocalLight ``active[per_pass p + j]``,
-    ``active`` (a,) int64 the lights looked up; bit 16 + k of pass 0: DistantLight k,
-    when ``gpu_distant``, written into ``distant_unsure`` (n, D) bool; else that array
-    holds the numpy lookups' answer). Returns rows (m,) int64 and their undecided
-    LocalLight pairs (m, n_local) bool."""
+    (n, passes) uint32: bit j of pass p is LocalLight ``slots[i // tile, per_pass p + j]``
+    of point i's tile (``tile`` consecutive points; slots (T, S) int64, ``tile_lights``),
+    bit 16 + k of pass 0 DistantLight k when ``gpu_distant``, written into
+    ``distant_unsure`` (n, D) bool (else that array holds the numpy lookups' answer).
+    Returns rows (m,) int64 and their undecided LocalLight pairs (m, n_local) bool."""
     n, passes = bits.shape
-    n_distant = distant_unsure.shape[1]
     rows = np.empty(n, np.int64)
     m = 0
     for i in range(n):  # branch-free: row i is kept by counting it
         any_bit = False
         for p in range(passes):
             any_bit = any_bit or bits[i, p] != 0
-        for k in range(n_distant):
+        for k in range(distant_unsure.shape[1]):
             if gpu_distant:
                 distant_unsure[i, k] = (bits[i, 0] >> (16 + k)) & 1 != 0
             any_bit = any_bit or distant_unsure[i, k]
         rows[m] = i
         m += any_bit
     rows = rows[:m].copy()
-    n_active = active.shape[0]
-    # Every column is written below when every light was looked up (active = all).
-    every = n_active == n_local
-    local = np.empty((m, n_local), np.bool_) if every else np.zeros((m, n_local), np.bool_)
+    local = np.zeros((m, n_local), np.bool_)
     for r in range(m):
-        i = rows[r]
-        for p in range(passes):  # branch-free over each pass's bits (no divisions)
-            word = bits[i, p]
-            base = p * per_pass
-            for b in range(min(per_pass, n_active - base)):
-                local[r, active[base + b]] = (word >> b) & 1 != 0
+        t = rows[r] // tile
+        for p in range(passes):
+            word, s = bits[rows[r], p] & 0xFFFF, p * per_pass  # bits 16 + k: distant
+            while word != 0 and s < slots.shape[1]:
+                if word & 1 and slots[t, s] >= 0:
+                    local[r, slots[t, s]] = True
+                word, s = word >> 1, s + 1
     return rows, local
 
 
 @njit(**_KERNEL)
-def lights_reaching(positions, centres, ranges):
-    """(P,) bool: the LocalLights (centres (P, 3) world metres, ranges (P,) metres) whose
-    range reaches the bounding box of ``positions`` (n, 3) world metres (so possibly
-    some point; none when n = 0)."""
-    n = positions.shape[0]
-    lo = np.full(3, np.inf)
-    hi = np.full(3, -np.inf)
-    for i in range(n):
+def tile_lights(points, offset, tile, centres, ranges, margin):
+    """Each tile's LocalLights, for the light pass: points (n, 3) float64 metres less
+    ``offset`` (3,) (the rel space of ``centres`` (P, 3); ranges (P,) metres), a tile
+    every ``tile`` consecutive points; a tile's lights are ``box_lights`` of its points'
+    box. Returns slots (T, P) int64 (each tile's lights in increasing order, then -1)
+    and counts (T,) int64."""
+    n_tiles = (points.shape[0] + tile - 1) // tile
+    slots = np.full((n_tiles, centres.shape[0]), -1, np.int64)
+    counts = np.zeros(n_tiles, np.int64)
+    box = np.empty((2, 3))
+    for t in range(n_tiles):
+        start, stop = t * tile, min((t + 1) * tile, points.shape[0])
         for c in range(3):
-            lo[c] = min(lo[c], positions[i, c])
-            hi[c] = max(hi[c], positions[i, c])
-    out = np.zeros(centres.shape[0], np.bool_)
-    for k in range(centres.shape[0]):
-        d2 = 0.0
-        for c in range(3):  # squared distance from the centre to the box
-            e = max(lo[c] - centres[k, c], 0.0, centres[k, c] - hi[c])
-            d2 += e * e
-        out[k] = n > 0 and d2 < ranges[k] * ranges[k]
-    return out
+            box[0, c] = box[1, c] = points[start, c] - offset[c]
+            for i in range(start + 1, stop):
+                v = points[i, c] - offset[c]
+                box[0, c], box[1, c] = min(box[0, c], v), max(box[1, c], v)
+        counts[t] = box_lights(box[0], box[1], centres, ranges, margin, slots[t])
+    return slots, counts
 
 
 #: The argument types each kernel is compiled for (``warm_up``), as the render phase
@@ -742,8 +754,8 @@ SIGNATURES = {
     "pack_texels": ["f8[:, ::1], f8[::1], f4[:, ::1]", "f4[:, ::1], none, f4[:, ::1]",
                     "f8[:, ::1], none, f4[:, ::1]"],
     "lit_local_pairs": ["i8[::1], b1[:, ::1], f4[:, ::1]"],
-    "undecided_rows": ["u4[:, ::1], i8, i8[::1], i8, b1, b1[:, ::1]"],
-    "lights_reaching": ["f8[:, ::1], f8[:, ::1], f8[::1]"],
+    "undecided_rows": ["u4[:, ::1], i8, i8[:, ::1], i8, b1, b1[:, ::1], i8"],
+    "tile_lights": ["f8[:, ::1], f8[::1], i8, f8[:, ::1], f8[::1], f8"],
 }
 
 

@@ -8,13 +8,13 @@ import numpy as np
 import pytest
 
 from phrt_usd.engine.raster.light_pass import LOOKUP_LIGHTS_PER_PASS
-from phrt_usd.engine.shade_kernels import lights_reaching, lit_local_pairs, undecided_rows
+from phrt_usd.engine.shade_kernels import lit_local_pairs, tile_lights, undecided_rows
 from phrt_usd.model.preview_surface import fallback_surface
 
 
-def _reference_undecided(bits, n_local, active, gpu_distant, distant_unsure):
-    """The numpy bookkeeping (all lights looked up), with the looked-up lights'
-    columns then placed at ``active``."""
+def _reference_undecided(bits, n_local, slots, tile_of_row, gpu_distant, distant_unsure):
+    """The numpy bookkeeping: bit j of pass p of row i is LocalLight
+    ``slots[tile_of_row[i], 16 p + j]``."""
     if gpu_distant:
         shifts = 16 + np.arange(distant_unsure.shape[1], dtype=np.uint32)
         distant_unsure = (bits[:, :1] >> shifts) & 1 > 0
@@ -22,38 +22,44 @@ def _reference_undecided(bits, n_local, active, gpu_distant, distant_unsure):
     if distant_unsure.shape[1]:
         unsure_rows |= distant_unsure.any(axis=1)
     rows = np.flatnonzero(unsure_rows)
-    looked_up = np.zeros((len(rows), len(active)), dtype=bool)
-    for p, start in enumerate(range(0, len(active), LOOKUP_LIGHTS_PER_PASS)):
-        count = min(LOOKUP_LIGHTS_PER_PASS, len(active) - start)
-        shifts = np.arange(count, dtype=np.uint32)
-        looked_up[:, start : start + count] = (bits[rows, p, None] >> shifts) & 1 > 0
     local_unsure = np.zeros((len(rows), n_local), dtype=bool)
-    local_unsure[:, active] = looked_up
+    for r, i in enumerate(rows):
+        for p in range(bits.shape[1]):
+            for j in range(LOOKUP_LIGHTS_PER_PASS):
+                s = p * LOOKUP_LIGHTS_PER_PASS + j
+                if s < slots.shape[1] and (bits[i, p] >> j) & 1 and slots[tile_of_row[i], s] >= 0:
+                    local_unsure[r, slots[tile_of_row[i], s]] = True
     return rows, local_unsure, distant_unsure
 
 
 @pytest.mark.parametrize(
-    ("n_local", "n_distant", "gpu_distant", "subset"),
+    ("n_local", "n_distant", "gpu_distant", "subset", "tiled"),
     [
-        (13, 0, False, False),
-        (13, 0, False, True),
-        (20, 2, True, False),
-        (20, 2, True, True),
-        (0, 1, True, False),
-        (5, 3, False, False),
-        (40, 0, False, True),
+        (13, 0, False, False, False),
+        (13, 0, False, True, False),
+        (20, 2, True, False, False),
+        (20, 2, True, True, True),
+        (0, 1, True, False, False),
+        (5, 3, False, False, True),
+        (40, 0, False, True, True),
     ],
 )
-def test_undecided_matches_numpy_reference(n_local, n_distant, gpu_distant, subset):
+def test_undecided_matches_numpy_reference(n_local, n_distant, gpu_distant, subset, tiled):
     rng = np.random.default_rng(n_local + n_distant)
-    n = 3000
-    active = np.arange(n_local)
-    if subset:  # the lights that reach the points, as light_terms looks them up
-        active = np.flatnonzero(rng.uniform(size=n_local) < 0.6)
-    passes = max(-(-len(active) // LOOKUP_LIGHTS_PER_PASS), 1 if gpu_distant else 0)
+    n, tile = 3000, 64 if tiled else 1 << 30
+    n_tiles = -(-n // tile)
+    slots = np.full((n_tiles, n_local), -1, np.int64)
+    for t in range(n_tiles):  # each tile's lights: all, or those that reach it
+        keep = np.arange(n_local)
+        if subset:
+            keep = np.flatnonzero(rng.uniform(size=n_local) < 0.6)
+        slots[t, : len(keep)] = keep
+    most = int((slots >= 0).sum(axis=1).max()) if n_local else 0
+    slots = np.ascontiguousarray(slots[:, :most])
+    passes = max(-(-most // LOOKUP_LIGHTS_PER_PASS), 1 if gpu_distant else 0)
     bits = np.zeros((n, passes), np.uint32)
     for p in range(passes):
-        count = min(LOOKUP_LIGHTS_PER_PASS, len(active) - p * LOOKUP_LIGHTS_PER_PASS)
+        count = min(LOOKUP_LIGHTS_PER_PASS, most - p * LOOKUP_LIGHTS_PER_PASS)
         for j in range(max(count, 0)):
             bits[:, p] |= (rng.uniform(size=n) < 0.05).astype(np.uint32) << j
     if gpu_distant:
@@ -62,10 +68,11 @@ def test_undecided_matches_numpy_reference(n_local, n_distant, gpu_distant, subs
     numpy_unsure = rng.uniform(size=(n, n_distant)) < (0.0 if gpu_distant else 0.05)
     got_distant = numpy_unsure.copy()
     rows, local = undecided_rows(
-        bits, n_local, active, LOOKUP_LIGHTS_PER_PASS, gpu_distant, got_distant
+        bits, n_local, slots, LOOKUP_LIGHTS_PER_PASS, gpu_distant, got_distant, tile
     )
+    tile_of_row = np.arange(n) // tile
     want_rows, want_local, want_distant = _reference_undecided(
-        bits, n_local, active, gpu_distant, numpy_unsure
+        bits, n_local, slots, tile_of_row, gpu_distant, numpy_unsure
     )
     np.testing.assert_array_equal(rows, want_rows)
     np.testing.assert_array_equal(local, want_local)
@@ -87,20 +94,32 @@ def test_lit_local_pairs_match_numpy_reference():
     np.testing.assert_array_equal(weight, want_weight[lit])
 
 
-def test_reaching_keeps_every_light_that_reaches_a_point():
-    """A LocalLight is left out of the lookup only when no point is within its range:
-    the box test never drops a light a point needs (brute force over the points)."""
+def test_tile_lists_keep_every_light_that_reaches_a_point():
+    """A LocalLight is left out of a tile's list only when no point of the tile is
+    within its range (plus the margin): the box test never drops a light a point needs
+    (brute force over each tile's points), and drops most of the far ones."""
     rng = np.random.default_rng(4)
-    pos = rng.uniform(-5.0, 5.0, (2000, 3)) * [1.0, 0.2, 1.0]
-    centres = rng.uniform(-20.0, 20.0, (300, 3))
-    ranges = rng.uniform(0.0, 10.0, 300)
+    width, tile, n = 200, 64, 200 * 150
+    col, row = np.arange(n) % width, np.arange(n) // width
+    # Points laid out as an image of a floor: consecutive points are near.
+    pos = np.stack([col * 0.1, rng.uniform(0.0, 0.2, n), row * 0.1], axis=1)
+    origin = np.array([3.0, 0.0, -2.0])
+    centres = rng.uniform(-5.0, 25.0, (300, 3)) * [1.0, 0.1, 1.0]
+    ranges = rng.uniform(0.0, 4.0, 300)
     ranges[:5] = 0.0  # black lights reach nothing
-    got = lights_reaching(pos, centres, ranges)
-    d2 = ((pos[:, None, :] - centres[None]) ** 2).sum(-1)
-    needed = (d2 < ranges**2).any(axis=0)
-    assert np.all(got[needed]) and not np.any(got[:5])
-    assert 0 < needed.sum() < got.sum() < len(got)  # the box keeps a few more, not all
-    assert not np.any(lights_reaching(pos[:0], centres, ranges))
+    slots, counts = tile_lights(pos + origin, origin, tile, centres, ranges, 1e-3)
+    assert len(slots) == -(-n // tile)
+    kept_total = 0
+    for t in range(len(slots)):
+        kept = set(slots[t, : counts[t]].tolist())
+        assert np.all(slots[t, counts[t] :] == -1)
+        assert list(slots[t, : counts[t]]) == sorted(kept)  # increasing: same sums
+        d2 = ((pos[t * tile : (t + 1) * tile, None, :] - centres[None]) ** 2).sum(-1)
+        needed = set(np.flatnonzero((d2 < ranges**2).any(axis=0)).tolist())
+        assert needed <= kept and not kept & set(range(5))
+        kept_total += len(kept)
+    assert kept_total < 0.2 * len(slots) * len(centres)  # most lights reach no tile
+    assert len(tile_lights(pos[:0], origin, tile, centres, ranges, 1e-3)[0]) == 0
 
 
 def test_lights_out_of_reach_are_left_out_and_shading_is_unchanged(monkeypatch):
@@ -130,8 +149,10 @@ def test_lights_out_of_reach_are_left_out_and_shading_is_unchanged(monkeypatch):
     lookup = map_lighting.LightPass.lookup
 
     def spy(self, *args, **kwargs):
-        looked_up.append(kwargs.get("active"))
-        return lookup(self, *args, **kwargs)
+        result = lookup(self, *args, **kwargs)
+        if isinstance(result, tuple):  # the shading lookup: its tiles' lights
+            looked_up.append(set(result[2][result[2] >= 0].tolist()))
+        return result
 
     monkeypatch.setattr(map_lighting.LightPass, "lookup", spy)
     with Rasterizer(scene, 160, 120) as r:
@@ -141,7 +162,7 @@ def test_lights_out_of_reach_are_left_out_and_shading_is_unchanged(monkeypatch):
         vis = r.shadow_visibility(pos, nrm)
         surface = fallback_surface(albedo)
         terms = r.light_terms(pos, nrm, -view, surface=surface)
-    assert [list(a) for a in looked_up if a is not None] == [[1]]
+    assert looked_up == [{1}]
     expected = shading.shade_local(pos, nrm, surface, view, np.zeros(3), lights, vis)
     got = shading.shade_local(
         pos, nrm, surface, view, np.zeros(3), lights, terms.distant_visibility,

@@ -54,12 +54,34 @@ from phrt_usd.model import preview_surface
 #: Most rows of the GPU lookup pass's point texture (llvmpipe's largest renderbuffer
 #: side); more points than the frame's width times this make the rows wider.
 LOOKUP_MAX_ROWS = 16384
-#: LocalLights per GPU lookup pass (one RGBA32UI colour attachment, one byte each).
+#: LocalLights per GPU lookup pass (one RGBA32UI colour attachment, one byte each):
+#: with shading, the slots of each tile's list a pass walks.
 LOOKUP_LIGHTS_PER_PASS = 16
+#: Consecutive points of a tile of the shading pass (G-buffer pixels in image order, a
+#: run of a row; the tracer's hits in path order). Each tile walks only the LocalLights
+#: whose range reaches the bounding box of its points (``shade_kernels.tile_lights``),
+#: as a tiled deferred renderer does: a fragment's cost grows with the lights near it,
+#: not with the stage's, and the passes a frame needs with the most lights one tile
+#: has. Runs rather than squares: the G-buffer's points leave uncovered pixels out, so
+#: the point texture's rows do not stay aligned with the image's, but a run of
+#: consecutive points stays on one image row (or two). 64: on the light-grid bench at
+#: 640x480 a run spans 4.3 m of floor and reaches ~4 of its 64 lights, as a 16 x 16
+#: square would.
+LOOKUP_TILE = 64
+#: Tiles a row of the slot texture (``_upload_slots``).
+SLOT_TILES_A_ROW = 256
+#: Metres added to a light's range when choosing a tile's lights (``tile_lights``): the
+#: shader's own reach test runs in float32 rel metres (rounding under 0.1 mm within
+#: 1 km of ``Scene.origin``), so the lists hold every light the shader could find in
+#: reach; a light kept by the margin alone adds exactly 0 (its window is 0 there).
+LOOKUP_CULL_MARGIN = 1e-3
 #: DistantLights the GPU lookup pass shades itself (more are looked up in numpy).
 LOOKUP_MAX_DISTANT = 2
 #: Bytes of one cube texel on the GPU: (min, max) float32 (RG32F).
 CUBE_TEXEL_BYTES = 8
+#: The tile size of a pass without tiles (every point in one: the codes' lookup).
+_ONE_TILE = 1 << 30
+_ORIGIN = np.zeros(3)
 #: Per-light codes the GPU lookup packs one byte each (``shaders/cube_lookup.frag``).
 LOOKUP_SHADOWED, LOOKUP_LIT, LOOKUP_UNCERTAIN = 0, 1, 2
 
@@ -82,6 +104,9 @@ class LightPass:
         self._point_tex: list[int] = []
         self._surface_tex: int | None = None  # the points' surface rows (RGBA32F)
         self._lut_tex: int | None = None  # preview_surface.specular_albedo_table (RG32F)
+        self._slot_tex: int | None = None  # the tiles' light slots of a pass (R32I)
+        self._light_buf: int | None = None  # the LocalLights' table (``_upload_lights``)
+        self._light_tex: int | None = None
         self._lookup_fb: int | None = None
         self._lookup_rb: list[int] = []
         self._lookup_size = (0, 0)  # (width, rows) of ``_lookup_fb``
@@ -100,6 +125,7 @@ class LightPass:
             tan_half = CUBE_MAP_SIZE / (CUBE_MAP_SIZE - 2.0 * CUBE_GUARD_TEXELS)
             defines = (
                 f"#define N_LIGHTS {n_lights}\n#define N_DISTANT {n_distant}\n"
+                f"#define N_SLOTS {LOOKUP_LIGHTS_PER_PASS}\n#define SLOT_TILES {SLOT_TILES_A_ROW}\n"
                 f"#define HAS_DYNAMIC {int(has_dynamic)}\n"
                 f"#define SHADE {int(shade)}\n"
                 f"#define CUBE_SIZE {CUBE_MAP_SIZE}\n#define TAN_HALF {tan_half!r}\n"
@@ -120,14 +146,22 @@ class LightPass:
         if self._lookup_vao is not None:
             return
         self._lookup_vao = int(GL.glGenVertexArrays(1))
-        # points, normals, to_eye, surface rows, the albedo table
-        textures = [int(t) for t in GL.glGenTextures(5)]
+        # points, normals, to_eye, surface rows, the albedo table, the tiles' slots
+        textures = [int(t) for t in GL.glGenTextures(6)]
         for tex in textures:
             GL.glBindTexture(GL.GL_TEXTURE_2D, tex)
             GL.glTexParameteri(GL.GL_TEXTURE_2D, GL.GL_TEXTURE_MIN_FILTER, GL.GL_NEAREST)
             GL.glTexParameteri(GL.GL_TEXTURE_2D, GL.GL_TEXTURE_MAG_FILTER, GL.GL_NEAREST)
         self._point_tex = textures[:3]
-        self._surface_tex, self._lut_tex = textures[3], textures[4]
+        self._surface_tex, self._lut_tex, self._slot_tex = textures[3], textures[4], textures[5]
+        self._light_buf = int(GL.glGenBuffers(1))
+        self._light_tex = int(GL.glGenTextures(1))
+        GL.glBindBuffer(GL.GL_TEXTURE_BUFFER, self._light_buf)
+        GL.glBufferData(GL.GL_TEXTURE_BUFFER, 48, None, GL.GL_DYNAMIC_DRAW)
+        GL.glBindTexture(GL.GL_TEXTURE_BUFFER, self._light_tex)
+        GL.glTexBuffer(GL.GL_TEXTURE_BUFFER, GL.GL_RGBA32F, self._light_buf)
+        GL.glBindTexture(GL.GL_TEXTURE_BUFFER, 0)
+        GL.glBindBuffer(GL.GL_TEXTURE_BUFFER, 0)
         lut = preview_surface.specular_albedo_table()
         GL.glBindTexture(GL.GL_TEXTURE_2D, self._lut_tex)
         GL.glPixelStorei(GL.GL_UNPACK_ALIGNMENT, 1)
@@ -284,9 +318,8 @@ class LightPass:
         to_eye: np.ndarray | None = None,
         distant: list[tuple[ShadowMap | None, ShadowMap | None]] | None = None,
         origin: np.ndarray | None = None,
-        active: np.ndarray | None = None,
         surface: np.ndarray | None = None,
-    ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+    ) -> np.ndarray | tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Every point against every LocalLight's cube maps on the GPU (the test of
         ``shadow_maps.cube_visibility``, in ``shaders/cube_lookup.frag``).
 
@@ -298,15 +331,16 @@ class LightPass:
         LOOKUP_SHADOWED (also out of range / facing away) or LOOKUP_UNCERTAIN.
         With ``to_eye`` (n, 3) unit directions to the viewer and ``surface`` (n,
         SURFACE_COLUMNS) float32 the points' UsdPreviewSurface rows: the lit pairs are
-        also shaded on the GPU; returns the direct light (n, 4) float32 of the lit
-        pairs in channels 0-2 (``shading.shade_local``'s ``lit_sums``) and (n, passes)
-        uint32 uncertain pairs (not in the sums): bit j of pass p is
-        LocalLight ``active[p * LOOKUP_LIGHTS_PER_PASS + j]``. ``active`` (with
-        ``to_eye`` only): the LocalLights (indices into ``cubes``) to look up and shade,
-        default all (lights that reach none of the points cost nothing when left out;
-        every cube stays uploaded). ``distant`` (with ``to_eye`` only): the (static,
-        animated) maps of up to LOOKUP_MAX_DISTANT DistantLights, looked up and shaded
-        in the first pass too (uncertain: bit 16 + k of pass 0)."""
+        also shaded on the GPU, each tile of LOOKUP_TILE consecutive points walking
+        only the LocalLights that reach it
+        (``shade_kernels.tile_lights``); returns the direct light (n, 4) float32 of the
+        lit pairs in channels 0-2 (``shading.shade_local``'s ``lit_sums``), (n, passes)
+        uint32 uncertain pairs (not in the sums): bit j of pass p is LocalLight
+        ``slots[i // LOOKUP_TILE, p * LOOKUP_LIGHTS_PER_PASS + j]`` of point i's tile
+        (``shade_kernels.undecided_rows`` reads them), and those slots (T, S) int64.
+        ``distant`` (with ``to_eye`` only): the (static, animated) maps of up to
+        LOOKUP_MAX_DISTANT DistantLights, looked up and shaded in the first pass too
+        (uncertain: bit 16 + k of pass 0)."""
         n, n_local = len(points), len(cubes)
         self._ctx.make_current()
         self._setup()
@@ -334,6 +368,21 @@ class LightPass:
             )
         if shading:  # the surface rows: four RGBA texels a point, rows as the points'
             self._upload_surface(surface, n, width, rows)
+        self._upload_lights(cubes, ranges, first)
+        centres = np.array([self._maps.cube_keys[k][0] for k in range(n_local)], np.float64)
+        if shading:  # each tile's lights
+            slots, counts = _shade().tile_lights(
+                np.ascontiguousarray(points, np.float64).reshape(n, 3),
+                _ORIGIN if offset is None else offset,
+                LOOKUP_TILE, centres.reshape(n_local, 3),
+                np.ascontiguousarray(ranges, np.float64).reshape(n_local),
+                LOOKUP_CULL_MARGIN,
+            )  # fmt: skip
+            tile, most = LOOKUP_TILE, int(counts.max()) if len(counts) else 0
+        else:  # one tile of every light
+            slots = np.arange(n_local, dtype=np.int64).reshape(1, n_local)
+            tile, most = _ONE_TILE, n_local
+        slots = np.ascontiguousarray(slots[:, :most])
         GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, self._lookup_fb)
         GL.glViewport(0, 0, width, rows)
         GL.glDisable(GL.GL_DEPTH_TEST)
@@ -344,12 +393,14 @@ class LightPass:
         textures = [self._point_tex[0], self._point_tex[1], self._cube_tex, self._point_tex[2]]
         targets += [GL.GL_TEXTURE_2D] * 2 * len(distant)  # units 4 + 2 k (+1): maps
         textures += self._dmap_tex[: 2 * len(distant)]
-        targets += [GL.GL_TEXTURE_2D] * 2  # the next two units: surface rows, albedo table
-        textures += [self._surface_tex, self._lut_tex]
-        surface_unit = len(textures) - 2
+        # The next units: surface rows, albedo table, light table, the tiles' slots.
+        targets += [GL.GL_TEXTURE_2D, GL.GL_TEXTURE_2D, GL.GL_TEXTURE_BUFFER, GL.GL_TEXTURE_2D]
+        textures += [self._surface_tex, self._lut_tex, self._light_tex, self._slot_tex]
+        surface_unit = len(textures) - 4
         for unit, (target, tex) in enumerate(zip(targets, textures, strict=True)):
             GL.glActiveTexture(GL.GL_TEXTURE0 + unit)
             GL.glBindTexture(target, tex)
+        GL.glActiveTexture(GL.GL_TEXTURE0 + surface_unit + 3)  # the slots, per pass
         GL.glBindVertexArray(self._lookup_vao)
         # Only the attachments this pass writes are drawn to (llvmpipe stores every
         # drawn attachment of every fragment, written by the shader or not: the codes
@@ -359,8 +410,7 @@ class LightPass:
             GL.glDrawBuffers(2, [GL.GL_NONE, attachments[1]])
         else:
             GL.glDrawBuffers(2, [attachments[0], GL.GL_NONE])
-        drawn = list(range(n_local)) if active is None or not shading else list(active)
-        passes = max(-(-len(drawn) // LOOKUP_LIGHTS_PER_PASS), 1 if distant else 0)
+        passes = max(-(-most // LOOKUP_LIGHTS_PER_PASS), 1 if distant else 0)
         if shading:
             # Read back straight into the result (one pass: no sums, no copies): direct
             # light RGBA rows, of which the first n are the points'.
@@ -374,21 +424,13 @@ class LightPass:
             # One byte per light, 16 per texel (see the shader): the readback viewed as
             # (texels, 16) uint8 is light-ordered on little-endian hosts.
             readback = np.empty((rows, width, 4), dtype="<u4")
-        lights = self._ctx.scene.lights
         GL.glPixelStorei(GL.GL_PACK_ALIGNMENT, 1)
         for p in range(passes):
             start = p * LOOKUP_LIGHTS_PER_PASS
-            ks = [int(k) for k in drawn[start : start + LOOKUP_LIGHTS_PER_PASS]]
+            count = min(LOOKUP_LIGHTS_PER_PASS, most - start)
             n_distant = len(distant) if p == 0 else 0
-            pad = LOOKUP_LIGHTS_PER_PASS - len(ks)
-            pos = [self._maps.cube_keys[k][0] for k in ks]
-            near = [
-                (c[0] or c[1]).near if (c[0] or c[1]) is not None else 0.0
-                for c in (cubes[k] for k in ks)
-            ]
-            # A light without any cube (no casters at all) is lit within its range:
-            # its first faces stay -1 and cube_test answers 1.
-            prog = self._program_for(len(ks), n_distant, shading)
+            self._upload_slots(slots[:, start : start + count])
+            prog = self._program_for(max(count, 0), n_distant, shading)
 
             def loc(name: str, prog: int = prog) -> int:
                 return GL.glGetUniformLocation(prog, name)
@@ -406,34 +448,15 @@ class LightPass:
             GL.glUniform1f(loc("min_light_distance"), MIN_LIGHT_DISTANCE)
             GL.glUniform1i(loc("surface"), surface_unit)
             GL.glUniform1i(loc("albedo_lut"), surface_unit + 1)
+            GL.glUniform1i(loc("light_table"), surface_unit + 2)
+            GL.glUniform1i(loc("tile_slots"), surface_unit + 3)
+            GL.glUniform1i(loc("tile_points"), tile)
             GL.glUniform1f(loc("min_roughness"), preview_surface.MIN_ROUGHNESS)
             GL.glUniform1f(loc("min_cosine"), preview_surface.MIN_COSINE)
             if n_distant:
                 self._distant_uniforms(distant, loc)
-            pos_arr = np.zeros((LOOKUP_LIGHTS_PER_PASS, 3), np.float32)
-            pos_arr[: len(ks)] = np.reshape(pos, (-1, 3))
-            rad_arr = np.zeros((LOOKUP_LIGHTS_PER_PASS, 3), np.float32)
-            rad_arr[: len(ks)] = np.reshape([lights.local[k].radiance for k in ks], (-1, 3))
-            GL.glUniform3fv(loc("light_pos"), LOOKUP_LIGHTS_PER_PASS, pos_arr)
-            GL.glUniform3fv(loc("light_radiance"), LOOKUP_LIGHTS_PER_PASS, rad_arr)
-            GL.glUniform1fv(
-                loc("light_range"),
-                LOOKUP_LIGHTS_PER_PASS,
-                np.array([ranges[k] for k in ks] + [0.0] * pad, np.float32),
-            )
-            GL.glUniform1fv(
-                loc("light_near"), LOOKUP_LIGHTS_PER_PASS, np.array(near + [0.0] * pad, np.float32)
-            )
-            GL.glUniform1iv(
-                loc("static_face"),
-                LOOKUP_LIGHTS_PER_PASS,
-                np.array([first[k] for k in ks] + [-1] * pad, np.int32),
-            )
-            GL.glUniform1iv(
-                loc("dynamic_face"),
-                LOOKUP_LIGHTS_PER_PASS,
-                np.array([first[n_local + k] for k in ks] + [-1] * pad, np.int32),
-            )
+            # A light without any cube (no casters at all) is lit within its range:
+            # its first faces are -1 and cube_test answers 1.
             GL.glDrawArrays(GL.GL_TRIANGLES, 0, 3)
             if shading:
                 GL.glReadBuffer(GL.GL_COLOR_ATTACHMENT1)
@@ -445,8 +468,8 @@ class LightPass:
             else:
                 GL.glReadBuffer(GL.GL_COLOR_ATTACHMENT0)
                 GL.glReadPixels(0, 0, width, rows, GL.GL_RGBA_INTEGER, GL.GL_UNSIGNED_INT, readback)
-                codes = readback.view(np.uint8).reshape(-1, 16)[:n, : len(ks)]
-                out[:, start : start + len(ks)] = codes
+                codes = readback.view(np.uint8).reshape(-1, 16)[:n, :count]
+                out[:, start : start + count] = codes
         GL.glBindVertexArray(0)
         for unit, target in enumerate(targets):
             GL.glActiveTexture(GL.GL_TEXTURE0 + unit)
@@ -456,8 +479,42 @@ class LightPass:
         GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, 0)
         GL.glEnable(GL.GL_DEPTH_TEST)
         if shading:
-            return direct[:n], bits
+            return direct[:n], bits, slots
         return out
+
+    def _upload_lights(self, cubes, ranges: np.ndarray, first: list[int]) -> None:
+        """The LocalLights' table (``shaders/cube_lookup.frag``'s ``light_table``):
+        three RGBA32F texels a light, (rel position, range), (radiance, the cube's near
+        plane), (first face of the static cube, of the animated one, 0, 0); ``first`` as
+        ``_upload_cubes`` returns it."""
+        n_local = len(cubes)
+        lights = self._ctx.scene.lights.local
+        table = np.zeros((max(n_local, 1), 3, 4), np.float32)
+        for k, pair in enumerate(cubes):
+            cube = pair[0] or pair[1]
+            table[k, 0, :3] = self._maps.cube_keys[k][0]
+            table[k, 0, 3] = ranges[k]
+            table[k, 1, :3] = lights[k].radiance
+            table[k, 1, 3] = cube.near if cube is not None else 0.0
+            table[k, 2, :2] = first[k], first[n_local + k]
+        GL.glBindBuffer(GL.GL_TEXTURE_BUFFER, self._light_buf)
+        GL.glBufferData(GL.GL_TEXTURE_BUFFER, table.nbytes, table, GL.GL_DYNAMIC_DRAW)
+        GL.glBindBuffer(GL.GL_TEXTURE_BUFFER, 0)
+
+    def _upload_slots(self, slots: np.ndarray) -> None:
+        """One pass's slots of each tile (T, <= LOOKUP_LIGHTS_PER_PASS) int64 into the
+        R32I texture bound on the active unit: tile t's slot j at texel
+        (LOOKUP_LIGHTS_PER_PASS (t % SLOT_TILES_A_ROW) + j, t / SLOT_TILES_A_ROW), -1
+        where the tile has no light left."""
+        n_tiles = max(len(slots), 1)
+        across = min(n_tiles, SLOT_TILES_A_ROW)
+        texels = np.full((-(-n_tiles // across) * across, LOOKUP_LIGHTS_PER_PASS), -1, np.int32)
+        texels[: len(slots), : slots.shape[1]] = slots
+        GL.glBindTexture(GL.GL_TEXTURE_2D, self._slot_tex)
+        GL.glTexImage2D(
+            GL.GL_TEXTURE_2D, 0, GL.GL_R32I, across * LOOKUP_LIGHTS_PER_PASS,
+            len(texels) // across, 0, GL.GL_RED_INTEGER, GL.GL_INT, texels,
+        )  # fmt: skip
 
     def _upload_surface(self, surface: np.ndarray | None, n: int, width: int, rows: int):
         """The points' surface rows (n, SURFACE_COLUMNS) float32 (None: the fallback

@@ -27,6 +27,7 @@ from phrt_usd.engine.raster.light_pass import (
     LOOKUP_LIGHTS_PER_PASS,
     LOOKUP_LIT,
     LOOKUP_MAX_DISTANT,
+    LOOKUP_TILE,
     LOOKUP_UNCERTAIN,
     LightPass,
 )
@@ -372,15 +373,11 @@ class MapLighting:
         )
         cubes = self._maps.cube_maps() if lights.local else []
         ranges = light_ranges(lights)[n_distant:]
-        # Only the LocalLights whose range reaches the points' bounding box are looked
-        # up (the others light none of them and have no pair to decide).
-        centres = np.array([li.position for li in lights.local], np.float64).reshape(-1, 3)
-        reaching = _shade().lights_reaching(positions, centres, np.asarray(ranges, np.float64))
-        active = np.flatnonzero(reaching)
         rows_of = surface_rows(np.ones((n, 3), np.float32) if surface is None else surface, n)
-        direct, bits = self._light_pass.lookup(
-            positions, normals, cubes, ranges, to_eye, maps, origin=origin, active=active,
-            surface=rows_of,
+        # Each tile of points looks up and shades only the LocalLights whose range
+        # reaches it (``light_pass.LOOKUP_TILE``): the others light none of its points.
+        direct, bits, slots = self._light_pass.lookup(
+            positions, normals, cubes, ranges, to_eye, maps, origin=origin, surface=rows_of
         )
         for job in jobs:
             job.result()
@@ -392,8 +389,9 @@ class MapLighting:
         # LocalLight ones are shaded from their visibility (exact, else the maps' PCF),
         # the DistantLight ones are corrected in ``distant``.
         rows, local_unsure = _shade().undecided_rows(
-            bits, len(cubes), active, LOOKUP_LIGHTS_PER_PASS, bool(maps), distant_unsure
-        )
+            bits, len(cubes), slots, LOOKUP_LIGHTS_PER_PASS, bool(maps), distant_unsure,
+            LOOKUP_TILE,
+        )  # fmt: skip
         return PendingLightTerms(
             positions,
             normals,

@@ -8,7 +8,7 @@
 // in front of this file, because llvmpipe runs every branch of the code under masks
 // (only loops end early): code for absent lights, maps or outputs would cost as much
 // as used code.
-//   N_LIGHTS     LocalLights in this pass, 0..16
+//   N_LIGHTS     LocalLight slots of this pass's tile lists, 0..16
 //   N_DISTANT    DistantLights in this pass (with SHADE, first pass only), 0..2
 //   HAS_DYNAMIC  1 when the scene has animated casters (a second cube per light)
 //   SHADE        1 to also shade the lit pairs (the direct output)
@@ -51,16 +51,21 @@ uniform sampler2D normals;
 uniform samplerBuffer cubes;
 uniform int n_points;
 uniform int width;
-uniform vec3 light_pos[16];     // origin-relative metres
-uniform float light_range[16];  // metres; 0 = the light reaches nothing
-uniform float light_near[16];   // the cube faces' near plane, metres
-uniform int static_face[16];    // first face of the static casters' cube, -1 = none
-uniform int dynamic_face[16];   // first face of the animated casters' cube, -1 = none
+// The LocalLights, three texels each (light_pass.LightPass._upload_lights): (position,
+// origin-relative metres; range, metres, 0 = reaches nothing), (radiance, linear RGB;
+// the cube faces' near plane, metres), (first face of the static casters' cube, of the
+// animated casters' cube, -1 = none; 0; 0).
+uniform samplerBuffer light_table;
+// Each tile's lights (a tile: light_pass.LOOKUP_TILE consecutive points, tile_points):
+// the pass's slot j of tile t at texel (N_SLOTS (t % SLOT_TILES) + j, t / SLOT_TILES), a
+// light of light_table, or -1 (the lights whose range reaches the tile's points, in
+// increasing order: light_pass).
+uniform isampler2D tile_slots;
+uniform int tile_points;
 uniform float bias_texels;      // SHADOW_BIAS_TEXELS
 uniform float box_radius;       // SHADOW_REFINE_RADIUS + 0.5 (nearest-texel offset)
 uniform float slope_clamp;      // 1 / SHADOW_MIN_COS
 uniform sampler2D to_eye;
-uniform vec3 light_radiance[16];     // linear RGB
 uniform float min_light_distance;    // shading.MIN_LIGHT_DISTANCE
 uniform sampler2D surface;
 uniform sampler2D albedo_lut;
@@ -118,11 +123,16 @@ float cube_test(int first, int face, ivec2 texel_xy, float test, bool wanted)
     return -1.0;
 }
 
-// Light j's shadow test at a point v (from the light to the point, d2 = |v|²) with
-// normal n: 1 lit, 0 shadowed / out of range / facing away, -1 uncertain.
-float lookup(int j, vec3 v, float d2, vec3 n)
+vec4 light_texel(int li, int c)
 {
-    float r = light_range[j];
+    return texelFetch(light_table, 3 * li + c);
+}
+
+// Light li's shadow test at a point v (from the light to the point, d2 = |v|²) with
+// normal n: 1 lit, 0 shadowed / out of range / facing away, -1 uncertain.
+float lookup(int li, vec3 v, float d2, vec3 n)
+{
+    float r = light_texel(li, 0).w;
     float ndv = dot(n, v);
     // Out of range or the light behind the surface: 0; nearer than the near plane: 1.
     // Selected at the end, not returned early, so that the fetches know (cube_test).
@@ -140,7 +150,7 @@ float lookup(int j, vec3 v, float d2, vec3 n)
     } else {
         axis = 2; w = a.z; major = v.z; bc = v.xy; nbc = n.xy;
     }
-    bool beyond_near = w > light_near[j];
+    bool beyond_near = w > light_texel(li, 1).w;
     bool wanted = reach && beyond_near;
     int face = 2 * axis + (major < 0.0 ? 1 : 0);
     float texel = w * (2.0 * TAN_HALF / float(CUBE_SIZE));  // texel width at w, metres
@@ -149,9 +159,10 @@ float lookup(int j, vec3 v, float d2, vec3 n)
     float test = w - texel * bias_texels - box_radius * slope;
     vec2 f = floor(bc * ((0.5 * float(CUBE_SIZE) / TAN_HALF) / w) + 0.5 * float(CUBE_SIZE));
     ivec2 t = clamp(ivec2(f), ivec2(0), ivec2(CUBE_SIZE - 1));
-    float vs = cube_test(static_face[j], face, t, test, wanted);
+    vec4 faces = light_texel(li, 2);
+    float vs = cube_test(int(faces.x), face, t, test, wanted);
 #if HAS_DYNAMIC
-    float vd = cube_test(dynamic_face[j], face, t, test, wanted);
+    float vd = cube_test(int(faces.y), face, t, test, wanted);
     float vis = (vs == 0.0 || vd == 0.0) ? 0.0 : min(vs, vd);  // -1: either uncertain
 #else
     float vis = vs;
@@ -318,25 +329,34 @@ void distant(int k, float vs, float vd, Surface s, vec3 n, vec3 e, float nv,
 #endif
 
 #if SHADE
-// Adds light j's contribution at a point it lights (the shadow test said lit); v and d2
-// as in lookup (shared: the compiler would not match light - p with p - light).
-void shade(int j, vec3 v, float d2, Surface s, vec3 n, vec3 e, float nv, inout vec3 d_sum)
+// Adds light li's contribution at a point it lights (the shadow test said lit); v and
+// d2 as in lookup (shared: the compiler would not match light - p with p - light).
+void shade(int li, vec3 v, float d2, Surface s, vec3 n, vec3 e, float nv, inout vec3 d_sum)
 {
-    float r2 = light_range[j] * light_range[j];
+    float r = light_texel(li, 0).w;
+    float r2 = r * r;
     float dist2 = max(d2, min_light_distance * min_light_distance);
     float inv_d = inversesqrt(dist2);
     vec3 l = -v * inv_d;
     float q = dist2 / r2;
     float window = clamp(1.0 - q * q, 0.0, 1.0);
     float e_light = window * window * (inv_d * inv_d);
-    d_sum += light_radiance[j] * (e_light * brdf_cos(s, n, e, l, nv));
+    d_sum += light_texel(li, 1).xyz * (e_light * brdf_cos(s, n, e, l, nv));
 }
 #endif
+
+// The light in slot j of tile ``tile`` (-1: none).
+int slot_light(ivec2 tile, int j)
+{
+    return texelFetch(tile_slots, ivec2(tile.x + j, tile.y), 0).r;
+}
 
 void main()
 {
     ivec2 xy = ivec2(gl_FragCoord.xy);
     int k = xy.y * width + xy.x;
+    int t = k / tile_points;
+    ivec2 tile = ivec2(N_SLOTS * (t % SLOT_TILES), t / SLOT_TILES);  // its first slot
     float result[16];
     for (int j = 0; j < 16; ++j) {
         result[j] = 0.0;
@@ -370,11 +390,15 @@ void main()
         // (in range, facing it: ~8 of the sewer's 13) and then to shade (lit), not
         // every light twice (sewer 640x480: ~20 % less time for the pass). The lights
         // go in increasing order either way, so the sums are the same.
-        uint todo = 0u;  // bit j: light j can light the point (lookup's reach)
+        // The slots are the tile's lights: those whose range reaches none of its points
+        // are not in them (light_pass.LOOKUP_TILE), so a fragment walks the few lights
+        // near it whatever the stage's count.
+        uint todo = 0u;  // bit j: slot j's light can light the point (lookup's reach)
         for (int j = 0; j < N_LIGHTS; ++j) {
-            vec3 v = p - light_pos[j];
-            float r = light_range[j];
-            todo |= (dot(v, v) < r * r && dot(n, v) < 0.0) ? (1u << j) : 0u;
+            int li = slot_light(tile, j);
+            vec4 pr = light_texel(max(li, 0), 0);
+            vec3 v = p - pr.xyz;
+            todo |= (li >= 0 && dot(v, v) < pr.w * pr.w && dot(n, v) < 0.0) ? (1u << j) : 0u;
         }
         uint lit = 0u;
         // (Lanes already done run the loop masked with findLSB(0) = -1: ``& 15`` keeps
@@ -382,8 +406,9 @@ void main()
         while (todo != 0u) {
             int j = findLSB(todo) & 15;
             todo &= todo - 1u;
-            vec3 v = p - light_pos[j];
-            float vis = lookup(j, v, dot(v, v), n);
+            int li = max(slot_light(tile, j), 0);
+            vec3 v = p - light_texel(li, 0).xyz;
+            float vis = lookup(li, v, dot(v, v), n);
             if (vis > 0.5) {
                 lit |= 1u << j;
             } else if (vis < -0.5) {
@@ -393,16 +418,18 @@ void main()
         while (lit != 0u) {
             int j = findLSB(lit) & 15;
             lit &= lit - 1u;
-            vec3 v = p - light_pos[j];
-            shade(j, v, dot(v, v), s, n, e, nv, d_sum);
+            int li = max(slot_light(tile, j), 0);
+            vec3 v = p - light_texel(li, 0).xyz;
+            shade(li, v, dot(v, v), s, n, e, nv, d_sum);
         }
 #elif !SHADE
         // Constant trip count: the compiler unrolls it, so every index of ``result``
         // is a constant (dynamic indexing of local arrays is slow in llvmpipe; the
         // loops above index only uniform arrays by a variable light).
         for (int j = 0; j < N_LIGHTS; ++j) {
-            vec3 v = p - light_pos[j];
-            result[j] = lookup(j, v, dot(v, v), n);
+            int li = slot_light(tile, j);
+            vec3 v = p - light_texel(max(li, 0), 0).xyz;
+            result[j] = li >= 0 ? lookup(li, v, dot(v, v), n) : 0.0;
         }
 #endif
     }
