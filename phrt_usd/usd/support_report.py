@@ -25,7 +25,7 @@ from pxr import Ar, Usd, UsdGeom, UsdLux, UsdShade, UsdSkel, UsdVol
 from phrt_usd.usd import schema
 from phrt_usd.usd.curves import TUBE_SIDES
 from phrt_usd.usd.lights import READ_LIGHT_TYPE_NAMES
-from phrt_usd.usd.materials import MATERIALX_BASE_COLOUR
+from phrt_usd.usd.materials import MATERIALX_BASE_COLOUR, TEXTURED_INPUTS
 from phrt_usd.usd.meshes import is_subdivided
 
 #: Prim paths listed per kind (the count is always complete).
@@ -95,19 +95,51 @@ def _other_surface_only(prim: Usd.Prim) -> bool:
 
 
 def _preview_input(prim: Usd.Prim, name: str):
-    """(value, connected) of a UsdPreviewSurface shader's input; (None, False) when the
-    prim is not one or the input is unauthored."""
-    if not prim.IsA(UsdShade.Shader):
+    """(value, connected) of a UsdPreviewSurface shader's input, followed as the render
+    reads it (``GetValueProducingAttributes``: an input of the Material or a NodeGraph
+    gives its value); connected = fed by a node's output. (None, False) when the prim
+    is not one or the input has no value."""
+    source = _input_source(prim, name)
+    if source is None:
         return None, False
+    if UsdShade.Utils.GetType(source.GetName()) == UsdShade.AttributeType.Output:
+        return None, True
+    return source.Get(), False
+
+
+def _input_source(prim: Usd.Prim, name: str) -> Usd.Attribute | None:
+    """The attribute producing the value of input ``name`` of a UsdPreviewSurface
+    shader prim (itself, an input it is connected to, or a node's output), or None."""
+    if not prim.IsA(UsdShade.Shader):
+        return None
     shader = UsdShade.Shader(prim)
     if shader.GetShaderId() != "UsdPreviewSurface":
-        return None, False
+        return None
     inp = shader.GetInput(name)
-    if not inp:
-        return None, False
-    if inp.HasConnectedSource():
-        return None, True
-    return (inp.Get() if inp.GetAttr().HasAuthoredValue() else None), False
+    attrs = inp.GetValueProducingAttributes() if inp else []
+    return attrs[0] if attrs else None
+
+
+def _unread_node(prim: Usd.Prim) -> bool:
+    """A UsdPreviewSurface with an input fed by a node ``usd/materials.py`` does not read:
+    anything but a UsdUVTexture on a texturable input (``materials.TEXTURED_INPUTS``)
+    or a UsdPrimvarReader on ``diffuseColor``; the input takes its fallback."""
+    if not prim.IsA(UsdShade.Shader):
+        return False
+    for inp in UsdShade.Shader(prim).GetInputs():
+        name = inp.GetBaseName()
+        source = _input_source(prim, name)
+        if source is None:
+            continue
+        if UsdShade.Utils.GetType(source.GetName()) != UsdShade.AttributeType.Output:
+            continue
+        node = str(UsdShade.Shader(source.GetPrim()).GetShaderId() or "")
+        if node == "UsdUVTexture" and name in TEXTURED_INPUTS:
+            continue
+        if node.startswith("UsdPrimvarReader") and name == "diffuseColor":
+            continue
+        return True
+    return False
 
 
 def _texture_opacity_without_threshold(prim: Usd.Prim) -> bool:
@@ -314,6 +346,13 @@ KINDS: tuple[SupportKind, ...] = (
         "texture alpha is read as a cut-out mask (opacityThreshold > 0); without a "
         "threshold the surface is drawn opaque, not blended",
         _texture_opacity_without_threshold,
+    ),
+    SupportKind(
+        "unread_shader_node", "UsdPreviewSurface shaders with an input fed by a node "
+        "the render does not read (the input takes its fallback)", IGNORED,
+        "usd/materials.py reads UsdUVTexture outputs on texturable inputs and a "
+        "UsdPrimvarReader on diffuseColor; other nodes (math, other readers) are not run",
+        _unread_node,
     ),
     SupportKind(
         "rough_reflector", "reflectors with roughness > 0",

@@ -90,6 +90,20 @@ def _every_kind(tmp_path) -> str:
             maps.ConnectableAPI(), output
         )
 
+    _preview(stage, "/World/Looks/Math")  # diffuseColor from a node not read
+    tint = UsdShade.Shader.Define(stage, "/World/Looks/Math/Tint")
+    tint.CreateIdAttr("ND_multiply_color3")
+    UsdShade.Shader(stage.GetPrimAtPath("/World/Looks/Math/Surface")).CreateInput(
+        "diffuseColor", Sdf.ValueTypeNames.Color3f
+    ).ConnectToSource(tint.CreateOutput("out", Sdf.ValueTypeNames.Color3f))
+    # opacity from an input of the Material (a constant, not a texture): not reported.
+    exposed = _preview(stage, "/World/Looks/Exposed")
+    fade = exposed.CreateInput("fade", Sdf.ValueTypeNames.Float)
+    fade.Set(0.5)
+    UsdShade.Shader(stage.GetPrimAtPath("/World/Looks/Exposed/Surface")).CreateInput(
+        "opacity", Sdf.ValueTypeNames.Float
+    ).ConnectToSource(fade)
+
     for name, material in (("Sharp", mirror), ("Blurry", rough), ("Coated", coat)):
         mesh = _quad(stage, f"/World/{name}")
         schema.apply_reflector(mesh.GetPrim(), priority=1.0)
@@ -156,6 +170,7 @@ EXPECTED = {
     "tet_mesh": ["/World/Tets"],
     "volume": ["/World/Smoke"],
     "texture_opacity_opaque": ["/World/Looks/Leaf/Surface"],
+    "unread_shader_node": ["/World/Looks/Math/Surface"],
     # Sharp has roughness 0; Blurry takes the fallback 0.5; Coated has 0 authored.
     "rough_reflector": ["/World/Blurry"],
     "displacement": ["/World/Looks/Disp"],
