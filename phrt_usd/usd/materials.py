@@ -287,10 +287,21 @@ class MaterialBank:
             row.diffuse_authored = True
         if src is not None and _is_primvar_reader(src):
             self._primvar_colour(row, src)
+        unread = []
         for name in TEXTURED_INPUTS:
             output, src = self._value(shader, name)
-            if src is not None:
+            if src is None:
+                continue
+            node = str(src.GetIdAttr().Get() or "")
+            if node == "UsdUVTexture":
                 self._texture_input(row, name, src, str(output))
+            elif not (name == "diffuseColor" and _is_primvar_reader(src)):
+                unread.append(f"{name} ({node or src.GetPath()})")
+        if unread:  # the support report's unread_shader_node
+            self.notices.append(
+                f"{material.GetPath()}: {', '.join(unread)} fed by nodes the render does not "
+                "run; rendered with the inputs' fallbacks"
+            )
         return row
 
     def _primvar_colour(self, row: _MaterialRow, reader: UsdShade.Shader) -> None:

@@ -380,3 +380,23 @@ def test_instanced_material_in_a_point_instancer_prototype(tmp_path, mode):
     instancer.CreateProtoIndicesAttr([0])
     instancer.CreatePositionsAttr([(0, 0, 0)])
     np.testing.assert_allclose(_centre(stage, mode), _look(RED), atol=TOLERANCE)
+
+
+@pytest.mark.parametrize("mode", MODES)
+def test_an_unread_node_is_named_and_the_input_takes_its_fallback(tmp_path, mode):
+    """diffuseColor fed by a math node the render does not run: the spec's fallback
+    0.18 renders, and one notice names the material, the input and the node."""
+    stage = _stage(tmp_path)
+    surf = _surface(stage, "/M")
+    tint = UsdShade.Shader.Define(stage, "/M/Tint")
+    tint.CreateIdAttr("ND_multiply_color3")
+    surf.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).ConnectToSource(
+        tint.CreateOutput("out", Sdf.ValueTypeNames.Color3f)
+    )
+    _bind(_quad(stage), "/M")
+    np.testing.assert_allclose(_centre(stage, mode), _look(GREY), atol=TOLERANCE)
+    notices = [w for w in read_stage(stage).warnings if w.startswith("/M:")]
+    assert notices == [
+        "/M: diffuseColor (ND_multiply_color3) fed by nodes the render does not run; "
+        "rendered with the inputs' fallbacks"
+    ]
