@@ -231,6 +231,8 @@ class MaterialBank:
         self.texture_problems: list[str] = []
         #: One line per material rendered approximately (MaterialX-only materials).
         self.notices: list[str] = []
+        #: Some row's colour comes from a primvar reader (``colour_primvar`` then looks).
+        self.reads_colour_primvars = False
         #: Paths of MaterialX-only materials by treatment ("base colour" / "grey").
         self.materialx: dict[str, list[str]] = {"base colour": [], "grey": []}
 
@@ -313,6 +315,7 @@ class MaterialBank:
         row.colour_primvar = str(name) if name else None
         if row.colour_primvar is None:
             return
+        self.reads_colour_primvars = True
         fallback = np.nan_to_num(np.asarray(self._constant(reader, "fallback", 0.0), np.float64))
         row.diffuse = np.clip(np.resize(fallback.reshape(-1), 3), 0.0, None)
         row.diffuse_authored = False  # the primvar, where the gprim has it
@@ -541,6 +544,8 @@ def colour_primvar(bank: MaterialBank, rows) -> str:
     """The primvar holding the colour of a gprim drawn with material ``rows``: the
     first row's ``UsdPrimvarReader`` ``varname`` (``_MaterialRow.colour_primvar``), else
     ``displayColor``."""
+    if not bank.reads_colour_primvars:  # the common case: no per-mesh look-up
+        return "displayColor"
     for row in np.unique(np.asarray(rows, np.int64)):
         name = bank.rows[int(row)].colour_primvar
         if name:
