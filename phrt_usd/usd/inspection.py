@@ -119,9 +119,11 @@ def _has_translucent_preview_surface(stage: Usd.Stage) -> bool:
         if shader.GetShaderId() != "UsdPreviewSurface":
             continue
         opacity = shader.GetInput("opacity")
-        if opacity and opacity.GetAttr().HasAuthoredValue():
-            value = opacity.Get()
-            if value is not None and value < 1.0:
+        # Its value as the render reads it: through Material and NodeGraph inputs.
+        attrs = opacity.GetValueProducingAttributes() if opacity else []
+        if attrs and attrs[0].HasAuthoredValue():
+            value = attrs[0].Get()
+            if isinstance(value, float) and value < 1.0:
                 return True
     return False
 

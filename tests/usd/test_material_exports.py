@@ -400,3 +400,21 @@ def test_an_unread_node_is_named_and_the_input_takes_its_fallback(tmp_path, mode
         "/M: diffuseColor (ND_multiply_color3) fed by nodes the render does not run; "
         "rendered with the inputs' fallbacks"
     ]
+
+
+def test_inspect_reads_an_opacity_exposed_on_the_material(tmp_path):
+    """An opacity of 0.3 set on the Material's input (the shader's input connected to
+    it) is translucent: inspect lists the refraction pass, as for a shader's own."""
+    from phrt_usd.usd.inspection import inspect_stage
+
+    stage = _stage(tmp_path)
+    surf = _surface(stage, "/M", RED)
+    fade = UsdShade.Material(stage.GetPrimAtPath("/M")).CreateInput(
+        "fade", Sdf.ValueTypeNames.Float
+    )
+    fade.Set(0.3)
+    surf.CreateInput("opacity", Sdf.ValueTypeNames.Float).ConnectToSource(fade)
+    _bind(_quad(stage), "/M")
+    assert "refraction" in inspect_stage(stage)["passes"]
+    fade.Set(1.0)
+    assert "refraction" not in inspect_stage(stage)["passes"]
