@@ -474,3 +474,37 @@ def preview_shade(albedo, point, eye, normal=(0.0, 0.0, 1.0), sources=(), ambien
         brdf = brdf_cos(surface, n, to_eye, d / np.linalg.norm(d))[0]
         out = out + np.asarray(e, np.float64) * brdf
     return out
+
+
+def front_view_stage(path: Path) -> Usd.Stage:
+    """A new stage at ``path`` (y up, metres) with the camera /Cam at (0, 0, 5) looking
+    down -z (50 mm lens, 20 x 20 mm aperture: the 2 x 2 ``st_quad`` at the origin fills
+    the middle fifth of the image; clipping 0.1-100 m) and a white DomeLight /Sky of
+    intensity 1; no geometry."""
+    stage = Usd.Stage.CreateNew(str(path))
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    cam = UsdGeom.Camera.Define(stage, "/Cam")
+    cam.CreateFocalLengthAttr(50.0)
+    cam.CreateHorizontalApertureAttr(20.0)
+    cam.CreateVerticalApertureAttr(20.0)
+    cam.CreateClippingRangeAttr(Gf.Vec2f(0.1, 100.0))
+    cam.AddTranslateOp().Set(Gf.Vec3d(0, 0, 5))
+    dome = UsdLux.DomeLight.Define(stage, "/Sky")
+    dome.CreateIntensityAttr(1.0)
+    dome.CreateColorAttr(Gf.Vec3f(1, 1, 1))
+    return stage
+
+
+def st_quad(stage: Usd.Stage, path: str = "/Quad") -> UsdGeom.Mesh:
+    """A 2 x 2 quad at z = 0 facing +z at ``path``, with face-varying ``st`` from (0, 0)
+    at its lower left to (1, 1) at its upper right."""
+    mesh = UsdGeom.Mesh.Define(stage, path)
+    mesh.CreatePointsAttr([(-1, -1, 0), (1, -1, 0), (1, 1, 0), (-1, 1, 0)])
+    mesh.CreateFaceVertexCountsAttr([4])
+    mesh.CreateFaceVertexIndicesAttr([0, 1, 2, 3])
+    mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+    UsdGeom.PrimvarsAPI(mesh).CreatePrimvar(
+        "st", Sdf.ValueTypeNames.TexCoord2fArray, UsdGeom.Tokens.faceVarying
+    ).Set([(0, 0), (1, 0), (1, 1), (0, 1)])
+    return mesh

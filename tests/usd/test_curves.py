@@ -12,8 +12,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux, UsdShade
-from scenes import preview_shade
+from pxr import Gf, Sdf, Usd, UsdGeom, UsdShade
+from scenes import front_view_stage, preview_shade
 
 from phrt_usd.engine.renderer import FrameRenderer, RenderOptions
 from phrt_usd.usd import curves
@@ -56,16 +56,7 @@ def test_periodic_bspline_closes():
 
 
 def _curve_stage(tmp_path, kind: str, basis: str, width: float) -> Usd.Stage:
-    stage = Usd.Stage.CreateNew(str(tmp_path / "curves.usda"))
-    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
-    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
-    cam = UsdGeom.Camera.Define(stage, "/Cam")
-    cam.CreateFocalLengthAttr(50.0)
-    cam.CreateHorizontalApertureAttr(20.0)
-    cam.CreateVerticalApertureAttr(20.0)
-    cam.CreateClippingRangeAttr(Gf.Vec2f(0.1, 100.0))
-    cam.AddTranslateOp().Set(Gf.Vec3d(0, 0, 5))
-    UsdLux.DomeLight.Define(stage, "/Sky").CreateIntensityAttr(1.0)
+    stage = front_view_stage(tmp_path / "curves.usda")
     hair = UsdGeom.BasisCurves.Define(stage, "/Hair")
     hair.CreateTypeAttr(kind)
     hair.CreateBasisAttr(basis)

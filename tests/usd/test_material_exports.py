@@ -16,8 +16,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux, UsdRender, UsdShade
-from scenes import preview_shade
+from pxr import Gf, Sdf, Usd, UsdGeom, UsdRender, UsdShade
+from scenes import front_view_stage, preview_shade, st_quad
 
 from phrt_usd.engine.renderer import FrameRenderer, RenderOptions
 from phrt_usd.usd.stage import read_stage
@@ -41,32 +41,12 @@ def _look(colour) -> np.ndarray:
 
 def _stage(tmp_path, name: str = "exports.usda") -> Usd.Stage:
     """Camera /Cam at (0, 0, 5), white dome /Sky; no geometry yet."""
-    stage = Usd.Stage.CreateNew(str(tmp_path / name))
-    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
-    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
-    cam = UsdGeom.Camera.Define(stage, "/Cam")
-    cam.CreateFocalLengthAttr(50.0)
-    cam.CreateHorizontalApertureAttr(20.0)
-    cam.CreateVerticalApertureAttr(20.0)
-    cam.CreateClippingRangeAttr(Gf.Vec2f(0.1, 100.0))
-    cam.AddTranslateOp().Set(Gf.Vec3d(0, 0, 5))
-    dome = UsdLux.DomeLight.Define(stage, "/Sky")
-    dome.CreateIntensityAttr(1.0)
-    dome.CreateColorAttr(Gf.Vec3f(1, 1, 1))
-    return stage
+    return front_view_stage(tmp_path / name)
 
 
 def _quad(stage, path: str = "/Quad") -> Usd.Prim:
     """A 2 x 2 quad at z = 0 facing +Z, with ``st`` from (0, 0) to (1, 1)."""
-    mesh = UsdGeom.Mesh.Define(stage, path)
-    mesh.CreatePointsAttr([(-1, -1, 0), (1, -1, 0), (1, 1, 0), (-1, 1, 0)])
-    mesh.CreateFaceVertexCountsAttr([4])
-    mesh.CreateFaceVertexIndicesAttr([0, 1, 2, 3])
-    mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
-    UsdGeom.PrimvarsAPI(mesh).CreatePrimvar(
-        "st", Sdf.ValueTypeNames.TexCoord2fArray, UsdGeom.Tokens.faceVarying
-    ).Set([(0, 0), (1, 0), (1, 1), (0, 1)])
-    return mesh.GetPrim()
+    return st_quad(stage, path).GetPrim()
 
 
 def _surface(stage, material_path: str, colour=None) -> UsdShade.Shader:

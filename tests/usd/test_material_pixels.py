@@ -14,8 +14,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux, UsdRender, UsdShade, UsdUtils
-from scenes import preview_shade
+from pxr import Gf, Sdf, Usd, UsdRender, UsdShade, UsdUtils
+from scenes import front_view_stage, preview_shade, st_quad
 from textured_stages import write_one_colour_png
 
 from phrt_usd.engine.renderer import FrameRenderer, RenderOptions
@@ -56,27 +56,8 @@ def _material(stage, path: str, colour=None, texture: str | None = None) -> UsdS
 
 
 def _stage(path) -> Usd.Stage:
-    stage = Usd.Stage.CreateNew(str(path))
-    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
-    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
-    mesh = UsdGeom.Mesh.Define(stage, "/Quad")
-    mesh.CreatePointsAttr([(-1, -1, 0), (1, -1, 0), (1, 1, 0), (-1, 1, 0)])
-    mesh.CreateFaceVertexCountsAttr([4])
-    mesh.CreateFaceVertexIndicesAttr([0, 1, 2, 3])
-    mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
-    st = UsdGeom.PrimvarsAPI(mesh).CreatePrimvar(
-        "st", Sdf.ValueTypeNames.TexCoord2fArray, UsdGeom.Tokens.faceVarying
-    )
-    st.Set([(0, 0), (1, 0), (1, 1), (0, 1)])
-    cam = UsdGeom.Camera.Define(stage, "/Cam")
-    cam.CreateFocalLengthAttr(50.0)
-    cam.CreateHorizontalApertureAttr(20.0)
-    cam.CreateVerticalApertureAttr(20.0)
-    cam.CreateClippingRangeAttr(Gf.Vec2f(0.1, 100.0))
-    cam.AddTranslateOp().Set(Gf.Vec3d(0, 0, 5))
-    dome = UsdLux.DomeLight.Define(stage, "/Sky")
-    dome.CreateIntensityAttr(1.0)
-    dome.CreateColorAttr(Gf.Vec3f(1, 1, 1))
+    stage = front_view_stage(path)
+    st_quad(stage)
     return stage
 
 

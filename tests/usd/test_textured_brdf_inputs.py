@@ -8,7 +8,8 @@ from __future__ import annotations
 import numpy as np
 import OpenImageIO as oiio
 import pytest
-from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux, UsdShade
+from pxr import Gf, Sdf, Usd, UsdShade
+from scenes import front_view_stage, st_quad
 
 from phrt_usd.engine import shading
 from phrt_usd.engine.renderer import FrameRenderer, RenderOptions
@@ -30,25 +31,8 @@ def _stage(tmp_path) -> Usd.Stage:
     out.open(str(png), oiio.ImageSpec(2, 1, 3, oiio.UINT8))
     out.write_image(TEXELS)
     out.close()
-    stage = Usd.Stage.CreateNew(str(tmp_path / "quad.usda"))
-    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
-    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
-    mesh = UsdGeom.Mesh.Define(stage, "/Quad")
-    mesh.CreatePointsAttr([(-1, -1, 0), (1, -1, 0), (1, 1, 0), (-1, 1, 0)])
-    mesh.CreateFaceVertexCountsAttr([4])
-    mesh.CreateFaceVertexIndicesAttr([0, 1, 2, 3])
-    mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
-    st = UsdGeom.PrimvarsAPI(mesh).CreatePrimvar(
-        "st", Sdf.ValueTypeNames.TexCoord2fArray, UsdGeom.Tokens.faceVarying
-    )
-    st.Set([(0, 0), (1, 0), (1, 1), (0, 1)])
-    cam = UsdGeom.Camera.Define(stage, "/Cam")
-    cam.CreateFocalLengthAttr(50.0)
-    cam.CreateHorizontalApertureAttr(20.0)
-    cam.CreateVerticalApertureAttr(20.0)
-    cam.CreateClippingRangeAttr(Gf.Vec2f(0.1, 100.0))
-    cam.AddTranslateOp().Set(Gf.Vec3d(0, 0, 5))
-    UsdLux.DomeLight.Define(stage, "/Sky").CreateColorAttr(Gf.Vec3f(1, 1, 1))
+    stage = front_view_stage(tmp_path / "quad.usda")
+    mesh = st_quad(stage)
     mat = UsdShade.Material.Define(stage, "/M")
     surf = UsdShade.Shader.Define(stage, "/M/Surface")
     surf.CreateIdAttr("UsdPreviewSurface")
