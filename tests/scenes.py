@@ -478,9 +478,9 @@ def preview_shade(albedo, point, eye, normal=(0.0, 0.0, 1.0), sources=(), ambien
 
 def front_view_stage(path: Path) -> Usd.Stage:
     """A new stage at ``path`` (y up, metres) with the camera /Cam at (0, 0, 5) looking
-    down -z (50 mm lens, 20 x 20 mm aperture: the 2 x 2 ``st_quad`` at the origin fills
-    the middle fifth of the image; clipping 0.1-100 m) and a white DomeLight /Sky of
-    intensity 1; no geometry."""
+    down -z (50 mm lens, 20 x 20 mm aperture: the 2 x 2 ``st_quad`` at the origin just
+    fills the image; clipping 0.1-100 m) and a white DomeLight /Sky of intensity 1; no
+    geometry."""
     stage = Usd.Stage.CreateNew(str(path))
     UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
     UsdGeom.SetStageMetersPerUnit(stage, 1.0)
