@@ -508,3 +508,21 @@ def st_quad(stage: Usd.Stage, path: str = "/Quad") -> UsdGeom.Mesh:
         "st", Sdf.ValueTypeNames.TexCoord2fArray, UsdGeom.Tokens.faceVarying
     ).Set([(0, 0), (1, 0), (1, 1), (0, 1)])
     return mesh
+
+
+def centre_pixel(stage: Usd.Stage, mode: str, size: int = 16) -> np.ndarray:
+    """(3,) float64 linear colour of the centre pixel of ``stage``'s first frame rendered
+    in ``mode`` at ``size`` x ``size`` pixels, every reflector traced; fails when the
+    centre pixel shows no geometry (the test's expectation would be of the sky)."""
+    from phrt_usd.engine.renderer import FrameRenderer, RenderOptions
+    from phrt_usd.usd.stage import read_stage
+
+    scene = read_stage(stage)
+    options = RenderOptions(mode=mode, heuristic="all", width=size, height=size, budget_ms=None)
+    renderer = FrameRenderer(scene, options)
+    try:
+        out = renderer.render(scene.frame_range[0])
+        assert out.gbuffer.element_id[size // 2, size // 2] >= 0, "the centre pixel misses"
+        return np.asarray(out.beauty[size // 2, size // 2], np.float64)
+    finally:
+        renderer.close()

@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdRender, UsdShade
-from scenes import front_view_stage, preview_shade, st_quad
+from scenes import centre_pixel, front_view_stage, preview_shade, st_quad
 
 from phrt_usd.engine.renderer import FrameRenderer, RenderOptions
 from phrt_usd.usd.stage import read_stage
@@ -68,16 +68,7 @@ def _bind(prim: Usd.Prim, material_path: str, purpose=UsdShade.Tokens.allPurpose
 
 def _centre(stage, mode: str) -> np.ndarray:
     """(3,) linear colour of the centre pixel of one frame in ``mode``."""
-    scene = read_stage(stage)
-    renderer = FrameRenderer(
-        scene, RenderOptions(mode=mode, heuristic="all", width=W, height=H, budget_ms=None)
-    )
-    try:
-        out = renderer.render(scene.frame_range[0])
-        assert out.gbuffer.element_id[H // 2, W // 2] >= 0, "the centre pixel misses the gprim"
-        return np.asarray(out.beauty[H // 2, W // 2], np.float64)
-    finally:
-        renderer.close()
+    return centre_pixel(stage, mode, W)
 
 
 # ------------------------------------------------------------ binding purposes

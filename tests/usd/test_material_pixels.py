@@ -15,11 +15,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from pxr import Gf, Sdf, Usd, UsdRender, UsdShade, UsdUtils
-from scenes import front_view_stage, preview_shade, st_quad
+from scenes import centre_pixel, front_view_stage, preview_shade, st_quad
 from textured_stages import write_one_colour_png
-
-from phrt_usd.engine.renderer import FrameRenderer, RenderOptions
-from phrt_usd.usd.stage import read_stage
 
 W = H = 16
 MODES = ("raster", "rt")
@@ -68,16 +65,7 @@ def _bind(stage, mat, purpose=UsdShade.Tokens.allPurpose) -> None:
 
 def _centre(stage, mode: str) -> np.ndarray:
     """(3,) linear colour of the centre pixel of one frame in ``mode``."""
-    scene = read_stage(stage)
-    renderer = FrameRenderer(
-        scene, RenderOptions(mode=mode, heuristic="all", width=W, height=H, budget_ms=None)
-    )
-    try:
-        out = renderer.render(scene.frame_range[0])
-        assert out.gbuffer.element_id[H // 2, W // 2] >= 0, "the centre pixel misses the quad"
-        return np.asarray(out.beauty[H // 2, W // 2], np.float64)
-    finally:
-        renderer.close()
+    return centre_pixel(stage, mode, W)
 
 
 @pytest.mark.parametrize("mode", MODES)
