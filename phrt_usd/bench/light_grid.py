@@ -21,16 +21,17 @@ from pathlib import Path
 from pxr import Gf, Usd, UsdGeom, UsdLux, UsdRender
 
 #: Metres between neighbouring lights (and the side of a floor cell).
-LIGHT_SPACING = 4.0
+LIGHT_SPACING = 8.0
 #: Metres of the lights above the floor.
 LIGHT_HEIGHT = 1.0
 #: The sphere lights' radius, metres.
 LIGHT_RADIUS = 0.1
-#: Each light's radiance (``LocalLight.radiance``, intensity × π r², white): 0.18 gives a
-#: range of 3 m at the shading's 0.02 cut-off, so a floor point is within reach of the
-#: lights within sqrt(3² - 1²) = 2.8 m of it: 1 to 4 of the grid's (π 2.8² / 4² ≈ 1.6 on
-#: average), whatever N.
-LIGHT_RADIANCE = 0.18
+#: Each light's radiance (``LocalLight.radiance``, intensity × π r², white): 1.28 gives a
+#: range of 8 m at the shading's 0.02 cut-off, so a floor point is within reach of the
+#: lights within sqrt(8² - 1²) = 7.9 m of it: 1 to 5 of the grid's (π 7.9² / 8² ≈ 3.1
+#: on average), whatever N; right below a light the floor gets 1.28, 64 times the
+#: cut-off (the sewer's lamps: 100 to 300 times).
+LIGHT_RADIANCE = 1.28
 #: The camera's focal length and film back (mm): a 73.7° × 58.7° field of view.
 FOCAL_MM, APERTURE_MM = 24.0, 36.0
 

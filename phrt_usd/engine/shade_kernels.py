@@ -664,10 +664,10 @@ def lit_local_pairs(rows, unsure, exact):
 
 
 @njit(**_KERNEL)
-def undecided_rows(bits, n_local, slots, per_pass, gpu_distant, distant_unsure, tile):
+def undecided_rows(bits, n_local, slots, per_pass, gpu_distant, distant_unsure, point_tile):
     """The points with a pair the maps could not decide, from the GPU lookup's ``bits``
-    (n, passes) uint32: bit j of pass p is LocalLight ``slots[i // tile, per_pass p + j]``
-    of point i's tile (``tile`` consecutive points; slots (T, S) int64, ``tile_lights``),
+    (n, passes) uint32: bit j of pass p is LocalLight ``slots[point_tile[i], per_pass p +
+    j]`` of point i's tile (point_tile (n,) int32; slots (T, S) int64, ``tile_lights``),
     bit 16 + k of pass 0 DistantLight k when ``gpu_distant``, written into
     ``distant_unsure`` (n, D) bool (else that array holds the numpy lookups' answer).
     Returns rows (m,) int64 and their undecided LocalLight pairs (m, n_local) bool."""
@@ -687,7 +687,7 @@ def undecided_rows(bits, n_local, slots, per_pass, gpu_distant, distant_unsure, 
     rows = rows[:m].copy()
     local = np.zeros((m, n_local), np.bool_)
     for r in range(m):
-        t = rows[r] // tile
+        t = point_tile[rows[r]]
         for p in range(passes):
             word, s = bits[rows[r], p] & 0xFFFF, p * per_pass  # bits 16 + k: distant
             while word != 0 and s < slots.shape[1]:
@@ -698,24 +698,42 @@ def undecided_rows(bits, n_local, slots, per_pass, gpu_distant, distant_unsure, 
 
 
 @njit(**_KERNEL)
-def tile_lights(points, offset, tile, centres, ranges, margin):
+def tile_lights(points, offset, tile, jump, centres, ranges, margin, point_tile):
     """Each tile's LocalLights, for the light pass: points (n, 3) float64 metres less
-    ``offset`` (3,) (the rel space of ``centres`` (P, 3); ranges (P,) metres), a tile
-    every ``tile`` consecutive points; a tile's lights are ``box_lights`` of its points'
-    box. Returns slots (T, P) int64 (each tile's lights in increasing order, then -1)
-    and counts (T,) int64."""
-    n_tiles = (points.shape[0] + tile - 1) // tile
-    slots = np.full((n_tiles, centres.shape[0]), -1, np.int64)
-    counts = np.zeros(n_tiles, np.int64)
+    ``offset`` (3,) (the rel space of ``centres`` (P, 3); ranges (P,) metres) cut into
+    tiles of at most ``tile`` consecutive points, a tile also ending where the next
+    point is more than ``jump`` times the tile's longest step away (a row's end, an
+    edge in depth: its box stays near its points), while tiles average ``tile`` / 2
+    points or more; a tile's lights are ``box_lights`` of its points' box. Writes each
+    point's tile into point_tile (n,) int32; returns slots (T, P) int64 (each tile's
+    lights in increasing order, then -1) and counts (T,) int64."""
+    n = points.shape[0]
+    starts = np.empty(n + 1, np.int64)
+    t, step2, longest = 0, 0.0, 0.0
+    for i in range(n):
+        if i > 0:
+            step2 = 0.0
+            for c in range(3):
+                step2 += (points[i, c] - points[i - 1, c]) ** 2
+        size = i - starts[t - 1] if t else 0
+        if t == 0 or size >= tile or (
+            size >= 2 and step2 > jump * jump * longest and t * tile < 2 * n
+        ):
+            starts[t], t, longest = i, t + 1, 0.0
+        elif step2 > longest:
+            longest = step2
+        point_tile[i] = t - 1
+    starts[t] = n
+    slots = np.full((t, centres.shape[0]), -1, np.int64)
+    counts = np.zeros(t, np.int64)
     box = np.empty((2, 3))
-    for t in range(n_tiles):
-        start, stop = t * tile, min((t + 1) * tile, points.shape[0])
+    for k in range(t):
         for c in range(3):
-            box[0, c] = box[1, c] = points[start, c] - offset[c]
-            for i in range(start + 1, stop):
+            box[0, c] = box[1, c] = points[starts[k], c] - offset[c]
+            for i in range(starts[k] + 1, starts[k + 1]):
                 v = points[i, c] - offset[c]
                 box[0, c], box[1, c] = min(box[0, c], v), max(box[1, c], v)
-        counts[t] = box_lights(box[0], box[1], centres, ranges, margin, slots[t])
+        counts[k] = box_lights(box[0], box[1], centres, ranges, margin, slots[k])
     return slots, counts
 
 
@@ -754,8 +772,8 @@ SIGNATURES = {
     "pack_texels": ["f8[:, ::1], f8[::1], f4[:, ::1]", "f4[:, ::1], none, f4[:, ::1]",
                     "f8[:, ::1], none, f4[:, ::1]"],
     "lit_local_pairs": ["i8[::1], b1[:, ::1], f4[:, ::1]"],
-    "undecided_rows": ["u4[:, ::1], i8, i8[:, ::1], i8, b1, b1[:, ::1], i8"],
-    "tile_lights": ["f8[:, ::1], f8[::1], i8, f8[:, ::1], f8[::1], f8"],
+    "undecided_rows": ["u4[:, ::1], i8, i8[:, ::1], i8, b1, b1[:, ::1], i4[::1]"],
+    "tile_lights": ["f8[:, ::1], f8[::1], i8, f8, f8[:, ::1], f8[::1], f8, i4[::1]"],
 }
 
 

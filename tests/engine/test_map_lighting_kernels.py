@@ -67,10 +67,10 @@ def test_undecided_matches_numpy_reference(n_local, n_distant, gpu_distant, subs
             bits[:, 0] |= (rng.uniform(size=n) < 0.05).astype(np.uint32) << (16 + k)
     numpy_unsure = rng.uniform(size=(n, n_distant)) < (0.0 if gpu_distant else 0.05)
     got_distant = numpy_unsure.copy()
+    tile_of_row = (np.arange(n) // tile).astype(np.int32)
     rows, local = undecided_rows(
-        bits, n_local, slots, LOOKUP_LIGHTS_PER_PASS, gpu_distant, got_distant, tile
+        bits, n_local, slots, LOOKUP_LIGHTS_PER_PASS, gpu_distant, got_distant, tile_of_row
     )
-    tile_of_row = np.arange(n) // tile
     want_rows, want_local, want_distant = _reference_undecided(
         bits, n_local, slots, tile_of_row, gpu_distant, numpy_unsure
     )
@@ -97,29 +97,39 @@ def test_lit_local_pairs_match_numpy_reference():
 def test_tile_lists_keep_every_light_that_reaches_a_point():
     """A LocalLight is left out of a tile's list only when no point of the tile is
     within its range (plus the margin): the box test never drops a light a point needs
-    (brute force over each tile's points), and drops most of the far ones."""
+    (brute force over each tile's points), and drops most of the far ones. Tiles are
+    runs of at most 64 consecutive points, cut where the points jump (a row's end)."""
     rng = np.random.default_rng(4)
-    width, tile, n = 200, 64, 200 * 150
+    width, tile, n = 150, 64, 150 * 150
     col, row = np.arange(n) % width, np.arange(n) // width
-    # Points laid out as an image of a floor: consecutive points are near.
-    pos = np.stack([col * 0.1, rng.uniform(0.0, 0.2, n), row * 0.1], axis=1)
+    # Points laid out as an image of a floor: consecutive points are near, but for the
+    # jump from one row's end to the next row's start.
+    pos = np.stack([col * 0.1, rng.uniform(0.0, 0.01, n), row * 0.1], axis=1)
     origin = np.array([3.0, 0.0, -2.0])
     centres = rng.uniform(-5.0, 25.0, (300, 3)) * [1.0, 0.1, 1.0]
     ranges = rng.uniform(0.0, 4.0, 300)
     ranges[:5] = 0.0  # black lights reach nothing
-    slots, counts = tile_lights(pos + origin, origin, tile, centres, ranges, 1e-3)
-    assert len(slots) == -(-n // tile)
+    point_tile = np.empty(n, np.int32)
+    slots, counts = tile_lights(pos + origin, origin, tile, 4.0, centres, ranges, 1e-3,
+                                point_tile)  # fmt: skip
+    assert np.all(np.diff(point_tile) >= 0) and point_tile[-1] == len(slots) - 1
+    sizes = np.bincount(point_tile)
+    assert sizes.max() <= tile
+    # A row of 150 points: tiles of 64, 64 and 22, none across two rows.
+    assert len(slots) == 3 * 150 and np.all(np.diff(row[np.r_[0, np.cumsum(sizes)[:-1]]]) >= 0)
+    assert all(len(set(row[point_tile == t])) == 1 for t in range(0, len(slots), 37))
     kept_total = 0
     for t in range(len(slots)):
         kept = set(slots[t, : counts[t]].tolist())
         assert np.all(slots[t, counts[t] :] == -1)
         assert list(slots[t, : counts[t]]) == sorted(kept)  # increasing: same sums
-        d2 = ((pos[t * tile : (t + 1) * tile, None, :] - centres[None]) ** 2).sum(-1)
+        d2 = ((pos[point_tile == t, None, :] - centres[None]) ** 2).sum(-1)
         needed = set(np.flatnonzero((d2 < ranges**2).any(axis=0)).tolist())
         assert needed <= kept and not kept & set(range(5))
         kept_total += len(kept)
     assert kept_total < 0.2 * len(slots) * len(centres)  # most lights reach no tile
-    assert len(tile_lights(pos[:0], origin, tile, centres, ranges, 1e-3)[0]) == 0
+    none = tile_lights(pos[:0], origin, tile, 4.0, centres, ranges, 1e-3, point_tile[:0])
+    assert len(none[0]) == 0
 
 
 def test_lights_out_of_reach_are_left_out_and_shading_is_unchanged(monkeypatch):
@@ -151,7 +161,8 @@ def test_lights_out_of_reach_are_left_out_and_shading_is_unchanged(monkeypatch):
     def spy(self, *args, **kwargs):
         result = lookup(self, *args, **kwargs)
         if isinstance(result, tuple):  # the shading lookup: its tiles' lights
-            looked_up.append(set(result[2][result[2] >= 0].tolist()))
+            slots = result[2].slots
+            looked_up.append(set(slots[slots >= 0].tolist()))
         return result
 
     monkeypatch.setattr(map_lighting.LightPass, "lookup", spy)

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Callable
+from typing import NamedTuple
 
 import numpy as np
 from OpenGL import GL
@@ -57,17 +58,20 @@ LOOKUP_MAX_ROWS = 16384
 #: LocalLights per GPU lookup pass (one RGBA32UI colour attachment, one byte each):
 #: with shading, the slots of each tile's list a pass walks.
 LOOKUP_LIGHTS_PER_PASS = 16
-#: Consecutive points of a tile of the shading pass (G-buffer pixels in image order, a
-#: run of a row; the tracer's hits in path order). Each tile walks only the LocalLights
-#: whose range reaches the bounding box of its points (``shade_kernels.tile_lights``),
-#: as a tiled deferred renderer does: a fragment's cost grows with the lights near it,
-#: not with the stage's, and the passes a frame needs with the most lights one tile
-#: has. Runs rather than squares: the G-buffer's points leave uncovered pixels out, so
-#: the point texture's rows do not stay aligned with the image's, but a run of
-#: consecutive points stays on one image row (or two). 64: on the light-grid bench at
-#: 640x480 a run spans 4.3 m of floor and reaches ~4 of its 64 lights, as a 16 x 16
-#: square would.
+#: Most consecutive points of a tile of the shading pass (G-buffer pixels in image
+#: order: a run of a row; the tracer's hits in path order). Each tile walks only the
+#: LocalLights whose range reaches the bounding box of its points
+#: (``shade_kernels.tile_lights``), as a tiled deferred renderer does: a fragment's cost
+#: grows with the lights near it, not with the stage's, and the passes a frame needs
+#: with the most lights one tile has. Runs rather than squares: the G-buffer's points
+#: leave uncovered pixels out, so the point texture's rows do not stay aligned with the
+#: image's. 64: on the light-grid bench at 640x480 a run spans 8.5 m of floor and
+#: reaches ~6 of its 64 lights.
 LOOKUP_TILE = 64
+#: A tile also ends where the next point is more than this many times its longest step
+#: away (``tile_lights``): the end of an image row (the next starts at the other side),
+#: an edge in depth; its box then stays near its points.
+LOOKUP_TILE_JUMP = 4.0
 #: Tiles a row of the slot texture (``_upload_slots``).
 SLOT_TILES_A_ROW = 256
 #: Metres added to a light's range when choosing a tile's lights (``tile_lights``): the
@@ -79,9 +83,16 @@ LOOKUP_CULL_MARGIN = 1e-3
 LOOKUP_MAX_DISTANT = 2
 #: Bytes of one cube texel on the GPU: (min, max) float32 (RG32F).
 CUBE_TEXEL_BYTES = 8
-#: The tile size of a pass without tiles (every point in one: the codes' lookup).
-_ONE_TILE = 1 << 30
 _ORIGIN = np.zeros(3)
+
+
+class PointTiles(NamedTuple):
+    """The shading pass's tiles (``shade_kernels.tile_lights``): slots (T, S) int64, the
+    LocalLights each tile walked (increasing, then -1); point_tile (n,) int32, each
+    point's tile."""
+
+    slots: np.ndarray
+    point_tile: np.ndarray
 #: Per-light codes the GPU lookup packs one byte each (``shaders/cube_lookup.frag``).
 LOOKUP_SHADOWED, LOOKUP_LIT, LOOKUP_UNCERTAIN = 0, 1, 2
 
@@ -105,18 +116,19 @@ class LightPass:
         self._surface_tex: int | None = None  # the points' surface rows (RGBA32F)
         self._lut_tex: int | None = None  # preview_surface.specular_albedo_table (RG32F)
         self._slot_tex: int | None = None  # the tiles' light slots of a pass (R32I)
+        self._tile_tex: int | None = None  # each point's tile (R32I)
         self._light_buf: int | None = None  # the LocalLights' table (``_upload_lights``)
         self._light_tex: int | None = None
         self._lookup_fb: int | None = None
         self._lookup_rb: list[int] = []
         self._lookup_size = (0, 0)  # (width, rows) of ``_lookup_fb``
 
-    def _program_for(self, n_lights: int, n_distant: int, shade: bool) -> int:
-        """The lookup program for a pass of ``n_lights`` LocalLights and ``n_distant``
-        DistantLights (with shading or not), compiled on first use with the defines
-        ``shaders/cube_lookup.frag`` expects."""
+    def _program_for(self, n_lights: int, n_distant: int, shade: bool, tiled: bool) -> int:
+        """The lookup program for a pass of ``n_lights`` LocalLight slots and
+        ``n_distant`` DistantLights (with shading or not; per tile or not), compiled on
+        first use with the defines ``shaders/cube_lookup.frag`` expects."""
         has_dynamic = bool(self._ctx.animated_tri.any())
-        key = (n_lights, n_distant, has_dynamic, shade)
+        key = (n_lights, n_distant, has_dynamic, shade, tiled)
         if key not in self._lookup_programs:
             with open(os.path.join(SHADER_DIR, "cube_lookup.vert")) as f:
                 vert = f.read()
@@ -127,7 +139,7 @@ class LightPass:
                 f"#define N_LIGHTS {n_lights}\n#define N_DISTANT {n_distant}\n"
                 f"#define N_SLOTS {LOOKUP_LIGHTS_PER_PASS}\n#define SLOT_TILES {SLOT_TILES_A_ROW}\n"
                 f"#define HAS_DYNAMIC {int(has_dynamic)}\n"
-                f"#define SHADE {int(shade)}\n"
+                f"#define SHADE {int(shade)}\n#define TILED {int(tiled)}\n"
                 f"#define CUBE_SIZE {CUBE_MAP_SIZE}\n#define TAN_HALF {tan_half!r}\n"
                 f"#define LINE_W {CUBE_LINE_TILE[0]}u\n#define LINE_H {CUBE_LINE_TILE[1]}u\n"
                 f"#define PAGE_W {CUBE_PAGE_TILE[0]}u\n#define PAGE_H {CUBE_PAGE_TILE[1]}u\n"
@@ -146,14 +158,16 @@ class LightPass:
         if self._lookup_vao is not None:
             return
         self._lookup_vao = int(GL.glGenVertexArrays(1))
-        # points, normals, to_eye, surface rows, the albedo table, the tiles' slots
-        textures = [int(t) for t in GL.glGenTextures(6)]
+        # points, normals, to_eye, surface rows, the albedo table, the tiles' slots, the
+        # points' tiles
+        textures = [int(t) for t in GL.glGenTextures(7)]
         for tex in textures:
             GL.glBindTexture(GL.GL_TEXTURE_2D, tex)
             GL.glTexParameteri(GL.GL_TEXTURE_2D, GL.GL_TEXTURE_MIN_FILTER, GL.GL_NEAREST)
             GL.glTexParameteri(GL.GL_TEXTURE_2D, GL.GL_TEXTURE_MAG_FILTER, GL.GL_NEAREST)
         self._point_tex = textures[:3]
         self._surface_tex, self._lut_tex, self._slot_tex = textures[3], textures[4], textures[5]
+        self._tile_tex = textures[6]
         self._light_buf = int(GL.glGenBuffers(1))
         self._light_tex = int(GL.glGenTextures(1))
         GL.glBindBuffer(GL.GL_TEXTURE_BUFFER, self._light_buf)
@@ -319,7 +333,7 @@ class LightPass:
         distant: list[tuple[ShadowMap | None, ShadowMap | None]] | None = None,
         origin: np.ndarray | None = None,
         surface: np.ndarray | None = None,
-    ) -> np.ndarray | tuple[np.ndarray, np.ndarray, np.ndarray]:
+    ) -> np.ndarray | tuple[np.ndarray, np.ndarray, PointTiles]:
         """Every point against every LocalLight's cube maps on the GPU (the test of
         ``shadow_maps.cube_visibility``, in ``shaders/cube_lookup.frag``).
 
@@ -331,13 +345,13 @@ class LightPass:
         LOOKUP_SHADOWED (also out of range / facing away) or LOOKUP_UNCERTAIN.
         With ``to_eye`` (n, 3) unit directions to the viewer and ``surface`` (n,
         SURFACE_COLUMNS) float32 the points' UsdPreviewSurface rows: the lit pairs are
-        also shaded on the GPU, each tile of LOOKUP_TILE consecutive points walking
-        only the LocalLights that reach it
+        also shaded on the GPU, each tile of up to LOOKUP_TILE consecutive points
+        walking only the LocalLights that reach it
         (``shade_kernels.tile_lights``); returns the direct light (n, 4) float32 of the
         lit pairs in channels 0-2 (``shading.shade_local``'s ``lit_sums``), (n, passes)
         uint32 uncertain pairs (not in the sums): bit j of pass p is LocalLight
-        ``slots[i // LOOKUP_TILE, p * LOOKUP_LIGHTS_PER_PASS + j]`` of point i's tile
-        (``shade_kernels.undecided_rows`` reads them), and those slots (T, S) int64.
+        ``slots[point_tile[i], p * LOOKUP_LIGHTS_PER_PASS + j]`` of point i's tile
+        (``shade_kernels.undecided_rows`` reads them), and those tiles (``PointTiles``).
         ``distant`` (with ``to_eye`` only): the (static, animated) maps of up to
         LOOKUP_MAX_DISTANT DistantLights, looked up and shaded in the first pass too
         (uncertain: bit 16 + k of pass 0)."""
@@ -368,21 +382,33 @@ class LightPass:
             )
         if shading:  # the surface rows: four RGBA texels a point, rows as the points'
             self._upload_surface(surface, n, width, rows)
-        self._upload_lights(cubes, ranges, first)
         centres = np.array([self._maps.cube_keys[k][0] for k in range(n_local)], np.float64)
-        if shading:  # each tile's lights
+        # Per tile only when the lights do not fit one pass: else every point walks the
+        # lights that reach any of them (uniform arrays, fewer fetches a fragment).
+        tiled = shading and n_local > LOOKUP_LIGHTS_PER_PASS
+        point_tile = np.zeros(rows * width, np.int32)
+        if shading:  # each tile's lights (one tile of every point unless tiled)
             slots, counts = _shade().tile_lights(
                 np.ascontiguousarray(points, np.float64).reshape(n, 3),
                 _ORIGIN if offset is None else offset,
-                LOOKUP_TILE, centres.reshape(n_local, 3),
+                LOOKUP_TILE if tiled else max(n, 1), LOOKUP_TILE_JUMP if tiled else np.inf,
+                centres.reshape(n_local, 3),
                 np.ascontiguousarray(ranges, np.float64).reshape(n_local),
-                LOOKUP_CULL_MARGIN,
+                LOOKUP_CULL_MARGIN, point_tile[:n],
             )  # fmt: skip
-            tile, most = LOOKUP_TILE, int(counts.max()) if len(counts) else 0
-        else:  # one tile of every light
-            slots = np.arange(n_local, dtype=np.int64).reshape(1, n_local)
-            tile, most = _ONE_TILE, n_local
+            most = int(counts.max()) if len(counts) else 0
+        else:
+            slots, most = np.arange(n_local, dtype=np.int64).reshape(1, n_local), n_local
         slots = np.ascontiguousarray(slots[:, :most])
+        if tiled:
+            table = _light_table(cubes, ranges, first, self._ctx.scene.lights.local,
+                                 [key[0] for key in self._maps.cube_keys])  # fmt: skip
+            GL.glBindBuffer(GL.GL_TEXTURE_BUFFER, self._light_buf)
+            GL.glBufferData(GL.GL_TEXTURE_BUFFER, table.nbytes, table, GL.GL_DYNAMIC_DRAW)
+            GL.glBindBuffer(GL.GL_TEXTURE_BUFFER, 0)
+            GL.glBindTexture(GL.GL_TEXTURE_2D, self._tile_tex)
+            GL.glTexImage2D(GL.GL_TEXTURE_2D, 0, GL.GL_R32I, width, rows, 0,
+                            GL.GL_RED_INTEGER, GL.GL_INT, point_tile)  # fmt: skip
         GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, self._lookup_fb)
         GL.glViewport(0, 0, width, rows)
         GL.glDisable(GL.GL_DEPTH_TEST)
@@ -393,10 +419,13 @@ class LightPass:
         textures = [self._point_tex[0], self._point_tex[1], self._cube_tex, self._point_tex[2]]
         targets += [GL.GL_TEXTURE_2D] * 2 * len(distant)  # units 4 + 2 k (+1): maps
         textures += self._dmap_tex[: 2 * len(distant)]
-        # The next units: surface rows, albedo table, light table, the tiles' slots.
-        targets += [GL.GL_TEXTURE_2D, GL.GL_TEXTURE_2D, GL.GL_TEXTURE_BUFFER, GL.GL_TEXTURE_2D]
+        # The next units: surface rows, albedo table, light table, the tiles' slots, the
+        # points' tiles.
+        targets += [GL.GL_TEXTURE_2D, GL.GL_TEXTURE_2D, GL.GL_TEXTURE_BUFFER]
+        targets += [GL.GL_TEXTURE_2D] * 2
         textures += [self._surface_tex, self._lut_tex, self._light_tex, self._slot_tex]
-        surface_unit = len(textures) - 4
+        textures += [self._tile_tex]
+        surface_unit = len(textures) - 5
         for unit, (target, tex) in enumerate(zip(targets, textures, strict=True)):
             GL.glActiveTexture(GL.GL_TEXTURE0 + unit)
             GL.glBindTexture(target, tex)
@@ -429,8 +458,9 @@ class LightPass:
             start = p * LOOKUP_LIGHTS_PER_PASS
             count = min(LOOKUP_LIGHTS_PER_PASS, most - start)
             n_distant = len(distant) if p == 0 else 0
-            self._upload_slots(slots[:, start : start + count])
-            prog = self._program_for(max(count, 0), n_distant, shading)
+            if tiled:
+                _upload_slots(self._slot_tex, slots[:, start : start + count])
+            prog = self._program_for(max(count, 0), n_distant, shading, tiled)
 
             def loc(name: str, prog: int = prog) -> int:
                 return GL.glGetUniformLocation(prog, name)
@@ -448,11 +478,16 @@ class LightPass:
             GL.glUniform1f(loc("min_light_distance"), MIN_LIGHT_DISTANCE)
             GL.glUniform1i(loc("surface"), surface_unit)
             GL.glUniform1i(loc("albedo_lut"), surface_unit + 1)
-            GL.glUniform1i(loc("light_table"), surface_unit + 2)
-            GL.glUniform1i(loc("tile_slots"), surface_unit + 3)
-            GL.glUniform1i(loc("tile_points"), tile)
             GL.glUniform1f(loc("min_roughness"), preview_surface.MIN_ROUGHNESS)
             GL.glUniform1f(loc("min_cosine"), preview_surface.MIN_COSINE)
+            if tiled:
+                GL.glUniform1i(loc("light_table"), surface_unit + 2)
+                GL.glUniform1i(loc("tile_slots"), surface_unit + 3)
+                GL.glUniform1i(loc("point_tiles"), surface_unit + 4)
+            else:
+                ks = [int(k) for k in slots[0, start : start + count]] if len(slots) else []
+                _pass_lights(loc, ks, cubes, ranges, first, self._ctx.scene.lights.local,
+                             [key[0] for key in self._maps.cube_keys])  # fmt: skip
             if n_distant:
                 self._distant_uniforms(distant, loc)
             # A light without any cube (no casters at all) is lit within its range:
@@ -479,42 +514,8 @@ class LightPass:
         GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, 0)
         GL.glEnable(GL.GL_DEPTH_TEST)
         if shading:
-            return direct[:n], bits, slots
+            return direct[:n], bits, PointTiles(slots, point_tile[:n])
         return out
-
-    def _upload_lights(self, cubes, ranges: np.ndarray, first: list[int]) -> None:
-        """The LocalLights' table (``shaders/cube_lookup.frag``'s ``light_table``):
-        three RGBA32F texels a light, (rel position, range), (radiance, the cube's near
-        plane), (first face of the static cube, of the animated one, 0, 0); ``first`` as
-        ``_upload_cubes`` returns it."""
-        n_local = len(cubes)
-        lights = self._ctx.scene.lights.local
-        table = np.zeros((max(n_local, 1), 3, 4), np.float32)
-        for k, pair in enumerate(cubes):
-            cube = pair[0] or pair[1]
-            table[k, 0, :3] = self._maps.cube_keys[k][0]
-            table[k, 0, 3] = ranges[k]
-            table[k, 1, :3] = lights[k].radiance
-            table[k, 1, 3] = cube.near if cube is not None else 0.0
-            table[k, 2, :2] = first[k], first[n_local + k]
-        GL.glBindBuffer(GL.GL_TEXTURE_BUFFER, self._light_buf)
-        GL.glBufferData(GL.GL_TEXTURE_BUFFER, table.nbytes, table, GL.GL_DYNAMIC_DRAW)
-        GL.glBindBuffer(GL.GL_TEXTURE_BUFFER, 0)
-
-    def _upload_slots(self, slots: np.ndarray) -> None:
-        """One pass's slots of each tile (T, <= LOOKUP_LIGHTS_PER_PASS) int64 into the
-        R32I texture bound on the active unit: tile t's slot j at texel
-        (LOOKUP_LIGHTS_PER_PASS (t % SLOT_TILES_A_ROW) + j, t / SLOT_TILES_A_ROW), -1
-        where the tile has no light left."""
-        n_tiles = max(len(slots), 1)
-        across = min(n_tiles, SLOT_TILES_A_ROW)
-        texels = np.full((-(-n_tiles // across) * across, LOOKUP_LIGHTS_PER_PASS), -1, np.int32)
-        texels[: len(slots), : slots.shape[1]] = slots
-        GL.glBindTexture(GL.GL_TEXTURE_2D, self._slot_tex)
-        GL.glTexImage2D(
-            GL.GL_TEXTURE_2D, 0, GL.GL_R32I, across * LOOKUP_LIGHTS_PER_PASS,
-            len(texels) // across, 0, GL.GL_RED_INTEGER, GL.GL_INT, texels,
-        )  # fmt: skip
 
     def _upload_surface(self, surface: np.ndarray | None, n: int, width: int, rows: int):
         """The points' surface rows (n, SURFACE_COLUMNS) float32 (None: the fallback
@@ -572,6 +573,61 @@ def _texels_already(data: np.ndarray | None, minus: np.ndarray | None, size) -> 
         and data.flags.c_contiguous
         and data.shape == (size[0] * size[1], 3)
     )
+
+
+def _pass_lights(loc, ks: list[int], cubes, ranges, first: list[int], lights, centres):
+    """An untiled lookup pass's LocalLights ``ks`` (indices into ``cubes``) as its
+    program's uniform arrays (slot j: light ks[j]): ``loc`` the program's uniform
+    locations, ``first`` as ``LightPass._upload_cubes`` returns it, ``lights`` the
+    scene's LocalLights, ``centres`` their rel positions (``ShadowMaps.cube_keys``)."""
+    n_local, pad = len(cubes), LOOKUP_LIGHTS_PER_PASS - len(ks)
+    pos = np.zeros((LOOKUP_LIGHTS_PER_PASS, 3), np.float32)
+    pos[: len(ks)] = np.reshape([centres[k] for k in ks], (-1, 3))
+    radiance = np.zeros((LOOKUP_LIGHTS_PER_PASS, 3), np.float32)
+    radiance[: len(ks)] = np.reshape([lights[k].radiance for k in ks], (-1, 3))
+    cube = [c[0] or c[1] for c in (cubes[k] for k in ks)]
+    near = [c.near if c is not None else 0.0 for c in cube] + [0.0] * pad
+    GL.glUniform3fv(loc("light_pos"), LOOKUP_LIGHTS_PER_PASS, pos)
+    GL.glUniform3fv(loc("light_radiance"), LOOKUP_LIGHTS_PER_PASS, radiance)
+    GL.glUniform1fv(loc("light_range"), LOOKUP_LIGHTS_PER_PASS,
+                    np.array([ranges[k] for k in ks] + [0.0] * pad, np.float32))
+    GL.glUniform1fv(loc("light_near"), LOOKUP_LIGHTS_PER_PASS, np.array(near, np.float32))
+    GL.glUniform1iv(loc("static_face"), LOOKUP_LIGHTS_PER_PASS,
+                    np.array([first[k] for k in ks] + [-1] * pad, np.int32))
+    GL.glUniform1iv(loc("dynamic_face"), LOOKUP_LIGHTS_PER_PASS,
+                    np.array([first[n_local + k] for k in ks] + [-1] * pad, np.int32))
+
+
+def _light_table(cubes, ranges, first: list[int], lights, centres) -> np.ndarray:
+    """The LocalLights' table of a tiled pass (``shaders/cube_lookup.frag``'s
+    ``light_table``), (max(L, 1), 3, 4) float32: per light (rel position, range),
+    (radiance, the cube's near plane), (first face of the static cube, of the animated
+    one, 0, 0); arguments as ``_pass_lights``'."""
+    n_local = len(cubes)
+    table = np.zeros((max(n_local, 1), 3, 4), np.float32)
+    for k, pair in enumerate(cubes):
+        cube = pair[0] or pair[1]
+        table[k, 0, :3], table[k, 0, 3] = centres[k], ranges[k]
+        table[k, 1, :3] = lights[k].radiance
+        table[k, 1, 3] = cube.near if cube is not None else 0.0
+        table[k, 2, :2] = first[k], first[n_local + k]
+    return table
+
+
+def _upload_slots(texture: int, slots: np.ndarray) -> None:
+    """One pass's slots of each tile (T, <= LOOKUP_LIGHTS_PER_PASS) int64 into the R32I
+    ``texture``, bound on the active unit: tile t's slot j at texel
+    (LOOKUP_LIGHTS_PER_PASS (t % SLOT_TILES_A_ROW) + j, t / SLOT_TILES_A_ROW), -1 where
+    the tile has no light left."""
+    n_tiles = max(len(slots), 1)
+    across = min(n_tiles, SLOT_TILES_A_ROW)
+    texels = np.full((-(-n_tiles // across) * across, LOOKUP_LIGHTS_PER_PASS), -1, np.int32)
+    texels[: len(slots), : slots.shape[1]] = slots
+    GL.glBindTexture(GL.GL_TEXTURE_2D, texture)
+    GL.glTexImage2D(
+        GL.GL_TEXTURE_2D, 0, GL.GL_R32I, across * LOOKUP_LIGHTS_PER_PASS,
+        len(texels) // across, 0, GL.GL_RED_INTEGER, GL.GL_INT, texels,
+    )  # fmt: skip
 
 
 def _shade():

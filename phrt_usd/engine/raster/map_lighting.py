@@ -27,7 +27,6 @@ from phrt_usd.engine.raster.light_pass import (
     LOOKUP_LIGHTS_PER_PASS,
     LOOKUP_LIT,
     LOOKUP_MAX_DISTANT,
-    LOOKUP_TILE,
     LOOKUP_UNCERTAIN,
     LightPass,
 )
@@ -376,7 +375,7 @@ class MapLighting:
         rows_of = surface_rows(np.ones((n, 3), np.float32) if surface is None else surface, n)
         # Each tile of points looks up and shades only the LocalLights whose range
         # reaches it (``light_pass.LOOKUP_TILE``): the others light none of its points.
-        direct, bits, slots = self._light_pass.lookup(
+        direct, bits, tiles = self._light_pass.lookup(
             positions, normals, cubes, ranges, to_eye, maps, origin=origin, surface=rows_of
         )
         for job in jobs:
@@ -389,8 +388,8 @@ class MapLighting:
         # LocalLight ones are shaded from their visibility (exact, else the maps' PCF),
         # the DistantLight ones are corrected in ``distant``.
         rows, local_unsure = _shade().undecided_rows(
-            bits, len(cubes), slots, LOOKUP_LIGHTS_PER_PASS, bool(maps), distant_unsure,
-            LOOKUP_TILE,
+            bits, len(cubes), tiles.slots, LOOKUP_LIGHTS_PER_PASS, bool(maps), distant_unsure,
+            tiles.point_tile,
         )  # fmt: skip
         return PendingLightTerms(
             positions,

@@ -9,6 +9,9 @@
 // (only loops end early): code for absent lights, maps or outputs would cost as much
 // as used code.
 //   N_LIGHTS     LocalLight slots of this pass's tile lists, 0..16
+//   TILED        1: each tile of points has its own lights (light_table, tile_slots);
+//                0: every point the pass's (uniform arrays: fewer fetches, for a stage
+//                whose lights all fit one pass, and the codes' lookup)
 //   N_DISTANT    DistantLights in this pass (with SHADE, first pass only), 0..2
 //   HAS_DYNAMIC  1 when the scene has animated casters (a second cube per light)
 //   SHADE        1 to also shade the lit pairs (the direct output)
@@ -51,17 +54,27 @@ uniform sampler2D normals;
 uniform samplerBuffer cubes;
 uniform int n_points;
 uniform int width;
+#if TILED
 // The LocalLights, three texels each (light_pass.LightPass._upload_lights): (position,
 // origin-relative metres; range, metres, 0 = reaches nothing), (radiance, linear RGB;
 // the cube faces' near plane, metres), (first face of the static casters' cube, of the
 // animated casters' cube, -1 = none; 0; 0).
 uniform samplerBuffer light_table;
-// Each tile's lights (a tile: light_pass.LOOKUP_TILE consecutive points, tile_points):
-// the pass's slot j of tile t at texel (N_SLOTS (t % SLOT_TILES) + j, t / SLOT_TILES), a
-// light of light_table, or -1 (the lights whose range reaches the tile's points, in
-// increasing order: light_pass).
+// Each tile's lights (a tile: up to light_pass.LOOKUP_TILE consecutive points; each
+// point's in point_tiles, laid out as the points): the pass's slot j of tile t at texel
+// (N_SLOTS (t % SLOT_TILES) + j, t / SLOT_TILES), a light of light_table, or -1 (the
+// lights whose range reaches the tile's points, in increasing order: light_pass).
 uniform isampler2D tile_slots;
-uniform int tile_points;
+uniform isampler2D point_tiles;
+#else
+// The pass's LocalLights (slot j: light j of these arrays), the same for every point.
+uniform vec3 light_pos[16];     // origin-relative metres
+uniform float light_range[16];  // metres; 0 = the light reaches nothing
+uniform float light_near[16];   // the cube faces' near plane, metres
+uniform int static_face[16];    // first face of the static casters' cube, -1 = none
+uniform int dynamic_face[16];   // first face of the animated casters' cube, -1 = none
+uniform vec3 light_radiance[16];     // linear RGB
+#endif
 uniform float bias_texels;      // SHADOW_BIAS_TEXELS
 uniform float box_radius;       // SHADOW_REFINE_RADIUS + 0.5 (nearest-texel offset)
 uniform float slope_clamp;      // 1 / SHADOW_MIN_COS
@@ -123,9 +136,17 @@ float cube_test(int first, int face, ivec2 texel_xy, float test, bool wanted)
     return -1.0;
 }
 
+// Light li's texel c of light_table (untiled: the same from the uniforms; c is a
+// constant at every call, so the choice folds away).
 vec4 light_texel(int li, int c)
 {
+#if TILED
     return texelFetch(light_table, 3 * li + c);
+#else
+    return c == 0 ? vec4(light_pos[li], light_range[li])
+        : (c == 1 ? vec4(light_radiance[li], light_near[li])
+                  : vec4(float(static_face[li]), float(dynamic_face[li]), 0.0, 0.0));
+#endif
 }
 
 // Light li's shadow test at a point v (from the light to the point, d2 = |v|²) with
@@ -348,15 +369,23 @@ void shade(int li, vec3 v, float d2, Surface s, vec3 n, vec3 e, float nv, inout 
 // The light in slot j of tile ``tile`` (-1: none).
 int slot_light(ivec2 tile, int j)
 {
+#if TILED
     return texelFetch(tile_slots, ivec2(tile.x + j, tile.y), 0).r;
+#else
+    return j;
+#endif
 }
 
 void main()
 {
     ivec2 xy = ivec2(gl_FragCoord.xy);
     int k = xy.y * width + xy.x;
-    int t = k / tile_points;
+#if TILED
+    int t = texelFetch(point_tiles, xy, 0).r;
     ivec2 tile = ivec2(N_SLOTS * (t % SLOT_TILES), t / SLOT_TILES);  // its first slot
+#else
+    ivec2 tile = ivec2(0);
+#endif
     float result[16];
     for (int j = 0; j < 16; ++j) {
         result[j] = 0.0;
