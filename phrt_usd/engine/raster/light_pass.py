@@ -6,7 +6,9 @@ Inputs are textures: the points, their normals and directions to the eye (RGB32F
 many points a row as the frame has pixels, ``LightPass.row_width``), the LocalLights'
 cube maps (``shadow_maps.CubeMap`` (min, max) texels in one RG32F buffer texture) and
 up to LOOKUP_MAX_DISTANT DistantLights' orthographic maps (``shadow_maps.ShadowMap``,
-RG32F each); a pass handles LOOKUP_LIGHTS_PER_PASS LocalLights. Outputs
+RG32F each); a pass handles LOOKUP_LIGHTS_PER_PASS LocalLights, the same for every
+point, or, with shading past that many lights, each tile of points its own
+(LOOKUP_TILE: the lights whose range reaches the tile; docs/light-reach.md). Outputs
 (``LightPass.lookup``): either a code per (point, LocalLight) pair (LOOKUP_LIT /
 LOOKUP_SHADOWED / LOOKUP_UNCERTAIN), or the direct light of the lit pairs (each
 point's UsdPreviewSurface BRDF, its surface rows a texture of four RGBA32F texels a
