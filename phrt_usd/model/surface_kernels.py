@@ -81,6 +81,32 @@ def _orient(nx, ny, nz, side, dx, dy, dz, fx, fy, fz):
 
 
 @njit(**_HELPER)
+def _plane_weights(bv, bw):
+    """The barycentric weights (w0, w1, w2) float64 of a point whose weights of corners
+    1 and 2 on its triangle's plane are bv, bw (``TriangleTable.plane``), clamped onto
+    the triangle (a point on an edge may lie a rounding error outside) and renormalised."""
+    b0 = min(max(1.0 - bv - bw, 0.0), 1.0)
+    b1 = min(max(bv, 0.0), 1.0)
+    b2 = min(max(bw, 0.0), 1.0)
+    total = max(b0 + b1 + b2, MIN_WEIGHT_SUM)
+    return b0 / total, b1 / total, b2 / total
+
+
+@njit(**_HELPER)
+def _below(px, py, pz, vx, vy, vz, nx, ny, nz):
+    """How far (metres, <= 0) the point p lies below the tangent plane of a corner v of
+    normal n (float32, any length), min(0, (p - v)·n̂), and the unit normal n̂ (float64);
+    a degenerate normal gives 0 (no plane). The smooth surface a triangle's corner
+    normals imply passes through p's projections onto these planes (Hanika's rule,
+    ``trace_kernels.shadow_rays``)."""
+    length = math.sqrt(float(nx) * nx + float(ny) * ny + float(nz) * nz)
+    if not (length > 1e-12):
+        return 0.0, 0.0, 0.0, 0.0
+    ux, uy, uz = nx / length, ny / length, nz / length
+    return min((px - vx) * ux + (py - vy) * uy + (pz - vz) * uz, 0.0), ux, uy, uz
+
+
+@njit(**_HELPER)
 def _pixel_dir(ys_row, xs_col, s, r00, r01, r02, r10, r11, r12, r20, r21, r22,
                renormalise):  # fmt: skip
     """The unit world direction through the centre of a pixel (as
@@ -164,11 +190,8 @@ def derive(
         # rounding error outside) and renormalised; float32 from here on.
         bv = px * plane[t, 0] + py * plane[t, 1] + pz * plane[t, 2] - plane[t, 3]
         bw = px * plane[t, 4] + py * plane[t, 5] + pz * plane[t, 6] - plane[t, 7]
-        b0 = min(max(1.0 - bv - bw, 0.0), 1.0)
-        b1 = min(max(bv, 0.0), 1.0)
-        b2 = min(max(bw, 0.0), 1.0)
-        total = max(b0 + b1 + b2, MIN_WEIGHT_SUM)
-        w0, w1, w2 = np.float32(b0 / total), np.float32(b1 / total), np.float32(b2 / total)
+        b0, b1, b2 = _plane_weights(bv, bw)
+        w0, w1, w2 = np.float32(b0), np.float32(b1), np.float32(b2)
         nx, ny, nz = _orient(
             _weighted(w0, w1, w2, corners[t, 0, 0], corners[t, 1, 0], corners[t, 2, 0]),
             _weighted(w0, w1, w2, corners[t, 0, 1], corners[t, 1, 1], corners[t, 2, 1]),

@@ -147,10 +147,10 @@ class HitLighting:
             settled = pending.filtered()
         else:  # the undecided pairs: rays, lights sampled where a hit has many
             rows = query.rows
-            take = (np.take(a, rows, axis=0) for a in (rel, ng, ns, u0))
-            r_rel, r_ng, r_ns, r_u0 = take
+            take = (np.take(a, rows, axis=0) for a in (rel, ng, ns, u0, tri))
+            r_rel, r_ng, r_ns, r_u0, r_tri = take
             exact, rays[rows] = self._shadows.visibility(
-                r_rel, r_ns, lights, query.pairs, offsets=r_ng, u0=r_u0
+                r_rel, r_ns, lights, query.pairs, offsets=r_ng, u0=r_u0, triangles=r_tri
             )
             settled = pending.resolved(exact)
         local = lighting.shade_settled(rel, ns, surf, d_in, emissive, lights, settled)
@@ -167,7 +167,8 @@ class HitLighting:
         surf = self._surfaces.surface(tri, u, v, albedo)
         # The caller updates ``rays_cast`` (a dict ``+=`` from pool threads could race).
         return self._shadows.shade(
-            rel, ng, ns, d_in, surf, emissive, lights, threads=threads, into=into, u0=u0
+            rel, ng, ns, d_in, surf, emissive, lights, threads=threads, into=into, u0=u0,
+            triangles=tri,
         )
 
     def _with_rays(self, tri, u, v, rel, ng, ns, d_in, lights, u0, albedo, into, textured):

@@ -70,22 +70,24 @@ class ShadowRays:
         edges = np.linspace(0, n, self.threads + 1).astype(int).tolist()
         return list(zip(edges[:-1], edges[1:], strict=True))
 
-    def visibility(self, rel, normals, lights: Lights, pairs=None, offsets=None, u0=None):
+    def visibility(self, rel, normals, lights: Lights, pairs=None, offsets=None, u0=None,
+                   triangles=None):  # fmt: skip
         """``cast`` for rel points (n, 3) of shading ``normals`` (n, 3) and offset normals
         ``offsets`` (n, 3; None: ``normals``), in chunks on the pool when the batch is
-        large (numpy and Embree work of each chunk on its own thread); ``u0`` as
-        ``cast``'s. Returns (n, L) float32 visibility and (n,) int64 shadow rays cast
-        per point."""
+        large (numpy and Embree work of each chunk on its own thread); ``u0`` and
+        ``triangles`` as ``cast``'s. Returns (n, L) float32 visibility and (n,) int64
+        shadow rays cast per point."""
         n, n_lights = len(rel), len(lights.distant) + len(lights.local)
         wanted = n * max(n_lights, 1) if pairs is None else int(np.count_nonzero(pairs))
         offsets = normals if offsets is None else offsets
         bounds = self.split(wanted, n)
         if bounds is None:
-            vis, rays, _ = self.cast(rel, offsets, normals, lights, pairs, u0=u0)
+            vis, rays, _ = self.cast(rel, offsets, normals, lights, pairs, u0=u0,
+                                     triangles=triangles)  # fmt: skip
             return vis, rays
         done = self.in_chunks(
-            lambda r, ng, ns, p, u: self.cast(r, ng, ns, lights, p, 1, u),
-            bounds, rel, offsets, normals, pairs, u0,
+            lambda r, ng, ns, p, u, t: self.cast(r, ng, ns, lights, p, 1, u, t),
+            bounds, rel, offsets, normals, pairs, u0, triangles,
         )  # fmt: skip
         return np.concatenate([d[0] for d in done]), np.concatenate([d[1] for d in done])
 
@@ -135,7 +137,7 @@ class ShadowRays:
         return table
 
     def cast(self, rel, offset_normals, shading_normals, lights: Lights, pairs=None,
-             threads=None, u0=None):  # fmt: skip
+             threads=None, u0=None, triangles=None):  # fmt: skip
         """(n, L) float32 visibility, (n,) int64 shadow rays cast per point and the lit
         LocalLight pairs (``shading.shade_local``'s ``local_pairs``, or None), for
         render-relative positions ``rel`` (n, 3) and render-relative ``lights``.
@@ -147,6 +149,10 @@ class ShadowRays:
         ``u0`` (n,) float64 in [0, 1): the hit-lighting rule's light sampling (see the
         module), each point's draws offset by u0; the visibility (and the lit pairs'
         weight) is then the ray's weight where it is free. None: every pair, exact.
+        ``triangles`` (n,) int64: each point's triangle (-1: none), so that a point of a
+        smooth (interpolated-normal) mesh is shadowed as its smooth surface is, not as
+        its flat triangle (the shadow terminator: ``trace_kernels.shadow_rays``); None:
+        every point offset along its offset normal only.
 
         The (point, light) pairs are chosen and their rays built in one compiled pass
         (``trace_kernels.shadow_rays``: float32 Embree batch, point-major, so the lit LocalLight
@@ -158,7 +164,7 @@ class ShadowRays:
             return np.ones((n, n_lights), np.float32), np.zeros(n, np.int64), None
         want = _ALL_PAIRS if pairs is None else np.asarray(pairs, dtype=bool).reshape(n, n_lights)
         ray_i, ray_v, ray_f, occluded = self._trace(
-            rel, offset_normals, shading_normals, lights, want, threads, u0
+            rel, offset_normals, shading_normals, lights, want, threads, u0, triangles
         )
         k = len(occluded)
         vis, rays = np.empty((n, n_lights), np.float32), np.empty(n, np.int64)
@@ -173,7 +179,7 @@ class ShadowRays:
         return vis, rays, lit if len(lights.local) else None
 
     def shade(self, rel, offset_normals, shading_normals, view_dirs, surface, emissive,
-              lights: Lights, threads=None, into=None, u0=None):  # fmt: skip
+              lights: Lights, threads=None, into=None, u0=None, triangles=None):  # fmt: skip
         """``shading.shade_local`` of rel points ``rel`` (n, 3) float64 with the
         visibility and lit LocalLight pairs of ``cast`` (every pair wanted), in one
         compiled call after Embree's (``trace_kernels.shadow_shade``: the same kernel
@@ -186,12 +192,13 @@ class ShadowRays:
         float64, slot (n,) int64, weight (n,) float64) to add weight times the radiance
         to total[slot] in the same call (``trace_kernels.accumulate``), or None. Returns
         (n, 3) float32 radiance, (n,) int64 shadow rays cast per point and their sum.
-        ``u0``: as ``cast``'s (the hit-lighting rule's light sampling)."""
+        ``u0``, ``triangles``: as ``cast``'s (the hit-lighting rule's light sampling,
+        the points' triangles)."""
         n = rel.shape[0]
         table = self.light_table(lights)
         if lights.has_direct and n:
             ray_i, ray_v, ray_f, occluded = self._trace(
-                rel, offset_normals, shading_normals, lights, _ALL_PAIRS, threads, u0
+                rel, offset_normals, shading_normals, lights, _ALL_PAIRS, threads, u0, triangles
             )
         else:  # no lights (or no points): no rays, ambient and emission only
             ray_i, ray_v, ray_f, occluded = _NO_SHADOW_RAYS
@@ -208,9 +215,10 @@ class ShadowRays:
         return out, rays, len(occluded)
 
     def _trace(self, rel, offset_normals, shading_normals, lights: Lights, want, threads,
-               u0=None):  # fmt: skip
+               u0=None, triangles=None):  # fmt: skip
         """The shadow rays of (point, light) pairs (``trace_kernels.shadow_rays``; ``want``
-        (n, L) bool or ``_ALL_PAIRS``; ``u0`` as ``cast``'s) and Embree's answer: rays'
+        (n, L) bool or ``_ALL_PAIRS``; ``u0``, ``triangles`` as ``cast``'s) and Embree's
+        answer: rays'
         point and light (2, k) int64, origin and direction (2, k, 3) float32, tfar,
         distance and weight (3, k) float32 (columns beyond k unused), occluded (k,)
         bool."""
@@ -222,6 +230,8 @@ class ShadowRays:
         ray_v = np.empty((2, most, 3), np.float32)  # origin, direction
         ray_f = np.empty((3, most), np.float32)  # tfar, distance, weight
         picks, u0 = (0, _NO_OFFSETS) if u0 is None else (HIT_LIGHT_PICKS, u0)
+        table = self._bvh.table
+        tri = _NO_TRIANGLES if triangles is None else np.ascontiguousarray(triangles, np.int64)
         k = _TRACE.shadow_rays(
             np.ascontiguousarray(rel, np.float64),
             np.ascontiguousarray(offset_normals, np.float32),
@@ -238,6 +248,10 @@ class ShadowRays:
             cone,
             picks,
             np.ascontiguousarray(u0, np.float64),
+            tri,
+            table.plane,
+            table.frame,
+            table.corners,
             ray_i,
             ray_v,
             ray_f,
@@ -259,3 +273,5 @@ _NO_SHADOW_RAYS = (np.zeros((2, 0), np.int64), np.zeros((2, 0, 3), np.float32),
                    np.zeros((3, 0), np.float32), np.zeros(0, bool))  # fmt: skip
 #: ``trace_kernels.shadow_rays``' offsets when every pair is traced (no sampling).
 _NO_OFFSETS = np.zeros(0)
+#: ``trace_kernels.shadow_rays``' triangles when the caller gives none.
+_NO_TRIANGLES = np.zeros(0, np.int64)

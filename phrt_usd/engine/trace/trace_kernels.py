@@ -81,7 +81,7 @@ from phrt_usd.engine.trace.bounce_layout import (
     TRI_TEXTURED,
 )
 from phrt_usd.kernels import KERNEL_OPTIONS
-from phrt_usd.model.surface_kernels import _orient, _pixel_dir, _weighted
+from phrt_usd.model.surface_kernels import _below, _orient, _pixel_dir, _plane_weights, _weighted
 
 _KERNEL = KERNEL_OPTIONS
 _HELPER = {**_KERNEL, "inline": "always"}
@@ -135,6 +135,16 @@ def _side(eps, dx, dy, dz, nx, ny, nz):
     """+eps when the direction leaves on the normal's side (d·n ≥ 0, float64), else
     -eps (``Float32Boundary.offset``)."""
     return eps if float(dx) * nx + float(dy) * ny + float(dz) * nz >= 0.0 else -eps
+
+
+#: Where a shadow ray's origin rises onto the smooth surface (``shadow_rays``): fully
+#: where the triangle's own plane faces away from the light (n_g·l <= 0, the shadow
+#: terminator's triangles, lit by their shading normal but shadowed by their flat
+#: neighbours), fading out linearly until n_g·l reaches this cosine (about 6 degrees
+#: above the plane), where a flat triangle's ray already leaves its convex neighbours.
+#: Elsewhere the origin stays on the triangle, so shadows cast onto a smooth mesh by
+#: other objects do not move.
+TERMINATOR_FADE = 0.1
 
 
 @njit(**_KERNEL)
@@ -606,9 +616,11 @@ def warm_up() -> None:
     shadow = (np.zeros((2, 1), np.int64), np.zeros((2, 1, 3), np.float32),
               np.zeros((3, 1), np.float32))  # fmt: skip
     for u0 in (f64, f64[:0]):  # sampled (the hit-lighting rule) or every pair
-        shadow_rays(v64, v32, v32, np.array([[0.0, 1.0, 0.0]]), np.zeros((0, 3)), f64[:0],
-                    np.zeros((0, 0), bool), 1e-6, 1e-5, 1e-3, 1e30, f64, np.zeros((0, 7)),
-                    len(u0), u0, *shadow)  # fmt: skip
+        for on in (i64[:0], i64):  # points anywhere, or on their triangles
+            shadow_rays(v64, v32, v32, np.array([[0.0, 1.0, 0.0]]), np.zeros((0, 3)), f64[:0],
+                        np.zeros((0, 0), bool), 1e-6, 1e-5, 1e-3, 1e30, f64, np.zeros((0, 7)),
+                        len(u0), u0, on, np.zeros((1, 13)), frame, np.zeros((1, 3, 6), np.float32),
+                        *shadow)  # fmt: skip
     shadow_results(*shadow, b, 1, np.zeros((1, 1), np.float32), i64.copy(),
                    np.zeros((2, 1), np.int64), v32.copy(), f64.copy(), f32.copy())  # fmt: skip
     for answer in answers:
@@ -624,7 +636,7 @@ def warm_up() -> None:
 @njit(**_KERNEL)
 def shadow_rays(
     rel, ng, ns, dirs, pos, ranges, want, floor, relative, min_distance, far, power, cone,
-    picks, u0, out_i, out_v, out_f,
+    picks, u0, tri, plane, frame, corners, out_i, out_v, out_f,
 ):  # fmt: skip
     """The shadow rays of ``ShadowRays.cast``: for each point i (rel (n, 3) float64,
     offset normal ng and shading normal ns (n, 3) float32) and each light j
@@ -641,16 +653,44 @@ def shadow_rays(
     ``min_distance``, or ``far``); the buffers have n (D + P) columns. Origins leave the
     surface by the offset epsilon (floor, relative: ``Float32Boundary``) along ng on the
     ray's side (``_side``); LocalLight rays stop that epsilon short of the light.
-    Returns the ray count."""
+
+    With ``tri`` (n,) int64 each point's triangle (or -1), and the ``TriangleTable``'s
+    plane, frame and corners, a point on a triangle is handled as its smooth surface
+    (the shadow terminator of interpolated normals): its rays start from the point
+    lifted onto the surface its corner normals imply (Hanika's tangent-plane rule,
+    faded by TERMINATOR_FADE) and leave by the epsilon along the triangle's own normal
+    to the lit side (where ns is), whatever side of the flat triangle the light is on:
+    a light in front of the shading normal lights the side the viewer sees. ``tri``
+    (0,): every point as above (ng, the ray's side). Returns the ray count."""
     n, n_distant = rel.shape[0], dirs.shape[0]
     n_lights = n_distant + pos.shape[0]
     every = want.shape[0] == 0
     ray = np.empty((n_lights, 4))  # point i's ray to each light: direction, length
     share, weight = np.empty(n_lights), np.empty(n_lights)
+    on_triangles = tri.shape[0] > 0
     r = 0
     for i in range(n):
         px, py, pz = rel[i, 0], rel[i, 1], rel[i, 2]
         e = _epsilon(px, py, pz, floor, relative)
+        t = tri[i] if on_triangles else -1
+        # The offset normal and the lift onto the smooth surface (none off triangles).
+        gx, gy, gz = float(ng[i, 0]), float(ng[i, 1]), float(ng[i, 2])
+        lx = ly = lz = 0.0
+        if t >= 0:
+            gx, gy, gz = frame[t, 3, 0], frame[t, 3, 1], frame[t, 3, 2]
+            s = 1.0 if gx * ns[i, 0] + gy * ns[i, 1] + gz * ns[i, 2] >= 0.0 else -1.0
+            gx, gy, gz = s * gx, s * gy, s * gz  # the lit side's
+            w0, w1, w2 = _plane_weights(
+                px * plane[t, 0] + py * plane[t, 1] + pz * plane[t, 2] - plane[t, 3],
+                px * plane[t, 4] + py * plane[t, 5] + pz * plane[t, 6] - plane[t, 7],
+            )  # fmt: skip
+            for k, w in ((0, w0), (1, w1), (2, w2)):
+                vx, vy, vz = frame[t, 0, 0], frame[t, 0, 1], frame[t, 0, 2]
+                if k > 0:
+                    vx, vy, vz = vx + frame[t, k, 0], vy + frame[t, k, 1], vz + frame[t, k, 2]
+                d, ux, uy, uz = _below(px, py, pz, vx, vy, vz, s * corners[t, k, 0],
+                                       s * corners[t, k, 1], s * corners[t, k, 2])  # fmt: skip
+                lx, ly, lz = lx - w * d * ux, ly - w * d * uy, lz - w * d * uz
         for j in range(n_lights):
             share[j] = -1.0  # no ray
             if not (every or want[i, j]):
@@ -681,9 +721,15 @@ def shadow_rays(
                 continue
             d0, d1, d2, length = ray[j, 0], ray[j, 1], ray[j, 2], ray[j, 3]
             stop = far if j < n_distant else max(length - e, 0.0)  # short of a LocalLight
-            side = _side(e, d0, d1, d2, ng[i, 0], ng[i, 1], ng[i, 2])
-            for c in range(3):
-                out_v[0, r, c] = rel[i, c] + side * ng[i, c]
+            if t >= 0:  # from the smooth surface, to the lit side (see the docstring)
+                fade = min(max(1.0 - (gx * d0 + gy * d1 + gz * d2) / TERMINATOR_FADE, 0.0), 1.0)
+                out_v[0, r, 0] = px + fade * lx + e * gx
+                out_v[0, r, 1] = py + fade * ly + e * gy
+                out_v[0, r, 2] = pz + fade * lz + e * gz
+            else:
+                side = _side(e, d0, d1, d2, gx, gy, gz)
+                out_v[0, r, 0], out_v[0, r, 1] = px + side * gx, py + side * gy
+                out_v[0, r, 2] = pz + side * gz
             out_v[1, r, 0], out_v[1, r, 1], out_v[1, r, 2] = d0, d1, d2
             out_i[0, r], out_i[1, r] = i, j
             out_f[0, r], out_f[1, r], out_f[2, r] = stop, length, weight[j]
