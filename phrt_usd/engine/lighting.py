@@ -25,8 +25,6 @@ Shapes: a G-buffer of H x W pixels, n of them covered, L lights (distant, then l
 
 from __future__ import annotations
 
-import contextlib
-from contextvars import ContextVar
 from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
@@ -133,22 +131,6 @@ def _reflector_elements(scene: Scene) -> np.ndarray:
     return np.array([e.is_reflector for e in scene.elements] or [False], dtype=bool)
 
 
-#: The surface rows of the points a ``map_lookup`` without its own ``surface`` shades
-#: (``lookup_surface``: the tracer's hits, whose lookup is a three-argument callable).
-_LOOKUP_SURFACE: ContextVar[np.ndarray | None] = ContextVar("lookup_surface", default=None)
-
-
-@contextlib.contextmanager
-def lookup_surface(rows: np.ndarray):
-    """Within the block, ``map_lookup`` calls without ``surface`` shade with ``rows``
-    (n, SURFACE_COLUMNS): the surface of the points they look up."""
-    token = _LOOKUP_SURFACE.set(rows)
-    try:
-        yield
-    finally:
-        _LOOKUP_SURFACE.reset(token)
-
-
 def _emits(scene: Scene) -> bool:
     """Some material of ``scene`` has a non-zero or textured emissiveColor."""
     materials = scene.materials
@@ -168,14 +150,12 @@ def map_lookup(
     metres with unit ``normals`` facing the viewer and ``view_dirs`` (n, 3) unit from the
     viewer to them, the pairs they cannot decide left open: with the GPU lookup the
     light terms (lit pairs shaded in the lookup pass with the points' ``surface`` rows,
-    (n, SURFACE_COLUMNS), else those of ``lookup_surface``, else the fallback material
-    of albedo 1: ``Rasterizer.map_light_terms``), else, or with a cone-shaped LocalLight
+    (n, SURFACE_COLUMNS), else the fallback material of albedo 1:
+    ``Rasterizer.map_light_terms``), else, or with a cone-shaped LocalLight
     (only ``shade_local`` evaluates cones), the (n, L) visibility
     (``Rasterizer.map_visibility``; ``filtered``: the undecided pairs get the maps'
     PCF). The G-buffer's and the tracer's hits' one lookup."""
     if rasterizer.cube_lookup_on_gpu and not shaped_lights(lights):
-        if surface is None:
-            surface = _LOOKUP_SURFACE.get()
         return rasterizer.map_light_terms(
             positions, normals, np.negative(view_dirs), surface=surface
         )

@@ -52,10 +52,11 @@ from phrt_usd.model.scene import Lights
 _TRACE = kernels.load("phrt_usd.engine.trace.trace_kernels")
 
 #: The shadow maps' lookup of hits: (world positions (n, 3) float64, shading normals
-#: (n, 3) facing the ray's origin, ray directions (n, 3)) -> ``map_lighting``'s
-#: ``MapVisibility`` or ``PendingLightTerms`` (``lighting.map_lookup`` bound to a
-#: rasterizer and the scene's lights).
-MapLookup = Callable[[np.ndarray, np.ndarray, np.ndarray], object]
+#: (n, 3) facing the ray's origin, ray directions (n, 3), the hits' surface rows (n,
+#: SURFACE_COLUMNS) the GPU pass shades with, or None: the fallback material) ->
+#: ``map_lighting``'s ``MapVisibility`` or ``PendingLightTerms`` (``lighting.map_lookup``
+#: bound to a rasterizer and the scene's lights).
+MapLookup = Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None], object]
 
 #: A batch of hits is looked up in the shadow maps only from this many (hit, light)
 #: pairs on. The lookup pass costs ~0.6 ms however few points it has; past that, maps
@@ -139,8 +140,7 @@ class HitLighting:
         albedo, emissive = self._surfaces.colour(tri, u, v, albedo, textured)
         surf = self._surfaces.surface(tri, u, v, albedo)
         world = rel + self._bvh.boundary.origin
-        with lighting.lookup_surface(surf):  # the GPU pass shades with the hits' BRDF
-            pending = self.maps(world, ns, d_in)
+        pending = self.maps(world, ns, d_in, surf)  # the GPU pass shades with their BRDF
         query = pending.uncertain_pairs()
         rays = np.zeros(len(tri), np.int64)
         if query is None:

@@ -160,8 +160,8 @@ class Tracer:
     def use_shadow_maps(self, rasterizer) -> None:
         """Light the paths' hits with ``rasterizer``'s shadow maps where they decide
         (``hit_lighting``; without maps every pair takes a ray, lights sampled)."""
-        self._hit_maps = lambda positions, normals, view_dirs: lighting.map_lookup(
-            rasterizer, self.scene.lights, positions, normals, view_dirs
+        self._hit_maps = lambda positions, normals, view_dirs, surface: lighting.map_lookup(
+            rasterizer, self.scene.lights, positions, normals, view_dirs, surface=surface
         )
 
     def begin_frame(self, time_code: float) -> None:
