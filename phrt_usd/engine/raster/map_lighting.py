@@ -204,10 +204,14 @@ class PendingLightTerms:
         at, light = np.nonzero(self.local_unsure)
         point = self.rows[at]
         weight = np.zeros(len(point), dtype=np.float32)
-        for k, pair in enumerate(self.cubes):
-            on = np.flatnonzero(light == k)
-            if len(on):
-                weight[on] = cube_pair_visibility(pair, *rel_normals(point[on]), True)[0]
+        # Only the lights with undecided pairs, each once (grouped by a sort rather than
+        # a pass over every pair per light: a stage of many lights has few here).
+        order = np.argsort(light, kind="stable")
+        present, first = np.unique(light[order], return_index=True)
+        ends = np.append(first[1:], len(order))[: len(first)]
+        for k, lo, hi in zip(present, first, ends, strict=True):
+            on = order[lo:hi]
+            weight[on] = cube_pair_visibility(self.cubes[k], *rel_normals(point[on]), True)[0]
         lit = np.flatnonzero(weight > 0.0)
         return self._terms(point[lit], light[lit], weight[lit])
 
