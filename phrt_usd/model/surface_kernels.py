@@ -93,9 +93,9 @@ def _plane_weights(bv, bw):
 
 
 @njit(**_HELPER)
-def _below(px, py, pz, vx, vy, vz, nx, ny, nz):
-    """How far (metres, <= 0) the point p lies below the tangent plane of a corner v of
-    normal n (float32, any length), min(0, (p - v)·n̂), and the unit normal n̂ (float64);
+def _below(ox, oy, oz, nx, ny, nz):
+    """How far (metres, <= 0) a point p lies below the tangent plane of a corner v of
+    normal n (float32, any length), from o = p - v: min(0, o·n̂), and n̂ (float64);
     a degenerate normal gives 0 (no plane). The smooth surface a triangle's corner
     normals imply passes through p's projections onto these planes (Hanika's rule,
     ``trace_kernels.shadow_rays``)."""
@@ -103,7 +103,7 @@ def _below(px, py, pz, vx, vy, vz, nx, ny, nz):
     if not (length > 1e-12):
         return 0.0, 0.0, 0.0, 0.0
     ux, uy, uz = nx / length, ny / length, nz / length
-    return min((px - vx) * ux + (py - vy) * uy + (pz - vz) * uz, 0.0), ux, uy, uz
+    return min(ox * ux + oy * uy + oz * uz, 0.0), ux, uy, uz
 
 
 @njit(**_HELPER)

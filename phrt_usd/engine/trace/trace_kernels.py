@@ -137,13 +137,11 @@ def _side(eps, dx, dy, dz, nx, ny, nz):
     return eps if float(dx) * nx + float(dy) * ny + float(dz) * nz >= 0.0 else -eps
 
 
-#: Where a shadow ray's origin rises onto the smooth surface (``shadow_rays``): fully
-#: where the triangle's own plane faces away from the light (n_g·l <= 0, the shadow
-#: terminator's triangles, lit by their shading normal but shadowed by their flat
-#: neighbours), fading out linearly until n_g·l reaches this cosine (about 6 degrees
-#: above the plane), where a flat triangle's ray already leaves its convex neighbours.
-#: Elsewhere the origin stays on the triangle, so shadows cast onto a smooth mesh by
-#: other objects do not move.
+#: A shadow ray's origin rises onto the smooth surface (``shadow_rays``) fully where its
+#: triangle's plane faces away from the light (n_g·l <= 0: lit by the shading normal,
+#: shadowed by the flat neighbours), fading out until n_g·l is this cosine (~6 degrees),
+#: where a flat triangle's ray clears its convex neighbours; beyond, shadows that other
+#: objects cast onto a smooth mesh stay where they are.
 TERMINATOR_FADE = 0.1
 
 
@@ -654,43 +652,30 @@ def shadow_rays(
     surface by the offset epsilon (floor, relative: ``Float32Boundary``) along ng on the
     ray's side (``_side``); LocalLight rays stop that epsilon short of the light.
 
-    With ``tri`` (n,) int64 each point's triangle (or -1), and the ``TriangleTable``'s
-    plane, frame and corners, a point on a triangle is handled as its smooth surface
-    (the shadow terminator of interpolated normals): its rays start from the point
-    lifted onto the surface its corner normals imply (Hanika's tangent-plane rule,
+    With ``tri`` (n,) int64 each point's triangle (or -1; ``TriangleTable``'s plane,
+    frame, corners), a point's rays start from it lifted onto the smooth surface its
+    triangle's corner normals imply (the shadow terminator: Hanika's tangent-plane rule,
     faded by TERMINATOR_FADE) and leave by the epsilon along the triangle's own normal
-    to the lit side (where ns is), whatever side of the flat triangle the light is on:
-    a light in front of the shading normal lights the side the viewer sees. ``tri``
-    (0,): every point as above (ng, the ray's side). Returns the ray count."""
+    to the lit side (ns's), whatever side of the flat triangle the light is on. ``tri``
+    (0,): as above (ng, the ray's side). Returns the ray count."""
     n, n_distant = rel.shape[0], dirs.shape[0]
     n_lights = n_distant + pos.shape[0]
     every = want.shape[0] == 0
     ray = np.empty((n_lights, 4))  # point i's ray to each light: direction, length
     share, weight = np.empty(n_lights), np.empty(n_lights)
-    on_triangles = tri.shape[0] > 0
     r = 0
     for i in range(n):
         px, py, pz = rel[i, 0], rel[i, 1], rel[i, 2]
         e = _epsilon(px, py, pz, floor, relative)
-        t = tri[i] if on_triangles else -1
-        # The offset normal and the lift onto the smooth surface (none off triangles).
+        t = tri[i] if tri.shape[0] > 0 else -1
+        # The offset normal: on a triangle, its own to the lit side (ns's).
         gx, gy, gz = float(ng[i, 0]), float(ng[i, 1]), float(ng[i, 2])
-        lx = ly = lz = 0.0
+        s = 1.0
         if t >= 0:
             gx, gy, gz = frame[t, 3, 0], frame[t, 3, 1], frame[t, 3, 2]
             s = 1.0 if gx * ns[i, 0] + gy * ns[i, 1] + gz * ns[i, 2] >= 0.0 else -1.0
-            gx, gy, gz = s * gx, s * gy, s * gz  # the lit side's
-            w0, w1, w2 = _plane_weights(
-                px * plane[t, 0] + py * plane[t, 1] + pz * plane[t, 2] - plane[t, 3],
-                px * plane[t, 4] + py * plane[t, 5] + pz * plane[t, 6] - plane[t, 7],
-            )  # fmt: skip
-            for k, w in ((0, w0), (1, w1), (2, w2)):
-                vx, vy, vz = frame[t, 0, 0], frame[t, 0, 1], frame[t, 0, 2]
-                if k > 0:
-                    vx, vy, vz = vx + frame[t, k, 0], vy + frame[t, k, 1], vz + frame[t, k, 2]
-                d, ux, uy, uz = _below(px, py, pz, vx, vy, vz, s * corners[t, k, 0],
-                                       s * corners[t, k, 1], s * corners[t, k, 2])  # fmt: skip
-                lx, ly, lz = lx - w * d * ux, ly - w * d * uy, lz - w * d * uz
+            gx, gy, gz = s * gx, s * gy, s * gz
+        lifted, lx, ly, lz = False, 0.0, 0.0, 0.0  # the lift, once a ray needs it
         for j in range(n_lights):
             share[j] = -1.0  # no ray
             if not (every or want[i, j]):
@@ -723,6 +708,21 @@ def shadow_rays(
             stop = far if j < n_distant else max(length - e, 0.0)  # short of a LocalLight
             if t >= 0:  # from the smooth surface, to the lit side (see the docstring)
                 fade = min(max(1.0 - (gx * d0 + gy * d1 + gz * d2) / TERMINATOR_FADE, 0.0), 1.0)
+                if fade > 0.0 and not lifted:
+                    lifted = True
+                    w0, w1, w2 = _plane_weights(
+                        px * plane[t, 0] + py * plane[t, 1] + pz * plane[t, 2] - plane[t, 3],
+                        px * plane[t, 4] + py * plane[t, 5] + pz * plane[t, 6] - plane[t, 7],
+                    )  # fmt: skip
+                    for k in range(3):  # corner k at v0 + e_k (e_0 = 0)
+                        w, c = (w0, 0.0) if k == 0 else ((w1, 1.0) if k == 1 else (w2, 1.0))
+                        h, ux, uy, uz = _below(
+                            px - frame[t, 0, 0] - c * frame[t, k, 0],
+                            py - frame[t, 0, 1] - c * frame[t, k, 1],
+                            pz - frame[t, 0, 2] - c * frame[t, k, 2],
+                            s * corners[t, k, 0], s * corners[t, k, 1], s * corners[t, k, 2],
+                        )  # fmt: skip
+                        lx, ly, lz = lx - w * h * ux, ly - w * h * uy, lz - w * h * uz
                 out_v[0, r, 0] = px + fade * lx + e * gx
                 out_v[0, r, 1] = py + fade * ly + e * gy
                 out_v[0, r, 2] = pz + fade * lz + e * gz
