@@ -107,6 +107,39 @@ def _below(ox, oy, oz, nx, ny, nz):
 
 
 @njit(**_HELPER)
+def _smooth_lift(t, px, py, pz, s, plane, frame, corners):
+    """The move (float64 metres) of a point p on triangle t onto the smooth surface its
+    corner normals imply (Hanika, "Hacking the Shadow Terminator", Ray Tracing Gems II
+    ch. 4): p projected onto each corner's tangent plane it lies below (a convex corner;
+    a concave one leaves it), the projections weighted by p's barycentrics; ``s`` (+1 /
+    -1) turns the corner normals to the lit side. Tables: ``TriangleTable``'s (read only
+    where a shadow ray needs the lift: the terminator's few points)."""
+    w0, w1, w2 = _plane_weights(
+        px * plane[t, 0] + py * plane[t, 1] + pz * plane[t, 2] - plane[t, 3],
+        px * plane[t, 4] + py * plane[t, 5] + pz * plane[t, 6] - plane[t, 7],
+    )  # fmt: skip
+    lx = ly = lz = 0.0
+    for k in range(3):  # corner k at v0 + e_k (e_0 = 0)
+        w, c = (w0, 0.0) if k == 0 else ((w1, 1.0) if k == 1 else (w2, 1.0))
+        h, ux, uy, uz = _below(
+            px - frame[t, 0, 0] - c * frame[t, k, 0],
+            py - frame[t, 0, 1] - c * frame[t, k, 1],
+            pz - frame[t, 0, 2] - c * frame[t, k, 2],
+            s * corners[t, k, 0], s * corners[t, k, 1], s * corners[t, k, 2],
+        )  # fmt: skip
+        lx, ly, lz = lx - w * h * ux, ly - w * h * uy, lz - w * h * uz
+    return lx, ly, lz
+
+
+@njit(**_HELPER)
+def _inside(t, px, py, pz, plane):
+    """The point p of triangle t's plane lies on the triangle (its weights >= 0)."""
+    b1 = px * plane[t, 0] + py * plane[t, 1] + pz * plane[t, 2] - plane[t, 3]
+    b2 = px * plane[t, 4] + py * plane[t, 5] + pz * plane[t, 6] - plane[t, 7]
+    return b1 >= 0.0 and b2 >= 0.0 and b1 + b2 <= 1.0
+
+
+@njit(**_HELPER)
 def _pixel_dir(ys_row, xs_col, s, r00, r01, r02, r10, r11, r12, r20, r21, r22,
                renormalise):  # fmt: skip
     """The unit world direction through the centre of a pixel (as

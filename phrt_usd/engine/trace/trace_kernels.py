@@ -81,7 +81,7 @@ from phrt_usd.engine.trace.bounce_layout import (
     TRI_TEXTURED,
 )
 from phrt_usd.kernels import KERNEL_OPTIONS
-from phrt_usd.model.surface_kernels import _below, _orient, _pixel_dir, _plane_weights, _weighted
+from phrt_usd.model.surface_kernels import _inside, _orient, _pixel_dir, _smooth_lift, _weighted
 
 _KERNEL = KERNEL_OPTIONS
 _HELPER = {**_KERNEL, "inline": "always"}
@@ -656,8 +656,10 @@ def shadow_rays(
     frame, corners), a point's rays start from it lifted onto the smooth surface its
     triangle's corner normals imply (the shadow terminator: Hanika's tangent-plane rule,
     faded by TERMINATOR_FADE) and leave by the epsilon along the triangle's own normal
-    to the lit side (ns's), whatever side of the flat triangle the light is on. ``tri``
-    (0,): as above (ng, the ray's side). Returns the ray count."""
+    to the lit side (ns's), whatever side of the flat triangle the light is on; a ray
+    that would cross its own triangle (the light below its plane) starts just past it
+    (production renderers skip a ray's own triangle). ``tri`` (0,): as above (ng, the
+    ray's side). Returns the ray count."""
     n, n_distant = rel.shape[0], dirs.shape[0]
     n_lights = n_distant + pos.shape[0]
     every = want.shape[0] == 0
@@ -707,25 +709,21 @@ def shadow_rays(
             d0, d1, d2, length = ray[j, 0], ray[j, 1], ray[j, 2], ray[j, 3]
             stop = far if j < n_distant else max(length - e, 0.0)  # short of a LocalLight
             if t >= 0:  # from the smooth surface, to the lit side (see the docstring)
-                fade = min(max(1.0 - (gx * d0 + gy * d1 + gz * d2) / TERMINATOR_FADE, 0.0), 1.0)
+                up = gx * d0 + gy * d1 + gz * d2
+                fade = min(max(1.0 - up / TERMINATOR_FADE, 0.0), 1.0)
                 if fade > 0.0 and not lifted:
                     lifted = True
-                    w0, w1, w2 = _plane_weights(
-                        px * plane[t, 0] + py * plane[t, 1] + pz * plane[t, 2] - plane[t, 3],
-                        px * plane[t, 4] + py * plane[t, 5] + pz * plane[t, 6] - plane[t, 7],
-                    )  # fmt: skip
-                    for k in range(3):  # corner k at v0 + e_k (e_0 = 0)
-                        w, c = (w0, 0.0) if k == 0 else ((w1, 1.0) if k == 1 else (w2, 1.0))
-                        h, ux, uy, uz = _below(
-                            px - frame[t, 0, 0] - c * frame[t, k, 0],
-                            py - frame[t, 0, 1] - c * frame[t, k, 1],
-                            pz - frame[t, 0, 2] - c * frame[t, k, 2],
-                            s * corners[t, k, 0], s * corners[t, k, 1], s * corners[t, k, 2],
-                        )  # fmt: skip
-                        lx, ly, lz = lx - w * h * ux, ly - w * h * uy, lz - w * h * uz
-                out_v[0, r, 0] = px + fade * lx + e * gx
-                out_v[0, r, 1] = py + fade * ly + e * gy
-                out_v[0, r, 2] = pz + fade * lz + e * gz
+                    lx, ly, lz = _smooth_lift(t, px, py, pz, s, plane, frame, corners)
+                ox, oy, oz = px + fade * lx + e * gx, py + fade * ly + e * gy, pz + fade * lz
+                oz += e * gz
+                down = -up
+                if down > 0.0:  # into its own plane: past the triangle if it is there
+                    reach = ((ox - px) * gx + (oy - py) * gy + (oz - pz) * gz) / down
+                    cx, cy, cz = ox + reach * d0, oy + reach * d1, oz + reach * d2
+                    if _inside(t, cx, cy, cz, plane):
+                        ox, oy, oz = cx - e * gx, cy - e * gy, cz - e * gz
+                        stop = stop if j < n_distant else max(stop - reach, 0.0)
+                out_v[0, r, 0], out_v[0, r, 1], out_v[0, r, 2] = ox, oy, oz
             else:
                 side = _side(e, d0, d1, d2, gx, gy, gz)
                 out_v[0, r, 0], out_v[0, r, 1] = px + side * gx, py + side * gy
