@@ -86,7 +86,7 @@ def shade_gbuffer(
     if n_lights == 0:
         visibility = np.ones((len(pos), 0), dtype=np.float32)
     elif mode == "rt":
-        visibility = tracer.shadow_visibility(pos, nrm)
+        visibility = tracer.shadow_visibility(pos, nrm, tri)
         shadow_pass = "shadow_rays"
     else:
         pending = map_lookup(

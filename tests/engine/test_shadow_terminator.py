@@ -13,6 +13,7 @@ from embreex import rtcore_scene as rtcs
 from embreex.mesh_construction import TriangleMesh
 from scenes import look_at, parts_scene, quad, sphere
 
+from phrt_usd.engine import lighting
 from phrt_usd.engine.trace.shadow_rays import ShadowRays
 from phrt_usd.engine.trace.tracer import Tracer
 from phrt_usd.model.scene import DistantLight, DomeLight, Lights
@@ -160,3 +161,27 @@ def test_a_ray_skips_its_own_triangle_when_the_light_is_below_its_plane():
         rel, ns, lights, triangles=tri
     )
     assert np.all(vis[:, 0] == 1.0), f"{np.mean(vis[:, 0] < 1):.3%} of the sheet dark"
+
+
+def test_probe_speckles_at_grazing_angles_in_rt():
+    """The rt mode's local shading of the coarse smooth sphere under a grazing
+    DistantLight and a dome: the lit side of the smooth sphere gets its direct light."""
+    to_light = _light(GRAZING_DEGREES)
+    dome = DomeLight(color=np.full(3, 0.1))
+    camera = look_at((0.0, 0.0, 4.0), (0.0, 0.0, 0.0))
+    shaded = {}
+    for name, lights in (
+        ("lit", Lights(distant=[DistantLight(to_light, np.full(3, 3.0))], dome=dome)),
+        ("dome", Lights(dome=dome)),
+    ):
+        tracer = _coarse_sphere_tracer(lights)
+        gb = tracer.primary_gbuffer(camera, 160, 120)
+        image, _ = lighting.shade_gbuffer(gb, tracer.scene, "rt", None, tracer)
+        shaded[name] = image.reshape(-1, 3)
+    covered = gb.covered.reshape(-1)
+    direct = (shaded["lit"] - shaded["dome"])[covered]
+    lit_side = gb.normal.reshape(-1, 3)[covered] @ to_light > LIT_SIDE
+    assert lit_side.sum() > 1000
+    # Shadowed: no direct light (a lit pixel there gets >= 0.05 x 3 x 0.8 / pi).
+    dark = np.mean(direct[lit_side].max(axis=1) < 1e-3)
+    assert dark <= MAX_DARK_SHARE, f"{dark:.3%} of the lit side dark in rt"

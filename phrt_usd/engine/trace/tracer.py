@@ -215,10 +215,13 @@ class Tracer:
         self.last_rays = []
         rel = self.bvh.boundary.relative(np.asarray(positions).reshape(-1, 3))
         normals = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
+        tri = None
         if triangle_ids is not None:
             tri = np.asarray(triangle_ids, np.int64).reshape(-1)
             rel, _ = self.surfaces.snap(rel, tri, normals)
-        vis, rays = self._shadows.visibility(rel, normals, self._relative_lights(), pairs)
+        vis, rays = self._shadows.visibility(
+            rel, normals, self._relative_lights(), pairs, triangles=tri
+        )
         self.rays_cast["shadow"] += int(rays.sum())
         return vis
 
