@@ -510,19 +510,26 @@ def st_quad(stage: Usd.Stage, path: str = "/Quad") -> UsdGeom.Mesh:
     return mesh
 
 
-def centre_pixel(stage: Usd.Stage, mode: str, size: int = 16) -> np.ndarray:
-    """(3,) float64 linear colour of the centre pixel of ``stage``'s first frame rendered
-    in ``mode`` at ``size`` x ``size`` pixels, every reflector traced; fails when the
-    centre pixel shows no geometry (the test's expectation would be of the sky)."""
+def first_frame(stage: Usd.Stage, mode: str, width: int, height: int | None = None):
+    """``stage``'s first frame (a ``FrameOutput``) rendered in ``mode`` at ``width`` x
+    ``height`` (square when None) pixels, every reflector traced, no budget."""
     from phrt_usd.engine.renderer import FrameRenderer, RenderOptions
     from phrt_usd.usd.stage import read_stage
 
     scene = read_stage(stage)
-    options = RenderOptions(mode=mode, heuristic="all", width=size, height=size, budget_ms=None)
+    options = RenderOptions(mode=mode, heuristic="all", width=width,
+                            height=height or width, budget_ms=None)  # fmt: skip
     renderer = FrameRenderer(scene, options)
     try:
-        out = renderer.render(scene.frame_range[0])
-        assert out.gbuffer.element_id[size // 2, size // 2] >= 0, "the centre pixel misses"
-        return np.asarray(out.beauty[size // 2, size // 2], np.float64)
+        return renderer.render(scene.frame_range[0])
     finally:
         renderer.close()
+
+
+def centre_pixel(stage: Usd.Stage, mode: str, size: int = 16) -> np.ndarray:
+    """(3,) float64 linear colour of the centre pixel of ``stage``'s first frame rendered
+    in ``mode`` at ``size`` x ``size`` pixels (``first_frame``); fails when the centre
+    pixel shows no geometry (the test's expectation would be of the sky)."""
+    out = first_frame(stage, mode, size)
+    assert out.gbuffer.element_id[size // 2, size // 2] >= 0, "the centre pixel misses"
+    return np.asarray(out.beauty[size // 2, size // 2], np.float64)

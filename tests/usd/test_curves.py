@@ -13,11 +13,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdShade
-from scenes import front_view_stage, preview_shade
+from scenes import first_frame, front_view_stage, preview_shade
 
-from phrt_usd.engine.renderer import FrameRenderer, RenderOptions
 from phrt_usd.usd import curves
-from phrt_usd.usd.stage import read_stage
 
 W = H = 16
 MODES = ("raster", "rt")
@@ -82,14 +80,7 @@ def test_curve_is_drawn_as_a_tube(tmp_path, kind, basis, mode):
     and 0.50 at z = 0, and the row centres nearest it are 0.4375 and 0.5625), and the
     tube's front, whose normal faces the camera, shades as the red material."""
     stage = _curve_stage(tmp_path, kind, basis, width=1.0)
-    scene = read_stage(stage)
-    renderer = FrameRenderer(
-        scene, RenderOptions(mode=mode, heuristic="all", width=W, height=H, budget_ms=None)
-    )
-    try:
-        out = renderer.render(scene.frame_range[0])
-    finally:
-        renderer.close()
+    out = first_frame(stage, mode, W, H)
     covered = np.flatnonzero(out.gbuffer.element_id[:, W // 2] >= 0)
     assert covered.tolist() == list(range(4, 12))
     # Row 7's centre (y = 0.0625) sees the front facets within 8 degrees of facing the
@@ -111,14 +102,7 @@ def test_vertex_colours_vary_along_the_tube(tmp_path, mode):
     UsdGeom.PrimvarsAPI(hair).CreatePrimvar(
         "displayColor", Sdf.ValueTypeNames.Color3fArray, UsdGeom.Tokens.vertex
     ).Set([RED, RED, (0, 0, 1), (0, 0, 1)])
-    scene = read_stage(stage)
-    renderer = FrameRenderer(
-        scene, RenderOptions(mode=mode, heuristic="all", width=W, height=H, budget_ms=None)
-    )
-    try:
-        out = renderer.render(scene.frame_range[0])
-    finally:
-        renderer.close()
+    out = first_frame(stage, mode, W, H)
     f = 3 * (0.0625 * 4.5 / 5 + 3) / 6 - 1
     colour = (1 - f, 0.0, f)
     expected = preview_shade(colour, (0.0, 0.0, 0.5), (0.0, 0.0, 5.0), ambient=1.0)

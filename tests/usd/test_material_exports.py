@@ -17,9 +17,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdRender, UsdShade
-from scenes import centre_pixel, front_view_stage, preview_shade, st_quad
+from scenes import centre_pixel, first_frame, front_view_stage, preview_shade, st_quad
 
-from phrt_usd.engine.renderer import FrameRenderer, RenderOptions
 from phrt_usd.usd.stage import read_stage
 
 W = H = 16
@@ -300,14 +299,7 @@ def test_instances_of_one_prototype_bound_per_instance_root(tmp_path, mode):
         UsdGeom.Xformable(root).AddTranslateOp().Set(Gf.Vec3d(x, 0, 0))
         UsdGeom.Xformable(root).AddScaleOp().Set(Gf.Vec3f(0.5, 0.5, 1))
         _bind(root, material)
-    scene = read_stage(stage)
-    renderer = FrameRenderer(
-        scene, RenderOptions(mode=mode, heuristic="all", width=W, height=H, budget_ms=None)
-    )
-    try:
-        beauty = renderer.render(scene.frame_range[0]).beauty
-    finally:
-        renderer.close()
+    beauty = first_frame(stage, mode, W, H).beauty
     np.testing.assert_allclose(beauty[H // 2, 2], _look(RED), atol=TOLERANCE)
     np.testing.assert_allclose(beauty[H // 2, W - 3], _look(BLUE), atol=TOLERANCE)
 
