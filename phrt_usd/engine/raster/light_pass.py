@@ -106,7 +106,7 @@ class LightPass:
     def __init__(self, ctx: RasterContext, maps: ShadowMaps) -> None:
         self._ctx = ctx
         self._maps = maps  # whose ``cube_keys`` place the LocalLights
-        self._lookup_programs: dict[tuple[int, int, bool, bool], int] = {}
+        self._lookup_programs: dict[tuple[int, int, bool, bool, bool, bool], int] = {}
         self._dmap_tex: list[int] = []  # DistantLight map textures (``_upload_distant``)
         self._dmap_held: list[ShadowMap | None] = []
         self._lookup_vao: int | None = None
@@ -125,23 +125,29 @@ class LightPass:
         self._lookup_rb: list[int] = []
         self._lookup_size = (0, 0)  # (width, rows) of ``_lookup_fb``
 
-    def _program_for(self, n_lights: int, n_distant: int, shade: bool, tiled: bool) -> int:
+    def _program_for(
+        self, n_lights: int, n_distant: int, shade: bool, tiled: bool, coat: bool
+    ) -> int:
         """The lookup program for a pass of ``n_lights`` LocalLight slots and
-        ``n_distant`` DistantLights (with shading or not; per tile or not), compiled on
-        first use with the defines ``shaders/cube_lookup.frag`` expects."""
+        ``n_distant`` DistantLights (with shading or not; per tile or not; with the
+        clear coat's lobe or not), compiled on first use with the defines
+        ``shaders/cube_lookup.frag`` expects."""
         has_dynamic = bool(self._ctx.animated_tri.any())
-        key = (n_lights, n_distant, has_dynamic, shade, tiled)
+        key = (n_lights, n_distant, has_dynamic, shade, tiled, coat)
         if key not in self._lookup_programs:
             with open(os.path.join(SHADER_DIR, "cube_lookup.vert")) as f:
                 vert = f.read()
             with open(os.path.join(SHADER_DIR, "cube_lookup.frag")) as f:
                 version, frag = f.read().split("\n", 1)
             tan_half = CUBE_MAP_SIZE / (CUBE_MAP_SIZE - 2.0 * CUBE_GUARD_TEXELS)
+            lut_rows, lut_columns = preview_surface.specular_albedo_table().shape[:2]
             defines = (
                 f"#define N_LIGHTS {n_lights}\n#define N_DISTANT {n_distant}\n"
                 f"#define N_SLOTS {LOOKUP_LIGHTS_PER_PASS}\n#define SLOT_TILES {SLOT_TILES_A_ROW}\n"
                 f"#define HAS_DYNAMIC {int(has_dynamic)}\n"
                 f"#define SHADE {int(shade)}\n#define TILED {int(tiled)}\n"
+                f"#define COAT {int(coat)}\n#define LUT_ROWS {lut_rows}\n"
+                f"#define LUT_COSINES {lut_columns - 1}\n"
                 f"#define CUBE_SIZE {CUBE_MAP_SIZE}\n#define TAN_HALF {tan_half!r}\n"
                 f"#define LINE_W {CUBE_LINE_TILE[0]}u\n#define LINE_H {CUBE_LINE_TILE[1]}u\n"
                 f"#define PAGE_W {CUBE_PAGE_TILE[0]}u\n#define PAGE_H {CUBE_PAGE_TILE[1]}u\n"
@@ -382,6 +388,11 @@ class LightPass:
             GL.glTexImage2D(
                 GL.GL_TEXTURE_2D, 0, GL.GL_RGB32F, *size, 0, GL.GL_RGB, GL.GL_FLOAT, texels
             )
+        # The clear coat's lobe only where a point has one: llvmpipe would run its code
+        # for every lit pair (branches run under masks).
+        coat = shading and surface is not None and bool(
+            np.any(surface[:, preview_surface.CLEARCOAT] > 0.0)
+        )
         if shading:  # the surface rows: four RGBA texels a point, rows as the points'
             self._upload_surface(surface, n, width, rows)
         centres = np.array([self._maps.cube_keys[k][0] for k in range(n_local)], np.float64)
@@ -462,7 +473,7 @@ class LightPass:
             n_distant = len(distant) if p == 0 else 0
             if tiled:
                 _upload_slots(self._slot_tex, slots[:, start : start + count])
-            prog = self._program_for(max(count, 0), n_distant, shading, tiled)
+            prog = self._program_for(max(count, 0), n_distant, shading, tiled, coat)
 
             def loc(name: str, prog: int = prog) -> int:
                 return GL.glGetUniformLocation(prog, name)

@@ -14,6 +14,9 @@
 //                whose lights all fit one pass, and the codes' lookup)
 //   N_DISTANT    DistantLights in this pass (with SHADE, first pass only), 0..2
 //   HAS_DYNAMIC  1 when the scene has animated casters (a second cube per light)
+//   COAT         1 when a point of the pass has a clear coat (with SHADE)
+//   LUT_ROWS, LUT_COSINES  the albedo table's rows and n.v columns
+//                (preview_surface.specular_albedo_table: a last column of means follows)
 //   SHADE        1 to also shade the lit pairs (the direct output)
 //   CUBE_SIZE    texels per cube face side (shadow_maps.CUBE_MAP_SIZE)
 //   TAN_HALF     tangent of a cube face's half field of view (its guard band)
@@ -199,35 +202,40 @@ uint code(float r)
 #if SHADE
 const float PI = 3.14159265358979;
 
-// (A, B) of the albedo table at roughness r and cosine mu, bilinear between its nodes
-// (shade_kernels.lut_albedo).
-vec2 lut_albedo(float r, float mu)
+// A row of the albedo table at roughness r: its first node and the weight of the next
+// (shade_kernels.lut_albedo's y0, fy), found once a point, not once a light.
+struct LutRow {
+    int y0;
+    float fy;
+};
+
+LutRow lut_row(float r)
 {
-    ivec2 size = textureSize(albedo_lut, 0);
-    int n_c = size.x - 1;
-    int n_r = size.y;
-    float x = clamp(mu, 0.0, 1.0) * float(n_c - 1);
-    float y = clamp(r, 0.0, 1.0) * float(n_r - 1);
-    int x0 = min(int(x), n_c - 2);
-    int y0 = min(int(y), n_r - 2);
-    float fx = x - float(x0);
-    float fy = y - float(y0);
-    vec2 top = mix(texelFetch(albedo_lut, ivec2(x0, y0), 0).rg,
-                   texelFetch(albedo_lut, ivec2(x0 + 1, y0), 0).rg, fx);
-    vec2 bottom = mix(texelFetch(albedo_lut, ivec2(x0, y0 + 1), 0).rg,
-                      texelFetch(albedo_lut, ivec2(x0 + 1, y0 + 1), 0).rg, fx);
-    return mix(top, bottom, fy);
+    float y = clamp(r, 0.0, 1.0) * float(LUT_ROWS - 1);
+    int y0 = min(int(y), LUT_ROWS - 2);
+    return LutRow(y0, y - float(y0));
 }
 
-// The table's cosine-weighted means at roughness r (shade_kernels.lut_mean).
-vec2 lut_mean(float r)
+// (A, B) of the albedo table on row ``row`` at cosine mu, bilinear between its nodes
+// (shade_kernels.lut_albedo).
+vec2 lut_albedo(LutRow row, float mu)
 {
-    ivec2 size = textureSize(albedo_lut, 0);
-    int c = size.x - 1;
-    float y = clamp(r, 0.0, 1.0) * float(size.y - 1);
-    int y0 = min(int(y), size.y - 2);
-    return mix(texelFetch(albedo_lut, ivec2(c, y0), 0).rg,
-               texelFetch(albedo_lut, ivec2(c, y0 + 1), 0).rg, y - float(y0));
+    float x = clamp(mu, 0.0, 1.0) * float(LUT_COSINES - 1);
+    int x0 = min(int(x), LUT_COSINES - 2);
+    float fx = x - float(x0);
+    vec2 top = mix(texelFetch(albedo_lut, ivec2(x0, row.y0), 0).rg,
+                   texelFetch(albedo_lut, ivec2(x0 + 1, row.y0), 0).rg, fx);
+    vec2 bottom = mix(texelFetch(albedo_lut, ivec2(x0, row.y0 + 1), 0).rg,
+                      texelFetch(albedo_lut, ivec2(x0 + 1, row.y0 + 1), 0).rg, fx);
+    return mix(top, bottom, row.fy);
+}
+
+// The table's cosine-weighted means on row ``row`` (shade_kernels.lut_mean): the last
+// column.
+vec2 lut_mean(LutRow row)
+{
+    return mix(texelFetch(albedo_lut, ivec2(LUT_COSINES, row.y0), 0).rg,
+               texelFetch(albedo_lut, ivec2(LUT_COSINES, row.y0 + 1), 0).rg, row.fy);
 }
 
 // GGX D times the height-correlated Smith V (shade_kernels.ggx_dv).
@@ -240,18 +248,23 @@ float ggx_dv(float alpha, float nl, float nv, float nh)
 }
 
 // A point's surface row (model/preview_surface.py columns) and what the BRDF reads of
-// it at n.v (shade_kernels.point_terms).
+// it whatever the light (shade_kernels.point_terms): the terms of the view direction
+// are found once a point, each light then adds only its own.
 struct Surface {
-    vec3 diffuse;
     vec3 f0;
     vec3 f90;
     float rough;       // at least min_roughness
+    LutRow row;        // the albedo table's row at ``rough``
+    // The diffuse lobe but for its light-side factor (1 - E(n.l)):
+    // diffuse colour (1 - E(n.v)) / (1 - E_avg) (shade_kernels.brdf_cos).
+    vec3 diffuse_v;
+#if COAT
     float coat;
     float coat_rough;  // at least min_roughness
     float coat_f0;
-    vec2 ab_v;         // the base lobe's (A, B) at n.v
-    vec2 ab_mean;
-    vec2 coat_ab_v;
+    LutRow coat_row;
+    float coat_t_v;    // what the clear coat lets through towards the eye
+#endif
 };
 
 Surface surface_at(ivec2 xy, float nv)
@@ -259,18 +272,25 @@ Surface surface_at(ivec2 xy, float nv)
     vec4 s0 = texelFetch(surface, ivec2(4 * xy.x, xy.y), 0);
     vec4 s1 = texelFetch(surface, ivec2(4 * xy.x + 1, xy.y), 0);
     vec4 s2 = texelFetch(surface, ivec2(4 * xy.x + 2, xy.y), 0);
-    vec4 s3 = texelFetch(surface, ivec2(4 * xy.x + 3, xy.y), 0);
     Surface s;
-    s.diffuse = s0.xyz;
     s.f0 = vec3(s0.w, s1.xy);
     s.f90 = vec3(s1.zw, s2.x);
     s.rough = max(s2.y, min_roughness);
+    s.row = lut_row(s.rough);
+    vec2 ab_v = lut_albedo(s.row, nv);
+    vec2 ab_mean = lut_mean(s.row);
+    vec3 ev = min(s.f0 * ab_v.x + s.f90 * ab_v.y, vec3(1.0));
+    vec3 mean = min(s.f0 * ab_mean.x + s.f90 * ab_mean.y, vec3(1.0));
+    s.diffuse_v = s0.xyz * (1.0 - ev) / max(1.0 - mean, vec3(1e-4));
+#if COAT
+    vec4 s3 = texelFetch(surface, ivec2(4 * xy.x + 3, xy.y), 0);
     s.coat = s2.z;
     s.coat_rough = max(s2.w, min_roughness);
     s.coat_f0 = s3.x;
-    s.ab_v = lut_albedo(s.rough, nv);
-    s.ab_mean = lut_mean(s.rough);
-    s.coat_ab_v = s.coat > 0.0 ? lut_albedo(s.coat_rough, nv) : vec2(0.0);
+    s.coat_row = lut_row(s.coat_rough);
+    vec2 coat_ab_v = lut_albedo(s.coat_row, nv);
+    s.coat_t_v = 1.0 - s.coat * min(s.coat_f0 * coat_ab_v.x + coat_ab_v.y, 1.0);
+#endif
     return s;
 }
 
@@ -287,24 +307,27 @@ vec3 brdf_cos(Surface s, vec3 n, vec3 e, vec3 l, float nv)
     h = len > 1e-12 ? h / len : n;
     float nh = max(dot(n, h), 0.0);
     float vh = clamp(dot(e, h), 0.0, 1.0);
-    float s5 = pow(1.0 - vh, 5.0);
+    float m = 1.0 - vh;
+    float m2 = m * m;
+    float s5 = m2 * m2 * m;  // (1 - v.h)^5, Schlick's
     float dv = ggx_dv(s.rough * s.rough, nl, nv, nh);
-    vec2 ab_l = lut_albedo(s.rough, nl);
+    vec2 ab_l = lut_albedo(s.row, nl);
+    vec3 el = min(s.f0 * ab_l.x + s.f90 * ab_l.y, vec3(1.0));
+    vec3 diffuse = s.diffuse_v * (1.0 - el);
+    vec3 spec = (s.f0 + (s.f90 - s.f0) * s5) * dv;
+#if COAT
     float coat = 0.0;
     float t = 1.0;
     if (s.coat > 0.0) {
         coat = s.coat * (s.coat_f0 + (1.0 - s.coat_f0) * s5)
             * ggx_dv(s.coat_rough * s.coat_rough, nl, nv, nh);
-        vec2 coat_l = lut_albedo(s.coat_rough, nl);
-        t = (1.0 - s.coat * min(s.coat_f0 * s.coat_ab_v.x + s.coat_ab_v.y, 1.0))
-            * (1.0 - s.coat * min(s.coat_f0 * coat_l.x + coat_l.y, 1.0));
+        vec2 coat_l = lut_albedo(s.coat_row, nl);
+        t = s.coat_t_v * (1.0 - s.coat * min(s.coat_f0 * coat_l.x + coat_l.y, 1.0));
     }
-    vec3 ev = min(s.f0 * s.ab_v.x + s.f90 * s.ab_v.y, vec3(1.0));
-    vec3 el = min(s.f0 * ab_l.x + s.f90 * ab_l.y, vec3(1.0));
-    vec3 mean = min(s.f0 * s.ab_mean.x + s.f90 * s.ab_mean.y, vec3(1.0));
-    vec3 diffuse = s.diffuse * (1.0 - ev) * (1.0 - el) / max(1.0 - mean, vec3(1e-4));
-    vec3 spec = (s.f0 + (s.f90 - s.f0) * s5) * dv;
     return ((coat + t * spec) * PI + t * diffuse) * nl;
+#else
+    return (spec * PI + diffuse) * nl;
+#endif
 }
 #endif
 
