@@ -108,6 +108,9 @@ class MaterialTable:
                 (M, 3), (M,), (M,), (M,), (M,) float32, the other UsdPreviewSurface
                 inputs of the BRDF (``model/preview_surface.py``); empty (or shorter):
                 the specification's fallbacks.
+    glossy    : (M,) bool, the materials whose roughness blurs their reflections (a
+                bound UsdPreviewSurface: ``engine/trace/glossy.py``); empty (or
+                shorter): mirror reflections (a reflector of ``displayColor`` only).
     """
 
     diffuse: np.ndarray
@@ -124,6 +127,7 @@ class MaterialTable:
     clearcoat: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))
     clearcoat_roughness: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))
     occlusion: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))
+    glossy: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
 
     def threshold(self, m: int) -> float:
         """``opacity_threshold`` of row ``m`` (0 where the table has none)."""

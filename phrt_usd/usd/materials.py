@@ -133,6 +133,8 @@ class _MaterialRow:
     #: per corner in place of ``displayColor``), None when no reader feeds it.
     colour_primvar: str | None = None
     opacity_threshold: float = 0.0
+    #: A UsdPreviewSurface: its roughness blurs its reflections (``MaterialTable.glossy``).
+    glossy: bool = False
     #: UsdPreviewSurface input name -> its ``TextureInput`` (``TEXTURED_INPUTS``).
     inputs: dict[str, TextureInput] = field(default_factory=dict)
 
@@ -273,6 +275,7 @@ class MaterialBank:
         if not shader or shader.GetIdAttr().Get() != "UsdPreviewSurface":
             self._read_materialx(row, material)
             return row
+        row.glossy = True
         for name, attr in (*BRDF_INPUTS.items(), ("opacity", "opacity")):
             value = float(self._constant(shader, name, getattr(row, attr)))
             setattr(row, attr, value if name == "ior" else float(np.clip(value, 0.0, 1.0)))
@@ -532,6 +535,7 @@ class MaterialBank:
             clearcoat=np.array([r.clearcoat for r in rows], dtype=np.float32),
             clearcoat_roughness=np.array([r.clearcoat_roughness for r in rows], np.float32),
             occlusion=np.array([r.occlusion for r in rows], dtype=np.float32),
+            glossy=np.array([r.glossy for r in rows], dtype=bool),
         )
 
 
