@@ -1,9 +1,10 @@
 """Composition: the sublayers, references and payloads of a stage USD could not open.
 
 ``composition_problems`` lists them (and the stage's other composition errors) one each,
-naming the prim or layer; ``phrt validate`` reports each as an error. The render goes on
-without them: ``composition_warnings`` turns them into the one-line warnings of
-``StageScene.warnings``.
+naming the prim or layer (but references and payloads of a ``.mtlx`` document that is
+there: usd-core cannot compose it, the render reads it itself, ``usd/materialx.py``);
+``phrt validate`` reports each as an error. The render goes on without them:
+``composition_warnings`` turns them into the one-line warnings of ``StageScene.warnings``.
 """
 
 from __future__ import annotations
@@ -12,6 +13,8 @@ import re
 from dataclasses import dataclass
 
 from pxr import Pcp, Usd
+
+from phrt_usd.usd import materialx
 
 
 @dataclass(frozen=True)
@@ -55,6 +58,8 @@ def composition_problems(stage: Usd.Stage) -> list[CompositionProblem]:
         prim = str(err.rootSite.path)
         m = _ASSET_ERROR.search(text)
         if m and err.errorType == Pcp.ErrorType_InvalidAssetPath:
+            if materialx.readable_document(m["asset"]):
+                continue  # a MaterialX document: the render reads it (usd/materialx.py)
             arc = m["arc"] if m["arc"] in ("reference", "payload") else "reference"
             why = (m["reason"] or "").strip()
             reason = f" ({why})" if why else ""

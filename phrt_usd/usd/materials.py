@@ -40,12 +40,14 @@ translucency (the row is opaque; docs/usd-support.md, known limits).
 
 ``displacement`` is not read (``usd/support_report.py`` lists it).
 
-MaterialX: a material whose only surface is a MaterialX one (``outputs:mtlx:surface``)
-gets its base colour from the shader prim's inputs (``ND_standard_surface``:
-``base`` * ``base_color``; ``ND_open_pbr_surface``: ``base_weight`` * ``base_color``;
-``ND_UsdPreviewSurface``: ``diffuseColor``), an ``ND_image_color3`` /
-``ND_tiledimage_color3`` node on it read as a texture; other MaterialX surfaces render
-grey. Either way one notice per material (``MaterialBank.notices``).
+MaterialX (``usd/materialx.py``): a material whose surface is MaterialX's
+``standard_surface``, ``open_pbr_surface`` or ``UsdPreviewSurface`` node, authored in USD
+(a Shader of that ``info:id`` on the ``mtlx`` or universal surface output) or in a
+``.mtlx`` document a prim references (``bound_material`` returns a
+``materialx.DocumentMaterial`` where the binding's target lies under such an arc), is
+mapped onto the UsdPreviewSurface inputs (``materialx.map_surface``), plain image nodes
+read as textures; one notice per material only where the mapping leaves something out.
+Other MaterialX surfaces render grey, with a notice.
 
 - A textured ``diffuseColor`` is stored as the texture's mean colour (the row's
   ``diffuse``) plus the texture (``MaterialTable.textures``, the ``rgb`` after scale and
@@ -57,13 +59,14 @@ grey. Either way one notice per material (``MaterialBank.notices``).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from pathlib import PurePosixPath
 
 import numpy as np
 from pxr import Usd, UsdRender, UsdShade
 
 from phrt_usd.errors import PhrtError
 from phrt_usd.model.scene import ALPHA_ONE, WRAP_MODES, MaterialTable, TextureInput
-from phrt_usd.usd import schema, textures
+from phrt_usd.usd import materialx, schema, textures
 
 #: UsdPreviewSurface's own fallback ``diffuseColor`` (used when a material is bound but
 #: its diffuseColor is unauthored and the gprim has no displayColor).
@@ -98,20 +101,6 @@ _OUTPUT_COMPONENTS = {"rgb": (0, 1, 2), "r": (0,), "g": (1,), "b": (2,), "a": (3
 
 #: OpenImageIO ``wrapmodes`` metadata words -> UsdUVTexture wrap modes.
 _METADATA_WRAP = {"periodic": "repeat", "mirror": "mirror", "clamp": "clamp", "black": "black"}
-
-#: MaterialX surface shader ids whose base colour is read: id -> (colour input,
-#: weight input or None, the colour's and the weight's defaults).
-MATERIALX_BASE_COLOUR = {
-    "ND_standard_surface_surfaceshader": ("base_color", "base", 0.8, 0.8),
-    "ND_open_pbr_surface_surfaceshader": ("base_color", "base_weight", 0.8, 1.0),
-    "ND_UsdPreviewSurface_surfaceshader": ("diffuseColor", None, 0.18, 1.0),
-}
-#: MaterialX image nodes read as a texture of the base colour (``file``; address modes
-#: ``uaddressmode`` / ``vaddressmode``).
-MATERIALX_IMAGES = ("ND_image_color3", "ND_tiledimage_color3", "ND_image_color4")
-#: MaterialX address modes -> UsdUVTexture wrap modes (MaterialX's default: periodic).
-_MATERIALX_WRAP = {"periodic": "repeat", "clamp": "clamp", "mirror": "mirror", "constant": "black"}
-
 
 @dataclass
 class _MaterialRow:
@@ -190,20 +179,37 @@ def _binding_purpose(name: str) -> str:
     return parts[0] if parts else ""
 
 
-def bound_material(prim: Usd.Prim, purposes: tuple[str, ...]) -> UsdShade.Material | None:
+def bound_material(
+    prim: Usd.Prim, purposes: tuple[str, ...]
+) -> UsdShade.Material | materialx.DocumentMaterial | None:
     """The material bound to ``prim`` for the first of ``purposes`` ("" = all-purpose)
-    that has a binding (direct or collection, ``ComputeBoundMaterial`` semantics)."""
+    that has a binding (direct or collection, ``ComputeBoundMaterial`` semantics); a
+    binding whose target USD could not compose because it lies under a ``.mtlx``
+    document's arc gives that document's material (``materialx.referenced_material``)."""
     api = UsdShade.MaterialBindingAPI(prim)
     for purpose in purposes:
         mat, rel = api.ComputeBoundMaterial(purpose or UsdShade.Tokens.allPurpose)
-        if not mat:
-            continue
         # ComputeBoundMaterial falls back to the all-purpose binding by itself; only
         # accept that when "" is the purpose asked for.
         rel_purpose = _binding_purpose(rel.GetName()) if rel else ""
-        if purpose == "" or rel_purpose == purpose:
+        if not (purpose == "" or rel_purpose == purpose):
+            continue
+        if mat:
             return mat
+        document = _document_material(prim.GetStage(), rel) if rel else None
+        if document is not None:
+            return document
     return None
+
+
+def _document_material(stage: Usd.Stage, rel: Usd.Relationship):
+    """The ``materialx.DocumentMaterial`` a binding relationship whose target is no
+    Material names, or None."""
+    collection = ":collection:" in rel.GetName()
+    binding = (UsdShade.MaterialBindingAPI.CollectionBinding(rel) if collection
+               else UsdShade.MaterialBindingAPI.DirectBinding(rel))  # fmt: skip
+    path = binding.GetMaterialPath()
+    return None if path.isEmpty else materialx.referenced_material(stage, path)
 
 
 def material_key(material: UsdShade.Material | None) -> str:
@@ -212,6 +218,8 @@ def material_key(material: UsdShade.Material | None) -> str:
     prototype share one row). "" for no material."""
     if not material:
         return ""
+    if isinstance(material, materialx.DocumentMaterial):
+        return material.path
     prim = material.GetPrim()
     return str(prim.GetPrimInPrototype().GetPath() if prim.IsInstanceProxy() else prim.GetPath())
 
@@ -231,12 +239,12 @@ class MaterialBank:
         #: One line per texture that could not be read (the render goes on with the
         #: input's fallback; ``--strict`` and ``phrt validate`` make each an error).
         self.texture_problems: list[str] = []
-        #: One line per material rendered approximately (MaterialX-only materials).
+        #: One line per material rendered approximately (MaterialX surfaces).
         self.notices: list[str] = []
         #: Some row's colour comes from a primvar reader (``colour_primvar`` then looks).
         self.reads_colour_primvars = False
-        #: Paths of MaterialX-only materials by treatment ("base colour" / "grey").
-        self.materialx: dict[str, list[str]] = {"base colour": [], "grey": []}
+        #: Materials of MaterialX surfaces by treatment ("mapped" / "grey").
+        self.materialx_paths: dict[str, list[str]] = {"mapped": [], "grey": []}
 
     def index(self, material: UsdShade.Material | None) -> int:
         key = material_key(material)
@@ -269,8 +277,11 @@ class MaterialBank:
         value = np.asarray(value, np.float64)
         return value if np.all(np.isfinite(value)) else np.asarray(default, np.float64)
 
-    def _read(self, material: UsdShade.Material) -> _MaterialRow:
+    def _read(self, material) -> _MaterialRow:
         row = _MaterialRow(np.full(3, PREVIEW_SURFACE_DIFFUSE), diffuse_authored=False)
+        if isinstance(material, materialx.DocumentMaterial):
+            self._read_document(row, material)
+            return row
         shader = material.ComputeSurfaceSource()[0]
         if not shader or shader.GetIdAttr().Get() != "UsdPreviewSurface":
             self._read_materialx(row, material)
@@ -452,71 +463,125 @@ class MaterialBank:
     # ------------------------------------------------------------------ MaterialX
 
     def _read_materialx(self, row: _MaterialRow, material: UsdShade.Material) -> None:
-        """A material without a UsdPreviewSurface: its MaterialX surface's base colour
-        (module docstring), else grey; one notice either way. Materials of other render
-        contexts only keep the default grey silently (the support report lists them)."""
-        out = material.GetSurfaceOutput("mtlx")
-        if not (out and out.HasConnectedSource()):
-            return
+        """A material without a UsdPreviewSurface: its MaterialX surface mapped
+        (``usd/materialx.py``; a notice only where the mapping leaves something out),
+        else grey with a notice. Materials of other render contexts keep the default
+        grey silently (the support report lists them)."""
         path = str(material.GetPath())
-        shader = material.ComputeSurfaceSource("mtlx")[0]
+        kind, mapped = self.materialx_mapping(material)
+        if mapped is None:
+            out = material.GetSurfaceOutput("mtlx")
+            if out and out.HasConnectedSource():
+                self.materialx_paths["grey"].append(path)
+                self.notices.append(
+                    f"{path}: MaterialX surface {kind or '(unknown)'} is not read; rendered grey"
+                )
+            return
+        self._apply_mapped(row, mapped, path, kind)
+
+    def materialx_mapping(self, material: UsdShade.Material):
+        """(kind, ``materialx.MappedSurface``) of a Material whose surface (its ``mtlx``
+        output, else the universal one) is a MaterialX node the render maps; (the
+        surface's id or "", None) otherwise."""
+        shader = material.ComputeSurfaceSource("mtlx")[0]  # else the universal output
         ident = str(shader.GetIdAttr().Get() or "") if shader else ""
-        spec = MATERIALX_BASE_COLOUR.get(ident)
-        if spec is None:
-            self.materialx["grey"].append(path)
+        kind = materialx.SURFACE_KINDS.get(ident)
+        if kind is None:
+            return ident, None
+        inputs = self.materialx_inputs(shader)
+        return kind, materialx.map_surface(kind, inputs, materialx.node_defaults(ident))
+
+    def _read_document(self, row: _MaterialRow, material: materialx.DocumentMaterial):
+        """A material of a ``.mtlx`` document (``materialx.DocumentMaterial``): its
+        surface mapped, or grey with a notice when it is no surface the render maps."""
+        kind, ident, inputs, defaults = materialx.document_surface(material)
+        where = f"{material.path} ({PurePosixPath(material.document).name})"
+        if not kind:
+            self.materialx_paths["grey"].append(material.path)
             self.notices.append(
-                f"{path}: MaterialX surface {ident or '(unknown)'} is not read; rendered grey"
+                f"{where}: MaterialX surface {ident or '(none)'} is not read; rendered grey"
             )
             return
-        colour_name, weight_name, colour_default, weight_default = spec
-        weight = 1.0
-        if weight_name is not None:
-            weight = float(self._constant(shader, weight_name, weight_default))
-        value, src = self._value(shader, colour_name)
-        texture = ""
-        if src is not None:
-            texture = self._materialx_image(row, src, weight)
-            if not texture:
-                row.diffuse = np.full(3, colour_default * weight)
-        else:
-            colour = colour_default if value is None else value
-            colour = np.nan_to_num(np.broadcast_to(np.asarray(colour, np.float64), (3,)))
-            row.diffuse = np.clip(colour * weight, 0.0, None)
-        row.diffuse_authored = True
-        self.materialx["base colour"].append(path)
-        self.notices.append(
-            f"{path}: MaterialX surface {ident}; rendered with its base colour only"
-            + (f" (texture {texture})" if texture else "")
-        )
+        self._apply_mapped(row, materialx.map_surface(kind, inputs, defaults), where, kind)
 
-    def _materialx_image(self, row: _MaterialRow, node: UsdShade.Shader, weight: float) -> str:
-        """Read a plain MaterialX image node feeding the base colour as the diffuse
-        texture (times ``weight``); returns its file path, "" when not read."""
-        if str(node.GetIdAttr().Get() or "") not in MATERIALX_IMAGES:
-            return ""
+    def materialx_inputs(self, shader: UsdShade.Shader) -> dict:
+        """A MaterialX surface Shader's authored inputs as ``materialx.map_surface``
+        takes them: values (connections to Material inputs followed), ``Image`` for a
+        plain image node feeding one, else ``Unread``."""
+        inputs = {}
+        for inp in shader.GetInputs():
+            name = inp.GetBaseName()
+            value, src = self._value(shader, name)
+            if src is not None:
+                inputs[name] = self._materialx_image(src)
+            elif value is not None:
+                inputs[name] = value if isinstance(value, (str, bool)) else np.asarray(value)
+        return inputs
+
+    def _materialx_image(self, node: UsdShade.Shader):
+        """A MaterialX node authored in USD as ``materialx.Image`` (``ND_image_*`` /
+        ``ND_tiledimage_*``) or ``materialx.Unread``."""
+        ident = str(node.GetIdAttr().Get() or "")
+        parts = ident.split("_")
+        if len(parts) < 3 or parts[1] not in materialx.IMAGE_CATEGORIES:
+            return materialx.Unread(ident or str(node.GetPath()))
         file_value, _ = self._value(node, "file")
-        where = f"{node.GetPath()}.inputs:file"
         inp = node.GetInput("file")
+        scalar = parts[2] == "float"
         space = str(inp.GetAttr().GetColorSpace() or "") if inp else ""
-        space = {"srgb_texture": "sRGB", "lin_rec709": "raw", "raw": "raw"}.get(space, "auto")
-        read = self._file(file_value, where, space)
-        if read is None:
-            return ""
-        pixels, _ = read
-        channels = _OUTPUT_CHANNELS["rgb"][min(max(pixels.shape[2], 1), 4)]
+        space = "raw" if scalar else materialx.COLOUR_SPACES.get(space, "auto")
         wrap = tuple(
-            _MATERIALX_WRAP.get(str(self._value(node, a)[0] or "periodic"), "repeat")
+            materialx.WRAP_MODES.get(str(self._value(node, a)[0] or "periodic"), "repeat")
             for a in ("uaddressmode", "vaddressmode")
         )
-        spec = TextureInput(
-            image=pixels,
-            channels=tuple(int(c) for c in channels),
-            scale=np.full(3, weight, np.float32),
-            bias=np.zeros(3, np.float32),
-            wrap=wrap,
-        )
-        self._use(row, "diffuseColor", spec, "st")
-        return str(getattr(file_value, "path", file_value))
+        transform = None
+        if parts[1] == "tiledimage":
+            transform = materialx.tiling_transform(
+                self._constant(node, "uvtiling", (1.0, 1.0)),
+                self._constant(node, "uvoffset", (0.0, 0.0)),
+            )
+        where = f"{node.GetPath()}.inputs:file"
+        return materialx.Image(file_value, where, space, wrap, transform, scalar)
+
+    def _apply_mapped(self, row: _MaterialRow, mapped, where: str, kind: str) -> None:
+        """Fill ``row`` from a ``materialx.MappedSurface``: its constants (clamped as a
+        UsdPreviewSurface's are), its images as textures; one notice naming what the
+        mapping left out, if anything."""
+        for name, value in mapped.constants.items():
+            value = np.nan_to_num(np.asarray(value, np.float64)).reshape(-1)
+            if name == "opacityThreshold":
+                row.opacity_threshold = float(np.clip(value[0], 0.0, 1.0))
+            elif name == "ior":
+                row.ior = float(value[0]) if value[0] > 0.0 else 1.5
+            elif name in BRDF_INPUTS:
+                setattr(row, BRDF_INPUTS[name], float(np.clip(value[0], 0.0, 1.0)))
+            else:
+                self._set_constant(row, name, np.resize(value, 3 if value.size > 1 else 1))
+        row.diffuse_authored = True
+        for name, (image, scale, bias) in mapped.images.items():
+            read = self._file(image.file, image.where, image.colour_space)
+            if read is None:  # not found or not decoded: a problem line, the constant
+                continue
+            pixels, _ = read
+            output = "r" if image.scalar or len(scale) == 1 else "rgb"
+            channels = _OUTPUT_CHANNELS[output][min(max(pixels.shape[2], 1), 4)]
+            if len(scale) == 3 and output == "r":
+                channels = channels * 3
+            spec = TextureInput(
+                image=pixels,
+                channels=tuple(int(c) for c in channels),
+                scale=np.resize(scale, len(channels)).astype(np.float32),
+                bias=np.resize(bias, len(channels)).astype(np.float32),
+                wrap=image.wrap,
+                transform=image.transform,
+            )
+            self._use(row, name, spec, "st")
+        self.materialx_paths["mapped"].append(where)
+        if mapped.dropped:
+            self.notices.append(
+                f"{where}: MaterialX {kind} mapped onto UsdPreviewSurface without "
+                + "; ".join(mapped.dropped)
+            )
 
     def table(self) -> MaterialTable:
         rows = self.rows
