@@ -22,10 +22,15 @@ from pathlib import PurePosixPath
 
 from pxr import Ar, Usd, UsdGeom, UsdLux, UsdShade, UsdSkel, UsdVol
 
-from phrt_usd.usd import schema
+from phrt_usd.usd import materialx, schema
 from phrt_usd.usd.curves import TUBE_SIDES
 from phrt_usd.usd.lights import READ_LIGHT_TYPE_NAMES
-from phrt_usd.usd.materials import MATERIALX_BASE_COLOUR, TEXTURED_INPUTS
+from phrt_usd.usd.materials import (
+    TEXTURED_INPUTS,
+    MaterialBank,
+    binding_purposes,
+    bound_material,
+)
 from phrt_usd.usd.meshes import is_subdivided
 
 #: Prim paths listed per kind (the count is always complete).
@@ -58,29 +63,36 @@ def _preview_surface(material: UsdShade.Material) -> UsdShade.Shader | None:
 
 
 def _materialx_only(prim: Usd.Prim) -> bool:
+    """A material without a UsdPreviewSurface whose surface is MaterialX: its ``mtlx``
+    output connected, or a MaterialX node the render maps on its universal output."""
     if not prim.IsA(UsdShade.Material):
         return False
     material = UsdShade.Material(prim)
     if _preview_surface(material) is not None:
         return False
     out = material.GetSurfaceOutput("mtlx")
-    return bool(out and out.HasConnectedSource())
+    connected = bool(out and out.HasConnectedSource())
+    return connected or _materialx_surface_id(prim) in materialx.SURFACE_KINDS
 
 
 def _materialx_surface_id(prim: Usd.Prim) -> str:
-    """The shader id of a MaterialX-only material's ``mtlx`` surface ("" if none)."""
+    """The shader id of a material's ``mtlx`` (else universal) surface ("" if none)."""
     shader = UsdShade.Material(prim).ComputeSurfaceSource("mtlx")[0]
     return str(shader.GetIdAttr().Get() or "") if shader else ""
 
 
-def _materialx_base_colour(prim: Usd.Prim) -> bool:
-    """MaterialX-only, of a surface whose base colour ``usd/materials.py`` reads."""
-    return _materialx_only(prim) and _materialx_surface_id(prim) in MATERIALX_BASE_COLOUR
+def _materialx_approximated(prim: Usd.Prim) -> bool:
+    """MaterialX-only, mapped onto UsdPreviewSurface (``usd/materialx.py``) without some
+    input it authors (the render's notice names them)."""
+    if not _materialx_only(prim):
+        return False
+    mapped = MaterialBank(Usd.TimeCode.Default()).materialx_mapping(UsdShade.Material(prim))[1]
+    return mapped is not None and bool(mapped.dropped)
 
 
 def _materialx_grey(prim: Usd.Prim) -> bool:
     """MaterialX-only, of a surface ``usd/materials.py`` does not read (grey)."""
-    return _materialx_only(prim) and _materialx_surface_id(prim) not in MATERIALX_BASE_COLOUR
+    return _materialx_only(prim) and _materialx_surface_id(prim) not in materialx.SURFACE_KINDS
 
 
 def _other_surface_only(prim: Usd.Prim) -> bool:
@@ -152,11 +164,14 @@ def _texture_opacity_without_threshold(prim: Usd.Prim) -> bool:
 
 def _rough_reflector(prim: Usd.Prim) -> bool:
     """A reflector whose bound UsdPreviewSurface has roughness > 0 (authored, connected
-    or the spec's fallback 0.5): the render reflects it as a perfect mirror."""
+    or the spec's fallback 0.5): the render reflects it as a perfect mirror. The material
+    is the one the render binds (``materials.bound_material`` for the binding purposes
+    of the render settings, ``materials.binding_purposes``)."""
     if not (prim.IsA(UsdGeom.Gprim) and schema.is_reflector(prim)):
         return False
-    material = UsdShade.MaterialBindingAPI(prim).ComputeBoundMaterial()[0]
-    shader = _preview_surface(material) if material else None
+    material = bound_material(prim, binding_purposes(prim.GetStage()))
+    bound = isinstance(material, UsdShade.Material)
+    shader = _preview_surface(material) if bound else None
     if shader is None:
         return False
     inp = shader.GetInput("roughness")
@@ -268,16 +283,18 @@ def _of_types(*types) -> Callable[[Usd.Prim], bool]:
 #: What the render does not read as USD defines it, one row per kind (module doc).
 KINDS: tuple[SupportKind, ...] = (
     SupportKind(
-        "materialx_base_colour", "materials MaterialX", "approximated: base colour only",
-        "a MaterialX-only material (ND_standard_surface, ND_open_pbr_surface, "
-        "ND_UsdPreviewSurface) renders its base colour and a plain image on it "
-        "(usd/materials.py MATERIALX_BASE_COLOUR); the rest of the surface is not read",
-        _materialx_base_colour,
+        "materialx_approximated", "materials MaterialX",
+        "approximated: mapped onto UsdPreviewSurface without some inputs",
+        "a MaterialX standard_surface, open_pbr_surface or UsdPreviewSurface is mapped onto "
+        "UsdPreviewSurface's inputs (usd/materialx.py); inputs it authors that the mapping "
+        "leaves out (sheen, subsurface scattering, a metal's edge tint, ...) are named in "
+        "the render's notice",
+        _materialx_approximated,
     ),
     SupportKind(
         "materialx_only", "materials MaterialX", "approximated: grey",
-        "a MaterialX-only material of another surface shader renders as the default "
-        "grey material (usd/materials.py reads the base colour of MATERIALX_BASE_COLOUR)",
+        "a MaterialX material of another surface shader renders as the default grey "
+        "material (usd/materialx.py maps SURFACE_KINDS)",
         _materialx_grey,
     ),
     SupportKind(

@@ -64,6 +64,7 @@ def _every_kind(tmp_path) -> str:
     mtlx = UsdShade.Material.Define(stage, "/World/Looks/Mtlx")
     std = UsdShade.Shader.Define(stage, "/World/Looks/Mtlx/Std")
     std.CreateIdAttr("ND_standard_surface_surfaceshader")
+    std.CreateInput("sheen", Sdf.ValueTypeNames.Float).Set(0.5)  # not mapped: listed
     mtlx.CreateSurfaceOutput("mtlx").ConnectToSource(std.ConnectableAPI(), "out")
     studio = UsdShade.Material.Define(stage, "/World/Looks/Studio")  # a surface not read
     own = UsdShade.Shader.Define(stage, "/World/Looks/Studio/Own")
@@ -156,7 +157,7 @@ def _every_kind(tmp_path) -> str:
 
 #: kind → the prim paths the report must list (all, in traversal order).
 EXPECTED = {
-    "materialx_base_colour": ["/World/Looks/Mtlx"],
+    "materialx_approximated": ["/World/Looks/Mtlx"],
     "materialx_only": ["/World/Looks/Studio"],
     "other_surface_only": ["/World/Looks/Ri"],
     "subdivided_mesh": ["/World/Rock_1/Shape", "/World/Rock_2/Shape", "/World/Cage"],
@@ -198,7 +199,10 @@ def test_every_kind_is_reported_with_counts_and_paths(tmp_path):
     assert by_kind["materialx_only"]["treatment"] == "approximated: grey"
     lines = support_lines(rows)
     assert "1 materials MaterialX: approximated: grey (/World/Looks/Studio)" in lines
-    assert "1 materials MaterialX: approximated: base colour only (/World/Looks/Mtlx)" in lines
+    assert (
+        "1 materials MaterialX: approximated: mapped onto UsdPreviewSurface without some "
+        "inputs (/World/Looks/Mtlx)" in lines
+    )
 
 
 def test_supported_stage_reports_nothing_and_cli_carries_it(tmp_path):
@@ -235,3 +239,25 @@ def test_supported_stage_reports_nothing_and_cli_carries_it(tmp_path):
     result = phrt_usd.render(path, tmp_path / "out", frames="1", mode="raster",
                              resolution=(32, 24))  # fmt: skip
     assert [r["kind"] for r in result.summary["support"]] == ["subdivided_mesh"]
+
+
+def test_probe_rough_reflector_binding_purposes():
+    """The rough-reflector row follows the material the render binds: a ``full``
+    binding to a mirror (roughness 0) wins over an all-purpose binding to a rough
+    material, so the reflector is not listed; with render settings asking for
+    ``preview`` bindings only, the all-purpose rough one is bound, and it is."""
+    from pxr import UsdRender
+
+    stage = Usd.Stage.CreateInMemory()
+    mirror = _preview(stage, "/Looks/Mirror", roughness=0.0)
+    rough = _preview(stage, "/Looks/Rough", roughness=0.5)
+    mesh = _quad(stage, "/Floor")
+    schema.apply_reflector(mesh.GetPrim(), priority=1.0)
+    api = UsdShade.MaterialBindingAPI.Apply(mesh.GetPrim())
+    api.Bind(rough)
+    api.Bind(mirror, materialPurpose=UsdShade.Tokens.full)
+    assert "rough_reflector" not in {r["kind"] for r in support_report(stage)}
+    settings = UsdRender.Settings.Define(stage, "/Render/Settings")
+    settings.CreateMaterialBindingPurposesAttr([UsdShade.Tokens.preview, ""])
+    rows = {r["kind"]: r for r in support_report(stage)}
+    assert rows["rough_reflector"]["paths"] == ["/Floor"]
