@@ -1,4 +1,6 @@
-"""BasisCurves as tubes: each curve swept by a circle of its width, in the prim's space.
+"""BasisCurves as tubes or ribbons: each curve swept by a circle of its width, or, where
+the curves author ``normals``, by a flat strip of its width facing them; in the prim's
+space.
 
 UsdGeomBasisCurves as the schema defines it: ``curveVertexCounts`` split ``points`` into
 curves; ``type`` ``linear`` (a polyline through the points) or ``cubic`` with ``basis``
@@ -15,8 +17,11 @@ end) interpolated linearly along the curve's parameter; unauthored, ``DEFAULT_WI
 along the same way (``tube_corner_colours``).
 
 The tube: ``TUBE_SIDES`` sides, a ring per sample in a frame carried along the curve by
-parallel transport (no twist), its normals radial; the ends are open. Ribbons (curves
-with authored ``normals``) are drawn as tubes too.
+parallel transport (no twist), its normals radial; the ends are open. The ribbon (as the
+schema and Storm draw curves with authored ``normals``): a pair of vertices per sample,
+``width / 2`` either side of the curve along ``tangent x normal``, the normal (carried
+along the curve as widths are, then made perpendicular to the tangent) the strip's
+normal at both; its triangles wound to face the normal.
 
 ``tube_geometry`` raises ``PhrtError`` (one line naming the attribute) for counts that do
 not add up to the points or widths of the wrong count.
@@ -152,12 +157,37 @@ def _curve_layout(prim: Usd.Prim, time: Usd.TimeCode):
 
 def tube_corner_colours(prim: Usd.Prim, time: Usd.TimeCode, values, interp: str, where: str):
     """(T, 3, 3) the colour primvar ``values`` ((v, 3), interpolation ``interp``) at the
-    corners of ``tube_geometry``'s triangles: each ring takes its sample's value."""
+    corners of ``tube_geometry``'s triangles: each ring (or ribbon pair) takes its
+    sample's value."""
     points, counts, kind, basis, wrap = _curve_layout(prim, time)
     samples, owner, u = _polylines(points, counts, kind, basis, wrap)
     per_sample = _along(np.asarray(values, np.float64).reshape(-1, 3), interp, where,
                         counts, kind, basis, wrap, owner, u)  # fmt: skip
+    if _authored_normals(prim, time) is not None:
+        return per_sample[_ribbon_triangles(owner) // 2]
     return per_sample[_triangles(owner) // TUBE_SIDES]
+
+
+def _authored_normals(prim: Usd.Prim, time: Usd.TimeCode):
+    """((v, 3) normals, interpolation) of curves that author ``normals`` (ribbons), else
+    None."""
+    curves = UsdGeom.BasisCurves(prim)
+    values = curves.GetNormalsAttr().Get(time)
+    if values is None or len(values) == 0:
+        return None
+    normals = np.nan_to_num(np.asarray(values, np.float64)).reshape(-1, 3)
+    return normals, str(curves.GetNormalsInterpolation())
+
+
+def _ribbon_triangles(owner: np.ndarray) -> np.ndarray:
+    """(T, 3) the ribbon's triangles over pairs of vertices (2 i: the ``+ side`` one,
+    2 i + 1 the ``- side`` one, per sample i): one quad between consecutive samples of
+    one curve, wound so that its geometric normal is ``tangent x side`` (the normal)."""
+    k = np.flatnonzero(owner[1:] == owner[:-1])
+    a0, a1, b0, b1 = 2 * k, 2 * k + 1, 2 * k + 2, 2 * k + 3
+    return np.concatenate([np.stack([a0, b0, b1], 1), np.stack([a0, b1, a1], 1)]).astype(
+        np.int64
+    )
 
 
 def _triangles(owner: np.ndarray) -> np.ndarray:
@@ -175,13 +205,8 @@ def _triangles(owner: np.ndarray) -> np.ndarray:
 def _frames(samples: np.ndarray, owner: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(normal, binormal) (m, 3) each: a frame per sample carried along each curve by
     parallel transport from a start normal perpendicular to the first tangent."""
-    ahead = np.roll(samples, -1, axis=0)
-    behind = np.roll(samples, 1, axis=0)
     first = np.r_[True, owner[1:] != owner[:-1]]
-    last = np.r_[owner[1:] != owner[:-1], True]
-    ahead[last] = samples[last]
-    behind[first] = samples[first]
-    tangent = safe_normalize(ahead - behind)
+    tangent = _tangents(samples, owner)
     normal = np.zeros_like(samples)
     # A start normal: the tangent crossed with the axis it is least aligned with.
     axis = np.eye(3)[np.argmin(np.abs(tangent[first]), axis=1)]
@@ -198,12 +223,34 @@ def _frames(samples: np.ndarray, owner: np.ndarray) -> tuple[np.ndarray, np.ndar
     return normal, np.cross(tangent, normal)
 
 
+def _tangents(samples: np.ndarray, owner: np.ndarray) -> np.ndarray:
+    """(m, 3) unit tangent per sample (central differences within each curve)."""
+    ahead = np.roll(samples, -1, axis=0)
+    behind = np.roll(samples, 1, axis=0)
+    first = np.r_[True, owner[1:] != owner[:-1]]
+    last = np.r_[owner[1:] != owner[:-1], True]
+    ahead[last] = samples[last]
+    behind[first] = samples[first]
+    return safe_normalize(ahead - behind)
+
+
 def tube_geometry(prim: Usd.Prim, time: Usd.TimeCode):
-    """Points (n, 3), triangles (T, 3) counter-clockwise from outside, corner normals
-    (T, 3, 3) of the tubes of a BasisCurves prim, in its space (the module)."""
+    """Points (n, 3), triangles (T, 3) counter-clockwise from outside (a ribbon's: seen
+    from its normals' side), corner normals (T, 3, 3) of the tubes, or the ribbons where
+    ``normals`` are authored, of a BasisCurves prim, in its space (the module)."""
     points, counts, kind, basis, wrap = _curve_layout(prim, time)
     samples, owner, u = _polylines(points, counts, kind, basis, wrap)
     radius = 0.5 * _widths(prim, time, counts, kind, basis, wrap, owner, u)
+    authored = _authored_normals(prim, time)
+    if authored is not None:
+        where = f"{prim.GetPath()}.normals"
+        along = _along(authored[0], authored[1], where, counts, kind, basis, wrap, owner, u)
+        tangent = _tangents(samples, owner)
+        facing = safe_normalize(along - np.sum(along * tangent, axis=1, keepdims=True) * tangent)
+        side = safe_normalize(np.cross(tangent, facing))
+        pair = np.stack([samples + radius[:, None] * side, samples - radius[:, None] * side], 1)
+        triangles = _ribbon_triangles(owner)
+        return pair.reshape(-1, 3), triangles, np.repeat(facing, 2, axis=0)[triangles]
     normal, binormal = _frames(samples, owner)
     angle = 2 * np.pi * np.arange(TUBE_SIDES) / TUBE_SIDES
     radial = (np.cos(angle)[None, :, None] * normal[:, None, :]

@@ -329,8 +329,9 @@ KINDS: tuple[SupportKind, ...] = (
     ),
     SupportKind(
         "basis_curves", "BasisCurves",
-        f"approximated: tubes of {TUBE_SIDES} sides, open ends (ribbons too)",
-        "usd/curves.py sweeps a circle of the widths along each curve",
+        f"approximated: tubes of {TUBE_SIDES} sides, open ends; with normals, flat ribbons",
+        "usd/curves.py sweeps a circle of the widths along each curve, or, where the curves "
+        "author normals, a strip of the widths facing them",
         _of_types(UsdGeom.BasisCurves),
     ),
     SupportKind(

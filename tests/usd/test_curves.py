@@ -108,3 +108,46 @@ def test_vertex_colours_vary_along_the_tube(tmp_path, mode):
     expected = preview_shade(colour, (0.0, 0.0, 0.5), (0.0, 0.0, 5.0), ambient=1.0)
     # 0.03: the front facets' tilt (within 8 degrees) as in the test above.
     np.testing.assert_allclose(out.beauty[7, W // 2], expected, atol=0.03)
+
+
+@pytest.mark.parametrize("mode", MODES)
+def test_curves_with_normals_are_ribbons_facing_them(tmp_path, mode):
+    """The same curve with ``normals`` (0, 0, 1) authored: a flat strip of width 1 at
+    z = 0 facing the camera, so the centre column covers rows 4..11 (|y| < 0.5, the row
+    centres nearest the edges being 0.4375 and 0.5625), and the pixel (7, 8), which sees
+    the strip's point (0.0625, 0.0625, 0) along its normal, shades as the red material
+    there (float32 shading: 1e-4). Normals (0, 1, 0) turn the strip edge-on to the
+    camera: no pixel sees it (a tube would cover the same rows 4..11)."""
+    stage = _curve_stage(tmp_path, "cubic", "catmullRom", width=1.0)
+    hair = UsdGeom.BasisCurves(stage.GetPrimAtPath("/Hair"))
+    hair.CreateNormalsAttr([(0, 0, 1)] * 4)  # vertex interpolation (the fallback)
+    out = first_frame(stage, mode, W, H)
+    covered = np.flatnonzero(out.gbuffer.element_id[:, W // 2] >= 0)
+    assert covered.tolist() == list(range(4, 12))
+    facing = preview_shade(RED, (0.0625, 0.0625, 0.0), (0.0, 0.0, 5.0), ambient=1.0)
+    np.testing.assert_allclose(out.beauty[7, W // 2], facing, atol=1e-4)
+    hair.GetNormalsAttr().Set([(0, 1, 0)] * 4)
+    edge_on = first_frame(stage, mode, W, H)
+    assert not (edge_on.gbuffer.element_id >= 0).any()
+
+
+def test_ribbon_geometry_faces_its_normals():
+    """A ribbon's triangles are wound to face the authored normal (their geometric
+    normal along it) and carry it at every corner; 2 vertices a sample."""
+    stage = Usd.Stage.CreateInMemory()
+    hair = UsdGeom.BasisCurves.Define(stage, "/Hair")
+    hair.CreateTypeAttr("linear")
+    hair.CreatePointsAttr([(0, 0, 0), (1, 0, 0), (2, 0, 1)])
+    hair.CreateCurveVertexCountsAttr([3])
+    hair.CreateWidthsAttr([0.2])
+    hair.SetWidthsInterpolation(UsdGeom.Tokens.constant)
+    hair.CreateNormalsAttr([(0, 1, 0)])
+    hair.SetNormalsInterpolation(UsdGeom.Tokens.constant)
+    pts, tris, nrm = curves.tube_geometry(hair.GetPrim(), Usd.TimeCode.Default())
+    assert pts.shape == (6, 3) and tris.shape == (4, 3)
+    a, b, c = pts[tris[:, 0]], pts[tris[:, 1]], pts[tris[:, 2]]
+    geometric = np.cross(b - a, c - a)
+    assert (geometric[:, 1] > 0).all()  # every triangle faces +y, the normal
+    np.testing.assert_allclose(nrm.reshape(-1, 3), np.tile((0.0, 1.0, 0.0), (12, 1)), atol=1e-12)
+    # The strip is 0.2 wide across the curve: the first pair straddles the first point.
+    np.testing.assert_allclose(np.linalg.norm(pts[0] - pts[1]), 0.2, atol=1e-12)
