@@ -29,9 +29,12 @@ surface`` graph does), with ``specular`` / ``specular_color`` and ``transmission
 
 UsdPreviewSurface input <- standard_surface (open_pbr_surface's name where it differs):
 
-- diffuseColor <- (base * base_color * (1 - subsurface) + subsurface * subsurface_color)
-  * lerp(1, coat_color, coat) (base_weight, subsurface_weight, coat_weight): the coat's
-  colour tints what is under it;
+- diffuseColor <- ((base * base_color * (1 - subsurface) + subsurface * subsurface_color)
+  * (1 - transmission) + transmission * transmission_color) * lerp(1, coat_color, coat)
+  (base_weight, subsurface_weight, transmission_weight, coat_weight): the coat's colour
+  tints what is under it; a transmissive surface's colour is its transmission colour
+  (what shows where the render draws glass opaque: surfaces it does not trace; where it
+  refracts, opacity 0 gives the diffuse no weight);
 - metallic <- metalness (base_metalness); roughness <- specular_roughness;
   ior <- specular_IOR (specular_ior);
 - useSpecularWorkflow = 1 and specularColor <- specular * specular_color * R²(ior)
@@ -46,11 +49,12 @@ UsdPreviewSurface input <- standard_surface (open_pbr_surface's name where it di
 Approximations, each named in the one notice of a material (``MappedSurface.dropped``)
 where the surface authors it: a metal's ``specular_color`` (its edge tint: F90 is the
 base colour, as UsdPreviewSurface's metallic workflow has it) and ``specular`` weight
-on a metal; ``coat_IOR`` (the coat's Fresnel uses ``specular_IOR``); ``transmission_color``
-(glass is untinted); ``subsurface`` (its colour is diffuse, no scattering); and every
-other input authored away from its default (``diffuse_roughness``, sheen / fuzz, thin
-film, anisotropy, normals, ...). An image on an input the table does not texture, or a
-node other than a plain image, gives the input's default and a notice.
+on a metal; ``coat_IOR`` (the coat's Fresnel uses ``specular_IOR``);
+``transmission_color`` (refracted light is untinted: the colour is only the diffuse
+one); ``subsurface`` (its colour is diffuse, no scattering); and every other input
+authored away from its default (``diffuse_roughness``, sheen / fuzz, thin film,
+anisotropy, normals, ...). An image on an input the table does not texture, or a node
+other than a plain image, gives the input's default and a notice.
 
 ``MaterialX`` is imported on first use only (a stage without MaterialX pays nothing).
 """
@@ -218,13 +222,17 @@ def map_surface(kind: str, inputs: dict, defaults: dict) -> MappedSurface:
         return np.clip(np.resize(value[name].reshape(-1), 3), 0.0, None)
 
     base, subsurface, coat = scalar("base"), scalar("subsurface"), scalar("coat")
+    transmission = scalar("transmission")
     tint = 1.0 + (np.clip(colour("coat_color"), 0.0, 1.0) - 1.0) * coat  # the coat's colour
-    under = subsurface * colour("subsurface_color") * tint
+    # What is not the base's own colour: subsurface's, then transmission's (see the module).
+    under = (subsurface * colour("subsurface_color") * (1.0 - transmission)
+             + transmission * colour("transmission_color")) * tint  # fmt: skip
+    base_scale = base * (1.0 - subsurface) * (1.0 - transmission) * tint
     metallic = scalar("metalness")
     ior = scalar("specular_IOR", 0.0, np.inf) or 1.5
     emission = max(float(value["emission"].reshape(-1)[0]), 0.0)
     c = out.constants
-    c["diffuseColor"] = base * colour("base_color") * (1.0 - subsurface) * tint + under
+    c["diffuseColor"] = base_scale * colour("base_color") + under
     c["metallic"] = np.float64(metallic)
     c["roughness"] = np.float64(scalar("specular_roughness"))
     c["ior"] = np.float64(ior)
@@ -232,7 +240,7 @@ def map_surface(kind: str, inputs: dict, defaults: dict) -> MappedSurface:
     c["clearcoatRoughness"] = np.float64(scalar("coat_roughness"))
     c["emissiveColor"] = emission * colour("emission_color") * tint
     c["opacity"] = np.float64(float(np.mean(np.clip(value["opacity"], 0.0, 1.0)))
-                              * (1.0 - scalar("transmission")))  # fmt: skip
+                              * (1.0 - transmission))  # fmt: skip
     weight, tone = scalar("specular", 0.0, np.inf), np.clip(colour("specular_color"), 0, 1)
     plain = _same(weight, 1.0) and _same(tone, np.ones(3))
     metal = metallic > 0.0 or "metalness" in images
@@ -244,14 +252,15 @@ def map_surface(kind: str, inputs: dict, defaults: dict) -> MappedSurface:
                            "(its edge tint: F90 is the base colour)")  # fmt: skip
     if coat > 0.0 and not _same(value["coat_IOR"], ior):
         out.dropped.append(f"{names['coat_IOR']} (the coat's Fresnel uses the base's ior)")
-    if scalar("transmission") > 0.0 and not _same(colour("transmission_color"), np.ones(3)):
-        out.dropped.append(f"{names['transmission_color']} (glass is untinted)")
+    if transmission > 0.0 and not _same(colour("transmission_color"), np.ones(3)):
+        out.dropped.append(f"{names['transmission_color']} (refracted light is untinted; "
+                           "the colour is the diffuse one)")  # fmt: skip
     if subsurface > 0.0:
         out.dropped.append(f"{names['subsurface']} (its colour as diffuse, no scattering)")
     for name, image in images.items():
         target = TEXTURED[name]
         if name == "base_color":
-            scale, bias = base * (1.0 - subsurface) * tint, under
+            scale, bias = base_scale, under
         elif name == "emission_color":
             scale, bias = emission * tint, np.zeros(3)
         else:

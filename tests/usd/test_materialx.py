@@ -219,6 +219,16 @@ def test_mapping_table():
     glass = materialx.map_surface("standard_surface", {"transmission": 1.0}, std)
     assert float(glass.constants["opacity"]) == 0.0  # full transmission: the glass
     assert glass.dropped == []
+    # Its colour is the transmission colour (white by default), not the base weight's.
+    np.testing.assert_allclose(glass.constants["diffuseColor"], (1.0, 1.0, 1.0))
+    tinted = materialx.map_surface(
+        "standard_surface", {"transmission": 0.5,
+                             "transmission_color": np.array([0.0, 1.0, 0.0])}, std,
+    )  # fmt: skip
+    # 0.5 * 0.8 * 1 (base, base_color's default 0.8) + 0.5 * (0, 1, 0)
+    np.testing.assert_allclose(tinted.constants["diffuseColor"], (0.4, 0.9, 0.4))
+    assert float(tinted.constants["opacity"]) == 0.5
+    assert any(d.startswith("transmission_color") for d in tinted.dropped)
     mixed = materialx.map_surface(
         "standard_surface", {"base": 0.5, "subsurface": 0.5,
                              "subsurface_color": np.array([1.0, 0.0, 0.0])}, std,
