@@ -500,7 +500,9 @@ class MaterialBank:
             self.materialx_paths["grey"].append(material.path)
             self.notices.append(
                 f"{where}: MaterialX surface {ident or '(none)'} is not read; rendered grey"
-            )
+                if material.document else f"{material.path}: no MaterialX material "
+                f"{material.name} in the .mtlx documents referenced there; rendered grey"
+            )  # fmt: skip
             return
         self._apply_mapped(row, materialx.map_surface(kind, inputs, defaults), where, kind)
 

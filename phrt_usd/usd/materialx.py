@@ -163,7 +163,8 @@ class MappedSurface:
 class DocumentMaterial:
     """A material of a ``.mtlx`` document a binding targets through an arc USD could not
     compose: ``path`` the binding's target (the USD path usdMtlx would have made),
-    ``document`` the resolved file, ``name`` the material's name in it."""
+    ``document`` the resolved file ("" when no document the prim references defines
+    it), ``name`` the material's name in it."""
 
     path: str
     document: str
@@ -380,13 +381,15 @@ def referenced_material(stage: Usd.Stage, target: Sdf.Path) -> DocumentMaterial 
     while path != Sdf.Path.absoluteRootPath and not path.isEmpty:
         prim = stage.GetPrimAtPath(path)
         arcs = _document_arcs(prim) if prim else []
+        missing = ""
         for document, arc_path in arcs:
             name = _material_name(arc_path, Sdf.Path(target).MakeRelativePath(path))
             doc = read_document(document)[0] if document and name else None
             if doc is not None and _material_node(doc, name) is not None:
                 return DocumentMaterial(str(target), document, name)
-        if arcs:
-            return None
+            missing = missing or (name if doc is not None else "")
+        if arcs:  # a material the readable documents do not define: "" as its document
+            return DocumentMaterial(str(target), "", missing) if missing else None
         path = path.GetParentPath()
     return None
 
@@ -402,7 +405,7 @@ def document_surface(material: DocumentMaterial):
     material's surface shader: inputs as ``map_surface`` takes them."""
     import MaterialX as mx
 
-    doc = read_document(material.document)[0]
+    doc = read_document(material.document)[0] if material.document else None
     node = _material_node(doc, material.name) if doc is not None else None
     shaders = mx.getShaderNodes(node) if node is not None else []
     if not shaders:

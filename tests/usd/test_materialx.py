@@ -194,6 +194,22 @@ def test_missing_document_keeps_one_notice(tmp_path):
     assert len(scene.scene.materials.opacity) == 1  # only row 0: nothing bound
 
 
+def test_material_the_document_lacks_is_named(tmp_path):
+    """A binding under a readable document's arc to a material the document does not
+    define: grey (row 1 at UsdPreviewSurface's 0.18) and one notice naming it."""
+    _document(tmp_path / "gold.mtlx", "standard_surface", "gold", metalness=1.0)
+    stage = _ball_stage(tmp_path / "lacks.usda")
+    _reference(stage, "/Looks/Mtlx", "gold.mtlx")
+    _bind(stage, "/Looks/Mtlx/silver")
+    stage.GetRootLayer().Save()
+    scene = read_stage(stage)
+    assert scene.warnings == [
+        "/Looks/Mtlx/silver: no MaterialX material silver in the .mtlx documents "
+        "referenced there; rendered grey"
+    ]
+    np.testing.assert_allclose(scene.scene.materials.diffuse[1], [0.18] * 3, atol=1e-7)
+
+
 def test_dropped_inputs_are_named_once(tmp_path):
     """A document surface authoring what the mapping leaves out (sheen, a metal's edge
     tint, a coat IOR other than the base's): one notice naming each, and the support
