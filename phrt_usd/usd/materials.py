@@ -469,6 +469,12 @@ class MaterialBank:
         grey silently (the support report lists them)."""
         path = str(material.GetPath())
         kind, mapped = self.materialx_mapping(material)
+        if mapped is None and not kind:  # no surface: a Material referencing a document's?
+            prim = material.GetPrim()
+            document = materialx.referenced_material(prim.GetStage(), prim.GetPath())
+            if document is not None:
+                self._read_document(row, document)
+                return
         if mapped is None:
             out = material.GetSurfaceOutput("mtlx")
             if out and out.HasConnectedSource():

@@ -194,6 +194,24 @@ def test_missing_document_keeps_one_notice(tmp_path):
     assert len(scene.scene.materials.opacity) == 1  # only row 0: nothing bound
 
 
+def test_material_prim_referencing_its_document_material(tmp_path):
+    """A Material prim that itself references a document's material
+    (``@gold.mtlx@</MaterialX/Materials/gold>``): the same row as the binding through
+    a referencing scope, no warning."""
+    _document(tmp_path / "gold.mtlx", "standard_surface", "gold",
+              base_color=GOLD, metalness=1.0, specular_roughness=0.3)  # fmt: skip
+    stage = _ball_stage(tmp_path / "direct.usda")
+    mat = UsdShade.Material.Define(stage, "/Looks/Gold").GetPrim()
+    mat.GetReferences().AddReference("gold.mtlx", Sdf.Path("/MaterialX/Materials/gold"))
+    _bind(stage, "/Looks/Gold")
+    stage.GetRootLayer().Save()
+    scene = read_stage(stage)
+    assert scene.warnings == []
+    materials = scene.scene.materials
+    np.testing.assert_allclose(materials.diffuse[1], GOLD, atol=1e-7)
+    assert materials.metallic[1] == 1.0 and abs(materials.roughness[1] - 0.3) < 1e-7
+
+
 def test_material_the_document_lacks_is_named(tmp_path):
     """A binding under a readable document's arc to a material the document does not
     define: grey (row 1 at UsdPreviewSurface's 0.18) and one notice naming it."""
