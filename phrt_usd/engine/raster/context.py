@@ -81,6 +81,16 @@ def transform_rows(v: np.ndarray, m: np.ndarray) -> np.ndarray:
     return np.einsum("ij,kj->ik", v, m)
 
 
+def vertices_of(triangles: np.ndarray, rows: np.ndarray, n_vertices: int) -> np.ndarray:
+    """Increasing indices (k,) int64 of the vertices that the ``triangles`` (T, 3) picked
+    by ``rows`` (a (T,) bool mask or indices) use: ``np.unique`` of their corners as a
+    scatter into a flag per vertex, O(T + V) instead of a sort (the chess set's 4.3 M
+    corners: 0.5-0.75 s sorted)."""
+    used = np.zeros(n_vertices, dtype=bool)
+    used[triangles[rows]] = True
+    return np.flatnonzero(used)
+
+
 def check_framebuffer(name: str) -> None:
     """Raise when the bound framebuffer (called ``name`` in the message) is incomplete."""
     status = GL.glCheckFramebufferStatus(GL.GL_FRAMEBUFFER)
@@ -237,13 +247,15 @@ class RasterContext:
         )
         self.animated_tri = flags[el]
         rel = self.uploaded
-        static_vertices = np.unique(self.triangles[~self.animated_tri])
-        if len(static_vertices):
-            sv = rel[static_vertices]
+        #: Increasing vertex indices of the static and the animated triangles
+        #: (``vertices_of``), what the bounds and the shadow maps' footprints read.
+        self.static_vertices = vertices_of(self.triangles, ~self.animated_tri, len(rel))
+        self.animated_vertices = vertices_of(self.triangles, self.animated_tri, len(rel))
+        if len(self.static_vertices):
+            sv = rel[self.static_vertices]
             self._static_bounds = np.stack([sv.min(axis=0), sv.max(axis=0)]).astype(np.float64)
         else:
             self._static_bounds = None
-        self._animated_vertices = np.unique(self.triangles[self.animated_tri])
         self._update_bounds()
         self.scene = scene
 
@@ -251,8 +263,8 @@ class RasterContext:
         """bounds_rel (2, 3) float64: rel bounds of all triangle vertices (static part
         cached, animated part recomputed); extent: their diagonal in metres (> 0)."""
         boxes = [] if self._static_bounds is None else [self._static_bounds]
-        if len(self._animated_vertices):
-            av = self.uploaded[self._animated_vertices]
+        if len(self.animated_vertices):
+            av = self.uploaded[self.animated_vertices]
             boxes.append(np.stack([av.min(axis=0), av.max(axis=0)]).astype(np.float64))
         if boxes:
             lo = np.min([b[0] for b in boxes], axis=0)
@@ -292,7 +304,7 @@ class RasterContext:
             return GeometryChange(
                 True, every, np.arange(len(self.triangles)), len(self.uploaded)
             )
-        vertices = np.unique(self.triangles[rows])
+        vertices = vertices_of(self.triangles, rows, len(self.uploaded))
         self.uploaded[vertices] = geo.vertices[vertices] - self.origin
         self._send_vertices(vertices)
         self.geometry_version = scene.versions.geometry
@@ -326,8 +338,7 @@ class RasterContext:
 
     def _static_bounds_stale(self) -> None:
         """A non-animated vertex moved: recompute the cached static bounds."""
-        static_vertices = np.unique(self.triangles[~self.animated_tri])
-        sv = self.uploaded[static_vertices]
+        sv = self.uploaded[self.static_vertices]
         self._static_bounds = np.stack([sv.min(axis=0), sv.max(axis=0)]).astype(np.float64)
 
     def batch(self, name: str) -> tuple[int, int, int]:

@@ -444,7 +444,7 @@ class ShadowMaps:
         if self._ctx.mesh_node is None or not mask.any():
             return None
         self.maps_rendered[name] += 1
-        used = np.unique(self._ctx.triangles[mask])
+        used = self._ctx.animated_vertices if name == "dynamic" else self._ctx.static_vertices
         lp = transform_rows(self._ctx.uploaded[used].astype(np.float64), frame)
         # Extents clamped away from 0 (flat casters) so the matrix is invertible.
         min_span = 1e-6 * max(self._ctx.extent, 1e-9)
@@ -528,7 +528,7 @@ class ShadowMaps:
         at ``texel`` metres per texel, between MIN_DYNAMIC_MAP_SIZE and SHADOW_MAP_SIZE."""
         if not self._ctx.animated_tri.any():
             return MIN_DYNAMIC_MAP_SIZE
-        used = np.unique(self._ctx.triangles[self._ctx.animated_tri])
+        used = self._ctx.animated_vertices
         lp = transform_rows(self._ctx.uploaded[used].astype(np.float64), frame[:2])
         span = float((lp.max(axis=0) - lp.min(axis=0)).max())
         size = int(np.ceil(span / max(texel, 1e-300))) + 4
