@@ -378,19 +378,21 @@ class MaterialBank:
         row.uv_primvar = varname
         h, w = spec.image.shape[:2]
         img = spec.image.reshape(h * w, -1)
-        texels = np.stack(
-            [np.ones(h * w, np.float32) if c == ALPHA_ONE else img[:, c] for c in spec.channels],
-            axis=1,
-        )
-        texels = texels * spec.scale + spec.bias
-        mean = texels.mean(axis=0).astype(np.float64)
+        # The texels' mean, channel by channel: scale and bias are affine, so the mean of
+        # the file's channel scaled is the scaled mean (no texel-sized temporaries: a
+        # 2048² map is 50 MB a channel set).
+        channel_means = [1.0 if c == ALPHA_ONE else float(img[:, c].mean(dtype=np.float64))
+                         for c in spec.channels]  # fmt: skip
+        mean = np.asarray(channel_means) * spec.scale + spec.bias
         if name == "diffuseColor":
-            row.texture = np.ascontiguousarray(
-                np.broadcast_to(
-                    texels[:, :3] if texels.shape[1] >= 3 else texels[:, :1], (h * w, 3)
-                ).reshape(h, w, 3),
-                dtype=np.float32,
-            )
+            # RGB from the first three outputs, or the first one as grey.
+            outputs = (0, 1, 2) if len(spec.channels) >= 3 else (0, 0, 0)
+            texels = np.empty((h * w, 3), np.float32)
+            for k, j in enumerate(outputs):
+                c = spec.channels[j]
+                src = np.float32(1.0) if c == ALPHA_ONE else img[:, c]
+                texels[:, k] = src * spec.scale[j] + spec.bias[j]
+            row.texture = texels.reshape(h, w, 3)
             row.diffuse = np.broadcast_to(mean, (3,)).copy() if mean.size == 1 else mean[:3]
             row.diffuse_authored = True
         elif name == "emissiveColor":
