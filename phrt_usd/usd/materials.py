@@ -385,14 +385,18 @@ class MaterialBank:
                          for c in spec.channels]  # fmt: skip
         mean = np.asarray(channel_means) * spec.scale + spec.bias
         if name == "diffuseColor":
-            # RGB from the first three outputs, or the first one as grey.
+            # RGB from the first three outputs, or the first one as grey; the file's own
+            # array where it is that already (an RGB file read as it is: no copy).
             outputs = (0, 1, 2) if len(spec.channels) >= 3 else (0, 0, 0)
-            texels = np.empty((h * w, 3), np.float32)
-            for k, j in enumerate(outputs):
-                c = spec.channels[j]
-                src = np.float32(1.0) if c == ALPHA_ONE else img[:, c]
-                texels[:, k] = src * spec.scale[j] + spec.bias[j]
-            row.texture = texels.reshape(h, w, 3)
+            plain = (
+                tuple(spec.channels) == (0, 1, 2) and spec.image.shape[2] == 3
+                and spec.image.dtype == np.float32 and spec.image.flags.c_contiguous
+                and np.all(spec.scale == 1.0) and np.all(spec.bias == 0.0)
+            )  # fmt: skip
+            if plain:
+                row.texture = spec.image
+            else:
+                row.texture = self._diffuse_texels(spec, img, outputs).reshape(h, w, 3)
             row.diffuse = np.broadcast_to(mean, (3,)).copy() if mean.size == 1 else mean[:3]
             row.diffuse_authored = True
         elif name == "emissiveColor":
@@ -401,6 +405,17 @@ class MaterialBank:
             # A textured opacity is a presence mask of a cut-out; without a threshold
             # it is not used as translucency (module docstring): the row is opaque.
             row.opacity = 1.0
+
+    @staticmethod
+    def _diffuse_texels(spec: TextureInput, img: np.ndarray, outputs) -> np.ndarray:
+        """(h w, 3) float32 diffuse colour texels of ``spec`` (``img`` its file's (h w, c)
+        texels): its ``outputs`` (indices into its channels) scaled and biased."""
+        texels = np.empty((len(img), 3), np.float32)
+        for k, j in enumerate(outputs):
+            c = spec.channels[j]
+            src = np.float32(1.0) if c == ALPHA_ONE else img[:, c]
+            texels[:, k] = src * spec.scale[j] + spec.bias[j]
+        return texels
 
     def _set_constant(self, row: _MaterialRow, name: str, value: np.ndarray) -> None:
         """An unreadable texture's ``fallback`` components as the input's constant."""
