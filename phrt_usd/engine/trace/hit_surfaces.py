@@ -90,7 +90,9 @@ class HitSurfaces:
             mean = preview_surface.mean_reflection(rows).mean(axis=1)
             f_material = np.minimum(mean, MATERIAL_MAX_F)[bvh.tri_material]
             self.tri_f = np.where(follows, f_material, self.tri_f)
-            self.local_scale = np.where(follows, 1.0 / (1.0 - self.tri_f), 1.0)
+            # Only the triangles that follow their material divide (their F is below
+            # MATERIAL_MAX_F < 1); an authored F = 1 mirror keeps scale 1 (no 1 / 0).
+            np.divide(1.0, 1.0 - self.tri_f, out=self.local_scale, where=follows)
         #: Per triangle: 1 where the ambient's specular part is shaded (no mirror
         #: reflection stands in for it), as the G-buffer's (``lighting``).
         self._specular_ambient = np.where(self.tri_reflector, 0.0, 1.0).astype(np.float32)
