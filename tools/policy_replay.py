@@ -81,6 +81,7 @@ from phrt_usd.evaluate.selection_metrics import (
     selection_metrics,
 )
 from phrt_usd.model.frame import Budget, FrameView, TraceRecord
+from phrt_usd.model.reflection_roughness import element_figures, started_share
 from phrt_usd.model.scene import CameraFrame, DistantLight, LocalLight
 from phrt_usd.model.trace_density import TRACE_DENSITIES, traced_fraction
 from phrt_usd.run.frames import parse_frames
@@ -164,6 +165,7 @@ def capture(
         "bounce_limit": params.bounce_limit,
         "lights": SimpleNamespace(distant=list(lights.distant), local=list(lights.local)),
         "reflectors": [int(i) for i in stage.scene.reflector_ids],
+        "reflection_figures": element_figures(stage.scene),
         "frames": policy.frames,
     }
     save_recording(out, data)
@@ -177,11 +179,14 @@ def capture(
 
 #: The ``format`` and ``version`` a recording file names; any other is refused.
 RECORDING_FORMAT = "phrt-replay-recording"
+#: 8: the elements' reflection figures (``model.reflection_roughness.element_figures``:
+#: gain from tracing, share of pixels that start rays);
+#: 7: LocalLight's emitting surface (area_shape, area_u, area_v);
 #: 6: TraceRecord's pixel kinds (screen_space, reused, filled, marched);
 #: 5: FrameView.trace_density; 4: CameraFrame.exposure_scale, the lights' path and
 #: LocalLight's cone; 3: TraceRecord.fallback_error; 2: CameraFrame's vertical aperture,
 #: offsets, conform policy.
-RECORDING_VERSION = 6
+RECORDING_VERSION = 8
 
 
 class RecordingError(PhrtError):
@@ -267,6 +272,9 @@ _SCHEMAS: dict[type, dict[str, object]] = {
         "cone_angle": float,
         "cone_softness": float,
         "focus": float,
+        "area_shape": str,
+        "area_u": _VEC3,
+        "area_v": _VEC3,
     },
 }
 
@@ -388,6 +396,10 @@ def encode_recording(data: dict) -> dict:
             "local": _encode(lights.local, _Tuple(LocalLight), "lights.local"),
         },
         "reflectors": _encode(data["reflectors"], _Tuple(int), "reflectors"),
+        "reflection_figures": [
+            _encode_array(np.asarray(a, np.float64), _FIGURES[k], f"reflection_figures[{k}]")
+            for k, a in enumerate(data["reflection_figures"])
+        ],
         "frames": frames,
     }
 
@@ -542,8 +554,11 @@ def _decode_frame(value, reflectors: list[int], where: str) -> SimpleNamespace:
 
 _RECORDING_FIELDS = (
     "format", "version", "stage", "selection_weight", "bounce_limit", "lights", "reflectors",
-    "frames",
+    "reflection_figures", "frames",
 )  # fmt: skip
+#: The kinds of a recording's reflection figures (``element_figures``: a float per
+#: element, a row of one per trace density per element).
+_FIGURES = (_Array(_F8, None), _Array(_F8, None, None))
 
 
 def decode_recording(value) -> dict:
@@ -578,6 +593,10 @@ def decode_recording(value) -> dict:
             local=list(_decode(lights["local"], _Tuple(LocalLight), "lights.local")),
         ),
         "reflectors": reflectors,
+        "reflection_figures": tuple(
+            _decode_array(item, _FIGURES[k], f"reflection_figures[{k}]")
+            for k, item in enumerate(_list(obj["reflection_figures"], "reflection_figures"))
+        ),
         "frames": frames,
     }
 
@@ -724,20 +743,26 @@ def _calibration(frame, sim: SimulatedTime, rng: np.random.Generator, budget_ms:
 
 class _RecordedRounds:
     """The replay's tracing step of one frame: the capture's records of the round's
-    reflectors (a reflector traced at a reduced density casts that share of its recorded,
-    full-density rays; its pixel kinds not counted), timed by ``sim`` (a time budget) or
+    reflectors (a reflector traced at a reduced density casts its share of its recorded,
+    full-density rays, ``model.reflection_roughness.started_share``; its pixel kinds not
+    counted), timed by ``sim`` (a time budget) or
     at 1 us a ray (a rays budget: the time is not read)."""
 
-    def __init__(self, frame, sim: SimulatedTime | None, rng: np.random.Generator) -> None:
+    def __init__(self, frame, sim: SimulatedTime | None, rng: np.random.Generator,
+                 shares: np.ndarray) -> None:  # fmt: skip
         self.frame, self.sim, self.rng = frame, sim, rng
+        #: (E, L) the elements' shares of pixels that start rays at each density (the
+        #: recording's ``reflection_figures``).
+        self.shares = shares
 
     def __call__(self, ids: list[int], densities: list[str]) -> TracedRound:
         counts = self.frame.view.pixel_counts
         # The recorded pixel kinds are the full-density capture's, not this density's:
         # not counted (the policy takes the density's skipped pixels as filled).
+        shares = self.shares
         records = [
-            replace(self.frame.records[i], rays=round(self.frame.records[i].rays
-                                                      * traced_fraction(counts[i], d)),
+            replace(self.frame.records[i], rays=round(self.frame.records[i].rays * started_share(
+                        shares[i], counts[i], TRACE_DENSITIES.index(d))),
                     screen_space=None, reused=None, filled=None, marched=None)
             for i, d in zip(ids, densities, strict=True)
         ]  # fmt: skip
@@ -783,14 +808,15 @@ def replay(
     rng = np.random.default_rng(sim.seed if sim is not None else 0)
     limits = Budget(ms=budget_ms) if timed else Budget(rays=budget_rays)
     for f, frame in enumerate(frames):
-        scene = SimpleNamespace(elements=frame.elements, lights=data["lights"])
+        scene = SimpleNamespace(elements=frame.elements, lights=data["lights"],
+                                reflection_figures=data["reflection_figures"])  # fmt: skip
         counts = frame.view.pixel_counts
         ahead = frames[f + 1 : f + 1 + UPCOMING_CAMERAS] if lookahead else []
         view = replace(frame.view, upcoming_cameras=tuple(g.view.camera for g in ahead))
         in_view = [e for e in refl if counts[e] > 0]
         rounds = run_rounds(
             policy, view, scene, in_view, limits,
-            _RecordedRounds(frame, sim if timed else None, rng),
+            _RecordedRounds(frame, sim if timed else None, rng, data["reflection_figures"][1]),
             calibrate=partial(_calibration, frame, sim, rng, budget_ms,
                               int(counts[in_view].sum())),
         )  # fmt: skip

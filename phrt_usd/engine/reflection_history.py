@@ -315,8 +315,11 @@ class FrameReuse:
         return take, prev.radiance[q], prev.hit[q]
 
     def accumulate(self, fill_pix: np.ndarray, fill_hit: np.ndarray, radiance: np.ndarray,
-                   low: np.ndarray, high: np.ndarray, split=None) -> None:  # fmt: skip
-        """Blends ACCUMULATION of the filled pixels' ``fill_pix`` (m,) int64 previous
+                   low: np.ndarray, high: np.ndarray, split=None,
+                   share: float = ACCUMULATION) -> None:  # fmt: skip
+        """Blends ``share`` (ACCUMULATION; a glossy pixel's, ``engine/trace/glossy.py``,
+        its traced value with its hit distance 0: the surface's reprojection) of the
+        filled pixels' ``fill_pix`` (m,) int64 previous
         values into their fill ``radiance`` (m, 3) float32, in place (compiled:
         ``history_kernels.accumulate``), read where their hit distance ``fill_hit`` (m,)
         float32 (the fill's estimate) reprojects them and it passes the per-pixel tests
@@ -332,7 +335,7 @@ class FrameReuse:
             _kernels().accumulate, len(fill_pix), _int64(fill_pix),
             np.ascontiguousarray(fill_hit, np.float32),
             np.ascontiguousarray(low, np.float32), np.ascontiguousarray(high, np.float32),
-            ACCUMULATION, NO_HISTORY + 1, self._element, self._normal, self._position,
+            float(share), NO_HISTORY + 1, self._element, self._normal, self._position,
             self._view, self._depth, self._moved_table, prev.element, prev.age, prev.normal,
             prev.position, prev.hit, prev.radiance, prev.clip_from_world, width, height,
             ACCUMULATION_OFFSET, NORMAL_AGREEMENT, PLANE_TOLERANCE, out=(radiance,),

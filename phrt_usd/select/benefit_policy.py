@@ -147,8 +147,10 @@ class Heu3Policy(BudgetedPolicy):
 
     def error_estimate(self, element: int) -> float:
         """Predicted error per pixel tracing ``element`` removes: the observed average
-        blended with the prior ``s * P / D`` by the observation's confidence. >= 0."""
-        prior = min(self.prior_scale() * self._prior_x(element), VALUE_MAX)
+        blended with the prior ``s * P / D * G`` (G the gain from tracing at its
+        roughness, docs/heuristic.md) by the observation's confidence. >= 0."""
+        gain = float(self._require_frame().G[element])  # a rough reflector's: less
+        prior = min(self.prior_scale() * self._prior_x(element) * gain, VALUE_MAX)
         c = self.error_confidence.get(element, 0.0)
         if c <= 0.0:
             return prior

@@ -14,7 +14,9 @@ finite for any input; every interpretation is spelled out in ``docs/heuristic.md
 * ``C_i = V_i * Q_i + sum_j V_j' * Q_j / O_ij`` over the reflectors ``j`` that ``i`` was
   seen to reflect, with ``V_j' = max(V_j, V_i * f_ij)`` (``f_ij``: fraction of i's pixels
   whose rays hit j), so a reflector seen only through ``i`` still adds to ``C_i``.
-* ``R = (S * I + V) * K``.
+* ``R = (S * I + V * G) * K``, G the reflector's gain from tracing at its roughness
+  (``model.reflection_roughness``: 1 - the share its reflection fades into the raster's
+  environment, 1 for a mirror; applied by the policies, ``select/policies.py``).
 
 Points and boxes are world-space metres; screen boxes and areas are pixels of a W x H image,
 projected through the camera's ``CameraFrame.image_window`` (aperture offsets, conform

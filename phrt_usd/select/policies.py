@@ -33,6 +33,7 @@ from phrt_usd.model.frame import (
     TraceRecord,
 )
 from phrt_usd.model.light_sampling import shadow_rays_per_hit
+from phrt_usd.model.reflection_roughness import element_figures, started_share
 from phrt_usd.model.scene import Scene
 from phrt_usd.model.trace_density import TRACE_DENSITIES, traced_fraction
 from phrt_usd.select.cost_model import TIME_MODEL_DECAY, TraceTimeModel
@@ -94,6 +95,10 @@ class _FrameState:
     D: np.ndarray  # (E,) float64 metres
     V: np.ndarray  # (E,) float64
     K: np.ndarray  # (E,) float64 priorities (clipped)
+    #: (E,) float64 each element's gain from tracing and (E, L) its shares of pixels that
+    #: start rays at each density (``model.reflection_roughness.element_figures``).
+    G: np.ndarray = field(default_factory=lambda: np.ones(0))
+    ray_shares: np.ndarray = field(default_factory=lambda: np.ones((0, 1)))
     traced: list[int] = field(default_factory=list)  # selected this frame, in order
     predicted_rays: dict[int, float] = field(default_factory=dict)  # at selection time
     predicted_ms: dict[int, float] = field(default_factory=dict)  # at selection time
@@ -263,9 +268,10 @@ class BudgetedPolicy(ABC):
             seen = pixels[refl] > 0
             P[refl[seen]] = screen_centrality(boxes[seen], view.width, view.height)
         D = camera_distance(centers, view.camera.position)
+        G, ray_shares = element_figures(scene)
         self._frame = _FrameState(
             view=view, scene=scene, pixels=pixels, centers=centers, D=D,
-            V=visibility(A, P, D), K=K,
+            V=visibility(A, P, D), K=K, G=G, ray_shares=ray_shares,
         )  # fmt: skip
 
     def _reflectors_of(self, scene: Scene) -> np.ndarray:
@@ -328,7 +334,7 @@ class BudgetedPolicy(ABC):
                 # Rays per pixel at full density: a record counts every covered pixel,
                 # rays start at the density's share of them.
                 level = frame.levels.get(src, 0)
-                pixels = rec.pixels * traced_fraction(rec.pixels, TRACE_DENSITIES[level])
+                pixels = rec.pixels * self._started(src, level, rec.pixels)
                 rpp = max(rec.rays / pixels, MIN_RAYS_PER_PIXEL)
                 average_into(self.rays_per_pixel, src, rpp, RAYS_PER_PIXEL_ALPHA)
                 self._global_rays = TIME_MODEL_DECAY * self._global_rays + rec.rays
@@ -401,14 +407,16 @@ class BudgetedPolicy(ABC):
         S = 1.0 if element in self.previous_selection else 0.0
         # Scalar form of ``relevance``: I and K are clipped already, V is finite (D >= D_MIN),
         # so R <= (1 + WEIGHT_MAX) * WEIGHT_MAX stays finite; this runs per node and round.
-        return (S * self.selection_weight + float(frame.V[element])) * float(frame.K[element])
+        V_gained = float(frame.V[element]) * float(frame.G[element])  # rough: less (G)
+        return (S * self.selection_weight + V_gained) * float(frame.K[element])
 
     def predicted_rays(self, element: int) -> float:
         """Predicted rays to trace ``element``'s pixels: pixels * rays per pixel (the
         budgets' margins are in ``ray_allowance``). Rays per pixel: the element's own
         learned average; else the mean over everything traced so far; else Q * (1 +
         the shadow rays a hit casts at most, ``light_sampling.shadow_rays_per_hit``)
-        (one reflection ray and its hit's shadow rays, per bounce)."""
+        (one reflection ray and its hit's shadow rays, per bounce) times the share of
+        its pixels that start rays (``model.reflection_roughness.ray_share``)."""
         frame = self._require_frame()
         cached = frame.rays.get(element)
         if cached is not None:
@@ -422,14 +430,21 @@ class BudgetedPolicy(ABC):
                 lights = frame.scene.lights
                 n_lights = len(lights.distant) + len(lights.local)
                 rpp = self.q_of(element) * (1 + shadow_rays_per_hit(n_lights))
+                # Only its share of pixels that start rays (a glossy reflector's pattern).
+                rpp *= float(frame.ray_shares[element, 0])
         frame.rays[element] = rays = pixels * max(rpp, MIN_RAYS_PER_PIXEL)
         return rays
 
     def level_share(self, element: int, level: int) -> float:
         """Share of ``element``'s pixels this frame that start rays at density
-        TRACE_DENSITIES[level] (``traced_fraction``)."""
-        pixels = float(self._require_frame().pixels[element])
-        return traced_fraction(pixels, TRACE_DENSITIES[level])
+        TRACE_DENSITIES[level], relative to full density (``_started``)."""
+        return self._started(element, level, float(self._require_frame().pixels[element]))
+
+    def _started(self, element: int, level: int, pixels: float) -> float:
+        """``model.reflection_roughness.started_share`` of ``element`` at ``level`` for
+        ``pixels`` (``traced_fraction`` for a mirror; a glossy reflector's own pattern
+        saves less)."""
+        return started_share(self._require_frame().ray_shares[element], pixels, level)
 
     def level_rays(self, element: int, level: int) -> float:
         """What tracing ``element`` at density TRACE_DENSITIES[level] costs, in rays: its

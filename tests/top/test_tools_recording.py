@@ -105,6 +105,10 @@ def recording(n_frames: int = 8) -> dict:
             local=[LocalLight(np.array([1.0, 2.0, -0.0]), np.array([AWKWARD[1]] * 3), 0.05)],
         ),
         "reflectors": reflectors,
+        # Mirrors (every density's own share of pixels starting rays), one of them
+        # with an awkward float: the figures read back bit for bit.
+        "reflection_figures": (np.array([1.0, 1.0, 1.0, 1.0, 1.0 - 1e-16 * AWKWARD[0]]),
+                               np.tile(np.arange(16, 0, -1) / 16.0, (5, 1))),
         "frames": frames,
     }
 

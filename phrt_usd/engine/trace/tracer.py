@@ -54,7 +54,7 @@ import numpy as np
 
 from phrt_usd import kernels
 from phrt_usd.engine import lighting
-from phrt_usd.engine.trace import screen_space, sparse_pixels
+from phrt_usd.engine.trace import glossy, screen_space, sparse_pixels
 from phrt_usd.engine.trace.bvh import Bvh
 from phrt_usd.engine.trace.hit_lighting import MapLookup, frame_seed
 from phrt_usd.engine.trace.hit_surfaces import HitSurfaces
@@ -153,6 +153,7 @@ class Tracer:
         self._reflector_set = set(self._reflector_ids.tolist())
         self._pixel_cache: tuple | None = None
         self._image_cache: tuple | None = None
+        self._glossy = glossy.has_glossy(scene)  # some reflection follows roughness
         self._lights_key: tuple | None = None
         #: ``sparse_pixels.fill_skipped``'s pixel table, kept for the G-buffer size.
         self._fill_table: np.ndarray | None = None
@@ -322,10 +323,11 @@ class Tracer:
         sources = [int(s) for s in sources]
         phase = (0, 0) if reuse is None else reuse.phase
         density = checked_densities(density, len(sources))
-        first = self._source_pixels(
-            gbuffer, sources, None, reflect=True, surface=False, density=density, phase=phase
-        )
+        first = self._source_pixels(gbuffer, sources, None, True, self._glossy, density, phase,
+                                    glossy_pixels=self._glossy)  # fmt: skip
         pix, src, d, origins = first["pix"], first["src"], first["dir"], first["org"]
+        gloss = first["glossy"]  # glossy pixels' rays drawn from their lobes
+        gloss.draw_rays(first, self._frame_seed, self.bvh.boundary.offset_factors(), bounce_limit)
         hits = None
         if screen is not None and bounce_limit >= 1 and len(pix):
             self._paths.lighting.prepare(self._hit_maps, self._frame_seed, gbuffer.shape[1],
@@ -344,6 +346,7 @@ class Tracer:
         )
         if hits is not None:
             result, src = screen_space.merge(result, src, hits, all_pix, all_src, sources, start)
+        gloss.weigh(result)
         if first["skipped"] is not None:
             height, width = gbuffer.shape
             if self._fill_table is None or len(self._fill_table) != width * height:
@@ -353,6 +356,7 @@ class Tracer:
                 fill_guides(gbuffer, raster, self.surfaces.transmission), density,
                 phase, reuse, self._fill_table, self._split, start,
             )  # fmt: skip
+        gloss.finish(result, self._relative_lights(), reuse, sources)
         return with_kind_counts(result, gbuffer.element_id, marched=hits is not None)
 
     def trace_refraction(
@@ -449,7 +453,7 @@ class Tracer:
 
     def _source_pixels(
         self, gbuffer: GBuffer, sources: list[int], mask, reflect: bool, surface: bool,
-        density="full", phase=(0, 0),
+        density="full", phase=(0, 0), glossy_pixels: bool = False,
     ) -> dict:
         """Pixels to start paths from (``trace_kernels.source_rays``), a dict of arrays:
         pix (n,) flat indices, src (n,) index into ``sources``, tri (n,) triangle ids;
@@ -461,7 +465,8 @@ class Tracer:
         the index of its last entry. ``density`` other than "full" (one for every
         source, or one per source, as ``trace_reflections``'): only the pixels
         ``sparse_pixels.traced_subset`` keeps, and "skipped" the others (pixels (m,),
-        their sources (m,), covered pixels per source (len(sources),)), else None."""
+        their sources (m,), covered pixels per source (len(sources),)), else None;
+        "glossy" the round's ``glossy.GlossyRound`` with ``glossy_pixels``, else NO_ROUND."""
         index = {s: i for i, s in enumerate(sources)}
         if mask is None and all(s in self._reflector_set for s in index):
             # Reflector sources (the renderer's case): look only at the G-buffer's
@@ -490,16 +495,13 @@ class Tracer:
                 chosen &= mask
             cand = np.flatnonzero(chosen)
             cand_src = np.take(table, np.take(elem, cand))
-        skipped = None
-        if density != "full":
-            width = gbuffer.shape[1]
-            keep = sparse_pixels.traced_subset(
-                cand, cand_src, len(sources), width, density, phase
-            )
-            if not keep.all():  # only small reflectors: traced whole
-                covered = np.bincount(cand_src, minlength=len(sources))
-                skipped = (cand[~keep], cand_src[~keep], covered)
-                cand, cand_src = cand[keep], cand_src[keep]
+        gloss, traced_glossy = glossy.NO_ROUND, None
+        if glossy_pixels and len(cand):  # glossy pixels start rays on their own pattern
+            gloss, cand, cand_src, traced_glossy = glossy.GlossyRound.of(
+                self.scene, gbuffer, cand, cand_src, density, self._frame_seed, self._split)
+        cand, cand_src, skipped = _density_subset(
+            cand, cand_src, len(sources), gbuffer.shape[1], density, phase, traced_glossy
+        )
         k = len(cand)
         out = {"tri": np.empty(k, np.int64)}
         if surface:
@@ -518,7 +520,31 @@ class Tracer:
             out=tuple(out.values()),
         )  # fmt: skip
         out["pix"], out["src"], out["skipped"] = cand, cand_src, skipped
+        out["glossy"] = gloss
         return out
+
+
+def _density_subset(cand, cand_src, n_sources: int, width: int, density, phase,
+                    traced_glossy=None):  # fmt: skip
+    """``Tracer._source_pixels``' pixels ``cand`` (n,) of sources ``cand_src`` (n,) that
+    start rays at ``density`` (``sparse_pixels.traced_subset`` in ``phase``), their
+    sources, and the skipped ones (pixels, sources, covered pixels per source), None
+    when none is skipped; with ``traced_glossy`` (pixels, sources: the glossy ones that
+    start rays, ``glossy.GlossyRound.of``) appended to those that start rays and counted
+    as covered."""
+    skipped = None
+    if density != "full":
+        keep = sparse_pixels.traced_subset(cand, cand_src, n_sources, width, density, phase)
+        if not keep.all():  # only small reflectors: traced whole
+            covered = np.bincount(cand_src, minlength=n_sources)
+            if traced_glossy is not None:
+                covered += np.bincount(traced_glossy[1], minlength=n_sources)
+            skipped = (cand[~keep], cand_src[~keep], covered)
+            cand, cand_src = cand[keep], cand_src[keep]
+    if traced_glossy is not None:
+        cand = np.concatenate([cand, traced_glossy[0]])
+        cand_src = np.concatenate([cand_src, traced_glossy[1]])
+    return cand, cand_src, skipped
 
 
 def checked_densities(density, sources: int) -> str | list[str]:
