@@ -16,14 +16,39 @@ from __future__ import annotations
 HIT_LIGHT_PICKS = 2
 
 
+#: A Rect or Disk light sampled as an area at the traced hits (``engine/trace/
+#: shadow_rays.py``): its visible share at a hit is estimated by AREA_LIGHT_RAYS rays to
+#: points drawn, by their share of the light's integral, from a Fibonacci lattice of
+#: AREA_LIGHT_POINTS points over its surface (AREA_LIGHT_STEP: the Fibonacci number
+#: before it), shifted by the hit's pixel and frame. One ray: a pair costs a point
+#: light's, and a penumbra is a dither between pixels that changes each frame (where
+#: the whole light is seen its irradiance is exact). More rays a pair make smoother
+#: penumbrae, but a hit's cost then grows with the area lights it sees, which a
+#: reflector's cost per pixel does not follow at reduced densities: with 13 (and 5) a
+#: policy replay of a sewer capture at 96 x 72 chose differently from the render at one
+#: frame (``tests/select/test_selection_rounds.py``).
+AREA_LIGHT_RAYS = 1
+AREA_LIGHT_POINTS = 13
+AREA_LIGHT_STEP = 8
+
+
 def shadow_rays_per_hit(n_lights: int) -> int:
     """The most shadow rays a hit casts with ``n_lights`` lights (no shadow maps)."""
     return min(max(int(n_lights), 0), HIT_LIGHT_PICKS)
 
 
+def has_area_lights(lights) -> bool:
+    """Some LocalLight of these ``Lights`` is a Rect or Disk light, an area at the traced
+    hits (``LocalLight.area_shape``)."""
+    return any(light.area_shape for light in lights.local)
+
+
 def maps_light_hits(lights) -> bool:
     """The shadow maps light the traced hits of a stage with these ``Lights``: it has
-    more direct lights than a hit may trace. With at most HIT_LIGHT_PICKS every pair is
-    traced, exactly, and its rays cost less than the maps' lookup pass (one light, 400
-    hits: 0.07 ms by rays against 0.81 ms with the maps, docs/hit-lighting.md)."""
-    return len(lights.distant) + len(lights.local) > HIT_LIGHT_PICKS
+    more direct lights than a hit may trace, and none is an area. With at most
+    HIT_LIGHT_PICKS every pair is traced, exactly, and its rays cost less than the maps'
+    lookup pass (one light, 400 hits: 0.07 ms by rays against 0.81 ms with the maps,
+    docs/hit-lighting.md); a Rect or Disk light is an area at every hit, which a map
+    (a point's) cannot answer for, so its stage's hits are lit by rays (sampled)."""
+    count = len(lights.distant) + len(lights.local)
+    return count > HIT_LIGHT_PICKS and not has_area_lights(lights)

@@ -205,13 +205,20 @@ class DistantLight:
 
 @dataclass
 class LocalLight:
-    """A SphereLight or a RectLight approximated as a point with an area factor.
+    """A Sphere, Rect, Disk or Cylinder light: a point with an area factor where the
+    raster shades it; Rect and Disk lights are areas where the trace lights with rays
+    (``area_shape``, ``engine/trace/shadow_rays.py``).
 
     position: (3,) world metres; radiance: (3,) linear RGB intensity (W/sr-like units,
     falls off with 1/d^2); radius: metres (for the shadow-ray offset only).
     UsdLux ShapingAPI (``shading.cone_falloff``): axis (3,) world unit vector the light
     shines along (its -Z); cone_angle degrees off the axis beyond which it emits nothing
     (>= 180: no cone); cone_softness in [0, 1]; focus >= 0 (0: none).
+    The emitting surface of a RectLight or DiskLight (UsdLux: in its local XY plane,
+    emitting along its -Z, ``axis``): area_shape "rect" or "disk" ("" for any other
+    light), area_u and area_v (3,) world metres: the rect's half width and half height
+    along its local X and Y, or the disk's radius along them (a scaled disk is an
+    ellipse).
     """
 
     position: np.ndarray
@@ -222,6 +229,9 @@ class LocalLight:
     cone_angle: float = 180.0
     cone_softness: float = 0.0
     focus: float = 0.0
+    area_shape: str = ""
+    area_u: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    area_v: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
     @property
     def shaped(self) -> bool:

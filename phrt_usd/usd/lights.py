@@ -13,7 +13,8 @@ directions world unit vectors. Conventions (docs/usd-support.md, "Lights"):
   fallback intensity 50000 is a very bright sun (the clipping warning of the render
   names it and ``--exposure``).
 - Local lights (Sphere, Rect, Disk, Cylinder): each a point ``LocalLight`` at its
-  centre whose intensity follows ``local_intensity``, the one place of the unit rule:
+  centre (Rect and Disk lights also carry their emitting surface, ``_area``: the trace
+  samples it) whose intensity follows ``local_intensity``, the one place of the unit rule:
   every length is in metres (the light's sizes times its transform's scale times the
   stage's ``metersPerUnit``), the emission is the luminance of the light's surface and
   the intensity is that luminance times the light's area seen face-on in m² (sphere
@@ -218,6 +219,21 @@ def _local_shape(prim: Usd.Prim, code: Usd.TimeCode, scale: np.ndarray):
     return "CylinderLight", 0.5 * float(np.hypot(length, 2 * r)), 2.0 * r * length
 
 
+def _area(prim: Usd.Prim, code: Usd.TimeCode, m: np.ndarray, mpu: float) -> dict:
+    """A Rect or Disk light's emitting surface (``LocalLight.area_shape``, ``area_u``,
+    ``area_v``): its half sizes along its local X and Y axes, world metres; {} for any
+    other light."""
+    x, y = np.asarray(m[0, :3], np.float64) * mpu, np.asarray(m[1, :3], np.float64) * mpu
+    if prim.IsA(UsdLux.RectLight):
+        w = float(attr_value(prim, "inputs:width", code, 1.0))
+        h = float(attr_value(prim, "inputs:height", code, 1.0))
+        return {"area_shape": "rect", "area_u": 0.5 * w * x, "area_v": 0.5 * h * y}
+    if prim.IsA(UsdLux.DiskLight):
+        r = float(attr_value(prim, "inputs:radius", code, 0.5))
+        return {"area_shape": "disk", "area_u": r * x, "area_v": r * y}
+    return {}
+
+
 def read_light(
     prim: Usd.Prim,
     ctx: TimeContext,
@@ -252,7 +268,8 @@ def read_light(
         if not np.isfinite(radius) or not np.all(np.isfinite(intensity)):
             raise PhrtError(f"{path}: non-finite light size")
         lights.local.append(
-            LocalLight(m[3, :3] * mpu, intensity, abs(radius), path, **_shaping(prim, code, m))
+            LocalLight(m[3, :3] * mpu, intensity, abs(radius), path, **_shaping(prim, code, m),
+                       **_area(prim, code, m, mpu))  # fmt: skip
         )
     elif any(prim.IsA(t) for t in _DOME_TYPES):
         if lights.dome is not None:

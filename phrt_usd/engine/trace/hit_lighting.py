@@ -11,10 +11,11 @@ For each hit and light (``shading``'s light order, distant then local):
    the primary surface's are.
 2. **Rays where they do not.** The pairs the maps cannot decide (shadow edges, casters
    thinner than a texel), and every pair where the maps are not used (a tracer without
-   a raster; a stage of at most HIT_LIGHT_PICKS lights, ``light_sampling.
-   maps_light_hits``, and a batch of fewer than MAP_MIN_PAIRS possible pairs: there the
-   lookup pass costs more than the rays), are *undecided*; each gets a shadow ray
-   (``shadow_rays``).
+   a raster; a stage of at most HIT_LIGHT_PICKS lights, or with a Rect or Disk light,
+   ``light_sampling.maps_light_hits``, and a batch of fewer than MAP_MIN_PAIRS possible
+   pairs: there the lookup pass costs more than the rays), are *undecided*; each gets a
+   shadow ray (``shadow_rays``; a Rect or Disk light's goes to a point of its surface,
+   ``area_offsets``, its irradiance the area's: ``area_light_kernels``).
 3. **Lights sampled where a hit has many.** A hit with more than
    ``model.light_sampling.HIT_LIGHT_PICKS`` undecided pairs of a positive unshadowed share
    (``shade_kernels.light_share``: the light's brightest channel x n·l, and for a
@@ -45,7 +46,7 @@ from phrt_usd.engine import lighting
 from phrt_usd.engine.trace.bvh import Bvh
 from phrt_usd.engine.trace.hit_surfaces import HitSurfaces
 from phrt_usd.engine.trace.shadow_rays import ShadowRays
-from phrt_usd.model.light_sampling import maps_light_hits
+from phrt_usd.model.light_sampling import has_area_lights, maps_light_hits
 from phrt_usd.model.scene import Lights
 
 #: The compiled trace kernels (``trace_kernels``, through ``phrt_usd.kernels``).
@@ -85,6 +86,21 @@ def frame_seed(time_code: float) -> float:
     x = ((x ^ (x >> 30)) * 0xBF58476D1CE4E5B9) & _U64
     x = ((x ^ (x >> 27)) * 0x94D049BB133111EB) & _U64
     return ((x ^ (x >> 31)) >> 11) * 2.0**-53
+
+
+def area_offsets(pixels: np.ndarray, width: int, seed: float) -> np.ndarray:
+    """(m, 3) float64 in [0, 1)³: how the hits seen from ``pixels`` (m,) (flat indices of
+    an image ``width`` pixels wide) sample a Rect or Disk light in the frame of shift
+    ``seed`` (``frame_seed``; ``shadow_rays``' area rule): the shift of the light's
+    lattice (two columns) and the draw among its points (the third). Pixel (x, y):
+    (x / g + y / g², x / g² + y / g, x / g³ + y / g) + the frame's shifts, modulo 1 (g
+    the plastic number): neighbouring pixels sample the light at points
+    spread over it, others each frame, so a penumbra comes out as a dither."""
+    x, y = np.divmod(np.asarray(pixels, np.int64), max(int(width), 1))[::-1]
+    first = x * _R2_STEPS[0] + y * _R2_STEPS[1] + np.mod(seed * _PLASTIC, 1.0)
+    second = x * _R2_STEPS[1] + y * _R2_STEPS[0] + np.mod(seed * _PLASTIC**2, 1.0)
+    draw = x / _PLASTIC**3 + y * _R2_STEPS[0] + seed
+    return np.mod(np.stack([first, second, draw], axis=1), 1.0)
 
 
 def light_offsets(pixels: np.ndarray, width: int, seed: float) -> np.ndarray:
@@ -129,11 +145,15 @@ class HitLighting:
         n_lights = len(lights.distant) + len(lights.local)
         into = self._surfaces.weighted(into, tri)  # material-rule reflectors' local part
         u0 = None if self.exact else light_offsets(pixels, self.width, self.frame_seed)
+        spots = None
+        if has_area_lights(lights):  # the stage's hits are lit by rays (maps_light_hits)
+            spots = area_offsets(pixels, self.width, self.frame_seed)
         if (self.maps is not None and not self.exact and maps_light_hits(lights)
                 and len(tri) * n_lights >= MAP_MIN_PAIRS):  # fmt: skip
             return self._with_maps(tri, u, v, rel, ng, ns, d_in, lights, u0, albedo, into,
                                    textured)  # fmt: skip
-        return self._with_rays(tri, u, v, rel, ng, ns, d_in, lights, u0, albedo, into, textured)
+        return self._with_rays(tri, u, v, rel, ng, ns, d_in, lights, u0, albedo, into, textured,
+                               spots)  # fmt: skip
 
     def _with_maps(self, tri, u, v, rel, ng, ns, d_in, lights, u0, albedo, into, textured):
         """``shade`` with the shadow maps deciding what they can (steps 1-3)."""
@@ -159,19 +179,20 @@ class HitLighting:
         return local, rays, int(rays.sum())
 
     def _points(self, tri, u, v, rel, ng, ns, d_in, albedo, u0, lights: Lights, threads=None,
-                into=None, textured=None):  # fmt: skip
+                into=None, textured=None, spots=None):  # fmt: skip
         """``shade`` of hits without maps (steps 2-3) in one compiled call after Embree's
-        (``ShadowRays.shade``); safe to run on the pool with ``threads`` = 1 and no
-        ``into``."""
+        (``ShadowRays.shade``; ``spots``: ``area_offsets`` of the hits, where the stage has
+        area lights); safe to run on the pool with ``threads`` = 1 and no ``into``."""
         albedo, emissive = self._surfaces.colour(tri, u, v, albedo, textured)
         surf = self._surfaces.surface(tri, u, v, albedo)
         # The caller updates ``rays_cast`` (a dict ``+=`` from pool threads could race).
         return self._shadows.shade(
             rel, ng, ns, d_in, surf, emissive, lights, threads=threads, into=into, u0=u0,
-            triangles=tri,
+            triangles=tri, area_offsets=spots,
         )
 
-    def _with_rays(self, tri, u, v, rel, ng, ns, d_in, lights, u0, albedo, into, textured):
+    def _with_rays(self, tri, u, v, rel, ng, ns, d_in, lights, u0, albedo, into, textured,
+                   spots=None):  # fmt: skip
         """``_points`` of every hit; large batches (from ``shadow_rays.
         PARALLEL_MIN_SHADE_RAYS`` possible rays) run in chunks on the pool (the kernels
         and embreex release the GIL), each chunk's Embree batch on its own thread."""
@@ -179,12 +200,13 @@ class HitLighting:
         bounds = self._shadows.split(len(tri) * max(n_lights, 1), len(tri))
         if bounds is None:
             return self._points(
-                tri, u, v, rel, ng, ns, d_in, albedo, u0, lights, into=into, textured=textured
-            )
+                tri, u, v, rel, ng, ns, d_in, albedo, u0, lights, into=into, textured=textured,
+                spots=spots,
+            )  # fmt: skip
         chunk_textured = None if textured else textured  # a chunk looks its own textures up
         done = self._shadows.in_chunks(
-            lambda *rows: self._points(*rows, lights, 1, None, chunk_textured),
-            bounds, tri, u, v, rel, ng, ns, d_in, albedo, u0,
+            lambda *rows: self._points(*rows[:-1], lights, 1, None, chunk_textured, rows[-1]),
+            bounds, tri, u, v, rel, ng, ns, d_in, albedo, u0, spots,
         )  # fmt: skip
         local, rays = (np.concatenate([d[i] for d in done]) for i in (0, 1))
         if into is not None:  # the chunks' sums could race: one pass over them all

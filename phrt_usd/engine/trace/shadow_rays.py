@@ -7,8 +7,20 @@ for LocalLights, within their range (``shading.light_ranges``); all (point, ligh
 of a batch are chosen and built into one float32 Embree batch in one compiled pass
 (``trace_kernels.shadow_rays``: numba, ``nogil``, so the pool's chunks run side by side). Origins
 are offset by the boundary's epsilon along the offset normal, on the side the ray
-leaves to. Shadows are hard (light size ignored); transmissive surfaces are opaque;
-cut-out holes let light through (``HitSurfaces.occluded``, given ``surfaces``).
+leaves to. Transmissive surfaces are opaque; cut-out holes let light through
+(``HitSurfaces.occluded``, given ``surfaces``).
+
+Lights as areas at the traced hits (``shade``, the hits the shadow maps do not light:
+every hit of a stage with a Rect or Disk light, ``light_sampling.maps_light_hits``): a
+Rect or Disk light (``LocalLight.area_shape``) is its emitting surface. Its pair's
+weight is the exact irradiance of the whole surface over the point light's, times the
+share of it the point sees, from AREA_LIGHT_RAYS rays to points of the rect or disk
+drawn by their share of it, instead of its one ray to the centre (the rule is
+``area_light_kernels``'): soft shadows, the irradiance of the area and nothing behind
+it. The primary surface (``cast``: rt's, and the pairs hybrid's shadow maps leave
+undecided) keeps every light a point, as the raster shades it, so that hybrid with every
+reflector traced stays rt's image. Sphere and Cylinder lights stay points (their radius
+offsets the rays).
 
 ``ShadowRays.shade`` is the bounce loop's use: the same rays, then Embree's answer shaded
 at once (``trace_kernels.shadow_shade``: visibility, lit LocalLight pairs and
@@ -24,10 +36,16 @@ import numpy as np
 
 from phrt_usd import kernels
 from phrt_usd.engine import shading
+from phrt_usd.engine.trace import area_light_kernels as _AREA
 from phrt_usd.engine.trace.bvh import FAR, Bvh
 from phrt_usd.engine.trace.hit_surfaces import HitSurfaces
 from phrt_usd.model import preview_surface
-from phrt_usd.model.light_sampling import HIT_LIGHT_PICKS
+from phrt_usd.model.light_sampling import (
+    AREA_LIGHT_POINTS,
+    AREA_LIGHT_RAYS,
+    AREA_LIGHT_STEP,
+    HIT_LIGHT_PICKS,
+)
 from phrt_usd.model.scene import Lights
 
 #: The compiled trace kernels (``trace_kernels``, through ``phrt_usd.kernels``).
@@ -60,6 +78,7 @@ class ShadowRays:
         self.threads = threads
         self._light_cache: tuple | None = None
         self._table_cache: tuple | None = None
+        self._area_cache: tuple | None = None
 
     def split(self, work: int, n: int) -> list[tuple[int, int]] | None:
         """(start, stop) chunks of ``n`` points to shade over the pool, or None when
@@ -126,6 +145,17 @@ class ShadowRays:
         self._light_cache = (lights, arrays)
         return arrays
 
+    def area_table(self, lights: Lights) -> np.ndarray | None:
+        """(P, ``area_light_kernels.AREA_COLUMNS``) float64: each LocalLight's emitting
+        surface (``LocalLight.area_shape``; rel centres, as the lights given), or None
+        when no light is a Rect or Disk; cached for the latest ``Lights`` object."""
+        cached = self._area_cache
+        if cached is not None and cached[0] is lights:
+            return cached[1]
+        table = area_table(lights)
+        self._area_cache = (lights, table)
+        return table
+
     def light_table(self, lights: Lights) -> shading.LightTable:
         """``shading.light_table`` of ``lights``, cached for the latest ``Lights`` object
         as ``light_arrays`` (its own identity check of every light: ~0.7 us a round)."""
@@ -152,7 +182,9 @@ class ShadowRays:
         ``triangles`` (n,) int64: each point's triangle (-1: none), so that a point of a
         smooth (interpolated-normal) mesh is shadowed as its smooth surface is, not as
         its flat triangle (the shadow terminator: ``trace_kernels.shadow_rays``); None:
-        every point offset along its offset normal only.
+        every point offset along its offset normal only. Every light is a point here
+        (the primary surface's rule, as the raster's; the traced hits' areas are
+        ``shade``'s).
 
         The (point, light) pairs are chosen and their rays built in one compiled pass
         (``trace_kernels.shadow_rays``: float32 Embree batch, point-major, so the lit LocalLight
@@ -163,8 +195,8 @@ class ShadowRays:
         if not lights.has_direct or n == 0:
             return np.ones((n, n_lights), np.float32), np.zeros(n, np.int64), None
         want = _ALL_PAIRS if pairs is None else np.asarray(pairs, dtype=bool).reshape(n, n_lights)
-        ray_i, ray_v, ray_f, occluded = self._trace(
-            rel, offset_normals, shading_normals, lights, want, threads, u0, triangles
+        ray_i, ray_v, ray_f, occluded, _ = self._trace(
+            rel, offset_normals, shading_normals, lights, want, threads, u0, triangles, False
         )
         k = len(occluded)
         vis, rays = np.empty((n, n_lights), np.float32), np.empty(n, np.int64)
@@ -179,7 +211,8 @@ class ShadowRays:
         return vis, rays, lit if len(lights.local) else None
 
     def shade(self, rel, offset_normals, shading_normals, view_dirs, surface, emissive,
-              lights: Lights, threads=None, into=None, u0=None, triangles=None):  # fmt: skip
+              lights: Lights, threads=None, into=None, u0=None, triangles=None,
+              area_offsets=None):  # fmt: skip
         """``shading.shade_local`` of rel points ``rel`` (n, 3) float64 with the
         visibility and lit LocalLight pairs of ``cast`` (every pair wanted), in one
         compiled call after Embree's (``trace_kernels.shadow_shade``: the same kernel
@@ -193,13 +226,17 @@ class ShadowRays:
         to total[slot] in the same call (``trace_kernels.accumulate``), or None. Returns
         (n, 3) float32 radiance, (n,) int64 shadow rays cast per point and their sum.
         ``u0``, ``triangles``: as ``cast``'s (the hit-lighting rule's light sampling,
-        the points' triangles)."""
+        the points' triangles); Rect and Disk lights are areas (the module's rule), each
+        point's samples drawn by its ``area_offsets`` (n, 3) in [0, 1)³ (the hits'
+        pixels', ``hit_lighting.area_offsets``; None: ``index_offsets``)."""
         n = rel.shape[0]
         table = self.light_table(lights)
+        extra = None
         if lights.has_direct and n:
-            ray_i, ray_v, ray_f, occluded = self._trace(
-                rel, offset_normals, shading_normals, lights, _ALL_PAIRS, threads, u0, triangles
-            )
+            ray_i, ray_v, ray_f, occluded, extra = self._trace(
+                rel, offset_normals, shading_normals, lights, _ALL_PAIRS, threads, u0, triangles,
+                True if area_offsets is None else area_offsets,
+            )  # fmt: skip
         else:  # no lights (or no points): no rays, ambient and emission only
             ray_i, ray_v, ray_f, occluded = _NO_SHADOW_RAYS
         out, rays = np.empty((n, 3), np.float32), np.empty(n, np.int64)
@@ -212,16 +249,20 @@ class ShadowRays:
             preview_surface.specular_albedo_table(), out, rays,
             *(_NO_TOTAL if into is None else into),
         )  # fmt: skip
-        return out, rays, len(occluded)
+        if extra is None:
+            return out, rays, len(occluded)
+        rays += extra
+        return out, rays, len(occluded) + int(extra.sum())
 
     def _trace(self, rel, offset_normals, shading_normals, lights: Lights, want, threads,
-               u0=None, triangles=None):  # fmt: skip
+               u0=None, triangles=None, areas=False):  # fmt: skip
         """The shadow rays of (point, light) pairs (``trace_kernels.shadow_rays``; ``want``
         (n, L) bool or ``_ALL_PAIRS``; ``u0``, ``triangles`` as ``cast``'s) and Embree's
-        answer: rays'
-        point and light (2, k) int64, origin and direction (2, k, 3) float32, tfar,
-        distance and weight (3, k) float32 (columns beyond k unused), occluded (k,)
-        bool."""
+        answer: rays' point and light (2, k) int64, origin and direction (2, k, 3)
+        float32, tfar, distance and weight (3, k) float32 (columns beyond k unused),
+        occluded (k,) bool; and, with ``areas`` (True, or the points' sample offsets (n,
+        3)) where some lights are Rect or Disk lights, the rays each point cast beyond one
+        a pair (n,) int64 (``_area_answer``), else None."""
         n, n_lights = rel.shape[0], len(lights.distant) + len(lights.local)
         dirs, pos, ranges, power, cone = self.light_arrays(lights)
         floor, relative = self._bvh.boundary.offset_factors()
@@ -256,12 +297,87 @@ class ShadowRays:
             ray_v,
             ray_f,
         )
-        origins, d, tfar = ray_v[0, :k], ray_v[1, :k], ray_f[0, :k]
+        area = self.area_table(lights) if areas is not False else None
+        if area is not None:
+            offsets = index_offsets(n) if areas is True else areas
+            occluded, extra = self._area_answer(
+                ray_i, ray_v, ray_f, k, len(lights.distant), shading_normals, area, offsets,
+                threads,
+            )  # fmt: skip
+            return ray_i, ray_v, ray_f, occluded, extra
+        return ray_i, ray_v, ray_f, self._occluded(ray_v[0, :k], ray_v[1, :k], ray_f[0, :k],
+                                                   threads), None  # fmt: skip
+
+    def _occluded(self, origins, dirs, tfar, threads) -> np.ndarray:
+        """Embree's answer (k,) bool to k shadow rays (cut-out holes let light through
+        when the surfaces are given)."""
         if self._surfaces is None:
-            occluded = self._bvh.run("OCCLUDED", origins, d, tfar, threads)
-        else:
-            occluded = self._surfaces.occluded(origins, d, tfar, threads)
-        return ray_i, ray_v, ray_f, occluded
+            return self._bvh.run("OCCLUDED", origins, dirs, tfar, threads)
+        return self._surfaces.occluded(origins, dirs, tfar, threads)
+
+    def _area_answer(self, ray_i, ray_v, ray_f, k, n_distant, shading_normals, area, offsets,
+                     threads):  # fmt: skip
+        """The answer to the k rays of ``_trace`` where some lights are areas: their pairs'
+        own rays are not cast, their samples are (``area_light_kernels.area_rays``, one
+        Embree batch with the other pairs' rays), and the samples' answer becomes the
+        pairs' weights (``area_weights``). Returns occluded (k,) bool and the rays each
+        point cast beyond one a pair (n,) int64."""
+        n = len(shading_normals)
+        most = k * AREA_LIGHT_RAYS
+        parent, sample_v = np.empty(most, np.int64), np.empty((2, most, 3), np.float32)
+        sample_f, unshadowed = np.empty((2, most), np.float32), np.empty(k)
+        floor, relative = self._bvh.boundary.offset_factors()
+        m = _AREA.area_rays(
+            ray_i, ray_v, ray_f, k, n_distant, np.ascontiguousarray(shading_normals, np.float32),
+            area, np.ascontiguousarray(offsets, np.float64), AREA_LIGHT_POINTS, AREA_LIGHT_STEP,
+            AREA_LIGHT_RAYS, floor, relative, parent, sample_v, sample_f, unshadowed,
+        )  # fmt: skip
+        point = np.flatnonzero(unshadowed < 0.0)  # the pairs of point lights: their own rays
+        origins = np.concatenate([ray_v[0, point], sample_v[0, :m]])
+        dirs = np.concatenate([ray_v[1, point], sample_v[1, :m]])
+        tfar = np.concatenate([ray_f[0, point], sample_f[0, :m]])
+        answer = self._occluded(origins, dirs, tfar, threads) if len(tfar) else _NO_ANSWER
+        occluded = np.zeros(k, bool)
+        occluded[point] = answer[: len(point)]
+        extra = np.zeros(n, np.int64)
+        _AREA.area_weights(ray_i, ray_f, occluded, unshadowed, parent[:m], sample_f[1, :m],
+                           np.ascontiguousarray(answer[len(point) :]), extra)  # fmt: skip
+        return occluded, extra
+
+
+def area_table(lights: Lights) -> np.ndarray | None:
+    """(P, ``area_light_kernels.AREA_COLUMNS``) float64 of ``lights.local`` (module
+    docstring of ``area_light_kernels``), or None when none is a Rect or Disk light."""
+    local = lights.local
+    if not any(li.area_shape in _AREA_KINDS for li in local):
+        return None
+    table = np.zeros((len(local), _AREA.AREA_COLUMNS))
+    for q, li in enumerate(local):
+        kind = _AREA_KINDS.get(li.area_shape, 0.0)
+        if kind == 0.0:
+            continue
+        table[q, _AREA.AREA_KIND] = kind
+        table[q, _AREA.AREA_CENTRE : _AREA.AREA_CENTRE + 3] = li.position
+        table[q, _AREA.AREA_U : _AREA.AREA_U + 3] = li.area_u
+        table[q, _AREA.AREA_V : _AREA.AREA_V + 3] = li.area_v
+        table[q, _AREA.AREA_AXIS : _AREA.AREA_AXIS + 3] = li.axis
+    return np.ascontiguousarray(np.nan_to_num(table))
+
+
+#: ``LocalLight.area_shape`` -> ``area_light_kernels``' kind.
+_AREA_KINDS = {"rect": _AREA.RECT, "disk": _AREA.DISK}
+
+#: The plastic number g = 1.3247... (Roberts 2018): ``index_offsets``' steps.
+_PLASTIC = 1.324717957244746
+
+
+def index_offsets(n: int) -> np.ndarray:
+    """(n, 3) float64 in [0, 1)³: area-light sample offsets of n points by their index i
+    (i / g, i / g², i / g³ modulo 1: the R3 sequence's steps are the cube's analogue of
+    R2's; here the plastic number's powers), where no pixel gives them (a caller of
+    ``shade`` without ``area_offsets``)."""
+    i = np.arange(n, dtype=np.float64)[:, None]
+    return np.mod(i / np.array([_PLASTIC, _PLASTIC**2, _PLASTIC**3]), 1.0)
 
 
 #: ``trace_kernels.shadow_rays``' "every pair wanted" (an empty mask).
@@ -275,3 +391,5 @@ _NO_SHADOW_RAYS = (np.zeros((2, 0), np.int64), np.zeros((2, 0, 3), np.float32),
 _NO_OFFSETS = np.zeros(0)
 #: ``trace_kernels.shadow_rays``' triangles when the caller gives none.
 _NO_TRIANGLES = np.zeros(0, np.int64)
+#: Embree's answer to no rays.
+_NO_ANSWER = np.zeros(0, bool)
