@@ -76,8 +76,9 @@ SURFACE_REPROJECTION_ROUGHNESS = 0.1
 #: far at 320 pixels across 90 degrees blurs ~4.6 pixels, 0.3 ~18 (capped).
 BLUR_RADII = 1.0
 MAX_RADIUS = 8
-#: The least radius in spacings of the glossy samples' pattern (``RATE_BY_ROUGHNESS``):
-#: 1.5 reaches samples on both sides of every skipped pixel.
+#: The pattern's part of the radius, in spacings of the glossy samples' pattern
+#: (``RATE_BY_ROUGHNESS``), added to the lobe's in quadrature: 1.5 reaches samples on
+#: both sides of every skipped pixel.
 PATTERN_REACH = 1.5
 #: The least radius, in pixels per unit of roughness (0.15: 3, 0.3: 5, 0.45: 8): the
 #: variance of one sample a pixel grows with the lobe's width, and contact reflections
@@ -429,11 +430,13 @@ class GlossyRound:
         typical = float(np.median(reach[known & active])) if (known & active).any() else 1.0
         reach = np.where(known, reach, typical)
         radius = np.where(active, filter_radius(rough, reach, self.pixel_angle()), 0)
-        # At least PATTERN_REACH times the spacing of the samples' pattern: a skipped
-        # pixel has samples on more than one side.
+        # The pattern's reach added (the two blurs' variances add): PATTERN_REACH times
+        # the spacing of the samples' pattern, so that a skipped pixel has samples on
+        # more than one side.
         spacing = np.take(self.spacing_image, idx)
-        radius = np.where(active, np.maximum(radius, np.ceil(PATTERN_REACH * spacing)), 0)
-        radius = np.minimum(radius, MAX_RADIUS)
+        reach_px = np.where(spacing > 1, PATTERN_REACH * spacing, 0.0)
+        radius = np.where(active, np.ceil(np.sqrt(radius**2.0 + reach_px**2)), 0)
+        radius = np.minimum(radius, MAX_RADIUS).astype(np.int64)
         radius = np.ascontiguousarray(radius, np.int64)
         sums = np.empty((n, 4))
         sums[:, :3] = rad * weight[:, None]
