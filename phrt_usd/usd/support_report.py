@@ -22,6 +22,7 @@ from pathlib import PurePosixPath
 
 from pxr import Ar, Usd, UsdGeom, UsdLux, UsdShade, UsdSkel, UsdVol
 
+from phrt_usd.model.reflection_roughness import FADE_END, FADE_START
 from phrt_usd.usd import materialx, schema
 from phrt_usd.usd.curves import TUBE_SIDES
 from phrt_usd.usd.lights import READ_LIGHT_TYPE_NAMES
@@ -163,8 +164,10 @@ def _texture_opacity_without_threshold(prim: Usd.Prim) -> bool:
 
 
 def _rough_reflector(prim: Usd.Prim) -> bool:
-    """A reflector whose bound UsdPreviewSurface has roughness > 0 (authored, connected
-    or the spec's fallback 0.5): the render reflects it as a perfect mirror. The material
+    """A reflector whose bound UsdPreviewSurface has a roughness from the glossy
+    reflections' fade on (``model.reflection_roughness.FADE_START``; authored, or the
+    spec's fallback 0.5) or a connected one (a texture may reach it): its reflection is
+    the raster's environment fallback there, in part or whole. The material
     is the one the render binds (``materials.bound_material`` for the binding purposes
     of the render settings, ``materials.binding_purposes``)."""
     if not (prim.IsA(UsdGeom.Gprim) and schema.is_reflector(prim)):
@@ -178,7 +181,7 @@ def _rough_reflector(prim: Usd.Prim) -> bool:
     if inp and inp.HasConnectedSource():
         return True
     value = inp.Get() if inp and inp.GetAttr().HasAuthoredValue() else 0.5
-    return value is not None and float(value) > 0.0
+    return value is not None and float(value) >= FADE_START
 
 
 def _displacement(prim: Usd.Prim) -> bool:
@@ -373,10 +376,11 @@ KINDS: tuple[SupportKind, ...] = (
         _unread_node,
     ),
     SupportKind(
-        "rough_reflector", "reflectors with roughness > 0",
-        "approximated: perfect-mirror reflections",
-        "traced reflections are perfect mirrors: roughness shapes the highlights and the "
-        "reflection's Fresnel weight (model/preview_surface.py), not the reflection's blur",
+        "rough_reflector", f"reflectors with roughness >= {FADE_START}",
+        "approximated: the environment's reflection, faded in",
+        f"glossy reflections are traced up to roughness {FADE_START} and faded into the "
+        f"raster's environment fallback (no geometry in it) up to {FADE_END}, where no "
+        "ray is traced (engine/trace/glossy.py)",
         _rough_reflector,
     ),
     SupportKind(
