@@ -29,6 +29,9 @@ from phrt_usd.model.preview_surface import fallback_surface
 from phrt_usd.usd import schema
 from phrt_usd.usd.stage import read_stage
 
+#: Whole frames: the quick loop leaves them out.
+pytestmark = pytest.mark.slow
+
 ALBEDO = 0.5
 EYE = np.array([0.0, 0.0, 2.5])
 MIRROR_Z = 3.0
