@@ -35,7 +35,9 @@ rays are counted with their kind and source).
 
 Arrays: positions rel float64 (``bvh.Float32Boundary``), directions (n, 3) unit float32,
 ray origins float32 (cast by the compiled offset, the boundary's rule).
-Limits: mirror reflections only (roughness is ignored).
+Limits: the paths' first rays are mirror or glossy as the tracer made them (a glossy
+pixel's drawn from its lobe: ``glossy``); at deeper bounces (a reflector seen in a
+reflection) reflections are mirrors (roughness ignored there).
 """
 
 from __future__ import annotations

@@ -22,7 +22,10 @@ The tracer is a shell over one role per module:
 - ``screen_space``: first rays resolved in the frame's own G-buffer before the bounce
   loop (``--screen-space on``);
 - ``sparse_pixels``: reduced densities, their rotating pattern, and the skipped pixels
-  reused (``engine/reflection_history.py``) or filled.
+  reused (``engine/reflection_history.py``) or filled;
+- ``glossy``: a glossy reflector's pixels (its roughness): rays drawn from the GGX lobe
+  on a pattern that thins with roughness, the filter and accumulation that make them a
+  clean image, the fade into the raster's environment and no rays past it.
 
 This module picks the pixels paths start from (reflector pixels, found once per
 G-buffer), turns them into first rays, and keeps the ray counters.
@@ -39,7 +42,8 @@ The per-pixel and per-ray work is compiled (``trace_kernels``: first rays from p
 the ``rt`` pixel rays and G-buffer rows), split over the pool from
 ``PARALLEL_MIN_KERNEL_ROWS`` rows on.
 
-Limits: mirror reflections only (roughness is ignored), no refit (embreex has none: the
+Limits: glossy reflections at the first bounce only (deeper bounces are mirrors), one
+sample a glossy pixel a frame, no refit (embreex has none: the
 animated BVH is rebuilt when it moves), shadows are hard (light size ignored).
 """
 
