@@ -45,10 +45,9 @@ def has_area_lights(lights) -> bool:
 
 def maps_light_hits(lights) -> bool:
     """The shadow maps light the traced hits of a stage with these ``Lights``: it has
-    more direct lights than a hit may trace, and none is an area. With at most
-    HIT_LIGHT_PICKS every pair is traced, exactly, and its rays cost less than the maps'
-    lookup pass (one light, 400 hits: 0.07 ms by rays against 0.81 ms with the maps,
-    docs/hit-lighting.md); a Rect or Disk light is an area at every hit, which a map
-    (a point's) cannot answer for, so its stage's hits are lit by rays (sampled)."""
-    count = len(lights.distant) + len(lights.local)
-    return count > HIT_LIGHT_PICKS and not has_area_lights(lights)
+    more direct lights than a hit may trace. With at most HIT_LIGHT_PICKS every pair is
+    traced, exactly, and its rays cost less than the maps' lookup pass (one light, 400
+    hits: 0.07 ms by rays against 0.81 ms with the maps, docs/hit-lighting.md). Where the
+    maps light a batch of hits a Rect or Disk light is a point there, as the maps answer
+    (an area only at hits lit by rays, ``engine/trace/shadow_rays.py``)."""
+    return len(lights.distant) + len(lights.local) > HIT_LIGHT_PICKS

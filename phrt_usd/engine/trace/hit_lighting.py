@@ -11,11 +11,13 @@ For each hit and light (``shading``'s light order, distant then local):
    the primary surface's are.
 2. **Rays where they do not.** The pairs the maps cannot decide (shadow edges, casters
    thinner than a texel), and every pair where the maps are not used (a tracer without
-   a raster; a stage of at most HIT_LIGHT_PICKS lights, or with a Rect or Disk light,
-   ``light_sampling.maps_light_hits``, and a batch of fewer than MAP_MIN_PAIRS possible
-   pairs: there the lookup pass costs more than the rays), are *undecided*; each gets a
-   shadow ray (``shadow_rays``; a Rect or Disk light's goes to a point of its surface,
-   ``area_offsets``, its irradiance the area's: ``area_light_kernels``).
+   a raster; a stage of at most HIT_LIGHT_PICKS lights, ``light_sampling.
+   maps_light_hits``, and a batch of fewer than MAP_MIN_PAIRS possible pairs: there the
+   lookup pass costs more than the rays), are *undecided*; each gets a shadow ray
+   (``shadow_rays``). Where every pair of a hit is the rays' (no maps), a Rect or Disk
+   light is an area: its ray goes to a point of its surface (``area_offsets``) and its
+   irradiance is the surface's (``area_light_kernels``); where the maps light the hits
+   it is a point, as they answer.
 3. **Lights sampled where a hit has many.** A hit with more than
    ``model.light_sampling.HIT_LIGHT_PICKS`` undecided pairs of a positive unshadowed share
    (``shade_kernels.light_share``: the light's brightest channel x n·l, and for a
@@ -146,7 +148,7 @@ class HitLighting:
         into = self._surfaces.weighted(into, tri)  # material-rule reflectors' local part
         u0 = None if self.exact else light_offsets(pixels, self.width, self.frame_seed)
         spots = None
-        if has_area_lights(lights):  # the stage's hits are lit by rays (maps_light_hits)
+        if has_area_lights(lights):  # areas at the hits lit by rays (``_with_rays``)
             spots = area_offsets(pixels, self.width, self.frame_seed)
         if (self.maps is not None and not self.exact and maps_light_hits(lights)
                 and len(tri) * n_lights >= MAP_MIN_PAIRS):  # fmt: skip

@@ -10,9 +10,9 @@ are offset by the boundary's epsilon along the offset normal, on the side the ra
 leaves to. Transmissive surfaces are opaque; cut-out holes let light through
 (``HitSurfaces.occluded``, given ``surfaces``).
 
-Lights as areas at the traced hits (``shade``, the hits the shadow maps do not light:
-every hit of a stage with a Rect or Disk light, ``light_sampling.maps_light_hits``): a
-Rect or Disk light (``LocalLight.area_shape``) is its emitting surface. Its pair's
+Lights as areas at the traced hits (``shade``: the hits the shadow maps do not light,
+``hit_lighting``; where they do, a light is a point, as the maps answer): a Rect or Disk
+light (``LocalLight.area_shape``) is its emitting surface. Its pair's
 weight is the exact irradiance of the whole surface over the point light's, times the
 share of it the point sees, from AREA_LIGHT_RAYS rays to points of the rect or disk
 drawn by their share of it, instead of its one ray to the centre (the rule is
