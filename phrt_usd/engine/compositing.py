@@ -16,7 +16,8 @@ two rules:
 
 Non-reflectors have F = 0. ``reflected`` is the ray-traced radiance for pixels of
 selected reflectors and, for all others, the environment seen in the mirror direction
-(the raster path's cube-map-like fallback: no geometry in the reflection). Background
+(the raster path's cube-map-like fallback: no geometry in the reflection), prefiltered
+by a glossy pixel's roughness (``prefiltered_environment``). Background
 pixels show the environment behind them, unless the dome is hidden from camera rays
 (``DomeLight.camera_visible``): then they stay black (alpha is 0 there).
 
@@ -37,7 +38,9 @@ import numpy as np
 
 from phrt_usd import kernels
 from phrt_usd.engine.lighting import gbuffer_surface
+from phrt_usd.engine.prefiltered_environment import prefiltered_radiance
 from phrt_usd.engine.shading import environment_radiance, surface_weights
+from phrt_usd.engine.trace import glossy
 from phrt_usd.model import pixel_kinds
 from phrt_usd.model.frame import GBuffer, ReflectionResult
 from phrt_usd.model.scene import Scene
@@ -147,6 +150,12 @@ def base_image(
         background,
     )
     env = environment_radiance(scene.lights, directions)
+    dome = scene.lights.dome
+    if dome is not None and dome.texture is not None and glossy.has_glossy(scene):
+        # A glossy pixel's fallback: the dome prefiltered by its lobe.
+        rough = glossy.pixel_roughness(scene, gbuffer, pixels)
+        if (rough > 0.0).any():
+            env = prefiltered_radiance(scene.lights, directions, rough)
     image = np.empty((h, w, 3), np.float32)
     weight = getattr(reflectivity, "weight", None)
     if weight is not None:

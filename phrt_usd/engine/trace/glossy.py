@@ -55,7 +55,7 @@ import numpy as np
 
 from phrt_usd import kernels
 from phrt_usd.engine.lighting import gbuffer_surface
-from phrt_usd.engine.shading import environment_radiance
+from phrt_usd.engine.prefiltered_environment import prefiltered_radiance
 from phrt_usd.model import pixel_kinds, preview_surface
 from phrt_usd.model.frame import GBuffer, flat_image
 from phrt_usd.model.reflection_roughness import (
@@ -465,7 +465,7 @@ class GlossyRound:
         faded = fade(rough)
         if self.mirror_image is not None and (faded > 0.0).any():
             at = np.flatnonzero(faded > 0.0)
-            env = environment_radiance(lights, self.mirror_image[idx[at]])
+            env = prefiltered_radiance(lights, self.mirror_image[idx[at]], rough[at])
             t = faded[at][:, None]
             for a in (out, low, high):
                 a[at] = (1.0 - t) * a[at] + t * env
