@@ -50,9 +50,9 @@ What is exported (only what ``phrt_usd.model.scene.Scene`` holds, at its current
   (roughness 0.3 and 0.6, ior 1.5) and falls 13 % more by 70°; on the comparison's
   ``plastics`` stage (96 x 72) it measured a mean FLIP of 0.41, 0.11 with its diffuse
   colour scaled to ours face on, against 0.034 for the lobes above. ``principled`` has a
-  Disney diffuse and a GTR1 coat. A mesh of many colours (per-corner albedo, a diffuse texture sampled at the
-  corners) reads them as mesh attributes (``vertex_color``, scaled copies for the
-  scaled lobes), its diffuse factor a mid grey's. Other textured inputs read their
+  Disney diffuse and a GTR1 coat. A mesh of many colours (per-corner albedo, a diffuse
+  texture sampled at the corners) reads them as mesh attributes (``vertex_color``,
+  scaled copies for the scaled lobes), its diffuse factor a mid grey's. Other textured inputs read their
   constant value.
 
   A reflector with an authored F blends that BSDF with a perfect-mirror ``conductor``
