@@ -52,8 +52,8 @@ What is exported (only what ``phrt_usd.model.scene.Scene`` holds, at its current
   colour scaled to ours face on, against 0.034 for the lobes above. ``principled`` has a
   Disney diffuse and a GTR1 coat. A mesh of many colours (per-corner albedo, a diffuse
   texture sampled at the corners) reads them as mesh attributes (``vertex_color``,
-  scaled copies for the scaled lobes), its diffuse factor a mid grey's. Other textured inputs read their
-  constant value.
+  scaled copies for the scaled lobes), its diffuse factor a mid grey's. Other textured
+  inputs read their constant value.
 
   A reflector with an authored F blends that BSDF with a perfect-mirror ``conductor``
   by weight F: our ``pixel = (1 - F) * local + F * reflected`` (F = 1: the mirror alone).
