@@ -37,8 +37,9 @@ What is exported (only what ``phrt_usd.model.scene.Scene`` holds, at its current
     base's lobes weighted by its face-on transmission (1 - clearcoat Ec(1))²;
   - the diffuse lobe: ``diffuse`` (Lambert) of the albedo times our diffuse lobe's
     factor face on (``diffuse_face_on``: (1 - E(1))² / (1 - E_avg) per channel, which
-    takes what the specular lobe leaves; 1.01 for a dielectric of ior 1.5 at roughness
-    0.6, 0.5 for metallic 0.5), times 1 - metallic.
+    takes what the specular lobe leaves; 0.98 for a dielectric of ior 1.5 at roughness
+    0.6, (0.54, 0.69, 0.89) for metallic 0.5 of albedo (0.9, 0.6, 0.2) at roughness
+    0.4), times 1 - metallic.
 
   What differs: Mitsuba's Smith masking is separable (G1 G1), ours height-correlated;
   Mitsuba's Fresnel is exact where ours is Schlick's; our diffuse lobe darkens towards
