@@ -98,6 +98,10 @@ DRAWS = 4
 ACCUMULATION_MIN = 0.5
 ACCUMULATION_MAX = 0.8
 ACCUMULATION_STEPS = 4
+#: The accumulation's clamp: the range of this frame's filtered values in the 3 x 3
+#: around a pixel, widened by this share of itself on each side (the filtered values of
+#: one frame vary less than its history does from them).
+ACCUMULATION_MARGIN = 0.5
 #: The conditional albedo table's size (roughness rows, cosine columns) and samples.
 TABLE_ROUGHNESS = 32
 TABLE_COSINES = 32
@@ -424,8 +428,8 @@ class GlossyRound:
         weight[len(idx) - len(self.skipped[0]):] = 0.0
         weight = weight.astype(np.float32)
         same = np.empty_like(rad)
-        low, high, reach = self._neighbourhood(idx, rad, active, np.ones(n, np.int64),
-                                               self.reach_image, np.inf, same)  # fmt: skip
+        _, _, reach = self._neighbourhood(idx, rad, active, np.ones(n, np.int64),
+                                          self.reach_image, np.inf, same)  # fmt: skip
         known = np.isfinite(reach)
         typical = float(np.median(reach[known & active])) if (known & active).any() else 1.0
         reach = np.where(known, reach, typical)
@@ -454,6 +458,13 @@ class GlossyRound:
         # A pixel without a filter has its one sample, times its weight (whose mean is 1).
         out = np.where(radius[:, None] > 0, sums[:, :3] / np.maximum(sums[:, 3:], 1e-30),
                        rad * weight[:, None]).astype(np.float32)  # fmt: skip
+        # The accumulation's clamp: the range of the filtered values in the 3 x 3 around
+        # (the samples' own range is that of one or two draws of a wide lobe, which cut
+        # the history towards whichever side they fell on).
+        low, high, _ = self._neighbourhood(idx, out, active, np.ones(n, np.int64),
+                                           self.reach_image, np.inf, np.empty_like(out))
+        spread = ACCUMULATION_MARGIN * (high - low)
+        low, high = low - spread, high + spread
         if len(self.skipped[0]):  # skipped ones without a sample in reach: left out
             lone = sums[:, 3] <= 0.0
             lone[: n - len(self.skipped[0])] = False
