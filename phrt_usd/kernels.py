@@ -52,6 +52,8 @@ KERNEL_MODULES = (
     "phrt_usd.engine.trace.screen_space_kernels",
     "phrt_usd.engine.shade_kernels",
     "phrt_usd.engine.history_kernels",
+    "phrt_usd.engine.trace.glossy_kernels",
+    "phrt_usd.engine.trace.area_light_kernels",
 )
 #: Sources the compiled kernels depend on (the kernels and the constants they read):
 #: their hash names the cache directory.

@@ -36,7 +36,6 @@ import numpy as np
 
 from phrt_usd import kernels
 from phrt_usd.engine import shading
-from phrt_usd.engine.trace import area_light_kernels as _AREA
 from phrt_usd.engine.trace.bvh import FAR, Bvh
 from phrt_usd.engine.trace.hit_surfaces import HitSurfaces
 from phrt_usd.model import preview_surface
@@ -50,6 +49,7 @@ from phrt_usd.model.scene import Lights
 
 #: The compiled trace kernels (``trace_kernels``, through ``phrt_usd.kernels``).
 _TRACE = kernels.load("phrt_usd.engine.trace.trace_kernels")
+_AREA = kernels.load("phrt_usd.engine.trace.area_light_kernels")
 
 #: Shading work (shadow-ray kernel, Embree, shading kernel) on many points is split over
 #: the pool, each chunk on its own thread, only from this many possible shadow rays
