@@ -184,8 +184,9 @@ def conditional_albedo_table() -> np.ndarray:
 
 def has_glossy(scene) -> bool:
     """Whether some material of ``scene`` reflects by its roughness (``MaterialTable.
-    glossy``) with a roughness that is not a mirror's, or a textured one."""
-    materials = scene.materials
+    glossy``) with a roughness that is not a mirror's, or a textured one (a scene
+    without materials, a test's stand-in: none)."""
+    materials = getattr(scene, "materials", None)
     glossy = np.asarray(getattr(materials, "glossy", np.zeros(0, bool)), bool)
     if not glossy.any():
         return False
