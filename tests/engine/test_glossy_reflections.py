@@ -236,6 +236,7 @@ def test_the_tile_and_firefly_checks_can_fail():
     assert _firefly_ratio(image, mask) > 3.0
 
 
+@pytest.mark.slow
 def test_glossy_draws_are_a_hash_of_pixel_and_frame(tmp_path):
     """rt and hybrid at full density trace the same rays, and a frame rendered again is
     bit-identical, while another frame draws other rays (its image differs)."""
