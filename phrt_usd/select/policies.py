@@ -462,8 +462,11 @@ class BudgetedPolicy(ABC):
             return rays
         pixels = float(frame.pixels[element])
         # The share that starts rays: the level's, at level 0 the view's own density's
-        # (whose rays per pixel count every covered pixel).
+        # (whose rays per pixel count every covered pixel); of all its covered pixels (a
+        # glossy reflector's own pattern skips some at full density too, whose filter
+        # costs as a fill: ``model.reflection_roughness``).
         traced = share if level else traced_fraction(pixels, frame.view.trace_density)
+        traced *= float(frame.ray_shares[element, 0])
         cost = skipped_cost(pixels, traced, self.reused_share.get(element, 0.0), fill, reuse)
         if march and self._marched[1] > 0.0:
             cost += march * pixels * traced * self._marched[0] / self._marched[1]
