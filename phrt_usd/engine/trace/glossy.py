@@ -102,6 +102,9 @@ ACCUMULATION_STEPS = 4
 #: around a pixel, widened by this share of itself on each side (the filtered values of
 #: one frame vary less than its history does from them).
 ACCUMULATION_MARGIN = 0.5
+#: The glossy kernels split over the tracer's pool from this many rows on (their rows
+#: cost 0.1-0.5 us each: the pool's hand-over, ~20 us, pays from a few thousand).
+PARALLEL_ROWS = 4096
 #: The conditional albedo table's size (roughness rows, cosine columns) and samples.
 TABLE_ROUGHNESS = 32
 TABLE_COSINES = 32
@@ -219,6 +222,10 @@ def pixel_roughness(scene, gbuffer: GBuffer, pix: np.ndarray) -> np.ndarray:
     at = at[glossy[material[at]]]
     if not len(at):
         return out
+    constant = _constant_roughness(scene.materials)
+    if constant is not None:  # no texture on the lobe's inputs, no clear coat: a lookup
+        out[at] = constant[material[at]]
+        return out
     p = pix[at]
     surface = gbuffer_surface(
         scene, tri[at], np.take(gbuffer.element_id.reshape(-1), p),
@@ -240,6 +247,28 @@ def pixel_roughness(scene, gbuffer: GBuffer, pix: np.ndarray) -> np.ndarray:
                          surface[:, preview_surface.CLEARCOAT_ROUGHNESS], rough)  # fmt: skip
     out[at] = np.clip(rough, 0.0, 1.0)
     return out
+
+
+_CONSTANT: list = [None]
+
+
+def _constant_roughness(materials) -> np.ndarray | None:
+    """(M,) float32 each material's constant roughness (clipped to [0, 1]) when no
+    material has a texture on ``roughness``, ``clearcoat`` or ``clearcoatRoughness`` nor
+    a clear coat (a pixel's lobe is then its material's), else None. Cached for the
+    latest table."""
+    cached = _CONSTANT[0]
+    if cached is not None and cached[0] is materials:
+        return cached[1]
+    inputs = ("roughness", "clearcoat", "clearcoatRoughness")
+    textured = any(materials.texture_input(m, name) is not None
+                   for m in range(len(materials.roughness)) for name in inputs)  # fmt: skip
+    coat = np.asarray(materials.clearcoat, np.float32)
+    value = None
+    if not textured and not (coat > 0.0).any():
+        value = np.clip(np.asarray(materials.roughness, np.float32), 0.0, 1.0)
+    _CONSTANT[0] = (materials, value)
+    return value
 
 
 class GlossyRound:
@@ -269,13 +298,15 @@ class GlossyRound:
         ``src`` (n,) (``Tracer._source_pixels``'): (round, mirror pixels, their sources,
         (glossy pixels that start rays, their sources)), the round NO_ROUND and every
         pixel a mirror when none is glossy. The pixels at or past FADE_END cast nothing (kept
-        in ``past``); density, seed: ``split``'s; split: the tracer's pool."""
+        in ``past``); density, seed: ``split``'s; split: the tracer's pool
+        (``Tracer._split``, taking ``min_rows``)."""
         rough = pixel_roughness(scene, gbuffer, pix)
         if not (rough > MIRROR_ROUGHNESS).any():
             return NO_ROUND, pix, src, None
         past = rough >= FADE_END
         image = np.zeros(gbuffer.element_id.size, np.float32)
         image[pix] = rough
+        split = functools.partial(split, min_rows=PARALLEL_ROWS)
         round_ = cls(gbuffer, image, (pix[past], src[past]), split)
         mirror, mirror_src, traced, traced_src = round_.split(
             pix[~past], src[~past], density, gbuffer.shape[1], seed

@@ -283,10 +283,11 @@ class Tracer:
             view_dir=d32.reshape(shape + (3,)),
         )
 
-    def _split(self, kernel, n: int, *args, out: tuple) -> None:
+    def _split(self, kernel, n: int, *args, out: tuple,
+               min_rows: int = PARALLEL_MIN_KERNEL_ROWS) -> None:  # fmt: skip
         """``kernel(*args, lo, hi, *out)`` over rows 0..n, in ``threads`` chunks on the
-        pool from PARALLEL_MIN_KERNEL_ROWS rows on (the kernels release the GIL)."""
-        if self._pool is None or n < PARALLEL_MIN_KERNEL_ROWS:
+        pool from ``min_rows`` rows on (the kernels release the GIL)."""
+        if self._pool is None or n < min_rows:
             kernel(*args, 0, n, *out)
             return
         edges = np.linspace(0, n, self.threads + 1).astype(int).tolist()
