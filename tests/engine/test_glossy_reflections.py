@@ -413,3 +413,39 @@ def test_a_rough_reflector_shows_the_environment_prefiltered(tmp_path):
             np.testing.assert_allclose(rt.beauty[floor], out.beauty[floor], rtol=1e-4,
                                        atol=1e-5)  # fmt: skip
     assert spread[0.8] < 0.2 * spread[0.0], spread
+
+
+def test_a_textured_roughness_is_read_per_pixel(tmp_path):
+    """A reflector whose ``roughness`` is a texture (left half 0.02, right half 0.4,
+    8-bit raw): the lobe of each of its pixels takes the texel under it (within an
+    8-bit step), so the left half keeps mirror rays and the right half is glossy."""
+    from pxr import Sdf
+    from textured_stages import define_texture, textured_quad_stage, write_image
+
+    stage, surface = textured_quad_stage(tmp_path)
+    texels = np.zeros((8, 8, 3))
+    texels[:, :4], texels[:, 4:] = 0.02, 0.4
+    write_image(tmp_path / "rough.png", texels)
+    texture = define_texture(stage, "/Looks/Quad/Rough", "./rough.png",
+                             sourceColorSpace=(Sdf.ValueTypeNames.Token, "raw"))  # fmt: skip
+    surface.CreateInput("roughness", Sdf.ValueTypeNames.Float).ConnectToSource(
+        texture.ConnectableAPI(), "r")
+    schema.apply_reflector(stage.GetPrimAtPath("/Quad"), priority=1.0)
+    stage.GetRootLayer().Save()
+    loaded = open_stage(stage.GetRootLayer().realPath)
+    renderer = FrameRenderer(loaded, RenderOptions(mode="rt", width=48, height=36,
+                                                   heuristic="all", budget_ms=None))  # fmt: skip
+    try:
+        gb = renderer.render(1.0).gbuffer
+    finally:
+        renderer.close()
+    quad = gb.element_id == 0
+    rows, cols = np.nonzero(quad)
+    rough = glossy.pixel_roughness(loaded.scene, gb, rows * gb.shape[1] + cols)
+    # Away from the quad's borders, where the bilinear taps read the wrap mode's black.
+    u = (cols - cols.min()) / np.ptp(cols)
+    v = (rows - rows.min()) / np.ptp(rows)
+    inner = (v > 0.15) & (v < 0.85)
+    left, right = inner & (u > 0.15) & (u < 0.4), inner & (u > 0.6) & (u < 0.85)
+    np.testing.assert_allclose(rough[left], 0.02, atol=1.0 / 255)
+    np.testing.assert_allclose(rough[right], 0.4, atol=1.0 / 255)
