@@ -415,6 +415,7 @@ def test_a_rough_reflector_shows_the_environment_prefiltered(tmp_path):
     assert spread[0.8] < 0.2 * spread[0.0], spread
 
 
+@pytest.mark.slow
 def test_a_textured_roughness_is_read_per_pixel(tmp_path):
     """A reflector whose ``roughness`` is a texture (left half 0.02, right half 0.4,
     8-bit raw): the lobe of each of its pixels takes the texel under it (within an
