@@ -49,7 +49,6 @@ reflector's weight.
 from __future__ import annotations
 
 import functools
-import importlib
 
 import numpy as np
 
@@ -112,11 +111,8 @@ TABLE_SAMPLES = 256
 
 
 def _kernels():
-    """The compiled glossy kernels (through ``phrt_usd.kernels`` once it lists them)."""
-    name = "phrt_usd.engine.trace.glossy_kernels"
-    if name in kernels.KERNEL_MODULES:
-        return kernels.load(name)
-    return importlib.import_module(name)
+    """The compiled glossy kernels (``glossy_kernels``, through ``phrt_usd.kernels``)."""
+    return kernels.load("phrt_usd.engine.trace.glossy_kernels")
 
 
 def filter_radius(rough: np.ndarray, reach: np.ndarray, pixel_angle: float) -> np.ndarray:
