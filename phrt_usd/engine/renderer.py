@@ -345,11 +345,14 @@ class FrameRenderer:
         visible_ids = [int(i) for i in self._reflector_ids if prep.pixel_counts[i] > 0]
         frame_budget_ms = self._frame_budget_ms(prep, policy, opts)
         history = reuse = screen = None
-        if self._tracer is not None and opts.mode == "hybrid":  # rt traces every pixel
+        # History in both tracing modes: rt traces every mirror pixel (none is reused or
+        # filled), but a glossy pixel's few samples are accumulated across frames in rt
+        # as in hybrid (``trace/glossy.py``), so hybrid with every reflector traced is rt.
+        if self._tracer is not None and opts.mode in ("hybrid", "rt"):
             history = self._histories.setdefault(id(policy), (policy, ReflectionHistory()))[1]
             reuse = history.begin(gb, prep.motion.camera, self._moved_elements(prep),
                                   self._planned_index.get(prep.time))  # fmt: skip
-            if opts.screen_space == "on":
+            if opts.mode == "hybrid" and opts.screen_space == "on":
                 from phrt_usd.engine.trace.screen_space import ScreenFrame
 
                 screen = ScreenFrame(prep.motion.camera)
