@@ -36,7 +36,7 @@ One sample a pixel is noisy; three steps make it a clean image:
   steps of the pattern's spacing (1 at full density), on the pixel's element, its
   tangent plane and agreeing normals (``denoise``): the radius grows with roughness
   (the lobe's blur), 0 below ~0.06 (no filter: the near-mirrors).
-- **temporal** (hybrid: ``engine/reflection_history.py``): a traced glossy pixel blends
+- **temporal** (hybrid and rt: ``engine/reflection_history.py``): a traced glossy pixel blends
   ``accumulation(r)`` of its previous value in, read at the *surface's* reprojection
   (the reflection's hit distance set to 0 for r ≥ SURFACE_REPROJECTION_ROUGHNESS: a
   wide lobe has no single virtual image), clamped to the range of this frame's samples
