@@ -583,6 +583,7 @@ class MaterialBank:
             else:
                 self._set_constant(row, name, np.resize(value, 3 if value.size > 1 else 1))
         row.diffuse_authored = True
+        row.glossy = True  # its roughness blurs its reflections, as a UsdPreviewSurface's
         for name, (image, scale, bias) in mapped.images.items():
             read = self._file(image.file, image.where, image.colour_space)
             if read is None:  # not found or not decoded: a problem line, the constant

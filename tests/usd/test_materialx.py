@@ -210,6 +210,7 @@ def test_material_prim_referencing_its_document_material(tmp_path):
     materials = scene.scene.materials
     np.testing.assert_allclose(materials.diffuse[1], GOLD, atol=1e-7)
     assert materials.metallic[1] == 1.0 and abs(materials.roughness[1] - 0.3) < 1e-7
+    assert materials.glossy[1]  # its roughness blurs its reflections, as a preview's
 
 
 def test_material_the_document_lacks_is_named(tmp_path):
