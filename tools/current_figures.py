@@ -13,12 +13,11 @@ separate invocations. Per stage and resolution it reports:
 
 * hybrid (HEU1 at T = ``--budget-ms``): median frame, fps, and ÷ pyrender's lit
   one-node render of the same triangles in the same run (``bench_peers.bench_pyrender``);
-* raster-only's median frame and ÷ pyrender;
-* the trace phase's efficiency per frame: raw ``embreex`` on exactly the rays the
-  hybrid's frames cast ÷ the trace phase's time for them (``bench_peers``' "hybrid trace
-  phase", small rounds and their fixed costs included). The per-round efficiency
-  (``tools/bench_trace_batches.py``: one round of a given size, timed alone) sits beside
-  it in BENCHMARKS.md.
+* raster-only's median frame and ÷ pyrender.
+
+The trace phase's share of raw ``embreex`` per frame is ``bench_peers``' own figure on
+consecutive frames: on frames 24 apart most frames calibrate the tracer afresh, whose
+rays its replay counts but whose time is the ``calibrate`` phase's, not the trace's.
 
 Targets: ``TARGET_FPS`` per resolution and ÷ pyrender ≤ 1 (docs/design.md §3).
 """
@@ -68,9 +67,6 @@ def figures(run: dict) -> dict[str, dict[str, float]]:
             "raster_per_pyrender": raster["frame_ms"] / pyrender,
             "pyrender_ms": pyrender,
         }
-        if "trace_ours_mrays_s" in hybrid:
-            share = hybrid["trace_ours_mrays_s"] / hybrid["trace_raw_mrays_s"]
-            row["trace_per_frame_share"] = share
         got[key] = row
     return got
 
@@ -107,11 +103,6 @@ def table(runs: list[dict[str, dict[str, float]]], budget_ms: float, command: st
             (f"raster-only median frame ÷ pyrender, {name}",
              spread(values["raster_per_pyrender"], "{:.2f}"), "reported", "—"),
         ]  # fmt: skip
-        if values.get("trace_per_frame_share"):
-            share = [100 * v for v in values["trace_per_frame_share"]]
-            rows.append((f"trace phase ÷ raw `embreex` per frame (the hybrid's rays), {name}",
-                         spread(share, "{:.0f}") + " %", "reported beside the per-round share",
-                         "—"))  # fmt: skip
         for figure, value, target_cell, met in rows:
             cells = (figure, value, target_cell, met, commit, date, f"`{command}`")
             lines.append("| " + " | ".join(cells) + " |")
