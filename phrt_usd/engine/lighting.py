@@ -92,7 +92,7 @@ def shade_gbuffer(
         pending = map_lookup(
             rasterizer, lights, pos, nrm, view, filtered=tracer is None, surface=surf
         )
-        visibility = _settled(pending, tracer)
+        visibility = _settled(pending, tracer, tri)
         shadow_pass = "shadow_map" if tracer is None else "shadow_map+rays"
     if _emits(scene):
         emissive = surface.emissive_at(scene, tri, pos)  # textured too
@@ -190,12 +190,16 @@ def shade_settled(
     )
 
 
-def _settled(pending, tracer: Tracer | None):
-    """``pending`` (``MapVisibility`` or ``PendingLightTerms``) finished: the pairs the
-    shadow maps could not decide resolved by ``tracer``'s shadow rays, or without a
-    tracer by the maps' own filtering."""
+def _settled(pending, tracer: Tracer | None, triangles: np.ndarray):
+    """``pending`` (``MapVisibility`` or ``PendingLightTerms``) of points on
+    ``triangles`` (n,) finished: the pairs the shadow maps could not decide resolved by
+    ``tracer``'s shadow rays, cast from the points' triangles as rt's are (the smooth
+    surface's lift, no self-hits: docs/hit-lighting.md), or without a tracer by the
+    maps' own filtering."""
     query = pending.uncertain_pairs()
     if tracer is None or query is None:
         return pending.filtered()
-    exact = tracer.shadow_visibility(query.positions, query.normals, pairs=query.pairs)
+    exact = tracer.shadow_visibility(
+        query.positions, query.normals, np.take(triangles, query.rows), pairs=query.pairs
+    )
     return pending.resolved(exact)

@@ -185,3 +185,43 @@ def test_probe_speckles_at_grazing_angles_in_rt():
     # Shadowed: no direct light (a lit pixel there gets >= 0.05 x 3 x 0.8 / pi).
     dark = np.mean(direct[lit_side].max(axis=1) < 1e-3)
     assert dark <= MAX_DARK_SHARE, f"{dark:.3%} of the lit side dark in rt"
+
+
+def test_probe_speckles_at_grazing_angles_in_hybrid():
+    """The hybrid's local shading of the coarse smooth sphere (raster G-buffer, shadow
+    maps, shadow rays for the pairs the maps leave undecided) under a grazing
+    DistantLight: where the maps left the pair undecided, the shadow rays are cast from
+    the pixel's triangle (the smooth surface's lift, as in rt) and the lit side of the
+    smooth sphere gets its direct light. (Pairs the maps decide themselves follow the
+    flat triangles' depth: docs/hit-lighting.md, "Smooth meshes".)"""
+    from phrt_usd.engine.raster.rasterizer import Rasterizer
+
+    to_light = _light(GRAZING_DEGREES)
+    dome = DomeLight(color=np.full(3, 0.1))
+    camera = look_at((0.0, 0.0, 4.0), (0.0, 0.0, 0.0))
+    shaded, undecided = {}, None
+    for name, lights in (
+        ("lit", Lights(distant=[DistantLight(to_light, np.full(3, 3.0))], dome=dome)),
+        ("dome", Lights(dome=dome)),
+    ):
+        tracer = _coarse_sphere_tracer(lights)
+        with Rasterizer(tracer.scene, 160, 120) as raster:
+            tracer.use_shadow_maps(raster)
+            gb = raster.render(camera)
+            image, _ = lighting.shade_gbuffer(gb, tracer.scene, "hybrid", raster, tracer)
+            if name == "lit":
+                cov = gb.covered.reshape(-1)
+                pending = lighting.map_lookup(
+                    raster, lights, gb.position.reshape(-1, 3)[cov],
+                    gb.normal.reshape(-1, 3)[cov], gb.view_dir.reshape(-1, 3)[cov],
+                )  # fmt: skip
+                undecided = np.zeros(int(cov.sum()), bool)
+                undecided[pending.uncertain_pairs().rows] = True
+        shaded[name] = image.reshape(-1, 3)
+    covered = gb.covered.reshape(-1)
+    direct = (shaded["lit"] - shaded["dome"])[covered]
+    lit_side = gb.normal.reshape(-1, 3)[covered] @ to_light > LIT_SIDE
+    asked = lit_side & undecided
+    assert asked.sum() > 100  # the maps leave the terminator's band to the rays
+    dark = np.mean(direct[asked].max(axis=1) < 1e-3)
+    assert dark <= MAX_DARK_SHARE, f"{dark:.3%} of the lit side's undecided pixels dark"
