@@ -400,8 +400,10 @@ KINDS: tuple[SupportKind, ...] = (
     ),
     SupportKind(
         "area_light", "area lights (Sphere, Rect, Disk, Cylinder)",
-        "approximated: a point light at the light's centre",
-        "usd/lights.py: emitted power kept, shape reduced to a point (hard shadows)",
+        "approximated: Sphere and Cylinder a point light at the light's centre; Rect and "
+        "Disk a point in the raster and on the primary surface, an area at hits lit by rays",
+        "usd/lights.py: emitted power kept; engine/trace/area_light_kernels.py: Rect and "
+        "Disk areas (soft shadows) at traced hits lit by shadow rays",
         _area_light,
     ),
     SupportKind(
