@@ -97,14 +97,10 @@ def _hammersley(count: int) -> tuple[np.ndarray, np.ndarray]:
     return (i + 0.5) / count, bits.astype(np.float64) / 2.0**32
 
 
-def lobe_albedo(roughness: float, cosine: np.ndarray, samples: int = TABLE_SAMPLES):
-    """(A, B) (c,) float64 at one ``roughness`` and ``cosine`` (c,) values of n·v: the
-    GGX lobe's directional albedo is ``F0 A + F90 B`` (Schlick's F split, the BRDF of
-    the module). Integrated over the lobe's visible normals (Heitz 2018: each sample
-    weighs G2 / G1(v), at most 1), on a Hammersley set."""
-    alpha = max(float(roughness), MIN_ROUGHNESS) ** 2
-    a2 = alpha * alpha
-    mu = np.maximum(np.asarray(cosine, np.float64), MIN_COSINE)[:, None]
+def visible_normal_draws(alpha: float, mu: np.ndarray, samples: int):
+    """(v·h, n·l) (c, samples) float64: the GGX lobe of ``alpha``'s visible normals h
+    drawn on a Hammersley set of ``samples`` (Heitz 2018) for views v at n·v = ``mu``
+    (c, 1) in the x-z plane, v·h clamped to [0, 1], l = v reflected about h."""
     u1, u2 = _hammersley(samples)
     # The view direction in the x-z plane, stretched to the unit-roughness frame.
     vx, vz = np.sqrt(np.maximum(1.0 - mu * mu, 0.0)), mu
@@ -122,13 +118,26 @@ def lobe_albedo(roughness: float, cosine: np.ndarray, samples: int = TABLE_SAMPL
     norm = np.sqrt(hx * hx + hy * hy + hz * hz)
     hx, hz = hx / norm, hz / norm
     vh = np.clip(vx * hx + vz * hz, 0.0, 1.0)
-    nl = 2.0 * vh * hz - vz
+    return vh, 2.0 * vh * hz - vz
 
-    def lam(c):
-        c = np.maximum(c, 1e-12)
-        return 0.5 * (np.sqrt(1.0 + a2 * (1.0 - c * c) / (c * c)) - 1.0)
 
-    weight = np.where(nl > 0.0, (1.0 + lam(mu)) / (1.0 + lam(mu) + lam(nl)), 0.0)
+def smith_lambda(c: np.ndarray, a2: float) -> np.ndarray:
+    """Smith's Λ of GGX (alpha² ``a2``) at cosine ``c`` (floored at 1e-12)."""
+    c = np.maximum(c, 1e-12)
+    return 0.5 * (np.sqrt(1.0 + a2 * (1.0 - c * c) / (c * c)) - 1.0)
+
+
+def lobe_albedo(roughness: float, cosine: np.ndarray, samples: int = TABLE_SAMPLES):
+    """(A, B) (c,) float64 at one ``roughness`` and ``cosine`` (c,) values of n·v: the
+    GGX lobe's directional albedo is ``F0 A + F90 B`` (Schlick's F split, the BRDF of
+    the module). Integrated over the lobe's visible normals (Heitz 2018: each sample
+    weighs G2 / G1(v), at most 1), on a Hammersley set."""
+    alpha = max(float(roughness), MIN_ROUGHNESS) ** 2
+    a2 = alpha * alpha
+    mu = np.maximum(np.asarray(cosine, np.float64), MIN_COSINE)[:, None]
+    vh, nl = visible_normal_draws(alpha, mu, samples)
+    lam_v = smith_lambda(mu, a2)
+    weight = np.where(nl > 0.0, (1.0 + lam_v) / (1.0 + lam_v + smith_lambda(nl, a2)), 0.0)
     s5 = (1.0 - vh) ** 5
     return (weight * (1.0 - s5)).mean(-1), (weight * s5).mean(-1)
 

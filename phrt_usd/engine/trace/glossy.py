@@ -148,34 +148,16 @@ def conditional_albedo_table() -> np.ndarray:
     seen at n·v = j / (columns - 1) whose reflection leaves above the surface (the
     draws ``glossy_rays`` keeps), on a Hammersley set: a kept sample's weight is
     G2 / G1 over this mean, so the weights average 1. Computed once a process."""
-    u1, u2 = preview_surface._hammersley(TABLE_SAMPLES)
     table = np.empty((TABLE_ROUGHNESS, TABLE_COSINES))
     mu = np.maximum(np.linspace(0.0, 1.0, TABLE_COSINES), 1e-4)[:, None]
     for i, rough in enumerate(np.linspace(0.0, 1.0, TABLE_ROUGHNESS)):
         alpha = max(rough, MIRROR_ROUGHNESS) ** 2
         a2 = alpha * alpha
-        vx, vz = np.sqrt(np.maximum(1.0 - mu * mu, 0.0)), mu
-        sx, sz = alpha * vx, vz
-        length = np.sqrt(sx * sx + sz * sz)
-        sx, sz = sx / length, sz / length
-        rad, phi = np.sqrt(u1), 2.0 * np.pi * u2
-        t1, t2 = rad * np.cos(phi), rad * np.sin(phi)
-        blend = 0.5 * (1.0 + sz)
-        t2 = (1.0 - blend) * np.sqrt(np.maximum(1.0 - t1 * t1, 0.0)) + blend * t2
-        up = np.sqrt(np.maximum(1.0 - t1 * t1 - t2 * t2, 0.0))
-        nx, ny, nz = -t2 * sz + up * sx, t1 + 0.0 * sx, t2 * sx + up * sz
-        hx, hy, hz = alpha * nx, alpha * ny, np.maximum(nz, 0.0)
-        norm = np.sqrt(hx * hx + hy * hy + hz * hz)
-        hx, hz = hx / norm, hz / norm
-        vh = vx * hx + vz * hz
-        nl = 2.0 * vh * hz - vz
-
-        def lam(c, a2=a2):
-            c = np.maximum(c, 1e-7)
-            return 0.5 * (np.sqrt(1.0 + a2 * (1.0 - c * c) / (c * c)) - 1.0)
-
+        _, nl = preview_surface.visible_normal_draws(alpha, mu, TABLE_SAMPLES)
         kept = nl > 1e-4
-        ratio = (1.0 + lam(mu)) / (1.0 + lam(mu) + lam(np.where(kept, nl, 1.0)))
+        lam_v = preview_surface.smith_lambda(mu, a2)
+        lam_l = preview_surface.smith_lambda(np.where(kept, nl, 1.0), a2)
+        ratio = (1.0 + lam_v) / (1.0 + lam_v + lam_l)
         count = kept.sum(-1)
         table[i] = np.where(count > 0, (ratio * kept).sum(-1) / np.maximum(count, 1), 1.0)
     return np.ascontiguousarray(table, np.float32)
