@@ -476,6 +476,28 @@ def preview_shade(albedo, point, eye, normal=(0.0, 0.0, 1.0), sources=(), ambien
     return out
 
 
+def sky_view_stage(path: Path, sky, eye, target) -> Usd.Stage:
+    """A new stage at ``path`` (y up, metres, default prim /World) lit by a DomeLight
+    /World/Sky of colour ``sky`` (intensity 1), its camera /World/Camera (24 mm lens,
+    36 x 27 mm aperture, clipping 0.01-100 m) at ``eye`` looking at ``target``; no
+    geometry."""
+    stage = Usd.Stage.CreateNew(str(path))
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    world = UsdGeom.Xform.Define(stage, "/World")
+    stage.SetDefaultPrim(world.GetPrim())
+    UsdLux.DomeLight.Define(stage, "/World/Sky").CreateColorAttr(Gf.Vec3f(*sky))
+    cam = UsdGeom.Camera.Define(stage, "/World/Camera")
+    cam.CreateFocalLengthAttr(24.0)
+    cam.CreateHorizontalApertureAttr(36.0)
+    cam.CreateVerticalApertureAttr(27.0)
+    cam.CreateClippingRangeAttr(Gf.Vec2f(0.01, 100.0))
+    UsdGeom.Xformable(cam).AddTransformOp().Set(
+        _look_at_matrix(np.asarray(eye, np.float64), np.asarray(target, np.float64))
+    )
+    return stage
+
+
 def front_view_stage(path: Path) -> Usd.Stage:
     """A new stage at ``path`` (y up, metres) with the camera /Cam at (0, 0, 5) looking
     down -z (50 mm lens, 20 x 20 mm aperture: the 2 x 2 ``st_quad`` at the origin just

@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux, UsdShade
-from scenes import _look_at_matrix
+from scenes import sky_view_stage
 
 from phrt_usd.engine.renderer import FrameRenderer, RenderOptions
 from phrt_usd.engine.trace import glossy
@@ -46,19 +46,7 @@ def _stage(path, roughness: float, wall: bool = False) -> str:
     below it); with ``wall``, instead of the box a 4 x 2 m wall 2 m behind the origin,
     black and emitting orange (its radiance is its emission: no lighting noise), and no
     sun."""
-    stage = Usd.Stage.CreateNew(str(path))
-    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
-    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
-    world = UsdGeom.Xform.Define(stage, "/World")
-    stage.SetDefaultPrim(world.GetPrim())
-    UsdLux.DomeLight.Define(stage, "/World/Sky").CreateColorAttr(Gf.Vec3f(0.5, 0.6, 0.8))
-    cam = UsdGeom.Camera.Define(stage, "/World/Camera")
-    cam.CreateFocalLengthAttr(24.0)
-    cam.CreateHorizontalApertureAttr(36.0)
-    cam.CreateVerticalApertureAttr(27.0)
-    cam.CreateClippingRangeAttr(Gf.Vec2f(0.01, 100.0))
-    UsdGeom.Xformable(cam).AddTransformOp().Set(
-        _look_at_matrix(np.array([0.0, 1.2, 4.0]), np.array([0.0, 0.3, 0.0])))
+    stage = sky_view_stage(path, (0.5, 0.6, 0.8), (0.0, 1.2, 4.0), (0.0, 0.3, 0.0))
     floor = UsdGeom.Mesh.Define(stage, "/World/Floor")
     h = 6.0
     floor.CreatePointsAttr([(-h, 0, -h), (-h, 0, h), (h, 0, h), (h, 0, -h)])

@@ -6,8 +6,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux, UsdShade
-from scenes import _look_at_matrix
+from pxr import Gf, Sdf, UsdGeom, UsdShade
+from scenes import sky_view_stage
 
 from phrt_usd.engine import lighting, shading
 from phrt_usd.engine.renderer import FrameRenderer, RenderOptions
@@ -23,19 +23,7 @@ def _floor_stage(path, metallic: float, colour, reflectivity: float | None) -> s
     """A 10 m floor (a reflector, ``reflectivity`` authored or not) of a UsdPreviewSurface
     (``metallic``, ``colour``, roughness 0) under a white dome of radiance 1, no other
     light; the camera 2 m above, looking down at 40°."""
-    stage = Usd.Stage.CreateNew(str(path))
-    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
-    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
-    world = UsdGeom.Xform.Define(stage, "/World")
-    stage.SetDefaultPrim(world.GetPrim())
-    UsdLux.DomeLight.Define(stage, "/World/Sky").CreateColorAttr(Gf.Vec3f(1.0, 1.0, 1.0))
-    cam = UsdGeom.Camera.Define(stage, "/World/Camera")
-    cam.CreateFocalLengthAttr(24.0)
-    cam.CreateHorizontalApertureAttr(36.0)
-    cam.CreateVerticalApertureAttr(27.0)
-    cam.CreateClippingRangeAttr(Gf.Vec2f(0.01, 100.0))
-    eye = np.array([0.0, 2.0, 2.4])
-    UsdGeom.Xformable(cam).AddTransformOp().Set(_look_at_matrix(eye, np.zeros(3)))
+    stage = sky_view_stage(path, (1.0, 1.0, 1.0), (0.0, 2.0, 2.4), (0.0, 0.0, 0.0))
     floor = UsdGeom.Mesh.Define(stage, "/World/Floor")
     h = 5.0
     floor.CreatePointsAttr([(-h, 0, -h), (-h, 0, h), (h, 0, h), (h, 0, -h)])
