@@ -46,6 +46,7 @@ from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux, UsdShade
 from phrt_usd.engine.renderer import FrameRenderer
 from phrt_usd.errors import PhrtError
 from phrt_usd.model.render_options import RenderOptions
+from phrt_usd.usd.camera_path import UP_VECTORS, look_at
 from phrt_usd.usd.stage import read_stage
 
 #: The environment's radiance and the distant light's intensity (UsdLux units: a white
@@ -166,17 +167,6 @@ def _bind(prim: Usd.Prim, material: UsdShade.Material) -> None:
     UsdShade.MaterialBindingAPI.Apply(prim).Bind(material)
 
 
-def _look_at(eye, target) -> Gf.Matrix4d:
-    eye, target = np.asarray(eye, float), np.asarray(target, float)
-    f = (target - eye) / np.linalg.norm(target - eye)
-    r = np.cross(f, [0.0, 1.0, 0.0])
-    r /= np.linalg.norm(r)
-    u = np.cross(r, f)
-    m = np.eye(4)
-    m[0, :3], m[1, :3], m[2, :3], m[3, :3] = r, u, -f, eye  # USD: row vectors
-    return Gf.Matrix4d(m.tolist())
-
-
 def comparison_stage(name: str, width: int, height: int) -> Usd.Stage:
     """The in-memory stage ``name`` of ``STAGES`` (module docstring), its camera's
     aperture of the ``width`` x ``height`` image's aspect."""
@@ -199,7 +189,9 @@ def comparison_stage(name: str, width: int, height: int) -> Usd.Stage:
     cam.CreateHorizontalApertureAttr(HORIZONTAL_APERTURE)
     cam.CreateVerticalApertureAttr(HORIZONTAL_APERTURE * height / width)
     cam.CreateClippingRangeAttr(Gf.Vec2f(0.01, 100.0))
-    UsdGeom.Xformable(cam).AddTransformOp().Set(_look_at(EYE, TARGET))
+    # look_at is column-vector camera-to-world; USD matrices are row-vector: transposed.
+    world_from_camera = look_at(np.asarray(EYE, float), np.asarray(TARGET, float), UP_VECTORS["Y"])
+    UsdGeom.Xformable(cam).AddTransformOp().Set(Gf.Matrix4d(world_from_camera.T.tolist()))
     floor = UsdGeom.Mesh.Define(stage, "/World/Floor")
     h = 20.0
     floor.CreatePointsAttr([(-h, 0, -h), (-h, 0, h), (h, 0, h), (h, 0, -h)])
