@@ -205,7 +205,7 @@ def test_base_image_kernel_matches_numpy_reference(dome):
     against the numpy reference, on a random G-buffer."""
     from phrt_usd.engine import compositing
     from phrt_usd.model.frame import GBuffer
-    from phrt_usd.model.scene import Scene
+    from phrt_usd.model.scene import MaterialTable, Scene
 
     rng = np.random.default_rng(4)
     h, w = 24, 32
@@ -226,6 +226,9 @@ def test_base_image_kernel_matches_numpy_reference(dome):
     )
     scene = Scene.__new__(Scene)
     scene.lights = lights
+    empty = np.zeros(0, np.float32)
+    scene.materials = MaterialTable(np.zeros((0, 3), np.float32), empty, empty, empty, empty,
+                                    np.zeros((0, 3), np.float32))  # no material: no glossy
     local = np.where(element[..., None] >= 0, rng.uniform(0, 2, (h, w, 3)), 0).astype(np.float32)
     f = np.array([0.0, 0.5, 1.0, 0.0, 0.0], np.float32)[element]  # F of ids 0..3, then -1
     got = compositing.base_image(gb, scene, local, f)

@@ -165,10 +165,9 @@ def conditional_albedo_table() -> np.ndarray:
 
 def has_glossy(scene) -> bool:
     """Whether some material of ``scene`` reflects by its roughness (``MaterialTable.
-    glossy``) with a roughness that is not a mirror's, or a textured one (a scene
-    without materials, a test's stand-in: none)."""
-    materials = getattr(scene, "materials", None)
-    glossy = np.asarray(getattr(materials, "glossy", np.zeros(0, bool)), bool)
+    glossy``) with a roughness that is not a mirror's, or a textured one."""
+    materials = scene.materials
+    glossy = np.asarray(materials.glossy, bool)
     if not glossy.any():
         return False
     m = np.flatnonzero(glossy)
@@ -190,7 +189,7 @@ def pixel_roughness(scene, gbuffer: GBuffer, pix: np.ndarray) -> np.ndarray:
     positions (``lighting.gbuffer_surface``)."""
     pix = np.asarray(pix, np.int64)
     out = np.zeros(len(pix), np.float32)
-    glossy = np.asarray(getattr(scene.materials, "glossy", np.zeros(0, bool)), bool)
+    glossy = np.asarray(scene.materials.glossy, bool)
     if not len(pix) or not glossy.any():
         return out
     tri = np.take(gbuffer.triangle_id.reshape(-1), pix).astype(np.int64)
