@@ -30,6 +30,7 @@ from typing import TYPE_CHECKING, Protocol
 import numpy as np
 
 from phrt_usd.engine.shading import gather_rows, point_surface, shade_local, shaped_lights
+from phrt_usd.engine.terminator import Terminator
 from phrt_usd.model import surface
 from phrt_usd.model.frame import GBuffer
 from phrt_usd.model.scene import Lights, Scene
@@ -89,9 +90,11 @@ def shade_gbuffer(
         visibility = tracer.shadow_visibility(pos, nrm, tri)
         shadow_pass = "shadow_rays"
     else:
+        terminator = Terminator.of(rasterizer.triangle_table, tri, nrm)
         pending = map_lookup(
-            rasterizer, lights, pos, nrm, view, filtered=tracer is None, surface=surf
-        )
+            rasterizer, lights, pos, nrm, view, filtered=tracer is None, surface=surf,
+            terminator=terminator,
+        )  # fmt: skip
         visibility = _settled(pending, tracer, tri)
         shadow_pass = "shadow_map" if tracer is None else "shadow_map+rays"
     if _emits(scene):
@@ -145,6 +148,7 @@ def map_lookup(
     view_dirs: np.ndarray,
     filtered: bool = False,
     surface: np.ndarray | None = None,
+    terminator: Terminator | None = None,
 ) -> MapVisibility | PendingLightTerms:
     """What the shadow maps say about the direct light of points (n, 3) float64 world
     metres with unit ``normals`` facing the viewer and ``view_dirs`` (n, 3) unit from the
@@ -154,12 +158,14 @@ def map_lookup(
     ``Rasterizer.map_light_terms``), else, or with a cone-shaped LocalLight
     (only ``shade_local`` evaluates cones), the (n, L) visibility
     (``Rasterizer.map_visibility``; ``filtered``: the undecided pairs get the maps'
-    PCF). The G-buffer's and the tracer's hits' one lookup."""
+    PCF). ``terminator``: the points on smooth meshes (``engine/terminator.py``: a
+    pair the maps call shadowed in its band is left undecided), or None. The G-buffer's
+    and the tracer's hits' one lookup."""
     if rasterizer.cube_lookup_on_gpu and not shaped_lights(lights):
         return rasterizer.map_light_terms(
-            positions, normals, np.negative(view_dirs), surface=surface
+            positions, normals, np.negative(view_dirs), surface=surface, terminator=terminator
         )
-    return rasterizer.map_visibility(positions, normals, filtered=filtered)
+    return rasterizer.map_visibility(positions, normals, filtered=filtered, terminator=terminator)
 
 
 def shade_settled(

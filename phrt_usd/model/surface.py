@@ -38,6 +38,18 @@ from phrt_usd.model.scene import ALPHA_ONE, MaterialTable, TextureInput
 #: normals get this short; 1e-6 keeps the float32 division well away from overflow.
 MIN_NORMAL_LENGTH = 1e-6
 
+#: A shadow ray's origin rises onto the smooth surface (``trace_kernels.shadow_rays``)
+#: fully where its triangle's plane faces away from the light (n_g·l <= 0: lit by the
+#: shading normal, shadowed by the flat neighbours), fading out until n_g·l is this cosine
+#: (~6 degrees), where a flat triangle's ray clears its convex neighbours; beyond, shadows
+#: that other objects cast onto a smooth mesh stay where they are. The shadow maps leave
+#: the pairs they call shadowed within the same band undecided (``engine/terminator.py``).
+TERMINATOR_FADE = 0.1
+#: A triangle is flat (no lift, no terminator band) when each corner normal is within
+#: this cosine of its face normal (either side; ~0.8 degrees): its smooth surface is its
+#: plane, up to a lift far below the shadow maps' bias.
+FLAT_CORNER_COS = 0.9999
+
 #: Cut-out surfaces (``Cutouts``) one ray passes through before it is stopped: the
 #: raster peels one id layer per cut-out surface along a pixel's (or a shadow-map
 #: texel's) ray, a full redraw each; the tracer re-casts one ray per surface from just

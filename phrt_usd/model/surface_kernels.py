@@ -33,7 +33,7 @@ from numba import njit
 
 from phrt_usd.kernels import KERNEL_OPTIONS
 from phrt_usd.model.scene import NO_HIT
-from phrt_usd.model.surface import MIN_NORMAL_LENGTH
+from phrt_usd.model.surface import FLAT_CORNER_COS, MIN_NORMAL_LENGTH
 
 #: Denominator floor (relative to |face normal|) of the ray-plane intersection. A pixel
 #: is only covered by a triangle the rasterizer saw with non-zero screen area, so the ray
@@ -129,6 +129,51 @@ def _smooth_lift(t, px, py, pz, s, plane, frame, corners):
         )  # fmt: skip
         lx, ly, lz = lx - w * h * ux, ly - w * h * uy, lz - w * h * uz
     return lx, ly, lz
+
+
+@njit(**_KERNEL)
+def terminator_normals(tri, ns, frame, corners, out):
+    """The shadow terminator's geometric normals of n points: point i on triangle tri[i]
+    (n,) int64 (-1: none) with shading normal ns (n, 3) gets its triangle's unit face
+    normal (``TriangleTable.frame``) turned to ns's side in out (n, 3) float32, or 0 where
+    the triangle is flat (``FLAT_CORNER_COS``) or absent: the points whose shadow test
+    follows the smooth surface (``TERMINATOR_FADE``). Returns how many are not 0."""
+    count = 0
+    for i in range(tri.shape[0]):
+        out[i, 0], out[i, 1], out[i, 2] = 0.0, 0.0, 0.0
+        t = tri[i]
+        if t < 0:
+            continue
+        gx, gy, gz = frame[t, 3, 0], frame[t, 3, 1], frame[t, 3, 2]
+        flat = True
+        for k in range(3):
+            cx, cy, cz = float(corners[t, k, 0]), float(corners[t, k, 1]), float(corners[t, k, 2])
+            length = math.sqrt(cx * cx + cy * cy + cz * cz)
+            if abs(cx * gx + cy * gy + cz * gz) < FLAT_CORNER_COS * length:
+                flat = False
+        if flat:
+            continue
+        s = 1.0 if gx * ns[i, 0] + gy * ns[i, 1] + gz * ns[i, 2] >= 0.0 else -1.0
+        out[i, 0], out[i, 1], out[i, 2] = s * gx, s * gy, s * gz
+        count += 1
+    return count
+
+
+@njit(**_KERNEL)
+def terminator_lifts(rel, tri, ng, plane, frame, corners, out):
+    """The moves (m, 3) float64 into out of m points rel (m, 3) on triangles tri (m,)
+    int64 onto the smooth surface their corner normals imply (``_smooth_lift``), the
+    corners turned to the side of ng (m, 3) (``terminator_normals``; 0: no move)."""
+    for i in range(tri.shape[0]):
+        out[i, 0], out[i, 1], out[i, 2] = 0.0, 0.0, 0.0
+        t = tri[i]
+        if t < 0 or not (ng[i, 0] != 0.0 or ng[i, 1] != 0.0 or ng[i, 2] != 0.0):
+            continue
+        up = ng[i, 0] * frame[t, 3, 0] + ng[i, 1] * frame[t, 3, 1] + ng[i, 2] * frame[t, 3, 2]
+        s = 1.0 if up >= 0.0 else -1.0
+        out[i, 0], out[i, 1], out[i, 2] = _smooth_lift(
+            t, rel[i, 0], rel[i, 1], rel[i, 2], s, plane, frame, corners
+        )
 
 
 @njit(**_HELPER)
@@ -306,3 +351,5 @@ def warm_up() -> None:
            frame, one, *outs)  # fmt: skip
     hit_geometry(one, f32, f32, v64, frame, corners, v64.copy(), v64.copy(), v32.copy())
     hit_albedo(one, f32, f32, corners, v32.copy())
+    terminator_normals(one, v32.copy(), frame, corners, v32.copy())
+    terminator_lifts(v64.copy(), one, v32.copy(), plane, frame, corners, v64.copy())

@@ -68,7 +68,9 @@ def slab(monkeypatch, request):
     tracer = Tracer(scene, threads=1)
     with Rasterizer(scene, 64, 48) as raster:
         rule = HitLighting(tracer.bvh, tracer.surfaces, tracer._shadows)
-        rule.maps = lambda p, n, d, s: lighting.map_lookup(raster, scene.lights, p, n, d, surface=s)
+        rule.maps = lambda p, n, d, s, t: lighting.map_lookup(
+            raster, scene.lights, p, n, d, surface=s, terminator=t
+        )
         exact = HitLighting(tracer.bvh, tracer.surfaces, tracer._shadows)
         exact.exact = True
         yield tracer, rule, exact
@@ -123,7 +125,7 @@ def test_undecided_pair_casts_its_ray(slab):
     hits = _floor_hits(tracer, xz)
     world = hits[3] + tracer.bvh.boundary.origin
     undecided = np.zeros(len(xz), bool)
-    query = rule.maps(world, hits[5], hits[6], None).uncertain_pairs()
+    query = rule.maps(world, hits[5], hits[6], None, None).uncertain_pairs()
     assert query is not None and 5 <= len(query.rows) < len(xz)
     undecided[query.rows] = query.pairs.any(axis=1)
     local, rays = _shade(rule, tracer, hits)

@@ -187,41 +187,47 @@ def test_probe_speckles_at_grazing_angles_in_rt():
     assert dark <= MAX_DARK_SHARE, f"{dark:.3%} of the lit side dark in rt"
 
 
-def test_probe_speckles_at_grazing_angles_in_hybrid():
-    """The hybrid's local shading of the coarse smooth sphere (raster G-buffer, shadow
-    maps, shadow rays for the pairs the maps leave undecided) under a grazing
-    DistantLight: where the maps left the pair undecided, the shadow rays are cast from
-    the pixel's triangle (the smooth surface's lift, as in rt) and the lit side of the
-    smooth sphere gets its direct light. (Pairs the maps decide themselves follow the
-    flat triangles' depth: docs/hit-lighting.md, "Smooth meshes".)"""
+#: The other DistantLights of the three-light case: dim, one from the camera's side (it
+#: lights the whole visible half: no terminator in view) and one from below the floor of
+#: the view, so that the stage has more DistantLights than the GPU pass shades and all
+#: three are looked up in numpy (``light_pass.LOOKUP_MAX_DISTANT`` = 2).
+_DIM_LIGHTS = ((0.0, 0.0, 1.0), (0.0, -1.0, 0.0))
+
+
+@pytest.mark.parametrize("mode", ["raster", "hybrid"])
+@pytest.mark.parametrize("distant_lights", [1, 3])
+def test_probe_speckles_at_grazing_angles_in_hybrid(mode, distant_lights):
+    """The raster and hybrid local shading of the coarse smooth sphere (raster G-buffer,
+    shadow maps) under a grazing DistantLight: the maps test the flat triangles' depth,
+    so a pair they call shadowed in the terminator's band is left undecided
+    (engine/terminator.py) and settled from the smooth surface: by a shadow ray cast
+    from the pixel's triangle (hybrid, the lift as in rt) or the maps' PCF at the point
+    lifted the same way (raster). The lit side of the smooth sphere gets its direct
+    light, with the light on the GPU pass or, with three DistantLights, in numpy. Before
+    this, 8.3 % (raster) and 7.3 % (hybrid) of the lit side stayed dark."""
     from phrt_usd.engine.raster.rasterizer import Rasterizer
 
     to_light = _light(GRAZING_DEGREES)
     dome = DomeLight(color=np.full(3, 0.1))
+    dim = [DistantLight(np.array(d), np.full(3, 0.01)) for d in _DIM_LIGHTS]
+    grazing = [DistantLight(to_light, np.full(3, 3.0))]
     camera = look_at((0.0, 0.0, 4.0), (0.0, 0.0, 0.0))
-    shaded, undecided = {}, None
+    shaded = {}
     for name, lights in (
-        ("lit", Lights(distant=[DistantLight(to_light, np.full(3, 3.0))], dome=dome)),
-        ("dome", Lights(dome=dome)),
+        ("lit", Lights(distant=grazing + dim[: distant_lights - 1], dome=dome)),
+        ("dim", Lights(distant=dim[: distant_lights - 1], dome=dome)),
     ):
         tracer = _coarse_sphere_tracer(lights)
         with Rasterizer(tracer.scene, 160, 120) as raster:
             tracer.use_shadow_maps(raster)
             gb = raster.render(camera)
-            image, _ = lighting.shade_gbuffer(gb, tracer.scene, "hybrid", raster, tracer)
-            if name == "lit":
-                cov = gb.covered.reshape(-1)
-                pending = lighting.map_lookup(
-                    raster, lights, gb.position.reshape(-1, 3)[cov],
-                    gb.normal.reshape(-1, 3)[cov], gb.view_dir.reshape(-1, 3)[cov],
-                )  # fmt: skip
-                undecided = np.zeros(int(cov.sum()), bool)
-                undecided[pending.uncertain_pairs().rows] = True
+            image, _ = lighting.shade_gbuffer(
+                gb, tracer.scene, mode, raster, tracer if mode == "hybrid" else None
+            )
         shaded[name] = image.reshape(-1, 3)
     covered = gb.covered.reshape(-1)
-    direct = (shaded["lit"] - shaded["dome"])[covered]
+    direct = (shaded["lit"] - shaded["dim"])[covered]
     lit_side = gb.normal.reshape(-1, 3)[covered] @ to_light > LIT_SIDE
-    asked = lit_side & undecided
-    assert asked.sum() > 100  # the maps leave the terminator's band to the rays
-    dark = np.mean(direct[asked].max(axis=1) < 1e-3)
-    assert dark <= MAX_DARK_SHARE, f"{dark:.3%} of the lit side's undecided pixels dark"
+    assert lit_side.sum() > 1000  # the terminator crosses the image
+    dark = np.mean(direct[lit_side].max(axis=1) < 1e-3)
+    assert dark <= MAX_DARK_SHARE, f"{dark:.3%} of the lit side dark in {mode}"

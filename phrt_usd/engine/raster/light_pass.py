@@ -53,6 +53,7 @@ from phrt_usd.engine.raster.shadow_maps import (
 )
 from phrt_usd.engine.shading import MIN_LIGHT_DISTANCE
 from phrt_usd.model import preview_surface
+from phrt_usd.model.surface import TERMINATOR_FADE
 
 #: Most rows of the GPU lookup pass's point texture (llvmpipe's largest renderbuffer
 #: side); more points than the frame's width times this make the rows wider.
@@ -106,7 +107,7 @@ class LightPass:
     def __init__(self, ctx: RasterContext, maps: ShadowMaps) -> None:
         self._ctx = ctx
         self._maps = maps  # whose ``cube_keys`` place the LocalLights
-        self._lookup_programs: dict[tuple[int, int, bool, bool, bool, bool], int] = {}
+        self._lookup_programs: dict[tuple[int, int, bool, bool, bool, bool, bool], int] = {}
         self._dmap_tex: list[int] = []  # DistantLight map textures (``_upload_distant``)
         self._dmap_held: list[ShadowMap | None] = []
         self._lookup_vao: int | None = None
@@ -126,14 +127,15 @@ class LightPass:
         self._lookup_size = (0, 0)  # (width, rows) of ``_lookup_fb``
 
     def _program_for(
-        self, n_lights: int, n_distant: int, shade: bool, tiled: bool, coat: bool
-    ) -> int:
+        self, n_lights: int, n_distant: int, shade: bool, tiled: bool, coat: bool,
+        terminator: bool,
+    ) -> int:  # fmt: skip
         """The lookup program for a pass of ``n_lights`` LocalLight slots and
         ``n_distant`` DistantLights (with shading or not; per tile or not; with the
-        clear coat's lobe or not), compiled on first use with the defines
-        ``shaders/cube_lookup.frag`` expects."""
+        clear coat's lobe or not; with points on smooth meshes or not), compiled on first
+        use with the defines ``shaders/cube_lookup.frag`` expects."""
         has_dynamic = bool(self._ctx.animated_tri.any())
-        key = (n_lights, n_distant, has_dynamic, shade, tiled, coat)
+        key = (n_lights, n_distant, has_dynamic, shade, tiled, coat, terminator)
         if key not in self._lookup_programs:
             with open(os.path.join(SHADER_DIR, "cube_lookup.vert")) as f:
                 vert = f.read()
@@ -147,6 +149,8 @@ class LightPass:
                 f"#define HAS_DYNAMIC {int(has_dynamic)}\n"
                 f"#define SHADE {int(shade)}\n#define TILED {int(tiled)}\n"
                 f"#define COAT {int(coat)}\n#define LUT_ROWS {lut_rows}\n"
+                f"#define TERMINATOR {int(terminator)}\n"
+                f"#define TERMINATOR_FADE {TERMINATOR_FADE!r}\n"
                 f"#define LUT_COSINES {lut_columns - 1}\n"
                 f"#define CUBE_SIZE {CUBE_MAP_SIZE}\n#define TAN_HALF {tan_half!r}\n"
                 f"#define LINE_W {CUBE_LINE_TILE[0]}u\n#define LINE_H {CUBE_LINE_TILE[1]}u\n"
@@ -167,13 +171,13 @@ class LightPass:
             return
         self._lookup_vao = int(GL.glGenVertexArrays(1))
         # points, normals, to_eye, surface rows, the albedo table, the tiles' slots, the
-        # points' tiles
-        textures = [int(t) for t in GL.glGenTextures(7)]
+        # points' tiles, their terminator normals
+        textures = [int(t) for t in GL.glGenTextures(8)]
         for tex in textures:
             GL.glBindTexture(GL.GL_TEXTURE_2D, tex)
             GL.glTexParameteri(GL.GL_TEXTURE_2D, GL.GL_TEXTURE_MIN_FILTER, GL.GL_NEAREST)
             GL.glTexParameteri(GL.GL_TEXTURE_2D, GL.GL_TEXTURE_MAG_FILTER, GL.GL_NEAREST)
-        self._point_tex = textures[:3]
+        self._point_tex = textures[:3] + textures[7:]
         self._surface_tex, self._lut_tex, self._slot_tex = textures[3], textures[4], textures[5]
         self._tile_tex = textures[6]
         self._light_buf = int(GL.glGenBuffers(1))
@@ -341,6 +345,7 @@ class LightPass:
         distant: list[tuple[ShadowMap | None, ShadowMap | None]] | None = None,
         origin: np.ndarray | None = None,
         surface: np.ndarray | None = None,
+        terminator: np.ndarray | None = None,
     ) -> np.ndarray | tuple[np.ndarray, np.ndarray, PointTiles]:
         """Every point against every LocalLight's cube maps on the GPU (the test of
         ``shadow_maps.cube_visibility``, in ``shaders/cube_lookup.frag``).
@@ -362,7 +367,9 @@ class LightPass:
         (``shade_kernels.undecided_rows`` reads them), and those tiles (``PointTiles``).
         ``distant`` (with ``to_eye`` only): the (static, animated) maps of up to
         LOOKUP_MAX_DISTANT DistantLights, looked up and shaded in the first pass too
-        (uncertain: bit 16 + k of pass 0)."""
+        (uncertain: bit 16 + k of pass 0). ``terminator`` (n, 3) float32: the points'
+        ``Terminator.normals`` (None: every point flat): a pair the maps call shadowed in
+        a smooth mesh's terminator band is uncertain instead (``engine/terminator.py``)."""
         n, n_local = len(points), len(cubes)
         self._ctx.make_current()
         self._setup()
@@ -376,7 +383,8 @@ class LightPass:
         shading = to_eye is not None
         # Without shading the to_eye texture is never read for a result: send no data.
         offset = None if origin is None else np.asarray(origin, np.float64)
-        inputs = ((points, offset), (normals, None), (to_eye if shading else None, None))
+        inputs = ((points, offset), (normals, None), (to_eye if shading else None, None),
+                  (terminator, None))  # fmt: skip
         for tex, (data, minus) in zip(self._point_tex, inputs, strict=True):
             size = (width, rows) if data is not None and len(data) else (1, 1)
             if _texels_already(data, minus, size):
@@ -439,6 +447,8 @@ class LightPass:
         textures += [self._surface_tex, self._lut_tex, self._light_tex, self._slot_tex]
         textures += [self._tile_tex]
         surface_unit = len(textures) - 5
+        targets.append(GL.GL_TEXTURE_2D)  # the terminator normals, after the points' tiles
+        textures.append(self._point_tex[3])
         for unit, (target, tex) in enumerate(zip(targets, textures, strict=True)):
             GL.glActiveTexture(GL.GL_TEXTURE0 + unit)
             GL.glBindTexture(target, tex)
@@ -473,7 +483,9 @@ class LightPass:
             n_distant = len(distant) if p == 0 else 0
             if tiled:
                 _upload_slots(self._slot_tex, slots[:, start : start + count])
-            prog = self._program_for(max(count, 0), n_distant, shading, tiled, coat)
+            prog = self._program_for(
+                max(count, 0), n_distant, shading, tiled, coat, terminator is not None
+            )
 
             def loc(name: str, prog: int = prog) -> int:
                 return GL.glGetUniformLocation(prog, name)
@@ -493,6 +505,7 @@ class LightPass:
             GL.glUniform1i(loc("albedo_lut"), surface_unit + 1)
             GL.glUniform1f(loc("min_roughness"), preview_surface.MIN_ROUGHNESS)
             GL.glUniform1f(loc("min_cosine"), preview_surface.MIN_COSINE)
+            GL.glUniform1i(loc("terminator"), surface_unit + 5)
             if tiled:
                 GL.glUniform1i(loc("light_table"), surface_unit + 2)
                 GL.glUniform1i(loc("tile_slots"), surface_unit + 3)

@@ -44,6 +44,7 @@ from phrt_usd.engine.shading import (
     pair_directions,
     surface_rows,
 )
+from phrt_usd.engine.terminator import Terminator, terminator_band
 from phrt_usd.model.scene import Lights
 
 
@@ -142,6 +143,8 @@ class PendingLightTerms:
                       no direct light), the result is ``distant`` alone
     rows            : (m,) int64 points with an undecided pair
     local_unsure    : (m, len(cubes)) bool, their undecided LocalLight pairs
+    terminator      : the points on smooth meshes (``engine/terminator.py``), or None:
+                      their PCF is taken at the point lifted onto the smooth surface
     """
 
     positions: np.ndarray
@@ -155,6 +158,7 @@ class PendingLightTerms:
     lit_sums: np.ndarray | None
     rows: np.ndarray
     local_unsure: np.ndarray
+    terminator: Terminator | None = None
 
     def uncertain_pairs(self) -> UncertainPairs | None:
         """The undecided pairs (DistantLight columns first), None when there are none."""
@@ -191,16 +195,21 @@ class PendingLightTerms:
             return LightTerms(self.distant, None, None)
         normals, distant = self.normals, self.distant
 
-        def rel_normals(at: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-            """rel metres and float64 normals of the points ``at``."""
-            return self.positions[at] - self.origin, normals[at].astype(np.float64)
+        def rel_normals(at: np.ndarray, to_light) -> tuple[np.ndarray, np.ndarray]:
+            """rel metres (lifted onto the smooth surface towards unit ``to_light`` (m, 3)
+            or (3,): ``Terminator.lifted``) and float64 normals of the points ``at``."""
+            rel = self.positions[at] - self.origin
+            if self.terminator is not None:
+                rel = self.terminator.lifted(rel, at, to_light)
+            return rel, normals[at].astype(np.float64)
 
         for k, pair in enumerate(self.maps):  # the uncertain DistantLight pairs
             on = np.flatnonzero(self.distant_unsure[:, k])
             distant[on, k] = 1.0
+            to_light = _unit(self.lights.distant[k].direction)
             for mp in pair:
                 if mp is not None and len(on):
-                    distant[on, k] *= filtered_visibility(mp, *rel_normals(on))[0]
+                    distant[on, k] *= filtered_visibility(mp, *rel_normals(on, to_light))[0]
         at, light = np.nonzero(self.local_unsure)
         point = self.rows[at]
         weight = np.zeros(len(point), dtype=np.float32)
@@ -211,7 +220,10 @@ class PendingLightTerms:
         ends = np.append(first[1:], len(order))[: len(first)]
         for k, lo, hi in zip(present, first, ends, strict=True):
             on = order[lo:hi]
-            weight[on] = cube_pair_visibility(self.cubes[k], *rel_normals(point[on]), True)[0]
+            cube = self.cubes[k][0] or self.cubes[k][1]
+            to_light = _towards(cube, self.positions[point[on]] - self.origin)
+            rel, nrm = rel_normals(point[on], to_light)
+            weight[on] = cube_pair_visibility(self.cubes[k], rel, nrm, True)[0]
         lit = np.flatnonzero(weight > 0.0)
         return self._terms(point[lit], light[lit], weight[lit])
 
@@ -233,7 +245,12 @@ class MapLighting:
         self._light_pass = light_pass
 
     def visibility(
-        self, positions: np.ndarray, normals: np.ndarray, filtered: bool, on_gpu: bool
+        self,
+        positions: np.ndarray,
+        normals: np.ndarray,
+        filtered: bool,
+        on_gpu: bool,
+        terminator: Terminator | None = None,
     ) -> MapVisibility:
         """Fraction of every light reaching each point, by shadow mapping.
 
@@ -245,6 +262,8 @@ class MapLighting:
                     the caller to resolve (``MapVisibility.resolved``)
         on_gpu    : LocalLight cube lookups on the GPU, else their numpy reference (same
                     answers up to float32 rounding at the test's boundaries)
+        terminator: the points on smooth meshes, or None (``engine/terminator.py``: the
+                    pairs shadowed in its band are uncertain, their PCF lifted)
         DistantLights: the product of the static and the animated casters' filtered
         orthographic maps. LocalLights: cube maps, looked up only for points within the
         light's range (``shading.light_ranges``) and facing it; other pairs get 0 (the
@@ -266,14 +285,14 @@ class MapLighting:
             # The DistantLight columns are filled in place (views, disjoint from the
             # LocalLight columns written below on this thread).
             jobs = self._maps.distant_lookups(
-                rel, normals, out[:, :n_distant], uncertain[:, :n_distant]
+                rel, normals, out[:, :n_distant], uncertain[:, :n_distant], terminator
             )
         else:
             jobs = []
         ranges = light_ranges(lights)
         if cubes:  # meanwhile, on this thread (the GL context's)
             local_vis, local_unsure = self._local_visibility(
-                rel, normals, cubes, ranges[n_distant:], filtered, on_gpu
+                rel, normals, cubes, ranges[n_distant:], filtered, on_gpu, terminator
             )
             if n_distant:
                 out[:, n_distant:] = local_vis
@@ -292,34 +311,55 @@ class MapLighting:
         ranges: np.ndarray,
         filtered: bool,
         on_gpu: bool,
+        terminator: Terminator | None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """(n, len(cubes)) float32 visibility and bool uncertain of points ``rel`` (n, 3)
         (rel metres) with ``normals`` (n, 3) for every LocalLight: 0 outside its range
-        ``ranges`` (len(cubes),) or facing away; uncertain pairs get PCF (``filtered``)
+        ``ranges`` (len(cubes),) or facing away; uncertain pairs (also those shadowed in
+        the ``terminator``'s band) get PCF (``filtered``, lifted onto the smooth surface)
         or 0.5. The bulk runs on the GPU (``on_gpu``), else in numpy."""
         n = len(rel)
         vis = np.zeros((n, len(cubes)), dtype=np.float32)
         unsure = np.zeros((n, len(cubes)), dtype=bool)
         if on_gpu:
-            codes = self._light_pass.lookup(rel, normals, cubes, ranges)
+            codes = self._light_pass.lookup(
+                rel, normals, cubes, ranges,
+                terminator=None if terminator is None else terminator.normals,
+            )  # fmt: skip
             np.equal(codes, LOOKUP_LIT, out=vis, casting="unsafe")
             np.equal(codes, LOOKUP_UNCERTAIN, out=unsure)
             if not filtered:  # the caller resolves the uncertain pairs itself
                 vis[unsure] = 0.5
                 return vis, unsure
         for k, pair in enumerate(cubes):
+            cube = pair[0] or pair[1]
             if on_gpu:
                 idx = np.flatnonzero(unsure[:, k])  # only these need more work
                 if len(idx) == 0:
                     continue
-            else:
-                to_light = np.asarray(self._maps.cube_keys[k][0]) - rel
-                reach = np.einsum("ij,ij->i", to_light, to_light) < ranges[k] ** 2
-                reach &= np.einsum("ij,ij->i", normals, to_light) > 0.0
-                idx = np.flatnonzero(reach)
+                at = rel[idx]
+                if terminator is not None:
+                    at = terminator.lifted(at, idx, _towards(cube, at))
+                vis[idx, k], unsure[idx, k] = cube_pair_visibility(
+                    pair, at, normals[idx], filtered
+                )
+                continue
+            to_light = np.asarray(self._maps.cube_keys[k][0]) - rel
+            reach = np.einsum("ij,ij->i", to_light, to_light) < ranges[k] ** 2
+            reach &= np.einsum("ij,ij->i", normals, to_light) > 0.0
+            idx = np.flatnonzero(reach)
             vis[idx, k], unsure[idx, k] = cube_pair_visibility(
                 pair, rel[idx], normals[idx], filtered
             )
+            if terminator is not None and cube is not None:  # the GPU's terminator band
+                at = idx[terminator_band(
+                    terminator.normals[idx], _towards(cube, rel[idx]), vis[idx, k] == 0.0
+                )]  # fmt: skip
+                lifted = terminator.lifted(rel[at], at, _towards(cube, rel[at]))
+                unsure[at, k] = True
+                vis[at, k] = (
+                    cube_pair_visibility(pair, lifted, normals[at], True)[0] if filtered else 0.5
+                )
         return vis, unsure
 
     def light_terms(
@@ -328,6 +368,7 @@ class MapLighting:
         normals: np.ndarray,
         to_eye: np.ndarray,
         surface: np.ndarray | None = None,
+        terminator: Terminator | None = None,
     ) -> PendingLightTerms:
         """The shadow-mapped lighting of points, for ``shading.shade_local``: as
         ``visibility`` (same maps), but the (point, light) pairs the maps decide are
@@ -340,7 +381,8 @@ class MapLighting:
         viewer; to_eye : (n, 3) unit directions from the points to the viewer; surface :
         (n, SURFACE_COLUMNS) float32 rows of their UsdPreviewSurface
         (``model.preview_surface``), or (n, 3) albedo, or None (albedo 1): the fallback
-        material of that colour.
+        material of that colour; terminator : the points on smooth meshes, or None
+        (``engine/terminator.py``).
         """
         positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
         normals = np.asarray(normals).reshape(-1, 3)
@@ -371,8 +413,9 @@ class MapLighting:
             []
             if gpu_distant
             else self._maps.distant_lookups(
-                positions - origin, normals.astype(np.float64), distant, distant_unsure
-            )
+                positions - origin, normals.astype(np.float64), distant, distant_unsure,
+                terminator,
+            )  # fmt: skip
         )
         cubes = self._maps.cube_maps() if lights.local else []
         ranges = light_ranges(lights)[n_distant:]
@@ -380,8 +423,9 @@ class MapLighting:
         # Each tile of points looks up and shades only the LocalLights whose range
         # reaches it (``light_pass.LOOKUP_TILE``): the others light none of its points.
         direct, bits, tiles = self._light_pass.lookup(
-            positions, normals, cubes, ranges, to_eye, maps, origin=origin, surface=rows_of
-        )
+            positions, normals, cubes, ranges, to_eye, maps, origin=origin, surface=rows_of,
+            terminator=None if terminator is None else terminator.normals,
+        )  # fmt: skip
         for job in jobs:
             job.result()
         if maps:
@@ -407,7 +451,23 @@ class MapLighting:
             direct,
             rows,
             local_unsure,
+            terminator,
         )
+
+
+def _unit(direction) -> np.ndarray:
+    """``direction`` (3,) as a unit float64 vector."""
+    d = np.asarray(direction, np.float64)
+    return d / max(float(np.linalg.norm(d)), 1e-300)
+
+
+def _towards(cube: CubeMap | None, rel: np.ndarray) -> np.ndarray:
+    """(m, 3) unit directions from points ``rel`` (m, 3) to ``cube``'s light (its rel
+    position; zero vectors at the light itself, or without a cube)."""
+    if cube is None:
+        return np.zeros_like(rel)
+    v = cube.light_rel - rel
+    return v / np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-300)
 
 
 def _shade():

@@ -28,6 +28,7 @@ from phrt_usd.engine.raster.shadow_maps import CubeMap, ShadowMap, ShadowMaps
 from phrt_usd.errors import PhrtError
 from phrt_usd.model.frame import GBuffer
 from phrt_usd.model.scene import CameraFrame, Scene
+from phrt_usd.model.surface import TriangleTable
 
 #: An exact shadow test of the undecided pairs: ``(positions (m, 3), normals (m, 3),
 #: pairs (m, L) bool) -> (m, L)`` visibility, needed only at ``pairs`` (e.g. Embree
@@ -103,6 +104,11 @@ class Rasterizer:
             self._gbuffer.geometry_moved(scene, change.moved_rows)
         return change
 
+    @property
+    def triangle_table(self) -> TriangleTable:
+        """The uploaded geometry's per-triangle tables (rel; built on first use)."""
+        return self._gbuffer.table
+
     def render(self, camera: CameraFrame) -> GBuffer:
         """Rasterize one frame (``GBufferPass.render``)."""
         self._check_open()
@@ -121,23 +127,27 @@ class Rasterizer:
         return self._maps.cube_maps()
 
     def map_visibility(
-        self, positions: np.ndarray, normals: np.ndarray, filtered: bool
+        self, positions: np.ndarray, normals: np.ndarray, filtered: bool, terminator=None
     ) -> MapVisibility:
         """(n, L) shadow-map visibility of points and the pairs the maps could not decide
         (``MapLighting.visibility``): ``filtered`` gives those the maps' PCF, else they
-        wait for ``MapVisibility.resolved``."""
+        wait for ``MapVisibility.resolved``; ``terminator``: the points on smooth
+        meshes (``engine/terminator.py``), or None."""
         self._check_open()
-        return self._lookups.visibility(positions, normals, filtered, self.cube_lookup_on_gpu)
+        return self._lookups.visibility(
+            positions, normals, filtered, self.cube_lookup_on_gpu, terminator
+        )
 
     def map_light_terms(
-        self, positions: np.ndarray, normals: np.ndarray, to_eye: np.ndarray, surface=None
-    ) -> PendingLightTerms:
+        self, positions: np.ndarray, normals: np.ndarray, to_eye: np.ndarray, surface=None,
+        terminator=None,
+    ) -> PendingLightTerms:  # fmt: skip
         """Light terms of points with the lit pairs shaded on the GPU with the points'
         ``surface`` rows (``model.preview_surface``; None: the fallback material of
-        albedo 1), the undecided pairs still open (``MapLighting.light_terms``).
-        Requires ``cube_lookup_on_gpu``."""
+        albedo 1), the undecided pairs still open (``MapLighting.light_terms``;
+        ``terminator`` as ``map_visibility``'s). Requires ``cube_lookup_on_gpu``."""
         self._check_open()
-        return self._lookups.light_terms(positions, normals, to_eye, surface)
+        return self._lookups.light_terms(positions, normals, to_eye, surface, terminator)
 
     def shadow_visibility(
         self, positions: np.ndarray, normals: np.ndarray, refine: ExactTest | None = None

@@ -54,6 +54,7 @@ from phrt_usd.engine.raster.context import (
 )
 from phrt_usd.engine.raster.cutout_layers import IdLayers
 from phrt_usd.engine.shading import light_ranges
+from phrt_usd.engine.terminator import Terminator, terminator_band
 
 #: Static shadow-map resolution (texels per side).
 SHADOW_MAP_SIZE = 2048
@@ -628,14 +629,22 @@ class ShadowMaps:
         self._cube_keys = keys
 
     def distant_lookups(
-        self, rel: np.ndarray, normals: np.ndarray, out: np.ndarray, uncertain: np.ndarray
+        self,
+        rel: np.ndarray,
+        normals: np.ndarray,
+        out: np.ndarray,
+        uncertain: np.ndarray,
+        terminator: Terminator | None = None,
     ) -> list:
         """Start the DistantLights' shadow-map lookups of points ``rel`` (n, 3) rel
         metres on the worker threads: they multiply into ``out`` (n, D) and flag
-        ``uncertain`` (n, D). Returns the futures (empty without DistantLights)."""
+        ``uncertain`` (n, D). A pair shadowed within the ``terminator``'s band is
+        uncertain, its PCF taken at the point lifted onto its smooth surface
+        (``engine/terminator.py``). Returns the futures (empty without DistantLights)."""
         maps = self.distant_maps() if len(self._ctx.scene.lights.distant) else []
         if not maps:
             return []
+        lights = self._ctx.scene.lights.distant
 
         def lookup(part: slice) -> None:  # one chunk of points, all maps (disjoint rows)
             r, nr = rel[part], normals[part]
@@ -645,6 +654,21 @@ class ShadowMaps:
                         vis, unsure = filtered_visibility(mp, r, nr)
                         out[part, k] *= vis
                         uncertain[part, k] |= unsure
+                if terminator is not None:
+                    to_light = np.asarray(lights[k].direction, np.float64)
+                    to_light = to_light / max(float(np.linalg.norm(to_light)), 1e-300)
+                    rows = np.arange(len(r))[terminator_band(
+                        terminator.normals[part], to_light, out[part, k] == 0.0
+                    )]  # fmt: skip
+                    if len(rows):
+                        at = rows + (part.start or 0)
+                        lifted = terminator.lifted(r[rows], at, to_light)
+                        vis = np.ones(len(rows))
+                        for mp in pair:
+                            if mp is not None:
+                                vis *= filtered_visibility(mp, lifted, nr[rows])[0]
+                        out[at, k] = vis
+                        uncertain[at, k] = True
 
         bounds = np.linspace(0, len(rel), self._ctx.threads + 1).astype(int)
         return [

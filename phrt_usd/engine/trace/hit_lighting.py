@@ -45,6 +45,7 @@ import numpy as np
 
 from phrt_usd import kernels
 from phrt_usd.engine import lighting
+from phrt_usd.engine.terminator import Terminator
 from phrt_usd.engine.trace.bvh import Bvh
 from phrt_usd.engine.trace.hit_surfaces import HitSurfaces
 from phrt_usd.engine.trace.shadow_rays import ShadowRays
@@ -56,10 +57,13 @@ _TRACE = kernels.load("phrt_usd.engine.trace.trace_kernels")
 
 #: The shadow maps' lookup of hits: (world positions (n, 3) float64, shading normals
 #: (n, 3) facing the ray's origin, ray directions (n, 3), the hits' surface rows (n,
-#: SURFACE_COLUMNS) the GPU pass shades with, or None: the fallback material) ->
+#: SURFACE_COLUMNS) the GPU pass shades with, or None: the fallback material, the hits on
+#: smooth meshes (``engine/terminator.py``) or None) ->
 #: ``map_lighting``'s ``MapVisibility`` or ``PendingLightTerms`` (``lighting.map_lookup``
 #: bound to a rasterizer and the scene's lights).
-MapLookup = Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None], object]
+MapLookup = Callable[
+    [np.ndarray, np.ndarray, np.ndarray, np.ndarray | None, Terminator | None], object
+]
 
 #: A batch of hits is looked up in the shadow maps only from this many (hit, light)
 #: pairs on. The lookup pass costs ~0.6 ms however few points it has; past that, maps
@@ -162,7 +166,8 @@ class HitLighting:
         albedo, emissive = self._surfaces.colour(tri, u, v, albedo, textured)
         surf = self._surfaces.surface(tri, u, v, albedo)
         world = rel + self._bvh.boundary.origin
-        pending = self.maps(world, ns, d_in, surf)  # the GPU pass shades with their BRDF
+        terminator = Terminator.of(self._bvh.table, tri, ns)  # hits on smooth meshes
+        pending = self.maps(world, ns, d_in, surf, terminator)  # shaded with their BRDF
         query = pending.uncertain_pairs()
         rays = np.zeros(len(tri), np.int64)
         if query is None:

@@ -81,7 +81,14 @@ from phrt_usd.engine.trace.bounce_layout import (
     TRI_TEXTURED,
 )
 from phrt_usd.kernels import KERNEL_OPTIONS
-from phrt_usd.model.surface_kernels import _inside, _orient, _pixel_dir, _smooth_lift, _weighted
+from phrt_usd.model.surface import TERMINATOR_FADE
+from phrt_usd.model.surface_kernels import (
+    _inside,
+    _orient,
+    _pixel_dir,
+    _smooth_lift,
+    _weighted,
+)
 
 _KERNEL = KERNEL_OPTIONS
 _HELPER = {**_KERNEL, "inline": "always"}
@@ -135,14 +142,6 @@ def _side(eps, dx, dy, dz, nx, ny, nz):
     """+eps when the direction leaves on the normal's side (d·n ≥ 0, float64), else
     -eps (``Float32Boundary.offset``)."""
     return eps if float(dx) * nx + float(dy) * ny + float(dz) * nz >= 0.0 else -eps
-
-
-#: A shadow ray's origin rises onto the smooth surface (``shadow_rays``) fully where its
-#: triangle's plane faces away from the light (n_g·l <= 0: lit by the shading normal,
-#: shadowed by the flat neighbours), fading out until n_g·l is this cosine (~6 degrees),
-#: where a flat triangle's ray clears its convex neighbours; beyond, shadows that other
-#: objects cast onto a smooth mesh stay where they are.
-TERMINATOR_FADE = 0.1
 
 
 @njit(**_KERNEL)
