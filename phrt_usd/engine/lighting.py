@@ -90,7 +90,7 @@ def shade_gbuffer(
         visibility = tracer.shadow_visibility(pos, nrm, tri)
         shadow_pass = "shadow_rays"
     else:
-        terminator = Terminator.of(rasterizer.triangle_table, tri, nrm)
+        terminator = Terminator.of(rasterizer.triangle_table, pos - scene.origin, tri, nrm)
         pending = map_lookup(
             rasterizer, lights, pos, nrm, view, filtered=tracer is None, surface=surf,
             terminator=terminator,

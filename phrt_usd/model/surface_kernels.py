@@ -46,6 +46,7 @@ GRAZING_EPS = 1e-12
 MIN_WEIGHT_SUM = 1e-12
 
 _MIN_LEN32 = np.float32(MIN_NORMAL_LENGTH)
+_FLAT_CORNER_COS2 = FLAT_CORNER_COS * FLAT_CORNER_COS
 
 # Array arguments are read and written only in the kernels themselves: numba counts the
 # references of an array handed to another compiled function (two atomic operations per
@@ -132,15 +133,18 @@ def _smooth_lift(t, px, py, pz, s, plane, frame, corners):
 
 
 @njit(**_KERNEL)
-def terminator_normals(tri, ns, frame, corners, out):
-    """The shadow terminator's geometric normals of n points: point i on triangle tri[i]
-    (n,) int64 (-1: none) with shading normal ns (n, 3) gets its triangle's unit face
-    normal (``TriangleTable.frame``) turned to ns's side in out (n, 3) float32, or 0 where
-    the triangle is flat (``FLAT_CORNER_COS``) or absent: the points whose shadow test
-    follows the smooth surface (``TERMINATOR_FADE``). Returns how many are not 0."""
+def terminator_lifts(rel, tri, ns, plane, frame, corners, normals, lifts):
+    """The shadow terminator's data of n points rel (n, 3) float64 on triangles tri (n,)
+    int64 (-1: none) with shading normals ns (n, 3): into lifts (n, 3) float32 each
+    point's move onto the smooth surface its triangle's corner normals imply
+    (``_smooth_lift``, the corners turned to ns's side), and into normals (n, 3) float32
+    its triangle's unit face normal turned to ns's side; both 0 where the move is 0 (a
+    flat triangle, ``FLAT_CORNER_COS``; a concave corner; no triangle). Returns how many
+    points move."""
     count = 0
     for i in range(tri.shape[0]):
-        out[i, 0], out[i, 1], out[i, 2] = 0.0, 0.0, 0.0
+        normals[i, 0], normals[i, 1], normals[i, 2] = 0.0, 0.0, 0.0
+        lifts[i, 0], lifts[i, 1], lifts[i, 2] = 0.0, 0.0, 0.0
         t = tri[i]
         if t < 0:
             continue
@@ -148,32 +152,19 @@ def terminator_normals(tri, ns, frame, corners, out):
         flat = True
         for k in range(3):
             cx, cy, cz = float(corners[t, k, 0]), float(corners[t, k, 1]), float(corners[t, k, 2])
-            length = math.sqrt(cx * cx + cy * cy + cz * cz)
-            if abs(cx * gx + cy * gy + cz * gz) < FLAT_CORNER_COS * length:
+            along = cx * gx + cy * gy + cz * gz  # squared below: no root a corner
+            if along * along < _FLAT_CORNER_COS2 * (cx * cx + cy * cy + cz * cz):
                 flat = False
         if flat:
             continue
         s = 1.0 if gx * ns[i, 0] + gy * ns[i, 1] + gz * ns[i, 2] >= 0.0 else -1.0
-        out[i, 0], out[i, 1], out[i, 2] = s * gx, s * gy, s * gz
+        lx, ly, lz = _smooth_lift(t, rel[i, 0], rel[i, 1], rel[i, 2], s, plane, frame, corners)
+        if lx == 0.0 and ly == 0.0 and lz == 0.0:
+            continue
+        normals[i, 0], normals[i, 1], normals[i, 2] = s * gx, s * gy, s * gz
+        lifts[i, 0], lifts[i, 1], lifts[i, 2] = lx, ly, lz
         count += 1
     return count
-
-
-@njit(**_KERNEL)
-def terminator_lifts(rel, tri, ng, plane, frame, corners, out):
-    """The moves (m, 3) float64 into out of m points rel (m, 3) on triangles tri (m,)
-    int64 onto the smooth surface their corner normals imply (``_smooth_lift``), the
-    corners turned to the side of ng (m, 3) (``terminator_normals``; 0: no move)."""
-    for i in range(tri.shape[0]):
-        out[i, 0], out[i, 1], out[i, 2] = 0.0, 0.0, 0.0
-        t = tri[i]
-        if t < 0 or not (ng[i, 0] != 0.0 or ng[i, 1] != 0.0 or ng[i, 2] != 0.0):
-            continue
-        up = ng[i, 0] * frame[t, 3, 0] + ng[i, 1] * frame[t, 3, 1] + ng[i, 2] * frame[t, 3, 2]
-        s = 1.0 if up >= 0.0 else -1.0
-        out[i, 0], out[i, 1], out[i, 2] = _smooth_lift(
-            t, rel[i, 0], rel[i, 1], rel[i, 2], s, plane, frame, corners
-        )
 
 
 @njit(**_HELPER)
@@ -351,5 +342,4 @@ def warm_up() -> None:
            frame, one, *outs)  # fmt: skip
     hit_geometry(one, f32, f32, v64, frame, corners, v64.copy(), v64.copy(), v32.copy())
     hit_albedo(one, f32, f32, corners, v32.copy())
-    terminator_normals(one, v32.copy(), frame, corners, v32.copy())
-    terminator_lifts(v64.copy(), one, v32.copy(), plane, frame, corners, v64.copy())
+    terminator_lifts(v64.copy(), one, v32.copy(), plane, frame, corners, v32.copy(), v32.copy())

@@ -52,6 +52,7 @@ from phrt_usd.engine.raster.shadow_maps import (
     ShadowMaps,
 )
 from phrt_usd.engine.shading import MIN_LIGHT_DISTANCE
+from phrt_usd.engine.terminator import Terminator
 from phrt_usd.model import preview_surface
 from phrt_usd.model.surface import TERMINATOR_FADE
 
@@ -171,8 +172,8 @@ class LightPass:
             return
         self._lookup_vao = int(GL.glGenVertexArrays(1))
         # points, normals, to_eye, surface rows, the albedo table, the tiles' slots, the
-        # points' tiles, their terminator normals
-        textures = [int(t) for t in GL.glGenTextures(8)]
+        # points' tiles, their terminator normals and lifts
+        textures = [int(t) for t in GL.glGenTextures(9)]
         for tex in textures:
             GL.glBindTexture(GL.GL_TEXTURE_2D, tex)
             GL.glTexParameteri(GL.GL_TEXTURE_2D, GL.GL_TEXTURE_MIN_FILTER, GL.GL_NEAREST)
@@ -345,7 +346,7 @@ class LightPass:
         distant: list[tuple[ShadowMap | None, ShadowMap | None]] | None = None,
         origin: np.ndarray | None = None,
         surface: np.ndarray | None = None,
-        terminator: np.ndarray | None = None,
+        terminator: Terminator | None = None,
     ) -> np.ndarray | tuple[np.ndarray, np.ndarray, PointTiles]:
         """Every point against every LocalLight's cube maps on the GPU (the test of
         ``shadow_maps.cube_visibility``, in ``shaders/cube_lookup.frag``).
@@ -367,9 +368,9 @@ class LightPass:
         (``shade_kernels.undecided_rows`` reads them), and those tiles (``PointTiles``).
         ``distant`` (with ``to_eye`` only): the (static, animated) maps of up to
         LOOKUP_MAX_DISTANT DistantLights, looked up and shaded in the first pass too
-        (uncertain: bit 16 + k of pass 0). ``terminator`` (n, 3) float32: the points'
-        ``Terminator.normals`` (None: every point flat): a pair the maps call shadowed in
-        a smooth mesh's terminator band is uncertain instead (``engine/terminator.py``)."""
+        (uncertain: bit 16 + k of pass 0). ``terminator``: the points' moves onto the
+        smooth surface of their meshes for their shadow tests (``engine/terminator.py``),
+        or None (no point moves)."""
         n, n_local = len(points), len(cubes)
         self._ctx.make_current()
         self._setup()
@@ -383,8 +384,9 @@ class LightPass:
         shading = to_eye is not None
         # Without shading the to_eye texture is never read for a result: send no data.
         offset = None if origin is None else np.asarray(origin, np.float64)
+        moves = (None, None) if terminator is None else (terminator.normals, terminator.lifts)
         inputs = ((points, offset), (normals, None), (to_eye if shading else None, None),
-                  (terminator, None))  # fmt: skip
+                  (moves[0], None), (moves[1], None))  # fmt: skip
         for tex, (data, minus) in zip(self._point_tex, inputs, strict=True):
             size = (width, rows) if data is not None and len(data) else (1, 1)
             if _texels_already(data, minus, size):
@@ -447,8 +449,8 @@ class LightPass:
         textures += [self._surface_tex, self._lut_tex, self._light_tex, self._slot_tex]
         textures += [self._tile_tex]
         surface_unit = len(textures) - 5
-        targets.append(GL.GL_TEXTURE_2D)  # the terminator normals, after the points' tiles
-        textures.append(self._point_tex[3])
+        targets += [GL.GL_TEXTURE_2D] * 2  # the terminator's normals and lifts, after the
+        textures += self._point_tex[3:]  # points' tiles
         for unit, (target, tex) in enumerate(zip(targets, textures, strict=True)):
             GL.glActiveTexture(GL.GL_TEXTURE0 + unit)
             GL.glBindTexture(target, tex)
@@ -506,6 +508,7 @@ class LightPass:
             GL.glUniform1f(loc("min_roughness"), preview_surface.MIN_ROUGHNESS)
             GL.glUniform1f(loc("min_cosine"), preview_surface.MIN_COSINE)
             GL.glUniform1i(loc("terminator"), surface_unit + 5)
+            GL.glUniform1i(loc("lifts"), surface_unit + 6)
             if tiled:
                 GL.glUniform1i(loc("light_table"), surface_unit + 2)
                 GL.glUniform1i(loc("tile_slots"), surface_unit + 3)

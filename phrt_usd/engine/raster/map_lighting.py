@@ -44,7 +44,7 @@ from phrt_usd.engine.shading import (
     pair_directions,
     surface_rows,
 )
-from phrt_usd.engine.terminator import Terminator, terminator_band
+from phrt_usd.engine.terminator import Terminator
 from phrt_usd.model.scene import Lights
 
 
@@ -143,8 +143,8 @@ class PendingLightTerms:
                       no direct light), the result is ``distant`` alone
     rows            : (m,) int64 points with an undecided pair
     local_unsure    : (m, len(cubes)) bool, their undecided LocalLight pairs
-    terminator      : the points on smooth meshes (``engine/terminator.py``), or None:
-                      their PCF is taken at the point lifted onto the smooth surface
+    terminator      : the points' moves onto their smooth meshes' surface for the shadow
+                      tests (``engine/terminator.py``), or None
     """
 
     positions: np.ndarray
@@ -262,8 +262,8 @@ class MapLighting:
                     the caller to resolve (``MapVisibility.resolved``)
         on_gpu    : LocalLight cube lookups on the GPU, else their numpy reference (same
                     answers up to float32 rounding at the test's boundaries)
-        terminator: the points on smooth meshes, or None (``engine/terminator.py``: the
-                    pairs shadowed in its band are uncertain, their PCF lifted)
+        terminator: the points' moves onto their smooth meshes' surface for the shadow
+                    tests, or None (``engine/terminator.py``)
         DistantLights: the product of the static and the animated casters' filtered
         orthographic maps. LocalLights: cube maps, looked up only for points within the
         light's range (``shading.light_ranges``) and facing it; other pairs get 0 (the
@@ -315,51 +315,33 @@ class MapLighting:
     ) -> tuple[np.ndarray, np.ndarray]:
         """(n, len(cubes)) float32 visibility and bool uncertain of points ``rel`` (n, 3)
         (rel metres) with ``normals`` (n, 3) for every LocalLight: 0 outside its range
-        ``ranges`` (len(cubes),) or facing away; uncertain pairs (also those shadowed in
-        the ``terminator``'s band) get PCF (``filtered``, lifted onto the smooth surface)
-        or 0.5. The bulk runs on the GPU (``on_gpu``), else in numpy."""
+        ``ranges`` (len(cubes),) or facing away; uncertain pairs get PCF (``filtered``) or
+        0.5; points tested as the ``terminator`` moves them. The bulk runs on the GPU
+        (``on_gpu``), else in numpy."""
         n = len(rel)
         vis = np.zeros((n, len(cubes)), dtype=np.float32)
         unsure = np.zeros((n, len(cubes)), dtype=bool)
         if on_gpu:
-            codes = self._light_pass.lookup(
-                rel, normals, cubes, ranges,
-                terminator=None if terminator is None else terminator.normals,
-            )  # fmt: skip
+            codes = self._light_pass.lookup(rel, normals, cubes, ranges, terminator=terminator)
             np.equal(codes, LOOKUP_LIT, out=vis, casting="unsafe")
             np.equal(codes, LOOKUP_UNCERTAIN, out=unsure)
             if not filtered:  # the caller resolves the uncertain pairs itself
                 vis[unsure] = 0.5
                 return vis, unsure
         for k, pair in enumerate(cubes):
-            cube = pair[0] or pair[1]
             if on_gpu:
                 idx = np.flatnonzero(unsure[:, k])  # only these need more work
                 if len(idx) == 0:
                     continue
-                at = rel[idx]
-                if terminator is not None:
-                    at = terminator.lifted(at, idx, _towards(cube, at))
-                vis[idx, k], unsure[idx, k] = cube_pair_visibility(
-                    pair, at, normals[idx], filtered
-                )
-                continue
-            to_light = np.asarray(self._maps.cube_keys[k][0]) - rel
-            reach = np.einsum("ij,ij->i", to_light, to_light) < ranges[k] ** 2
-            reach &= np.einsum("ij,ij->i", normals, to_light) > 0.0
-            idx = np.flatnonzero(reach)
-            vis[idx, k], unsure[idx, k] = cube_pair_visibility(
-                pair, rel[idx], normals[idx], filtered
-            )
-            if terminator is not None and cube is not None:  # the GPU's terminator band
-                at = idx[terminator_band(
-                    terminator.normals[idx], _towards(cube, rel[idx]), vis[idx, k] == 0.0
-                )]  # fmt: skip
-                lifted = terminator.lifted(rel[at], at, _towards(cube, rel[at]))
-                unsure[at, k] = True
-                vis[at, k] = (
-                    cube_pair_visibility(pair, lifted, normals[at], True)[0] if filtered else 0.5
-                )
+            else:
+                to_light = np.asarray(self._maps.cube_keys[k][0]) - rel
+                reach = np.einsum("ij,ij->i", to_light, to_light) < ranges[k] ** 2
+                reach &= np.einsum("ij,ij->i", normals, to_light) > 0.0
+                idx = np.flatnonzero(reach)
+            at = rel[idx]
+            if terminator is not None:  # tested as the GPU pass does: from the smooth surface
+                at = terminator.lifted(at, idx, _towards(pair[0] or pair[1], at))
+            vis[idx, k], unsure[idx, k] = cube_pair_visibility(pair, at, normals[idx], filtered)
         return vis, unsure
 
     def light_terms(
@@ -381,8 +363,8 @@ class MapLighting:
         viewer; to_eye : (n, 3) unit directions from the points to the viewer; surface :
         (n, SURFACE_COLUMNS) float32 rows of their UsdPreviewSurface
         (``model.preview_surface``), or (n, 3) albedo, or None (albedo 1): the fallback
-        material of that colour; terminator : the points on smooth meshes, or None
-        (``engine/terminator.py``).
+        material of that colour; terminator : the points' moves for their shadow tests,
+        or None (``engine/terminator.py``).
         """
         positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
         normals = np.asarray(normals).reshape(-1, 3)
@@ -424,7 +406,7 @@ class MapLighting:
         # reaches it (``light_pass.LOOKUP_TILE``): the others light none of its points.
         direct, bits, tiles = self._light_pass.lookup(
             positions, normals, cubes, ranges, to_eye, maps, origin=origin, surface=rows_of,
-            terminator=None if terminator is None else terminator.normals,
+            terminator=terminator,
         )  # fmt: skip
         for job in jobs:
             job.result()

@@ -54,7 +54,7 @@ from phrt_usd.engine.raster.context import (
 )
 from phrt_usd.engine.raster.cutout_layers import IdLayers
 from phrt_usd.engine.shading import light_ranges
-from phrt_usd.engine.terminator import Terminator, terminator_band
+from phrt_usd.engine.terminator import Terminator
 
 #: Static shadow-map resolution (texels per side).
 SHADOW_MAP_SIZE = 2048
@@ -638,8 +638,7 @@ class ShadowMaps:
     ) -> list:
         """Start the DistantLights' shadow-map lookups of points ``rel`` (n, 3) rel
         metres on the worker threads: they multiply into ``out`` (n, D) and flag
-        ``uncertain`` (n, D). A pair shadowed within the ``terminator``'s band is
-        uncertain, its PCF taken at the point lifted onto its smooth surface
+        ``uncertain`` (n, D); points tested as the ``terminator`` moves them
         (``engine/terminator.py``). Returns the futures (empty without DistantLights)."""
         maps = self.distant_maps() if len(self._ctx.scene.lights.distant) else []
         if not maps:
@@ -648,27 +647,18 @@ class ShadowMaps:
 
         def lookup(part: slice) -> None:  # one chunk of points, all maps (disjoint rows)
             r, nr = rel[part], normals[part]
+            rows = np.arange(part.start or 0, part.stop)
             for k, pair in enumerate(maps):
-                for mp in pair:
-                    if mp is not None:
-                        vis, unsure = filtered_visibility(mp, r, nr)
-                        out[part, k] *= vis
-                        uncertain[part, k] |= unsure
-                if terminator is not None:
+                at = r
+                if terminator is not None:  # tested from the smooth surface
                     to_light = np.asarray(lights[k].direction, np.float64)
                     to_light = to_light / max(float(np.linalg.norm(to_light)), 1e-300)
-                    rows = np.arange(len(r))[terminator_band(
-                        terminator.normals[part], to_light, out[part, k] == 0.0
-                    )]  # fmt: skip
-                    if len(rows):
-                        at = rows + (part.start or 0)
-                        lifted = terminator.lifted(r[rows], at, to_light)
-                        vis = np.ones(len(rows))
-                        for mp in pair:
-                            if mp is not None:
-                                vis *= filtered_visibility(mp, lifted, nr[rows])[0]
-                        out[at, k] = vis
-                        uncertain[at, k] = True
+                    at = terminator.lifted(r, rows, to_light)
+                for mp in pair:
+                    if mp is not None:
+                        vis, unsure = filtered_visibility(mp, at, nr)
+                        out[part, k] *= vis
+                        uncertain[part, k] |= unsure
 
         bounds = np.linspace(0, len(rel), self._ctx.threads + 1).astype(int)
         return [

@@ -15,8 +15,8 @@
 //   N_DISTANT    DistantLights in this pass (with SHADE, first pass only), 0..2
 //   HAS_DYNAMIC  1 when the scene has animated casters (a second cube per light)
 //   COAT         1 when a point of the pass has a clear coat (with SHADE)
-//   TERMINATOR   1 when a point of the pass lies on a smooth mesh (the terminator
-//                texture; TERMINATOR_FADE its band's cosine, surface_kernels)
+//   TERMINATOR   1 when a point of the pass moves onto a smooth mesh's surface for its
+//                shadow tests (the terminator textures; TERMINATOR_FADE, model/surface.py)
 //   LUT_ROWS, LUT_COSINES  the albedo table's rows and n.v columns
 //                (preview_surface.specular_albedo_table: a last column of means follows)
 //   SHADE        1 to also shade the lit pairs (the direct output)
@@ -44,15 +44,15 @@
 //             floats) as the four texels (4 (k % width) + i, k / width), i = 0..3
 //   albedo_lut : RG32F, (A, B) of preview_surface.specular_albedo_table: texel (j, i) its
 //             row i (roughness), column j (n.v; the last column the row's means)
-//   terminator : RGB32F (with TERMINATOR), the point's face normal turned to its shading
-//             normal's side, 0 on a flat triangle (terminator.Terminator.normals)
+//   terminator, lifts : RGB32F (with TERMINATOR), the point's face normal turned to its
+//             shading normal's side and its move onto the smooth surface, metres, both 0
+//             where it does not move (engine/terminator.py Terminator.normals, .lifts)
 //   dmap_s<k>, dmap_d<k> : RG32F, (min, max) caster depth over the texel neighbourhood
 //             of DistantLight k's static / animated orthographic map (as
 //             shadow_maps.ShadowMap; the test of shadow_maps.filtered_visibility)
 // Output code per light: 1 lit, 0 shadowed / out of range / facing away, 2 uncertain.
-// A pair the maps call shadowed within the terminator's band of a smooth mesh (its face
-// turned from the light, n_g.l < TERMINATOR_FADE) is uncertain: the map tested the flat
-// triangle's depth, not the smooth surface's (engine/terminator.py).
+// A point of a smooth mesh is tested as its shadow rays leave it (engine/terminator.py):
+// moved onto the smooth surface, the move faded out by n_g.l = TERMINATOR_FADE.
 // Also the local shading of the lit pairs (shade_kernels.shade_kernel's model and its
 // BRDF, shade_kernels.brdf_cos: keep in step, tests/engine/test_preview_surface.py):
 //   direct    : rgb = sum over lit lights of radiance * window / d^2 (DistantLights:
@@ -96,6 +96,7 @@ uniform float min_roughness;         // preview_surface.MIN_ROUGHNESS
 uniform float min_cosine;            // preview_surface.MIN_COSINE
 #if TERMINATOR
 uniform sampler2D terminator;
+uniform sampler2D lifts;
 #endif
 
 #if N_DISTANT > 0
@@ -162,28 +163,28 @@ vec4 light_texel(int li, int c)
 #endif
 }
 
-// A shadowed answer within the terminator's band of a point of face normal ng (0: flat)
-// towards a light in direction l (cos = ng.l unnormalised by ``len``, the length of l)
-// becomes uncertain (the header); other answers stand.
-float terminator_band(float vis, vec3 ng, float cos, float len)
+// The share of a point's move ``lift`` its shadow test against a light takes: 1 where
+// its face (normal ng) turns from the light (cos = ng.l times ``len``, l's length), 0
+// from n_g.l = TERMINATOR_FADE on (trace_kernels.shadow_rays's fade).
+vec3 terminator_move(vec3 lift, vec3 ng, float cos, float len)
 {
-#if TERMINATOR
-    return (vis == 0.0 && dot(ng, ng) > 0.5 && cos < TERMINATOR_FADE * len) ? -1.0 : vis;
-#else
-    return vis;
-#endif
+    return clamp(1.0 - cos / max(TERMINATOR_FADE * len, 1e-30), 0.0, 1.0) * lift;
 }
 
 // Light li's shadow test at a point v (from the light to the point, d2 = |v|²) with
-// normal n and terminator normal ng: 1 lit, 0 shadowed / out of range / facing away, -1
-// uncertain.
-float lookup(int li, vec3 v, float d2, vec3 n, vec3 ng)
+// normal n, face normal ng and move onto the smooth surface ``lift`` (both 0: none): 1
+// lit, 0 shadowed / out of range / facing away, -1 uncertain.
+float lookup(int li, vec3 v, float d2, vec3 n, vec3 ng, vec3 lift)
 {
     float r = light_texel(li, 0).w;
     float ndv = dot(n, v);
     // Out of range or the light behind the surface: 0; nearer than the near plane: 1.
     // Selected at the end, not returned early, so that the fetches know (cube_test).
     bool reach = d2 < r * r && ndv < 0.0;
+#if TERMINATOR
+    v += terminator_move(lift, ng, -dot(ng, v), sqrt(d2));
+    ndv = dot(n, v);
+#endif
     vec3 a = abs(v);
     int axis;
     float w;
@@ -214,7 +215,6 @@ float lookup(int li, vec3 v, float d2, vec3 n, vec3 ng)
 #else
     float vis = vs;
 #endif
-    vis = terminator_band(vis, ng, -dot(ng, v), sqrt(d2));
     return reach ? (beyond_near ? vis : 1.0) : 0.0;
 }
 
@@ -382,16 +382,10 @@ float map_test(sampler2D tex, int m, vec3 p, vec3 n)
 }
 
 // DistantLight k through both its maps: lit pairs are shaded, uncertain ones flagged.
-void distant(int k, float vs, float vd, Surface s, vec3 n, vec3 e, float nv, vec3 ng,
+void distant(int k, float vs, float vd, Surface s, vec3 n, vec3 e, float nv,
              inout vec3 d_sum, inout float unsure)
 {
-    float shadowed = terminator_band((vs == 0.0 || vd == 0.0) ? 0.0 : 1.0, ng,
-                                     dot(ng, distant_dir[k]), 1.0);
-    if (shadowed == 0.0) {
-        return;
-    }
-    if (shadowed < 0.0) {
-        unsure += float(1 << (16 + k));
+    if (vs == 0.0 || vd == 0.0) {
         return;
     }
     if (vs < 0.0 || vd < 0.0) {
@@ -450,8 +444,10 @@ void main()
         vec3 n = texelFetch(normals, xy, 0).xyz;
 #if TERMINATOR
         vec3 ng = texelFetch(terminator, xy, 0).xyz;
+        vec3 lift = texelFetch(lifts, xy, 0).xyz;
 #else
         vec3 ng = vec3(0.0);
+        vec3 lift = vec3(0.0);
 #endif
 #if SHADE
         vec3 e = texelFetch(to_eye, xy, 0).xyz;
@@ -460,13 +456,21 @@ void main()
 #endif
 #if N_DISTANT > 0
         if (dot(n, distant_dir[0]) > 0.0) {  // facing away: no light, nothing to decide
-            distant(0, map_test(dmap_s0, 0, p, n), map_test(dmap_d0, 1, p, n), s, n, e, nv, ng,
+            vec3 q = p;
+#if TERMINATOR
+            q += terminator_move(lift, ng, dot(ng, distant_dir[0]), 1.0);
+#endif
+            distant(0, map_test(dmap_s0, 0, q, n), map_test(dmap_d0, 1, q, n), s, n, e, nv,
                     d_sum, unsure);
         }
 #endif
 #if N_DISTANT > 1
         if (dot(n, distant_dir[1]) > 0.0) {
-            distant(1, map_test(dmap_s1, 2, p, n), map_test(dmap_d1, 3, p, n), s, n, e, nv, ng,
+            vec3 q = p;
+#if TERMINATOR
+            q += terminator_move(lift, ng, dot(ng, distant_dir[1]), 1.0);
+#endif
+            distant(1, map_test(dmap_s1, 2, q, n), map_test(dmap_d1, 3, q, n), s, n, e, nv,
                     d_sum, unsure);
         }
 #endif
@@ -495,7 +499,7 @@ void main()
             todo &= todo - 1u;
             int li = max(slot_light(tile, j), 0);
             vec3 v = p - light_texel(li, 0).xyz;
-            float vis = lookup(li, v, dot(v, v), n, ng);
+            float vis = lookup(li, v, dot(v, v), n, ng, lift);
             if (vis > 0.5) {
                 lit |= 1u << j;
             } else if (vis < -0.5) {
@@ -516,7 +520,7 @@ void main()
         for (int j = 0; j < N_LIGHTS; ++j) {
             int li = slot_light(tile, j);
             vec3 v = p - light_texel(max(li, 0), 0).xyz;
-            result[j] = li >= 0 ? lookup(li, v, dot(v, v), n, ng) : 0.0;
+            result[j] = li >= 0 ? lookup(li, v, dot(v, v), n, ng, lift) : 0.0;
         }
 #endif
     }
