@@ -68,9 +68,18 @@ def test_probe_speckles_at_grazing_angles(subdivisions):
     assert not np.any(vis[ns @ to_light <= 0.0, 0] > 0.0)
 
 
-def test_probe_speckles_in_reflections_of_smooth_meshes():
+@pytest.mark.parametrize("hits_lit_by", ["rays", "maps"])
+def test_probe_speckles_in_reflections_of_smooth_meshes(hits_lit_by, monkeypatch):
     """The same sphere seen in a mirror floor (the traced hits of rt and hybrid): the
-    reflected sphere's lit side is lit, as the smooth sphere's is."""
+    reflected sphere's lit side is lit, as the smooth sphere's is, whether the hits are
+    lit by shadow rays (one light: always) or through the shadow maps (forced here for
+    every batch, as a stage of many lights does: docs/hit-lighting.md)."""
+    from phrt_usd.engine.raster.rasterizer import Rasterizer
+    from phrt_usd.engine.trace import hit_lighting
+
+    if hits_lit_by == "maps":
+        monkeypatch.setattr(hit_lighting, "MAP_MIN_PAIRS", 1)
+        monkeypatch.setattr(hit_lighting, "maps_light_hits", lambda lights: True)
     to_light = _light(GRAZING_DEGREES)
     dome = DomeLight(color=np.full(3, 0.1))
     lit = Lights(distant=[DistantLight(to_light, np.full(3, 3.0))], dome=dome)
@@ -83,8 +92,11 @@ def test_probe_speckles_in_reflections_of_smooth_meshes():
     for name, lights in (("lit", lit), ("dome", Lights(dome=dome))):
         scene = parts_scene(parts, lights)
         tracer = Tracer(scene)
-        gb = tracer.primary_gbuffer(camera, 160, 120)
-        res = tracer.trace_reflections(gb, [0], 2)
+        with Rasterizer(scene, 160, 120) as raster:
+            if hits_lit_by == "maps":
+                tracer.use_shadow_maps(raster)
+            gb = tracer.primary_gbuffer(camera, 160, 120)
+            res = tracer.trace_reflections(gb, [0], 2)
         radiance[name] = (res.pixel_index, res.radiance)
     index, direct = radiance["lit"][0], radiance["lit"][1] - radiance["dome"][1]
     # Which mirror pixels see the sphere, and its interpolated normal there (Embree on
