@@ -307,6 +307,12 @@ def _library():
     return lib
 
 
+def defines_node(node_def: str) -> bool:
+    """MaterialX's standard library defines node definition ``node_def`` (an
+    ``info:id`` such as ``ND_image_color3``)."""
+    return _library().getNodeDef(node_def) is not None
+
+
 def node_defaults(node_def: str) -> dict:
     """Input name -> default value (float or tuple) of MaterialX node definition
     ``node_def`` (empty when the library has no such definition)."""

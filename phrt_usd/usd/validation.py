@@ -24,7 +24,7 @@ from pathlib import Path
 from pxr import Sdf, Tf, Usd, UsdValidation
 
 from phrt_usd.errors import usd_error_reason
-from phrt_usd.usd import validators
+from phrt_usd.usd import materialx, validators
 from phrt_usd.usd.composition import composition_problems
 from phrt_usd.usd.rules import ERROR, WARNING, Issue, stage_reflectors
 from phrt_usd.usd.stage import open_usd
@@ -69,6 +69,12 @@ class ValidationReport:
 #: Replaced by the Phrt CompositionChecker (one line per missing arc, naming the prim).
 _REPLACED_VALIDATORS = ("usdValidation:CompositionErrorTest",)
 _UNRESOLVABLE = re.compile(r"unresolvable external dependency '(?P<asset>[^']*)'")
+#: USD's finding that a Shader's ``info:id`` is not in its shader registry. usd-core ships
+#: no usdMtlx, so every MaterialX node id (``ND_*``) is missing there, though a USD with
+#: usdMtlx knows it and the render reads the MaterialX it maps (``usd/materialx.py``): an
+#: id that MaterialX's standard library defines is no error (``_materialx_id``).
+_MISSING_SHADER_ID = "MissingShaderIdInRegistry"
+_SHADER_ID = re.compile(r"shaderId '(?P<id>[^']*)'")
 _PHRT_RANK = {name: rank for rank, name in enumerate(validators.VALIDATOR_NAMES)}
 
 
@@ -138,6 +144,15 @@ def _run_validators(stage: Usd.Stage, missing: set[str]) -> tuple[list, list[Iss
 _LOCATED_REASON = re.compile(r"^(?P<where>\S.*?:\d+:\d+): (?P<what>.*)$")
 
 
+def _materialx_id(identifier: str, message: str) -> bool:
+    """USD's finding ``identifier`` / ``message`` is only that this USD's shader
+    registry lacks a MaterialX node definition (``_MISSING_SHADER_ID``)."""
+    if not identifier.endswith(_MISSING_SHADER_ID):
+        return False
+    m = _SHADER_ID.search(message)
+    return bool(m) and m["id"].startswith("ND_") and materialx.defines_node(m["id"])
+
+
 def _stop_issue(stage: Usd.Stage, reason: str, names: list[str]) -> Issue:
     """The error for validators USD stopped: located at the parser's ``file:line:column``
     when the reason gives one, else at the stage's root layer."""
@@ -168,6 +183,8 @@ def validate_stage(stage: Usd.Stage, label: str | None = None) -> ValidationRepo
         m = _UNRESOLVABLE.search(message)
         if m and m["asset"] in missing:
             continue  # the same missing layer, already reported with its prim
+        if _materialx_id(err.GetIdentifier(), message):
+            continue
         where = _site_where(err)
         usd.append((validator, where, Issue(severity, where, f"{message} [{err.GetIdentifier()}]")))
     usd += [(issue.message.rpartition("[")[2], issue.where, issue) for issue in stopped]

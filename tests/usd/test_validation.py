@@ -383,3 +383,27 @@ def test_missing_sublayer_reference_and_payload(tmp_path):
         ]
     )
     assert all("\n" not in w for w in ss.warnings)
+
+
+@pytest.mark.parametrize(
+    "shader_id, flagged",
+    [
+        # MaterialX's standard library defines these: a USD with usdMtlx registers them,
+        # and the render reads them (usd/materialx.py).
+        ("ND_standard_surface_surfaceshader", False),
+        ("ND_image_color3", False),
+        # Defined nowhere: still USD's error.
+        ("ND_no_such_node", True),
+    ],
+)
+def test_probe_validate_flags_materialx_ids(tmp_path, shader_id, flagged):
+    """usd-core has no usdMtlx: its shader registry lacks every MaterialX node, so USD's
+    ShaderSdrCompliance validator called each ``ND_*`` id of a MaterialX material (the
+    StandardShaderBall's, DCC exports') missing. Those MaterialX defines are not errors."""
+    stage = clean_stage(tmp_path / "s.usda")
+    material = UsdShade.Material.Define(stage, "/World/Looks/Mx")
+    shader = UsdShade.Shader.Define(stage, "/World/Looks/Mx/Surface")
+    shader.SetShaderId(shader_id)
+    material.CreateSurfaceOutput("mtlx").ConnectToSource(shader.ConnectableAPI(), "out")
+    missing = [line for line in errors_of(stage) if "MissingShaderIdInRegistry" in line]
+    assert bool(missing) == flagged, missing
