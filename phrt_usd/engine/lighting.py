@@ -158,9 +158,9 @@ def map_lookup(
     ``Rasterizer.map_light_terms``), else, or with a cone-shaped LocalLight
     (only ``shade_local`` evaluates cones), the (n, L) visibility
     (``Rasterizer.map_visibility``; ``filtered``: the undecided pairs get the maps'
-    PCF). ``terminator``: the points on smooth meshes (``engine/terminator.py``: a
-    pair the maps call shadowed in its band is left undecided), or None. The G-buffer's
-    and the tracer's hits' one lookup."""
+    PCF). ``terminator``: the points' moves onto their smooth meshes' surface for the
+    shadow tests (``engine/terminator.py``), or None. The G-buffer's and the tracer's
+    hits' one lookup."""
     if rasterizer.cube_lookup_on_gpu and not shaped_lights(lights):
         return rasterizer.map_light_terms(
             positions, normals, np.negative(view_dirs), surface=surface, terminator=terminator

@@ -63,12 +63,16 @@ class Terminator:
 
     def lifted(self, rel: np.ndarray, rows: np.ndarray, to_light: np.ndarray) -> np.ndarray:
         """Points ``rows`` (m,) at ``rel`` (m, 3) float64 as their shadow test against a
-        light in unit directions ``to_light`` (m, 3) (or (3,)) sees them (m, 3) float64:
-        moved onto the smooth surface where their face normal turns from the light, the
-        move faded out by n_g·l = TERMINATOR_FADE, as the shadow rays'."""
+        light in directions ``to_light`` (m, 3) or (3,) (any length; 0: no move) sees
+        them (m, 3) float64: moved onto the smooth surface where their face normal turns
+        from the light, the move faded out by n_g·l = TERMINATOR_FADE, as the shadow
+        rays'."""
         rows = np.asarray(rows, np.int64)
         ng = self.normals[rows]
-        up = np.einsum("ij,ij->i", ng, np.broadcast_to(to_light, ng.shape))
+        to_light = np.broadcast_to(np.asarray(to_light, np.float64), ng.shape)
+        length = np.linalg.norm(to_light, axis=1)
+        up = np.einsum("ij,ij->i", ng, to_light) / np.maximum(length, 1e-300)
+        up[length == 0.0] = np.inf  # no direction (a point at the light): no move
         fade = np.clip(1.0 - up / TERMINATOR_FADE, 0.0, 1.0)
         return np.asarray(rel, np.float64) + fade[:, None] * self.lifts[rows]
 

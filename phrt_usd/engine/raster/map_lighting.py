@@ -195,21 +195,22 @@ class PendingLightTerms:
             return LightTerms(self.distant, None, None)
         normals, distant = self.normals, self.distant
 
-        def rel_normals(at: np.ndarray, to_light) -> tuple[np.ndarray, np.ndarray]:
-            """rel metres (lifted onto the smooth surface towards unit ``to_light`` (m, 3)
-            or (3,): ``Terminator.lifted``) and float64 normals of the points ``at``."""
+        def rel_normals(at: np.ndarray, towards) -> tuple[np.ndarray, np.ndarray]:
+            """rel metres (moved for a light in directions ``towards(rel)`` (m, 3) or (3,):
+            ``Terminator.lifted``) and float64 normals of the points ``at``."""
             rel = self.positions[at] - self.origin
             if self.terminator is not None:
-                rel = self.terminator.lifted(rel, at, to_light)
+                rel = self.terminator.lifted(rel, at, towards(rel))
             return rel, normals[at].astype(np.float64)
 
         for k, pair in enumerate(self.maps):  # the uncertain DistantLight pairs
             on = np.flatnonzero(self.distant_unsure[:, k])
             distant[on, k] = 1.0
-            to_light = _unit(self.lights.distant[k].direction)
+            direction = self.lights.distant[k].direction
             for mp in pair:
                 if mp is not None and len(on):
-                    distant[on, k] *= filtered_visibility(mp, *rel_normals(on, to_light))[0]
+                    rel, nrm = rel_normals(on, lambda rel, d=direction: d)
+                    distant[on, k] *= filtered_visibility(mp, rel, nrm)[0]
         at, light = np.nonzero(self.local_unsure)
         point = self.rows[at]
         weight = np.zeros(len(point), dtype=np.float32)
@@ -220,9 +221,8 @@ class PendingLightTerms:
         ends = np.append(first[1:], len(order))[: len(first)]
         for k, lo, hi in zip(present, first, ends, strict=True):
             on = order[lo:hi]
-            cube = self.cubes[k][0] or self.cubes[k][1]
-            to_light = _towards(cube, self.positions[point[on]] - self.origin)
-            rel, nrm = rel_normals(point[on], to_light)
+            cube = self.cubes[k][0] or self.cubes[k][1]  # a light with undecided pairs has one
+            rel, nrm = rel_normals(point[on], lambda rel, c=cube: c.light_rel - rel)
             weight[on] = cube_pair_visibility(self.cubes[k], rel, nrm, True)[0]
         lit = np.flatnonzero(weight > 0.0)
         return self._terms(point[lit], light[lit], weight[lit])
@@ -339,8 +339,9 @@ class MapLighting:
                 reach &= np.einsum("ij,ij->i", normals, to_light) > 0.0
                 idx = np.flatnonzero(reach)
             at = rel[idx]
-            if terminator is not None:  # tested as the GPU pass does: from the smooth surface
-                at = terminator.lifted(at, idx, _towards(pair[0] or pair[1], at))
+            cube = pair[0] or pair[1]
+            if terminator is not None and cube is not None:  # as the GPU pass tests them
+                at = terminator.lifted(at, idx, cube.light_rel - at)
             vis[idx, k], unsure[idx, k] = cube_pair_visibility(pair, at, normals[idx], filtered)
         return vis, unsure
 
@@ -435,21 +436,6 @@ class MapLighting:
             local_unsure,
             terminator,
         )
-
-
-def _unit(direction) -> np.ndarray:
-    """``direction`` (3,) as a unit float64 vector."""
-    d = np.asarray(direction, np.float64)
-    return d / max(float(np.linalg.norm(d)), 1e-300)
-
-
-def _towards(cube: CubeMap | None, rel: np.ndarray) -> np.ndarray:
-    """(m, 3) unit directions from points ``rel`` (m, 3) to ``cube``'s light (its rel
-    position; zero vectors at the light itself, or without a cube)."""
-    if cube is None:
-        return np.zeros_like(rel)
-    v = cube.light_rel - rel
-    return v / np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-300)
 
 
 def _shade():

@@ -131,8 +131,8 @@ class Rasterizer:
     ) -> MapVisibility:
         """(n, L) shadow-map visibility of points and the pairs the maps could not decide
         (``MapLighting.visibility``): ``filtered`` gives those the maps' PCF, else they
-        wait for ``MapVisibility.resolved``; ``terminator``: the points on smooth
-        meshes (``engine/terminator.py``), or None."""
+        wait for ``MapVisibility.resolved``; ``terminator``: the points' moves for their
+        shadow tests (``engine/terminator.py``), or None."""
         self._check_open()
         return self._lookups.visibility(
             positions, normals, filtered, self.cube_lookup_on_gpu, terminator

@@ -651,9 +651,7 @@ class ShadowMaps:
             for k, pair in enumerate(maps):
                 at = r
                 if terminator is not None:  # tested from the smooth surface
-                    to_light = np.asarray(lights[k].direction, np.float64)
-                    to_light = to_light / max(float(np.linalg.norm(to_light)), 1e-300)
-                    at = terminator.lifted(r, rows, to_light)
+                    at = terminator.lifted(r, rows, lights[k].direction)
                 for mp in pair:
                     if mp is not None:
                         vis, unsure = filtered_visibility(mp, at, nr)
