@@ -14,10 +14,10 @@ For each hit and light (``shading``'s light order, distant then local):
    a raster; a stage of at most HIT_LIGHT_PICKS lights, ``light_sampling.
    maps_light_hits``, and a batch of fewer than MAP_MIN_PAIRS possible pairs: there the
    lookup pass costs more than the rays), are *undecided*; each gets a shadow ray
-   (``shadow_rays``). Where every pair of a hit is the rays' (no maps), a Rect or Disk
-   light is an area: its ray goes to a point of its surface (``area_offsets``) and its
-   irradiance is the surface's (``area_light_kernels``); where the maps light the hits
-   it is a point, as they answer.
+   (``shadow_rays``). A Rect or Disk light is an area whoever decides its pair: its
+   irradiance is the surface's (``area_light_kernels``' factor); a ray of such a pair
+   goes to a point of its surface (``area_offsets``) and answers the share of it the
+   hit sees, a map answers from the light's centre.
 3. **Lights sampled where a hit has many.** A hit with more than
    ``model.light_sampling.HIT_LIGHT_PICKS`` undecided pairs of a positive unshadowed share
    (``shade_kernels.light_share``: the light's brightest channel x n·l, and for a
