@@ -417,46 +417,40 @@ float edge_term(vec3 a, vec3 b, vec3 n)
     return lg > 0.0 ? edge_angle(lg, dot(a, b)) * dot(n, g) / lg : 0.0;
 }
 
-// Corner k of a light's outline of m corners (m = 4: a rect), relative to the point,
-// the light's centre at c and half axes u, w (area_light_kernels._unshadowed's order).
-vec3 outline_corner(vec3 c, vec3 u, vec3 w, int k, int m)
-{
-    if (m == 4) {
-        return c + ((k == 1 || k == 2) ? u : -u) + (k >= 2 ? w : -w);
-    }
-    float phi = 2.0 * PI * float(k) / float(m);
-    return c + DISK_SCALE * (cos(phi) * u + sin(phi) * w);
-}
-
 // Light li's area factor at a point of unit normal n that sees the light's centre at
 // -v, dist2 = max(|v|², min distance²) (area_light_kernels._factor, GLSL's only copy:
 // tests/engine/test_area_light_shading.py ties the two): the light's exact unshadowed
 // irradiance (Lambert's formula over its outline, a disk as a regular polygon of its
 // area, clipped to the point's horizon) over the point light's, A n.l / d², at most
 // 1e30; 1 for a light that is no area, 0 behind the light or for a light of no area.
+// No early return: a light that is no area walks no corners (m = 0), so a group of
+// fragments shading a point light skips the loop (llvmpipe runs the rest regardless).
 float area_factor(int li, vec3 v, float dist2, vec3 n)
 {
     vec4 u = light_texel(li, 3);
-    if (u.w == 0.0) {
-        return 1.0;
-    }
     vec3 w = light_texel(li, 4).xyz;
     vec3 c = -v;
     float nc = dot(n, c);
-    if (!(dot(c, light_texel(li, 5).xyz) < 0.0) || !(nc > 0.0)) {
-        return 0.0;
-    }
-    int m = u.w == 1.0 ? 4 : DISK_CORNERS;
+    bool rect = u.w == 1.0;
+    bool front = dot(c, light_texel(li, 5).xyz) < 0.0 && nc > 0.0;
+    int m = (u.w == 0.0 || !front) ? 0 : (rect ? 4 : DISK_CORNERS);
+    // The outline's corners (area_light_kernels._unshadowed's order) by turning the
+    // first, (a, b) in units of (u, w), a step at a time: a quarter turn for a rect's
+    // (±1, ±1), 2 pi / m for a disk's polygon DISK_SCALE radii out.
+    vec2 ab = rect ? vec2(-1.0, -1.0) : vec2(DISK_SCALE, 0.0);
+    float phi = 2.0 * PI / float(DISK_CORNERS);
+    vec2 turn = rect ? vec2(0.0, 1.0) : vec2(cos(phi), sin(phi));
     // The outline clipped to the horizon n.x >= 0 edge by edge: the kept parts of its
     // edges, and the chord along the horizon from where it leaves to where it comes back
     // (a convex outline leaves at most once).
     float total = 0.0;
     vec3 leaves = vec3(0.0);
     vec3 returns = vec3(0.0);
-    vec3 a = outline_corner(c, u.xyz, w, 0, m);
+    vec3 a = c + ab.x * u.xyz + ab.y * w;
     float ha = dot(n, a);
     for (int k = 1; k <= m; ++k) {
-        vec3 b = outline_corner(c, u.xyz, w, k == m ? 0 : k, m);
+        ab = vec2(ab.x * turn.x - ab.y * turn.y, ab.y * turn.x + ab.x * turn.y);
+        vec3 b = c + ab.x * u.xyz + ab.y * w;
         float hb = dot(n, b);
         if (ha >= 0.0 && hb >= 0.0) {
             total += edge_term(a, b, n);
@@ -471,9 +465,10 @@ float area_factor(int li, vec3 v, float dist2, vec3 n)
         ha = hb;
     }
     total += edge_term(leaves, returns, n);  // 0 where nothing was clipped
-    float area = (m == 4 ? 4.0 : PI) * length(cross(u.xyz, w));
+    float area = (rect ? 4.0 : PI) * length(cross(u.xyz, w));
     float point = area * nc * inversesqrt(dist2) / dist2;  // A n.l / d²
-    return point > 0.0 ? min(0.5 * abs(total) / point, 1e30) : 0.0;
+    float factor = point > 0.0 ? min(0.5 * abs(total) / point, 1e30) : 0.0;
+    return u.w == 0.0 ? 1.0 : (front ? factor : 0.0);
 }
 #endif
 
