@@ -30,8 +30,10 @@ from shading_reference import rect_light_integral as rect_integral
 from phrt_usd import kernels
 from phrt_usd.engine import shading
 from phrt_usd.engine.raster.rasterizer import Rasterizer
+from phrt_usd.engine.trace.hit_lighting import HitLighting
 from phrt_usd.model.preview_surface import fallback_surface
 from phrt_usd.model.scene import DomeLight, Lights, LocalLight
+from phrt_usd.usd import schema
 
 _AREA = kernels.load("phrt_usd.engine.trace.area_light_kernels")
 
@@ -360,3 +362,63 @@ def test_the_primary_surface_has_the_areas_penumbra_in_rt_and_the_centres_in_ras
         expected = np.mean([seen(p) for p in points[keep[strip]]])
         errors.append(abs(share[strip].mean() - expected))
     assert max(errors) < 0.05 and np.mean(errors) < 0.02, errors
+
+
+def _mirror_stage():
+    """The floor under the module's rect (alone of the two area lights), two dim
+    SphereLights below the floor (they light none of it but make three lights: the
+    shadow maps light the traced hits, ``light_sampling.maps_light_hits``), a mirror
+    (reflectivity 1) 6 x 6 m at z = 3 facing down and the camera at z = 2.5 looking up
+    at it, so every pixel is a traced reflection of the floor."""
+    stage = grey_square_stage(ALBEDO, 3.0, EYE)
+    UsdGeom.Xformable(stage.GetPrimAtPath("/World/Cam")).AddRotateXOp().Set(180.0)  # up
+    UsdLux.DomeLight.Define(stage, "/World/Dome").CreateIntensityAttr(0.0)
+    mirror = UsdGeom.Mesh.Define(stage, "/World/Mirror")
+    mirror.CreatePointsAttr([(-3, -3, 3), (-3, 3, 3), (3, 3, 3), (3, -3, 3)])
+    mirror.CreateFaceVertexCountsAttr([4])
+    mirror.CreateFaceVertexIndicesAttr([0, 1, 2, 3])
+    schema.apply_reflector(mirror.GetPrim(), priority=1.0, reflectivity=1.0)
+    rect = UsdLux.RectLight.Define(stage, "/World/Rect")
+    rect.AddTranslateOp().Set(Gf.Vec3d(*RECT_AT))
+    rect.CreateWidthAttr(2 * RECT_HALF[0])
+    rect.CreateHeightAttr(2 * RECT_HALF[1])
+    rect.CreateIntensityAttr(LUMINANCE)
+    for k, x in enumerate((-2.0, 2.0)):
+        below = UsdLux.SphereLight.Define(stage, f"/World/Below{k}")
+        below.AddTranslateOp().Set(Gf.Vec3d(x, 0.0, -1.0))
+        below.CreateIntensityAttr(1.0)
+    return stage
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("mode", ["hybrid", "rt"])
+def test_hits_lit_through_the_maps_show_the_areas_irradiance(mode, monkeypatch):
+    """The reflection of the floor under the rect, its hits lit through the shadow maps
+    (the GPU light pass shades them, ``HitLighting._with_maps``): every traced pixel is
+    the floor point's closed form (FLOOR_RTOL), as the hits lit by rays are
+    (tests/engine/test_area_lights.py)."""
+    with_maps = []
+    original = HitLighting._with_maps
+
+    def spy(self, *args, **kwargs):
+        with_maps.append(len(args[0]))
+        return original(self, *args, **kwargs)
+
+    monkeypatch.setattr(HitLighting, "_with_maps", spy)
+    w, h = 96, 72  # 6,912 hits x 3 lights: over hit_lighting.MAP_MIN_PAIRS
+    out = first_frame(_mirror_stage(), mode, w, h)
+    assert sum(with_maps) == w * h  # every hit lit through the maps
+    assert out.traced_mask.all()
+    m = out.gbuffer.position.reshape(-1, 3).astype(np.float64)
+    d = m - np.asarray(EYE)
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    r = d * np.array([1.0, 1.0, -1.0])
+    floor = m + r * (3.0 / d[:, 2:3])  # where the reflected ray meets z = 0
+    values = out.beauty.reshape(-1, 3)[:, 0].astype(np.float64)
+    surface = fallback_surface(np.full((len(floor), 3), ALBEDO))
+    to_light = RECT_AT - floor
+    to_light /= np.linalg.norm(to_light, axis=1, keepdims=True)
+    over_cos = brdf_cos(surface, np.tile(UP, (len(floor), 1)), -r, to_light)[:, 0]
+    over_cos /= to_light[:, 2]
+    want = np.array([LUMINANCE * rect_integral(p, RECT_AT, *RECT_HALF) for p in floor])
+    np.testing.assert_allclose(values, want * over_cos, rtol=FLOOR_RTOL)
