@@ -423,52 +423,56 @@ float edge_term(vec3 a, vec3 b, vec3 n)
 // irradiance (Lambert's formula over its outline, a disk as a regular polygon of its
 // area, clipped to the point's horizon) over the point light's, A n.l / d², at most
 // 1e30; 1 for a light that is no area, 0 behind the light or for a light of no area.
-// No early return: a light that is no area walks no corners (m = 0), so a group of
-// fragments shading a point light skips the loop (llvmpipe runs the rest regardless).
 float area_factor(int li, vec3 v, float dist2, vec3 n)
 {
     vec4 u = light_texel(li, 3);
-    vec3 w = light_texel(li, 4).xyz;
-    vec3 c = -v;
-    float nc = dot(n, c);
-    bool rect = u.w == 1.0;
-    bool front = dot(c, light_texel(li, 5).xyz) < 0.0 && nc > 0.0;
-    int m = (u.w == 0.0 || !front) ? 0 : (rect ? 4 : DISK_CORNERS);
-    // The outline's corners (area_light_kernels._unshadowed's order) by turning the
-    // first, (a, b) in units of (u, w), a step at a time: a quarter turn for a rect's
-    // (±1, ±1), 2 pi / m for a disk's polygon DISK_SCALE radii out.
-    vec2 ab = rect ? vec2(-1.0, -1.0) : vec2(DISK_SCALE, 0.0);
-    float phi = 2.0 * PI / float(DISK_CORNERS);
-    vec2 turn = rect ? vec2(0.0, 1.0) : vec2(cos(phi), sin(phi));
-    // The outline clipped to the horizon n.x >= 0 edge by edge: the kept parts of its
-    // edges, and the chord along the horizon from where it leaves to where it comes back
-    // (a convex outline leaves at most once).
-    float total = 0.0;
-    vec3 leaves = vec3(0.0);
-    vec3 returns = vec3(0.0);
-    vec3 a = c + ab.x * u.xyz + ab.y * w;
-    float ha = dot(n, a);
-    for (int k = 1; k <= m; ++k) {
-        ab = vec2(ab.x * turn.x - ab.y * turn.y, ab.y * turn.x + ab.x * turn.y);
-        vec3 b = c + ab.x * u.xyz + ab.y * w;
-        float hb = dot(n, b);
-        if (ha >= 0.0 && hb >= 0.0) {
-            total += edge_term(a, b, n);
-        } else if (ha >= 0.0) {
-            leaves = a + ha / (ha - hb) * (b - a);
-            total += edge_term(a, leaves, n);
-        } else if (hb >= 0.0) {
-            returns = a + ha / (ha - hb) * (b - a);
-            total += edge_term(returns, b, n);
+    float factor = 1.0;
+    // A loop of at most one pass rather than an if: llvmpipe runs an if's code for every
+    // lane whether any takes it or not, but skips a loop no lane enters, so the pairs of
+    // point lights (a group of fragments walks one light at a time) pay nothing here.
+    for (int once = u.w == 0.0 ? 1 : 0; once < 1; ++once) {
+        vec3 w = light_texel(li, 4).xyz;
+        vec3 c = -v;
+        float nc = dot(n, c);
+        bool rect = u.w == 1.0;
+        bool front = dot(c, light_texel(li, 5).xyz) < 0.0 && nc > 0.0;
+        int m = front ? (rect ? 4 : DISK_CORNERS) : 0;
+        // The outline's corners (area_light_kernels._unshadowed's order) by turning the
+        // first, (a, b) in units of (u, w), a step at a time: a quarter turn for a rect's
+        // (±1, ±1), 2 pi / m for a disk's polygon DISK_SCALE radii out.
+        vec2 ab = rect ? vec2(-1.0, -1.0) : vec2(DISK_SCALE, 0.0);
+        float phi = 2.0 * PI / float(DISK_CORNERS);
+        vec2 turn = rect ? vec2(0.0, 1.0) : vec2(cos(phi), sin(phi));
+        // The outline clipped to the horizon n.x >= 0 edge by edge: the kept parts of its
+        // edges, and the chord along the horizon from where it leaves to where it comes
+        // back (a convex outline leaves at most once).
+        float total = 0.0;
+        vec3 leaves = vec3(0.0);
+        vec3 returns = vec3(0.0);
+        vec3 a = c + ab.x * u.xyz + ab.y * w;
+        float ha = dot(n, a);
+        for (int k = 1; k <= m; ++k) {
+            ab = vec2(ab.x * turn.x - ab.y * turn.y, ab.y * turn.x + ab.x * turn.y);
+            vec3 b = c + ab.x * u.xyz + ab.y * w;
+            float hb = dot(n, b);
+            if (ha >= 0.0 && hb >= 0.0) {
+                total += edge_term(a, b, n);
+            } else if (ha >= 0.0) {
+                leaves = a + ha / (ha - hb) * (b - a);
+                total += edge_term(a, leaves, n);
+            } else if (hb >= 0.0) {
+                returns = a + ha / (ha - hb) * (b - a);
+                total += edge_term(returns, b, n);
+            }
+            a = b;
+            ha = hb;
         }
-        a = b;
-        ha = hb;
+        total += edge_term(leaves, returns, n);  // 0 where nothing was clipped
+        float area = (rect ? 4.0 : PI) * length(cross(u.xyz, w));
+        float point = area * nc * inversesqrt(dist2) / dist2;  // A n.l / d²
+        factor = front && point > 0.0 ? min(0.5 * abs(total) / point, 1e30) : 0.0;
     }
-    total += edge_term(leaves, returns, n);  // 0 where nothing was clipped
-    float area = (rect ? 4.0 : PI) * length(cross(u.xyz, w));
-    float point = area * nc * inversesqrt(dist2) / dist2;  // A n.l / d²
-    float factor = point > 0.0 ? min(0.5 * abs(total) / point, 1e30) : 0.0;
-    return u.w == 0.0 ? 1.0 : (front ? factor : 0.0);
+    return factor;
 }
 #endif
 
