@@ -15,8 +15,10 @@ point's UsdPreviewSurface BRDF, its surface rows a texture of four RGBA32F texel
 point, ``model/preview_surface.py``; the lobe's albedo table an RG32F texture) with
 bits flagging the uncertain ones, which the caller resolves (``map_lighting``). The
 test is ``shadow_maps.cube_visibility``'s and ``shadow_maps.filtered_visibility``'s,
-the shading ``shade_kernels.shade_kernel``'s and ``brdf_cos``'s: keep the shader and
-those in step (``tests/engine/test_preview_surface.py`` compares the BRDFs).
+the shading ``shade_kernels.shade_kernel``'s and ``brdf_cos``'s, a Rect or Disk light's
+area factor ``trace.area_light_kernels._factor``'s: keep the shader and those in step
+(``tests/engine/test_preview_surface.py`` compares the BRDFs,
+``tests/engine/test_area_light_shading.py`` the area factors).
 
 Measured on the sewer (13 lights, 640x480): the lookup takes ~45 ms of CPU time per
 frame (llvmpipe spreads it over the cores), nearly all of it the fragment shader
