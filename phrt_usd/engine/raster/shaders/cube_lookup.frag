@@ -53,8 +53,9 @@
 // Also the local shading of the lit pairs (shade_kernels.shade_kernel's model and its
 // BRDF, shade_kernels.brdf_cos: keep in step, tests/engine/test_preview_surface.py):
 //   direct    : rgb = sum over lit lights of radiance * window / d^2 (DistantLights:
-//               radiance) * brdf_cos, a = bit j set where LocalLight j is uncertain, bit
-//               16 + k where DistantLight k is (exact in float up to 2^24)
+//               radiance; a Rect or Disk light times its area factor) * brdf_cos, a =
+//               bit j set where LocalLight j is uncertain, bit 16 + k where
+//               DistantLight k is (exact in float up to 2^24)
 
 uniform sampler2D points;
 uniform sampler2D normals;
