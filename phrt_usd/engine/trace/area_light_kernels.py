@@ -217,9 +217,9 @@ def area_rays(rays_i, rays_v, rays_f, k, n_distant, ns, area, offsets, count, st
     Writes each sample ray's pair (its ray's column) into ``parent`` (·,) int64, origin
     and unit direction into out_v (2, ·, 3) float32, its tfar (the epsilon short of the
     light) and its weight (the terms' sum over ``picks``) into out_f (2, ·) float32; each
-    pair's weight unshadowed (the area's exact integral over the point's,
-    ``_unshadowed``) into ``unshadowed`` (k,) float64 (-1 for a ray whose light is no
-    area; a pair of weight 0 gets no samples). Returns the sample ray count."""
+    pair's area factor (``_factor``: the area's exact integral over the point light's)
+    into ``unshadowed`` (k,) float64 (-1 for a ray whose light is no area; a pair of
+    factor 0 gets no samples). Returns the sample ray count."""
     s = 0
     corners, clipped = np.empty((_MAX_CORNERS, 3)), np.empty((_MAX_CORNERS, 3))
     points = np.empty((count, 5))  # direction, distance, term of each lattice point
