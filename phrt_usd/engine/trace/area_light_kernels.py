@@ -206,7 +206,7 @@ def area_pairs(area, positions, normals, point, light, l_dir, dist, weight):
 
 @njit(**_KERNEL)
 def area_rays(rays_i, rays_v, rays_f, k, n_distant, ns, area, offsets, count, step, picks,
-              floor, relative, parent, out_v, out_f, unshadowed):  # fmt: skip
+              floor, relative, with_factor, parent, out_v, out_f, unshadowed):  # fmt: skip
     """The sample rays of the first ``k`` shadow rays (``trace_kernels.shadow_rays``'
     out_i, out_v, out_f) whose light is an area (``area`` (P, AREA_COLUMNS) float64, rel;
     lights distant then local, ``n_distant`` distant): of the ``count`` points of the
@@ -217,9 +217,10 @@ def area_rays(rays_i, rays_v, rays_f, k, n_distant, ns, area, offsets, count, st
     Writes each sample ray's pair (its ray's column) into ``parent`` (·,) int64, origin
     and unit direction into out_v (2, ·, 3) float32, its tfar (the epsilon short of the
     light) and its weight (the terms' sum over ``picks``) into out_f (2, ·) float32; each
-    pair's area factor (``_factor``: the area's exact integral over the point light's)
-    into ``unshadowed`` (k,) float64 (-1 for a ray whose light is no area; a pair of
-    factor 0 gets no samples). Returns the sample ray count."""
+    pair's area factor (``_factor``: the area's exact integral over the point light's),
+    or 1 without ``with_factor`` (the caller's shading applies it), into ``unshadowed``
+    (k,) float64 (-1 for a ray whose light is no area; a pair of factor 0, or of no
+    lattice point it could see, gets no samples). Returns the sample ray count."""
     s = 0
     corners, clipped = np.empty((_MAX_CORNERS, 3)), np.empty((_MAX_CORNERS, 3))
     points = np.empty((count, 5))  # direction, distance, term of each lattice point
@@ -233,8 +234,10 @@ def area_rays(rays_i, rays_v, rays_f, k, n_distant, ns, area, offsets, count, st
         d0, d1, d2 = float(rays_v[1, r, 0]), float(rays_v[1, r, 1]), float(rays_v[1, r, 2])
         length = float(rays_f[1, r])
         ox, oy, oz = float(rays_v[0, r, 0]), float(rays_v[0, r, 1]), float(rays_v[0, r, 2])
-        unshadowed[r] = _factor(area, q, ox, oy, oz, n0, n1, n2, d0, d1, d2, length, corners,
-                                clipped)  # fmt: skip
+        unshadowed[r] = 1.0
+        if with_factor:
+            unshadowed[r] = _factor(area, q, ox, oy, oz, n0, n1, n2, d0, d1, d2, length,
+                                    corners, clipped)  # fmt: skip
         if not unshadowed[r] > 0.0:
             continue
         e = _epsilon(ox, oy, oz, floor, relative)
@@ -321,7 +324,7 @@ def warm_up() -> None:
     parent, out_v = np.zeros(4, np.int64), np.zeros((2, 4, 3), np.float32)
     out_f, unshadowed = np.zeros((2, 4), np.float32), np.zeros(1)
     area_rays(rays_i, rays_v, rays_f, 1, 0, ns, area, np.zeros((1, 3)), 3, 2, 1, 1e-6, 1e-5,
-              parent, out_v, out_f, unshadowed)  # fmt: skip
+              True, parent, out_v, out_f, unshadowed)  # fmt: skip
     area_weights(rays_i, rays_f, np.zeros(1, bool), unshadowed, parent, out_f[1],
                  np.zeros(4, bool), np.zeros(1, np.int64))  # fmt: skip
     positions, vis = np.zeros((1, 3)), np.ones((1, 1), np.float32)

@@ -342,20 +342,37 @@ class ShadowRays:
         m = _AREA.area_rays(
             ray_i, ray_v, ray_f, k, n_distant, np.ascontiguousarray(shading_normals, np.float32),
             area, np.ascontiguousarray(offsets, np.float64), AREA_LIGHT_POINTS, AREA_LIGHT_STEP,
-            AREA_LIGHT_RAYS, floor, relative, parent, sample_v, sample_f, unshadowed,
+            AREA_LIGHT_RAYS, floor, relative, not share_only, parent, sample_v, sample_f,
+            unshadowed,
         )  # fmt: skip
-        if share_only:  # -1 (no area), 0 (no light reaches the point), 1 (the share's)
-            unshadowed = np.sign(unshadowed)
-        point = np.flatnonzero(unshadowed < 0.0)  # the pairs of point lights: their own rays
-        origins = np.concatenate([ray_v[0, point], sample_v[0, :m]])
-        dirs = np.concatenate([ray_v[1, point], sample_v[1, :m]])
-        tfar = np.concatenate([ray_f[0, point], sample_f[0, :m]])
-        answer = self._occluded(origins, dirs, tfar, threads) if len(tfar) else _NO_ANSWER
-        occluded = np.zeros(k, bool)
-        occluded[point] = answer[: len(point)]
+        if AREA_LIGHT_RAYS == 1:
+            # A pair's one sample takes its own ray's place (the same origin): the batch is
+            # cast as built, no copy of it; a pair without samples casts a ray of no length.
+            # The pairs' directions to the centre come back after (the shading's).
+            pairs = parent[:m]
+            centre = ray_v[1, pairs]
+            ray_v[1, pairs], ray_f[0, pairs] = sample_v[1, :m], sample_f[0, :m]
+            idle = unshadowed >= 0.0
+            idle[pairs] = False
+            ray_f[0, np.flatnonzero(idle)] = 0.0
+            occluded = np.zeros(0, bool)
+            if k:
+                occluded = np.require(self._occluded(ray_v[0, :k], ray_v[1, :k], ray_f[0, :k],
+                                                     threads), bool, ["C", "W"])  # fmt: skip
+            ray_v[1, pairs] = centre
+            samples = occluded[pairs]
+        else:
+            point = np.flatnonzero(unshadowed < 0.0)  # the point lights' pairs: their rays
+            origins = np.concatenate([ray_v[0, point], sample_v[0, :m]])
+            dirs = np.concatenate([ray_v[1, point], sample_v[1, :m]])
+            tfar = np.concatenate([ray_f[0, point], sample_f[0, :m]])
+            answer = self._occluded(origins, dirs, tfar, threads) if len(tfar) else _NO_ANSWER
+            occluded = np.zeros(k, bool)
+            occluded[point] = answer[: len(point)]
+            samples = np.ascontiguousarray(answer[len(point) :])
         extra = np.zeros(n, np.int64)
         _AREA.area_weights(ray_i, ray_f, occluded, unshadowed, parent[:m], sample_f[1, :m],
-                           np.ascontiguousarray(answer[len(point) :]), extra)  # fmt: skip
+                           samples, extra)  # fmt: skip
         return occluded, extra
 
 
