@@ -148,12 +148,13 @@ SHAPES = {
 }
 
 
-def _gpu_and_kernel(light: LocalLight, positions, normals, to_eye):
-    """The direct light (k, 3) of k points lit by ``light`` alone: the GPU light pass's
-    lit sums (``Rasterizer.map_light_terms``; nothing casts a shadow near them: a 1 m
-    quad 100 m away is the scene) and ``shading.shade_local``'s (the compiled factor),
-    both with the fallback material of albedo 0.6, a black dome."""
-    lights = Lights(local=[light], dome=DomeLight(color=np.zeros(3)))
+def _gpu_and_kernel(light: LocalLight | list, positions, normals, to_eye):
+    """The direct light (k, 3) of k points lit by ``light`` alone (or a list of lights):
+    the GPU light pass's lit sums (``Rasterizer.map_light_terms``; nothing casts a shadow
+    near them: a 1 m quad 100 m away is the scene) and ``shading.shade_local``'s (the
+    compiled factor), both with the fallback material of albedo 0.6, a black dome."""
+    local = light if isinstance(light, list) else [light]
+    lights = Lights(local=local, dome=DomeLight(color=np.zeros(3)))
     scene = parts_scene([dict(mesh=quad(1.0, center=(100.0, 0.0, 0.0)))], lights=lights)
     surface = fallback_surface(np.full((len(positions), 3), 0.6))
     with Rasterizer(scene, 64, 64) as r:
@@ -205,6 +206,23 @@ def test_glsl_area_factor_is_the_kernels_at_random_points(name):
     behind = (positions - light.position) @ light.axis < 0.0
     assert behind.sum() > 200
     assert gpu[behind].max() == 0.0 and kernel[behind].max() == 0.0
+
+
+def test_glsl_area_factor_in_a_tiled_pass():
+    """Past 16 LocalLights the pass walks each tile's lights from the light table (TILED,
+    six texels a light with the shapes): a disk and a rect among 16 dim point lights
+    spread around the points shade as the compiled shading does (GLSL_RTOL /
+    GLSL_ATOL), the areas' pairs included."""
+    rng = np.random.default_rng(8)
+    points = [LocalLight(rng.uniform(-3.0, 3.0, 3), np.full(3, 0.5)) for _ in range(16)]
+    areas = [_shape_light(*SHAPES["ellipse"]), _shape_light(*SHAPES["tilted_rect"])]
+    lights = points[:7] + areas[:1] + points[7:] + areas[1:]
+    positions, normals, to_eye = _random_points(2048, 6)
+    gpu, kernel = _gpu_and_kernel(lights, positions, normals, to_eye)
+    only_points, _ = _gpu_and_kernel(points, positions, normals, to_eye)
+    assert np.all(np.isfinite(gpu))
+    assert (gpu[:, 0] > only_points[:, 0] + 1e-3).sum() > 400  # lit by the areas too
+    np.testing.assert_allclose(gpu, kernel, rtol=GLSL_RTOL, atol=GLSL_ATOL)
 
 
 def test_the_factor_is_exact_where_closed_forms_hold():
