@@ -24,6 +24,10 @@ imported on first use). The model, the same everywhere::
   its occlusion, and the specular part only where no mirror reflection stands in for it).
 * A LocalLight with UsdLux ShapingAPI (a cone, focus) scales ``E_light`` by
   ``cone_falloff`` of the direction it emits towards the point.
+* A Rect or Disk light scales it by its area factor (``area_table``,
+  ``trace.area_light_kernels``: the exact irradiance of its surface over the point
+  light's; 0 behind it), whoever decided the pair's visibility (a shadow map's test
+  from its centre, or the share of it a shadow ray's area rule saw).
 
 Light order, wherever a per-light axis appears (``visibility`` (n, L), ``light_directions``):
 all ``lights.distant`` first, then all ``lights.local``, each in list order.
