@@ -349,3 +349,37 @@ def pair_directions(
     to_light = np.take(centres, light, axis=0) - np.take(positions, point, axis=0)
     dist = np.maximum(np.sqrt(np.einsum("ij,ij->i", to_light, to_light)), MIN_LIGHT_DISTANCE)
     return (to_light / dist[:, None]).astype(np.float32), dist
+
+
+def rect_light_integral(p, centre, a: float, b: float) -> float:
+    """∫ cos θ_e cos θ_p / d² dA of a rect of half sizes a (along x) and b (along y) at
+    ``centre`` facing down (-Z) onto a point ``p`` below it facing up (+Z): the corner sum
+    of the parallel rectangle's form factor (times π), G(x, y) = ½ [X / √(1 + X²)
+    atan(Y / √(1 + X²)) + Y / √(1 + Y²) atan(X / √(1 + Y²))], X = x / h, Y = y / h."""
+    h = centre[2] - p[2]
+
+    def g(x, y):
+        x, y = x / h, y / h
+        sx, sy = np.sqrt(1 + x * x), np.sqrt(1 + y * y)
+        return 0.5 * (x / sx * np.arctan(y / sx) + y / sy * np.arctan(x / sy))
+
+    x0, y0 = centre[0] - p[0], centre[1] - p[1]
+    return float(g(x0 + a, y0 + b) - g(x0 - a, y0 + b) - g(x0 + a, y0 - b) + g(x0 - a, y0 - b))
+
+
+def disk_light_integral(p, centre, r: float) -> float:
+    """The same for a disk of radius r: π / 2 [1 - (h² + x² - r²) / √((h² + x² + r²)² -
+    4 r² x²)], x the point's distance from the disk's axis (π r² / (r² + h²) on it)."""
+    h = centre[2] - p[2]
+    x2 = (centre[0] - p[0]) ** 2 + (centre[1] - p[1]) ** 2
+    root = np.sqrt((h * h + x2 + r * r) ** 2 - 4.0 * r * r * x2)
+    return float(0.5 * np.pi * (1.0 - (h * h + x2 - r * r) / root))
+
+
+def area_light_factor(p, centre, area: float, integral: float) -> float:
+    """The area factor (``area_light_kernels._factor``) of a light facing down at
+    ``centre`` of ``area`` m² and irradiance ``integral`` (``rect_light_integral``,
+    ``disk_light_integral``) at a point ``p`` facing up: the integral over the point
+    light's A cos θ_p,c / d_c²."""
+    d = np.asarray(centre, float) - np.asarray(p, float)
+    return integral / (area * d[2] / float(np.linalg.norm(d)) ** 3)

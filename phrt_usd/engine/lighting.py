@@ -48,7 +48,8 @@ class Tracer(Protocol):
     """What lighting asks of the tracer (``trace.tracer.Tracer``, not imported here: the
     tracer's hit lighting imports this module): exact shadow rays."""
 
-    def shadow_visibility(self, positions, normals, triangle_ids=None, pairs=None): ...
+    def shadow_visibility(self, positions, normals, triangle_ids=None, pairs=None,
+                          pixels=None): ...  # fmt: skip
 
 
 def shade_gbuffer(
@@ -87,7 +88,7 @@ def shade_gbuffer(
     if n_lights == 0:
         visibility = np.ones((len(pos), 0), dtype=np.float32)
     elif mode == "rt":
-        visibility = tracer.shadow_visibility(pos, nrm, tri)
+        visibility = tracer.shadow_visibility(pos, nrm, tri, pixels=(_pixels(pix, h * w), w))
         shadow_pass = "shadow_rays"
     else:
         terminator = Terminator.of(rasterizer.triangle_table, pos - scene.origin, tri, nrm)
@@ -95,7 +96,7 @@ def shade_gbuffer(
             rasterizer, lights, pos, nrm, view, filtered=tracer is None, surface=surf,
             terminator=terminator,
         )  # fmt: skip
-        visibility = _settled(pending, tracer, tri)
+        visibility = _settled(pending, tracer, tri, (_pixels(pix, h * w), w))
         shadow_pass = "shadow_map" if tracer is None else "shadow_map+rays"
     if _emits(scene):
         emissive = surface.emissive_at(scene, tri, pos)  # textured too
@@ -196,16 +197,24 @@ def shade_settled(
     )
 
 
-def _settled(pending, tracer: Tracer | None, triangles: np.ndarray):
+def _pixels(pix: slice | np.ndarray, size: int) -> np.ndarray:
+    """The covered pixels' flat indices: ``pix`` (an index array, or every pixel)."""
+    return np.arange(size) if isinstance(pix, slice) else pix
+
+
+def _settled(pending, tracer: Tracer | None, triangles: np.ndarray, pixels=None):
     """``pending`` (``MapVisibility`` or ``PendingLightTerms``) of points on
     ``triangles`` (n,) finished: the pairs the shadow maps could not decide resolved by
     ``tracer``'s shadow rays, cast from the points' triangles as rt's are (the smooth
-    surface's lift, no self-hits: docs/hit-lighting.md), or without a tracer by the
-    maps' own filtering."""
+    surface's lift, no self-hits: docs/hit-lighting.md; ``pixels``: the points' (flat
+    indices (n,), image width), whose rays sample an area light as rt's do), or without a
+    tracer by the maps' own filtering."""
     query = pending.uncertain_pairs()
     if tracer is None or query is None:
         return pending.filtered()
+    at = None if pixels is None else (np.take(pixels[0], query.rows), pixels[1])
     exact = tracer.shadow_visibility(
-        query.positions, query.normals, np.take(triangles, query.rows), pairs=query.pairs
+        query.positions, query.normals, np.take(triangles, query.rows), pairs=query.pairs,
+        pixels=at,
     )
     return pending.resolved(exact)

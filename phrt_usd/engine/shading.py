@@ -24,6 +24,10 @@ imported on first use). The model, the same everywhere::
   its occlusion, and the specular part only where no mirror reflection stands in for it).
 * A LocalLight with UsdLux ShapingAPI (a cone, focus) scales ``E_light`` by
   ``cone_falloff`` of the direction it emits towards the point.
+* A Rect or Disk light scales it by its area factor (``area_table``,
+  ``trace.area_light_kernels``: the exact irradiance of its surface over the point
+  light's; 0 behind it), whoever decided the pair's visibility (a shadow map's test
+  from its centre, or the share of it a shadow ray's area rule saw).
 
 Light order, wherever a per-light axis appears (``visibility`` (n, L), ``light_directions``):
 all ``lights.distant`` first, then all ``lights.local``, each in list order.
@@ -342,6 +346,66 @@ def light_table(lights: Lights) -> LightTable:
     return table
 
 
+#: The latest ``area_table``: (identity key, table), as ``_LIGHT_TABLE_CACHE``.
+_AREA_TABLE_CACHE: list = [None]
+
+
+def area_table(lights: Lights) -> np.ndarray | None:
+    """(P, ``area_light_kernels.AREA_COLUMNS``) float64: each LocalLight's emitting
+    surface (``LocalLight.area_shape``: its kind, centre, half axes u and v, unit axis, in
+    the lights' space; zeros for a light that is no area), or None when no light is a
+    Rect or Disk light; cached as ``light_table``."""
+    key = (lights, *lights.local)
+    cached = _AREA_TABLE_CACHE[0]
+    if cached is not None and len(cached[0]) == len(key) and all(map(operator.is_, cached[0], key)):
+        return cached[1]
+    compiled = _areas()
+    kinds = {"rect": compiled.RECT, "disk": compiled.DISK}
+    table = None
+    if any(li.area_shape in kinds for li in lights.local):
+        table = np.zeros((len(lights.local), compiled.AREA_COLUMNS))
+        for q, li in enumerate(lights.local):
+            if li.area_shape not in kinds:
+                continue
+            table[q, compiled.AREA_KIND] = kinds[li.area_shape]
+            table[q, compiled.AREA_CENTRE : compiled.AREA_CENTRE + 3] = li.position
+            table[q, compiled.AREA_U : compiled.AREA_U + 3] = li.area_u
+            table[q, compiled.AREA_V : compiled.AREA_V + 3] = li.area_v
+            table[q, compiled.AREA_AXIS : compiled.AREA_AXIS + 3] = li.axis
+        table = np.ascontiguousarray(np.nan_to_num(table))
+    _AREA_TABLE_CACHE[0] = (key, table)
+    return table
+
+
+def _with_areas(lights, positions, normals, visibility, pairs: LightPairs, columns: bool):
+    """The visibility and the pairs of ``_shade_chunk`` with each Rect or Disk light's
+    area factor (``area_light_kernels._factor``: its exact unshadowed irradiance over the
+    point light's) multiplied in: into copies of its visibility columns when the kernel
+    shades the columns (``columns``), else of the pairs' weights. Unchanged without such
+    lights."""
+    area = area_table(lights)
+    if area is None:
+        return visibility, pairs
+    n = positions.shape[0]
+    if columns:
+        n_lights = len(lights.distant) + len(lights.local)
+        if visibility is None:
+            visibility = np.ones((n, n_lights), np.float32)
+        else:
+            visibility = np.array(_rows(visibility, _F32, n, n_lights))
+        _areas().area_columns(area, len(lights.distant), positions, normals,
+                              MIN_LIGHT_DISTANCE, visibility)  # fmt: skip
+        return visibility, pairs
+    m = len(pairs.point)
+    if m == 0:
+        return visibility, pairs
+    weight = np.ones(m, np.float32) if pairs.weight is None else np.array(pairs.weight, _F32)
+    point, light = _rows(pairs.point, _I64, m), _rows(pairs.light, _I64, m)
+    _areas().area_pairs(area, positions, normals, point, light, _rows(pairs.l_dir, _F32, m, 3),
+                        _rows(pairs.dist, _F64, m), weight)  # fmt: skip
+    return visibility, LightPairs(point, light, pairs.l_dir, pairs.dist, weight)
+
+
 def _shade_chunk(
     positions: np.ndarray,
     normals: np.ndarray,
@@ -362,13 +426,16 @@ def _shade_chunk(
         emissive = _rows(emissive, _F32, n, 3)
     table = light_table(lights)
     pairs = _NO_PAIRS if local_pairs is None else LightPairs(*local_pairs)
+    columns = local_pairs is None and lit_sums is None
+    normals = _rows(normals, _F32, n, 3)
+    visibility, pairs = _with_areas(lights, positions, normals, visibility, pairs, columns)
     has_weight = pairs.weight is not None
     m = len(pairs.point)
     out = np.empty((n, 3), np.float32)
     if n:
         _kernels().shade_kernel(
             positions,
-            _rows(normals, _F32, n, 3),
+            normals,
             surface_rows(surface, n),
             _rows(view_dirs, _F32, n, 3),
             emissive,
@@ -381,7 +448,7 @@ def _shade_chunk(
             table.l_radiance,
             table.l_range,
             table.cone,
-            local_pairs is None and lit_sums is None,
+            columns,
             _rows(pairs.point, _I64, m),
             _rows(pairs.light, _I64, m),
             _rows(pairs.l_dir, _F32, m, 3),
@@ -582,6 +649,12 @@ def _shade_pool(threads: int) -> ThreadPoolExecutor:
         _POOL.clear()
         pool = _POOL[threads] = ThreadPoolExecutor(threads, thread_name_prefix="phrt-shade")
     return pool
+
+
+def _areas():
+    """The area lights' compiled kernels (``trace.area_light_kernels``: the one exact
+    irradiance of a Rect or Disk light), taken on first use."""
+    return kernels.load("phrt_usd.engine.trace.area_light_kernels")
 
 
 def _kernels():

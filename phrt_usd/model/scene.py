@@ -205,9 +205,9 @@ class DistantLight:
 
 @dataclass
 class LocalLight:
-    """A Sphere, Rect, Disk or Cylinder light: a point with an area factor where the
-    raster shades it; Rect and Disk lights are areas where the trace lights with rays
-    (``area_shape``, ``engine/trace/shadow_rays.py``).
+    """A Sphere, Rect, Disk or Cylinder light: a point at its centre, but that Rect and
+    Disk lights are shaded as their areas wherever a pair is shaded (``area_shape``,
+    ``engine/trace/area_light_kernels.py``).
 
     position: (3,) world metres; radiance: (3,) linear RGB intensity (W/sr-like units,
     falls off with 1/d^2); radius: metres (for the shadow-ray offset only).

@@ -401,7 +401,8 @@ KINDS: tuple[SupportKind, ...] = (
     SupportKind(
         "area_light", "area lights (Sphere, Rect, Disk, Cylinder)",
         "approximated: Sphere and Cylinder a point light at the light's centre; Rect and "
-        "Disk a point in the raster and on the primary surface, an area at hits lit by rays",
+        "Disk an area's irradiance everywhere, its shadow the centre's where the shadow "
+        "maps decide it",
         "usd/lights.py: emitted power kept; engine/trace/area_light_kernels.py: Rect and "
         "Disk areas (soft shadows) at traced hits lit by shadow rays",
         _area_light,

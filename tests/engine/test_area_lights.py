@@ -2,7 +2,8 @@
 ``area_light_kernels.py``), in rt and hybrid alike: their irradiance follows the
 emitting surface (UsdLux: a rect of width x height, a disk of radius, in the light's XY
 plane, a Lambertian emitter along its -Z), their shadows are soft, nothing behind them
-is lit; the primary surface keeps them points, as the raster does.
+is lit; the primary surface's pairs carry the same area factor (``shading``), rt's and
+hybrid's resolved by the same rays (``tests/engine/test_area_light_shading.py``).
 
 The stage (``_stage``): a grey square (albedo 0.5, UsdPreviewSurface's fallback
 material) 6 x 6 m in the plane z = 0 facing +Z, lit by one light above it facing down,
@@ -200,23 +201,25 @@ def test_an_area_light_casts_a_penumbra_in_its_reflection(mode):
 
 def test_nothing_behind_an_area_light_is_lit_at_the_hits():
     """A rect turned to face up (rotated 180° about X: it emits along +Z) 1 m above the
-    square lights nothing below it in the reflection (the emitter's cosine is 0 there),
-    while the same light seen directly on the square (the primary surface, a point, as
-    the raster) lights it."""
+    square lights nothing below it, in the reflection (the emitter's cosine is 0 there)
+    and on the primary surface alike (the area factor, ``shading.shade_local``), while
+    the same light facing down lights the square seen directly."""
     stage = _stage(UsdLux.RectLight, (0.0, 0.0, 1.0), {"width": 1.0, "height": 1.0}, 180.0)
     values, _, _ = _render(stage, "rt")
     assert values.max() == 0.0
-    direct = grey_square_stage(ALBEDO, 3.0, (0.0, 0.0, 2.5))
-    UsdLux.DomeLight.Define(direct, "/World/Dome").CreateIntensityAttr(0.0)
-    light = UsdLux.RectLight.Define(direct, "/World/Light")
-    light.AddTranslateOp().Set(Gf.Vec3d(0.0, 0.0, 1.0))
-    light.AddRotateXOp().Set(180.0)
-    scene = read_stage(direct)
-    renderer = FrameRenderer(scene, RenderOptions(mode="rt", width=W, height=H))
-    try:
-        assert renderer.render(1.0).beauty.max() > 0.1
-    finally:
-        renderer.close()
+    for turn, lit in ((180.0, False), (0.0, True)):
+        direct = grey_square_stage(ALBEDO, 3.0, (0.0, 0.0, 2.5))
+        UsdLux.DomeLight.Define(direct, "/World/Dome").CreateIntensityAttr(0.0)
+        light = UsdLux.RectLight.Define(direct, "/World/Light")
+        light.AddTranslateOp().Set(Gf.Vec3d(0.0, 0.0, 1.0))
+        light.AddRotateXOp().Set(turn)
+        scene = read_stage(direct)
+        renderer = FrameRenderer(scene, RenderOptions(mode="rt", width=W, height=H))
+        try:
+            brightest = renderer.render(1.0).beauty.max()
+        finally:
+            renderer.close()
+        assert brightest > 0.1 if lit else brightest == 0.0
 
 
 @pytest.mark.parametrize("shape", ["rect", "disk"])

@@ -10,7 +10,8 @@ aperture: the square fills the 32 x 24 frame), a black dome (no ambient term) an
 light 1 m above the origin. The centre pixel (row 12, col 16) sees (0.03125, -0.03125, 0)
 m. A point light of intensity I there gives, by the model of engine/shading.py, E x the
 BRDF's π f n.l (UsdPreviewSurface's fallback material: the square has no material) with
-E = I / d² x the range window (``_point_lit_centre``).
+E = I / d² x the range window (``_point_lit_centre``); a Rect or Disk light's pair is
+that times its area factor (``_area_factor``).
 """
 
 from __future__ import annotations
@@ -19,7 +20,12 @@ import numpy as np
 import pytest
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux
 from scenes import grey_square_stage, preview_shade
-from shading_reference import brdf_cos
+from shading_reference import (
+    area_light_factor,
+    brdf_cos,
+    disk_light_integral,
+    rect_light_integral,
+)
 
 from phrt_usd.engine.renderer import FrameRenderer, RenderOptions
 from phrt_usd.engine.shading import LIGHT_CUTOFF_IRRADIANCE
@@ -108,8 +114,10 @@ def _point_lit_centre(intensity: float) -> float:
 #: ~1e-7 relative). 1e-5 relative bounds that with margin; a unit slip (x100 in a
 #: distance, x10^4 in an area) fails it by orders of magnitude.
 PAIR_RTOL = 1e-5
-#: The centre pixel against the rule's point light: float32 sums (1e-6) and the
-#: range window, computed the same way (docs/usd-support.md "Lights").
+#: The centre pixel against the rule's point light (times a Rect or Disk light's area
+#: factor, in closed form): float32 sums (1e-6) and the range window, computed the same
+#: way (docs/usd-support.md "Lights"); a disk's 24-gon of its area, 1 m from a 0.1 m
+#: disk, is within 1e-6 of its irradiance.
 ANALYTIC_RTOL = 1e-4
 
 
@@ -126,8 +134,24 @@ def test_local_light_centimetres_and_metres_render_the_same(name, mode):
         if name == "sphere_point":  # a point: no shadow-ray offset
             assert light.radius == 0.0
     np.testing.assert_allclose(images[CENTIMETRES], images[1.0], rtol=PAIR_RTOL, atol=1e-9)
-    expected = _point_lit_centre(LIGHTS[name][4])
+    expected = _point_lit_centre(LIGHTS[name][4]) * _area_factor(name)
     assert images[1.0][CENTRE][0] == pytest.approx(expected, rel=ANALYTIC_RTOL)
+
+
+def _area_factor(name: str) -> float:
+    """1, or for a Rect or Disk light its area factor at the centre pixel's point (the
+    closed forms of its irradiance over the point light's: docs/usd-support.md "Lights")."""
+    kind, sizes = LIGHTS[name][:2]
+    centre = np.array([0.0, 0.0, 1.0])
+    if kind is UsdLux.RectLight:
+        a, b = 0.5 * sizes["width"], 0.5 * sizes["height"]
+        integral = rect_light_integral(CENTRE_POINT, centre, a, b)
+        return area_light_factor(CENTRE_POINT, centre, 4 * a * b, integral)
+    if kind is UsdLux.DiskLight:
+        r = sizes["radius"]
+        integral = disk_light_integral(CENTRE_POINT, centre, r)
+        return area_light_factor(CENTRE_POINT, centre, np.pi * r * r, integral)
+    return 1.0
 
 
 @pytest.mark.parametrize("mode", MODES)

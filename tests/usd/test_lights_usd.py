@@ -21,6 +21,7 @@ import OpenImageIO as oiio
 import pytest
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdLux
 from scenes import grey_square_stage, preview_shade
+from shading_reference import area_light_factor, disk_light_integral, rect_light_integral
 from typer.testing import CliRunner
 
 import phrt_usd
@@ -187,17 +188,35 @@ def test_normalize_keeps_an_area_light_size_independent_and_off_it_grows_with_ar
 
     for kind in (UsdLux.RectLight, UsdLux.DiskLight, UsdLux.SphereLight):
         normalized = centre(0.1, True, kind)
-        # normalize: luminance / area, so the power, and the lighting, stay the same.
-        assert centre(0.2, True, kind) == pytest.approx(normalized, rel=1e-6)
+        # normalize: luminance / area, so the power, and the lighting, stay the same, but
+        # for a Rect or Disk light's area factor (its near field, _area_factor).
+        near = _area_factor(kind, 0.2) / _area_factor(kind, 0.1)
+        assert centre(0.2, True, kind) == pytest.approx(normalized * near, rel=1e-6)
         small, big = centre(0.1, False, kind), centre(0.2, False, kind)
         # Off: area x 4 → 4 x the light, the sphere's πr² too (the range window,
         # shading.range_window, differs by < 1e-3 between the two).
-        assert big / small == pytest.approx(4.0, rel=2e-3)
+        assert big / small == pytest.approx(4.0 * near, rel=2e-3)
         if kind is UsdLux.RectLight:
             # A 0.1 m rect of luminance 100: intensity 100 x 0.01 = 1; normalized, the
-            # luminance itself, 100 (float32 sums: relative 1e-5).
-            assert small == pytest.approx(_point_lit_centre(1.0), rel=1e-5)
-            assert normalized == pytest.approx(_point_lit_centre(100.0), rel=1e-5)
+            # luminance itself, 100 (float32 sums: relative 1e-5), times its area factor.
+            factor = _area_factor(kind, 0.1)
+            assert small == pytest.approx(_point_lit_centre(1.0) * factor, rel=1e-5)
+            assert normalized == pytest.approx(_point_lit_centre(100.0) * factor, rel=1e-5)
+
+
+def _area_factor(kind, size: float) -> float:
+    """The area factor (docs/usd-support.md "Lights") at the centre pixel's point of the
+    test's light 1 m above the origin facing down: a rect of side ``size``, a disk of
+    radius ``size`` (closed forms of their irradiance over the point light's); 1 for a
+    sphere."""
+    centre = np.array([0.0, 0.0, 1.0])
+    if kind is UsdLux.RectLight:
+        integral = rect_light_integral(CENTRE_POINT, centre, size / 2, size / 2)
+        return area_light_factor(CENTRE_POINT, centre, size * size, integral)
+    if kind is UsdLux.DiskLight:
+        integral = disk_light_integral(CENTRE_POINT, centre, size)
+        return area_light_factor(CENTRE_POINT, centre, np.pi * size * size, integral)
+    return 1.0
 
 
 def _point_lit_centre(intensity: float) -> float:

@@ -15,8 +15,10 @@ point's UsdPreviewSurface BRDF, its surface rows a texture of four RGBA32F texel
 point, ``model/preview_surface.py``; the lobe's albedo table an RG32F texture) with
 bits flagging the uncertain ones, which the caller resolves (``map_lighting``). The
 test is ``shadow_maps.cube_visibility``'s and ``shadow_maps.filtered_visibility``'s,
-the shading ``shade_kernels.shade_kernel``'s and ``brdf_cos``'s: keep the shader and
-those in step (``tests/engine/test_preview_surface.py`` compares the BRDFs).
+the shading ``shade_kernels.shade_kernel``'s and ``brdf_cos``'s, a Rect or Disk light's
+area factor ``trace.area_light_kernels._factor``'s: keep the shader and those in step
+(``tests/engine/test_preview_surface.py`` compares the BRDFs,
+``tests/engine/test_area_light_shading.py`` the area factors).
 
 Measured on the sewer (13 lights, 640x480): the lookup takes ~45 ms of CPU time per
 frame (llvmpipe spreads it over the cores), nearly all of it the fragment shader
@@ -54,6 +56,7 @@ from phrt_usd.engine.raster.shadow_maps import (
 from phrt_usd.engine.shading import MIN_LIGHT_DISTANCE
 from phrt_usd.engine.terminator import Terminator
 from phrt_usd.model import preview_surface
+from phrt_usd.model.light_sampling import has_area_lights
 from phrt_usd.model.surface import TERMINATOR_FADE
 
 #: Most rows of the GPU lookup pass's point texture (llvmpipe's largest renderbuffer
@@ -108,7 +111,7 @@ class LightPass:
     def __init__(self, ctx: RasterContext, maps: ShadowMaps) -> None:
         self._ctx = ctx
         self._maps = maps  # whose ``cube_keys`` place the LocalLights
-        self._lookup_programs: dict[tuple[int, int, bool, bool, bool, bool, bool], int] = {}
+        self._lookup_programs: dict[tuple[int, int, bool, bool, bool, bool, bool, bool], int] = {}
         self._dmap_tex: list[int] = []  # DistantLight map textures (``_upload_distant``)
         self._dmap_held: list[ShadowMap | None] = []
         self._lookup_vao: int | None = None
@@ -133,10 +136,11 @@ class LightPass:
     ) -> int:  # fmt: skip
         """The lookup program for a pass of ``n_lights`` LocalLight slots and
         ``n_distant`` DistantLights (with shading or not; per tile or not; with the
-        clear coat's lobe or not; with points on smooth meshes or not), compiled on first
-        use with the defines ``shaders/cube_lookup.frag`` expects."""
+        clear coat's lobe, the area lights' factor or not; with points on smooth meshes or
+        not), compiled on first use with the defines ``shaders/cube_lookup.frag`` expects."""
         has_dynamic = bool(self._ctx.animated_tri.any())
-        key = (n_lights, n_distant, has_dynamic, shade, tiled, coat, terminator)
+        area = shade and has_area_lights(self._ctx.scene.lights)
+        key = (n_lights, n_distant, has_dynamic, shade, tiled, coat, area, terminator)
         if key not in self._lookup_programs:
             with open(os.path.join(SHADER_DIR, "cube_lookup.vert")) as f:
                 vert = f.read()
@@ -156,7 +160,7 @@ class LightPass:
                 f"#define CUBE_SIZE {CUBE_MAP_SIZE}\n#define TAN_HALF {tan_half!r}\n"
                 f"#define LINE_W {CUBE_LINE_TILE[0]}u\n#define LINE_H {CUBE_LINE_TILE[1]}u\n"
                 f"#define PAGE_W {CUBE_PAGE_TILE[0]}u\n#define PAGE_H {CUBE_PAGE_TILE[1]}u\n"
-            )
+            ) + _area_defines(area)
             self._lookup_programs[key] = int(
                 gl_shaders.compileProgram(
                     gl_shaders.compileShader(vert, GL.GL_VERTEX_SHADER),
@@ -625,15 +629,28 @@ def _pass_lights(loc, ks: list[int], cubes, ranges, first: list[int], lights, ce
                     np.array([first[k] for k in ks] + [-1] * pad, np.int32))
     GL.glUniform1iv(loc("dynamic_face"), LOOKUP_LIGHTS_PER_PASS,
                     np.array([first[n_local + k] for k in ks] + [-1] * pad, np.int32))
+    shapes = _area_texels(lights)
+    if shapes is not None:  # the program's AREA uniforms
+        texels = np.zeros((LOOKUP_LIGHTS_PER_PASS, 3, 4), np.float32)
+        texels[: len(ks)] = shapes[ks]
+        GL.glUniform4fv(loc("light_u"), LOOKUP_LIGHTS_PER_PASS, texels[:, 0])
+        GL.glUniform3fv(loc("light_v"), LOOKUP_LIGHTS_PER_PASS,
+                        np.ascontiguousarray(texels[:, 1, :3]))
+        GL.glUniform3fv(loc("light_axis"), LOOKUP_LIGHTS_PER_PASS,
+                        np.ascontiguousarray(texels[:, 2, :3]))
 
 
 def _light_table(cubes, ranges, first: list[int], lights, centres) -> np.ndarray:
     """The LocalLights' table of a tiled pass (``shaders/cube_lookup.frag``'s
-    ``light_table``), (max(L, 1), 3, 4) float32: per light (rel position, range),
-    (radiance, the cube's near plane), (first face of the static cube, of the animated
-    one, 0, 0); arguments as ``_pass_lights``'."""
+    ``light_table``), (max(L, 1), LIGHT_TEXELS, 4) float32: per light (rel position,
+    range), (radiance, the cube's near plane), (first face of the static cube, of the
+    animated one, 0, 0) and, where some light is a Rect or Disk light, its shape
+    (``_area_texels``); arguments as ``_pass_lights``'."""
     n_local = len(cubes)
-    table = np.zeros((max(n_local, 1), 3, 4), np.float32)
+    shapes = _area_texels(lights)
+    table = np.zeros((max(n_local, 1), _light_texels(shapes is not None), 4), np.float32)
+    if shapes is not None:
+        table[:n_local, 3:] = shapes
     for k, pair in enumerate(cubes):
         cube = pair[0] or pair[1]
         table[k, 0, :3], table[k, 0, 3] = centres[k], ranges[k]
@@ -641,6 +658,38 @@ def _light_table(cubes, ranges, first: list[int], lights, centres) -> np.ndarray
         table[k, 1, 3] = cube.near if cube is not None else 0.0
         table[k, 2, :2] = first[k], first[n_local + k]
     return table
+
+
+def _area_defines(area: bool) -> str:
+    """The shader's defines of the area lights' factor (``area_factor``): whether it is
+    compiled in, the light table's texels a light, a disk's outline."""
+    return (
+        f"#define AREA {int(area)}\n#define LIGHT_TEXELS {_light_texels(area)}\n"
+        f"#define DISK_CORNERS {_areas().DISK_CORNERS}\n"
+        f"#define DISK_SCALE {_areas().DISK_CORNER_SCALE!r}\n"
+    )
+
+
+def _light_texels(area: bool) -> int:
+    """Texels a light of the tiled pass's light table (the shader's LIGHT_TEXELS): three,
+    and three more of its shape (``_area_texels``) when a light is a Rect or Disk light."""
+    return 6 if area else 3
+
+
+def _area_texels(lights) -> np.ndarray | None:
+    """(L, 3, 4) float32: each LocalLight's shape as the shader's ``area_factor`` reads it,
+    (half axis u in metres, kind: 0 none, ``area_light_kernels.RECT`` or ``DISK``),
+    (half axis v, 0), (the unit direction it emits along, 0); None when none of
+    ``lights`` is a Rect or Disk light."""
+    kinds = {"rect": _areas().RECT, "disk": _areas().DISK}
+    if not any(li.area_shape in kinds for li in lights):
+        return None
+    texels = np.zeros((len(lights), 3, 4), np.float32)
+    for k, li in enumerate(lights):
+        if li.area_shape in kinds:
+            texels[k, 0, :3], texels[k, 0, 3] = li.area_u, kinds[li.area_shape]
+            texels[k, 1, :3], texels[k, 2, :3] = li.area_v, li.axis
+    return np.nan_to_num(texels)
 
 
 def _upload_slots(texture: int, slots: np.ndarray) -> None:
@@ -657,6 +706,12 @@ def _upload_slots(texture: int, slots: np.ndarray) -> None:
         GL.GL_TEXTURE_2D, 0, GL.GL_R32I, across * LOOKUP_LIGHTS_PER_PASS,
         len(texels) // across, 0, GL.GL_RED_INTEGER, GL.GL_INT, texels,
     )  # fmt: skip
+
+
+def _areas():
+    """The area lights' kernels (``trace.area_light_kernels``: the shape table's kinds and
+    a disk's outline, which the shader's ``area_factor`` mirrors), taken on first use."""
+    return kernels.load("phrt_usd.engine.trace.area_light_kernels")
 
 
 def _shade():

@@ -1,27 +1,35 @@
-"""Rect and Disk lights as areas in the trace, compiled: the sample rays of a (point, area
-light) pair and their answer as the pair's weight (``shadow_rays.ShadowRays``, which
-says where the rule holds; docs/usd-support.md "Lights").
+"""Rect and Disk lights as areas, compiled: the area factor every (point, area light)
+pair is shaded with, and the sample rays that answer its visible share where rays decide
+it (``shadow_rays.ShadowRays``; docs/usd-support.md "Lights").
 
-A pair's ray to the light's centre (``trace_kernels.shadow_rays``) stands for the pair:
-``shade_kernel`` lights it as a point of the light's intensity I (its luminance L times
-its area A) at distance d_c, ``I / d_c² × π f(l_c) n·l_c``, times the pair's weight. For
-an area light (UsdLux: a rect or a disk in its local XY plane, a Lambertian emitter
-along its -Z) that weight is
+Wherever a pair is shaded (``shade_kernel``, the GPU light pass), it is lit as a point
+of the light's intensity I (its luminance L times its area A) at its centre, d_c away,
+``I / d_c² × π f(l_c) n·l_c``, times the pair's visibility. For an area light (UsdLux:
+a rect or a disk in its local XY plane, a Lambertian emitter along its -Z) that point
+term is multiplied by the *area factor* (``_factor``)
 
-    w = [∫ cos θ_e cos θ_p / d² dA  /  (A cos θ_p,c / d_c²)] × (the visible share)
+    F = ∫ cos θ_e cos θ_p / d² dA  /  (A cos θ_p,c / d_c²)
 
-so the pair's light is ``L ∫ cos θ_e cos θ_p / d² dA × (the visible share) × π f(l_c)``:
-the irradiance of the whole surface, exact (Lambert's formula for a polygon over its
+so the pair's light is ``L ∫ cos θ_e cos θ_p / d² dA × (visibility) × π f(l_c)``: the
+irradiance of the whole surface, exact (Lambert's formula for a polygon over its
 outline clipped to the point's horizon, ``_unshadowed``; a disk as a regular polygon of
-its area; 0 behind the light), times the share of it the point sees, weighed by the
-integrand g = cos θ_e cos θ_p / d² (θ_e at a point y of the light between its axis and
-the direction to the point, θ_p at the point between its shading normal and the
-direction to y). That share is estimated by a few rays (``picks``) to points y_s drawn
-from a lattice of N points of the surface in proportion to their g (systematic draws),
-each ray's visibility V_s weighing alike: the estimate is the lattice's Σ g V / Σ g in
-expectation. A point that sees the whole light is exact and without noise; a penumbra
-is a dither between pixels. The BRDF is the centre direction's (a Lambert surface is
-exact; a highlight keeps the point's shape).
+its area; 0 behind the light), θ_e at a point y of the light between its axis and the
+direction to the point, θ_p at the point between its shading normal and the direction
+to y. The BRDF is the centre direction's (a Lambert surface is exact; a highlight keeps
+the point's shape). One formula, everywhere: the compiled shading multiplies it into
+the pairs' visibility (``area_columns``, ``area_pairs``, from ``shading.shade_local``),
+the traced hits' ray weights carry it (``area_rays``), the GPU light pass has its GLSL
+copy (``shaders/cube_lookup.frag``'s ``area_factor``, tied to ``_factor`` by
+tests/engine/test_area_light_shading.py).
+
+The visibility is whoever decides the pair's: a shadow map's test from the light's
+centre (the raster, and the pairs the maps decide in hybrid and at the hits: a shadow
+with the centre's hard edge, under the area's irradiance), or the rays' visible share
+(rt's primary surface, the pairs the maps leave undecided, the hits lit by rays): a few
+rays (``picks``) to points y_s drawn from a lattice of N points of the surface in
+proportion to their g = cos θ_e cos θ_p / d² (systematic draws), each ray's visibility
+V_s weighing alike, the estimate the lattice's Σ g V / Σ g in expectation. A point that
+sees the whole light is exact and without noise; a penumbra is a dither between pixels.
 
 The points y_s: a Fibonacci lattice of N (``count``, a Fibonacci number; ``step`` the
 one before it), point c at (c / N, fract(c step / N + 1 / 2N)) of the unit square: each
@@ -62,6 +70,10 @@ RECT, DISK = 1.0, 2.0
 DISK_CORNERS = 24
 DISK_CORNER_SCALE = math.sqrt(2.0 * math.pi / (DISK_CORNERS * math.sin(2.0 * math.pi
                                                                         / DISK_CORNERS)))
+#: The largest area factor (``_factor``): a point whose normal grazes the direction to
+#: the centre sees the light at an n·l near 0 that the factor divides by (their product
+#: stays the irradiance); the cap keeps it finite in float32.
+MAX_FACTOR = 1e30
 #: The most corners a clipped outline has (a plane cuts a convex polygon's outline
 #: twice, adding one corner).
 _MAX_CORNERS = DISK_CORNERS + 1
@@ -137,8 +149,64 @@ def _area(area, q):
 
 
 @njit(**_KERNEL)
+def _factor(area, q, ox, oy, oz, n0, n1, n2, l0, l1, l2, dist, corners, clipped):
+    """The area factor of light q at a point (ox, oy, oz) of unit normal n (module
+    docstring): its exact unshadowed irradiance (``_unshadowed``) over the point light's
+    at its centre, A n·l / d² (l the unit direction to the centre, ``dist`` metres away),
+    at most MAX_FACTOR; 0 behind the light, or for a point facing away from the centre
+    (whose point term is 0) or a light of no area."""
+    nl = n0 * l0 + n1 * l1 + n2 * l2
+    if not nl > 0.0:
+        return 0.0
+    whole = _unshadowed(area, q, ox, oy, oz, n0, n1, n2, corners, clipped)
+    return min(whole / (max(nl, 1e-12) / (dist * dist) * _area(area, q)), MAX_FACTOR)
+
+
+@njit(**_KERNEL)
+def area_columns(area, n_distant, positions, normals, min_distance, visibility):
+    """Each area light's column of ``visibility`` (n, D + P) float32 (light order distant
+    then local, ``n_distant`` distant; ``area`` (P, AREA_COLUMNS)) times the pair's area
+    factor (``_factor``) in place, where it is positive: points ``positions`` (n, 3)
+    float64 in the lights' space, unit ``normals`` (n, 3) float32, the distance to the
+    centre clamped to ``min_distance`` as the shading's."""
+    corners, clipped = np.empty((_MAX_CORNERS, 3)), np.empty((_MAX_CORNERS, 3))
+    for i in range(positions.shape[0]):
+        n0, n1, n2 = float(normals[i, 0]), float(normals[i, 1]), float(normals[i, 2])
+        ox, oy, oz = positions[i, 0], positions[i, 1], positions[i, 2]
+        for q in range(area.shape[0]):
+            j = n_distant + q
+            if area[q, AREA_KIND] == 0.0 or not visibility[i, j] > 0.0:
+                continue
+            t0 = area[q, AREA_CENTRE] - ox
+            t1 = area[q, AREA_CENTRE + 1] - oy
+            t2 = area[q, AREA_CENTRE + 2] - oz
+            d = max(math.sqrt(t0 * t0 + t1 * t1 + t2 * t2), min_distance)
+            f = _factor(area, q, ox, oy, oz, n0, n1, n2, t0 / d, t1 / d, t2 / d, d, corners,
+                        clipped)  # fmt: skip
+            visibility[i, j] = visibility[i, j] * f
+
+
+@njit(**_KERNEL)
+def area_pairs(area, positions, normals, point, light, l_dir, dist, weight):
+    """``weight`` (m,) float32 of m lit (point, LocalLight) pairs (``shading.LightPairs``:
+    point, light (m,) int64, unit l_dir (m, 3) float32 to the centre, dist (m,) float64
+    metres) times the pair's area factor (``_factor``) in place where its light is an
+    area; positions (n, 3) float64, normals (n, 3) float32 unit, as ``area_columns``'."""
+    corners, clipped = np.empty((_MAX_CORNERS, 3)), np.empty((_MAX_CORNERS, 3))
+    for r in range(point.shape[0]):
+        q, i = light[r], point[r]
+        if area[q, AREA_KIND] == 0.0:
+            continue
+        f = _factor(area, q, positions[i, 0], positions[i, 1], positions[i, 2],
+                    float(normals[i, 0]), float(normals[i, 1]), float(normals[i, 2]),
+                    float(l_dir[r, 0]), float(l_dir[r, 1]), float(l_dir[r, 2]), dist[r],
+                    corners, clipped)  # fmt: skip
+        weight[r] = weight[r] * f
+
+
+@njit(**_KERNEL)
 def area_rays(rays_i, rays_v, rays_f, k, n_distant, ns, area, offsets, count, step, picks,
-              floor, relative, parent, out_v, out_f, unshadowed):  # fmt: skip
+              floor, relative, with_factor, parent, out_v, out_f, unshadowed):  # fmt: skip
     """The sample rays of the first ``k`` shadow rays (``trace_kernels.shadow_rays``'
     out_i, out_v, out_f) whose light is an area (``area`` (P, AREA_COLUMNS) float64, rel;
     lights distant then local, ``n_distant`` distant): of the ``count`` points of the
@@ -149,9 +217,10 @@ def area_rays(rays_i, rays_v, rays_f, k, n_distant, ns, area, offsets, count, st
     Writes each sample ray's pair (its ray's column) into ``parent`` (·,) int64, origin
     and unit direction into out_v (2, ·, 3) float32, its tfar (the epsilon short of the
     light) and its weight (the terms' sum over ``picks``) into out_f (2, ·) float32; each
-    pair's weight unshadowed (the area's exact integral over the point's,
-    ``_unshadowed``) into ``unshadowed`` (k,) float64 (-1 for a ray whose light is no
-    area; a pair of weight 0 gets no samples). Returns the sample ray count."""
+    pair's area factor (``_factor``: the area's exact integral over the point light's),
+    or 1 without ``with_factor`` (the caller's shading applies it), into ``unshadowed``
+    (k,) float64 (-1 for a ray whose light is no area; a pair of factor 0, or of no
+    lattice point it could see, gets no samples). Returns the sample ray count."""
     s = 0
     corners, clipped = np.empty((_MAX_CORNERS, 3)), np.empty((_MAX_CORNERS, 3))
     points = np.empty((count, 5))  # direction, distance, term of each lattice point
@@ -165,10 +234,11 @@ def area_rays(rays_i, rays_v, rays_f, k, n_distant, ns, area, offsets, count, st
         d0, d1, d2 = float(rays_v[1, r, 0]), float(rays_v[1, r, 1]), float(rays_v[1, r, 2])
         length = float(rays_f[1, r])
         ox, oy, oz = float(rays_v[0, r, 0]), float(rays_v[0, r, 1]), float(rays_v[0, r, 2])
-        whole = _unshadowed(area, q, ox, oy, oz, n0, n1, n2, corners, clipped)
-        point = max(n0 * d0 + n1 * d1 + n2 * d2, 1e-12) / (length * length) * _area(area, q)
-        unshadowed[r] = whole / point
-        if not whole > 0.0:
+        unshadowed[r] = 1.0
+        if with_factor:
+            unshadowed[r] = _factor(area, q, ox, oy, oz, n0, n1, n2, d0, d1, d2, length,
+                                    corners, clipped)  # fmt: skip
+        if not unshadowed[r] > 0.0:
             continue
         e = _epsilon(ox, oy, oz, floor, relative)
         total = 0.0
@@ -246,14 +316,18 @@ def area_weights(rays_i, rays_f, occluded, unshadowed, parent, terms, sample_occ
 
 
 def warm_up() -> None:
-    """Compile (or load from phrt's kernel cache) both kernels on tiny inputs of the types
-    the shadow rays pass."""
+    """Compile (or load from phrt's kernel cache) the kernels on tiny inputs of the types
+    the shadow rays and the shading pass."""
     rays_i, rays_v = np.zeros((2, 1), np.int64), np.zeros((2, 1, 3), np.float32)
     rays_f = np.zeros((3, 1), np.float32)
     ns, area = np.zeros((1, 3), np.float32), np.zeros((1, AREA_COLUMNS))
     parent, out_v = np.zeros(4, np.int64), np.zeros((2, 4, 3), np.float32)
     out_f, unshadowed = np.zeros((2, 4), np.float32), np.zeros(1)
     area_rays(rays_i, rays_v, rays_f, 1, 0, ns, area, np.zeros((1, 3)), 3, 2, 1, 1e-6, 1e-5,
-              parent, out_v, out_f, unshadowed)  # fmt: skip
+              True, parent, out_v, out_f, unshadowed)  # fmt: skip
     area_weights(rays_i, rays_f, np.zeros(1, bool), unshadowed, parent, out_f[1],
                  np.zeros(4, bool), np.zeros(1, np.int64))  # fmt: skip
+    positions, vis = np.zeros((1, 3)), np.ones((1, 1), np.float32)
+    area_columns(area, 0, positions, ns, 1e-4, vis)
+    area_pairs(area, positions, ns, np.zeros(1, np.int64), np.zeros(1, np.int64), ns,
+               np.ones(1), vis[0])  # fmt: skip

@@ -14,10 +14,10 @@ For each hit and light (``shading``'s light order, distant then local):
    a raster; a stage of at most HIT_LIGHT_PICKS lights, ``light_sampling.
    maps_light_hits``, and a batch of fewer than MAP_MIN_PAIRS possible pairs: there the
    lookup pass costs more than the rays), are *undecided*; each gets a shadow ray
-   (``shadow_rays``). Where every pair of a hit is the rays' (no maps), a Rect or Disk
-   light is an area: its ray goes to a point of its surface (``area_offsets``) and its
-   irradiance is the surface's (``area_light_kernels``); where the maps light the hits
-   it is a point, as they answer.
+   (``shadow_rays``). A Rect or Disk light is an area whoever decides its pair: its
+   irradiance is the surface's (``area_light_kernels``' factor); a ray of such a pair
+   goes to a point of its surface (``area_offsets``) and answers the share of it the
+   hit sees, a map answers from the light's centre.
 3. **Lights sampled where a hit has many.** A hit with more than
    ``model.light_sampling.HIT_LIGHT_PICKS`` undecided pairs of a positive unshadowed share
    (``shade_kernels.light_share``: the light's brightest channel x n·l, and for a
@@ -152,17 +152,19 @@ class HitLighting:
         into = self._surfaces.weighted(into, tri)  # material-rule reflectors' local part
         u0 = None if self.exact else light_offsets(pixels, self.width, self.frame_seed)
         spots = None
-        if has_area_lights(lights):  # areas at the hits lit by rays (``_with_rays``)
+        if has_area_lights(lights):  # the area pairs' rays (``_with_rays``, ``_with_maps``)
             spots = area_offsets(pixels, self.width, self.frame_seed)
         if (self.maps is not None and not self.exact and maps_light_hits(lights)
                 and len(tri) * n_lights >= MAP_MIN_PAIRS):  # fmt: skip
             return self._with_maps(tri, u, v, rel, ng, ns, d_in, lights, u0, albedo, into,
-                                   textured)  # fmt: skip
+                                   textured, spots)  # fmt: skip
         return self._with_rays(tri, u, v, rel, ng, ns, d_in, lights, u0, albedo, into, textured,
                                spots)  # fmt: skip
 
-    def _with_maps(self, tri, u, v, rel, ng, ns, d_in, lights, u0, albedo, into, textured):
-        """``shade`` with the shadow maps deciding what they can (steps 1-3)."""
+    def _with_maps(self, tri, u, v, rel, ng, ns, d_in, lights, u0, albedo, into, textured,
+                   spots=None):  # fmt: skip
+        """``shade`` with the shadow maps deciding what they can (steps 1-3); ``spots``
+        as ``_points``'."""
         albedo, emissive = self._surfaces.colour(tri, u, v, albedo, textured)
         surf = self._surfaces.surface(tri, u, v, albedo)
         world = rel + self._bvh.boundary.origin
@@ -176,8 +178,10 @@ class HitLighting:
             rows = query.rows
             take = (np.take(a, rows, axis=0) for a in (rel, ng, ns, u0, tri))
             r_rel, r_ng, r_ns, r_u0, r_tri = take
+            r_spots = None if spots is None else np.take(spots, rows, axis=0)
             exact, rays[rows] = self._shadows.visibility(
-                r_rel, r_ns, lights, query.pairs, offsets=r_ng, u0=r_u0, triangles=r_tri
+                r_rel, r_ns, lights, query.pairs, offsets=r_ng, u0=r_u0, triangles=r_tri,
+                area_offsets=r_spots,
             )
             settled = pending.resolved(exact)
         local = lighting.shade_settled(rel, ns, surf, d_in, emissive, lights, settled)

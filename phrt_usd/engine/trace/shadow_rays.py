@@ -10,17 +10,17 @@ are offset by the boundary's epsilon along the offset normal, on the side the ra
 leaves to. Transmissive surfaces are opaque; cut-out holes let light through
 (``HitSurfaces.occluded``, given ``surfaces``).
 
-Lights as areas at the traced hits (``shade``: the hits the shadow maps do not light,
-``hit_lighting``; where they do, a light is a point, as the maps answer): a Rect or Disk
-light (``LocalLight.area_shape``) is its emitting surface. Its pair's
-weight is the exact irradiance of the whole surface over the point light's, times the
-share of it the point sees, from AREA_LIGHT_RAYS rays to points of the rect or disk
-drawn by their share of it, instead of its one ray to the centre (the rule is
-``area_light_kernels``'): soft shadows, the irradiance of the area and nothing behind
-it. The primary surface (``cast``: rt's, and the pairs hybrid's shadow maps leave
-undecided) keeps every light a point, as the raster shades it, so that hybrid with every
-reflector traced stays rt's image. Sphere and Cylinder lights stay points (their radius
-offsets the rays).
+Rect and Disk lights as areas (``LocalLight.area_shape``; the rule is
+``area_light_kernels``'): a pair of such a light is answered by AREA_LIGHT_RAYS rays to
+points of the rect or disk drawn by their share of its irradiance, instead of its one
+ray to the centre, and comes out as the share of the light the point sees: soft
+shadows. ``shade`` (the traced hits lit by rays) weighs the pair by its area factor too
+(the exact irradiance of the whole surface over the point light's; nothing behind the
+light); ``cast`` (rt's primary surface, the pairs hybrid's shadow maps leave
+undecided, the hits' exact evaluation) answers the share alone, and the shading
+multiplies the factor in, as it does for the pairs the maps decide
+(``shading.shade_local``), so hybrid with every reflector traced stays rt's image.
+Sphere and Cylinder lights stay points (their radius offsets the rays).
 
 ``ShadowRays.shade`` is the bounce loop's use: the same rays, then Embree's answer shaded
 at once (``trace_kernels.shadow_shade``: visibility, lit LocalLight pairs and
@@ -90,23 +90,26 @@ class ShadowRays:
         return list(zip(edges[:-1], edges[1:], strict=True))
 
     def visibility(self, rel, normals, lights: Lights, pairs=None, offsets=None, u0=None,
-                   triangles=None):  # fmt: skip
+                   triangles=None, area_offsets=None):  # fmt: skip
         """``cast`` for rel points (n, 3) of shading ``normals`` (n, 3) and offset normals
         ``offsets`` (n, 3; None: ``normals``), in chunks on the pool when the batch is
-        large (numpy and Embree work of each chunk on its own thread); ``u0`` and
-        ``triangles`` as ``cast``'s. Returns (n, L) float32 visibility and (n,) int64
-        shadow rays cast per point."""
+        large (numpy and Embree work of each chunk on its own thread); ``u0``,
+        ``triangles`` and ``area_offsets`` as ``cast``'s (None: ``index_offsets`` of the
+        whole batch). Returns (n, L) float32 visibility and (n,) int64 shadow rays cast
+        per point."""
         n, n_lights = len(rel), len(lights.distant) + len(lights.local)
         wanted = n * max(n_lights, 1) if pairs is None else int(np.count_nonzero(pairs))
         offsets = normals if offsets is None else offsets
+        if area_offsets is None and self.area_table(lights) is not None:
+            area_offsets = index_offsets(n)
         bounds = self.split(wanted, n)
         if bounds is None:
             vis, rays, _ = self.cast(rel, offsets, normals, lights, pairs, u0=u0,
-                                     triangles=triangles)  # fmt: skip
+                                     triangles=triangles, area_offsets=area_offsets)  # fmt: skip
             return vis, rays
         done = self.in_chunks(
-            lambda r, ng, ns, p, u, t: self.cast(r, ng, ns, lights, p, 1, u, t),
-            bounds, rel, offsets, normals, pairs, u0, triangles,
+            lambda r, ng, ns, p, u, t, a: self.cast(r, ng, ns, lights, p, 1, u, t, a),
+            bounds, rel, offsets, normals, pairs, u0, triangles, area_offsets,
         )  # fmt: skip
         return np.concatenate([d[0] for d in done]), np.concatenate([d[1] for d in done])
 
@@ -152,7 +155,7 @@ class ShadowRays:
         cached = self._area_cache
         if cached is not None and cached[0] is lights:
             return cached[1]
-        table = area_table(lights)
+        table = shading.area_table(lights)
         self._area_cache = (lights, table)
         return table
 
@@ -167,7 +170,7 @@ class ShadowRays:
         return table
 
     def cast(self, rel, offset_normals, shading_normals, lights: Lights, pairs=None,
-             threads=None, u0=None, triangles=None):  # fmt: skip
+             threads=None, u0=None, triangles=None, area_offsets=None):  # fmt: skip
         """(n, L) float32 visibility, (n,) int64 shadow rays cast per point and the lit
         LocalLight pairs (``shading.shade_local``'s ``local_pairs``, or None), for
         render-relative positions ``rel`` (n, 3) and render-relative ``lights``.
@@ -182,9 +185,11 @@ class ShadowRays:
         ``triangles`` (n,) int64: each point's triangle (-1: none), so that a point of a
         smooth (interpolated-normal) mesh is shadowed as its smooth surface is, not as
         its flat triangle (the shadow terminator: ``trace_kernels.shadow_rays``); None:
-        every point offset along its offset normal only. Every light is a point here
-        (the primary surface's rule, as the raster's; the traced hits' areas are
-        ``shade``'s).
+        every point offset along its offset normal only. A Rect or Disk light's pair is
+        answered by the area rule's rays (the module's; its samples drawn by the points'
+        ``area_offsets`` (n, 3) in [0, 1)³, None: ``index_offsets``): its visibility (and
+        lit pair's weight) is then the share of the light the point sees, which the
+        shading multiplies by the area factor (``shading.shade_local``).
 
         The (point, light) pairs are chosen and their rays built in one compiled pass
         (``trace_kernels.shadow_rays``: float32 Embree batch, point-major, so the lit LocalLight
@@ -195,9 +200,11 @@ class ShadowRays:
         if not lights.has_direct or n == 0:
             return np.ones((n, n_lights), np.float32), np.zeros(n, np.int64), None
         want = _ALL_PAIRS if pairs is None else np.asarray(pairs, dtype=bool).reshape(n, n_lights)
-        ray_i, ray_v, ray_f, occluded, _ = self._trace(
-            rel, offset_normals, shading_normals, lights, want, threads, u0, triangles, False
-        )
+        areas = True if area_offsets is None else area_offsets
+        ray_i, ray_v, ray_f, occluded, extra = self._trace(
+            rel, offset_normals, shading_normals, lights, want, threads, u0, triangles, areas,
+            share_only=True,
+        )  # fmt: skip
         k = len(occluded)
         vis, rays = np.empty((n, n_lights), np.float32), np.empty(n, np.int64)
         lit_i, lit_dir = np.empty((2, k), np.int64), np.empty((k, 3), np.float32)
@@ -205,8 +212,11 @@ class ShadowRays:
         m = _TRACE.shadow_results(
             ray_i, ray_v, ray_f, occluded, n_distant, vis, rays, lit_i, lit_dir, lit_dist, lit_w
         )
-        # The lit LocalLight pairs, for shade_local (weights only where sampled).
-        weight = None if u0 is None else lit_w[:m]
+        if extra is not None:
+            rays += extra
+        # The lit LocalLight pairs, for shade_local (weights only where sampled, lights or
+        # areas).
+        weight = None if u0 is None and extra is None else lit_w[:m]
         lit = shading.LightPairs(lit_i[0, :m], lit_i[1, :m], lit_dir[:m], lit_dist[:m], weight)
         return vis, rays, lit if len(lights.local) else None
 
@@ -255,14 +265,14 @@ class ShadowRays:
         return out, rays, len(occluded) + int(extra.sum())
 
     def _trace(self, rel, offset_normals, shading_normals, lights: Lights, want, threads,
-               u0=None, triangles=None, areas=False):  # fmt: skip
+               u0=None, triangles=None, areas=False, share_only=False):  # fmt: skip
         """The shadow rays of (point, light) pairs (``trace_kernels.shadow_rays``; ``want``
         (n, L) bool or ``_ALL_PAIRS``; ``u0``, ``triangles`` as ``cast``'s) and Embree's
         answer: rays' point and light (2, k) int64, origin and direction (2, k, 3)
         float32, tfar, distance and weight (3, k) float32 (columns beyond k unused),
         occluded (k,) bool; and, with ``areas`` (True, or the points' sample offsets (n,
         3)) where some lights are Rect or Disk lights, the rays each point cast beyond one
-        a pair (n,) int64 (``_area_answer``), else None."""
+        a pair (n,) int64 (``_area_answer``; ``share_only`` as its), else None."""
         n, n_lights = rel.shape[0], len(lights.distant) + len(lights.local)
         dirs, pos, ranges, power, cone = self.light_arrays(lights)
         floor, relative = self._bvh.boundary.offset_factors()
@@ -302,7 +312,7 @@ class ShadowRays:
             offsets = index_offsets(n) if areas is True else areas
             occluded, extra = self._area_answer(
                 ray_i, ray_v, ray_f, k, len(lights.distant), shading_normals, area, offsets,
-                threads,
+                threads, share_only,
             )  # fmt: skip
             return ray_i, ray_v, ray_f, occluded, extra
         return ray_i, ray_v, ray_f, self._occluded(ray_v[0, :k], ray_v[1, :k], ray_f[0, :k],
@@ -316,12 +326,14 @@ class ShadowRays:
         return self._surfaces.occluded(origins, dirs, tfar, threads)
 
     def _area_answer(self, ray_i, ray_v, ray_f, k, n_distant, shading_normals, area, offsets,
-                     threads):  # fmt: skip
+                     threads, share_only=False):  # fmt: skip
         """The answer to the k rays of ``_trace`` where some lights are areas: their pairs'
         own rays are not cast, their samples are (``area_light_kernels.area_rays``, one
         Embree batch with the other pairs' rays), and the samples' answer becomes the
-        pairs' weights (``area_weights``). Returns occluded (k,) bool and the rays each
-        point cast beyond one a pair (n,) int64."""
+        pairs' weights (``area_weights``): the area factor times the visible share, or
+        with ``share_only`` the share alone (the shading multiplies the factor in, as
+        for every pair it shades). Returns occluded (k,) bool and the rays each point
+        cast beyond one a pair (n,) int64."""
         n = len(shading_normals)
         most = k * AREA_LIGHT_RAYS
         parent, sample_v = np.empty(most, np.int64), np.empty((2, most, 3), np.float32)
@@ -330,42 +342,39 @@ class ShadowRays:
         m = _AREA.area_rays(
             ray_i, ray_v, ray_f, k, n_distant, np.ascontiguousarray(shading_normals, np.float32),
             area, np.ascontiguousarray(offsets, np.float64), AREA_LIGHT_POINTS, AREA_LIGHT_STEP,
-            AREA_LIGHT_RAYS, floor, relative, parent, sample_v, sample_f, unshadowed,
+            AREA_LIGHT_RAYS, floor, relative, not share_only, parent, sample_v, sample_f,
+            unshadowed,
         )  # fmt: skip
-        point = np.flatnonzero(unshadowed < 0.0)  # the pairs of point lights: their own rays
-        origins = np.concatenate([ray_v[0, point], sample_v[0, :m]])
-        dirs = np.concatenate([ray_v[1, point], sample_v[1, :m]])
-        tfar = np.concatenate([ray_f[0, point], sample_f[0, :m]])
-        answer = self._occluded(origins, dirs, tfar, threads) if len(tfar) else _NO_ANSWER
-        occluded = np.zeros(k, bool)
-        occluded[point] = answer[: len(point)]
+        if AREA_LIGHT_RAYS == 1:
+            # A pair's one sample takes its own ray's place (the same origin): the batch is
+            # cast as built, no copy of it; a pair without samples casts a ray of no length.
+            # The pairs' directions to the centre come back after (the shading's).
+            pairs = parent[:m]
+            centre = ray_v[1, pairs]
+            ray_v[1, pairs], ray_f[0, pairs] = sample_v[1, :m], sample_f[0, :m]
+            idle = unshadowed >= 0.0
+            idle[pairs] = False
+            ray_f[0, np.flatnonzero(idle)] = 0.0
+            occluded = np.zeros(0, bool)
+            if k:
+                occluded = np.require(self._occluded(ray_v[0, :k], ray_v[1, :k], ray_f[0, :k],
+                                                     threads), bool, ["C", "W"])  # fmt: skip
+            ray_v[1, pairs] = centre
+            samples = occluded[pairs]
+        else:
+            point = np.flatnonzero(unshadowed < 0.0)  # the point lights' pairs: their rays
+            origins = np.concatenate([ray_v[0, point], sample_v[0, :m]])
+            dirs = np.concatenate([ray_v[1, point], sample_v[1, :m]])
+            tfar = np.concatenate([ray_f[0, point], sample_f[0, :m]])
+            answer = self._occluded(origins, dirs, tfar, threads) if len(tfar) else _NO_ANSWER
+            occluded = np.zeros(k, bool)
+            occluded[point] = answer[: len(point)]
+            samples = np.ascontiguousarray(answer[len(point) :])
         extra = np.zeros(n, np.int64)
         _AREA.area_weights(ray_i, ray_f, occluded, unshadowed, parent[:m], sample_f[1, :m],
-                           np.ascontiguousarray(answer[len(point) :]), extra)  # fmt: skip
+                           samples, extra)  # fmt: skip
         return occluded, extra
 
-
-def area_table(lights: Lights) -> np.ndarray | None:
-    """(P, ``area_light_kernels.AREA_COLUMNS``) float64 of ``lights.local`` (module
-    docstring of ``area_light_kernels``), or None when none is a Rect or Disk light."""
-    local = lights.local
-    if not any(li.area_shape in _AREA_KINDS for li in local):
-        return None
-    table = np.zeros((len(local), _AREA.AREA_COLUMNS))
-    for q, li in enumerate(local):
-        kind = _AREA_KINDS.get(li.area_shape, 0.0)
-        if kind == 0.0:
-            continue
-        table[q, _AREA.AREA_KIND] = kind
-        table[q, _AREA.AREA_CENTRE : _AREA.AREA_CENTRE + 3] = li.position
-        table[q, _AREA.AREA_U : _AREA.AREA_U + 3] = li.area_u
-        table[q, _AREA.AREA_V : _AREA.AREA_V + 3] = li.area_v
-        table[q, _AREA.AREA_AXIS : _AREA.AREA_AXIS + 3] = li.axis
-    return np.ascontiguousarray(np.nan_to_num(table))
-
-
-#: ``LocalLight.area_shape`` -> ``area_light_kernels``' kind.
-_AREA_KINDS = {"rect": _AREA.RECT, "disk": _AREA.DISK}
 
 #: The plastic number g = 1.3247... (Roberts 2018): ``index_offsets``' steps.
 _PLASTIC = 1.324717957244746

@@ -60,7 +60,7 @@ from phrt_usd import kernels
 from phrt_usd.engine import lighting
 from phrt_usd.engine.trace import glossy, screen_space, sparse_pixels
 from phrt_usd.engine.trace.bvh import Bvh
-from phrt_usd.engine.trace.hit_lighting import MapLookup, frame_seed
+from phrt_usd.engine.trace.hit_lighting import MapLookup, area_offsets, frame_seed
 from phrt_usd.engine.trace.hit_surfaces import HitSurfaces
 from phrt_usd.engine.trace.paths import PathTracer, refract
 from phrt_usd.engine.trace.shadow_rays import ShadowRays
@@ -204,13 +204,9 @@ class Tracer:
 
     # ------------------------------------------------------------------ shadows
 
-    def shadow_visibility(
-        self,
-        positions: np.ndarray,
-        normals: np.ndarray,
-        triangle_ids: np.ndarray | None = None,
-        pairs: np.ndarray | None = None,
-    ) -> np.ndarray:
+    def shadow_visibility(self, positions: np.ndarray, normals: np.ndarray,
+                          triangle_ids: np.ndarray | None = None, pairs: np.ndarray | None = None,
+                          pixels: tuple | None = None) -> np.ndarray:  # fmt: skip
         """Ray-traced shadows: (n, L) float32, 1 = lit, light order distant then local.
 
         positions : (n, 3) float64 world metres; normals : (n, 3) world unit shading
@@ -219,7 +215,9 @@ class Tracer:
         bool, the (point, light) pairs wanted (e.g. a shadow map's uncertain ones), the
         others are not traced and report 0. No lights: returns (n, 0) and casts nothing.
         Points facing away from a light, or beyond a LocalLight's range
-        (``shading.light_ranges``), get 0 without a ray.
+        (``shading.light_ranges``), get 0 without a ray. pixels : optional (flat indices
+        (n,), image width), whose offsets draw the area lights' rays as the hits' are
+        (``hit_lighting.area_offsets``; ``shadow_rays``' area rule: a visible share).
         """
         self.last_rays = []
         rel = self.bvh.boundary.relative(np.asarray(positions).reshape(-1, 3))
@@ -228,8 +226,9 @@ class Tracer:
         if triangle_ids is not None:
             tri = np.asarray(triangle_ids, np.int64).reshape(-1)
             rel, _ = self.surfaces.snap(rel, tri, normals)
+        spots = None if pixels is None else area_offsets(*pixels, self._frame_seed)
         vis, rays = self._shadows.visibility(
-            rel, normals, self._relative_lights(), pairs, triangles=tri
+            rel, normals, self._relative_lights(), pairs, triangles=tri, area_offsets=spots
         )
         self.rays_cast["shadow"] += int(rays.sum())
         return vis

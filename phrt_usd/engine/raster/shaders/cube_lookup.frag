@@ -17,6 +17,10 @@
 //   COAT         1 when a point of the pass has a clear coat (with SHADE)
 //   TERMINATOR   1 when a point of the pass moves onto a smooth mesh's surface for its
 //                shadow tests (the terminator textures; TERMINATOR_FADE, model/surface.py)
+//   AREA         1 when a LocalLight is a Rect or Disk light (with SHADE): its pairs are
+//                shaded with its area factor (area_factor); LIGHT_TEXELS the light
+//                table's texels a light (3, 6 with AREA); DISK_CORNERS, DISK_SCALE a
+//                disk's outline (area_light_kernels.DISK_CORNERS, DISK_CORNER_SCALE)
 //   LUT_ROWS, LUT_COSINES  the albedo table's rows and n.v columns
 //                (preview_surface.specular_albedo_table: a last column of means follows)
 //   SHADE        1 to also shade the lit pairs (the direct output)
@@ -56,8 +60,9 @@
 // Also the local shading of the lit pairs (shade_kernels.shade_kernel's model and its
 // BRDF, shade_kernels.brdf_cos: keep in step, tests/engine/test_preview_surface.py):
 //   direct    : rgb = sum over lit lights of radiance * window / d^2 (DistantLights:
-//               radiance) * brdf_cos, a = bit j set where LocalLight j is uncertain, bit
-//               16 + k where DistantLight k is (exact in float up to 2^24)
+//               radiance; a Rect or Disk light times its area factor) * brdf_cos, a =
+//               bit j set where LocalLight j is uncertain, bit 16 + k where
+//               DistantLight k is (exact in float up to 2^24)
 
 uniform sampler2D points;
 uniform sampler2D normals;
@@ -68,7 +73,7 @@ uniform int width;
 // The LocalLights, three texels each (light_pass.LightPass._upload_lights): (position,
 // origin-relative metres; range, metres, 0 = reaches nothing), (radiance, linear RGB;
 // the cube faces' near plane, metres), (first face of the static casters' cube, of the
-// animated casters' cube, -1 = none; 0; 0).
+// animated casters' cube, -1 = none; 0; 0); with AREA three more (area_texel).
 uniform samplerBuffer light_table;
 // Each tile's lights (a tile: up to light_pass.LOOKUP_TILE consecutive points; each
 // point's in point_tiles, laid out as the points): the pass's slot j of tile t at texel
@@ -84,6 +89,11 @@ uniform float light_near[16];   // the cube faces' near plane, metres
 uniform int static_face[16];    // first face of the static casters' cube, -1 = none
 uniform int dynamic_face[16];   // first face of the animated casters' cube, -1 = none
 uniform vec3 light_radiance[16];     // linear RGB
+#if AREA
+uniform vec4 light_u[16];       // a Rect or Disk light's half axis u (metres), its kind
+uniform vec3 light_v[16];       // its half axis v (metres)
+uniform vec3 light_axis[16];    // the unit direction it emits along (its -Z)
+#endif
 #endif
 uniform float bias_texels;      // SHADOW_BIAS_TEXELS
 uniform float box_radius;       // SHADOW_REFINE_RADIUS + 0.5 (nearest-texel offset)
@@ -155,8 +165,13 @@ float cube_test(int first, int face, ivec2 texel_xy, float test, bool wanted)
 vec4 light_texel(int li, int c)
 {
 #if TILED
-    return texelFetch(light_table, 3 * li + c);
+    return texelFetch(light_table, LIGHT_TEXELS * li + c);
 #else
+#if AREA
+    if (c >= 3) {  // the shape (area_factor)
+        return c == 3 ? light_u[li] : vec4(c == 4 ? light_v[li] : light_axis[li], 0.0);
+    }
+#endif
     return c == 0 ? vec4(light_pos[li], light_range[li])
         : (c == 1 ? vec4(light_radiance[li], light_near[li])
                   : vec4(float(static_face[li]), float(dynamic_face[li]), 0.0, 0.0));
@@ -396,6 +411,96 @@ void distant(int k, float vs, float vd, Surface s, vec3 n, vec3 e, float nv,
 }
 #endif
 
+#if SHADE && AREA
+// The angle atan(y, x) in [0, pi] for y >= 0, to float32's rounding: the edges' terms
+// of a light seen near its plane cancel to a small sum, which llvmpipe's own atan (a
+// coarser polynomial) left ~1 % off. Reduced to t in [0, 1], then to |z| <= tan(pi/12)
+// (atan t = pi/6 + atan((sqrt(3) t - 1) / (t + sqrt(3)))), where atan's series to z^11
+// is within 1e-8 of z.
+float edge_angle(float y, float x)
+{
+    bool swap = y > abs(x);
+    float t = swap ? abs(x) / y : y / max(abs(x), 1e-30);
+    bool shift = t > 0.26794919;
+    float z = shift ? (1.7320508 * t - 1.0) / (t + 1.7320508) : t;
+    float z2 = z * z;
+    float a = z * (1.0 + z2 * (-1.0 / 3.0 + z2 * (0.2 + z2 * (-1.0 / 7.0 + z2 * (1.0 / 9.0
+                                                                    - z2 / 11.0)))));
+    a = shift ? a + PI / 6.0 : a;
+    a = swap ? 0.5 * PI - a : a;
+    return x < 0.0 ? PI - a : a;
+}
+
+// Lambert's term of one edge (a, b) of a light's outline seen from the point (its
+// corners relative to it): the angle it subtends times n.ĝ, ĝ the unit normal of the
+// plane through it and the point (area_light_kernels._unshadowed; the angle from
+// |a x b| and a.b rather than acos, which float32 rounds to nothing for a far edge).
+float edge_term(vec3 a, vec3 b, vec3 n)
+{
+    vec3 g = cross(a, b);
+    float lg = length(g);
+    return lg > 0.0 ? edge_angle(lg, dot(a, b)) * dot(n, g) / lg : 0.0;
+}
+
+// Light li's area factor at a point of unit normal n that sees the light's centre at
+// -v, dist2 = max(|v|², min distance²) (area_light_kernels._factor, GLSL's only copy:
+// tests/engine/test_area_light_shading.py ties the two): the light's exact unshadowed
+// irradiance (Lambert's formula over its outline, a disk as a regular polygon of its
+// area, clipped to the point's horizon) over the point light's, A n.l / d², at most
+// 1e30; 1 for a light that is no area, 0 behind the light or for a light of no area.
+float area_factor(int li, vec3 v, float dist2, vec3 n)
+{
+    vec4 u = light_texel(li, 3);
+    float factor = 1.0;
+    // A loop of at most one pass rather than an if: llvmpipe runs an if's code for every
+    // lane whether any takes it or not, but skips a loop no lane enters, so the pairs of
+    // point lights (a group of fragments walks one light at a time) pay nothing here.
+    for (int once = u.w == 0.0 ? 1 : 0; once < 1; ++once) {
+        vec3 w = light_texel(li, 4).xyz;
+        vec3 c = -v;
+        float nc = dot(n, c);
+        bool rect = u.w == 1.0;
+        bool front = dot(c, light_texel(li, 5).xyz) < 0.0 && nc > 0.0;
+        int m = front ? (rect ? 4 : DISK_CORNERS) : 0;
+        // The outline's corners (area_light_kernels._unshadowed's order) by turning the
+        // first, (a, b) in units of (u, w), a step at a time: a quarter turn for a rect's
+        // (±1, ±1), 2 pi / m for a disk's polygon DISK_SCALE radii out.
+        vec2 ab = rect ? vec2(-1.0, -1.0) : vec2(DISK_SCALE, 0.0);
+        float phi = 2.0 * PI / float(DISK_CORNERS);
+        vec2 turn = rect ? vec2(0.0, 1.0) : vec2(cos(phi), sin(phi));
+        // The outline clipped to the horizon n.x >= 0 edge by edge: the kept parts of its
+        // edges, and the chord along the horizon from where it leaves to where it comes
+        // back (a convex outline leaves at most once).
+        float total = 0.0;
+        vec3 leaves = vec3(0.0);
+        vec3 returns = vec3(0.0);
+        vec3 a = c + ab.x * u.xyz + ab.y * w;
+        float ha = dot(n, a);
+        for (int k = 1; k <= m; ++k) {
+            ab = vec2(ab.x * turn.x - ab.y * turn.y, ab.y * turn.x + ab.x * turn.y);
+            vec3 b = c + ab.x * u.xyz + ab.y * w;
+            float hb = dot(n, b);
+            if (ha >= 0.0 && hb >= 0.0) {
+                total += edge_term(a, b, n);
+            } else if (ha >= 0.0) {
+                leaves = a + ha / (ha - hb) * (b - a);
+                total += edge_term(a, leaves, n);
+            } else if (hb >= 0.0) {
+                returns = a + ha / (ha - hb) * (b - a);
+                total += edge_term(returns, b, n);
+            }
+            a = b;
+            ha = hb;
+        }
+        total += edge_term(leaves, returns, n);  // 0 where nothing was clipped
+        float area = (rect ? 4.0 : PI) * length(cross(u.xyz, w));
+        float point = area * nc * inversesqrt(dist2) / dist2;  // A n.l / d²
+        factor = front && point > 0.0 ? min(0.5 * abs(total) / point, 1e30) : 0.0;
+    }
+    return factor;
+}
+#endif
+
 #if SHADE
 // Adds light li's contribution at a point it lights (the shadow test said lit); v and
 // d2 as in lookup (shared: the compiler would not match light - p with p - light).
@@ -409,6 +514,9 @@ void shade(int li, vec3 v, float d2, Surface s, vec3 n, vec3 e, float nv, inout 
     float q = dist2 / r2;
     float window = clamp(1.0 - q * q, 0.0, 1.0);
     float e_light = window * window * (inv_d * inv_d);
+#if AREA
+    e_light *= area_factor(li, v, dist2, n);
+#endif
     d_sum += light_texel(li, 1).xyz * (e_light * brdf_cos(s, n, e, l, nv));
 }
 #endif
