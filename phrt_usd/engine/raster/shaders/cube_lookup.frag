@@ -73,7 +73,8 @@ uniform int width;
 // The LocalLights, three texels each (light_pass.LightPass._upload_lights): (position,
 // origin-relative metres; range, metres, 0 = reaches nothing), (radiance, linear RGB;
 // the cube faces' near plane, metres), (first face of the static casters' cube, of the
-// animated casters' cube, -1 = none; 0; 0); with AREA three more (area_texel).
+// animated casters' cube, -1 = none; 0; 0); with AREA three more, its shape (half axis
+// u, kind; half axis v; axis: light_pass._area_texels).
 uniform samplerBuffer light_table;
 // Each tile's lights (a tile: up to light_pass.LOOKUP_TILE consecutive points; each
 // point's in point_tiles, laid out as the points): the pass's slot j of tile t at texel
