@@ -408,7 +408,7 @@ class LightPass:
             np.any(surface[:, preview_surface.CLEARCOAT] > 0.0)
         )
         if shading:  # the surface rows: four RGBA texels a point, rows as the points'
-            self._upload_surface(surface, n, width, rows)
+            _upload_surface(self._surface_tex, surface, n, width, rows)
         centres = np.array([self._maps.cube_keys[k][0] for k in range(n_local)], np.float64)
         # Per tile only when the lights do not fit one pass: else every point walks the
         # lights that reach any of them (uniform arrays, fewer fetches a fragment).
@@ -550,22 +550,23 @@ class LightPass:
             return direct[:n], bits, PointTiles(slots, point_tile[:n])
         return out
 
-    def _upload_surface(self, surface: np.ndarray | None, n: int, width: int, rows: int):
-        """The points' surface rows (n, SURFACE_COLUMNS) float32 (None: the fallback
-        material of albedo 1) into the RGBA32F texture of ``4 width`` x ``rows`` texels
-        (point k's four texels at (4 (k % width) + i, k / width))."""
-        columns = preview_surface.SURFACE_COLUMNS
-        if surface is None:
-            surface = preview_surface.fallback_surface(np.ones((n, 3)))
-        surface = np.ascontiguousarray(surface, np.float32).reshape(n, columns)
-        if n == width * rows:
-            texels = surface
-        else:
-            texels = np.zeros((max(width * rows, 1), columns), np.float32)
-            texels[:n] = surface
-        GL.glBindTexture(GL.GL_TEXTURE_2D, self._surface_tex)
-        GL.glTexImage2D(GL.GL_TEXTURE_2D, 0, GL.GL_RGBA32F, 4 * max(width, 1), max(rows, 1), 0,
-                        GL.GL_RGBA, GL.GL_FLOAT, texels)  # fmt: skip
+
+def _upload_surface(texture: int, surface: np.ndarray | None, n: int, width: int, rows: int):
+    """The points' surface rows (n, SURFACE_COLUMNS) float32 (None: the fallback
+    material of albedo 1) into the RGBA32F ``texture`` of ``4 width`` x ``rows`` texels
+    (point k's four texels at (4 (k % width) + i, k / width))."""
+    columns = preview_surface.SURFACE_COLUMNS
+    if surface is None:
+        surface = preview_surface.fallback_surface(np.ones((n, 3)))
+    surface = np.ascontiguousarray(surface, np.float32).reshape(n, columns)
+    if n == width * rows:
+        texels = surface
+    else:
+        texels = np.zeros((max(width * rows, 1), columns), np.float32)
+        texels[:n] = surface
+    GL.glBindTexture(GL.GL_TEXTURE_2D, texture)
+    GL.glTexImage2D(GL.GL_TEXTURE_2D, 0, GL.GL_RGBA32F, 4 * max(width, 1), max(rows, 1), 0,
+                    GL.GL_RGBA, GL.GL_FLOAT, texels)  # fmt: skip
 
 
 #: The texel tiles of the cube buffer (``_tiled``): (columns, rows) of a 64-byte cache

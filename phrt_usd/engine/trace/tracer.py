@@ -165,13 +165,10 @@ class Tracer:
     def use_shadow_maps(self, rasterizer) -> None:
         """Light the paths' hits with ``rasterizer``'s shadow maps where they decide
         (``hit_lighting``; without maps every pair takes a ray, lights sampled)."""
-        def lookup(positions, normals, view_dirs, surface, terminator):
-            return lighting.map_lookup(
-                rasterizer, self.scene.lights, positions, normals, view_dirs,
-                surface=surface, terminator=terminator,
-            )  # fmt: skip
-
-        self._hit_maps = lookup
+        self._hit_maps = lambda positions, normals, view_dirs, surface, terminator: (
+            lighting.map_lookup(rasterizer, self.scene.lights, positions, normals, view_dirs,
+                                surface=surface, terminator=terminator)
+        )  # fmt: skip
 
     def begin_frame(self, time_code: float) -> None:
         """The frame the next traces belong to: the seed of the light sampling at hits
