@@ -54,8 +54,8 @@ class Terminator:
 
         def run(part: slice) -> None:  # a gather of table rows a point: on the shading pool
             moved.append(_kernels().terminator_lifts(
-                rel[part], tri[part], ns[part], table.plane, table.frame, table.corners,
-                normals[part], lifts[part],
+                rel[part], tri[part], ns[part], table.smooth, table.plane, table.frame,
+                table.corners, normals[part], lifts[part],
             ))  # fmt: skip
 
         on_pool(run, len(tri))

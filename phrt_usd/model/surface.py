@@ -42,12 +42,12 @@ MIN_NORMAL_LENGTH = 1e-6
 #: fully where its triangle's plane faces away from the light (n_g·l <= 0: lit by the
 #: shading normal, shadowed by the flat neighbours), fading out until n_g·l is this cosine
 #: (~6 degrees), where a flat triangle's ray clears its convex neighbours; beyond, shadows
-#: that other objects cast onto a smooth mesh stay where they are. The shadow maps leave
-#: the pairs they call shadowed within the same band undecided (``engine/terminator.py``).
+#: that other objects cast onto a smooth mesh stay where they are. The shadow maps test
+#: the point moved by the same rule (``engine/terminator.py``).
 TERMINATOR_FADE = 0.1
-#: A triangle is flat (no lift, no terminator band) when each corner normal is within
-#: this cosine of its face normal (either side; ~0.8 degrees): its smooth surface is its
-#: plane, up to a lift far below the shadow maps' bias.
+#: A triangle is flat (no move, ``TriangleTable.smooth`` False) when each corner normal
+#: is within this cosine of its face normal (either side; ~0.8 degrees): its smooth
+#: surface is its plane, up to a move far below the shadow maps' bias.
 FLAT_CORNER_COS = 0.9999
 
 #: Cut-out surfaces (``Cutouts``) one ray passes through before it is stopped: the
@@ -85,12 +85,16 @@ class TriangleTable:
     corners : (T, 3, 6) float32: per corner its shading normal, then its albedo
               (``Geometry.corner_normals`` / ``corner_albedo``), so one weighted sum
               over the corners (``interpolate``) gives both.
+    smooth  : (T,) bool: a corner normal leaves the face normal by more than
+              ``FLAT_CORNER_COS`` (either side): the triangle's smooth surface is not its
+              plane (the shadow terminator's moves, ``surface_kernels.terminator_lifts``)
     """
 
     def __init__(self, count: int) -> None:
         self.frame = np.zeros((count, 4, 3))
         self.plane = np.zeros((count, 13))
         self.corners = np.zeros((count, 3, 6), dtype=np.float32)
+        self.smooth = np.zeros(count, dtype=bool)
 
     def __len__(self) -> int:
         return len(self.corners)
@@ -143,7 +147,11 @@ class TriangleTable:
         ok = length[:, None] > 0
         unit = np.where(ok, ng / np.where(ok, length[:, None], 1.0), DEGENERATE_NORMAL)
         self.frame[rows] = np.stack([a, e1, e2, unit], axis=1)
-        self.corners[rows] = np.concatenate([corner_normals[rows], corner_albedo[rows]], axis=2)
+        normals = corner_normals[rows]
+        self.corners[rows] = np.concatenate([normals, corner_albedo[rows]], axis=2)
+        along = np.einsum("ikj,ij->ik", normals, unit)  # each corner normal on the face's
+        squared = np.einsum("ikj,ikj->ik", normals, normals)
+        self.smooth[rows] = np.any(along * along < FLAT_CORNER_COS**2 * squared, axis=1)
 
     def corners_differ(self, corner_normals, corner_albedo, rows: np.ndarray) -> np.ndarray:
         """(k,) bool: rows ``rows`` (k,) whose corner normals or albedo differ from the

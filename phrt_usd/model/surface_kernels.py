@@ -33,7 +33,7 @@ from numba import njit
 
 from phrt_usd.kernels import KERNEL_OPTIONS
 from phrt_usd.model.scene import NO_HIT
-from phrt_usd.model.surface import FLAT_CORNER_COS, MIN_NORMAL_LENGTH
+from phrt_usd.model.surface import MIN_NORMAL_LENGTH
 
 #: Denominator floor (relative to |face normal|) of the ray-plane intersection. A pixel
 #: is only covered by a triangle the rasterizer saw with non-zero screen area, so the ray
@@ -46,7 +46,6 @@ GRAZING_EPS = 1e-12
 MIN_WEIGHT_SUM = 1e-12
 
 _MIN_LEN32 = np.float32(MIN_NORMAL_LENGTH)
-_FLAT_CORNER_COS2 = FLAT_CORNER_COS * FLAT_CORNER_COS
 
 # Array arguments are read and written only in the kernels themselves: numba counts the
 # references of an array handed to another compiled function (two atomic operations per
@@ -133,30 +132,22 @@ def _smooth_lift(t, px, py, pz, s, plane, frame, corners):
 
 
 @njit(**_KERNEL)
-def terminator_lifts(rel, tri, ns, plane, frame, corners, normals, lifts):
+def terminator_lifts(rel, tri, ns, smooth, plane, frame, corners, normals, lifts):
     """The shadow terminator's data of n points rel (n, 3) float64 on triangles tri (n,)
     int64 (-1: none) with shading normals ns (n, 3): into lifts (n, 3) float32 each
     point's move onto the smooth surface its triangle's corner normals imply
     (``_smooth_lift``, the corners turned to ns's side), and into normals (n, 3) float32
     its triangle's unit face normal turned to ns's side; both 0 where the move is 0 (a
-    flat triangle, ``FLAT_CORNER_COS``; a concave corner; no triangle). Returns how many
-    points move."""
+    triangle not ``smooth`` (T,) bool, ``TriangleTable.smooth``; a concave corner; no
+    triangle). Returns how many points move."""
     count = 0
     for i in range(tri.shape[0]):
         normals[i, 0], normals[i, 1], normals[i, 2] = 0.0, 0.0, 0.0
         lifts[i, 0], lifts[i, 1], lifts[i, 2] = 0.0, 0.0, 0.0
         t = tri[i]
-        if t < 0:
+        if t < 0 or not smooth[t]:
             continue
         gx, gy, gz = frame[t, 3, 0], frame[t, 3, 1], frame[t, 3, 2]
-        flat = True
-        for k in range(3):
-            cx, cy, cz = float(corners[t, k, 0]), float(corners[t, k, 1]), float(corners[t, k, 2])
-            along = cx * gx + cy * gy + cz * gz  # squared below: no root a corner
-            if along * along < _FLAT_CORNER_COS2 * (cx * cx + cy * cy + cz * cz):
-                flat = False
-        if flat:
-            continue
         s = 1.0 if gx * ns[i, 0] + gy * ns[i, 1] + gz * ns[i, 2] >= 0.0 else -1.0
         lx, ly, lz = _smooth_lift(t, rel[i, 0], rel[i, 1], rel[i, 2], s, plane, frame, corners)
         if lx == 0.0 and ly == 0.0 and lz == 0.0:
@@ -342,4 +333,5 @@ def warm_up() -> None:
            frame, one, *outs)  # fmt: skip
     hit_geometry(one, f32, f32, v64, frame, corners, v64.copy(), v64.copy(), v32.copy())
     hit_albedo(one, f32, f32, corners, v32.copy())
-    terminator_lifts(v64.copy(), one, v32.copy(), plane, frame, corners, v32.copy(), v32.copy())
+    terminator_lifts(v64.copy(), one, v32.copy(), np.ones(1, np.bool_), plane, frame, corners,
+                     v32.copy(), v32.copy())  # fmt: skip

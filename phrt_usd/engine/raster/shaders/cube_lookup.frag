@@ -198,8 +198,10 @@ float lookup(int li, vec3 v, float d2, vec3 n, vec3 ng, vec3 lift)
     // Selected at the end, not returned early, so that the fetches know (cube_test).
     bool reach = d2 < r * r && ndv < 0.0;
 #if TERMINATOR
-    v += terminator_move(lift, ng, -dot(ng, v), sqrt(d2));
-    ndv = dot(n, v);
+    for (int once = dot(ng, ng) > 0.0 ? 0 : 1; once < 1; ++once) {  // as main's fetch
+        v += terminator_move(lift, ng, -dot(ng, v), sqrt(d2));
+        ndv = dot(n, v);
+    }
 #endif
     vec3 a = abs(v);
     int axis;
@@ -553,7 +555,12 @@ void main()
         vec3 n = texelFetch(normals, xy, 0).xyz;
 #if TERMINATOR
         vec3 ng = texelFetch(terminator, xy, 0).xyz;
-        vec3 lift = texelFetch(lifts, xy, 0).xyz;
+        vec3 lift = vec3(0.0);
+        // Only a point that moves reads its move: a loop of at most one pass rather than
+        // an if, which llvmpipe skips where no fragment of a group moves (a flat region).
+        for (int once = dot(ng, ng) > 0.0 ? 0 : 1; once < 1; ++once) {
+            lift = texelFetch(lifts, xy, 0).xyz;
+        }
 #else
         vec3 ng = vec3(0.0);
         vec3 lift = vec3(0.0);
