@@ -39,14 +39,16 @@ class Terminator:
 
     @classmethod
     def of(
-        cls, table: TriangleTable, rel: np.ndarray, triangles: np.ndarray,
-        shading_normals: np.ndarray,
+        cls, table: TriangleTable, points: np.ndarray, origin: np.ndarray,
+        triangles: np.ndarray, shading_normals: np.ndarray,
     ) -> Terminator | None:  # fmt: skip
-        """The moves of points ``rel`` (n, 3) (in ``table``'s space) on ``triangles``
-        (n,) of ``table`` with unit ``shading_normals`` (n, 3) facing the viewer, or None
-        when none of them moves (then the maps' lookups stay as they are)."""
+        """The moves of ``points`` (n, 3) (``table``'s space is points - ``origin`` (3,))
+        on ``triangles`` (n,) of ``table`` with unit ``shading_normals`` (n, 3) facing the
+        viewer, or None when none of them moves (then the maps' lookups stay as they
+        are)."""
         tri = np.ascontiguousarray(triangles, np.int64).reshape(-1)
-        rel = np.ascontiguousarray(rel, np.float64).reshape(-1, 3)
+        points = np.ascontiguousarray(points, np.float64).reshape(-1, 3)
+        origin = np.asarray(origin, np.float64).reshape(3)
         ns = np.ascontiguousarray(shading_normals).reshape(-1, 3)
         normals = np.empty((len(tri), 3), np.float32)
         lifts = np.empty((len(tri), 3), np.float32)
@@ -54,8 +56,8 @@ class Terminator:
 
         def run(part: slice) -> None:  # a gather of table rows a point: on the shading pool
             moved.append(_kernels().terminator_lifts(
-                rel[part], tri[part], ns[part], table.smooth, table.plane, table.frame,
-                table.corners, normals[part], lifts[part],
+                points[part], origin, tri[part], ns[part], table.smooth, table.plane,
+                table.frame, table.corners, normals[part], lifts[part],
             ))  # fmt: skip
 
         on_pool(run, len(tri))

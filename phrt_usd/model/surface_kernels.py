@@ -132,9 +132,10 @@ def _smooth_lift(t, px, py, pz, s, plane, frame, corners):
 
 
 @njit(**_KERNEL)
-def terminator_lifts(rel, tri, ns, smooth, plane, frame, corners, normals, lifts):
-    """The shadow terminator's data of n points rel (n, 3) float64 on triangles tri (n,)
-    int64 (-1: none) with shading normals ns (n, 3): into lifts (n, 3) float32 each
+def terminator_lifts(points, origin, tri, ns, smooth, plane, frame, corners, normals, lifts):
+    """The shadow terminator's data of n points (n, 3) float64 (rel = points - origin
+    (3,), the tables' space) on triangles tri (n,) int64 (-1: none) with shading normals
+    ns (n, 3): into lifts (n, 3) float32 each
     point's move onto the smooth surface its triangle's corner normals imply
     (``_smooth_lift``, the corners turned to ns's side), and into normals (n, 3) float32
     its triangle's unit face normal turned to ns's side; both 0 where the move is 0 (a
@@ -149,7 +150,8 @@ def terminator_lifts(rel, tri, ns, smooth, plane, frame, corners, normals, lifts
             continue
         gx, gy, gz = frame[t, 3, 0], frame[t, 3, 1], frame[t, 3, 2]
         s = 1.0 if gx * ns[i, 0] + gy * ns[i, 1] + gz * ns[i, 2] >= 0.0 else -1.0
-        lx, ly, lz = _smooth_lift(t, rel[i, 0], rel[i, 1], rel[i, 2], s, plane, frame, corners)
+        px, py, pz = points[i, 0] - origin[0], points[i, 1] - origin[1], points[i, 2] - origin[2]
+        lx, ly, lz = _smooth_lift(t, px, py, pz, s, plane, frame, corners)
         if lx == 0.0 and ly == 0.0 and lz == 0.0:
             continue
         normals[i, 0], normals[i, 1], normals[i, 2] = s * gx, s * gy, s * gz
@@ -333,5 +335,5 @@ def warm_up() -> None:
            frame, one, *outs)  # fmt: skip
     hit_geometry(one, f32, f32, v64, frame, corners, v64.copy(), v64.copy(), v32.copy())
     hit_albedo(one, f32, f32, corners, v32.copy())
-    terminator_lifts(v64.copy(), one, v32.copy(), np.ones(1, np.bool_), plane, frame, corners,
-                     v32.copy(), v32.copy())  # fmt: skip
+    terminator_lifts(v64.copy(), np.zeros(3), one, v32.copy(), np.ones(1, np.bool_), plane,
+                     frame, corners, v32.copy(), v32.copy())  # fmt: skip

@@ -54,6 +54,8 @@ from phrt_usd.model.scene import Lights
 
 #: The compiled trace kernels (``trace_kernels``, through ``phrt_usd.kernels``).
 _TRACE = kernels.load("phrt_usd.engine.trace.trace_kernels")
+#: The origin of rel positions in rel space (``Terminator.of`` of hits given rel).
+_ORIGIN = np.zeros(3)
 
 #: The shadow maps' lookup of hits: (world positions (n, 3) float64, shading normals
 #: (n, 3) facing the ray's origin, ray directions (n, 3), the hits' surface rows (n,
@@ -168,7 +170,7 @@ class HitLighting:
         albedo, emissive = self._surfaces.colour(tri, u, v, albedo, textured)
         surf = self._surfaces.surface(tri, u, v, albedo)
         world = rel + self._bvh.boundary.origin
-        terminator = Terminator.of(self._bvh.table, rel, tri, ns)  # hits on smooth meshes
+        terminator = Terminator.of(self._bvh.table, rel, _ORIGIN, tri, ns)  # on smooth meshes
         pending = self.maps(world, ns, d_in, surf, terminator)  # shaded with their BRDF
         query = pending.uncertain_pairs()
         rays = np.zeros(len(tri), np.int64)
