@@ -91,7 +91,9 @@ def shade_gbuffer(
         visibility = tracer.shadow_visibility(pos, nrm, tri, pixels=(_pixels(pix, h * w), w))
         shadow_pass = "shadow_rays"
     else:
-        terminator = Terminator.of(rasterizer.triangle_table, pos, scene.origin, tri, nrm)
+        terminator = Terminator.of(
+            rasterizer.triangle_table, pos, scene.origin, tri, nrm, lights
+        )
         pending = map_lookup(
             rasterizer, lights, pos, nrm, view, filtered=tracer is None, surface=surf,
             terminator=terminator,

@@ -21,6 +21,7 @@ import numpy as np
 
 from phrt_usd import kernels
 from phrt_usd.engine.shading import on_pool
+from phrt_usd.model.scene import Lights
 from phrt_usd.model.surface import TERMINATOR_FADE, TriangleTable
 
 
@@ -40,24 +41,31 @@ class Terminator:
     @classmethod
     def of(
         cls, table: TriangleTable, points: np.ndarray, origin: np.ndarray,
-        triangles: np.ndarray, shading_normals: np.ndarray,
+        triangles: np.ndarray, shading_normals: np.ndarray, lights: Lights,
     ) -> Terminator | None:  # fmt: skip
         """The moves of ``points`` (n, 3) (``table``'s space is points - ``origin`` (3,))
         on ``triangles`` (n,) of ``table`` with unit ``shading_normals`` (n, 3) facing the
-        viewer, or None when none of them moves (then the maps' lookups stay as they
-        are)."""
+        viewer, for the shadow tests of ``lights``, or None when none of them moves (then
+        the maps' lookups stay as they are). On a stage of DistantLights only, a point
+        that none of them lights within the fade keeps its place: its move would be faded
+        out to nothing, or the light does not reach it (the farm: most of its smooth
+        points)."""
         tri = np.ascontiguousarray(triangles, np.int64).reshape(-1)
         points = np.ascontiguousarray(points, np.float64).reshape(-1, 3)
         origin = np.asarray(origin, np.float64).reshape(3)
         ns = np.ascontiguousarray(shading_normals).reshape(-1, 3)
         normals = np.empty((len(tri), 3), np.float32)
         lifts = np.empty((len(tri), 3), np.float32)
+        distant = np.array([d.direction for d in lights.distant], np.float64).reshape(-1, 3)
+        distant /= np.maximum(np.linalg.norm(distant, axis=1, keepdims=True), 1e-300)
+        local = bool(lights.local)
         moved = []
 
         def run(part: slice) -> None:  # a gather of table rows a point: on the shading pool
             moved.append(_kernels().terminator_lifts(
                 points[part], origin, tri[part], ns[part], table.smooth, table.plane,
-                table.frame, table.corners, normals[part], lifts[part],
+                table.frame, table.corners, distant, local, TERMINATOR_FADE, normals[part],
+                lifts[part],
             ))  # fmt: skip
 
         on_pool(run, len(tri))

@@ -132,15 +132,18 @@ def _smooth_lift(t, px, py, pz, s, plane, frame, corners):
 
 
 @njit(**_KERNEL)
-def terminator_lifts(points, origin, tri, ns, smooth, plane, frame, corners, normals, lifts):
+def terminator_lifts(points, origin, tri, ns, smooth, plane, frame, corners, distant, local,
+                     fade, normals, lifts):  # fmt: skip
     """The shadow terminator's data of n points (n, 3) float64 (rel = points - origin
     (3,), the tables' space) on triangles tri (n,) int64 (-1: none) with shading normals
-    ns (n, 3): into lifts (n, 3) float32 each
-    point's move onto the smooth surface its triangle's corner normals imply
-    (``_smooth_lift``, the corners turned to ns's side), and into normals (n, 3) float32
-    its triangle's unit face normal turned to ns's side; both 0 where the move is 0 (a
-    triangle not ``smooth`` (T,) bool, ``TriangleTable.smooth``; a concave corner; no
-    triangle). Returns how many points move."""
+    ns (n, 3): into lifts (n, 3) float32 each point's move onto the smooth surface its
+    triangle's corner normals imply (``_smooth_lift``, the corners turned to ns's side),
+    and into normals (n, 3) float32 its triangle's unit face normal n_g turned to ns's
+    side; both 0 where the move is 0 (a triangle not ``smooth`` (T,) bool,
+    ``TriangleTable.smooth``; a concave corner; no triangle) or is never taken: without
+    LocalLights (``local`` False), where for each DistantLight's unit direction l of
+    ``distant`` (D, 3) n_g·l >= ``fade`` (``TERMINATOR_FADE``) or ns·l <= 0 (no light to
+    shadow). Returns how many points move."""
     count = 0
     for i in range(tri.shape[0]):
         normals[i, 0], normals[i, 1], normals[i, 2] = 0.0, 0.0, 0.0
@@ -150,6 +153,14 @@ def terminator_lifts(points, origin, tri, ns, smooth, plane, frame, corners, nor
             continue
         gx, gy, gz = frame[t, 3, 0], frame[t, 3, 1], frame[t, 3, 2]
         s = 1.0 if gx * ns[i, 0] + gy * ns[i, 1] + gz * ns[i, 2] >= 0.0 else -1.0
+        taken = local
+        for k in range(distant.shape[0]):  # lit by the shading normal, face within the fade
+            lit = ns[i, 0] * distant[k, 0] + ns[i, 1] * distant[k, 1] + ns[i, 2] * distant[k, 2]
+            up = s * (gx * distant[k, 0] + gy * distant[k, 1] + gz * distant[k, 2])
+            if lit > 0.0 and up < fade:
+                taken = True
+        if not taken:
+            continue
         px, py, pz = points[i, 0] - origin[0], points[i, 1] - origin[1], points[i, 2] - origin[2]
         lx, ly, lz = _smooth_lift(t, px, py, pz, s, plane, frame, corners)
         if lx == 0.0 and ly == 0.0 and lz == 0.0:
@@ -336,4 +347,4 @@ def warm_up() -> None:
     hit_geometry(one, f32, f32, v64, frame, corners, v64.copy(), v64.copy(), v32.copy())
     hit_albedo(one, f32, f32, corners, v32.copy())
     terminator_lifts(v64.copy(), np.zeros(3), one, v32.copy(), np.ones(1, np.bool_), plane,
-                     frame, corners, v32.copy(), v32.copy())  # fmt: skip
+                     frame, corners, v64.copy(), True, 0.1, v32.copy(), v32.copy())  # fmt: skip

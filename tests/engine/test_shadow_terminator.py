@@ -263,7 +263,9 @@ def test_the_gpu_lookup_and_its_numpy_reference_move_points_alike():
         pos = gb.position.reshape(-1, 3)[covered]
         nrm = gb.normal.reshape(-1, 3)[covered]
         tri = gb.triangle_id.reshape(-1)[covered]
-        terminator = Terminator.of(raster.triangle_table, pos, tracer.scene.origin, tri, nrm)
+        terminator = Terminator.of(
+            raster.triangle_table, pos, tracer.scene.origin, tri, nrm, tracer.scene.lights
+        )
         assert terminator is not None
         answers = {}
         for on_gpu in (True, False):

@@ -170,7 +170,7 @@ class HitLighting:
         albedo, emissive = self._surfaces.colour(tri, u, v, albedo, textured)
         surf = self._surfaces.surface(tri, u, v, albedo)
         world = rel + self._bvh.boundary.origin
-        terminator = Terminator.of(self._bvh.table, rel, _ORIGIN, tri, ns)  # on smooth meshes
+        terminator = Terminator.of(self._bvh.table, rel, _ORIGIN, tri, ns, lights)  # smooth
         pending = self.maps(world, ns, d_in, surf, terminator)  # shaded with their BRDF
         query = pending.uncertain_pairs()
         rays = np.zeros(len(tri), np.int64)
