@@ -53,10 +53,11 @@ from phrt_usd.engine.raster.shadow_maps import (
     ShadowMap,
     ShadowMaps,
 )
-from phrt_usd.engine.shading import MIN_LIGHT_DISTANCE
+from phrt_usd.engine.shading import MIN_LIGHT_DISTANCE, area_table
 from phrt_usd.engine.terminator import Terminator
 from phrt_usd.model import preview_surface
 from phrt_usd.model.light_sampling import has_area_lights
+from phrt_usd.model.scene import Lights
 from phrt_usd.model.surface import TERMINATOR_FADE
 
 #: Most rows of the GPU lookup pass's point texture (llvmpipe's largest renderbuffer
@@ -428,7 +429,7 @@ class LightPass:
             slots, most = np.arange(n_local, dtype=np.int64).reshape(1, n_local), n_local
         slots = np.ascontiguousarray(slots[:, :most])
         if tiled:
-            table = _light_table(cubes, ranges, first, self._ctx.scene.lights.local,
+            table = _light_table(cubes, ranges, first, self._ctx.scene.lights,
                                  [key[0] for key in self._maps.cube_keys])  # fmt: skip
             GL.glBindBuffer(GL.GL_TEXTURE_BUFFER, self._light_buf)
             GL.glBufferData(GL.GL_TEXTURE_BUFFER, table.nbytes, table, GL.GL_DYNAMIC_DRAW)
@@ -519,7 +520,7 @@ class LightPass:
                 GL.glUniform1i(loc("point_tiles"), surface_unit + 4)
             else:
                 ks = [int(k) for k in slots[0, start : start + count]] if len(slots) else []
-                _pass_lights(loc, ks, cubes, ranges, first, self._ctx.scene.lights.local,
+                _pass_lights(loc, ks, cubes, ranges, first, self._ctx.scene.lights,
                              [key[0] for key in self._maps.cube_keys])  # fmt: skip
             if n_distant:
                 self._distant_uniforms(distant, loc)
@@ -609,16 +610,16 @@ def _texels_already(data: np.ndarray | None, minus: np.ndarray | None, size) -> 
     )
 
 
-def _pass_lights(loc, ks: list[int], cubes, ranges, first: list[int], lights, centres):
+def _pass_lights(loc, ks: list[int], cubes, ranges, first: list[int], lights: Lights, centres):
     """An untiled lookup pass's LocalLights ``ks`` (indices into ``cubes``) as its
     program's uniform arrays (slot j: light ks[j]): ``loc`` the program's uniform
     locations, ``first`` as ``LightPass._upload_cubes`` returns it, ``lights`` the
-    scene's LocalLights, ``centres`` their rel positions (``ShadowMaps.cube_keys``)."""
+    scene's, ``centres`` its LocalLights' rel positions (``ShadowMaps.cube_keys``)."""
     n_local, pad = len(cubes), LOOKUP_LIGHTS_PER_PASS - len(ks)
     pos = np.zeros((LOOKUP_LIGHTS_PER_PASS, 3), np.float32)
     pos[: len(ks)] = np.reshape([centres[k] for k in ks], (-1, 3))
     radiance = np.zeros((LOOKUP_LIGHTS_PER_PASS, 3), np.float32)
-    radiance[: len(ks)] = np.reshape([lights[k].radiance for k in ks], (-1, 3))
+    radiance[: len(ks)] = np.reshape([lights.local[k].radiance for k in ks], (-1, 3))
     cube = [c[0] or c[1] for c in (cubes[k] for k in ks)]
     near = [c.near if c is not None else 0.0 for c in cube] + [0.0] * pad
     GL.glUniform3fv(loc("light_pos"), LOOKUP_LIGHTS_PER_PASS, pos)
@@ -641,7 +642,7 @@ def _pass_lights(loc, ks: list[int], cubes, ranges, first: list[int], lights, ce
                         np.ascontiguousarray(texels[:, 2, :3]))
 
 
-def _light_table(cubes, ranges, first: list[int], lights, centres) -> np.ndarray:
+def _light_table(cubes, ranges, first: list[int], lights: Lights, centres) -> np.ndarray:
     """The LocalLights' table of a tiled pass (``shaders/cube_lookup.frag``'s
     ``light_table``), (max(L, 1), LIGHT_TEXELS, 4) float32: per light (rel position,
     range), (radiance, the cube's near plane), (first face of the static cube, of the
@@ -655,7 +656,7 @@ def _light_table(cubes, ranges, first: list[int], lights, centres) -> np.ndarray
     for k, pair in enumerate(cubes):
         cube = pair[0] or pair[1]
         table[k, 0, :3], table[k, 0, 3] = centres[k], ranges[k]
-        table[k, 1, :3] = lights[k].radiance
+        table[k, 1, :3] = lights.local[k].radiance
         table[k, 1, 3] = cube.near if cube is not None else 0.0
         table[k, 2, :2] = first[k], first[n_local + k]
     return table
@@ -677,20 +678,21 @@ def _light_texels(area: bool) -> int:
     return 6 if area else 3
 
 
-def _area_texels(lights) -> np.ndarray | None:
+def _area_texels(lights: Lights) -> np.ndarray | None:
     """(L, 3, 4) float32: each LocalLight's shape as the shader's ``area_factor`` reads it,
     (half axis u in metres, kind: 0 none, ``area_light_kernels.RECT`` or ``DISK``),
-    (half axis v, 0), (the unit direction it emits along, 0); None when none of
-    ``lights`` is a Rect or Disk light."""
-    kinds = {"rect": _areas().RECT, "disk": _areas().DISK}
-    if not any(li.area_shape in kinds for li in lights):
+    (half axis v, 0), (the unit direction it emits along, 0), taken from the shading's
+    table of the shapes (``shading.area_table``); None when no light of ``lights`` is a
+    Rect or Disk light."""
+    area = area_table(lights)
+    if area is None:
         return None
-    texels = np.zeros((len(lights), 3, 4), np.float32)
-    for k, li in enumerate(lights):
-        if li.area_shape in kinds:
-            texels[k, 0, :3], texels[k, 0, 3] = li.area_u, kinds[li.area_shape]
-            texels[k, 1, :3], texels[k, 2, :3] = li.area_v, li.axis
-    return np.nan_to_num(texels)
+    a = _areas()
+    texels = np.zeros((len(area), 3, 4), np.float32)
+    texels[:, 0, :3], texels[:, 0, 3] = area[:, a.AREA_U : a.AREA_U + 3], area[:, a.AREA_KIND]
+    texels[:, 1, :3] = area[:, a.AREA_V : a.AREA_V + 3]
+    texels[:, 2, :3] = area[:, a.AREA_AXIS : a.AREA_AXIS + 3]
+    return texels
 
 
 def _upload_slots(texture: int, slots: np.ndarray) -> None:
