@@ -33,6 +33,7 @@ from phrt_usd.engine.shading import gather_rows, point_surface, shade_local, sha
 from phrt_usd.engine.terminator import Terminator
 from phrt_usd.model import surface
 from phrt_usd.model.frame import GBuffer
+from phrt_usd.model.light_sampling import has_area_lights
 from phrt_usd.model.scene import Lights, Scene
 
 if TYPE_CHECKING:  # the raster half imports OpenGL: only if used
@@ -85,10 +86,13 @@ def shade_gbuffer(
     lights = scene.lights
     n_lights = len(lights.distant) + len(lights.local)
     shadow_pass = None
+    # The points' pixels draw the area lights' rays (only a stage with Rect or Disk
+    # lights needs them).
+    pixels = (_pixels(pix, h * w), w) if has_area_lights(lights) else None
     if n_lights == 0:
         visibility = np.ones((len(pos), 0), dtype=np.float32)
     elif mode == "rt":
-        visibility = tracer.shadow_visibility(pos, nrm, tri, pixels=(_pixels(pix, h * w), w))
+        visibility = tracer.shadow_visibility(pos, nrm, tri, pixels=pixels)
         shadow_pass = "shadow_rays"
     else:
         terminator = Terminator.of(
@@ -98,7 +102,7 @@ def shade_gbuffer(
             rasterizer, lights, pos, nrm, view, filtered=tracer is None, surface=surf,
             terminator=terminator,
         )  # fmt: skip
-        visibility = _settled(pending, tracer, tri, (_pixels(pix, h * w), w))
+        visibility = _settled(pending, tracer, tri, pixels)
         shadow_pass = "shadow_map" if tracer is None else "shadow_map+rays"
     if _emits(scene):
         emissive = surface.emissive_at(scene, tri, pos)  # textured too
