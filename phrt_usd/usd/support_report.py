@@ -404,7 +404,7 @@ KINDS: tuple[SupportKind, ...] = (
         "Disk an area's irradiance everywhere, its shadow the centre's where the shadow "
         "maps decide it",
         "usd/lights.py: emitted power kept; engine/trace/area_light_kernels.py: Rect and "
-        "Disk areas (soft shadows) at traced hits lit by shadow rays",
+        "Disk areas wherever shaded (soft shadows where shadow rays decide)",
         _area_light,
     ),
     SupportKind(
